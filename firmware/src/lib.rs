@@ -1,0 +1,4 @@
+//! Scanner controller firmware logic (hardware-independent, `no_std`).
+#![no_std]
+
+pub use protocol;

@@ -1,0 +1,3 @@
+//! The simulated scanner: firmware logic with simulated hardware.
+
+pub use protocol;

@@ -1,0 +1,3 @@
+//! Host library: device link, scan capture, material building, NPF fitting.
+
+pub use protocol;

@@ -1,0 +1,786 @@
+//! The message table: every request the host sends and every reply or event the
+//! device sends, plus the plain data types they carry.
+//!
+//! postcard is not self-describing, so this module *is* the wire schema: enum
+//! variants are encoded as their declaration index (a varint), so **variants are
+//! only ever appended**, never reordered or removed, within one protocol major
+//! version. `docs/protocol.md` lists the indices and the encoding of every field.
+//!
+//! Positions and speeds travel in integer **steps** (exact, no rounding on the
+//! device); the axis configuration carries the steps-per-unit factor so the host
+//! can convert to millimetres or degrees.
+
+use postcard::experimental::max_size::MaxSize;
+use serde::{Deserialize, Serialize};
+
+/// Derives shared by every wire type (kept in one place so no type forgets one).
+macro_rules! wire_type {
+    ($(#[$meta:meta])* $vis:vis $kind:ident $name:ident $($body:tt)*) => {
+        $(#[$meta])*
+        #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, MaxSize)]
+        #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+        #[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+        $vis $kind $name $($body)*
+    };
+}
+
+/// Number of motor axes on the scanner.
+pub const AXIS_COUNT: usize = 3;
+
+/// Most mirror-table entries a device can hold (the default scanner uses 40).
+pub const MAX_MIRRORS: usize = 64;
+
+/// Longest log line a device sends, in bytes of UTF-8.
+pub const LOG_TEXT_CAPACITY: usize = 48;
+
+wire_type! {
+    /// A protocol version. Peers with different `major` refuse to talk; `minor`
+    /// only adds messages or variants at the end of a table.
+    #[derive(Eq, Hash)]
+    pub struct ProtocolVersion {
+        /// Incompatible changes bump this.
+        pub major: u8,
+        /// Compatible additions bump this.
+        pub minor: u8,
+    }
+}
+
+impl ProtocolVersion {
+    /// Whether a peer speaking `other` can talk to one speaking `self`.
+    pub const fn is_compatible_with(self, other: ProtocolVersion) -> bool {
+        self.major == other.major
+    }
+}
+
+impl core::fmt::Display for ProtocolVersion {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "{}.{}", self.major, self.minor)
+    }
+}
+
+wire_type! {
+    /// Firmware semantic version.
+    #[derive(Eq, Hash)]
+    pub struct FirmwareVersion {
+        /// Major.
+        pub major: u8,
+        /// Minor.
+        pub minor: u8,
+        /// Patch.
+        pub patch: u8,
+    }
+}
+
+impl core::fmt::Display for FirmwareVersion {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "{}.{}.{}", self.major, self.minor, self.patch)
+    }
+}
+
+wire_type! {
+    /// One of the scanner's three motor axes (spec/hardware.md, "Axes").
+    #[derive(Eq, Hash, PartialOrd, Ord)]
+    pub enum Axis {
+        /// Rotation of the source disk; continuous, homes on its index flag.
+        Disk,
+        /// Radial position of the source on the disk.
+        Track,
+        /// Tilt of the fold mirror.
+        Tilt,
+    }
+}
+
+impl Axis {
+    /// All axes, in wire order.
+    pub const ALL: [Axis; AXIS_COUNT] = [Axis::Disk, Axis::Track, Axis::Tilt];
+
+    /// Index of this axis in per-axis arrays.
+    pub const fn index(self) -> usize {
+        self as usize
+    }
+
+    /// The axis at `index`, if any.
+    pub const fn from_index(index: usize) -> Option<Axis> {
+        match index {
+            0 => Some(Axis::Disk),
+            1 => Some(Axis::Track),
+            2 => Some(Axis::Tilt),
+            _ => None,
+        }
+    }
+
+    /// Lower-case name, as used by the CLI and the docs.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Axis::Disk => "disk",
+            Axis::Track => "track",
+            Axis::Tilt => "tilt",
+        }
+    }
+}
+
+wire_type! {
+    /// A set of axes as a bit mask: bit *n* is `Axis::from_index(n)`.
+    /// Bits 3..=7 are invalid and make the device answer `BadRequest`.
+    #[derive(Eq, Hash, Default)]
+    pub struct AxisSet(pub u8);
+}
+
+impl AxisSet {
+    /// No axis.
+    pub const NONE: AxisSet = AxisSet(0);
+    /// Every axis.
+    pub const ALL: AxisSet = AxisSet(0b111);
+
+    /// The set holding only `axis`.
+    pub const fn single(axis: Axis) -> AxisSet {
+        AxisSet(1 << axis as u8)
+    }
+    /// Whether `axis` is in the set.
+    pub const fn contains(self, axis: Axis) -> bool {
+        self.0 & (1 << axis as u8) != 0
+    }
+    /// The set with `axis` added.
+    pub const fn with(self, axis: Axis) -> AxisSet {
+        AxisSet(self.0 | (1 << axis as u8))
+    }
+    /// Whether only bits of real axes are set.
+    pub const fn is_valid(self) -> bool {
+        self.0 & !Self::ALL.0 == 0
+    }
+    /// Whether the set is empty.
+    pub const fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+    /// The axes in the set, in wire order.
+    pub fn iter(self) -> impl Iterator<Item = Axis> {
+        Axis::ALL.into_iter().filter(move |a| self.contains(*a))
+    }
+}
+
+wire_type! {
+    /// Physical unit of an axis position.
+    #[derive(Eq, Hash)]
+    pub enum Unit {
+        /// Degrees (rotary axes).
+        Degree,
+        /// Millimetres (linear axes).
+        Millimetre,
+    }
+}
+
+wire_type! {
+    /// Direction of travel.
+    #[derive(Eq, Hash)]
+    pub enum Direction {
+        /// Towards decreasing step counts.
+        Negative,
+        /// Towards increasing step counts.
+        Positive,
+    }
+}
+
+wire_type! {
+    /// How an axis finds its home: fast approach to the switch, back off, slow
+    /// approach; the position at the slow-approach edge becomes `home_position`.
+    #[derive(Eq, Hash)]
+    pub struct HomingConfig {
+        /// Direction of the approach to the switch.
+        pub direction: Direction,
+        /// Fast-approach speed, steps/s.
+        pub fast_speed: u32,
+        /// Slow-approach speed, steps/s.
+        pub slow_speed: u32,
+        /// Back-off distance after the fast approach, steps.
+        pub backoff_steps: u32,
+        /// Longest travel searched before homing fails (`SwitchNotFound`), steps.
+        pub max_travel_steps: u32,
+        /// Time limit for the whole homing sequence, ms.
+        pub timeout_ms: u32,
+        /// Position (steps) assigned at the switch edge.
+        pub home_position: i32,
+    }
+}
+
+wire_type! {
+    /// Per-axis configuration: kinematics, limits and homing.
+    pub struct AxisConfig {
+        /// Unit of `steps_per_unit`.
+        pub unit: Unit,
+        /// Steps per unit (e.g. 1600 steps/mm); used only to report units.
+        pub steps_per_unit: f32,
+        /// Soft limit, lowest allowed position, steps (ignored when `continuous`).
+        pub min_steps: i32,
+        /// Soft limit, highest allowed position, steps (ignored when `continuous`).
+        pub max_steps: i32,
+        /// Continuous rotation: no soft limits, positions wrap at `steps_per_rev`.
+        pub continuous: bool,
+        /// Steps per full revolution (continuous axes), 0 otherwise.
+        pub steps_per_rev: u32,
+        /// Maximum speed, steps/s.
+        pub v_max: u32,
+        /// Maximum acceleration, steps/s².
+        pub a_max: u32,
+        /// Homing parameters.
+        pub homing: HomingConfig,
+    }
+}
+
+wire_type! {
+    /// Position of every axis that aims the beam at one mirror, in steps.
+    #[derive(Eq, Hash)]
+    pub struct MirrorPosition {
+        /// Target per axis, indexed by [`Axis::index`].
+        pub steps: [i32; AXIS_COUNT],
+    }
+}
+
+wire_type! {
+    /// Absolute targets or relative offsets.
+    #[derive(Eq, Hash)]
+    pub enum MoveMode {
+        /// Targets are positions.
+        Absolute,
+        /// Targets are offsets from the current position.
+        Relative,
+    }
+}
+
+wire_type! {
+    /// Light output state.
+    #[derive(Eq, Hash, Default)]
+    pub struct LightState {
+        /// Whether the light is on.
+        pub on: bool,
+        /// PWM duty in per mille (0..=1000) used while on.
+        pub duty_permille: u16,
+    }
+}
+
+wire_type! {
+    /// One capture step, executed by the device as a unit: go to `mirror` →
+    /// settle → light on → trigger pulse of `exposure_us` → light off →
+    /// [`Event::TriggerFired`].
+    #[derive(Eq, Hash)]
+    pub struct CaptureStep {
+        /// Mirror-table index.
+        pub mirror: u8,
+        /// Settling time after the move, ms.
+        pub settle_ms: u16,
+        /// Trigger pulse / exposure length, µs (1 ms ..= 2 s).
+        pub exposure_us: u32,
+        /// Light duty while exposing, per mille (1..=1000).
+        pub light_duty_permille: u16,
+    }
+}
+
+/// Default settle time of a capture step (spec/hardware.md).
+pub const DEFAULT_SETTLE_MS: u16 = 150;
+/// Default exposure of a capture step (spec/hardware.md).
+pub const DEFAULT_EXPOSURE_US: u32 = 50_000;
+/// Shortest allowed exposure.
+pub const MIN_EXPOSURE_US: u32 = 1_000;
+/// Longest allowed exposure.
+pub const MAX_EXPOSURE_US: u32 = 2_000_000;
+/// Full light duty.
+pub const FULL_DUTY_PERMILLE: u16 = 1000;
+
+wire_type! {
+    /// Latched fault flags (bit mask). A set flag stops all motion and switches
+    /// the light off; it stays set until [`Request::ClearFault`].
+    #[derive(Eq, Hash, Default)]
+    pub struct FaultFlags(pub u16);
+}
+
+impl FaultFlags {
+    /// No fault.
+    pub const NONE: FaultFlags = FaultFlags(0);
+    /// Emergency-stop input asserted or [`Request::EmergencyStop`] received.
+    pub const EMERGENCY_STOP: FaultFlags = FaultFlags(1 << 0);
+    /// A stepper driver reported a fault.
+    pub const DRIVER_FAULT: FaultFlags = FaultFlags(1 << 1);
+    /// A home switch was hit outside homing.
+    pub const UNEXPECTED_HOME_SWITCH: FaultFlags = FaultFlags(1 << 2);
+    /// No message from the host for 500 ms while moving.
+    pub const LINK_TIMEOUT: FaultFlags = FaultFlags(1 << 3);
+    /// The last reset was caused by the hardware watchdog.
+    pub const WATCHDOG_RESET: FaultFlags = FaultFlags(1 << 4);
+    /// Homing of an axis failed (switch not found, timeout, stuck switch).
+    pub const HOMING_FAILED: FaultFlags = FaultFlags(1 << 5);
+
+    /// Whether no flag is set.
+    pub const fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+    /// Whether every flag of `other` is set.
+    pub const fn contains(self, other: FaultFlags) -> bool {
+        self.0 & other.0 == other.0 && other.0 != 0
+    }
+    /// Union.
+    pub const fn union(self, other: FaultFlags) -> FaultFlags {
+        FaultFlags(self.0 | other.0)
+    }
+    /// Names of the set flags, for messages.
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        const NAMES: [&str; 6] = [
+            "emergency-stop",
+            "driver-fault",
+            "unexpected-home-switch",
+            "link-timeout",
+            "watchdog-reset",
+            "homing-failed",
+        ];
+        NAMES
+            .into_iter()
+            .enumerate()
+            .filter(move |(bit, _)| self.0 & (1 << bit) != 0)
+            .map(|(_, name)| name)
+    }
+}
+
+wire_type! {
+    /// Device capabilities (bit mask).
+    #[derive(Eq, Hash, Default)]
+    pub struct Capabilities(pub u16);
+}
+
+impl Capabilities {
+    /// Mirror table and axis configs persist in flash ([`Request::SaveConfig`]).
+    pub const PERSISTENT_CONFIG: Capabilities = Capabilities(1 << 0);
+    /// Light output is PWM-dimmable.
+    pub const PWM_LIGHT: Capabilities = Capabilities(1 << 1);
+    /// Camera "exposure active" strobe input is wired.
+    pub const EXPOSURE_STROBE: Capabilities = Capabilities(1 << 2);
+    /// A vendor-class USB bulk interface is offered beside CDC-ACM.
+    pub const USB_BULK: Capabilities = Capabilities(1 << 3);
+    /// The device sends [`Event::Log`] lines.
+    pub const LOG_EVENTS: Capabilities = Capabilities(1 << 4);
+    /// The device is a simulator.
+    pub const SIMULATED: Capabilities = Capabilities(1 << 5);
+
+    /// Whether every capability of `other` is present.
+    pub const fn contains(self, other: Capabilities) -> bool {
+        self.0 & other.0 == other.0
+    }
+    /// Union.
+    pub const fn union(self, other: Capabilities) -> Capabilities {
+        Capabilities(self.0 | other.0)
+    }
+}
+
+wire_type! {
+    /// Answer to [`Request::Hello`]: who the device is.
+    #[derive(Eq, Hash)]
+    pub struct DeviceInfo {
+        /// Protocol version the device speaks.
+        pub protocol: ProtocolVersion,
+        /// Firmware version.
+        pub firmware: FirmwareVersion,
+        /// Board identifier ([`BOARD_STM32F411_BLACKPILL`], [`BOARD_SIMULATOR`], …).
+        pub board: u16,
+        /// Unique device id (the STM32's 96-bit UID).
+        pub device_id: [u8; 12],
+        /// Capabilities.
+        pub capabilities: Capabilities,
+        /// Entries in the mirror table.
+        pub mirror_count: u8,
+        /// Random id drawn at every boot: a change means the device was reset.
+        pub boot_id: u32,
+    }
+}
+
+/// [`DeviceInfo::board`] of the default STM32F411CEU6 "Black Pill" controller.
+pub const BOARD_STM32F411_BLACKPILL: u16 = 0x0411;
+/// [`DeviceInfo::board`] of the hil-sim simulated scanner.
+pub const BOARD_SIMULATOR: u16 = 0x5100;
+
+wire_type! {
+    /// What the device is doing.
+    #[derive(Eq, Hash, Default)]
+    pub enum DeviceState {
+        /// Ready for a command.
+        #[default]
+        Idle,
+        /// Homing one or more axes.
+        Homing,
+        /// Executing a move.
+        Moving,
+        /// Executing a capture step or a trigger pulse.
+        Capturing,
+        /// A fault is latched; only status, info, stop and clear are accepted.
+        Faulted,
+    }
+}
+
+wire_type! {
+    /// State of one axis.
+    pub struct AxisStatus {
+        /// Commanded position, steps.
+        pub position_steps: i32,
+        /// Same position in the axis' unit.
+        pub position_units: f32,
+        /// Whether the axis is moving.
+        pub moving: bool,
+        /// Whether the axis has been homed since boot.
+        pub homed: bool,
+    }
+}
+
+wire_type! {
+    /// Answer to [`Request::GetStatus`].
+    pub struct Status {
+        /// Per axis, indexed by [`Axis::index`].
+        pub axes: [AxisStatus; AXIS_COUNT],
+        /// Light output.
+        pub light: LightState,
+        /// Latched faults.
+        pub faults: FaultFlags,
+        /// Activity.
+        pub state: DeviceState,
+        /// Sequence number of the last trigger fired (0: none since boot).
+        pub trigger_seq: u32,
+        /// Milliseconds since boot (wraps after 49 days).
+        pub uptime_ms: u32,
+    }
+}
+
+wire_type! {
+    /// A camera trigger pulse that was fired.
+    #[derive(Eq, Hash)]
+    pub struct TriggerFired {
+        /// Trigger sequence number, 1 for the first trigger after boot.
+        pub trigger_seq: u32,
+        /// Device time at the rising edge, µs since boot.
+        pub timestamp_us: u64,
+        /// Pulse length, µs.
+        pub exposure_us: u32,
+        /// Mirror of the capture step that fired it (`None` for a bare trigger).
+        pub mirror: Option<u8>,
+    }
+}
+
+wire_type! {
+    /// Why homing failed.
+    #[derive(Eq, Hash)]
+    pub enum HomingFailure {
+        /// The switch was not reached within `max_travel_steps`.
+        SwitchNotFound,
+        /// The switch did not release during the back-off (stuck switch).
+        SwitchStuck,
+        /// The sequence exceeded `timeout_ms`.
+        Timeout,
+    }
+}
+
+wire_type! {
+    /// How a motion ended.
+    #[derive(Eq, Hash)]
+    pub enum MotionOutcome {
+        /// Reached its targets / homed.
+        Completed,
+        /// Stopped by [`Request::Stop`] before reaching its targets.
+        Stopped,
+        /// Aborted by a fault.
+        Aborted,
+        /// Homing failed on the axis.
+        HomingFailed(Axis, HomingFailure),
+    }
+}
+
+wire_type! {
+    /// Why the device booted.
+    #[derive(Eq, Hash)]
+    pub enum ResetReason {
+        /// Power on or brown-out.
+        PowerOn,
+        /// Reset pin or debugger.
+        Pin,
+        /// [`Request::Reset`] or other software reset.
+        Software,
+        /// The independent watchdog expired.
+        Watchdog,
+        /// Unknown.
+        Other,
+    }
+}
+
+wire_type! {
+    /// Severity of a log line.
+    #[derive(Eq, Hash)]
+    pub enum LogLevel {
+        /// Diagnostic detail.
+        Debug,
+        /// Normal operation.
+        Info,
+        /// Something unusual that the device handled.
+        Warn,
+        /// Something that failed.
+        Error,
+    }
+}
+
+/// A log line of at most [`LOG_TEXT_CAPACITY`] bytes.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[serde(transparent)]
+pub struct LogText(pub heapless::String<LOG_TEXT_CAPACITY>);
+
+impl LogText {
+    /// `text`, cut at a character boundary to fit.
+    pub fn truncated(text: &str) -> LogText {
+        let mut end = text.len().min(LOG_TEXT_CAPACITY);
+        while !text.is_char_boundary(end) {
+            end -= 1;
+        }
+        let mut s = heapless::String::new();
+        // Cannot fail: `end` bytes fit by construction.
+        let _ = s.push_str(&text[..end]);
+        LogText(s)
+    }
+    /// The text.
+    pub fn as_str(&self) -> &str {
+        self.0.as_str()
+    }
+}
+
+impl MaxSize for LogText {
+    // varint length prefix (1 byte below 128) + the bytes.
+    const POSTCARD_MAX_SIZE: usize = 1 + LOG_TEXT_CAPACITY;
+}
+
+#[cfg(feature = "arbitrary")]
+impl<'a> arbitrary::Arbitrary<'a> for LogText {
+    fn arbitrary(u: &mut arbitrary::Unstructured<'a>) -> arbitrary::Result<Self> {
+        let s: &str = u.arbitrary()?;
+        Ok(LogText::truncated(s))
+    }
+}
+
+/// Every error the device can answer a request with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, MaxSize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+#[non_exhaustive]
+pub enum DeviceError {
+    /// Motion requested on an axis that has not been homed.
+    NotHomed,
+    /// A target, index or parameter is outside its allowed range.
+    OutOfRange,
+    /// Another motion, homing or capture is in progress.
+    Busy,
+    /// A fault is latched; clear it first.
+    FaultLatched,
+    /// The request is malformed (invalid axis set, inconsistent config…).
+    BadRequest,
+    /// The host's protocol major differs; carries the device's version.
+    UnsupportedVersion(ProtocolVersion),
+    /// No mirror-table entry at that index.
+    MirrorNotSet,
+    /// Persistent storage failed.
+    Storage,
+    /// The device lacks the capability this request needs.
+    Unsupported,
+    /// [`Request::Hello`] has not been exchanged on this link yet.
+    NoHandshake,
+}
+
+impl core::fmt::Display for DeviceError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            DeviceError::NotHomed => f.write_str("axis not homed"),
+            DeviceError::OutOfRange => f.write_str("value out of range"),
+            DeviceError::Busy => f.write_str("device busy"),
+            DeviceError::FaultLatched => f.write_str("fault latched; clear it first"),
+            DeviceError::BadRequest => f.write_str("malformed request"),
+            DeviceError::UnsupportedVersion(v) => {
+                write!(f, "unsupported protocol version (device speaks {v})")
+            }
+            DeviceError::MirrorNotSet => f.write_str("mirror table entry not set"),
+            DeviceError::Storage => f.write_str("persistent storage failed"),
+            DeviceError::Unsupported => f.write_str("not supported by this device"),
+            DeviceError::NoHandshake => f.write_str("no handshake yet"),
+        }
+    }
+}
+
+impl core::error::Error for DeviceError {}
+
+wire_type! {
+    /// A request from the host. The device answers every request with exactly
+    /// one [`Reply`] carrying the request's sequence number.
+    pub enum Request {
+        /// Handshake: the host's protocol version. Answer: [`Reply::Info`] or
+        /// `Error(UnsupportedVersion)`. Also resets duplicate detection.
+        Hello {
+            /// Version the host speaks.
+            host_protocol: ProtocolVersion,
+        },
+        /// Heartbeat. Answer: [`Reply::Pong`] with the same token.
+        Ping {
+            /// Echoed back.
+            token: u32,
+        },
+        /// Answer: [`Reply::Status`].
+        GetStatus,
+        /// Home the axes in the set (concurrently). Answer: `Ack`, then
+        /// [`Event::MotionDone`].
+        Home {
+            /// Axes to home.
+            axes: AxisSet,
+        },
+        /// Move one or several axes concurrently; `None` leaves an axis alone.
+        /// Answer: `Ack`, then [`Event::MotionDone`].
+        Move {
+            /// Absolute or relative.
+            mode: MoveMode,
+            /// Per-axis target in steps, indexed by [`Axis::index`].
+            targets: [Option<i32>; AXIS_COUNT],
+        },
+        /// Move all axes to a mirror-table entry. Answer: `Ack`, then
+        /// [`Event::MotionDone`].
+        GoToMirror {
+            /// Mirror-table index.
+            mirror: u8,
+        },
+        /// Answer: [`Reply::Mirror`].
+        GetMirror {
+            /// Mirror-table index.
+            mirror: u8,
+        },
+        /// Store a mirror-table entry (RAM; [`Request::SaveConfig`] persists).
+        SetMirror {
+            /// Mirror-table index (< [`MAX_MIRRORS`]).
+            mirror: u8,
+            /// Axis positions that aim the beam at it.
+            position: MirrorPosition,
+        },
+        /// Set how many mirror-table entries are in use (≤ [`MAX_MIRRORS`]).
+        SetMirrorCount {
+            /// Entries in use.
+            count: u8,
+        },
+        /// Switch the light.
+        SetLight(LightState),
+        /// Fire one camera trigger pulse. Answer: `Ack`, then
+        /// [`Event::TriggerFired`].
+        Trigger {
+            /// Pulse length, µs.
+            exposure_us: u32,
+        },
+        /// One capture step. Answer: `Ack`, then [`Event::MotionDone`] and
+        /// [`Event::TriggerFired`].
+        CaptureStep(CaptureStep),
+        /// Decelerate every axis to a stop and abort a capture step.
+        Stop,
+        /// Stop immediately, light off, latch `EMERGENCY_STOP`.
+        EmergencyStop,
+        /// Clear latched faults (refused with `FaultLatched` while an input
+        /// still asserts one).
+        ClearFault,
+        /// Answer: [`Reply::AxisConfig`].
+        GetAxisConfig {
+            /// Which axis.
+            axis: Axis,
+        },
+        /// Replace an axis' configuration (only while idle; clears its homed flag).
+        SetAxisConfig {
+            /// Which axis.
+            axis: Axis,
+            /// The new configuration.
+            config: AxisConfig,
+        },
+        /// Persist axis configs and the mirror table to flash.
+        SaveConfig,
+        /// Answer: [`Reply::Trigger`] with the last trigger event (recovers a
+        /// lost [`Event::TriggerFired`]).
+        GetLastTrigger,
+        /// Reset the device. Answer: `Ack`, then a new [`Event::Boot`].
+        Reset,
+    }
+}
+
+wire_type! {
+    /// The answer to one request (same sequence number as the request).
+    pub enum Reply {
+        /// Accepted / done.
+        Ack,
+        /// Refused.
+        Error(DeviceError),
+        /// Handshake answer.
+        Info(DeviceInfo),
+        /// Status snapshot.
+        Status(Status),
+        /// A mirror-table entry (`None`: not set).
+        Mirror {
+            /// Index.
+            mirror: u8,
+            /// Entry.
+            position: Option<MirrorPosition>,
+        },
+        /// An axis configuration.
+        AxisConfig {
+            /// Which axis.
+            axis: Axis,
+            /// Its configuration.
+            config: AxisConfig,
+        },
+        /// Heartbeat answer.
+        Pong {
+            /// The request's token.
+            token: u32,
+        },
+        /// The last trigger (`None`: none since boot).
+        Trigger(Option<TriggerFired>),
+    }
+}
+
+/// An unsolicited message from the device. Events carry their own sequence
+/// number (counting from 0 at boot), so the host can see a gap.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, MaxSize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub enum Event {
+    /// Sent once after every boot.
+    Boot {
+        /// Random per boot.
+        boot_id: u32,
+        /// Why it booted.
+        reason: ResetReason,
+    },
+    /// A move, homing or the motion part of a capture step ended.
+    MotionDone {
+        /// Axes that were moving.
+        axes: AxisSet,
+        /// How it ended.
+        outcome: MotionOutcome,
+        /// Positions at the end, steps.
+        positions: [i32; AXIS_COUNT],
+    },
+    /// A camera trigger pulse started.
+    TriggerFired(TriggerFired),
+    /// A fault was latched.
+    FaultRaised {
+        /// All latched faults, including the new one.
+        faults: FaultFlags,
+        /// Axis concerned, if any.
+        axis: Option<Axis>,
+    },
+    /// A log line.
+    Log {
+        /// Severity.
+        level: LogLevel,
+        /// Text.
+        text: LogText,
+    },
+}
+
+/// Everything the device sends: replies to requests and events.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, MaxSize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "arbitrary", derive(arbitrary::Arbitrary))]
+pub enum ToHost {
+    /// Answer to the request with the frame's sequence number.
+    Reply(Reply),
+    /// Unsolicited; the frame's sequence number is the event counter.
+    Event(Event),
+}

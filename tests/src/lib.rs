@@ -1,0 +1,1 @@
+//! End-to-end tests across firmware, simulator and host live in `tests/tests/`.
