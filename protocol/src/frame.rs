@@ -229,9 +229,9 @@ pub struct Feed<'d, 'c, M, const N: usize> {
     rest: &'c [u8],
 }
 
-impl<M, const N: usize> Feed<'_, '_, M, N> {
+impl<'c, M, const N: usize> Feed<'_, 'c, M, N> {
     /// The part of the chunk not consumed yet.
-    pub fn remaining(&self) -> &[u8] {
+    pub fn remaining(&self) -> &'c [u8] {
         self.rest
     }
 }

@@ -1,0 +1,146 @@
+//! Axis defaults (spec/hardware.md, "Axes"), configuration validation and the
+//! persisted configuration blob.
+
+use heapless::Vec;
+use protocol::{
+    AXIS_COUNT, AxisConfig, Direction, HomingConfig, MAX_MIRRORS, MirrorPosition, Unit,
+};
+use serde::{Deserialize, Serialize};
+
+/// Slowest speed the step generator can time (its fixed-point interval
+/// limit is 2^40 ticks; this keeps a wide margin), steps/s.
+pub const MIN_SPEED: u32 = 10;
+/// Fastest step rate accepted per axis, steps/s.
+pub const MAX_SPEED: u32 = 100_000;
+
+/// DISK: 200 × 16 µsteps × 5:1 belt = 16 000 steps/rev; 90 °/s; 180 °/s².
+pub const fn disk_default() -> AxisConfig {
+    AxisConfig {
+        unit: Unit::Degree,
+        steps_per_unit: 16_000.0 / 360.0,
+        min_steps: 0,
+        max_steps: 15_999,
+        continuous: true,
+        steps_per_rev: 16_000,
+        v_max: 4_000,
+        a_max: 8_000,
+        homing: HomingConfig {
+            direction: Direction::Positive,
+            fast_speed: 1_000,
+            slow_speed: 100,
+            backoff_steps: 400,
+            max_travel_steps: 17_600,
+            timeout_ms: 30_000,
+            home_position: 0,
+        },
+    }
+}
+
+/// TRACK: 2 mm lead, 16 µsteps → 1 600 steps/mm; 0 … 200 mm; 40 mm/s; 200 mm/s².
+pub const fn track_default() -> AxisConfig {
+    AxisConfig {
+        unit: Unit::Millimetre,
+        steps_per_unit: 1_600.0,
+        min_steps: 0,
+        max_steps: 320_000,
+        continuous: false,
+        steps_per_rev: 0,
+        v_max: 64_000,
+        a_max: 320_000,
+        homing: HomingConfig {
+            direction: Direction::Negative,
+            fast_speed: 16_000,
+            slow_speed: 1_600,
+            backoff_steps: 3_200,
+            max_travel_steps: 336_000,
+            timeout_ms: 40_000,
+            home_position: 0,
+        },
+    }
+}
+
+/// TILT: 200 × 16 × 30:1 worm = 96 000 steps/rev; −35° … +35°; 20 °/s; 60 °/s².
+pub const fn tilt_default() -> AxisConfig {
+    AxisConfig {
+        unit: Unit::Degree,
+        steps_per_unit: 96_000.0 / 360.0,
+        min_steps: -9_333,
+        max_steps: 9_333,
+        continuous: false,
+        steps_per_rev: 0,
+        v_max: 5_333,
+        a_max: 16_000,
+        homing: HomingConfig {
+            direction: Direction::Negative,
+            fast_speed: 2_667,
+            slow_speed: 267,
+            backoff_steps: 533,
+            max_travel_steps: 20_000,
+            timeout_ms: 30_000,
+            home_position: -9_333,
+        },
+    }
+}
+
+/// The three defaults, indexed by axis.
+pub const fn default_axes() -> [AxisConfig; AXIS_COUNT] {
+    [disk_default(), track_default(), tilt_default()]
+}
+
+/// Whether `c` is a configuration the controller can execute.
+pub fn is_valid(c: &AxisConfig) -> bool {
+    let speed_ok = |v: u32| (MIN_SPEED..=MAX_SPEED).contains(&v);
+    let h = &c.homing;
+    c.steps_per_unit.is_finite()
+        && c.steps_per_unit > 0.0
+        && speed_ok(c.v_max)
+        && c.a_max >= MIN_SPEED
+        && speed_ok(h.fast_speed)
+        && speed_ok(h.slow_speed)
+        && h.fast_speed <= c.v_max
+        && h.slow_speed <= h.fast_speed
+        && h.backoff_steps > 0
+        && h.max_travel_steps > h.backoff_steps
+        && h.timeout_ms > 0
+        && if c.continuous {
+            c.steps_per_rev > 0 && c.steps_per_rev <= i32::MAX as u32
+        } else {
+            c.min_steps < c.max_steps
+        }
+}
+
+/// Format version of [`PersistedConfig`].
+pub const CONFIG_FORMAT: u16 = 1;
+
+/// What [`protocol::Request::SaveConfig`] writes to flash (postcard-encoded).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PersistedConfig {
+    /// [`CONFIG_FORMAT`].
+    pub format: u16,
+    /// Axis configurations.
+    pub axes: [AxisConfig; AXIS_COUNT],
+    /// Mirror table; its length is the mirror count.
+    pub mirrors: Vec<Option<MirrorPosition>, MAX_MIRRORS>,
+}
+
+/// Largest encoded [`PersistedConfig`], bytes.
+pub const PERSISTED_MAX_LEN: usize = 2 + AXIS_COUNT * 64 + 1 + MAX_MIRRORS * 16;
+
+impl Default for PersistedConfig {
+    fn default() -> Self {
+        PersistedConfig { format: CONFIG_FORMAT, axes: default_axes(), mirrors: Vec::new() }
+    }
+}
+
+impl PersistedConfig {
+    /// Decode a blob; `None` if it is not a valid configuration of this format.
+    pub fn decode(blob: &[u8]) -> Option<PersistedConfig> {
+        let cfg: PersistedConfig = postcard::from_bytes(blob).ok()?;
+        (cfg.format == CONFIG_FORMAT && cfg.axes.iter().all(is_valid)).then_some(cfg)
+    }
+
+    /// Encode into `buf`; returns the used part.
+    pub fn encode<'a>(&self, buf: &'a mut [u8]) -> Option<&'a mut [u8]> {
+        postcard::to_slice(self, buf).ok()
+    }
+}

@@ -1,0 +1,945 @@
+//! The controller: request dispatcher, motion and homing, capture sequencer
+//! and safety supervisor, in one state machine driven from outside.
+//!
+//! The caller owns time and hardware: it hands in received bytes
+//! ([`Controller::on_bytes`]), polls with the current tick and an input
+//! snapshot ([`Controller::poll`]), and runs each axis' step interrupt through
+//! [`Controller::stepper`]. Nothing here blocks, allocates or reads a clock.
+//!
+//! Safety (spec/hardware.md): emergency stop, driver fault and a home switch
+//! hit far from home stop every axis at once, switch the light off and latch a
+//! fault; silence from the host for 500 ms while moving decelerates every axis
+//! and latches `LINK_TIMEOUT`. Axes halted abruptly lose their homed state.
+//! A latched fault refuses motion, light and trigger until `ClearFault`.
+
+use heapless::Deque;
+use protocol::{
+    AXIS_COUNT, Axis, AxisSet, AxisStatus, CaptureStep, DeviceError, DeviceInfo, DeviceState,
+    Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame, FrameDecoder,
+    HomingFailure, LightState, LogLevel, LogText, MAX_EXPOSURE_US, MAX_FRAME_LEN, MAX_MIRRORS,
+    MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply, Request,
+    ResetReason, Status, ToHost, TriggerFired, encode_frame,
+};
+
+use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid};
+use crate::hal::{BootInfo, Hardware, Inputs, TICK_HZ, TICKS_PER_MS, TICKS_PER_US};
+use crate::planner::{Phase, Profile, SegmentPlanner};
+use crate::step::StepGenerator;
+
+/// The host counts as gone after this much silence while an axis moves.
+pub const LINK_TIMEOUT_MS: u64 = 500;
+/// Events buffered for the host before the oldest is dropped.
+pub const EVENT_QUEUE_LEN: usize = 16;
+
+/// Firmware version reported in the handshake (from Cargo.toml).
+pub const FIRMWARE_VERSION: FirmwareVersion = FirmwareVersion {
+    major: parse_u8(env!("CARGO_PKG_VERSION_MAJOR")),
+    minor: parse_u8(env!("CARGO_PKG_VERSION_MINOR")),
+    patch: parse_u8(env!("CARGO_PKG_VERSION_PATCH")),
+};
+
+const fn parse_u8(s: &str) -> u8 {
+    let b = s.as_bytes();
+    let mut i = 0;
+    let mut v: u8 = 0;
+    while i < b.len() {
+        v = v * 10 + (b[i] - b'0');
+        i += 1;
+    }
+    v
+}
+
+/// Stage of one axis' homing sequence.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum HomingStage {
+    FastApproach,
+    BackOff,
+    SlowApproach,
+}
+
+/// What one axis is doing.
+#[derive(Debug, Clone)]
+struct AxisMotion {
+    planner: SegmentPlanner,
+    direction: i32,
+    homing: Option<HomingStage>,
+}
+
+/// What the controller as a whole is doing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Activity {
+    Idle,
+    /// A move (`Move`, `GoToMirror`, or the motion of a capture step).
+    Moving {
+        axes: AxisSet,
+        capture: Option<CaptureStep>,
+        stopping: bool,
+    },
+    Homing {
+        axes: AxisSet,
+        started: u64,
+        stopping: bool,
+    },
+    Settling {
+        step: CaptureStep,
+        until: u64,
+    },
+    Exposing {
+        until: u64,
+    },
+}
+
+/// The controller. See the module docs.
+#[derive(Debug)]
+pub struct Controller {
+    boot: BootInfo,
+    config: PersistedConfig,
+    steppers: [StepGenerator; AXIS_COUNT],
+    motion: [Option<AxisMotion>; AXIS_COUNT],
+    homed: [bool; AXIS_COUNT],
+    activity: Activity,
+    faults: FaultFlags,
+    light: LightState,
+    trigger_seq: u32,
+    last_trigger: Option<TriggerFired>,
+    handshake: bool,
+    last_request: Option<(u8, Reply)>,
+    last_rx: u64,
+    now: u64,
+    prev_inputs: Inputs,
+    events: Deque<Event, EVENT_QUEUE_LEN>,
+    event_seq: u8,
+    decoder: FrameDecoder<Request>,
+    reset_requested: bool,
+    /// Step-queue underruns (planner fell behind); diagnostics only.
+    underruns: u32,
+}
+
+impl Controller {
+    /// A controller after boot, with the persisted configuration blob if one
+    /// was read from storage (invalid or missing → defaults).
+    pub fn new(boot: BootInfo, persisted: Option<&[u8]>) -> Controller {
+        let config = persisted.and_then(PersistedConfig::decode).unwrap_or_default();
+        let mut c = Controller {
+            boot,
+            config,
+            steppers: Default::default(),
+            motion: Default::default(),
+            homed: [false; AXIS_COUNT],
+            activity: Activity::Idle,
+            faults: FaultFlags::NONE,
+            light: LightState { on: false, duty_permille: FULL_DUTY_PERMILLE },
+            trigger_seq: 0,
+            last_trigger: None,
+            handshake: false,
+            last_request: None,
+            last_rx: 0,
+            now: 0,
+            prev_inputs: Inputs::default(),
+            events: Deque::new(),
+            event_seq: 0,
+            decoder: FrameDecoder::new(),
+            reset_requested: false,
+            underruns: 0,
+        };
+        c.emit(Event::Boot { boot_id: boot.boot_id, reason: boot.reason });
+        if boot.reason == ResetReason::Watchdog {
+            c.faults = FaultFlags::WATCHDOG_RESET;
+            c.emit(Event::FaultRaised { faults: c.faults, axis: None });
+        }
+        c
+    }
+
+    // ----- accessors used by the board, the simulator and tests -------------
+
+    /// The step generator of `axis`: the step interrupt calls
+    /// [`StepGenerator::step`] on it.
+    pub fn stepper(&mut self, axis: Axis) -> &mut StepGenerator {
+        &mut self.steppers[axis.index()]
+    }
+    /// Current position of `axis`, steps.
+    pub fn position(&self, axis: Axis) -> i32 {
+        self.steppers[axis.index()].position()
+    }
+    /// Whether `axis` has been homed.
+    pub fn is_homed(&self, axis: Axis) -> bool {
+        self.homed[axis.index()]
+    }
+    /// Latched faults.
+    pub fn faults(&self) -> FaultFlags {
+        self.faults
+    }
+    /// The configuration in force.
+    pub fn config(&self) -> &PersistedConfig {
+        &self.config
+    }
+    /// Whether a `Reset` request asks the caller to reboot (after sending
+    /// the pending reply).
+    pub fn reset_requested(&self) -> bool {
+        self.reset_requested
+    }
+    /// Step-queue underruns since boot.
+    pub fn underruns(&self) -> u32 {
+        self.underruns
+    }
+    /// Whether any axis has steps scheduled or planned.
+    pub fn is_moving(&self) -> bool {
+        self.motion.iter().any(Option::is_some)
+    }
+    /// The earliest tick at which [`poll`](Self::poll) has timed work to do
+    /// (settle or exposure end, homing or link timeout), if any.
+    pub fn next_deadline(&self) -> Option<u64> {
+        let timed = match self.activity {
+            Activity::Settling { until, .. } | Activity::Exposing { until } => Some(until),
+            Activity::Homing { started, axes, .. } => axes
+                .iter()
+                .map(|a| {
+                    started + self.config.axes[a.index()].homing.timeout_ms as u64 * TICKS_PER_MS
+                })
+                .min(),
+            _ => None,
+        };
+        let link = (self.is_moving() && !self.faults.contains(FaultFlags::LINK_TIMEOUT))
+            .then_some(self.last_rx + LINK_TIMEOUT_MS * TICKS_PER_MS + 1);
+        match (timed, link) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    // ----- link ------------------------------------------------------------
+
+    /// Feed bytes received from the host; every reply frame is handed to `tx`.
+    /// Corrupted frames are dropped silently (the host retransmits).
+    pub fn on_bytes(
+        &mut self,
+        chunk: &[u8],
+        now: u64,
+        hw: &mut impl Hardware,
+        tx: &mut impl FnMut(&[u8]),
+    ) {
+        let mut rest = chunk;
+        while !rest.is_empty() {
+            let mut feed = self.decoder.feed(rest);
+            let frame = feed.next();
+            rest = feed.remaining();
+            if let Some(Ok(frame)) = frame {
+                let (seq, reply) = self.handle(frame, now, hw);
+                send(tx, seq, &ToHost::Reply(reply));
+            }
+        }
+    }
+
+    /// Send queued events through `tx`.
+    pub fn drain_events(&mut self, tx: &mut impl FnMut(&[u8])) {
+        while let Some(event) = self.events.pop_front() {
+            send(tx, self.event_seq, &ToHost::Event(event));
+            self.event_seq = self.event_seq.wrapping_add(1);
+        }
+    }
+
+    /// Take the next queued event without encoding it.
+    pub fn pop_event(&mut self) -> Option<Event> {
+        let e = self.events.pop_front();
+        if e.is_some() {
+            self.event_seq = self.event_seq.wrapping_add(1);
+        }
+        e
+    }
+
+    /// Execute one decoded request (at most once per sequence number) and
+    /// return the reply with its sequence number.
+    pub fn handle(
+        &mut self,
+        frame: Frame<Request>,
+        now: u64,
+        hw: &mut impl Hardware,
+    ) -> (u8, Reply) {
+        self.now = now;
+        self.last_rx = now;
+        if !matches!(frame.msg, Request::Hello { .. })
+            && let Some((seq, reply)) = self.last_request
+            && seq == frame.seq
+        {
+            return (seq, reply);
+        }
+        let reply = match self.execute(frame.msg, hw) {
+            Ok(reply) => reply,
+            Err(e) => Reply::Error(e),
+        };
+        self.last_request = Some((frame.seq, reply));
+        (frame.seq, reply)
+    }
+
+    fn execute(&mut self, request: Request, hw: &mut impl Hardware) -> Result<Reply, DeviceError> {
+        if let Request::Hello { host_protocol } = request {
+            self.last_request = None;
+            self.handshake = PROTOCOL_VERSION.is_compatible_with(host_protocol);
+            if !self.handshake {
+                return Err(DeviceError::UnsupportedVersion(PROTOCOL_VERSION));
+            }
+            return Ok(Reply::Info(self.info()));
+        }
+        if !self.handshake {
+            return Err(DeviceError::NoHandshake);
+        }
+        match request {
+            Request::Hello { .. } => unreachable!("handled above"),
+            Request::Ping { token } => Ok(Reply::Pong { token }),
+            Request::GetStatus => Ok(Reply::Status(self.status())),
+            Request::Home { axes } => self.start_homing(axes, hw).map(|_| Reply::Ack),
+            Request::Move { mode, targets } => {
+                self.ensure_can_move()?;
+                let targets = self.resolve_targets(mode, targets)?;
+                self.start_move(targets, None, hw)?;
+                Ok(Reply::Ack)
+            }
+            Request::GoToMirror { mirror } => {
+                self.ensure_can_move()?;
+                let position = self.mirror(mirror)?;
+                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some))?;
+                self.start_move(targets, None, hw)?;
+                Ok(Reply::Ack)
+            }
+            Request::GetMirror { mirror } => {
+                if mirror as usize >= MAX_MIRRORS {
+                    return Err(DeviceError::OutOfRange);
+                }
+                let position = self.config.mirrors.get(mirror as usize).copied().flatten();
+                Ok(Reply::Mirror { mirror, position })
+            }
+            Request::SetMirror { mirror, position } => {
+                let i = mirror as usize;
+                if i >= MAX_MIRRORS {
+                    return Err(DeviceError::OutOfRange);
+                }
+                for axis in Axis::ALL {
+                    self.check_limits(axis, position.steps[axis.index()])?;
+                }
+                while self.config.mirrors.len() <= i {
+                    // Cannot fail: i < MAX_MIRRORS = capacity.
+                    let _ = self.config.mirrors.push(None);
+                }
+                self.config.mirrors[i] = Some(position);
+                Ok(Reply::Ack)
+            }
+            Request::SetMirrorCount { count } => {
+                if count as usize > MAX_MIRRORS {
+                    return Err(DeviceError::OutOfRange);
+                }
+                self.config.mirrors.truncate(count as usize);
+                while self.config.mirrors.len() < count as usize {
+                    let _ = self.config.mirrors.push(None);
+                }
+                Ok(Reply::Ack)
+            }
+            Request::SetLight(state) => {
+                self.ensure_no_fault()?;
+                if state.duty_permille > FULL_DUTY_PERMILLE {
+                    return Err(DeviceError::OutOfRange);
+                }
+                if matches!(self.activity, Activity::Exposing { .. } | Activity::Settling { .. }) {
+                    return Err(DeviceError::Busy);
+                }
+                self.light = state;
+                hw.set_light(if state.on { state.duty_permille } else { 0 });
+                Ok(Reply::Ack)
+            }
+            Request::Trigger { exposure_us } => {
+                self.ensure_no_fault()?;
+                check_exposure(exposure_us)?;
+                if self.activity != Activity::Idle {
+                    return Err(DeviceError::Busy);
+                }
+                self.fire_trigger(exposure_us, None, hw);
+                Ok(Reply::Ack)
+            }
+            Request::CaptureStep(step) => {
+                self.ensure_can_move()?;
+                check_exposure(step.exposure_us)?;
+                if step.light_duty_permille == 0 || step.light_duty_permille > FULL_DUTY_PERMILLE {
+                    return Err(DeviceError::OutOfRange);
+                }
+                let position = self.mirror(step.mirror)?;
+                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some))?;
+                self.start_move(targets, Some(step), hw)?;
+                Ok(Reply::Ack)
+            }
+            Request::Stop => {
+                self.controlled_stop(hw);
+                Ok(Reply::Ack)
+            }
+            Request::EmergencyStop => {
+                self.raise_fault(FaultFlags::EMERGENCY_STOP, None, hw);
+                Ok(Reply::Ack)
+            }
+            Request::ClearFault => {
+                let inputs = self.prev_inputs;
+                if inputs.estop || inputs.driver_fault {
+                    return Err(DeviceError::FaultLatched);
+                }
+                self.faults = FaultFlags::NONE;
+                Ok(Reply::Ack)
+            }
+            Request::GetAxisConfig { axis } => {
+                Ok(Reply::AxisConfig { axis, config: self.config.axes[axis.index()] })
+            }
+            Request::SetAxisConfig { axis, config } => {
+                if self.activity != Activity::Idle {
+                    return Err(DeviceError::Busy);
+                }
+                if !is_valid(&config) {
+                    return Err(DeviceError::BadRequest);
+                }
+                self.config.axes[axis.index()] = config;
+                self.homed[axis.index()] = false;
+                Ok(Reply::Ack)
+            }
+            Request::SaveConfig => {
+                let mut buf = [0u8; PERSISTED_MAX_LEN];
+                let blob = self.config.encode(&mut buf).ok_or(DeviceError::Storage)?;
+                hw.save_config(blob).map_err(|_| DeviceError::Storage)?;
+                Ok(Reply::Ack)
+            }
+            Request::GetLastTrigger => Ok(Reply::Trigger(self.last_trigger)),
+            Request::Reset => {
+                self.halt_all(hw);
+                self.reset_requested = true;
+                Ok(Reply::Ack)
+            }
+        }
+    }
+
+    fn info(&self) -> DeviceInfo {
+        DeviceInfo {
+            protocol: PROTOCOL_VERSION,
+            firmware: FIRMWARE_VERSION,
+            board: self.boot.board,
+            device_id: self.boot.device_id,
+            capabilities: self.boot.capabilities,
+            mirror_count: self.config.mirrors.len() as u8,
+            boot_id: self.boot.boot_id,
+        }
+    }
+
+    /// A status snapshot.
+    pub fn status(&self) -> Status {
+        let axes = Axis::ALL.map(|axis| {
+            let i = axis.index();
+            let steps = self.steppers[i].position();
+            AxisStatus {
+                position_steps: steps,
+                position_units: steps as f32 / self.config.axes[i].steps_per_unit,
+                moving: self.motion[i].is_some(),
+                homed: self.homed[i],
+            }
+        });
+        let state = if !self.faults.is_empty() {
+            DeviceState::Faulted
+        } else {
+            match self.activity {
+                Activity::Idle => DeviceState::Idle,
+                Activity::Homing { .. } => DeviceState::Homing,
+                Activity::Moving { capture: None, .. } => DeviceState::Moving,
+                _ => DeviceState::Capturing,
+            }
+        };
+        Status {
+            axes,
+            light: self.light,
+            faults: self.faults,
+            state,
+            trigger_seq: self.trigger_seq,
+            uptime_ms: (self.now / TICKS_PER_MS) as u32,
+        }
+    }
+
+    // ----- validation --------------------------------------------------------
+
+    fn ensure_no_fault(&self) -> Result<(), DeviceError> {
+        if self.faults.is_empty() { Ok(()) } else { Err(DeviceError::FaultLatched) }
+    }
+
+    fn ensure_can_move(&self) -> Result<(), DeviceError> {
+        self.ensure_no_fault()?;
+        if self.activity != Activity::Idle {
+            return Err(DeviceError::Busy);
+        }
+        Ok(())
+    }
+
+    fn mirror(&self, mirror: u8) -> Result<MirrorPosition, DeviceError> {
+        if mirror as usize >= MAX_MIRRORS {
+            return Err(DeviceError::OutOfRange);
+        }
+        self.config.mirrors.get(mirror as usize).copied().flatten().ok_or(DeviceError::MirrorNotSet)
+    }
+
+    fn check_limits(&self, axis: Axis, target: i32) -> Result<(), DeviceError> {
+        let c = &self.config.axes[axis.index()];
+        let ok = if c.continuous {
+            (0..c.steps_per_rev as i64).contains(&(target as i64))
+        } else {
+            (c.min_steps..=c.max_steps).contains(&target)
+        };
+        if ok { Ok(()) } else { Err(DeviceError::OutOfRange) }
+    }
+
+    /// Per-axis signed step deltas for a move request.
+    fn resolve_targets(
+        &self,
+        mode: MoveMode,
+        targets: [Option<i32>; AXIS_COUNT],
+    ) -> Result<[i32; AXIS_COUNT], DeviceError> {
+        if targets.iter().all(Option::is_none) {
+            return Err(DeviceError::BadRequest);
+        }
+        let mut deltas = [0i32; AXIS_COUNT];
+        for axis in Axis::ALL {
+            let Some(t) = targets[axis.index()] else { continue };
+            if !self.homed[axis.index()] {
+                return Err(DeviceError::NotHomed);
+            }
+            let c = &self.config.axes[axis.index()];
+            let pos = self.steppers[axis.index()].position() as i64;
+            let delta = match (mode, c.continuous) {
+                (MoveMode::Absolute, false) => {
+                    self.check_limits(axis, t)?;
+                    t as i64 - pos
+                }
+                (MoveMode::Relative, false) => {
+                    let target = pos + t as i64;
+                    let target = i32::try_from(target).map_err(|_| DeviceError::OutOfRange)?;
+                    self.check_limits(axis, target)?;
+                    t as i64
+                }
+                (MoveMode::Absolute, true) => {
+                    // Shortest way round to the target angle.
+                    self.check_limits(axis, t)?;
+                    let rev = c.steps_per_rev as i64;
+                    let d = (t as i64 - pos).rem_euclid(rev);
+                    if d > rev / 2 { d - rev } else { d }
+                }
+                (MoveMode::Relative, true) => t as i64,
+            };
+            deltas[axis.index()] = i32::try_from(delta).map_err(|_| DeviceError::OutOfRange)?;
+        }
+        Ok(deltas)
+    }
+
+    // ----- motion -------------------------------------------------------------
+
+    fn start_move(
+        &mut self,
+        deltas: [i32; AXIS_COUNT],
+        capture: Option<CaptureStep>,
+        hw: &mut impl Hardware,
+    ) -> Result<(), DeviceError> {
+        let mut axes = AxisSet::NONE;
+        for axis in Axis::ALL {
+            let delta = deltas[axis.index()];
+            if delta != 0 {
+                let c = self.config.axes[axis.index()];
+                let profile =
+                    Profile::trapezoid(delta.unsigned_abs(), 0.0, c.v_max as f64, c.a_max as f64);
+                self.start_axis(axis, profile, delta.signum(), None, hw);
+                axes = axes.with(axis);
+            }
+        }
+        self.activity = Activity::Moving { axes, capture, stopping: false };
+        if axes.is_empty() {
+            // Already there: complete at the next poll.
+            self.finish_motion(MotionOutcome::Completed);
+        }
+        Ok(())
+    }
+
+    fn start_axis(
+        &mut self,
+        axis: Axis,
+        profile: Profile,
+        direction: i32,
+        homing: Option<HomingStage>,
+        hw: &mut impl Hardware,
+    ) {
+        let i = axis.index();
+        let mut planner = SegmentPlanner::new(profile, TICK_HZ);
+        let stepper = &mut self.steppers[i];
+        stepper.halt();
+        fill_queue(&mut planner, stepper);
+        hw.set_drivers_enabled(true);
+        hw.set_direction(axis, direction > 0);
+        if let Some(first) = stepper.start(self.now, direction) {
+            hw.arm_step_timer(axis, first);
+        }
+        self.motion[i] = Some(AxisMotion { planner, direction, homing });
+    }
+
+    /// Decelerate every moving axis to rest; abort homing and capture.
+    fn controlled_stop(&mut self, hw: &mut impl Hardware) {
+        match &mut self.activity {
+            Activity::Moving { stopping, .. } | Activity::Homing { stopping, .. } => {
+                *stopping = true
+            }
+            Activity::Settling { .. } | Activity::Exposing { .. } => {
+                self.end_exposure(hw);
+                self.activity = Activity::Idle;
+                return;
+            }
+            Activity::Idle => {}
+        }
+        for axis in Axis::ALL {
+            self.decelerate_axis(axis);
+        }
+    }
+
+    fn decelerate_axis(&mut self, axis: Axis) {
+        let i = axis.index();
+        let Some(motion) = &mut self.motion[i] else { return };
+        let stepper = &mut self.steppers[i];
+        if !stepper.is_running() {
+            return;
+        }
+        // Index (within the move) of the step already armed in the timer.
+        let pending = motion.planner.planned() - stepper.scheduled_steps() + 1;
+        let profile = motion.planner.profile();
+        if profile.phase(pending as f64) == Phase::Decelerate {
+            motion.homing = None;
+            return; // already ramping down as fast as allowed
+        }
+        let v = profile.velocity_at(pending as f64);
+        let decel = self.config.axes[i].a_max as f64;
+        stepper.truncate_after_pending();
+        motion.planner = SegmentPlanner::new(Profile::stop(v, decel), TICK_HZ);
+        motion.homing = None;
+        fill_queue(&mut motion.planner, stepper);
+    }
+
+    /// Stop every axis at once (no ramp): an axis stopped while stepping may
+    /// have lost steps, so it loses its homed state.
+    fn halt_all(&mut self, hw: &mut impl Hardware) {
+        for axis in Axis::ALL {
+            let i = axis.index();
+            if self.motion[i].take().is_some() {
+                self.steppers[i].halt();
+                hw.disarm_step_timer(axis);
+                self.homed[i] = false;
+            }
+        }
+    }
+
+    fn finish_motion(&mut self, outcome: MotionOutcome) {
+        let axes = match self.activity {
+            Activity::Moving { axes, .. } | Activity::Homing { axes, .. } => axes,
+            _ => AxisSet::NONE,
+        };
+        let capture = match self.activity {
+            Activity::Moving { capture, stopping: false, .. } => capture,
+            _ => None,
+        };
+        let positions = Axis::ALL.map(|a| self.steppers[a.index()].position());
+        self.emit(Event::MotionDone { axes, outcome, positions });
+        self.activity = match (capture, outcome) {
+            (Some(step), MotionOutcome::Completed) => {
+                Activity::Settling { step, until: self.now + step.settle_ms as u64 * TICKS_PER_MS }
+            }
+            _ => Activity::Idle,
+        };
+    }
+
+    // ----- homing -------------------------------------------------------------
+
+    fn start_homing(&mut self, axes: AxisSet, hw: &mut impl Hardware) -> Result<(), DeviceError> {
+        if !axes.is_valid() || axes.is_empty() {
+            return Err(DeviceError::BadRequest);
+        }
+        self.ensure_can_move()?;
+        self.activity = Activity::Homing { axes, started: self.now, stopping: false };
+        for axis in axes.iter() {
+            self.homed[axis.index()] = false;
+            let stage = if self.prev_inputs.home[axis.index()] {
+                HomingStage::BackOff
+            } else {
+                HomingStage::FastApproach
+            };
+            self.start_homing_stage(axis, stage, hw);
+        }
+        Ok(())
+    }
+
+    fn start_homing_stage(&mut self, axis: Axis, stage: HomingStage, hw: &mut impl Hardware) {
+        let c = self.config.axes[axis.index()];
+        let h = c.homing;
+        let toward = if h.direction == Direction::Positive { 1 } else { -1 };
+        let (steps, speed, direction) = match stage {
+            HomingStage::FastApproach => (h.max_travel_steps, h.fast_speed, toward),
+            HomingStage::BackOff => (h.backoff_steps, h.fast_speed, -toward),
+            HomingStage::SlowApproach => (h.backoff_steps.saturating_mul(2), h.slow_speed, toward),
+        };
+        let profile = Profile::trapezoid(steps, 0.0, speed as f64, c.a_max as f64);
+        self.start_axis(axis, profile, direction, Some(stage), hw);
+    }
+
+    /// Advance the homing sequences after inputs changed or moves ended.
+    fn poll_homing(&mut self, inputs: &Inputs, hw: &mut impl Hardware) {
+        let Activity::Homing { axes, started, stopping } = self.activity else { return };
+        if stopping {
+            return;
+        }
+        for axis in axes.iter() {
+            let i = axis.index();
+            let Some(motion) = &self.motion[i] else { continue };
+            let Some(stage) = motion.homing else { continue };
+            let h = self.config.axes[i].homing;
+            if self.now.saturating_sub(started) >= h.timeout_ms as u64 * TICKS_PER_MS {
+                self.homing_failed(axis, HomingFailure::Timeout, hw);
+                return;
+            }
+            let switch = inputs.home[i];
+            let finished = !self.steppers[i].is_running() && motion.planner.is_done();
+            match stage {
+                HomingStage::FastApproach if switch => {
+                    self.stop_axis_now(axis, hw);
+                    self.start_homing_stage(axis, HomingStage::BackOff, hw);
+                }
+                HomingStage::SlowApproach if switch => {
+                    self.stop_axis_now(axis, hw);
+                    self.steppers[i].set_position(h.home_position);
+                    self.homed[i] = true;
+                }
+                HomingStage::FastApproach | HomingStage::SlowApproach if finished => {
+                    self.homing_failed(axis, HomingFailure::SwitchNotFound, hw);
+                    return;
+                }
+                HomingStage::BackOff if finished => {
+                    if switch {
+                        self.homing_failed(axis, HomingFailure::SwitchStuck, hw);
+                        return;
+                    }
+                    self.start_homing_stage(axis, HomingStage::SlowApproach, hw);
+                }
+                _ => {}
+            }
+        }
+        if axes.iter().all(|a| self.homed[a.index()]) {
+            self.finish_motion(MotionOutcome::Completed);
+        }
+    }
+
+    fn stop_axis_now(&mut self, axis: Axis, hw: &mut impl Hardware) {
+        self.steppers[axis.index()].halt();
+        hw.disarm_step_timer(axis);
+        self.motion[axis.index()] = None;
+    }
+
+    fn homing_failed(&mut self, axis: Axis, why: HomingFailure, hw: &mut impl Hardware) {
+        self.halt_all(hw);
+        self.faults = self.faults.union(FaultFlags::HOMING_FAILED);
+        self.finish_motion(MotionOutcome::HomingFailed(axis, why));
+        self.emit(Event::FaultRaised { faults: self.faults, axis: Some(axis) });
+    }
+
+    // ----- capture ------------------------------------------------------------
+
+    fn fire_trigger(&mut self, exposure_us: u32, mirror: Option<u8>, hw: &mut impl Hardware) {
+        self.trigger_seq = self.trigger_seq.wrapping_add(1);
+        hw.set_trigger(true);
+        let fired = TriggerFired {
+            trigger_seq: self.trigger_seq,
+            timestamp_us: self.now / TICKS_PER_US,
+            exposure_us,
+            mirror,
+        };
+        self.last_trigger = Some(fired);
+        self.emit(Event::TriggerFired(fired));
+        self.activity = Activity::Exposing { until: self.now + exposure_us as u64 * TICKS_PER_US };
+    }
+
+    fn end_exposure(&mut self, hw: &mut impl Hardware) {
+        hw.set_trigger(false);
+        hw.set_light(if self.light.on { self.light.duty_permille } else { 0 });
+    }
+
+    // ----- safety -------------------------------------------------------------
+
+    /// Latch `fault`, stop everything at once, light and trigger off.
+    fn raise_fault(&mut self, fault: FaultFlags, axis: Option<Axis>, hw: &mut impl Hardware) {
+        let new = !self.faults.contains(fault);
+        self.faults = self.faults.union(fault);
+        let was_moving = self.is_moving();
+        self.halt_all(hw);
+        self.light.on = false;
+        hw.set_light(0);
+        hw.set_trigger(false);
+        if was_moving || matches!(self.activity, Activity::Moving { .. } | Activity::Homing { .. })
+        {
+            self.finish_motion(MotionOutcome::Aborted);
+        }
+        self.activity = Activity::Idle;
+        if new {
+            self.emit(Event::FaultRaised { faults: self.faults, axis });
+        }
+    }
+
+    fn check_safety(&mut self, inputs: &Inputs, hw: &mut impl Hardware) {
+        if inputs.estop {
+            self.raise_fault(FaultFlags::EMERGENCY_STOP, None, hw);
+        }
+        if inputs.driver_fault {
+            self.raise_fault(FaultFlags::DRIVER_FAULT, None, hw);
+        }
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let rising = inputs.home[i] && !self.prev_inputs.home[i];
+            let homing = self.motion[i].as_ref().is_some_and(|m| m.homing.is_some());
+            if rising && self.homed[i] && !homing && self.far_from_home(axis) {
+                self.raise_fault(FaultFlags::UNEXPECTED_HOME_SWITCH, Some(axis), hw);
+            }
+        }
+        let silent = self.now.saturating_sub(self.last_rx) > LINK_TIMEOUT_MS * TICKS_PER_MS;
+        if silent && self.is_moving() && !self.faults.contains(FaultFlags::LINK_TIMEOUT) {
+            // Decelerate rather than halt: no steps are lost, homing is kept.
+            self.faults = self.faults.union(FaultFlags::LINK_TIMEOUT);
+            self.light.on = false;
+            hw.set_light(0);
+            hw.set_trigger(false);
+            self.controlled_stop(hw);
+            self.emit(Event::FaultRaised { faults: self.faults, axis: None });
+        }
+    }
+
+    /// Whether the switch of `axis` is far (more than the back-off distance)
+    /// from where homing found it: it cannot legitimately be hit here.
+    fn far_from_home(&self, axis: Axis) -> bool {
+        let c = &self.config.axes[axis.index()];
+        let d = self.steppers[axis.index()].position() as i64 - c.homing.home_position as i64;
+        let d = if c.continuous {
+            let rev = c.steps_per_rev as i64;
+            let m = d.rem_euclid(rev);
+            m.min(rev - m)
+        } else {
+            d.abs()
+        };
+        d > c.homing.backoff_steps as i64
+    }
+
+    // ----- the poll loop ------------------------------------------------------
+
+    /// Advance every state machine to tick `now` with the current inputs.
+    /// Call it often (the board: every 200 µs and after every interrupt that
+    /// ends a move; the simulator: after every event).
+    pub fn poll(&mut self, now: u64, inputs: &Inputs, hw: &mut impl Hardware) {
+        self.now = now;
+        self.check_safety(inputs, hw);
+        self.poll_homing(inputs, hw);
+        self.prev_inputs = *inputs;
+        self.refill(hw);
+        self.poll_motion_end();
+        match self.activity {
+            Activity::Settling { step, until } if now >= until => {
+                if self.faults.is_empty() {
+                    hw.set_light(step.light_duty_permille);
+                    self.fire_trigger(step.exposure_us, Some(step.mirror), hw);
+                } else {
+                    self.activity = Activity::Idle;
+                }
+            }
+            Activity::Exposing { until } if now >= until => {
+                self.end_exposure(hw);
+                self.activity = Activity::Idle;
+            }
+            _ => {}
+        }
+    }
+
+    /// Keep every step queue topped up; restart an axis whose queue ran dry.
+    fn refill(&mut self, hw: &mut impl Hardware) {
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let Some(motion) = &mut self.motion[i] else { continue };
+            let stepper = &mut self.steppers[i];
+            let was_running = stepper.is_running();
+            fill_queue(&mut motion.planner, stepper);
+            if !was_running && stepper.free() < crate::step::QUEUE_LEN {
+                // The planner fell behind the interrupt: resume from now.
+                self.underruns += 1;
+                if let Some(first) = stepper.start(self.now, motion.direction) {
+                    hw.arm_step_timer(axis, first);
+                }
+            }
+        }
+    }
+
+    fn poll_motion_end(&mut self) {
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let done =
+                self.motion[i].as_ref().is_some_and(|m| m.homing.is_none() && m.planner.is_done())
+                    && !self.steppers[i].is_running();
+            if done {
+                self.motion[i] = None;
+                let c = &self.config.axes[i];
+                if c.continuous {
+                    let rev = c.steps_per_rev as i32;
+                    let p = self.steppers[i].position().rem_euclid(rev);
+                    self.steppers[i].set_position(p);
+                }
+            }
+        }
+        if self.is_moving() {
+            return;
+        }
+        match self.activity {
+            Activity::Moving { stopping, .. } => {
+                let outcome =
+                    if stopping { MotionOutcome::Stopped } else { MotionOutcome::Completed };
+                self.finish_motion(outcome);
+            }
+            Activity::Homing { stopping: true, .. } => {
+                self.finish_motion(MotionOutcome::Stopped);
+            }
+            _ => {}
+        }
+    }
+
+    // ----- events ---------------------------------------------------------------
+
+    fn emit(&mut self, event: Event) {
+        if self.events.is_full() {
+            self.events.pop_front();
+        }
+        let _ = self.events.push_back(event);
+    }
+
+    /// Queue a log line for the host.
+    pub fn log(&mut self, level: LogLevel, text: &str) {
+        self.emit(Event::Log { level, text: LogText::truncated(text) });
+    }
+}
+
+/// Move planned segments into the step queue until it is full.
+fn fill_queue(planner: &mut SegmentPlanner, stepper: &mut StepGenerator) {
+    while stepper.free() > 0 {
+        match planner.next_segment() {
+            Some(seg) => {
+                let _ = stepper.push(seg);
+            }
+            None => break,
+        }
+    }
+}
+
+fn check_exposure(exposure_us: u32) -> Result<(), DeviceError> {
+    if (MIN_EXPOSURE_US..=MAX_EXPOSURE_US).contains(&exposure_us) {
+        Ok(())
+    } else {
+        Err(DeviceError::OutOfRange)
+    }
+}
+
+fn send(tx: &mut impl FnMut(&[u8]), seq: u8, msg: &ToHost) {
+    let mut buf = [0u8; MAX_FRAME_LEN];
+    if let Ok(n) = encode_frame(seq, msg, &mut buf) {
+        tx(&buf[..n]);
+    }
+}

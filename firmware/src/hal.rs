@@ -1,0 +1,65 @@
+//! What the controller needs from the hardware, as small traits and plain
+//! data. The board binary implements them with embassy-stm32; `hil-sim` with
+//! simulated motors, switches and a simulated clock.
+
+use protocol::{AXIS_COUNT, Axis, ResetReason};
+
+/// The step timer's tick rate: 100 MHz timer clock prescaled by 10.
+pub const TICK_HZ: u32 = 10_000_000;
+
+/// Ticks per millisecond.
+pub const TICKS_PER_MS: u64 = TICK_HZ as u64 / 1000;
+/// Ticks per microsecond.
+pub const TICKS_PER_US: u64 = TICK_HZ as u64 / 1_000_000;
+
+/// A snapshot of the digital inputs, taken by the caller of
+/// [`Controller::poll`](crate::Controller::poll).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Inputs {
+    /// Home / index switch per axis (true = actuated).
+    pub home: [bool; AXIS_COUNT],
+    /// Emergency-stop input asserted.
+    pub estop: bool,
+    /// Any stepper driver reports a fault.
+    pub driver_fault: bool,
+}
+
+/// Outputs and services the controller drives.
+pub trait Hardware {
+    /// Set the DIR line of `axis` before its first step.
+    fn set_direction(&mut self, axis: Axis, positive: bool);
+    /// Schedule the first step of a move of `axis` at `tick`; the step
+    /// interrupt then keeps itself armed from [`StepGenerator::step`](crate::step::StepGenerator::step).
+    fn arm_step_timer(&mut self, axis: Axis, tick: u64);
+    /// Cancel any scheduled step of `axis`.
+    fn disarm_step_timer(&mut self, axis: Axis);
+    /// Enable or disable the stepper drivers (EN lines).
+    fn set_drivers_enabled(&mut self, enabled: bool);
+    /// Light output: 0 = off, else PWM duty in per mille.
+    fn set_light(&mut self, duty_permille: u16);
+    /// Camera trigger output level.
+    fn set_trigger(&mut self, high: bool);
+    /// Persist the configuration blob (axis configs and mirror table).
+    fn save_config(&mut self, blob: &[u8]) -> Result<(), StorageError>;
+}
+
+/// Persistent storage failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct StorageError;
+
+/// Who the device is and why it booted; fixed for one boot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BootInfo {
+    /// Random id for this boot.
+    pub boot_id: u32,
+    /// Why it booted.
+    pub reason: ResetReason,
+    /// Unique device id (chip UID).
+    pub device_id: [u8; 12],
+    /// Board id (`protocol::BOARD_*`).
+    pub board: u16,
+    /// Capabilities.
+    pub capabilities: protocol::Capabilities,
+}

@@ -1,0 +1,601 @@
+//! The controller's test suite as plain `no_std` functions, so that the same
+//! tests run as host unit tests (`firmware/tests/core.rs`) and on a Cortex-M4
+//! under QEMU (`firmware/qemu-tests`), which prints an "N passed, N failed"
+//! line.
+#![allow(missing_docs)] // test names say what they test
+
+use protocol::{
+    Axis, AxisSet, CaptureStep, DeviceError, Direction, Event, FaultFlags, HomingFailure,
+    LightState, MirrorPosition, MotionOutcome, MoveMode, ProtocolVersion, Reply, Request,
+    ResetReason,
+};
+
+use crate::config::{PersistedConfig, default_axes};
+use crate::hal::{TICK_HZ, TICKS_PER_MS, TICKS_PER_US};
+use crate::planner::{Profile, SegmentPlanner};
+use crate::step::{QUEUE_LEN, StepGenerator};
+use crate::testkit::{Output, Rig, Switch};
+
+/// A test's outcome: `Err` carries what failed.
+pub type TestResult = Result<(), &'static str>;
+
+/// A named self-test.
+pub type SelfTest = (&'static str, fn() -> TestResult);
+
+macro_rules! ensure {
+    ($cond:expr, $msg:expr) => {
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
+        if !$cond {
+            return Err($msg);
+        }
+    };
+}
+
+/// Every test: (name, function).
+pub const TESTS: &[SelfTest] = &[
+    ("planner_step_times_within_one_tick", planner_step_times_within_one_tick),
+    ("planner_respects_speed_and_acceleration", planner_respects_speed_and_acceleration),
+    ("planner_stop_profile", planner_stop_profile),
+    ("concurrent_move_reaches_targets", concurrent_move_reaches_targets),
+    ("controlled_stop_decelerates", controlled_stop_decelerates),
+    ("homing_all_axes", homing_all_axes),
+    ("homing_starting_on_switch_backs_off", homing_starting_on_switch_backs_off),
+    ("homing_switch_not_found", homing_switch_not_found),
+    ("homing_switch_stuck", homing_switch_stuck),
+    ("homing_timeout", homing_timeout),
+    ("disk_takes_shortest_way", disk_takes_shortest_way),
+    ("capture_step_sequence", capture_step_sequence),
+    ("bare_trigger", bare_trigger),
+    ("dispatcher_errors", dispatcher_errors),
+    ("duplicate_sequence_not_reexecuted", duplicate_sequence_not_reexecuted),
+    ("handshake_required_and_versions", handshake_required_and_versions),
+    ("estop_input_latches", estop_input_latches),
+    ("driver_fault_latches", driver_fault_latches),
+    ("emergency_stop_request", emergency_stop_request),
+    ("unexpected_home_switch", unexpected_home_switch),
+    ("link_silence_while_moving", link_silence_while_moving),
+    ("watchdog_boot_latches", watchdog_boot_latches),
+    ("config_save_and_reload", config_save_and_reload),
+];
+
+/// Run every test; returns (passed, failed) and reports each through `report`.
+pub fn run_all(mut report: impl FnMut(&str, TestResult)) -> (usize, usize) {
+    let (mut passed, mut failed) = (0, 0);
+    for (name, test) in TESTS {
+        let result = test();
+        if result.is_ok() {
+            passed += 1
+        } else {
+            failed += 1
+        }
+        report(name, result);
+    }
+    (passed, failed)
+}
+
+// ----- planner ----------------------------------------------------------------
+
+/// Drive a profile through the real step generator; call `visit(k, tick)` for
+/// every step. Returns the number of steps.
+fn generate(profile: Profile, start: u64, mut visit: impl FnMut(u32, u64)) -> u32 {
+    let mut planner = SegmentPlanner::new(profile, TICK_HZ);
+    let mut stepper = StepGenerator::new();
+    for _ in 0..QUEUE_LEN {
+        if let Some(s) = planner.next_segment() {
+            let _ = stepper.push(s);
+        }
+    }
+    let mut next = stepper.start(start, 1);
+    let mut k = 0;
+    while let Some(t) = next {
+        k += 1;
+        visit(k, t);
+        next = stepper.step();
+        while stepper.free() > 0 {
+            match planner.next_segment() {
+                Some(s) => {
+                    let _ = stepper.push(s);
+                }
+                None => break,
+            }
+        }
+    }
+    k
+}
+
+/// (steps, v_max, a_max) cases: the three default axes at full range, short
+/// triangles, a single step, slow homing moves.
+const PROFILES: &[(u32, f64, f64)] = &[
+    (320_000, 64_000.0, 320_000.0),
+    (16_000, 4_000.0, 8_000.0),
+    (18_666, 5_333.0, 16_000.0),
+    (1_000, 64_000.0, 320_000.0),
+    (37, 64_000.0, 320_000.0),
+    (1, 4_000.0, 8_000.0),
+    (2, 4_000.0, 8_000.0),
+    (6_400, 1_600.0, 320_000.0),
+    (400, 100.0, 8_000.0),
+];
+
+pub fn planner_step_times_within_one_tick() -> TestResult {
+    for &(n, v, a) in PROFILES {
+        let profile = Profile::trapezoid(n, 0.0, v, a);
+        let start = 12_345;
+        let mut worst = 0.0f64;
+        let steps = generate(profile, start, |k, t| {
+            let exact = start as f64 + profile.time_at(k as f64) * TICK_HZ as f64;
+            worst = worst.max((t as f64 - exact).abs());
+        });
+        ensure!(steps == n, "step count differs from the move length");
+        ensure!(worst <= 1.0, "a step deviates more than one tick from the trapezoid");
+    }
+    Ok(())
+}
+
+pub fn planner_respects_speed_and_acceleration() -> TestResult {
+    const W: usize = 16;
+    for &(n, v_max, a_max) in PROFILES {
+        let profile = Profile::trapezoid(n, 0.0, v_max, a_max);
+        ensure!(profile.v_peak() <= v_max * (1.0 + 1e-12), "peak above v max");
+        ensure!(profile.accel() <= a_max && profile.decel() <= a_max, "ramp above a max");
+        let mut ring = [0u64; 2 * W + 1];
+        let mut result = Ok(());
+        generate(profile, 0, |k, t| {
+            let k = k as usize;
+            ring[k % ring.len()] = t;
+            if k < 2 * W + 1 || result.is_err() {
+                return;
+            }
+            // Three window edges: t0 < t1 < t2, W steps apart; ±1 tick each.
+            let tick = |j: usize| ring[j % ring.len()] as f64;
+            let (t0, t1, t2) = (tick(k - 2 * W), tick(k - W), tick(k));
+            let hz = TICK_HZ as f64;
+            let w = W as f64;
+            let v_hi = |a: f64, b: f64| w * hz / (b - a - 2.0);
+            let v_lo = |a: f64, b: f64| w * hz / (b - a + 2.0);
+            if v_lo(t1, t2) > v_max {
+                result = Err("windowed speed above v max");
+            }
+            let span = (t2 - t0 - 4.0) / 2.0 / hz;
+            let a_lo = (v_lo(t1, t2) - v_hi(t0, t1)) / span;
+            let a_hi = (v_hi(t1, t2) - v_lo(t0, t1)) / span;
+            if a_lo > a_max * 1.001 || a_hi < -a_max * 1.001 {
+                result = Err("windowed acceleration above a max");
+            }
+        });
+        result?;
+    }
+    Ok(())
+}
+
+pub fn planner_stop_profile() -> TestResult {
+    let profile = Profile::stop(64_000.0, 320_000.0);
+    ensure!(profile.steps() == 6_400, "stop distance v²/2a");
+    ensure!(profile.decel() <= 320_000.0, "stop ramp above a max");
+    let mut last = 0;
+    let n = generate(profile, 0, |_, t| last = t);
+    ensure!(n == 6_400, "stop step count");
+    let expected = 64_000.0 / 320_000.0 * TICK_HZ as f64;
+    ensure!((last as f64 - expected).abs() <= 1.0, "stop duration v/a");
+    Ok(())
+}
+
+// ----- motion -------------------------------------------------------------------
+
+fn move_to(rig: &mut Rig, targets: [Option<i32>; 3]) -> Result<Reply, &'static str> {
+    Ok(rig.request(Request::Move { mode: MoveMode::Absolute, targets }))
+}
+
+fn last_motion_outcome(rig: &Rig) -> Option<MotionOutcome> {
+    rig.events.iter().rev().find_map(|e| match e {
+        Event::MotionDone { outcome, .. } => Some(*outcome),
+        _ => None,
+    })
+}
+
+pub fn concurrent_move_reaches_targets() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    rig.events.clear();
+    let reply = move_to(&mut rig, [Some(8_000), Some(160_000), Some(4_000)])?;
+    ensure!(reply == Reply::Ack, "move accepted");
+    // All three axes step during the same interval of time.
+    rig.run_until(rig.now + 100 * TICKS_PER_MS);
+    ensure!(Axis::ALL.iter().all(|a| rig.ctrl.status().axes[a.index()].moving), "concurrent");
+    ensure!(rig.run_until_idle(10_000), "move ends");
+    ensure!(rig.ctrl.position(Axis::Disk) == 8_000, "disk target");
+    ensure!(rig.ctrl.position(Axis::Track) == 160_000, "track target");
+    ensure!(rig.ctrl.position(Axis::Tilt) == 4_000, "tilt target");
+    ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Completed), "MotionDone(Completed)");
+    Ok(())
+}
+
+pub fn controlled_stop_decelerates() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    move_to(&mut rig, [None, Some(320_000), None])?;
+    // Cruise at 64 000 steps/s (accelerating takes 200 ms).
+    rig.run_until(rig.now + 400 * TICKS_PER_MS);
+    let before = rig.ctrl.position(Axis::Track);
+    rig.clear_steps();
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "stop accepted");
+    ensure!(rig.run_until_idle(2_000), "stops");
+    let travelled = rig.ctrl.position(Axis::Track) - before;
+    // v²/2a = 6 400 steps, plus the one step already armed.
+    ensure!((6_390..=6_402).contains(&travelled), "stop distance v²/2a");
+    let (first, last) = rig.step_span[Axis::Track.index()].ok_or("steps")?;
+    let dur = (last - first) as f64 / TICK_HZ as f64;
+    ensure!((dur - 0.2).abs() < 0.002, "stop takes v/a");
+    ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Stopped), "MotionDone(Stopped)");
+    ensure!(rig.ctrl.is_homed(Axis::Track), "a controlled stop keeps homing");
+    Ok(())
+}
+
+pub fn disk_takes_shortest_way() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    let before = rig.physical(Axis::Disk);
+    move_to(&mut rig, [Some(15_000), None, None])?;
+    rig.run_until_idle(5_000);
+    // 0 → 15 000 of 16 000 is 1 000 steps backwards, not 15 000 forwards.
+    ensure!(rig.ctrl.position(Axis::Disk) == 15_000, "disk angle");
+    ensure!(rig.physical(Axis::Disk) - before == -1_000, "went the short way");
+    Ok(())
+}
+
+// ----- homing -------------------------------------------------------------------
+
+pub fn homing_all_axes() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "all axes homed");
+    // The switch edge is found to within one slow-approach step.
+    // Switch edges: track at physical 0, tilt at −9 333; counters agree.
+    let track_err = rig.physical(Axis::Track) - rig.ctrl.position(Axis::Track) as i64;
+    ensure!(
+        track_err.abs() <= 1 && rig.physical(Axis::Track).abs() <= 1,
+        "track home at its switch"
+    );
+    let tilt_err = rig.physical(Axis::Tilt) - rig.ctrl.position(Axis::Tilt) as i64;
+    ensure!(tilt_err.abs() <= 1, "tilt home at its switch");
+    let disk = rig.physical(Axis::Disk).rem_euclid(16_000);
+    ensure!(disk <= 1 || disk >= 15_999, "disk homes on its index flag");
+    ensure!(rig.ctrl.position(Axis::Tilt) == -9_333, "home position assigned");
+    ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Completed), "MotionDone");
+    ensure!(rig.ctrl.faults().is_empty(), "no fault");
+    Ok(())
+}
+
+pub fn homing_starting_on_switch_backs_off() -> TestResult {
+    let mut rig = Rig::new();
+    rig.physical[1] = -500; // parked on the switch
+    rig.poll();
+    ensure!(rig.request(Request::Home { axes: AxisSet::single(Axis::Track) }) == Reply::Ack, "ack");
+    rig.run_until_idle(30_000);
+    ensure!(rig.ctrl.is_homed(Axis::Track), "homed");
+    let err = rig.physical(Axis::Track) - rig.ctrl.position(Axis::Track) as i64;
+    ensure!(err.abs() <= 1, "edge found from the switch side");
+    Ok(())
+}
+
+fn homing_fails_with(rig: &mut Rig, axis: Axis, why: HomingFailure) -> TestResult {
+    ensure!(rig.request(Request::Home { axes: AxisSet::single(axis) }) == Reply::Ack, "ack");
+    rig.run_until_idle(120_000);
+    ensure!(!rig.ctrl.is_homed(axis), "not homed");
+    ensure!(rig.ctrl.faults().contains(FaultFlags::HOMING_FAILED), "fault latched");
+    ensure!(
+        last_motion_outcome(rig) == Some(MotionOutcome::HomingFailed(axis, why)),
+        "MotionDone reports the failure"
+    );
+    ensure!(
+        rig.events
+            .iter()
+            .any(|e| matches!(e, Event::FaultRaised { axis: Some(a), .. } if *a == axis)),
+        "FaultRaised names the axis"
+    );
+    Ok(())
+}
+
+pub fn homing_switch_not_found() -> TestResult {
+    let mut rig = Rig::new();
+    rig.switches[1] = Switch::Missing;
+    homing_fails_with(&mut rig, Axis::Track, HomingFailure::SwitchNotFound)
+}
+
+pub fn homing_switch_stuck() -> TestResult {
+    let mut rig = Rig::new();
+    rig.switches[2] = Switch::Stuck;
+    rig.poll();
+    homing_fails_with(&mut rig, Axis::Tilt, HomingFailure::SwitchStuck)
+}
+
+pub fn homing_timeout() -> TestResult {
+    let mut rig = Rig::new();
+    let mut cfg = default_axes()[1];
+    cfg.homing.timeout_ms = 1_000; // 80 000 steps from home at 16 000 steps/s: 5 s
+    ensure!(
+        rig.request(Request::SetAxisConfig { axis: Axis::Track, config: cfg }) == Reply::Ack,
+        "cfg"
+    );
+    homing_fails_with(&mut rig, Axis::Track, HomingFailure::Timeout)
+}
+
+// ----- capture ------------------------------------------------------------------
+
+pub fn capture_step_sequence() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    let pos = MirrorPosition { steps: [4_000, 120_000, -1_500] };
+    ensure!(rig.request(Request::SetMirror { mirror: 5, position: pos }) == Reply::Ack, "set");
+    rig.events.clear();
+    rig.hw.outputs.clear();
+    rig.clear_steps();
+    let step =
+        CaptureStep { mirror: 5, settle_ms: 150, exposure_us: 50_000, light_duty_permille: 800 };
+    ensure!(rig.request(Request::CaptureStep(step)) == Reply::Ack, "capture accepted");
+    ensure!(
+        rig.request(Request::GoToMirror { mirror: 5 }) == Reply::Error(DeviceError::Busy),
+        "busy"
+    );
+    ensure!(rig.run_until_idle(10_000), "capture ends");
+    ensure!(rig.ctrl.position(Axis::Track) == 120_000, "at the mirror");
+
+    let moved_at = rig.events.iter().position(|e| matches!(e, Event::MotionDone { .. }));
+    let fired = rig.events.iter().find_map(|e| match e {
+        Event::TriggerFired(t) => Some(*t),
+        _ => None,
+    });
+    let (Some(moved_at), Some(fired)) = (moved_at, fired) else { return Err("events") };
+    ensure!(rig.events.len() > moved_at + 1, "TriggerFired after MotionDone");
+    ensure!(fired.trigger_seq == 1 && fired.mirror == Some(5), "trigger seq and mirror");
+    ensure!(fired.exposure_us == 50_000, "exposure reported");
+
+    // Outputs: light on (800), trigger high, trigger low, light off.
+    let o = &rig.hw.outputs;
+    ensure!(o.len() == 4, "four output edges");
+    let (Output::Light(t_on, 800), Output::Trigger(t_hi, true)) = (o[0], o[1]) else {
+        return Err("light on, then trigger high");
+    };
+    let (Output::Trigger(t_lo, false), Output::Light(t_off, 0)) = (o[2], o[3]) else {
+        return Err("trigger low, then light off");
+    };
+    ensure!(t_on <= t_hi && t_lo <= t_off, "light spans the exposure");
+    ensure!(t_lo - t_hi == 50_000 * TICKS_PER_US, "pulse width = exposure");
+    ensure!(fired.timestamp_us == t_hi / TICKS_PER_US, "timestamp at the rising edge");
+    let last_step = rig.step_span.iter().filter_map(|s| s.map(|(_, l)| l)).max().unwrap_or(0);
+    ensure!(t_hi - last_step >= 150 * TICKS_PER_MS, "settled 150 ms after the last step");
+    ensure!(t_hi - last_step <= 150 * TICKS_PER_MS + TICKS_PER_MS, "and no more than 1 ms later");
+    Ok(())
+}
+
+pub fn bare_trigger() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.request(Request::Trigger { exposure_us: 2_000 }) == Reply::Ack, "trigger");
+    rig.run_until_idle(100);
+    ensure!(rig.hw.outputs.len() == 2 && !rig.hw.trigger, "one pulse");
+    let reply = rig.request(Request::GetLastTrigger);
+    let Reply::Trigger(Some(t)) = reply else { return Err("last trigger") };
+    ensure!(t.trigger_seq == 1 && t.mirror.is_none(), "bare trigger recorded");
+    Ok(())
+}
+
+// ----- dispatcher ---------------------------------------------------------------
+
+pub fn dispatcher_errors() -> TestResult {
+    use DeviceError::*;
+    let mut rig = Rig::new();
+    let e = |r: &mut Rig, req| match r.request(req) {
+        Reply::Error(e) => Some(e),
+        _ => None,
+    };
+    let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [None, Some(t), None] };
+    ensure!(e(&mut rig, mv(1_000)) == Some(NotHomed), "NotHomed");
+    ensure!(e(&mut rig, Request::GoToMirror { mirror: 3 }) == Some(MirrorNotSet), "MirrorNotSet");
+    ensure!(e(&mut rig, Request::GoToMirror { mirror: 64 }) == Some(OutOfRange), "mirror index");
+    ensure!(e(&mut rig, Request::Home { axes: AxisSet(0x08) }) == Some(BadRequest), "axis set");
+    ensure!(e(&mut rig, Request::Home { axes: AxisSet::NONE }) == Some(BadRequest), "empty set");
+    ensure!(e(&mut rig, Request::Trigger { exposure_us: 999 }) == Some(OutOfRange), "short exp");
+    ensure!(e(&mut rig, Request::Trigger { exposure_us: 2_000_001 }) == Some(OutOfRange), "long");
+    let light = Request::SetLight(LightState { on: true, duty_permille: 1_001 });
+    ensure!(e(&mut rig, light) == Some(OutOfRange), "duty");
+    let mut bad = default_axes()[1];
+    bad.v_max = 0;
+    let set = Request::SetAxisConfig { axis: Axis::Track, config: bad };
+    ensure!(e(&mut rig, set) == Some(BadRequest), "bad config");
+    let off_table = MirrorPosition { steps: [0, 400_000, 0] };
+    let set = Request::SetMirror { mirror: 1, position: off_table };
+    ensure!(e(&mut rig, set) == Some(OutOfRange), "mirror entry beyond limits");
+    ensure!(e(&mut rig, Request::SetMirrorCount { count: 65 }) == Some(OutOfRange), "count");
+    rig.hw.storage_fails = true;
+    ensure!(e(&mut rig, Request::SaveConfig) == Some(Storage), "Storage");
+
+    ensure!(rig.home_all(), "homing");
+    ensure!(e(&mut rig, mv(320_001)) == Some(OutOfRange), "beyond soft limit");
+    ensure!(e(&mut rig, mv(-1)) == Some(OutOfRange), "below soft limit");
+    let rel = Request::Move { mode: MoveMode::Relative, targets: [None, None, Some(20_000)] };
+    ensure!(e(&mut rig, rel) == Some(OutOfRange), "relative beyond limit");
+    ensure!(
+        e(&mut rig, Request::Move { mode: MoveMode::Absolute, targets: [None; 3] })
+            == Some(BadRequest),
+        "no axis"
+    );
+    ensure!(rig.request(mv(300_000)) == Reply::Ack, "move");
+    ensure!(e(&mut rig, mv(1_000)) == Some(Busy), "Busy");
+    ensure!(e(&mut rig, Request::Home { axes: AxisSet::ALL }) == Some(Busy), "Busy homing");
+    ensure!(e(&mut rig, Request::Trigger { exposure_us: 5_000 }) == Some(Busy), "Busy trigger");
+    let cfg = Request::SetAxisConfig { axis: Axis::Disk, config: default_axes()[0] };
+    ensure!(e(&mut rig, cfg) == Some(Busy), "Busy config");
+    ensure!(matches!(rig.request(Request::GetStatus), Reply::Status(_)), "status while busy");
+    ensure!(rig.request(Request::Ping { token: 9 }) == Reply::Pong { token: 9 }, "ping while busy");
+    rig.run_until_idle(20_000);
+    ensure!(rig.request(Request::EmergencyStop) == Reply::Ack, "estop");
+    ensure!(e(&mut rig, mv(1_000)) == Some(FaultLatched), "FaultLatched");
+    ensure!(e(&mut rig, Request::Trigger { exposure_us: 5_000 }) == Some(FaultLatched), "trigger");
+    let light = Request::SetLight(LightState { on: true, duty_permille: 10 });
+    ensure!(e(&mut rig, light) == Some(FaultLatched), "light");
+    Ok(())
+}
+
+pub fn duplicate_sequence_not_reexecuted() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    let rel = Request::Move { mode: MoveMode::Relative, targets: [None, Some(1_600), None] };
+    let before = rig.ctrl.position(Axis::Track);
+    ensure!(rig.request_seq(200, rel) == Reply::Ack, "first");
+    // The reply was lost: the host sends the same frame again (twice).
+    ensure!(rig.request_seq(200, rel) == Reply::Ack, "re-acknowledged");
+    ensure!(rig.request_seq(200, rel) == Reply::Ack, "re-acknowledged again");
+    rig.run_until_idle(5_000);
+    ensure!(rig.ctrl.position(Axis::Track) - before == 1_600, "executed once");
+    // A new number executes again; so does an old number after another one.
+    ensure!(rig.request_seq(201, rel) == Reply::Ack, "next");
+    rig.run_until_idle(5_000);
+    ensure!(rig.ctrl.position(Axis::Track) - before == 3_200, "executed twice");
+    Ok(())
+}
+
+pub fn handshake_required_and_versions() -> TestResult {
+    let mut rig = Rig::new();
+    let v2 = ProtocolVersion { major: 2, minor: 0 };
+    let reply = rig.request(Request::Hello { host_protocol: v2 });
+    ensure!(
+        matches!(reply, Reply::Error(DeviceError::UnsupportedVersion(v)) if v.major == 1),
+        "incompatible major refused with the device version"
+    );
+    ensure!(rig.request(Request::GetStatus) == Reply::Error(DeviceError::NoHandshake), "refused");
+    let v1_9 = ProtocolVersion { major: 1, minor: 9 };
+    let Reply::Info(info) = rig.request(Request::Hello { host_protocol: v1_9 }) else {
+        return Err("compatible minor accepted");
+    };
+    ensure!(info.boot_id == 0x1234_5678 && info.protocol.major == 1, "info");
+    ensure!(matches!(rig.request(Request::GetStatus), Reply::Status(_)), "talks after Hello");
+    Ok(())
+}
+
+// ----- safety ---------------------------------------------------------------------
+
+fn assert_faulted(rig: &Rig, fault: FaultFlags) -> TestResult {
+    ensure!(rig.ctrl.faults().contains(fault), "fault latched");
+    ensure!(!rig.ctrl.is_moving(), "motion stopped");
+    ensure!(rig.hw.armed.iter().all(Option::is_none), "no step armed");
+    ensure!(rig.hw.light == 0 && !rig.hw.trigger, "light and trigger off");
+    ensure!(rig.events.iter().any(|e| matches!(e, Event::FaultRaised { .. })), "FaultRaised");
+    Ok(())
+}
+
+fn moving_with_light(rig: &mut Rig) -> TestResult {
+    ensure!(rig.home_all(), "homing");
+    let on = Request::SetLight(LightState { on: true, duty_permille: 500 });
+    ensure!(rig.request(on) == Reply::Ack, "light on");
+    move_to(rig, [Some(8_000), Some(300_000), None])?;
+    rig.run_until(rig.now + 300 * TICKS_PER_MS);
+    ensure!(rig.ctrl.is_moving() && rig.hw.light == 500, "moving, lit");
+    Ok(())
+}
+
+pub fn estop_input_latches() -> TestResult {
+    let mut rig = Rig::new();
+    moving_with_light(&mut rig)?;
+    rig.estop = true;
+    rig.poll();
+    assert_faulted(&rig, FaultFlags::EMERGENCY_STOP)?;
+    ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Aborted), "MotionDone(Aborted)");
+    ensure!(!rig.ctrl.is_homed(Axis::Track), "an abrupt stop loses homing");
+    ensure!(rig.request(Request::ClearFault) == Reply::Error(DeviceError::FaultLatched), "held");
+    rig.estop = false;
+    rig.poll();
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared after release");
+    ensure!(rig.ctrl.faults().is_empty(), "no fault");
+    Ok(())
+}
+
+pub fn driver_fault_latches() -> TestResult {
+    let mut rig = Rig::new();
+    moving_with_light(&mut rig)?;
+    rig.driver_fault = true;
+    rig.poll();
+    assert_faulted(&rig, FaultFlags::DRIVER_FAULT)
+}
+
+pub fn emergency_stop_request() -> TestResult {
+    let mut rig = Rig::new();
+    moving_with_light(&mut rig)?;
+    ensure!(rig.request(Request::EmergencyStop) == Reply::Ack, "ack");
+    assert_faulted(&rig, FaultFlags::EMERGENCY_STOP)?;
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "clear");
+    Ok(())
+}
+
+pub fn unexpected_home_switch() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    move_to(&mut rig, [None, Some(200_000), None])?;
+    rig.run_until_idle(10_000);
+    // The carriage slipped: physically it is now 50 000 steps nearer home
+    // than the controller believes, and the next move hits the switch.
+    rig.physical[1] -= 50_000;
+    move_to(&mut rig, [None, Some(20_000), None])?;
+    rig.run_until_idle(10_000);
+    assert_faulted(&rig, FaultFlags::UNEXPECTED_HOME_SWITCH)?;
+    ensure!(
+        rig.events.iter().any(|e| matches!(e, Event::FaultRaised { axis: Some(Axis::Track), .. })),
+        "names the axis"
+    );
+    Ok(())
+}
+
+pub fn link_silence_while_moving() -> TestResult {
+    let mut rig = Rig::new();
+    moving_with_light(&mut rig)?;
+    let track = rig.ctrl.position(Axis::Track);
+    rig.keepalive = false;
+    let silent_from = rig.now;
+    rig.run_until(silent_from + 499 * TICKS_PER_MS);
+    ensure!(rig.ctrl.faults().is_empty(), "499 ms of silence is fine");
+    rig.run_until(silent_from + 501 * TICKS_PER_MS);
+    ensure!(rig.ctrl.faults().contains(FaultFlags::LINK_TIMEOUT), "500 ms: fault");
+    ensure!(rig.hw.light == 0, "light off");
+    ensure!(rig.run_until_idle(2_000), "decelerates to rest");
+    ensure!(
+        rig.ctrl.position(Axis::Track) < 300_000 && rig.ctrl.position(Axis::Track) > track,
+        "stopped short"
+    );
+    ensure!(rig.ctrl.is_homed(Axis::Track), "decelerated, so still homed");
+    // Idle silence is not a fault.
+    let mut idle = Rig::new();
+    idle.keepalive = false;
+    idle.run_until(5_000 * TICKS_PER_MS);
+    ensure!(idle.ctrl.faults().is_empty(), "idle silence is fine");
+    Ok(())
+}
+
+pub fn watchdog_boot_latches() -> TestResult {
+    let rig = Rig::booted(ResetReason::Watchdog);
+    ensure!(rig.ctrl.faults().contains(FaultFlags::WATCHDOG_RESET), "latched");
+    ensure!(
+        matches!(rig.events.first(), Some(Event::Boot { reason: ResetReason::Watchdog, .. })),
+        "Boot event first"
+    );
+    Ok(())
+}
+
+pub fn config_save_and_reload() -> TestResult {
+    let mut rig = Rig::new();
+    let mut cfg = default_axes()[2];
+    cfg.v_max = 4_000;
+    cfg.homing.direction = Direction::Positive;
+    ensure!(
+        rig.request(Request::SetAxisConfig { axis: Axis::Tilt, config: cfg }) == Reply::Ack,
+        "set"
+    );
+    let pos = MirrorPosition { steps: [1, 2, 3] };
+    ensure!(rig.request(Request::SetMirror { mirror: 39, position: pos }) == Reply::Ack, "mirror");
+    ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "save");
+    let loaded = PersistedConfig::decode(&rig.hw.saved).ok_or("saved blob decodes")?;
+    ensure!(loaded.axes[2] == cfg && loaded.mirrors.len() == 40, "contents");
+    ensure!(loaded.mirrors[39] == Some(pos), "mirror entry");
+    ensure!(
+        PersistedConfig::decode(&rig.hw.saved[..rig.hw.saved.len() - 1]).is_none(),
+        "truncated"
+    );
+    Ok(())
+}

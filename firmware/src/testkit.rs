@@ -1,0 +1,296 @@
+//! A test rig for the controller: mock hardware and an ideal machine (no lost
+//! steps, switches at fixed physical positions), driven in simulated time by
+//! visiting step-timer events and controller deadlines in time order.
+//!
+//! `no_std` and allocation-free, so the self-tests run on the Cortex-M4 under
+//! QEMU as well as on the PC. `hil-sim` has the full physical simulator; this
+//! rig only exists to test the controller's logic.
+
+use heapless::Vec;
+use protocol::{
+    AXIS_COUNT, Axis, BOARD_SIMULATOR, Capabilities, Event, Frame, PROTOCOL_VERSION, Reply,
+    Request, ResetReason,
+};
+
+use crate::config::PERSISTED_MAX_LEN;
+use crate::controller::Controller;
+use crate::hal::{BootInfo, Hardware, Inputs, StorageError, TICKS_PER_MS};
+
+/// Output edges and calls recorded by [`MockHw`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Output {
+    /// Light duty set (0 = off).
+    Light(u64, u16),
+    /// Trigger level set.
+    Trigger(u64, bool),
+}
+
+/// Mock hardware that records what the controller did.
+#[derive(Debug, Default)]
+pub struct MockHw {
+    /// Tick the rig is at (stamped on recorded outputs).
+    pub now: u64,
+    /// Armed step times per axis.
+    pub armed: [Option<u64>; AXIS_COUNT],
+    /// DIR lines.
+    pub dir_positive: [bool; AXIS_COUNT],
+    /// EN lines.
+    pub drivers_enabled: bool,
+    /// Light duty now.
+    pub light: u16,
+    /// Trigger level now.
+    pub trigger: bool,
+    /// Light and trigger changes, in order.
+    pub outputs: Vec<Output, 64>,
+    /// Last saved configuration blob.
+    pub saved: Vec<u8, PERSISTED_MAX_LEN>,
+    /// Make `save_config` fail.
+    pub storage_fails: bool,
+}
+
+impl Hardware for MockHw {
+    fn set_direction(&mut self, axis: Axis, positive: bool) {
+        self.dir_positive[axis.index()] = positive;
+    }
+    fn arm_step_timer(&mut self, axis: Axis, tick: u64) {
+        self.armed[axis.index()] = Some(tick);
+    }
+    fn disarm_step_timer(&mut self, axis: Axis) {
+        self.armed[axis.index()] = None;
+    }
+    fn set_drivers_enabled(&mut self, enabled: bool) {
+        self.drivers_enabled = enabled;
+    }
+    fn set_light(&mut self, duty_permille: u16) {
+        if self.light != duty_permille {
+            let _ = self.outputs.push(Output::Light(self.now, duty_permille));
+        }
+        self.light = duty_permille;
+    }
+    fn set_trigger(&mut self, high: bool) {
+        if self.trigger != high {
+            let _ = self.outputs.push(Output::Trigger(self.now, high));
+        }
+        self.trigger = high;
+    }
+    fn save_config(&mut self, blob: &[u8]) -> Result<(), StorageError> {
+        if self.storage_fails {
+            return Err(StorageError);
+        }
+        self.saved.clear();
+        self.saved.extend_from_slice(blob).map_err(|_| StorageError)
+    }
+}
+
+/// A home switch at a fixed physical position.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Switch {
+    /// No switch (homing must fail).
+    Missing,
+    /// Actuated at physical positions ≤ `edge` (a limit at the low end).
+    Below(i64),
+    /// Actuated within `width` steps after `edge`, repeating every `rev`
+    /// steps (a disk's index flag).
+    Index {
+        /// Start of the flag.
+        edge: i64,
+        /// Flag width.
+        width: i64,
+        /// Steps per revolution.
+        rev: i64,
+    },
+    /// Always actuated (stuck).
+    Stuck,
+}
+
+impl Switch {
+    fn actuated(self, physical: i64) -> bool {
+        match self {
+            Switch::Missing => false,
+            Switch::Below(edge) => physical <= edge,
+            Switch::Index { edge, width, rev } => (physical - edge).rem_euclid(rev) < width,
+            Switch::Stuck => true,
+        }
+    }
+}
+
+/// The controller on an ideal machine.
+#[derive(Debug)]
+pub struct Rig {
+    /// The controller under test.
+    pub ctrl: Controller,
+    /// Its hardware.
+    pub hw: MockHw,
+    /// Simulated time, ticks.
+    pub now: u64,
+    /// Physical position of each axis, steps: integrated from step pulses and
+    /// DIR lines, independent of the controller's counter.
+    pub physical: [i64; AXIS_COUNT],
+    /// Home switch per axis.
+    pub switches: [Switch; AXIS_COUNT],
+    /// E-stop and driver-fault inputs.
+    pub estop: bool,
+    /// Driver fault input.
+    pub driver_fault: bool,
+    /// Send a `Ping` every 100 ms of simulated time (as a host does).
+    pub keepalive: bool,
+    /// Events received, in order.
+    pub events: Vec<Event, 64>,
+    /// Tick of the first and last step of each axis since the last
+    /// [`Rig::clear_steps`].
+    pub step_span: [Option<(u64, u64)>; AXIS_COUNT],
+    seq: u8,
+    last_ping: u64,
+}
+
+impl Rig {
+    /// A freshly booted controller with default config, handshake done;
+    /// switches where the defaults expect them, axes 1000 steps off home.
+    pub fn new() -> Rig {
+        Self::booted(ResetReason::PowerOn)
+    }
+
+    /// A freshly booted controller with the given reset reason.
+    pub fn booted(reason: ResetReason) -> Rig {
+        let boot = BootInfo {
+            boot_id: 0x1234_5678,
+            reason,
+            device_id: [7; 12],
+            board: BOARD_SIMULATOR,
+            capabilities: Capabilities::SIMULATED,
+        };
+        let mut rig = Rig {
+            ctrl: Controller::new(boot, None),
+            hw: MockHw::default(),
+            now: 0,
+            // Disk 90° past its flag, track 50 mm out, tilt 10° above its stop.
+            physical: [4_000, 80_000, -9_333 + 2_667],
+            switches: [
+                Switch::Index { edge: 0, width: 200, rev: 16_000 },
+                Switch::Below(0),
+                Switch::Below(-9_333),
+            ],
+            estop: false,
+            driver_fault: false,
+            keepalive: true,
+            events: Vec::new(),
+            step_span: [None; AXIS_COUNT],
+            seq: 0,
+            last_ping: 0,
+        };
+        rig.poll();
+        let _ = rig.request(Request::Hello { host_protocol: PROTOCOL_VERSION });
+        rig
+    }
+
+    /// Physical position of `axis`.
+    pub fn physical(&self, axis: Axis) -> i64 {
+        self.physical[axis.index()]
+    }
+
+    /// Current input snapshot.
+    pub fn inputs(&self) -> Inputs {
+        Inputs {
+            home: Axis::ALL.map(|a| self.switches[a.index()].actuated(self.physical(a))),
+            estop: self.estop,
+            driver_fault: self.driver_fault,
+        }
+    }
+
+    /// Send a request with a fresh sequence number; returns the reply.
+    pub fn request(&mut self, request: Request) -> Reply {
+        self.seq = self.seq.wrapping_add(1);
+        self.request_seq(self.seq, request)
+    }
+
+    /// Send a request with the given sequence number (to test duplicates).
+    pub fn request_seq(&mut self, seq: u8, request: Request) -> Reply {
+        self.hw.now = self.now;
+        let (s, reply) = self.ctrl.handle(Frame { seq, msg: request }, self.now, &mut self.hw);
+        debug_assert_eq!(s, seq);
+        self.collect();
+        reply
+    }
+
+    /// Poll the controller at the current time.
+    pub fn poll(&mut self) {
+        self.hw.now = self.now;
+        let inputs = self.inputs();
+        self.ctrl.poll(self.now, &inputs, &mut self.hw);
+        self.collect();
+    }
+
+    fn collect(&mut self) {
+        while let Some(e) = self.ctrl.pop_event() {
+            let _ = self.events.push(e);
+        }
+    }
+
+    /// Forget recorded step ticks.
+    pub fn clear_steps(&mut self) {
+        self.step_span = [None; AXIS_COUNT];
+    }
+
+    /// Run to tick `end`, visiting every step and deadline in time order.
+    pub fn run_until(&mut self, end: u64) {
+        loop {
+            let step = Axis::ALL
+                .iter()
+                .filter_map(|a| self.hw.armed[a.index()].map(|t| (t, *a)))
+                .min_by_key(|(t, _)| *t);
+            let ping = self.keepalive.then_some(self.last_ping + 100 * TICKS_PER_MS);
+            let deadline = self.ctrl.next_deadline();
+            let next = [step.map(|s| s.0), ping, deadline].into_iter().flatten().min();
+            let Some(t) = next.filter(|t| *t <= end) else {
+                self.now = self.now.max(end);
+                self.poll();
+                return;
+            };
+            self.now = self.now.max(t);
+            if let Some((ts, axis)) = step
+                && ts == t
+            {
+                let i = axis.index();
+                let first = self.step_span[i].map_or(t, |(first, _)| first);
+                self.step_span[i] = Some((first, t));
+                self.physical[i] += if self.hw.dir_positive[i] { 1 } else { -1 };
+                self.hw.armed[i] = self.ctrl.stepper(axis).step();
+            } else if ping == Some(t) {
+                self.last_ping = t;
+                let _ = self.request(Request::Ping { token: 0 });
+            }
+            self.poll();
+        }
+    }
+
+    /// Run until no axis moves and nothing is timed, at most `max_ms`.
+    /// Returns whether the controller went idle.
+    pub fn run_until_idle(&mut self, max_ms: u64) -> bool {
+        let end = self.now + max_ms * TICKS_PER_MS;
+        while self.now < end {
+            let idle = !self.ctrl.is_moving()
+                && self.hw.armed.iter().all(Option::is_none)
+                && self.ctrl.next_deadline().is_none();
+            if idle {
+                return true;
+            }
+            self.run_until((self.now + 10 * TICKS_PER_MS).min(end));
+        }
+        false
+    }
+
+    /// Home every axis and run until done; whether all axes are homed.
+    pub fn home_all(&mut self) -> bool {
+        if self.request(Request::Home { axes: protocol::AxisSet::ALL }) != Reply::Ack {
+            return false;
+        }
+        self.run_until_idle(60_000);
+        Axis::ALL.iter().all(|a| self.ctrl.is_homed(*a))
+    }
+}
+
+impl Default for Rig {
+    fn default() -> Self {
+        Self::new()
+    }
+}

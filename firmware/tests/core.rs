@@ -1,0 +1,48 @@
+//! The controller's self-test suite (`firmware::selftest`), one `#[test]` per
+//! case. The same functions run on a Cortex-M4 under QEMU in CI.
+
+macro_rules! selftests {
+    ($($name:ident),* $(,)?) => {
+        $(
+            #[test]
+            fn $name() {
+                firmware::selftest::$name().unwrap_or_else(|e| panic!("{}: {e}", stringify!($name)));
+            }
+        )*
+
+        #[test]
+        fn every_selftest_is_listed_here() {
+            let listed = [$(stringify!($name)),*];
+            for (name, _) in firmware::selftest::TESTS {
+                assert!(listed.contains(name), "{name} is not run on the host");
+            }
+            assert_eq!(listed.len(), firmware::selftest::TESTS.len());
+        }
+    };
+}
+
+selftests!(
+    planner_step_times_within_one_tick,
+    planner_respects_speed_and_acceleration,
+    planner_stop_profile,
+    concurrent_move_reaches_targets,
+    controlled_stop_decelerates,
+    homing_all_axes,
+    homing_starting_on_switch_backs_off,
+    homing_switch_not_found,
+    homing_switch_stuck,
+    homing_timeout,
+    disk_takes_shortest_way,
+    capture_step_sequence,
+    bare_trigger,
+    dispatcher_errors,
+    duplicate_sequence_not_reexecuted,
+    handshake_required_and_versions,
+    estop_input_latches,
+    driver_fault_latches,
+    emergency_stop_request,
+    unexpected_home_switch,
+    link_silence_while_moving,
+    watchdog_boot_latches,
+    config_save_and_reload,
+);
