@@ -8,10 +8,17 @@ step() { printf '\n==> %s\n' "$*"; }
 
 step "format"
 cargo fmt --all -- --check
+(cd firmware/board && cargo fmt -- --check)
+(cd firmware/qemu-tests && cargo fmt -- --check)
 step "clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
+(cd firmware/board && cargo clippy --release --locked -- -D warnings)
 step "tests"
 cargo test --workspace --locked
 step "no_std build of protocol for thumbv7em-none-eabihf"
 cargo build -p protocol --target thumbv7em-none-eabihf --release --locked
 cargo build -p protocol --target thumbv7em-none-eabihf --release --locked --features defmt
+step "firmware core self-tests on a Cortex-M4 (QEMU mps2-an386)"
+(cd firmware/qemu-tests && cargo run --release --locked)
+step "firmware ELF size (release, STM32F411)"
+scripts/firmware-size.sh

@@ -4,8 +4,9 @@
 
 use protocol::{AXIS_COUNT, Axis, ResetReason};
 
-/// The step timer's tick rate: 100 MHz timer clock prescaled by 10.
-pub const TICK_HZ: u32 = 10_000_000;
+/// The step timer's tick rate: the F411's 96 MHz timer clock (96 MHz so that
+/// USB gets its exact 48 MHz) prescaled by 8.
+pub const TICK_HZ: u32 = 12_000_000;
 
 /// Ticks per millisecond.
 pub const TICKS_PER_MS: u64 = TICK_HZ as u64 / 1000;

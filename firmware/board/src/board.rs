@@ -1,0 +1,122 @@
+//! The pin map of the default controller: an STM32F411CEU6 "Black Pill"
+//! driving three STEP/DIR drivers (TMC2209 or DRV8825 class). Change pins
+//! here and nowhere else; the README's wiring table mirrors this file.
+//!
+//! | signal | pin | notes |
+//! |---|---|---|
+//! | DISK STEP / DIR | PB12 / PB13 | |
+//! | TRACK STEP / DIR | PB14 / PB15 | |
+//! | TILT STEP / DIR | PA8 / PA9 | |
+//! | drivers EN (all) | PA10 | active low |
+//! | DISK index flag | PB3 | active low, pull-up |
+//! | TRACK home switch | PB4 | active low, pull-up |
+//! | TILT home switch | PB5 | active low, pull-up |
+//! | emergency stop | PB8 | NC contact to GND, pull-up: open (or a cut wire) = stop |
+//! | driver fault | PB9 | open drain, active low, pull-up |
+//! | camera trigger | PA1 | active high, to the opto-isolator |
+//! | exposure strobe (optional) | PA2 | input, pull-down |
+//! | light PWM | PB6 | TIM4 CH1, 20 kHz, active high |
+//! | USB D− / D+ | PA11 / PA12 | CDC-ACM |
+//! | status LED | PC13 | active low |
+//! | SWD | PA13 / PA14 | debug probe |
+
+use embassy_stm32::gpio::{Input, Level, Output, Pull, Speed};
+use embassy_stm32::peripherals::TIM4;
+use embassy_stm32::time::khz;
+use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
+use embassy_stm32::{Peri, peripherals as p};
+use firmware::hal::Inputs;
+
+/// Shortest STEP high time, in core cycles at 96 MHz: 1 µs (TMC2209 needs
+/// 100 ns; set 192 for the DRV8825's 1.9 µs).
+pub const STEP_PULSE_CYCLES: u32 = 96;
+
+/// STEP and DIR lines per axis, EN shared.
+pub struct Motors {
+    /// STEP lines, indexed by axis.
+    pub step: [Output<'static>; 3],
+    /// DIR lines, indexed by axis.
+    pub dir: [Output<'static>; 3],
+    /// Drivers' EN (active low).
+    pub enable_n: Output<'static>,
+}
+
+/// Switches, E-stop and driver fault inputs.
+pub struct Sensors {
+    home: [Input<'static>; 3],
+    estop: Input<'static>,
+    driver_fault_n: Input<'static>,
+}
+
+impl Sensors {
+    /// Sample every input.
+    pub fn read(&self) -> Inputs {
+        Inputs {
+            home: [self.home[0].is_low(), self.home[1].is_low(), self.home[2].is_low()],
+            estop: self.estop.is_high(),
+            driver_fault: self.driver_fault_n.is_low(),
+        }
+    }
+}
+
+/// Camera trigger and light.
+pub struct Camera {
+    /// Trigger output (active high).
+    pub trigger: Output<'static>,
+    /// Light PWM (TIM4 CH1).
+    pub light: SimplePwm<'static, TIM4>,
+}
+
+/// The pins the board uses, taken from the peripherals.
+#[allow(clippy::too_many_arguments)]
+pub struct Pins {
+    pub pb12: Peri<'static, p::PB12>,
+    pub pb13: Peri<'static, p::PB13>,
+    pub pb14: Peri<'static, p::PB14>,
+    pub pb15: Peri<'static, p::PB15>,
+    pub pa8: Peri<'static, p::PA8>,
+    pub pa9: Peri<'static, p::PA9>,
+    pub pa10: Peri<'static, p::PA10>,
+    pub pb3: Peri<'static, p::PB3>,
+    pub pb4: Peri<'static, p::PB4>,
+    pub pb5: Peri<'static, p::PB5>,
+    pub pb8: Peri<'static, p::PB8>,
+    pub pb9: Peri<'static, p::PB9>,
+    pub pa1: Peri<'static, p::PA1>,
+    pub pb6: Peri<'static, p::PB6>,
+    pub tim4: Peri<'static, p::TIM4>,
+}
+
+/// Configure every pin.
+pub fn init(pins: Pins) -> (Motors, Sensors, Camera) {
+    let out = |pin: Peri<'static, embassy_stm32::gpio::AnyPin>| {
+        Output::new(pin, Level::Low, Speed::VeryHigh)
+    };
+    let motors = Motors {
+        step: [out(pins.pb12.into()), out(pins.pb14.into()), out(pins.pa8.into())],
+        dir: [out(pins.pb13.into()), out(pins.pb15.into()), out(pins.pa9.into())],
+        enable_n: Output::new(pins.pa10, Level::High, Speed::Low),
+    };
+    let sensors = Sensors {
+        home: [
+            Input::new(pins.pb3, Pull::Up),
+            Input::new(pins.pb4, Pull::Up),
+            Input::new(pins.pb5, Pull::Up),
+        ],
+        estop: Input::new(pins.pb8, Pull::Up),
+        driver_fault_n: Input::new(pins.pb9, Pull::Up),
+    };
+    let mut light = SimplePwm::new(
+        pins.tim4,
+        Some(PwmPin::new(pins.pb6, embassy_stm32::gpio::OutputType::PushPull)),
+        None,
+        None,
+        None,
+        khz(20),
+        Default::default(),
+    );
+    light.ch1().set_duty_cycle_fully_off();
+    light.ch1().enable();
+    let camera = Camera { trigger: Output::new(pins.pa1, Level::Low, Speed::High), light };
+    (motors, sensors, camera)
+}

@@ -1,0 +1,301 @@
+//! Scanner controller firmware for the STM32F411CEU6.
+//!
+//! This file only initialises the chip, binds interrupts and spawns tasks; all
+//! behaviour lives in the `firmware` library ([`firmware::Controller`]).
+//!
+//! - TIM2 compare interrupts run each axis' step generator (`clock.rs`).
+//! - The control task polls the inputs every 200 µs (5 kHz) and the
+//!   controller's timers, feeds the watchdog and queues outgoing frames.
+//! - The USB task serves CDC-ACM; received bytes go straight to the
+//!   controller, replies and events go back through a pipe.
+#![no_std]
+#![no_main]
+
+mod board;
+mod clock;
+mod storage;
+
+use core::cell::RefCell;
+
+use critical_section::Mutex;
+use defmt::{info, unwrap, warn};
+use embassy_executor::Spawner;
+use embassy_futures::join::join3;
+use embassy_stm32::flash::Flash;
+use embassy_stm32::peripherals::USB_OTG_FS;
+use embassy_stm32::time::Hertz;
+use embassy_stm32::usb::{self, Driver};
+use embassy_stm32::wdg::IndependentWatchdog;
+use embassy_stm32::{Config, bind_interrupts, interrupt, pac};
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::pipe::Pipe;
+use embassy_time::{Duration, Ticker};
+use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
+use firmware::Controller;
+use firmware::config::PERSISTED_MAX_LEN;
+use firmware::hal::{BootInfo, Hardware, StorageError};
+use protocol::{Axis, BOARD_STM32F411_BLACKPILL, Capabilities, ResetReason, USB_PID, USB_VID};
+use static_cell::StaticCell;
+use {defmt_rtt as _, panic_probe as _};
+
+bind_interrupts!(struct Irqs {
+    OTG_FS => usb::InterruptHandler<USB_OTG_FS>;
+});
+
+/// The controller and the hardware it drives, shared by the step interrupt
+/// and the tasks. Every lock is short: one poll, one received packet, or one
+/// step.
+struct Machine {
+    controller: Controller,
+    hw: BoardHw,
+}
+
+static MACHINE: Mutex<RefCell<Option<Machine>>> = Mutex::new(RefCell::new(None));
+
+/// Frames for the host, written by whoever holds the machine, read by USB.
+static TX: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
+
+fn send(frame: &[u8]) {
+    // Whole frames only: a frame that does not fit is dropped (the host
+    // recovers replies by retransmitting, events by status / GetLastTrigger).
+    if TX.free_capacity() >= frame.len() {
+        let _ = TX.try_write(frame);
+    }
+}
+
+struct BoardHw {
+    motors: board::Motors,
+    camera: board::Camera,
+    store: storage::Store,
+}
+
+impl Hardware for BoardHw {
+    fn set_direction(&mut self, axis: Axis, positive: bool) {
+        self.motors.dir[axis.index()].set_level(positive.into());
+    }
+    fn arm_step_timer(&mut self, axis: Axis, tick: u64) {
+        clock::arm(axis, tick);
+    }
+    fn disarm_step_timer(&mut self, axis: Axis) {
+        clock::disarm(axis);
+    }
+    fn set_drivers_enabled(&mut self, enabled: bool) {
+        self.motors.enable_n.set_level((!enabled).into());
+    }
+    fn set_light(&mut self, duty_permille: u16) {
+        let mut ch = self.camera.light.ch1();
+        ch.set_duty_cycle_fraction(duty_permille.min(1000) as u32, 1000);
+    }
+    fn set_trigger(&mut self, high: bool) {
+        self.camera.trigger.set_level(high.into());
+    }
+    fn save_config(&mut self, blob: &[u8]) -> Result<(), StorageError> {
+        self.store.save_config(blob)
+    }
+}
+
+#[interrupt]
+fn TIM2() {
+    critical_section::with(|cs| {
+        let due = clock::take_due();
+        let mut machine = MACHINE.borrow_ref_mut(cs);
+        let Some(m) = machine.as_mut() else { return };
+        for axis in Axis::ALL {
+            if !due[axis.index()] {
+                continue;
+            }
+            let start = cortex_m::peripheral::DWT::cycle_count();
+            let pin = &mut m.hw.motors.step[axis.index()];
+            pin.set_high();
+            match m.controller.stepper(axis).step() {
+                Some(next) => clock::arm(axis, next),
+                None => clock::disarm(axis),
+            }
+            while cortex_m::peripheral::DWT::cycle_count().wrapping_sub(start)
+                < board::STEP_PULSE_CYCLES
+            {}
+            pin.set_low();
+        }
+    });
+}
+
+fn reset_reason() -> ResetReason {
+    let csr = pac::RCC.csr().read();
+    let reason = if csr.wdgrstf() || csr.wwdgrstf() {
+        ResetReason::Watchdog
+    } else if csr.sftrstf() {
+        ResetReason::Software
+    } else if csr.porrstf() || csr.borrstf() {
+        ResetReason::PowerOn
+    } else if csr.padrstf() {
+        ResetReason::Pin
+    } else {
+        ResetReason::Other
+    };
+    pac::RCC.csr().modify(|w| w.set_rmvf(true));
+    reason
+}
+
+#[embassy_executor::main]
+async fn main(spawner: Spawner) {
+    // 25 MHz HSE → PLL 96 MHz SYSCLK and exactly 48 MHz for USB.
+    let mut config = Config::default();
+    {
+        use embassy_stm32::rcc::*;
+        config.rcc.hse = Some(Hse { freq: Hertz(25_000_000), mode: HseMode::Oscillator });
+        config.rcc.pll_src = PllSource::HSE;
+        config.rcc.pll = Some(Pll {
+            prediv: PllPreDiv::DIV25,
+            mul: PllMul::MUL192,
+            divp: Some(PllPDiv::DIV2),
+            divq: Some(PllQDiv::DIV4),
+            divr: None,
+        });
+        config.rcc.ahb_pre = AHBPrescaler::DIV1;
+        config.rcc.apb1_pre = APBPrescaler::DIV2;
+        config.rcc.apb2_pre = APBPrescaler::DIV1;
+        config.rcc.sys = Sysclk::PLL1_P;
+        config.rcc.mux.clk48sel = mux::Clk48sel::PLL1_Q;
+    }
+    let p = embassy_stm32::init(config);
+    let reason = reset_reason();
+    info!("scanner firmware {} booting ({})", env!("CARGO_PKG_VERSION"), reason);
+
+    let mut core = unwrap!(cortex_m::Peripherals::take());
+    core.DCB.enable_trace();
+    core.DWT.enable_cycle_counter();
+
+    let mut watchdog = IndependentWatchdog::new(p.IWDG, 3_000_000);
+    watchdog.unleash();
+
+    let mut store = storage::Store::new(Flash::new_blocking(p.FLASH));
+    let boot_count = store.next_boot_count();
+    let device_id = embassy_stm32::uid::uid();
+    let mut id_and_count = [0u8; 16];
+    id_and_count[..12].copy_from_slice(&device_id);
+    id_and_count[12..].copy_from_slice(&boot_count.to_le_bytes());
+    let boot = BootInfo {
+        boot_id: protocol::CRC.checksum(&id_and_count),
+        reason,
+        device_id,
+        board: BOARD_STM32F411_BLACKPILL,
+        capabilities: Capabilities::PERSISTENT_CONFIG
+            .union(Capabilities::PWM_LIGHT)
+            .union(Capabilities::LOG_EVENTS),
+    };
+    let mut blob = [0u8; PERSISTED_MAX_LEN];
+    let saved = store.load_config(&mut blob).map(|n| &blob[..n]);
+    let controller = Controller::new(boot, saved);
+
+    let (motors, sensors, camera) = board::init(board::Pins {
+        pb12: p.PB12,
+        pb13: p.PB13,
+        pb14: p.PB14,
+        pb15: p.PB15,
+        pa8: p.PA8,
+        pa9: p.PA9,
+        pa10: p.PA10,
+        pb3: p.PB3,
+        pb4: p.PB4,
+        pb5: p.PB5,
+        pb8: p.PB8,
+        pb9: p.PB9,
+        pa1: p.PA1,
+        pb6: p.PB6,
+        tim4: p.TIM4,
+    });
+    critical_section::with(|cs| {
+        MACHINE
+            .borrow(cs)
+            .replace(Some(Machine { controller, hw: BoardHw { motors, camera, store } }));
+    });
+    // APB1 at 48 MHz: its timers run at 96 MHz.
+    clock::start(96_000_000);
+
+    // USB CDC-ACM.
+    static EP_OUT: StaticCell<[u8; 256]> = StaticCell::new();
+    let mut usb_config = usb::Config::default();
+    usb_config.vbus_detection = false;
+    let driver =
+        Driver::new_fs(p.USB_OTG_FS, Irqs, p.PA12, p.PA11, EP_OUT.init([0; 256]), usb_config);
+    let mut config = embassy_usb::Config::new(USB_VID, USB_PID);
+    config.manufacturer = Some("Material Scanner");
+    config.product = Some("Scanner controller");
+    config.serial_number = Some(embassy_stm32::uid::uid_hex());
+    config.max_power = 100;
+    config.max_packet_size_0 = 64;
+
+    static CONFIG_DESC: StaticCell<[u8; 256]> = StaticCell::new();
+    static BOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
+    static CONTROL_BUF: StaticCell<[u8; 64]> = StaticCell::new();
+    static STATE: StaticCell<State<'static>> = StaticCell::new();
+    let mut builder = embassy_usb::Builder::new(
+        driver,
+        config,
+        CONFIG_DESC.init([0; 256]),
+        BOS_DESC.init([0; 256]),
+        &mut [],
+        CONTROL_BUF.init([0; 64]),
+    );
+    let class = CdcAcmClass::new(&mut builder, STATE.init(State::new()), 64);
+    let usb = builder.build();
+    spawner.spawn(unwrap!(usb_task(usb, class)));
+
+    // Control loop: inputs at 5 kHz, the controller's timers, the watchdog.
+    let mut ticker = Ticker::every(Duration::from_micros(200));
+    loop {
+        ticker.next().await;
+        let inputs = sensors.read();
+        let reset = critical_section::with(|cs| {
+            let mut machine = MACHINE.borrow_ref_mut(cs);
+            let Some(m) = machine.as_mut() else { return false };
+            m.controller.poll(clock::now(), &inputs, &mut m.hw);
+            m.controller.drain_events(&mut send);
+            m.controller.reset_requested()
+        });
+        watchdog.pet();
+        if reset && TX.is_empty() {
+            warn!("reset requested by the host");
+            embassy_time::Timer::after_millis(20).await;
+            cortex_m::peripheral::SCB::sys_reset();
+        }
+    }
+}
+
+type UsbDriver = Driver<'static, USB_OTG_FS>;
+
+#[embassy_executor::task]
+async fn usb_task(
+    mut usb: embassy_usb::UsbDevice<'static, UsbDriver>,
+    class: CdcAcmClass<'static, UsbDriver>,
+) {
+    let (mut sender, mut receiver) = class.split();
+    let rx = async {
+        let mut packet = [0u8; 64];
+        loop {
+            receiver.wait_connection().await;
+            info!("host connected");
+            while let Ok(n) = receiver.read_packet(&mut packet).await {
+                critical_section::with(|cs| {
+                    let mut machine = MACHINE.borrow_ref_mut(cs);
+                    if let Some(m) = machine.as_mut() {
+                        m.controller.on_bytes(&packet[..n], clock::now(), &mut m.hw, &mut send);
+                    }
+                });
+            }
+            info!("host disconnected");
+        }
+    };
+    let tx = async {
+        let mut buf = [0u8; 64];
+        loop {
+            let n = TX.read(&mut buf).await;
+            sender.wait_connection().await;
+            if sender.write_packet(&buf[..n]).await.is_ok() && n == buf.len() && TX.is_empty() {
+                // A full-size packet needs a zero-length one to end the transfer.
+                let _ = sender.write_packet(&[]).await;
+            }
+        }
+    };
+    join3(usb.run(), rx, tx).await;
+}
