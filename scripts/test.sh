@@ -13,6 +13,7 @@ cargo fmt --all -- --check
 step "clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 (cd firmware/board && cargo clippy --release --locked -- -D warnings)
+(cd firmware/qemu-tests && cargo clippy --release --locked --bins -- -D warnings)
 step "tests"
 cargo test --workspace --locked
 step "no_std build of protocol for thumbv7em-none-eabihf"

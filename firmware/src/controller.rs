@@ -2,9 +2,12 @@
 //! and safety supervisor, in one state machine driven from outside.
 //!
 //! The caller owns time and hardware: it hands in received bytes
-//! ([`Controller::on_bytes`]), polls with the current tick and an input
-//! snapshot ([`Controller::poll`]), and runs each axis' step interrupt through
-//! [`Controller::stepper`]. Nothing here blocks, allocates or reads a clock.
+//! ([`Controller::on_bytes`]) and polls with the current tick and an input
+//! snapshot ([`Controller::poll`]). The step generators belong to the
+//! hardware side (the step interrupt runs them); the controller reaches them
+//! only through [`Hardware::with_stepper`], for short pushes and reads, and
+//! plans segments outside that. Nothing here blocks, allocates or reads a
+//! clock.
 //!
 //! Safety (spec/hardware.md): emergency stop, driver fault and a home switch
 //! hit far from home stop every axis at once, switch the light off and latch a
@@ -61,7 +64,6 @@ enum HomingStage {
 #[derive(Debug, Clone)]
 struct AxisMotion {
     planner: SegmentPlanner,
-    direction: i32,
     homing: Option<HomingStage>,
 }
 
@@ -94,7 +96,6 @@ enum Activity {
 pub struct Controller {
     boot: BootInfo,
     config: PersistedConfig,
-    steppers: [StepGenerator; AXIS_COUNT],
     motion: [Option<AxisMotion>; AXIS_COUNT],
     homed: [bool; AXIS_COUNT],
     activity: Activity,
@@ -123,7 +124,6 @@ impl Controller {
         let mut c = Controller {
             boot,
             config,
-            steppers: Default::default(),
             motion: Default::default(),
             homed: [false; AXIS_COUNT],
             activity: Activity::Idle,
@@ -152,15 +152,6 @@ impl Controller {
 
     // ----- accessors used by the board, the simulator and tests -------------
 
-    /// The step generator of `axis`: the step interrupt calls
-    /// [`StepGenerator::step`] on it.
-    pub fn stepper(&mut self, axis: Axis) -> &mut StepGenerator {
-        &mut self.steppers[axis.index()]
-    }
-    /// Current position of `axis`, steps.
-    pub fn position(&self, axis: Axis) -> i32 {
-        self.steppers[axis.index()].position()
-    }
     /// Whether `axis` has been homed.
     pub fn is_homed(&self, axis: Axis) -> bool {
         self.homed[axis.index()]
@@ -286,18 +277,18 @@ impl Controller {
         match request {
             Request::Hello { .. } => unreachable!("handled above"),
             Request::Ping { token } => Ok(Reply::Pong { token }),
-            Request::GetStatus => Ok(Reply::Status(self.status())),
+            Request::GetStatus => Ok(Reply::Status(self.status(hw))),
             Request::Home { axes } => self.start_homing(axes, hw).map(|_| Reply::Ack),
             Request::Move { mode, targets } => {
                 self.ensure_can_move()?;
-                let targets = self.resolve_targets(mode, targets)?;
+                let targets = self.resolve_targets(mode, targets, hw)?;
                 self.start_move(targets, None, hw)?;
                 Ok(Reply::Ack)
             }
             Request::GoToMirror { mirror } => {
                 self.ensure_can_move()?;
                 let position = self.mirror(mirror)?;
-                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some))?;
+                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
                 self.start_move(targets, None, hw)?;
                 Ok(Reply::Ack)
             }
@@ -361,7 +352,7 @@ impl Controller {
                     return Err(DeviceError::OutOfRange);
                 }
                 let position = self.mirror(step.mirror)?;
-                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some))?;
+                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
                 self.start_move(targets, Some(step), hw)?;
                 Ok(Reply::Ack)
             }
@@ -422,11 +413,17 @@ impl Controller {
         }
     }
 
+    /// Axis positions, steps.
+    fn positions(&self, hw: &mut impl Hardware) -> [i32; AXIS_COUNT] {
+        Axis::ALL.map(|a| hw.with_stepper(a, |s| s.position()))
+    }
+
     /// A status snapshot.
-    pub fn status(&self) -> Status {
+    pub fn status(&self, hw: &mut impl Hardware) -> Status {
+        let positions = self.positions(hw);
         let axes = Axis::ALL.map(|axis| {
             let i = axis.index();
-            let steps = self.steppers[i].position();
+            let steps = positions[i];
             AxisStatus {
                 position_steps: steps,
                 position_units: steps as f32 / self.config.axes[i].steps_per_unit,
@@ -490,7 +487,9 @@ impl Controller {
         &self,
         mode: MoveMode,
         targets: [Option<i32>; AXIS_COUNT],
+        hw: &mut impl Hardware,
     ) -> Result<[i32; AXIS_COUNT], DeviceError> {
+        let positions = self.positions(hw);
         if targets.iter().all(Option::is_none) {
             return Err(DeviceError::BadRequest);
         }
@@ -501,7 +500,7 @@ impl Controller {
                 return Err(DeviceError::NotHomed);
             }
             let c = &self.config.axes[axis.index()];
-            let pos = self.steppers[axis.index()].position() as i64;
+            let pos = positions[axis.index()] as i64;
             let delta = match (mode, c.continuous) {
                 (MoveMode::Absolute, false) => {
                     self.check_limits(axis, t)?;
@@ -549,7 +548,7 @@ impl Controller {
         self.activity = Activity::Moving { axes, capture, stopping: false };
         if axes.is_empty() {
             // Already there: complete at the next poll.
-            self.finish_motion(MotionOutcome::Completed);
+            self.finish_motion(MotionOutcome::Completed, hw);
         }
         Ok(())
     }
@@ -564,15 +563,15 @@ impl Controller {
     ) {
         let i = axis.index();
         let mut planner = SegmentPlanner::new(profile, TICK_HZ);
-        let stepper = &mut self.steppers[i];
-        stepper.halt();
-        fill_queue(&mut planner, stepper);
+        hw.with_stepper(axis, StepGenerator::halt);
+        fill_queue(&mut planner, axis, hw);
         hw.set_drivers_enabled(true);
         hw.set_direction(axis, direction > 0);
-        if let Some(first) = stepper.start(self.now, direction) {
+        let now = self.now;
+        if let Some(first) = hw.with_stepper(axis, |s| s.start(now, direction)) {
             hw.arm_step_timer(axis, first);
         }
-        self.motion[i] = Some(AxisMotion { planner, direction, homing });
+        self.motion[i] = Some(AxisMotion { planner, homing });
     }
 
     /// Decelerate every moving axis to rest; abort homing and capture.
@@ -589,30 +588,35 @@ impl Controller {
             Activity::Idle => {}
         }
         for axis in Axis::ALL {
-            self.decelerate_axis(axis);
+            self.decelerate_axis(axis, hw);
         }
     }
 
-    fn decelerate_axis(&mut self, axis: Axis) {
+    fn decelerate_axis(&mut self, axis: Axis, hw: &mut impl Hardware) {
         let i = axis.index();
         let Some(motion) = &mut self.motion[i] else { return };
-        let stepper = &mut self.steppers[i];
-        if !stepper.is_running() {
-            return;
-        }
-        // Index (within the move) of the step already armed in the timer.
-        let pending = motion.planner.planned() - stepper.scheduled_steps() + 1;
-        let profile = motion.planner.profile();
-        if profile.phase(pending as f64) == Phase::Decelerate {
-            motion.homing = None;
-            return; // already ramping down as fast as allowed
-        }
-        let v = profile.velocity_at(pending as f64);
-        let decel = self.config.axes[i].a_max as f64;
-        stepper.truncate_after_pending();
-        motion.planner = SegmentPlanner::new(Profile::stop(v, decel), TICK_HZ);
         motion.homing = None;
-        fill_queue(&mut motion.planner, stepper);
+        let decel = self.config.axes[i].a_max as f64;
+        let profile = *motion.planner.profile();
+        let planned = motion.planner.planned();
+        // Cut the plan after the step already armed in the timer, unless the
+        // move is ramping down already (as fast as allowed).
+        let cut = hw.with_stepper(axis, |s| {
+            if !s.is_running() {
+                return None;
+            }
+            let pending = planned - s.scheduled_steps() + 1;
+            if profile.phase(pending as f64) == Phase::Decelerate {
+                return None;
+            }
+            s.truncate_after_pending();
+            Some(pending)
+        });
+        if let Some(pending) = cut {
+            let v = profile.velocity_at(pending as f64);
+            motion.planner = SegmentPlanner::new(Profile::stop(v, decel), TICK_HZ);
+            fill_queue(&mut motion.planner, axis, hw);
+        }
     }
 
     /// Stop every axis at once (no ramp): an axis stopped while stepping may
@@ -621,14 +625,14 @@ impl Controller {
         for axis in Axis::ALL {
             let i = axis.index();
             if self.motion[i].take().is_some() {
-                self.steppers[i].halt();
+                hw.with_stepper(axis, StepGenerator::halt);
                 hw.disarm_step_timer(axis);
                 self.homed[i] = false;
             }
         }
     }
 
-    fn finish_motion(&mut self, outcome: MotionOutcome) {
+    fn finish_motion(&mut self, outcome: MotionOutcome, hw: &mut impl Hardware) {
         let axes = match self.activity {
             Activity::Moving { axes, .. } | Activity::Homing { axes, .. } => axes,
             _ => AxisSet::NONE,
@@ -637,7 +641,7 @@ impl Controller {
             Activity::Moving { capture, stopping: false, .. } => capture,
             _ => None,
         };
-        let positions = Axis::ALL.map(|a| self.steppers[a.index()].position());
+        let positions = self.positions(hw);
         self.emit(Event::MotionDone { axes, outcome, positions });
         self.activity = match (capture, outcome) {
             (Some(step), MotionOutcome::Completed) => {
@@ -696,7 +700,7 @@ impl Controller {
                 return;
             }
             let switch = inputs.home[i];
-            let finished = !self.steppers[i].is_running() && motion.planner.is_done();
+            let finished = motion.planner.is_done() && hw.with_stepper(axis, |s| s.is_idle());
             match stage {
                 HomingStage::FastApproach if switch => {
                     self.stop_axis_now(axis, hw);
@@ -704,7 +708,7 @@ impl Controller {
                 }
                 HomingStage::SlowApproach if switch => {
                     self.stop_axis_now(axis, hw);
-                    self.steppers[i].set_position(h.home_position);
+                    hw.with_stepper(axis, |s| s.set_position(h.home_position));
                     self.homed[i] = true;
                 }
                 HomingStage::FastApproach | HomingStage::SlowApproach if finished => {
@@ -722,12 +726,12 @@ impl Controller {
             }
         }
         if axes.iter().all(|a| self.homed[a.index()]) {
-            self.finish_motion(MotionOutcome::Completed);
+            self.finish_motion(MotionOutcome::Completed, hw);
         }
     }
 
     fn stop_axis_now(&mut self, axis: Axis, hw: &mut impl Hardware) {
-        self.steppers[axis.index()].halt();
+        hw.with_stepper(axis, StepGenerator::halt);
         hw.disarm_step_timer(axis);
         self.motion[axis.index()] = None;
     }
@@ -735,7 +739,7 @@ impl Controller {
     fn homing_failed(&mut self, axis: Axis, why: HomingFailure, hw: &mut impl Hardware) {
         self.halt_all(hw);
         self.faults = self.faults.union(FaultFlags::HOMING_FAILED);
-        self.finish_motion(MotionOutcome::HomingFailed(axis, why));
+        self.finish_motion(MotionOutcome::HomingFailed(axis, why), hw);
         self.emit(Event::FaultRaised { faults: self.faults, axis: Some(axis) });
     }
 
@@ -773,7 +777,7 @@ impl Controller {
         hw.set_trigger(false);
         if was_moving || matches!(self.activity, Activity::Moving { .. } | Activity::Homing { .. })
         {
-            self.finish_motion(MotionOutcome::Aborted);
+            self.finish_motion(MotionOutcome::Aborted, hw);
         }
         self.activity = Activity::Idle;
         if new {
@@ -792,7 +796,8 @@ impl Controller {
             let i = axis.index();
             let rising = inputs.home[i] && !self.prev_inputs.home[i];
             let homing = self.motion[i].as_ref().is_some_and(|m| m.homing.is_some());
-            if rising && self.homed[i] && !homing && self.far_from_home(axis) {
+            let position = hw.with_stepper(axis, |s| s.position());
+            if rising && self.homed[i] && !homing && self.far_from_home(axis, position) {
                 self.raise_fault(FaultFlags::UNEXPECTED_HOME_SWITCH, Some(axis), hw);
             }
         }
@@ -810,9 +815,9 @@ impl Controller {
 
     /// Whether the switch of `axis` is far (more than the back-off distance)
     /// from where homing found it: it cannot legitimately be hit here.
-    fn far_from_home(&self, axis: Axis) -> bool {
+    fn far_from_home(&self, axis: Axis, position: i32) -> bool {
         let c = &self.config.axes[axis.index()];
-        let d = self.steppers[axis.index()].position() as i64 - c.homing.home_position as i64;
+        let d = position as i64 - c.homing.home_position as i64;
         let d = if c.continuous {
             let rev = c.steps_per_rev as i64;
             let m = d.rem_euclid(rev);
@@ -834,7 +839,7 @@ impl Controller {
         self.poll_homing(inputs, hw);
         self.prev_inputs = *inputs;
         self.refill(hw);
-        self.poll_motion_end();
+        self.poll_motion_end(hw);
         match self.activity {
             Activity::Settling { step, until } if now >= until => {
                 if self.faults.is_empty() {
@@ -857,32 +862,28 @@ impl Controller {
         for axis in Axis::ALL {
             let i = axis.index();
             let Some(motion) = &mut self.motion[i] else { continue };
-            let stepper = &mut self.steppers[i];
-            let was_running = stepper.is_running();
-            fill_queue(&mut motion.planner, stepper);
-            if !was_running && stepper.free() < crate::step::QUEUE_LEN {
-                // The planner fell behind the interrupt: resume from now.
+            fill_queue(&mut motion.planner, axis, hw);
+            // If the interrupt ran the queue dry before this refill, the
+            // planner fell behind: resume from now.
+            let now = self.now;
+            if let Some(first) = hw.with_stepper(axis, |s| s.resume(now)) {
                 self.underruns += 1;
-                if let Some(first) = stepper.start(self.now, motion.direction) {
-                    hw.arm_step_timer(axis, first);
-                }
+                hw.arm_step_timer(axis, first);
             }
         }
     }
 
-    fn poll_motion_end(&mut self) {
+    fn poll_motion_end(&mut self, hw: &mut impl Hardware) {
         for axis in Axis::ALL {
             let i = axis.index();
-            let done =
-                self.motion[i].as_ref().is_some_and(|m| m.homing.is_none() && m.planner.is_done())
-                    && !self.steppers[i].is_running();
-            if done {
+            let planned =
+                self.motion[i].as_ref().is_some_and(|m| m.homing.is_none() && m.planner.is_done());
+            if planned && hw.with_stepper(axis, |s| s.is_idle()) {
                 self.motion[i] = None;
                 let c = &self.config.axes[i];
                 if c.continuous {
                     let rev = c.steps_per_rev as i32;
-                    let p = self.steppers[i].position().rem_euclid(rev);
-                    self.steppers[i].set_position(p);
+                    hw.with_stepper(axis, |s| s.set_position(s.position().rem_euclid(rev)));
                 }
             }
         }
@@ -893,10 +894,10 @@ impl Controller {
             Activity::Moving { stopping, .. } => {
                 let outcome =
                     if stopping { MotionOutcome::Stopped } else { MotionOutcome::Completed };
-                self.finish_motion(outcome);
+                self.finish_motion(outcome, hw);
             }
             Activity::Homing { stopping: true, .. } => {
-                self.finish_motion(MotionOutcome::Stopped);
+                self.finish_motion(MotionOutcome::Stopped, hw);
             }
             _ => {}
         }
@@ -917,15 +918,16 @@ impl Controller {
     }
 }
 
-/// Move planned segments into the step queue until it is full.
-fn fill_queue(planner: &mut SegmentPlanner, stepper: &mut StepGenerator) {
-    while stepper.free() > 0 {
-        match planner.next_segment() {
-            Some(seg) => {
-                let _ = stepper.push(seg);
-            }
-            None => break,
-        }
+/// Plan segments (outside any lock) and push them into the step queue of
+/// `axis` until it is full. Only the interrupt pops, so the free places seen
+/// first stay free.
+fn fill_queue(planner: &mut SegmentPlanner, axis: Axis, hw: &mut impl Hardware) {
+    let free = hw.with_stepper(axis, |s| s.free());
+    for _ in 0..free {
+        let Some(segment) = planner.next_segment() else { break };
+        hw.with_stepper(axis, |s| {
+            let _ = s.push(segment);
+        });
     }
 }
 

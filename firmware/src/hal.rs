@@ -4,6 +4,8 @@
 
 use protocol::{AXIS_COUNT, Axis, ResetReason};
 
+use crate::step::StepGenerator;
+
 /// The step timer's tick rate: the F411's 96 MHz timer clock (96 MHz so that
 /// USB gets its exact 48 MHz) prescaled by 8.
 pub const TICK_HZ: u32 = 12_000_000;
@@ -28,10 +30,14 @@ pub struct Inputs {
 
 /// Outputs and services the controller drives.
 pub trait Hardware {
+    /// Run `f` on the step generator of `axis`. The step interrupt shares the
+    /// generators, so on hardware this takes a critical section: keep `f`
+    /// short (the controller plans segments outside it and only pushes here).
+    fn with_stepper<R>(&mut self, axis: Axis, f: impl FnOnce(&mut StepGenerator) -> R) -> R;
     /// Set the DIR line of `axis` before its first step.
     fn set_direction(&mut self, axis: Axis, positive: bool);
     /// Schedule the first step of a move of `axis` at `tick`; the step
-    /// interrupt then keeps itself armed from [`StepGenerator::step`](crate::step::StepGenerator::step).
+    /// interrupt then keeps itself armed from [`StepGenerator::step`].
     fn arm_step_timer(&mut self, axis: Axis, tick: u64);
     /// Cancel any scheduled step of `axis`.
     fn disarm_step_timer(&mut self, axis: Axis);

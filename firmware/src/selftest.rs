@@ -201,11 +201,11 @@ pub fn concurrent_move_reaches_targets() -> TestResult {
     ensure!(reply == Reply::Ack, "move accepted");
     // All three axes step during the same interval of time.
     rig.run_until(rig.now + 100 * TICKS_PER_MS);
-    ensure!(Axis::ALL.iter().all(|a| rig.ctrl.status().axes[a.index()].moving), "concurrent");
+    ensure!(Axis::ALL.iter().all(|a| rig.status().axes[a.index()].moving), "concurrent");
     ensure!(rig.run_until_idle(10_000), "move ends");
-    ensure!(rig.ctrl.position(Axis::Disk) == 8_000, "disk target");
-    ensure!(rig.ctrl.position(Axis::Track) == 160_000, "track target");
-    ensure!(rig.ctrl.position(Axis::Tilt) == 4_000, "tilt target");
+    ensure!(rig.position(Axis::Disk) == 8_000, "disk target");
+    ensure!(rig.position(Axis::Track) == 160_000, "track target");
+    ensure!(rig.position(Axis::Tilt) == 4_000, "tilt target");
     ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Completed), "MotionDone(Completed)");
     Ok(())
 }
@@ -216,11 +216,11 @@ pub fn controlled_stop_decelerates() -> TestResult {
     move_to(&mut rig, [None, Some(320_000), None])?;
     // Cruise at 64 000 steps/s (accelerating takes 200 ms).
     rig.run_until(rig.now + 400 * TICKS_PER_MS);
-    let before = rig.ctrl.position(Axis::Track);
+    let before = rig.position(Axis::Track);
     rig.clear_steps();
     ensure!(rig.request(Request::Stop) == Reply::Ack, "stop accepted");
     ensure!(rig.run_until_idle(2_000), "stops");
-    let travelled = rig.ctrl.position(Axis::Track) - before;
+    let travelled = rig.position(Axis::Track) - before;
     // v²/2a = 6 400 steps, plus the one step already armed.
     ensure!((6_390..=6_402).contains(&travelled), "stop distance v²/2a");
     let (first, last) = rig.step_span[Axis::Track.index()].ok_or("steps")?;
@@ -238,7 +238,7 @@ pub fn disk_takes_shortest_way() -> TestResult {
     move_to(&mut rig, [Some(15_000), None, None])?;
     rig.run_until_idle(5_000);
     // 0 → 15 000 of 16 000 is 1 000 steps backwards, not 15 000 forwards.
-    ensure!(rig.ctrl.position(Axis::Disk) == 15_000, "disk angle");
+    ensure!(rig.position(Axis::Disk) == 15_000, "disk angle");
     ensure!(rig.physical(Axis::Disk) - before == -1_000, "went the short way");
     Ok(())
 }
@@ -250,16 +250,16 @@ pub fn homing_all_axes() -> TestResult {
     ensure!(rig.home_all(), "all axes homed");
     // The switch edge is found to within one slow-approach step.
     // Switch edges: track at physical 0, tilt at −9 333; counters agree.
-    let track_err = rig.physical(Axis::Track) - rig.ctrl.position(Axis::Track) as i64;
+    let track_err = rig.physical(Axis::Track) - rig.position(Axis::Track) as i64;
     ensure!(
         track_err.abs() <= 1 && rig.physical(Axis::Track).abs() <= 1,
         "track home at its switch"
     );
-    let tilt_err = rig.physical(Axis::Tilt) - rig.ctrl.position(Axis::Tilt) as i64;
+    let tilt_err = rig.physical(Axis::Tilt) - rig.position(Axis::Tilt) as i64;
     ensure!(tilt_err.abs() <= 1, "tilt home at its switch");
     let disk = rig.physical(Axis::Disk).rem_euclid(16_000);
     ensure!(disk <= 1 || disk >= 15_999, "disk homes on its index flag");
-    ensure!(rig.ctrl.position(Axis::Tilt) == -9_333, "home position assigned");
+    ensure!(rig.position(Axis::Tilt) == -9_333, "home position assigned");
     ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Completed), "MotionDone");
     ensure!(rig.ctrl.faults().is_empty(), "no fault");
     Ok(())
@@ -272,7 +272,7 @@ pub fn homing_starting_on_switch_backs_off() -> TestResult {
     ensure!(rig.request(Request::Home { axes: AxisSet::single(Axis::Track) }) == Reply::Ack, "ack");
     rig.run_until_idle(30_000);
     ensure!(rig.ctrl.is_homed(Axis::Track), "homed");
-    let err = rig.physical(Axis::Track) - rig.ctrl.position(Axis::Track) as i64;
+    let err = rig.physical(Axis::Track) - rig.position(Axis::Track) as i64;
     ensure!(err.abs() <= 1, "edge found from the switch side");
     Ok(())
 }
@@ -337,7 +337,7 @@ pub fn capture_step_sequence() -> TestResult {
         "busy"
     );
     ensure!(rig.run_until_idle(10_000), "capture ends");
-    ensure!(rig.ctrl.position(Axis::Track) == 120_000, "at the mirror");
+    ensure!(rig.position(Axis::Track) == 120_000, "at the mirror");
 
     let moved_at = rig.events.iter().position(|e| matches!(e, Event::MotionDone { .. }));
     let fired = rig.events.iter().find_map(|e| match e {
@@ -439,17 +439,17 @@ pub fn duplicate_sequence_not_reexecuted() -> TestResult {
     let mut rig = Rig::new();
     ensure!(rig.home_all(), "homing");
     let rel = Request::Move { mode: MoveMode::Relative, targets: [None, Some(1_600), None] };
-    let before = rig.ctrl.position(Axis::Track);
+    let before = rig.position(Axis::Track);
     ensure!(rig.request_seq(200, rel) == Reply::Ack, "first");
     // The reply was lost: the host sends the same frame again (twice).
     ensure!(rig.request_seq(200, rel) == Reply::Ack, "re-acknowledged");
     ensure!(rig.request_seq(200, rel) == Reply::Ack, "re-acknowledged again");
     rig.run_until_idle(5_000);
-    ensure!(rig.ctrl.position(Axis::Track) - before == 1_600, "executed once");
+    ensure!(rig.position(Axis::Track) - before == 1_600, "executed once");
     // A new number executes again; so does an old number after another one.
     ensure!(rig.request_seq(201, rel) == Reply::Ack, "next");
     rig.run_until_idle(5_000);
-    ensure!(rig.ctrl.position(Axis::Track) - before == 3_200, "executed twice");
+    ensure!(rig.position(Axis::Track) - before == 3_200, "executed twice");
     Ok(())
 }
 
@@ -546,7 +546,7 @@ pub fn unexpected_home_switch() -> TestResult {
 pub fn link_silence_while_moving() -> TestResult {
     let mut rig = Rig::new();
     moving_with_light(&mut rig)?;
-    let track = rig.ctrl.position(Axis::Track);
+    let track = rig.position(Axis::Track);
     rig.keepalive = false;
     let silent_from = rig.now;
     rig.run_until(silent_from + 499 * TICKS_PER_MS);
@@ -556,7 +556,7 @@ pub fn link_silence_while_moving() -> TestResult {
     ensure!(rig.hw.light == 0, "light off");
     ensure!(rig.run_until_idle(2_000), "decelerates to rest");
     ensure!(
-        rig.ctrl.position(Axis::Track) < 300_000 && rig.ctrl.position(Axis::Track) > track,
+        rig.position(Axis::Track) < 300_000 && rig.position(Axis::Track) > track,
         "stopped short"
     );
     ensure!(rig.ctrl.is_homed(Axis::Track), "decelerated, so still homed");

@@ -93,6 +93,22 @@ impl StepGenerator {
         self.running
     }
 
+    /// Whether nothing is scheduled or queued.
+    pub fn is_idle(&self) -> bool {
+        !self.running && self.queue.is_empty()
+    }
+
+    /// Restart after the interrupt ran the queue dry while segments were still
+    /// coming (an underrun): the next step is timed from `now`. Returns its
+    /// tick, or `None` if there is nothing to restart.
+    pub fn resume(&mut self, now: u64) -> Option<u64> {
+        if self.running || self.queue.is_empty() {
+            return None;
+        }
+        let direction = self.direction;
+        self.start(now, direction)
+    }
+
     /// Free places in the segment queue.
     pub fn free(&self) -> usize {
         QUEUE_LEN - self.queue.len()

@@ -15,6 +15,7 @@ use protocol::{
 use crate::config::PERSISTED_MAX_LEN;
 use crate::controller::Controller;
 use crate::hal::{BootInfo, Hardware, Inputs, StorageError, TICKS_PER_MS};
+use crate::step::StepGenerator;
 
 /// Output edges and calls recorded by [`MockHw`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -46,9 +47,14 @@ pub struct MockHw {
     pub saved: Vec<u8, PERSISTED_MAX_LEN>,
     /// Make `save_config` fail.
     pub storage_fails: bool,
+    /// The step generators (the interrupt's side).
+    pub steppers: [StepGenerator; AXIS_COUNT],
 }
 
 impl Hardware for MockHw {
+    fn with_stepper<R>(&mut self, axis: Axis, f: impl FnOnce(&mut StepGenerator) -> R) -> R {
+        f(&mut self.steppers[axis.index()])
+    }
     fn set_direction(&mut self, axis: Axis, positive: bool) {
         self.dir_positive[axis.index()] = positive;
     }
@@ -183,6 +189,16 @@ impl Rig {
         rig
     }
 
+    /// The controller's position counter of `axis`, steps.
+    pub fn position(&self, axis: Axis) -> i32 {
+        self.hw.steppers[axis.index()].position()
+    }
+
+    /// Status as the controller reports it.
+    pub fn status(&mut self) -> protocol::Status {
+        self.ctrl.status(&mut self.hw)
+    }
+
     /// Physical position of `axis`.
     pub fn physical(&self, axis: Axis) -> i64 {
         self.physical[axis.index()]
@@ -254,7 +270,7 @@ impl Rig {
                 let first = self.step_span[i].map_or(t, |(first, _)| first);
                 self.step_span[i] = Some((first, t));
                 self.physical[i] += if self.hw.dir_positive[i] { 1 } else { -1 };
-                self.hw.armed[i] = self.ctrl.stepper(axis).step();
+                self.hw.armed[i] = self.hw.steppers[i].step();
             } else if ping == Some(t) {
                 self.last_ping = t;
                 let _ = self.request(Request::Ping { token: 0 });

@@ -3,7 +3,10 @@
 //! This file only initialises the chip, binds interrupts and spawns tasks; all
 //! behaviour lives in the `firmware` library ([`firmware::Controller`]).
 //!
-//! - TIM2 compare interrupts run each axis' step generator (`clock.rs`).
+//! - TIM2 compare interrupts run each axis' step generator (`clock.rs`). The
+//!   generators and STEP pins are the only state the interrupt shares, in
+//!   [`STEP`]; the controller plans outside that lock, so planning (soft
+//!   f64 on the M4) never delays a step.
 //! - The control task polls the inputs every 200 µs (5 kHz) and the
 //!   controller's timers, feeds the watchdog and queues outgoing frames.
 //! - The USB task serves CDC-ACM; received bytes go straight to the
@@ -22,11 +25,13 @@ use defmt::{info, unwrap, warn};
 use embassy_executor::Spawner;
 use embassy_futures::join::join3;
 use embassy_stm32::flash::Flash;
+use embassy_stm32::gpio::Output;
 use embassy_stm32::peripherals::USB_OTG_FS;
 use embassy_stm32::time::Hertz;
 use embassy_stm32::usb::{self, Driver};
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_stm32::{Config, bind_interrupts, interrupt, pac};
+use embassy_sync::blocking_mutex::ThreadModeMutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
 use embassy_time::{Duration, Ticker};
@@ -34,6 +39,7 @@ use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
 use firmware::Controller;
 use firmware::config::PERSISTED_MAX_LEN;
 use firmware::hal::{BootInfo, Hardware, StorageError};
+use firmware::step::StepGenerator;
 use protocol::{Axis, BOARD_STM32F411_BLACKPILL, Capabilities, ResetReason, USB_PID, USB_VID};
 use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
@@ -42,15 +48,23 @@ bind_interrupts!(struct Irqs {
     OTG_FS => usb::InterruptHandler<USB_OTG_FS>;
 });
 
-/// The controller and the hardware it drives, shared by the step interrupt
-/// and the tasks. Every lock is short: one poll, one received packet, or one
-/// step.
+/// The controller and the hardware it drives. Only thread-mode tasks touch
+/// it (they never preempt each other), so it needs no critical section.
 struct Machine {
     controller: Controller,
     hw: BoardHw,
 }
 
-static MACHINE: Mutex<RefCell<Option<Machine>>> = Mutex::new(RefCell::new(None));
+static MACHINE: ThreadModeMutex<RefCell<Option<Machine>>> =
+    ThreadModeMutex::new(RefCell::new(None));
+
+/// What the step interrupt owns: the step generators and the STEP lines.
+struct StepBlock {
+    generators: [StepGenerator; 3],
+    pins: [Output<'static>; 3],
+}
+
+static STEP: Mutex<RefCell<Option<StepBlock>>> = Mutex::new(RefCell::new(None));
 
 /// Frames for the host, written by whoever holds the machine, read by USB.
 static TX: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
@@ -64,14 +78,22 @@ fn send(frame: &[u8]) {
 }
 
 struct BoardHw {
-    motors: board::Motors,
+    dir: [Output<'static>; 3],
+    enable_n: Output<'static>,
     camera: board::Camera,
     store: storage::Store,
 }
 
 impl Hardware for BoardHw {
+    fn with_stepper<R>(&mut self, axis: Axis, f: impl FnOnce(&mut StepGenerator) -> R) -> R {
+        critical_section::with(|cs| {
+            let mut step = STEP.borrow_ref_mut(cs);
+            let block = step.as_mut().expect("step block installed before the controller runs");
+            f(&mut block.generators[axis.index()])
+        })
+    }
     fn set_direction(&mut self, axis: Axis, positive: bool) {
-        self.motors.dir[axis.index()].set_level(positive.into());
+        self.dir[axis.index()].set_level(positive.into());
     }
     fn arm_step_timer(&mut self, axis: Axis, tick: u64) {
         clock::arm(axis, tick);
@@ -80,7 +102,7 @@ impl Hardware for BoardHw {
         clock::disarm(axis);
     }
     fn set_drivers_enabled(&mut self, enabled: bool) {
-        self.motors.enable_n.set_level((!enabled).into());
+        self.enable_n.set_level((!enabled).into());
     }
     fn set_light(&mut self, duty_permille: u16) {
         let mut ch = self.camera.light.ch1();
@@ -98,16 +120,16 @@ impl Hardware for BoardHw {
 fn TIM2() {
     critical_section::with(|cs| {
         let due = clock::take_due();
-        let mut machine = MACHINE.borrow_ref_mut(cs);
-        let Some(m) = machine.as_mut() else { return };
+        let mut step = STEP.borrow_ref_mut(cs);
+        let Some(block) = step.as_mut() else { return };
         for axis in Axis::ALL {
             if !due[axis.index()] {
                 continue;
             }
             let start = cortex_m::peripheral::DWT::cycle_count();
-            let pin = &mut m.hw.motors.step[axis.index()];
+            let pin = &mut block.pins[axis.index()];
             pin.set_high();
-            match m.controller.stepper(axis).step() {
+            match block.generators[axis.index()].step() {
                 Some(next) => clock::arm(axis, next),
                 None => clock::disarm(axis),
             }
@@ -204,11 +226,13 @@ async fn main(spawner: Spawner) {
         pb6: p.PB6,
         tim4: p.TIM4,
     });
+    let board::Motors { step, dir, enable_n } = motors;
     critical_section::with(|cs| {
-        MACHINE
-            .borrow(cs)
-            .replace(Some(Machine { controller, hw: BoardHw { motors, camera, store } }));
+        STEP.borrow(cs).replace(Some(StepBlock { generators: Default::default(), pins: step }));
     });
+    MACHINE
+        .borrow()
+        .replace(Some(Machine { controller, hw: BoardHw { dir, enable_n, camera, store } }));
     // APB1 at 48 MHz: its timers run at 96 MHz.
     clock::start(96_000_000);
 
@@ -246,13 +270,13 @@ async fn main(spawner: Spawner) {
     loop {
         ticker.next().await;
         let inputs = sensors.read();
-        let reset = critical_section::with(|cs| {
-            let mut machine = MACHINE.borrow_ref_mut(cs);
-            let Some(m) = machine.as_mut() else { return false };
+        let reset = {
+            let mut machine = MACHINE.borrow().borrow_mut();
+            let Some(m) = machine.as_mut() else { continue };
             m.controller.poll(clock::now(), &inputs, &mut m.hw);
             m.controller.drain_events(&mut send);
             m.controller.reset_requested()
-        });
+        };
         watchdog.pet();
         if reset && TX.is_empty() {
             warn!("reset requested by the host");
@@ -276,12 +300,10 @@ async fn usb_task(
             receiver.wait_connection().await;
             info!("host connected");
             while let Ok(n) = receiver.read_packet(&mut packet).await {
-                critical_section::with(|cs| {
-                    let mut machine = MACHINE.borrow_ref_mut(cs);
-                    if let Some(m) = machine.as_mut() {
-                        m.controller.on_bytes(&packet[..n], clock::now(), &mut m.hw, &mut send);
-                    }
-                });
+                let mut machine = MACHINE.borrow().borrow_mut();
+                if let Some(m) = machine.as_mut() {
+                    m.controller.on_bytes(&packet[..n], clock::now(), &mut m.hw, &mut send);
+                }
             }
             info!("host disconnected");
         }
