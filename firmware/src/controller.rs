@@ -288,7 +288,8 @@ impl Controller {
             Request::GoToMirror { mirror } => {
                 self.ensure_can_move()?;
                 let position = self.mirror(mirror)?;
-                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
+                let targets =
+                    self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
                 self.start_move(targets, None, hw)?;
                 Ok(Reply::Ack)
             }
@@ -352,7 +353,8 @@ impl Controller {
                     return Err(DeviceError::OutOfRange);
                 }
                 let position = self.mirror(step.mirror)?;
-                let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
+                let targets =
+                    self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
                 self.start_move(targets, Some(step), hw)?;
                 Ok(Reply::Ack)
             }
