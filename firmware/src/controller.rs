@@ -17,11 +17,11 @@
 
 use heapless::Deque;
 use protocol::{
-    AXIS_COUNT, Axis, AxisSet, AxisStatus, CaptureStep, DeviceError, DeviceInfo, DeviceState,
-    Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame, FrameDecoder,
-    HomingFailure, LightState, LogLevel, LogText, MAX_EXPOSURE_US, MAX_FRAME_LEN, MAX_MIRRORS,
-    MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply, Request,
-    ResetReason, Status, ToHost, TriggerFired, encode_frame,
+    AXIS_COUNT, Axis, AxisSet, AxisStatus, Capabilities, CaptureStep, DeviceError, DeviceInfo,
+    DeviceState, Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame,
+    FrameDecoder, HomingFailure, LightState, LogLevel, LogText, MAX_EXPOSURE_US, MAX_FRAME_LEN,
+    MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply,
+    Request, ResetReason, Status, ToHost, TriggerFired, encode_frame,
 };
 
 use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid};
@@ -389,6 +389,9 @@ impl Controller {
                 Ok(Reply::Ack)
             }
             Request::SaveConfig => {
+                if !self.boot.capabilities.contains(Capabilities::PERSISTENT_CONFIG) {
+                    return Err(DeviceError::Unsupported);
+                }
                 let mut buf = [0u8; PERSISTED_MAX_LEN];
                 let blob = self.config.encode(&mut buf).ok_or(DeviceError::Storage)?;
                 hw.save_config(blob).map_err(|_| DeviceError::Storage)?;

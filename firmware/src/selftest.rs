@@ -5,9 +5,9 @@
 #![allow(missing_docs)] // test names say what they test
 
 use protocol::{
-    Axis, AxisSet, CaptureStep, DeviceError, Direction, Event, FaultFlags, HomingFailure,
-    LightState, MirrorPosition, MotionOutcome, MoveMode, ProtocolVersion, Reply, Request,
-    ResetReason,
+    Axis, AxisSet, Capabilities, CaptureStep, DeviceError, Direction, Event, FaultFlags,
+    FrameDecoder, HomingFailure, LightState, LogLevel, MAX_FRAME_LEN, MirrorPosition,
+    MotionOutcome, MoveMode, ProtocolVersion, Reply, Request, ResetReason, ToHost, encode_frame,
 };
 
 use crate::config::{PersistedConfig, default_axes};
@@ -56,6 +56,7 @@ pub const TESTS: &[SelfTest] = &[
     ("link_silence_while_moving", link_silence_while_moving),
     ("watchdog_boot_latches", watchdog_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
+    ("link_bytes_corruption_and_duplicates", link_bytes_corruption_and_duplicates),
 ];
 
 /// Run every test; returns (passed, failed) and reports each through `report`.
@@ -407,6 +408,9 @@ pub fn dispatcher_errors() -> TestResult {
     ensure!(e(&mut rig, Request::SetMirrorCount { count: 65 }) == Some(OutOfRange), "count");
     rig.hw.storage_fails = true;
     ensure!(e(&mut rig, Request::SaveConfig) == Some(Storage), "Storage");
+    rig.hw.storage_fails = false;
+    let mut volatile = Rig::with_capabilities(ResetReason::PowerOn, Capabilities::SIMULATED);
+    ensure!(e(&mut volatile, Request::SaveConfig) == Some(Unsupported), "Unsupported");
 
     ensure!(rig.home_all(), "homing");
     ensure!(e(&mut rig, mv(320_001)) == Some(OutOfRange), "beyond soft limit");
@@ -597,5 +601,59 @@ pub fn config_save_and_reload() -> TestResult {
         PersistedConfig::decode(&rig.hw.saved[..rig.hw.saved.len() - 1]).is_none(),
         "truncated"
     );
+    Ok(())
+}
+
+/// Frames through `on_bytes`: garbage and a corrupted copy are dropped, the
+/// good frame is answered once, a retransmission is re-answered but not
+/// re-executed, and events are framed with their own counter.
+pub fn link_bytes_corruption_and_duplicates() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    let mut out: heapless::Vec<u8, 1024> = heapless::Vec::new();
+    let mut frame = [0u8; MAX_FRAME_LEN];
+    let rel = Request::Move { mode: MoveMode::Relative, targets: [None, Some(800), None] };
+    let n = encode_frame(42, &rel, &mut frame).map_err(|_| "encode")?;
+    let mut corrupted = [0u8; MAX_FRAME_LEN];
+    corrupted[..n].copy_from_slice(&frame[..n]);
+    corrupted[2] ^= 0x10;
+    let before = rig.position(Axis::Track);
+    let mut stream: heapless::Vec<u8, 512> = heapless::Vec::new();
+    let _ = stream.extend_from_slice(&[0x13, 0x37, 0xFF, 0x00]); // line noise
+    let _ = stream.extend_from_slice(&corrupted[..n]);
+    let _ = stream.extend_from_slice(&frame[..n]);
+    let _ = stream.extend_from_slice(&frame[..n]); // a retransmission
+    // Deliver in awkward chunks.
+    for chunk in stream.chunks(5) {
+        rig.ctrl.on_bytes(chunk, rig.now, &mut rig.hw, &mut |b: &[u8]| {
+            let _ = out.extend_from_slice(b);
+        });
+    }
+    rig.run_until_idle(5_000);
+    ensure!(rig.position(Axis::Track) - before == 800, "executed exactly once");
+    let mut decoder = FrameDecoder::<ToHost>::new();
+    let mut replies = 0;
+    for f in decoder.feed(&out) {
+        let f = f.map_err(|_| "device frames decode")?;
+        ensure!(f.seq == 42 && f.msg == ToHost::Reply(Reply::Ack), "Ack for seq 42");
+        replies += 1;
+    }
+    ensure!(replies == 2, "answered the frame and its retransmission, not the corrupted copy");
+    // Events go out framed, numbered by the controller's event counter
+    // (every event so far was taken by the rig).
+    out.clear();
+    let counted = rig.events.len() as u8;
+    rig.ctrl.log(LogLevel::Warn, "hello");
+    rig.ctrl.drain_events(&mut |b: &[u8]| {
+        let _ = out.extend_from_slice(b);
+    });
+    let mut frames = decoder.feed(&out);
+    let Some(Ok(f)) = frames.next() else { return Err("one event frame") };
+    ensure!(f.seq == counted, "event sequence number counts events");
+    let ToHost::Event(Event::Log { level: LogLevel::Warn, text }) = f.msg else {
+        return Err("the log event");
+    };
+    ensure!(text.as_str() == "hello", "log text");
+    ensure!(frames.next().is_none(), "nothing else queued");
     Ok(())
 }

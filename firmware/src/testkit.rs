@@ -158,12 +158,20 @@ impl Rig {
 
     /// A freshly booted controller with the given reset reason.
     pub fn booted(reason: ResetReason) -> Rig {
+        Self::with_capabilities(
+            reason,
+            Capabilities::SIMULATED.union(Capabilities::PERSISTENT_CONFIG),
+        )
+    }
+
+    /// A freshly booted controller with the given reset reason and capabilities.
+    pub fn with_capabilities(reason: ResetReason, capabilities: Capabilities) -> Rig {
         let boot = BootInfo {
             boot_id: 0x1234_5678,
             reason,
             device_id: [7; 12],
             board: BOARD_SIMULATOR,
-            capabilities: Capabilities::SIMULATED,
+            capabilities,
         };
         let mut rig = Rig {
             ctrl: Controller::new(boot, None),

@@ -45,4 +45,5 @@ selftests!(
     link_silence_while_moving,
     watchdog_boot_latches,
     config_save_and_reload,
+    link_bytes_corruption_and_duplicates,
 );
