@@ -56,6 +56,9 @@ const fn parse_u8(s: &str) -> u8 {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum HomingStage {
     FastApproach,
+    /// The switch was hit on the fast approach: braking at `a_max` before
+    /// backing off (an instant stop at speed would lose steps).
+    Braking,
     BackOff,
     SlowApproach,
 }
@@ -594,13 +597,15 @@ impl Controller {
         }
         for axis in Axis::ALL {
             self.decelerate_axis(axis, hw);
+            if let Some(motion) = &mut self.motion[axis.index()] {
+                motion.homing = None;
+            }
         }
     }
 
     fn decelerate_axis(&mut self, axis: Axis, hw: &mut impl Hardware) {
         let i = axis.index();
         let Some(motion) = &mut self.motion[i] else { return };
-        motion.homing = None;
         let decel = self.config.axes[i].a_max as f64;
         let profile = *motion.planner.profile();
         let planned = motion.planner.planned();
@@ -681,7 +686,9 @@ impl Controller {
         let h = c.homing;
         let toward = if h.direction == Direction::Positive { 1 } else { -1 };
         let (steps, speed, direction) = match stage {
-            HomingStage::FastApproach => (h.max_travel_steps, h.fast_speed, toward),
+            HomingStage::FastApproach | HomingStage::Braking => {
+                (h.max_travel_steps, h.fast_speed, toward)
+            }
             HomingStage::BackOff => (h.backoff_steps, h.fast_speed, -toward),
             HomingStage::SlowApproach => (h.backoff_steps.saturating_mul(2), h.slow_speed, toward),
         };
@@ -708,7 +715,12 @@ impl Controller {
             let finished = motion.planner.is_done() && hw.with_stepper(axis, |s| s.is_idle());
             match stage {
                 HomingStage::FastApproach if switch => {
-                    self.stop_axis_now(axis, hw);
+                    self.decelerate_axis(axis, hw);
+                    if let Some(m) = &mut self.motion[i] {
+                        m.homing = Some(HomingStage::Braking);
+                    }
+                }
+                HomingStage::Braking if finished => {
                     self.start_homing_stage(axis, HomingStage::BackOff, hw);
                 }
                 HomingStage::SlowApproach if switch => {

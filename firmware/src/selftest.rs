@@ -552,6 +552,8 @@ pub fn link_silence_while_moving() -> TestResult {
     moving_with_light(&mut rig)?;
     let track = rig.position(Axis::Track);
     rig.keepalive = false;
+    // The silence starts at the last frame the host sent.
+    let _ = rig.request(Request::Ping { token: 1 });
     let silent_from = rig.now;
     rig.run_until(silent_from + 499 * TICKS_PER_MS);
     ensure!(rig.ctrl.faults().is_empty(), "499 ms of silence is fine");

@@ -1,3 +1,25 @@
-//! The simulated scanner: firmware logic with simulated hardware.
+//! # hil-sim: the simulated scanner
+//!
+//! A scanner controller the host cannot tell from real hardware: the
+//! firmware's own [`Controller`](firmware::Controller) — not a
+//! re-implementation — driving simulated stepper motors (which stall when
+//! asked for more than their torque allows), home and index switches with
+//! hysteresis, a light and a camera trigger, in simulated time.
+//!
+//! - [`physics`]: motors and switches.
+//! - [`device`]: the simulated board ([`SimDevice`]) and the physical
+//!   [`Truth`] that tests score the host against (host code never reads it).
+//! - [`faults`]: seeded fault injection ([`FaultPlan`]).
+//! - [`link`]: the deterministic in-process [`SimLink`] and the real-time
+//!   [`PtyServer`].
+//!
+//! The simulator stands in for hardware and knows nothing of host internals.
 
-pub use protocol;
+pub mod device;
+pub mod faults;
+pub mod link;
+pub mod physics;
+
+pub use device::{SimConfig, SimDevice, TriggerRecord, Truth};
+pub use faults::{FaultEvent, FaultPlan, FaultSpec, FaultWhen};
+pub use link::{LinkError, PtyServer, SimLink};

@@ -1,0 +1,265 @@
+//! Links between a host and the simulated device.
+//!
+//! - [`SimLink`]: in-process and deterministic. Simulated time advances only
+//!   while the host waits for bytes ([`SimLink::read`]) or sleeps
+//!   ([`SimLink::sleep`]), as fast as the CPU allows. Same seed, same run.
+//! - [`PtyServer`]: a pseudo-terminal that the host opens like
+//!   `/dev/ttyACM0`, with the device run in real time (or scaled).
+//!
+//! Both pass the bytes through [`LinkNoise`], the seeded byte-level fault
+//! injector (bit flips, lost bytes, disconnects), in both directions.
+
+use std::collections::VecDeque;
+use std::io::{Read, Write};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use firmware::hal::{TICK_HZ, TICKS_PER_MS};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serialport::{SerialPort, TTYPort};
+
+use crate::device::SimDevice;
+use crate::faults::FaultEvent;
+
+/// The seeded byte-level fault injector of a link.
+#[derive(Debug)]
+pub struct LinkNoise {
+    corrupt_rate: f64,
+    drop_rate: f64,
+    rng: ChaCha8Rng,
+    disconnected_until: Option<u64>,
+    /// Bytes corrupted and dropped so far (diagnostics).
+    pub corrupted: u64,
+    /// Bytes dropped so far.
+    pub dropped: u64,
+}
+
+impl LinkNoise {
+    /// Noise with the given per-byte rates.
+    pub fn new(seed: u64, corrupt_rate: f64, drop_rate: f64) -> LinkNoise {
+        LinkNoise {
+            corrupt_rate,
+            drop_rate,
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x4C49_4E4B),
+            disconnected_until: None,
+            corrupted: 0,
+            dropped: 0,
+        }
+    }
+
+    /// Pass `bytes` through the noise.
+    pub fn mangle(&mut self, bytes: &[u8]) -> Vec<u8> {
+        let mut out = Vec::with_capacity(bytes.len());
+        for &b in bytes {
+            if self.drop_rate > 0.0 && self.rng.random_bool(self.drop_rate) {
+                self.dropped += 1;
+                continue;
+            }
+            if self.corrupt_rate > 0.0 && self.rng.random_bool(self.corrupt_rate) {
+                self.corrupted += 1;
+                out.push(b ^ (1 << self.rng.random_range(0..8)));
+            } else {
+                out.push(b);
+            }
+        }
+        out
+    }
+
+    fn apply(&mut self, events: Vec<(u64, FaultEvent)>) {
+        for (at, event) in events {
+            if let FaultEvent::Disconnect { duration_ms } = event {
+                self.disconnected_until = Some(at + duration_ms * TICKS_PER_MS);
+            }
+        }
+    }
+
+    fn connected(&mut self, now: u64) -> bool {
+        match self.disconnected_until {
+            Some(until) if now < until => false,
+            Some(_) => {
+                self.disconnected_until = None;
+                true
+            }
+            None => true,
+        }
+    }
+}
+
+/// Why a link operation failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum LinkError {
+    /// The device is disconnected (it may come back).
+    #[error("the simulated device is disconnected")]
+    Disconnected,
+}
+
+/// The deterministic in-process link.
+#[derive(Debug)]
+pub struct SimLink {
+    device: SimDevice,
+    noise: LinkNoise,
+    inbox: VecDeque<u8>,
+}
+
+impl SimLink {
+    /// A link to `device`, with the byte noise of the device's fault plan.
+    pub fn new(device: SimDevice) -> SimLink {
+        SimLink { noise: device.link_noise(), device, inbox: VecDeque::new() }
+    }
+
+    /// The device (tests read its physical truth here; hosts must not).
+    pub fn device(&self) -> &SimDevice {
+        &self.device
+    }
+
+    /// Mutable device access (tests).
+    pub fn device_mut(&mut self) -> &mut SimDevice {
+        &mut self.device
+    }
+
+    /// The link's noise counters.
+    pub fn noise(&self) -> &LinkNoise {
+        &self.noise
+    }
+
+    /// Device time, ticks.
+    pub fn now(&self) -> u64 {
+        self.device.now()
+    }
+
+    fn sync_faults(&mut self) {
+        let events = self.device.take_link_faults();
+        self.noise.apply(events);
+    }
+
+    /// Whether the link is up now.
+    pub fn is_connected(&mut self) -> bool {
+        self.sync_faults();
+        let now = self.device.now();
+        self.noise.connected(now)
+    }
+
+    /// Send bytes to the device (they arrive at the current device time).
+    pub fn write(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        if !self.is_connected() {
+            return Err(LinkError::Disconnected);
+        }
+        let bytes = self.noise.mangle(bytes);
+        self.device.receive(&bytes);
+        Ok(())
+    }
+
+    /// Wait up to `timeout` of device time for bytes from the device; appends
+    /// them to `out` and returns how many (0 on timeout).
+    pub fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, LinkError> {
+        let deadline = self.device.now() + duration_ticks(timeout);
+        loop {
+            if !self.is_connected() {
+                // Time passes while the host waits for the device to return.
+                let step = (self.device.now() + TICKS_PER_MS).min(deadline);
+                self.device.advance_to(step);
+                self.device.take_output(); // lost on the dead link
+                return Err(LinkError::Disconnected);
+            }
+            let sent = self.device.take_output();
+            self.inbox.extend(self.noise.mangle(&sent));
+            if !self.inbox.is_empty() {
+                let n = self.inbox.len();
+                out.extend(self.inbox.drain(..));
+                return Ok(n);
+            }
+            if self.device.now() >= deadline {
+                return Ok(0);
+            }
+            let step = (self.device.now() + TICKS_PER_MS).min(deadline);
+            self.device.advance_to(step);
+        }
+    }
+
+    /// Let `duration` of device time pass without reading.
+    pub fn sleep(&mut self, duration: Duration) {
+        let end = self.device.now() + duration_ticks(duration);
+        self.device.advance_to(end);
+    }
+}
+
+fn duration_ticks(d: Duration) -> u64 {
+    (d.as_nanos() * TICK_HZ as u128 / 1_000_000_000) as u64
+}
+
+/// The simulated device served on a pseudo-terminal, in real time.
+#[derive(Debug)]
+pub struct PtyServer {
+    path: String,
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<SimDevice>>,
+    _slave: TTYPort,
+}
+
+impl PtyServer {
+    /// Serve `device` on a new pty, simulated time running at `speed` × wall
+    /// time (1.0 = real time; keep ≤ 2 so the host's 200 ms keep-alive stays
+    /// inside the device's 500 ms link timeout).
+    pub fn start(mut device: SimDevice, speed: f64) -> std::io::Result<PtyServer> {
+        let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::other)?;
+        let path = slave.name().ok_or_else(|| std::io::Error::other("the pty has no name"))?;
+        master.set_timeout(Duration::from_millis(1)).map_err(std::io::Error::other)?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let stop_flag = Arc::clone(&stop);
+        let thread = std::thread::spawn(move || {
+            let mut noise = device.link_noise();
+            let started = Instant::now();
+            let origin = device.now();
+            let mut buf = [0u8; 4096];
+            while !stop_flag.load(Ordering::Relaxed) {
+                let n = match master.read(&mut buf) {
+                    Ok(n) => n,
+                    Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => 0,
+                    // No peer has the pty open (yet / any more): wait.
+                    Err(_) => {
+                        std::thread::sleep(Duration::from_millis(1));
+                        0
+                    }
+                };
+                let target = origin + duration_ticks(started.elapsed().mul_f64(speed));
+                device.advance_to(target.max(device.now()));
+                noise.apply(device.take_link_faults());
+                let up = noise.connected(device.now());
+                if n > 0 && up {
+                    let bytes = noise.mangle(&buf[..n]);
+                    device.receive(&bytes);
+                }
+                let out = device.take_output();
+                if !out.is_empty() && up {
+                    let _ = master.write_all(&noise.mangle(&out));
+                }
+            }
+            device
+        });
+        Ok(PtyServer { path, stop, thread: Some(thread), _slave: slave })
+    }
+
+    /// Path of the pty to open, like `/dev/ttyACM0`.
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+
+    /// Stop serving; returns the device (with its physical truth).
+    pub fn stop(mut self) -> Option<SimDevice> {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.take().and_then(|t| t.join().ok())
+    }
+}
+
+impl Drop for PtyServer {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}

@@ -1,0 +1,383 @@
+//! The simulated scanner: the firmware's controller on simulated hardware.
+
+mod common;
+
+use std::time::Duration;
+
+use common::{Client, capture_all, load_mirror_table};
+use hil_sim::physics::SwitchFault;
+use hil_sim::{FaultEvent, FaultPlan, FaultSpec, FaultWhen, SimConfig};
+use protocol::*;
+
+fn config(seed: u64, faults: FaultPlan) -> SimConfig {
+    let mut c = SimConfig::new(seed);
+    c.faults = faults;
+    c
+}
+
+fn assert_at(actual: [i64; 3], target: &MirrorPosition, what: &str) {
+    let disk = (actual[0] - target.steps[0] as i64).rem_euclid(16_000);
+    assert!(disk <= 1 || disk >= 15_999, "{what}: disk {actual:?} vs {target:?}");
+    assert!(
+        (actual[1] - target.steps[1] as i64).abs() <= 1,
+        "{what}: track {actual:?} vs {target:?}"
+    );
+    assert!(
+        (actual[2] - target.steps[2] as i64).abs() <= 1,
+        "{what}: tilt {actual:?} vs {target:?}"
+    );
+}
+
+#[test]
+fn homing_and_40_mirror_capture_reach_the_physical_positions() {
+    let mut c = Client::new(config(7, FaultPlan::none()));
+    let info = c.hello();
+    assert_eq!(info.board, BOARD_SIMULATOR);
+    c.home_all();
+    // Homing puts each counter on the physical switch edge.
+    let s = c.status();
+    for axis in Axis::ALL {
+        let phys = c.link.device().physical_position(axis);
+        let count = s.axes[axis.index()].position_steps as i64;
+        let d = if axis == Axis::Disk {
+            (phys - count).rem_euclid(16_000).min((count - phys).rem_euclid(16_000))
+        } else {
+            (phys - count).abs()
+        };
+        assert!(d <= 1, "{axis:?}: physical {phys} vs counter {count}");
+        assert!(s.axes[axis.index()].homed);
+    }
+    let table = load_mirror_table(&mut c);
+    let fired = capture_all(&mut c, 40);
+    let truth = c.link.device().truth();
+    assert_eq!(truth.triggers.len(), 40);
+    for (l, (t, rec)) in fired.iter().zip(&truth.triggers).enumerate() {
+        assert_eq!(t.trigger_seq, l as u32 + 1);
+        assert_eq!(
+            t.timestamp_us,
+            rec.rise / firmware::hal::TICKS_PER_US,
+            "reported time = physical edge"
+        );
+        assert_at(rec.positions, &table[l], &format!("mirror {l}"));
+        let fall = rec.fall.expect("pulse ended");
+        assert_eq!(fall - rec.rise, 50_000 * firmware::hal::TICKS_PER_US, "exposure");
+        assert_eq!(rec.light_duty, FULL_DUTY_PERMILLE, "lit while exposing");
+        assert!(rec.honoured);
+    }
+    assert_eq!(c.link.device().light(), 0, "light off after the scan");
+    assert!(Axis::ALL.iter().all(|a| c.link.device().lost_steps(*a) == 0));
+    assert!(c.link.now() > 30 * firmware::hal::TICK_HZ as u64, "simulates tens of seconds");
+}
+
+fn scripted_run(seed: u64) -> (Vec<u8>, hil_sim::Truth) {
+    let plan = FaultPlan::none()
+        .corrupt(1e-3)
+        .drop_bytes(1e-4)
+        .after_triggers(3, FaultEvent::IgnoreTriggers(1))
+        .at_ms(200, FaultEvent::Switch { axis: Axis::Tilt, fault: SwitchFault::Chatter(0.0) });
+    let mut c = Client::new(config(seed, plan));
+    c.hello();
+    c.home_all();
+    load_mirror_table(&mut c);
+    capture_all(&mut c, 6);
+    (c.received, c.link.device().truth().clone())
+}
+
+#[test]
+fn same_seed_same_run_byte_for_byte() {
+    let (bytes_a, truth_a) = scripted_run(11);
+    let (bytes_b, truth_b) = scripted_run(11);
+    assert_eq!(bytes_a, bytes_b);
+    assert_eq!(truth_a, truth_b);
+    assert!(!truth_a.triggers[3].honoured, "the ignored trigger is recorded");
+    let (bytes_c, _) = scripted_run(12);
+    assert_ne!(bytes_a, bytes_c, "another seed, another run");
+}
+
+#[test]
+fn capture_survives_corruption_and_lost_bytes() {
+    let plan = FaultPlan::none().corrupt(1e-3).drop_bytes(2e-4);
+    let mut c = Client::new(config(21, plan));
+    c.hello();
+    c.home_all();
+    let table = load_mirror_table(&mut c);
+    capture_all(&mut c, 40);
+    assert!(c.link.noise().corrupted > 0);
+    let truth = c.link.device().truth();
+    assert_eq!(truth.triggers.len(), 40, "every capture exactly once despite retransmissions");
+    for (l, rec) in truth.triggers.iter().enumerate() {
+        assert_at(rec.positions, &table[l], &format!("mirror {l}"));
+    }
+}
+
+fn moving(c: &mut Client) {
+    c.hello();
+    c.home_all();
+    let mv =
+        Request::Move { mode: MoveMode::Absolute, targets: [Some(8_000), Some(300_000), None] };
+    assert_eq!(c.request(mv), Reply::Ack);
+    c.link.sleep(Duration::from_millis(300));
+}
+
+fn fault_event(c: &mut Client, flag: FaultFlags) -> Option<Axis> {
+    let e = c
+        .wait_event(
+            Duration::from_secs(5),
+            |e| matches!(e, Event::FaultRaised { faults, .. } if faults.contains(flag)),
+        )
+        .unwrap_or_else(|| panic!("no FaultRaised({flag:?}) in {:?}", c.events));
+    let Event::FaultRaised { axis, .. } = e else { unreachable!() };
+    axis
+}
+
+fn assert_stopped(c: &mut Client) {
+    let s = c.status();
+    assert_eq!(s.state, DeviceState::Faulted);
+    assert!(s.axes.iter().all(|a| !a.moving));
+    let before = c.link.device().physical_position(Axis::Track);
+    c.link.sleep(Duration::from_millis(500));
+    assert_eq!(c.link.device().physical_position(Axis::Track), before, "no motion after the fault");
+    assert_eq!(c.link.device().light(), 0);
+}
+
+#[test]
+fn emergency_stop_input() {
+    let mut c = Client::new(config(3, FaultPlan::none()));
+    moving(&mut c);
+    c.link.device_mut().set_estop(true);
+    fault_event(&mut c, FaultFlags::EMERGENCY_STOP);
+    assert_stopped(&mut c);
+    assert_eq!(
+        c.request(Request::ClearFault),
+        Reply::Error(DeviceError::FaultLatched),
+        "input still asserted"
+    );
+    c.link.device_mut().set_estop(false);
+    c.link.sleep(Duration::from_millis(5));
+    assert_eq!(c.request(Request::ClearFault), Reply::Ack);
+}
+
+#[test]
+fn driver_fault_input_scheduled() {
+    let plan = FaultPlan::none().after_triggers(2, FaultEvent::DriverFault(true));
+    let mut c = Client::new(config(4, plan));
+    c.hello();
+    c.home_all();
+    load_mirror_table(&mut c);
+    capture_all(&mut c, 1);
+    // The driver fault is asserted at the second trigger.
+    let step =
+        CaptureStep { mirror: 20, settle_ms: 150, exposure_us: 50_000, light_duty_permille: 1000 };
+    assert_eq!(c.request(Request::CaptureStep(step)), Reply::Ack);
+    fault_event(&mut c, FaultFlags::DRIVER_FAULT);
+    assert_stopped(&mut c);
+}
+
+#[test]
+fn lost_steps_on_disk_are_caught_at_the_index_flag() {
+    let mut c = Client::new(config(5, FaultPlan::none()));
+    c.hello();
+    c.home_all();
+    // Slip 1 000 steps while turning half a revolution.
+    let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [Some(t), None, None] };
+    assert_eq!(c.request(mv(8_000)), Reply::Ack);
+    inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Disk, steps: 1_000 });
+    c.wait_idle(Duration::from_secs(10));
+    assert_eq!(c.link.device().lost_steps(Axis::Disk), 1_000);
+    // Continue round: the index flag now shows up 1 000 steps early.
+    assert_eq!(c.request(mv(15_000)), Reply::Ack);
+    c.wait_idle(Duration::from_secs(10));
+    assert_eq!(c.request(mv(3_000)), Reply::Ack);
+    let axis = fault_event(&mut c, FaultFlags::UNEXPECTED_HOME_SWITCH);
+    assert_eq!(axis, Some(Axis::Disk));
+    assert_stopped(&mut c);
+    assert!(!c.status().axes[0].homed, "an axis that lost steps must be homed again");
+}
+
+/// Inject a fault now, through the device's fault plan.
+fn inject(c: &mut Client, event: FaultEvent) {
+    let now_ms = c.link.now() / firmware::hal::TICKS_PER_MS;
+    let spec = FaultSpec { when: FaultWhen::AtTick(now_ms * firmware::hal::TICKS_PER_MS), event };
+    c.link.device_mut().schedule(spec);
+    c.link.sleep(Duration::from_millis(1));
+}
+
+#[test]
+fn motor_stalls_above_its_torque_limit() {
+    let mut c = Client::new(config(6, FaultPlan::none()));
+    c.hello();
+    c.home_all();
+    let Reply::AxisConfig { mut config, .. } =
+        c.request(Request::GetAxisConfig { axis: Axis::Track })
+    else {
+        panic!()
+    };
+    config.v_max = 100_000; // above the motor's 80 000 steps/s pull-out speed
+    config.homing.fast_speed = 16_000;
+    let s = c.status();
+    assert_eq!(s.state, DeviceState::Idle, "{s:?} {:?}", c.events);
+    assert_eq!(c.request(Request::SetAxisConfig { axis: Axis::Track, config }), Reply::Ack);
+    c.home_all();
+    let mv = Request::Move { mode: MoveMode::Absolute, targets: [None, Some(300_000), None] };
+    assert_eq!(c.request(mv), Reply::Ack);
+    c.wait_idle(Duration::from_secs(10));
+    let lost = c.link.device().lost_steps(Axis::Track);
+    assert!(lost > 1_000, "steps above pull-out are lost ({lost})");
+    let physical = c.link.device().physical_position(Axis::Track);
+    assert_eq!(physical + lost as i64, 300_000, "every step either moved the rotor or was lost");
+}
+
+#[test]
+fn stuck_switch_fails_homing() {
+    let plan = FaultPlan::none()
+        .at_ms(0, FaultEvent::Switch { axis: Axis::Track, fault: SwitchFault::Stuck(true) });
+    let mut c = Client::new(config(8, plan));
+    c.hello();
+    assert_eq!(c.request(Request::Home { axes: AxisSet::single(Axis::Track) }), Reply::Ack);
+    let e =
+        c.wait_event(Duration::from_secs(30), |e| matches!(e, Event::MotionDone { .. })).unwrap();
+    assert_eq!(
+        e,
+        Event::MotionDone {
+            axes: AxisSet::single(Axis::Track),
+            outcome: MotionOutcome::HomingFailed(Axis::Track, HomingFailure::SwitchStuck),
+            positions: match e {
+                Event::MotionDone { positions, .. } => positions,
+                _ => unreachable!(),
+            },
+        }
+    );
+    fault_event(&mut c, FaultFlags::HOMING_FAILED);
+}
+
+#[test]
+fn chattering_switch_is_an_unexpected_home_switch() {
+    let mut c = Client::new(config(9, FaultPlan::none()));
+    c.hello();
+    c.home_all();
+    let mv = Request::Move { mode: MoveMode::Absolute, targets: [None, Some(250_000), None] };
+    assert_eq!(c.request(mv), Reply::Ack);
+    c.link.sleep(Duration::from_millis(400));
+    inject(&mut c, FaultEvent::Switch { axis: Axis::Track, fault: SwitchFault::Chatter(0.05) });
+    let axis = fault_event(&mut c, FaultFlags::UNEXPECTED_HOME_SWITCH);
+    assert_eq!(axis, Some(Axis::Track));
+    assert_stopped(&mut c);
+}
+
+#[test]
+fn disconnect_while_moving_latches_link_timeout() {
+    let mut c = Client::new(config(10, FaultPlan::none()));
+    moving(&mut c);
+    inject(&mut c, FaultEvent::Disconnect { duration_ms: 1_000 });
+    assert!(!c.link.is_connected());
+    c.link.sleep(Duration::from_millis(1_100));
+    assert!(c.link.is_connected());
+    let s = c.status();
+    assert!(s.faults.contains(FaultFlags::LINK_TIMEOUT), "{s:?}");
+    assert!(s.axes.iter().all(|a| !a.moving), "decelerated to rest");
+    assert!(s.axes[1].homed, "a controlled stop keeps homing");
+    assert!(s.axes[1].position_steps < 300_000);
+}
+
+#[test]
+fn device_reset_is_a_new_boot_without_homing() {
+    let plan = FaultPlan::none().after_triggers(2, FaultEvent::Reset);
+    let mut c = Client::new(config(12, plan));
+    let first = c.hello();
+    c.home_all();
+    load_mirror_table(&mut c);
+    assert_eq!(c.request(Request::SaveConfig), Reply::Ack);
+    capture_all(&mut c, 1);
+    // The board resets at the second trigger.
+    let step =
+        CaptureStep { mirror: 1, settle_ms: 150, exposure_us: 50_000, light_duty_permille: 1000 };
+    assert_eq!(c.request(Request::CaptureStep(step)), Reply::Ack);
+    let boot = c
+        .wait_event(Duration::from_secs(5), |e| {
+            matches!(e, Event::Boot { reason: ResetReason::Watchdog, .. })
+        })
+        .expect("a Boot event after the reset");
+    let Event::Boot { boot_id, reason } = boot else { unreachable!() };
+    assert_ne!(boot_id, first.boot_id);
+    assert_eq!(reason, ResetReason::Watchdog);
+    // A new session: handshake again, nothing homed, table back from flash.
+    assert_eq!(c.request(Request::GetStatus), Reply::Error(DeviceError::NoHandshake));
+    let info = c.hello();
+    assert_eq!(info.boot_id, boot_id);
+    assert_eq!(info.mirror_count, 40);
+    let s = c.status();
+    assert!(s.axes.iter().all(|a| !a.homed));
+    assert!(s.faults.contains(FaultFlags::WATCHDOG_RESET));
+    assert_eq!(c.link.device().boot_count(), 2);
+}
+
+#[test]
+fn ignored_trigger_is_recorded_in_the_truth_only() {
+    let plan = FaultPlan::none().after_triggers(1, FaultEvent::IgnoreTriggers(1));
+    let mut c = Client::new(config(13, plan));
+    c.hello();
+    c.home_all();
+    load_mirror_table(&mut c);
+    let fired = capture_all(&mut c, 3);
+    assert_eq!(fired.len(), 3, "the device reports every trigger it fired");
+    let honoured: Vec<bool> = c.link.device().truth().triggers.iter().map(|t| t.honoured).collect();
+    assert_eq!(honoured, [true, false, true]);
+}
+
+#[test]
+fn fault_specs_parse() {
+    let f: FaultSpec = "reset@trigger=10".parse().unwrap();
+    assert_eq!(f, FaultSpec { when: FaultWhen::AfterTriggers(10), event: FaultEvent::Reset });
+    let f: FaultSpec = "lose-steps:disk:400@ms=9000".parse().unwrap();
+    assert_eq!(f.event, FaultEvent::LoseSteps { axis: Axis::Disk, steps: 400 });
+    assert_eq!(f.when, FaultWhen::AtTick(9_000 * firmware::hal::TICKS_PER_MS));
+    let f: FaultSpec = "chatter:tilt:0.2@ms=1".parse().unwrap();
+    assert_eq!(f.event, FaultEvent::Switch { axis: Axis::Tilt, fault: SwitchFault::Chatter(0.2) });
+    for bad in [
+        "reset",
+        "reset@ms=x",
+        "stuck:wheel:on@ms=1",
+        "chatter:tilt:2@ms=1",
+        "nope@ms=1",
+        "estop:maybe@ms=1",
+    ] {
+        let err = bad.parse::<FaultSpec>().unwrap_err();
+        assert!(err.to_string().contains(bad), "{err}");
+    }
+}
+
+#[test]
+fn pty_serves_the_protocol_in_real_time() {
+    use std::io::{Read, Write};
+    let server =
+        hil_sim::PtyServer::start(hil_sim::SimDevice::new(SimConfig::new(1)), 1.0).unwrap();
+    let mut port = serialport::new(server.path(), 115_200)
+        .timeout(Duration::from_millis(50))
+        .open()
+        .expect("open the pty like a serial port");
+    let mut frame = [0u8; MAX_FRAME_LEN];
+    let n =
+        encode_frame(1, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut frame).unwrap();
+    port.write_all(&frame[..n]).unwrap();
+    let mut decoder = FrameDecoder::<ToHost>::new();
+    let mut buf = [0u8; 256];
+    let started = std::time::Instant::now();
+    let mut info = None;
+    while info.is_none() && started.elapsed() < Duration::from_secs(5) {
+        let got = match port.read(&mut buf) {
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
+            Err(e) => panic!("{e}"),
+        };
+        for f in decoder.feed(&buf[..got]).flatten() {
+            if let ToHost::Reply(Reply::Info(i)) = f.msg {
+                assert_eq!(f.seq, 1);
+                info = Some(i);
+            }
+        }
+    }
+    let info = info.expect("Info over the pty");
+    assert_eq!(info.board, BOARD_SIMULATOR);
+    let device = server.stop().unwrap();
+    assert!(device.now() > 0, "simulated time followed the wall clock");
+}
