@@ -1,0 +1,207 @@
+//! The NPF model (spec/npf-brdf.md §2), its JSON file (docs/npf-format.md),
+//! and the naive D·F·H comparison model.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::coords::{from_directions, g_interp, phi_d_bin, theta_d_bin, theta_h_bin};
+use super::{BINS, Brdf, Vec3};
+
+/// Smallest factor value (spec §2).
+pub const EPSILON: f64 = 1e-6;
+
+/// One colour channel of an NPF model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Channel {
+    /// Diffuse constant (π folded in).
+    pub rho_d: f64,
+    /// Specular scale (1/4 folded in).
+    pub rho_s: f64,
+    /// Normal distribution over θh′ bins.
+    pub d: [f64; BINS],
+    /// Fresnel-like factor over θd bins.
+    pub f: [f64; BINS],
+    /// Shadowing/masking over θ, interpolated between bin centres.
+    pub g: [f64; BINS],
+}
+
+impl Channel {
+    /// ρd = 0, ρs = 1, every factor 1.
+    pub fn flat() -> Channel {
+        Channel { rho_d: 0.0, rho_s: 1.0, d: [1.0; BINS], f: [1.0; BINS], g: [1.0; BINS] }
+    }
+
+    /// G at θ (linear between bin centres).
+    pub fn g_at(&self, theta: f64) -> f64 {
+        let (a, w) = g_interp(theta);
+        self.g[a] * (1.0 - w) + self.g[a + 1] * w
+    }
+
+    /// ρ at a direction pair (cos θi, cos θo > 0 assumed).
+    pub fn eval_hd(&self, th_bin: usize, td_bin: usize, cos_i: f64, cos_o: f64) -> f64 {
+        let gi = self.g_at(cos_i.clamp(-1.0, 1.0).acos());
+        let go = self.g_at(cos_o.clamp(-1.0, 1.0).acos());
+        self.rho_d + self.rho_s * self.d[th_bin] * self.f[td_bin] * gi * go / (cos_i * cos_o)
+    }
+}
+
+/// An RGB NPF model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NpfModel {
+    /// R, G, B.
+    pub channels: [Channel; 3],
+    /// Free-form description of how it was made (stored in the file).
+    pub metadata: serde_json::Value,
+}
+
+impl Brdf for NpfModel {
+    fn eval(&self, wi: Vec3, wo: Vec3) -> [f64; 3] {
+        if wi[2] <= 0.0 || wo[2] <= 0.0 {
+            return [0.0; 3];
+        }
+        let hd = from_directions(wi, wo);
+        let (th, td) = (theta_h_bin(hd.theta_h), theta_d_bin(hd.theta_d));
+        [0, 1, 2].map(|c| self.channels[c].eval_hd(th, td, wi[2], wo[2]))
+    }
+}
+
+/// Why a model file could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// I/O failed.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// File.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// Not JSON of the documented shape.
+    #[error("{path} is not an NPF model file: {source}")]
+    Json {
+        /// File.
+        path: String,
+        /// Cause.
+        source: serde_json::Error,
+    },
+    /// Shape or values wrong.
+    #[error("{path}: {why}")]
+    Invalid {
+        /// File.
+        path: String,
+        /// What is wrong.
+        why: String,
+    },
+}
+
+/// The JSON file (docs/npf-format.md).
+#[derive(Debug, Serialize, Deserialize)]
+struct ModelFile {
+    format: String,
+    version: u32,
+    rho_d: Vec<f64>,
+    rho_s: Vec<f64>,
+    d: Vec<f64>,
+    f: Vec<f64>,
+    g: Vec<f64>,
+    #[serde(default)]
+    metadata: serde_json::Value,
+}
+
+/// `format` field of a model file.
+pub const FORMAT: &str = "npf-brdf";
+
+impl NpfModel {
+    /// Write the model file (atomically).
+    pub fn save(&self, path: &Path) -> std::io::Result<()> {
+        let flat = |pick: fn(&Channel) -> &[f64; BINS]| {
+            self.channels.iter().flat_map(|c| pick(c).iter().copied()).collect::<Vec<_>>()
+        };
+        let file = ModelFile {
+            format: FORMAT.into(),
+            version: 1,
+            rho_d: self.channels.iter().map(|c| c.rho_d).collect(),
+            rho_s: self.channels.iter().map(|c| c.rho_s).collect(),
+            d: flat(|c| &c.d),
+            f: flat(|c| &c.f),
+            g: flat(|c| &c.g),
+            metadata: self.metadata.clone(),
+        };
+        let json = serde_json::to_vec_pretty(&file).map_err(std::io::Error::other)?;
+        crate::fsutil::write_atomic(path, &json)
+    }
+
+    /// Read a model file.
+    pub fn load(path: &Path) -> Result<NpfModel, ModelError> {
+        let name = path.display().to_string();
+        let bytes =
+            std::fs::read(path).map_err(|source| ModelError::Io { path: name.clone(), source })?;
+        let file: ModelFile = serde_json::from_slice(&bytes)
+            .map_err(|source| ModelError::Json { path: name.clone(), source })?;
+        let invalid = |why: String| ModelError::Invalid { path: name.clone(), why };
+        if file.format != FORMAT || file.version != 1 {
+            return Err(invalid(format!(
+                "format {:?} version {}, expected {FORMAT:?} 1",
+                file.format, file.version
+            )));
+        }
+        for (field, v, n) in [
+            ("rho_d", &file.rho_d, 3),
+            ("rho_s", &file.rho_s, 3),
+            ("d", &file.d, 3 * BINS),
+            ("f", &file.f, 3 * BINS),
+            ("g", &file.g, 3 * BINS),
+        ] {
+            if v.len() != n {
+                return Err(invalid(format!("`{field}` has {} numbers, expected {n}", v.len())));
+            }
+            if let Some(bad) = v.iter().find(|x| !x.is_finite() || **x < 0.0) {
+                return Err(invalid(format!(
+                    "`{field}` holds {bad}; values must be finite and ≥ 0"
+                )));
+            }
+        }
+        let table = |v: &[f64], c: usize| -> [f64; BINS] {
+            v[c * BINS..(c + 1) * BINS].try_into().unwrap()
+        };
+        let channels = [0, 1, 2].map(|c| Channel {
+            rho_d: file.rho_d[c],
+            rho_s: file.rho_s[c],
+            d: table(&file.d, c),
+            f: table(&file.f, c),
+            g: table(&file.g, c),
+        });
+        Ok(NpfModel { channels, metadata: file.metadata })
+    }
+}
+
+/// One channel of the naive model: (ρd, ρs, D over θh′, F over θd, H over φd).
+pub type NaiveChannel = (f64, f64, [f64; BINS], [f64; BINS], [f64; BINS]);
+
+/// The naive comparison model ρ = ρd + ρs D(θh) F(θd) H(φd), factors
+/// tabulated directly in the parameter variables (H over 90 φd bins).
+#[derive(Debug, Clone, PartialEq)]
+pub struct NaiveModel {
+    /// Per channel: (ρd, ρs, D, F, H).
+    pub channels: [NaiveChannel; 3],
+}
+
+/// H bin of φd ∈ [0, π): 90 bins.
+pub fn h_bin(phi_d: f64) -> usize {
+    phi_d_bin(phi_d) / 2
+}
+
+impl Brdf for NaiveModel {
+    fn eval(&self, wi: Vec3, wo: Vec3) -> [f64; 3] {
+        if wi[2] <= 0.0 || wo[2] <= 0.0 {
+            return [0.0; 3];
+        }
+        let hd = from_directions(wi, wo);
+        let (th, td, ph) = (theta_h_bin(hd.theta_h), theta_d_bin(hd.theta_d), h_bin(hd.phi_d));
+        [0, 1, 2].map(|c| {
+            let (rd, rs, d, f, h) = &self.channels[c];
+            rd + rs * d[th] * f[td] * h[ph]
+        })
+    }
+}

@@ -1,0 +1,93 @@
+//! Plots of an NPF model's D, F and G per channel (plotters, bitmap backend,
+//! the DejaVu Sans font embedded so no system font library is needed).
+
+use std::path::Path;
+use std::sync::Once;
+
+use plotters::prelude::*;
+
+use super::BINS;
+use super::coords::{cell_centre, g_bin_centre};
+use super::npf::NpfModel;
+
+fn register_font() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // Cannot fail: the embedded font is a valid TrueType file.
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            dejavu::sans::regular(),
+        );
+    });
+}
+
+/// Why a plot could not be made.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot draw the plot: {0}")]
+pub struct PlotError(String);
+
+/// Plot D (log scale, over θh), F (over θd) and G (over θ) for R, G, B into a
+/// PNG at `path` (written atomically).
+pub fn plot_factors(model: &NpfModel, path: &Path) -> Result<(), PlotError> {
+    register_font();
+    let (w, h) = (1500u32, 500u32);
+    let mut pixels = vec![0u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| PlotError(e.to_string()))?;
+        let panels = root.split_evenly((1, 3));
+        let colors = [RGBColor(200, 30, 30), RGBColor(30, 150, 30), RGBColor(30, 60, 200)];
+        let deg = |r: f64| r.to_degrees();
+        let th: Vec<f64> = (0..BINS).map(|k| deg(cell_centre(k, 0, 0).theta_h)).collect();
+        let td: Vec<f64> = (0..BINS).map(|k| deg(cell_centre(0, k, 0).theta_d)).collect();
+        let tg: Vec<f64> = (0..BINS).map(|k| deg(g_bin_centre(k))).collect();
+        type Pick = fn(&super::npf::Channel) -> &[f64; BINS];
+        let specs: [(&str, &str, &Vec<f64>, Pick, bool); 3] = [
+            ("D(θh)", "θh (degrees)", &th, |c| &c.d, true),
+            ("F(θd)", "θd (degrees)", &td, |c| &c.f, false),
+            ("G(θ)", "θ (degrees)", &tg, |c| &c.g, false),
+        ];
+        for (panel, (title, xlabel, xs, pick, log)) in panels.iter().zip(specs) {
+            let err = |e: &dyn std::fmt::Display| PlotError(e.to_string());
+            let mut chart = ChartBuilder::on(panel)
+                .caption(title, ("sans-serif", 24))
+                .margin(12)
+                .x_label_area_size(40)
+                .y_label_area_size(60)
+                .build_cartesian_2d(0f64..90f64, if log { -6f64..0.05 } else { 0f64..1.05 })
+                .map_err(|e| err(&e))?;
+            chart
+                .configure_mesh()
+                .x_desc(xlabel)
+                .y_desc(if log { "log10 value" } else { "value" })
+                .draw()
+                .map_err(|e| err(&e))?;
+            for (c, color) in colors.iter().enumerate() {
+                let table = pick(&model.channels[c]);
+                let series = xs
+                    .iter()
+                    .zip(table.iter())
+                    .map(|(x, v)| (*x, if log { v.max(1e-6).log10() } else { *v }));
+                chart
+                    .draw_series(LineSeries::new(series, color.stroke_width(2)))
+                    .map_err(|e| err(&e))?
+                    .label(["R", "G", "B"][c])
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+            }
+            chart
+                .configure_series_labels()
+                .border_style(BLACK)
+                .background_style(WHITE.mix(0.8))
+                .draw()
+                .map_err(|e| err(&e))?;
+        }
+        root.present().map_err(|e| PlotError(e.to_string()))?;
+    }
+    let img =
+        image::RgbImage::from_raw(w, h, pixels).ok_or_else(|| PlotError("buffer size".into()))?;
+    let mut bytes = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+        .map_err(|e| PlotError(e.to_string()))?;
+    crate::fsutil::write_atomic(path, &bytes).map_err(|e| PlotError(e.to_string()))
+}
