@@ -55,6 +55,16 @@ enum Command {
         #[arg(long, default_value_t = 256)]
         size: usize,
     },
+    /// Write an analytic reference material as a MERL table (for trying the
+    /// pipeline without measured data).
+    SynthMerl {
+        /// Which material.
+        #[arg(long, value_enum)]
+        material: Material,
+        /// Output table (.binary).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Plot an NPF model's D, F and G per channel.
     PlotNpf {
         /// NPF model (.json).
@@ -63,6 +73,19 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+}
+
+/// Analytic reference materials.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Material {
+    /// GGX conductor, α = 0.2.
+    Ggx,
+    /// Beckmann conductor, α = 0.3.
+    Beckmann,
+    /// Lambert base under a GGX dielectric coat.
+    Coated,
+    /// Two-lobe GGX mixture.
+    TwoLobe,
 }
 
 /// An error with its exit code.
@@ -143,6 +166,18 @@ fn run(cli: Cli) -> Result<(), Failure> {
                     .with_context(|| format!("cannot write {}", out.display())),
             )?;
             println!("sphere written to {}", out.display());
+        }
+        Command::SynthMerl { material, output: out } => {
+            use host::brdf::analytic::*;
+            let b = match material {
+                Material::Ggx => ggx_conductor(0.2),
+                Material::Beckmann => beckmann_conductor(0.3),
+                Material::Coated => coated_plastic(),
+                Material::TwoLobe => two_lobe_ggx(),
+            };
+            let table = MerlTable::from_fn(|wi, wo| b.eval(wi, wo));
+            output(table.write(&out).with_context(|| format!("cannot write {}", out.display())))?;
+            println!("{material:?} table written to {}", out.display());
         }
         Command::PlotNpf { input: path, output: out } => {
             let model = input(NpfModel::load(&path).map_err(anyhow::Error::from))?;

@@ -674,7 +674,8 @@ fn fit_channel(
         (m, e) = if e_new <= e_before_rho { (new, e_new) } else { (m, e_before_rho) };
         history.push(e);
         progress(data.c, it + 1, e);
-        if e_start - e < opts.tolerance * e_start {
+        // Converged, or fitted to rounding (an exactly representable BRDF).
+        if e_start - e < opts.tolerance * e_start || e < 1e-7 * history[0] {
             break;
         }
     }

@@ -34,15 +34,22 @@ impl Channel {
 
     /// G at θ (linear between bin centres).
     pub fn g_at(&self, theta: f64) -> f64 {
-        let (a, w) = g_interp(theta);
+        self.g_lerp(g_interp(theta))
+    }
+
+    fn g_lerp(&self, (a, w): (usize, f64)) -> f64 {
         self.g[a] * (1.0 - w) + self.g[a + 1] * w
     }
 
     /// ρ at a direction pair (cos θi, cos θo > 0 assumed).
     pub fn eval_hd(&self, th_bin: usize, td_bin: usize, cos_i: f64, cos_o: f64) -> f64 {
-        let gi = self.g_at(cos_i.clamp(-1.0, 1.0).acos());
-        let go = self.g_at(cos_o.clamp(-1.0, 1.0).acos());
-        self.rho_d + self.rho_s * self.d[th_bin] * self.f[td_bin] * gi * go / (cos_i * cos_o)
+        let gi = g_interp(cos_i.clamp(-1.0, 1.0).acos());
+        let go = g_interp(cos_o.clamp(-1.0, 1.0).acos());
+        self.eval_at(th_bin, td_bin, gi, go, cos_i * cos_o)
+    }
+
+    fn eval_at(&self, th: usize, td: usize, gi: (usize, f64), go: (usize, f64), cc: f64) -> f64 {
+        self.rho_d + self.rho_s * self.d[th] * self.f[td] * self.g_lerp(gi) * self.g_lerp(go) / cc
     }
 }
 
@@ -60,9 +67,14 @@ impl Brdf for NpfModel {
         if wi[2] <= 0.0 || wo[2] <= 0.0 {
             return [0.0; 3];
         }
-        let hd = from_directions(wi, wo);
-        let (th, td) = (theta_h_bin(hd.theta_h), theta_d_bin(hd.theta_d));
-        [0, 1, 2].map(|c| self.channels[c].eval_hd(th, td, wi[2], wo[2]))
+        // Only θh and θd are needed: both come straight from the half vector.
+        let h = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
+        let len = (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt();
+        let cos_h = (h[2] / len).clamp(-1.0, 1.0);
+        let cos_d = ((wi[0] * h[0] + wi[1] * h[1] + wi[2] * h[2]) / len).clamp(-1.0, 1.0);
+        let (th, td) = (theta_h_bin(cos_h.acos()), theta_d_bin(cos_d.acos()));
+        let (gi, go) = (g_interp(wi[2].min(1.0).acos()), g_interp(wo[2].min(1.0).acos()));
+        [0, 1, 2].map(|c| self.channels[c].eval_at(th, td, gi, go, wi[2] * wo[2]))
     }
 }
 

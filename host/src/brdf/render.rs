@@ -4,7 +4,7 @@
 //! - a sphere seen orthographically along −z, [`SPHERE_SIZE`]² pixels, one
 //!   sample at each pixel centre, pixels outside the disc masked out;
 //! - lit by the built-in environment: a sky dome (a gradient from a blue zenith
-//!   to a brown ground, world up = +y) quadratured on 512 Fibonacci directions,
+//!   to a brown ground, world up = +y) quadratured on 2048 Fibonacci directions,
 //!   plus two sun-like directional lights;
 //! - outgoing radiance L = Σ f(wi, wo) cos θi Le dω over lights above the
 //!   local horizon;
@@ -22,7 +22,7 @@ use super::{Brdf, Vec3};
 /// Side of the rendered sphere image, pixels.
 pub const SPHERE_SIZE: usize = 128;
 /// Sky-dome quadrature directions.
-pub const SKY_DIRECTIONS: usize = 512;
+pub const SKY_DIRECTIONS: usize = 2048;
 
 fn normalize(v: Vec3) -> Vec3 {
     let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
