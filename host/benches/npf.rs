@@ -11,33 +11,9 @@ use host::brdf::analytic::{
     Analytic, beckmann_conductor, coated_plastic, exactly_representable, ggx_conductor,
     two_lobe_ggx,
 };
-use host::brdf::coords::{cell_centre, merl_index, to_directions};
 use host::brdf::fit::{FitOptions, GVariant, Samples, Weighting, fit, fit_naive};
-use host::brdf::merl::MerlTable;
-use host::brdf::npf::NpfModel;
+use host::brdf::merl::{MerlTable, cosine_weighted_relative_rmse};
 use host::brdf::render::sphere_psnr;
-
-fn rmse(table: &MerlTable, model: &NpfModel) -> f64 {
-    let (mut num, mut den) = (0.0, 0.0);
-    for th in 0..90 {
-        for td in 0..90 {
-            for pd in 0..180 {
-                let (wi, wo) = to_directions(cell_centre(th, td, pd));
-                if wi[2] <= 0.0 || wo[2] <= 0.0 {
-                    continue;
-                }
-                let f = model.eval(wi, wo);
-                let w = (wi[2] * wo[2]).powi(2);
-                for (c, fc) in f.iter().enumerate() {
-                    let t = table.get(c, merl_index(th, td, pd));
-                    num += w * (fc - t).powi(2);
-                    den += w * t * t;
-                }
-            }
-        }
-    }
-    (num / den).sqrt()
-}
 
 fn cases() -> Vec<(&'static str, Analytic)> {
     vec![
@@ -65,7 +41,7 @@ fn npf(c: &mut Criterion) {
                 r.iterations,
                 r.line_searches,
                 r.seconds,
-                rmse(&table, &model),
+                cosine_weighted_relative_rmse(&table, &model),
                 sphere_psnr(&table, &model)
             );
         }
@@ -73,7 +49,7 @@ fn npf(c: &mut Criterion) {
         let (model, _) = fit(&samples, &plain, &|_, _, _| {});
         println!(
             "| {name} | Smith, unweighted | | | | {:.4} | {:.1} |",
-            rmse(&table, &model),
+            cosine_weighted_relative_rmse(&table, &model),
             sphere_psnr(&table, &model)
         );
         let naive = fit_naive(&samples, &FitOptions::default());

@@ -7,9 +7,9 @@ use host::brdf::analytic::{
     Analytic, Ndf, beckmann_conductor, coated_plastic, exactly_representable, ggx_conductor,
     two_lobe_ggx,
 };
-use host::brdf::coords::{MERL_CELLS, cell_centre, merl_index, to_directions};
+use host::brdf::coords::{MERL_CELLS, cell_centre};
 use host::brdf::fit::{FitOptions, FitReport, GVariant, Measurement, Samples, Weighting, fit};
-use host::brdf::merl::{MerlError, MerlTable};
+use host::brdf::merl::{MerlError, MerlTable, cosine_weighted_relative_rmse};
 use host::brdf::npf::{ModelError, NpfModel};
 use host::brdf::render::sphere_psnr;
 use host::brdf::{BINS, Brdf};
@@ -31,32 +31,6 @@ fn assert_monotone(report: &FitReport) {
             assert!(w[1] <= w[0] * (1.0 + 1e-9), "objective rose: {} -> {}", w[0], w[1]);
         }
     }
-}
-
-/// Cosine-weighted relative RMSE (docs/npf-format.md): residuals of
-/// ρ·cos θi·cos θo, sqrt(Σ (cc (ρ_fit − ρ))² / Σ (cc ρ)²), over the valid
-/// cells at their centres.
-fn cosine_weighted_relative_rmse(table: &MerlTable, model: &NpfModel) -> f64 {
-    let (mut num, mut den) = (0.0, 0.0);
-    for th in 0..90 {
-        for td in 0..90 {
-            for pd in 0..180 {
-                let (wi, wo) = to_directions(cell_centre(th, td, pd));
-                if wi[2] <= 0.0 || wo[2] <= 0.0 {
-                    continue;
-                }
-                let i = merl_index(th, td, pd);
-                let fitted = model.eval(wi, wo);
-                let w = (wi[2] * wo[2]).powi(2);
-                for (c, f) in fitted.iter().enumerate() {
-                    let t = table.get(c, i);
-                    num += w * (f - t) * (f - t);
-                    den += w * t * t;
-                }
-            }
-        }
-    }
-    (num / den).sqrt()
 }
 
 /// D normalised so that ∫ D(m) cos θm dm = 1 (bins in θh′, centres).

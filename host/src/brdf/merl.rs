@@ -171,6 +171,33 @@ impl MerlTable {
     }
 }
 
+/// Cosine-weighted relative RMSE of `model` against `table` over the valid
+/// cells at their centres (docs/npf-format.md §5):
+/// sqrt(Σ (cos θi cos θo (ρ − ρ̂))² / Σ (cos θi cos θo ρ̂)²), all channels.
+pub fn cosine_weighted_relative_rmse(table: &MerlTable, model: &dyn Brdf) -> f64 {
+    let (mut num, mut den) = (0.0, 0.0);
+    for th in 0..N_THETA_H {
+        for td in 0..N_THETA_D {
+            for pd in 0..N_PHI_D {
+                let (wi, wo) = super::coords::to_directions(super::coords::cell_centre(th, td, pd));
+                if wi[2] <= 0.0 || wo[2] <= 0.0 {
+                    continue;
+                }
+                let i = merl_index(th, td, pd);
+                let w = (wi[2] * wo[2]).powi(2);
+                for (c, f) in model.eval(wi, wo).iter().enumerate() {
+                    let t = table.get(c, i);
+                    if t >= 0.0 {
+                        num += w * (f - t) * (f - t);
+                        den += w * t * t;
+                    }
+                }
+            }
+        }
+    }
+    (num / den).sqrt()
+}
+
 impl Brdf for MerlTable {
     fn eval(&self, wi: Vec3, wo: Vec3) -> [f64; 3] {
         self.lookup(wi, wo)

@@ -7,6 +7,9 @@
 #![no_std]
 #![no_main]
 
+#[path = "../common.rs"]
+mod common;
+
 use core::cell::RefCell;
 use core::ptr::{addr_of_mut, write_volatile};
 
@@ -71,14 +74,6 @@ fn main() -> ! {
     }
     hprintln!("ran {} step interrupts", STEPS);
     debug::exit(debug::EXIT_SUCCESS);
-    #[allow(clippy::empty_loop)]
-    loop {}
-}
-
-#[panic_handler]
-fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
-    hprintln!("panic: {}", info);
-    debug::exit(debug::EXIT_FAILURE);
     #[allow(clippy::empty_loop)]
     loop {}
 }
