@@ -30,19 +30,16 @@ fn main() -> ! {
         ("tilt 18666 steps", 18_666, 5_333.0, 16_000.0),
     ];
     for (name, n, v, a) in cases {
-        let mut wraps_guard = 0u32;
         let start = cortex_m::peripheral::SYST::get_current();
         let mut planner = SegmentPlanner::new(Profile::trapezoid(n, 0.0, v, a), TICK_HZ);
         let mut segments = 0u32;
         while let Some(s) = planner.next_segment() {
             core::hint::black_box(s);
             segments += 1;
-            wraps_guard += 1;
         }
         let end = cortex_m::peripheral::SYST::get_current();
         let ticks = (start.wrapping_sub(end) & 0x00FF_FFFF) as u64;
         let instructions = ticks * 1_000_000_000 / CORE_HZ;
-        let _ = wraps_guard;
         hprintln!(
             "{}: {} segments, {} instructions, {} per segment",
             name,
