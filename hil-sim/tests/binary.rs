@@ -1,11 +1,11 @@
 //! The `hil-sim` binary: prints the pty path, serves the protocol on it, and
 //! refuses bad options with a clear message.
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+mod common;
 
-use protocol::*;
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
 #[test]
 fn serves_on_the_printed_pty_until_killed() {
@@ -22,25 +22,7 @@ fn serves_on_the_printed_pty_until_killed() {
 
     let mut port =
         serialport::new(&path, 115_200).timeout(Duration::from_millis(50)).open().unwrap();
-    let mut frame = [0u8; MAX_FRAME_LEN];
-    let n =
-        encode_frame(7, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut frame).unwrap();
-    port.write_all(&frame[..n]).unwrap();
-    let mut decoder = FrameDecoder::<ToHost>::new();
-    let mut buf = [0u8; 256];
-    let started = Instant::now();
-    let mut answered = false;
-    while !answered && started.elapsed() < Duration::from_secs(5) {
-        let got = match port.read(&mut buf) {
-            Ok(n) => n,
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
-            Err(e) => panic!("{e}"),
-        };
-        answered = decoder
-            .feed(&buf[..got])
-            .flatten()
-            .any(|f| f.seq == 7 && matches!(f.msg, ToHost::Reply(Reply::Info(_))));
-    }
+    let answered = common::handshake_over_serial(port.as_mut(), 7).is_some();
     child.kill().unwrap();
     let _ = child.wait();
     assert!(answered, "the simulated controller answered the handshake");

@@ -348,34 +348,13 @@ fn fault_specs_parse() {
 
 #[test]
 fn pty_serves_the_protocol_in_real_time() {
-    use std::io::{Read, Write};
     let server =
         hil_sim::PtyServer::start(hil_sim::SimDevice::new(SimConfig::new(1)), 1.0).unwrap();
     let mut port = serialport::new(server.path(), 115_200)
         .timeout(Duration::from_millis(50))
         .open()
         .expect("open the pty like a serial port");
-    let mut frame = [0u8; MAX_FRAME_LEN];
-    let n =
-        encode_frame(1, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut frame).unwrap();
-    port.write_all(&frame[..n]).unwrap();
-    let mut decoder = FrameDecoder::<ToHost>::new();
-    let mut buf = [0u8; 256];
-    let started = std::time::Instant::now();
-    let mut info = None;
-    while info.is_none() && started.elapsed() < Duration::from_secs(5) {
-        let got = match port.read(&mut buf) {
-            Ok(n) => n,
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
-            Err(e) => panic!("{e}"),
-        };
-        for f in decoder.feed(&buf[..got]).flatten() {
-            if let ToHost::Reply(Reply::Info(i)) = f.msg {
-                assert_eq!(f.seq, 1);
-                info = Some(i);
-            }
-        }
-    }
+    let info = common::handshake_over_serial(port.as_mut(), 1);
     let info = info.expect("Info over the pty");
     assert_eq!(info.board, BOARD_SIMULATOR);
     let device = server.stop().unwrap();

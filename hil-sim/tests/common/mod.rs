@@ -198,3 +198,28 @@ pub fn capture_all(client: &mut Client, mirrors: usize) -> Vec<TriggerFired> {
     }
     fired
 }
+
+/// Send `Hello` with sequence number `seq` over a serial port (a pty) and
+/// wait up to 5 s of wall time for the `Info` reply.
+pub fn handshake_over_serial(port: &mut dyn serialport::SerialPort, seq: u8) -> Option<DeviceInfo> {
+    let mut frame = [0u8; MAX_FRAME_LEN];
+    let n =
+        encode_frame(seq, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut frame).unwrap();
+    port.write_all(&frame[..n]).unwrap();
+    let mut decoder = FrameDecoder::<ToHost>::new();
+    let mut buf = [0u8; 256];
+    let started = std::time::Instant::now();
+    while started.elapsed() < Duration::from_secs(5) {
+        let got = match port.read(&mut buf) {
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
+            Err(e) => panic!("{e}"),
+        };
+        for f in decoder.feed(&buf[..got]).flatten() {
+            if let (true, ToHost::Reply(Reply::Info(info))) = (f.seq == seq, f.msg) {
+                return Some(info);
+            }
+        }
+    }
+    None
+}

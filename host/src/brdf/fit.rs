@@ -567,6 +567,31 @@ fn blend(t0: &[f64; BINS], s0: f64, t1: &[f64; BINS], s1: f64, t: f64) -> ([f64;
     (table, scale)
 }
 
+/// An update that changes G (and so the moments): keep the full step
+/// (`candidate(1)`) if the objective did not rise, else golden-section search
+/// the blend old → new (`candidate(t)`) and keep the best, never worse than
+/// the state before (`old`, objective `e_old`).
+fn guarded_step(
+    data: &Data<'_>,
+    old: (Channel, Moments),
+    e_old: f64,
+    searches: &mut usize,
+    candidate: impl Fn(f64) -> Channel,
+) -> (Channel, Moments) {
+    let evaluate = |t: f64| {
+        let c = candidate(t);
+        let mo = data.moments(&c.g);
+        let e = mo.objective(&c);
+        ((c, mo), e)
+    };
+    let (full, e_full) = evaluate(1.0);
+    if e_full <= e_old {
+        return full;
+    }
+    *searches += 1;
+    golden_section(evaluate, (old, e_old)).0
+}
+
 fn fit_channel(
     data: &Data<'_>,
     opts: &FitOptions,
@@ -602,27 +627,14 @@ fn fit_channel(
         new.d = mo.update(&m, true);
         new.rho_s *= normalise(&mut new.d);
         if smith {
-            new.g = smith_g(&new.d);
-            let mo_new = data.moments(&new.g);
-            let e_new = mo_new.objective(&new);
-            if e_new <= e {
-                (m, mo) = (new, mo_new);
-            } else {
-                searches += 1;
-                let old = m.clone();
-                ((m, mo), _) = golden_section(
-                    |t| {
-                        let mut c = old.clone();
-                        (c.d, c.rho_s) = blend(&old.d, old.rho_s, &new.d, new.rho_s, t);
-                        c.g = smith_g(&c.d);
-                        let mo_c = data.moments(&c.g);
-                        let e = mo_c.objective(&c);
-                        ((c, mo_c), e)
-                    },
-                    ((old.clone(), mo), e),
-                );
-            }
-        } else {
+            let old = m.clone();
+            (m, mo) = guarded_step(data, (old.clone(), mo), e, &mut searches, |t| {
+                let mut c = old.clone();
+                (c.d, c.rho_s) = blend(&old.d, old.rho_s, &new.d, new.rho_s, t);
+                c.g = smith_g(&c.d);
+                c
+            });
+        } else if mo.objective(&new) <= e {
             m = new;
         }
 
@@ -643,27 +655,15 @@ fn fit_channel(
             new.g = data.update_g(&m);
             let sg = normalise(&mut new.g);
             new.rho_s *= sg * sg;
-            let mo_new = data.moments(&new.g);
-            let e_new = mo_new.objective(&new);
-            if e_new <= e_before {
-                (m, mo) = (new, mo_new);
-            } else {
-                searches += 1;
-                let old = m.clone();
-                let (sq_old, sq_new) = (old.rho_s.sqrt(), new.rho_s.sqrt());
-                ((m, mo), _) = golden_section(
-                    |t| {
-                        let mut c = old.clone();
-                        let (g, s) = blend(&old.g, sq_old, &new.g, sq_new, t);
-                        c.g = g;
-                        c.rho_s = s * s;
-                        let mo_c = data.moments(&c.g);
-                        let e = mo_c.objective(&c);
-                        ((c, mo_c), e)
-                    },
-                    ((old.clone(), mo), e_before),
-                );
-            }
+            let old = m.clone();
+            let (sq_old, sq_new) = (old.rho_s.sqrt(), new.rho_s.sqrt());
+            (m, mo) = guarded_step(data, (old.clone(), mo), e_before, &mut searches, |t| {
+                let mut c = old.clone();
+                let (g, s) = blend(&old.g, sq_old, &new.g, sq_new, t);
+                c.g = g;
+                c.rho_s = s * s;
+                c
+            });
         }
 
         // ρs, ρd (the same guard).
