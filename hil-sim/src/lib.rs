@@ -12,12 +12,22 @@
 //! - [`faults`]: seeded fault injection ([`FaultPlan`]).
 //! - [`link`]: the deterministic in-process [`SimLink`] and the real-time
 //!   [`PtyServer`].
+//! - [`geometry`]: the scanner's **nominal** geometry file and kinematics
+//!   (public: the host computes its mirror table from it).
+//! - [`optics`]: the optical simulator rendering frames from the seeded
+//!   as-built geometry and a ground-truth sample ([`materials`]).
+//! - [`camera`]: the simulated camera, rendering at each trigger pulse from
+//!   the simulated axes' physical positions.
 //!
 //! The simulator stands in for hardware and knows nothing of host internals.
 
+pub mod camera;
 pub mod device;
 pub mod faults;
+pub mod geometry;
 pub mod link;
+pub mod materials;
+pub mod optics;
 pub mod physics;
 
 pub use device::{SimConfig, SimDevice, TriggerRecord, Truth};

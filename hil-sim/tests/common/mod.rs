@@ -144,21 +144,12 @@ impl Client {
     }
 }
 
-/// A mirror table of 40 entries spread over the axes' ranges (the real one
-/// comes from the optics' inverse kinematics).
+/// The default scanner's mirror table from its inverse kinematics.
 pub fn mirror_table() -> Vec<MirrorPosition> {
-    (0..40)
-        .map(|l: i32| {
-            let ring = l / 10;
-            let k = l % 10;
-            MirrorPosition {
-                steps: [
-                    (k * 1_600 + ring * 400) % 16_000,
-                    32_000 + ring * 64_000 + k * 1_000,
-                    -6_000 + ring * 3_000 + k * 200,
-                ],
-            }
-        })
+    let g = hil_sim::geometry::ScannerGeometry::default_scanner();
+    let axes = hil_sim::camera::default_axes();
+    (0..g.mirrors.len())
+        .map(|l| MirrorPosition { steps: g.mirror_axes(l).unwrap().to_steps(&axes).unwrap() })
         .collect()
 }
 

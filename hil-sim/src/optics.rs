@@ -1,0 +1,516 @@
+//! The optical simulator: the frame the camera records for given axis
+//! positions, from the **as-built** geometry and a ground-truth [`Sample`].
+//!
+//! Per pixel (2 × 2 sub-pixel rays): camera ray → the first planar mirror it
+//! meets (or nothing) → the sample plane → the sample's reflected radiance
+//! for that view direction and every beam path that reaches the point: the
+//! beam from the fold mirror, reflected by whichever mirror it actually
+//! meets, its irradiance from the beam's profile at that ray. Mirror
+//! reflectance applies on both bounces. The sensor integrates
+//! radiance × exposure × light duty × vignetting into electrons, adds shot
+//! and read noise and quantises to its ADC; frames are linear float RGB,
+//! ADC code / max code.
+//!
+//! Noise is seeded by the simulator seed and the exposure's physical
+//! parameters, so the same exposure gives the same frame (also when a scan
+//! retakes it after a fault), and rows are rendered in parallel with rayon
+//! with per-row generators, so the thread count does not change a bit.
+
+use glam::DVec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+
+use crate::geometry::{AxisValues, Beam, ScannerGeometry, world_to_sample};
+use crate::materials::Sample;
+
+/// Sub-pixel rays per axis.
+pub const SUPERSAMPLE: usize = 2;
+
+/// One exposure of the camera.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Exposure {
+    /// Where the axes physically are.
+    pub axes: AxisValues,
+    /// Exposure time, s.
+    pub exposure_s: f64,
+    /// Light duty in [0, 1] (0 = dark frame).
+    pub light: f64,
+}
+
+/// A linear float RGB image, row-major, interleaved.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Width, px.
+    pub width: u32,
+    /// Height, px.
+    pub height: u32,
+    /// `width × height × 3` values, ADC code / max code.
+    pub rgb: Vec<f32>,
+}
+
+impl Frame {
+    /// Pixel (x, y).
+    pub fn pixel(&self, x: u32, y: u32) -> [f32; 3] {
+        let i = 3 * (y as usize * self.width as usize + x as usize);
+        [self.rgb[i], self.rgb[i + 1], self.rgb[i + 2]]
+    }
+
+    /// Mean of (R+G+B)/3 over the listed pixels.
+    pub fn mean_luminance(&self, pixels: &[(u32, u32)]) -> f64 {
+        if pixels.is_empty() {
+            return 0.0;
+        }
+        let s: f64 = pixels
+            .iter()
+            .map(|&(x, y)| self.pixel(x, y).iter().map(|&v| v as f64).sum::<f64>())
+            .sum();
+        s / (3.0 * pixels.len() as f64)
+    }
+}
+
+/// What a camera ray sees of the sample (ground truth, for tests).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewHit {
+    /// The mirror the ray reflects in.
+    pub mirror: usize,
+    /// Sample uv.
+    pub uv: [f64; 2],
+    /// Point on the sample plane (world, mm).
+    pub point: DVec3,
+    /// Direction from the sample towards the viewer, sample-local.
+    pub view: DVec3,
+    /// Transmission to the camera (mirror reflectance).
+    pub transmission: f64,
+}
+
+/// One beam path onto the sample: via `mirror`, light arriving from `light`
+/// (sample-local unit vector) with irradiance `irradiance` perpendicular to it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LightPath {
+    /// The mirror the beam reflects in.
+    pub mirror: usize,
+    /// Direction towards the light, sample-local.
+    pub light: DVec3,
+    /// Irradiance perpendicular to the beam at the point.
+    pub irradiance: f64,
+}
+
+/// A mirror the beam meets: its index and the reflected beam.
+#[derive(Debug, Clone, Copy)]
+struct LitMirror {
+    mirror: usize,
+    dir: DVec3,
+}
+
+/// The optical simulator of one as-built scanner holding one sample.
+#[derive(Debug, Clone)]
+pub struct OpticalSim {
+    geometry: ScannerGeometry,
+    sample: Sample,
+    seed: u64,
+    /// Per mirror: image-space bounding box (x0, y0, x1, y1), clipped.
+    boxes: Vec<Option<[u32; 4]>>,
+}
+
+impl OpticalSim {
+    /// A simulator rendering `as_built` with `sample` in the holder.
+    pub fn new(as_built: ScannerGeometry, sample: Sample, seed: u64) -> OpticalSim {
+        let cam = &as_built.camera;
+        let boxes = as_built
+            .mirrors
+            .iter()
+            .map(|m| {
+                let pts: Option<Vec<[f64; 2]>> =
+                    m.corners().iter().map(|&c| cam.project(c)).collect();
+                let pts = pts?;
+                let x0 = pts.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min).floor() - 1.0;
+                let y0 = pts.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min).floor() - 1.0;
+                let x1 = pts.iter().map(|p| p[0]).fold(f64::NEG_INFINITY, f64::max).ceil() + 1.0;
+                let y1 = pts.iter().map(|p| p[1]).fold(f64::NEG_INFINITY, f64::max).ceil() + 1.0;
+                let (w, h) = (cam.width as f64, cam.height as f64);
+                (x1 > 0.0 && y1 > 0.0 && x0 < w && y0 < h).then(|| {
+                    [x0.max(0.0) as u32, y0.max(0.0) as u32, x1.min(w) as u32, y1.min(h) as u32]
+                })
+            })
+            .collect();
+        OpticalSim { geometry: as_built, sample, seed, boxes }
+    }
+
+    /// The as-built geometry (ground truth).
+    pub fn geometry(&self) -> &ScannerGeometry {
+        &self.geometry
+    }
+
+    /// The sample (ground truth).
+    pub fn sample(&self) -> &Sample {
+        &self.sample
+    }
+
+    /// The same scanner with another sample in the holder.
+    pub fn with_sample(&self, sample: Sample) -> OpticalSim {
+        OpticalSim { sample, ..self.clone() }
+    }
+
+    fn lit_mirrors(&self, beam: &Beam) -> Vec<LitMirror> {
+        let reach = self.geometry.source.beam_radius_mm;
+        self.geometry
+            .mirrors
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| {
+                // Front side, and the beam tube can overlap the square.
+                beam.dir.dot(DVec3::from(m.normal)) < 0.0
+                    && beam.distance(m.center())
+                        < reach + m.size_mm * std::f64::consts::FRAC_1_SQRT_2
+            })
+            .map(|(l, m)| LitMirror { mirror: l, dir: m.reflect_dir(beam.dir) })
+            .collect()
+    }
+
+    /// Mirrors whose reflected beam reaches some part of the sample with the
+    /// axes at `axes` (ground truth).
+    pub fn mirrors_lighting_sample(&self, axes: AxisValues) -> Vec<usize> {
+        let h = self.geometry.sample.size_mm / 2.0;
+        let n = 24;
+        let mut out: Vec<usize> = Vec::new();
+        let beam = self.geometry.beam(axes);
+        let lit = self.lit_mirrors(&beam);
+        for i in 0..=n {
+            for j in 0..=n {
+                let p = DVec3::new(
+                    -h + 2.0 * h * i as f64 / n as f64,
+                    -h + 2.0 * h * j as f64 / n as f64,
+                    0.0,
+                );
+                for path in self.light_paths_with(&beam, &lit, p) {
+                    if path.irradiance > 0.0 && !out.contains(&path.mirror) {
+                        out.push(path.mirror);
+                    }
+                }
+            }
+        }
+        out.sort_unstable();
+        out
+    }
+
+    /// Every beam path reaching sample point `p` (world, on the sample plane)
+    /// with the axes at `axes` (ground truth).
+    pub fn light_paths(&self, axes: AxisValues, p: DVec3) -> Vec<LightPath> {
+        let beam = self.geometry.beam(axes);
+        let lit = self.lit_mirrors(&beam);
+        self.light_paths_with(&beam, &lit, p)
+    }
+
+    fn light_paths_with(&self, beam: &Beam, lit: &[LitMirror], p: DVec3) -> Vec<LightPath> {
+        let mut out = Vec::new();
+        for lm in lit {
+            let m = &self.geometry.mirrors[lm.mirror];
+            // Light arrives travelling along lm.dir; trace back to the mirror.
+            if lm.dir.z <= 0.0 {
+                continue; // reflected downwards: never reaches the sample's face
+            }
+            let Some((_, q)) = m.intersect(p, -lm.dir) else { continue };
+            // Only mirrors the beam tube overlaps can shadow this one's light.
+            let back = -beam.dir;
+            if (q - beam.origin).dot(beam.dir) <= 0.0 {
+                continue;
+            }
+            let shadowed = lit.iter().any(|other| {
+                other.mirror != lm.mirror
+                    && self.geometry.mirrors[other.mirror]
+                        .intersect(q + back * 1e-6, back)
+                        .is_some()
+            });
+            if shadowed {
+                continue;
+            }
+            let e = self.geometry.source.irradiance
+                * m.reflectance
+                * self.geometry.source.profile(beam.distance(q));
+            if e > 0.0 {
+                out.push(LightPath {
+                    mirror: lm.mirror,
+                    light: world_to_sample(-lm.dir),
+                    irradiance: e,
+                });
+            }
+        }
+        out
+    }
+
+    /// What the camera ray through image point (x, y) sees of the sample.
+    pub fn trace(&self, x: f64, y: f64) -> Option<ViewHit> {
+        let cam = &self.geometry.camera;
+        let origin = DVec3::from(cam.position_mm);
+        let dir = cam.ray(x, y);
+        self.trace_ray(origin, dir, None)
+    }
+
+    fn trace_ray(
+        &self,
+        origin: DVec3,
+        dir: DVec3,
+        candidates: Option<&[usize]>,
+    ) -> Option<ViewHit> {
+        let g = &self.geometry;
+        // The holder (z = 0 plane around the sample) blocks rays crossing it.
+        if dir.z.abs() > 1e-12 {
+            let t0 = -origin.z / dir.z;
+            if t0 > 0.0 {
+                let c = origin + dir * t0;
+                if c.x.hypot(c.y) < g.sample.holder_radius_mm {
+                    return None;
+                }
+            }
+        }
+        let mut best: Option<(f64, usize, DVec3)> = None;
+        let mut consider = |l: usize| {
+            if let Some((t, p)) = g.mirrors[l].intersect(origin, dir)
+                && best.is_none_or(|b| t < b.0)
+            {
+                best = Some((t, l, p));
+            }
+        };
+        match candidates {
+            Some(c) => c.iter().for_each(|&l| consider(l)),
+            None => (0..g.mirrors.len()).for_each(consider),
+        }
+        let (_, l, p) = best?;
+        let m = &g.mirrors[l];
+        let r = m.reflect_dir(dir);
+        if r.z <= 1e-12 {
+            return None;
+        }
+        let t = -p.z / r.z;
+        let s = p + r * t;
+        let h = g.sample.size_mm / 2.0;
+        if s.x.abs() > h || s.y.abs() > h {
+            return None;
+        }
+        Some(ViewHit {
+            mirror: l,
+            uv: [(s.x + h) / g.sample.size_mm, (-s.y + h) / g.sample.size_mm],
+            point: s,
+            view: world_to_sample(-r),
+            transmission: m.reflectance,
+        })
+    }
+
+    /// Noise-free scene radiance (RGB) reaching the camera at image point (x, y).
+    fn radiance_at(&self, scene: &Scene<'_>, x: f64, y: f64, candidates: &[usize]) -> [f64; 3] {
+        let dir = scene.rays.ray(x, y);
+        let Some(hit) = self.trace_ray(scene.origin, dir, Some(candidates)) else {
+            return [0.0; 3];
+        };
+        let mut out = [0.0; 3];
+        for path in self.light_paths_with(&scene.beam, scene.lit, hit.point) {
+            let r = self.sample.reflected_radiance(hit.uv, hit.view, path.light);
+            for k in 0..3 {
+                out[k] += r[k] * path.irradiance * hit.transmission;
+            }
+        }
+        out
+    }
+
+    /// Expected electrons per channel for every pixel (noise-free), or
+    /// `None` rows that see nothing (all dark).
+    fn electrons(&self, exposure: &Exposure) -> Vec<Option<Vec<[f32; 3]>>> {
+        let g = &self.geometry;
+        let cam = &g.camera;
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let beam = g.beam(exposure.axes);
+        let lit = if exposure.light > 0.0 { self.lit_mirrors(&beam) } else { Vec::new() };
+        let scale = exposure.exposure_s * exposure.light.clamp(0.0, 1.0) * g.sensor.sensitivity_e;
+        let origin = DVec3::from(cam.position_mm);
+        let rays = CameraRays::new(cam);
+        let scene = Scene { rays: &rays, origin, beam, lit: &lit };
+        (0..h)
+            .into_par_iter()
+            .map(|y| {
+                if lit.is_empty() || scale <= 0.0 {
+                    return None;
+                }
+                let candidates: Vec<usize> = self
+                    .boxes
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(l, b)| {
+                        b.filter(|b| (b[1] as usize..b[3] as usize).contains(&y)).map(|_| l)
+                    })
+                    .collect();
+                if candidates.is_empty() {
+                    return None;
+                }
+                let x_ranges: Vec<[u32; 2]> = candidates
+                    .iter()
+                    .map(|&l| self.boxes[l].map(|b| [b[0], b[2]]).unwrap())
+                    .collect();
+                let mut row = vec![[0.0f32; 3]; w];
+                let mut any = false;
+                for (x, px) in row.iter_mut().enumerate() {
+                    let here: Vec<usize> = candidates
+                        .iter()
+                        .zip(&x_ranges)
+                        .filter(|(_, r)| (r[0] as usize..r[1] as usize).contains(&x))
+                        .map(|(&l, _)| l)
+                        .collect();
+                    if here.is_empty() {
+                        continue;
+                    }
+                    let mut acc = [0.0; 3];
+                    let n = SUPERSAMPLE;
+                    for sy in 0..n {
+                        for sx in 0..n {
+                            let fx = x as f64 + (sx as f64 + 0.5) / n as f64;
+                            let fy = y as f64 + (sy as f64 + 0.5) / n as f64;
+                            let r = self.radiance_at(&scene, fx, fy, &here);
+                            for k in 0..3 {
+                                acc[k] += r[k];
+                            }
+                        }
+                    }
+                    let cos = rays.ray(x as f64 + 0.5, y as f64 + 0.5).dot(rays.forward);
+                    let vig = cos.powf(g.sensor.vignetting_exponent);
+                    let k = scale * vig / (n * n) as f64;
+                    if acc.iter().any(|&v| v > 0.0) {
+                        any = true;
+                        *px = acc.map(|v| (v * k) as f32);
+                    }
+                }
+                any.then_some(row)
+            })
+            .collect()
+    }
+
+    /// Noise seed of an exposure: the simulator seed and the exposure's
+    /// physical parameters.
+    fn exposure_seed(&self, e: &Exposure) -> u64 {
+        let mut h = self.seed ^ 0x000F_71C5;
+        for v in [e.axes.disk_deg, e.axes.track_mm, e.axes.tilt_deg, e.exposure_s, e.light] {
+            h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
+        }
+        h
+    }
+
+    /// Render the frame of `exposure`.
+    pub fn render(&self, exposure: &Exposure) -> Frame {
+        let electrons = self.electrons(exposure);
+        let seed = self.exposure_seed(exposure);
+        sensor_readout(&self.geometry.sensor, self.geometry.camera.width, electrons, seed)
+    }
+
+    /// The Fig. 9 direct image: `piece` seen straight along `dir`
+    /// (sample-local, towards the viewer) and lit from the same direction
+    /// with the source's irradiance, rectified onto the piece's uv
+    /// (`px_per_mm` pixels per mm), through this scanner's sensor without
+    /// vignetting.
+    pub fn direct_image(
+        &self,
+        piece: &Sample,
+        dir: DVec3,
+        px_per_mm: f64,
+        exposure_s: f64,
+    ) -> Frame {
+        let n = (piece.size_mm * px_per_mm).round().max(1.0) as usize;
+        let dir = dir.normalize();
+        let e0 = self.geometry.source.irradiance;
+        let scale = exposure_s * self.geometry.sensor.sensitivity_e * e0;
+        let electrons = (0..n)
+            .into_par_iter()
+            .map(|y| {
+                let row = (0..n)
+                    .map(|x| {
+                        let mut acc = [0.0; 3];
+                        for sy in 0..SUPERSAMPLE {
+                            for sx in 0..SUPERSAMPLE {
+                                let u =
+                                    (x as f64 + (sx as f64 + 0.5) / SUPERSAMPLE as f64) / n as f64;
+                                let v =
+                                    (y as f64 + (sy as f64 + 0.5) / SUPERSAMPLE as f64) / n as f64;
+                                let r = piece.reflected_radiance([u, v], dir, dir);
+                                for k in 0..3 {
+                                    acc[k] += r[k];
+                                }
+                            }
+                        }
+                        acc.map(|v| (v * scale / (SUPERSAMPLE * SUPERSAMPLE) as f64) as f32)
+                    })
+                    .collect();
+                Some(row)
+            })
+            .collect();
+        let mut h = self.seed ^ 0xD1EC7;
+        for v in [dir.x, dir.y, dir.z, px_per_mm, exposure_s] {
+            h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
+        }
+        sensor_readout(&self.geometry.sensor, n as u32, electrons, h)
+    }
+}
+
+/// What every pixel of one frame shares.
+struct Scene<'a> {
+    rays: &'a CameraRays,
+    origin: DVec3,
+    beam: Beam,
+    lit: &'a [LitMirror],
+}
+
+/// The camera's ray directions with its basis computed once.
+struct CameraRays {
+    right: DVec3,
+    down: DVec3,
+    forward: DVec3,
+    principal: [f64; 2],
+    focal: f64,
+}
+
+impl CameraRays {
+    fn new(cam: &crate::geometry::CameraSpec) -> CameraRays {
+        let (right, down, forward) = cam.basis();
+        CameraRays { right, down, forward, principal: cam.principal_px, focal: cam.focal_px }
+    }
+
+    fn ray(&self, x: f64, y: f64) -> DVec3 {
+        (self.forward
+            + self.right * ((x - self.principal[0]) / self.focal)
+            + self.down * ((y - self.principal[1]) / self.focal))
+            .normalize()
+    }
+}
+
+/// Shot noise (Gaussian, variance = signal), read noise, clipping at the
+/// full well, quantisation; rows without signal draw read noise only.
+fn sensor_readout(
+    sensor: &crate::geometry::SensorSpec,
+    width: u32,
+    electrons: Vec<Option<Vec<[f32; 3]>>>,
+    seed: u64,
+) -> Frame {
+    let height = electrons.len() as u32;
+    let w = width as usize;
+    let max = sensor.max_code();
+    let gain = max / sensor.full_well_e;
+    let read = sensor.read_noise_e;
+    let mut rgb = vec![0.0f32; w * height as usize * 3];
+    rgb.par_chunks_mut(w * 3).zip(electrons.par_iter()).enumerate().for_each(|(y, (out, row))| {
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(seed ^ (y as u64).wrapping_mul(0xA076_1D64_78BD_642F));
+        for x in 0..w {
+            let e = row.as_ref().map_or([0.0; 3], |r| r[x]);
+            for k in 0..3 {
+                let s = e[k] as f64;
+                let z1: f64 = rng.sample(StandardNormal);
+                let noisy = if s > 0.0 {
+                    let z2: f64 = rng.sample(StandardNormal);
+                    s + s.sqrt() * z2 + read * z1
+                } else {
+                    read * z1
+                };
+                out[3 * x + k] = ((noisy * gain).round().clamp(0.0, max) / max) as f32;
+            }
+        }
+    });
+    Frame { width, height, rgb }
+}

@@ -1,0 +1,398 @@
+//! The optical simulator (hil-sim part 2): geometry, kinematics, frames,
+//! and the camera joined to the simulated board.
+
+mod common;
+
+use std::time::Duration;
+
+use common::{Client, capture_all, load_mirror_table};
+use hil_sim::camera::{SimCamera, exposure_of};
+use hil_sim::{FaultEvent, FaultPlan, SimConfig};
+use protocol::{Axis, Event, Reply, Request};
+
+use glam::DVec3;
+use hil_sim::geometry::{AxisValues, DEFAULT_GEOMETRY_TOML, ScannerGeometry, Tolerances};
+use hil_sim::materials::{self, Sample};
+use hil_sim::optics::{Exposure, Frame, OpticalSim};
+
+/// The shipped default file is the generated default (regenerate with
+/// `UPDATE_GEOMETRY=1 cargo test -p hil-sim --test optics`).
+#[test]
+fn shipped_default_geometry_is_the_generated_one() {
+    let generated = ScannerGeometry::generate_default();
+    let text = generated.to_toml();
+    if std::env::var_os("UPDATE_GEOMETRY").is_some() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/default-geometry.toml");
+        std::fs::write(path, &text).unwrap();
+        return;
+    }
+    assert_eq!(DEFAULT_GEOMETRY_TOML, text, "regenerate with UPDATE_GEOMETRY=1");
+    let parsed = ScannerGeometry::default_scanner();
+    assert_eq!(parsed, generated);
+    assert_eq!(parsed.mirrors.len(), 40);
+}
+
+const SEED: u64 = 7;
+
+fn nominal() -> ScannerGeometry {
+    ScannerGeometry::default_scanner()
+}
+
+fn sim(factor: u32, material: &str, seed: u64) -> OpticalSim {
+    let as_built = nominal().with_sensor_scaled(factor).perturbed(seed, &Tolerances::default());
+    OpticalSim::new(as_built, Sample::small(materials::by_name(material).unwrap()), seed)
+}
+
+fn exposure(axes: AxisValues) -> Exposure {
+    Exposure { axes, exposure_s: 0.05, light: 1.0 }
+}
+
+#[test]
+fn inverse_kinematics_puts_the_beam_through_each_mirror_onto_the_sample_centre() {
+    let g = nominal();
+    let axes = hil_sim::camera::default_axes();
+    for l in 0..g.mirrors.len() {
+        let a = g.mirror_axes(l).unwrap();
+        assert!((0.0..=200.0).contains(&a.track_mm) && a.tilt_deg.abs() <= 35.0, "{l}: {a:?}");
+        let steps = a.to_steps(&axes).unwrap();
+        for (what, values) in
+            [("exact", a), ("in steps", AxisValues::from_steps(steps.map(i64::from), &axes))]
+        {
+            let beam = g.beam(values);
+            let (k, q) = g.first_mirror(beam.origin, beam.dir).unwrap();
+            assert_eq!(k, l, "{what}: first mirror");
+            let r = g.mirrors[l].reflect_dir(beam.dir);
+            // Where the reflected axis crosses the sample plane.
+            let s = q + r * (-q.z / r.z);
+            let tol = if what == "exact" { 1e-6 } else { 0.2 };
+            assert!(s.truncate().length() < tol, "{l} {what}: lands {s:?} from the centre");
+        }
+    }
+}
+
+#[test]
+fn each_mirror_sees_the_sample_at_least_96_px_across_by_default() {
+    let g = nominal();
+    assert_eq!((g.camera.width, g.camera.height), (4096, 4096));
+    for l in 0..g.mirrors.len() {
+        let c = g.sample_image_corners(l).unwrap();
+        let side =
+            |i: usize, j: usize| ((c[i][0] - c[j][0]).powi(2) + (c[i][1] - c[j][1]).powi(2)).sqrt();
+        let across = side(0, 1).max(side(1, 2));
+        assert!(across >= 96.0, "mirror {l}: {across:.1} px");
+        for p in c {
+            assert!(
+                p[0] > 0.0 && p[1] > 0.0 && p[0] < 4096.0 && p[1] < 4096.0,
+                "mirror {l} in view"
+            );
+        }
+    }
+}
+
+#[test]
+fn at_each_nominal_mirror_position_the_beam_lights_that_mirror_and_no_other() {
+    for seed in [SEED, 8, 9] {
+        let s = sim(8, "diffuse-white", seed);
+        let g = nominal();
+        for l in 0..g.mirrors.len() {
+            let a = g.mirror_axes(l).unwrap();
+            assert_eq!(s.mirrors_lighting_sample(a), vec![l], "seed {seed}, mirror {l}");
+            // The whole sample is in the beam, its centre in the flat core.
+            let h = g.sample.size_mm / 2.0;
+            let centre = s.light_paths(a, DVec3::ZERO);
+            assert!(centre.len() == 1 && centre[0].irradiance > 0.85, "{l}: {centre:?}");
+            for (x, y) in [(-h, -h), (h, -h), (h, h), (-h, h)] {
+                let e: f64 =
+                    s.light_paths(a, DVec3::new(x, y, 0.0)).iter().map(|p| p.irradiance).sum();
+                if e <= 0.05 {
+                    let beam = s.geometry().beam(a);
+                    let m = &s.geometry().mirrors[l];
+                    let r = m.reflect_dir(beam.dir);
+                    let q = m.intersect(DVec3::new(x, y, 0.0), -r);
+                    eprintln!(
+                        "q {q:?} dist {:?} centre dist {}",
+                        q.map(|q| beam.distance(q.1)),
+                        beam.distance(m.center())
+                    );
+                }
+                assert!(e > 0.05, "seed {seed} mirror {l}: corner ({x}, {y}) unlit");
+            }
+        }
+    }
+}
+
+/// Pixels whose four sub-pixel rays all see the sample through `mirror`
+/// well inside it.
+fn region(s: &OpticalSim, mirror: usize) -> Vec<(u32, u32)> {
+    let g = s.geometry();
+    // Search around where the as-built camera sees the sample's mirror image.
+    let c = g.sample_image_corners(mirror).unwrap();
+    let lo = |k: usize| c.iter().map(|p| p[k]).fold(f64::MAX, f64::min).floor().max(8.0) as u32 - 8;
+    let hi = |k: usize| c.iter().map(|p| p[k]).fold(f64::MIN, f64::max).ceil() as u32 + 8;
+    let mut out = Vec::new();
+    for y in lo(1)..hi(1).min(g.camera.height) {
+        for x in lo(0)..hi(0).min(g.camera.width) {
+            let inside =
+                [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)].iter().all(|&(dx, dy)| {
+                    s.trace(x as f64 + dx, y as f64 + dy).is_some_and(|h| {
+                        h.mirror == mirror && h.uv.iter().all(|&u| (0.2..=0.8).contains(&u))
+                    })
+                });
+            if inside {
+                out.push((x, y));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_diffuse_white_sample_reads_its_analytic_radiance_within_the_noise() {
+    let s = sim(4, "diffuse-white", SEED);
+    let g = s.geometry().clone();
+    let n = nominal();
+    let cam = &g.camera;
+    let (_, _, forward) = cam.basis();
+    let gain = g.sensor.max_code() / g.sensor.full_well_e;
+    let views = [0usize, 5, 13, 22, 30, 39];
+    let regions: Vec<Vec<(u32, u32)>> = views.iter().map(|&v| region(&s, v)).collect();
+    for lit in [0usize, 13, 30] {
+        let a = n.mirror_axes(lit).unwrap();
+        let frame = s.render(&exposure(a));
+        let beam = g.beam(a);
+        let light = -g.mirrors[lit].reflect_dir(beam.dir);
+        // Sample normal is -z: cos θi = light · (−z).
+        let cos_i = -light.z;
+        let e = g.source.irradiance * g.mirrors[lit].reflectance * cos_i;
+        let radiance = 0.98 / std::f64::consts::PI * e;
+        for (&view, pixels) in views.iter().zip(&regions) {
+            assert!(pixels.len() > 60, "region {view}: {} px", pixels.len());
+            let (mut expect, mut var) = (0.0, 0.0);
+            for &(x, y) in pixels {
+                let cos = cam.ray(x as f64 + 0.5, y as f64 + 0.5).dot(forward);
+                let el = radiance
+                    * g.mirrors[view].reflectance
+                    * 0.05
+                    * g.sensor.sensitivity_e
+                    * cos.powf(g.sensor.vignetting_exponent);
+                expect += el * gain / g.sensor.max_code();
+                var += (el + g.sensor.read_noise_e.powi(2)) * (gain / g.sensor.max_code()).powi(2)
+                    + 1.0 / 12.0 / g.sensor.max_code().powi(2);
+            }
+            let count = pixels.len() as f64;
+            expect /= count;
+            let sigma_pixel = (var / count).sqrt();
+            let measured = frame.mean_luminance(pixels);
+            let sigma_mean = sigma_pixel / (3.0 * count).sqrt();
+            assert!(
+                (measured - expect).abs() < 4.0 * sigma_mean + 1e-3 * expect,
+                "lit {lit} view {view}: {measured:.5} vs {expect:.5} (σ {sigma_mean:.2e})"
+            );
+            // The pixel-to-pixel scatter is the sensor's noise.
+            let values: Vec<f64> =
+                pixels.iter().flat_map(|&(x, y)| frame.pixel(x, y)).map(|v| v as f64).collect();
+            let m = values.iter().sum::<f64>() / values.len() as f64;
+            let sd =
+                (values.iter().map(|v| (v - m).powi(2)).sum::<f64>() / values.len() as f64).sqrt();
+            assert!(
+                (sd / sigma_pixel - 1.0).abs() < 0.2,
+                "lit {lit} view {view}: noise {sd:.2e} vs {sigma_pixel:.2e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_same_seed_gives_identical_frames_and_another_seed_does_not() {
+    let a = nominal().mirror_axes(9).unwrap();
+    let f1 = sim(8, "leather", SEED).render(&exposure(a));
+    let f2 = sim(8, "leather", SEED).render(&exposure(a));
+    assert!(f1 == f2, "same seed, same frame");
+    let f3 = sim(8, "leather", SEED + 1).render(&exposure(a));
+    assert!(f1 != f3);
+    // Thread count does not matter either.
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let f4 = pool.install(|| sim(8, "leather", SEED).render(&exposure(a)));
+    assert!(f1 == f4, "one thread, same frame");
+}
+
+fn assert_dark(frame: &Frame, g: &ScannerGeometry, what: &str) {
+    // Only read noise: nothing above 6 σ.
+    let limit = (6.0 * g.sensor.read_noise_e * g.sensor.max_code() / g.sensor.full_well_e).ceil()
+        / g.sensor.max_code();
+    let max = frame.rgb.iter().fold(0.0f32, |m, &v| m.max(v)) as f64;
+    assert!(max <= limit, "{what}: max {max} > {limit}");
+}
+
+#[test]
+fn a_beam_that_misses_every_mirror_gives_a_dark_frame() {
+    let s = sim(8, "diffuse-white", SEED);
+    let mut a = nominal().mirror_axes(3).unwrap();
+    a.tilt_deg = -35.0; // at the home switch: the beam goes out over the rim
+    assert!(s.mirrors_lighting_sample(a).is_empty());
+    assert_dark(&s.render(&exposure(a)), s.geometry(), "tilt at home");
+    // Light off: dark too.
+    let lit = nominal().mirror_axes(3).unwrap();
+    assert_dark(&s.render(&Exposure { light: 0.0, ..exposure(lit) }), s.geometry(), "light off");
+    // And the same position with the light on is not.
+    let f = s.render(&exposure(lit));
+    assert!(f.rgb.iter().fold(0.0f32, |m, &v| m.max(v)) > 0.1);
+}
+
+#[test]
+fn a_slightly_wrong_position_lights_part_of_the_sample_or_the_wrong_mirror() {
+    let s = sim(8, "diffuse-white", SEED);
+    let g = nominal();
+    let a = g.mirror_axes(20).unwrap();
+    // 5° of disk: the beam's edge moves off the mirror, part of the sample goes dark.
+    let off = AxisValues { disk_deg: a.disk_deg + 5.0, ..a };
+    let h = g.sample.size_mm / 2.0;
+    let lit = |axes| {
+        [(-h, -h), (h, -h), (h, h), (-h, h), (0.0, 0.0)]
+            .iter()
+            .filter(|&&(x, y)| !s.light_paths(axes, DVec3::new(x, y, 0.0)).is_empty())
+            .count()
+    };
+    assert_eq!(lit(a), 5);
+    assert!(lit(off) < 5, "5° off lights the whole sample");
+    // Half way to the next mirror of the ring: a neighbour or nothing.
+    let between = AxisValues { disk_deg: a.disk_deg + 15.0, ..a };
+    assert!(!s.mirrors_lighting_sample(between).contains(&20));
+}
+
+#[test]
+fn ground_truth_radiance_of_the_white_is_lambertian() {
+    let white = Sample::small(materials::by_name("diffuse-white").unwrap());
+    let light = DVec3::new(0.4, 0.1, 0.8).normalize();
+    let view = DVec3::new(-0.2, 0.5, 0.7).normalize();
+    let r = white.reflected_radiance([0.3, 0.6], view, light);
+    assert!((r[1] - 0.98 / std::f64::consts::PI * light.z).abs() < 1e-12);
+}
+
+#[test]
+fn svbrdf_samples_vary_in_albedo_roughness_and_normal() {
+    for name in materials::SVBRDF_NAMES {
+        let piece = Sample::small(materials::by_name(name).unwrap());
+        let texels: Vec<_> = (0..400)
+            .map(|i| piece.texel([(i % 20) as f64 / 20.0 + 0.013, (i / 20) as f64 / 20.0 + 0.007]))
+            .collect();
+        let spread = |f: &dyn Fn(&materials::Texel) -> f64| {
+            let v: Vec<f64> = texels.iter().map(f).collect();
+            v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min)
+        };
+        assert!(
+            spread(&|t| t.diffuse[0] + t.diffuse[1] + t.diffuse[2] + t.specular[0]) > 0.05,
+            "{name}: albedo"
+        );
+        assert!(spread(&|t| t.normal.x) > 0.05, "{name}: normals");
+        if name != "woven-fabric" {
+            assert!(spread(&|t| t.roughness) > 0.02, "{name}: roughness");
+        }
+    }
+}
+
+#[test]
+fn direct_images_of_the_large_piece_from_the_four_mirrors_nearest_the_axis() {
+    let g = nominal();
+    let s = sim(8, "woven-fabric", SEED);
+    let mut dirs: Vec<(usize, DVec3)> =
+        (0..g.mirrors.len()).map(|l| (l, g.mirror_direction(l).unwrap())).collect();
+    dirs.sort_by(|a, b| b.1.z.total_cmp(&a.1.z));
+    let nearest: Vec<usize> = dirs[..4].iter().map(|d| d.0).collect();
+    assert_eq!(
+        nearest.iter().copied().collect::<std::collections::BTreeSet<_>>(),
+        (0..4).collect()
+    );
+    let large = Sample::large(materials::by_name("woven-fabric").unwrap());
+    // The mirror views' scale: f / 2a px per mm.
+    let ppm = g.camera.focal_px / (2.0 * g.ellipsoid.semi_major_mm);
+    let images: Vec<Frame> =
+        dirs[..4].iter().map(|&(_, d)| s.direct_image(&large, d, ppm / 2.0, 0.05)).collect();
+    for im in &images {
+        assert_eq!(im.width, (80.0 * ppm / 2.0_f64).round() as u32);
+        assert!(im.rgb.iter().any(|&v| v > 0.05));
+    }
+    // Different light directions shade the relief differently.
+    assert!(images[0] != images[1] && images[0] != images[2]);
+}
+
+fn frame_max(f: &Frame) -> f32 {
+    f.rgb.iter().fold(0.0f32, |m, &v| m.max(v))
+}
+
+#[test]
+fn the_camera_renders_every_trigger_from_the_physical_axis_positions() {
+    let mut camera = SimCamera::new(sim(8, "diffuse-white", SEED));
+    let mut c = Client::new(SimConfig::new(SEED));
+    c.hello();
+    c.home_all();
+    // At home the tilt is at −35°: the beam misses every mirror.
+    assert_eq!(c.request(Request::Trigger { exposure_us: 50_000 }), Reply::Ack);
+    c.wait_event(Duration::from_secs(2), |e| matches!(e, Event::TriggerFired(_))).unwrap();
+    c.link.sleep(Duration::from_millis(100));
+    let dark = camera.collect(c.link.device().truth());
+    assert_eq!(dark.len(), 1);
+    assert_dark(&dark[0].1, camera.optics().geometry(), "trigger at home");
+    load_mirror_table(&mut c);
+    capture_all(&mut c, 40);
+    let frames = camera.collect(c.link.device().truth());
+    assert_eq!(frames.len(), 40);
+    for (l, (index, frame)) in frames.iter().enumerate() {
+        let record = &c.link.device().truth().triggers[*index];
+        let e = exposure_of(record).unwrap();
+        assert!((e.exposure_s - 0.05).abs() < 1e-3 && e.light == 1.0);
+        assert_eq!(camera.optics().mirrors_lighting_sample(e.axes), vec![l]);
+        assert!(frame_max(frame) > 0.03, "mirror {l} lit");
+    }
+}
+
+#[test]
+fn lost_steps_visibly_change_the_frame() {
+    let run = |faults: FaultPlan| {
+        let mut camera = SimCamera::new(sim(8, "painted-wood", SEED));
+        let mut config = SimConfig::new(SEED);
+        config.faults = faults;
+        let mut c = Client::new(config);
+        c.hello();
+        c.home_all();
+        load_mirror_table(&mut c);
+        capture_all(&mut c, 4);
+        let frames = camera.collect(c.link.device().truth());
+        let lit: Vec<Vec<usize>> = c
+            .link
+            .device()
+            .truth()
+            .triggers
+            .iter()
+            .map(|r| camera.optics().mirrors_lighting_sample(exposure_of(r).unwrap().axes))
+            .collect();
+        (frames, lit)
+    };
+    let (clean, clean_lit) = run(FaultPlan::none());
+    // 20° of disk steps lost while moving to mirror 3.
+    let (faulty, faulty_lit) =
+        run(FaultPlan::none()
+            .after_triggers(3, FaultEvent::LoseSteps { axis: Axis::Disk, steps: 900 }));
+    for l in 0..3 {
+        assert!(clean[l].1 == faulty[l].1, "frame {l} before the fault is identical");
+    }
+    // (Further mirrors would cross the disk's index flag where the
+    // firmware does not expect it, and it stops with a fault.)
+    for l in 3..4 {
+        assert_eq!(clean_lit[l], vec![l]);
+        let diff: f64 = clean[l]
+            .1
+            .rgb
+            .iter()
+            .zip(&faulty[l].1.rgb)
+            .map(|(a, b)| (a - b).abs() as f64)
+            .sum::<f64>();
+        let total: f64 = clean[l].1.rgb.iter().map(|&v| v as f64).sum();
+        assert!(diff > 0.3 * total, "frame {l}: changed by {:.1} %", 100.0 * diff / total);
+        eprintln!(
+            "mirror {l}: lit via {:?}, frame changed by {:.0} %",
+            faulty_lit[l],
+            100.0 * diff / total
+        );
+    }
+}
