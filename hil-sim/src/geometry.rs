@@ -228,19 +228,13 @@ impl MirrorSpec {
     /// Where the ray (origin, unit dir) meets the reflecting face inside the
     /// square: (distance, point). Hits from behind do not count.
     pub fn intersect(&self, origin: DVec3, dir: DVec3) -> Option<(f64, DVec3)> {
+        self.facet().intersect(origin, dir)
+    }
+
+    /// The square with its frame computed once, for tracing many rays.
+    pub fn facet(&self) -> Facet {
         let (n, u, v) = self.frame();
-        let denom = dir.dot(n);
-        if denom >= -1e-12 {
-            return None;
-        }
-        let t = (self.center() - origin).dot(n) / denom;
-        if t <= 1e-9 {
-            return None;
-        }
-        let p = origin + dir * t;
-        let q = p - self.center();
-        let h = self.size_mm / 2.0;
-        (q.dot(u).abs() <= h && q.dot(v).abs() <= h).then_some((t, p))
+        Facet { center: self.center(), n, u, v, half: self.size_mm / 2.0 }
     }
 
     /// Mirror image of point `p` in the mirror's plane.
@@ -261,6 +255,46 @@ impl MirrorSpec {
         let h = self.size_mm / 2.0;
         let c = self.center();
         [c + (u + v) * h, c + (u - v) * h, c - (u + v) * h, c - (u - v) * h]
+    }
+}
+
+/// A mirror square ready for ray intersection.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Facet {
+    /// Centre.
+    pub center: DVec3,
+    /// Unit normal.
+    pub n: DVec3,
+    /// Unit edge directions.
+    pub u: DVec3,
+    /// Second edge direction.
+    pub v: DVec3,
+    /// Half the side.
+    pub half: f64,
+}
+
+impl Facet {
+    /// Where the ray (origin, unit dir) meets the front face inside the
+    /// square: (distance, point).
+    #[inline]
+    pub fn intersect(&self, origin: DVec3, dir: DVec3) -> Option<(f64, DVec3)> {
+        let denom = dir.dot(self.n);
+        if denom >= -1e-12 {
+            return None;
+        }
+        let t = (self.center - origin).dot(self.n) / denom;
+        if t <= 1e-9 {
+            return None;
+        }
+        let p = origin + dir * t;
+        let q = p - self.center;
+        (q.dot(self.u).abs() <= self.half && q.dot(self.v).abs() <= self.half).then_some((t, p))
+    }
+
+    /// Mirror image of direction `d`.
+    #[inline]
+    pub fn reflect_dir(&self, d: DVec3) -> DVec3 {
+        d - 2.0 * d.dot(self.n) * self.n
     }
 }
 

@@ -22,7 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
-use crate::geometry::{AxisValues, Beam, ScannerGeometry, world_to_sample};
+use crate::geometry::{AxisValues, Beam, Facet, ScannerGeometry, world_to_sample};
 use crate::materials::Sample;
 
 /// Sub-pixel rays per axis.
@@ -112,6 +112,8 @@ pub struct OpticalSim {
     seed: u64,
     /// Per mirror: image-space bounding box (x0, y0, x1, y1), clipped.
     boxes: Vec<Option<[u32; 4]>>,
+    /// The mirrors, ready for tracing.
+    facets: Vec<Facet>,
 }
 
 impl OpticalSim {
@@ -135,7 +137,8 @@ impl OpticalSim {
                 })
             })
             .collect();
-        OpticalSim { geometry: as_built, sample, seed, boxes }
+        let facets = as_built.mirrors.iter().map(|m| m.facet()).collect();
+        OpticalSim { geometry: as_built, sample, seed, boxes, facets }
     }
 
     /// The as-built geometry (ground truth).
@@ -206,7 +209,7 @@ impl OpticalSim {
     fn light_paths_with(&self, beam: &Beam, lit: &[LitMirror], p: DVec3) -> Vec<LightPath> {
         let mut out = Vec::new();
         for lm in lit {
-            let m = &self.geometry.mirrors[lm.mirror];
+            let m = &self.facets[lm.mirror];
             // Light arrives travelling along lm.dir; trace back to the mirror.
             if lm.dir.z <= 0.0 {
                 continue; // reflected downwards: never reaches the sample's face
@@ -219,15 +222,13 @@ impl OpticalSim {
             }
             let shadowed = lit.iter().any(|other| {
                 other.mirror != lm.mirror
-                    && self.geometry.mirrors[other.mirror]
-                        .intersect(q + back * 1e-6, back)
-                        .is_some()
+                    && self.facets[other.mirror].intersect(q + back * 1e-6, back).is_some()
             });
             if shadowed {
                 continue;
             }
             let e = self.geometry.source.irradiance
-                * m.reflectance
+                * self.geometry.mirrors[lm.mirror].reflectance
                 * self.geometry.source.profile(beam.distance(q));
             if e > 0.0 {
                 out.push(LightPath {
@@ -260,14 +261,14 @@ impl OpticalSim {
             let t0 = -origin.z / dir.z;
             if t0 > 0.0 {
                 let c = origin + dir * t0;
-                if c.x.hypot(c.y) < g.sample.holder_radius_mm {
+                if c.x * c.x + c.y * c.y < g.sample.holder_radius_mm * g.sample.holder_radius_mm {
                     return None;
                 }
             }
         }
         let mut best: Option<(f64, usize, DVec3)> = None;
         let mut consider = |l: usize| {
-            if let Some((t, p)) = g.mirrors[l].intersect(origin, dir)
+            if let Some((t, p)) = self.facets[l].intersect(origin, dir)
                 && best.is_none_or(|b| t < b.0)
             {
                 best = Some((t, l, p));
@@ -278,8 +279,7 @@ impl OpticalSim {
             None => (0..g.mirrors.len()).for_each(consider),
         }
         let (_, l, p) = best?;
-        let m = &g.mirrors[l];
-        let r = m.reflect_dir(dir);
+        let r = self.facets[l].reflect_dir(dir);
         if r.z <= 1e-12 {
             return None;
         }
@@ -294,7 +294,7 @@ impl OpticalSim {
             uv: [(s.x + h) / g.sample.size_mm, (-s.y + h) / g.sample.size_mm],
             point: s,
             view: world_to_sample(-r),
-            transmission: m.reflectance,
+            transmission: g.mirrors[l].reflectance,
         })
     }
 
@@ -348,14 +348,17 @@ impl OpticalSim {
                     .map(|&l| self.boxes[l].map(|b| [b[0], b[2]]).unwrap())
                     .collect();
                 let mut row = vec![[0.0f32; 3]; w];
+                let mut here: Vec<usize> = Vec::with_capacity(candidates.len());
                 let mut any = false;
                 for (x, px) in row.iter_mut().enumerate() {
-                    let here: Vec<usize> = candidates
-                        .iter()
-                        .zip(&x_ranges)
-                        .filter(|(_, r)| (r[0] as usize..r[1] as usize).contains(&x))
-                        .map(|(&l, _)| l)
-                        .collect();
+                    here.clear();
+                    here.extend(
+                        candidates
+                            .iter()
+                            .zip(&x_ranges)
+                            .filter(|(_, r)| (r[0] as usize..r[1] as usize).contains(&x))
+                            .map(|(&l, _)| l),
+                    );
                     if here.is_empty() {
                         continue;
                     }
@@ -480,8 +483,47 @@ impl CameraRays {
     }
 }
 
+/// The ADC code distribution of a pixel that receives no light: read noise
+/// alone, quantised and clipped at 0. Dark pixels (most of a frame) draw
+/// their code from it with one uniform number instead of a Gaussian.
+struct DarkCodes {
+    /// `cdf[k]` = P(code ≤ k) × 2³², the last entry 2³².
+    cdf: Vec<u64>,
+}
+
+impl DarkCodes {
+    fn new(read_e: f64, gain: f64, max: f64) -> DarkCodes {
+        let sigma = read_e * gain;
+        let mut cdf = Vec::new();
+        let full = (1u64 << 32) as f64;
+        let mut k = 0.0;
+        while k < max {
+            let p = if sigma > 0.0 {
+                0.5 * libm::erfc(-(k + 0.5) / (sigma * std::f64::consts::SQRT_2))
+            } else {
+                1.0
+            };
+            let scaled = (p * full).round() as u64;
+            cdf.push(scaled);
+            if scaled >= 1 << 32 {
+                break;
+            }
+            k += 1.0;
+        }
+        if cdf.last() != Some(&(1 << 32)) {
+            cdf.push(1 << 32);
+        }
+        DarkCodes { cdf }
+    }
+
+    fn sample(&self, u: u32) -> usize {
+        let u = u as u64;
+        self.cdf.iter().position(|&c| u < c).unwrap_or(self.cdf.len() - 1)
+    }
+}
+
 /// Shot noise (Gaussian, variance = signal), read noise, clipping at the
-/// full well, quantisation; rows without signal draw read noise only.
+/// full well, quantisation.
 fn sensor_readout(
     sensor: &crate::geometry::SensorSpec,
     width: u32,
@@ -493,6 +535,8 @@ fn sensor_readout(
     let max = sensor.max_code();
     let gain = max / sensor.full_well_e;
     let read = sensor.read_noise_e;
+    let dark = DarkCodes::new(read, gain, max);
+    let codes: Vec<f32> = (0..dark.cdf.len()).map(|k| (k as f64 / max) as f32).collect();
     let mut rgb = vec![0.0f32; w * height as usize * 3];
     rgb.par_chunks_mut(w * 3).zip(electrons.par_iter()).enumerate().for_each(|(y, (out, row))| {
         let mut rng =
@@ -501,16 +545,33 @@ fn sensor_readout(
             let e = row.as_ref().map_or([0.0; 3], |r| r[x]);
             for k in 0..3 {
                 let s = e[k] as f64;
-                let z1: f64 = rng.sample(StandardNormal);
-                let noisy = if s > 0.0 {
+                out[3 * x + k] = if s > 0.0 {
+                    let z1: f64 = rng.sample(StandardNormal);
                     let z2: f64 = rng.sample(StandardNormal);
-                    s + s.sqrt() * z2 + read * z1
+                    let noisy = s + s.sqrt() * z2 + read * z1;
+                    ((noisy * gain).round().clamp(0.0, max) / max) as f32
                 } else {
-                    read * z1
+                    codes[dark.sample(rng.random::<u32>())]
                 };
-                out[3 * x + k] = ((noisy * gain).round().clamp(0.0, max) / max) as f32;
             }
         }
     });
     Frame { width, height, rgb }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dark_codes_follow_the_quantised_read_noise() {
+        let d = DarkCodes::new(3.0, 4095.0 / 10_000.0, 4095.0);
+        // P(code = 0) = Φ(0.5 / σ) with σ = 1.2285 DN.
+        let p0 = d.cdf[0] as f64 / (1u64 << 32) as f64;
+        assert!((p0 - 0.658).abs() < 0.002, "{p0}");
+        assert_eq!(*d.cdf.last().unwrap(), 1 << 32);
+        assert!(d.cdf.len() < 12);
+        assert_eq!(d.sample(0), 0);
+        assert_eq!(d.sample(u32::MAX), d.cdf.len() - 1);
+    }
 }

@@ -2,12 +2,18 @@
 //!
 //! ```text
 //! hil-sim [--seed N] [--speed X] [--corrupt P] [--drop P] [--fault SPEC]...
+//! hil-sim render [--material NAME] [--mirrors N] [--bin K] [--out DIR]
 //! ```
-//! Prints the pty path; point the host at it like at `/dev/ttyACM0`.
+//! Serving prints the pty path; point the host at it like at `/dev/ttyACM0`.
+//! `render` renders the frames of a scan at the nominal mirror positions
+//! (timing each; optionally writing them as OpenEXR) without a device.
 
 use std::io::Write;
 
-use clap::Parser;
+use clap::{Parser, Subcommand};
+use hil_sim::geometry::{ScannerGeometry, Tolerances};
+use hil_sim::materials::{self, Sample};
+use hil_sim::optics::{Exposure, OpticalSim};
 use hil_sim::{FaultPlan, FaultSpec, PtyServer, SimConfig, SimDevice};
 
 /// The simulated scanner controller on a pseudo-terminal.
@@ -29,10 +35,81 @@ struct Args {
     /// A fault, e.g. `reset@trigger=10` or `estop:on@ms=5000` (repeatable).
     #[arg(long = "fault")]
     faults: Vec<FaultSpec>,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Render a scan's frames at the nominal mirror positions (no device).
+    Render {
+        /// Sample material (checkerboard, diffuse-white, woven-fabric,
+        /// leather, painted-wood, rough-metal).
+        #[arg(long, default_value = "woven-fabric")]
+        material: String,
+        /// Frames (mirrors 0 … N−1).
+        #[arg(long, default_value_t = 40)]
+        mirrors: usize,
+        /// Sensor binning (1 = the default 4096² sensor).
+        #[arg(long, default_value_t = 1)]
+        bin: u32,
+        /// Write the frames here as `frame-LL.exr` (32-bit float RGB).
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+    },
+}
+
+fn render(
+    seed: u64,
+    material: &str,
+    mirrors: usize,
+    bin: u32,
+    out: Option<&std::path::Path>,
+) -> Result<(), String> {
+    let m = materials::by_name(material).ok_or_else(|| {
+        format!("unknown material {material:?} (one of {})", materials::MATERIAL_NAMES.join(", "))
+    })?;
+    if bin == 0 || bin > 64 {
+        return Err("--bin must be in 1…64".into());
+    }
+    let nominal = ScannerGeometry::default_scanner().with_sensor_scaled(bin);
+    if mirrors > nominal.mirrors.len() {
+        return Err(format!("--mirrors: the scanner has {}", nominal.mirrors.len()));
+    }
+    let sim =
+        OpticalSim::new(nominal.perturbed(seed, &Tolerances::default()), Sample::small(m), seed);
+    if let Some(dir) = out {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    }
+    let started = std::time::Instant::now();
+    for l in 0..mirrors {
+        let axes = nominal.mirror_axes(l).map_err(|e| e.to_string())?;
+        let t = std::time::Instant::now();
+        let frame = sim.render(&Exposure { axes, exposure_s: 0.05, light: 1.0 });
+        let render_s = t.elapsed().as_secs_f64();
+        if let Some(dir) = out {
+            let img = image::Rgb32FImage::from_raw(frame.width, frame.height, frame.rgb)
+                .ok_or("frame size mismatch")?;
+            let path = dir.join(format!("frame-{l:02}.exr"));
+            img.save(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        }
+        eprintln!("frame {l:2}: rendered in {render_s:.3} s");
+    }
+    eprintln!("{mirrors} frames in {:.2} s", started.elapsed().as_secs_f64());
+    Ok(())
 }
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
+    if let Some(Command::Render { material, mirrors, bin, out }) = &args.command {
+        return match render(args.seed, material, *mirrors, *bin, out.as_deref()) {
+            Ok(()) => std::process::ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("hil-sim render: {e}");
+                std::process::ExitCode::from(2)
+            }
+        };
+    }
     if !(0.0..=1.0).contains(&args.corrupt) || !(0.0..=1.0).contains(&args.drop) {
         eprintln!("hil-sim: --corrupt and --drop are probabilities in [0, 1]");
         return std::process::ExitCode::from(2);
