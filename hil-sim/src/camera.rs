@@ -56,19 +56,38 @@ impl SimCamera {
         self.next
     }
 
-    /// Frames of the trigger pulses completed since the last call, with the
-    /// pulse's index in `truth.triggers`; an ignored trigger makes no frame.
-    pub fn collect(&mut self, truth: &Truth) -> Vec<(usize, Frame)> {
+    /// Exposures of the trigger pulses completed since the last call, with
+    /// the pulse's index in `truth.triggers`; an ignored trigger makes none.
+    pub fn take_exposures(&mut self, truth: &Truth) -> Vec<(usize, Exposure)> {
         let mut out = Vec::new();
         while let Some(record) = truth.triggers.get(self.next) {
             if record.fall.is_none() {
                 break;
             }
             if let Some(e) = exposure_of(record) {
-                out.push((self.next, self.optics.render(&e)));
+                out.push((self.next, e));
             }
             self.next += 1;
         }
         out
     }
+
+    /// Frames of the trigger pulses completed since the last call (see
+    /// [`SimCamera::take_exposures`]).
+    pub fn collect(&mut self, truth: &Truth) -> Vec<(usize, Frame)> {
+        self.take_exposures(truth).into_iter().map(|(i, e)| (i, self.optics.render(&e))).collect()
+    }
+}
+
+/// Write `frame` to `path` as OpenEXR (32-bit float RGB), atomically: a
+/// temporary file in the same folder, then a rename — a folder watcher
+/// never sees a partial frame.
+pub fn write_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result<()> {
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("frame.exr");
+    let tmp = dir.join(format!(".{name}.tmp"));
+    let img = image::Rgb32FImage::from_raw(frame.width, frame.height, frame.rgb.clone())
+        .ok_or_else(|| std::io::Error::other("frame size mismatch"))?;
+    img.save_with_format(&tmp, image::ImageFormat::OpenExr).map_err(std::io::Error::other)?;
+    std::fs::rename(&tmp, path)
 }

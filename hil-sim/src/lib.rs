@@ -18,6 +18,7 @@
 //!   as-built geometry and a ground-truth sample ([`materials`]).
 //! - [`camera`]: the simulated camera, rendering at each trigger pulse from
 //!   the simulated axes' physical positions.
+//! - [`rig`]: board and camera in one deterministic process ([`SimRig`]).
 //!
 //! The simulator stands in for hardware and knows nothing of host internals.
 
@@ -29,7 +30,9 @@ pub mod link;
 pub mod materials;
 pub mod optics;
 pub mod physics;
+pub mod rig;
 
 pub use device::{SimConfig, SimDevice, TriggerRecord, Truth};
 pub use faults::{FaultEvent, FaultPlan, FaultSpec, FaultWhen};
 pub use link::{LinkError, PtyServer, SimLink};
+pub use rig::SimRig;

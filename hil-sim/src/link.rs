@@ -21,7 +21,11 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serialport::{SerialPort, TTYPort};
 
+use std::path::PathBuf;
+
+use crate::camera::{SimCamera, write_frame_exr};
 use crate::device::SimDevice;
+use crate::optics::Exposure;
 use crate::faults::FaultEvent;
 
 /// The seeded byte-level fault injector of a link.
@@ -196,6 +200,7 @@ pub struct PtyServer {
     path: String,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<SimDevice>>,
+    renderer: Option<JoinHandle<()>>,
     _slave: TTYPort,
 }
 
@@ -203,7 +208,38 @@ impl PtyServer {
     /// Serve `device` on a new pty, simulated time running at `speed` × wall
     /// time (1.0 = real time; keep ≤ 2 so the host's 200 ms keep-alive stays
     /// inside the device's 500 ms link timeout).
-    pub fn start(mut device: SimDevice, speed: f64) -> std::io::Result<PtyServer> {
+    pub fn start(device: SimDevice, speed: f64) -> std::io::Result<PtyServer> {
+        Self::start_with_camera(device, speed, None)
+    }
+
+    /// [`PtyServer::start`] with a simulated camera on the trigger output
+    /// that drops each frame into `camera.1` as `frame-NNNNNN.exr` (NNNNNN:
+    /// the trigger pulse's index since power-on), written atomically — as a
+    /// real camera's capture program would. Frames render on their own thread.
+    pub fn start_with_camera(
+        mut device: SimDevice,
+        speed: f64,
+        camera: Option<(SimCamera, PathBuf)>,
+    ) -> std::io::Result<PtyServer> {
+        let mut renderer = None;
+        let mut camera = match camera {
+            Some((cam, dir)) => {
+                std::fs::create_dir_all(&dir)?;
+                let (tx, rx) = std::sync::mpsc::channel::<(usize, Exposure)>();
+                let optics = cam.optics().clone();
+                renderer = Some(std::thread::spawn(move || {
+                    for (index, exposure) in rx {
+                        let frame = optics.render(&exposure);
+                        let path = dir.join(format!("frame-{index:06}.exr"));
+                        if let Err(e) = write_frame_exr(&frame, &path) {
+                            eprintln!("hil-sim camera: cannot write {}: {e}", path.display());
+                        }
+                    }
+                }));
+                Some((cam, tx))
+            }
+            None => None,
+        };
         let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::other)?;
         let path = slave.name().ok_or_else(|| std::io::Error::other("the pty has no name"))?;
         master.set_timeout(Duration::from_millis(1)).map_err(std::io::Error::other)?;
@@ -227,6 +263,11 @@ impl PtyServer {
                 };
                 let target = origin + duration_ticks(started.elapsed().mul_f64(speed));
                 device.advance_to(target.max(device.now()));
+                if let Some((cam, tx)) = &mut camera {
+                    for job in cam.take_exposures(device.truth()) {
+                        let _ = tx.send(job);
+                    }
+                }
                 noise.apply(device.take_link_faults());
                 let up = noise.connected(device.now());
                 if n > 0 && up {
@@ -238,9 +279,10 @@ impl PtyServer {
                     let _ = master.write_all(&noise.mangle(&out));
                 }
             }
+            drop(camera); // ends the renderer once it has written every frame
             device
         });
-        Ok(PtyServer { path, stop, thread: Some(thread), _slave: slave })
+        Ok(PtyServer { path, stop, thread: Some(thread), renderer, _slave: slave })
     }
 
     /// Path of the pty to open, like `/dev/ttyACM0`.
@@ -251,7 +293,11 @@ impl PtyServer {
     /// Stop serving; returns the device (with its physical truth).
     pub fn stop(mut self) -> Option<SimDevice> {
         self.stop.store(true, Ordering::Relaxed);
-        self.thread.take().and_then(|t| t.join().ok())
+        let device = self.thread.take().and_then(|t| t.join().ok());
+        if let Some(r) = self.renderer.take() {
+            let _ = r.join();
+        }
+        device
     }
 }
 
@@ -260,6 +306,9 @@ impl Drop for PtyServer {
         self.stop.store(true, Ordering::Relaxed);
         if let Some(t) = self.thread.take() {
             let _ = t.join();
+        }
+        if let Some(r) = self.renderer.take() {
+            let _ = r.join();
         }
     }
 }

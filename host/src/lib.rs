@@ -1,12 +1,24 @@
 //! # Host library
 //!
-//! The host side of the material scanner: for now the measured-BRDF toolkit
-//! ([`brdf`]: MERL tables, the NPF model, AWLS fitting, previews). The device
-//! link, scan capture and material building come with their issues.
+//! The host side of the material scanner:
+//! - [`link`]: transports (serial/CDC-ACM, USB bulk, the in-process
+//!   simulator) and the protocol client; [`discovery`] finds scanners.
+//! - [`camera`]: cameras on the trigger line (simulated, folder source).
+//! - [`scan`]: mirror table set-up and scan capture into a scan directory
+//!   (`docs/scan-format.md`), frames as OpenEXR ([`exrio`]).
+//! - [`simulator`]: the simulated scanner as the host starts it.
+//! - [`brdf`]: measured BRDFs — MERL tables, the NPF model, AWLS fitting,
+//!   previews.
 //!
 //! Library code returns typed errors; only the `scanner` binary uses `anyhow`.
 
 pub mod brdf;
+pub mod camera;
+pub mod discovery;
+pub mod exrio;
 pub mod fsutil;
+pub mod link;
+pub mod scan;
+pub mod simulator;
 
 pub use protocol;

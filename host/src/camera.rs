@@ -1,0 +1,130 @@
+//! Cameras: armed for the device's hardware trigger, then asked for the
+//! frame. The simulated camera comes with the in-process simulator; the
+//! folder source takes the frames a real camera's own capture program drops
+//! into a folder, matched to triggers in order, until a native driver exists.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// A linear float RGB frame, row-major, interleaved.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Width, px.
+    pub width: u32,
+    /// Height, px.
+    pub height: u32,
+    /// `width × height × 3` values.
+    pub rgb: Vec<f32>,
+}
+
+/// Why a camera failed.
+#[derive(Debug, thiserror::Error)]
+pub enum CameraError {
+    /// No frame arrived in time.
+    #[error("camera: no frame within {0:?}")]
+    Timeout(Duration),
+    /// The camera's output could not be read.
+    #[error("camera: {0}")]
+    Io(String),
+}
+
+/// A camera on the scanner's trigger line.
+pub trait Camera: Send {
+    /// Get ready for the next trigger; frames from before are stale.
+    fn arm(&mut self) -> Result<(), CameraError>;
+    /// The frame of the trigger that fired, waiting up to `timeout`.
+    fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError>;
+    /// What this is, for messages and manifests.
+    fn describe(&self) -> String;
+}
+
+/// The simulator's camera (in-process; frames rendered when the trigger
+/// pulse ends; time is the simulator's).
+#[derive(Debug, Clone)]
+pub struct SimCamera(pub hil_sim::SimRig);
+
+impl Camera for SimCamera {
+    fn arm(&mut self) -> Result<(), CameraError> {
+        self.0.arm_camera();
+        Ok(())
+    }
+
+    fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError> {
+        let f = self.0.wait_frame(timeout).ok_or(CameraError::Timeout(timeout))?;
+        Ok(Frame { width: f.width, height: f.height, rgb: f.rgb })
+    }
+
+    fn describe(&self) -> String {
+        "simulated camera".into()
+    }
+}
+
+/// Frames from a folder another program writes into: the next new `.exr`
+/// file (in name order) after arming is the frame. Hidden files (`.name`)
+/// and `*.tmp` are in-progress writes and ignored; a file still growing is
+/// read again until it decodes.
+#[derive(Debug)]
+pub struct FolderCamera {
+    dir: PathBuf,
+    seen: BTreeSet<String>,
+    /// Poll period.
+    pub poll: Duration,
+}
+
+impl FolderCamera {
+    /// Watch `dir` (it must exist).
+    pub fn new(dir: &Path) -> Result<FolderCamera, CameraError> {
+        if !dir.is_dir() {
+            return Err(CameraError::Io(format!("{} is not a folder", dir.display())));
+        }
+        let mut c = FolderCamera { dir: dir.to_path_buf(), seen: BTreeSet::new(), poll: Duration::from_millis(20) };
+        c.seen = c.list()?;
+        Ok(c)
+    }
+
+    fn list(&self) -> Result<BTreeSet<String>, CameraError> {
+        let rd = std::fs::read_dir(&self.dir).map_err(|e| CameraError::Io(format!("{}: {e}", self.dir.display())))?;
+        Ok(rd
+            .filter_map(|e| e.ok())
+            .filter_map(|e| e.file_name().into_string().ok())
+            .filter(|n| !n.starts_with('.') && !n.ends_with(".tmp") && n.to_ascii_lowercase().ends_with(".exr"))
+            .collect())
+    }
+}
+
+impl Camera for FolderCamera {
+    fn arm(&mut self) -> Result<(), CameraError> {
+        self.seen = self.list()?;
+        Ok(())
+    }
+
+    fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError> {
+        let end = Instant::now() + timeout;
+        let mut last_error = None;
+        loop {
+            let names = self.list()?;
+            if let Some(name) = names.difference(&self.seen).next().cloned() {
+                match crate::exrio::read_rgb(&self.dir.join(&name)) {
+                    Ok(f) => {
+                        self.seen.insert(name);
+                        return Ok(f);
+                    }
+                    // Perhaps still being written: try again.
+                    Err(e) => last_error = Some(format!("{name}: {e}")),
+                }
+            }
+            if Instant::now() >= end {
+                return Err(match last_error {
+                    Some(e) => CameraError::Io(e),
+                    None => CameraError::Timeout(timeout),
+                });
+            }
+            std::thread::sleep(self.poll);
+        }
+    }
+
+    fn describe(&self) -> String {
+        format!("folder {}", self.dir.display())
+    }
+}

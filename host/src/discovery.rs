@@ -1,0 +1,94 @@
+//! Finding scanners: serial ports (CDC-ACM, found through sysfs — no
+//! libudev) and USB devices with the project's VID/PID, with their serial
+//! numbers; choosing one by serial number or path.
+
+use protocol::{USB_PID, USB_VID};
+
+/// A scanner reachable over a serial port.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SerialScanner {
+    /// Port path.
+    pub path: String,
+    /// USB serial number (the board's unique id), if it is a USB port.
+    pub serial: Option<String>,
+}
+
+/// A scanner on USB with a vendor-class (bulk) interface.
+#[derive(Debug, Clone)]
+pub struct UsbScanner {
+    /// nusb's handle for opening it.
+    pub info: nusb::DeviceInfo,
+    /// USB serial number.
+    pub serial: String,
+    /// Bus and address, for messages.
+    pub location: String,
+    /// The vendor-class interface number, if it has one.
+    pub vendor_interface: Option<u8>,
+}
+
+/// Serial ports whose USB VID/PID are ours.
+pub fn serial_scanners() -> Result<Vec<SerialScanner>, String> {
+    let ports = serialport::available_ports().map_err(|e| format!("listing serial ports: {e}"))?;
+    Ok(ports
+        .into_iter()
+        .filter_map(|p| match p.port_type {
+            serialport::SerialPortType::UsbPort(u) if u.vid == USB_VID && u.pid == USB_PID => {
+                Some(SerialScanner { path: p.port_name, serial: u.serial_number })
+            }
+            _ => None,
+        })
+        .collect())
+}
+
+/// USB devices with our VID/PID.
+pub fn usb_devices() -> Result<Vec<UsbScanner>, String> {
+    use nusb::MaybeFuture;
+    let list = nusb::list_devices().wait().map_err(|e| format!("listing USB devices: {e}"))?;
+    Ok(list
+        .filter(|d| d.vendor_id() == USB_VID && d.product_id() == USB_PID)
+        .map(|d| {
+            let vendor_interface =
+                d.interfaces().find(|i| i.class() == 0xFF).map(|i| i.interface_number());
+            UsbScanner {
+                serial: d.serial_number().unwrap_or("").to_string(),
+                location: format!("bus {} address {}", d.busnum(), d.device_address()),
+                vendor_interface,
+                info: d,
+            }
+        })
+        .collect())
+}
+
+/// How to reach the device the user named.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum DeviceChoice {
+    /// The in-process simulator.
+    Simulator,
+    /// A serial port path.
+    Serial(String),
+    /// USB bulk, by serial number.
+    Usb(String),
+}
+
+/// Resolve `--device`: `sim`, a path (contains `/`, or `COM…`), `usb:SERIAL`,
+/// or a bare serial number looked up among serial ports then USB devices.
+pub fn choose(device: &str) -> Result<DeviceChoice, String> {
+    if device == "sim" {
+        return Ok(DeviceChoice::Simulator);
+    }
+    if let Some(serial) = device.strip_prefix("usb:") {
+        return Ok(DeviceChoice::Usb(serial.to_string()));
+    }
+    if device.contains('/') || device.starts_with("COM") {
+        return Ok(DeviceChoice::Serial(device.to_string()));
+    }
+    let serial_ports = serial_scanners().unwrap_or_default();
+    if let Some(p) = serial_ports.iter().find(|p| p.serial.as_deref() == Some(device)) {
+        return Ok(DeviceChoice::Serial(p.path.clone()));
+    }
+    match usb_devices() {
+        Ok(list) if list.iter().any(|d| d.serial == device) => Ok(DeviceChoice::Usb(device.to_string())),
+        Ok(_) => Err(format!("no scanner with serial number {device:?} (try `scanner devices`)")),
+        Err(e) => Err(format!("no serial port with serial number {device:?}, and {e}")),
+    }
+}

@@ -1,0 +1,45 @@
+//! OpenEXR frames: written as half-float RGB with lossless ZIP compression
+//! (16 scan lines per block), read from any RGB(A) float layout.
+
+use std::path::Path;
+
+use exr::prelude::*;
+
+use crate::camera::Frame;
+
+/// Encode `frame` as a half-float, ZIP-compressed RGB OpenEXR file in memory.
+pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
+    let (w, h) = (frame.width as usize, frame.height as usize);
+    if frame.rgb.len() != w * h * 3 {
+        return Err(format!("frame of {w}×{h} has {} values", frame.rgb.len()));
+    }
+    let rgb = &frame.rgb;
+    let channels = SpecificChannels::rgb(|p: Vec2<usize>| {
+        let i = 3 * (p.y() * w + p.x());
+        (f16::from_f32(rgb[i]), f16::from_f32(rgb[i + 1]), f16::from_f32(rgb[i + 2]))
+    });
+    let encoding =
+        Encoding { compression: Compression::ZIP16, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
+    let layer = Layer::new((w, h), LayerAttributes::named("frame"), encoding, channels);
+    let image = Image::from_layer(layer);
+    let mut out = std::io::Cursor::new(Vec::new());
+    image.write().to_buffered(&mut out).map_err(|e| e.to_string())?;
+    Ok(out.into_inner())
+}
+
+/// Read the first RGB(A) layer of an OpenEXR file as linear float RGB.
+pub fn read_rgb(path: &Path) -> std::result::Result<Frame, String> {
+    let image = read_first_rgba_layer_from_file(
+        path,
+        |res: Vec2<usize>, _| (res, vec![0.0f32; res.width() * res.height() * 3]),
+        |(res, data): &mut (Vec2<usize>, Vec<f32>), p: Vec2<usize>, (r, g, b, _a): (f32, f32, f32, f32)| {
+            let i = 3 * (p.y() * res.width() + p.x());
+            data[i] = r;
+            data[i + 1] = g;
+            data[i + 2] = b;
+        },
+    )
+    .map_err(|e| e.to_string())?;
+    let (res, rgb) = image.layer_data.channel_data.pixels;
+    Ok(Frame { width: res.width() as u32, height: res.height() as u32, rgb })
+}

@@ -1,0 +1,634 @@
+//! The device link: byte transports (serial / CDC-ACM, USB bulk, the
+//! in-process simulator) behind one trait, and the protocol client on top —
+//! sequence numbers, timeouts, retransmission of the same frame (the device
+//! executes each sequence number at most once), keep-alive, reconnection
+//! after a disconnect, and detection of a device reset by its boot id.
+
+use std::collections::VecDeque;
+use std::io::{Read, Write};
+use std::time::{Duration, Instant};
+
+use protocol::{
+    DeviceError, DeviceInfo, Event, FrameDecoder, MAX_FRAME_LEN, PROTOCOL_VERSION, Reply, Request,
+    Status, ToHost, encode_frame,
+};
+
+/// Why a transport operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// The device went away (unplugged, pty closed, link down).
+    #[error("disconnected: {0}")]
+    Disconnected(String),
+    /// Cannot open the device.
+    #[error("cannot open {0}")]
+    Open(String),
+}
+
+/// A byte pipe to a scanner controller.
+pub trait Transport: Send {
+    /// Send all of `bytes`.
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError>;
+    /// Wait up to `timeout` for bytes; append them to `out`; `Ok(0)` on timeout.
+    fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError>;
+    /// Let `d` pass (simulated time on a simulated link).
+    fn sleep(&mut self, d: Duration);
+    /// A monotonic clock (simulated time on a simulated link).
+    fn now(&self) -> Duration;
+    /// Try once to open the device again after a disconnect.
+    fn reconnect(&mut self) -> Result<(), TransportError>;
+    /// What this is connected to, for messages.
+    fn describe(&self) -> String;
+}
+
+/// Wall-clock origin shared by the real transports.
+fn wall_now() -> Duration {
+    static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    START.get_or_init(Instant::now).elapsed()
+}
+
+/// A serial port: the CDC-ACM interface of the board, a UART, or the
+/// simulator's pty.
+pub struct SerialTransport {
+    path: String,
+    port: Option<Box<dyn serialport::SerialPort>>,
+}
+
+impl std::fmt::Debug for SerialTransport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SerialTransport").field("path", &self.path).finish()
+    }
+}
+
+impl SerialTransport {
+    /// Open `path` (e.g. `/dev/ttyACM0`).
+    pub fn open(path: &str) -> Result<SerialTransport, TransportError> {
+        let mut t = SerialTransport { path: path.to_string(), port: None };
+        t.reconnect()?;
+        Ok(t)
+    }
+}
+
+impl Transport for SerialTransport {
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        let port = self.port.as_mut().ok_or_else(|| TransportError::Disconnected(self.path.clone()))?;
+        match port.write_all(bytes).and_then(|_| port.flush()) {
+            Ok(()) => Ok(()),
+            Err(e) => {
+                self.port = None;
+                Err(TransportError::Disconnected(format!("{}: {e}", self.path)))
+            }
+        }
+    }
+
+    fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError> {
+        let port = self.port.as_mut().ok_or_else(|| TransportError::Disconnected(self.path.clone()))?;
+        let _ = port.set_timeout(timeout.max(Duration::from_millis(1)));
+        let mut buf = [0u8; 1024];
+        match port.read(&mut buf) {
+            Ok(0) => {
+                // End of file: the other side closed (a pty master, a USB unplug).
+                std::thread::sleep(timeout.min(Duration::from_millis(5)));
+                Ok(0)
+            }
+            Ok(n) => {
+                out.extend_from_slice(&buf[..n]);
+                Ok(n)
+            }
+            Err(e) if matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted) => {
+                Ok(0)
+            }
+            Err(e) => {
+                self.port = None;
+                Err(TransportError::Disconnected(format!("{}: {e}", self.path)))
+            }
+        }
+    }
+
+    fn sleep(&mut self, d: Duration) {
+        std::thread::sleep(d);
+    }
+
+    fn now(&self) -> Duration {
+        wall_now()
+    }
+
+    fn reconnect(&mut self) -> Result<(), TransportError> {
+        self.port = None;
+        let port = serialport::new(&self.path, 115_200)
+            .timeout(Duration::from_millis(10))
+            .open()
+            .map_err(|e| TransportError::Open(format!("{}: {e}", self.path)))?;
+        self.port = Some(port);
+        Ok(())
+    }
+
+    fn describe(&self) -> String {
+        self.path.clone()
+    }
+}
+
+/// The board's vendor-class bulk interface over USB (nusb, no libusb).
+pub struct UsbTransport {
+    serial: String,
+    io: Option<(nusb::io::EndpointWrite<nusb::transfer::Bulk>, nusb::io::EndpointRead<nusb::transfer::Bulk>)>,
+}
+
+impl std::fmt::Debug for UsbTransport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("UsbTransport").field("serial", &self.serial).finish()
+    }
+}
+
+impl UsbTransport {
+    /// Open the scanner with USB serial number `serial`.
+    pub fn open(serial: &str) -> Result<UsbTransport, TransportError> {
+        let mut t = UsbTransport { serial: serial.to_string(), io: None };
+        t.reconnect()?;
+        Ok(t)
+    }
+}
+
+impl Transport for UsbTransport {
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        let (tx, _) = self.io.as_mut().ok_or_else(|| TransportError::Disconnected(self.serial.clone()))?;
+        match tx.write_all(bytes).and_then(|_| tx.flush_end()) {
+            Ok(()) => Ok(()),
+            Err(e) => {
+                self.io = None;
+                Err(TransportError::Disconnected(format!("usb {}: {e}", self.serial)))
+            }
+        }
+    }
+
+    fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError> {
+        let (_, rx) = self.io.as_mut().ok_or_else(|| TransportError::Disconnected(self.serial.clone()))?;
+        rx.set_read_timeout(timeout.max(Duration::from_millis(1)));
+        let mut buf = [0u8; 512];
+        match rx.read(&mut buf) {
+            Ok(n) => {
+                out.extend_from_slice(&buf[..n]);
+                Ok(n)
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Ok(0),
+            Err(e) => {
+                self.io = None;
+                Err(TransportError::Disconnected(format!("usb {}: {e}", self.serial)))
+            }
+        }
+    }
+
+    fn sleep(&mut self, d: Duration) {
+        std::thread::sleep(d);
+    }
+
+    fn now(&self) -> Duration {
+        wall_now()
+    }
+
+    fn reconnect(&mut self) -> Result<(), TransportError> {
+        use nusb::MaybeFuture;
+        self.io = None;
+        let fail = |what: &str| TransportError::Open(format!("usb {}: {what}", self.serial));
+        let info = crate::discovery::usb_devices()
+            .map_err(|e| fail(&e))?
+            .into_iter()
+            .find(|d| d.serial == self.serial)
+            .ok_or_else(|| fail("not connected"))?;
+        let iface = info.vendor_interface.ok_or_else(|| fail("no vendor-class bulk interface"))?;
+        let device = info.info.open().wait().map_err(|e| fail(&e.to_string()))?;
+        let config = device.active_configuration().map_err(|e| fail(&e.to_string()))?;
+        let alt = config
+            .interface_alt_settings()
+            .find(|a| a.interface_number() == iface && a.alternate_setting() == 0)
+            .ok_or_else(|| fail("vendor interface has no descriptor"))?;
+        let bulk = |dir: nusb::transfer::Direction| {
+            alt.endpoints()
+                .find(|e| e.transfer_type() == nusb::descriptors::TransferType::Bulk && e.direction() == dir)
+                .map(|e| e.address())
+        };
+        let ep_out = bulk(nusb::transfer::Direction::Out).ok_or_else(|| fail("no bulk OUT endpoint"))?;
+        let ep_in = bulk(nusb::transfer::Direction::In).ok_or_else(|| fail("no bulk IN endpoint"))?;
+        let interface = device.claim_interface(iface).wait().map_err(|e| fail(&e.to_string()))?;
+        let tx = interface
+            .endpoint::<nusb::transfer::Bulk, nusb::transfer::Out>(ep_out)
+            .map_err(|e| fail(&e.to_string()))?
+            .writer(64);
+        let rx = interface
+            .endpoint::<nusb::transfer::Bulk, nusb::transfer::In>(ep_in)
+            .map_err(|e| fail(&e.to_string()))?
+            .reader(64);
+        self.io = Some((tx, rx));
+        Ok(())
+    }
+
+    fn describe(&self) -> String {
+        format!("usb:{}", self.serial)
+    }
+}
+
+/// The in-process deterministic simulator's link.
+#[derive(Debug, Clone)]
+pub struct SimTransport(pub hil_sim::SimRig);
+
+impl Transport for SimTransport {
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        self.0.write(bytes).map_err(|e| TransportError::Disconnected(e.to_string()))
+    }
+    fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError> {
+        self.0.read(out, timeout).map_err(|e| TransportError::Disconnected(e.to_string()))
+    }
+    fn sleep(&mut self, d: Duration) {
+        self.0.sleep(d)
+    }
+    fn now(&self) -> Duration {
+        self.0.now()
+    }
+    fn reconnect(&mut self) -> Result<(), TransportError> {
+        // The simulated cable comes back by itself; waiting is all it takes.
+        self.0.sleep(Duration::from_millis(5));
+        Ok(())
+    }
+    fn describe(&self) -> String {
+        "simulator (in-process)".into()
+    }
+}
+
+/// Why a device operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    /// The device was not there or did not come back in time.
+    #[error("device not reachable: {0}")]
+    NoDevice(String),
+    /// The device speaks another protocol major version.
+    #[error("incompatible firmware: device speaks protocol {device}, this host {host}")]
+    Incompatible {
+        /// The device's protocol version.
+        device: protocol::ProtocolVersion,
+        /// Ours.
+        host: protocol::ProtocolVersion,
+    },
+    /// No reply despite retransmissions.
+    #[error("no reply from {device} to {request} after {attempts} attempts")]
+    Timeout {
+        /// The device.
+        device: String,
+        /// The request's name.
+        request: &'static str,
+        /// Frames sent.
+        attempts: u32,
+    },
+    /// The device refused the request.
+    #[error("device refused {request}: {error}")]
+    Refused {
+        /// The request's name.
+        request: &'static str,
+        /// Its error.
+        error: DeviceError,
+    },
+    /// The device reset (new boot id): homing and any motion are lost.
+    #[error("device reset (boot id {old:08x} → {new:08x})")]
+    Reset {
+        /// Boot id before.
+        old: u32,
+        /// Boot id now.
+        new: u32,
+    },
+    /// The device replied with something the request cannot produce.
+    #[error("unexpected reply to {request}: {reply:?}")]
+    Unexpected {
+        /// The request's name.
+        request: &'static str,
+        /// What came.
+        reply: Reply,
+    },
+}
+
+/// Timing of the protocol client.
+#[derive(Debug, Clone, Copy)]
+pub struct LinkTimings {
+    /// Wait this long for a reply before sending the frame again.
+    pub retransmit_after: Duration,
+    /// Attempts per request.
+    pub attempts: u32,
+    /// Keep trying to reopen a lost device for this long.
+    pub reconnect_for: Duration,
+    /// While waiting for events, ping this often (the device stops moving
+    /// after 500 ms of silence).
+    pub keepalive: Duration,
+}
+
+impl Default for LinkTimings {
+    fn default() -> LinkTimings {
+        LinkTimings {
+            retransmit_after: Duration::from_millis(60),
+            attempts: 50,
+            reconnect_for: Duration::from_secs(15),
+            keepalive: Duration::from_millis(100),
+        }
+    }
+}
+
+/// Counters of link trouble survived.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LinkStats {
+    /// Requests answered.
+    pub requests: u64,
+    /// Frames sent again.
+    pub retransmissions: u64,
+    /// Reconnections after a disconnect.
+    pub reconnects: u64,
+    /// Device resets detected.
+    pub resets: u64,
+    /// Frames dropped by the decoder (CRC, framing).
+    pub bad_frames: u64,
+}
+
+/// The protocol client.
+pub struct Device {
+    transport: Box<dyn Transport>,
+    seq: u8,
+    decoder: FrameDecoder<ToHost>,
+    replies: Vec<(u8, Reply)>,
+    events: VecDeque<Event>,
+    info: DeviceInfo,
+    timings: LinkTimings,
+    /// Trouble survived so far.
+    pub stats: LinkStats,
+}
+
+impl std::fmt::Debug for Device {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Device").field("link", &self.transport.describe()).field("info", &self.info).finish()
+    }
+}
+
+fn request_name(r: &Request) -> &'static str {
+    match r {
+        Request::Hello { .. } => "Hello",
+        Request::Ping { .. } => "Ping",
+        Request::GetStatus => "GetStatus",
+        Request::Home { .. } => "Home",
+        Request::Move { .. } => "Move",
+        Request::GoToMirror { .. } => "GoToMirror",
+        Request::GetMirror { .. } => "GetMirror",
+        Request::SetMirror { .. } => "SetMirror",
+        Request::SetMirrorCount { .. } => "SetMirrorCount",
+        Request::SetLight(_) => "SetLight",
+        Request::Trigger { .. } => "Trigger",
+        Request::CaptureStep(_) => "CaptureStep",
+        Request::Stop => "Stop",
+        Request::EmergencyStop => "EmergencyStop",
+        Request::ClearFault => "ClearFault",
+        Request::GetAxisConfig { .. } => "GetAxisConfig",
+        Request::SetAxisConfig { .. } => "SetAxisConfig",
+        Request::SaveConfig => "SaveConfig",
+        Request::GetLastTrigger => "GetLastTrigger",
+        Request::Reset => "Reset",
+    }
+}
+
+impl Device {
+    /// Handshake over `transport` (version check) with default timings.
+    pub fn connect(transport: Box<dyn Transport>) -> Result<Device, LinkError> {
+        Self::connect_with(transport, LinkTimings::default())
+    }
+
+    /// Handshake over `transport` with `timings`.
+    pub fn connect_with(transport: Box<dyn Transport>, timings: LinkTimings) -> Result<Device, LinkError> {
+        let mut d = Device {
+            transport,
+            seq: 0,
+            decoder: FrameDecoder::new(),
+            replies: Vec::new(),
+            events: VecDeque::new(),
+            info: placeholder_info(),
+            timings,
+            stats: LinkStats::default(),
+        };
+        d.info = d.hello()?;
+        Ok(d)
+    }
+
+    /// The handshake's answer (refreshed on every reconnect).
+    pub fn info(&self) -> &DeviceInfo {
+        &self.info
+    }
+
+    /// What the link is connected to.
+    pub fn describe(&self) -> String {
+        self.transport.describe()
+    }
+
+    /// The transport's clock.
+    pub fn now(&self) -> Duration {
+        self.transport.now()
+    }
+
+    /// Let time pass on the transport's clock (reading and queueing events).
+    pub fn sleep(&mut self, d: Duration) -> Result<(), LinkError> {
+        let end = self.transport.now() + d;
+        while self.transport.now() < end {
+            let left = end - self.transport.now();
+            self.pump(left.min(Duration::from_millis(20)))?;
+        }
+        Ok(())
+    }
+
+    fn hello(&mut self) -> Result<DeviceInfo, LinkError> {
+        match self.exchange(Request::Hello { host_protocol: PROTOCOL_VERSION })? {
+            Reply::Info(info) => {
+                if !info.protocol.is_compatible_with(PROTOCOL_VERSION) {
+                    return Err(LinkError::Incompatible { device: info.protocol, host: PROTOCOL_VERSION });
+                }
+                Ok(info)
+            }
+            Reply::Error(DeviceError::UnsupportedVersion(v)) => {
+                Err(LinkError::Incompatible { device: v, host: PROTOCOL_VERSION })
+            }
+            reply => Err(LinkError::Unexpected { request: "Hello", reply }),
+        }
+    }
+
+    /// Read what is there (up to `timeout`), decode, queue events.
+    fn pump(&mut self, timeout: Duration) -> Result<(), LinkError> {
+        let mut buf = Vec::new();
+        match self.transport.read(&mut buf, timeout) {
+            Ok(_) => {}
+            Err(TransportError::Disconnected(why)) | Err(TransportError::Open(why)) => {
+                self.reopen(&why)?;
+            }
+        }
+        for frame in self.decoder.feed(&buf) {
+            match frame {
+                Ok(f) => match f.msg {
+                    ToHost::Reply(r) => self.replies.push((f.seq, r)),
+                    ToHost::Event(e) => self.events.push_back(e),
+                },
+                Err(_) => self.stats.bad_frames += 1,
+            }
+        }
+        Ok(())
+    }
+
+    /// Reopen the transport after a disconnect, for up to `reconnect_for`.
+    fn reopen(&mut self, why: &str) -> Result<(), LinkError> {
+        tracing::warn!("link to {} lost ({why}); reconnecting", self.transport.describe());
+        let end = self.transport.now() + self.timings.reconnect_for;
+        loop {
+            match self.transport.reconnect() {
+                Ok(()) => {
+                    self.stats.reconnects += 1;
+                    self.decoder = FrameDecoder::new();
+                    return Ok(());
+                }
+                Err(e) => {
+                    if self.transport.now() >= end {
+                        return Err(LinkError::NoDevice(e.to_string()));
+                    }
+                    self.transport.sleep(Duration::from_millis(100));
+                }
+            }
+        }
+    }
+
+    /// Send one request and wait for its reply, retransmitting the same
+    /// frame (same sequence number) until it comes.
+    fn exchange(&mut self, request: Request) -> Result<Reply, LinkError> {
+        self.seq = self.seq.wrapping_add(1);
+        let seq = self.seq;
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        let n = encode_frame(seq, &request, &mut frame).expect("every request fits MAX_FRAME_LEN");
+        for attempt in 0..self.timings.attempts {
+            if attempt > 0 {
+                self.stats.retransmissions += 1;
+            }
+            if let Err(e) = self.transport.write_all(&frame[..n]) {
+                self.reopen(&e.to_string())?;
+                continue;
+            }
+            let deadline = self.transport.now() + self.timings.retransmit_after;
+            while self.transport.now() < deadline {
+                let left = deadline - self.transport.now();
+                self.pump(left.min(Duration::from_millis(10)))?;
+                if let Some(i) = self.replies.iter().position(|(s, _)| *s == seq) {
+                    let (_, reply) = self.replies.swap_remove(i);
+                    self.replies.clear();
+                    self.stats.requests += 1;
+                    return Ok(reply);
+                }
+            }
+        }
+        Err(LinkError::Timeout {
+            device: self.transport.describe(),
+            request: request_name(&request),
+            attempts: self.timings.attempts,
+        })
+    }
+
+    /// Send a request; a device error becomes [`LinkError::Refused`]. A
+    /// device that lost the handshake (it reset) is greeted again and
+    /// [`LinkError::Reset`] returned if its boot id changed.
+    pub fn request(&mut self, request: Request) -> Result<Reply, LinkError> {
+        let name = request_name(&request);
+        match self.exchange(request)? {
+            Reply::Error(DeviceError::NoHandshake) => {
+                let old = self.info.boot_id;
+                self.info = self.hello()?;
+                if self.info.boot_id != old {
+                    self.stats.resets += 1;
+                    return Err(LinkError::Reset { old, new: self.info.boot_id });
+                }
+                match self.exchange(request)? {
+                    Reply::Error(error) => Err(LinkError::Refused { request: name, error }),
+                    reply => Ok(reply),
+                }
+            }
+            Reply::Error(error) => Err(LinkError::Refused { request: name, error }),
+            reply => Ok(reply),
+        }
+    }
+
+    /// A request whose only good answer is `Ack`.
+    pub fn command(&mut self, request: Request) -> Result<(), LinkError> {
+        let name = request_name(&request);
+        match self.request(request)? {
+            Reply::Ack => Ok(()),
+            reply => Err(LinkError::Unexpected { request: name, reply }),
+        }
+    }
+
+    /// The device status.
+    pub fn status(&mut self) -> Result<Status, LinkError> {
+        match self.request(Request::GetStatus)? {
+            Reply::Status(s) => Ok(s),
+            reply => Err(LinkError::Unexpected { request: "GetStatus", reply }),
+        }
+    }
+
+    /// Greet the device again (after a reconnect) and report a reset.
+    pub fn check_boot(&mut self) -> Result<(), LinkError> {
+        let old = self.info.boot_id;
+        self.info = self.hello()?;
+        if self.info.boot_id != old {
+            self.stats.resets += 1;
+            return Err(LinkError::Reset { old, new: self.info.boot_id });
+        }
+        Ok(())
+    }
+
+    /// Forget queued events (before a command whose events matter).
+    pub fn clear_events(&mut self) {
+        self.events.clear();
+    }
+
+    /// Wait up to `timeout` for an event matching `pred`, pinging as
+    /// keep-alive; a `Boot` event with a new boot id is a reset. Other events
+    /// stay queued for [`Device::take_events`].
+    pub fn wait_event(&mut self, timeout: Duration, pred: impl Fn(&Event) -> bool) -> Result<Option<Event>, LinkError> {
+        let end = self.transport.now() + timeout;
+        let mut next_ping = self.transport.now() + self.timings.keepalive;
+        loop {
+            if let Some(i) = self.events.iter().position(|e| {
+                matches!(e, Event::Boot { boot_id, .. } if *boot_id != self.info.boot_id) || pred(e)
+            }) {
+                let e = self.events.remove(i).expect("index from position");
+                if let Event::Boot { boot_id, .. } = e
+                    && boot_id != self.info.boot_id
+                {
+                    let old = self.info.boot_id;
+                    self.info = self.hello()?;
+                    self.stats.resets += 1;
+                    return Err(LinkError::Reset { old, new: self.info.boot_id });
+                }
+                return Ok(Some(e));
+            }
+            let now = self.transport.now();
+            if now >= end {
+                return Ok(None);
+            }
+            if now >= next_ping {
+                self.request(Request::Ping { token: 0 })?;
+                next_ping = self.transport.now() + self.timings.keepalive;
+                continue;
+            }
+            self.pump((next_ping.min(end) - now).min(Duration::from_millis(20)))?;
+        }
+    }
+
+    /// Events queued so far.
+    pub fn take_events(&mut self) -> Vec<Event> {
+        self.events.drain(..).collect()
+    }
+}
+
+fn placeholder_info() -> DeviceInfo {
+    DeviceInfo {
+        protocol: PROTOCOL_VERSION,
+        firmware: protocol::FirmwareVersion { major: 0, minor: 0, patch: 0 },
+        board: 0,
+        device_id: [0; 12],
+        capabilities: protocol::Capabilities::default(),
+        mirror_count: 0,
+        boot_id: 0,
+    }
+}

@@ -1,0 +1,668 @@
+//! Scan capture: the device's mirror table from the nominal geometry, then
+//! one capture step per mirror, each frame stored as OpenEXR and recorded in
+//! a manifest written atomically after every frame (`docs/scan-format.md`).
+//!
+//! Faults survived: link noise and disconnects (the link retransmits and
+//! reconnects), a device reset (re-home, restore the mirror table, carry on
+//! from the last completed frame), latched link-timeout/watchdog faults
+//! (cleared), a camera that misses a frame (the step is taken again). Faults
+//! a person must look at (emergency stop, driver fault) end the scan with
+//! its own exit code. After the process is killed at any moment, `resume`
+//! keeps every frame whose file matches its checksum and takes the rest.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use hil_sim::geometry::{AxisValues, ScannerGeometry};
+use protocol::{
+    Axis, AxisConfig, AxisSet, CaptureStep, DeviceState, Event, FaultFlags, MirrorPosition,
+    MotionOutcome, Reply, Request, TriggerFired,
+};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::camera::{Camera, CameraError};
+use crate::exrio;
+use crate::fsutil::write_atomic;
+use crate::link::{Device, LinkError};
+
+/// Manifest format name.
+pub const MANIFEST_FORMAT: &str = "material-scanner/scan";
+/// Manifest version.
+pub const MANIFEST_VERSION: u32 = 1;
+/// Manifest file name in a scan directory.
+pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// Why a scan stopped. Each kind has its own process exit code.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanError {
+    /// No device, or it went away and did not come back.
+    #[error("{0}")]
+    NoDevice(String),
+    /// The firmware speaks another protocol version.
+    #[error("{0}")]
+    Incompatible(String),
+    /// A fault on the device that a person must clear.
+    #[error("device fault: {0}")]
+    DeviceFault(String),
+    /// The camera delivered no frame, repeatedly.
+    #[error("camera timeout at mirror {mirror} after {attempts} attempts: {detail}")]
+    CameraTimeout {
+        /// Mirror.
+        mirror: usize,
+        /// Attempts.
+        attempts: u32,
+        /// Last error.
+        detail: String,
+    },
+    /// No space left on the output device.
+    #[error("disk full writing {0}")]
+    DiskFull(String),
+    /// Other output trouble.
+    #[error("cannot write {0}")]
+    Io(String),
+    /// The directory holds a scan and `--resume` was not given, or holds a
+    /// different scan.
+    #[error("{0}")]
+    Conflict(String),
+    /// Anything else the link reported.
+    #[error("link: {0}")]
+    Link(LinkError),
+}
+
+impl ScanError {
+    /// Process exit code (see the `scanner` binary's documentation).
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            ScanError::NoDevice(_) => 5,
+            ScanError::Incompatible(_) => 6,
+            ScanError::DeviceFault(_) => 7,
+            ScanError::CameraTimeout { .. } => 8,
+            ScanError::DiskFull(_) => 9,
+            ScanError::Io(_) => 4,
+            ScanError::Conflict(_) => 3,
+            ScanError::Link(_) => 1,
+        }
+    }
+}
+
+impl From<LinkError> for ScanError {
+    fn from(e: LinkError) -> ScanError {
+        match e {
+            LinkError::NoDevice(_) | LinkError::Timeout { .. } => ScanError::NoDevice(e.to_string()),
+            LinkError::Incompatible { .. } => ScanError::Incompatible(e.to_string()),
+            e => ScanError::Link(e),
+        }
+    }
+}
+
+fn io_error(path: &Path, e: std::io::Error) -> ScanError {
+    // ENOSPC / EDQUOT: the disk is full.
+    if matches!(e.raw_os_error(), Some(28) | Some(122)) || e.kind() == std::io::ErrorKind::StorageFull {
+        ScanError::DiskFull(format!("{}: {e}", path.display()))
+    } else {
+        ScanError::Io(format!("{}: {e}", path.display()))
+    }
+}
+
+/// The device a scan was taken with.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DeviceRecord {
+    /// Unique id (hex of the 12 bytes).
+    pub device_id: String,
+    /// Firmware version.
+    pub firmware: String,
+    /// Protocol version.
+    pub protocol: String,
+    /// Board id.
+    pub board: u16,
+}
+
+/// What a scan is: a resumed scan must match it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScanSettings {
+    /// Sample name.
+    pub sample_name: String,
+    /// SHA-256 of the nominal geometry file.
+    pub geometry_sha256: String,
+    /// Mirrors scanned: 0 … count − 1.
+    pub mirror_count: usize,
+    /// Exposure, µs.
+    pub exposure_us: u32,
+    /// Settle time after moving, ms.
+    pub settle_ms: u16,
+    /// Light duty, per mille.
+    pub light_duty_permille: u16,
+}
+
+/// One stored frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameRecord {
+    /// Mirror lit.
+    pub mirror: usize,
+    /// File, relative to the scan directory.
+    pub file: String,
+    /// SHA-256 of the file.
+    pub sha256: String,
+    /// Width, px.
+    pub width: u32,
+    /// Height, px.
+    pub height: u32,
+    /// The device's trigger sequence number.
+    pub trigger_seq: u32,
+    /// Device time of the trigger's rising edge, µs since its boot.
+    pub device_timestamp_us: u64,
+    /// Exposure, µs.
+    pub exposure_us: u32,
+    /// Axis positions at the trigger, steps (disk, track, tilt).
+    pub axis_steps: [i32; 3],
+    /// The same in degrees, mm, degrees.
+    pub axis_units: [f64; 3],
+}
+
+/// The scan directory's manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// [`MANIFEST_FORMAT`].
+    pub format: String,
+    /// [`MANIFEST_VERSION`].
+    pub version: u32,
+    /// What is being scanned, how.
+    pub settings: ScanSettings,
+    /// The device.
+    pub device: DeviceRecord,
+    /// The camera.
+    pub camera: String,
+    /// Frames stored so far, by mirror.
+    pub frames: Vec<FrameRecord>,
+    /// Whether every mirror has its frame.
+    pub complete: bool,
+}
+
+impl Manifest {
+    /// Read a scan directory's manifest.
+    pub fn load(dir: &Path) -> Result<Manifest, ScanError> {
+        let path = dir.join(MANIFEST_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| io_error(&path, e))?;
+        let m: Manifest = serde_json::from_str(&text)
+            .map_err(|e| ScanError::Conflict(format!("{}: not a scan manifest: {e}", path.display())))?;
+        if m.format != MANIFEST_FORMAT || m.version != MANIFEST_VERSION {
+            return Err(ScanError::Conflict(format!(
+                "{}: {} version {} (this build reads {MANIFEST_FORMAT} {MANIFEST_VERSION})",
+                path.display(),
+                m.format,
+                m.version
+            )));
+        }
+        Ok(m)
+    }
+
+    fn save(&self, dir: &Path) -> Result<(), ScanError> {
+        let path = dir.join(MANIFEST_FILE);
+        let mut text = serde_json::to_string_pretty(self).expect("manifest serialises");
+        text.push('\n');
+        write_atomic(&path, text.as_bytes()).map_err(|e| io_error(&path, e))
+    }
+}
+
+/// How to scan.
+#[derive(Debug, Clone)]
+pub struct ScanOptions {
+    /// Sample name.
+    pub sample_name: String,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Continue a scan in `out`.
+    pub resume: bool,
+    /// Scan only mirrors 0 … n − 1 (default: all).
+    pub mirrors: Option<usize>,
+    /// Exposure, µs.
+    pub exposure_us: u32,
+    /// Settle, ms.
+    pub settle_ms: u16,
+    /// Light duty, per mille.
+    pub light_duty_permille: u16,
+    /// Wait this long for a frame after the trigger.
+    pub frame_timeout: Duration,
+    /// Attempts per mirror when the camera misses the frame.
+    pub attempts: u32,
+}
+
+impl ScanOptions {
+    /// Defaults of spec/hardware.md for `sample_name` into `out`.
+    pub fn new(sample_name: &str, out: &Path) -> ScanOptions {
+        ScanOptions {
+            sample_name: sample_name.to_string(),
+            out: out.to_path_buf(),
+            resume: false,
+            mirrors: None,
+            exposure_us: protocol::DEFAULT_EXPOSURE_US,
+            settle_ms: protocol::DEFAULT_SETTLE_MS,
+            light_duty_permille: protocol::FULL_DUTY_PERMILLE,
+            frame_timeout: Duration::from_secs(10),
+            attempts: 3,
+        }
+    }
+}
+
+/// Where the time went.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ScanTimings {
+    /// Talking to the device and waiting for it (moves, settle, exposure).
+    pub link: Duration,
+    /// Waiting for frames (the simulator renders them here).
+    pub camera: Duration,
+    /// Encoding and writing frames and manifests.
+    pub disk: Duration,
+    /// The whole scan.
+    pub total: Duration,
+}
+
+/// What a scan did.
+#[derive(Debug, Clone, Default)]
+pub struct ScanReport {
+    /// Frames taken now.
+    pub captured: usize,
+    /// Frames kept from before (resume).
+    pub kept: usize,
+    /// Capture steps taken again (missed frames, resets).
+    pub retakes: usize,
+    /// Device resets survived.
+    pub resets: usize,
+    /// Time split.
+    pub timings: ScanTimings,
+}
+
+/// Progress callbacks.
+pub trait ScanProgress {
+    /// The scan will take `total` frames, `done` of them already there.
+    fn start(&mut self, _total: usize, _done: usize) {}
+    /// Frame of `mirror` stored.
+    fn frame(&mut self, _mirror: usize) {}
+    /// Something worth telling the user.
+    fn note(&mut self, _message: &str) {}
+}
+
+/// No progress output.
+#[derive(Debug)]
+pub struct Quiet;
+impl ScanProgress for Quiet {}
+
+/// The axis configurations of the device.
+pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
+    let mut out = Vec::new();
+    for axis in Axis::ALL {
+        match dev.request(Request::GetAxisConfig { axis })? {
+            Reply::AxisConfig { config, .. } => out.push(config),
+            reply => return Err(LinkError::Unexpected { request: "GetAxisConfig", reply }.into()),
+        }
+    }
+    Ok([out[0], out[1], out[2]])
+}
+
+/// The mirror table of `geometry` for the device's axes (inverse kinematics).
+pub fn mirror_table(geometry: &ScannerGeometry, axes: &[AxisConfig; 3]) -> Result<Vec<MirrorPosition>, ScanError> {
+    (0..geometry.mirrors.len())
+        .map(|l| {
+            let values = geometry.mirror_axes(l).map_err(|e| ScanError::Conflict(e.to_string()))?;
+            let steps = values
+                .to_steps(axes)
+                .map_err(|e| ScanError::Conflict(format!("mirror {l} out of the device's range: {e}")))?;
+            Ok(MirrorPosition { steps })
+        })
+        .collect()
+}
+
+/// Make the device's mirror table the geometry's (`scanner setup`): entries
+/// that differ are written, the count set, and the table saved to flash when
+/// the device has persistent storage. Returns how many entries were written.
+pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<usize, ScanError> {
+    let axes = axis_configs(dev)?;
+    let table = mirror_table(geometry, &axes)?;
+    let mut written = 0;
+    for (l, position) in table.iter().enumerate() {
+        let current = match dev.request(Request::GetMirror { mirror: l as u8 })? {
+            Reply::Mirror { position, .. } => position,
+            reply => return Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
+        };
+        if current != Some(*position) {
+            dev.command(Request::SetMirror { mirror: l as u8, position: *position })?;
+            written += 1;
+        }
+    }
+    if dev.info().mirror_count as usize != table.len() || written > 0 {
+        dev.command(Request::SetMirrorCount { count: table.len() as u8 })?;
+        if dev.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG) {
+            dev.command(Request::SaveConfig)?;
+        }
+        // Refresh the handshake's copy of the count.
+        dev.check_boot()?;
+    }
+    Ok(written)
+}
+
+/// Faults the scan clears by itself: they record that the host or the
+/// board went away, which the scan has just recovered from.
+const RECOVERABLE: FaultFlags = FaultFlags(FaultFlags::LINK_TIMEOUT.0 | FaultFlags::WATCHDOG_RESET.0);
+
+/// Bring the device to a state where capture steps run: faults that only
+/// record a lost link or a reset cleared, mirror table in place, homed.
+pub fn prepare(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn ScanProgress) -> Result<(), ScanError> {
+    for _ in 0..4 {
+        match prepare_once(dev, geometry, progress) {
+            Err(ScanError::Link(LinkError::Reset { .. })) => {
+                progress.note("device reset while preparing; again");
+                continue;
+            }
+            other => return other,
+        }
+    }
+    Err(ScanError::DeviceFault("the device keeps resetting".into()))
+}
+
+fn prepare_once(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn ScanProgress) -> Result<(), ScanError> {
+    let status = dev.status()?;
+    if !status.faults.is_empty() {
+        let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
+        if !serious.is_empty() && !serious.contains(FaultFlags::HOMING_FAILED) {
+            let names: Vec<&str> = status.faults.names().collect();
+            return Err(ScanError::DeviceFault(names.join(", ")));
+        }
+        progress.note(&format!("clearing {}", status.faults.names().collect::<Vec<_>>().join(", ")));
+        dev.command(Request::ClearFault)?;
+    }
+    // A move the previous host left running (killed mid-step) must end.
+    if matches!(status.state, DeviceState::Moving | DeviceState::Capturing | DeviceState::Homing) {
+        dev.command(Request::Stop)?;
+        wait_idle(dev, Duration::from_secs(30))?;
+    }
+    let written = setup(dev, geometry)?;
+    if written > 0 {
+        progress.note(&format!("wrote {written} mirror table entries"));
+    }
+    let status = dev.status()?;
+    if status.axes.iter().any(|a| !a.homed) {
+        progress.note("homing");
+        dev.clear_events();
+        dev.command(Request::Home { axes: AxisSet::ALL })?;
+        let done = dev.wait_event(Duration::from_secs(90), |e| matches!(e, Event::MotionDone { .. }))?;
+        match done {
+            Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => {}
+            Some(Event::MotionDone { outcome, .. }) => {
+                return Err(ScanError::DeviceFault(format!("homing ended {outcome:?}")));
+            }
+            _ => return Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
+        }
+    }
+    Ok(())
+}
+
+fn wait_idle(dev: &mut Device, max: Duration) -> Result<protocol::Status, ScanError> {
+    let end = dev.now() + max;
+    loop {
+        let s = dev.status()?;
+        if matches!(s.state, DeviceState::Idle | DeviceState::Faulted) {
+            return Ok(s);
+        }
+        if dev.now() >= end {
+            return Err(ScanError::DeviceFault(format!("device still {:?} after {max:?}", s.state)));
+        }
+        dev.sleep(Duration::from_millis(20))?;
+    }
+}
+
+/// Frame file of mirror `l`, relative to the scan directory.
+pub fn frame_file(l: usize) -> String {
+    format!("frames/mirror-{l:02}.exr")
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Open or create the scan directory; returns the manifest with only the
+/// frames whose files are intact.
+fn open_directory(
+    opts: &ScanOptions,
+    settings: &ScanSettings,
+    device: &DeviceRecord,
+    camera: &str,
+    progress: &mut dyn ScanProgress,
+) -> Result<Manifest, ScanError> {
+    let dir = &opts.out;
+    let frames_dir = dir.join("frames");
+    std::fs::create_dir_all(&frames_dir).map_err(|e| io_error(&frames_dir, e))?;
+    // Leftovers of an interrupted atomic write.
+    for d in [dir.as_path(), frames_dir.as_path()] {
+        for entry in std::fs::read_dir(d).map_err(|e| io_error(d, e))?.flatten() {
+            if entry.file_name().to_string_lossy().starts_with(".tmp-") {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+    }
+    let fresh = Manifest {
+        format: MANIFEST_FORMAT.into(),
+        version: MANIFEST_VERSION,
+        settings: settings.clone(),
+        device: device.clone(),
+        camera: camera.into(),
+        frames: Vec::new(),
+        complete: false,
+    };
+    if !dir.join(MANIFEST_FILE).exists() {
+        fresh.save(dir)?;
+        return Ok(fresh);
+    }
+    if !opts.resume {
+        return Err(ScanError::Conflict(format!(
+            "{} already holds a scan; pass --resume to complete it, or choose another --out",
+            dir.display()
+        )));
+    }
+    let mut m = Manifest::load(dir)?;
+    if m.settings != *settings {
+        return Err(ScanError::Conflict(format!(
+            "{} holds a different scan ({:?}); cannot resume it as {:?}",
+            dir.display(),
+            m.settings,
+            settings
+        )));
+    }
+    if m.device.device_id != device.device_id {
+        return Err(ScanError::Conflict(format!(
+            "{} was scanned with device {}, this is {}",
+            dir.display(),
+            m.device.device_id,
+            device.device_id
+        )));
+    }
+    let before = m.frames.len();
+    m.frames.retain(|f| {
+        std::fs::read(dir.join(&f.file)).map(|bytes| sha256_hex(&bytes) == f.sha256).unwrap_or(false)
+    });
+    if m.frames.len() < before {
+        progress.note(&format!("{} recorded frame(s) damaged or missing: taking them again", before - m.frames.len()));
+    }
+    m.device = device.clone();
+    m.camera = camera.into();
+    m.complete = false;
+    m.save(dir)?;
+    Ok(m)
+}
+
+/// Capture a scan.
+pub fn scan(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    geometry: &ScannerGeometry,
+    opts: &ScanOptions,
+    progress: &mut dyn ScanProgress,
+) -> Result<ScanReport, ScanError> {
+    let started = Instant::now();
+    let mut report = ScanReport::default();
+    let total = opts.mirrors.unwrap_or(geometry.mirrors.len());
+    if total == 0 || total > geometry.mirrors.len() {
+        return Err(ScanError::Conflict(format!("--mirrors must be 1…{}", geometry.mirrors.len())));
+    }
+    let info = *dev.info();
+    let settings = ScanSettings {
+        sample_name: opts.sample_name.clone(),
+        geometry_sha256: geometry.hash(),
+        mirror_count: total,
+        exposure_us: opts.exposure_us,
+        settle_ms: opts.settle_ms,
+        light_duty_permille: opts.light_duty_permille,
+    };
+    let device = DeviceRecord {
+        device_id: info.device_id.iter().map(|b| format!("{b:02x}")).collect(),
+        firmware: info.firmware.to_string(),
+        protocol: info.protocol.to_string(),
+        board: info.board,
+    };
+    let t = Instant::now();
+    let mut manifest = open_directory(opts, &settings, &device, &camera.describe(), progress)?;
+    report.timings.disk += t.elapsed();
+    report.kept = manifest.frames.len();
+    progress.start(total, report.kept);
+
+    let t = Instant::now();
+    prepare(dev, geometry, progress)?;
+    let axes = axis_configs(dev)?;
+    report.timings.link += t.elapsed();
+
+    for l in 0..total {
+        if manifest.frames.iter().any(|f| f.mirror == l) {
+            continue;
+        }
+        let mut misses = 0;
+        let mut resets = 0;
+        let record = loop {
+            match capture_one(dev, camera, l, opts, &axes, &mut report.timings) {
+                Ok(r) => break r,
+                Err(Attempt::Camera(e)) => {
+                    misses += 1;
+                    report.retakes += 1;
+                    progress.note(&format!("mirror {l}: {e}; taking it again"));
+                    if misses >= opts.attempts {
+                        return Err(ScanError::CameraTimeout { mirror: l, attempts: misses, detail: e.to_string() });
+                    }
+                }
+                Err(Attempt::Recover(why)) => {
+                    resets += 1;
+                    report.retakes += 1;
+                    if why.contains("reset") {
+                        report.resets += 1;
+                    }
+                    progress.note(&format!("mirror {l}: {why}; recovering"));
+                    if resets > 5 {
+                        return Err(ScanError::DeviceFault(format!("mirror {l}: {why}, again and again")));
+                    }
+                    let t = Instant::now();
+                    prepare(dev, geometry, progress)?;
+                    report.timings.link += t.elapsed();
+                }
+                Err(Attempt::Fatal(e)) => return Err(e),
+            }
+        };
+        let (frame, fired, status) = record;
+        let t = Instant::now();
+        let file = frame_file(l);
+        let bytes = exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{file}: {e}")))?;
+        let path = opts.out.join(&file);
+        write_atomic(&path, &bytes).map_err(|e| io_error(&path, e))?;
+        let steps = status.axes.map(|a| a.position_steps);
+        manifest.frames.push(FrameRecord {
+            mirror: l,
+            file,
+            sha256: sha256_hex(&bytes),
+            width: frame.width,
+            height: frame.height,
+            trigger_seq: fired.trigger_seq,
+            device_timestamp_us: fired.timestamp_us,
+            exposure_us: fired.exposure_us,
+            axis_steps: steps,
+            axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
+        });
+        manifest.frames.sort_by_key(|f| f.mirror);
+        manifest.save(&opts.out)?;
+        report.timings.disk += t.elapsed();
+        report.captured += 1;
+        progress.frame(l);
+    }
+    manifest.complete = true;
+    let t = Instant::now();
+    manifest.save(&opts.out)?;
+    report.timings.disk += t.elapsed();
+    report.timings.total = started.elapsed();
+    Ok(report)
+}
+
+enum Attempt {
+    /// The camera missed: take the step again.
+    Camera(CameraError),
+    /// The device reset or latched a recoverable fault: prepare, retake.
+    Recover(String),
+    /// Stop the scan.
+    Fatal(ScanError),
+}
+
+impl From<LinkError> for Attempt {
+    fn from(e: LinkError) -> Attempt {
+        match e {
+            LinkError::Reset { .. } => Attempt::Recover(e.to_string()),
+            LinkError::Refused { error: protocol::DeviceError::NotHomed, .. }
+            | LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }
+            | LinkError::Refused { error: protocol::DeviceError::MirrorNotSet, .. } => Attempt::Recover(e.to_string()),
+            e => Attempt::Fatal(e.into()),
+        }
+    }
+}
+
+type Captured = (crate::camera::Frame, TriggerFired, protocol::Status);
+
+fn capture_one(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    l: usize,
+    opts: &ScanOptions,
+    axes: &[AxisConfig; 3],
+    timings: &mut ScanTimings,
+) -> Result<Captured, Attempt> {
+    let _ = axes;
+    let t = Instant::now();
+    camera.arm().map_err(Attempt::Camera)?;
+    dev.clear_events();
+    dev.command(Request::CaptureStep(CaptureStep {
+        mirror: l as u8,
+        settle_ms: opts.settle_ms,
+        exposure_us: opts.exposure_us,
+        light_duty_permille: opts.light_duty_permille,
+    }))?;
+    // Longest move (half a disk turn, full track) + settle + exposure, with margin.
+    let limit = Duration::from_secs(30) + Duration::from_micros(opts.exposure_us as u64);
+    let event = dev.wait_event(limit, |e| {
+        matches!(e, Event::TriggerFired(t) if t.mirror == Some(l as u8))
+            || matches!(e, Event::FaultRaised { .. })
+            || matches!(e, Event::MotionDone { outcome: MotionOutcome::Aborted, .. })
+    })?;
+    let fired = match event {
+        Some(Event::TriggerFired(t)) => t,
+        Some(other) => {
+            let status = dev.status()?;
+            let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
+            if !serious.is_empty() {
+                return Err(Attempt::Fatal(ScanError::DeviceFault(
+                    status.faults.names().collect::<Vec<_>>().join(", "),
+                )));
+            }
+            return Err(Attempt::Recover(format!("capture step interrupted ({other:?})")));
+        }
+        None => return Err(Attempt::Recover("no trigger within the step's time".into())),
+    };
+    let status = wait_idle(dev, Duration::from_secs(10)).map_err(Attempt::Fatal)?;
+    timings.link += t.elapsed();
+    let t = Instant::now();
+    let frame = camera.wait_frame(opts.frame_timeout);
+    timings.camera += t.elapsed();
+    Ok((frame.map_err(Attempt::Camera)?, fired, status))
+}
