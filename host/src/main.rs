@@ -1,7 +1,11 @@
 //! `scanner`: the command-line front end of the host library.
 //!
-//! Exit codes: 0 success, 2 bad usage (clap), 3 unreadable or invalid input
-//! file, 4 output could not be written, 1 anything else.
+//! Exit codes: 0 success, 1 anything else, 2 bad usage, 3 unreadable or
+//! invalid input file (or a scan directory holding another scan), 4 output
+//! could not be written, 5 no device, 6 incompatible firmware, 7 device
+//! fault, 8 camera timeout, 9 disk full.
+
+mod commands;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -27,6 +31,111 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Run the main job: a complete simulated scan of a material sample and
+    /// of the two calibration targets.
+    Demo {
+        /// Output folder (one scan directory per sample).
+        #[arg(long, default_value = "demo-out")]
+        out: PathBuf,
+        /// Sample material (woven-fabric, leather, painted-wood, rough-metal).
+        #[arg(long, default_value = "woven-fabric")]
+        material: String,
+        /// Sensor binning (1 = the default 4096² sensor; 4 = 1024², faster).
+        #[arg(long, default_value_t = 1)]
+        bin: u32,
+        /// Scan only mirrors 0 … N−1.
+        #[arg(long)]
+        mirrors: Option<usize>,
+        /// Seed of the simulated scanner.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// Capture a scan into a scan directory.
+    Scan {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        #[command(flatten)]
+        scan: commands::ScanArgs,
+    },
+    /// Write the mirror table (from the geometry's inverse kinematics) to the device.
+    Setup {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Nominal geometry file (default: the shipped default scanner).
+        #[arg(long)]
+        geometry: Option<PathBuf>,
+    },
+    /// List connected scanners (serial ports and USB).
+    Devices,
+    /// Handshake and print the device's identity and axes.
+    Info {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+    },
+    /// Print the device status.
+    Status {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+    },
+    /// Home axes (all by default).
+    Home {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Axes to home (disk, track, tilt).
+        #[arg(long, value_delimiter = ',', value_parser = parse_axis)]
+        axes: Vec<protocol::Axis>,
+    },
+    /// Move axes (degrees / mm, or steps with --steps).
+    Move {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Disk target.
+        #[arg(long, allow_negative_numbers = true)]
+        disk: Option<f64>,
+        /// Track target.
+        #[arg(long, allow_negative_numbers = true)]
+        track: Option<f64>,
+        /// Tilt target.
+        #[arg(long, allow_negative_numbers = true)]
+        tilt: Option<f64>,
+        /// Targets are offsets from the current position.
+        #[arg(long)]
+        relative: bool,
+        /// Targets are in steps.
+        #[arg(long)]
+        steps: bool,
+    },
+    /// Switch the light on or off.
+    Light {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// on or off.
+        #[arg(value_parser = ["on", "off"])]
+        state: String,
+        /// Duty, per mille.
+        #[arg(long, default_value_t = 1000)]
+        duty: u16,
+    },
+    /// Fire one camera trigger pulse.
+    Trigger {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Exposure (pulse length), µs.
+        #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
+        exposure_us: u32,
+    },
+    /// Serve the simulated scanner on a pty for interactive use; its camera
+    /// drops frames into a folder.
+    Sim {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Simulated time per real time.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Folder for the camera's frames.
+        #[arg(long, default_value = "sim-frames")]
+        frames: PathBuf,
+    },
     /// Fit an NPF model to a MERL table.
     Fit {
         /// MERL binary table (.binary).
@@ -89,7 +198,15 @@ enum Material {
 }
 
 /// An error with its exit code.
-struct Failure(u8, anyhow::Error);
+#[derive(Debug)]
+pub struct Failure(pub u8, pub anyhow::Error);
+
+fn parse_axis(s: &str) -> Result<protocol::Axis, String> {
+    protocol::Axis::ALL
+        .into_iter()
+        .find(|a| a.name() == s)
+        .ok_or_else(|| format!("unknown axis {s:?} (disk, track, tilt)"))
+}
 
 fn input<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
     r.map_err(|e| Failure(3, e))
@@ -110,6 +227,21 @@ fn load_brdf(path: &Path) -> anyhow::Result<Box<dyn Brdf>> {
 
 fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
+        Command::Demo { out, material, bin, mirrors, seed } => {
+            commands::demo(&out, &material, bin, mirrors, seed)?
+        }
+        Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
+        Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
+        Command::Devices => commands::devices()?,
+        Command::Info { device } => commands::info(&device)?,
+        Command::Status { device } => commands::status(&device)?,
+        Command::Home { device, axes } => commands::home(&device, &axes)?,
+        Command::Move { device, disk, track, tilt, relative, steps } => {
+            commands::move_axes(&device, [disk, track, tilt], relative, steps)?
+        }
+        Command::Light { device, state, duty } => commands::light(&device, state == "on", duty)?,
+        Command::Trigger { device, exposure_us } => commands::trigger(&device, exposure_us)?,
+        Command::Sim { device, speed, frames } => commands::sim(&device, speed, &frames)?,
         Command::Fit { input: path, output: out, g, p, max_iterations } => {
             if !(1.0..=2.0).contains(&p) {
                 return Err(Failure(2, anyhow::anyhow!("--p must be in [1, 2], got {p}")));
@@ -189,6 +321,13 @@ fn run(cli: Cli) -> Result<(), Failure> {
 }
 
 fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .init();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(Failure(code, e)) => {

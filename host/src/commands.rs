@@ -1,0 +1,453 @@
+//! The `scanner` commands that talk to a scanner (real or simulated).
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::anyhow;
+use clap::Args;
+use hil_sim::geometry::{AxisValues, ScannerGeometry};
+use hil_sim::{FaultPlan, FaultSpec, SimRig};
+use host::camera::{Camera, FolderCamera, SimCamera};
+use host::discovery::{self, DeviceChoice};
+use host::link::{Device, LinkError, SerialTransport, SimTransport, Transport, UsbTransport};
+use host::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
+use host::simulator::SimSetup;
+use indicatif::{ProgressBar, ProgressStyle};
+use protocol::{Axis, AxisSet, Event, LightState, MoveMode, Request};
+
+use crate::Failure;
+
+/// Which device, and the simulator's settings when it is `sim`.
+#[derive(Debug, Clone, Args)]
+pub struct DeviceArgs {
+    /// `sim` (the in-process simulator), a serial port path, `usb:SERIAL`,
+    /// or a serial number.
+    #[arg(long, default_value = "sim")]
+    pub device: String,
+    /// Simulator: sample material.
+    #[arg(long, default_value = "woven-fabric")]
+    pub sim_material: String,
+    /// Simulator: seed (as-built errors, board, noise).
+    #[arg(long, default_value_t = 1)]
+    pub sim_seed: u64,
+    /// Simulator: sensor binning (1 = 4096², 8 = 512²).
+    #[arg(long, default_value_t = 1)]
+    pub sim_bin: u32,
+    /// Simulator: per-byte bit-flip probability on the link.
+    #[arg(long, default_value_t = 0.0)]
+    pub sim_corrupt: f64,
+    /// Simulator: a fault to inject, e.g. `reset@trigger=10` (repeatable).
+    #[arg(long = "sim-fault")]
+    pub sim_faults: Vec<FaultSpec>,
+}
+
+impl DeviceArgs {
+    pub fn sim_setup(&self) -> Result<SimSetup, Failure> {
+        if !(0.0..=1.0).contains(&self.sim_corrupt) {
+            return Err(Failure(2, anyhow!("--sim-corrupt is a probability in [0, 1]")));
+        }
+        let mut faults = FaultPlan::none().corrupt(self.sim_corrupt);
+        for f in &self.sim_faults {
+            faults = faults.with(f.when, f.event);
+        }
+        Ok(SimSetup {
+            material: self.sim_material.clone(),
+            seed: self.sim_seed,
+            bin: self.sim_bin,
+            faults,
+        })
+    }
+}
+
+fn scan_failure(e: ScanError) -> Failure {
+    Failure(e.exit_code(), anyhow!(e))
+}
+
+fn link_failure(e: LinkError) -> Failure {
+    scan_failure(ScanError::from(e))
+}
+
+/// An open device (and the simulator behind it, if simulated).
+pub struct Opened {
+    pub device: Device,
+    pub rig: Option<SimRig>,
+    pub geometry_default: Option<ScannerGeometry>,
+}
+
+pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
+    let choice = discovery::choose(&args.device).map_err(|e| Failure(5, anyhow!(e)))?;
+    let (transport, rig, geometry): (Box<dyn Transport>, _, _) = match choice {
+        DeviceChoice::Simulator => {
+            let setup = args.sim_setup()?;
+            let rig = setup.rig().map_err(|e| Failure(2, anyhow!(e)))?;
+            let nominal = setup.nominal().map_err(|e| Failure(2, anyhow!(e)))?;
+            (Box::new(SimTransport(rig.clone())), Some(rig), Some(nominal))
+        }
+        DeviceChoice::Serial(path) => {
+            let t = SerialTransport::open(&path).map_err(|e| Failure(5, anyhow!("no device: {e}")))?;
+            (Box::new(t), None, None)
+        }
+        DeviceChoice::Usb(serial) => {
+            let t = UsbTransport::open(&serial).map_err(|e| Failure(5, anyhow!("no device: {e}")))?;
+            (Box::new(t), None, None)
+        }
+    };
+    let device = Device::connect(transport).map_err(|e| match e {
+        LinkError::Timeout { device, .. } => {
+            Failure(5, anyhow!("no device: {device} does not answer the handshake"))
+        }
+        e => link_failure(e),
+    })?;
+    Ok(Opened { device, rig, geometry_default: geometry })
+}
+
+fn load_geometry(path: Option<&Path>, opened: &Opened) -> Result<ScannerGeometry, Failure> {
+    match path {
+        Some(p) => ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e))),
+        None => Ok(opened.geometry_default.clone().unwrap_or_else(ScannerGeometry::default_scanner)),
+    }
+}
+
+/// `scanner devices`
+pub fn devices() -> Result<(), Failure> {
+    match discovery::serial_scanners() {
+        Ok(list) if list.is_empty() => println!("serial: no scanner (VID:PID {:04x}:{:04x})", protocol::USB_VID, protocol::USB_PID),
+        Ok(list) => {
+            for p in list {
+                println!("serial  {}  serial number {}", p.path, p.serial.as_deref().unwrap_or("?"));
+            }
+        }
+        Err(e) => println!("serial: {e}"),
+    }
+    match discovery::usb_devices() {
+        Ok(list) if list.is_empty() => println!("usb: no scanner"),
+        Ok(list) => {
+            for d in list {
+                let bulk = if d.vendor_interface.is_some() { "bulk interface" } else { "no bulk interface" };
+                println!("usb     {}  serial number {}  ({bulk})", d.location, d.serial);
+            }
+        }
+        Err(e) => println!("usb: cannot list devices ({e})"),
+    }
+    Ok(())
+}
+
+/// `scanner info`
+pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let i = *o.device.info();
+    println!("device   {} on {}", hex(&i.device_id), o.device.describe());
+    println!("firmware {}  protocol {}  board {:#06x}", i.firmware, i.protocol, i.board);
+    println!("boot id  {:08x}  mirrors {}  capabilities {:#06x}", i.boot_id, i.mirror_count, i.capabilities.0);
+    let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+    for (axis, c) in Axis::ALL.iter().zip(axes) {
+        println!(
+            "{:5}  {} steps/{:?}, {} … {} steps, v max {} steps/s, a max {} steps/s²",
+            axis.name(),
+            c.steps_per_unit,
+            c.unit,
+            c.min_steps,
+            c.max_steps,
+            c.v_max,
+            c.a_max
+        );
+    }
+    Ok(())
+}
+
+fn hex(b: &[u8]) -> String {
+    b.iter().map(|x| format!("{x:02x}")).collect()
+}
+
+/// `scanner status`
+pub fn status(args: &DeviceArgs) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let s = o.device.status().map_err(link_failure)?;
+    println!("state {:?}, trigger {}, uptime {} ms", s.state, s.trigger_seq, s.uptime_ms);
+    for (axis, a) in Axis::ALL.iter().zip(s.axes) {
+        println!(
+            "{:5}  {:>8} steps = {:>9.3}  {}{}",
+            axis.name(),
+            a.position_steps,
+            a.position_units,
+            if a.homed { "homed" } else { "not homed" },
+            if a.moving { ", moving" } else { "" }
+        );
+    }
+    println!("light {}", if s.light.on { format!("on, {} ‰", s.light.duty_permille) } else { "off".into() });
+    let faults: Vec<&str> = s.faults.names().collect();
+    println!("faults {}", if faults.is_empty() { "none".into() } else { faults.join(", ") });
+    Ok(())
+}
+
+fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
+    match dev.wait_event(Duration::from_secs(120), |e| matches!(e, Event::MotionDone { .. })).map_err(link_failure)? {
+        Some(Event::MotionDone { outcome: protocol::MotionOutcome::Completed, positions, .. }) => {
+            println!("{what}: done at {positions:?} steps");
+            Ok(())
+        }
+        Some(Event::MotionDone { outcome, .. }) => Err(Failure(7, anyhow!("{what}: {outcome:?}"))),
+        _ => Err(Failure(7, anyhow!("{what}: no end of motion within 120 s"))),
+    }
+}
+
+/// `scanner home`
+pub fn home(args: &DeviceArgs, axes: &[Axis]) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let set = if axes.is_empty() { AxisSet::ALL } else { axes.iter().fold(AxisSet::NONE, |s, a| s.with(*a)) };
+    o.device.clear_events();
+    o.device.command(Request::Home { axes: set }).map_err(link_failure)?;
+    wait_motion(&mut o.device, "homing")
+}
+
+/// `scanner move`
+pub fn move_axes(args: &DeviceArgs, targets: [Option<f64>; 3], relative: bool, steps: bool) -> Result<(), Failure> {
+    if targets.iter().all(Option::is_none) {
+        return Err(Failure(2, anyhow!("give at least one of --disk, --track, --tilt")));
+    }
+    let mut o = open(args)?;
+    let configs = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+    let mut out = [None; 3];
+    for i in 0..3 {
+        if let Some(v) = targets[i] {
+            let s = if steps { v } else { v * configs[i].steps_per_unit as f64 };
+            if !s.is_finite() || s.abs() > i32::MAX as f64 {
+                return Err(Failure(2, anyhow!("{}: {v} is out of range", Axis::ALL[i].name())));
+            }
+            out[i] = Some(s.round() as i32);
+        }
+    }
+    let mode = if relative { MoveMode::Relative } else { MoveMode::Absolute };
+    o.device.clear_events();
+    o.device.command(Request::Move { mode, targets: out }).map_err(link_failure)?;
+    wait_motion(&mut o.device, "move")
+}
+
+/// `scanner light`
+pub fn light(args: &DeviceArgs, on: bool, duty: u16) -> Result<(), Failure> {
+    if duty == 0 || duty > 1000 {
+        return Err(Failure(2, anyhow!("--duty is per mille, 1…1000")));
+    }
+    let mut o = open(args)?;
+    o.device.command(Request::SetLight(LightState { on, duty_permille: duty })).map_err(link_failure)?;
+    println!("light {}", if on { "on" } else { "off" });
+    Ok(())
+}
+
+/// `scanner trigger`
+pub fn trigger(args: &DeviceArgs, exposure_us: u32) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    o.device.clear_events();
+    o.device.command(Request::Trigger { exposure_us }).map_err(link_failure)?;
+    match o.device.wait_event(Duration::from_secs(5), |e| matches!(e, Event::TriggerFired(_))).map_err(link_failure)? {
+        Some(Event::TriggerFired(t)) => {
+            println!("trigger {} at {} µs, exposure {} µs", t.trigger_seq, t.timestamp_us, t.exposure_us);
+            Ok(())
+        }
+        _ => Err(Failure(7, anyhow!("no trigger event within 5 s"))),
+    }
+}
+
+/// `scanner setup`
+pub fn setup(args: &DeviceArgs, geometry: Option<&Path>) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let g = load_geometry(geometry, &o)?;
+    let written = scan::setup(&mut o.device, &g).map_err(scan_failure)?;
+    let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+    for (l, p) in scan::mirror_table(&g, &axes).map_err(scan_failure)?.iter().enumerate() {
+        let v = AxisValues::from_steps(p.steps.map(i64::from), &axes);
+        println!(
+            "mirror {l:2}: disk {:8.3}°  track {:7.3} mm  tilt {:7.3}°  = {:?} steps",
+            v.disk_deg, v.track_mm, v.tilt_deg, p.steps
+        );
+    }
+    println!("{written} entries written; geometry {}", g.hash());
+    Ok(())
+}
+
+/// Progress on an indicatif bar (hidden when stderr is not a terminal).
+struct Bar {
+    bar: ProgressBar,
+    label: String,
+}
+
+impl ScanProgress for Bar {
+    fn start(&mut self, total: usize, done: usize) {
+        self.bar.set_length(total as u64);
+        self.bar.set_position(done as u64);
+        if done > 0 {
+            self.bar.println(format!("{}: resuming, {done} of {total} frames already stored", self.label));
+        }
+        self.bar.reset_eta();
+    }
+    fn frame(&mut self, mirror: usize) {
+        self.bar.inc(1);
+        self.bar.set_message(format!("mirror {mirror}"));
+    }
+    fn note(&mut self, message: &str) {
+        self.bar.println(format!("{}: {message}", self.label));
+        tracing::info!("{message}");
+    }
+}
+
+/// Scan parameters on the command line.
+#[derive(Debug, Clone, Args)]
+pub struct ScanArgs {
+    /// Sample name (recorded in the manifest).
+    #[arg(long)]
+    pub sample_name: String,
+    /// Scan directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Complete the scan already in `--out`.
+    #[arg(long)]
+    pub resume: bool,
+    /// Nominal geometry file (default: the shipped default scanner).
+    #[arg(long)]
+    pub geometry: Option<PathBuf>,
+    /// Camera: `folder:DIR` (frames a capture program drops into DIR);
+    /// the simulator brings its own.
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Scan only mirrors 0 … N−1.
+    #[arg(long)]
+    pub mirrors: Option<usize>,
+    /// Exposure, µs.
+    #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
+    pub exposure_us: u32,
+    /// Camera timeout per frame, s.
+    #[arg(long, default_value_t = 10.0)]
+    pub frame_timeout: f64,
+}
+
+fn camera_for(arg: Option<&str>, rig: Option<&SimRig>) -> Result<Box<dyn Camera>, Failure> {
+    match (arg, rig) {
+        (Some(spec), _) => {
+            let dir = spec
+                .strip_prefix("folder:")
+                .ok_or_else(|| Failure(2, anyhow!("--camera must be folder:DIR, got {spec:?}")))?;
+            Ok(Box::new(FolderCamera::new(Path::new(dir)).map_err(|e| Failure(8, anyhow!(e)))?))
+        }
+        (None, Some(rig)) => Ok(Box::new(SimCamera(rig.clone()))),
+        (None, None) => Err(Failure(2, anyhow!("a real scanner needs --camera folder:DIR"))),
+    }
+}
+
+/// Run one scan with a progress bar; print the summary.
+pub fn run_scan(opened: &mut Opened, scan_args: &ScanArgs, label: &str) -> Result<ScanReport, Failure> {
+    if !(0.0..=3600.0).contains(&scan_args.frame_timeout) {
+        return Err(Failure(2, anyhow!("--frame-timeout must be 0…3600 s")));
+    }
+    let geometry = load_geometry(scan_args.geometry.as_deref(), opened)?;
+    let mut camera = camera_for(scan_args.camera.as_deref(), opened.rig.as_ref())?;
+    let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
+    opts.resume = scan_args.resume;
+    opts.mirrors = scan_args.mirrors;
+    opts.exposure_us = scan_args.exposure_us;
+    opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
+    let bar = ProgressBar::new(geometry.mirrors.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} frames, {elapsed} elapsed, ETA {eta} {msg}")
+            .expect("valid template"),
+    );
+    bar.set_prefix(label.to_string());
+    let mut progress = Bar { bar: bar.clone(), label: label.to_string() };
+    let report = scan::scan(&mut opened.device, camera.as_mut(), &geometry, &opts, &mut progress);
+    bar.finish_and_clear();
+    let report = report.map_err(scan_failure)?;
+    let t = report.timings;
+    println!(
+        "{label}: {} frames taken, {} kept, {} retaken, {} resets survived; {:.1} s (link {:.1} s, camera {:.1} s, disk {:.1} s) → {}",
+        report.captured,
+        report.kept,
+        report.retakes,
+        report.resets,
+        t.total.as_secs_f64(),
+        t.link.as_secs_f64(),
+        t.camera.as_secs_f64(),
+        t.disk.as_secs_f64(),
+        scan_args.out.display()
+    );
+    let s = opened.device.stats;
+    if s.retransmissions + s.reconnects + s.bad_frames > 0 {
+        println!(
+            "{label}: link: {} requests, {} retransmissions, {} bad frames, {} reconnects",
+            s.requests, s.retransmissions, s.bad_frames, s.reconnects
+        );
+    }
+    Ok(report)
+}
+
+/// `scanner scan`
+pub fn scan_cmd(args: &DeviceArgs, scan_args: &ScanArgs) -> Result<(), Failure> {
+    let mut opened = open(args)?;
+    run_scan(&mut opened, scan_args, &scan_args.sample_name).map(|_| ())
+}
+
+/// `scanner demo`: a complete simulated session — the two calibration
+/// targets and a material sample — into `out`.
+pub fn demo(out: &Path, material: &str, bin: u32, mirrors: Option<usize>, seed: u64) -> Result<(), Failure> {
+    if hil_sim::materials::by_name(material).is_none() {
+        return Err(Failure(
+            2,
+            anyhow!("unknown material {material:?} (one of {})", hil_sim::materials::SVBRDF_NAMES.join(", ")),
+        ));
+    }
+    let started = std::time::Instant::now();
+    for sample in ["checkerboard", "diffuse-white", material] {
+        let args = DeviceArgs {
+            device: "sim".into(),
+            sim_material: sample.into(),
+            sim_seed: seed,
+            sim_bin: bin,
+            sim_corrupt: 0.0,
+            sim_faults: Vec::new(),
+        };
+        let mut opened = open(&args)?;
+        let scan_args = ScanArgs {
+            sample_name: sample.into(),
+            out: out.join(sample),
+            resume: true,
+            geometry: None,
+            camera: None,
+            mirrors,
+            exposure_us: protocol::DEFAULT_EXPOSURE_US,
+            frame_timeout: 10.0,
+        };
+        run_scan(&mut opened, &scan_args, sample)?;
+    }
+    println!("demo: three scans in {:.1} s under {}", started.elapsed().as_secs_f64(), out.display());
+    Ok(())
+}
+
+/// `scanner sim`: serve the simulated scanner on a pty until Ctrl-C.
+pub fn sim(args: &DeviceArgs, speed: f64, frames: &Path) -> Result<(), Failure> {
+    if !(speed > 0.0 && speed <= 4.0) {
+        return Err(Failure(2, anyhow!("--speed must be in (0, 4]")));
+    }
+    let setup = args.sim_setup()?;
+    let server = setup.serve(speed, frames.to_path_buf()).map_err(|e| Failure(1, anyhow!(e)))?;
+    // The scanner's nominal geometry (binning included) for the host.
+    let geometry_file = frames.join("geometry.toml");
+    let nominal = setup.nominal().map_err(|e| Failure(2, anyhow!(e)))?;
+    host::fsutil::write_atomic(&geometry_file, nominal.to_toml().as_bytes())
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", geometry_file.display())))?;
+    println!("{}", server.path());
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
+    eprintln!(
+        "scanner sim: {} on {}, frames into {} (seed {}, binning {}); Ctrl-C stops it\n  \
+         e.g. scanner scan --device {} --camera folder:{} --geometry {} --sample-name S --out DIR",
+        setup.material,
+        server.path(),
+        frames.display(),
+        setup.seed,
+        setup.bin,
+        server.path(),
+        frames.display(),
+        geometry_file.display()
+    );
+    loop {
+        std::thread::park();
+    }
+}
