@@ -348,10 +348,18 @@ impl AxisValues {
         Ok(out)
     }
 
-    /// Axis values of positions in steps (protocol axis order).
+    /// Axis values of positions in steps (protocol axis order); a
+    /// continuous axis is taken modulo its revolution (one turn further is
+    /// the same place).
     pub fn from_steps(steps: [i64; 3], configs: &[protocol::AxisConfig; 3]) -> AxisValues {
         AxisValues::from_array(std::array::from_fn(|i| {
-            steps[i] as f64 / configs[i].steps_per_unit as f64
+            let c = &configs[i];
+            let s = if c.continuous && c.steps_per_rev > 0 {
+                steps[i].rem_euclid(c.steps_per_rev as i64)
+            } else {
+                steps[i]
+            };
+            s as f64 / c.steps_per_unit as f64
         }))
     }
 }

@@ -25,8 +25,8 @@ use std::path::PathBuf;
 
 use crate::camera::{SimCamera, write_frame_exr};
 use crate::device::SimDevice;
-use crate::optics::Exposure;
 use crate::faults::FaultEvent;
+use crate::optics::Exposure;
 
 /// The seeded byte-level fault injector of a link.
 #[derive(Debug)]

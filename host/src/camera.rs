@@ -78,17 +78,26 @@ impl FolderCamera {
         if !dir.is_dir() {
             return Err(CameraError::Io(format!("{} is not a folder", dir.display())));
         }
-        let mut c = FolderCamera { dir: dir.to_path_buf(), seen: BTreeSet::new(), poll: Duration::from_millis(20) };
+        let mut c = FolderCamera {
+            dir: dir.to_path_buf(),
+            seen: BTreeSet::new(),
+            poll: Duration::from_millis(20),
+        };
         c.seen = c.list()?;
         Ok(c)
     }
 
     fn list(&self) -> Result<BTreeSet<String>, CameraError> {
-        let rd = std::fs::read_dir(&self.dir).map_err(|e| CameraError::Io(format!("{}: {e}", self.dir.display())))?;
+        let rd = std::fs::read_dir(&self.dir)
+            .map_err(|e| CameraError::Io(format!("{}: {e}", self.dir.display())))?;
         Ok(rd
             .filter_map(|e| e.ok())
             .filter_map(|e| e.file_name().into_string().ok())
-            .filter(|n| !n.starts_with('.') && !n.ends_with(".tmp") && n.to_ascii_lowercase().ends_with(".exr"))
+            .filter(|n| {
+                !n.starts_with('.')
+                    && !n.ends_with(".tmp")
+                    && n.to_ascii_lowercase().ends_with(".exr")
+            })
             .collect())
     }
 }

@@ -87,7 +87,9 @@ pub fn choose(device: &str) -> Result<DeviceChoice, String> {
         return Ok(DeviceChoice::Serial(p.path.clone()));
     }
     match usb_devices() {
-        Ok(list) if list.iter().any(|d| d.serial == device) => Ok(DeviceChoice::Usb(device.to_string())),
+        Ok(list) if list.iter().any(|d| d.serial == device) => {
+            Ok(DeviceChoice::Usb(device.to_string()))
+        }
         Ok(_) => Err(format!("no scanner with serial number {device:?} (try `scanner devices`)")),
         Err(e) => Err(format!("no serial port with serial number {device:?}, and {e}")),
     }

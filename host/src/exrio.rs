@@ -18,8 +18,11 @@ pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
         let i = 3 * (p.y() * w + p.x());
         (f16::from_f32(rgb[i]), f16::from_f32(rgb[i + 1]), f16::from_f32(rgb[i + 2]))
     });
-    let encoding =
-        Encoding { compression: Compression::ZIP16, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
+    let encoding = Encoding {
+        compression: Compression::ZIP16,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    };
     let layer = Layer::new((w, h), LayerAttributes::named("frame"), encoding, channels);
     let image = Image::from_layer(layer);
     let mut out = std::io::Cursor::new(Vec::new());
@@ -32,7 +35,9 @@ pub fn read_rgb(path: &Path) -> std::result::Result<Frame, String> {
     let image = read_first_rgba_layer_from_file(
         path,
         |res: Vec2<usize>, _| (res, vec![0.0f32; res.width() * res.height() * 3]),
-        |(res, data): &mut (Vec2<usize>, Vec<f32>), p: Vec2<usize>, (r, g, b, _a): (f32, f32, f32, f32)| {
+        |(res, data): &mut (Vec2<usize>, Vec<f32>),
+         p: Vec2<usize>,
+         (r, g, b, _a): (f32, f32, f32, f32)| {
             let i = 3 * (p.y() * res.width() + p.x());
             data[i] = r;
             data[i + 1] = g;

@@ -10,10 +10,12 @@
 //! - [`brdf`]: measured BRDFs — MERL tables, the NPF model, AWLS fitting,
 //!   previews.
 //!
-//! Library code returns typed errors; only the `scanner` binary uses `anyhow`.
+//! Library code returns typed errors; only the command line ([`cli`]) uses
+//! `anyhow`.
 
 pub mod brdf;
 pub mod camera;
+pub mod cli;
 pub mod discovery;
 pub mod exrio;
 pub mod fsutil;

@@ -70,7 +70,8 @@ impl SerialTransport {
 
 impl Transport for SerialTransport {
     fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
-        let port = self.port.as_mut().ok_or_else(|| TransportError::Disconnected(self.path.clone()))?;
+        let port =
+            self.port.as_mut().ok_or_else(|| TransportError::Disconnected(self.path.clone()))?;
         match port.write_all(bytes).and_then(|_| port.flush()) {
             Ok(()) => Ok(()),
             Err(e) => {
@@ -81,7 +82,8 @@ impl Transport for SerialTransport {
     }
 
     fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError> {
-        let port = self.port.as_mut().ok_or_else(|| TransportError::Disconnected(self.path.clone()))?;
+        let port =
+            self.port.as_mut().ok_or_else(|| TransportError::Disconnected(self.path.clone()))?;
         let _ = port.set_timeout(timeout.max(Duration::from_millis(1)));
         let mut buf = [0u8; 1024];
         match port.read(&mut buf) {
@@ -94,7 +96,12 @@ impl Transport for SerialTransport {
                 out.extend_from_slice(&buf[..n]);
                 Ok(n)
             }
-            Err(e) if matches!(e.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+                ) =>
+            {
                 Ok(0)
             }
             Err(e) => {
@@ -130,7 +137,10 @@ impl Transport for SerialTransport {
 /// The board's vendor-class bulk interface over USB (nusb, no libusb).
 pub struct UsbTransport {
     serial: String,
-    io: Option<(nusb::io::EndpointWrite<nusb::transfer::Bulk>, nusb::io::EndpointRead<nusb::transfer::Bulk>)>,
+    io: Option<(
+        nusb::io::EndpointWrite<nusb::transfer::Bulk>,
+        nusb::io::EndpointRead<nusb::transfer::Bulk>,
+    )>,
 }
 
 impl std::fmt::Debug for UsbTransport {
@@ -150,7 +160,8 @@ impl UsbTransport {
 
 impl Transport for UsbTransport {
     fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
-        let (tx, _) = self.io.as_mut().ok_or_else(|| TransportError::Disconnected(self.serial.clone()))?;
+        let (tx, _) =
+            self.io.as_mut().ok_or_else(|| TransportError::Disconnected(self.serial.clone()))?;
         match tx.write_all(bytes).and_then(|_| tx.flush_end()) {
             Ok(()) => Ok(()),
             Err(e) => {
@@ -161,7 +172,8 @@ impl Transport for UsbTransport {
     }
 
     fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError> {
-        let (_, rx) = self.io.as_mut().ok_or_else(|| TransportError::Disconnected(self.serial.clone()))?;
+        let (_, rx) =
+            self.io.as_mut().ok_or_else(|| TransportError::Disconnected(self.serial.clone()))?;
         rx.set_read_timeout(timeout.max(Duration::from_millis(1)));
         let mut buf = [0u8; 512];
         match rx.read(&mut buf) {
@@ -203,11 +215,16 @@ impl Transport for UsbTransport {
             .ok_or_else(|| fail("vendor interface has no descriptor"))?;
         let bulk = |dir: nusb::transfer::Direction| {
             alt.endpoints()
-                .find(|e| e.transfer_type() == nusb::descriptors::TransferType::Bulk && e.direction() == dir)
+                .find(|e| {
+                    e.transfer_type() == nusb::descriptors::TransferType::Bulk
+                        && e.direction() == dir
+                })
                 .map(|e| e.address())
         };
-        let ep_out = bulk(nusb::transfer::Direction::Out).ok_or_else(|| fail("no bulk OUT endpoint"))?;
-        let ep_in = bulk(nusb::transfer::Direction::In).ok_or_else(|| fail("no bulk IN endpoint"))?;
+        let ep_out =
+            bulk(nusb::transfer::Direction::Out).ok_or_else(|| fail("no bulk OUT endpoint"))?;
+        let ep_in =
+            bulk(nusb::transfer::Direction::In).ok_or_else(|| fail("no bulk IN endpoint"))?;
         let interface = device.claim_interface(iface).wait().map_err(|e| fail(&e.to_string()))?;
         let tx = interface
             .endpoint::<nusb::transfer::Bulk, nusb::transfer::Out>(ep_out)
@@ -358,7 +375,10 @@ pub struct Device {
 
 impl std::fmt::Debug for Device {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Device").field("link", &self.transport.describe()).field("info", &self.info).finish()
+        f.debug_struct("Device")
+            .field("link", &self.transport.describe())
+            .field("info", &self.info)
+            .finish()
     }
 }
 
@@ -394,7 +414,10 @@ impl Device {
     }
 
     /// Handshake over `transport` with `timings`.
-    pub fn connect_with(transport: Box<dyn Transport>, timings: LinkTimings) -> Result<Device, LinkError> {
+    pub fn connect_with(
+        transport: Box<dyn Transport>,
+        timings: LinkTimings,
+    ) -> Result<Device, LinkError> {
         let mut d = Device {
             transport,
             seq: 0,
@@ -438,7 +461,10 @@ impl Device {
         match self.exchange(Request::Hello { host_protocol: PROTOCOL_VERSION })? {
             Reply::Info(info) => {
                 if !info.protocol.is_compatible_with(PROTOCOL_VERSION) {
-                    return Err(LinkError::Incompatible { device: info.protocol, host: PROTOCOL_VERSION });
+                    return Err(LinkError::Incompatible {
+                        device: info.protocol,
+                        host: PROTOCOL_VERSION,
+                    });
                 }
                 Ok(info)
             }
@@ -584,7 +610,11 @@ impl Device {
     /// Wait up to `timeout` for an event matching `pred`, pinging as
     /// keep-alive; a `Boot` event with a new boot id is a reset. Other events
     /// stay queued for [`Device::take_events`].
-    pub fn wait_event(&mut self, timeout: Duration, pred: impl Fn(&Event) -> bool) -> Result<Option<Event>, LinkError> {
+    pub fn wait_event(
+        &mut self,
+        timeout: Duration,
+        pred: impl Fn(&Event) -> bool,
+    ) -> Result<Option<Event>, LinkError> {
         let end = self.transport.now() + timeout;
         let mut next_ping = self.transport.now() + self.timings.keepalive;
         loop {

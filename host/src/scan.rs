@@ -89,7 +89,9 @@ impl ScanError {
 impl From<LinkError> for ScanError {
     fn from(e: LinkError) -> ScanError {
         match e {
-            LinkError::NoDevice(_) | LinkError::Timeout { .. } => ScanError::NoDevice(e.to_string()),
+            LinkError::NoDevice(_) | LinkError::Timeout { .. } => {
+                ScanError::NoDevice(e.to_string())
+            }
             LinkError::Incompatible { .. } => ScanError::Incompatible(e.to_string()),
             e => ScanError::Link(e),
         }
@@ -98,7 +100,9 @@ impl From<LinkError> for ScanError {
 
 fn io_error(path: &Path, e: std::io::Error) -> ScanError {
     // ENOSPC / EDQUOT: the disk is full.
-    if matches!(e.raw_os_error(), Some(28) | Some(122)) || e.kind() == std::io::ErrorKind::StorageFull {
+    if matches!(e.raw_os_error(), Some(28) | Some(122))
+        || e.kind() == std::io::ErrorKind::StorageFull
+    {
         ScanError::DiskFull(format!("{}: {e}", path.display()))
     } else {
         ScanError::Io(format!("{}: {e}", path.display()))
@@ -184,8 +188,9 @@ impl Manifest {
     pub fn load(dir: &Path) -> Result<Manifest, ScanError> {
         let path = dir.join(MANIFEST_FILE);
         let text = std::fs::read_to_string(&path).map_err(|e| io_error(&path, e))?;
-        let m: Manifest = serde_json::from_str(&text)
-            .map_err(|e| ScanError::Conflict(format!("{}: not a scan manifest: {e}", path.display())))?;
+        let m: Manifest = serde_json::from_str(&text).map_err(|e| {
+            ScanError::Conflict(format!("{}: not a scan manifest: {e}", path.display()))
+        })?;
         if m.format != MANIFEST_FORMAT || m.version != MANIFEST_VERSION {
             return Err(ScanError::Conflict(format!(
                 "{}: {} version {} (this build reads {MANIFEST_FORMAT} {MANIFEST_VERSION})",
@@ -301,13 +306,16 @@ pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
 }
 
 /// The mirror table of `geometry` for the device's axes (inverse kinematics).
-pub fn mirror_table(geometry: &ScannerGeometry, axes: &[AxisConfig; 3]) -> Result<Vec<MirrorPosition>, ScanError> {
+pub fn mirror_table(
+    geometry: &ScannerGeometry,
+    axes: &[AxisConfig; 3],
+) -> Result<Vec<MirrorPosition>, ScanError> {
     (0..geometry.mirrors.len())
         .map(|l| {
             let values = geometry.mirror_axes(l).map_err(|e| ScanError::Conflict(e.to_string()))?;
-            let steps = values
-                .to_steps(axes)
-                .map_err(|e| ScanError::Conflict(format!("mirror {l} out of the device's range: {e}")))?;
+            let steps = values.to_steps(axes).map_err(|e| {
+                ScanError::Conflict(format!("mirror {l} out of the device's range: {e}"))
+            })?;
             Ok(MirrorPosition { steps })
         })
         .collect()
@@ -343,11 +351,16 @@ pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<usize, Scan
 
 /// Faults the scan clears by itself: they record that the host or the
 /// board went away, which the scan has just recovered from.
-const RECOVERABLE: FaultFlags = FaultFlags(FaultFlags::LINK_TIMEOUT.0 | FaultFlags::WATCHDOG_RESET.0);
+const RECOVERABLE: FaultFlags =
+    FaultFlags(FaultFlags::LINK_TIMEOUT.0 | FaultFlags::WATCHDOG_RESET.0);
 
 /// Bring the device to a state where capture steps run: faults that only
 /// record a lost link or a reset cleared, mirror table in place, homed.
-pub fn prepare(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn ScanProgress) -> Result<(), ScanError> {
+pub fn prepare(
+    dev: &mut Device,
+    geometry: &ScannerGeometry,
+    progress: &mut dyn ScanProgress,
+) -> Result<(), ScanError> {
     for _ in 0..4 {
         match prepare_once(dev, geometry, progress) {
             Err(ScanError::Link(LinkError::Reset { .. })) => {
@@ -360,7 +373,11 @@ pub fn prepare(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn 
     Err(ScanError::DeviceFault("the device keeps resetting".into()))
 }
 
-fn prepare_once(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn ScanProgress) -> Result<(), ScanError> {
+fn prepare_once(
+    dev: &mut Device,
+    geometry: &ScannerGeometry,
+    progress: &mut dyn ScanProgress,
+) -> Result<(), ScanError> {
     let status = dev.status()?;
     if !status.faults.is_empty() {
         let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
@@ -368,7 +385,8 @@ fn prepare_once(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn
             let names: Vec<&str> = status.faults.names().collect();
             return Err(ScanError::DeviceFault(names.join(", ")));
         }
-        progress.note(&format!("clearing {}", status.faults.names().collect::<Vec<_>>().join(", ")));
+        progress
+            .note(&format!("clearing {}", status.faults.names().collect::<Vec<_>>().join(", ")));
         dev.command(Request::ClearFault)?;
     }
     // A move the previous host left running (killed mid-step) must end.
@@ -385,7 +403,8 @@ fn prepare_once(dev: &mut Device, geometry: &ScannerGeometry, progress: &mut dyn
         progress.note("homing");
         dev.clear_events();
         dev.command(Request::Home { axes: AxisSet::ALL })?;
-        let done = dev.wait_event(Duration::from_secs(90), |e| matches!(e, Event::MotionDone { .. }))?;
+        let done =
+            dev.wait_event(Duration::from_secs(90), |e| matches!(e, Event::MotionDone { .. }))?;
         match done {
             Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => {}
             Some(Event::MotionDone { outcome, .. }) => {
@@ -405,7 +424,10 @@ fn wait_idle(dev: &mut Device, max: Duration) -> Result<protocol::Status, ScanEr
             return Ok(s);
         }
         if dev.now() >= end {
-            return Err(ScanError::DeviceFault(format!("device still {:?} after {max:?}", s.state)));
+            return Err(ScanError::DeviceFault(format!(
+                "device still {:?} after {max:?}",
+                s.state
+            )));
         }
         dev.sleep(Duration::from_millis(20))?;
     }
@@ -478,10 +500,15 @@ fn open_directory(
     }
     let before = m.frames.len();
     m.frames.retain(|f| {
-        std::fs::read(dir.join(&f.file)).map(|bytes| sha256_hex(&bytes) == f.sha256).unwrap_or(false)
+        std::fs::read(dir.join(&f.file))
+            .map(|bytes| sha256_hex(&bytes) == f.sha256)
+            .unwrap_or(false)
     });
     if m.frames.len() < before {
-        progress.note(&format!("{} recorded frame(s) damaged or missing: taking them again", before - m.frames.len()));
+        progress.note(&format!(
+            "{} recorded frame(s) damaged or missing: taking them again",
+            before - m.frames.len()
+        ));
     }
     m.device = device.clone();
     m.camera = camera.into();
@@ -527,7 +554,13 @@ pub fn scan(
 
     let t = Instant::now();
     prepare(dev, geometry, progress)?;
-    let axes = axis_configs(dev)?;
+    let axes = match axis_configs(dev) {
+        Err(ScanError::Link(LinkError::Reset { .. })) => {
+            prepare(dev, geometry, progress)?;
+            axis_configs(dev)?
+        }
+        other => other?,
+    };
     report.timings.link += t.elapsed();
 
     for l in 0..total {
@@ -537,14 +570,18 @@ pub fn scan(
         let mut misses = 0;
         let mut resets = 0;
         let record = loop {
-            match capture_one(dev, camera, l, opts, &axes, &mut report.timings) {
+            match capture_one(dev, camera, l, opts, &mut report.timings) {
                 Ok(r) => break r,
                 Err(Attempt::Camera(e)) => {
                     misses += 1;
                     report.retakes += 1;
                     progress.note(&format!("mirror {l}: {e}; taking it again"));
                     if misses >= opts.attempts {
-                        return Err(ScanError::CameraTimeout { mirror: l, attempts: misses, detail: e.to_string() });
+                        return Err(ScanError::CameraTimeout {
+                            mirror: l,
+                            attempts: misses,
+                            detail: e.to_string(),
+                        });
                     }
                 }
                 Err(Attempt::Recover(why)) => {
@@ -555,7 +592,9 @@ pub fn scan(
                     }
                     progress.note(&format!("mirror {l}: {why}; recovering"));
                     if resets > 5 {
-                        return Err(ScanError::DeviceFault(format!("mirror {l}: {why}, again and again")));
+                        return Err(ScanError::DeviceFault(format!(
+                            "mirror {l}: {why}, again and again"
+                        )));
                     }
                     let t = Instant::now();
                     prepare(dev, geometry, progress)?;
@@ -567,7 +606,8 @@ pub fn scan(
         let (frame, fired, status) = record;
         let t = Instant::now();
         let file = frame_file(l);
-        let bytes = exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{file}: {e}")))?;
+        let bytes =
+            exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{file}: {e}")))?;
         let path = opts.out.join(&file);
         write_atomic(&path, &bytes).map_err(|e| io_error(&path, e))?;
         let steps = status.axes.map(|a| a.position_steps);
@@ -606,13 +646,24 @@ enum Attempt {
     Fatal(ScanError),
 }
 
+impl From<ScanError> for Attempt {
+    fn from(e: ScanError) -> Attempt {
+        match e {
+            ScanError::Link(l) => l.into(),
+            e => Attempt::Fatal(e),
+        }
+    }
+}
+
 impl From<LinkError> for Attempt {
     fn from(e: LinkError) -> Attempt {
         match e {
             LinkError::Reset { .. } => Attempt::Recover(e.to_string()),
             LinkError::Refused { error: protocol::DeviceError::NotHomed, .. }
             | LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }
-            | LinkError::Refused { error: protocol::DeviceError::MirrorNotSet, .. } => Attempt::Recover(e.to_string()),
+            | LinkError::Refused { error: protocol::DeviceError::MirrorNotSet, .. } => {
+                Attempt::Recover(e.to_string())
+            }
             e => Attempt::Fatal(e.into()),
         }
     }
@@ -625,12 +676,30 @@ fn capture_one(
     camera: &mut dyn Camera,
     l: usize,
     opts: &ScanOptions,
-    axes: &[AxisConfig; 3],
     timings: &mut ScanTimings,
 ) -> Result<Captured, Attempt> {
-    let _ = axes;
     let t = Instant::now();
+    let result = trigger_step(dev, camera, l, opts)
+        .and_then(|fired| Ok((fired, wait_idle(dev, Duration::from_secs(10))?)));
+    timings.link += t.elapsed();
+    let (fired, status) = result?;
+    let t = Instant::now();
+    let frame = camera.wait_frame(opts.frame_timeout);
+    timings.camera += t.elapsed();
+    Ok((frame.map_err(Attempt::Camera)?, fired, status))
+}
+
+/// Arm the camera, run the capture step and return its trigger. Events can
+/// be lost on a noisy or interrupted link: when the step is over without
+/// the event, the device's record of its last trigger is asked for.
+fn trigger_step(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    l: usize,
+    opts: &ScanOptions,
+) -> Result<TriggerFired, Attempt> {
     camera.arm().map_err(Attempt::Camera)?;
+    let before = dev.status()?.trigger_seq;
     dev.clear_events();
     dev.command(Request::CaptureStep(CaptureStep {
         mirror: l as u8,
@@ -639,30 +708,41 @@ fn capture_one(
         light_duty_permille: opts.light_duty_permille,
     }))?;
     // Longest move (half a disk turn, full track) + settle + exposure, with margin.
-    let limit = Duration::from_secs(30) + Duration::from_micros(opts.exposure_us as u64);
-    let event = dev.wait_event(limit, |e| {
-        matches!(e, Event::TriggerFired(t) if t.mirror == Some(l as u8))
-            || matches!(e, Event::FaultRaised { .. })
-            || matches!(e, Event::MotionDone { outcome: MotionOutcome::Aborted, .. })
-    })?;
-    let fired = match event {
-        Some(Event::TriggerFired(t)) => t,
-        Some(other) => {
-            let status = dev.status()?;
-            let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
-            if !serious.is_empty() {
-                return Err(Attempt::Fatal(ScanError::DeviceFault(
-                    status.faults.names().collect::<Vec<_>>().join(", "),
-                )));
+    let end = dev.now() + Duration::from_secs(30) + Duration::from_micros(opts.exposure_us as u64);
+    while dev.now() < end {
+        let event = dev.wait_event(Duration::from_millis(500), |e| {
+            matches!(e, Event::TriggerFired(t) if t.mirror == Some(l as u8))
+                || matches!(e, Event::FaultRaised { .. })
+                || matches!(e, Event::MotionDone { outcome: MotionOutcome::Aborted, .. })
+        })?;
+        match event {
+            Some(Event::TriggerFired(t)) => return Ok(t),
+            Some(other) => {
+                let status = dev.status()?;
+                let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
+                if !serious.is_empty() {
+                    return Err(Attempt::Fatal(ScanError::DeviceFault(
+                        status.faults.names().collect::<Vec<_>>().join(", "),
+                    )));
+                }
+                return Err(Attempt::Recover(format!("capture step interrupted ({other:?})")));
             }
-            return Err(Attempt::Recover(format!("capture step interrupted ({other:?})")));
+            None => {
+                let status = dev.status()?;
+                if matches!(status.state, DeviceState::Idle | DeviceState::Faulted) {
+                    if status.trigger_seq > before
+                        && let Reply::Trigger(Some(t)) = dev.request(Request::GetLastTrigger)?
+                        && t.mirror == Some(l as u8)
+                        && t.trigger_seq > before
+                    {
+                        return Ok(t);
+                    }
+                    return Err(Attempt::Recover(
+                        "the capture step ended without its trigger".into(),
+                    ));
+                }
+            }
         }
-        None => return Err(Attempt::Recover("no trigger within the step's time".into())),
-    };
-    let status = wait_idle(dev, Duration::from_secs(10)).map_err(Attempt::Fatal)?;
-    timings.link += t.elapsed();
-    let t = Instant::now();
-    let frame = camera.wait_frame(opts.frame_timeout);
-    timings.camera += t.elapsed();
-    Ok((frame.map_err(Attempt::Camera)?, fired, status))
+    }
+    Err(Attempt::Recover("no trigger within the step's time".into()))
 }

@@ -39,7 +39,11 @@ impl SimSetup {
 
     fn optics(&self) -> Result<OpticalSim, String> {
         let material = materials::by_name(&self.material).ok_or_else(|| {
-            format!("unknown material {:?} (one of {})", self.material, materials::MATERIAL_NAMES.join(", "))
+            format!(
+                "unknown material {:?} (one of {})",
+                self.material,
+                materials::MATERIAL_NAMES.join(", ")
+            )
         })?;
         let as_built = self.nominal()?.perturbed(self.seed, &Tolerances::default());
         Ok(OpticalSim::new(as_built, Sample::small(material), self.seed))
@@ -60,7 +64,11 @@ impl SimSetup {
     /// camera dropping frames into `frames`.
     pub fn serve(&self, speed: f64, frames: PathBuf) -> Result<hil_sim::PtyServer, String> {
         let camera = hil_sim::camera::SimCamera::new(self.optics()?);
-        hil_sim::PtyServer::start_with_camera(hil_sim::SimDevice::new(self.config()), speed, Some((camera, frames)))
-            .map_err(|e| format!("cannot serve the simulator on a pty: {e}"))
+        hil_sim::PtyServer::start_with_camera(
+            hil_sim::SimDevice::new(self.config()),
+            speed,
+            Some((camera, frames)),
+        )
+        .map_err(|e| format!("cannot serve the simulator on a pty: {e}"))
     }
 }

@@ -3,19 +3,19 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::camera::{Camera, FolderCamera, SimCamera};
+use crate::discovery::{self, DeviceChoice};
+use crate::link::{Device, LinkError, SerialTransport, SimTransport, Transport, UsbTransport};
+use crate::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
+use crate::simulator::SimSetup;
 use anyhow::anyhow;
 use clap::Args;
 use hil_sim::geometry::{AxisValues, ScannerGeometry};
 use hil_sim::{FaultPlan, FaultSpec, SimRig};
-use host::camera::{Camera, FolderCamera, SimCamera};
-use host::discovery::{self, DeviceChoice};
-use host::link::{Device, LinkError, SerialTransport, SimTransport, Transport, UsbTransport};
-use host::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
-use host::simulator::SimSetup;
 use indicatif::{ProgressBar, ProgressStyle};
 use protocol::{Axis, AxisSet, Event, LightState, MoveMode, Request};
 
-use crate::Failure;
+use super::Failure;
 
 /// Which device, and the simulator's settings when it is `sim`.
 #[derive(Debug, Clone, Args)]
@@ -84,11 +84,13 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
             (Box::new(SimTransport(rig.clone())), Some(rig), Some(nominal))
         }
         DeviceChoice::Serial(path) => {
-            let t = SerialTransport::open(&path).map_err(|e| Failure(5, anyhow!("no device: {e}")))?;
+            let t =
+                SerialTransport::open(&path).map_err(|e| Failure(5, anyhow!("no device: {e}")))?;
             (Box::new(t), None, None)
         }
         DeviceChoice::Usb(serial) => {
-            let t = UsbTransport::open(&serial).map_err(|e| Failure(5, anyhow!("no device: {e}")))?;
+            let t =
+                UsbTransport::open(&serial).map_err(|e| Failure(5, anyhow!("no device: {e}")))?;
             (Box::new(t), None, None)
         }
     };
@@ -104,17 +106,27 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
 fn load_geometry(path: Option<&Path>, opened: &Opened) -> Result<ScannerGeometry, Failure> {
     match path {
         Some(p) => ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e))),
-        None => Ok(opened.geometry_default.clone().unwrap_or_else(ScannerGeometry::default_scanner)),
+        None => {
+            Ok(opened.geometry_default.clone().unwrap_or_else(ScannerGeometry::default_scanner))
+        }
     }
 }
 
 /// `scanner devices`
 pub fn devices() -> Result<(), Failure> {
     match discovery::serial_scanners() {
-        Ok(list) if list.is_empty() => println!("serial: no scanner (VID:PID {:04x}:{:04x})", protocol::USB_VID, protocol::USB_PID),
+        Ok(list) if list.is_empty() => println!(
+            "serial: no scanner (VID:PID {:04x}:{:04x})",
+            protocol::USB_VID,
+            protocol::USB_PID
+        ),
         Ok(list) => {
             for p in list {
-                println!("serial  {}  serial number {}", p.path, p.serial.as_deref().unwrap_or("?"));
+                println!(
+                    "serial  {}  serial number {}",
+                    p.path,
+                    p.serial.as_deref().unwrap_or("?")
+                );
             }
         }
         Err(e) => println!("serial: {e}"),
@@ -123,7 +135,11 @@ pub fn devices() -> Result<(), Failure> {
         Ok(list) if list.is_empty() => println!("usb: no scanner"),
         Ok(list) => {
             for d in list {
-                let bulk = if d.vendor_interface.is_some() { "bulk interface" } else { "no bulk interface" };
+                let bulk = if d.vendor_interface.is_some() {
+                    "bulk interface"
+                } else {
+                    "no bulk interface"
+                };
                 println!("usb     {}  serial number {}  ({bulk})", d.location, d.serial);
             }
         }
@@ -138,7 +154,10 @@ pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
     let i = *o.device.info();
     println!("device   {} on {}", hex(&i.device_id), o.device.describe());
     println!("firmware {}  protocol {}  board {:#06x}", i.firmware, i.protocol, i.board);
-    println!("boot id  {:08x}  mirrors {}  capabilities {:#06x}", i.boot_id, i.mirror_count, i.capabilities.0);
+    println!(
+        "boot id  {:08x}  mirrors {}  capabilities {:#06x}",
+        i.boot_id, i.mirror_count, i.capabilities.0
+    );
     let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
     for (axis, c) in Axis::ALL.iter().zip(axes) {
         println!(
@@ -174,15 +193,23 @@ pub fn status(args: &DeviceArgs) -> Result<(), Failure> {
             if a.moving { ", moving" } else { "" }
         );
     }
-    println!("light {}", if s.light.on { format!("on, {} ‰", s.light.duty_permille) } else { "off".into() });
+    println!(
+        "light {}",
+        if s.light.on { format!("on, {} ‰", s.light.duty_permille) } else { "off".into() }
+    );
     let faults: Vec<&str> = s.faults.names().collect();
     println!("faults {}", if faults.is_empty() { "none".into() } else { faults.join(", ") });
     Ok(())
 }
 
 fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
-    match dev.wait_event(Duration::from_secs(120), |e| matches!(e, Event::MotionDone { .. })).map_err(link_failure)? {
-        Some(Event::MotionDone { outcome: protocol::MotionOutcome::Completed, positions, .. }) => {
+    match dev
+        .wait_event(Duration::from_secs(120), |e| matches!(e, Event::MotionDone { .. }))
+        .map_err(link_failure)?
+    {
+        Some(Event::MotionDone {
+            outcome: protocol::MotionOutcome::Completed, positions, ..
+        }) => {
             println!("{what}: done at {positions:?} steps");
             Ok(())
         }
@@ -194,14 +221,23 @@ fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
 /// `scanner home`
 pub fn home(args: &DeviceArgs, axes: &[Axis]) -> Result<(), Failure> {
     let mut o = open(args)?;
-    let set = if axes.is_empty() { AxisSet::ALL } else { axes.iter().fold(AxisSet::NONE, |s, a| s.with(*a)) };
+    let set = if axes.is_empty() {
+        AxisSet::ALL
+    } else {
+        axes.iter().fold(AxisSet::NONE, |s, a| s.with(*a))
+    };
     o.device.clear_events();
     o.device.command(Request::Home { axes: set }).map_err(link_failure)?;
     wait_motion(&mut o.device, "homing")
 }
 
 /// `scanner move`
-pub fn move_axes(args: &DeviceArgs, targets: [Option<f64>; 3], relative: bool, steps: bool) -> Result<(), Failure> {
+pub fn move_axes(
+    args: &DeviceArgs,
+    targets: [Option<f64>; 3],
+    relative: bool,
+    steps: bool,
+) -> Result<(), Failure> {
     if targets.iter().all(Option::is_none) {
         return Err(Failure(2, anyhow!("give at least one of --disk, --track, --tilt")));
     }
@@ -229,7 +265,9 @@ pub fn light(args: &DeviceArgs, on: bool, duty: u16) -> Result<(), Failure> {
         return Err(Failure(2, anyhow!("--duty is per mille, 1…1000")));
     }
     let mut o = open(args)?;
-    o.device.command(Request::SetLight(LightState { on, duty_permille: duty })).map_err(link_failure)?;
+    o.device
+        .command(Request::SetLight(LightState { on, duty_permille: duty }))
+        .map_err(link_failure)?;
     println!("light {}", if on { "on" } else { "off" });
     Ok(())
 }
@@ -239,9 +277,16 @@ pub fn trigger(args: &DeviceArgs, exposure_us: u32) -> Result<(), Failure> {
     let mut o = open(args)?;
     o.device.clear_events();
     o.device.command(Request::Trigger { exposure_us }).map_err(link_failure)?;
-    match o.device.wait_event(Duration::from_secs(5), |e| matches!(e, Event::TriggerFired(_))).map_err(link_failure)? {
+    match o
+        .device
+        .wait_event(Duration::from_secs(5), |e| matches!(e, Event::TriggerFired(_)))
+        .map_err(link_failure)?
+    {
         Some(Event::TriggerFired(t)) => {
-            println!("trigger {} at {} µs, exposure {} µs", t.trigger_seq, t.timestamp_us, t.exposure_us);
+            println!(
+                "trigger {} at {} µs, exposure {} µs",
+                t.trigger_seq, t.timestamp_us, t.exposure_us
+            );
             Ok(())
         }
         _ => Err(Failure(7, anyhow!("no trigger event within 5 s"))),
@@ -276,7 +321,10 @@ impl ScanProgress for Bar {
         self.bar.set_length(total as u64);
         self.bar.set_position(done as u64);
         if done > 0 {
-            self.bar.println(format!("{}: resuming, {done} of {total} frames already stored", self.label));
+            self.bar.println(format!(
+                "{}: resuming, {done} of {total} frames already stored",
+                self.label
+            ));
         }
         self.bar.reset_eta();
     }
@@ -334,7 +382,11 @@ fn camera_for(arg: Option<&str>, rig: Option<&SimRig>) -> Result<Box<dyn Camera>
 }
 
 /// Run one scan with a progress bar; print the summary.
-pub fn run_scan(opened: &mut Opened, scan_args: &ScanArgs, label: &str) -> Result<ScanReport, Failure> {
+pub fn run_scan(
+    opened: &mut Opened,
+    scan_args: &ScanArgs,
+    label: &str,
+) -> Result<ScanReport, Failure> {
     if !(0.0..=3600.0).contains(&scan_args.frame_timeout) {
         return Err(Failure(2, anyhow!("--frame-timeout must be 0…3600 s")));
     }
@@ -347,8 +399,10 @@ pub fn run_scan(opened: &mut Opened, scan_args: &ScanArgs, label: &str) -> Resul
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
     let bar = ProgressBar::new(geometry.mirrors.len() as u64);
     bar.set_style(
-        ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} frames, {elapsed} elapsed, ETA {eta} {msg}")
-            .expect("valid template"),
+        ProgressStyle::with_template(
+            "{prefix} [{bar:30}] {pos}/{len} frames, {elapsed} elapsed, ETA {eta} {msg}",
+        )
+        .expect("valid template"),
     );
     bar.set_prefix(label.to_string());
     let mut progress = Bar { bar: bar.clone(), label: label.to_string() };
@@ -386,11 +440,20 @@ pub fn scan_cmd(args: &DeviceArgs, scan_args: &ScanArgs) -> Result<(), Failure> 
 
 /// `scanner demo`: a complete simulated session — the two calibration
 /// targets and a material sample — into `out`.
-pub fn demo(out: &Path, material: &str, bin: u32, mirrors: Option<usize>, seed: u64) -> Result<(), Failure> {
+pub fn demo(
+    out: &Path,
+    material: &str,
+    bin: u32,
+    mirrors: Option<usize>,
+    seed: u64,
+) -> Result<(), Failure> {
     if hil_sim::materials::by_name(material).is_none() {
         return Err(Failure(
             2,
-            anyhow!("unknown material {material:?} (one of {})", hil_sim::materials::SVBRDF_NAMES.join(", ")),
+            anyhow!(
+                "unknown material {material:?} (one of {})",
+                hil_sim::materials::SVBRDF_NAMES.join(", ")
+            ),
         ));
     }
     let started = std::time::Instant::now();
@@ -416,7 +479,11 @@ pub fn demo(out: &Path, material: &str, bin: u32, mirrors: Option<usize>, seed: 
         };
         run_scan(&mut opened, &scan_args, sample)?;
     }
-    println!("demo: three scans in {:.1} s under {}", started.elapsed().as_secs_f64(), out.display());
+    println!(
+        "demo: three scans in {:.1} s under {}",
+        started.elapsed().as_secs_f64(),
+        out.display()
+    );
     Ok(())
 }
 
@@ -430,7 +497,7 @@ pub fn sim(args: &DeviceArgs, speed: f64, frames: &Path) -> Result<(), Failure> 
     // The scanner's nominal geometry (binning included) for the host.
     let geometry_file = frames.join("geometry.toml");
     let nominal = setup.nominal().map_err(|e| Failure(2, anyhow!(e)))?;
-    host::fsutil::write_atomic(&geometry_file, nominal.to_toml().as_bytes())
+    crate::fsutil::write_atomic(&geometry_file, nominal.to_toml().as_bytes())
         .map_err(|e| Failure(4, anyhow!("{}: {e}", geometry_file.display())))?;
     println!("{}", server.path());
     use std::io::Write;

@@ -1,0 +1,341 @@
+//! `scanner`: the command-line front end of the host library (the binary
+//! is `fn main() { host::cli::main() }`, so end-to-end tests can build the
+//! same program).
+//!
+//! Exit codes: 0 success, 1 anything else, 2 bad usage, 3 unreadable or
+//! invalid input file (or a scan directory holding another scan), 4 output
+//! could not be written, 5 no device, 6 incompatible firmware, 7 device
+//! fault, 8 camera timeout, 9 disk full.
+
+mod commands;
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use crate::brdf::fit::{FitOptions, GVariant, Samples, Weighting, fit};
+use crate::brdf::merl::MerlTable;
+use crate::brdf::npf::NpfModel;
+use crate::brdf::{Brdf, plot, render};
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "scanner",
+    version,
+    about = "Material scanner host: capture, materials, BRDF fitting"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the main job: a complete simulated scan of a material sample and
+    /// of the two calibration targets.
+    Demo {
+        /// Output folder (one scan directory per sample).
+        #[arg(long, default_value = "demo-out")]
+        out: PathBuf,
+        /// Sample material (woven-fabric, leather, painted-wood, rough-metal).
+        #[arg(long, default_value = "woven-fabric")]
+        material: String,
+        /// Sensor binning (1 = the default 4096² sensor; 4 = 1024², faster).
+        #[arg(long, default_value_t = 1)]
+        bin: u32,
+        /// Scan only mirrors 0 … N−1.
+        #[arg(long)]
+        mirrors: Option<usize>,
+        /// Seed of the simulated scanner.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// Capture a scan into a scan directory.
+    Scan {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        #[command(flatten)]
+        scan: commands::ScanArgs,
+    },
+    /// Write the mirror table (from the geometry's inverse kinematics) to the device.
+    Setup {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Nominal geometry file (default: the shipped default scanner).
+        #[arg(long)]
+        geometry: Option<PathBuf>,
+    },
+    /// List connected scanners (serial ports and USB).
+    Devices,
+    /// Handshake and print the device's identity and axes.
+    Info {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+    },
+    /// Print the device status.
+    Status {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+    },
+    /// Home axes (all by default).
+    Home {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Axes to home (disk, track, tilt).
+        #[arg(long, value_delimiter = ',', value_parser = parse_axis)]
+        axes: Vec<protocol::Axis>,
+    },
+    /// Move axes (degrees / mm, or steps with --steps).
+    Move {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Disk target.
+        #[arg(long, allow_negative_numbers = true)]
+        disk: Option<f64>,
+        /// Track target.
+        #[arg(long, allow_negative_numbers = true)]
+        track: Option<f64>,
+        /// Tilt target.
+        #[arg(long, allow_negative_numbers = true)]
+        tilt: Option<f64>,
+        /// Targets are offsets from the current position.
+        #[arg(long)]
+        relative: bool,
+        /// Targets are in steps.
+        #[arg(long)]
+        steps: bool,
+    },
+    /// Switch the light on or off.
+    Light {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// on or off.
+        #[arg(value_parser = ["on", "off"])]
+        state: String,
+        /// Duty, per mille.
+        #[arg(long, default_value_t = 1000)]
+        duty: u16,
+    },
+    /// Fire one camera trigger pulse.
+    Trigger {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Exposure (pulse length), µs.
+        #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
+        exposure_us: u32,
+    },
+    /// Serve the simulated scanner on a pty for interactive use; its camera
+    /// drops frames into a folder.
+    Sim {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Simulated time per real time.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Folder for the camera's frames.
+        #[arg(long, default_value = "sim-frames")]
+        frames: PathBuf,
+    },
+    /// Fit an NPF model to a MERL table.
+    Fit {
+        /// MERL binary table (.binary).
+        input: PathBuf,
+        /// Output model (.json).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// How G is obtained.
+        #[arg(long, value_enum, default_value_t = GVariant::Smith)]
+        g: GVariant,
+        /// Compressive weighting exponent p ∈ [1, 2].
+        #[arg(long, default_value_t = 1.4)]
+        p: f64,
+        /// Iteration limit.
+        #[arg(long, default_value_t = 60)]
+        max_iterations: usize,
+    },
+    /// Render a sphere of a model or a MERL table under the built-in environment.
+    RenderBrdf {
+        /// NPF model (.json) or MERL table (.binary).
+        input: PathBuf,
+        /// Output image (.png tone-mapped, or .exr linear).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Image side, pixels.
+        #[arg(long, default_value_t = 256)]
+        size: usize,
+    },
+    /// Write an analytic reference material as a MERL table (for trying the
+    /// pipeline without measured data).
+    SynthMerl {
+        /// Which material.
+        #[arg(long, value_enum)]
+        material: Material,
+        /// Output table (.binary).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Plot an NPF model's D, F and G per channel.
+    PlotNpf {
+        /// NPF model (.json).
+        input: PathBuf,
+        /// Output image (.png).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+/// Analytic reference materials.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Material {
+    /// GGX conductor, α = 0.2.
+    Ggx,
+    /// Beckmann conductor, α = 0.3.
+    Beckmann,
+    /// Lambert base under a GGX dielectric coat.
+    Coated,
+    /// Two-lobe GGX mixture.
+    TwoLobe,
+}
+
+/// An error with its exit code.
+#[derive(Debug)]
+pub struct Failure(pub u8, pub anyhow::Error);
+
+fn parse_axis(s: &str) -> Result<protocol::Axis, String> {
+    protocol::Axis::ALL
+        .into_iter()
+        .find(|a| a.name() == s)
+        .ok_or_else(|| format!("unknown axis {s:?} (disk, track, tilt)"))
+}
+
+fn input<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
+    r.map_err(|e| Failure(3, e))
+}
+
+fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
+    r.map_err(|e| Failure(4, e))
+}
+
+fn load_brdf(path: &Path) -> anyhow::Result<Box<dyn Brdf>> {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or_default();
+    if ext.eq_ignore_ascii_case("json") {
+        Ok(Box::new(NpfModel::load(path)?))
+    } else {
+        Ok(Box::new(MerlTable::read(path)?))
+    }
+}
+
+fn run(cli: Cli) -> Result<(), Failure> {
+    match cli.command {
+        Command::Demo { out, material, bin, mirrors, seed } => {
+            commands::demo(&out, &material, bin, mirrors, seed)?
+        }
+        Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
+        Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
+        Command::Devices => commands::devices()?,
+        Command::Info { device } => commands::info(&device)?,
+        Command::Status { device } => commands::status(&device)?,
+        Command::Home { device, axes } => commands::home(&device, &axes)?,
+        Command::Move { device, disk, track, tilt, relative, steps } => {
+            commands::move_axes(&device, [disk, track, tilt], relative, steps)?
+        }
+        Command::Light { device, state, duty } => commands::light(&device, state == "on", duty)?,
+        Command::Trigger { device, exposure_us } => commands::trigger(&device, exposure_us)?,
+        Command::Sim { device, speed, frames } => commands::sim(&device, speed, &frames)?,
+        Command::Fit { input: path, output: out, g, p, max_iterations } => {
+            if !(1.0..=2.0).contains(&p) {
+                return Err(Failure(2, anyhow::anyhow!("--p must be in [1, 2], got {p}")));
+            }
+            let table = input(MerlTable::read(&path).map_err(anyhow::Error::from))?;
+            let samples =
+                input(Samples::from_merl(&table).context("no usable sample in the table"))?;
+            let opts = FitOptions {
+                g,
+                weighting: Weighting::Compressive { p },
+                max_iterations,
+                ..FitOptions::default()
+            };
+            let bar = ProgressBar::new((3 * max_iterations) as u64);
+            bar.set_style(
+                ProgressStyle::with_template(
+                    "{spinner} fitting [{bar:30}] {pos}/{len} iterations {msg}",
+                )
+                .expect("valid template"),
+            );
+            let progress = |c: usize, it: usize, e: f64| {
+                bar.inc(1);
+                bar.set_message(format!("{} #{it}: E = {e:.4e}", ["R", "G", "B"][c]));
+            };
+            let (model, report) = fit(&samples, &opts, &progress);
+            bar.finish_and_clear();
+            output(model.save(&out).with_context(|| format!("cannot write {}", out.display())))?;
+            println!(
+                "fitted {} samples in {:.2} s ({:?} G, p = {p})",
+                samples.len(),
+                report.seconds,
+                g
+            );
+            for c in 0..3 {
+                println!(
+                    "  {}: objective {:.4e}, {} iterations, {} line searches",
+                    ["R", "G", "B"][c],
+                    report.objective[c],
+                    report.iterations[c],
+                    report.line_searches[c]
+                );
+            }
+            println!("model written to {}", out.display());
+        }
+        Command::RenderBrdf { input: path, output: out, size } => {
+            if !(8..=4096).contains(&size) {
+                return Err(Failure(2, anyhow::anyhow!("--size must be in 8..=4096")));
+            }
+            let brdf =
+                input(load_brdf(&path).with_context(|| format!("cannot load {}", path.display())))?;
+            let image = render::render_sphere(brdf.as_ref(), &render::Environment::builtin(), size);
+            output(
+                render::save(&image, &out)
+                    .with_context(|| format!("cannot write {}", out.display())),
+            )?;
+            println!("sphere written to {}", out.display());
+        }
+        Command::SynthMerl { material, output: out } => {
+            use crate::brdf::analytic::*;
+            let b = match material {
+                Material::Ggx => ggx_conductor(0.2),
+                Material::Beckmann => beckmann_conductor(0.3),
+                Material::Coated => coated_plastic(),
+                Material::TwoLobe => two_lobe_ggx(),
+            };
+            let table = MerlTable::from_fn(|wi, wo| b.eval(wi, wo));
+            output(table.write(&out).with_context(|| format!("cannot write {}", out.display())))?;
+            println!("{material:?} table written to {}", out.display());
+        }
+        Command::PlotNpf { input: path, output: out } => {
+            let model = input(NpfModel::load(&path).map_err(anyhow::Error::from))?;
+            output(plot::plot_factors(&model, &out).map_err(anyhow::Error::from))?;
+            println!("factor plot written to {}", out.display());
+        }
+    }
+    Ok(())
+}
+
+/// The `scanner` program.
+pub fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .init();
+    match run(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(Failure(code, e)) => {
+            eprintln!("scanner: {e:#}");
+            ExitCode::from(code)
+        }
+    }
+}

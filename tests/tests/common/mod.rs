@@ -1,0 +1,117 @@
+//! Helpers of the end-to-end tests.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use hil_sim::{FaultPlan, PtyServer};
+use host::scan::Manifest;
+use host::simulator::SimSetup;
+
+/// The small simulated scanner the tests use (512² sensor).
+pub fn setup(material: &str, faults: FaultPlan) -> SimSetup {
+    SimSetup { bin: 8, seed: 5, faults, ..SimSetup::new(material) }
+}
+
+/// Simulated time per wall time on the pty: fast, yet the host's 100 ms
+/// keep-alive stays inside the device's 500 ms link timeout.
+pub const SPEED: f64 = 3.0;
+
+/// Serve `setup` on a pty; frames and the nominal geometry go to `frames`.
+pub fn serve(setup: &SimSetup, frames: &Path) -> PtyServer {
+    let server = setup.serve(SPEED, frames.to_path_buf()).unwrap();
+    std::fs::write(frames.join("geometry.toml"), setup.nominal().unwrap().to_toml()).unwrap();
+    server
+}
+
+/// The scanner program.
+pub fn scanner() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_scanner-e2e"))
+}
+
+/// Arguments of a scan over `pty` with the folder camera.
+pub fn scan_args(pty: &str, frames: &Path, out: &Path, mirrors: usize) -> Vec<String> {
+    [
+        "scan",
+        "--device",
+        pty,
+        "--camera",
+        &format!("folder:{}", frames.display()),
+        "--geometry",
+        &frames.join("geometry.toml").display().to_string(),
+        "--sample-name",
+        "e2e",
+        "--out",
+        &out.display().to_string(),
+        "--mirrors",
+        &mirrors.to_string(),
+        "--frame-timeout",
+        "3",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect()
+}
+
+/// The frame files of a scan directory and their bytes.
+pub fn frames(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir.join("frames"))
+        .unwrap()
+        .flatten()
+        .map(|e| (e.file_name().to_string_lossy().into_owned(), std::fs::read(e.path()).unwrap()))
+        .collect();
+    out.sort();
+    out
+}
+
+/// A manifest with the fields that record *when* a frame was taken (the
+/// device's trigger counter and clock) and where the camera put it blanked:
+/// what must match between two scans of the same sample.
+pub fn normalised_manifest(dir: &Path) -> Manifest {
+    let mut m = Manifest::load(dir).unwrap();
+    m.camera.clear();
+    for f in &mut m.frames {
+        f.trigger_seq = 0;
+        f.device_timestamp_us = 0;
+    }
+    m
+}
+
+/// Assert two scan directories hold the same scan: the same files, frames
+/// byte for byte, manifests equal but for when frames were taken.
+pub fn assert_same_scan(a: &Path, b: &Path) {
+    let fa = frames(a);
+    let fb = frames(b);
+    let names = |f: &[(String, Vec<u8>)]| f.iter().map(|x| x.0.clone()).collect::<Vec<_>>();
+    assert_eq!(names(&fa), names(&fb), "frame files");
+    for ((name, x), (_, y)) in fa.iter().zip(&fb) {
+        if x != y {
+            let ma = normalised_manifest(a);
+            let mb = normalised_manifest(b);
+            let fa = ma.frames.iter().find(|f| f.file.ends_with(name.as_str()));
+            let fb = mb.frames.iter().find(|f| f.file.ends_with(name.as_str()));
+            panic!("{name} differs:\n{fa:?}\n{fb:?}");
+        }
+    }
+    assert_eq!(normalised_manifest(a), normalised_manifest(b));
+    let top = |d: &Path| {
+        let mut v: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(top(a), top(b), "top-level files");
+}
+
+/// A fresh temporary directory.
+pub fn tmp() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
+}
+
+/// `dir/name`.
+pub fn sub(dir: &Path, name: &str) -> PathBuf {
+    dir.join(name)
+}

@@ -1,0 +1,171 @@
+//! End-to-end: the `scanner` program against the simulated scanner served on
+//! a pseudo-terminal, its camera dropping frames into a folder.
+
+mod common;
+
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use common::*;
+use hil_sim::{FaultEvent, FaultPlan};
+use host::scan::Manifest;
+
+const MIRRORS: usize = 8;
+/// The kill test needs a longer scan.
+const KILL_MIRRORS: usize = 12;
+
+#[test]
+fn a_scan_over_the_pty_stores_every_frame_and_matches_the_in_process_scan() {
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let out = sub(dir.path(), "scan");
+    let s = setup("painted-wood", FaultPlan::none());
+    let server = serve(&s, &frames_dir);
+    let t = Instant::now();
+    let result =
+        scanner().args(scan_args(server.path(), &frames_dir, &out, MIRRORS)).output().unwrap();
+    eprintln!("pty scan: {:?}\n{}", t.elapsed(), String::from_utf8_lossy(&result.stdout));
+    assert!(result.status.success(), "{}", String::from_utf8_lossy(&result.stderr));
+    let m = Manifest::load(&out).unwrap();
+    assert!(m.complete);
+    assert_eq!(m.frames.len(), MIRRORS);
+    for (l, f) in m.frames.iter().enumerate() {
+        assert_eq!(f.mirror, l);
+        assert_eq!((f.width, f.height), (512, 512));
+        assert_eq!(f.exposure_us, 50_000);
+        let frame = host::exrio::read_rgb(&out.join(&f.file)).unwrap();
+        assert!(frame.rgb.iter().any(|&v| v > 0.02), "mirror {l} lit");
+    }
+    // The same scanner simulated in-process and deterministic: same frames.
+    let reference = sub(dir.path(), "in-process");
+    let rig = s.rig().unwrap();
+    let mut dev =
+        host::link::Device::connect(Box::new(host::link::SimTransport(rig.clone()))).unwrap();
+    let mut opts = host::scan::ScanOptions::new("e2e", &reference);
+    opts.mirrors = Some(MIRRORS);
+    host::scan::scan(
+        &mut dev,
+        &mut host::camera::SimCamera(rig),
+        &s.nominal().unwrap(),
+        &opts,
+        &mut host::scan::Quiet,
+    )
+    .unwrap();
+    let a = frames(&out);
+    let b = frames(&reference);
+    assert_eq!(a.len(), b.len());
+    for ((name, x), (_, y)) in a.iter().zip(&b) {
+        assert!(x == y, "{name}: pty and in-process frames differ");
+    }
+    drop(server);
+}
+
+#[test]
+fn faults_on_the_way_do_not_change_a_single_frame() {
+    let dir = tmp();
+    let clean_out = sub(dir.path(), "clean");
+    let faulty_out = sub(dir.path(), "faulty");
+    let clean_frames = sub(dir.path(), "camera-clean");
+    let faulty_frames = sub(dir.path(), "camera-faulty");
+    let clean = serve(&setup("leather", FaultPlan::none()), &clean_frames);
+    let r = scanner()
+        .args(scan_args(clean.path(), &clean_frames, &clean_out, MIRRORS))
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    drop(clean);
+
+    let faults = FaultPlan::none()
+        .corrupt(1e-3)
+        .after_triggers(2, FaultEvent::Disconnect { duration_ms: 1500 })
+        .after_triggers(4, FaultEvent::Reset)
+        .after_triggers(6, FaultEvent::IgnoreTriggers(1));
+    let faulty = serve(&setup("leather", faults), &faulty_frames);
+    let r = scanner()
+        .args(scan_args(faulty.path(), &faulty_frames, &faulty_out, MIRRORS))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&r.stdout);
+    eprintln!("{stdout}\n{}", String::from_utf8_lossy(&r.stderr));
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(stdout.contains("1 resets survived"), "the reset was seen: {stdout}");
+    assert!(stdout.contains("retransmissions"), "the noise was seen: {stdout}");
+    drop(faulty);
+    assert_same_scan(&clean_out, &faulty_out);
+}
+
+#[test]
+fn resume_after_sigkill_at_six_moments_gives_the_uninterrupted_scan() {
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let reference = sub(dir.path(), "reference");
+    let resumed = sub(dir.path(), "resumed");
+    let s = setup("rough-metal", FaultPlan::none());
+    let server = serve(&s, &frames_dir);
+    let t = Instant::now();
+    let r = scanner()
+        .args(scan_args(server.path(), &frames_dir, &reference, KILL_MIRRORS))
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let whole = t.elapsed();
+    eprintln!("uninterrupted scan: {whole:?}");
+    // Kill moments spread over a run: during start-up, moves, exposures
+    // and writes (each resumed run goes on from where the last stopped).
+    let moments = [150u64, 500, 900, 1300, 1000, 700].map(Duration::from_millis);
+    let mut interrupted = 0;
+    let mut args = scan_args(server.path(), &frames_dir, &resumed, KILL_MIRRORS);
+    args.push("--resume".into());
+    for (k, after) in moments.iter().enumerate() {
+        let done_before = resumed.join("manifest.json").exists()
+            && Manifest::load(&resumed).is_ok_and(|m| m.complete);
+        let mut child =
+            scanner().args(&args).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+        std::thread::sleep(*after);
+        // SIGKILL: no chance to clean up.
+        let _ = child.kill();
+        let _ = child.wait();
+        // Nothing partial is ever visible under its final name.
+        if resumed.join("manifest.json").exists() {
+            let m = Manifest::load(&resumed).unwrap_or_else(|e| panic!("kill {k}: manifest: {e}"));
+            for f in &m.frames {
+                host::exrio::read_rgb(&resumed.join(&f.file))
+                    .unwrap_or_else(|e| panic!("kill {k}: {}: {e}", f.file));
+            }
+            eprintln!("kill {k} after {after:?}: {} frames stored", m.frames.len());
+            if !done_before && !m.complete {
+                interrupted += 1;
+            }
+        } else {
+            interrupted += 1;
+        }
+        for entry in std::fs::read_dir(resumed.join("frames")).into_iter().flatten().flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if !name.starts_with(".tmp-") {
+                host::exrio::read_rgb(&entry.path())
+                    .unwrap_or_else(|e| panic!("kill {k}: {name}: {e}"));
+            }
+        }
+    }
+    assert!(interrupted >= 5, "only {interrupted} kills hit an unfinished scan");
+    let r = scanner().args(&args).output().unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    drop(server);
+    assert_same_scan(&reference, &resumed);
+    let _ = Duration::ZERO;
+}
+
+#[test]
+fn without_resume_an_existing_scan_is_not_touched() {
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let out = sub(dir.path(), "scan");
+    let server = serve(&setup("leather", FaultPlan::none()), &frames_dir);
+    let r = scanner().args(scan_args(server.path(), &frames_dir, &out, 2)).output().unwrap();
+    assert!(r.status.success());
+    let before = frames(&out);
+    let r = scanner().args(scan_args(server.path(), &frames_dir, &out, 2)).output().unwrap();
+    assert_eq!(r.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&r.stderr).contains("--resume"));
+    assert_eq!(frames(&out), before);
+}
