@@ -58,6 +58,11 @@ impl SimRig {
         self.lock().link.read(out, timeout)
     }
 
+    /// Whether the simulated cable is connected now.
+    pub fn is_connected(&self) -> bool {
+        self.lock().link.is_connected()
+    }
+
     /// Let simulated time pass.
     pub fn sleep(&self, d: Duration) {
         self.lock().link.sleep(d)

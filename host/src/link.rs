@@ -262,8 +262,12 @@ impl Transport for SimTransport {
     }
     fn reconnect(&mut self) -> Result<(), TransportError> {
         // The simulated cable comes back by itself; waiting is all it takes.
-        self.0.sleep(Duration::from_millis(5));
-        Ok(())
+        self.0.sleep(Duration::from_millis(10));
+        if self.0.is_connected() {
+            Ok(())
+        } else {
+            Err(TransportError::Open("simulator: link down".into()))
+        }
     }
     fn describe(&self) -> String {
         "simulator (in-process)".into()

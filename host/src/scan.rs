@@ -746,3 +746,17 @@ fn trigger_step(
     }
     Err(Attempt::Recover("no trigger within the step's time".into()))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_disk_has_its_own_error_and_exit_code() {
+        let e = io_error(Path::new("x.exr"), std::io::Error::from_raw_os_error(28));
+        assert!(matches!(e, ScanError::DiskFull(_)), "{e:?}");
+        assert_eq!(e.exit_code(), 9);
+        let e = io_error(Path::new("x.exr"), std::io::Error::from_raw_os_error(13));
+        assert_eq!(e.exit_code(), 4);
+    }
+}

@@ -1,0 +1,175 @@
+//! The `scanner` bench commands and its documented exit codes.
+
+mod common;
+
+use std::io::{Read, Write};
+
+use serialport::SerialPort;
+use std::time::Duration;
+
+use common::*;
+use hil_sim::FaultPlan;
+use protocol::{
+    DeviceError, FrameDecoder, MAX_FRAME_LEN, ProtocolVersion, Reply, Request, ToHost, encode_frame,
+};
+
+fn run(args: &[&str]) -> (Option<i32>, String, String) {
+    let out = scanner().args(args).output().unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn bench_commands_drive_a_scanner_on_a_pty() {
+    let dir = tmp();
+    let server = serve(&setup("leather", FaultPlan::none()), &sub(dir.path(), "camera"));
+    let pty = server.path().to_string();
+    let (code, out, err) = run(&["info", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("protocol 1.0") && out.contains("track"), "{out}");
+    let (code, out, _) = run(&["status", "--device", &pty]);
+    assert_eq!(code, Some(0));
+    assert!(out.contains("not homed"), "{out}");
+    // Moving before homing is refused by the device, with its reason.
+    let (code, _, err) = run(&["move", "--device", &pty, "--disk", "90"]);
+    assert_ne!(code, Some(0));
+    assert!(err.contains("not homed"), "{err}");
+    let (code, out, err) = run(&["home", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("homing: done"), "{out}");
+    let (code, _, err) = run(&["move", "--device", &pty, "--disk", "90", "--tilt", "-2.5"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (_, out, _) = run(&["status", "--device", &pty]);
+    assert!(out.contains("4000 steps") && out.contains("-667 steps"), "{out}");
+    let (code, _, _) = run(&["light", "--device", &pty, "on", "--duty", "500"]);
+    assert_eq!(code, Some(0));
+    let (_, out, _) = run(&["status", "--device", &pty]);
+    assert!(out.contains("light on, 500"), "{out}");
+    let (code, out, err) = run(&["trigger", "--device", &pty, "--exposure-us", "2000"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("trigger 1") && out.contains("exposure 2000"), "{out}");
+    let (code, out, err) = run(&["setup", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("40 entries written"), "{out}");
+    let (_, out, _) = run(&["setup", "--device", &pty]);
+    assert!(out.contains("0 entries written"), "set-up is idempotent: {out}");
+    // Out-of-range values get a clear refusal.
+    let (code, _, err) = run(&["move", "--device", &pty, "--track", "500"]);
+    assert_ne!(code, Some(0));
+    assert!(err.contains("out of range"), "{err}");
+    let (code, _, err) = run(&["light", "--device", &pty, "on", "--duty", "0"]);
+    assert_eq!(code, Some(2), "{err}");
+}
+
+#[test]
+fn devices_lists_without_hardware() {
+    let (code, out, _) = run(&["devices"]);
+    assert_eq!(code, Some(0));
+    assert!(out.contains("serial") && out.contains("usb"), "{out}");
+}
+
+#[test]
+fn no_device_exits_5() {
+    let (code, _, err) = run(&["status", "--device", "/dev/no-such-scanner"]);
+    assert_eq!(code, Some(5), "{err}");
+    assert!(err.contains("no device"), "{err}");
+    let (code, _, err) = run(&["info", "--device", "0123456789AB"]);
+    assert_eq!(code, Some(5), "{err}");
+}
+
+/// A device that speaks protocol 2.0: refuses our handshake.
+fn incompatible_device() -> (String, std::thread::JoinHandle<()>, serialport::TTYPort) {
+    let (mut master, slave) = serialport::TTYPort::pair().unwrap();
+    let path = slave.name().unwrap();
+    master.set_timeout(Duration::from_millis(20)).unwrap();
+    let thread =
+        std::thread::spawn(move || {
+            let mut decoder = FrameDecoder::<Request>::new();
+            let mut buf = [0u8; 256];
+            let end = std::time::Instant::now() + Duration::from_secs(20);
+            while std::time::Instant::now() < end {
+                let n = match master.read(&mut buf) {
+                    Ok(n) => n,
+                    Err(e) if e.kind() == std::io::ErrorKind::TimedOut => continue,
+                    Err(_) => {
+                        std::thread::sleep(Duration::from_millis(5));
+                        continue;
+                    }
+                };
+                for f in decoder.feed(&buf[..n]).flatten() {
+                    let reply = ToHost::Reply(Reply::Error(DeviceError::UnsupportedVersion(
+                        ProtocolVersion { major: 2, minor: 0 },
+                    )));
+                    let mut out = [0u8; MAX_FRAME_LEN];
+                    let len = encode_frame(f.seq, &reply, &mut out).unwrap();
+                    let _ = master.write_all(&out[..len]);
+                    if matches!(f.msg, Request::Hello { .. }) {
+                        return;
+                    }
+                }
+            }
+        });
+    (path, thread, slave)
+}
+
+#[test]
+fn incompatible_firmware_exits_6_with_both_versions() {
+    let (path, thread, _slave) = incompatible_device();
+    let (code, _, err) = run(&["info", "--device", &path]);
+    thread.join().unwrap();
+    assert_eq!(code, Some(6), "{err}");
+    assert!(
+        err.contains("incompatible firmware") && err.contains("2.0") && err.contains("1.0"),
+        "{err}"
+    );
+}
+
+fn sim_scan(out: &std::path::Path, fault: &str) -> (Option<i32>, String, String) {
+    run(&[
+        "scan",
+        "--device",
+        "sim",
+        "--sim-bin",
+        "8",
+        "--sim-fault",
+        fault,
+        "--sample-name",
+        "x",
+        "--out",
+        &out.display().to_string(),
+        "--mirrors",
+        "4",
+        "--frame-timeout",
+        "1",
+    ])
+}
+
+#[test]
+fn an_emergency_stop_exits_7_and_keeps_the_frames_taken() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let (code, _, err) = sim_scan(&out, "estop:on@trigger=2");
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("emergency-stop"), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    assert!(!m.complete);
+    assert!(m.frames.len() >= 1, "frames before the stop are kept");
+}
+
+#[test]
+fn a_camera_that_never_delivers_exits_8() {
+    let dir = tmp();
+    let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "ignore-trigger:100@trigger=0");
+    assert_eq!(code, Some(8), "{err}");
+    assert!(err.contains("camera timeout at mirror 0 after 3 attempts"), "{err}");
+}
+
+#[test]
+fn a_bad_fault_spec_is_a_usage_error() {
+    let dir = tmp();
+    let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "explode@trigger=1");
+    assert_eq!(code, Some(2), "{err}");
+}
