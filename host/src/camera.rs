@@ -33,6 +33,9 @@ pub enum CameraError {
 pub trait Camera: Send {
     /// Get ready for the next trigger; frames from before are stale.
     fn arm(&mut self) -> Result<(), CameraError>;
+    /// The device reported the trigger's rising edge: nothing that arrived
+    /// before it can be its frame.
+    fn triggered(&mut self) {}
     /// The frame of the trigger that fired, waiting up to `timeout`.
     fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError>;
     /// What this is, for messages and manifests.
@@ -60,10 +63,12 @@ impl Camera for SimCamera {
     }
 }
 
-/// Frames from a folder another program writes into: the next new `.exr`
-/// file (in name order) after arming is the frame. Hidden files (`.name`)
-/// and `*.tmp` are in-progress writes and ignored; a file still growing is
-/// read again until it decodes.
+/// Frames from a folder another program writes into, matched to triggers by
+/// order and time: the first new `.exr` file (in name order) that appears
+/// after the device reported the trigger's rising edge is its frame (files
+/// landing between arming and the trigger belong to earlier pulses). Hidden
+/// files (`.name`) and `*.tmp` are in-progress writes and ignored; a file
+/// that does not decode yet is read again until it does.
 #[derive(Debug)]
 pub struct FolderCamera {
     dir: PathBuf,
@@ -106,6 +111,14 @@ impl Camera for FolderCamera {
     fn arm(&mut self) -> Result<(), CameraError> {
         self.seen = self.list()?;
         Ok(())
+    }
+
+    fn triggered(&mut self) {
+        // Frames of earlier pulses (a step cut short by a previous host,
+        // a retake) may still be landing; the exposure has only begun.
+        if let Ok(names) = self.list() {
+            self.seen.extend(names);
+        }
     }
 
     fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError> {

@@ -563,71 +563,95 @@ pub fn scan(
     };
     report.timings.link += t.elapsed();
 
-    for l in 0..total {
-        if manifest.frames.iter().any(|f| f.mirror == l) {
-            continue;
-        }
-        let mut misses = 0;
-        let mut resets = 0;
-        let record = loop {
-            match capture_one(dev, camera, l, opts, &mut report.timings) {
-                Ok(r) => break r,
-                Err(Attempt::Camera(e)) => {
-                    misses += 1;
-                    report.retakes += 1;
-                    progress.note(&format!("mirror {l}: {e}; taking it again"));
-                    if misses >= opts.attempts {
-                        return Err(ScanError::CameraTimeout {
-                            mirror: l,
-                            attempts: misses,
-                            detail: e.to_string(),
-                        });
-                    }
+    // Frames are encoded and written, and the manifest updated, on a second
+    // thread while the next frame is captured; the manifest names a frame
+    // as soon as its file is durable, and only then.
+    let already: Vec<usize> = manifest.frames.iter().map(|f| f.mirror).collect();
+    let manifest = std::thread::scope(|scope| -> Result<Manifest, ScanError> {
+        let (jobs, job_rx) = std::sync::mpsc::sync_channel::<WriteJob>(1);
+        let (done_tx, done) = std::sync::mpsc::channel::<Result<(usize, Duration), ScanError>>();
+        let out = opts.out.as_path();
+        let writer = scope.spawn(move || {
+            for job in job_rx {
+                let t = Instant::now();
+                let result = write_frame(out, job).and_then(|record| {
+                    let mirror = record.mirror;
+                    manifest.frames.retain(|f| f.mirror != mirror);
+                    manifest.frames.push(record);
+                    manifest.frames.sort_by_key(|f| f.mirror);
+                    manifest.save(out)?;
+                    Ok((mirror, t.elapsed()))
+                });
+                let failed = result.is_err();
+                if done_tx.send(result).is_err() || failed {
+                    break;
                 }
-                Err(Attempt::Recover(why)) => {
-                    resets += 1;
-                    report.retakes += 1;
-                    if why.contains("reset") {
-                        report.resets += 1;
-                    }
-                    progress.note(&format!("mirror {l}: {why}; recovering"));
-                    if resets > 5 {
-                        return Err(ScanError::DeviceFault(format!(
-                            "mirror {l}: {why}, again and again"
-                        )));
-                    }
-                    let t = Instant::now();
-                    prepare(dev, geometry, progress)?;
-                    report.timings.link += t.elapsed();
-                }
-                Err(Attempt::Fatal(e)) => return Err(e),
             }
-        };
-        let (frame, fired, status) = record;
-        let t = Instant::now();
-        let file = frame_file(l);
-        let bytes =
-            exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{file}: {e}")))?;
-        let path = opts.out.join(&file);
-        write_atomic(&path, &bytes).map_err(|e| io_error(&path, e))?;
-        let steps = status.axes.map(|a| a.position_steps);
-        manifest.frames.push(FrameRecord {
-            mirror: l,
-            file,
-            sha256: sha256_hex(&bytes),
-            width: frame.width,
-            height: frame.height,
-            trigger_seq: fired.trigger_seq,
-            device_timestamp_us: fired.timestamp_us,
-            exposure_us: fired.exposure_us,
-            axis_steps: steps,
-            axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
+            manifest
         });
-        manifest.frames.sort_by_key(|f| f.mirror);
-        manifest.save(&opts.out)?;
-        report.timings.disk += t.elapsed();
-        report.captured += 1;
-        progress.frame(l);
+        let stored = |result: Result<(usize, Duration), ScanError>,
+                      report: &mut ScanReport,
+                      progress: &mut dyn ScanProgress|
+         -> Result<(), ScanError> {
+            let (mirror, took) = result?;
+            report.timings.disk += took;
+            report.captured += 1;
+            progress.frame(mirror);
+            Ok(())
+        };
+        let mut failure = None;
+        for l in (0..total).filter(|l| !already.contains(l)) {
+            for result in done.try_iter() {
+                if let Err(e) = stored(result, &mut report, progress) {
+                    failure = Some(e);
+                }
+            }
+            if failure.is_some() {
+                break;
+            }
+            let (frame, fired, status) =
+                match capture_with_retries(dev, camera, geometry, l, opts, &mut report, progress) {
+                    Ok(c) => c,
+                    Err(e) => {
+                        failure = Some(e);
+                        break;
+                    }
+                };
+            let steps = status.axes.map(|a| a.position_steps);
+            let job = WriteJob {
+                frame,
+                record: FrameRecord {
+                    mirror: l,
+                    file: frame_file(l),
+                    sha256: String::new(),
+                    width: 0,
+                    height: 0,
+                    trigger_seq: fired.trigger_seq,
+                    device_timestamp_us: fired.timestamp_us,
+                    exposure_us: fired.exposure_us,
+                    axis_steps: steps,
+                    axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
+                },
+            };
+            if jobs.send(job).is_err() {
+                break; // the writer stopped on an error, reported below
+            }
+        }
+        // Frames already taken are stored and recorded even when the scan
+        // stops: a resume will not take them again.
+        drop(jobs);
+        for result in done.iter() {
+            if let Err(e) = stored(result, &mut report, progress) {
+                failure.get_or_insert(e);
+            }
+        }
+        let manifest =
+            writer.join().map_err(|_| ScanError::Io("the frame writer panicked".into()))?;
+        failure.map_or(Ok(manifest), Err)
+    })?;
+    let mut manifest = manifest;
+    if manifest.frames.len() < total {
+        return Err(ScanError::Io("frames were not written".into()));
     }
     manifest.complete = true;
     let t = Instant::now();
@@ -670,6 +694,74 @@ impl From<LinkError> for Attempt {
 }
 
 type Captured = (crate::camera::Frame, TriggerFired, protocol::Status);
+
+/// A frame to encode and store, with its record (checksum and size to fill).
+struct WriteJob {
+    frame: crate::camera::Frame,
+    record: FrameRecord,
+}
+
+/// Encode and store one frame atomically; complete its record.
+fn write_frame(dir: &Path, job: WriteJob) -> Result<FrameRecord, ScanError> {
+    let WriteJob { frame, mut record } = job;
+    let bytes =
+        exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{}: {e}", record.file)))?;
+    let path = dir.join(&record.file);
+    write_atomic(&path, &bytes).map_err(|e| io_error(&path, e))?;
+    record.sha256 = sha256_hex(&bytes);
+    record.width = frame.width;
+    record.height = frame.height;
+    Ok(record)
+}
+
+/// Capture mirror `l`, taking the step again after a missed frame and
+/// recovering from resets and recoverable faults.
+fn capture_with_retries(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    geometry: &ScannerGeometry,
+    l: usize,
+    opts: &ScanOptions,
+    report: &mut ScanReport,
+    progress: &mut dyn ScanProgress,
+) -> Result<Captured, ScanError> {
+    let mut misses = 0;
+    let mut resets = 0;
+    loop {
+        match capture_one(dev, camera, l, opts, &mut report.timings) {
+            Ok(r) => return Ok(r),
+            Err(Attempt::Camera(e)) => {
+                misses += 1;
+                report.retakes += 1;
+                progress.note(&format!("mirror {l}: {e}; taking it again"));
+                if misses >= opts.attempts {
+                    return Err(ScanError::CameraTimeout {
+                        mirror: l,
+                        attempts: misses,
+                        detail: e.to_string(),
+                    });
+                }
+            }
+            Err(Attempt::Recover(why)) => {
+                resets += 1;
+                report.retakes += 1;
+                if why.contains("reset") {
+                    report.resets += 1;
+                }
+                progress.note(&format!("mirror {l}: {why}; recovering"));
+                if resets > 5 {
+                    return Err(ScanError::DeviceFault(format!(
+                        "mirror {l}: {why}, again and again"
+                    )));
+                }
+                let t = Instant::now();
+                prepare(dev, geometry, progress)?;
+                report.timings.link += t.elapsed();
+            }
+            Err(Attempt::Fatal(e)) => return Err(e),
+        }
+    }
+}
 
 fn capture_one(
     dev: &mut Device,
@@ -716,7 +808,10 @@ fn trigger_step(
                 || matches!(e, Event::MotionDone { outcome: MotionOutcome::Aborted, .. })
         })?;
         match event {
-            Some(Event::TriggerFired(t)) => return Ok(t),
+            Some(Event::TriggerFired(t)) => {
+                camera.triggered();
+                return Ok(t);
+            }
             Some(other) => {
                 let status = dev.status()?;
                 let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
