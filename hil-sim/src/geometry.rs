@@ -14,7 +14,7 @@
 //! ([`ScannerGeometry::perturbed`]); the host only ever sees the nominal one,
 //! so the difference is what calibration has to recover.
 
-use glam::DVec3;
+pub use glam::DVec3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};

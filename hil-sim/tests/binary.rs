@@ -40,3 +40,47 @@ fn bad_options_are_refused() {
         Command::new(env!("CARGO_BIN_EXE_hil-sim")).args(["--corrupt", "1.5"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
 }
+
+#[test]
+fn render_and_direct_write_their_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("frames");
+    let status = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+        .args(["render", "--bin", "16", "--mirrors", "2", "--material", "leather", "--out"])
+        .arg(&out)
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let frame = image::open(out.join("frame-01.exr")).unwrap();
+    assert_eq!((frame.width(), frame.height()), (256, 256));
+    let direct = dir.path().join("direct");
+    let status = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+        .args(["direct", "--material", "rough-metal", "--out"])
+        .arg(&direct)
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let mut names: Vec<String> = std::fs::read_dir(&direct)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "direct-0-mirror-00.exr",
+            "direct-1-mirror-01.exr",
+            "direct-2-mirror-02.exr",
+            "direct-3-mirror-03.exr"
+        ]
+    );
+    let bad = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+        .args(["render", "--material", "cheese"])
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("unknown material"));
+}

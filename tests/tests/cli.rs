@@ -173,3 +173,59 @@ fn a_bad_fault_spec_is_a_usage_error() {
     let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "explode@trigger=1");
     assert_eq!(code, Some(2), "{err}");
 }
+
+#[test]
+fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
+    use std::io::BufRead;
+    let dir = tmp();
+    let frames = sub(dir.path(), "frames");
+    let mut child = scanner()
+        .args(["sim", "--sim-bin", "8", "--speed", "3", "--frames", &frames.display().to_string()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let pty = line.trim().to_string();
+    let (code, out, err) = run(&["info", "--device", &pty]);
+    let geometry = hil_sim::geometry::ScannerGeometry::load(&frames.join("geometry.toml"));
+    let (tcode, _, terr) = run(&["trigger", "--device", &pty]);
+    // The camera drops the trigger's frame into the folder.
+    let end = std::time::Instant::now() + Duration::from_secs(10);
+    let mut exr = 0;
+    while exr == 0 && std::time::Instant::now() < end {
+        std::thread::sleep(Duration::from_millis(50));
+        exr = std::fs::read_dir(&frames)
+            .unwrap()
+            .flatten()
+            .filter(|e| e.file_name().to_string_lossy().ends_with(".exr"))
+            .count();
+    }
+    child.kill().unwrap();
+    let _ = child.wait();
+    assert!(pty.starts_with("/dev/"), "{pty:?}");
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("board 0x5100"), "{out}");
+    assert_eq!(geometry.unwrap().camera.width, 512);
+    assert_eq!(tcode, Some(0), "{terr}");
+    assert_eq!(exr, 1, "one frame per trigger");
+}
+
+#[test]
+fn usb_bulk_handshake_with_a_connected_scanner() {
+    let scanners = match host::discovery::usb_devices() {
+        Ok(list) => list.into_iter().filter(|d| d.vendor_interface.is_some()).collect::<Vec<_>>(),
+        Err(e) => {
+            eprintln!("skipped: cannot list USB devices here ({e})");
+            return;
+        }
+    };
+    let Some(d) = scanners.first() else {
+        eprintln!("skipped: no scanner with a USB bulk interface connected");
+        return;
+    };
+    let (code, out, err) = run(&["info", "--device", &format!("usb:{}", d.serial)]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("protocol"), "{out}");
+}

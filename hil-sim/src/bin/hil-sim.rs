@@ -3,10 +3,12 @@
 //! ```text
 //! hil-sim [--seed N] [--speed X] [--corrupt P] [--drop P] [--fault SPEC]...
 //! hil-sim render [--material NAME] [--mirrors N] [--bin K] [--out DIR]
+//! hil-sim direct [--material NAME] --out DIR
 //! ```
 //! Serving prints the pty path; point the host at it like at `/dev/ttyACM0`.
 //! `render` renders the frames of a scan at the nominal mirror positions
-//! (timing each; optionally writing them as OpenEXR) without a device.
+//! (timing each; optionally writing them as OpenEXR) without a device;
+//! `direct` writes the Fig. 9 direct images of the material's large piece.
 
 use std::io::Write;
 
@@ -57,6 +59,43 @@ enum Command {
         #[arg(long)]
         out: Option<std::path::PathBuf>,
     },
+    /// Write the direct images of the material's large piece (≈10× the
+    /// sample's area), seen and lit from the four mirror directions nearest
+    /// the camera axis, rectified at the mirror views' scale.
+    Direct {
+        /// Sample material.
+        #[arg(long, default_value = "woven-fabric")]
+        material: String,
+        /// Output folder: `direct-K-mirror-LL.exr`.
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
+}
+
+fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), String> {
+    let m = materials::by_name(material).ok_or_else(|| {
+        format!("unknown material {material:?} (one of {})", materials::MATERIAL_NAMES.join(", "))
+    })?;
+    let nominal = ScannerGeometry::default_scanner();
+    let sim = OpticalSim::new(
+        nominal.perturbed(seed, &Tolerances::default()),
+        Sample::small(m.clone()),
+        seed,
+    );
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    let mut dirs: Vec<(usize, hil_sim::geometry::DVec3)> = (0..nominal.mirrors.len())
+        .filter_map(|l| nominal.mirror_direction(l).map(|d| (l, d)))
+        .collect();
+    dirs.sort_by(|a, b| b.1.z.total_cmp(&a.1.z));
+    let px_per_mm = nominal.camera.focal_px / (2.0 * nominal.ellipsoid.semi_major_mm);
+    for (k, &(l, d)) in dirs.iter().take(4).enumerate() {
+        let frame = sim.direct_image(&Sample::large(m.clone()), d, px_per_mm, 0.05);
+        let path = out.join(format!("direct-{k}-mirror-{l:02}.exr"));
+        hil_sim::camera::write_frame_exr(&frame, &path)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        eprintln!("{}: {}×{} px", path.display(), frame.width, frame.height);
+    }
+    Ok(())
 }
 
 fn render(
@@ -101,6 +140,15 @@ fn render(
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
+    if let Some(Command::Direct { material, out }) = &args.command {
+        return match direct(args.seed, material, out) {
+            Ok(()) => std::process::ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("hil-sim direct: {e}");
+                std::process::ExitCode::from(2)
+            }
+        };
+    }
     if let Some(Command::Render { material, mirrors, bin, out }) = &args.command {
         return match render(args.seed, material, *mirrors, *bin, out.as_deref()) {
             Ok(()) => std::process::ExitCode::SUCCESS,
