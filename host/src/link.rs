@@ -47,9 +47,12 @@ fn wall_now() -> Duration {
 }
 
 /// A serial port: the CDC-ACM interface of the board, a UART, or the
-/// simulator's pty.
+/// simulator's pty. A USB port is remembered by its serial number too: when
+/// the board re-enumerates under another name (`ttyACM0` → `ttyACM1`) after
+/// a reset or a replug, reconnecting follows it.
 pub struct SerialTransport {
     path: String,
+    serial: Option<String>,
     port: Option<Box<dyn serialport::SerialPort>>,
 }
 
@@ -62,7 +65,12 @@ impl std::fmt::Debug for SerialTransport {
 impl SerialTransport {
     /// Open `path` (e.g. `/dev/ttyACM0`).
     pub fn open(path: &str) -> Result<SerialTransport, TransportError> {
-        let mut t = SerialTransport { path: path.to_string(), port: None };
+        let serial = crate::discovery::serial_scanners()
+            .unwrap_or_default()
+            .into_iter()
+            .find(|p| p.path == path)
+            .and_then(|p| p.serial);
+        let mut t = SerialTransport { path: path.to_string(), serial, port: None };
         t.reconnect()?;
         Ok(t)
     }
@@ -121,6 +129,16 @@ impl Transport for SerialTransport {
 
     fn reconnect(&mut self) -> Result<(), TransportError> {
         self.port = None;
+        if let Some(serial) = &self.serial
+            && let Some(p) = crate::discovery::serial_scanners()
+                .unwrap_or_default()
+                .into_iter()
+                .find(|p| p.serial.as_ref() == Some(serial))
+            && p.path != self.path
+        {
+            tracing::info!("scanner {serial} is now {}", p.path);
+            self.path = p.path;
+        }
         let port = serialport::new(&self.path, 115_200)
             .timeout(Duration::from_millis(10))
             .open()
@@ -386,31 +404,6 @@ impl std::fmt::Debug for Device {
     }
 }
 
-fn request_name(r: &Request) -> &'static str {
-    match r {
-        Request::Hello { .. } => "Hello",
-        Request::Ping { .. } => "Ping",
-        Request::GetStatus => "GetStatus",
-        Request::Home { .. } => "Home",
-        Request::Move { .. } => "Move",
-        Request::GoToMirror { .. } => "GoToMirror",
-        Request::GetMirror { .. } => "GetMirror",
-        Request::SetMirror { .. } => "SetMirror",
-        Request::SetMirrorCount { .. } => "SetMirrorCount",
-        Request::SetLight(_) => "SetLight",
-        Request::Trigger { .. } => "Trigger",
-        Request::CaptureStep(_) => "CaptureStep",
-        Request::Stop => "Stop",
-        Request::EmergencyStop => "EmergencyStop",
-        Request::ClearFault => "ClearFault",
-        Request::GetAxisConfig { .. } => "GetAxisConfig",
-        Request::SetAxisConfig { .. } => "SetAxisConfig",
-        Request::SaveConfig => "SaveConfig",
-        Request::GetLastTrigger => "GetLastTrigger",
-        Request::Reset => "Reset",
-    }
-}
-
 impl Device {
     /// Handshake over `transport` (version check) with default timings.
     pub fn connect(transport: Box<dyn Transport>) -> Result<Device, LinkError> {
@@ -550,7 +543,7 @@ impl Device {
         }
         Err(LinkError::Timeout {
             device: self.transport.describe(),
-            request: request_name(&request),
+            request: request.name(),
             attempts: self.timings.attempts,
         })
     }
@@ -559,7 +552,7 @@ impl Device {
     /// device that lost the handshake (it reset) is greeted again and
     /// [`LinkError::Reset`] returned if its boot id changed.
     pub fn request(&mut self, request: Request) -> Result<Reply, LinkError> {
-        let name = request_name(&request);
+        let name = request.name();
         match self.exchange(request)? {
             Reply::Error(DeviceError::NoHandshake) => {
                 let old = self.info.boot_id;
@@ -580,7 +573,7 @@ impl Device {
 
     /// A request whose only good answer is `Ack`.
     pub fn command(&mut self, request: Request) -> Result<(), LinkError> {
-        let name = request_name(&request);
+        let name = request.name();
         match self.request(request)? {
             Reply::Ack => Ok(()),
             reply => Err(LinkError::Unexpected { request: name, reply }),

@@ -699,6 +699,34 @@ wire_type! {
     }
 }
 
+impl Request {
+    /// The variant's name, for messages and logs.
+    pub const fn name(&self) -> &'static str {
+        match self {
+            Request::Hello { .. } => "Hello",
+            Request::Ping { .. } => "Ping",
+            Request::GetStatus => "GetStatus",
+            Request::Home { .. } => "Home",
+            Request::Move { .. } => "Move",
+            Request::GoToMirror { .. } => "GoToMirror",
+            Request::GetMirror { .. } => "GetMirror",
+            Request::SetMirror { .. } => "SetMirror",
+            Request::SetMirrorCount { .. } => "SetMirrorCount",
+            Request::SetLight(_) => "SetLight",
+            Request::Trigger { .. } => "Trigger",
+            Request::CaptureStep(_) => "CaptureStep",
+            Request::Stop => "Stop",
+            Request::EmergencyStop => "EmergencyStop",
+            Request::ClearFault => "ClearFault",
+            Request::GetAxisConfig { .. } => "GetAxisConfig",
+            Request::SetAxisConfig { .. } => "SetAxisConfig",
+            Request::SaveConfig => "SaveConfig",
+            Request::GetLastTrigger => "GetLastTrigger",
+            Request::Reset => "Reset",
+        }
+    }
+}
+
 wire_type! {
     /// The answer to one request (same sequence number as the request).
     pub enum Reply {
