@@ -396,3 +396,29 @@ fn lost_steps_visibly_change_the_frame() {
         );
     }
 }
+
+#[test]
+fn bad_geometry_files_are_refused_with_the_reason() {
+    let good = ScannerGeometry::default_scanner().to_toml();
+    let cases = [
+        (good.replace("format = 1", "format = 2"), "format 2"),
+        (good.replace("[sensor]", "[sensor]\ncolour = \"mono\""), "unknown field"),
+        (good.replace("focal_distance_mm = 800.0", "focal_distance_mm = 1300.0"), "focal_distance"),
+        (good.replace("width = 4096", "width = 0"), "camera"),
+        (good[..good.len() / 3].to_string(), ""),
+    ];
+    for (text, why) in cases {
+        let e = ScannerGeometry::from_toml(&text).unwrap_err().to_string();
+        assert!(e.contains(why), "{e}");
+    }
+    let mut g = ScannerGeometry::default_scanner();
+    g.mirrors.clear();
+    assert!(ScannerGeometry::from_toml(&g.to_toml()).unwrap_err().to_string().contains("mirrors"));
+    g = ScannerGeometry::default_scanner();
+    g.mirrors[3].normal = [0.0, 0.0, 2.0];
+    assert!(ScannerGeometry::from_toml(&g.to_toml()).unwrap_err().to_string().contains("mirror 3"));
+    assert!(matches!(
+        ScannerGeometry::default_scanner().mirror_axes(40),
+        Err(hil_sim::geometry::GeometryError::NoMirror(40, 40))
+    ));
+}

@@ -229,3 +229,14 @@ fn usb_bulk_handshake_with_a_connected_scanner() {
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("protocol"), "{out}");
 }
+
+#[test]
+fn a_bad_geometry_file_exits_3() {
+    let dir = tmp();
+    let path = sub(dir.path(), "g.toml");
+    std::fs::write(&path, "format = 1\n[ellipsoid]\n").unwrap();
+    let (code, _, err) =
+        run(&["setup", "--device", "sim", "--geometry", &path.display().to_string()]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("scanner geometry"), "{err}");
+}
