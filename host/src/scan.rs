@@ -499,11 +499,7 @@ fn open_directory(
         )));
     }
     let before = m.frames.len();
-    m.frames.retain(|f| {
-        std::fs::read(dir.join(&f.file))
-            .map(|bytes| sha256_hex(&bytes) == f.sha256)
-            .unwrap_or(false)
-    });
+    m.frames.retain(|f| frame_intact(dir, f));
     if m.frames.len() < before {
         progress.note(&format!(
             "{} recorded frame(s) damaged or missing: taking them again",
@@ -653,12 +649,65 @@ pub fn scan(
     if manifest.frames.len() < total {
         return Err(ScanError::Io("frames were not written".into()));
     }
-    manifest.complete = true;
+    // Read every frame back before calling the scan complete.
     let t = Instant::now();
+    let damaged: Vec<usize> =
+        manifest.frames.iter().filter(|f| !frame_intact(&opts.out, f)).map(|f| f.mirror).collect();
+    if !damaged.is_empty() {
+        return Err(ScanError::Io(format!(
+            "frames of mirrors {damaged:?} do not match their checksums after writing; `--resume` takes them again"
+        )));
+    }
+    manifest.complete = true;
     manifest.save(&opts.out)?;
     report.timings.disk += t.elapsed();
     report.timings.total = started.elapsed();
     Ok(report)
+}
+
+/// Whether a frame's file exists and has its recorded checksum.
+fn frame_intact(dir: &Path, f: &FrameRecord) -> bool {
+    std::fs::read(dir.join(&f.file)).map(|bytes| sha256_hex(&bytes) == f.sha256).unwrap_or(false)
+}
+
+/// What [`verify`] found in a scan directory.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Verification {
+    /// Mirrors the scan is for.
+    pub mirror_count: usize,
+    /// Frames present with their checksum.
+    pub intact: usize,
+    /// Mirrors without a recorded frame.
+    pub missing: Vec<usize>,
+    /// Mirrors whose file is gone or differs from its checksum.
+    pub damaged: Vec<usize>,
+}
+
+impl Verification {
+    /// Every frame there and intact.
+    pub fn is_complete(&self) -> bool {
+        self.missing.is_empty() && self.damaged.is_empty()
+    }
+}
+
+/// Check a scan directory: manifest readable, every mirror's frame recorded,
+/// every file matching its checksum.
+pub fn verify(dir: &Path) -> Result<Verification, ScanError> {
+    let m = Manifest::load(dir)?;
+    let mut v = Verification {
+        mirror_count: m.settings.mirror_count,
+        intact: 0,
+        missing: Vec::new(),
+        damaged: Vec::new(),
+    };
+    for l in 0..m.settings.mirror_count {
+        match m.frames.iter().find(|f| f.mirror == l) {
+            None => v.missing.push(l),
+            Some(f) if frame_intact(dir, f) => v.intact += 1,
+            Some(_) => v.damaged.push(l),
+        }
+    }
+    Ok(v)
 }
 
 enum Attempt {

@@ -240,3 +240,38 @@ fn a_bad_geometry_file_exits_3() {
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("scanner geometry"), "{err}");
 }
+
+#[test]
+fn verify_reports_missing_and_damaged_frames() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let o = out.display().to_string();
+    let scan = [
+        "scan",
+        "--device",
+        "sim",
+        "--sim-bin",
+        "16",
+        "--sample-name",
+        "v",
+        "--out",
+        &o,
+        "--mirrors",
+        "3",
+    ];
+    let (code, _, err) = run(&scan);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, out_text, _) = run(&["verify", &o]);
+    assert_eq!(code, Some(0));
+    assert!(out_text.contains("3 of 3 frames intact"), "{out_text}");
+    std::fs::write(out.join("frames/mirror-01.exr"), b"not an exr").unwrap();
+    let (code, out_text, _) = run(&["verify", &o]);
+    assert_eq!(code, Some(3));
+    assert!(out_text.contains("damaged: mirrors [1]"), "{out_text}");
+    let mut resume = scan.to_vec();
+    resume.push("--resume");
+    let (code, out_text, err) = run(&resume);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out_text.contains("1 frames taken, 2 kept"), "{out_text}");
+    assert_eq!(run(&["verify", &o]).0, Some(0));
+}

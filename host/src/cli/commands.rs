@@ -148,6 +148,29 @@ pub fn devices() -> Result<(), Failure> {
     Ok(())
 }
 
+/// `scanner verify`
+pub fn verify(dir: &Path) -> Result<(), Failure> {
+    let v = scan::verify(dir).map_err(scan_failure)?;
+    println!("{}: {} of {} frames intact", dir.display(), v.intact, v.mirror_count);
+    if !v.missing.is_empty() {
+        println!("missing: mirrors {:?}", v.missing);
+    }
+    if !v.damaged.is_empty() {
+        println!("damaged: mirrors {:?}", v.damaged);
+    }
+    if v.is_complete() {
+        Ok(())
+    } else {
+        Err(Failure(
+            3,
+            anyhow!(
+                "{} is not a complete scan; `scanner scan --resume` completes it",
+                dir.display()
+            ),
+        ))
+    }
+}
+
 /// `scanner info`
 pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
     let mut o = open(args)?;

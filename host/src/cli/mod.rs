@@ -59,6 +59,11 @@ enum Command {
         #[command(flatten)]
         scan: commands::ScanArgs,
     },
+    /// Check a scan directory: every frame recorded and matching its checksum.
+    Verify {
+        /// Scan directory.
+        dir: PathBuf,
+    },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
         #[command(flatten)]
@@ -235,6 +240,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
+        Command::Verify { dir } => commands::verify(&dir)?,
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,
         Command::Home { device, axes } => commands::home(&device, &axes)?,
