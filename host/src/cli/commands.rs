@@ -356,8 +356,12 @@ impl ScanProgress for Bar {
         self.bar.set_message(format!("mirror {mirror}"));
     }
     fn note(&mut self, message: &str) {
-        self.bar.println(format!("{}: {message}", self.label));
-        tracing::info!("{message}");
+        // A hidden bar (stderr not a terminal) would swallow the line.
+        if self.bar.is_hidden() {
+            eprintln!("{}: {message}", self.label);
+        } else {
+            self.bar.println(format!("{}: {message}", self.label));
+        }
     }
 }
 
