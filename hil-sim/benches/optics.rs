@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use hil_sim::geometry::{ScannerGeometry, Tolerances};
+use hil_sim::geometry::ScannerGeometry;
 use hil_sim::materials::{self, Sample};
 use hil_sim::optics::{Exposure, OpticalSim};
 
@@ -14,8 +14,8 @@ fn frame(c: &mut Criterion) {
     group.sample_size(10).measurement_time(Duration::from_secs(20));
     for bin in [1u32, 4] {
         let nominal = ScannerGeometry::default_scanner().with_sensor_scaled(bin);
-        let sim = OpticalSim::new(
-            nominal.perturbed(7, &Tolerances::default()),
+        let sim = OpticalSim::as_built(
+            &nominal,
             Sample::small(materials::by_name("woven-fabric").unwrap()),
             7,
         );

@@ -140,6 +140,12 @@ pub fn by_name(name: &str) -> Option<Arc<dyn Material>> {
     })
 }
 
+/// [`by_name`], or a message naming the materials there are.
+pub fn lookup(name: &str) -> Result<Arc<dyn Material>, String> {
+    by_name(name)
+        .ok_or_else(|| format!("unknown material {name:?} (one of {})", MATERIAL_NAMES.join(", ")))
+}
+
 /// Names [`by_name`] knows.
 pub const MATERIAL_NAMES: [&str; 6] =
     ["checkerboard", "diffuse-white", "woven-fabric", "leather", "painted-wood", "rough-metal"];

@@ -22,7 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
-use crate::geometry::{AxisValues, Beam, Facet, ScannerGeometry, world_to_sample};
+use crate::geometry::{AxisValues, Beam, Facet, ScannerGeometry, Tolerances, world_to_sample};
 use crate::materials::Sample;
 
 /// Sub-pixel rays per axis.
@@ -139,6 +139,12 @@ impl OpticalSim {
             .collect();
         let facets = as_built.mirrors.iter().map(|m| m.facet()).collect();
         OpticalSim { geometry: as_built, sample, seed, boxes, facets }
+    }
+
+    /// The simulator of a scanner built to `nominal` with the default
+    /// manufacturing errors drawn from `seed` (which also seeds the noise).
+    pub fn as_built(nominal: &ScannerGeometry, sample: Sample, seed: u64) -> OpticalSim {
+        OpticalSim::new(nominal.perturbed(seed, &Tolerances::default()), sample, seed)
     }
 
     /// The as-built geometry (ground truth).

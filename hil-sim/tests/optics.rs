@@ -11,7 +11,7 @@ use hil_sim::{FaultEvent, FaultPlan, SimConfig};
 use protocol::{Axis, Event, Reply, Request};
 
 use glam::DVec3;
-use hil_sim::geometry::{AxisValues, DEFAULT_GEOMETRY_TOML, ScannerGeometry, Tolerances};
+use hil_sim::geometry::{AxisValues, DEFAULT_GEOMETRY_TOML, ScannerGeometry};
 use hil_sim::materials::{self, Sample};
 use hil_sim::optics::{Exposure, Frame, OpticalSim};
 
@@ -39,8 +39,8 @@ fn nominal() -> ScannerGeometry {
 }
 
 fn sim(factor: u32, material: &str, seed: u64) -> OpticalSim {
-    let as_built = nominal().with_sensor_scaled(factor).perturbed(seed, &Tolerances::default());
-    OpticalSim::new(as_built, Sample::small(materials::by_name(material).unwrap()), seed)
+    let nominal = nominal().with_sensor_scaled(factor);
+    OpticalSim::as_built(&nominal, Sample::small(materials::by_name(material).unwrap()), seed)
 }
 
 fn exposure(axes: AxisValues) -> Exposure {

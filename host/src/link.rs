@@ -555,12 +555,7 @@ impl Device {
         let name = request.name();
         match self.exchange(request)? {
             Reply::Error(DeviceError::NoHandshake) => {
-                let old = self.info.boot_id;
-                self.info = self.hello()?;
-                if self.info.boot_id != old {
-                    self.stats.resets += 1;
-                    return Err(LinkError::Reset { old, new: self.info.boot_id });
-                }
+                self.check_boot()?;
                 match self.exchange(request)? {
                     Reply::Error(error) => Err(LinkError::Refused { request: name, error }),
                     reply => Ok(reply),
@@ -622,10 +617,10 @@ impl Device {
                 if let Event::Boot { boot_id, .. } = e
                     && boot_id != self.info.boot_id
                 {
-                    let old = self.info.boot_id;
-                    self.info = self.hello()?;
-                    self.stats.resets += 1;
-                    return Err(LinkError::Reset { old, new: self.info.boot_id });
+                    // Greeting it again reports the reset (an event from a
+                    // boot the handshake does not confirm is dropped).
+                    self.check_boot()?;
+                    continue;
                 }
                 return Ok(Some(e));
             }

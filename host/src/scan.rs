@@ -321,10 +321,21 @@ pub fn mirror_table(
         .collect()
 }
 
+/// The device's mirror table after [`setup`].
+#[derive(Debug, Clone)]
+pub struct MirrorSetup {
+    /// The device's axis configurations.
+    pub axes: [AxisConfig; 3],
+    /// The table, per mirror.
+    pub table: Vec<MirrorPosition>,
+    /// Entries that had to be written.
+    pub written: usize,
+}
+
 /// Make the device's mirror table the geometry's (`scanner setup`): entries
 /// that differ are written, the count set, and the table saved to flash when
-/// the device has persistent storage. Returns how many entries were written.
-pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<usize, ScanError> {
+/// the device has persistent storage.
+pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<MirrorSetup, ScanError> {
     let axes = axis_configs(dev)?;
     let table = mirror_table(geometry, &axes)?;
     let mut written = 0;
@@ -346,21 +357,31 @@ pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<usize, Scan
         // Refresh the handshake's copy of the count.
         dev.check_boot()?;
     }
-    Ok(written)
+    Ok(MirrorSetup { axes, table, written })
 }
 
 /// Faults the scan clears by itself: they record that the host or the
-/// board went away, which the scan has just recovered from.
-const RECOVERABLE: FaultFlags =
-    FaultFlags(FaultFlags::LINK_TIMEOUT.0 | FaultFlags::WATCHDOG_RESET.0);
+/// board went away, which the scan has just recovered from, or a homing
+/// that [`prepare`] runs again.
+const CLEARABLE: FaultFlags = FaultFlags(
+    FaultFlags::LINK_TIMEOUT.0 | FaultFlags::WATCHDOG_RESET.0 | FaultFlags::HOMING_FAILED.0,
+);
+
+/// All of `faults` named, if any of them needs a person (emergency stop,
+/// driver fault, an unexpected home switch).
+fn faults_needing_a_person(faults: FaultFlags) -> Option<String> {
+    let serious = FaultFlags(faults.0 & !CLEARABLE.0);
+    (!serious.is_empty()).then(|| faults.names().collect::<Vec<_>>().join(", "))
+}
 
 /// Bring the device to a state where capture steps run: faults that only
 /// record a lost link or a reset cleared, mirror table in place, homed.
+/// Returns the device's axis configurations.
 pub fn prepare(
     dev: &mut Device,
     geometry: &ScannerGeometry,
     progress: &mut dyn ScanProgress,
-) -> Result<(), ScanError> {
+) -> Result<[AxisConfig; 3], ScanError> {
     for _ in 0..4 {
         match prepare_once(dev, geometry, progress) {
             Err(ScanError::Link(LinkError::Reset { .. })) => {
@@ -377,13 +398,11 @@ fn prepare_once(
     dev: &mut Device,
     geometry: &ScannerGeometry,
     progress: &mut dyn ScanProgress,
-) -> Result<(), ScanError> {
+) -> Result<[AxisConfig; 3], ScanError> {
     let status = dev.status()?;
     if !status.faults.is_empty() {
-        let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
-        if !serious.is_empty() && !serious.contains(FaultFlags::HOMING_FAILED) {
-            let names: Vec<&str> = status.faults.names().collect();
-            return Err(ScanError::DeviceFault(names.join(", ")));
+        if let Some(names) = faults_needing_a_person(status.faults) {
+            return Err(ScanError::DeviceFault(names));
         }
         progress
             .note(&format!("clearing {}", status.faults.names().collect::<Vec<_>>().join(", ")));
@@ -394,9 +413,9 @@ fn prepare_once(
         dev.command(Request::Stop)?;
         wait_idle(dev, Duration::from_secs(30))?;
     }
-    let written = setup(dev, geometry)?;
-    if written > 0 {
-        progress.note(&format!("wrote {written} mirror table entries"));
+    let mirrors = setup(dev, geometry)?;
+    if mirrors.written > 0 {
+        progress.note(&format!("wrote {} mirror table entries", mirrors.written));
     }
     let status = dev.status()?;
     if status.axes.iter().any(|a| !a.homed) {
@@ -413,7 +432,7 @@ fn prepare_once(
             _ => return Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
         }
     }
-    Ok(())
+    Ok(mirrors.axes)
 }
 
 fn wait_idle(dev: &mut Device, max: Duration) -> Result<protocol::Status, ScanError> {
@@ -438,8 +457,13 @@ pub fn frame_file(l: usize) -> String {
     format!("frames/mirror-{l:02}.exr")
 }
 
+/// Lower-case hex of `bytes` (device ids, checksums).
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
 fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+    hex(&Sha256::digest(bytes))
 }
 
 /// Open or create the scan directory; returns the manifest with only the
@@ -537,7 +561,7 @@ pub fn scan(
         light_duty_permille: opts.light_duty_permille,
     };
     let device = DeviceRecord {
-        device_id: info.device_id.iter().map(|b| format!("{b:02x}")).collect(),
+        device_id: hex(&info.device_id),
         firmware: info.firmware.to_string(),
         protocol: info.protocol.to_string(),
         board: info.board,
@@ -549,14 +573,7 @@ pub fn scan(
     progress.start(total, report.kept);
 
     let t = Instant::now();
-    prepare(dev, geometry, progress)?;
-    let axes = match axis_configs(dev) {
-        Err(ScanError::Link(LinkError::Reset { .. })) => {
-            prepare(dev, geometry, progress)?;
-            axis_configs(dev)?
-        }
-        other => other?,
-    };
+    let axes = prepare(dev, geometry, progress)?;
     report.timings.link += t.elapsed();
 
     // Frames are encoded and written, and the manifest updated, on a second
@@ -713,8 +730,14 @@ pub fn verify(dir: &Path) -> Result<Verification, ScanError> {
 enum Attempt {
     /// The camera missed: take the step again.
     Camera(CameraError),
-    /// The device reset or latched a recoverable fault: prepare, retake.
-    Recover(String),
+    /// The device reset (`reset`) or latched a recoverable fault: prepare,
+    /// retake.
+    Recover {
+        /// What happened.
+        why: String,
+        /// Whether it was a device reset.
+        reset: bool,
+    },
     /// Stop the scan.
     Fatal(ScanError),
 }
@@ -731,11 +754,11 @@ impl From<ScanError> for Attempt {
 impl From<LinkError> for Attempt {
     fn from(e: LinkError) -> Attempt {
         match e {
-            LinkError::Reset { .. } => Attempt::Recover(e.to_string()),
+            LinkError::Reset { .. } => Attempt::Recover { why: e.to_string(), reset: true },
             LinkError::Refused { error: protocol::DeviceError::NotHomed, .. }
             | LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }
             | LinkError::Refused { error: protocol::DeviceError::MirrorNotSet, .. } => {
-                Attempt::Recover(e.to_string())
+                Attempt::Recover { why: e.to_string(), reset: false }
             }
             e => Attempt::Fatal(e.into()),
         }
@@ -775,7 +798,7 @@ fn capture_with_retries(
     progress: &mut dyn ScanProgress,
 ) -> Result<Captured, ScanError> {
     let mut misses = 0;
-    let mut resets = 0;
+    let mut recoveries = 0;
     loop {
         match capture_one(dev, camera, l, opts, &mut report.timings) {
             Ok(r) => return Ok(r),
@@ -791,14 +814,14 @@ fn capture_with_retries(
                     });
                 }
             }
-            Err(Attempt::Recover(why)) => {
-                resets += 1;
+            Err(Attempt::Recover { why, reset }) => {
+                recoveries += 1;
                 report.retakes += 1;
-                if why.contains("reset") {
+                if reset {
                     report.resets += 1;
                 }
                 progress.note(&format!("mirror {l}: {why}; recovering"));
-                if resets > 5 {
+                if recoveries > 5 {
                     return Err(ScanError::DeviceFault(format!(
                         "mirror {l}: {why}, again and again"
                     )));
@@ -863,13 +886,13 @@ fn trigger_step(
             }
             Some(other) => {
                 let status = dev.status()?;
-                let serious = FaultFlags(status.faults.0 & !RECOVERABLE.0);
-                if !serious.is_empty() {
-                    return Err(Attempt::Fatal(ScanError::DeviceFault(
-                        status.faults.names().collect::<Vec<_>>().join(", "),
-                    )));
+                if let Some(names) = faults_needing_a_person(status.faults) {
+                    return Err(Attempt::Fatal(ScanError::DeviceFault(names)));
                 }
-                return Err(Attempt::Recover(format!("capture step interrupted ({other:?})")));
+                return Err(Attempt::Recover {
+                    why: format!("capture step interrupted ({other:?})"),
+                    reset: false,
+                });
             }
             None => {
                 let status = dev.status()?;
@@ -881,14 +904,15 @@ fn trigger_step(
                     {
                         return Ok(t);
                     }
-                    return Err(Attempt::Recover(
-                        "the capture step ended without its trigger".into(),
-                    ));
+                    return Err(Attempt::Recover {
+                        why: "the capture step ended without its trigger".into(),
+                        reset: false,
+                    });
                 }
             }
         }
     }
-    Err(Attempt::Recover("no trigger within the step's time".into()))
+    Err(Attempt::Recover { why: "no trigger within the step's time".into(), reset: false })
 }
 
 #[cfg(test)]

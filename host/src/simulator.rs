@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 
-use hil_sim::geometry::{ScannerGeometry, Tolerances};
+use hil_sim::geometry::ScannerGeometry;
 use hil_sim::materials::{self, Sample};
 use hil_sim::optics::OpticalSim;
 use hil_sim::{FaultPlan, SimConfig, SimRig};
@@ -38,15 +38,8 @@ impl SimSetup {
     }
 
     fn optics(&self) -> Result<OpticalSim, String> {
-        let material = materials::by_name(&self.material).ok_or_else(|| {
-            format!(
-                "unknown material {:?} (one of {})",
-                self.material,
-                materials::MATERIAL_NAMES.join(", ")
-            )
-        })?;
-        let as_built = self.nominal()?.perturbed(self.seed, &Tolerances::default());
-        Ok(OpticalSim::new(as_built, Sample::small(material), self.seed))
+        let material = materials::lookup(&self.material)?;
+        Ok(OpticalSim::as_built(&self.nominal()?, Sample::small(material), self.seed))
     }
 
     fn config(&self) -> SimConfig {

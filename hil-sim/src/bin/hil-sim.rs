@@ -13,7 +13,7 @@
 use std::io::Write;
 
 use clap::{Parser, Subcommand};
-use hil_sim::geometry::{ScannerGeometry, Tolerances};
+use hil_sim::geometry::ScannerGeometry;
 use hil_sim::materials::{self, Sample};
 use hil_sim::optics::{Exposure, OpticalSim};
 use hil_sim::{FaultPlan, FaultSpec, PtyServer, SimConfig, SimDevice};
@@ -73,15 +73,9 @@ enum Command {
 }
 
 fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), String> {
-    let m = materials::by_name(material).ok_or_else(|| {
-        format!("unknown material {material:?} (one of {})", materials::MATERIAL_NAMES.join(", "))
-    })?;
+    let m = materials::lookup(material)?;
     let nominal = ScannerGeometry::default_scanner();
-    let sim = OpticalSim::new(
-        nominal.perturbed(seed, &Tolerances::default()),
-        Sample::small(m.clone()),
-        seed,
-    );
+    let sim = OpticalSim::as_built(&nominal, Sample::small(m.clone()), seed);
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let mut dirs: Vec<(usize, hil_sim::geometry::DVec3)> = (0..nominal.mirrors.len())
         .filter_map(|l| nominal.mirror_direction(l).map(|d| (l, d)))
@@ -105,9 +99,7 @@ fn render(
     bin: u32,
     out: Option<&std::path::Path>,
 ) -> Result<(), String> {
-    let m = materials::by_name(material).ok_or_else(|| {
-        format!("unknown material {material:?} (one of {})", materials::MATERIAL_NAMES.join(", "))
-    })?;
+    let m = materials::lookup(material)?;
     if bin == 0 || bin > 64 {
         return Err("--bin must be in 1…64".into());
     }
@@ -115,8 +107,7 @@ fn render(
     if mirrors > nominal.mirrors.len() {
         return Err(format!("--mirrors: the scanner has {}", nominal.mirrors.len()));
     }
-    let sim =
-        OpticalSim::new(nominal.perturbed(seed, &Tolerances::default()), Sample::small(m), seed);
+    let sim = OpticalSim::as_built(&nominal, Sample::small(m), seed);
     if let Some(dir) = out {
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     }

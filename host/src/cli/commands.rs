@@ -175,7 +175,7 @@ pub fn verify(dir: &Path) -> Result<(), Failure> {
 pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
     let mut o = open(args)?;
     let i = *o.device.info();
-    println!("device   {} on {}", hex(&i.device_id), o.device.describe());
+    println!("device   {} on {}", scan::hex(&i.device_id), o.device.describe());
     println!("firmware {}  protocol {}  board {:#06x}", i.firmware, i.protocol, i.board);
     println!(
         "boot id  {:08x}  mirrors {}  capabilities {:#06x}",
@@ -195,10 +195,6 @@ pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
         );
     }
     Ok(())
-}
-
-fn hex(b: &[u8]) -> String {
-    b.iter().map(|x| format!("{x:02x}")).collect()
 }
 
 /// `scanner status`
@@ -320,16 +316,15 @@ pub fn trigger(args: &DeviceArgs, exposure_us: u32) -> Result<(), Failure> {
 pub fn setup(args: &DeviceArgs, geometry: Option<&Path>) -> Result<(), Failure> {
     let mut o = open(args)?;
     let g = load_geometry(geometry, &o)?;
-    let written = scan::setup(&mut o.device, &g).map_err(scan_failure)?;
-    let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
-    for (l, p) in scan::mirror_table(&g, &axes).map_err(scan_failure)?.iter().enumerate() {
-        let v = AxisValues::from_steps(p.steps.map(i64::from), &axes);
+    let setup = scan::setup(&mut o.device, &g).map_err(scan_failure)?;
+    for (l, p) in setup.table.iter().enumerate() {
+        let v = AxisValues::from_steps(p.steps.map(i64::from), &setup.axes);
         println!(
             "mirror {l:2}: disk {:8.3}°  track {:7.3} mm  tilt {:7.3}°  = {:?} steps",
             v.disk_deg, v.track_mm, v.tilt_deg, p.steps
         );
     }
-    println!("{written} entries written; geometry {}", g.hash());
+    println!("{} entries written; geometry {}", setup.written, g.hash());
     Ok(())
 }
 
