@@ -8,8 +8,8 @@ use std::time::Duration;
 use criterion::{Criterion, criterion_group, criterion_main};
 use host::brdf::Brdf;
 use host::brdf::analytic::{
-    Analytic, beckmann_conductor, coated_plastic, exactly_representable, ggx_conductor,
-    two_lobe_ggx,
+    Analytic, beckmann_conductor, coated_plastic, coated_plastic_fresnel, exactly_representable,
+    ggx_conductor, two_lobe_ggx,
 };
 use host::brdf::fit::{FitOptions, GVariant, Samples, Weighting, fit, fit_naive};
 use host::brdf::merl::{MerlTable, cosine_weighted_relative_rmse};
@@ -21,6 +21,7 @@ fn cases() -> Vec<(&'static str, Analytic)> {
         ("(a) Beckmann conductor α=0.3", exactly_representable(beckmann_conductor(0.3))),
         ("GGX conductor α=0.2, exact G1", ggx_conductor(0.2)),
         ("(b) Lambert + GGX coat", coated_plastic()),
+        ("Lambert + GGX coat, Fresnel transmission", coated_plastic_fresnel()),
         ("(c) two-lobe GGX", two_lobe_ggx()),
     ]
 }
@@ -59,7 +60,8 @@ fn npf(c: &mut Criterion) {
 
     let mut group = c.benchmark_group("npf_fit");
     group.sample_size(10).measurement_time(Duration::from_secs(20));
-    for (name, samples) in tables.iter().filter(|(n, _)| !n.contains("exact G1")) {
+    let timed = |n: &str| !n.contains("exact G1") && !n.contains("Fresnel transmission");
+    for (name, samples) in tables.iter().filter(|(n, _)| timed(n)) {
         for g in [GVariant::Smith, GVariant::Independent] {
             let opts = FitOptions { g, ..FitOptions::default() };
             group.bench_function(format!("{name} / {g:?}"), |b| {

@@ -4,8 +4,8 @@
 use std::f64::consts::{FRAC_PI_2, PI};
 
 use host::brdf::analytic::{
-    Analytic, Ndf, beckmann_conductor, coated_plastic, exactly_representable, ggx_conductor,
-    two_lobe_ggx,
+    Analytic, Lobe, Ndf, beckmann_conductor, coated_plastic, coated_plastic_fresnel,
+    exactly_representable, ggx_conductor, two_lobe_ggx,
 };
 use host::brdf::coords::{MERL_CELLS, cell_centre};
 use host::brdf::fit::{FitOptions, FitReport, GVariant, Measurement, Samples, Weighting, fit};
@@ -92,12 +92,44 @@ fn b_lambert_under_a_ggx_coat() {
         let (model, report) = fit_table(&table, FitOptions { g, ..FitOptions::default() });
         assert_monotone(&report);
         let psnr = sphere_psnr(&table, &model);
-        // Measured 36.4 / 36.5 dB: the issue asks 40. The loss sits at the
-        // silhouette, where the coat's Fresnel transmission darkens the
-        // diffuse base and a constant ρd cannot follow (see the notes in
-        // docs/benchmarks.md). This pins what the model achieves today.
-        assert!(psnr >= 36.0, "{g:?}: {psnr} dB");
+        assert!(psnr >= 40.0, "{g:?}: {psnr} dB");
     }
+}
+
+/// The coat's exact lobe plus a constant diffuse `k`·albedo/π: the best a
+/// model with a constant ρd could do if its factors matched the coat exactly.
+struct ConstantBase(f64);
+
+impl Brdf for ConstantBase {
+    fn eval(&self, wi: [f64; 3], wo: [f64; 3]) -> [f64; 3] {
+        let coat =
+            Analytic::Mixture(vec![Lobe { ndf: Ndf::Ggx(0.12), f0: [0.04; 3], weight: [1.0; 3] }]);
+        let spec = coat.eval(wi, wo);
+        let albedo = [0.6, 0.12, 0.08];
+        if wi[2] <= 0.0 || wo[2] <= 0.0 {
+            return [0.0; 3];
+        }
+        [0, 1, 2].map(|c| spec[c] + self.0 * albedo[c] / PI)
+    }
+}
+
+/// Seen through the smooth-interface Fresnel transmission the base vanishes
+/// at grazing angles, which a constant ρd cannot follow: the fit stays below
+/// 40 dB (docs/benchmarks.md), but it beats the coat's exact lobe over the
+/// best constant base — the factors compensate what they can, the loss is
+/// the model's, not the fitter's.
+#[test]
+fn b_fresnel_transmission_is_fitted_as_well_as_the_model_allows() {
+    let table = table_of(&coated_plastic_fresnel());
+    let (model, report) = fit_table(&table, FitOptions::default());
+    assert_monotone(&report);
+    let psnr = sphere_psnr(&table, &model);
+    let best_constant = [0.8, 0.85, 0.9]
+        .map(|k| sphere_psnr(&table, &ConstantBase(k)))
+        .into_iter()
+        .fold(f64::MIN, f64::max);
+    assert!(best_constant < 37.0, "{best_constant} dB");
+    assert!(psnr > best_constant, "fit {psnr} dB vs exact coat + constant base {best_constant} dB");
 }
 
 #[test]

@@ -1,7 +1,8 @@
 //! Analytic reference BRDFs, for generating MERL-format test tables and for
 //! benchmarks: microfacet conductors with GGX or Beckmann normals, Schlick
 //! Fresnel and separable Smith shadowing (exactly representable by NPF), a
-//! Lambert base under a GGX dielectric coat, and a two-lobe GGX mixture.
+//! Lambert base under a GGX dielectric coat (energy-coupled, or seen through
+//! the smooth-interface Fresnel transmission), and a two-lobe GGX mixture.
 
 use std::f64::consts::PI;
 
@@ -121,7 +122,8 @@ pub enum Analytic {
     /// lies exactly in the NPF function space ("exactly representable").
     TabulatedG(Lobe),
     /// A Lambert base (albedo per channel) under a dielectric GGX coat with
-    /// Schlick F0 = `coat_f0`: the base is seen through (1 − F(θi))(1 − F(θo)).
+    /// Schlick F0 = `coat_f0`; how much light the coat lets through to the
+    /// base and back out is `transmission`.
     CoatedDiffuse {
         /// Diffuse albedo.
         albedo: [f64; 3],
@@ -129,6 +131,8 @@ pub enum Analytic {
         alpha: f64,
         /// Coat F0.
         coat_f0: f64,
+        /// The coupling between the coat and the base.
+        transmission: Transmission,
     },
     /// A sum of lobes.
     Mixture(Vec<Lobe>),
@@ -155,10 +159,17 @@ impl Brdf for Analytic {
                 let scale = g(wi[2]) * g(wo[2]) / (gi * go);
                 exact.map(|v| v * scale)
             }
-            Analytic::CoatedDiffuse { albedo, alpha, coat_f0 } => {
-                let coat = Lobe { ndf: Ndf::Ggx(*alpha), f0: [*coat_f0; 3], weight: [1.0; 3] };
+            Analytic::CoatedDiffuse { albedo, alpha, coat_f0, transmission } => {
+                let coat = coat_lobe(*alpha, *coat_f0);
                 let spec = coat.eval(wi, wo);
-                let t = (1.0 - schlick(*coat_f0, wi[2])) * (1.0 - schlick(*coat_f0, wo[2]));
+                let t = match transmission {
+                    Transmission::Fresnel => {
+                        (1.0 - schlick(*coat_f0, wi[2])) * (1.0 - schlick(*coat_f0, wo[2]))
+                    }
+                    Transmission::Coupled(e) => {
+                        (1.0 - e.at(wi[2])) * (1.0 - e.at(wo[2])) / (1.0 - e.mean)
+                    }
+                };
                 [0, 1, 2].map(|c| spec[c] + albedo[c] / PI * t)
             }
             Analytic::Mixture(lobes) => lobes.iter().fold([0.0; 3], |acc, l| {
@@ -191,9 +202,122 @@ pub fn beckmann_conductor(alpha: f64) -> Analytic {
     })
 }
 
-/// Lambert + GGX dielectric coat (a red plastic).
+/// How a coat lets light through to the diffuse base and back.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Transmission {
+    /// The smooth-interface approximation: (1 − F(θi))(1 − F(θo)) with
+    /// Schlick's F at the angles to the macro normal. At grazing angles it
+    /// removes the base entirely (F → 1), more than a rough coat reflects.
+    Fresnel,
+    /// Energy coupling (Kelemen & Szirmay-Kalos 2001; the same form as
+    /// Kulla & Conty's energy compensation): the base sees what the coat's
+    /// own GGX lobe does not reflect,
+    /// (1 − E(θi))(1 − E(θo)) / (1 − Ē), where E(θ) is the lobe's directional
+    /// albedo and Ē = 2∫ E(θ) cos θ sin θ dθ its cosine-weighted mean, so a
+    /// base of albedo 1 returns exactly the energy the coat lets through.
+    Coupled(DirectionalAlbedo),
+}
+
+/// The directional albedo E(θ) = ∫ f_spec(ω, ωo) cos θo dωo of a microfacet
+/// lobe, tabulated uniformly in θ and read by linear interpolation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirectionalAlbedo {
+    table: Vec<f64>,
+    /// Ē = 2∫ E(θ) cos θ sin θ dθ.
+    pub mean: f64,
+}
+
+/// Steps of the E(θ) table over [0, π/2].
+const ALBEDO_STEPS: usize = 90;
+
+impl DirectionalAlbedo {
+    /// E(θ) of `lobe` (first channel), integrated over half vectors:
+    /// with o = reflect(i, h), dωo = 4 (i·h) dωh, so
+    /// E(θi) = ∫ D(h) F(i·h) G1(i) G1(o) (i·h) / cos θi dωh over the h with
+    /// i·h > 0 and o above the horizon; θh = (π/2)u² concentrates the
+    /// midpoint samples on the peak, as MERL's θh′ does.
+    pub fn of(lobe: &Lobe) -> DirectionalAlbedo {
+        use rayon::prelude::*;
+        const NU: usize = 384;
+        const NPHI: usize = 192;
+        let table: Vec<f64> = (0..=ALBEDO_STEPS)
+            .into_par_iter()
+            .map(|k| {
+                // The last entry is the limit at grazing incidence.
+                let theta = (k as f64 / ALBEDO_STEPS as f64).min(0.9999) * PI / 2.0;
+                let i = [theta.sin(), 0.0, theta.cos()];
+                let mut sum = 0.0;
+                for a in 0..NU {
+                    let u = (a as f64 + 0.5) / NU as f64;
+                    let th = PI / 2.0 * u * u;
+                    let (sh, ch) = th.sin_cos();
+                    // dωh = sin θh dθh dφ, dθh = π u du; φ over [0, π], × 2.
+                    let dw = sh * PI * u / NU as f64 * (PI / NPHI as f64) * 2.0;
+                    for b in 0..NPHI {
+                        let phi = (b as f64 + 0.5) / NPHI as f64 * PI;
+                        let h = [sh * phi.cos(), sh * phi.sin(), ch];
+                        let ih = dot(i, h);
+                        let oz = 2.0 * ih * h[2] - i[2];
+                        if ih <= 0.0 || oz <= 0.0 {
+                            continue;
+                        }
+                        sum += lobe.ndf.d(ch)
+                            * lobe.weight[0]
+                            * schlick(lobe.f0[0], ih)
+                            * lobe.ndf.g1(i[2])
+                            * lobe.ndf.g1(oz)
+                            * ih
+                            / i[2]
+                            * dw;
+                    }
+                }
+                sum
+            })
+            .collect();
+        // Ē by the trapezoid rule over the table.
+        let step = PI / 2.0 / ALBEDO_STEPS as f64;
+        let mean = 2.0
+            * (0..ALBEDO_STEPS)
+                .map(|k| {
+                    let f = |k: usize| {
+                        let t = k as f64 * step;
+                        table[k] * t.cos() * t.sin()
+                    };
+                    0.5 * (f(k) + f(k + 1)) * step
+                })
+                .sum::<f64>();
+        DirectionalAlbedo { table, mean }
+    }
+
+    /// E at cos θ.
+    pub fn at(&self, cos_t: f64) -> f64 {
+        let x = cos_t.clamp(0.0, 1.0).acos() / (PI / 2.0) * ALBEDO_STEPS as f64;
+        let k = (x.floor() as usize).min(ALBEDO_STEPS - 1);
+        let f = x - k as f64;
+        self.table[k] * (1.0 - f) + self.table[k + 1] * f
+    }
+}
+
+fn coat_lobe(alpha: f64, f0: f64) -> Lobe {
+    Lobe { ndf: Ndf::Ggx(alpha), f0: [f0; 3], weight: [1.0; 3] }
+}
+
+/// Albedo, roughness and F0 of the red plastic.
+const PLASTIC: ([f64; 3], f64, f64) = ([0.6, 0.12, 0.08], 0.12, 0.04);
+
+/// Lambert + GGX dielectric coat, energy-coupled (a red plastic): the
+/// issue's case (b).
 pub fn coated_plastic() -> Analytic {
-    Analytic::CoatedDiffuse { albedo: [0.6, 0.12, 0.08], alpha: 0.12, coat_f0: 0.04 }
+    let (albedo, alpha, coat_f0) = PLASTIC;
+    let e = DirectionalAlbedo::of(&coat_lobe(alpha, coat_f0));
+    Analytic::CoatedDiffuse { albedo, alpha, coat_f0, transmission: Transmission::Coupled(e) }
+}
+
+/// The same plastic seen through the smooth-interface Fresnel transmission
+/// (a harder case: the base vanishes at grazing angles).
+pub fn coated_plastic_fresnel() -> Analytic {
+    let (albedo, alpha, coat_f0) = PLASTIC;
+    Analytic::CoatedDiffuse { albedo, alpha, coat_f0, transmission: Transmission::Fresnel }
 }
 
 /// A two-lobe GGX mixture (a sharp and a hazy lobe).
@@ -223,5 +347,35 @@ mod tests {
             assert!(ndf.g1(0.1) < 1.0);
         }
         assert!((erf(0.5) - 0.520_499_877_8).abs() < 2e-7);
+    }
+
+    /// The coat's directional albedo: F0 at normal incidence (less the tiny
+    /// shadowing and lobe spread), rising towards grazing but held well below
+    /// 1 by masking; the reflected energy matches a direct integration over
+    /// outgoing directions.
+    #[test]
+    fn coat_albedo() {
+        let lobe = coat_lobe(0.12, 0.04);
+        let e = DirectionalAlbedo::of(&lobe);
+        assert!((e.at(1.0) - 0.04).abs() < 0.002, "E(0) = {}", e.at(1.0));
+        assert!(e.at(0.0) > 0.2 && e.at(0.0) < 0.5, "E(90°) = {}", e.at(0.0));
+        assert!(e.mean > 0.04 && e.mean < 0.1, "Ē = {}", e.mean);
+        for theta in [0.3f64, 1.0, 1.3] {
+            let i = [theta.sin(), 0.0, theta.cos()];
+            // Uniform in cos θo and φ (a different quadrature).
+            let (nt, np) = (1200, 600);
+            let mut sum = 0.0;
+            for a in 0..nt {
+                let u = (a as f64 + 0.5) / nt as f64;
+                let s = (1.0 - u * u).sqrt();
+                for b in 0..np {
+                    let p = (b as f64 + 0.5) / np as f64 * PI;
+                    sum += lobe.eval(i, [s * p.cos(), s * p.sin(), u])[0] * u;
+                }
+            }
+            let direct = sum / nt as f64 * (PI / np as f64) * 2.0;
+            let rel = (e.at(theta.cos()) - direct).abs() / direct;
+            assert!(rel < 0.01, "θ = {theta}: {} vs {direct}", e.at(theta.cos()));
+        }
     }
 }

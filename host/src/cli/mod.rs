@@ -198,8 +198,10 @@ enum Material {
     Ggx,
     /// Beckmann conductor, α = 0.3.
     Beckmann,
-    /// Lambert base under a GGX dielectric coat.
+    /// Lambert base under a GGX dielectric coat, energy-coupled.
     Coated,
+    /// The same, seen through the smooth-interface Fresnel transmission.
+    CoatedFresnel,
     /// Two-lobe GGX mixture.
     TwoLobe,
 }
@@ -313,6 +315,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 Material::Ggx => ggx_conductor(0.2),
                 Material::Beckmann => beckmann_conductor(0.3),
                 Material::Coated => coated_plastic(),
+                Material::CoatedFresnel => coated_plastic_fresnel(),
                 Material::TwoLobe => two_lobe_ggx(),
             };
             let table = MerlTable::from_fn(|wi, wo| b.eval(wi, wo));
