@@ -3,9 +3,12 @@
 use std::process::Command;
 
 use host::brdf::Brdf;
-use host::brdf::analytic::two_lobe_ggx;
+use host::brdf::analytic::{ggx_conductor, two_lobe_ggx};
+use host::brdf::fit::Measurement;
+use host::brdf::measurements::write_csv;
 use host::brdf::merl::MerlTable;
 use host::brdf::npf::NpfModel;
+use host::brdf::render::sphere_psnr;
 
 fn scanner(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_scanner")).args(args).output().expect("run scanner")
@@ -49,6 +52,49 @@ fn fit_render_and_plot_from_the_command_line() {
     // Something was drawn in each channel's colour.
     assert!(img.pixels().any(|p| p[0] > 150 && p[1] < 80 && p[2] < 80), "a red curve");
     assert!(img.pixels().any(|p| p[2] > 150 && p[0] < 80), "a blue curve");
+}
+
+#[test]
+fn fit_from_scattered_measurements() {
+    // A stratified grid of direction pairs, as a gonioreflectometer sweep.
+    let dir = tempfile::tempdir().unwrap();
+    let b = ggx_conductor(0.25);
+    let mut measurements = Vec::new();
+    let d = |t: f64, p: f64| [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()];
+    for a in 0..24 {
+        for c in 0..48 {
+            for e in 0..24 {
+                let ti = (a as f64 + 0.5) / 24.0 * 1.55;
+                let to = (e as f64 + 0.5) / 24.0 * 1.55;
+                let (wi, wo) = (d(ti, 0.0), d(to, (c as f64 + 0.5) / 48.0 * std::f64::consts::PI));
+                measurements.push(Measurement { wi, wo, rgb: b.eval(wi, wo) });
+            }
+        }
+    }
+    let csv = dir.path().join("sweep.csv");
+    write_csv(&csv, &measurements).unwrap();
+    let model = dir.path().join("sweep.json");
+    let out = scanner(&["fit", csv.to_str().unwrap(), "-o", model.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains(&format!("fitted {} samples", measurements.len())), "{stdout}");
+    let fitted = NpfModel::load(&model).unwrap();
+    let psnr = sphere_psnr(&b, &fitted);
+    assert!(psnr > 35.0, "{psnr} dB from a {}-sample sweep", measurements.len());
+
+    // A malformed row: exit 3, the line named, nothing written.
+    let bad = dir.path().join("bad.csv");
+    std::fs::write(
+        &bad,
+        "wi_x,wi_y,wi_z,wo_x,wo_y,wo_z,r,g,b\n0,0,1,0,0,1,0.1,0.1,0.1\n0,0,1,0,0,1,x,0,0\n",
+    )
+    .unwrap();
+    let out_model = dir.path().join("bad.json");
+    let out = scanner(&["fit", bad.to_str().unwrap(), "-o", out_model.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(3));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("line 3") && err.contains("r = \"x\""), "{err}");
+    assert!(!out_model.exists());
 }
 
 #[test]

@@ -9,6 +9,7 @@ use host::brdf::analytic::{
 };
 use host::brdf::coords::{MERL_CELLS, cell_centre};
 use host::brdf::fit::{FitOptions, FitReport, GVariant, Measurement, Samples, Weighting, fit};
+use host::brdf::measurements::{COLUMNS, MeasurementError, read_csv, write_csv};
 use host::brdf::merl::{MerlError, MerlTable, cosine_weighted_relative_rmse};
 use host::brdf::npf::{ModelError, NpfModel};
 use host::brdf::render::sphere_psnr;
@@ -190,6 +191,55 @@ fn scattered_measurements_fit_too() {
     bad[1].wi = [f64::NAN, 0.0, 1.0];
     assert!(Samples::from_measurements(&bad).is_err());
     assert!(Samples::from_measurements(&[]).is_err());
+}
+
+#[test]
+fn measurement_files_round_trip_and_bad_files_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.csv");
+    let b = two_lobe_ggx();
+    let measurements: Vec<Measurement> = (0..200)
+        .map(|k| {
+            let (t, p) = (k as f64 * 0.007, k as f64 * 0.31);
+            let wi = [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()];
+            let wo = [(1.1 - t).sin(), 0.0, (1.1 - t).cos()];
+            Measurement { wi, wo, rgb: b.eval(wi, wo) }
+        })
+        .collect();
+    write_csv(&path, &measurements).unwrap();
+    assert!(read_csv(&path).unwrap() == measurements, "exact round trip");
+
+    // Columns are matched by name, whitespace and comments are allowed.
+    let reordered = dir.path().join("reordered.csv");
+    std::fs::write(
+        &reordered,
+        "# one sample\nr, g, b, wo_x, wo_y, wo_z, wi_x, wi_y, wi_z, note\n0.1, 0.2, -1, 0, 0, 1, 0.6, 0, 0.8, x\n",
+    )
+    .unwrap();
+    let m = read_csv(&reordered).unwrap();
+    assert_eq!(
+        m,
+        vec![Measurement { wi: [0.6, 0.0, 0.8], wo: [0.0, 0.0, 1.0], rgb: [0.1, 0.2, -1.0] }]
+    );
+
+    let header = COLUMNS.join(",");
+    for (body, expect) in [
+        ("wi_x,wi_y,wi_z,wo_x,wo_y,wo_z,r,g\n".to_string(), "no column \"b\""),
+        (format!("{header}\n0,0,1,0,0,1,0.1,0.1,abc\n"), "line 2: b = \"abc\" is not a number"),
+        (
+            format!("{header}\n0,0,1,0,0,1,0.1,0.1,0.1\n0,0,1,0,0,1,inf,0,0\n"),
+            "line 3: r = inf is not finite",
+        ),
+        (format!("{header}\n0,0,2,0,0,1,0.1,0.1,0.1\n"), "line 2: wi has length 2"),
+        (format!("{header}\n0,0,1,0,0,1,0.1\n"), "line 2"),
+        (format!("{header}\n"), "no measurement"),
+    ] {
+        std::fs::write(&path, body).unwrap();
+        let err = read_csv(&path).unwrap_err().to_string();
+        assert!(err.contains(expect), "{err:?} should contain {expect:?}");
+    }
+    let err = read_csv(&dir.path().join("missing.csv")).unwrap_err();
+    assert!(matches!(err, MeasurementError::Io { .. }), "{err}");
 }
 
 #[test]

@@ -10,6 +10,7 @@
 //! - [`coords`]: the (θh, θd, φd) half/difference parameterisation and its
 //!   MERL binning.
 //! - [`merl`]: reading and writing MERL binary tables.
+//! - [`measurements`]: scattered measurements as CSV.
 //! - [`npf`]: the NPF model, its JSON file and the naive D·F·H model.
 //! - [`fit`]: alternating weighted least squares (AWLS) fitting.
 //! - [`smith`]: the Smith shadowing-masking term derived from a tabulated D.
@@ -21,6 +22,7 @@
 pub mod analytic;
 pub mod coords;
 pub mod fit;
+pub mod measurements;
 pub mod merl;
 pub mod npf;
 pub mod plot;

@@ -145,7 +145,8 @@ enum Command {
     },
     /// Fit an NPF model to a MERL table.
     Fit {
-        /// MERL binary table (.binary).
+        /// MERL binary table (.binary), or scattered measurements (.csv:
+        /// wi_x,wi_y,wi_z,wo_x,wo_y,wo_z,r,g,b; docs/npf-format.md).
         input: PathBuf,
         /// Output model (.json).
         #[arg(short, long)]
@@ -234,6 +235,19 @@ fn load_brdf(path: &Path) -> anyhow::Result<Box<dyn Brdf>> {
     }
 }
 
+/// Fitting samples from a MERL table or (`.csv`) scattered measurements.
+fn load_samples(path: &Path) -> anyhow::Result<Samples> {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or_default();
+    if ext.eq_ignore_ascii_case("csv") {
+        let m = crate::brdf::measurements::read_csv(path)?;
+        Samples::from_measurements(&m)
+            .with_context(|| format!("no usable measurement in {}", path.display()))
+    } else {
+        let table = MerlTable::read(path)?;
+        Samples::from_merl(&table).context("no usable sample in the table")
+    }
+}
+
 fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
         Command::Demo { out, material, bin, mirrors, seed } => {
@@ -256,9 +270,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             if !(1.0..=2.0).contains(&p) {
                 return Err(Failure(2, anyhow::anyhow!("--p must be in [1, 2], got {p}")));
             }
-            let table = input(MerlTable::read(&path).map_err(anyhow::Error::from))?;
-            let samples =
-                input(Samples::from_merl(&table).context("no usable sample in the table"))?;
+            let samples = input(load_samples(&path))?;
             let opts = FitOptions {
                 g,
                 weighting: Weighting::Compressive { p },
