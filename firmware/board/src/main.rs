@@ -19,11 +19,12 @@ mod clock;
 mod storage;
 
 use core::cell::RefCell;
+use core::sync::atomic::{AtomicBool, Ordering};
 
 use critical_section::Mutex;
 use defmt::{info, unwrap, warn};
 use embassy_executor::Spawner;
-use embassy_futures::join::join3;
+use embassy_futures::join::join4;
 use embassy_stm32::flash::Flash;
 use embassy_stm32::gpio::Output;
 use embassy_stm32::peripherals::USB_OTG_FS;
@@ -36,6 +37,7 @@ use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
 use embassy_time::{Duration, Ticker};
 use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
+use embassy_usb::driver::{Endpoint, EndpointIn, EndpointOut};
 use firmware::Controller;
 use firmware::config::PERSISTED_MAX_LEN;
 use firmware::hal::{BootInfo, Hardware, StorageError};
@@ -68,6 +70,15 @@ static STEP: Mutex<RefCell<Option<StepBlock>>> = Mutex::new(RefCell::new(None));
 
 /// Frames for the host, written by whoever holds the machine, read by USB.
 static TX: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
+
+/// Whether the host last spoke on the vendor-class bulk interface (else on
+/// the CDC-ACM one): replies and events go where the host is listening.
+static VENDOR_ACTIVE: AtomicBool = AtomicBool::new(false);
+
+/// How long a packet may wait for the host to read it before it is dropped
+/// (the host retransmits; a host that switched interfaces must not stall
+/// the other one).
+const TX_TIMEOUT: Duration = Duration::from_millis(200);
 
 fn send(frame: &[u8]) {
     // Whole frames only: a frame that does not fit is dropped (the host
@@ -236,7 +247,12 @@ async fn main(spawner: Spawner) {
     // APB1 at 48 MHz: its timers run at 96 MHz.
     clock::start(96_000_000);
 
-    // USB CDC-ACM.
+    // USB: CDC-ACM (a tty for any serial tool) and a vendor-class bulk
+    // interface (for hosts that talk USB directly, no kernel driver), both
+    // carrying the same framed protocol (docs/protocol.md §1). The F411's
+    // OTG_FS has 4 IN and 4 OUT endpoints — IN: EP0, CDC notification, CDC
+    // bulk, vendor bulk; OUT: EP0, CDC bulk, vendor bulk — and 320 FIFO words
+    // (≈ 112 used); EP_OUT holds the 3 × 64-byte OUT packets.
     static EP_OUT: StaticCell<[u8; 256]> = StaticCell::new();
     let mut usb_config = usb::Config::default();
     usb_config.vbus_detection = false;
@@ -262,8 +278,14 @@ async fn main(spawner: Spawner) {
         CONTROL_BUF.init([0; 64]),
     );
     let class = CdcAcmClass::new(&mut builder, STATE.init(State::new()), 64);
+    let vendor = {
+        let mut function = builder.function(0xFF, 0x00, 0x00);
+        let mut interface = function.interface();
+        let mut alt = interface.alt_setting(0xFF, 0x00, 0x00, None);
+        (alt.endpoint_bulk_out(None, 64), alt.endpoint_bulk_in(None, 64))
+    };
     let usb = builder.build();
-    spawner.spawn(unwrap!(usb_task(usb, class)));
+    spawner.spawn(unwrap!(usb_task(usb, class, vendor.0, vendor.1)));
 
     // Control loop: inputs at 5 kHz, the controller's timers, the watchdog.
     let mut ticker = Ticker::every(Duration::from_micros(200));
@@ -287,37 +309,80 @@ async fn main(spawner: Spawner) {
 }
 
 type UsbDriver = Driver<'static, USB_OTG_FS>;
+type VendorOut = <UsbDriver as embassy_usb::driver::Driver<'static>>::EndpointOut;
+type VendorIn = <UsbDriver as embassy_usb::driver::Driver<'static>>::EndpointIn;
+
+/// Bytes from the host, on either interface, to the controller.
+fn received(bytes: &[u8]) {
+    let mut machine = MACHINE.borrow().borrow_mut();
+    if let Some(m) = machine.as_mut() {
+        m.controller.on_bytes(bytes, clock::now(), &mut m.hw, &mut send);
+    }
+}
 
 #[embassy_executor::task]
 async fn usb_task(
     mut usb: embassy_usb::UsbDevice<'static, UsbDriver>,
     class: CdcAcmClass<'static, UsbDriver>,
+    mut vendor_out: VendorOut,
+    mut vendor_in: VendorIn,
 ) {
     let (mut sender, mut receiver) = class.split();
-    let rx = async {
+    let cdc_rx = async {
         let mut packet = [0u8; 64];
         loop {
             receiver.wait_connection().await;
-            info!("host connected");
+            info!("host connected (CDC-ACM)");
             while let Ok(n) = receiver.read_packet(&mut packet).await {
-                let mut machine = MACHINE.borrow().borrow_mut();
-                if let Some(m) = machine.as_mut() {
-                    m.controller.on_bytes(&packet[..n], clock::now(), &mut m.hw, &mut send);
-                }
+                VENDOR_ACTIVE.store(false, Ordering::Relaxed);
+                received(&packet[..n]);
             }
-            info!("host disconnected");
+            info!("host disconnected (CDC-ACM)");
+        }
+    };
+    let vendor_rx = async {
+        let mut packet = [0u8; 64];
+        loop {
+            vendor_out.wait_enabled().await;
+            info!("vendor interface enabled");
+            while let Ok(n) = vendor_out.read(&mut packet).await {
+                VENDOR_ACTIVE.store(true, Ordering::Relaxed);
+                received(&packet[..n]);
+            }
+            info!("vendor interface disabled");
         }
     };
     let tx = async {
         let mut buf = [0u8; 64];
         loop {
             let n = TX.read(&mut buf).await;
-            sender.wait_connection().await;
-            if sender.write_packet(&buf[..n]).await.is_ok() && n == buf.len() && TX.is_empty() {
-                // A full-size packet needs a zero-length one to end the transfer.
-                let _ = sender.write_packet(&[]).await;
+            // A full-size packet that ends the pending bytes needs a
+            // zero-length one to end the transfer.
+            let zlp = n == buf.len() && TX.is_empty();
+            let sent = if VENDOR_ACTIVE.load(Ordering::Relaxed) {
+                embassy_time::with_timeout(TX_TIMEOUT, async {
+                    vendor_in.write(&buf[..n]).await.ok()?;
+                    if zlp {
+                        vendor_in.write(&[]).await.ok()?;
+                    }
+                    Some(())
+                })
+                .await
+            } else {
+                embassy_time::with_timeout(TX_TIMEOUT, async {
+                    sender.wait_connection().await;
+                    sender.write_packet(&buf[..n]).await.ok()?;
+                    if zlp {
+                        sender.write_packet(&[]).await.ok()?;
+                    }
+                    Some(())
+                })
+                .await
+            };
+            if !matches!(sent, Ok(Some(()))) {
+                warn!("{} bytes not read by the host: dropped", n);
             }
         }
     };
-    join3(usb.run(), rx, tx).await;
+    join4(usb.run(), cdc_rx, vendor_rx, tx).await;
 }
