@@ -278,14 +278,14 @@ async fn main(spawner: Spawner) {
         CONTROL_BUF.init([0; 64]),
     );
     let class = CdcAcmClass::new(&mut builder, STATE.init(State::new()), 64);
-    let vendor = {
+    let (vendor_out, vendor_in) = {
         let mut function = builder.function(0xFF, 0x00, 0x00);
         let mut interface = function.interface();
         let mut alt = interface.alt_setting(0xFF, 0x00, 0x00, None);
         (alt.endpoint_bulk_out(None, 64), alt.endpoint_bulk_in(None, 64))
     };
     let usb = builder.build();
-    spawner.spawn(unwrap!(usb_task(usb, class, vendor.0, vendor.1)));
+    spawner.spawn(unwrap!(usb_task(usb, class, vendor_out, vendor_in)));
 
     // Control loop: inputs at 5 kHz, the controller's timers, the watchdog.
     let mut ticker = Ticker::every(Duration::from_micros(200));
@@ -356,30 +356,23 @@ async fn usb_task(
         let mut buf = [0u8; 64];
         loop {
             let n = TX.read(&mut buf).await;
-            // A full-size packet that ends the pending bytes needs a
+            // Nothing follows: a full-size last packet must be closed by a
             // zero-length one to end the transfer.
-            let zlp = n == buf.len() && TX.is_empty();
-            let sent = if VENDOR_ACTIVE.load(Ordering::Relaxed) {
-                embassy_time::with_timeout(TX_TIMEOUT, async {
-                    vendor_in.write(&buf[..n]).await.ok()?;
-                    if zlp {
-                        vendor_in.write(&[]).await.ok()?;
-                    }
-                    Some(())
-                })
-                .await
-            } else {
-                embassy_time::with_timeout(TX_TIMEOUT, async {
+            let last = TX.is_empty();
+            let sent = embassy_time::with_timeout(TX_TIMEOUT, async {
+                if VENDOR_ACTIVE.load(Ordering::Relaxed) {
+                    vendor_in.write_transfer(&buf[..n], last).await
+                } else {
                     sender.wait_connection().await;
-                    sender.write_packet(&buf[..n]).await.ok()?;
-                    if zlp {
-                        sender.write_packet(&[]).await.ok()?;
+                    sender.write_packet(&buf[..n]).await?;
+                    if last && n == buf.len() {
+                        sender.write_packet(&[]).await?;
                     }
-                    Some(())
-                })
-                .await
-            };
-            if !matches!(sent, Ok(Some(()))) {
+                    Ok(())
+                }
+            })
+            .await;
+            if !matches!(sent, Ok(Ok(()))) {
                 warn!("{} bytes not read by the host: dropped", n);
             }
         }

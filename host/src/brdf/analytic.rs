@@ -233,9 +233,9 @@ const ALBEDO_STEPS: usize = 90;
 impl DirectionalAlbedo {
     /// E(θ) of `lobe` (first channel), integrated over half vectors:
     /// with o = reflect(i, h), dωo = 4 (i·h) dωh, so
-    /// E(θi) = ∫ D(h) F(i·h) G1(i) G1(o) (i·h) / cos θi dωh over the h with
-    /// i·h > 0 and o above the horizon; θh = (π/2)u² concentrates the
-    /// midpoint samples on the peak, as MERL's θh′ does.
+    /// E(θi) = ∫ f(i, o) cos θo · 4 (i·h) dωh over the h with i·h > 0 and o
+    /// above the horizon; θh = (π/2)u² concentrates the midpoint samples on
+    /// the peak, as MERL's θh′ does.
     pub fn of(lobe: &Lobe) -> DirectionalAlbedo {
         use rayon::prelude::*;
         const NU: usize = 384;
@@ -257,18 +257,15 @@ impl DirectionalAlbedo {
                         let phi = (b as f64 + 0.5) / NPHI as f64 * PI;
                         let h = [sh * phi.cos(), sh * phi.sin(), ch];
                         let ih = dot(i, h);
-                        let oz = 2.0 * ih * h[2] - i[2];
-                        if ih <= 0.0 || oz <= 0.0 {
+                        let o = [
+                            2.0 * ih * h[0] - i[0],
+                            2.0 * ih * h[1] - i[1],
+                            2.0 * ih * h[2] - i[2],
+                        ];
+                        if ih <= 0.0 || o[2] <= 0.0 {
                             continue;
                         }
-                        sum += lobe.ndf.d(ch)
-                            * lobe.weight[0]
-                            * schlick(lobe.f0[0], ih)
-                            * lobe.ndf.g1(i[2])
-                            * lobe.ndf.g1(oz)
-                            * ih
-                            / i[2]
-                            * dw;
+                        sum += lobe.eval(i, o)[0] * o[2] * 4.0 * ih * dw;
                     }
                 }
                 sum
