@@ -14,6 +14,10 @@ step "clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 (cd firmware/board && cargo clippy --release --locked -- -D warnings)
 (cd firmware/qemu-tests && cargo clippy --release --locked --bins -- -D warnings)
+step "crate boundaries"
+scripts/check-deps.sh
+cargo check -p host --lib --no-default-features --locked
+cargo check -p host --bin scanner --no-default-features --features cli --locked
 step "tests"
 cargo test --workspace --locked
 step "no_std build of protocol for thumbv7em-none-eabihf"

@@ -22,7 +22,9 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
-use crate::geometry::{AxisValues, Beam, Facet, ScannerGeometry, Tolerances, world_to_sample};
+use crate::geometry::{
+    AsBuilt, AxisValues, Beam, Facet, ScannerGeometry, Tolerances, world_to_sample,
+};
 use crate::materials::Sample;
 
 /// Sub-pixel rays per axis.

@@ -44,9 +44,11 @@ pub trait Camera: Send {
 
 /// The simulator's camera (in-process; frames rendered when the trigger
 /// pulse ends; time is the simulator's).
+#[cfg(feature = "sim")]
 #[derive(Debug, Clone)]
 pub struct SimCamera(pub hil_sim::SimRig);
 
+#[cfg(feature = "sim")]
 impl Camera for SimCamera {
     fn arm(&mut self) -> Result<(), CameraError> {
         self.0.arm_camera();

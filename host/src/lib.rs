@@ -15,12 +15,15 @@
 
 pub mod brdf;
 pub mod camera;
+#[cfg(feature = "cli")]
 pub mod cli;
 pub mod discovery;
 pub mod exrio;
 pub mod fsutil;
 pub mod link;
 pub mod scan;
+#[cfg(feature = "sim")]
 pub mod simulator;
 
 pub use protocol;
+pub use scanner_geometry as geometry;

@@ -262,9 +262,11 @@ impl Transport for UsbTransport {
 }
 
 /// The in-process deterministic simulator's link.
+#[cfg(feature = "sim")]
 #[derive(Debug, Clone)]
 pub struct SimTransport(pub hil_sim::SimRig);
 
+#[cfg(feature = "sim")]
 impl Transport for SimTransport {
     fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
         self.0.write(bytes).map_err(|e| TransportError::Disconnected(e.to_string()))

@@ -13,11 +13,11 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use hil_sim::geometry::{AxisValues, ScannerGeometry};
 use protocol::{
     Axis, AxisConfig, AxisSet, CaptureStep, DeviceState, Event, FaultFlags, MirrorPosition,
     MotionOutcome, Reply, Request, TriggerFired,
 };
+use scanner_geometry::{AxisValues, GeometryError, ScannerGeometry};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -310,15 +310,7 @@ pub fn mirror_table(
     geometry: &ScannerGeometry,
     axes: &[AxisConfig; 3],
 ) -> Result<Vec<MirrorPosition>, ScanError> {
-    (0..geometry.mirrors.len())
-        .map(|l| {
-            let values = geometry.mirror_axes(l).map_err(|e| ScanError::Conflict(e.to_string()))?;
-            let steps = values.to_steps(axes).map_err(|e| {
-                ScanError::Conflict(format!("mirror {l} out of the device's range: {e}"))
-            })?;
-            Ok(MirrorPosition { steps })
-        })
-        .collect()
+    geometry.mirror_table(axes).map_err(|e: GeometryError| ScanError::Conflict(e.to_string()))
 }
 
 /// The device's mirror table after [`setup`].

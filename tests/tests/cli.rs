@@ -44,6 +44,15 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
     assert_eq!(code, Some(0), "{err}");
     let (_, out, _) = run(&["status", "--device", &pty]);
     assert!(out.contains("4000 steps") && out.contains("-667 steps"), "{out}");
+    // The continuous disk wraps: −90° is 270°, 360° is the index.
+    let (code, _, err) = run(&["move", "--device", &pty, "--disk", "-90"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (_, out, _) = run(&["status", "--device", &pty]);
+    assert!(out.contains("12000 steps"), "{out}");
+    let (code, _, err) = run(&["move", "--device", &pty, "--disk", "360"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (_, out, _) = run(&["status", "--device", &pty]);
+    assert!(!out.contains("12000 steps") && out.contains("-667 steps"), "{out}");
     let (code, _, _) = run(&["light", "--device", &pty, "on", "--duty", "500"]);
     assert_eq!(code, Some(0));
     let (_, out, _) = run(&["status", "--device", &pty]);
@@ -58,8 +67,8 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
     assert!(out.contains("0 entries written"), "set-up is idempotent: {out}");
     // Out-of-range values get a clear refusal.
     let (code, _, err) = run(&["move", "--device", &pty, "--track", "500"]);
-    assert_ne!(code, Some(0));
-    assert!(err.contains("out of range"), "{err}");
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("track: 500") && err.contains("outside its travel"), "{err}");
     let (code, _, err) = run(&["light", "--device", &pty, "on", "--duty", "0"]);
     assert_eq!(code, Some(2), "{err}");
 }

@@ -34,7 +34,8 @@ use super::smith::smith_g;
 use super::{BINS, Vec3};
 
 /// How G is obtained.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum GVariant {
     /// Derived from D (Smith).
     Smith,

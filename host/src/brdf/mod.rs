@@ -15,7 +15,6 @@
 //! - [`fit`]: alternating weighted least squares (AWLS) fitting.
 //! - [`smith`]: the Smith shadowing-masking term derived from a tabulated D.
 //! - [`render`]: the rendered-sphere comparison (the one PSNR definition).
-//! - [`plot`]: factor plots.
 //! - [`analytic`]: reference analytic BRDFs (GGX, Beckmann, coats, mixtures)
 //!   for tests and benchmarks.
 
@@ -25,7 +24,6 @@ pub mod fit;
 pub mod measurements;
 pub mod merl;
 pub mod npf;
-pub mod plot;
 pub mod render;
 pub mod smith;
 

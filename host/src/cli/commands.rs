@@ -3,16 +3,30 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::camera::{Camera, FolderCamera, SimCamera};
+use crate::camera::{Camera, FolderCamera};
 use crate::discovery::{self, DeviceChoice};
-use crate::link::{Device, LinkError, SerialTransport, SimTransport, Transport, UsbTransport};
+use crate::link::{Device, LinkError, SerialTransport, Transport, UsbTransport};
 use crate::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
-use crate::simulator::SimSetup;
 use anyhow::anyhow;
 use clap::Args;
-use hil_sim::geometry::{AxisValues, ScannerGeometry};
-use hil_sim::{FaultPlan, FaultSpec, SimRig};
 use indicatif::{ProgressBar, ProgressStyle};
+use scanner_geometry::{AxisValues, ScannerGeometry};
+
+#[cfg(feature = "sim")]
+use crate::{camera::SimCamera, link::SimTransport, simulator::SimSetup};
+#[cfg(feature = "sim")]
+use hil_sim::{FaultPlan, FaultSpec, SimRig};
+/// Built without the simulator: there is never a simulated rig.
+#[cfg(not(feature = "sim"))]
+type SimRig = std::convert::Infallible;
+/// Built without the simulator: `--sim-fault` is parsed, then refused.
+#[cfg(not(feature = "sim"))]
+type FaultSpec = String;
+
+#[cfg(not(feature = "sim"))]
+fn no_simulator() -> Failure {
+    Failure(2, anyhow!("this scanner was built without the simulator (cargo feature `sim`)"))
+}
 use protocol::{Axis, AxisSet, Event, LightState, MoveMode, Request};
 
 use super::Failure;
@@ -42,6 +56,7 @@ pub struct DeviceArgs {
 }
 
 impl DeviceArgs {
+    #[cfg(feature = "sim")]
     pub fn sim_setup(&self) -> Result<SimSetup, Failure> {
         if !(0.0..=1.0).contains(&self.sim_corrupt) {
             return Err(Failure(2, anyhow!("--sim-corrupt is a probability in [0, 1]")));
@@ -77,6 +92,9 @@ pub struct Opened {
 pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
     let choice = discovery::choose(&args.device).map_err(|e| Failure(5, anyhow!(e)))?;
     let (transport, rig, geometry): (Box<dyn Transport>, _, _) = match choice {
+        #[cfg(not(feature = "sim"))]
+        DeviceChoice::Simulator => return Err(no_simulator()),
+        #[cfg(feature = "sim")]
         DeviceChoice::Simulator => {
             let setup = args.sim_setup()?;
             let rig = setup.rig().map_err(|e| Failure(2, anyhow!(e)))?;
@@ -265,11 +283,21 @@ pub fn move_axes(
     let mut out = [None; 3];
     for i in 0..3 {
         if let Some(v) = targets[i] {
-            let s = if steps { v } else { v * configs[i].steps_per_unit as f64 };
-            if !s.is_finite() || s.abs() > i32::MAX as f64 {
-                return Err(Failure(2, anyhow!("{}: {v} is out of range", Axis::ALL[i].name())));
-            }
-            out[i] = Some(s.round() as i32);
+            let axis = Axis::ALL[i];
+            let s = if steps {
+                if !(v.is_finite() && v.fract() == 0.0 && v.abs() <= i32::MAX as f64) {
+                    return Err(Failure(2, anyhow!("{}: {v} is not a step count", axis.name())));
+                }
+                v as i32
+            } else if relative {
+                scanner_geometry::offset_to_steps(axis, v, &configs[i])
+                    .map_err(|e| Failure(2, anyhow!(e)))?
+            } else {
+                // Absolute, in units: the continuous disk wraps (−90° = 270°).
+                scanner_geometry::unit_to_steps(axis, v, &configs[i])
+                    .map_err(|e| Failure(2, anyhow!(e)))?
+            };
+            out[i] = Some(s);
         }
     }
     let mode = if relative { MoveMode::Relative } else { MoveMode::Absolute };
@@ -398,7 +426,10 @@ fn camera_for(arg: Option<&str>, rig: Option<&SimRig>) -> Result<Box<dyn Camera>
                 .ok_or_else(|| Failure(2, anyhow!("--camera must be folder:DIR, got {spec:?}")))?;
             Ok(Box::new(FolderCamera::new(Path::new(dir)).map_err(|e| Failure(8, anyhow!(e)))?))
         }
+        #[cfg(feature = "sim")]
         (None, Some(rig)) => Ok(Box::new(SimCamera(rig.clone()))),
+        #[cfg(not(feature = "sim"))]
+        (None, Some(rig)) => match *rig {},
         (None, None) => Err(Failure(2, anyhow!("a real scanner needs --camera folder:DIR"))),
     }
 }
@@ -469,6 +500,23 @@ pub fn demo(
     mirrors: Option<usize>,
     seed: u64,
 ) -> Result<(), Failure> {
+    #[cfg(not(feature = "sim"))]
+    {
+        let _ = (out, material, bin, mirrors, seed);
+        Err(no_simulator())
+    }
+    #[cfg(feature = "sim")]
+    demo_sim(out, material, bin, mirrors, seed)
+}
+
+#[cfg(feature = "sim")]
+fn demo_sim(
+    out: &Path,
+    material: &str,
+    bin: u32,
+    mirrors: Option<usize>,
+    seed: u64,
+) -> Result<(), Failure> {
     if hil_sim::materials::by_name(material).is_none() {
         return Err(Failure(
             2,
@@ -509,7 +557,14 @@ pub fn demo(
     Ok(())
 }
 
+/// `scanner sim` without the simulator: refused.
+#[cfg(not(feature = "sim"))]
+pub fn sim(_: &DeviceArgs, _: f64, _: &Path) -> Result<(), Failure> {
+    Err(no_simulator())
+}
+
 /// `scanner sim`: serve the simulated scanner on a pty until Ctrl-C.
+#[cfg(feature = "sim")]
 pub fn sim(args: &DeviceArgs, speed: f64, frames: &Path) -> Result<(), Failure> {
     if !(speed > 0.0 && speed <= 4.0) {
         return Err(Failure(2, anyhow!("--speed must be in (0, 4]")));

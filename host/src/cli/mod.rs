@@ -8,6 +8,7 @@
 //! fault, 8 camera timeout, 9 disk full.
 
 mod commands;
+mod plot;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -15,7 +16,7 @@ use std::process::ExitCode;
 use crate::brdf::fit::{FitOptions, GVariant, Samples, Weighting, fit};
 use crate::brdf::merl::MerlTable;
 use crate::brdf::npf::NpfModel;
-use crate::brdf::{Brdf, plot, render};
+use crate::brdf::{Brdf, render};
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};

@@ -6,9 +6,9 @@ use std::sync::Once;
 
 use plotters::prelude::*;
 
-use super::BINS;
-use super::coords::{cell_centre, g_bin_centre};
-use super::npf::NpfModel;
+use crate::brdf::BINS;
+use crate::brdf::coords::{cell_centre, g_bin_centre};
+use crate::brdf::npf::NpfModel;
 
 fn register_font() {
     static ONCE: Once = Once::new();
@@ -42,7 +42,7 @@ pub fn plot_factors(model: &NpfModel, path: &Path) -> Result<(), PlotError> {
         let th: Vec<f64> = (0..BINS).map(|k| deg(cell_centre(k, 0, 0).theta_h)).collect();
         let td: Vec<f64> = (0..BINS).map(|k| deg(cell_centre(0, k, 0).theta_d)).collect();
         let tg: Vec<f64> = (0..BINS).map(|k| deg(g_bin_centre(k))).collect();
-        type Pick = fn(&super::npf::Channel) -> &[f64; BINS];
+        type Pick = fn(&crate::brdf::npf::Channel) -> &[f64; BINS];
         let specs: [(&str, &str, &Vec<f64>, Pick, bool); 3] = [
             ("D(θh)", "θh (degrees)", &th, |c| &c.d, true),
             ("F(θd)", "θd (degrees)", &td, |c| &c.f, false),

@@ -1,0 +1,89 @@
+//! The nominal geometry crate: the shipped file, unit ↔ step conversion,
+//! the mirror table.
+
+use protocol::{Axis, AxisConfig};
+use scanner_geometry::{
+    AxisValues, DEFAULT_GEOMETRY_TOML, GeometryError, ScannerGeometry, StepsError, steps_to_unit,
+    unit_to_steps,
+};
+
+#[test]
+fn shipped_default_geometry_is_the_generated_one() {
+    let generated = ScannerGeometry::generate_default();
+    assert_eq!(
+        DEFAULT_GEOMETRY_TOML,
+        generated.to_toml(),
+        "regenerate with `cargo run -p scanner-geometry --example write-default-geometry`"
+    );
+    let parsed = ScannerGeometry::default_scanner();
+    assert_eq!(parsed, generated);
+    assert_eq!(parsed.mirrors.len(), 40);
+}
+
+use firmware::config::{disk_default, tilt_default, track_default};
+
+fn axes() -> [AxisConfig; 3] {
+    [disk_default(), track_default(), tilt_default()]
+}
+
+#[test]
+fn the_continuous_disk_wraps_both_ways() {
+    let c = disk_default(); // 16 000 steps per turn
+    assert_eq!(unit_to_steps(Axis::Disk, -90.0, &c), Ok(12_000));
+    assert_eq!(unit_to_steps(Axis::Disk, 360.0, &c), Ok(0));
+    assert_eq!(unit_to_steps(Axis::Disk, 720.0 + 4.5, &c), Ok(200));
+    // steps_per_unit is an f32 on the wire (44.444443…).
+    assert!((steps_to_unit(-4_000, &c) - 270.0).abs() < 1e-4);
+    assert!((steps_to_unit(16_000 + 200, &c) - 4.5).abs() < 1e-5);
+}
+
+#[test]
+fn a_bounded_axis_refuses_positions_outside_its_travel() {
+    let c = track_default(); // 1 600 steps/mm, 0 … 200 mm
+    assert_eq!(unit_to_steps(Axis::Track, 30.0, &c), Ok(48_000));
+    assert_eq!(
+        unit_to_steps(Axis::Track, -1.0, &c),
+        Err(StepsError::OutOfRange {
+            axis: Axis::Track,
+            value: -1.0,
+            steps: -1_600,
+            min: 0,
+            max: 320_000
+        })
+    );
+    assert!(matches!(
+        unit_to_steps(Axis::Track, f64::NAN, &c),
+        Err(StepsError::NotAPosition { axis: Axis::Track, .. })
+    ));
+    let msg = unit_to_steps(Axis::Track, 250.0, &c).unwrap_err().to_string();
+    assert!(msg.starts_with("track: 250"), "{msg}");
+}
+
+#[test]
+fn the_mirror_table_is_the_inverse_kinematics_in_steps() {
+    let g = ScannerGeometry::default_scanner();
+    let axes = axes();
+    let table = g.mirror_table(&axes).unwrap();
+    assert_eq!(table.len(), 40);
+    for (l, p) in table.iter().enumerate() {
+        let back = AxisValues::from_steps(p.steps.map(i64::from), &axes);
+        let want = g.mirror_axes(l).unwrap();
+        // Within half a step of each axis.
+        assert!((back.disk_deg - want.disk_deg).abs() <= 0.5 * 360.0 / 16_000.0, "mirror {l}");
+        assert!((back.tilt_deg - want.tilt_deg).abs() <= 0.5 * 360.0 / 96_000.0, "mirror {l}");
+    }
+    // A track too short for the working position: the error names the mirror.
+    let short = [axes[0], AxisConfig { max_steps: 100, ..axes[1] }, axes[2]];
+    match g.mirror_table(&short) {
+        Err(GeometryError::OutOfTravel(0, StepsError::OutOfRange { axis: Axis::Track, .. })) => {}
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn unreadable_files_are_typed_errors() {
+    let e = ScannerGeometry::load(std::path::Path::new("/nonexistent/g.toml")).unwrap_err();
+    assert!(matches!(e, GeometryError::Io { .. }), "{e:?}");
+    let e = ScannerGeometry::from_toml("format = 1").unwrap_err();
+    assert!(matches!(e, GeometryError::Parse(_)), "{e:?}");
+}

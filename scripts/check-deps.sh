@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Crate boundaries (docs/architecture.md): what a library may not pull in.
+# - the host library without its default features: no simulator, no CLI crates;
+# - the nominal geometry crate: nothing of the simulator, serial/USB or the CLI.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+forbid() { # package, cargo-tree flags, forbidden crates...
+    local pkg=$1 flags=$2
+    shift 2
+    # shellcheck disable=SC2086
+    local tree
+    tree=$(cargo tree --locked -p "$pkg" $flags -e normal,build --prefix none --format '{p}')
+    local bad=0
+    for crate in "$@"; do
+        if grep -qE "^$crate v" <<<"$tree"; then
+            echo "error: $pkg ($flags) depends on $crate" >&2
+            bad=1
+        fi
+    done
+    [ "$bad" -eq 0 ] && echo "$pkg ${flags:-(default features)}: none of $*"
+    return "$bad"
+}
+
+forbid host "--no-default-features" hil-sim firmware clap indicatif tracing-subscriber anyhow plotters
+forbid scanner-geometry "" hil-sim firmware clap indicatif serialport nusb exr image rand
