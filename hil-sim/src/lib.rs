@@ -19,6 +19,9 @@
 //! - [`camera`]: the simulated camera, rendering at each trigger pulse from
 //!   the simulated axes' physical positions.
 //! - [`rig`]: board and camera in one deterministic process ([`SimRig`]).
+//! - [`texture_set`]: user-defined samples from image maps
+//!   (docs/texture-set.md); [`materials::lookup`] takes a library name or a
+//!   texture-set directory.
 //!
 //! The simulator stands in for hardware and knows nothing of host internals.
 
@@ -31,6 +34,8 @@ pub mod materials;
 pub mod optics;
 pub mod physics;
 pub mod rig;
+pub mod texture_set;
+pub mod truth;
 
 pub use device::{SimConfig, SimDevice, TriggerRecord, Truth};
 pub use faults::{FaultEvent, FaultPlan, FaultSpec, FaultWhen};

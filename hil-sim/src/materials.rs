@@ -77,12 +77,23 @@ impl Texel {
     }
 }
 
+/// Where the built-in materials' small sample is cut, mm.
+pub const SMALL_OFFSET_MM: [f64; 2] = [27.3, 31.9];
+
 /// A spatially varying material over the plane.
 pub trait Material: Send + Sync + std::fmt::Debug {
     /// Short name (`woven-fabric`, …).
-    fn name(&self) -> &'static str;
+    fn name(&self) -> &str;
     /// The texel at `p` (mm).
     fn texel(&self, p: [f64; 2]) -> Texel;
+    /// Period of the pattern, mm: the large piece is one tile.
+    fn tile_mm(&self) -> f64 {
+        TILE_MM
+    }
+    /// Where the 25.4 mm small sample is cut, mm.
+    fn sample_offset_mm(&self) -> [f64; 2] {
+        SMALL_OFFSET_MM
+    }
 }
 
 /// A physical piece of a material: a `size_mm` square window of it, cut at
@@ -99,14 +110,17 @@ pub struct Sample {
 }
 
 impl Sample {
-    /// The 25.4 mm sample of `material`, cut where its pattern is typical.
+    /// The 25.4 mm sample of `material`, cut at its sample offset.
     pub fn small(material: Arc<dyn Material>) -> Sample {
-        Sample { material, offset_mm: [27.3, 31.9], size_mm: SAMPLE_MM }
+        let offset_mm = material.sample_offset_mm();
+        Sample { material, offset_mm, size_mm: SAMPLE_MM }
     }
 
-    /// The large piece of the same material (contains the small one).
+    /// The large piece of the same material: one whole tile (it contains
+    /// the small sample, periodically).
     pub fn large(material: Arc<dyn Material>) -> Sample {
-        Sample { material, offset_mm: [0.0, 0.0], size_mm: LARGE_PIECE_MM }
+        let size_mm = material.tile_mm();
+        Sample { material, offset_mm: [0.0, 0.0], size_mm }
     }
 
     /// Material coordinates of uv.
@@ -140,10 +154,28 @@ pub fn by_name(name: &str) -> Option<Arc<dyn Material>> {
     })
 }
 
-/// [`by_name`], or a message naming the materials there are.
-pub fn lookup(name: &str) -> Result<Arc<dyn Material>, String> {
-    by_name(name)
-        .ok_or_else(|| format!("unknown material {name:?} (one of {})", MATERIAL_NAMES.join(", ")))
+/// Why a material could not be had.
+#[derive(Debug, thiserror::Error)]
+pub enum MaterialError {
+    /// Neither a library name nor a directory (a usage error).
+    #[error("unknown material {0:?} (one of {names}, or a texture-set directory)", names = MATERIAL_NAMES.join(", "))]
+    Unknown(String),
+    /// A texture-set directory that is not valid (a bad input file).
+    #[error("texture set: {0}")]
+    TextureSet(#[from] crate::texture_set::TextureSetError),
+}
+
+/// A library material by name ([`by_name`]), or the texture set in the
+/// directory `name` names (docs/texture-set.md).
+pub fn lookup(name: &str) -> Result<Arc<dyn Material>, MaterialError> {
+    if let Some(m) = by_name(name) {
+        return Ok(m);
+    }
+    let path = std::path::Path::new(name);
+    if path.is_dir() || name.contains(std::path::MAIN_SEPARATOR) {
+        return Ok(Arc::new(crate::texture_set::TextureSet::load(path)?));
+    }
+    Err(MaterialError::Unknown(name.to_string()))
 }
 
 /// Names [`by_name`] knows.
@@ -175,12 +207,12 @@ impl Default for Checkerboard {
 }
 
 impl Material for Checkerboard {
-    fn name(&self) -> &'static str {
+    fn name(&self) -> &str {
         "checkerboard"
     }
     fn texel(&self, p: [f64; 2]) -> Texel {
         // The pattern is laid out relative to the small sample's window.
-        let o = Sample::small(Arc::new(DiffuseWhite::default())).offset_mm;
+        let o = SMALL_OFFSET_MM;
         let pitch = SAMPLE_MM / self.squares as f64;
         let i = ((p[0] - o[0]) / pitch).floor() as i64;
         let j = ((p[1] - o[1]) / pitch).floor() as i64;
@@ -203,7 +235,7 @@ impl Default for DiffuseWhite {
 }
 
 impl Material for DiffuseWhite {
-    fn name(&self) -> &'static str {
+    fn name(&self) -> &str {
         "diffuse-white"
     }
     fn texel(&self, _p: [f64; 2]) -> Texel {
@@ -338,7 +370,7 @@ impl WovenFabric {
 }
 
 impl Material for WovenFabric {
-    fn name(&self) -> &'static str {
+    fn name(&self) -> &str {
         "woven-fabric"
     }
     fn texel(&self, p: [f64; 2]) -> Texel {
@@ -373,7 +405,7 @@ impl Leather {
 }
 
 impl Material for Leather {
-    fn name(&self) -> &'static str {
+    fn name(&self) -> &str {
         "leather"
     }
     fn texel(&self, p: [f64; 2]) -> Texel {
@@ -413,7 +445,7 @@ impl PaintedWood {
 }
 
 impl Material for PaintedWood {
-    fn name(&self) -> &'static str {
+    fn name(&self) -> &str {
         "painted-wood"
     }
     fn texel(&self, p: [f64; 2]) -> Texel {
@@ -442,7 +474,7 @@ impl RoughMetal {
 }
 
 impl Material for RoughMetal {
-    fn name(&self) -> &'static str {
+    fn name(&self) -> &str {
         "rough-metal"
     }
     fn texel(&self, p: [f64; 2]) -> Texel {

@@ -6,14 +6,41 @@
 use std::path::PathBuf;
 
 use hil_sim::geometry::ScannerGeometry;
-use hil_sim::materials::{self, Sample};
+use hil_sim::materials::{self, MaterialError, Sample};
 use hil_sim::optics::OpticalSim;
 use hil_sim::{FaultPlan, SimConfig, SimRig};
+
+/// Why the simulator cannot be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// A setting out of its range (a usage error).
+    #[error("{0}")]
+    Usage(String),
+    /// The sample material: an unknown name, or a bad texture set.
+    #[error(transparent)]
+    Material(#[from] MaterialError),
+    /// The pty could not be served.
+    #[error("cannot serve the simulator on a pty: {0}")]
+    Serve(String),
+}
+
+impl SimError {
+    /// Process exit code: 2 usage (unknown name, bad setting), 3 a bad
+    /// texture-set file, 1 otherwise.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            SimError::Usage(_) | SimError::Material(MaterialError::Unknown(_)) => 2,
+            SimError::Material(MaterialError::TextureSet(_)) => 3,
+            SimError::Serve(_) => 1,
+        }
+    }
+}
 
 /// What to simulate.
 #[derive(Debug, Clone)]
 pub struct SimSetup {
-    /// Sample material ([`materials::MATERIAL_NAMES`]).
+    /// Sample material ([`materials::MATERIAL_NAMES`] or a texture-set
+    /// directory).
     pub material: String,
     /// Seed of the as-built scanner, the board and the sensor noise.
     pub seed: u64,
@@ -30,14 +57,14 @@ impl SimSetup {
     }
 
     /// The nominal geometry of the simulated scanner (what the host gets).
-    pub fn nominal(&self) -> Result<ScannerGeometry, String> {
+    pub fn nominal(&self) -> Result<ScannerGeometry, SimError> {
         if self.bin == 0 || self.bin > 64 {
-            return Err(format!("sensor binning {} outside 1…64", self.bin));
+            return Err(SimError::Usage(format!("sensor binning {} outside 1…64", self.bin)));
         }
         Ok(ScannerGeometry::default_scanner().with_sensor_scaled(self.bin))
     }
 
-    fn optics(&self) -> Result<OpticalSim, String> {
+    fn optics(&self) -> Result<OpticalSim, SimError> {
         let material = materials::lookup(&self.material)?;
         Ok(OpticalSim::as_built(&self.nominal()?, Sample::small(material), self.seed))
     }
@@ -49,19 +76,19 @@ impl SimSetup {
     }
 
     /// Board and camera in this process (deterministic).
-    pub fn rig(&self) -> Result<SimRig, String> {
+    pub fn rig(&self) -> Result<SimRig, SimError> {
         Ok(SimRig::new(self.config(), self.optics()?))
     }
 
     /// Serve the board on a pty (time running at `speed` × real time), the
     /// camera dropping frames into `frames`.
-    pub fn serve(&self, speed: f64, frames: PathBuf) -> Result<hil_sim::PtyServer, String> {
+    pub fn serve(&self, speed: f64, frames: PathBuf) -> Result<hil_sim::PtyServer, SimError> {
         let camera = hil_sim::camera::SimCamera::new(self.optics()?);
         hil_sim::PtyServer::start_with_camera(
             hil_sim::SimDevice::new(self.config()),
             speed,
             Some((camera, frames)),
         )
-        .map_err(|e| format!("cannot serve the simulator on a pty: {e}"))
+        .map_err(|e| SimError::Serve(e.to_string()))
     }
 }

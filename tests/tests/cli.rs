@@ -284,3 +284,61 @@ fn verify_reports_missing_and_damaged_frames() {
     assert!(out_text.contains("1 frames taken, 2 kept"), "{out_text}");
     assert_eq!(run(&["verify", &o]).0, Some(0));
 }
+
+/// A texture set (docs/texture-set.md) in `dir`: flat 0.5 grey, F0 0.04.
+fn write_texture_set(dir: &std::path::Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    std::fs::write(dir.join("material.toml"), "format = 1\nname = \"grey\"\nsize_mm = 30.0\n")
+        .unwrap();
+    let map = |name: &str, v: [f32; 3]| {
+        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dir.join(name)).unwrap();
+    };
+    map("diffuse.exr", [0.5; 3]);
+    map("specular.exr", [0.04; 3]);
+    map("roughness.exr", [0.6; 3]);
+    map("normal.exr", [0.5, 0.5, 1.0]);
+}
+
+#[test]
+fn a_texture_set_is_scanned_like_a_library_material_and_a_bad_one_exits_3() {
+    let dir = tmp();
+    let set = sub(dir.path(), "grey-set");
+    write_texture_set(&set);
+    let scan = |material: &str, out: &std::path::Path| {
+        run(&[
+            "scan",
+            "--sim-material",
+            material,
+            "--sim-bin",
+            "16",
+            "--mirrors",
+            "2",
+            "--sample-name",
+            "grey",
+            "--out",
+            &out.display().to_string(),
+        ])
+    };
+    let out = sub(dir.path(), "scan");
+    let (code, _, err) = scan(set.to_str().unwrap(), &out);
+    assert_eq!(code, Some(0), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    assert!(m.complete && m.frames.len() == 2);
+    // The frame sees the grey sample: lit pixels, none clipped.
+    let f = host::exrio::read_rgb(&out.join(&m.frames[0].file)).unwrap();
+    let lit = f.rgb.iter().filter(|&&v| v > 0.01).count();
+    assert!(lit > 1_000, "{lit} lit values");
+    assert!(f.rgb.iter().all(|&v| v < 1.0));
+    // A broken set: exit 3 naming the file, nothing written.
+    std::fs::remove_file(set.join("roughness.exr")).unwrap();
+    let bad_out = sub(dir.path(), "bad");
+    let (code, _, err) = scan(set.to_str().unwrap(), &bad_out);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("roughness.png: missing"), "{err}");
+    assert!(!bad_out.exists());
+    let (code, _, err) =
+        run(&["demo", "--material", set.to_str().unwrap(), "--out", "/nonexistent/x"]);
+    assert_eq!(code, Some(3), "{err}");
+    let (code, _, err) = scan("velvet", &bad_out);
+    assert_eq!(code, Some(2), "{err}");
+}

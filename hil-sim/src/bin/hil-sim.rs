@@ -4,17 +4,24 @@
 //! hil-sim [--seed N] [--speed X] [--corrupt P] [--drop P] [--fault SPEC]...
 //! hil-sim render [--material NAME] [--mirrors N] [--bin K] [--out DIR]
 //! hil-sim direct [--material NAME] --out DIR
+//! hil-sim truth --material NAME|DIR --queries Q.npy|Q.csv -o OUT.npy|OUT.csv
 //! ```
+//! A material is a library name or a texture-set directory
+//! (docs/texture-set.md). Exit codes: 2 bad usage (an unknown material
+//! name), 3 bad input file (texture set, queries), 4 output not written.
 //! Serving prints the pty path; point the host at it like at `/dev/ttyACM0`.
 //! `render` renders the frames of a scan at the nominal mirror positions
 //! (timing each; optionally writing them as OpenEXR) without a device;
-//! `direct` writes the Fig. 9 direct images of the material's large piece.
+//! `direct` writes the Fig. 9 direct images of the material's large piece;
+//! `truth` answers shading queries from the ground truth (f · cos θi of the
+//! small sample, docs/query-format.md) — for scoring materials built from
+//! simulated scans.
 
 use std::io::Write;
 
 use clap::{Parser, Subcommand};
 use hil_sim::geometry::ScannerGeometry;
-use hil_sim::materials::{self, Sample};
+use hil_sim::materials::{self, MaterialError, Sample};
 use hil_sim::optics::{Exposure, OpticalSim};
 use hil_sim::{FaultPlan, FaultSpec, PtyServer, SimConfig, SimDevice};
 
@@ -46,7 +53,7 @@ enum Command {
     /// Render a scan's frames at the nominal mirror positions (no device).
     Render {
         /// Sample material (checkerboard, diffuse-white, woven-fabric,
-        /// leather, painted-wood, rough-metal).
+        /// leather, painted-wood, rough-metal, or a texture-set directory).
         #[arg(long, default_value = "woven-fabric")]
         material: String,
         /// Frames (mirrors 0 … N−1).
@@ -63,20 +70,64 @@ enum Command {
     /// sample's area), seen and lit from the four mirror directions nearest
     /// the camera axis, rectified at the mirror views' scale.
     Direct {
-        /// Sample material.
+        /// Sample material (a library name or a texture-set directory).
         #[arg(long, default_value = "woven-fabric")]
         material: String,
         /// Output folder: `direct-K-mirror-LL.exr`.
         #[arg(long)]
         out: std::path::PathBuf,
     },
+    /// Ground truth f · cos θi of the small sample for shading queries.
+    Truth {
+        /// Sample material: a library name or a texture-set directory.
+        #[arg(long)]
+        material: String,
+        /// Query file (.npy N × 8 or .csv u,v,wi_x,…,wo_z).
+        #[arg(long)]
+        queries: std::path::PathBuf,
+        /// Answer file (.npy N × 3 float32 or .csv r,g,b).
+        #[arg(short, long)]
+        output: std::path::PathBuf,
+    },
 }
 
-fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), String> {
+/// A failure with its exit code.
+struct Fail(u8, String);
+
+impl From<MaterialError> for Fail {
+    fn from(e: MaterialError) -> Fail {
+        let code = match e {
+            MaterialError::Unknown(_) => 2,
+            MaterialError::TextureSet(_) => 3,
+        };
+        Fail(code, e.to_string())
+    }
+}
+
+impl From<String> for Fail {
+    fn from(e: String) -> Fail {
+        Fail(2, e)
+    }
+}
+
+fn truth(material: &str, queries: &std::path::Path, output: &std::path::Path) -> Result<(), Fail> {
+    use scanner_formats::queries as q;
+    // Check the output before any work.
+    q::check_extension(output).map_err(|e| Fail(2, e.to_string()))?;
+    scanner_formats::check_output(output, &[queries]).map_err(|e| Fail(4, e.to_string()))?;
+    let sample = Sample::small(materials::lookup(material)?);
+    let rows = q::read_queries(queries).map_err(|e| Fail(3, e.to_string()))?;
+    let answers = hil_sim::truth::answer(&sample, &rows);
+    q::write_answers(output, &answers).map_err(|e| Fail(4, e.to_string()))?;
+    eprintln!("{} answers written to {}", answers.len(), output.display());
+    Ok(())
+}
+
+fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), Fail> {
     let m = materials::lookup(material)?;
     let nominal = ScannerGeometry::default_scanner();
     let sim = OpticalSim::as_built(&nominal, Sample::small(m.clone()), seed);
-    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    std::fs::create_dir_all(out).map_err(|e| Fail(4, format!("{}: {e}", out.display())))?;
     let mut dirs: Vec<(usize, hil_sim::geometry::DVec3)> = (0..nominal.mirrors.len())
         .filter_map(|l| nominal.mirror_direction(l).map(|d| (l, d)))
         .collect();
@@ -86,7 +137,7 @@ fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), String
         let frame = sim.direct_image(&Sample::large(m.clone()), d, px_per_mm, 0.05);
         let path = out.join(format!("direct-{k}-mirror-{l:02}.exr"));
         hil_sim::camera::write_frame_exr(&frame, &path)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+            .map_err(|e| Fail(4, format!("{}: {e}", path.display())))?;
         eprintln!("{}: {}×{} px", path.display(), frame.width, frame.height);
     }
     Ok(())
@@ -98,30 +149,29 @@ fn render(
     mirrors: usize,
     bin: u32,
     out: Option<&std::path::Path>,
-) -> Result<(), String> {
+) -> Result<(), Fail> {
     let m = materials::lookup(material)?;
     if bin == 0 || bin > 64 {
-        return Err("--bin must be in 1…64".into());
+        return Err(Fail(2, "--bin must be in 1…64".into()));
     }
     let nominal = ScannerGeometry::default_scanner().with_sensor_scaled(bin);
     if mirrors > nominal.mirrors.len() {
-        return Err(format!("--mirrors: the scanner has {}", nominal.mirrors.len()));
+        return Err(Fail(2, format!("--mirrors: the scanner has {}", nominal.mirrors.len())));
     }
     let sim = OpticalSim::as_built(&nominal, Sample::small(m), seed);
     if let Some(dir) = out {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(|e| Fail(4, format!("{}: {e}", dir.display())))?;
     }
     let started = std::time::Instant::now();
     for l in 0..mirrors {
-        let axes = nominal.mirror_axes(l).map_err(|e| e.to_string())?;
+        let axes = nominal.mirror_axes(l).map_err(|e| Fail(1, e.to_string()))?;
         let t = std::time::Instant::now();
         let frame = sim.render(&Exposure { axes, exposure_s: 0.05, light: 1.0 });
         let render_s = t.elapsed().as_secs_f64();
         if let Some(dir) = out {
-            let img = image::Rgb32FImage::from_raw(frame.width, frame.height, frame.rgb)
-                .ok_or("frame size mismatch")?;
             let path = dir.join(format!("frame-{l:02}.exr"));
-            img.save(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+            hil_sim::camera::write_frame_exr(&frame, &path)
+                .map_err(|e| Fail(4, format!("{}: {e}", path.display())))?;
         }
         eprintln!("frame {l:2}: rendered in {render_s:.3} s");
     }
@@ -131,21 +181,24 @@ fn render(
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    if let Some(Command::Direct { material, out }) = &args.command {
-        return match direct(args.seed, material, out) {
+    let done = match &args.command {
+        Some(Command::Direct { material, out }) => {
+            Some(("direct", direct(args.seed, material, out)))
+        }
+        Some(Command::Render { material, mirrors, bin, out }) => {
+            Some(("render", render(args.seed, material, *mirrors, *bin, out.as_deref())))
+        }
+        Some(Command::Truth { material, queries, output }) => {
+            Some(("truth", truth(material, queries, output)))
+        }
+        None => None,
+    };
+    if let Some((what, result)) = done {
+        return match result {
             Ok(()) => std::process::ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("hil-sim direct: {e}");
-                std::process::ExitCode::from(2)
-            }
-        };
-    }
-    if let Some(Command::Render { material, mirrors, bin, out }) = &args.command {
-        return match render(args.seed, material, *mirrors, *bin, out.as_deref()) {
-            Ok(()) => std::process::ExitCode::SUCCESS,
-            Err(e) => {
-                eprintln!("hil-sim render: {e}");
-                std::process::ExitCode::from(2)
+            Err(Fail(code, e)) => {
+                eprintln!("hil-sim {what}: {e}");
+                std::process::ExitCode::from(code)
             }
         };
     }

@@ -23,6 +23,11 @@ type SimRig = std::convert::Infallible;
 #[cfg(not(feature = "sim"))]
 type FaultSpec = String;
 
+#[cfg(feature = "sim")]
+fn sim_failure(e: crate::simulator::SimError) -> Failure {
+    Failure(e.exit_code(), anyhow!(e))
+}
+
 #[cfg(not(feature = "sim"))]
 fn no_simulator() -> Failure {
     Failure(2, anyhow!("this scanner was built without the simulator (cargo feature `sim`)"))
@@ -38,7 +43,8 @@ pub struct DeviceArgs {
     /// or a serial number.
     #[arg(long, default_value = "sim")]
     pub device: String,
-    /// Simulator: sample material.
+    /// Simulator: sample material, a library name or a texture-set
+    /// directory (docs/texture-set.md).
     #[arg(long, default_value = "woven-fabric")]
     pub sim_material: String,
     /// Simulator: seed (as-built errors, board, noise).
@@ -97,8 +103,8 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
         #[cfg(feature = "sim")]
         DeviceChoice::Simulator => {
             let setup = args.sim_setup()?;
-            let rig = setup.rig().map_err(|e| Failure(2, anyhow!(e)))?;
-            let nominal = setup.nominal().map_err(|e| Failure(2, anyhow!(e)))?;
+            let rig = setup.rig().map_err(sim_failure)?;
+            let nominal = setup.nominal().map_err(sim_failure)?;
             (Box::new(SimTransport(rig.clone())), Some(rig), Some(nominal))
         }
         DeviceChoice::Serial(path) => {
@@ -517,15 +523,9 @@ fn demo_sim(
     mirrors: Option<usize>,
     seed: u64,
 ) -> Result<(), Failure> {
-    if hil_sim::materials::by_name(material).is_none() {
-        return Err(Failure(
-            2,
-            anyhow!(
-                "unknown material {material:?} (one of {})",
-                hil_sim::materials::SVBRDF_NAMES.join(", ")
-            ),
-        ));
-    }
+    // Refuse a bad material before scanning the calibration targets.
+    hil_sim::materials::lookup(material)
+        .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
     let started = std::time::Instant::now();
     for sample in ["checkerboard", "diffuse-white", material] {
         let args = DeviceArgs {
@@ -570,10 +570,10 @@ pub fn sim(args: &DeviceArgs, speed: f64, frames: &Path) -> Result<(), Failure> 
         return Err(Failure(2, anyhow!("--speed must be in (0, 4]")));
     }
     let setup = args.sim_setup()?;
-    let server = setup.serve(speed, frames.to_path_buf()).map_err(|e| Failure(1, anyhow!(e)))?;
+    let server = setup.serve(speed, frames.to_path_buf()).map_err(sim_failure)?;
     // The scanner's nominal geometry (binning included) for the host.
     let geometry_file = frames.join("geometry.toml");
-    let nominal = setup.nominal().map_err(|e| Failure(2, anyhow!(e)))?;
+    let nominal = setup.nominal().map_err(sim_failure)?;
     crate::fsutil::write_atomic(&geometry_file, nominal.to_toml().as_bytes())
         .map_err(|e| Failure(4, anyhow!("{}: {e}", geometry_file.display())))?;
     println!("{}", server.path());

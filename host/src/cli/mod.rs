@@ -40,7 +40,8 @@ enum Command {
         /// Output folder (one scan directory per sample).
         #[arg(long, default_value = "demo-out")]
         out: PathBuf,
-        /// Sample material (woven-fabric, leather, painted-wood, rough-metal).
+        /// Sample material (woven-fabric, leather, painted-wood, rough-metal,
+        /// or a texture-set directory: docs/texture-set.md).
         #[arg(long, default_value = "woven-fabric")]
         material: String,
         /// Sensor binning (1 = the default 4096² sensor; 4 = 1024², faster).
