@@ -7,6 +7,7 @@
 //! - [`scan`]: mirror table set-up and scan capture into a scan directory
 //!   (`docs/scan-format.md`), frames as OpenEXR ([`exrio`]).
 //! - [`simulator`]: the simulated scanner as the host starts it.
+//! - [`build`]: the material builder — calibration and region images.
 //! - [`brdf`]: measured BRDFs — MERL tables, the NPF model, AWLS fitting,
 //!   previews.
 //!
@@ -14,6 +15,7 @@
 //! `anyhow`.
 
 pub mod brdf;
+pub mod build;
 pub mod camera;
 #[cfg(feature = "cli")]
 pub mod cli;

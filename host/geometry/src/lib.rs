@@ -729,6 +729,21 @@ impl ScannerGeometry {
         self.mirrors.get(l).map(|m| world_to_sample(m.center().normalize()))
     }
 
+    /// The world point of sample position `uv` ∈ [0, 1]²: u along world
+    /// +x, v along world −y (the sample-local +y), uv (0, 0) at the corner
+    /// (−size/2, +size/2, 0).
+    pub fn sample_point(&self, uv: [f64; 2]) -> DVec3 {
+        let (s, h) = (self.sample.size_mm, self.sample.size_mm / 2.0);
+        DVec3::new(uv[0] * s - h, h - uv[1] * s, 0.0)
+    }
+
+    /// Image point of sample position `uv` seen through mirror `l` (the
+    /// pinhole image of its mirror image; None behind the camera).
+    pub fn view_point(&self, l: usize, uv: [f64; 2]) -> Option<[f64; 2]> {
+        let m = self.mirrors.get(l)?;
+        self.camera.project(m.reflect_point(self.sample_point(uv)))
+    }
+
     /// Corners of the sample as the camera sees them through mirror `l`
     /// (image points of the sample's mirror image), for region finding.
     pub fn sample_image_corners(&self, l: usize) -> Option<[[f64; 2]; 4]> {

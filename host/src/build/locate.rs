@@ -1,0 +1,412 @@
+//! Finding each mirror's view of the sample in the checkerboard scan
+//! (Fig. 8 steps 2–3): a coarse translation from the sample's silhouette,
+//! the patent's low-frequency Fourier phase alignment, and a homography
+//! fitted to the checker's inner corners.
+//!
+//! All three work on the **sum over lights** of the checkerboard frames'
+//! luminance: every frame shows every view, so summing gives the best
+//! signal without knowing which light lit what.
+
+use scanner_geometry::ScannerGeometry;
+
+use super::linalg::Homography;
+use super::plane::Plane;
+
+/// The calibration target: a checkerboard of `squares` × `squares` over
+/// the sample, aligned with uv, the square at uv (0, 0) light.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Checkerboard {
+    /// Squares along each side.
+    pub squares: u32,
+}
+
+impl Default for Checkerboard {
+    fn default() -> Checkerboard {
+        Checkerboard { squares: 8 }
+    }
+}
+
+impl Checkerboard {
+    /// +1 on light squares, −1 on dark ones.
+    pub fn pattern(&self, uv: [f64; 2]) -> f64 {
+        let n = self.squares as f64;
+        let i = (uv[0] * n).floor() as i64;
+        let j = (uv[1] * n).floor() as i64;
+        if (i + j).rem_euclid(2) == 0 { 1.0 } else { -1.0 }
+    }
+
+    /// The inner corners, uv.
+    pub fn inner_corners(&self) -> Vec<[f64; 2]> {
+        let n = self.squares;
+        (1..n)
+            .flat_map(|j| (1..n).map(move |i| [i as f64 / n as f64, j as f64 / n as f64]))
+            .collect()
+    }
+}
+
+/// One view's location by each method.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RegionFit {
+    /// The view (mirror) index.
+    pub view: usize,
+    /// From the nominal geometry alone.
+    pub nominal: Homography,
+    /// After silhouette alignment and Fourier phase refinement.
+    pub phase: Homography,
+    /// Fitted to the inner corners (None if too few were found).
+    pub corners: Option<Homography>,
+    /// Inner corners used by the fit.
+    pub corners_used: usize,
+    /// RMS residual of that fit, px.
+    pub corner_rms_px: f64,
+}
+
+impl RegionFit {
+    /// The best estimate: the corner homography when there is one.
+    pub fn best(&self) -> Homography {
+        self.corners.unwrap_or(self.phase)
+    }
+}
+
+/// Why a view could not be located.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LocateError {
+    /// The view is not in the frame, or too dark to find.
+    #[error("the sample cannot be found through mirror {view}: {reason}")]
+    NotFound {
+        /// The view.
+        view: usize,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// The nominal homography of view `l`: sample uv → frame pixel.
+pub fn nominal_homography(g: &ScannerGeometry, l: usize) -> Option<Homography> {
+    let mut src = Vec::new();
+    let mut dst = Vec::new();
+    for j in 0..=4 {
+        for i in 0..=4 {
+            let uv = [i as f64 / 4.0, j as f64 / 4.0];
+            src.push(uv);
+            dst.push(g.view_point(l, uv)?);
+        }
+    }
+    Homography::fit(&src, &dst)
+}
+
+/// Locate view `view` in `sum` (the luminance summed over the checkerboard
+/// frames) starting from the nominal geometry.
+pub fn locate(
+    g: &ScannerGeometry,
+    view: usize,
+    sum: &Plane,
+    target: &Checkerboard,
+) -> Result<RegionFit, LocateError> {
+    let fail = |reason: String| LocateError::NotFound { view, reason };
+    let nominal = nominal_homography(g, view).ok_or_else(|| fail("behind the camera".into()))?;
+    // Search as far as manufacturing errors can move a view: 60 px of the
+    // default 4096² sensor (scaled to this one), at least 6 px.
+    let scale = g.camera.focal_px / 5600.0;
+    let margin = (60.0 * scale).max(6.0).round() as isize;
+    let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
+    let mut phase = shifted;
+    for _ in 0..6 {
+        let Some(next) = phase_refine(sum, &phase, target) else { break };
+        let moved = (0..4)
+            .map(|k| {
+                let uv = [(k & 1) as f64, (k >> 1) as f64];
+                let (a, b) = (phase.apply(uv), next.apply(uv));
+                (a[0] - b[0]).hypot(a[1] - b[1])
+            })
+            .fold(0.0, f64::max);
+        phase = next;
+        if moved < 0.01 {
+            break;
+        }
+    }
+    let (corners, corners_used, corner_rms_px) = match corner_fit(sum, &phase, target) {
+        Some((h, n, rms)) => (Some(h), n, rms),
+        None => (None, 0, f64::NAN),
+    };
+    Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px })
+}
+
+/// Bounding box (x0, y0, x1, y1) of the sample through `h`, in px.
+fn bbox(h: &Homography) -> [f64; 4] {
+    let pts = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|p| h.apply(p));
+    [
+        pts.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min),
+        pts.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min),
+        pts.iter().map(|p| p[0]).fold(f64::NEG_INFINITY, f64::max),
+        pts.iter().map(|p| p[1]).fold(f64::NEG_INFINITY, f64::max),
+    ]
+}
+
+/// Translate `h` so the sample's silhouette matches the lit pixels: row
+/// and column profiles of the thresholded image against those of the
+/// predicted quadrilateral, searched over ±`margin` px.
+fn coarse_shift(sum: &Plane, h: &Homography, margin: isize) -> Result<Homography, String> {
+    let inv = h.inverse().ok_or("degenerate view")?;
+    let b = bbox(h);
+    if b[2] < 0.0 || b[3] < 0.0 || b[0] > sum.width as f64 || b[1] > sum.height as f64 {
+        return Err("outside the frame".into());
+    }
+    // Threshold: a third of the dark squares' level inside the prediction.
+    let mut inner = Vec::new();
+    for y in b[1].floor() as isize..=b[3].ceil() as isize {
+        for x in b[0].floor() as isize..=b[2].ceil() as isize {
+            let uv = inv.apply([x as f64 + 0.5, y as f64 + 0.5]);
+            if (0.2..0.8).contains(&uv[0]) && (0.2..0.8).contains(&uv[1]) {
+                inner.push(sum.at(x, y));
+            }
+        }
+    }
+    if inner.len() < 16 {
+        return Err("the view is smaller than 4 × 4 px".into());
+    }
+    inner.sort_by(f32::total_cmp);
+    let dark = inner[inner.len() / 4] as f64;
+    let bright = inner[inner.len() * 9 / 10] as f64;
+    if !(bright > 0.0 && dark >= 0.0) {
+        return Err("no light in the predicted view".into());
+    }
+    let thr = (dark / 3.0).max(bright * 0.005);
+    let x0 = b[0].floor() as isize - margin;
+    let y0 = b[1].floor() as isize - margin;
+    let w = (b[2].ceil() as isize - x0 + margin + 1) as usize;
+    let hgt = (b[3].ceil() as isize - y0 + margin + 1) as usize;
+    let (mut obs_x, mut obs_y) = (vec![0.0; w], vec![0.0; hgt]);
+    let (mut mod_x, mut mod_y) = (vec![0.0; w], vec![0.0; hgt]);
+    for yy in 0..hgt {
+        for xx in 0..w {
+            let (x, y) = (x0 + xx as isize, y0 + yy as isize);
+            if sum.at(x, y) as f64 > thr {
+                obs_x[xx] += 1.0;
+                obs_y[yy] += 1.0;
+            }
+            let uv = inv.apply([x as f64 + 0.5, y as f64 + 0.5]);
+            if (0.0..1.0).contains(&uv[0]) && (0.0..1.0).contains(&uv[1]) {
+                mod_x[xx] += 1.0;
+                mod_y[yy] += 1.0;
+            }
+        }
+    }
+    let best = |obs: &[f64], model: &[f64]| -> f64 {
+        let n = obs.len() as isize;
+        let ssd = |d: isize| -> f64 {
+            (0..n)
+                .map(|i| {
+                    let m = if (0..n).contains(&(i - d)) { model[(i - d) as usize] } else { 0.0 };
+                    (obs[i as usize] - m).powi(2)
+                })
+                .sum()
+        };
+        let (mut bd, mut bv) = (0, f64::INFINITY);
+        for d in -margin..=margin {
+            let v = ssd(d);
+            if v < bv {
+                (bd, bv) = (d, v);
+            }
+        }
+        // Sub-pixel: the parabola through the minimum and its neighbours.
+        let (a, c) = (ssd(bd - 1), ssd(bd + 1));
+        let den = a - 2.0 * bv + c;
+        bd as f64 + if den > 0.0 { 0.5 * (a - c) / den } else { 0.0 }
+    };
+    let (dx, dy) = (best(&obs_x, &mod_x), best(&obs_y, &mod_y));
+    if dx.abs() >= margin as f64 || dy.abs() >= margin as f64 {
+        return Err(format!("no silhouette within ±{margin} px of the nominal view"));
+    }
+    let mut m = h.0;
+    for k in 0..3 {
+        m[k] += dx * m[6 + k];
+        m[3 + k] += dy * m[6 + k];
+    }
+    Ok(Homography(m))
+}
+
+/// One step of the Fourier phase alignment: in each of 3 × 3 overlapping
+/// windows of the rectified view, the phase of the checker's fundamental
+/// (frequency (±n/2, ±n/2) per sample side) against the ideal pattern's
+/// gives the local shift; the homography is refitted to the shifted
+/// window centres.
+fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Homography> {
+    let n = target.squares as f64;
+    let f = n / 2.0; // cycles per unit uv
+    let grid = 24 * target.squares as usize; // rectification samples per side
+    let mut src = Vec::new();
+    let mut dst = Vec::new();
+    for wj in 0..3 {
+        for wi in 0..3 {
+            let c = [0.25 + 0.25 * wi as f64, 0.25 + 0.25 * wj as f64];
+            let mut obs = [[0.0f64; 2]; 2]; // (re, im) for (+f, +f), (+f, −f)
+            let mut model = [[0.0f64; 2]; 2];
+            let mut mean = 0.0;
+            let mut count = 0.0;
+            let half = grid / 4;
+            let samples: Vec<([f64; 2], f64)> = (0..2 * half)
+                .flat_map(|b| (0..2 * half).map(move |a| (a, b)))
+                .map(|(a, b)| {
+                    let uv = [
+                        c[0] - 0.25 + (a as f64 + 0.5) / grid as f64,
+                        c[1] - 0.25 + (b as f64 + 0.5) / grid as f64,
+                    ];
+                    let p = h.apply(uv);
+                    (uv, sum.bilinear(p[0], p[1]))
+                })
+                .collect();
+            for (_, v) in &samples {
+                mean += v;
+                count += 1.0;
+            }
+            mean /= count;
+            for (uv, v) in &samples {
+                let p = target.pattern(*uv);
+                for (k, sign) in [1.0, -1.0].into_iter().enumerate() {
+                    let ph = -std::f64::consts::TAU * f * (uv[0] + sign * uv[1]);
+                    let (s, co) = ph.sin_cos();
+                    obs[k][0] += (v - mean) * co;
+                    obs[k][1] += (v - mean) * s;
+                    model[k][0] += p * co;
+                    model[k][1] += p * s;
+                }
+            }
+            let arg = |k: usize| {
+                // arg(obs / model)
+                let (a, b) = (obs[k][0], obs[k][1]);
+                let (cr, ci) = (model[k][0], model[k][1]);
+                (b * cr - a * ci).atan2(a * cr + b * ci)
+            };
+            let mag = (obs[0][0].hypot(obs[0][1]), obs[1][0].hypot(obs[1][1]));
+            if !(mag.0 > 0.0 && mag.1 > 0.0) {
+                return None;
+            }
+            // obs ≈ model · e^{−2πi f (δu ± δv)}.
+            let s_plus = -arg(0) / (std::f64::consts::TAU * f);
+            let s_minus = -arg(1) / (std::f64::consts::TAU * f);
+            let du = 0.5 * (s_plus + s_minus);
+            let dv = 0.5 * (s_plus - s_minus);
+            src.push([c[0] - du, c[1] - dv]);
+            dst.push(h.apply(c));
+        }
+    }
+    Homography::fit(&src, &dst)
+}
+
+/// The inner corners located to sub-pixel precision (the gradient of the
+/// lightly blurred image is orthogonal to the offset from a saddle point,
+/// as in OpenCV's cornerSubPix), then a homography fitted to them with
+/// outliers (3 × the median residual) dropped: (homography, corners used,
+/// RMS residual in px).
+fn corner_fit(
+    sum: &Plane,
+    h: &Homography,
+    target: &Checkerboard,
+) -> Option<(Homography, usize, f64)> {
+    let b = bbox(h);
+    let pad = 4isize;
+    let x0 = b[0].floor() as isize - pad;
+    let y0 = b[1].floor() as isize - pad;
+    let w = (b[2].ceil() as isize - x0 + pad) as usize;
+    let hh = (b[3].ceil() as isize - y0 + pad) as usize;
+    let img = sum.crop(x0, y0, w, hh).blurred(0.7);
+    let n = target.squares as f64;
+    let mut src = Vec::new();
+    let mut dst = Vec::new();
+    for uv in target.inner_corners() {
+        let p0 = h.apply(uv);
+        let j = h.jacobian(uv);
+        // Edge vectors of one square at this corner, px.
+        let eu = [j[0][0] / n, j[1][0] / n];
+        let ev = [j[0][1] / n, j[1][1] / n];
+        let det = eu[0] * ev[1] - eu[1] * ev[0];
+        if det.abs() < 4.0 {
+            continue; // squares under 2 × 2 px: no corner to find
+        }
+        let to_basis = |d: [f64; 2]| {
+            [(d[0] * ev[1] - d[1] * ev[0]) / det, (eu[0] * d[1] - eu[1] * d[0]) / det]
+        };
+        let mut q = [p0[0] - x0 as f64, p0[1] - y0 as f64];
+        let reach = (eu[0].abs() + ev[0].abs()).max(eu[1].abs() + ev[1].abs()).ceil() as isize;
+        let mut ok = false;
+        for _ in 0..30 {
+            let (mut a11, mut a12, mut a22, mut b1, mut b2) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let (cx, cy) = (q[0].floor() as isize, q[1].floor() as isize);
+            for yy in cy - reach..=cy + reach {
+                for xx in cx - reach..=cx + reach {
+                    let px = [xx as f64 + 0.5, yy as f64 + 0.5];
+                    let c = to_basis([px[0] - q[0], px[1] - q[1]]);
+                    // Stay well inside the four squares around the corner.
+                    if c[0].abs() > 0.6 || c[1].abs() > 0.6 {
+                        continue;
+                    }
+                    let wgt = (-(c[0] * c[0] + c[1] * c[1]) / (2.0 * 0.3 * 0.3)).exp();
+                    let gx = 0.5 * (img.at(xx + 1, yy) - img.at(xx - 1, yy)) as f64;
+                    let gy = 0.5 * (img.at(xx, yy + 1) - img.at(xx, yy - 1)) as f64;
+                    let (gxx, gxy, gyy) = (gx * gx * wgt, gx * gy * wgt, gy * gy * wgt);
+                    a11 += gxx;
+                    a12 += gxy;
+                    a22 += gyy;
+                    b1 += gxx * px[0] + gxy * px[1];
+                    b2 += gxy * px[0] + gyy * px[1];
+                }
+            }
+            let d = a11 * a22 - a12 * a12;
+            if d.is_nan() || d <= 1e-12 * (a11 + a22).powi(2) || !d.is_finite() {
+                break;
+            }
+            let next = [(a22 * b1 - a12 * b2) / d, (a11 * b2 - a12 * b1) / d];
+            let step = (next[0] - q[0]).hypot(next[1] - q[1]);
+            q = next;
+            if step < 1e-3 {
+                ok = true;
+                break;
+            }
+        }
+        let moved = to_basis([q[0] + x0 as f64 - p0[0], q[1] + y0 as f64 - p0[1]]);
+        if ok && moved[0].abs() < 0.35 && moved[1].abs() < 0.35 {
+            src.push(uv);
+            dst.push([q[0] + x0 as f64, q[1] + y0 as f64]);
+        }
+    }
+    let min_corners = ((target.squares - 1).pow(2) as usize / 2).max(4);
+    let mut fit = Homography::fit(&src, &dst)?;
+    for _ in 0..2 {
+        let res: Vec<f64> = src
+            .iter()
+            .zip(&dst)
+            .map(|(s, d)| {
+                let p = fit.apply(*s);
+                (p[0] - d[0]).hypot(p[1] - d[1])
+            })
+            .collect();
+        let mut sorted = res.clone();
+        sorted.sort_by(f64::total_cmp);
+        let cut = (3.0 * sorted[sorted.len() / 2]).max(0.05);
+        let keep: Vec<usize> = (0..res.len()).filter(|&i| res[i] <= cut).collect();
+        if keep.len() == src.len() {
+            break;
+        }
+        src = keep.iter().map(|&i| src[i]).collect();
+        dst = keep.iter().map(|&i| dst[i]).collect();
+        if src.len() < min_corners {
+            return None;
+        }
+        fit = Homography::fit(&src, &dst)?;
+    }
+    if src.len() < min_corners {
+        return None;
+    }
+    let rms = (src
+        .iter()
+        .zip(&dst)
+        .map(|(s, d)| {
+            let p = fit.apply(*s);
+            (p[0] - d[0]).powi(2) + (p[1] - d[1]).powi(2)
+        })
+        .sum::<f64>()
+        / src.len() as f64)
+        .sqrt();
+    Some((fit, src.len(), rms))
+}

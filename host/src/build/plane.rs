@@ -1,0 +1,93 @@
+//! Single-channel float images and the sampling filters the builder uses.
+
+/// A single-channel float image, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plane {
+    /// Width, px.
+    pub width: usize,
+    /// Height, px.
+    pub height: usize,
+    /// `width × height` values.
+    pub data: Vec<f32>,
+}
+
+impl Plane {
+    /// A plane of zeros.
+    pub fn new(width: usize, height: usize) -> Plane {
+        Plane { width, height, data: vec![0.0; width * height] }
+    }
+
+    /// Value at integer (x, y), clamped to the edge.
+    #[inline]
+    pub fn at(&self, x: isize, y: isize) -> f32 {
+        let x = x.clamp(0, self.width as isize - 1) as usize;
+        let y = y.clamp(0, self.height as isize - 1) as usize;
+        self.data[y * self.width + x]
+    }
+
+    /// Bilinear sample at continuous (x, y), pixel centres at half-integers.
+    #[inline]
+    pub fn bilinear(&self, x: f64, y: f64) -> f64 {
+        let (fx, fy) = (x - 0.5, y - 0.5);
+        let (x0, y0) = (fx.floor(), fy.floor());
+        let (tx, ty) = (fx - x0, fy - y0);
+        let (x0, y0) = (x0 as isize, y0 as isize);
+        let a = self.at(x0, y0) as f64 * (1.0 - tx) + self.at(x0 + 1, y0) as f64 * tx;
+        let b = self.at(x0, y0 + 1) as f64 * (1.0 - tx) + self.at(x0 + 1, y0 + 1) as f64 * tx;
+        a * (1.0 - ty) + b * ty
+    }
+
+    /// Separable Gaussian blur (σ in px), edges clamped.
+    pub fn blurred(&self, sigma: f64) -> Plane {
+        let r = (3.0 * sigma).ceil() as isize;
+        let k: Vec<f64> =
+            (-r..=r).map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp()).collect();
+        let ks: f64 = k.iter().sum();
+        let k: Vec<f32> = k.iter().map(|v| (v / ks) as f32).collect();
+        let mut tmp = Plane::new(self.width, self.height);
+        for y in 0..self.height {
+            for x in 0..self.width {
+                let mut s = 0.0;
+                for (i, w) in k.iter().enumerate() {
+                    s += w * self.at(x as isize + i as isize - r, y as isize);
+                }
+                tmp.data[y * self.width + x] = s;
+            }
+        }
+        let mut out = Plane::new(self.width, self.height);
+        for y in 0..self.height {
+            for x in 0..self.width {
+                let mut s = 0.0;
+                for (i, w) in k.iter().enumerate() {
+                    s += w * tmp.at(x as isize, y as isize + i as isize - r);
+                }
+                out.data[y * self.width + x] = s;
+            }
+        }
+        out
+    }
+
+    /// The window [x0, x0 + w) × [y0, y0 + h) (clamped reads outside).
+    pub fn crop(&self, x0: isize, y0: isize, w: usize, h: usize) -> Plane {
+        let mut out = Plane::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                out.data[y * w + x] = self.at(x0 + x as isize, y0 + y as isize);
+            }
+        }
+        out
+    }
+}
+
+/// Catmull–Rom weights for fractional offset `t` ∈ [0, 1) (taps −1 … 2).
+#[inline]
+pub fn catmull_rom(t: f64) -> [f64; 4] {
+    let t2 = t * t;
+    let t3 = t2 * t;
+    [
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ]
+}

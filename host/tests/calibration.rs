@@ -1,0 +1,73 @@
+//! Geometry calibration against the simulator's as-built truth.
+
+use hil_sim::geometry::ScannerGeometry;
+use hil_sim::materials::{self, Sample};
+use hil_sim::optics::{Exposure, OpticalSim};
+use host::build::linalg::Homography;
+use host::build::locate::{Checkerboard, locate, nominal_homography};
+use host::build::plane::Plane;
+
+/// Sum of the luminance of the checkerboard frames lit by `lights`.
+fn checker_sum(sim: &OpticalSim, nominal: &ScannerGeometry, lights: &[usize]) -> Plane {
+    let cam = &nominal.camera;
+    let mut sum = Plane::new(cam.width as usize, cam.height as usize);
+    for &l in lights {
+        let axes = nominal.mirror_axes(l).unwrap();
+        let f = sim.render(&Exposure { axes, exposure_s: 0.05, light: 1.0 });
+        for (i, px) in f.rgb.chunks_exact(3).enumerate() {
+            sum.data[i] += (px[0] + px[1] + px[2]) / 3.0;
+        }
+    }
+    sum
+}
+
+fn corner_errors(h: &Homography, truth: &ScannerGeometry, l: usize) -> Vec<f64> {
+    [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]
+        .iter()
+        .map(|&uv| {
+            let t = truth.view_point(l, uv).unwrap();
+            let p = h.apply(uv);
+            (p[0] - t[0]).hypot(p[1] - t[1])
+        })
+        .collect()
+}
+
+fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+}
+
+#[test]
+fn regions_are_located_against_the_as_built_truth() {
+    let nominal = ScannerGeometry::default_scanner();
+    let target = Checkerboard::default();
+    for seed in [1u64, 2, 3] {
+        let sim = OpticalSim::as_built(
+            &nominal,
+            Sample::small(materials::by_name("checkerboard").unwrap()),
+            seed,
+        );
+        let truth = sim.geometry().clone();
+        let sum = checker_sum(&sim, &nominal, &[0, 1, 2, 3]);
+        let (mut e_nom, mut e_phase, mut e_corner) = (Vec::new(), Vec::new(), Vec::new());
+        for l in 0..nominal.mirrors.len() {
+            let fit = locate(&nominal, l, &sum, &target).unwrap();
+            e_nom.extend(corner_errors(&nominal_homography(&nominal, l).unwrap(), &truth, l));
+            e_phase.extend(corner_errors(&fit.phase, &truth, l));
+            e_corner.extend(corner_errors(&fit.best(), &truth, l));
+            if corner_errors(&fit.best(), &truth, l).iter().any(|&e| e > 0.5) {
+                eprintln!(
+                    "seed {seed} view {l}: corners {} rms {:.3} errs {:?}",
+                    fit.corners_used,
+                    fit.corner_rms_px,
+                    corner_errors(&fit.best(), &truth, l)
+                );
+            }
+        }
+        eprintln!(
+            "seed {seed}: corner RMS nominal {:.2} px, phase {:.3} px, corner homography {:.3} px",
+            rms(&e_nom),
+            rms(&e_phase),
+            rms(&e_corner)
+        );
+    }
+}
