@@ -744,6 +744,18 @@ impl ScannerGeometry {
         self.camera.project(m.reflect_point(self.sample_point(uv)))
     }
 
+    /// Unit direction from the sample centre towards where the inverse
+    /// kinematics' beam meets mirror `l` (sample-local): the nominal light
+    /// direction of mirror `l`.
+    pub fn light_direction(&self, l: usize) -> Result<DVec3, GeometryError> {
+        let beam = self.beam(self.mirror_axes(l)?);
+        let m = &self.mirrors[l];
+        let (_, p) = m
+            .intersect(beam.origin, beam.dir)
+            .ok_or_else(|| GeometryError::Unreachable(l, "the beam misses it".into()))?;
+        Ok(world_to_sample((p - self.sample_point([0.5, 0.5])).normalize()))
+    }
+
     /// Corners of the sample as the camera sees them through mirror `l`
     /// (image points of the sample's mirror image), for region finding.
     pub fn sample_image_corners(&self, l: usize) -> Option<[[f64; 2]; 4]> {

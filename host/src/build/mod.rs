@@ -9,3 +9,12 @@
 pub mod linalg;
 pub mod locate;
 pub mod plane;
+pub mod calibrate;
+pub mod error;
+pub mod regions;
+pub mod scanread;
+
+pub use calibrate::{Calibration, calibrate};
+pub use error::BuildError;
+pub use regions::{RegionSet, extract_regions};
+pub mod fidelity;

@@ -7,6 +7,7 @@
 //! could not be written, 5 no device, 6 incompatible firmware, 7 device
 //! fault, 8 camera timeout, 9 disk full.
 
+mod build;
 mod commands;
 mod plot;
 
@@ -65,6 +66,48 @@ enum Command {
     Verify {
         /// Scan directory.
         dir: PathBuf,
+    },
+    /// Geometry and colour calibration from a checkerboard scan and a
+    /// diffuse-white scan (docs/calibration-format.md).
+    Calibrate {
+        /// Scan of the checkerboard target.
+        #[arg(long)]
+        checkerboard: PathBuf,
+        /// Scan of the diffuse-white target.
+        #[arg(long)]
+        white: PathBuf,
+        /// Output calibration file (.json).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Nominal geometry file (default: the shipped scanner, at the scan's sensor size).
+        #[arg(long)]
+        geometry: Option<PathBuf>,
+        /// Albedo of the white target (from its certificate).
+        #[arg(long, default_value_t = crate::build::calibrate::DEFAULT_WHITE_ALBEDO)]
+        white_albedo: f64,
+        /// Squares along each side of the checkerboard (the one at uv 0 light).
+        #[arg(long, default_value_t = 8)]
+        squares: u32,
+    },
+    /// Calibrated, rectified region images of a scan, as OpenEXR
+    /// (`l{LL}-v{VV}.exr`: f · cos θi per pixel).
+    Regions {
+        /// Scan directory.
+        #[arg(long)]
+        scan: PathBuf,
+        /// Calibration file.
+        #[arg(long)]
+        calibration: PathBuf,
+        /// Output directory.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Nominal geometry file (default: the shipped scanner, at the scan's sensor size).
+        #[arg(long)]
+        geometry: Option<PathBuf>,
+        /// Side of the region images, px (default: the smallest power of two
+        /// no view is undersampled at).
+        #[arg(long)]
+        size: Option<usize>,
     },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
@@ -259,6 +302,19 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
         Command::Verify { dir } => commands::verify(&dir)?,
+        Command::Calibrate { checkerboard, white, output, geometry, white_albedo, squares } => {
+            build::calibrate_cmd(
+                &checkerboard,
+                &white,
+                &output,
+                geometry.as_deref(),
+                white_albedo,
+                squares,
+            )?
+        }
+        Command::Regions { scan, calibration, output, geometry, size } => {
+            build::regions_cmd(&scan, &calibration, &output, geometry.as_deref(), size)?
+        }
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,
         Command::Home { device, axes } => commands::home(&device, &axes)?,

@@ -1,0 +1,497 @@
+//! Geometry and colour calibration (Fig. 8) and the calibration file
+//! (docs/calibration-format.md).
+//!
+//! - **Geometry**: each view's homography sample uv → frame pixel from the
+//!   checkerboard scan ([`super::locate`]); the view's mirror plane from
+//!   where the sample centre appears (the camera ray through it, reflected
+//!   at the nominal mirror's distance, must meet the sample centre); the
+//!   calibrated view direction (sample centre → that mirror point); each
+//!   light's direction (the inverse kinematics' beam at the commanded axes,
+//!   reflected in the calibrated mirror plane).
+//! - **Colour**: the diffuse-white scan's response, modelled as separable
+//!   view × light fields over uv — `W_lj(uv) = A_j(uv) · B_l(uv)`: A holds
+//!   the view's mirror reflectance, vignetting and sensitivity (RGB), B the
+//!   beam's profile over the sample, its mirror's reflectance and cos θi —
+//!   fitted by alternating least squares on a grid of uv cells, so 1 600
+//!   noisy white images become 80 smooth fields.
+
+use scanner_geometry::DVec3;
+use rayon::prelude::*;
+use scanner_geometry::{AxisValues, ScannerGeometry, world_to_sample};
+use serde::{Deserialize, Serialize};
+
+use super::error::BuildError;
+use super::linalg::Homography;
+use super::locate::{Checkerboard, RegionFit, locate};
+use super::plane::Plane;
+use super::scanread::{ScanFrames, frame_bilinear};
+
+/// Calibration file format name.
+pub const CALIBRATION_FORMAT: &str = "material-scanner/calibration";
+/// Calibration file version.
+pub const CALIBRATION_VERSION: u32 = 1;
+/// Default albedo of the diffuse-white target (a PTFE / Spectralon-class
+/// reflectance standard); set it from the target's certificate.
+pub const DEFAULT_WHITE_ALBEDO: f64 = 0.98;
+/// Cells per side of the colour calibration's uv grid.
+pub const COLOUR_GRID: usize = 32;
+
+/// A scan a calibration was made from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScanRef {
+    /// The scan's sample name.
+    pub sample_name: String,
+    /// SHA-256 of its manifest file.
+    pub manifest_sha256: String,
+}
+
+/// One view (mirror seen by the camera).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewCalibration {
+    /// Mirror index.
+    pub view: usize,
+    /// Sample uv → frame pixel (row-major 3 × 3, h33 = 1): the inner-corner
+    /// fit, or the phase alignment where too few corners were found.
+    pub homography: Homography,
+    /// The Fourier-phase-aligned homography alone (the patent's method).
+    pub homography_phase: Homography,
+    /// Inner corners in the corner fit (0: none, `homography` is the phase one).
+    pub corners_used: usize,
+    /// RMS residual of the corner fit, px.
+    pub corner_rms_px: f64,
+    /// Unit direction from the sample centre towards the viewer through
+    /// this mirror, sample-local frame.
+    pub direction: [f64; 3],
+    /// The calibrated mirror plane: a point (mm, world) and its unit normal.
+    pub mirror_point_mm: [f64; 3],
+    /// Unit normal, world, pointing at the foci.
+    pub mirror_normal: [f64; 3],
+}
+
+/// One light (mirror lit).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LightCalibration {
+    /// Mirror index.
+    pub light: usize,
+    /// Unit direction from the sample towards the light, sample-local.
+    pub direction: [f64; 3],
+    /// The commanded axis values (degrees, mm, degrees) it was computed for.
+    pub axes: [f64; 3],
+}
+
+/// The diffuse-white response, separable per view and per light.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ColourCalibration {
+    /// Cells per side of the uv grid (cell (i, k) covers
+    /// u ∈ [i/G, (i+1)/G), v ∈ [k/G, (k+1)/G); values are cell means,
+    /// interpolated bilinearly between cell centres).
+    pub grid: usize,
+    /// Albedo of the white target.
+    pub white_albedo: f64,
+    /// Per view: G × G × 3 (row-major in v, u; RGB) response A_j, frame
+    /// value per second per unit of the light field.
+    pub view_response: Vec<Vec<f32>>,
+    /// Per light: G × G field B_l (mean over all lights and cells 1).
+    pub light_field: Vec<Vec<f32>>,
+}
+
+impl ColourCalibration {
+    fn lookup(grid: usize, field: &[f32], uv: [f64; 2], channels: usize, k: usize) -> f64 {
+        let g = grid as f64;
+        let x = (uv[0] * g - 0.5).clamp(0.0, g - 1.0);
+        let y = (uv[1] * g - 0.5).clamp(0.0, g - 1.0);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(grid - 1), (y0 + 1).min(grid - 1));
+        let (tx, ty) = (x - x0 as f64, y - y0 as f64);
+        let at = |i: usize, j: usize| field[(j * grid + i) * channels + k] as f64;
+        (at(x0, y0) * (1.0 - tx) + at(x1, y0) * tx) * (1.0 - ty)
+            + (at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx) * ty
+    }
+
+    /// The white target's response (frame value per second) for light
+    /// index `li`, view index `vi` at `uv`.
+    pub fn response(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
+        let b = Self::lookup(self.grid, &self.light_field[li], uv, 1, 0);
+        std::array::from_fn(|k| Self::lookup(self.grid, &self.view_response[vi], uv, 3, k) * b)
+    }
+
+    /// The light field B alone (for masking unlit parts).
+    pub fn light(&self, li: usize, uv: [f64; 2]) -> f64 {
+        Self::lookup(self.grid, &self.light_field[li], uv, 1, 0)
+    }
+}
+
+/// The calibration file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Calibration {
+    /// [`CALIBRATION_FORMAT`].
+    pub format: String,
+    /// [`CALIBRATION_VERSION`].
+    pub version: u32,
+    /// SHA-256 of the nominal geometry (scans must match it).
+    pub geometry_sha256: String,
+    /// Camera size, px.
+    pub camera_px: [u32; 2],
+    /// The checkerboard target.
+    pub target: Checkerboard,
+    /// The checkerboard scan.
+    pub checkerboard_scan: ScanRef,
+    /// The diffuse-white scan.
+    pub white_scan: ScanRef,
+    /// Per view, in mirror order.
+    pub views: Vec<ViewCalibration>,
+    /// Per light, in mirror order.
+    pub lights: Vec<LightCalibration>,
+    /// Colour calibration; its fields are indexed like `views` and `lights`.
+    pub colour: ColourCalibration,
+}
+
+/// Calibration settings.
+#[derive(Debug, Clone)]
+pub struct CalibrateOptions {
+    /// The checkerboard target.
+    pub target: Checkerboard,
+    /// The white target's albedo.
+    pub white_albedo: f64,
+}
+
+impl Default for CalibrateOptions {
+    fn default() -> CalibrateOptions {
+        CalibrateOptions { target: Checkerboard::default(), white_albedo: DEFAULT_WHITE_ALBEDO }
+    }
+}
+
+/// Progress of long builder steps.
+pub trait BuildProgress: Sync {
+    /// A stage with `total` steps starts.
+    fn stage(&self, _name: &str, _total: usize) {}
+    /// One step done.
+    fn step(&self) {}
+}
+
+/// No progress output.
+#[derive(Debug)]
+pub struct Silent;
+impl BuildProgress for Silent {}
+
+/// Luminance of frame lit by each light of `scan`, summed.
+pub fn luminance_sum(scan: &ScanFrames, progress: &dyn BuildProgress) -> Result<Plane, BuildError> {
+    let lights = scan.lights();
+    progress.stage("checkerboard frames", lights.len());
+    lights
+        .par_iter()
+        .map(|&l| {
+            let f = scan.read(l)?;
+            let mut p = Plane::new(f.width as usize, f.height as usize);
+            for (o, px) in p.data.iter_mut().zip(f.rgb.chunks_exact(3)) {
+                *o = (px[0] + px[1] + px[2]) / 3.0;
+            }
+            progress.step();
+            Ok(p)
+        })
+        .try_reduce_with(|mut a, b| {
+            a.data.iter_mut().zip(&b.data).for_each(|(x, y)| *x += y);
+            Ok(a)
+        })
+        .unwrap_or_else(|| Err(BuildError::Input(format!("{}: no frames", scan.dir.display()))))
+}
+
+/// The view's mirror plane and direction from where its homography puts
+/// the sample centre: (direction sample-local, mirror point, mirror normal).
+pub fn view_geometry(g: &ScannerGeometry, view: usize, h: &Homography) -> Option<(DVec3, DVec3, DVec3)> {
+    let pc = h.apply([0.5, 0.5]);
+    let c = DVec3::from(g.camera.position_mm);
+    let d = g.camera.ray(pc[0], pc[1]);
+    let m = g.mirrors.get(view)?;
+    let n0 = DVec3::from(m.normal).normalize();
+    let den = d.dot(n0);
+    if den.abs() < 1e-9 {
+        return None;
+    }
+    let t = (m.center() - c).dot(n0) / den;
+    let point = c + d * t;
+    let sample_centre = g.sample_point([0.5, 0.5]);
+    let out = (sample_centre - point).normalize();
+    let normal = (out - d).normalize();
+    Some((world_to_sample((point - sample_centre).normalize()), point, normal))
+}
+
+/// The light direction (sample-local) of the beam at `axes`, reflected in
+/// a mirror of unit normal `normal` (the beam is collimated: where it
+/// meets the mirror does not matter).
+pub fn light_direction(g: &ScannerGeometry, axes: [f64; 3], normal: DVec3) -> DVec3 {
+    let beam = g.beam(AxisValues::from_array(axes));
+    let r = beam.dir - 2.0 * beam.dir.dot(normal) * normal;
+    world_to_sample(-r)
+}
+
+/// Calibrate from a checkerboard scan and a diffuse-white scan.
+pub fn calibrate(
+    g: &ScannerGeometry,
+    checker: &ScanFrames,
+    white: &ScanFrames,
+    opts: &CalibrateOptions,
+    progress: &dyn BuildProgress,
+) -> Result<Calibration, BuildError> {
+    if !(opts.white_albedo > 0.0 && opts.white_albedo <= 1.0) {
+        return Err(BuildError::Input(format!(
+            "white albedo {} outside (0, 1]",
+            opts.white_albedo
+        )));
+    }
+    let sum = luminance_sum(checker, progress)?;
+    let views: Vec<usize> = (0..g.mirrors.len()).collect();
+    progress.stage("locating views", views.len());
+    let fits: Vec<RegionFit> = views
+        .par_iter()
+        .map(|&j| {
+            let r = locate(g, j, &sum, &opts.target).map_err(|e| BuildError::Input(e.to_string()));
+            progress.step();
+            r
+        })
+        .collect::<Result<_, _>>()?;
+    drop(sum);
+    let mut view_cal = Vec::new();
+    for fit in &fits {
+        let h = fit.best();
+        let (dir, point, normal) = view_geometry(g, fit.view, &h).ok_or_else(|| {
+            BuildError::Input(format!("mirror {}: its view does not meet the mirror", fit.view))
+        })?;
+        view_cal.push(ViewCalibration {
+            view: fit.view,
+            homography: h,
+            homography_phase: fit.phase,
+            corners_used: fit.corners_used,
+            corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
+            direction: dir.to_array(),
+            mirror_point_mm: point.to_array(),
+            mirror_normal: normal.to_array(),
+        });
+    }
+    let lights: Vec<usize> = white.lights();
+    if lights != checker.lights() {
+        return Err(BuildError::Input(format!(
+            "the white scan lit mirrors {lights:?}, the checkerboard scan {:?}",
+            checker.lights()
+        )));
+    }
+    let mut light_cal = Vec::new();
+    for &l in &lights {
+        let v = view_cal.iter().find(|v| v.view == l).ok_or_else(|| {
+            BuildError::Input(format!("mirror {l} is lit but not seen: cannot calibrate it"))
+        })?;
+        let axes = checker.axes(l)?;
+        let d = light_direction(g, axes, DVec3::from(v.mirror_normal));
+        light_cal.push(LightCalibration { light: l, direction: d.to_array(), axes });
+    }
+    let colour = colour_calibration(g, white, &view_cal, &lights, opts.white_albedo, progress)?;
+    Ok(Calibration {
+        format: CALIBRATION_FORMAT.into(),
+        version: CALIBRATION_VERSION,
+        geometry_sha256: g.hash(),
+        camera_px: [g.camera.width, g.camera.height],
+        target: opts.target,
+        checkerboard_scan: ScanRef {
+            sample_name: checker.manifest.settings.sample_name.clone(),
+            manifest_sha256: checker.manifest_sha256.clone(),
+        },
+        white_scan: ScanRef {
+            sample_name: white.manifest.settings.sample_name.clone(),
+            manifest_sha256: white.manifest_sha256.clone(),
+        },
+        views: view_cal,
+        lights: light_cal,
+        colour,
+    })
+}
+
+/// Mean RGB of every view's G × G uv cells in one frame (4 × 4 samples a cell).
+fn cell_means(f: &crate::camera::Frame, views: &[ViewCalibration], grid: usize) -> Vec<Vec<[f64; 3]>> {
+    const SUB: usize = 4;
+    views
+        .iter()
+        .map(|v| {
+            let mut cells = vec![[0.0; 3]; grid * grid];
+            for (c, cell) in cells.iter_mut().enumerate() {
+                let (ci, ck) = (c % grid, c / grid);
+                for s in 0..SUB * SUB {
+                    let uv = [
+                        (ci as f64 + ((s % SUB) as f64 + 0.5) / SUB as f64) / grid as f64,
+                        (ck as f64 + ((s / SUB) as f64 + 0.5) / SUB as f64) / grid as f64,
+                    ];
+                    let p = v.frame_point(uv);
+                    let rgb = frame_bilinear(f, p[0], p[1]);
+                    for k in 0..3 {
+                        cell[k] += rgb[k] / (SUB * SUB) as f64;
+                    }
+                }
+            }
+            cells
+        })
+        .collect()
+}
+
+fn colour_calibration(
+    g: &ScannerGeometry,
+    white: &ScanFrames,
+    views: &[ViewCalibration],
+    lights: &[usize],
+    albedo: f64,
+    progress: &dyn BuildProgress,
+) -> Result<ColourCalibration, BuildError> {
+    let grid = COLOUR_GRID;
+    progress.stage("white frames", lights.len());
+    // w[li][vi][cell] = mean frame value per second.
+    let w: Vec<Vec<Vec<[f64; 3]>>> = lights
+        .par_iter()
+        .map(|&l| {
+            let f = white.read(l)?;
+            let cells = cell_means(&f, views, grid);
+            progress.step();
+            Ok(cells)
+        })
+        .collect::<Result<_, BuildError>>()?;
+    // The noise floor: the median cell must stand 10× above the read noise.
+    let exposure_s = white.manifest.settings.exposure_us as f64 * 1e-6;
+    let read_codes = g.sensor.read_noise_e * g.sensor.max_code() / g.sensor.full_well_e;
+    let mut lum: Vec<f64> = w
+        .iter()
+        .flatten()
+        .flatten()
+        .map(|c| (c[0] + c[1] + c[2]) / 3.0 * exposure_s * g.sensor.max_code())
+        .collect();
+    lum.sort_by(f64::total_cmp);
+    let median = lum[lum.len() / 2];
+    if !(median >= 10.0 * read_codes.max(1.0)) {
+        return Err(BuildError::Input(format!(
+            "{}: the white target is at the noise floor (median {median:.1} ADC codes, need ≥ {:.1}): \
+             more exposure or light",
+            white.dir.display(),
+            10.0 * read_codes.max(1.0)
+        )));
+    }
+    let (nl, nv, nc) = (lights.len(), views.len(), grid * grid);
+    let mut a = vec![vec![[1.0f64; 3]; nc]; nv];
+    let mut b = vec![vec![1.0f64; nc]; nl];
+    for _ in 0..30 {
+        for (vi, av) in a.iter_mut().enumerate() {
+            for c in 0..nc {
+                let (mut num, mut den) = ([0.0; 3], 0.0);
+                for li in 0..nl {
+                    let bb = b[li][c];
+                    for k in 0..3 {
+                        num[k] += w[li][vi][c][k] * bb;
+                    }
+                    den += bb * bb;
+                }
+                av[c] = if den > 0.0 { num.map(|x| x / den) } else { [0.0; 3] };
+            }
+        }
+        for (li, bl) in b.iter_mut().enumerate() {
+            for c in 0..nc {
+                let (mut num, mut den) = (0.0, 0.0);
+                for vi in 0..nv {
+                    for k in 0..3 {
+                        num += w[li][vi][c][k] * a[vi][c][k];
+                        den += a[vi][c][k] * a[vi][c][k];
+                    }
+                }
+                bl[c] = if den > 0.0 { num / den } else { 0.0 };
+            }
+        }
+        let mean = b.iter().flatten().sum::<f64>() / (nl * nc) as f64;
+        if mean > 0.0 {
+            b.iter_mut().flatten().for_each(|x| *x /= mean);
+        }
+    }
+    Ok(ColourCalibration {
+        grid,
+        white_albedo: albedo,
+        view_response: a.iter().map(|v| v.iter().flatten().map(|&x| x as f32).collect()).collect(),
+        light_field: b.iter().map(|l| l.iter().map(|&x| x as f32).collect()).collect(),
+    })
+}
+
+impl ViewCalibration {
+    /// Where to read the frame for sample position `uv`: positions closer
+    /// to the sample's edge than [`EDGE_PX`] frame pixels are moved in to
+    /// that distance, so no resampling filter mixes in the holder around
+    /// the sample.
+    pub fn frame_point(&self, uv: [f64; 2]) -> [f64; 2] {
+        let j = self.homography.jacobian([0.5, 0.5]);
+        let du = EDGE_PX / j[0][0].hypot(j[1][0]);
+        let dv = EDGE_PX / j[0][1].hypot(j[1][1]);
+        self.homography.apply([uv[0].clamp(du, 1.0 - du), uv[1].clamp(dv, 1.0 - dv)])
+    }
+}
+
+/// Frame pixels kept between a resampled position and the sample's edge.
+pub const EDGE_PX: f64 = 2.0;
+
+impl Calibration {
+    /// Read and check a calibration file.
+    pub fn load(path: &std::path::Path) -> Result<Calibration, BuildError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
+        let c: Calibration = serde_json::from_str(&text)
+            .map_err(|e| BuildError::Input(format!("{}: not a calibration file: {e}", path.display())))?;
+        if c.format != CALIBRATION_FORMAT || c.version != CALIBRATION_VERSION {
+            return Err(BuildError::Input(format!(
+                "{}: {} version {} (this build reads {CALIBRATION_FORMAT} {CALIBRATION_VERSION})",
+                path.display(),
+                c.format,
+                c.version
+            )));
+        }
+        c.validate().map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
+        Ok(c)
+    }
+
+    fn validate(&self) -> Result<(), String> {
+        let g = self.colour.grid;
+        if g == 0 || g > 1024 {
+            return Err(format!("colour grid {g}"));
+        }
+        if self.colour.view_response.len() != self.views.len()
+            || self.colour.light_field.len() != self.lights.len()
+        {
+            return Err("colour fields do not match the views and lights".into());
+        }
+        if self.colour.view_response.iter().any(|v| v.len() != g * g * 3)
+            || self.colour.light_field.iter().any(|v| v.len() != g * g)
+        {
+            return Err("colour field of the wrong size".into());
+        }
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        for v in &self.views {
+            if !finite(&v.homography.0) || !finite(&v.direction) || v.homography.inverse().is_none() {
+                return Err(format!("view {}: bad homography or direction", v.view));
+            }
+        }
+        for l in &self.lights {
+            if !finite(&l.direction) {
+                return Err(format!("light {}: bad direction", l.light));
+            }
+        }
+        if !(self.colour.white_albedo > 0.0 && self.colour.white_albedo <= 1.0) {
+            return Err("white albedo outside (0, 1]".into());
+        }
+        Ok(())
+    }
+
+    /// Write atomically (JSON).
+    pub fn save(&self, path: &std::path::Path) -> Result<(), BuildError> {
+        let mut text = serde_json::to_string(self).expect("calibration serialises");
+        text.push('\n');
+        crate::fsutil::write_atomic(path, text.as_bytes())
+            .map_err(|e| BuildError::Output(format!("{}: {e}", path.display())))
+    }
+
+    /// SHA-256 of the canonical JSON, hex.
+    pub fn hash(&self) -> String {
+        use sha2::Digest;
+        let text = serde_json::to_string(self).expect("calibration serialises");
+        sha2::Sha256::digest(text.as_bytes()).iter().map(|b| format!("{b:02x}")).collect()
+    }
+}

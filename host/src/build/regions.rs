@@ -1,0 +1,173 @@
+//! Region images (Fig. 6 steps 2–3): for every (light, view), the view's
+//! part of the frame lit by that light, rectified onto an S × S grid over
+//! sample uv (Catmull–Rom bicubic resampling — every view is magnified at
+//! the default S, so no view is undersampled) and turned by the colour
+//! calibration into f · cos θi: radiance reflected per unit irradiance, in
+//! absolute units.
+
+use std::path::Path;
+
+use rayon::prelude::*;
+use scanner_geometry::ScannerGeometry;
+
+use super::calibrate::{BuildProgress, Calibration};
+use super::error::BuildError;
+use super::scanread::{ScanFrames, frame_bicubic};
+
+/// Region images of one scan.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RegionSet {
+    /// Side of every region image, px.
+    pub size: usize,
+    /// Lit mirrors, in order.
+    pub lights: Vec<usize>,
+    /// Seen mirrors, in order.
+    pub views: Vec<usize>,
+    /// Calibrated direction towards each light, sample-local.
+    pub light_dirs: Vec<[f64; 3]>,
+    /// Calibrated direction towards each viewer, sample-local.
+    pub view_dirs: Vec<[f64; 3]>,
+    /// `images[li * views.len() + vi]`: S × S RGB, row t = v, column s = u,
+    /// pixel (s, t) at uv ((s + 0.5)/S, (t + 0.5)/S).
+    pub images: Vec<Vec<[f32; 3]>>,
+}
+
+impl RegionSet {
+    /// The image of (light index, view index).
+    pub fn image(&self, li: usize, vi: usize) -> &[[f32; 3]] {
+        &self.images[li * self.views.len() + vi]
+    }
+
+    /// Bilinear lookup at uv (clamped to the sample).
+    pub fn sample(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
+        let img = self.image(li, vi);
+        let s = self.size as f64;
+        let x = (uv[0] * s - 0.5).clamp(0.0, s - 1.0);
+        let y = (uv[1] * s - 0.5).clamp(0.0, s - 1.0);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(self.size - 1), (y0 + 1).min(self.size - 1));
+        let (tx, ty) = (x - x0 as f64, y - y0 as f64);
+        let at = |i: usize, j: usize, k: usize| img[j * self.size + i][k] as f64;
+        std::array::from_fn(|k| {
+            (at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx) * (1.0 - ty)
+                + (at(x0, y1, k) * (1.0 - tx) + at(x1, y1, k) * tx) * ty
+        })
+    }
+
+    /// Write every region as `l{LL}-v{VV}.exr` (half float) into `dir`.
+    pub fn write_exr(&self, dir: &Path) -> Result<(), BuildError> {
+        let out = |e: String| BuildError::Output(e);
+        std::fs::create_dir_all(dir).map_err(|e| out(format!("{}: {e}", dir.display())))?;
+        (0..self.images.len()).into_par_iter().try_for_each(|i| {
+            let (li, vi) = (i / self.views.len(), i % self.views.len());
+            let frame = crate::camera::Frame {
+                width: self.size as u32,
+                height: self.size as u32,
+                rgb: self.images[i].iter().flatten().copied().collect(),
+            };
+            let bytes = crate::exrio::encode_half(&frame).map_err(out)?;
+            let path = dir.join(format!("l{:02}-v{:02}.exr", self.lights[li], self.views[vi]));
+            crate::fsutil::write_atomic(&path, &bytes)
+                .map_err(|e| out(format!("{}: {e}", path.display())))
+        })
+    }
+}
+
+/// The smallest power of two no view is undersampled at: ≥ the longest
+/// side of any view's quadrilateral in the frame, px.
+pub fn default_size(cal: &Calibration) -> usize {
+    let longest = cal
+        .views
+        .iter()
+        .map(|v| {
+            let p = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|uv| v.homography.apply(uv));
+            (0..4)
+                .map(|k| {
+                    let (a, b) = (p[k], p[(k + 1) % 4]);
+                    (a[0] - b[0]).hypot(a[1] - b[1])
+                })
+                .fold(0.0, f64::max)
+        })
+        .fold(0.0, f64::max);
+    (longest.ceil() as usize).max(8).next_power_of_two()
+}
+
+/// Extract the calibrated region images of `scan`.
+pub fn extract_regions(
+    g: &ScannerGeometry,
+    cal: &Calibration,
+    scan: &ScanFrames,
+    size: Option<usize>,
+    progress: &dyn BuildProgress,
+) -> Result<RegionSet, BuildError> {
+    if cal.geometry_sha256 != g.hash() {
+        return Err(BuildError::Input(format!(
+            "the calibration is of geometry {}…, the scanner's is {}…",
+            &cal.geometry_sha256.get(..12).unwrap_or("?"),
+            &g.hash()[..12]
+        )));
+    }
+    if scan.manifest.settings.geometry_sha256 != cal.geometry_sha256 {
+        return Err(BuildError::Input(format!(
+            "{}: taken with another geometry than the calibration's",
+            scan.dir.display()
+        )));
+    }
+    let size = size.unwrap_or_else(|| default_size(cal));
+    if !(4..=4096).contains(&size) {
+        return Err(BuildError::Input(format!("region size {size} outside 4…4096")));
+    }
+    let lights = scan.lights();
+    let light_index: Vec<usize> = lights
+        .iter()
+        .map(|&l| {
+            cal.lights.iter().position(|c| c.light == l).ok_or_else(|| {
+                BuildError::Input(format!("mirror {l} is lit in the scan but not calibrated"))
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let albedo = cal.colour.white_albedo;
+    progress.stage("sample frames", lights.len());
+    let per_light: Vec<Vec<Vec<[f32; 3]>>> = lights
+        .par_iter()
+        .zip(&light_index)
+        .map(|(&l, &ci)| {
+            let f = scan.read(l)?;
+            let cos_i = cal.lights[ci].direction[2];
+            let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
+            let images = cal
+                .views
+                .iter()
+                .enumerate()
+                .map(|(vi, v)| {
+                    let mut img = vec![[0.0f32; 3]; size * size];
+                    for (i, px) in img.iter_mut().enumerate() {
+                        let uv =
+                            [((i % size) as f64 + 0.5) / size as f64, ((i / size) as f64 + 0.5) / size as f64];
+                        // Unlit by this beam (below 2 % of its mean): nothing to divide by.
+                        if cal.colour.light(ci, uv) < 0.02 {
+                            continue;
+                        }
+                        let p = v.frame_point(uv);
+                        let s = frame_bicubic(&f, p[0], p[1]);
+                        let w = cal.colour.response(ci, vi, uv);
+                        *px = std::array::from_fn(|k| {
+                            if w[k] > 0.0 { (s[k] / w[k] * scale) as f32 } else { 0.0 }
+                        });
+                    }
+                    img
+                })
+                .collect();
+            progress.step();
+            Ok(images)
+        })
+        .collect::<Result<_, BuildError>>()?;
+    Ok(RegionSet {
+        size,
+        light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
+        view_dirs: cal.views.iter().map(|v| v.direction).collect(),
+        views: cal.views.iter().map(|v| v.view).collect(),
+        lights,
+        images: per_light.into_iter().flatten().collect(),
+    })
+}

@@ -1,0 +1,155 @@
+//! Reading a scan directory for the builder: its manifest checked against
+//! the nominal geometry, frames by lit mirror, values per second of
+//! exposure.
+
+use std::path::{Path, PathBuf};
+
+use scanner_geometry::ScannerGeometry;
+
+use super::error::BuildError;
+use crate::camera::Frame;
+use crate::scan::{FrameRecord, Manifest};
+
+/// A scan ready to be read.
+#[derive(Debug, Clone)]
+pub struct ScanFrames {
+    /// The directory.
+    pub dir: PathBuf,
+    /// Its manifest.
+    pub manifest: Manifest,
+    /// SHA-256 of the manifest file.
+    pub manifest_sha256: String,
+}
+
+impl ScanFrames {
+    /// Open the scan in `dir`, taken with the scanner `geometry` describes:
+    /// complete, of this geometry, frames of the camera's size.
+    pub fn open(dir: &Path, geometry: &ScannerGeometry) -> Result<ScanFrames, BuildError> {
+        let path = dir.join(crate::scan::MANIFEST_FILE);
+        let bytes = std::fs::read(&path).map_err(|e| {
+            BuildError::Input(format!("no scan at {}: {e}", dir.display()))
+        })?;
+        let manifest = Manifest::load(dir).map_err(|e| BuildError::Input(e.to_string()))?;
+        let want = geometry.hash();
+        if manifest.settings.geometry_sha256 != want {
+            return Err(BuildError::Input(format!(
+                "{}: taken with geometry {}…, not this scanner's {}…",
+                dir.display(),
+                &manifest.settings.geometry_sha256.get(..12).unwrap_or("?"),
+                &want[..12]
+            )));
+        }
+        let count = manifest.settings.mirror_count;
+        let missing: Vec<usize> =
+            (0..count).filter(|l| !manifest.frames.iter().any(|f| f.mirror == *l)).collect();
+        if !missing.is_empty() || !manifest.complete {
+            return Err(BuildError::Input(format!(
+                "{}: incomplete scan, frames missing for mirrors {missing:?} (finish it with --resume)",
+                dir.display()
+            )));
+        }
+        for f in &manifest.frames {
+            if (f.width, f.height) != (geometry.camera.width, geometry.camera.height) {
+                return Err(BuildError::Input(format!(
+                    "{}: {} is {}×{} px, the camera has {}×{}",
+                    dir.display(),
+                    f.file,
+                    f.width,
+                    f.height,
+                    geometry.camera.width,
+                    geometry.camera.height
+                )));
+            }
+        }
+        use sha2::Digest;
+        let manifest_sha256 =
+            sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256 })
+    }
+
+    /// Lit mirrors, in order.
+    pub fn lights(&self) -> Vec<usize> {
+        let mut l: Vec<usize> = self.manifest.frames.iter().map(|f| f.mirror).collect();
+        l.sort_unstable();
+        l.dedup();
+        l
+    }
+
+    fn record(&self, light: usize) -> Result<&FrameRecord, BuildError> {
+        self.manifest.frames.iter().find(|f| f.mirror == light).ok_or_else(|| {
+            BuildError::Input(format!("{}: no frame for mirror {light}", self.dir.display()))
+        })
+    }
+
+    /// The frame lit by mirror `light`, values divided by its exposure (s).
+    pub fn read(&self, light: usize) -> Result<Frame, BuildError> {
+        let rec = self.record(light)?;
+        let path = self.dir.join(&rec.file);
+        let mut f = crate::exrio::read_rgb(&path)
+            .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
+        if (f.width, f.height) != (rec.width, rec.height) {
+            return Err(BuildError::Input(format!(
+                "{}: {}×{} px, the manifest says {}×{}",
+                path.display(),
+                f.width,
+                f.height,
+                rec.width,
+                rec.height
+            )));
+        }
+        let t = rec.exposure_us as f32 * 1e-6;
+        if t <= 0.0 {
+            return Err(BuildError::Input(format!("{}: exposure 0", path.display())));
+        }
+        f.rgb.iter_mut().for_each(|v| *v /= t);
+        Ok(f)
+    }
+
+    /// The commanded axis values of the frame lit by `light`.
+    pub fn axes(&self, light: usize) -> Result<[f64; 3], BuildError> {
+        Ok(self.record(light)?.axis_units)
+    }
+}
+
+/// Bilinear RGB sample of a frame at continuous (x, y) (pixel centres at
+/// half-integers), edges clamped.
+#[inline]
+pub fn frame_bilinear(f: &Frame, x: f64, y: f64) -> [f64; 3] {
+    let (w, h) = (f.width as isize, f.height as isize);
+    let (fx, fy) = (x - 0.5, y - 0.5);
+    let (x0, y0) = (fx.floor(), fy.floor());
+    let (tx, ty) = (fx - x0, fy - y0);
+    let (x0, y0) = (x0 as isize, y0 as isize);
+    let px = |x: isize, y: isize| {
+        let i = 3 * (y.clamp(0, h - 1) * w + x.clamp(0, w - 1)) as usize;
+        [f.rgb[i] as f64, f.rgb[i + 1] as f64, f.rgb[i + 2] as f64]
+    };
+    let (a, b, c, d) = (px(x0, y0), px(x0 + 1, y0), px(x0, y0 + 1), px(x0 + 1, y0 + 1));
+    std::array::from_fn(|k| {
+        (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + d[k] * tx) * ty
+    })
+}
+
+/// Catmull–Rom bicubic RGB sample of a frame at continuous (x, y).
+#[inline]
+pub fn frame_bicubic(f: &Frame, x: f64, y: f64) -> [f64; 3] {
+    let (w, h) = (f.width as isize, f.height as isize);
+    let (fx, fy) = (x - 0.5, y - 0.5);
+    let (x0, y0) = (fx.floor(), fy.floor());
+    let wx = super::plane::catmull_rom(fx - x0);
+    let wy = super::plane::catmull_rom(fy - y0);
+    let (x0, y0) = (x0 as isize, y0 as isize);
+    let mut out = [0.0; 3];
+    for (j, wyj) in wy.iter().enumerate() {
+        let yy = (y0 + j as isize - 1).clamp(0, h - 1);
+        for (i, wxi) in wx.iter().enumerate() {
+            let xx = (x0 + i as isize - 1).clamp(0, w - 1);
+            let k = 3 * (yy * w + xx) as usize;
+            let wgt = wyj * wxi;
+            out[0] += wgt * f.rgb[k] as f64;
+            out[1] += wgt * f.rgb[k + 1] as f64;
+            out[2] += wgt * f.rgb[k + 2] as f64;
+        }
+    }
+    out
+}
