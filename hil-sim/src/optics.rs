@@ -106,9 +106,17 @@ struct LitMirror {
     dir: DVec3,
 }
 
+/// Noise-free electrons of the last lit exposure per unit of
+/// exposure × duty, by the axis positions they were rendered at.
+type ElectronCache =
+    std::sync::Arc<std::sync::Mutex<Option<(AxisValues, Vec<Option<Vec<[f32; 3]>>>)>>>;
+
 /// The optical simulator of one as-built scanner holding one sample.
 #[derive(Debug, Clone)]
 pub struct OpticalSim {
+    /// An HDR bracket exposes the same axis positions several times: the
+    /// scene (everything but exposure, duty and noise) is rendered once.
+    cache: ElectronCache,
     geometry: ScannerGeometry,
     sample: Sample,
     seed: u64,
@@ -140,7 +148,7 @@ impl OpticalSim {
             })
             .collect();
         let facets = as_built.mirrors.iter().map(|m| m.facet()).collect();
-        OpticalSim { geometry: as_built, sample, seed, boxes, facets }
+        OpticalSim { geometry: as_built, sample, seed, boxes, facets, cache: Default::default() }
     }
 
     /// The simulator of a scanner built to `nominal` with the default
@@ -161,7 +169,7 @@ impl OpticalSim {
 
     /// The same scanner with another sample in the holder.
     pub fn with_sample(&self, sample: Sample) -> OpticalSim {
-        OpticalSim { sample, ..self.clone() }
+        OpticalSim { sample, cache: Default::default(), ..self.clone() }
     }
 
     fn lit_mirrors(&self, beam: &Beam) -> Vec<LitMirror> {
@@ -395,6 +403,25 @@ impl OpticalSim {
             .collect()
     }
 
+    /// [`Self::electrons`], reusing the scene of the previous lit exposure
+    /// at the same axis positions (electrons scale with exposure × duty).
+    fn electrons_cached(&self, exposure: &Exposure) -> Vec<Option<Vec<[f32; 3]>>> {
+        let scale = exposure.exposure_s * exposure.light.clamp(0.0, 1.0);
+        if scale <= 0.0 {
+            return self.electrons(exposure);
+        }
+        let mut cache = self.cache.lock().unwrap_or_else(|p| p.into_inner());
+        if cache.as_ref().is_none_or(|(axes, _)| *axes != exposure.axes) {
+            let unit = Exposure { axes: exposure.axes, exposure_s: 1.0, light: 1.0 };
+            *cache = Some((exposure.axes, self.electrons(&unit)));
+        }
+        let (_, unit) = cache.as_ref().expect("filled above");
+        let k = scale as f32;
+        unit.iter()
+            .map(|row| row.as_ref().map(|r| r.iter().map(|p| p.map(|v| v * k)).collect()))
+            .collect()
+    }
+
     /// Noise seed of an exposure: the simulator seed and the exposure's
     /// physical parameters.
     fn exposure_seed(&self, e: &Exposure) -> u64 {
@@ -405,9 +432,25 @@ impl OpticalSim {
         h
     }
 
+    /// **Ground truth (tests only):** the frame of `exposure` without noise,
+    /// clipping or quantisation: expected electrons × ADC gain / max code.
+    pub fn expected(&self, exposure: &Exposure) -> Frame {
+        let s = &self.geometry.sensor;
+        let k = (s.max_code() / s.full_well_e / s.max_code()) as f32;
+        let w = self.geometry.camera.width as usize;
+        let mut rgb = Vec::with_capacity(w * self.geometry.camera.height as usize * 3);
+        for row in self.electrons_cached(exposure) {
+            match row {
+                Some(r) => rgb.extend(r.iter().flat_map(|p| p.map(|v| v * k))),
+                None => rgb.extend(std::iter::repeat_n(0.0, w * 3)),
+            }
+        }
+        Frame { width: self.geometry.camera.width, height: self.geometry.camera.height, rgb }
+    }
+
     /// Render the frame of `exposure`.
     pub fn render(&self, exposure: &Exposure) -> Frame {
-        let electrons = self.electrons(exposure);
+        let electrons = self.electrons_cached(exposure);
         let seed = self.exposure_seed(exposure);
         sensor_readout(&self.geometry.sensor, self.geometry.camera.width, electrons, seed)
     }

@@ -31,6 +31,12 @@ pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
     Ok(out.into_inner())
 }
 
+/// The frame as stored: every value rounded to half float.
+pub fn quantise_half(mut frame: Frame) -> Frame {
+    frame.rgb.iter_mut().for_each(|v| *v = f16::from_f32(*v).to_f32());
+    frame
+}
+
 /// Read the first RGB(A) layer of an OpenEXR file as linear float RGB.
 pub fn read_rgb(path: &Path) -> std::result::Result<Frame, String> {
     let image = read_first_rgba_layer_from_file(

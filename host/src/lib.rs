@@ -22,6 +22,7 @@ pub mod cli;
 pub mod discovery;
 pub mod exrio;
 pub mod fsutil;
+pub mod hdr;
 pub mod link;
 pub mod scan;
 #[cfg(feature = "sim")]

@@ -137,6 +137,11 @@ pub struct ScanSettings {
     pub settle_ms: u16,
     /// Light duty, per mille.
     pub light_duty_permille: u16,
+    /// HDR: the exposures taken per mirror, µs (empty: one exposure of
+    /// `exposure_us`). The stored frame is their merge, in units of the
+    /// longest.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub bracket_us: Vec<u32>,
 }
 
 /// One stored frame.
@@ -181,6 +186,11 @@ pub struct Manifest {
     pub frames: Vec<FrameRecord>,
     /// Whether every mirror has its frame.
     pub complete: bool,
+    /// HDR: single exposures of mirrors whose merged frame is not stored
+    /// yet (`frames/raw/`), kept so an interrupted scan resumes per
+    /// exposure; removed once the merge is stored.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub exposures: Vec<FrameRecord>,
 }
 
 impl Manifest {
@@ -231,6 +241,8 @@ pub struct ScanOptions {
     pub frame_timeout: Duration,
     /// Attempts per mirror when the camera misses the frame.
     pub attempts: u32,
+    /// HDR bracket, µs (empty: one exposure of `exposure_us`).
+    pub bracket_us: Vec<u32>,
 }
 
 impl ScanOptions {
@@ -246,6 +258,7 @@ impl ScanOptions {
             light_duty_permille: protocol::FULL_DUTY_PERMILLE,
             frame_timeout: Duration::from_secs(10),
             attempts: 3,
+            bracket_us: Vec::new(),
         }
     }
 }
@@ -449,6 +462,11 @@ pub fn frame_file(l: usize) -> String {
     format!("frames/mirror-{l:02}.exr")
 }
 
+/// File of one exposure of an HDR bracket, relative to the scan directory.
+pub fn raw_file(l: usize, exposure_us: u32) -> String {
+    format!("frames/raw/mirror-{l:02}-e{exposure_us:07}.exr")
+}
+
 /// Lower-case hex of `bytes` (device ids, checksums).
 pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
@@ -470,8 +488,15 @@ fn open_directory(
     let dir = &opts.out;
     let frames_dir = dir.join("frames");
     std::fs::create_dir_all(&frames_dir).map_err(|e| io_error(&frames_dir, e))?;
+    let raw_dir = frames_dir.join("raw");
+    if !settings.bracket_us.is_empty() {
+        std::fs::create_dir_all(&raw_dir).map_err(|e| io_error(&raw_dir, e))?;
+    }
     // Leftovers of an interrupted atomic write.
-    for d in [dir.as_path(), frames_dir.as_path()] {
+    for d in [dir.as_path(), frames_dir.as_path(), raw_dir.as_path()] {
+        if !d.is_dir() {
+            continue;
+        }
         for entry in std::fs::read_dir(d).map_err(|e| io_error(d, e))?.flatten() {
             if entry.file_name().to_string_lossy().starts_with(".tmp-") {
                 let _ = std::fs::remove_file(entry.path());
@@ -486,6 +511,7 @@ fn open_directory(
         camera: camera.into(),
         frames: Vec::new(),
         complete: false,
+        exposures: Vec::new(),
     };
     if !dir.join(MANIFEST_FILE).exists() {
         fresh.save(dir)?;
@@ -516,6 +542,8 @@ fn open_directory(
     }
     let before = m.frames.len();
     m.frames.retain(|f| frame_intact(dir, f));
+    let done: Vec<usize> = m.frames.iter().map(|f| f.mirror).collect();
+    m.exposures.retain(|f| !done.contains(&f.mirror) && frame_intact(dir, f));
     if m.frames.len() < before {
         progress.note(&format!(
             "{} recorded frame(s) damaged or missing: taking them again",
@@ -551,7 +579,19 @@ pub fn scan(
         exposure_us: opts.exposure_us,
         settle_ms: opts.settle_ms,
         light_duty_permille: opts.light_duty_permille,
+        bracket_us: opts.bracket_us.clone(),
     };
+    if let Some(&bad) = opts
+        .bracket_us
+        .iter()
+        .find(|&&e| !(protocol::MIN_EXPOSURE_US..=protocol::MAX_EXPOSURE_US).contains(&e))
+    {
+        return Err(ScanError::Conflict(format!(
+            "exposure {bad} µs outside {}…{} µs",
+            protocol::MIN_EXPOSURE_US,
+            protocol::MAX_EXPOSURE_US
+        )));
+    }
     let device = DeviceRecord {
         device_id: hex(&info.device_id),
         firmware: info.firmware.to_string(),
@@ -572,20 +612,36 @@ pub fn scan(
     // thread while the next frame is captured; the manifest names a frame
     // as soon as its file is durable, and only then.
     let already: Vec<usize> = manifest.frames.iter().map(|f| f.mirror).collect();
+    let raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
     let manifest = std::thread::scope(|scope| -> Result<Manifest, ScanError> {
         let (jobs, job_rx) = std::sync::mpsc::sync_channel::<WriteJob>(1);
-        let (done_tx, done) = std::sync::mpsc::channel::<Result<(usize, Duration), ScanError>>();
+        let (done_tx, done) =
+            std::sync::mpsc::channel::<Result<(Option<usize>, Duration), ScanError>>();
         let out = opts.out.as_path();
         let writer = scope.spawn(move || {
             for job in job_rx {
                 let t = Instant::now();
+                let raw = job.raw;
                 let result = write_frame(out, job).and_then(|record| {
                     let mirror = record.mirror;
+                    if raw {
+                        manifest.exposures.retain(|f| f.file != record.file);
+                        manifest.exposures.push(record);
+                        manifest.save(out)?;
+                        return Ok((None, t.elapsed()));
+                    }
                     manifest.frames.retain(|f| f.mirror != mirror);
                     manifest.frames.push(record);
                     manifest.frames.sort_by_key(|f| f.mirror);
+                    // The merge is durable: its single exposures can go.
+                    let (gone, kept): (Vec<FrameRecord>, Vec<FrameRecord>) =
+                        manifest.exposures.drain(..).partition(|f| f.mirror == mirror);
+                    manifest.exposures = kept;
                     manifest.save(out)?;
-                    Ok((mirror, t.elapsed()))
+                    for f in gone {
+                        let _ = std::fs::remove_file(out.join(&f.file));
+                    }
+                    Ok((Some(mirror), t.elapsed()))
                 });
                 let failed = result.is_err();
                 if done_tx.send(result).is_err() || failed {
@@ -594,18 +650,20 @@ pub fn scan(
             }
             manifest
         });
-        let stored = |result: Result<(usize, Duration), ScanError>,
+        let stored = |result: Result<(Option<usize>, Duration), ScanError>,
                       report: &mut ScanReport,
                       progress: &mut dyn ScanProgress|
          -> Result<(), ScanError> {
             let (mirror, took) = result?;
             report.timings.disk += took;
-            report.captured += 1;
-            progress.frame(mirror);
+            if let Some(mirror) = mirror {
+                report.captured += 1;
+                progress.frame(mirror);
+            }
             Ok(())
         };
         let mut failure = None;
-        for l in (0..total).filter(|l| !already.contains(l)) {
+        'mirrors: for l in (0..total).filter(|l| !already.contains(l)) {
             for result in done.try_iter() {
                 if let Err(e) = stored(result, &mut report, progress) {
                     failure = Some(e);
@@ -614,20 +672,50 @@ pub fn scan(
             if failure.is_some() {
                 break;
             }
-            let (frame, fired, status) =
-                match capture_with_retries(dev, camera, geometry, l, opts, &mut report, progress) {
-                    Ok(c) => c,
-                    Err(e) => {
-                        failure = Some(e);
-                        break;
-                    }
+            let bracket = if opts.bracket_us.is_empty() {
+                vec![opts.exposure_us]
+            } else {
+                opts.bracket_us.clone()
+            };
+            let mut taken: Vec<(crate::camera::Frame, u32, FrameRecord)> = Vec::new();
+            for &exposure_us in &bracket {
+                let file = if opts.bracket_us.is_empty() {
+                    frame_file(l)
+                } else {
+                    raw_file(l, exposure_us)
                 };
-            let steps = status.axes.map(|a| a.position_steps);
-            let job = WriteJob {
-                frame,
-                record: FrameRecord {
+                if let Some(rec) = raw_kept.iter().find(|r| r.file == file) {
+                    // Resumed: this exposure is on disk already.
+                    let t = Instant::now();
+                    let frame = exrio::read_rgb(&opts.out.join(&rec.file))
+                        .map_err(|e| ScanError::Io(format!("{}: {e}", rec.file)));
+                    report.timings.disk += t.elapsed();
+                    match frame {
+                        Ok(f) => {
+                            taken.push((f, exposure_us, rec.clone()));
+                            continue;
+                        }
+                        Err(e) => {
+                            failure = Some(e);
+                            break 'mirrors;
+                        }
+                    }
+                }
+                let mut o = opts.clone();
+                o.exposure_us = exposure_us;
+                let (frame, fired, status) =
+                    match capture_with_retries(dev, camera, geometry, l, &o, &mut report, progress)
+                    {
+                        Ok(c) => c,
+                        Err(e) => {
+                            failure = Some(e);
+                            break 'mirrors;
+                        }
+                    };
+                let steps = status.axes.map(|a| a.position_steps);
+                let record = FrameRecord {
                     mirror: l,
-                    file: frame_file(l),
+                    file,
                     sha256: String::new(),
                     width: 0,
                     height: 0,
@@ -636,7 +724,52 @@ pub fn scan(
                     exposure_us: fired.exposure_us,
                     axis_steps: steps,
                     axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
-                },
+                };
+                if opts.bracket_us.is_empty() {
+                    taken.push((frame, exposure_us, record));
+                    break;
+                }
+                // Merge what is stored: the half-float frame, so a resumed
+                // mirror merges to the same bytes.
+                let frame = exrio::quantise_half(frame);
+                if jobs
+                    .send(WriteJob { frame: frame.clone(), record: record.clone(), raw: true })
+                    .is_err()
+                {
+                    break 'mirrors;
+                }
+                taken.push((frame, exposure_us, record));
+            }
+            let job = if opts.bracket_us.is_empty() {
+                let (frame, _, record) = taken.pop().expect("one exposure taken");
+                WriteJob { frame, record, raw: false }
+            } else {
+                let reference = *bracket.iter().max().expect("a bracket");
+                let inputs: Vec<(crate::camera::Frame, u32)> =
+                    taken.iter().map(|(f, e, _)| (f.clone(), *e)).collect();
+                let (merged, stats) = match crate::hdr::merge(&inputs, &geometry.sensor, reference)
+                {
+                    Ok(m) => m,
+                    Err(e) => {
+                        failure = Some(ScanError::Io(format!("mirror {l}: {e}")));
+                        break 'mirrors;
+                    }
+                };
+                if stats.clipped > 0 {
+                    progress.note(&format!(
+                        "mirror {l}: {} values saturated even at {} µs",
+                        stats.clipped,
+                        bracket.iter().min().expect("a bracket")
+                    ));
+                }
+                let (_, _, longest) = taken
+                    .iter()
+                    .find(|(_, e, _)| *e == reference)
+                    .expect("the reference exposure was taken");
+                let mut record = longest.clone();
+                record.file = frame_file(l);
+                record.exposure_us = reference;
+                WriteJob { frame: merged, record, raw: false }
             };
             if jobs.send(job).is_err() {
                 break; // the writer stopped on an error, reported below
@@ -763,11 +896,13 @@ type Captured = (crate::camera::Frame, TriggerFired, protocol::Status);
 struct WriteJob {
     frame: crate::camera::Frame,
     record: FrameRecord,
+    /// One exposure of an HDR bracket (recorded in `Manifest::exposures`).
+    raw: bool,
 }
 
 /// Encode and store one frame atomically; complete its record.
 fn write_frame(dir: &Path, job: WriteJob) -> Result<FrameRecord, ScanError> {
-    let WriteJob { frame, mut record } = job;
+    let WriteJob { frame, mut record, .. } = job;
     let bytes =
         exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{}: {e}", record.file)))?;
     let path = dir.join(&record.file);

@@ -15,8 +15,8 @@
 //!   fitted by alternating least squares on a grid of uv cells, so 1 600
 //!   noisy white images become 80 smooth fields.
 
-use scanner_geometry::DVec3;
 use rayon::prelude::*;
+use scanner_geometry::DVec3;
 use scanner_geometry::{AxisValues, ScannerGeometry, world_to_sample};
 use serde::{Deserialize, Serialize};
 
@@ -199,7 +199,11 @@ pub fn luminance_sum(scan: &ScanFrames, progress: &dyn BuildProgress) -> Result<
 
 /// The view's mirror plane and direction from where its homography puts
 /// the sample centre: (direction sample-local, mirror point, mirror normal).
-pub fn view_geometry(g: &ScannerGeometry, view: usize, h: &Homography) -> Option<(DVec3, DVec3, DVec3)> {
+pub fn view_geometry(
+    g: &ScannerGeometry,
+    view: usize,
+    h: &Homography,
+) -> Option<(DVec3, DVec3, DVec3)> {
     let pc = h.apply([0.5, 0.5]);
     let c = DVec3::from(g.camera.position_mm);
     let d = g.camera.ray(pc[0], pc[1]);
@@ -307,7 +311,11 @@ pub fn calibrate(
 }
 
 /// Mean RGB of every view's G × G uv cells in one frame (4 × 4 samples a cell).
-fn cell_means(f: &crate::camera::Frame, views: &[ViewCalibration], grid: usize) -> Vec<Vec<[f64; 3]>> {
+fn cell_means(
+    f: &crate::camera::Frame,
+    views: &[ViewCalibration],
+    grid: usize,
+) -> Vec<Vec<[f64; 3]>> {
     const SUB: usize = 4;
     views
         .iter()
@@ -363,7 +371,7 @@ fn colour_calibration(
         .collect();
     lum.sort_by(f64::total_cmp);
     let median = lum[lum.len() / 2];
-    if !(median >= 10.0 * read_codes.max(1.0)) {
+    if median.is_nan() || median < 10.0 * read_codes.max(1.0) {
         return Err(BuildError::Input(format!(
             "{}: the white target is at the noise floor (median {median:.1} ADC codes, need ≥ {:.1}): \
              more exposure or light",
@@ -434,8 +442,9 @@ impl Calibration {
     pub fn load(path: &std::path::Path) -> Result<Calibration, BuildError> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
-        let c: Calibration = serde_json::from_str(&text)
-            .map_err(|e| BuildError::Input(format!("{}: not a calibration file: {e}", path.display())))?;
+        let c: Calibration = serde_json::from_str(&text).map_err(|e| {
+            BuildError::Input(format!("{}: not a calibration file: {e}", path.display()))
+        })?;
         if c.format != CALIBRATION_FORMAT || c.version != CALIBRATION_VERSION {
             return Err(BuildError::Input(format!(
                 "{}: {} version {} (this build reads {CALIBRATION_FORMAT} {CALIBRATION_VERSION})",
@@ -465,7 +474,8 @@ impl Calibration {
         }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         for v in &self.views {
-            if !finite(&v.homography.0) || !finite(&v.direction) || v.homography.inverse().is_none() {
+            if !finite(&v.homography.0) || !finite(&v.direction) || v.homography.inverse().is_none()
+            {
                 return Err(format!("view {}: bad homography or direction", v.view));
             }
         }

@@ -62,7 +62,11 @@ pub fn material_psnr(estimate: &[[f32; 3]], truth: &[[f32; 3]]) -> (f64, f64, f6
     let peak = tv[((tv.len() as f64 * 0.99) as usize).min(tv.len() - 1)];
     let n = (e.len() * 3) as f64;
     let mse = |s: f64| {
-        e.iter().zip(&t).map(|(a, b)| (0..3).map(|k| (s * a[k] - b[k]).powi(2)).sum::<f64>()).sum::<f64>() / n
+        e.iter()
+            .zip(&t)
+            .map(|(a, b)| (0..3).map(|k| (s * a[k] - b[k]).powi(2)).sum::<f64>())
+            .sum::<f64>()
+            / n
     };
     let num: f64 = e.iter().zip(&t).map(|(a, b)| (0..3).map(|k| a[k] * b[k]).sum::<f64>()).sum();
     let den: f64 = e.iter().map(|a| (0..3).map(|k| a[k] * a[k]).sum::<f64>()).sum();

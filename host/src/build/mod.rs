@@ -6,11 +6,11 @@
 //!   (silhouette, Fourier phase, checker corners);
 //! - [`linalg`], [`plane`]: the small numerics under it.
 
+pub mod calibrate;
+pub mod error;
 pub mod linalg;
 pub mod locate;
 pub mod plane;
-pub mod calibrate;
-pub mod error;
 pub mod regions;
 pub mod scanread;
 

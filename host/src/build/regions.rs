@@ -80,7 +80,8 @@ pub fn default_size(cal: &Calibration) -> usize {
         .views
         .iter()
         .map(|v| {
-            let p = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|uv| v.homography.apply(uv));
+            let p =
+                [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|uv| v.homography.apply(uv));
             (0..4)
                 .map(|k| {
                     let (a, b) = (p[k], p[(k + 1) % 4]);
@@ -142,8 +143,10 @@ pub fn extract_regions(
                 .map(|(vi, v)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
                     for (i, px) in img.iter_mut().enumerate() {
-                        let uv =
-                            [((i % size) as f64 + 0.5) / size as f64, ((i / size) as f64 + 0.5) / size as f64];
+                        let uv = [
+                            ((i % size) as f64 + 0.5) / size as f64,
+                            ((i / size) as f64 + 0.5) / size as f64,
+                        ];
                         // Unlit by this beam (below 2 % of its mean): nothing to divide by.
                         if cal.colour.light(ci, uv) < 0.02 {
                             continue;

@@ -26,9 +26,8 @@ impl ScanFrames {
     /// complete, of this geometry, frames of the camera's size.
     pub fn open(dir: &Path, geometry: &ScannerGeometry) -> Result<ScanFrames, BuildError> {
         let path = dir.join(crate::scan::MANIFEST_FILE);
-        let bytes = std::fs::read(&path).map_err(|e| {
-            BuildError::Input(format!("no scan at {}: {e}", dir.display()))
-        })?;
+        let bytes = std::fs::read(&path)
+            .map_err(|e| BuildError::Input(format!("no scan at {}: {e}", dir.display())))?;
         let manifest = Manifest::load(dir).map_err(|e| BuildError::Input(e.to_string()))?;
         let want = geometry.hash();
         if manifest.settings.geometry_sha256 != want {

@@ -99,7 +99,12 @@ pub fn calibrate_cmd(
     let cal = cal.map_err(build_failure)?;
     cal.save(output).map_err(build_failure)?;
     let with_corners = cal.views.iter().filter(|v| v.corners_used > 0).count();
-    let rms = cal.views.iter().filter(|v| v.corners_used > 0).map(|v| v.corner_rms_px).fold(0.0, f64::max);
+    let rms = cal
+        .views
+        .iter()
+        .filter(|v| v.corners_used > 0)
+        .map(|v| v.corner_rms_px)
+        .fold(0.0, f64::max);
     println!(
         "calibrated {} views and {} lights in {:.1} s: {with_corners} views by their checker corners \
          (largest fit residual {rms:.3} px), the rest by Fourier phase → {}",
@@ -118,7 +123,7 @@ pub fn regions_cmd(
     output: &Path,
     geometry: Option<&Path>,
     size: Option<usize>,
-) -> Result<(), Failure> {
+) -> Result<crate::build::RegionSet, Failure> {
     if let Some(s) = size
         && !(4..=4096).contains(&s)
     {
@@ -154,7 +159,44 @@ pub fn regions_cmd(
         started.elapsed().as_secs_f64() - extracted,
         output.display()
     );
-    Ok(())
+    Ok(regions)
+}
+
+/// A PNG contact sheet of region images: up to 6 lights (rows) × 10 views
+/// (columns) spread over the scan, f · cos θi · π (a white target's albedo)
+/// tone-mapped (Reinhard) and sRGB-encoded.
+pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(), Failure> {
+    let pick = |n: usize, k: usize| -> Vec<usize> {
+        let k = k.min(n);
+        (0..k).map(|i| i * n / k).collect()
+    };
+    let rows = pick(regions.lights.len(), 6);
+    let cols = pick(regions.views.len(), 10);
+    let s = regions.size as u32;
+    let gap = 4u32;
+    let (w, h) = (cols.len() as u32 * (s + gap) + gap, rows.len() as u32 * (s + gap) + gap);
+    let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
+    let encode = |v: f32| {
+        let x = (v * std::f32::consts::PI).max(0.0);
+        let t = x / (1.0 + x);
+        let c = if t <= 0.003_130_8 { 12.92 * t } else { 1.055 * t.powf(1.0 / 2.4) - 0.055 };
+        (c * 255.0).round().clamp(0.0, 255.0) as u8
+    };
+    for (r, &li) in rows.iter().enumerate() {
+        for (c, &vi) in cols.iter().enumerate() {
+            let src = regions.image(li, vi);
+            let (x0, y0) = (gap + c as u32 * (s + gap), gap + r as u32 * (s + gap));
+            for (i, px) in src.iter().enumerate() {
+                let (x, y) = (i as u32 % s, i as u32 / s);
+                img.put_pixel(x0 + x, y0 + y, image::Rgb(px.map(encode)));
+            }
+        }
+    }
+    let mut bytes = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    crate::fsutil::write_atomic(path, &bytes)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
 }
 
 fn staging_dir(output: &Path) -> PathBuf {
@@ -178,7 +220,11 @@ fn replace_dir(staging: &Path, output: &Path) -> std::io::Result<()> {
         std::fs::rename(staging, output)?;
     }
     if let Some(parent) = output.parent() {
-        crate::fsutil::sync_dir(if parent.as_os_str().is_empty() { Path::new(".") } else { parent })?;
+        crate::fsutil::sync_dir(if parent.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            parent
+        })?;
     }
     Ok(())
 }

@@ -419,9 +419,52 @@ pub struct ScanArgs {
     /// Exposure, µs.
     #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
     pub exposure_us: u32,
+    /// HDR: take these exposures (µs, comma-separated) per mirror and
+    /// store their merge (docs/scan-format.md, "HDR").
+    #[arg(long, value_delimiter = ',', conflicts_with = "hdr")]
+    pub exposures: Vec<u32>,
+    /// HDR with the default bracket around --exposure-us (×1/25, ×1/5, ×1).
+    #[arg(long)]
+    pub hdr: bool,
     /// Camera timeout per frame, s.
     #[arg(long, default_value_t = 10.0)]
     pub frame_timeout: f64,
+}
+
+impl ScanArgs {
+    /// The HDR bracket asked for (empty: a single exposure), checked
+    /// before anything moves.
+    pub fn bracket(&self) -> Result<Vec<u32>, Failure> {
+        let range = protocol::MIN_EXPOSURE_US..=protocol::MAX_EXPOSURE_US;
+        if !range.contains(&self.exposure_us) {
+            return Err(Failure(
+                2,
+                anyhow!(
+                    "--exposure-us {} outside {}…{}",
+                    self.exposure_us,
+                    range.start(),
+                    range.end()
+                ),
+            ));
+        }
+        let mut b = if self.hdr {
+            crate::hdr::default_bracket(self.exposure_us)
+        } else {
+            self.exposures.clone()
+        };
+        if let Some(bad) = b.iter().find(|e| !range.contains(e)) {
+            return Err(Failure(
+                2,
+                anyhow!("--exposures: {bad} µs outside {}…{}", range.start(), range.end()),
+            ));
+        }
+        b.sort_unstable();
+        b.dedup();
+        if b.len() > 8 {
+            return Err(Failure(2, anyhow!("--exposures: at most 8 exposures")));
+        }
+        Ok(if b.len() == 1 && !self.hdr && b[0] == self.exposure_us { Vec::new() } else { b })
+    }
 }
 
 fn camera_for(arg: Option<&str>, rig: Option<&SimRig>) -> Result<Box<dyn Camera>, Failure> {
@@ -456,6 +499,7 @@ pub fn run_scan(
     opts.mirrors = scan_args.mirrors;
     opts.exposure_us = scan_args.exposure_us;
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
+    opts.bracket_us = scan_args.bracket()?;
     let bar = ProgressBar::new(geometry.mirrors.len() as u64);
     bar.set_style(
         ProgressStyle::with_template(
@@ -527,7 +571,17 @@ fn demo_sim(
     hil_sim::materials::lookup(material)
         .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
     let started = std::time::Instant::now();
-    for sample in ["checkerboard", "diffuse-white", material] {
+    // A texture-set directory is named after its folder.
+    let name = Path::new(material)
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .filter(|n| !n.is_empty())
+        .unwrap_or_else(|| "sample".into());
+    for (sample, label, hdr) in [
+        ("checkerboard", "checkerboard", false),
+        ("diffuse-white", "diffuse-white", false),
+        (material, name.as_str(), true),
+    ] {
         let args = DeviceArgs {
             device: "sim".into(),
             sim_material: sample.into(),
@@ -538,21 +592,41 @@ fn demo_sim(
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
-            sample_name: sample.into(),
-            out: out.join(sample),
+            sample_name: label.into(),
+            out: out.join(label),
             resume: true,
             geometry: None,
             camera: None,
             mirrors,
             exposure_us: protocol::DEFAULT_EXPOSURE_US,
+            exposures: Vec::new(),
+            hdr,
             frame_timeout: 10.0,
         };
-        run_scan(&mut opened, &scan_args, sample)?;
+        run_scan(&mut opened, &scan_args, label)?;
     }
+    let scanned = started.elapsed().as_secs_f64();
+    let calibration = out.join("calibration.json");
+    super::build::calibrate_cmd(
+        &out.join("checkerboard"),
+        &out.join("diffuse-white"),
+        &calibration,
+        None,
+        crate::build::calibrate::DEFAULT_WHITE_ALBEDO,
+        8,
+    )?;
+    let regions_dir = out.join(format!("regions-{name}"));
+    let regions =
+        super::build::regions_cmd(&out.join(&name), &calibration, &regions_dir, None, None)?;
+    let sheet = out.join(format!("regions-{name}.png"));
+    super::build::contact_sheet(&regions, &sheet)?;
     println!(
-        "demo: three scans in {:.1} s under {}",
-        started.elapsed().as_secs_f64(),
-        out.display()
+        "demo: three scans in {scanned:.1} s, calibration and {} region images in {:.1} s under {}\n\
+         look at {} (rows: lights, columns: views)",
+        regions.images.len(),
+        started.elapsed().as_secs_f64() - scanned,
+        out.display(),
+        sheet.display()
     );
     Ok(())
 }

@@ -313,7 +313,8 @@ fn run(cli: Cli) -> Result<(), Failure> {
             )?
         }
         Command::Regions { scan, calibration, output, geometry, size } => {
-            build::regions_cmd(&scan, &calibration, &output, geometry.as_deref(), size)?
+            build::regions_cmd(&scan, &calibration, &output, geometry.as_deref(), size)
+                .map(|_| ())?
         }
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,

@@ -1,0 +1,188 @@
+//! The material builder's fidelity and speed table (docs/benchmarks.md):
+//! scans of the two targets and the four library materials on the
+//! simulator (HDR for the samples), calibration, region images, material
+//! PSNR against `hil-sim truth` at the captured pairs, the calibration's
+//! errors against the as-built scanner, and the metric's own limit (the
+//! 3 × 3-point cell means against 12 × 12-point ones).
+//!
+//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR]`
+//! (scans in DIR are reused when complete).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use hil_sim::materials::{Sample, lookup};
+use hil_sim::optics::OpticalSim;
+use host::build::calibrate::{CalibrateOptions, Silent};
+use host::build::fidelity::{material_psnr, pair_queries};
+use host::build::scanread::ScanFrames;
+use host::build::{calibrate, extract_regions};
+use host::camera::SimCamera;
+use host::link::{Device, SimTransport};
+use host::scan::{Quiet, ScanOptions, scan};
+use host::simulator::SimSetup;
+use scanner_formats::queries::Query;
+use scanner_geometry::{DVec3, world_to_sample};
+
+fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
+    let args: Vec<String> = std::env::args().collect();
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn take(material: &str, seed: u64, bin: u32, mirrors: usize, hdr: bool, out: &Path) -> f64 {
+    if host::scan::Manifest::load(out).is_ok_and(|m| m.complete) {
+        return 0.0;
+    }
+    let t = Instant::now();
+    let s = SimSetup { bin, seed, ..SimSetup::new(material) };
+    let rig = s.rig().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    let mut opts = ScanOptions::new(material, out);
+    opts.mirrors = Some(mirrors);
+    opts.resume = true;
+    if hdr {
+        opts.bracket_us = host::hdr::default_bracket(opts.exposure_us);
+    }
+    scan(&mut dev, &mut SimCamera(rig), &s.nominal().unwrap(), &opts, &mut Quiet).unwrap();
+    t.elapsed().as_secs_f64()
+}
+
+fn main() {
+    let bin: u32 = arg("--bin", 1);
+    let mirrors: usize = arg("--mirrors", 40);
+    let seed: u64 = arg("--seed", 1);
+    let out: PathBuf = arg("--out", PathBuf::from("target/builder-fidelity"));
+    let materials = ["woven-fabric", "leather", "painted-wood", "rough-metal"];
+    for (m, hdr) in [("checkerboard", false), ("diffuse-white", false)]
+        .into_iter()
+        .chain(materials.iter().map(|m| (*m, true)))
+    {
+        let s = take(m, seed, bin, mirrors, hdr, &out.join(m));
+        eprintln!("scan {m}: {s:.1} s");
+    }
+    let g = SimSetup { bin, seed, ..SimSetup::new("checkerboard") }.nominal().unwrap();
+    let t = Instant::now();
+    let checker = ScanFrames::open(&out.join("checkerboard"), &g).unwrap();
+    let white = ScanFrames::open(&out.join("diffuse-white"), &g).unwrap();
+    let cal = calibrate(&g, &checker, &white, &CalibrateOptions::default(), &Silent).unwrap();
+    let t_cal = t.elapsed().as_secs_f64();
+    // Calibration against the as-built scanner.
+    let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
+        .geometry()
+        .clone();
+    let (mut corner, mut corner_phase, mut corner_nominal) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut view, mut view_nominal) = (Vec::new(), Vec::new());
+    for v in &cal.views {
+        let nominal_h = host::build::locate::nominal_homography(&g, v.view).unwrap();
+        for uv in [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]] {
+            let t = truth.view_point(v.view, uv).unwrap();
+            for (h, list) in [
+                (&v.homography, &mut corner),
+                (&v.homography_phase, &mut corner_phase),
+                (&nominal_h, &mut corner_nominal),
+            ] {
+                let p = h.apply(uv);
+                list.push((p[0] - t[0]).hypot(p[1] - t[1]));
+            }
+        }
+        let c = truth.mirrors[v.view].reflect_point(DVec3::from(truth.camera.position_mm));
+        let t = world_to_sample(c.normalize());
+        view.push(DVec3::from(v.direction).angle_between(t).to_degrees());
+        view_nominal.push(g.mirror_direction(v.view).unwrap().angle_between(t).to_degrees());
+    }
+    let (mut light, mut light_nominal) = (Vec::new(), Vec::new());
+    for l in &cal.lights {
+        let beam = truth.beam(scanner_geometry::AxisValues::from_array(l.axes));
+        let n = DVec3::from(truth.mirrors[l.light].normal).normalize();
+        let t = world_to_sample(-(beam.dir - 2.0 * beam.dir.dot(n) * n));
+        light.push(DVec3::from(l.direction).angle_between(t).to_degrees());
+        light_nominal.push(g.light_direction(l.light).unwrap().angle_between(t).to_degrees());
+    }
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+    let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+    println!("sensor {0}², {mirrors} mirrors, seed {seed}", 4096 / bin);
+    println!(
+        "corners RMS: corner homography {:.3} px, phase {:.3} px, nominal {:.2} px; views by corners: {}/{}",
+        rms(&corner),
+        rms(&corner_phase),
+        rms(&corner_nominal),
+        cal.views.iter().filter(|v| v.corners_used > 0).count(),
+        cal.views.len()
+    );
+    println!(
+        "view directions: RMS {:.3}° max {:.3}° (nominal RMS {:.3}° max {:.3}°)",
+        rms(&view),
+        max(&view),
+        rms(&view_nominal),
+        max(&view_nominal)
+    );
+    println!(
+        "light directions: RMS {:.3}° max {:.3}° (nominal RMS {:.3}° max {:.3}°)",
+        rms(&light),
+        max(&light),
+        rms(&light_nominal),
+        max(&light_nominal)
+    );
+    println!("calibrate: {t_cal:.1} s");
+    println!("| material | regions s | PSNR dB | gain-free dB | gain | metric limit dB |");
+    println!("|---|---|---|---|---|---|");
+    for m in materials {
+        let t = Instant::now();
+        let scan = ScanFrames::open(&out.join(m), &g).unwrap();
+        let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+        let t_reg = t.elapsed().as_secs_f64();
+        let sample = Sample::small(lookup(m).unwrap());
+        let (mut est, mut tru) = (Vec::new(), Vec::new());
+        for (li, &l) in regions.lights.iter().enumerate() {
+            for (vi, &v) in regions.views.iter().enumerate() {
+                let q = pair_queries(
+                    g.light_direction(l).unwrap().to_array(),
+                    g.mirror_direction(v).unwrap().to_array(),
+                );
+                tru.extend(hil_sim::truth::answer(&sample, &q));
+                est.extend(q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)));
+            }
+        }
+        let (psnr, gain_free, gain) = material_psnr(&est, &tru);
+        // The metric's limit on every 16th pair: 3 × 3 points vs 12 × 12.
+        let (mut three, mut dense) = (Vec::new(), Vec::new());
+        for p in (0..regions.lights.len() * regions.views.len()).step_by(16) {
+            let (l, v) =
+                (regions.lights[p / regions.views.len()], regions.views[p % regions.views.len()]);
+            let (wi, wo) = (
+                g.light_direction(l).unwrap().to_array(),
+                g.mirror_direction(v).unwrap().to_array(),
+            );
+            three.extend(hil_sim::truth::answer(&sample, &pair_queries(wi, wo)));
+            let n = 12;
+            let fine: Vec<Query> = (0..32 * 32)
+                .flat_map(|c| {
+                    let (i, k) = (c % 32, c / 32);
+                    (0..n * n).map(move |s| Query {
+                        uv: [
+                            (i as f64 + ((s % n) as f64 + 0.5) / n as f64) / 32.0,
+                            (k as f64 + ((s / n) as f64 + 0.5) / n as f64) / 32.0,
+                        ],
+                        wi,
+                        wo,
+                    })
+                })
+                .collect();
+            for cell in hil_sim::truth::answer(&sample, &fine).chunks(n * n) {
+                let mut m = [0.0f32; 3];
+                for x in cell {
+                    for k in 0..3 {
+                        m[k] += x[k] / (n * n) as f32;
+                    }
+                }
+                dense.extend(std::iter::repeat_n(m, 9));
+            }
+        }
+        let (limit, _, _) = material_psnr(&dense, &three);
+        println!("| {m} | {t_reg:.1} | {psnr:.2} | {gain_free:.2} | {gain:.4} | {limit:.2} |");
+    }
+}
