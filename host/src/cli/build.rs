@@ -165,6 +165,7 @@ pub fn regions_cmd(
 /// A PNG contact sheet of region images: up to 6 lights (rows) × 10 views
 /// (columns) spread over the scan, f · cos θi · π (a white target's albedo)
 /// tone-mapped (Reinhard) and sRGB-encoded.
+#[cfg_attr(not(feature = "sim"), allow(dead_code))]
 pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(), Failure> {
     let pick = |n: usize, k: usize| -> Vec<usize> {
         let k = k.min(n);
