@@ -1,4 +1,7 @@
-//! Geometry calibration against the simulator's as-built truth.
+//! Geometry calibration against the simulator's as-built truth: on three
+//! as-built scanners, every view's corners within 0.25 px RMS by both the
+//! patent's Fourier phase alignment and the inner-corner homography, from
+//! the default 4096² sensor (errors of the nominal geometry reported).
 
 use hil_sim::geometry::ScannerGeometry;
 use hil_sim::materials::{self, Sample};
@@ -69,5 +72,8 @@ fn regions_are_located_against_the_as_built_truth() {
             rms(&e_phase),
             rms(&e_corner)
         );
+        assert!(rms(&e_nom) > 5.0, "the as-built errors are real");
+        assert!(rms(&e_phase) < 0.25, "phase: {}", rms(&e_phase));
+        assert!(rms(&e_corner) < 0.25, "corners: {}", rms(&e_corner));
     }
 }
