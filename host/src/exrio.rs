@@ -10,6 +10,19 @@ use crate::camera::Frame;
 
 /// Encode `frame` as a half-float, PIZ-compressed RGB OpenEXR file in memory.
 pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
+    encode_half_with(frame, Compression::PIZ)
+}
+
+/// The same without compression: for short-lived files (an HDR bracket's
+/// single exposures), where encoding time matters more than size.
+pub fn encode_half_uncompressed(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
+    encode_half_with(frame, Compression::Uncompressed)
+}
+
+fn encode_half_with(
+    frame: &Frame,
+    compression: Compression,
+) -> std::result::Result<Vec<u8>, String> {
     let (w, h) = (frame.width as usize, frame.height as usize);
     if frame.rgb.len() != w * h * 3 {
         return Err(format!("frame of {w}×{h} has {} values", frame.rgb.len()));
@@ -19,11 +32,8 @@ pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
         let i = 3 * (p.y() * w + p.x());
         (f16::from_f32(rgb[i]), f16::from_f32(rgb[i + 1]), f16::from_f32(rgb[i + 2]))
     });
-    let encoding = Encoding {
-        compression: Compression::PIZ,
-        blocks: Blocks::ScanLines,
-        line_order: LineOrder::Increasing,
-    };
+    let encoding =
+        Encoding { compression, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
     let layer = Layer::new((w, h), LayerAttributes::named("frame"), encoding, channels);
     let image = Image::from_layer(layer);
     let mut out = std::io::Cursor::new(Vec::new());

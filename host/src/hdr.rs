@@ -46,39 +46,52 @@ pub fn merge(
     let shortest =
         frames.iter().enumerate().min_by_key(|(_, (_, t))| *t).map(|(i, _)| i).unwrap_or(0);
     let mut out = vec![0.0f32; first.rgb.len()];
-    let mut stats = MergeStats::default();
-    for (i, o) in out.iter_mut().enumerate() {
-        let (mut num, mut den) = (0.0f64, 0.0f64);
-        let mut all_clipped = true;
-        for (f, t_us) in frames {
-            let v = f.rgb[i] as f64;
-            let code = (v * max).round();
-            if code >= max {
-                continue;
+    use rayon::prelude::*;
+    let chunk = 3 * w as usize;
+    let stats = out
+        .par_chunks_mut(chunk.max(1))
+        .enumerate()
+        .map(|(row, line)| {
+            let mut stats = MergeStats::default();
+            for (j, o) in line.iter_mut().enumerate() {
+                let i = row * chunk + j;
+                let (mut num, mut den) = (0.0f64, 0.0f64);
+                let mut all_clipped = true;
+                for (f, t_us) in frames {
+                    let v = f.rgb[i] as f64;
+                    let code = (v * max).round();
+                    if code >= max {
+                        continue;
+                    }
+                    all_clipped = false;
+                    if code <= 0.0 {
+                        continue;
+                    }
+                    let t = *t_us as f64 * 1e-6;
+                    let e = code / gain;
+                    let var_code = gain * gain * (e + read2) + 1.0 / 12.0;
+                    let var_rate = var_code / (max * t).powi(2);
+                    let wgt = 1.0 / var_rate;
+                    num += wgt * v / t;
+                    den += wgt;
+                }
+                *o = if den > 0.0 {
+                    (num / den * reference_us as f64 * 1e-6) as f32
+                } else if all_clipped {
+                    stats.clipped += 1;
+                    let (f, t) = &frames[shortest];
+                    (f.rgb[i] as f64 * reference_us as f64 / *t as f64) as f32
+                } else {
+                    stats.black += 1;
+                    0.0
+                };
             }
-            all_clipped = false;
-            if code <= 0.0 {
-                continue;
-            }
-            let t = *t_us as f64 * 1e-6;
-            let e = code / gain;
-            let var_code = gain * gain * (e + read2) + 1.0 / 12.0;
-            let var_rate = var_code / (max * t).powi(2);
-            let wgt = 1.0 / var_rate;
-            num += wgt * v / t;
-            den += wgt;
-        }
-        *o = if den > 0.0 {
-            (num / den * reference_us as f64 * 1e-6) as f32
-        } else if all_clipped {
-            stats.clipped += 1;
-            let (f, t) = &frames[shortest];
-            (f.rgb[i] as f64 * reference_us as f64 / *t as f64) as f32
-        } else {
-            stats.black += 1;
-            0.0
-        };
-    }
+            stats
+        })
+        .reduce(MergeStats::default, |a, b| MergeStats {
+            clipped: a.clipped + b.clipped,
+            black: a.black + b.black,
+        });
     Ok((Frame { width: w, height: h, rgb: out }, stats))
 }
 

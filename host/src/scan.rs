@@ -902,9 +902,10 @@ struct WriteJob {
 
 /// Encode and store one frame atomically; complete its record.
 fn write_frame(dir: &Path, job: WriteJob) -> Result<FrameRecord, ScanError> {
-    let WriteJob { frame, mut record, .. } = job;
+    let WriteJob { frame, mut record, raw } = job;
     let bytes =
-        exrio::encode_half(&frame).map_err(|e| ScanError::Io(format!("{}: {e}", record.file)))?;
+        if raw { exrio::encode_half_uncompressed(&frame) } else { exrio::encode_half(&frame) }
+            .map_err(|e| ScanError::Io(format!("{}: {e}", record.file)))?;
     let path = dir.join(&record.file);
     write_atomic(&path, &bytes).map_err(|e| io_error(&path, e))?;
     record.sha256 = sha256_hex(&bytes);

@@ -147,10 +147,7 @@ impl Client {
 /// The default scanner's mirror table from its inverse kinematics.
 pub fn mirror_table() -> Vec<MirrorPosition> {
     let g = hil_sim::geometry::ScannerGeometry::default_scanner();
-    let axes = hil_sim::camera::default_axes();
-    (0..g.mirrors.len())
-        .map(|l| MirrorPosition { steps: g.mirror_axes(l).unwrap().to_steps(&axes).unwrap() })
-        .collect()
+    g.mirror_table(&hil_sim::camera::default_axes()).unwrap()
 }
 
 pub fn load_mirror_table(client: &mut Client) -> Vec<MirrorPosition> {

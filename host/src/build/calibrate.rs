@@ -2,12 +2,12 @@
 //! (docs/calibration-format.md).
 //!
 //! - **Geometry**: each view's homography sample uv → frame pixel from the
-//!   checkerboard scan ([`super::locate`]); the view's mirror plane from
-//!   where the sample centre appears (the camera ray through it, reflected
-//!   at the nominal mirror's distance, must meet the sample centre); the
-//!   calibrated view direction (sample centre → that mirror point); each
-//!   light's direction (the inverse kinematics' beam at the commanded axes,
-//!   reflected in the calibrated mirror plane).
+//!   checkerboard scan ([`super::locate`]); the camera's pose and
+//!   intrinsics and every mirror's plane adjusted to all views at once
+//!   ([`super::bundle`]); the calibrated view direction (sample centre →
+//!   the camera mirrored in the view's plane); each light's direction (the
+//!   inverse kinematics' beam at the commanded axes, reflected in the
+//!   calibrated mirror plane).
 //! - **Colour**: the diffuse-white scan's response, modelled as separable
 //!   view × light fields over uv — `W_lj(uv) = A_j(uv) · B_l(uv)`: A holds
 //!   the view's mirror reflectance, vignetting and sensitivity (RGB), B the
@@ -20,6 +20,7 @@ use scanner_geometry::DVec3;
 use scanner_geometry::{AxisValues, ScannerGeometry, world_to_sample};
 use serde::{Deserialize, Serialize};
 
+use super::bundle::{AssemblyTolerances, adjust};
 use super::error::BuildError;
 use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
@@ -197,30 +198,6 @@ pub fn luminance_sum(scan: &ScanFrames, progress: &dyn BuildProgress) -> Result<
         .unwrap_or_else(|| Err(BuildError::Input(format!("{}: no frames", scan.dir.display()))))
 }
 
-/// The view's mirror plane and direction from where its homography puts
-/// the sample centre: (direction sample-local, mirror point, mirror normal).
-pub fn view_geometry(
-    g: &ScannerGeometry,
-    view: usize,
-    h: &Homography,
-) -> Option<(DVec3, DVec3, DVec3)> {
-    let pc = h.apply([0.5, 0.5]);
-    let c = DVec3::from(g.camera.position_mm);
-    let d = g.camera.ray(pc[0], pc[1]);
-    let m = g.mirrors.get(view)?;
-    let n0 = DVec3::from(m.normal).normalize();
-    let den = d.dot(n0);
-    if den.abs() < 1e-9 {
-        return None;
-    }
-    let t = (m.center() - c).dot(n0) / den;
-    let point = c + d * t;
-    let sample_centre = g.sample_point([0.5, 0.5]);
-    let out = (sample_centre - point).normalize();
-    let normal = (out - d).normalize();
-    Some((world_to_sample((point - sample_centre).normalize()), point, normal))
-}
-
 /// The light direction (sample-local) of the beam at `axes`, reflected in
 /// a mirror of unit normal `normal` (the beam is collimated: where it
 /// meets the mirror does not matter).
@@ -256,15 +233,24 @@ pub fn calibrate(
         })
         .collect::<Result<_, _>>()?;
     drop(sum);
+    // The camera and the mirror planes, adjusted to all views at once.
+    let homographies: Vec<Homography> = fits.iter().map(RegionFit::best).collect();
+    let corner_sigma = fits
+        .iter()
+        .filter(|f| f.corners.is_some())
+        .map(|f| f.corner_rms_px)
+        .fold(0.0, f64::max)
+        .max(0.05);
+    let adjusted = adjust(g, &views, &homographies, corner_sigma, &AssemblyTolerances::default());
+    let centre = g.sample_point([0.5, 0.5]);
     let mut view_cal = Vec::new();
-    for fit in &fits {
-        let h = fit.best();
-        let (dir, point, normal) = view_geometry(g, fit.view, &h).ok_or_else(|| {
-            BuildError::Input(format!("mirror {}: its view does not meet the mirror", fit.view))
-        })?;
+    for (k, fit) in fits.iter().enumerate() {
+        let (point, normal) = adjusted.planes[k];
+        let virtual_camera = adjusted.camera - 2.0 * (adjusted.camera - point).dot(normal) * normal;
+        let dir = world_to_sample((virtual_camera - centre).normalize());
         view_cal.push(ViewCalibration {
             view: fit.view,
-            homography: h,
+            homography: fit.best(),
             homography_phase: fit.phase,
             corners_used: fit.corners_used,
             corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },

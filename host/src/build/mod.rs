@@ -17,4 +17,5 @@ pub mod scanread;
 pub use calibrate::{Calibration, calibrate};
 pub use error::BuildError;
 pub use regions::{RegionSet, extract_regions};
+pub mod bundle;
 pub mod fidelity;
