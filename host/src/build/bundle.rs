@@ -167,8 +167,8 @@ pub fn adjust(
                 eq.add_sparse(&jy, (base[1] - target[1]) / sigma_px);
             }
         }
-        for i in 0..n {
-            eq.add_sparse(&[(i, 1.0 / model.sigma[i])], p[i] / model.sigma[i]);
+        for (i, (&pi, &si)) in p.iter().zip(&model.sigma).enumerate() {
+            eq.add_sparse(&[(i, 1.0 / si)], pi / si);
         }
         eq
     };
