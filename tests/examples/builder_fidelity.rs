@@ -136,18 +136,7 @@ fn main() {
         let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
         let t_reg = t.elapsed().as_secs_f64();
         let sample = Sample::small(lookup(m).unwrap());
-        let (mut est, mut tru) = (Vec::new(), Vec::new());
-        for (li, &l) in regions.lights.iter().enumerate() {
-            for (vi, &v) in regions.views.iter().enumerate() {
-                let q = pair_queries(
-                    g.light_direction(l).unwrap().to_array(),
-                    g.mirror_direction(v).unwrap().to_array(),
-                );
-                tru.extend(hil_sim::truth::answer(&sample, &q));
-                est.extend(q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)));
-            }
-        }
-        let (psnr, gain_free, gain) = material_psnr(&est, &tru);
+        let (psnr, gain_free, gain) = tests::captured_pair_psnr(&g, &regions, &sample);
         // The metric's limit on every 16th pair: 3 × 3 points vs 12 × 12.
         let (mut three, mut dense) = (Vec::new(), Vec::new());
         for p in (0..regions.lights.len() * regions.views.len()).step_by(16) {

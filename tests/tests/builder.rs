@@ -11,7 +11,6 @@ use std::path::Path;
 use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::calibrate::{CalibrateOptions, Silent};
-use host::build::fidelity::{material_psnr, pair_queries};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
 use host::camera::SimCamera;
@@ -73,18 +72,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     let scan = ScanFrames::open(&out, &g).unwrap();
     let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
     let sample = Sample::small(lookup("leather").unwrap());
-    let (mut est, mut tru) = (Vec::new(), Vec::new());
-    for (li, &l) in regions.lights.iter().enumerate() {
-        for (vi, &v) in regions.views.iter().enumerate() {
-            let q = pair_queries(
-                g.light_direction(l).unwrap().to_array(),
-                g.mirror_direction(v).unwrap().to_array(),
-            );
-            tru.extend(hil_sim::truth::answer(&sample, &q));
-            est.extend(q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)));
-        }
-    }
-    let (psnr, gain_free, gain) = material_psnr(&est, &tru);
+    let (psnr, gain_free, gain) = tests::captured_pair_psnr(&g, &regions, &sample);
     eprintln!(
         "leather, 2048² sensor: PSNR {psnr:.2} dB, gain-free {gain_free:.2} dB (gain {gain:.4})"
     );
@@ -142,6 +130,14 @@ fn bad_inputs_exit_3_and_write_nothing() {
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
 
+    // Each refusal exits 3 and leaves no output directory.
+    let regions_refused = |scan: &str, cal: &str, out: &str| -> String {
+        let (code, err) =
+            scanner(&["regions", "--scan", &d(scan), "--calibration", &d(cal), "-o", &d(out)]);
+        assert_eq!(code, Some(3), "{err}");
+        assert!(!dir.path().join(out).exists());
+        err
+    };
     // A scan with a missing frame.
     copy_dir(&dir.path().join("leather"), &dir.path().join("holey"));
     std::fs::remove_file(dir.path().join("holey/frames/mirror-01.exr")).unwrap();
@@ -151,16 +147,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     m2.complete = false;
     std::fs::write(dir.path().join("holey/manifest.json"), serde_json::to_string(&m2).unwrap())
         .unwrap();
-    let (code, err) = scanner(&[
-        "regions",
-        "--scan",
-        &d("holey"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("r1"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let err = regions_refused("holey", "cal.json", "r1");
     assert!(err.contains("frames missing for mirrors [1]"), "{err}");
     assert!(!dir.path().join("r1").exists());
     // A frame of the wrong size.
@@ -169,60 +156,22 @@ fn bad_inputs_exit_3_and_write_nothing() {
     m3.frames[0].width = 100;
     std::fs::write(dir.path().join("small/manifest.json"), serde_json::to_string(&m3).unwrap())
         .unwrap();
-    let (code, err) = scanner(&[
-        "regions",
-        "--scan",
-        &d("small"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("r2"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let err = regions_refused("small", "cal.json", "r2");
     assert!(err.contains("is 100×512 px, the camera has 512×512"), "{err}");
     assert!(!dir.path().join("r2").exists());
     // A scan of another geometry than the calibration (another binning).
     take_scan("leather", seed, 16, mirrors, &dir.path().join("other"));
-    let (code, err) = scanner(&[
-        "regions",
-        "--scan",
-        &d("other"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("r3"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let err = regions_refused("other", "cal.json", "r3");
     assert!(err.contains("geometry"), "{err}");
     assert!(!dir.path().join("r3").exists());
     // A damaged calibration file.
     std::fs::write(d("bad.json"), "{\"format\": \"material-scanner/calibration\"").unwrap();
-    let (code, err) = scanner(&[
-        "regions",
-        "--scan",
-        &d("leather"),
-        "--calibration",
-        &d("bad.json"),
-        "-o",
-        &d("r4"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let err = regions_refused("leather", "bad.json", "r4");
     assert!(err.contains("not a calibration file"), "{err}");
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));
-    let mut md = host::scan::Manifest::load(&dir.path().join("dark")).unwrap();
-    for f in &mut md.frames {
-        let path = dir.path().join("dark").join(&f.file);
-        let mut frame = host::exrio::read_rgb(&path).unwrap();
-        frame.rgb.iter_mut().for_each(|v| *v *= 0.001);
-        let bytes = host::exrio::encode_half(&frame).unwrap();
-        std::fs::write(&path, &bytes).unwrap();
-        use sha2::Digest;
-        f.sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-    }
-    std::fs::write(dir.path().join("dark/manifest.json"), serde_json::to_string(&md).unwrap())
-        .unwrap();
+    rewrite_frames(&dir.path().join("dark"), |v| *v *= 0.001);
     let (code, err) = scanner(&[
         "calibrate",
         "--checkerboard",
@@ -238,18 +187,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     // A region that cannot be found: the checkerboard scan of a blank (white) sample
     // has no pattern to lock onto — name the mirror.
     copy_dir(&dir.path().join("checker"), &dir.path().join("blank"));
-    let mut mb = host::scan::Manifest::load(&dir.path().join("blank")).unwrap();
-    for f in &mut mb.frames {
-        let path = dir.path().join("blank").join(&f.file);
-        let frame = host::exrio::read_rgb(&path).unwrap();
-        let black = host::camera::Frame { rgb: vec![0.0; frame.rgb.len()], ..frame };
-        let bytes = host::exrio::encode_half(&black).unwrap();
-        std::fs::write(&path, &bytes).unwrap();
-        use sha2::Digest;
-        f.sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-    }
-    std::fs::write(dir.path().join("blank/manifest.json"), serde_json::to_string(&mb).unwrap())
-        .unwrap();
+    rewrite_frames(&dir.path().join("blank"), |v| *v = 0.0);
     let (code, err) = scanner(&[
         "calibrate",
         "--checkerboard",
@@ -273,6 +211,22 @@ fn bad_inputs_exit_3_and_write_nothing() {
         "/dev/null",
     ]);
     assert_eq!(code, Some(4), "{err}");
+}
+
+/// Change every frame of the scan in `dir` value by value, keeping its
+/// manifest's checksums true.
+fn rewrite_frames(dir: &Path, change: impl Fn(&mut f32)) {
+    use sha2::Digest;
+    let mut m = host::scan::Manifest::load(dir).unwrap();
+    for f in &mut m.frames {
+        let path = dir.join(&f.file);
+        let mut frame = host::exrio::read_rgb(&path).unwrap();
+        frame.rgb.iter_mut().for_each(&change);
+        let bytes = host::exrio::encode_half(&frame).unwrap();
+        std::fs::write(&path, &bytes).unwrap();
+        f.sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+    }
+    std::fs::write(dir.join("manifest.json"), serde_json::to_string(&m).unwrap()).unwrap();
 }
 
 fn copy_dir(from: &Path, to: &Path) {
