@@ -113,6 +113,49 @@ fn bad_input_gets_a_clear_error_and_exit_code() {
     assert_eq!(out.status.code(), Some(3));
     let out = scanner(&["fit", junk.to_str().unwrap(), "-o", "m.json", "--p", "3"]);
     assert_eq!(out.status.code(), Some(2));
+    // An output type the command cannot write: usage, before any work.
     let out = scanner(&["render-brdf", junk.to_str().unwrap(), "-o", "x.tiff"]);
-    assert_eq!(out.status.code(), Some(3));
+    assert_eq!(out.status.code(), Some(2));
+}
+
+#[test]
+fn outputs_never_replace_devices_links_or_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    let table = p("ggx.binary");
+    let out = scanner(&["synth-merl", "--material", "ggx", "-o", &table]);
+    assert!(out.status.success());
+    let code = |args: &[&str]| {
+        let o = scanner(args);
+        (o.status.code(), String::from_utf8_lossy(&o.stderr).into_owned())
+    };
+    // A device node.
+    let (c, err) = code(&["fit", &table, "-o", "/dev/null"]);
+    assert_eq!(c, Some(2), "/dev/null is not a .json: {err}");
+    let (c, err) = code(&["synth-merl", "--material", "ggx", "-o", "/dev/full"]);
+    assert_eq!(c, Some(4), "{err}");
+    assert!(err.contains("a device node"), "{err}");
+    // A symbolic link: refused, its target untouched.
+    let target = p("target.json");
+    std::fs::write(&target, "keep").unwrap();
+    std::os::unix::fs::symlink(&target, p("link.json")).unwrap();
+    let (c, err) = code(&["fit", &table, "-o", &p("link.json"), "--max-iterations", "1"]);
+    assert_eq!(c, Some(4), "{err}");
+    assert!(err.contains("symbolic link"), "{err}");
+    assert_eq!(std::fs::read_to_string(&target).unwrap(), "keep");
+    // The input itself.
+    let model = p("m.json");
+    let (c, err) = code(&["fit", &table, "-o", &model, "--max-iterations", "2"]);
+    assert_eq!(c, Some(0), "{err}");
+    let (c, err) = code(&["plot-npf", &model, "-o", &p("plot.exr")]);
+    assert_eq!(c, Some(2), "{err}");
+    assert!(!dir.path().join("plot.exr").exists());
+    let (c, err) = code(&["render-brdf", &model, "-o", &p("sphere.jpg")]);
+    assert_eq!(c, Some(2), "{err}");
+    let (c, err) = code(&["render-brdf", &table, "-o", &table.replace(".binary", ".exr")]);
+    assert_eq!(c, Some(0), "{err}");
+    std::fs::hard_link(&model, p("same.png")).unwrap();
+    let (c, err) = code(&["plot-npf", &model, "-o", &p("same.png")]);
+    assert_eq!(c, Some(4), "{err}");
+    assert!(err.contains("would replace the input"), "{err}");
 }

@@ -271,6 +271,20 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
     r.map_err(|e| Failure(4, e))
 }
 
+/// Before any work: the output may be written (not a device node, symlink,
+/// directory or the input: exit 4) and has one of the file types the
+/// command writes (exit 2).
+fn check_output(out: &Path, input: &Path, types: &[&str]) -> Result<(), Failure> {
+    let ext = out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    if !types.is_empty() && !ext.as_deref().is_some_and(|e| types.contains(&e)) {
+        return Err(Failure(
+            2,
+            anyhow::anyhow!("{}: the output must be .{}", out.display(), types.join(" or .")),
+        ));
+    }
+    crate::fsutil::check_output(out, &[input]).map_err(|e| Failure(4, anyhow::anyhow!(e)))
+}
+
 fn load_brdf(path: &Path) -> anyhow::Result<Box<dyn Brdf>> {
     let ext = path.extension().and_then(|e| e.to_str()).unwrap_or_default();
     if ext.eq_ignore_ascii_case("json") {
@@ -329,6 +343,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             if !(1.0..=2.0).contains(&p) {
                 return Err(Failure(2, anyhow::anyhow!("--p must be in [1, 2], got {p}")));
             }
+            check_output(&out, &path, &["json"])?;
             let samples = input(load_samples(&path))?;
             let opts = FitOptions {
                 g,
@@ -371,6 +386,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             if !(8..=4096).contains(&size) {
                 return Err(Failure(2, anyhow::anyhow!("--size must be in 8..=4096")));
             }
+            check_output(&out, &path, &["png", "exr"])?;
             let brdf =
                 input(load_brdf(&path).with_context(|| format!("cannot load {}", path.display())))?;
             let image = render::render_sphere(brdf.as_ref(), &render::Environment::builtin(), size);
@@ -381,6 +397,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             println!("sphere written to {}", out.display());
         }
         Command::SynthMerl { material, output: out } => {
+            crate::fsutil::check_output(&out, &[]).map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
             use crate::brdf::analytic::*;
             let b = match material {
                 Material::Ggx => ggx_conductor(0.2),
@@ -394,6 +411,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             println!("{material:?} table written to {}", out.display());
         }
         Command::PlotNpf { input: path, output: out } => {
+            check_output(&out, &path, &["png"])?;
             let model = input(NpfModel::load(&path).map_err(anyhow::Error::from))?;
             output(plot::plot_factors(&model, &out).map_err(anyhow::Error::from))?;
             println!("factor plot written to {}", out.display());
