@@ -395,6 +395,10 @@ impl Controller {
                 if !self.boot.capabilities.contains(Capabilities::PERSISTENT_CONFIG) {
                     return Err(DeviceError::Unsupported);
                 }
+                // A flash erase stalls instruction fetch on the single-bank
+                // F411 and with it the step interrupt: only when nothing
+                // moves, and like motion, not while a fault is latched.
+                self.ensure_can_move()?;
                 let mut buf = [0u8; PERSISTED_MAX_LEN];
                 let blob = self.config.encode(&mut buf).ok_or(DeviceError::Storage)?;
                 hw.save_config(blob).map_err(|_| DeviceError::Storage)?;

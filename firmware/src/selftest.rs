@@ -56,6 +56,7 @@ pub const TESTS: &[SelfTest] = &[
     ("link_silence_while_moving", link_silence_while_moving),
     ("watchdog_boot_latches", watchdog_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
+    ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("link_bytes_corruption_and_duplicates", link_bytes_corruption_and_duplicates),
 ];
 
@@ -603,6 +604,31 @@ pub fn config_save_and_reload() -> TestResult {
         PersistedConfig::decode(&rig.hw.saved[..rig.hw.saved.len() - 1]).is_none(),
         "truncated"
     );
+    Ok(())
+}
+
+/// `SaveConfig` erases flash, which stalls the step interrupt on the F411:
+/// refused (busy) while an axis moves, and (like motion) while a fault is
+/// latched; accepted again once idle and cleared.
+pub fn save_config_refused_while_moving_or_faulted() -> TestResult {
+    let mut rig = Rig::new();
+    moving_with_light(&mut rig)?;
+    ensure!(
+        rig.request(Request::SaveConfig) == Reply::Error(DeviceError::Busy),
+        "busy while moving"
+    );
+    ensure!(rig.hw.saved.is_empty(), "nothing written while moving");
+    rig.estop = true;
+    rig.poll();
+    rig.estop = false;
+    rig.poll();
+    ensure!(
+        rig.request(Request::SaveConfig) == Reply::Error(DeviceError::FaultLatched),
+        "refused while faulted"
+    );
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
+    ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved when idle");
+    ensure!(!rig.hw.saved.is_empty(), "written");
     Ok(())
 }
 

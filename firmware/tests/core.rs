@@ -45,5 +45,6 @@ selftests!(
     link_silence_while_moving,
     watchdog_boot_latches,
     config_save_and_reload,
+    save_config_refused_while_moving_or_faulted,
     link_bytes_corruption_and_duplicates,
 );
