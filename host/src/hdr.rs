@@ -28,7 +28,7 @@ pub struct MergeStats {
 /// Merge `frames` (each with its exposure in µs; all the same size) into
 /// one frame in units of the `reference_us` exposure.
 pub fn merge(
-    frames: &[(Frame, u32)],
+    frames: &[(&Frame, u32)],
     sensor: &SensorSpec,
     reference_us: u32,
 ) -> Result<(Frame, MergeStats), String> {
@@ -57,7 +57,7 @@ pub fn merge(
                 let i = row * chunk + j;
                 let (mut num, mut den) = (0.0f64, 0.0f64);
                 let mut all_clipped = true;
-                for (f, t_us) in frames {
+                for &(f, t_us) in frames {
                     let v = f.rgb[i] as f64;
                     let code = (v * max).round();
                     if code >= max {
@@ -67,7 +67,7 @@ pub fn merge(
                     if code <= 0.0 {
                         continue;
                     }
-                    let t = *t_us as f64 * 1e-6;
+                    let t = t_us as f64 * 1e-6;
                     let e = code / gain;
                     let var_code = gain * gain * (e + read2) + 1.0 / 12.0;
                     let var_rate = var_code / (max * t).powi(2);
@@ -79,8 +79,8 @@ pub fn merge(
                     (num / den * reference_us as f64 * 1e-6) as f32
                 } else if all_clipped {
                     stats.clipped += 1;
-                    let (f, t) = &frames[shortest];
-                    (f.rgb[i] as f64 * reference_us as f64 / *t as f64) as f32
+                    let (f, t) = frames[shortest];
+                    (f.rgb[i] as f64 * reference_us as f64 / t as f64) as f32
                 } else {
                     stats.black += 1;
                     0.0
@@ -132,13 +132,13 @@ mod tests {
         // Pixel 1: black at 1 ms, 0.01 at 10 ms.
         let short = frame(&[0.5, 0.5, 0.5, 0.0, 0.0, 0.0]);
         let long = frame(&[1.0, 1.0, 1.0, 0.01, 0.01, 0.01]);
-        let (m, stats) = merge(&[(short, 1_000), (long, 10_000)], &s, 10_000).unwrap();
+        let (m, stats) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000).unwrap();
         assert!((m.rgb[0] - 5.0).abs() < 1e-5, "{}", m.rgb[0]);
         assert!((m.rgb[3] - 0.01).abs() < 1e-6, "{}", m.rgb[3]);
         assert_eq!(stats, MergeStats::default());
         // Saturated everywhere: counted, the shortest exposure scaled.
-        let (m, stats) =
-            merge(&[(frame(&[1.0; 3]), 1_000), (frame(&[1.0; 3]), 10_000)], &s, 10_000).unwrap();
+        let saturated = frame(&[1.0; 3]);
+        let (m, stats) = merge(&[(&saturated, 1_000), (&saturated, 10_000)], &s, 10_000).unwrap();
         assert_eq!(stats.clipped, 3);
         assert!((m.rgb[0] - 10.0).abs() < 1e-5);
     }
@@ -147,12 +147,8 @@ mod tests {
     fn the_longer_unsaturated_exposure_weighs_more() {
         let s = sensor();
         // 0.2 at 1 ms and 0.21 at 10 ms ×⅒: the merge sits near the long one.
-        let (m, _) = merge(
-            &[(frame(&[0.02, 0.02, 0.02]), 1_000), (frame(&[0.21, 0.21, 0.21]), 10_000)],
-            &s,
-            10_000,
-        )
-        .unwrap();
+        let (short, long) = (frame(&[0.02, 0.02, 0.02]), frame(&[0.21, 0.21, 0.21]));
+        let (m, _) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000).unwrap();
         assert!(m.rgb[0] > 0.208 && m.rgb[0] < 0.21, "{}", m.rgb[0]);
     }
 }

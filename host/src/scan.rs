@@ -745,8 +745,8 @@ pub fn scan(
                 WriteJob { frame, record, raw: false }
             } else {
                 let reference = *bracket.iter().max().expect("a bracket");
-                let inputs: Vec<(crate::camera::Frame, u32)> =
-                    taken.iter().map(|(f, e, _)| (f.clone(), *e)).collect();
+                let inputs: Vec<(&crate::camera::Frame, u32)> =
+                    taken.iter().map(|(f, e, _)| (f, *e)).collect();
                 let (merged, stats) = match crate::hdr::merge(&inputs, &geometry.sensor, reference)
                 {
                     Ok(m) => m,

@@ -22,7 +22,6 @@ use host::link::{Device, SimTransport};
 use host::scan::{Quiet, ScanOptions, scan};
 use host::simulator::SimSetup;
 use scanner_formats::queries::Query;
-use scanner_geometry::{DVec3, world_to_sample};
 
 fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
     let args: Vec<String> = std::env::args().collect();
@@ -75,7 +74,6 @@ fn main() {
         .geometry()
         .clone();
     let (mut corner, mut corner_phase, mut corner_nominal) = (Vec::new(), Vec::new(), Vec::new());
-    let (mut view, mut view_nominal) = (Vec::new(), Vec::new());
     for v in &cal.views {
         let nominal_h = host::build::locate::nominal_homography(&g, v.view).unwrap();
         for uv in [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]] {
@@ -89,19 +87,9 @@ fn main() {
                 list.push((p[0] - t[0]).hypot(p[1] - t[1]));
             }
         }
-        let c = truth.mirrors[v.view].reflect_point(DVec3::from(truth.camera.position_mm));
-        let t = world_to_sample(c.normalize());
-        view.push(DVec3::from(v.direction).angle_between(t).to_degrees());
-        view_nominal.push(g.mirror_direction(v.view).unwrap().angle_between(t).to_degrees());
     }
-    let (mut light, mut light_nominal) = (Vec::new(), Vec::new());
-    for l in &cal.lights {
-        let beam = truth.beam(scanner_geometry::AxisValues::from_array(l.axes));
-        let n = DVec3::from(truth.mirrors[l.light].normal).normalize();
-        let t = world_to_sample(-(beam.dir - 2.0 * beam.dir.dot(n) * n));
-        light.push(DVec3::from(l.direction).angle_between(t).to_degrees());
-        light_nominal.push(g.light_direction(l.light).unwrap().angle_between(t).to_degrees());
-    }
+    let tests::DirectionErrors { view, view_nominal, light, light_nominal } =
+        tests::direction_errors(&g, &truth, &cal);
     let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     println!("sensor {0}², {mirrors} mirrors, seed {seed}", 4096 / bin);

@@ -17,7 +17,7 @@ use host::camera::SimCamera;
 use host::link::{Device, SimTransport};
 use host::scan::{Quiet, ScanOptions, scan};
 use host::simulator::SimSetup;
-use scanner_geometry::{DVec3, ScannerGeometry, world_to_sample};
+use scanner_geometry::ScannerGeometry;
 
 fn take_scan(material: &str, seed: u64, bin: u32, mirrors: usize, out: &Path) -> ScannerGeometry {
     let s = SimSetup { bin, seed, ..SimSetup::new(material) };
@@ -79,18 +79,12 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!((gain - 1.0).abs() < 0.02, "absolute units: gain {gain}");
     assert!(psnr > 33.0, "{psnr}");
     // Directions: errors against the as-built scanner, beside the nominal ones'.
-    let mut errs = [Vec::new(), Vec::new()];
-    for v in &cal.views {
-        let c = truth.mirrors[v.view].reflect_point(DVec3::from(truth.camera.position_mm));
-        let t = world_to_sample(c.normalize());
-        errs[0].push(DVec3::from(v.direction).angle_between(t).to_degrees());
-        errs[1].push(g.mirror_direction(v.view).unwrap().angle_between(t).to_degrees());
-    }
+    let errs = tests::direction_errors(&g, truth, &cal);
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     eprintln!(
         "view directions: calibrated max {:.3}°, nominal max {:.3}°",
-        max(&errs[0]),
-        max(&errs[1])
+        max(&errs.view),
+        max(&errs.view_nominal)
     );
 }
 

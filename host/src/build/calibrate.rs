@@ -24,7 +24,7 @@ use super::bundle::{AssemblyTolerances, adjust};
 use super::error::BuildError;
 use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
-use super::plane::Plane;
+use super::plane::{Plane, cell_taps};
 use super::scanread::{ScanFrames, frame_bilinear};
 
 /// Calibration file format name.
@@ -97,28 +97,31 @@ pub struct ColourCalibration {
 }
 
 impl ColourCalibration {
-    fn lookup(grid: usize, field: &[f32], uv: [f64; 2], channels: usize, k: usize) -> f64 {
-        let g = grid as f64;
-        let x = (uv[0] * g - 0.5).clamp(0.0, g - 1.0);
-        let y = (uv[1] * g - 0.5).clamp(0.0, g - 1.0);
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-        let (x1, y1) = ((x0 + 1).min(grid - 1), (y0 + 1).min(grid - 1));
-        let (tx, ty) = (x - x0 as f64, y - y0 as f64);
-        let at = |i: usize, j: usize| field[(j * grid + i) * channels + k] as f64;
-        (at(x0, y0) * (1.0 - tx) + at(x1, y0) * tx) * (1.0 - ty)
-            + (at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx) * ty
+    fn lookup<const C: usize>(grid: usize, field: &[f32], uv: [f64; 2]) -> [f64; C] {
+        let (x0, x1, tx) = cell_taps(grid, uv[0]);
+        let (y0, y1, ty) = cell_taps(grid, uv[1]);
+        let at = |i: usize, j: usize, k: usize| field[(j * grid + i) * C + k] as f64;
+        std::array::from_fn(|k| {
+            (at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx) * (1.0 - ty)
+                + (at(x0, y1, k) * (1.0 - tx) + at(x1, y1, k) * tx) * ty
+        })
+    }
+
+    /// The view's part A_j of the white response at `uv` (RGB).
+    pub fn view(&self, vi: usize, uv: [f64; 2]) -> [f64; 3] {
+        Self::lookup::<3>(self.grid, &self.view_response[vi], uv)
+    }
+
+    /// The light field B_l at `uv`.
+    pub fn light(&self, li: usize, uv: [f64; 2]) -> f64 {
+        Self::lookup::<1>(self.grid, &self.light_field[li], uv)[0]
     }
 
     /// The white target's response (frame value per second) for light
-    /// index `li`, view index `vi` at `uv`.
+    /// index `li`, view index `vi` at `uv`: A_j · B_l.
     pub fn response(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
-        let b = Self::lookup(self.grid, &self.light_field[li], uv, 1, 0);
-        std::array::from_fn(|k| Self::lookup(self.grid, &self.view_response[vi], uv, 3, k) * b)
-    }
-
-    /// The light field B alone (for masking unlit parts).
-    pub fn light(&self, li: usize, uv: [f64; 2]) -> f64 {
-        Self::lookup(self.grid, &self.light_field[li], uv, 1, 0)
+        let b = self.light(li, uv);
+        self.view(vi, uv).map(|a| a * b)
     }
 }
 
@@ -306,6 +309,7 @@ fn cell_means(
     views
         .iter()
         .map(|v| {
+            let v = v.sampler();
             let mut cells = vec![[0.0; 3]; grid * grid];
             for (c, cell) in cells.iter_mut().enumerate() {
                 let (ci, ck) = (c % grid, c / grid);
@@ -413,9 +417,31 @@ impl ViewCalibration {
     /// that distance, so no resampling filter mixes in the holder around
     /// the sample.
     pub fn frame_point(&self, uv: [f64; 2]) -> [f64; 2] {
+        self.sampler().frame_point(uv)
+    }
+
+    /// [`Self::frame_point`] with the inset computed once, for many points.
+    pub fn sampler(&self) -> ViewSampler {
         let j = self.homography.jacobian([0.5, 0.5]);
-        let du = EDGE_PX / j[0][0].hypot(j[1][0]);
-        let dv = EDGE_PX / j[0][1].hypot(j[1][1]);
+        ViewSampler {
+            homography: self.homography,
+            inset: [EDGE_PX / j[0][0].hypot(j[1][0]), EDGE_PX / j[0][1].hypot(j[1][1])],
+        }
+    }
+}
+
+/// A view's homography with its edge inset in uv ([`EDGE_PX`] frame px).
+#[derive(Debug, Clone, Copy)]
+pub struct ViewSampler {
+    homography: Homography,
+    inset: [f64; 2],
+}
+
+impl ViewSampler {
+    /// See [`ViewCalibration::frame_point`].
+    #[inline]
+    pub fn frame_point(&self, uv: [f64; 2]) -> [f64; 2] {
+        let [du, dv] = self.inset;
         self.homography.apply([uv[0].clamp(du, 1.0 - du), uv[1].clamp(dv, 1.0 - dv)])
     }
 }

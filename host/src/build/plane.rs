@@ -79,6 +79,16 @@ impl Plane {
     }
 }
 
+/// Bilinear taps along one axis of `n` cells over [0, 1] (cell centres at
+/// (i + ½)/n, clamped at the ends): (first cell, second cell, weight of
+/// the second).
+#[inline]
+pub fn cell_taps(n: usize, u: f64) -> (usize, usize, f64) {
+    let x = (u * n as f64 - 0.5).clamp(0.0, n as f64 - 1.0);
+    let i = x.floor() as usize;
+    (i, (i + 1).min(n - 1), x - i as f64)
+}
+
 /// Catmull–Rom weights for fractional offset `t` ∈ [0, 1) (taps −1 … 2).
 #[inline]
 pub fn catmull_rom(t: f64) -> [f64; 4] {

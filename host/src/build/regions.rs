@@ -12,6 +12,7 @@ use scanner_geometry::ScannerGeometry;
 
 use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
+use super::plane::cell_taps;
 use super::scanread::{ScanFrames, frame_bicubic};
 
 /// Region images of one scan.
@@ -41,12 +42,8 @@ impl RegionSet {
     /// Bilinear lookup at uv (clamped to the sample).
     pub fn sample(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
         let img = self.image(li, vi);
-        let s = self.size as f64;
-        let x = (uv[0] * s - 0.5).clamp(0.0, s - 1.0);
-        let y = (uv[1] * s - 0.5).clamp(0.0, s - 1.0);
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-        let (x1, y1) = ((x0 + 1).min(self.size - 1), (y0 + 1).min(self.size - 1));
-        let (tx, ty) = (x - x0 as f64, y - y0 as f64);
+        let (x0, x1, tx) = cell_taps(self.size, uv[0]);
+        let (y0, y1, ty) = cell_taps(self.size, uv[1]);
         let at = |i: usize, j: usize, k: usize| img[j * self.size + i][k] as f64;
         std::array::from_fn(|k| {
             (at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx) * (1.0 - ty)
@@ -141,6 +138,7 @@ pub fn extract_regions(
                 .iter()
                 .enumerate()
                 .map(|(vi, v)| {
+                    let view = v.sampler();
                     let mut img = vec![[0.0f32; 3]; size * size];
                     for (i, px) in img.iter_mut().enumerate() {
                         let uv = [
@@ -148,12 +146,13 @@ pub fn extract_regions(
                             ((i / size) as f64 + 0.5) / size as f64,
                         ];
                         // Unlit by this beam (below 2 % of its mean): nothing to divide by.
-                        if cal.colour.light(ci, uv) < 0.02 {
+                        let b = cal.colour.light(ci, uv);
+                        if b < 0.02 {
                             continue;
                         }
-                        let p = v.frame_point(uv);
+                        let p = view.frame_point(uv);
                         let s = frame_bicubic(&f, p[0], p[1]);
-                        let w = cal.colour.response(ci, vi, uv);
+                        let w = cal.colour.view(vi, uv).map(|a| a * b);
                         *px = std::array::from_fn(|k| {
                             if w[k] > 0.0 { (s[k] / w[k] * scale) as f32 } else { 0.0 }
                         });

@@ -541,26 +541,17 @@ pub fn scan_cmd(args: &DeviceArgs, scan_args: &ScanArgs) -> Result<(), Failure> 
     run_scan(&mut opened, scan_args, &scan_args.sample_name).map(|_| ())
 }
 
-/// `scanner demo`: a complete simulated session — the two calibration
-/// targets and a material sample — into `out`.
-pub fn demo(
-    out: &Path,
-    material: &str,
-    bin: u32,
-    mirrors: Option<usize>,
-    seed: u64,
-) -> Result<(), Failure> {
-    #[cfg(not(feature = "sim"))]
-    {
-        let _ = (out, material, bin, mirrors, seed);
-        Err(no_simulator())
-    }
-    #[cfg(feature = "sim")]
-    demo_sim(out, material, bin, mirrors, seed)
+/// `scanner demo` without the simulator: refused.
+#[cfg(not(feature = "sim"))]
+pub fn demo(_: &Path, _: &str, _: u32, _: Option<usize>, _: u64) -> Result<(), Failure> {
+    Err(no_simulator())
 }
 
+/// `scanner demo`: a complete simulated session — the two calibration
+/// targets and a material sample, then calibration and region images —
+/// into `out`.
 #[cfg(feature = "sim")]
-fn demo_sim(
+pub fn demo(
     out: &Path,
     material: &str,
     bin: u32,
