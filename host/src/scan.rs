@@ -404,7 +404,7 @@ fn prepare_once(
     geometry: &ScannerGeometry,
     progress: &mut dyn ScanProgress,
 ) -> Result<[AxisConfig; 3], ScanError> {
-    let status = dev.status()?;
+    let mut status = dev.status()?;
     if !status.faults.is_empty() {
         if let Some(names) = faults_needing_a_person(status.faults) {
             return Err(ScanError::DeviceFault(names));
@@ -412,6 +412,9 @@ fn prepare_once(
         progress
             .note(&format!("clearing {}", status.faults.names().collect::<Vec<_>>().join(", ")));
         dev.command(Request::ClearFault)?;
+        // A faulted device reports "faulted", not what its axes do: a
+        // link timeout decelerates them, and they may still be moving.
+        status = dev.status()?;
     }
     // A move the previous host left running (killed mid-step) must end.
     if matches!(status.state, DeviceState::Moving | DeviceState::Capturing | DeviceState::Homing) {

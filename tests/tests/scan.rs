@@ -128,3 +128,28 @@ fn faults_in_the_deterministic_simulator_do_not_change_the_frames() {
         );
     }
 }
+
+/// A host killed mid-move leaves the device moving; 500 ms of silence
+/// latch `link-timeout` and the device *decelerates* (status: faulted,
+/// still moving). The next scan clears the fault and must wait for the
+/// stop before its first capture step — not act on the status it read
+/// before clearing (the device answered "busy" then).
+#[test]
+fn a_scan_after_a_link_timeout_waits_for_the_decelerating_axes() {
+    use protocol::{MoveMode, Request};
+    let s = setup("leather");
+    let rig = s.rig().unwrap();
+    let nominal = s.nominal().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    host::scan::prepare(&mut dev, &nominal, &mut Quiet).unwrap();
+    // Half a disk turn, then the host goes silent.
+    dev.command(Request::Move { mode: MoveMode::Relative, targets: [Some(8_000), None, None] })
+        .unwrap();
+    rig.sleep(std::time::Duration::from_millis(700));
+    let status = dev.status().unwrap();
+    assert!(status.faults.contains(protocol::FaultFlags::LINK_TIMEOUT), "{status:?}");
+    let dir = tempfile::tempdir().unwrap();
+    let mut opts = ScanOptions::new("leather", dir.path());
+    opts.mirrors = Some(2);
+    scan(&mut dev, &mut SimCamera(rig), &nominal, &opts, &mut Quiet).unwrap();
+}
