@@ -1,0 +1,479 @@
+//! The material file (docs/material-format.md): one safetensors container
+//! whose header metadata holds a JSON document under the key `material`
+//! ([`Metadata`]) and whose tensors hold the palettes, the index images and
+//! the direction tables. [`MaterialData`] is the file's content, written by
+//! the builder with [`MaterialData::to_bytes`] and read, with every shape,
+//! index and value checked, by [`MaterialData::from_bytes`].
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+
+use safetensors::tensor::{Dtype, SafeTensors, View};
+use serde::{Deserialize, Serialize};
+
+use crate::error::MaterialError;
+
+/// `Metadata::format`.
+pub const FORMAT: &str = "material-scanner/material";
+/// The format version this crate writes and reads.
+pub const VERSION: u32 = 1;
+/// The safetensors metadata key holding the JSON [`Metadata`].
+pub const METADATA_KEY: &str = "material";
+/// Most (mirror, weight) pairs one patent-table cell may hold.
+pub const MAX_CELL_PAIRS: usize = 64;
+/// Tolerance on the length of a unit direction.
+const UNIT_TOLERANCE: f64 = 1e-4;
+
+/// One mirror of the scan and its calibrated direction.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Mirror {
+    /// The mirror's number in the scanner (0-based, docs/scanner-geometry.md).
+    pub mirror: u32,
+    /// Unit direction from the sample towards it (light: towards where the
+    /// beam comes from; view: towards the camera through it), sample-local.
+    pub direction: [f64; 3],
+}
+
+/// How directions between the captured ones are shaded.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum Interpolation {
+    /// Spherical barycentric weights over a triangulation of the directions.
+    Default,
+    /// The patent's Voronoi cell table (Fig. 11A).
+    Patent {
+        /// Cells along the azimuth φ ∈ [0, 360°).
+        columns: u32,
+        /// Cells along the polar angle θ ∈ [0, 90°].
+        rows: u32,
+        /// Random points thrown per cell (the weights are counts / points).
+        points: u32,
+    },
+}
+
+/// Where a material came from: hashes of everything it was built from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// SHA-256 of the sample scan's `manifest.json`.
+    pub scan_manifest_sha256: String,
+    /// The scanner geometry's hash (docs/scanner-geometry.md).
+    pub geometry_sha256: String,
+    /// SHA-256 of the calibration file.
+    pub calibration_sha256: String,
+    /// The program that built it, e.g. `scanner 0.1.0`.
+    pub builder: String,
+}
+
+/// The JSON document stored under [`METADATA_KEY`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Metadata {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always [`VERSION`] for this reader.
+    pub version: u32,
+    /// The sample's name.
+    pub name: String,
+    /// Side of the scanned sample, mm.
+    pub sample_size_mm: f64,
+    /// Size (width along u, height along v) of what uv ∈ [0, 1]² spans, mm.
+    pub extent_mm: [f64; 2],
+    /// Side S of every index image, px.
+    pub resolution: u32,
+    /// Colours per palette, K ≤ 256.
+    pub colours: u32,
+    /// Lights sharing one index image, g (their palettes differ).
+    pub lights_per_index: u32,
+    /// How directions between the captured ones are shaded.
+    pub interpolation: Interpolation,
+    /// The lit mirrors in tensor order.
+    pub lights: Vec<Mirror>,
+    /// The seen mirrors in tensor order.
+    pub views: Vec<Mirror>,
+    /// Where the material came from.
+    pub provenance: Provenance,
+}
+
+/// A patent direction table in compressed rows: the pairs of cell `c` are
+/// `mirrors[offsets[c]..offsets[c + 1]]` with `counts` alongside; cell
+/// `c = row · columns + column`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct CellTable {
+    /// `rows · columns + 1` ascending offsets, starting at 0.
+    pub offsets: Vec<u32>,
+    /// Direction indices (into `lights` or `views`).
+    pub mirrors: Vec<u16>,
+    /// How many of the cell's random points fell nearest to that mirror.
+    pub counts: Vec<u16>,
+}
+
+/// The direction tables of either interpolation.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DirectionTables {
+    /// Triangles over the view and over the light directions, by index.
+    Triangles {
+        /// Triangles of view directions.
+        views: Vec<[u16; 3]>,
+        /// Triangles of light directions.
+        lights: Vec<[u16; 3]>,
+    },
+    /// The patent's cell tables.
+    Patent {
+        /// Over the view directions.
+        views: CellTable,
+        /// Over the light directions.
+        lights: CellTable,
+    },
+}
+
+/// The content of a material file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MaterialData {
+    /// The JSON metadata.
+    pub meta: Metadata,
+    /// `[L][V][K]` RGB: f · cos θi at the captured light direction, linear,
+    /// stored as float16.
+    pub palettes: Vec<[f32; 3]>,
+    /// `[V][S][S][G]` palette indices: view, row t (along v), column s
+    /// (along u), light group.
+    pub indices: Vec<u8>,
+    /// `[L]`: the light group (index-image slot) of each light.
+    pub light_groups: Vec<u8>,
+    /// The direction tables.
+    pub tables: DirectionTables,
+}
+
+/// A tensor to serialise.
+struct Tensor {
+    dtype: Dtype,
+    shape: Vec<usize>,
+    data: Vec<u8>,
+}
+
+impl View for &Tensor {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+    fn data(&self) -> Cow<'_, [u8]> {
+        Cow::Borrowed(&self.data)
+    }
+    fn data_len(&self) -> usize {
+        self.data.len()
+    }
+}
+
+fn u16_bytes(v: impl IntoIterator<Item = u16>) -> Vec<u8> {
+    v.into_iter().flat_map(u16::to_le_bytes).collect()
+}
+
+fn cell_tensors(prefix: &str, t: &CellTable, out: &mut Vec<(String, Tensor)>) {
+    out.push((
+        format!("{prefix}_cell_offsets"),
+        Tensor {
+            dtype: Dtype::U32,
+            shape: vec![t.offsets.len()],
+            data: t.offsets.iter().flat_map(|o| o.to_le_bytes()).collect(),
+        },
+    ));
+    out.push((
+        format!("{prefix}_cell_mirrors"),
+        Tensor {
+            dtype: Dtype::U16,
+            shape: vec![t.mirrors.len()],
+            data: u16_bytes(t.mirrors.iter().copied()),
+        },
+    ));
+    out.push((
+        format!("{prefix}_cell_counts"),
+        Tensor {
+            dtype: Dtype::U16,
+            shape: vec![t.counts.len()],
+            data: u16_bytes(t.counts.iter().copied()),
+        },
+    ));
+}
+
+impl MaterialData {
+    /// The number of light groups G = ⌈L / g⌉.
+    pub fn groups(&self) -> usize {
+        self.meta.lights.len().div_ceil(self.meta.lights_per_index.max(1) as usize)
+    }
+
+    /// The file's bytes. Fails only if the content is inconsistent (it is
+    /// checked exactly as the reader checks it).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, MaterialError> {
+        let (l, v) = (self.meta.lights.len(), self.meta.views.len());
+        let (s, k, g) = (self.meta.resolution as usize, self.meta.colours as usize, self.groups());
+        let mut tensors = vec![
+            (
+                "palettes".to_string(),
+                Tensor {
+                    dtype: Dtype::F16,
+                    shape: vec![l, v, k, 3],
+                    data: u16_bytes(
+                        self.palettes.iter().flatten().map(|&x| half::f16::from_f32(x).to_bits()),
+                    ),
+                },
+            ),
+            (
+                "indices".to_string(),
+                Tensor { dtype: Dtype::U8, shape: vec![v, s, s, g], data: self.indices.clone() },
+            ),
+            (
+                "light_groups".to_string(),
+                Tensor { dtype: Dtype::U8, shape: vec![l], data: self.light_groups.clone() },
+            ),
+        ];
+        match &self.tables {
+            DirectionTables::Triangles { views, lights } => {
+                for (name, t) in [("view_triangles", views), ("light_triangles", lights)] {
+                    tensors.push((
+                        name.to_string(),
+                        Tensor {
+                            dtype: Dtype::U16,
+                            shape: vec![t.len(), 3],
+                            data: u16_bytes(t.iter().flatten().copied()),
+                        },
+                    ));
+                }
+            }
+            DirectionTables::Patent { views, lights } => {
+                cell_tensors("view", views, &mut tensors);
+                cell_tensors("light", lights, &mut tensors);
+            }
+        }
+        let json = serde_json::to_string(&self.meta)
+            .map_err(|e| MaterialError::Metadata(e.to_string()))?;
+        let info = HashMap::from([(METADATA_KEY.to_string(), json)]);
+        let bytes =
+            safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(info))
+                .map_err(|e| MaterialError::Container(e.to_string()))?;
+        // What cannot be read back is not written.
+        MaterialData::from_bytes(&bytes)?;
+        Ok(bytes)
+    }
+
+    /// Parse and check a material file's bytes.
+    pub fn from_bytes(bytes: &[u8]) -> Result<MaterialData, MaterialError> {
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+        let (_, header) = SafeTensors::read_metadata(bytes)
+            .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+        let json =
+            header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)).ok_or_else(|| {
+                MaterialError::Metadata(format!("no `{METADATA_KEY}` entry: not a material file"))
+            })?;
+        let meta: Metadata =
+            serde_json::from_str(json).map_err(|e| MaterialError::Metadata(e.to_string()))?;
+        check_metadata(&meta)?;
+        let (l, v) = (meta.lights.len(), meta.views.len());
+        let (s, k) = (meta.resolution as usize, meta.colours as usize);
+        let g = l.div_ceil(meta.lights_per_index as usize);
+
+        let mut expected: Vec<String> =
+            ["palettes", "indices", "light_groups"].map(String::from).to_vec();
+        let palettes: Vec<[f32; 3]> = {
+            let raw = tensor(&st, "palettes", Dtype::F16, &[l, v, k, 3])?;
+            let vals: Vec<f32> = raw
+                .chunks_exact(2)
+                .map(|c| half::f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32())
+                .collect();
+            if let Some(bad) = vals.iter().find(|x| !(x.is_finite() && **x >= 0.0)) {
+                return Err(MaterialError::Value(format!(
+                    "palettes: {bad} is not a finite radiance ≥ 0"
+                )));
+            }
+            vals.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+        };
+        let indices = tensor(&st, "indices", Dtype::U8, &[v, s, s, g])?.to_vec();
+        if let Some(bad) = indices.iter().find(|&&i| i as usize >= k) {
+            return Err(MaterialError::Value(format!(
+                "indices: {bad} is outside the {k}-colour palettes"
+            )));
+        }
+        let light_groups = tensor(&st, "light_groups", Dtype::U8, &[l])?.to_vec();
+        let mut per_group = vec![0usize; g];
+        for &grp in &light_groups {
+            let slot = per_group.get_mut(grp as usize).ok_or_else(|| {
+                MaterialError::Value(format!("light_groups: group {grp} of {g} does not exist"))
+            })?;
+            *slot += 1;
+        }
+        if per_group.iter().any(|&n| n > meta.lights_per_index as usize) {
+            return Err(MaterialError::Value(format!(
+                "light_groups: a group holds more than {} lights",
+                meta.lights_per_index
+            )));
+        }
+        let tables = match meta.interpolation {
+            Interpolation::Default => {
+                expected.extend(["view_triangles", "light_triangles"].map(String::from));
+                let tri = |name: &str, n: usize| -> Result<Vec<[u16; 3]>, MaterialError> {
+                    let info = st.tensor(name).map_err(|_| missing(name))?;
+                    let t = info.shape().first().copied().unwrap_or(0);
+                    let raw = tensor(&st, name, Dtype::U16, &[t, 3])?;
+                    let tris: Vec<[u16; 3]> = raw
+                        .chunks_exact(6)
+                        .map(|c| {
+                            std::array::from_fn(|i| u16::from_le_bytes([c[2 * i], c[2 * i + 1]]))
+                        })
+                        .collect();
+                    if n >= 3 && tris.is_empty() {
+                        return Err(MaterialError::Value(format!("{name}: no triangles")));
+                    }
+                    for t in &tris {
+                        if t.iter().any(|&i| i as usize >= n) {
+                            return Err(MaterialError::Value(format!(
+                                "{name}: {t:?} names a direction outside 0…{}",
+                                n.saturating_sub(1)
+                            )));
+                        }
+                    }
+                    Ok(tris)
+                };
+                DirectionTables::Triangles {
+                    views: tri("view_triangles", v)?,
+                    lights: tri("light_triangles", l)?,
+                }
+            }
+            Interpolation::Patent { columns, rows, points } => {
+                let cells = (columns as usize) * (rows as usize);
+                let table = |prefix: &str, n: usize| -> Result<CellTable, MaterialError> {
+                    let on = format!("{prefix}_cell_offsets");
+                    let offsets: Vec<u32> = tensor(&st, &on, Dtype::U32, &[cells + 1])?
+                        .chunks_exact(4)
+                        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                        .collect();
+                    let p = *offsets.last().unwrap_or(&0) as usize;
+                    if offsets[0] != 0
+                        || offsets
+                            .windows(2)
+                            .any(|w| w[1] <= w[0] || (w[1] - w[0]) as usize > MAX_CELL_PAIRS)
+                    {
+                        return Err(MaterialError::Value(format!(
+                            "{on}: not ascending from 0 with 1…{MAX_CELL_PAIRS} pairs per cell"
+                        )));
+                    }
+                    let read16 = |name: &str| -> Result<Vec<u16>, MaterialError> {
+                        Ok(tensor(&st, name, Dtype::U16, &[p])?
+                            .chunks_exact(2)
+                            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                            .collect())
+                    };
+                    let mn = format!("{prefix}_cell_mirrors");
+                    let cn = format!("{prefix}_cell_counts");
+                    let mirrors = read16(&mn)?;
+                    let counts = read16(&cn)?;
+                    if let Some(bad) = mirrors.iter().find(|&&m| m as usize >= n) {
+                        return Err(MaterialError::Value(format!(
+                            "{mn}: direction {bad} outside 0…{}",
+                            n.saturating_sub(1)
+                        )));
+                    }
+                    for w in offsets.windows(2) {
+                        let sum: u64 =
+                            counts[w[0] as usize..w[1] as usize].iter().map(|&c| c as u64).sum();
+                        if sum == 0 || sum > points as u64 {
+                            return Err(MaterialError::Value(format!(
+                                "{cn}: a cell's counts sum to {sum}, not 1…{points}"
+                            )));
+                        }
+                    }
+                    Ok(CellTable { offsets, mirrors, counts })
+                };
+                for p in ["view", "light"] {
+                    for t in ["offsets", "mirrors", "counts"] {
+                        expected.push(format!("{p}_cell_{t}"));
+                    }
+                }
+                DirectionTables::Patent { views: table("view", v)?, lights: table("light", l)? }
+            }
+        };
+        if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == n)) {
+            return Err(MaterialError::Tensor(format!(
+                "unexpected tensor `{extra}` for {:?} interpolation",
+                meta.interpolation
+            )));
+        }
+        Ok(MaterialData { meta, palettes, indices, light_groups, tables })
+    }
+}
+
+fn missing(name: &str) -> MaterialError {
+    MaterialError::Tensor(format!("tensor `{name}` is missing"))
+}
+
+/// A tensor's bytes, checked for its dtype and shape.
+fn tensor<'a>(
+    st: &SafeTensors<'a>,
+    name: &str,
+    dtype: Dtype,
+    shape: &[usize],
+) -> Result<&'a [u8], MaterialError> {
+    let t = st.tensor(name).map_err(|_| missing(name))?;
+    if t.dtype() != dtype || t.shape() != shape {
+        return Err(MaterialError::Tensor(format!(
+            "tensor `{name}` is {:?} {:?}, expected {dtype:?} {shape:?}",
+            t.dtype(),
+            t.shape()
+        )));
+    }
+    Ok(t.data())
+}
+
+fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
+    let bad = |s: String| Err(MaterialError::Metadata(s));
+    if m.format != FORMAT {
+        return bad(format!("format is {:?}, not {FORMAT:?}", m.format));
+    }
+    if m.version != VERSION {
+        return bad(format!("version {} (this reader reads version {VERSION})", m.version));
+    }
+    if !(m.sample_size_mm.is_finite() && m.sample_size_mm > 0.0) {
+        return bad(format!("sample_size_mm {} is not a positive size", m.sample_size_mm));
+    }
+    if !m.extent_mm.iter().all(|x| x.is_finite() && *x > 0.0) {
+        return bad(format!("extent_mm {:?} is not a positive size", m.extent_mm));
+    }
+    if !(1..=8192).contains(&m.resolution) {
+        return bad(format!("resolution {} outside 1…8192", m.resolution));
+    }
+    if !(1..=256).contains(&m.colours) {
+        return bad(format!("colours {} outside 1…256", m.colours));
+    }
+    for (what, list) in [("lights", &m.lights), ("views", &m.views)] {
+        if list.is_empty() || list.len() > 1024 {
+            return bad(format!("{} {what}: need 1…1024", list.len()));
+        }
+        for d in list {
+            let len = d.direction.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if !((len - 1.0).abs() < UNIT_TOLERANCE && d.direction[2] > 0.0) {
+                return bad(format!(
+                    "{what}: mirror {}'s direction {:?} is not a unit vector above the sample",
+                    d.mirror, d.direction
+                ));
+            }
+        }
+    }
+    if !(1..=m.lights.len() as u32).contains(&m.lights_per_index) || m.lights_per_index > 256 {
+        return bad(format!(
+            "lights_per_index {} outside 1…{}",
+            m.lights_per_index,
+            m.lights.len()
+        ));
+    }
+    if m.lights.len().div_ceil(m.lights_per_index as usize) > 256 {
+        return bad("more than 256 light groups".into());
+    }
+    if let Interpolation::Patent { columns, rows, points } = m.interpolation
+        && !((1..=8192).contains(&columns)
+            && (1..=8192).contains(&rows)
+            && (1..=u16::MAX as u32).contains(&points))
+    {
+        return bad(format!("patent table {columns} × {rows}, {points} points: out of range"));
+    }
+    Ok(())
+}

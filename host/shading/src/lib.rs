@@ -1,0 +1,241 @@
+//! # scanner-shading
+//!
+//! What a renderer links to shade a scanned material: the material file
+//! reader and its shading API. No serial or USB, no simulator, no scan or
+//! image decoding, no command line — `safetensors`, `half`, `serde_json` and
+//! `thiserror` only (scripts/check-deps.sh enforces it).
+//!
+//! ```no_run
+//! use scanner_shading::Material;
+//! let m = Material::open("woven-fabric.material".as_ref())?;
+//! // Radiance towards wo per unit irradiance from wi: f · cos θi, linear RGB.
+//! let rgb = m.eval([0.5, 0.5], [0.0, 0.5, 0.866], [0.3, 0.0, 0.954]);
+//! # Ok::<(), scanner_shading::MaterialError>(())
+//! ```
+//!
+//! **What `eval` returns.** f(uv, wi, wo) · cos θi — the reflected radiance
+//! towards `wo` per unit irradiance arriving along `wi` at normal
+//! incidence, i.e. the BRDF *times* the cosine of the light's angle, like
+//! Mitsuba's `BSDF::eval` and unlike pbrt's `f()` (which excludes it).
+//! Directions are in the sample's frame (docs/scanner-geometry.md): z along
+//! the sample's normal, x along +u, y along +v, both pointing away from the
+//! surface; they are normalised, and a zero or non-finite one gives black.
+//! Below the horizon (wi.z ≤ 0 or wo.z ≤ 0) the answer is 0. uv ∈ [0, 1]²
+//! spans the material's extent (`Metadata::extent_mm`) and wraps outside
+//! it, so a renderer may tile the material.
+
+pub mod error;
+pub mod format;
+pub mod locate;
+
+use std::path::Path;
+
+pub use error::MaterialError;
+use format::DirectionTables;
+pub use format::{Interpolation, MaterialData, Metadata};
+use locate::{CellLocator, TriangleLocator, Weights3};
+
+/// One shading request for [`Material::eval_batch`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ShadeQuery {
+    /// Position in [0, 1]² over the material's extent (wraps outside).
+    pub uv: [f32; 2],
+    /// Direction towards the light, sample-local.
+    pub wi: [f32; 3],
+    /// Direction towards the viewer, sample-local.
+    pub wo: [f32; 3],
+}
+
+#[derive(Debug, Clone)]
+enum Locator {
+    Triangles(TriangleLocator),
+    Cells(CellLocator),
+}
+
+impl Locator {
+    #[inline]
+    fn weights<'a>(&'a self, d: [f32; 3], buf: &'a mut Weights3) -> &'a [(u16, f32)] {
+        match self {
+            Locator::Triangles(t) => {
+                t.weights(d, buf);
+                &buf[..]
+            }
+            Locator::Cells(c) => c.weights(d),
+        }
+    }
+}
+
+/// A scanned material, ready to shade. `Send + Sync`: share one between
+/// threads; no query allocates.
+#[derive(Debug, Clone)]
+pub struct Material {
+    meta: Metadata,
+    size: usize,
+    colours: usize,
+    groups: usize,
+    lights: usize,
+    /// `[V][L][K]`: f (the palette divided by the captured light's cos θi).
+    palettes: Vec<[f32; 3]>,
+    /// `[V][S][S][G]`.
+    indices: Vec<u8>,
+    light_groups: Vec<u8>,
+    views: Locator,
+    light_loc: Locator,
+}
+
+fn unit(d: [f32; 3]) -> Option<[f32; 3]> {
+    let l2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    (l2.is_finite() && l2 > 1e-12).then(|| {
+        let r = 1.0 / l2.sqrt();
+        d.map(|x| x * r)
+    })
+}
+
+/// Bilinear taps of a coordinate in [0, 1) over `n` pixel centres, clamped
+/// at the borders: (low, high, weight of high).
+#[inline]
+fn taps(n: usize, u: f32) -> (usize, usize, f32) {
+    let x = u * n as f32 - 0.5;
+    let f = x.floor();
+    let t = x - f;
+    let i = f as isize;
+    let last = n as isize - 1;
+    ((i.clamp(0, last)) as usize, ((i + 1).clamp(0, last)) as usize, t)
+}
+
+impl Material {
+    /// Open and check a material file (docs/material-format.md).
+    pub fn open(path: &Path) -> Result<Material, MaterialError> {
+        let io = |source| MaterialError::Io { path: path.display().to_string(), source };
+        let md = std::fs::metadata(path).map_err(io)?;
+        if !md.is_file() {
+            return Err(MaterialError::Container(format!(
+                "{}: not a regular file",
+                path.display()
+            )));
+        }
+        let bytes = std::fs::read(path).map_err(io)?;
+        Material::from_bytes(&bytes)
+    }
+
+    /// A material from a file's bytes.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Material, MaterialError> {
+        Material::from_data(MaterialData::from_bytes(bytes)?)
+    }
+
+    /// A material from its (checked) content.
+    pub fn from_data(d: MaterialData) -> Result<Material, MaterialError> {
+        let m = &d.meta;
+        let (nl, nv) = (m.lights.len(), m.views.len());
+        let k = m.colours as usize;
+        let dirs = |l: &[format::Mirror]| -> Vec<[f32; 3]> {
+            l.iter().map(|x| x.direction.map(|c| c as f32)).collect()
+        };
+        let (ld, vd) = (dirs(&m.lights), dirs(&m.views));
+        let mut palettes = vec![[0.0f32; 3]; d.palettes.len()];
+        for li in 0..nl {
+            let inv_cos = 1.0 / ld[li][2];
+            for vi in 0..nv {
+                let src = &d.palettes[(li * nv + vi) * k..][..k];
+                let dst = &mut palettes[(vi * nl + li) * k..][..k];
+                for (o, i) in dst.iter_mut().zip(src) {
+                    *o = i.map(|x| x * inv_cos);
+                }
+            }
+        }
+        let (views, light_loc) = match &d.tables {
+            DirectionTables::Triangles { views, lights } => (
+                Locator::Triangles(TriangleLocator::new(&vd, views, "view_triangles")?),
+                Locator::Triangles(TriangleLocator::new(&ld, lights, "light_triangles")?),
+            ),
+            DirectionTables::Patent { views, lights } => {
+                let Interpolation::Patent { columns, rows, points } = m.interpolation else {
+                    return Err(MaterialError::Metadata(
+                        "cell tables without patent interpolation".into(),
+                    ));
+                };
+                (
+                    Locator::Cells(CellLocator::new(views, columns, rows, points)),
+                    Locator::Cells(CellLocator::new(lights, columns, rows, points)),
+                )
+            }
+        };
+        Ok(Material {
+            size: m.resolution as usize,
+            colours: k,
+            groups: d.groups(),
+            lights: nl,
+            palettes,
+            indices: d.indices,
+            light_groups: d.light_groups,
+            views,
+            light_loc,
+            meta: d.meta,
+        })
+    }
+
+    /// The file's metadata.
+    pub fn metadata(&self) -> &Metadata {
+        &self.meta
+    }
+
+    /// f(uv, wi, wo) · cos θi, linear RGB (see the crate documentation).
+    #[inline]
+    pub fn eval(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
+        let (Some(wi), Some(wo)) = (unit(wi), unit(wo)) else {
+            return [0.0; 3];
+        };
+        if wi[2] <= 0.0 || wo[2] <= 0.0 || !uv[0].is_finite() || !uv[1].is_finite() {
+            return [0.0; 3];
+        }
+        let (mut vb, mut lb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
+        let vw = self.views.weights(wo, &mut vb);
+        let lw = self.light_loc.weights(wi, &mut lb);
+        let s = self.size;
+        let (x0, x1, tx) = taps(s, uv[0] - uv[0].floor());
+        let (y0, y1, ty) = taps(s, uv[1] - uv[1].floor());
+        let g = self.groups;
+        let (o00, o10, o01, o11) =
+            ((y0 * s + x0) * g, (y0 * s + x1) * g, (y1 * s + x0) * g, (y1 * s + x1) * g);
+        let (w00, w10, w01, w11) =
+            ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty);
+        let mut acc = [0.0f32; 3];
+        for &(vi, wv) in vw {
+            if wv == 0.0 {
+                continue;
+            }
+            let img = &self.indices[vi as usize * s * s * g..][..s * s * g];
+            let pal_v = &self.palettes[vi as usize * self.lights * self.colours..];
+            for &(li, wl) in lw {
+                let w = wv * wl;
+                if w == 0.0 {
+                    continue;
+                }
+                let grp = self.light_groups[li as usize] as usize;
+                let pal = &pal_v[li as usize * self.colours..][..self.colours];
+                let c00 = pal[img[o00 + grp] as usize];
+                let c10 = pal[img[o10 + grp] as usize];
+                let c01 = pal[img[o01 + grp] as usize];
+                let c11 = pal[img[o11 + grp] as usize];
+                for k in 0..3 {
+                    acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
+                }
+            }
+        }
+        acc.map(|x| x * wi[2])
+    }
+
+    /// [`Self::eval`] over many queries: `out[i]` answers `queries[i]`.
+    ///
+    /// # Panics
+    /// If the slices' lengths differ.
+    pub fn eval_batch(&self, queries: &[ShadeQuery], out: &mut [[f32; 3]]) {
+        assert_eq!(queries.len(), out.len(), "one answer per query");
+        for (q, o) in queries.iter().zip(out) {
+            *o = self.eval(q.uv, q.wi, q.wo);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,285 @@
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::format::{CellTable, Mirror, Provenance};
+use super::*;
+
+/// The zenith and a ring of six at 40°: six fan triangles.
+fn ring() -> (Vec<[f64; 3]>, Vec<[u16; 3]>) {
+    let mut dirs = vec![[0.0, 0.0, 1.0]];
+    for k in 0..6 {
+        let phi = k as f64 * std::f64::consts::TAU / 6.0;
+        let t = 40f64.to_radians();
+        dirs.push([t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()]);
+    }
+    let tris = (0..6).map(|k| [0, 1 + k as u16, 1 + ((k + 1) % 6) as u16]).collect();
+    (dirs, tris)
+}
+
+fn mirrors(d: &[[f64; 3]]) -> Vec<Mirror> {
+    d.iter().enumerate().map(|(i, &direction)| Mirror { mirror: i as u32, direction }).collect()
+}
+
+/// A material whose every texel of pair (l, v) has colour
+/// (l + 1, v + 1, texel column) / 100 · cos θ_l, one colour per
+/// (pair, column): K = S.
+fn material(interpolation: Interpolation) -> MaterialData {
+    let (dirs, tris) = ring();
+    let (n, s, g) = (dirs.len(), 8usize, 2usize);
+    let k = s;
+    let groups = n.div_ceil(g);
+    let mut palettes = Vec::new();
+    for (l, dl) in dirs.iter().enumerate() {
+        for v in 0..n {
+            for c in 0..k {
+                let cos = dl[2] as f32;
+                palettes.push([
+                    (l + 1) as f32 / 100.0 * cos,
+                    (v + 1) as f32 / 100.0 * cos,
+                    c as f32 / 100.0 * cos,
+                ]);
+            }
+        }
+    }
+    let mut indices = vec![0u8; n * s * s * groups];
+    for v in 0..n {
+        for t in 0..s {
+            for c in 0..s {
+                for grp in 0..groups {
+                    indices[((v * s + t) * s + c) * groups + grp] = c as u8;
+                }
+            }
+        }
+    }
+    let tables = match interpolation {
+        Interpolation::Default => DirectionTables::Triangles { views: tris.clone(), lights: tris },
+        Interpolation::Patent { columns, rows, points } => {
+            // Every cell: the nearest direction with all the points.
+            let mut t = CellTable { offsets: vec![0], ..Default::default() };
+            for r in 0..rows {
+                for c in 0..columns {
+                    let th = (r as f64 + 0.5) / rows as f64 * std::f64::consts::FRAC_PI_2;
+                    let ph = (c as f64 + 0.5) / columns as f64 * std::f64::consts::TAU;
+                    let d = [th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()];
+                    let best = (0..n)
+                        .max_by(|&a, &b| {
+                            let da: f64 = (0..3).map(|i| d[i] * dirs[a][i]).sum();
+                            let db: f64 = (0..3).map(|i| d[i] * dirs[b][i]).sum();
+                            da.total_cmp(&db)
+                        })
+                        .unwrap();
+                    t.mirrors.push(best as u16);
+                    t.counts.push(points as u16);
+                    t.offsets.push(t.mirrors.len() as u32);
+                }
+            }
+            DirectionTables::Patent { views: t.clone(), lights: t }
+        }
+    };
+    MaterialData {
+        meta: Metadata {
+            format: format::FORMAT.into(),
+            version: format::VERSION,
+            name: "test".into(),
+            sample_size_mm: 25.4,
+            extent_mm: [25.4, 25.4],
+            resolution: s as u32,
+            colours: k as u32,
+            lights_per_index: g as u32,
+            interpolation,
+            lights: mirrors(&dirs),
+            views: mirrors(&dirs),
+            provenance: Provenance {
+                scan_manifest_sha256: "0".repeat(64),
+                geometry_sha256: "1".repeat(64),
+                calibration_sha256: "2".repeat(64),
+                builder: "test".into(),
+            },
+        },
+        palettes,
+        indices,
+        light_groups: (0..n).map(|l| (l / g) as u8).collect(),
+        tables,
+    }
+}
+
+fn f32v(d: [f64; 3]) -> [f32; 3] {
+    d.map(|x| x as f32)
+}
+
+fn close(a: [f32; 3], b: [f32; 3], tol: f32) -> bool {
+    (0..3).all(|k| (a[k] - b[k]).abs() <= tol * b[k].abs().max(1e-3))
+}
+
+#[test]
+fn captured_pairs_are_returned_exactly() {
+    let m = Material::from_bytes(&material(Interpolation::Default).to_bytes().unwrap()).unwrap();
+    let (dirs, _) = ring();
+    for (l, dl) in dirs.iter().enumerate() {
+        for (v, dv) in dirs.iter().enumerate() {
+            // Texel column 3's centre.
+            let uv = [3.5 / 8.0, 0.3];
+            let got = m.eval(uv, f32v(*dl), f32v(*dv));
+            let cos = dl[2] as f32;
+            let want = [(l + 1) as f32 / 100.0 * cos, (v + 1) as f32 / 100.0 * cos, 0.03 * cos];
+            // float16 storage: 1e-3 relative.
+            assert!(close(got, want, 1e-3), "l {l} v {v}: {got:?} vs {want:?}");
+        }
+    }
+}
+
+#[test]
+fn between_captured_directions_the_weights_are_barycentric_and_continuous() {
+    let m = Material::from_bytes(&material(Interpolation::Default).to_bytes().unwrap()).unwrap();
+    let (dirs, _) = ring();
+    // Halfway (on the great circle) between view 1 and view 2, light at the zenith: the
+    // green channel (view + 1)/100 mixes 2 and 3 equally.
+    let mid: Vec<f64> = (0..3).map(|k| dirs[1][k] + dirs[2][k]).collect();
+    let wo = [mid[0] as f32, mid[1] as f32, mid[2] as f32];
+    let got = m.eval([0.5, 0.5], [0.0, 0.0, 1.0], wo);
+    assert!((got[1] - 0.025).abs() < 1e-4, "{got:?}");
+    // Continuity: a small step changes the answer by a small amount.
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..2000 {
+        let d = random_dir(&mut rng, 75.0);
+        let e = unit_f32([d[0] + 1e-4, d[1] - 1e-4, d[2]]);
+        let (a, b) =
+            (m.eval([0.4, 0.6], d, [0.0, 0.0, 1.0]), m.eval([0.4, 0.6], e, [0.0, 0.0, 1.0]));
+        assert!((0..3).all(|k| (a[k] - b[k]).abs() < 1e-3), "{d:?}: {a:?} vs {b:?}");
+    }
+}
+
+fn unit_f32(d: [f32; 3]) -> [f32; 3] {
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    d.map(|x| x / l)
+}
+
+fn random_dir(rng: &mut ChaCha8Rng, max_theta_deg: f32) -> [f32; 3] {
+    let t = rng.random::<f32>() * max_theta_deg.to_radians();
+    let p = rng.random::<f32>() * std::f32::consts::TAU;
+    [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+}
+
+#[test]
+fn the_grid_finds_what_an_exhaustive_search_finds() {
+    let (dirs, tris) = ring();
+    let d32: Vec<[f32; 3]> = dirs.iter().map(|&d| f32v(d)).collect();
+    let loc = locate::TriangleLocator::new(&d32, &tris, "t").unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for _ in 0..100_000 {
+        let d = random_dir(&mut rng, 89.9);
+        let (mut a, mut b) = ([(0, 0.0); 3], [(0, 0.0); 3]);
+        loc.weights(d, &mut a);
+        loc.weights_exhaustive(d, &mut b);
+        let dense = |w: &locate::Weights3| {
+            let mut v = [0f32; 7];
+            for &(i, x) in w {
+                v[i as usize] += x;
+            }
+            v
+        };
+        let (da, db) = (dense(&a), dense(&b));
+        assert!((0..7).all(|i| (da[i] - db[i]).abs() < 1e-5), "{d:?}: {a:?} vs {b:?}");
+    }
+}
+
+#[test]
+fn beyond_the_outer_ring_clamps_and_below_the_horizon_is_black() {
+    let m = Material::from_bytes(&material(Interpolation::Default).to_bytes().unwrap()).unwrap();
+    let (dirs, _) = ring();
+    // View along mirror 1's azimuth at 70°: the ring's vertex 1 (green 2/100), light at zenith.
+    let t = 70f32.to_radians();
+    let wo = [t.sin(), 0.0, t.cos()];
+    let got = m.eval([0.5, 0.5], [0.0, 0.0, 1.0], wo);
+    assert!((got[1] - 0.02).abs() < 1e-4, "{got:?}");
+    // A light beyond the ring keeps the ring's f, times its own cos θi.
+    let wi = [t.sin(), 0.0, t.cos()];
+    let got = m.eval([0.5, 0.5], wi, [0.0, 0.0, 1.0]);
+    let want_f = 2.0 / 100.0; // (l + 1)/100 · cos θ_l / cos θ_l for l = 1
+    assert!((got[0] - want_f * t.cos()).abs() < 1e-4, "{got:?}");
+    assert!(dirs[1][2] > 0.0);
+    for (wi, wo) in [([0.0, 0.0, -1.0], [0.0, 0.0, 1.0]), ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0])] {
+        assert_eq!(m.eval([0.5, 0.5], wi, wo), [0.0; 3]);
+    }
+    assert_eq!(m.eval([0.5, 0.5], [f32::NAN, 0.0, 1.0], [0.0, 0.0, 1.0]), [0.0; 3]);
+    assert_eq!(m.eval([0.5, 0.5], [0.0; 3], [0.0, 0.0, 1.0]), [0.0; 3]);
+    // Unnormalised directions are normalised.
+    let a = m.eval([0.5, 0.5], [0.0, 0.0, 5.0], [0.0, 0.0, 0.5]);
+    let b = m.eval([0.5, 0.5], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]);
+    assert_eq!(a, b);
+}
+
+#[test]
+fn uv_is_bilinear_and_wraps() {
+    let m = Material::from_bytes(&material(Interpolation::Default).to_bytes().unwrap()).unwrap();
+    let z = [0.0, 0.0, 1.0];
+    // Blue = column/100: halfway between columns 2 and 3.
+    let got = m.eval([3.0 / 8.0, 0.5], z, z);
+    assert!((got[2] - 0.025).abs() < 1e-4, "{got:?}");
+    // Clamped at the border, wrapped outside [0, 1).
+    assert!((m.eval([0.01, 0.5], z, z)[2] - 0.0).abs() < 1e-6);
+    assert_eq!(m.eval([1.0 + 3.0 / 8.0, -1.5], z, z), m.eval([3.0 / 8.0, 0.5], z, z));
+}
+
+#[test]
+fn patent_cells_look_up_their_pairs() {
+    let interp = Interpolation::Patent { columns: 64, rows: 16, points: 100 };
+    let m = Material::from_bytes(&material(interp).to_bytes().unwrap()).unwrap();
+    let (dirs, _) = ring();
+    // Near a mirror's direction: its own image.
+    for (v, dv) in dirs.iter().enumerate() {
+        let got = m.eval([0.5, 0.5], [0.0, 0.0, 1.0], f32v(*dv));
+        assert!((got[1] - (v + 1) as f32 / 100.0).abs() < 1e-4, "view {v}: {got:?}");
+    }
+}
+
+#[test]
+fn damaged_files_are_refused_without_panicking() {
+    let good = material(Interpolation::Default).to_bytes().unwrap();
+    // Every truncation.
+    for n in (0..good.len()).step_by(7) {
+        assert!(Material::from_bytes(&good[..n]).is_err(), "truncated at {n}");
+    }
+    // Flipped bytes anywhere: an error or a valid material, never a panic.
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    for _ in 0..300 {
+        let mut b = good.clone();
+        let i = rng.random_range(0..b.len());
+        b[i] ^= 1 << rng.random_range(0..8);
+        let _ = Material::from_bytes(&b);
+    }
+    // Specific refusals.
+    let mut d = material(Interpolation::Default);
+    d.indices[5] = 200;
+    let e = d.to_bytes().unwrap_err().to_string();
+    assert!(e.contains("outside the 8-colour palettes"), "{e}");
+    let mut d = material(Interpolation::Default);
+    d.palettes[3][1] = -1.0;
+    assert!(d.to_bytes().unwrap_err().to_string().contains("finite radiance"));
+    let mut d = material(Interpolation::Default);
+    d.meta.views[2].direction = [0.0, 0.0, 2.0];
+    assert!(d.to_bytes().unwrap_err().to_string().contains("not a unit vector"));
+    let mut d = material(Interpolation::Default);
+    if let DirectionTables::Triangles { views, .. } = &mut d.tables {
+        views[0] = [0, 1, 9];
+    }
+    assert!(d.to_bytes().unwrap_err().to_string().contains("outside 0…6"));
+    let mut d = material(Interpolation::Default);
+    d.meta.version = 7;
+    assert!(d.to_bytes().unwrap_err().to_string().contains("version 7"));
+    let mut d = material(Interpolation::Default);
+    d.light_groups[0] = 9;
+    assert!(d.to_bytes().unwrap_err().to_string().contains("group 9"));
+    // A safetensors file that is not a material.
+    let other =
+        safetensors::serialize(Vec::<(&str, safetensors::tensor::TensorView<'_>)>::new(), None)
+            .unwrap();
+    let e = Material::from_bytes(&other).unwrap_err().to_string();
+    assert!(e.contains("not a material file"), "{e}");
+}
+
+#[test]
+fn the_material_is_shareable_between_threads() {
+    fn assert_sync<T: Send + Sync>() {}
+    assert_sync::<Material>();
+}
