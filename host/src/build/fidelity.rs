@@ -74,3 +74,35 @@ pub fn material_psnr(estimate: &[[f32; 3]], truth: &[[f32; 3]]) -> (f64, f64, f6
     let psnr = |m: f64| 10.0 * (peak * peak / m).log10();
     (psnr(mse(1.0)), psnr(mse(gain)), gain)
 }
+
+/// The material's answers to [`pair_queries`] at every captured pair (its
+/// own calibrated directions), beside the region images' own values at
+/// the same points: the palettisation error alone, as (material, regions)
+/// concatenated over the pairs for [`material_psnr`].
+pub fn captured_pair_answers(
+    material: &scanner_shading::Material,
+    regions: &super::RegionSet,
+) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    use rayon::prelude::*;
+    let pairs: Vec<(usize, usize)> = (0..regions.lights.len())
+        .flat_map(|l| (0..regions.views.len()).map(move |v| (l, v)))
+        .collect();
+    type Answers = Vec<[f32; 3]>;
+    let per_pair: Vec<(Answers, Answers)> = pairs
+        .par_iter()
+        .map(|&(li, vi)| {
+            let q = pair_queries(regions.light_dirs[li], regions.view_dirs[vi]);
+            let f = |d: [f64; 3]| d.map(|x| x as f32);
+            let mat =
+                q.iter().map(|q| material.eval(q.uv.map(|x| x as f32), f(q.wi), f(q.wo))).collect();
+            let reg = q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)).collect();
+            (mat, reg)
+        })
+        .collect();
+    let (mut m, mut r) = (Vec::new(), Vec::new());
+    for (a, b) in per_pair {
+        m.extend(a);
+        r.extend(b);
+    }
+    (m, r)
+}

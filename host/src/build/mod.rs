@@ -1,15 +1,19 @@
 //! The material builder (`../shared/spec/scanner-pipeline.md` §2): from a
 //! checkerboard scan, a diffuse-white scan and a sample scan to calibrated
-//! region images (Fig. 8; Fig. 6 steps 1–3).
+//! region images (Fig. 8; Fig. 6 steps 1–3) and on to the material file.
 //!
 //! - [`locate`]: each mirror's view of the sample in the checkerboard scan
 //!   (silhouette, Fourier phase, checker corners);
-//! - [`linalg`], [`plane`]: the small numerics under it.
+//! - [`linalg`], [`plane`]: the small numerics under it;
+//! - [`palette`], [`material`]: palettes, direction tables and the material
+//!   file (Fig. 6 steps 4–5, Fig. 11A).
 
 pub mod calibrate;
 pub mod error;
 pub mod linalg;
 pub mod locate;
+pub mod material;
+pub mod palette;
 pub mod plane;
 pub mod regions;
 pub mod scanread;

@@ -177,19 +177,13 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
     let gap = 4u32;
     let (w, h) = (cols.len() as u32 * (s + gap) + gap, rows.len() as u32 * (s + gap) + gap);
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
-    let encode = |v: f32| {
-        let x = (v * std::f32::consts::PI).max(0.0);
-        let t = x / (1.0 + x);
-        let c = if t <= 0.003_130_8 { 12.92 * t } else { 1.055 * t.powf(1.0 / 2.4) - 0.055 };
-        (c * 255.0).round().clamp(0.0, 255.0) as u8
-    };
     for (r, &li) in rows.iter().enumerate() {
         for (c, &vi) in cols.iter().enumerate() {
             let src = regions.image(li, vi);
             let (x0, y0) = (gap + c as u32 * (s + gap), gap + r as u32 * (s + gap));
             for (i, px) in src.iter().enumerate() {
                 let (x, y) = (i as u32 % s, i as u32 / s);
-                img.put_pixel(x0 + x, y0 + y, image::Rgb(px.map(encode)));
+                img.put_pixel(x0 + x, y0 + y, image::Rgb(px.map(encode_srgb)));
             }
         }
     }
@@ -228,4 +222,233 @@ fn replace_dir(staging: &Path, output: &Path) -> std::io::Result<()> {
         })?;
     }
     Ok(())
+}
+
+/// What `scanner build` made.
+pub struct Built {
+    /// The material, as a renderer opens it.
+    pub material: scanner_shading::Material,
+    /// The region images it was built from.
+    pub regions: crate::build::RegionSet,
+}
+
+fn sha256_file(path: &Path) -> Result<String, Failure> {
+    use sha2::Digest;
+    let bytes = std::fs::read(path).map_err(|e| Failure(3, anyhow!("{}: {e}", path.display())))?;
+    Ok(crate::scan::hex(&sha2::Sha256::digest(&bytes)))
+}
+
+/// `scanner build`
+#[allow(clippy::too_many_arguments)]
+pub fn build_cmd(
+    scan: &Path,
+    calibration: &Path,
+    output: &Path,
+    geometry: Option<&Path>,
+    size: Option<usize>,
+    opts: &crate::build::material::MaterialOptions,
+) -> Result<Built, Failure> {
+    use crate::build::fidelity::{captured_pair_answers, material_psnr};
+    use crate::build::material::build_material;
+    if !(1..=256).contains(&opts.colours) {
+        return Err(Failure(2, anyhow!("--colours must be in 1…256, got {}", opts.colours)));
+    }
+    if !(1..=4).contains(&opts.lights_per_index) {
+        return Err(Failure(
+            2,
+            anyhow!("--lights-per-index must be in 1…4, got {}", opts.lights_per_index),
+        ));
+    }
+    if let Some(s) = size
+        && !(4..=4096).contains(&s)
+    {
+        return Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")));
+    }
+    crate::fsutil::check_output(output, &[scan, calibration])
+        .map_err(|e| Failure(4, anyhow!(e)))?;
+    let started = Instant::now();
+    let cal = Calibration::load(calibration).map_err(build_failure)?;
+    let g = geometry_for(geometry, scan)?;
+    let frames = ScanFrames::open(scan, &g).map_err(build_failure)?;
+    let provenance = scanner_shading::format::Provenance {
+        scan_manifest_sha256: sha256_file(&scan.join(crate::scan::MANIFEST_FILE))?,
+        geometry_sha256: g.hash(),
+        calibration_sha256: sha256_file(calibration)?,
+        builder: format!("scanner {}", env!("CARGO_PKG_VERSION")),
+    };
+    let bar = StageBar::new();
+    let regions = extract_regions(&g, &cal, &frames, size, &bar);
+    let data = regions.and_then(|r| {
+        build_material(
+            &r,
+            &frames.manifest.settings.sample_name,
+            g.sample.size_mm,
+            provenance,
+            opts,
+            &bar,
+        )
+        .map(|d| (r, d))
+    });
+    bar.finish();
+    let (regions, data) = data.map_err(build_failure)?;
+    let bytes = data.to_bytes().map_err(|e| Failure(4, anyhow!("material not written: {e}")))?;
+    let material = scanner_shading::Material::from_bytes(&bytes)
+        .map_err(|e| Failure(4, anyhow!("material not written: {e}")))?;
+    crate::fsutil::write_atomic(output, &bytes)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+    let built = started.elapsed().as_secs_f64();
+    let (m, r) = captured_pair_answers(&material, &regions);
+    let (psnr, _, _) = material_psnr(&m, &r);
+    println!(
+        "{}: {} lights × {} views at {}² px, {} colours ({} lights per index image), {} \
+         interpolation, {:.1} MB, in {built:.1} s; palettes at the captured pairs: {psnr:.1} dB \
+         against the region images",
+        output.display(),
+        regions.lights.len(),
+        regions.views.len(),
+        regions.size,
+        opts.colours,
+        material.metadata().lights_per_index,
+        match opts.interpolation {
+            scanner_shading::Interpolation::Default => "default".to_string(),
+            scanner_shading::Interpolation::Patent { columns, rows, points } =>
+                format!("patent ({columns} × {rows} cells, {points} points)"),
+        },
+        bytes.len() as f64 / 1e6,
+    );
+    Ok(Built { material, regions })
+}
+
+/// `scanner shade`
+pub fn shade_cmd(material: &Path, queries: &Path, output: &Path) -> Result<(), Failure> {
+    use rayon::prelude::*;
+    use scanner_formats::queries::{QueryError, check_extension, read_queries, write_answers};
+    let query_failure = |e: QueryError| match e {
+        QueryError::Extension(_) => Failure(2, anyhow!(e)),
+        _ => Failure(3, anyhow!(e)),
+    };
+    check_extension(queries).map_err(query_failure)?;
+    check_extension(output).map_err(query_failure)?;
+    crate::fsutil::check_output(output, &[material, queries])
+        .map_err(|e| Failure(4, anyhow!(e)))?;
+    let m = scanner_shading::Material::open(material)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let q = read_queries(queries).map_err(query_failure)?;
+    let started = Instant::now();
+    let q32: Vec<scanner_shading::ShadeQuery> = q
+        .iter()
+        .map(|q| scanner_shading::ShadeQuery {
+            uv: q.uv.map(|x| x as f32),
+            wi: q.wi.map(|x| x as f32),
+            wo: q.wo.map(|x| x as f32),
+        })
+        .collect();
+    let mut answers = vec![[0f32; 3]; q32.len()];
+    answers
+        .par_chunks_mut(4096)
+        .zip(q32.par_chunks(4096))
+        .for_each(|(out, q)| m.eval_batch(q, out));
+    let secs = started.elapsed().as_secs_f64();
+    write_answers(output, &answers).map_err(|e| Failure(4, anyhow!(e)))?;
+    println!(
+        "{} queries shaded in {:.3} s ({:.1} M queries/s on {} threads) → {}",
+        answers.len(),
+        secs,
+        answers.len() as f64 / secs.max(1e-9) / 1e6,
+        rayon::current_num_threads(),
+        output.display()
+    );
+    Ok(())
+}
+
+/// The encoding of previews and contact sheets: π·value (a white target's
+/// albedo), Reinhard, sRGB.
+fn encode_srgb(v: f32) -> u8 {
+    let x = (v * std::f32::consts::PI).max(0.0);
+    let t = x / (1.0 + x);
+    let c = if t <= 0.003_130_8 { 12.92 * t } else { 1.055 * t.powf(1.0 / 2.4) - 0.055 };
+    (c * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+/// A direction from polar and azimuth angles, degrees.
+fn polar(theta: f64, phi: f64) -> [f64; 3] {
+    let (t, p) = (theta.to_radians(), phi.to_radians());
+    [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+}
+
+/// The view of the preview: the direction within 20°…45° of the normal
+/// farthest from every captured view, and its angle to the nearest.
+pub fn novel_view(views: &[[f64; 3]]) -> ([f64; 3], f64) {
+    let angle = |a: [f64; 3], b: [f64; 3]| {
+        (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0).acos().to_degrees()
+    };
+    let mut best = ([0.0, 0.0, 1.0], -1.0);
+    for t in (20..=45).step_by(1) {
+        for p in (0..360).step_by(2) {
+            let d = polar(t as f64, p as f64);
+            let near = views.iter().map(|&v| angle(d, v)).fold(f64::INFINITY, f64::min);
+            if near > best.1 {
+                best = (d, near);
+            }
+        }
+    }
+    best
+}
+
+/// Answers to queries from another source than the material.
+pub type Truth<'a> = dyn Fn(&[scanner_formats::queries::Query]) -> Vec<[f32; 3]> + 'a;
+
+/// Preview lights: (θ, φ) in degrees.
+pub const PREVIEW_LIGHTS: [(f64, f64); 3] = [(25.0, 60.0), (45.0, 200.0), (60.0, 320.0)];
+
+/// A preview PNG: the material on a 2 × 2 tile under [`PREVIEW_LIGHTS`]
+/// seen from `view` (columns), and under it the same from `truth` when
+/// given (the simulator's ground truth for a simulated sample).
+pub fn preview(
+    material: &scanner_shading::Material,
+    view: [f64; 3],
+    truth: Option<&Truth<'_>>,
+    path: &Path,
+) -> Result<(), Failure> {
+    use scanner_formats::queries::Query;
+    const PX: u32 = 256;
+    const GAP: u32 = 6;
+    let rows = if truth.is_some() { 2 } else { 1 };
+    let (w, h) = (PREVIEW_LIGHTS.len() as u32 * (PX + GAP) + GAP, rows * (PX + GAP) + GAP);
+    let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
+    for (c, &(t, p)) in PREVIEW_LIGHTS.iter().enumerate() {
+        let wi = polar(t, p);
+        // Two tiles across: uv wraps.
+        let queries: Vec<Query> = (0..PX * PX)
+            .map(|i| {
+                let (x, y) = ((i % PX) as f64 + 0.5, (i / PX) as f64 + 0.5);
+                let uv = [(2.0 * x / PX as f64).fract(), (2.0 * y / PX as f64).fract()];
+                Query { uv, wi, wo: view }
+            })
+            .collect();
+        let f = |d: [f64; 3]| d.map(|x| x as f32);
+        let ours: Vec<[f32; 3]> = queries
+            .iter()
+            .map(|q| material.eval(q.uv.map(|x| x as f32), f(q.wi), f(q.wo)))
+            .collect();
+        let mut panels = vec![ours];
+        if let Some(t) = truth {
+            panels.push(t(&queries));
+        }
+        for (r, vals) in panels.iter().enumerate() {
+            let (x0, y0) = (GAP + c as u32 * (PX + GAP), GAP + r as u32 * (PX + GAP));
+            for (i, v) in vals.iter().enumerate() {
+                img.put_pixel(
+                    x0 + i as u32 % PX,
+                    y0 + i as u32 / PX,
+                    image::Rgb(v.map(encode_srgb)),
+                );
+            }
+        }
+    }
+    let mut bytes = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    crate::fsutil::write_atomic(path, &bytes)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
 }

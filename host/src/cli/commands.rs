@@ -606,18 +606,42 @@ pub fn demo(
         crate::build::calibrate::DEFAULT_WHITE_ALBEDO,
         8,
     )?;
-    let regions_dir = out.join(format!("regions-{name}"));
-    let regions =
-        super::build::regions_cmd(&out.join(&name), &calibration, &regions_dir, None, None)?;
+    let material_file = out.join(format!("{name}.material"));
+    let built = super::build::build_cmd(
+        &out.join(&name),
+        &calibration,
+        &material_file,
+        None,
+        None,
+        &crate::build::material::MaterialOptions::default(),
+    )?;
     let sheet = out.join(format!("regions-{name}.png"));
-    super::build::contact_sheet(&regions, &sheet)?;
+    super::build::contact_sheet(&built.regions, &sheet)?;
+    // The preview's lower row is the simulator's ground truth, rendered
+    // here for the picture only: the material above never saw it.
+    let sample = hil_sim::materials::Sample::small(
+        hil_sim::materials::lookup(material)
+            .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?,
+    );
+    let truth = |q: &[scanner_formats::queries::Query]| hil_sim::truth::answer(&sample, q);
+    let (view, off) = super::build::novel_view(&built.regions.view_dirs);
+    let picture = out.join(format!("{name}-preview.png"));
+    super::build::preview(&built.material, view, Some(&truth), &picture)?;
     println!(
-        "demo: three scans in {scanned:.1} s, calibration and {} region images in {:.1} s under {}\n\
-         look at {} (rows: lights, columns: views)",
-        regions.images.len(),
+        "demo: three scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
+         look at {}: a 2 × 2 tile of the material (top) and of the simulator's ground truth \
+         (bottom), seen from θ {:.0}°, φ {:.0}° ({off:.1}° from the nearest mirror), lit from \
+         (θ, φ) = {}",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
-        sheet.display()
+        picture.display(),
+        view[2].clamp(-1.0, 1.0).acos().to_degrees(),
+        view[1].atan2(view[0]).to_degrees().rem_euclid(360.0),
+        super::build::PREVIEW_LIGHTS
+            .iter()
+            .map(|(t, p)| format!("({t:.0}°, {p:.0}°)"))
+            .collect::<Vec<_>>()
+            .join(", "),
     );
     Ok(())
 }

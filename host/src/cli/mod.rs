@@ -109,6 +109,55 @@ enum Command {
         #[arg(long)]
         size: Option<usize>,
     },
+    /// Build a material file from a scan (docs/material-format.md): region
+    /// images, palettes and direction tables.
+    Build {
+        /// Scan directory of the sample.
+        #[arg(long)]
+        scan: PathBuf,
+        /// Calibration file (`scanner calibrate`).
+        #[arg(long)]
+        calibration: PathBuf,
+        /// Output material file (e.g. NAME.material).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Nominal geometry file (default: the shipped scanner, at the scan's sensor size).
+        #[arg(long)]
+        geometry: Option<PathBuf>,
+        /// Side of the region images, px (default: the smallest power of two
+        /// no view is undersampled at).
+        #[arg(long)]
+        size: Option<usize>,
+        /// Colours per palette (1…256).
+        #[arg(long, default_value_t = 256)]
+        colours: usize,
+        /// Lights sharing one index image (1…4; each light keeps its own palette).
+        #[arg(long, default_value_t = 2)]
+        lights_per_index: usize,
+        /// How directions between the captured ones are shaded.
+        #[arg(long, value_parser = ["default", "patent"], default_value = "default")]
+        interpolation: String,
+        /// Patent table: cells along the azimuth.
+        #[arg(long, default_value_t = 1025)]
+        patent_columns: u32,
+        /// Patent table: cells along the polar angle.
+        #[arg(long, default_value_t = 256)]
+        patent_rows: u32,
+        /// Patent table: random points per cell.
+        #[arg(long, default_value_t = 1000)]
+        patent_points: u32,
+    },
+    /// Shade a material at the queries of a query file (docs/query-format.md).
+    Shade {
+        /// Material file.
+        material: PathBuf,
+        /// Query file (.npy or .csv).
+        #[arg(long)]
+        queries: PathBuf,
+        /// Answer file (.npy or .csv).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
         #[command(flatten)]
@@ -329,6 +378,40 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Regions { scan, calibration, output, geometry, size } => {
             build::regions_cmd(&scan, &calibration, &output, geometry.as_deref(), size)
                 .map(|_| ())?
+        }
+        Command::Build {
+            scan,
+            calibration,
+            output,
+            geometry,
+            size,
+            colours,
+            lights_per_index,
+            interpolation,
+            patent_columns,
+            patent_rows,
+            patent_points,
+        } => {
+            let interpolation = if interpolation == "patent" {
+                scanner_shading::Interpolation::Patent {
+                    columns: patent_columns,
+                    rows: patent_rows,
+                    points: patent_points,
+                }
+            } else {
+                scanner_shading::Interpolation::Default
+            };
+            let opts = crate::build::material::MaterialOptions {
+                colours,
+                lights_per_index,
+                interpolation,
+                ..Default::default()
+            };
+            build::build_cmd(&scan, &calibration, &output, geometry.as_deref(), size, &opts)
+                .map(|_| ())?
+        }
+        Command::Shade { material, queries, output } => {
+            build::shade_cmd(&material, &queries, &output)?
         }
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,

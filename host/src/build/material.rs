@@ -1,0 +1,291 @@
+//! The material file from region images (Fig. 6 steps 4–5, Fig. 11A's
+//! tables): palettes, the direction tables of the chosen interpolation,
+//! and the metadata (docs/material-format.md). The file's reader and the
+//! shading it describes are `scanner-shading`.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use scanner_shading::format::{CellTable, DirectionTables, MAX_CELL_PAIRS, Mirror, Provenance};
+use scanner_shading::{Interpolation, MaterialData, Metadata};
+use spade::{DelaunayTriangulation, Point2, Triangulation};
+
+use super::calibrate::BuildProgress;
+use super::error::BuildError;
+use super::palette::{group_lights, palettise};
+use super::regions::RegionSet;
+
+/// How to build a material.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MaterialOptions {
+    /// Colours per palette, 1…256.
+    pub colours: usize,
+    /// Lights sharing an index image, 1…4.
+    pub lights_per_index: usize,
+    /// Interpolation and its tables.
+    pub interpolation: Interpolation,
+    /// Seed of the k-means and the patent table's random points.
+    pub seed: u64,
+}
+
+impl Default for MaterialOptions {
+    fn default() -> Self {
+        MaterialOptions {
+            colours: 256,
+            lights_per_index: 2,
+            interpolation: Interpolation::Default,
+            seed: 1,
+        }
+    }
+}
+
+/// The patent table of the patent's example: 1025 × 256 cells of 0.35°,
+/// 1000 points per cell.
+pub const PATENT_DEFAULT: Interpolation =
+    Interpolation::Patent { columns: 1025, rows: 256, points: 1000 };
+
+/// Delaunay triangles of unit directions (z > 0), by index: triangulated in
+/// the gnomonic projection (x/z, y/z), where great circles are straight
+/// lines, so the planar triangles are exactly the spherical triangles the
+/// barycentric weights of `scanner-shading` assume.
+pub fn triangulate(dirs: &[[f64; 3]], what: &str) -> Result<Vec<[u16; 3]>, BuildError> {
+    let bad = |s: String| BuildError::Input(format!("{what}: {s}"));
+    let mut t = DelaunayTriangulation::<Point2<f64>>::new();
+    let mut by_vertex = Vec::new();
+    for (i, d) in dirs.iter().enumerate() {
+        if d[2].is_nan() || d[2] <= 1e-3 {
+            return Err(bad(format!("direction {i} {d:?} is not above the sample")));
+        }
+        let h = t
+            .insert(Point2::new(d[0] / d[2], d[1] / d[2]))
+            .map_err(|e| bad(format!("direction {i}: {e:?}")))?;
+        if h.index() != by_vertex.len() {
+            return Err(bad(format!(
+                "direction {i} coincides with direction {}",
+                by_vertex[h.index()]
+            )));
+        }
+        by_vertex.push(i);
+    }
+    let tris: Vec<[u16; 3]> =
+        t.inner_faces().map(|f| f.vertices().map(|v| by_vertex[v.fix().index()] as u16)).collect();
+    if dirs.len() >= 3 && tris.is_empty() {
+        return Err(bad("the directions lie on one great circle".into()));
+    }
+    Ok(tris)
+}
+
+/// Lines through a patent cell's centre tried for its circle.
+const PATENT_LINES: usize = 16;
+
+/// The patent's table over `dirs` (Fig. 11A steps 1–3): cell (row, column)
+/// centred on θ = (row + ½)·90°/rows, φ = (column + ½)·360°/columns; its
+/// circle is the smallest (geodesic) disc around the centre in which each
+/// of [`PATENT_LINES`] lines through the centre crosses into a second
+/// Voronoi zone; `points` uniform random points in the disc are counted by
+/// nearest direction.
+pub fn patent_table(
+    dirs: &[[f64; 3]],
+    columns: u32,
+    rows: u32,
+    points: u32,
+    seed: u64,
+) -> CellTable {
+    let (cols, rws) = (columns as usize, rows as usize);
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let per_row: Vec<Vec<(u16, u16)>> = (0..rws)
+        .into_par_iter()
+        .flat_map_iter(|r| {
+            let theta = (r as f64 + 0.5) / rws as f64 * std::f64::consts::FRAC_PI_2;
+            (0..cols).map(move |c| (r, c, theta))
+        })
+        .map(|(r, c, theta)| {
+            let phi = (c as f64 + 0.5) / cols as f64 * std::f64::consts::TAU;
+            let (st, ct, sp, cp) = (theta.sin(), theta.cos(), phi.sin(), phi.cos());
+            let centre = [st * cp, st * sp, ct];
+            // Tangent basis: along θ and along φ.
+            let e1 = [ct * cp, ct * sp, -st];
+            let e2 = [-sp, cp, 0.0];
+            let nearest = |p: [f64; 3], among: &mut dyn Iterator<Item = usize>| {
+                among.max_by(|&a, &b| dot(p, dirs[a]).total_cmp(&dot(p, dirs[b]))).unwrap_or(0)
+            };
+            let m0 = nearest(centre, &mut (0..dirs.len()));
+            // Exit distance along the great circle from the centre towards u.
+            let exit = |u: [f64; 3]| {
+                let mut t = std::f64::consts::FRAC_PI_2;
+                for (j, mj) in dirs.iter().enumerate() {
+                    if j == m0 {
+                        continue;
+                    }
+                    let diff = [mj[0] - dirs[m0][0], mj[1] - dirs[m0][1], mj[2] - dirs[m0][2]];
+                    let (a, b) = (dot(centre, diff), dot(u, diff));
+                    if b > 0.0 {
+                        t = t.min((-a).max(0.0).atan2(b));
+                    }
+                }
+                t
+            };
+            let mut radius: f64 = 0.0;
+            for k in 0..PATENT_LINES {
+                let a = k as f64 * std::f64::consts::PI / PATENT_LINES as f64;
+                let u = std::array::from_fn(|i| a.cos() * e1[i] + a.sin() * e2[i]);
+                let v = u.map(|x: f64| -x);
+                radius = radius.max(exit(u).min(exit(v)));
+            }
+            let radius = radius.max(1e-6);
+            // Only directions within angle(centre, m0) + 2r can be nearest in the disc.
+            let reach = dot(centre, dirs[m0]).clamp(-1.0, 1.0).acos() + 2.0 * radius + 1e-9;
+            let cands: Vec<usize> = (0..dirs.len())
+                .filter(|&j| dot(centre, dirs[j]).clamp(-1.0, 1.0).acos() <= reach)
+                .collect();
+            let mut rng = ChaCha8Rng::seed_from_u64(
+                seed ^ ((r * cols + c) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+            );
+            let mut counts = vec![0u16; dirs.len()];
+            for _ in 0..points {
+                let rho = radius * rng.random::<f64>().sqrt();
+                let psi = rng.random::<f64>() * std::f64::consts::TAU;
+                let (sr, cr) = rho.sin_cos();
+                let p = std::array::from_fn(|i| {
+                    cr * centre[i] + sr * (psi.cos() * e1[i] + psi.sin() * e2[i])
+                });
+                counts[nearest(p, &mut cands.iter().copied())] += 1;
+            }
+            let mut pairs: Vec<(u16, u16)> = counts
+                .iter()
+                .enumerate()
+                .filter(|&(_, &n)| n > 0)
+                .map(|(j, &n)| (j as u16, n))
+                .collect();
+            // The reader's bound; never reached with ≤ 64 zones in a disc.
+            pairs.sort_by_key(|p| std::cmp::Reverse(p.1));
+            pairs.truncate(MAX_CELL_PAIRS);
+            pairs.sort_unstable();
+            pairs
+        })
+        .collect();
+    let mut t = CellTable { offsets: vec![0], ..Default::default() };
+    for cell in per_row {
+        for (m, n) in cell {
+            t.mirrors.push(m);
+            t.counts.push(n);
+        }
+        t.offsets.push(t.mirrors.len() as u32);
+    }
+    t
+}
+
+/// Build the material of `regions`.
+pub fn build_material(
+    regions: &RegionSet,
+    name: &str,
+    sample_size_mm: f64,
+    provenance: Provenance,
+    opts: &MaterialOptions,
+    progress: &dyn BuildProgress,
+) -> Result<MaterialData, BuildError> {
+    let bad = |s: String| Err(BuildError::Input(s));
+    if !(1..=256).contains(&opts.colours) {
+        return bad(format!("colours {} outside 1…256", opts.colours));
+    }
+    if !(1..=4).contains(&opts.lights_per_index) {
+        return bad(format!("lights per index image {} outside 1…4", opts.lights_per_index));
+    }
+    let (nl, nv, s) = (regions.lights.len(), regions.views.len(), regions.size);
+    let g = opts.lights_per_index.min(nl);
+    let light_groups = group_lights(&regions.light_dirs, g);
+    let groups = light_groups.iter().map(|&x| x as usize + 1).max().unwrap_or(0);
+    let members: Vec<Vec<usize>> = (0..groups)
+        .map(|grp| (0..nl).filter(|&l| light_groups[l] as usize == grp).collect())
+        .collect();
+    let k = opts.colours;
+    progress.stage("palettes", nv);
+    let per_view: Vec<Vec<super::palette::GroupPalettes>> = (0..nv)
+        .into_par_iter()
+        .map(|vi| {
+            let out = members
+                .par_iter()
+                .enumerate()
+                .map(|(grp, ls)| {
+                    let imgs: Vec<&[[f32; 3]]> = ls.iter().map(|&l| regions.image(l, vi)).collect();
+                    let seed =
+                        opts.seed ^ ((vi * 256 + grp) as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
+                    palettise(&imgs, k, seed)
+                })
+                .collect();
+            progress.step();
+            out
+        })
+        .collect();
+    let mut indices = vec![0u8; nv * s * s * groups];
+    let mut palettes = vec![[0f32; 3]; nl * nv * k];
+    for (vi, view) in per_view.iter().enumerate() {
+        for (grp, gp) in view.iter().enumerate() {
+            for (t, &i) in gp.indices.iter().enumerate() {
+                indices[(vi * s * s + t) * groups + grp] = i;
+            }
+            for (slot, &l) in members[grp].iter().enumerate() {
+                let dst = &mut palettes[(l * nv + vi) * k..][..k];
+                for (d, src) in dst.iter_mut().zip(&gp.palettes[slot]) {
+                    *d = *src;
+                }
+            }
+        }
+    }
+    let tables = match opts.interpolation {
+        Interpolation::Default => DirectionTables::Triangles {
+            views: triangulate(&regions.view_dirs, "view directions")?,
+            lights: triangulate(&regions.light_dirs, "light directions")?,
+        },
+        Interpolation::Patent { columns, rows, points } => {
+            if !((1..=8192).contains(&columns)
+                && (1..=8192).contains(&rows)
+                && (1..=u16::MAX as u32).contains(&points))
+            {
+                return bad(format!(
+                    "patent table {columns} × {rows} with {points} points: out of range"
+                ));
+            }
+            progress.stage("patent tables", 2);
+            let views = patent_table(&regions.view_dirs, columns, rows, points, opts.seed);
+            progress.step();
+            let lights = patent_table(&regions.light_dirs, columns, rows, points, opts.seed ^ 1);
+            progress.step();
+            DirectionTables::Patent { views, lights }
+        }
+    };
+    let mirror = |m: &usize, d: &[f64; 3]| {
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        Mirror { mirror: *m as u32, direction: d.map(|x| x / len) }
+    };
+    Ok(MaterialData {
+        meta: Metadata {
+            format: scanner_shading::format::FORMAT.into(),
+            version: scanner_shading::format::VERSION,
+            name: name.into(),
+            sample_size_mm,
+            extent_mm: [sample_size_mm, sample_size_mm],
+            resolution: s as u32,
+            colours: k as u32,
+            lights_per_index: g as u32,
+            interpolation: opts.interpolation,
+            lights: regions
+                .lights
+                .iter()
+                .zip(&regions.light_dirs)
+                .map(|(m, d)| mirror(m, d))
+                .collect(),
+            views: regions
+                .views
+                .iter()
+                .zip(&regions.view_dirs)
+                .map(|(m, d)| mirror(m, d))
+                .collect(),
+            provenance,
+        },
+        palettes,
+        indices,
+        light_groups,
+        tables,
+    })
+}
