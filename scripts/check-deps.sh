@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Crate boundaries (docs/architecture.md): what a library may not pull in.
 # - the host library without its default features: no simulator, no CLI crates;
-# - the nominal geometry crate: nothing of the simulator, serial/USB or the CLI.
+# - the nominal geometry crate: nothing of the simulator, serial/USB or the CLI;
+# - the renderer-facing shading crate: no simulator, serial/USB, image decoding, CLI or builder crates.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,3 +25,4 @@ forbid() { # package, cargo-tree flags, forbidden crates...
 
 forbid host "--no-default-features" hil-sim firmware clap indicatif tracing-subscriber anyhow plotters
 forbid scanner-geometry "" hil-sim firmware clap indicatif serialport nusb exr image rand
+forbid scanner-shading "" hil-sim firmware clap indicatif tracing-subscriber anyhow serialport nusb exr image spade rayon

@@ -81,6 +81,11 @@ pub struct Material {
     light_groups: Vec<u8>,
     views: Locator,
     light_loc: Locator,
+    /// Unit light directions, for the half-vector-preserving view shift.
+    light_dirs: Vec<[f32; 3]>,
+    /// Whether views are shifted to keep the query's half vector (the
+    /// default interpolation) or taken at wo (the patent's).
+    keep_half_vector: bool,
 }
 
 fn unit(d: [f32; 3]) -> Option<[f32; 3]> {
@@ -160,7 +165,10 @@ impl Material {
                 )
             }
         };
+        let keep_half_vector = matches!(m.interpolation, Interpolation::Default);
         Ok(Material {
+            light_dirs: ld,
+            keep_half_vector,
             size: m.resolution as usize,
             colours: k,
             groups: d.groups(),
@@ -189,7 +197,6 @@ impl Material {
             return [0.0; 3];
         }
         let (mut vb, mut lb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
-        let vw = self.views.weights(wo, &mut vb);
         let lw = self.light_loc.weights(wi, &mut lb);
         let s = self.size;
         let (x0, x1, tx) = taps(s, uv[0] - uv[0].floor());
@@ -200,25 +207,49 @@ impl Material {
         let (w00, w10, w01, w11) =
             ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty);
         let mut acc = [0.0f32; 3];
-        for &(vi, wv) in vw {
-            if wv == 0.0 {
-                continue;
-            }
+        let mut pair = |vi: u16, li: u16, w: f32| {
             let img = &self.indices[vi as usize * s * s * g..][..s * s * g];
-            let pal_v = &self.palettes[vi as usize * self.lights * self.colours..];
+            let grp = self.light_groups[li as usize] as usize;
+            let pal = &self.palettes[(vi as usize * self.lights + li as usize) * self.colours..]
+                [..self.colours];
+            let c00 = pal[img[o00 + grp] as usize];
+            let c10 = pal[img[o10 + grp] as usize];
+            let c01 = pal[img[o01 + grp] as usize];
+            let c11 = pal[img[o11 + grp] as usize];
+            for k in 0..3 {
+                acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
+            }
+        };
+        if self.keep_half_vector {
+            // Per light, the view that keeps the query's half vector: the
+            // light reflected about h (at a captured pair, the pair's view).
+            let h = unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]).unwrap_or([0.0, 0.0, 1.0]);
             for &(li, wl) in lw {
-                let w = wv * wl;
-                if w == 0.0 {
+                if wl == 0.0 {
                     continue;
                 }
-                let grp = self.light_groups[li as usize] as usize;
-                let pal = &pal_v[li as usize * self.colours..][..self.colours];
-                let c00 = pal[img[o00 + grp] as usize];
-                let c10 = pal[img[o10 + grp] as usize];
-                let c01 = pal[img[o01 + grp] as usize];
-                let c11 = pal[img[o11 + grp] as usize];
-                for k in 0..3 {
-                    acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
+                let l = self.light_dirs[li as usize];
+                let k = 2.0 * (h[0] * l[0] + h[1] * l[1] + h[2] * l[2]);
+                let mut v = [k * h[0] - l[0], k * h[1] - l[1], k * h[2] - l[2]];
+                if v[2] < 1e-4 {
+                    // Below the horizon: the horizon point of its azimuth.
+                    v[2] = 1e-4;
+                }
+                let Some(v) = unit(v) else { continue };
+                for &(vi, wv) in self.views.weights(v, &mut vb) {
+                    if wv != 0.0 {
+                        pair(vi, li, wv * wl);
+                    }
+                }
+            }
+        } else {
+            let vw = self.views.weights(wo, &mut vb);
+            for &(vi, wv) in vw {
+                for &(li, wl) in lw {
+                    let w = wv * wl;
+                    if w != 0.0 {
+                        pair(vi, li, w);
+                    }
                 }
             }
         }

@@ -248,7 +248,9 @@ impl TriangleLocator {
         if w[0] < INSIDE || w[1] < INSIDE || w[2] < INSIDE {
             return false;
         }
-        let w = w.map(|x| x.max(0.0));
+        // Weights below 10⁻⁵ (float noise at a vertex or an edge) are
+        // dropped, so a captured direction reads one image, an edge two.
+        let w = w.map(|x| if x < 1e-5 { 0.0 } else { x });
         let s = w[0] + w[1] + w[2];
         if s <= 0.0 {
             return false;

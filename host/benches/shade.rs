@@ -1,0 +1,143 @@
+//! Shading speed (docs/benchmarks.md, "Material files"): `Material::eval`
+//! on one core for random uv and random directions over the hemisphere, on
+//! a material of the size (40 × 40 directions of the default
+//! scanner, S = 128, 256 colours, 2 lights per index image, random
+//! palettes and indices), default and patent interpolation, beside a
+//! baseline measured in the same run: `eval` at one captured pair for
+//! every query (one image and one palette instead of up to nine).
+
+use std::hint::black_box;
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use host::build::material::{PATENT_DEFAULT, patent_table, triangulate};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use scanner_geometry::ScannerGeometry;
+use scanner_shading::format::{DirectionTables, Mirror, Provenance};
+use scanner_shading::{Interpolation, Material, MaterialData, Metadata, ShadeQuery};
+
+const S: usize = 128;
+const K: usize = 256;
+const G: usize = 2;
+const QUERIES: usize = 1 << 16;
+
+fn material(interpolation: Interpolation) -> Material {
+    let g = ScannerGeometry::default_scanner();
+    let n = g.mirrors.len();
+    let views: Vec<[f64; 3]> = (0..n).map(|v| g.mirror_direction(v).unwrap().to_array()).collect();
+    let lights: Vec<[f64; 3]> = (0..n).map(|l| g.light_direction(l).unwrap().to_array()).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let groups = n.div_ceil(G);
+    let tables = match interpolation {
+        Interpolation::Default => DirectionTables::Triangles {
+            views: triangulate(&views, "views").unwrap(),
+            lights: triangulate(&lights, "lights").unwrap(),
+        },
+        Interpolation::Patent { columns, rows, points } => DirectionTables::Patent {
+            views: patent_table(&views, columns, rows, points, 1),
+            lights: patent_table(&lights, columns, rows, points, 2),
+        },
+    };
+    let mirrors = |d: &[[f64; 3]]| -> Vec<Mirror> {
+        d.iter().enumerate().map(|(i, &direction)| Mirror { mirror: i as u32, direction }).collect()
+    };
+    let data = MaterialData {
+        meta: Metadata {
+            format: scanner_shading::format::FORMAT.into(),
+            version: scanner_shading::format::VERSION,
+            name: "bench".into(),
+            sample_size_mm: 25.4,
+            extent_mm: [25.4, 25.4],
+            resolution: S as u32,
+            colours: K as u32,
+            lights_per_index: G as u32,
+            interpolation,
+            lights: mirrors(&lights),
+            views: mirrors(&views),
+            provenance: Provenance {
+                scan_manifest_sha256: String::new(),
+                geometry_sha256: g.hash(),
+                calibration_sha256: String::new(),
+                builder: "bench".into(),
+            },
+        },
+        palettes: (0..n * n * K).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
+        indices: (0..n * S * S * groups).map(|_| rng.random_range(0..=(K - 1) as u8)).collect(),
+        light_groups: (0..n).map(|l| (l / G) as u8).collect(),
+        tables,
+    };
+    Material::from_bytes(&data.to_bytes().unwrap()).unwrap()
+}
+
+fn queries() -> Vec<ShadeQuery> {
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let dir = |rng: &mut ChaCha8Rng| {
+        let z: f32 = rng.random::<f32>().max(1e-3);
+        let p = rng.random::<f32>() * std::f32::consts::TAU;
+        let r = (1.0 - z * z).sqrt();
+        [r * p.cos(), r * p.sin(), z]
+    };
+    (0..QUERIES)
+        .map(|_| ShadeQuery {
+            uv: [rng.random(), rng.random()],
+            wi: dir(&mut rng),
+            wo: dir(&mut rng),
+        })
+        .collect()
+}
+
+fn shade(c: &mut Criterion) {
+    let q = queries();
+    let mut out = vec![[0f32; 3]; q.len()];
+    let mut group = c.benchmark_group("eval");
+    group.throughput(Throughput::Elements(q.len() as u64));
+    let default = material(Interpolation::Default);
+    // Baseline: every query at one captured pair (one image, one palette).
+    group.bench_function("baseline: eval at one captured pair", |b| {
+        let (wi, wo) = (
+            default.metadata().lights[0].direction.map(|x| x as f32),
+            default.metadata().views[0].direction.map(|x| x as f32),
+        );
+        b.iter(|| {
+            for (q, o) in q.iter().zip(out.iter_mut()) {
+                *o = default.eval(q.uv, wi, wo);
+            }
+            black_box(&out);
+        })
+    });
+    group.bench_function("default interpolation", |b| {
+        b.iter(|| {
+            default.eval_batch(&q, &mut out);
+            black_box(&out);
+        })
+    });
+    // A renderer's pattern: a 256² image of the tile under one light and view.
+    let image: Vec<ShadeQuery> = (0..QUERIES)
+        .map(|i| ShadeQuery {
+            uv: [((i % 256) as f32 + 0.5) / 256.0, ((i / 256) as f32 + 0.5) / 256.0],
+            wi: [0.3, 0.2, 0.93],
+            wo: [-0.4, 0.1, 0.91],
+        })
+        .collect();
+    group.bench_function("default interpolation, one image (coherent)", |b| {
+        b.iter(|| {
+            default.eval_batch(&image, &mut out);
+            black_box(&out);
+        })
+    });
+    group.bench_function("patent interpolation", |b| {
+        let patent = material(PATENT_DEFAULT);
+        b.iter(|| {
+            patent.eval_batch(&q, &mut out);
+            black_box(&out);
+        })
+    });
+    group.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(20);
+    targets = shade
+}
+criterion_main!(benches);

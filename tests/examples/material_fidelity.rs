@@ -1,0 +1,108 @@
+//! The material file's fidelity table (docs/benchmarks.md, "Material
+//! files"): for each library material (HDR scans on the simulator), the
+//! material PSNR against `hil-sim truth` at the captured pairs (the
+//! as-built directions) — region images, palettised material with the
+//! default and with the patent's interpolation — the palettisation error
+//! alone, and both interpolations at random novel pairs (θ ≤ 60°).
+//!
+//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent]`
+//! (scans in DIR are reused when complete; `builder_fidelity` shares them).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use hil_sim::materials::{Sample, lookup};
+use hil_sim::optics::OpticalSim;
+use host::build::calibrate::{CalibrateOptions, Silent};
+use host::build::fidelity::{captured_pair_answers, material_psnr};
+use host::build::material::{MaterialOptions, PATENT_DEFAULT, build_material};
+use host::build::scanread::ScanFrames;
+use host::build::{calibrate, extract_regions};
+use scanner_shading::Material;
+use scanner_shading::format::Provenance;
+
+fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
+    let args: Vec<String> = std::env::args().collect();
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn main() {
+    let bin: u32 = arg("--bin", 1);
+    let mirrors: usize = arg("--mirrors", 40);
+    let seed: u64 = arg("--seed", 1);
+    let novel: usize = arg("--novel", 300);
+    let out: PathBuf = arg("--out", PathBuf::from("target/builder-fidelity"));
+    let list: String =
+        arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
+    let materials: Vec<&str> = list.split(',').collect();
+    let with_patent = !std::env::args().any(|a| a == "--no-patent");
+    let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
+    tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
+    for &m in &materials {
+        tests::sim_scan(m, seed, bin, mirrors, true, &out.join(m));
+    }
+    let checker = ScanFrames::open(&out.join("checkerboard"), &g).unwrap();
+    let white = ScanFrames::open(&out.join("diffuse-white"), &g).unwrap();
+    let cal = calibrate(&g, &checker, &white, &CalibrateOptions::default(), &Silent).unwrap();
+    let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
+        .geometry()
+        .clone();
+    let pairs = tests::random_pairs(novel, 60.0, seed);
+    println!(
+        "sensor {0}², {mirrors} mirrors, seed {seed}; {novel} novel pairs θ ≤ 60°",
+        4096 / bin
+    );
+    println!(
+        "| material | regions dB | material dB (default) | material dB (patent) | palettes alone dB | \
+         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for &m in &materials {
+        let scan = ScanFrames::open(&out.join(m), &g).unwrap();
+        let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+        let provenance = Provenance {
+            scan_manifest_sha256: "-".into(),
+            geometry_sha256: g.hash(),
+            calibration_sha256: cal.hash(),
+            builder: "material_fidelity".into(),
+        };
+        let build = |opts: MaterialOptions| {
+            let t = Instant::now();
+            let data =
+                build_material(&regions, m, 25.4, provenance.clone(), &opts, &Silent).unwrap();
+            let bytes = data.to_bytes().unwrap();
+            (Material::from_bytes(&bytes).unwrap(), bytes.len(), t.elapsed().as_secs_f64())
+        };
+        let (default, size_d, t_d) = build(MaterialOptions::default());
+        let patent_interp = if with_patent {
+            PATENT_DEFAULT
+        } else {
+            scanner_shading::Interpolation::Patent { columns: 1, rows: 1, points: 1 }
+        };
+        let (patent, size_p, t_p) =
+            build(MaterialOptions { interpolation: patent_interp, ..Default::default() });
+        let sample = Sample::small(lookup(m).unwrap());
+        let captured = tests::as_built_pairs(&truth, &cal, &regions);
+        let nv = regions.views.len();
+        let t_cap = tests::truth_answers(&captured, &sample);
+        let t_nov = tests::truth_answers(&pairs, &sample);
+        let (reg, _, _) = tests::pairs_psnr(&captured, &t_cap, &|p, q| {
+            q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
+        });
+        let (cap_d, _, _) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&default, q));
+        let (cap_p, _, _) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&patent, q));
+        let (a, b) = captured_pair_answers(&default, &regions);
+        let (pal, _, _) = material_psnr(&a, &b);
+        let (nov_d, _, _) = tests::pairs_psnr(&pairs, &t_nov, &|_, q| tests::shade(&default, q));
+        let (nov_p, _, _) = tests::pairs_psnr(&pairs, &t_nov, &|_, q| tests::shade(&patent, q));
+        println!(
+            "| {m} | {reg:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} |",
+            size_d as f64 / 1e6,
+            size_p as f64 / 1e6
+        );
+    }
+}

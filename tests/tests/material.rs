@@ -1,0 +1,216 @@
+//! Material builder II end to end on the simulator: `scanner build` on an
+//! HDR scan → one material file; its fidelity against the ground truth at
+//! the captured and at novel pairs, default and patent interpolation;
+//! `scanner shade`; bad inputs refused with exit 3 and nothing written.
+//! The full-resolution table is `cargo run --release -p tests --example
+//! material_fidelity` (docs/benchmarks.md).
+
+mod common;
+
+use std::path::Path;
+
+use hil_sim::materials::{Sample, lookup};
+use hil_sim::optics::OpticalSim;
+use host::build::Calibration;
+use host::build::calibrate::Silent;
+use host::build::extract_regions;
+use host::build::fidelity::{captured_pair_answers, material_psnr};
+use host::build::material::{MaterialOptions, build_material};
+use host::build::scanread::ScanFrames;
+use scanner_formats::queries::{Query, read_answers, write_queries};
+use scanner_shading::{Interpolation, Material};
+
+fn scanner(args: &[&str]) -> (Option<i32>, String) {
+    let out = common::scanner().args(args).output().unwrap();
+    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+fn sha256(path: &Path) -> String {
+    use sha2::Digest;
+    host::scan::hex(&sha2::Sha256::digest(std::fs::read(path).unwrap()))
+}
+
+#[test]
+fn a_built_material_shades_like_the_sample() {
+    let (bin, mirrors, seed) = (4, 40, 3);
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let d = |n: &str| p(n).display().to_string();
+    let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &p("checker"));
+    tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &p("white"));
+    tests::sim_scan("leather", seed, bin, mirrors, true, &p("leather"));
+    let (code, err) = scanner(&[
+        "calibrate",
+        "--checkerboard",
+        &d("checker"),
+        "--white",
+        &d("white"),
+        "-o",
+        &d("cal.json"),
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, err) = scanner(&[
+        "build",
+        "--scan",
+        &d("leather"),
+        "--calibration",
+        &d("cal.json"),
+        "-o",
+        &d("leather.material"),
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+
+    // The file: what it says it is, where it came from.
+    let m = Material::open(&p("leather.material")).unwrap();
+    let meta = m.metadata();
+    assert_eq!((meta.lights.len(), meta.views.len(), meta.colours), (40, 40, 256));
+    assert_eq!(meta.interpolation, Interpolation::Default);
+    assert_eq!(meta.provenance.geometry_sha256, g.hash());
+    assert_eq!(meta.provenance.calibration_sha256, sha256(&p("cal.json")));
+    assert_eq!(meta.provenance.scan_manifest_sha256, sha256(&p("leather/manifest.json")));
+    assert_eq!(meta.name, "leather");
+
+    // Fidelity. The same region images, built again in-process with both
+    // interpolations (the CLI's file is the default one, byte for byte).
+    let cal = Calibration::load(&p("cal.json")).unwrap();
+    let scan = ScanFrames::open(&p("leather"), &g).unwrap();
+    let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+    let prov = meta.provenance.clone();
+    let build = |interpolation| {
+        let opts = MaterialOptions { interpolation, ..Default::default() };
+        let data = build_material(&regions, "leather", 25.4, prov.clone(), &opts, &Silent).unwrap();
+        let bytes = data.to_bytes().unwrap();
+        (Material::from_bytes(&bytes).unwrap(), bytes)
+    };
+    let (default, bytes) = build(Interpolation::Default);
+    assert_eq!(bytes, std::fs::read(p("leather.material")).unwrap(), "deterministic");
+    let patent_interp = Interpolation::Patent { columns: 256, rows: 64, points: 500 };
+    let (patent, _) = build(patent_interp);
+    let sample = Sample::small(lookup("leather").unwrap());
+    let truth_geometry =
+        OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
+            .geometry()
+            .clone();
+    let captured = tests::as_built_pairs(&truth_geometry, &cal, &regions);
+    let t_cap = tests::truth_answers(&captured, &sample);
+    let nv = regions.views.len();
+    let (reg, _, _) = tests::pairs_psnr(&captured, &t_cap, &|p, q| {
+        q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
+    });
+    let (cap_d, _, gain) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&default, q));
+    let (cap_p, _, _) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&patent, q));
+    // The palettes alone, and each interpolation against the captured images.
+    let (a, b) = captured_pair_answers(&default, &regions);
+    let (pal, _, _) = material_psnr(&a, &b);
+    let (a, b) = captured_pair_answers(&patent, &regions);
+    let (pal_patent, _, _) = material_psnr(&a, &b);
+    let novel = tests::random_pairs(60, 60.0, 7);
+    let t_nov = tests::truth_answers(&novel, &sample);
+    let (nov_d, _, _) = tests::pairs_psnr(&novel, &t_nov, &|_, q| tests::shade(&default, q));
+    let (nov_p, _, _) = tests::pairs_psnr(&novel, &t_nov, &|_, q| tests::shade(&patent, q));
+    eprintln!(
+        "leather, 1024² sensor: regions {reg:.2} dB; material at the captured pairs {cap_d:.2} dB \
+         (patent {cap_p:.2}), gain {gain:.4}; against the region images {pal:.2} dB (patent \
+         {pal_patent:.2}); novel pairs {nov_d:.2} dB (patent {nov_p:.2})"
+    );
+    assert!(reg - cap_d <= 1.0, "palettes cost {:.2} dB", reg - cap_d);
+    assert!((gain - 1.0).abs() < 0.02, "absolute units: gain {gain}");
+    assert!(pal > 40.0, "palettisation {pal}");
+    assert!(pal - pal_patent > 10.0, "default {pal} vs patent {pal_patent} at captured pairs");
+    assert!(nov_d >= nov_p - 0.1, "novel pairs: default {nov_d} vs patent {nov_p}");
+
+    // `scanner shade` answers what `Material::eval` answers.
+    let queries: Vec<Query> = novel
+        .iter()
+        .take(20)
+        .enumerate()
+        .map(|(i, &(wi, wo))| Query {
+            uv: [(i as f64 * 0.37).fract(), (i as f64 * 0.61).fract()],
+            wi,
+            wo,
+        })
+        .collect();
+    write_queries(&p("q.npy"), &queries).unwrap();
+    let (code, err) =
+        scanner(&["shade", &d("leather.material"), "--queries", &d("q.npy"), "-o", &d("a.npy")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(read_answers(&p("a.npy")).unwrap(), tests::shade(&m, &queries));
+
+    // Bad input: exit 3, nothing written.
+    let shade_refused = |material: &str, queries: &str, out: &str, code: i32| -> String {
+        let (c, err) = scanner(&["shade", &d(material), "--queries", &d(queries), "-o", &d(out)]);
+        assert_eq!(c, Some(code), "{err}");
+        assert!(!p(out).exists(), "{out} written");
+        err
+    };
+    let good = std::fs::read(p("leather.material")).unwrap();
+    std::fs::write(p("cut.material"), &good[..good.len() / 2]).unwrap();
+    let err = shade_refused("cut.material", "q.npy", "x1.npy", 3);
+    assert!(err.contains("not a safetensors file"), "{err}");
+    let mut flipped = good.clone();
+    let header = u64::from_le_bytes(good[..8].try_into().unwrap()) as usize;
+    // A palette index beyond K = 256 cannot be written in U8; flip a header
+    // byte instead (the JSON breaks) and the last palette's sign bit.
+    flipped[8 + header / 2] ^= 0x5a;
+    std::fs::write(p("bad.material"), &flipped).unwrap();
+    shade_refused("bad.material", "q.npy", "x2.npy", 3);
+    std::fs::write(p("cols.csv"), "u,v,wi_x,wi_y,wi_z,wo_x,wo_y\n0.5,0.5,0,0,1,0,0\n").unwrap();
+    let err = shade_refused("leather.material", "cols.csv", "x3.csv", 3);
+    assert!(err.contains("wo_z"), "{err}");
+    std::fs::write(p("nan.csv"), "u,v,wi_x,wi_y,wi_z,wo_x,wo_y,wo_z\n0.5,0.5,0,0,NaN,0,0,1\n")
+        .unwrap();
+    let err = shade_refused("leather.material", "nan.csv", "x4.csv", 3);
+    assert!(err.contains("row 0"), "{err}");
+    // The output may not be the material.
+    let (c, err) = scanner(&[
+        "shade",
+        &d("leather.material"),
+        "--queries",
+        &d("q.npy"),
+        "-o",
+        &d("leather.material"),
+    ]);
+    assert_eq!(c, Some(2), "{err}"); // not a query/answer file type
+    // A scan of another geometry than the calibration: exit 3, no material.
+    tests::sim_scan("leather", seed, 8, 3, false, &p("other"));
+    let (c, err) = scanner(&[
+        "build",
+        "--scan",
+        &d("other"),
+        "--calibration",
+        &d("cal.json"),
+        "-o",
+        &d("other.material"),
+    ]);
+    assert_eq!(c, Some(3), "{err}");
+    assert!(err.contains("geometry"), "{err}");
+    assert!(!p("other.material").exists());
+    // Out-of-range options: usage errors before any work.
+    for (flag, v) in [("--colours", "0"), ("--colours", "257"), ("--lights-per-index", "5")] {
+        let (c, err) = scanner(&[
+            "build",
+            "--scan",
+            &d("leather"),
+            "--calibration",
+            &d("cal.json"),
+            "-o",
+            &d("o.material"),
+            flag,
+            v,
+        ]);
+        assert_eq!(c, Some(2), "{flag} {v}: {err}");
+        assert!(!p("o.material").exists());
+    }
+    // The output may not replace the calibration (an input).
+    let (c, err) = scanner(&[
+        "build",
+        "--scan",
+        &d("leather"),
+        "--calibration",
+        &d("cal.json"),
+        "-o",
+        &d("cal.json"),
+    ]);
+    assert_eq!(c, Some(4), "{err}");
+    assert_eq!(Calibration::load(&p("cal.json")).map(|c| c.hash()).ok(), Some(cal.hash()));
+}
