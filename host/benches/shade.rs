@@ -52,6 +52,7 @@ fn material(interpolation: Interpolation) -> Material {
             colours: K as u32,
             lights_per_index: G as u32,
             interpolation,
+            half_vector_shift: 0.5,
             lights: mirrors(&lights),
             views: mirrors(&views),
             provenance: Provenance {

@@ -85,6 +85,16 @@ fn main() {
         };
         let (patent, size_p, t_p) =
             build(MaterialOptions { interpolation: patent_interp, ..Default::default() });
+        let errs = host::build::material::shift_errors(
+            &regions,
+            &host::build::material::triangulate(&regions.view_dirs, "views").unwrap(),
+        )
+        .unwrap();
+        eprintln!(
+            "{m}: half-vector shift {} (leave-one-light-out MSE per shift {:?}: {errs:?})",
+            default.metadata().half_vector_shift,
+            host::build::material::SHIFTS
+        );
         let sample = Sample::small(lookup(m).unwrap());
         let captured = tests::as_built_pairs(&truth, &cal, &regions);
         let nv = regions.views.len();

@@ -86,6 +86,11 @@ pub struct Metadata {
     pub lights_per_index: u32,
     /// How directions between the captured ones are shaded.
     pub interpolation: Interpolation,
+    /// Default interpolation: how far (0…1) each light's view moves from
+    /// wo towards the view that keeps the query's half vector (chosen by
+    /// the builder by leave-one-light-out prediction; ignored by the
+    /// patent's).
+    pub half_vector_shift: f64,
     /// The lit mirrors in tensor order.
     pub lights: Vec<Mirror>,
     /// The seen mirrors in tensor order.
@@ -457,6 +462,9 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
                 ));
             }
         }
+    }
+    if !(0.0..=1.0).contains(&m.half_vector_shift) {
+        return bad(format!("half_vector_shift {} outside 0…1", m.half_vector_shift));
     }
     if !(1..=m.lights.len() as u32).contains(&m.lights_per_index) || m.lights_per_index > 256 {
         return bad(format!(

@@ -81,14 +81,57 @@ pub struct Material {
     light_groups: Vec<u8>,
     views: Locator,
     light_loc: Locator,
-    /// Unit light directions, for the half-vector-preserving view shift.
+    /// Unit light directions, for the half-vector view shift.
     light_dirs: Vec<[f32; 3]>,
-    /// Whether views are shifted to keep the query's half vector (the
-    /// default interpolation) or taken at wo (the patent's).
-    keep_half_vector: bool,
+    /// The default interpolation's half-vector shift β.
+    shift: f32,
 }
 
-fn unit(d: [f32; 3]) -> Option<[f32; 3]> {
+/// The default interpolation's weights (docs/material-format.md,
+/// "Shading"): `pair(view, light, weight)` for every contributing captured
+/// pair of query (wi, wo) — unit vectors above the horizon. Light weights
+/// by `lights` (whose direction `i` is `light_dirs[i]`); for each light,
+/// the view direction moved from wo by `shift` (0…1) towards the light
+/// reflected about the half vector, weighted by `views`.
+#[inline]
+pub fn default_pairs(
+    lights: &TriangleLocator,
+    light_dirs: &[[f32; 3]],
+    views: &TriangleLocator,
+    shift: f32,
+    wi: [f32; 3],
+    wo: [f32; 3],
+    mut pair: impl FnMut(u16, u16, f32),
+) {
+    let (mut lb, mut vb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
+    lights.weights(wi, &mut lb);
+    let h = unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]).unwrap_or([0.0, 0.0, 1.0]);
+    for &(li, wl) in &lb {
+        if wl == 0.0 {
+            continue;
+        }
+        let v = if shift > 0.0 {
+            let l = light_dirs[li as usize];
+            let k = 2.0 * (h[0] * l[0] + h[1] * l[1] + h[2] * l[2]);
+            let r = [k * h[0] - l[0], k * h[1] - l[1], k * h[2] - l[2]];
+            let mut v: [f32; 3] = std::array::from_fn(|i| (1.0 - shift) * wo[i] + shift * r[i]);
+            // Below the horizon: the horizon point of its azimuth.
+            v[2] = v[2].max(1e-4);
+            unit(v).unwrap_or(wo)
+        } else {
+            wo
+        };
+        views.weights(v, &mut vb);
+        for &(vi, wv) in &vb {
+            if wv != 0.0 {
+                pair(vi, li, wv * wl);
+            }
+        }
+    }
+}
+
+/// `d` normalised, or `None` if it is zero or not finite.
+pub fn unit(d: [f32; 3]) -> Option<[f32; 3]> {
     let l2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
     (l2.is_finite() && l2 > 1e-12).then(|| {
         let r = 1.0 / l2.sqrt();
@@ -165,10 +208,9 @@ impl Material {
                 )
             }
         };
-        let keep_half_vector = matches!(m.interpolation, Interpolation::Default);
         Ok(Material {
             light_dirs: ld,
-            keep_half_vector,
+            shift: m.half_vector_shift as f32,
             size: m.resolution as usize,
             colours: k,
             groups: d.groups(),
@@ -196,8 +238,6 @@ impl Material {
         if wi[2] <= 0.0 || wo[2] <= 0.0 || !uv[0].is_finite() || !uv[1].is_finite() {
             return [0.0; 3];
         }
-        let (mut vb, mut lb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
-        let lw = self.light_loc.weights(wi, &mut lb);
         let s = self.size;
         let (x0, x1, tx) = taps(s, uv[0] - uv[0].floor());
         let (y0, y1, ty) = taps(s, uv[1] - uv[1].floor());
@@ -220,35 +260,19 @@ impl Material {
                 acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
             }
         };
-        if self.keep_half_vector {
-            // Per light, the view that keeps the query's half vector: the
-            // light reflected about h (at a captured pair, the pair's view).
-            let h = unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]).unwrap_or([0.0, 0.0, 1.0]);
-            for &(li, wl) in lw {
-                if wl == 0.0 {
-                    continue;
-                }
-                let l = self.light_dirs[li as usize];
-                let k = 2.0 * (h[0] * l[0] + h[1] * l[1] + h[2] * l[2]);
-                let mut v = [k * h[0] - l[0], k * h[1] - l[1], k * h[2] - l[2]];
-                if v[2] < 1e-4 {
-                    // Below the horizon: the horizon point of its azimuth.
-                    v[2] = 1e-4;
-                }
-                let Some(v) = unit(v) else { continue };
-                for &(vi, wv) in self.views.weights(v, &mut vb) {
-                    if wv != 0.0 {
-                        pair(vi, li, wv * wl);
-                    }
-                }
+        match (&self.views, &self.light_loc) {
+            (Locator::Triangles(views), Locator::Triangles(lights)) => {
+                default_pairs(lights, &self.light_dirs, views, self.shift, wi, wo, pair);
             }
-        } else {
-            let vw = self.views.weights(wo, &mut vb);
-            for &(vi, wv) in vw {
-                for &(li, wl) in lw {
-                    let w = wv * wl;
-                    if w != 0.0 {
-                        pair(vi, li, w);
+            _ => {
+                let (mut vb, mut lb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
+                let lw = self.light_loc.weights(wi, &mut lb);
+                for &(vi, wv) in self.views.weights(wo, &mut vb) {
+                    for &(li, wl) in lw {
+                        let w = wv * wl;
+                        if w != 0.0 {
+                            pair(vi, li, w);
+                        }
                     }
                 }
             }

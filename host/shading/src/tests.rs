@@ -87,6 +87,7 @@ fn material(interpolation: Interpolation) -> MaterialData {
             colours: k as u32,
             lights_per_index: g as u32,
             interpolation,
+            half_vector_shift: 1.0,
             lights: mirrors(&dirs),
             views: mirrors(&dirs),
             provenance: Provenance {

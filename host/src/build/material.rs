@@ -175,6 +175,82 @@ pub fn patent_table(
     t
 }
 
+/// The half-vector shifts the builder chooses from.
+pub const SHIFTS: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
+
+fn unit32(d: [f64; 3]) -> [f32; 3] {
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    d.map(|x| (x / l) as f32)
+}
+
+/// Leave-one-light-out prediction error of the default interpolation for
+/// each of [`SHIFTS`]: every light's images predicted from the other
+/// lights' (`scanner_shading::default_pairs`, the shading's own weights)
+/// at 8 × 8 texels, the mean squared error against the captured values.
+pub fn shift_errors(regions: &RegionSet, view_tris: &[[u16; 3]]) -> Result<Vec<f64>, BuildError> {
+    use scanner_shading::locate::TriangleLocator;
+    let internal = |e: scanner_shading::MaterialError| BuildError::Input(e.to_string());
+    let (nl, nv, s) = (regions.lights.len(), regions.views.len(), regions.size);
+    let vd: Vec<[f32; 3]> = regions.view_dirs.iter().map(|&d| unit32(d)).collect();
+    let ld: Vec<[f32; 3]> = regions.light_dirs.iter().map(|&d| unit32(d)).collect();
+    let views = TriangleLocator::new(&vd, view_tris, "view directions").map_err(internal)?;
+    let texels: Vec<usize> = (0..64)
+        .map(|i| {
+            let (x, y) = ((2 * (i % 8) + 1) * s / 16, (2 * (i / 8) + 1) * s / 16);
+            y * s + x
+        })
+        .collect();
+    let per_light: Vec<Vec<f64>> = (0..nl)
+        .into_par_iter()
+        .map(|held| {
+            let others: Vec<usize> = (0..nl).filter(|&l| l != held).collect();
+            let od: Vec<[f64; 3]> = others.iter().map(|&l| regions.light_dirs[l]).collect();
+            let od32: Vec<[f32; 3]> = others.iter().map(|&l| ld[l]).collect();
+            let Ok(lights) = triangulate(&od, "light directions").and_then(|t| {
+                TriangleLocator::new(&od32, &t, "light directions").map_err(internal)
+            }) else {
+                return vec![0.0; SHIFTS.len()];
+            };
+            let wi = ld[held];
+            SHIFTS
+                .iter()
+                .map(|&shift| {
+                    let mut err = 0.0;
+                    for (v, &wo) in vd.iter().enumerate() {
+                        let mut pred = vec![[0f64; 3]; texels.len()];
+                        scanner_shading::default_pairs(
+                            &lights,
+                            &od32,
+                            &views,
+                            shift as f32,
+                            wi,
+                            wo,
+                            |vi, lj, w| {
+                                let l = others[lj as usize];
+                                let k = w as f64 * wi[2] as f64 / ld[l][2] as f64;
+                                let img = regions.image(l, vi as usize);
+                                for (p, &t) in pred.iter_mut().zip(&texels) {
+                                    for c in 0..3 {
+                                        p[c] += k * img[t][c] as f64;
+                                    }
+                                }
+                            },
+                        );
+                        let img = regions.image(held, v);
+                        for (p, &t) in pred.iter().zip(&texels) {
+                            for c in 0..3 {
+                                err += (p[c] - img[t][c] as f64).powi(2);
+                            }
+                        }
+                    }
+                    err / (nv * texels.len() * 3) as f64
+                })
+                .collect()
+        })
+        .collect();
+    Ok((0..SHIFTS.len()).map(|k| per_light.iter().map(|e| e[k]).sum::<f64>() / nl as f64).collect())
+}
+
 /// Build the material of `regions`.
 pub fn build_material(
     regions: &RegionSet,
@@ -232,11 +308,20 @@ pub fn build_material(
             }
         }
     }
+    let mut half_vector_shift = 0.0;
     let tables = match opts.interpolation {
-        Interpolation::Default => DirectionTables::Triangles {
-            views: triangulate(&regions.view_dirs, "view directions")?,
-            lights: triangulate(&regions.light_dirs, "light directions")?,
-        },
+        Interpolation::Default => {
+            let views = triangulate(&regions.view_dirs, "view directions")?;
+            let lights = triangulate(&regions.light_dirs, "light directions")?;
+            if nl >= 4 {
+                progress.stage("half-vector shift", 1);
+                let errs = shift_errors(regions, &views)?;
+                let best = (0..SHIFTS.len()).min_by(|&a, &b| errs[a].total_cmp(&errs[b]));
+                half_vector_shift = SHIFTS[best.unwrap_or(0)];
+                progress.step();
+            }
+            DirectionTables::Triangles { views, lights }
+        }
         Interpolation::Patent { columns, rows, points } => {
             if !((1..=8192).contains(&columns)
                 && (1..=8192).contains(&rows)
@@ -269,6 +354,7 @@ pub fn build_material(
             colours: k as u32,
             lights_per_index: g as u32,
             interpolation: opts.interpolation,
+            half_vector_shift,
             lights: regions
                 .lights
                 .iter()

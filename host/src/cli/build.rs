@@ -301,8 +301,8 @@ pub fn build_cmd(
     let (psnr, _, _) = material_psnr(&m, &r);
     println!(
         "{}: {} lights × {} views at {}² px, {} colours ({} lights per index image), {} \
-         interpolation, {:.1} MB, in {built:.1} s; palettes at the captured pairs: {psnr:.1} dB \
-         against the region images",
+         interpolation (half-vector shift {}), {:.1} MB, in {built:.1} s; palettes at the \
+         captured pairs: {psnr:.1} dB against the region images",
         output.display(),
         regions.lights.len(),
         regions.views.len(),
@@ -314,6 +314,7 @@ pub fn build_cmd(
             scanner_shading::Interpolation::Patent { columns, rows, points } =>
                 format!("patent ({columns} × {rows} cells, {points} points)"),
         },
+        material.metadata().half_vector_shift,
         bytes.len() as f64 / 1e6,
     );
     Ok(Built { material, regions })
