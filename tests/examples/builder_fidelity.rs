@@ -8,7 +8,7 @@
 //! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR]`
 //! (scans in DIR are reused when complete).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use hil_sim::materials::{Sample, lookup};
@@ -17,51 +17,22 @@ use host::build::calibrate::{CalibrateOptions, Silent};
 use host::build::fidelity::{material_psnr, pair_queries};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
-use host::camera::SimCamera;
-use host::link::{Device, SimTransport};
-use host::scan::{Quiet, ScanOptions, scan};
 use host::simulator::SimSetup;
 use scanner_formats::queries::Query;
 
-fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
-    let args: Vec<String> = std::env::args().collect();
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn take(material: &str, seed: u64, bin: u32, mirrors: usize, hdr: bool, out: &Path) -> f64 {
-    if host::scan::Manifest::load(out).is_ok_and(|m| m.complete) {
-        return 0.0;
-    }
-    let t = Instant::now();
-    let s = SimSetup { bin, seed, ..SimSetup::new(material) };
-    let rig = s.rig().unwrap();
-    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
-    let mut opts = ScanOptions::new(material, out);
-    opts.mirrors = Some(mirrors);
-    opts.resume = true;
-    if hdr {
-        opts.bracket_us = host::hdr::default_bracket(opts.exposure_us);
-    }
-    scan(&mut dev, &mut SimCamera(rig), &s.nominal().unwrap(), &opts, &mut Quiet).unwrap();
-    t.elapsed().as_secs_f64()
-}
-
 fn main() {
-    let bin: u32 = arg("--bin", 1);
-    let mirrors: usize = arg("--mirrors", 40);
-    let seed: u64 = arg("--seed", 1);
-    let out: PathBuf = arg("--out", PathBuf::from("target/builder-fidelity"));
+    let bin: u32 = tests::arg("--bin", 1);
+    let mirrors: usize = tests::arg("--mirrors", 40);
+    let seed: u64 = tests::arg("--seed", 1);
+    let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     let materials = ["woven-fabric", "leather", "painted-wood", "rough-metal"];
     for (m, hdr) in [("checkerboard", false), ("diffuse-white", false)]
         .into_iter()
         .chain(materials.iter().map(|m| (*m, true)))
     {
-        let s = take(m, seed, bin, mirrors, hdr, &out.join(m));
-        eprintln!("scan {m}: {s:.1} s");
+        let t = Instant::now();
+        tests::sim_scan(m, seed, bin, mirrors, hdr, &out.join(m));
+        eprintln!("scan {m}: {:.1} s", t.elapsed().as_secs_f64());
     }
     let g = SimSetup { bin, seed, ..SimSetup::new("checkerboard") }.nominal().unwrap();
     let t = Instant::now();

@@ -21,23 +21,14 @@ use host::build::{calibrate, extract_regions};
 use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 
-fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
-    let args: Vec<String> = std::env::args().collect();
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
 fn main() {
-    let bin: u32 = arg("--bin", 1);
-    let mirrors: usize = arg("--mirrors", 40);
-    let seed: u64 = arg("--seed", 1);
-    let novel: usize = arg("--novel", 300);
-    let out: PathBuf = arg("--out", PathBuf::from("target/builder-fidelity"));
+    let bin: u32 = tests::arg("--bin", 1);
+    let mirrors: usize = tests::arg("--mirrors", 40);
+    let seed: u64 = tests::arg("--seed", 1);
+    let novel: usize = tests::arg("--novel", 300);
+    let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     let list: String =
-        arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
+        tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
     let materials: Vec<&str> = list.split(',').collect();
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));

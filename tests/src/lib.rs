@@ -16,6 +16,17 @@ use scanner_formats::queries::Query;
 use scanner_geometry::{AxisValues, DVec3, ScannerGeometry, world_to_sample};
 use scanner_shading::Material;
 
+/// The value after `--name` on the command line, or `default` (the
+/// examples' options).
+pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
+    let args: Vec<String> = std::env::args().collect();
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
 /// Scan `material` on the simulator into `out` (HDR if asked), unless a
 /// complete scan is there already; returns the nominal geometry.
 pub fn sim_scan(
