@@ -136,6 +136,14 @@ fn a_built_material_shades_like_the_sample() {
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(read_answers(&p("a.npy")).unwrap(), tests::shade(&m, &queries));
 
+    // A preview of the material file.
+    let (code, err) = scanner(&["preview", &d("leather.material"), "-o", &d("leather.png")]);
+    assert_eq!(code, Some(0), "{err}");
+    let png = image::open(p("leather.png")).unwrap().to_rgb8();
+    assert_eq!(png.dimensions(), (3 * 262 + 6, 262 + 6));
+    let (code, err) = scanner(&["preview", &d("leather.material"), "-o", &d("leather.exr")]);
+    assert_eq!(code, Some(2), "{err}");
+
     // Bad input: exit 3, nothing written.
     let shade_refused = |material: &str, queries: &str, out: &str, code: i32| -> String {
         let (c, err) = scanner(&["shade", &d(material), "--queries", &d(queries), "-o", &d(out)]);
@@ -147,6 +155,9 @@ fn a_built_material_shades_like_the_sample() {
     std::fs::write(p("cut.material"), &good[..good.len() / 2]).unwrap();
     let err = shade_refused("cut.material", "q.npy", "x1.npy", 3);
     assert!(err.contains("not a safetensors file"), "{err}");
+    let (c, err) = scanner(&["preview", &d("cut.material"), "-o", &d("cut.png")]);
+    assert_eq!(c, Some(3), "{err}");
+    assert!(!p("cut.png").exists());
     let mut flipped = good.clone();
     let header = u64::from_le_bytes(good[..8].try_into().unwrap()) as usize;
     // A palette index beyond K = 256 cannot be written in U8; flip a header

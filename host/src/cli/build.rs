@@ -225,6 +225,7 @@ fn replace_dir(staging: &Path, output: &Path) -> std::io::Result<()> {
 }
 
 /// What `scanner build` made.
+#[cfg_attr(not(feature = "sim"), allow(dead_code))]
 pub struct Built {
     /// The material, as a renderer opens it.
     pub material: scanner_shading::Material,
@@ -452,4 +453,25 @@ pub fn preview(
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
     crate::fsutil::write_atomic(path, &bytes)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
+}
+
+/// `scanner preview`
+pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
+    let ext = output.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    if ext.as_deref() != Some("png") {
+        return Err(Failure(2, anyhow!("{}: the output must be .png", output.display())));
+    }
+    crate::fsutil::check_output(output, &[material]).map_err(|e| Failure(4, anyhow!(e)))?;
+    let m = scanner_shading::Material::open(material)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let views: Vec<[f64; 3]> = m.metadata().views.iter().map(|v| v.direction).collect();
+    let (view, off) = novel_view(&views);
+    preview(&m, view, None, output)?;
+    println!(
+        "{}: seen from θ {:.0}°, φ {:.0}° ({off:.1}° from the nearest captured view)",
+        output.display(),
+        view[2].clamp(-1.0, 1.0).acos().to_degrees(),
+        view[1].atan2(view[0]).to_degrees().rem_euclid(360.0),
+    );
+    Ok(())
 }

@@ -158,6 +158,16 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// A preview PNG of a material: a 2 × 2 tile under three light
+    /// directions, seen from the direction farthest from every captured view
+    /// (20°…45° from the normal).
+    Preview {
+        /// Material file.
+        material: PathBuf,
+        /// Output picture (.png).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
         #[command(flatten)]
@@ -413,6 +423,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Shade { material, queries, output } => {
             build::shade_cmd(&material, &queries, &output)?
         }
+        Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,
         Command::Home { device, axes } => commands::home(&device, &axes)?,
