@@ -136,6 +136,46 @@ fn a_built_material_shades_like_the_sample() {
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(read_answers(&p("a.npy")).unwrap(), tests::shade(&m, &queries));
 
+    // The patent's table through the command line.
+    let (code, err) = scanner(&[
+        "build",
+        "--scan",
+        &d("leather"),
+        "--calibration",
+        &d("cal.json"),
+        "-o",
+        &d("p.material"),
+        "--interpolation",
+        "patent",
+        "--patent-columns",
+        "64",
+        "--patent-rows",
+        "16",
+        "--patent-points",
+        "50",
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+    let pm = Material::open(&p("p.material")).unwrap();
+    assert_eq!(
+        pm.metadata().interpolation,
+        Interpolation::Patent { columns: 64, rows: 16, points: 50 }
+    );
+    let (code, err) = scanner(&[
+        "build",
+        "--scan",
+        &d("leather"),
+        "--calibration",
+        &d("cal.json"),
+        "-o",
+        &d("p0.material"),
+        "--interpolation",
+        "patent",
+        "--patent-points",
+        "0",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(!p("p0.material").exists());
+
     // A preview of the material file.
     let (code, err) = scanner(&["preview", &d("leather.material"), "-o", &d("leather.png")]);
     assert_eq!(code, Some(0), "{err}");

@@ -265,6 +265,19 @@ pub fn build_cmd(
     {
         return Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")));
     }
+    if let scanner_shading::Interpolation::Patent { columns, rows, points } = opts.interpolation
+        && !((1..=8192).contains(&columns)
+            && (1..=8192).contains(&rows)
+            && (1..=u16::MAX as u32).contains(&points))
+    {
+        return Err(Failure(
+            2,
+            anyhow!(
+                "--patent-columns and --patent-rows must be in 1…8192 and --patent-points in \
+                 1…65535, got {columns}, {rows}, {points}"
+            ),
+        ));
+    }
     crate::fsutil::check_output(output, &[scan, calibration])
         .map_err(|e| Failure(4, anyhow!(e)))?;
     let started = Instant::now();
