@@ -14,7 +14,6 @@ use std::time::Instant;
 use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::calibrate::{CalibrateOptions, Silent};
-use host::build::fidelity::{captured_pair_answers, material_psnr};
 use host::build::material::{MaterialOptions, PATENT_DEFAULT, build_material};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
@@ -49,9 +48,9 @@ fn main() {
     );
     println!(
         "| material | regions dB | material dB (default) | material dB (patent) | palettes alone dB | \
-         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) |"
+         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) | β |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
         let scan = ScanFrames::open(&out.join(m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
@@ -76,32 +75,18 @@ fn main() {
         };
         let (patent, size_p, t_p) =
             build(MaterialOptions { interpolation: patent_interp, ..Default::default() });
-        let errs = host::build::material::shift_errors(
-            &regions,
-            &host::build::material::triangulate(&regions.view_dirs, "views").unwrap(),
-        )
-        .unwrap();
-        eprintln!(
-            "{m}: half-vector shift {} (leave-one-light-out MSE per shift {:?}: {errs:?})",
-            default.metadata().half_vector_shift,
-            host::build::material::SHIFTS
-        );
         let sample = Sample::small(lookup(m).unwrap());
         let captured = tests::as_built_pairs(&truth, &cal, &regions);
-        let nv = regions.views.len();
-        let t_cap = tests::truth_answers(&captured, &sample);
-        let t_nov = tests::truth_answers(&pairs, &sample);
-        let (reg, _, _) = tests::pairs_psnr(&captured, &t_cap, &|p, q| {
-            q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
-        });
-        let (cap_d, _, _) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&default, q));
-        let (cap_p, _, _) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&patent, q));
-        let (a, b) = captured_pair_answers(&default, &regions);
-        let (pal, _, _) = material_psnr(&a, &b);
-        let (nov_d, _, _) = tests::pairs_psnr(&pairs, &t_nov, &|_, q| tests::shade(&default, q));
-        let (nov_p, _, _) = tests::pairs_psnr(&pairs, &t_nov, &|_, q| tests::shade(&patent, q));
+        let tests::MaterialScores {
+            regions: reg,
+            captured: [cap_d, cap_p],
+            against_regions: [pal, _],
+            novel: [nov_d, nov_p],
+            ..
+        } = tests::material_scores(&regions, [&default, &patent], &sample, &captured, &pairs);
+        let shift = default.metadata().half_vector_shift;
         println!(
-            "| {m} | {reg:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} |",
+            "| {m} | {reg:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} | {shift} |",
             size_d as f64 / 1e6,
             size_p as f64 / 1e6
         );

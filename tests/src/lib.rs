@@ -14,7 +14,6 @@ use host::simulator::SimSetup;
 use rand::{Rng, SeedableRng};
 use scanner_formats::queries::Query;
 use scanner_geometry::{AxisValues, DVec3, ScannerGeometry, world_to_sample};
-use scanner_shading::Material;
 
 /// The value after `--name` on the command line, or `default` (the
 /// examples' options).
@@ -117,12 +116,6 @@ pub fn pairs_psnr(
     material_psnr(&est, truth)
 }
 
-/// A material's answers to queries.
-pub fn shade(m: &Material, q: &[Query]) -> Vec<[f32; 3]> {
-    let f = |d: [f64; 3]| d.map(|x| x as f32);
-    q.iter().map(|q| m.eval(q.uv.map(|x| x as f32), f(q.wi), f(q.wo))).collect()
-}
-
 /// Material PSNR of `regions` against the ground truth of `sample` at the
 /// captured pairs (the nominal mirror directions): (PSNR, gain-free PSNR,
 /// gain).
@@ -131,18 +124,21 @@ pub fn captured_pair_psnr(
     regions: &RegionSet,
     sample: &Sample,
 ) -> (f64, f64, f64) {
-    let (mut est, mut tru) = (Vec::new(), Vec::new());
-    for (li, &l) in regions.lights.iter().enumerate() {
-        for (vi, &v) in regions.views.iter().enumerate() {
-            let q = pair_queries(
-                g.light_direction(l).expect("a reachable mirror").to_array(),
-                g.mirror_direction(v).expect("a mirror").to_array(),
-            );
-            tru.extend(hil_sim::truth::answer(sample, &q));
-            est.extend(q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)));
-        }
-    }
-    material_psnr(&est, &tru)
+    let pairs: Vec<([f64; 3], [f64; 3])> = regions
+        .lights
+        .iter()
+        .flat_map(|&l| {
+            let wi = g.light_direction(l).expect("a reachable mirror").to_array();
+            regions
+                .views
+                .iter()
+                .map(move |&v| (wi, g.mirror_direction(v).expect("a mirror").to_array()))
+        })
+        .collect();
+    let nv = regions.views.len();
+    pairs_psnr(&pairs, &truth_answers(&pairs, sample), &|p, q| {
+        q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
+    })
 }
 
 /// Angles (degrees) between a calibration's directions and the as-built
@@ -185,4 +181,50 @@ pub fn direction_errors(
         );
     }
     e
+}
+
+/// Material PSNRs of one sample's material files (docs/benchmarks.md,
+/// "Material builder II"), each as [default, patent] interpolation.
+#[derive(Debug, Clone, Copy)]
+pub struct MaterialScores {
+    /// The region images against the truth at the captured pairs.
+    pub regions: f64,
+    /// The materials against the truth at the captured pairs.
+    pub captured: [f64; 2],
+    /// The default material's best gain against the truth there.
+    pub gain: f64,
+    /// The materials against the region images at the captured pairs.
+    pub against_regions: [f64; 2],
+    /// The materials against the truth at the novel pairs.
+    pub novel: [f64; 2],
+}
+
+/// Score `materials` ([default, patent]) built from `regions` against the
+/// ground truth of `sample` at the `captured` pairs (in `regions` order,
+/// [`as_built_pairs`]) and at the `novel` ones.
+pub fn material_scores(
+    regions: &RegionSet,
+    materials: [&scanner_shading::Material; 2],
+    sample: &Sample,
+    captured: &[([f64; 3], [f64; 3])],
+    novel: &[([f64; 3], [f64; 3])],
+) -> MaterialScores {
+    use host::build::fidelity::captured_pair_answers;
+    use host::build::material::shade;
+    let (t_cap, t_nov) = (truth_answers(captured, sample), truth_answers(novel, sample));
+    let nv = regions.views.len();
+    let (regions_db, _, _) = pairs_psnr(captured, &t_cap, &|p, q| {
+        q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
+    });
+    let captured_db = materials.map(|m| pairs_psnr(captured, &t_cap, &|_, q| shade(m, q)));
+    MaterialScores {
+        regions: regions_db,
+        captured: captured_db.map(|x| x.0),
+        gain: captured_db[0].2,
+        against_regions: materials.map(|m| {
+            let (a, b) = captured_pair_answers(m, regions);
+            material_psnr(&a, &b).0
+        }),
+        novel: materials.map(|m| pairs_psnr(novel, &t_nov, &|_, q| shade(m, q)).0),
+    }
 }

@@ -14,7 +14,6 @@ use hil_sim::optics::OpticalSim;
 use host::build::Calibration;
 use host::build::calibrate::Silent;
 use host::build::extract_regions;
-use host::build::fidelity::{captured_pair_answers, material_psnr};
 use host::build::material::{MaterialOptions, build_material};
 use host::build::scanread::ScanFrames;
 use scanner_formats::queries::{Query, read_answers, write_queries};
@@ -49,15 +48,13 @@ fn a_built_material_shades_like_the_sample() {
         &d("cal.json"),
     ]);
     assert_eq!(code, Some(0), "{err}");
-    let (code, err) = scanner(&[
-        "build",
-        "--scan",
-        &d("leather"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("leather.material"),
-    ]);
+    // `scanner build` of scan SCAN with the calibration into OUT.
+    let build_cli = |scan: &str, out: &str, extra: &[&str]| {
+        let (scan, out) = (d(scan), d(out));
+        let args = ["build", "--scan", &scan, "--calibration", &d("cal.json"), "-o", &out];
+        scanner(&[&args[..], extra].concat())
+    };
+    let (code, err) = build_cli("leather", "leather.material", &[]);
     assert_eq!(code, Some(0), "{err}");
 
     // The file: what it says it is, where it came from.
@@ -92,22 +89,15 @@ fn a_built_material_shades_like_the_sample() {
             .geometry()
             .clone();
     let captured = tests::as_built_pairs(&truth_geometry, &cal, &regions);
-    let t_cap = tests::truth_answers(&captured, &sample);
-    let nv = regions.views.len();
-    let (reg, _, _) = tests::pairs_psnr(&captured, &t_cap, &|p, q| {
-        q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
-    });
-    let (cap_d, _, gain) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&default, q));
-    let (cap_p, _, _) = tests::pairs_psnr(&captured, &t_cap, &|_, q| tests::shade(&patent, q));
-    // The palettes alone, and each interpolation against the captured images.
-    let (a, b) = captured_pair_answers(&default, &regions);
-    let (pal, _, _) = material_psnr(&a, &b);
-    let (a, b) = captured_pair_answers(&patent, &regions);
-    let (pal_patent, _, _) = material_psnr(&a, &b);
     let novel = tests::random_pairs(60, 60.0, 7);
-    let t_nov = tests::truth_answers(&novel, &sample);
-    let (nov_d, _, _) = tests::pairs_psnr(&novel, &t_nov, &|_, q| tests::shade(&default, q));
-    let (nov_p, _, _) = tests::pairs_psnr(&novel, &t_nov, &|_, q| tests::shade(&patent, q));
+    let scores = tests::material_scores(&regions, [&default, &patent], &sample, &captured, &novel);
+    let tests::MaterialScores {
+        regions: reg,
+        captured: [cap_d, cap_p],
+        gain,
+        against_regions: [pal, pal_patent],
+        novel: [nov_d, nov_p],
+    } = scores;
     eprintln!(
         "leather, 1024² sensor: regions {reg:.2} dB; material at the captured pairs {cap_d:.2} dB \
          (patent {cap_p:.2}), gain {gain:.4}; against the region images {pal:.2} dB (patent \
@@ -134,45 +124,31 @@ fn a_built_material_shades_like_the_sample() {
     let (code, err) =
         scanner(&["shade", &d("leather.material"), "--queries", &d("q.npy"), "-o", &d("a.npy")]);
     assert_eq!(code, Some(0), "{err}");
-    assert_eq!(read_answers(&p("a.npy")).unwrap(), tests::shade(&m, &queries));
+    assert_eq!(read_answers(&p("a.npy")).unwrap(), host::build::material::shade(&m, &queries));
 
     // The patent's table through the command line.
-    let (code, err) = scanner(&[
-        "build",
-        "--scan",
-        &d("leather"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("p.material"),
-        "--interpolation",
-        "patent",
-        "--patent-columns",
-        "64",
-        "--patent-rows",
-        "16",
-        "--patent-points",
-        "50",
-    ]);
+    let (code, err) = build_cli(
+        "leather",
+        "p.material",
+        &[
+            "--interpolation",
+            "patent",
+            "--patent-columns",
+            "64",
+            "--patent-rows",
+            "16",
+            "--patent-points",
+            "50",
+        ],
+    );
     assert_eq!(code, Some(0), "{err}");
     let pm = Material::open(&p("p.material")).unwrap();
     assert_eq!(
         pm.metadata().interpolation,
         Interpolation::Patent { columns: 64, rows: 16, points: 50 }
     );
-    let (code, err) = scanner(&[
-        "build",
-        "--scan",
-        &d("leather"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("p0.material"),
-        "--interpolation",
-        "patent",
-        "--patent-points",
-        "0",
-    ]);
+    let (code, err) =
+        build_cli("leather", "p0.material", &["--interpolation", "patent", "--patent-points", "0"]);
     assert_eq!(code, Some(2), "{err}");
     assert!(!p("p0.material").exists());
 
@@ -224,44 +200,18 @@ fn a_built_material_shades_like_the_sample() {
     assert_eq!(c, Some(2), "{err}"); // not a query/answer file type
     // A scan of another geometry than the calibration: exit 3, no material.
     tests::sim_scan("leather", seed, 8, 3, false, &p("other"));
-    let (c, err) = scanner(&[
-        "build",
-        "--scan",
-        &d("other"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("other.material"),
-    ]);
+    let (c, err) = build_cli("other", "other.material", &[]);
     assert_eq!(c, Some(3), "{err}");
     assert!(err.contains("geometry"), "{err}");
     assert!(!p("other.material").exists());
     // Out-of-range options: usage errors before any work.
     for (flag, v) in [("--colours", "0"), ("--colours", "257"), ("--lights-per-index", "5")] {
-        let (c, err) = scanner(&[
-            "build",
-            "--scan",
-            &d("leather"),
-            "--calibration",
-            &d("cal.json"),
-            "-o",
-            &d("o.material"),
-            flag,
-            v,
-        ]);
+        let (c, err) = build_cli("leather", "o.material", &[flag, v]);
         assert_eq!(c, Some(2), "{flag} {v}: {err}");
         assert!(!p("o.material").exists());
     }
     // The output may not replace the calibration (an input).
-    let (c, err) = scanner(&[
-        "build",
-        "--scan",
-        &d("leather"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("cal.json"),
-    ]);
+    let (c, err) = build_cli("leather", "cal.json", &[]);
     assert_eq!(c, Some(4), "{err}");
     assert_eq!(Calibration::load(&p("cal.json")).map(|c| c.hash()).ok(), Some(cal.hash()));
 }

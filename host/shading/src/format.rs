@@ -51,6 +51,26 @@ pub enum Interpolation {
     },
 }
 
+impl Interpolation {
+    /// The patent table's size in range: 1…8192 columns and rows, 1…65 535
+    /// points (counts are 16-bit).
+    pub fn check(&self) -> Result<(), String> {
+        match *self {
+            Interpolation::Patent { columns, rows, points }
+                if !((1..=8192).contains(&columns)
+                    && (1..=8192).contains(&rows)
+                    && (1..=u16::MAX as u32).contains(&points)) =>
+            {
+                Err(format!(
+                    "patent table of {columns} × {rows} cells with {points} points: columns and \
+                     rows must be in 1…8192, points in 1…65535"
+                ))
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
 /// Where a material came from: hashes of everything it was built from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {
@@ -476,12 +496,5 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
     if m.lights.len().div_ceil(m.lights_per_index as usize) > 256 {
         return bad("more than 256 light groups".into());
     }
-    if let Interpolation::Patent { columns, rows, points } = m.interpolation
-        && !((1..=8192).contains(&columns)
-            && (1..=8192).contains(&rows)
-            && (1..=u16::MAX as u32).contains(&points))
-    {
-        return bad(format!("patent table {columns} × {rows}, {points} points: out of range"));
-    }
-    Ok(())
+    m.interpolation.check().map_err(MaterialError::Metadata)
 }

@@ -33,7 +33,7 @@ use std::path::Path;
 pub use error::MaterialError;
 use format::DirectionTables;
 pub use format::{Interpolation, MaterialData, Metadata};
-use locate::{CellLocator, TriangleLocator, Weights3};
+use locate::{CellLocator, TriangleLocator};
 
 /// One shading request for [`Material::eval_batch`].
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -46,23 +46,19 @@ pub struct ShadeQuery {
     pub wo: [f32; 3],
 }
 
+/// The direction lookups of the file's interpolation.
 #[derive(Debug, Clone)]
-enum Locator {
-    Triangles(TriangleLocator),
-    Cells(CellLocator),
-}
-
-impl Locator {
-    #[inline]
-    fn weights<'a>(&'a self, d: [f32; 3], buf: &'a mut Weights3) -> &'a [(u16, f32)] {
-        match self {
-            Locator::Triangles(t) => {
-                t.weights(d, buf);
-                &buf[..]
-            }
-            Locator::Cells(c) => c.weights(d),
-        }
-    }
+enum Directions {
+    /// Default: triangles, with the unit light directions and the
+    /// half-vector shift β for the view shift.
+    Triangles {
+        views: TriangleLocator,
+        lights: TriangleLocator,
+        light_dirs: Vec<[f32; 3]>,
+        shift: f32,
+    },
+    /// The patent's cell tables.
+    Cells { views: CellLocator, lights: CellLocator },
 }
 
 /// A scanned material, ready to shade. `Send + Sync`: share one between
@@ -79,12 +75,7 @@ pub struct Material {
     /// `[V][S][S][G]`.
     indices: Vec<u8>,
     light_groups: Vec<u8>,
-    views: Locator,
-    light_loc: Locator,
-    /// Unit light directions, for the half-vector view shift.
-    light_dirs: Vec<[f32; 3]>,
-    /// The default interpolation's half-vector shift β.
-    shift: f32,
+    directions: Directions,
 }
 
 /// The default interpolation's weights (docs/material-format.md,
@@ -191,26 +182,26 @@ impl Material {
                 }
             }
         }
-        let (views, light_loc) = match &d.tables {
-            DirectionTables::Triangles { views, lights } => (
-                Locator::Triangles(TriangleLocator::new(&vd, views, "view_triangles")?),
-                Locator::Triangles(TriangleLocator::new(&ld, lights, "light_triangles")?),
-            ),
+        let directions = match &d.tables {
+            DirectionTables::Triangles { views, lights } => Directions::Triangles {
+                views: TriangleLocator::new(&vd, views, "view_triangles")?,
+                lights: TriangleLocator::new(&ld, lights, "light_triangles")?,
+                light_dirs: ld,
+                shift: m.half_vector_shift as f32,
+            },
             DirectionTables::Patent { views, lights } => {
                 let Interpolation::Patent { columns, rows, points } = m.interpolation else {
                     return Err(MaterialError::Metadata(
                         "cell tables without patent interpolation".into(),
                     ));
                 };
-                (
-                    Locator::Cells(CellLocator::new(views, columns, rows, points)),
-                    Locator::Cells(CellLocator::new(lights, columns, rows, points)),
-                )
+                Directions::Cells {
+                    views: CellLocator::new(views, columns, rows, points),
+                    lights: CellLocator::new(lights, columns, rows, points),
+                }
             }
         };
         Ok(Material {
-            light_dirs: ld,
-            shift: m.half_vector_shift as f32,
             size: m.resolution as usize,
             colours: k,
             groups: d.groups(),
@@ -218,8 +209,7 @@ impl Material {
             palettes,
             indices: d.indices,
             light_groups: d.light_groups,
-            views,
-            light_loc,
+            directions,
             meta: d.meta,
         })
     }
@@ -260,14 +250,13 @@ impl Material {
                 acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
             }
         };
-        match (&self.views, &self.light_loc) {
-            (Locator::Triangles(views), Locator::Triangles(lights)) => {
-                default_pairs(lights, &self.light_dirs, views, self.shift, wi, wo, pair);
+        match &self.directions {
+            Directions::Triangles { views, lights, light_dirs, shift } => {
+                default_pairs(lights, light_dirs, views, *shift, wi, wo, pair);
             }
-            _ => {
-                let (mut vb, mut lb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
-                let lw = self.light_loc.weights(wi, &mut lb);
-                for &(vi, wv) in self.views.weights(wo, &mut vb) {
+            Directions::Cells { views, lights } => {
+                let lw = lights.weights(wi);
+                for &(vi, wv) in views.weights(wo) {
                     for &(li, wl) in lw {
                         let w = wv * wl;
                         if w != 0.0 {

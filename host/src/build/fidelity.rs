@@ -92,9 +92,7 @@ pub fn captured_pair_answers(
         .par_iter()
         .map(|&(li, vi)| {
             let q = pair_queries(regions.light_dirs[li], regions.view_dirs[vi]);
-            let f = |d: [f64; 3]| d.map(|x| x as f32);
-            let mat =
-                q.iter().map(|q| material.eval(q.uv.map(|x| x as f32), f(q.wi), f(q.wo))).collect();
+            let mat = super::material::shade(material, &q);
             let reg = q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)).collect();
             (mat, reg)
         })

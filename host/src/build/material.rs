@@ -39,6 +39,23 @@ impl Default for MaterialOptions {
     }
 }
 
+impl MaterialOptions {
+    /// Every option in range: 1…256 colours, 1…4 lights per index image,
+    /// the patent table's size ([`Interpolation::check`]).
+    pub fn check(&self) -> Result<(), String> {
+        if !(1..=256).contains(&self.colours) {
+            return Err(format!("colours must be in 1…256, got {}", self.colours));
+        }
+        if !(1..=4).contains(&self.lights_per_index) {
+            return Err(format!(
+                "lights per index image must be in 1…4, got {}",
+                self.lights_per_index
+            ));
+        }
+        self.interpolation.check()
+    }
+}
+
 /// The patent table of the patent's example: 1025 × 256 cells of 0.35°,
 /// 1000 points per cell.
 pub const PATENT_DEFAULT: Interpolation =
@@ -93,7 +110,7 @@ pub fn patent_table(
 ) -> CellTable {
     let (cols, rws) = (columns as usize, rows as usize);
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    let per_row: Vec<Vec<(u16, u16)>> = (0..rws)
+    let per_cell: Vec<Vec<(u16, u16)>> = (0..rws)
         .into_par_iter()
         .flat_map_iter(|r| {
             let theta = (r as f64 + 0.5) / rws as f64 * std::f64::consts::FRAC_PI_2;
@@ -165,7 +182,7 @@ pub fn patent_table(
         })
         .collect();
     let mut t = CellTable { offsets: vec![0], ..Default::default() };
-    for cell in per_row {
+    for cell in per_cell {
         for (m, n) in cell {
             t.mirrors.push(m);
             t.counts.push(n);
@@ -173,6 +190,29 @@ pub fn patent_table(
         t.offsets.push(t.mirrors.len() as u32);
     }
     t
+}
+
+/// A material's answers to queries of a query file (f64, normalised), in
+/// parallel chunks.
+pub fn shade(
+    material: &scanner_shading::Material,
+    queries: &[scanner_formats::queries::Query],
+) -> Vec<[f32; 3]> {
+    let f = |d: [f64; 3]| d.map(|x| x as f32);
+    let q32: Vec<scanner_shading::ShadeQuery> = queries
+        .iter()
+        .map(|q| scanner_shading::ShadeQuery {
+            uv: q.uv.map(|x| x as f32),
+            wi: f(q.wi),
+            wo: f(q.wo),
+        })
+        .collect();
+    let mut answers = vec![[0f32; 3]; q32.len()];
+    answers
+        .par_chunks_mut(4096)
+        .zip(q32.par_chunks(4096))
+        .for_each(|(out, q)| material.eval_batch(q, out));
+    answers
 }
 
 /// The half-vector shifts the builder chooses from.
@@ -260,13 +300,7 @@ pub fn build_material(
     opts: &MaterialOptions,
     progress: &dyn BuildProgress,
 ) -> Result<MaterialData, BuildError> {
-    let bad = |s: String| Err(BuildError::Input(s));
-    if !(1..=256).contains(&opts.colours) {
-        return bad(format!("colours {} outside 1…256", opts.colours));
-    }
-    if !(1..=4).contains(&opts.lights_per_index) {
-        return bad(format!("lights per index image {} outside 1…4", opts.lights_per_index));
-    }
+    opts.check().map_err(BuildError::Input)?;
     let (nl, nv, s) = (regions.lights.len(), regions.views.len(), regions.size);
     let g = opts.lights_per_index.min(nl);
     let light_groups = group_lights(&regions.light_dirs, g);
@@ -323,14 +357,6 @@ pub fn build_material(
             DirectionTables::Triangles { views, lights }
         }
         Interpolation::Patent { columns, rows, points } => {
-            if !((1..=8192).contains(&columns)
-                && (1..=8192).contains(&rows)
-                && (1..=u16::MAX as u32).contains(&points))
-            {
-                return bad(format!(
-                    "patent table {columns} × {rows} with {points} points: out of range"
-                ));
-            }
             progress.stage("patent tables", 2);
             let views = patent_table(&regions.view_dirs, columns, rows, points, opts.seed);
             progress.step();

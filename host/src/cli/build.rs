@@ -1,5 +1,5 @@
-//! `scanner calibrate` and `scanner regions`: the material builder's first
-//! half on scan directories.
+//! `scanner calibrate`, `regions`, `build`, `shade` and `preview`: the
+//! material builder on scan directories, and material files.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -116,28 +116,55 @@ pub fn calibrate_cmd(
     Ok(())
 }
 
-/// `scanner regions`
-pub fn regions_cmd(
-    scan: &Path,
-    calibration: &Path,
-    output: &Path,
-    geometry: Option<&Path>,
-    size: Option<usize>,
-) -> Result<crate::build::RegionSet, Failure> {
-    if let Some(s) = size
-        && !(4..=4096).contains(&s)
-    {
-        return Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")));
+/// The inputs of `scanner regions` and `scanner build`: a sample scan and
+/// its calibration.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ScanInputs {
+    /// Scan directory of the sample.
+    #[arg(long)]
+    pub scan: PathBuf,
+    /// Calibration file (`scanner calibrate`).
+    #[arg(long)]
+    pub calibration: PathBuf,
+    /// Nominal geometry file (default: the shipped scanner, at the scan's sensor size).
+    #[arg(long)]
+    pub geometry: Option<PathBuf>,
+    /// Side of the region images, px (default: the smallest power of two
+    /// no view is undersampled at).
+    #[arg(long)]
+    pub size: Option<usize>,
+}
+
+impl ScanInputs {
+    /// The region size in range (a usage error otherwise).
+    fn check(&self) -> Result<(), Failure> {
+        match self.size {
+            Some(s) if !(4..=4096).contains(&s) => {
+                Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")))
+            }
+            _ => Ok(()),
+        }
     }
+
+    /// The calibration, the scan's geometry and its frames.
+    fn open(&self) -> Result<(Calibration, ScannerGeometry, ScanFrames), Failure> {
+        let cal = Calibration::load(&self.calibration).map_err(build_failure)?;
+        let g = geometry_for(self.geometry.as_deref(), &self.scan)?;
+        let frames = ScanFrames::open(&self.scan, &g).map_err(build_failure)?;
+        Ok((cal, g, frames))
+    }
+}
+
+/// `scanner regions`
+pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::RegionSet, Failure> {
+    input.check()?;
     if output.exists() && !output.is_dir() {
         return Err(Failure(4, anyhow!("{}: exists and is not a directory", output.display())));
     }
     let started = Instant::now();
-    let cal = Calibration::load(calibration).map_err(build_failure)?;
-    let g = geometry_for(geometry, scan)?;
-    let frames = ScanFrames::open(scan, &g).map_err(build_failure)?;
+    let (cal, g, frames) = input.open()?;
     let bar = StageBar::new();
-    let regions = extract_regions(&g, &cal, &frames, size, &bar);
+    let regions = extract_regions(&g, &cal, &frames, input.size, &bar);
     bar.finish();
     let regions = regions.map_err(build_failure)?;
     let extracted = started.elapsed().as_secs_f64();
@@ -240,50 +267,20 @@ fn sha256_file(path: &Path) -> Result<String, Failure> {
 }
 
 /// `scanner build`
-#[allow(clippy::too_many_arguments)]
 pub fn build_cmd(
-    scan: &Path,
-    calibration: &Path,
+    input: &ScanInputs,
     output: &Path,
-    geometry: Option<&Path>,
-    size: Option<usize>,
     opts: &crate::build::material::MaterialOptions,
 ) -> Result<Built, Failure> {
     use crate::build::fidelity::{captured_pair_answers, material_psnr};
     use crate::build::material::build_material;
-    if !(1..=256).contains(&opts.colours) {
-        return Err(Failure(2, anyhow!("--colours must be in 1…256, got {}", opts.colours)));
-    }
-    if !(1..=4).contains(&opts.lights_per_index) {
-        return Err(Failure(
-            2,
-            anyhow!("--lights-per-index must be in 1…4, got {}", opts.lights_per_index),
-        ));
-    }
-    if let Some(s) = size
-        && !(4..=4096).contains(&s)
-    {
-        return Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")));
-    }
-    if let scanner_shading::Interpolation::Patent { columns, rows, points } = opts.interpolation
-        && !((1..=8192).contains(&columns)
-            && (1..=8192).contains(&rows)
-            && (1..=u16::MAX as u32).contains(&points))
-    {
-        return Err(Failure(
-            2,
-            anyhow!(
-                "--patent-columns and --patent-rows must be in 1…8192 and --patent-points in \
-                 1…65535, got {columns}, {rows}, {points}"
-            ),
-        ));
-    }
+    opts.check().map_err(|e| Failure(2, anyhow!(e)))?;
+    input.check()?;
+    let (scan, calibration) = (input.scan.as_path(), input.calibration.as_path());
     crate::fsutil::check_output(output, &[scan, calibration])
         .map_err(|e| Failure(4, anyhow!(e)))?;
     let started = Instant::now();
-    let cal = Calibration::load(calibration).map_err(build_failure)?;
-    let g = geometry_for(geometry, scan)?;
-    let frames = ScanFrames::open(scan, &g).map_err(build_failure)?;
+    let (cal, g, frames) = input.open()?;
     let provenance = scanner_shading::format::Provenance {
         scan_manifest_sha256: sha256_file(&scan.join(crate::scan::MANIFEST_FILE))?,
         geometry_sha256: g.hash(),
@@ -291,7 +288,7 @@ pub fn build_cmd(
         builder: format!("scanner {}", env!("CARGO_PKG_VERSION")),
     };
     let bar = StageBar::new();
-    let regions = extract_regions(&g, &cal, &frames, size, &bar);
+    let regions = extract_regions(&g, &cal, &frames, input.size, &bar);
     let data = regions.and_then(|r| {
         build_material(
             &r,
@@ -336,7 +333,6 @@ pub fn build_cmd(
 
 /// `scanner shade`
 pub fn shade_cmd(material: &Path, queries: &Path, output: &Path) -> Result<(), Failure> {
-    use rayon::prelude::*;
     use scanner_formats::queries::{QueryError, check_extension, read_queries, write_answers};
     let query_failure = |e: QueryError| match e {
         QueryError::Extension(_) => Failure(2, anyhow!(e)),
@@ -350,19 +346,7 @@ pub fn shade_cmd(material: &Path, queries: &Path, output: &Path) -> Result<(), F
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
     let q = read_queries(queries).map_err(query_failure)?;
     let started = Instant::now();
-    let q32: Vec<scanner_shading::ShadeQuery> = q
-        .iter()
-        .map(|q| scanner_shading::ShadeQuery {
-            uv: q.uv.map(|x| x as f32),
-            wi: q.wi.map(|x| x as f32),
-            wo: q.wo.map(|x| x as f32),
-        })
-        .collect();
-    let mut answers = vec![[0f32; 3]; q32.len()];
-    answers
-        .par_chunks_mut(4096)
-        .zip(q32.par_chunks(4096))
-        .for_each(|(out, q)| m.eval_batch(q, out));
+    let answers = crate::build::material::shade(&m, &q);
     let secs = started.elapsed().as_secs_f64();
     write_answers(output, &answers).map_err(|e| Failure(4, anyhow!(e)))?;
     println!(
@@ -389,6 +373,11 @@ fn encode_srgb(v: f32) -> u8 {
 fn polar(theta: f64, phi: f64) -> [f64; 3] {
     let (t, p) = (theta.to_radians(), phi.to_radians());
     [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+}
+
+/// Polar and azimuth angles of a unit direction, degrees (φ in [0, 360)).
+pub fn angles(d: [f64; 3]) -> (f64, f64) {
+    (d[2].clamp(-1.0, 1.0).acos().to_degrees(), d[1].atan2(d[0]).to_degrees().rem_euclid(360.0))
 }
 
 /// The view of the preview: the direction within 20°…45° of the normal
@@ -441,12 +430,7 @@ pub fn preview(
                 Query { uv, wi, wo: view }
             })
             .collect();
-        let f = |d: [f64; 3]| d.map(|x| x as f32);
-        let ours: Vec<[f32; 3]> = queries
-            .iter()
-            .map(|q| material.eval(q.uv.map(|x| x as f32), f(q.wi), f(q.wo)))
-            .collect();
-        let mut panels = vec![ours];
+        let mut panels = vec![crate::build::material::shade(material, &queries)];
         if let Some(t) = truth {
             panels.push(t(&queries));
         }
@@ -470,21 +454,16 @@ pub fn preview(
 
 /// `scanner preview`
 pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
-    let ext = output.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
-    if ext.as_deref() != Some("png") {
-        return Err(Failure(2, anyhow!("{}: the output must be .png", output.display())));
-    }
-    crate::fsutil::check_output(output, &[material]).map_err(|e| Failure(4, anyhow!(e)))?;
+    super::check_output(output, material, &["png"])?;
     let m = scanner_shading::Material::open(material)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
     let views: Vec<[f64; 3]> = m.metadata().views.iter().map(|v| v.direction).collect();
     let (view, off) = novel_view(&views);
     preview(&m, view, None, output)?;
+    let (theta, phi) = angles(view);
     println!(
-        "{}: seen from θ {:.0}°, φ {:.0}° ({off:.1}° from the nearest captured view)",
+        "{}: seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest captured view)",
         output.display(),
-        view[2].clamp(-1.0, 1.0).acos().to_degrees(),
-        view[1].atan2(view[0]).to_degrees().rem_euclid(360.0),
     );
     Ok(())
 }

@@ -607,12 +607,15 @@ pub fn demo(
         8,
     )?;
     let material_file = out.join(format!("{name}.material"));
+    let input = super::build::ScanInputs {
+        scan: out.join(&name),
+        calibration: calibration.clone(),
+        geometry: None,
+        size: None,
+    };
     let built = super::build::build_cmd(
-        &out.join(&name),
-        &calibration,
+        &input,
         &material_file,
-        None,
-        None,
         &crate::build::material::MaterialOptions::default(),
     )?;
     let sheet = out.join(format!("regions-{name}.png"));
@@ -627,16 +630,15 @@ pub fn demo(
     let (view, off) = super::build::novel_view(&built.regions.view_dirs);
     let picture = out.join(format!("{name}-preview.png"));
     super::build::preview(&built.material, view, Some(&truth), &picture)?;
+    let (theta, phi) = super::build::angles(view);
     println!(
         "demo: three scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
          look at {}: a 2 × 2 tile of the material (top) and of the simulator's ground truth \
-         (bottom), seen from θ {:.0}°, φ {:.0}° ({off:.1}° from the nearest mirror), lit from \
+         (bottom), seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest mirror), lit from \
          (θ, φ) = {}",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
         picture.display(),
-        view[2].clamp(-1.0, 1.0).acos().to_degrees(),
-        view[1].atan2(view[0]).to_degrees().rem_euclid(360.0),
         super::build::PREVIEW_LIGHTS
             .iter()
             .map(|(t, p)| format!("({t:.0}°, {p:.0}°)"))

@@ -92,42 +92,20 @@ enum Command {
     /// Calibrated, rectified region images of a scan, as OpenEXR
     /// (`l{LL}-v{VV}.exr`: f · cos θi per pixel).
     Regions {
-        /// Scan directory.
-        #[arg(long)]
-        scan: PathBuf,
-        /// Calibration file.
-        #[arg(long)]
-        calibration: PathBuf,
+        #[command(flatten)]
+        input: build::ScanInputs,
         /// Output directory.
         #[arg(short, long)]
         output: PathBuf,
-        /// Nominal geometry file (default: the shipped scanner, at the scan's sensor size).
-        #[arg(long)]
-        geometry: Option<PathBuf>,
-        /// Side of the region images, px (default: the smallest power of two
-        /// no view is undersampled at).
-        #[arg(long)]
-        size: Option<usize>,
     },
     /// Build a material file from a scan (docs/material-format.md): region
     /// images, palettes and direction tables.
     Build {
-        /// Scan directory of the sample.
-        #[arg(long)]
-        scan: PathBuf,
-        /// Calibration file (`scanner calibrate`).
-        #[arg(long)]
-        calibration: PathBuf,
+        #[command(flatten)]
+        input: build::ScanInputs,
         /// Output material file (e.g. NAME.material).
         #[arg(short, long)]
         output: PathBuf,
-        /// Nominal geometry file (default: the shipped scanner, at the scan's sensor size).
-        #[arg(long)]
-        geometry: Option<PathBuf>,
-        /// Side of the region images, px (default: the smallest power of two
-        /// no view is undersampled at).
-        #[arg(long)]
-        size: Option<usize>,
         /// Colours per palette (1…256).
         #[arg(long, default_value_t = 256)]
         colours: usize,
@@ -385,16 +363,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 squares,
             )?
         }
-        Command::Regions { scan, calibration, output, geometry, size } => {
-            build::regions_cmd(&scan, &calibration, &output, geometry.as_deref(), size)
-                .map(|_| ())?
-        }
+        Command::Regions { input, output } => build::regions_cmd(&input, &output).map(|_| ())?,
         Command::Build {
-            scan,
-            calibration,
+            input,
             output,
-            geometry,
-            size,
             colours,
             lights_per_index,
             interpolation,
@@ -417,8 +389,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 interpolation,
                 ..Default::default()
             };
-            build::build_cmd(&scan, &calibration, &output, geometry.as_deref(), size, &opts)
-                .map(|_| ())?
+            build::build_cmd(&input, &output, &opts).map(|_| ())?
         }
         Command::Shade { material, queries, output } => {
             build::shade_cmd(&material, &queries, &output)?
