@@ -3,7 +3,9 @@
 # - the pinned Rust toolchain with rustfmt, clippy, llvm-tools and the
 #   thumbv7em-none-eabihf target (all read from rust-toolchain.toml);
 # - QEMU's Arm system emulator, which runs the firmware self-tests on a
-#   Cortex-M4 (Debian/Ubuntu: apt-get, as root or through sudo).
+#   Cortex-M4, and strace, with which a test checks that every rename in a
+#   scan directory is followed by a directory fsync (Debian/Ubuntu:
+#   apt-get, as root or through sudo).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if ! command -v rustup >/dev/null 2>&1; then
@@ -11,10 +13,13 @@ if ! command -v rustup >/dev/null 2>&1; then
     exit 1
 fi
 rustup toolchain install >/dev/null
-if ! command -v qemu-system-arm >/dev/null 2>&1; then
-    echo "installing qemu-system-arm (for the firmware's Cortex-M4 tests)"
+missing=()
+command -v qemu-system-arm >/dev/null 2>&1 || missing+=(qemu-system-arm)
+command -v strace >/dev/null 2>&1 || missing+=(strace)
+if [ "${#missing[@]}" -gt 0 ]; then
+    echo "installing ${missing[*]} (firmware Cortex-M4 tests; the fsync test)"
     sudo=""
     [ "$(id -u)" -eq 0 ] || sudo="sudo"
     $sudo apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq qemu-system-arm >/dev/null
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "${missing[@]}" >/dev/null
 fi

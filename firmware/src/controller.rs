@@ -14,6 +14,17 @@
 //! fault; silence from the host for 500 ms while moving decelerates every axis
 //! and latches `LINK_TIMEOUT`. Axes halted abruptly lose their homed state.
 //! A latched fault refuses motion, light and trigger until `ClearFault`.
+//!
+//! Lost steps: a stepper has no encoder, so the step count is checked
+//! against the switches. Whenever a homed axis crosses its switch's home
+//! edge while moving (the edge homing latches: the rising edge moving
+//! towards it, the falling edge moving away) the count must be the home
+//! position (modulo a turn for the disk's index flag) within
+//! [`protocol::POSITION_TOLERANCE_STEPS`]; if not, `POSITION_LOST` is latched
+//! and [`Event::PositionChecked`] reports the error. Homing an axis that is
+//! homed already is a position check of its own: it returns to the switch's
+//! approach side at full speed, latches the edge slowly and reports the
+//! count's error before resetting it.
 
 use heapless::Deque;
 use protocol::{
@@ -61,6 +72,20 @@ enum HomingStage {
     Braking,
     BackOff,
     SlowApproach,
+    /// A homed axis checks its position: straight to the approach side of
+    /// the switch at full speed, then the slow approach.
+    Return,
+}
+
+/// Whether a homing sequence is a position check, and how it is going.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Check {
+    /// Plain homing: the axis was not homed.
+    Off,
+    /// The axis was homed; it expects the switch where its count says.
+    Near,
+    /// The switch was not where the count said: searching the full travel.
+    Wide,
 }
 
 /// What one axis is doing.
@@ -101,6 +126,9 @@ pub struct Controller {
     config: PersistedConfig,
     motion: [Option<AxisMotion>; AXIS_COUNT],
     homed: [bool; AXIS_COUNT],
+    check: [Check; AXIS_COUNT],
+    /// Homing: where the switch was hit at speed (braking runs past it).
+    hit: [Option<i32>; AXIS_COUNT],
     activity: Activity,
     faults: FaultFlags,
     light: LightState,
@@ -129,6 +157,8 @@ impl Controller {
             config,
             motion: Default::default(),
             homed: [false; AXIS_COUNT],
+            check: [Check::Off; AXIS_COUNT],
+            hit: [None; AXIS_COUNT],
             activity: Activity::Idle,
             faults: FaultFlags::NONE,
             light: LightState { on: false, duty_permille: FULL_DUTY_PERMILLE },
@@ -674,9 +704,14 @@ impl Controller {
         self.ensure_can_move()?;
         self.activity = Activity::Homing { axes, started: self.now, stopping: false };
         for axis in axes.iter() {
-            self.homed[axis.index()] = false;
-            let stage = if self.prev_inputs.home[axis.index()] {
+            let i = axis.index();
+            self.check[i] = if self.homed[i] { Check::Near } else { Check::Off };
+            self.hit[i] = None;
+            self.homed[i] = false;
+            let stage = if self.prev_inputs.home[i] {
                 HomingStage::BackOff
+            } else if self.check[i] == Check::Near {
+                HomingStage::Return
             } else {
                 HomingStage::FastApproach
             };
@@ -685,16 +720,60 @@ impl Controller {
         Ok(())
     }
 
+    /// Counted position minus home, steps (for a continuous axis the
+    /// nearest value modulo a turn).
+    fn position_error(&self, axis: Axis, position: i32) -> i32 {
+        let c = &self.config.axes[axis.index()];
+        let d = position as i64 - c.homing.home_position as i64;
+        let d = if c.continuous {
+            let rev = c.steps_per_rev as i64;
+            let m = d.rem_euclid(rev);
+            if m > rev / 2 { m - rev } else { m }
+        } else {
+            d
+        };
+        d.clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
     fn start_homing_stage(&mut self, axis: Axis, stage: HomingStage, hw: &mut impl Hardware) {
         let c = self.config.axes[axis.index()];
         let h = c.homing;
         let toward = if h.direction == Direction::Positive { 1 } else { -1 };
+        // Back off by the braking distance past the switch as well.
+        let overshoot = match self.hit[axis.index()] {
+            Some(hit) => hw.with_stepper(axis, |s| s.position().abs_diff(hit)),
+            None => 0,
+        };
         let (steps, speed, direction) = match stage {
             HomingStage::FastApproach | HomingStage::Braking => {
                 (h.max_travel_steps, h.fast_speed, toward)
             }
-            HomingStage::BackOff => (h.backoff_steps, h.fast_speed, -toward),
-            HomingStage::SlowApproach => (h.backoff_steps.saturating_mul(2), h.slow_speed, toward),
+            HomingStage::BackOff => {
+                (h.backoff_steps.saturating_add(overshoot), h.fast_speed, -toward)
+            }
+            HomingStage::SlowApproach => {
+                (h.backoff_steps.saturating_mul(2).saturating_add(overshoot), h.slow_speed, toward)
+            }
+            HomingStage::Return => {
+                // To the back-off distance on the approach side of where
+                // the count says the switch is.
+                // A continuous axis goes round the approach way unless it is
+                // between that point and home already: never across its
+                // index flag.
+                let position = hw.with_stepper(axis, |s| s.position());
+                let ahead = toward as i64 * self.position_error(axis, position) as i64;
+                let back = h.backoff_steps as i64;
+                let forward = if c.continuous && !(-back..0).contains(&ahead) {
+                    (-back - ahead).rem_euclid(c.steps_per_rev as i64)
+                } else {
+                    -back - ahead
+                };
+                let delta = toward as i64 * forward;
+                if delta == 0 || delta.unsigned_abs() > u32::MAX as u64 {
+                    return self.start_homing_stage(axis, HomingStage::SlowApproach, hw);
+                }
+                (delta.unsigned_abs() as u32, c.v_max, delta.signum() as i32)
+            }
         };
         let profile = Profile::trapezoid(steps, 0.0, speed as f64, c.a_max as f64);
         self.start_axis(axis, profile, direction, Some(stage), hw);
@@ -718,7 +797,8 @@ impl Controller {
             let switch = inputs.home[i];
             let finished = motion.planner.is_done() && hw.with_stepper(axis, |s| s.is_idle());
             match stage {
-                HomingStage::FastApproach if switch => {
+                HomingStage::FastApproach | HomingStage::Return if switch => {
+                    self.hit[i] = Some(hw.with_stepper(axis, |s| s.position()));
                     self.decelerate_axis(axis, hw);
                     if let Some(m) = &mut self.motion[i] {
                         m.homing = Some(HomingStage::Braking);
@@ -727,10 +807,24 @@ impl Controller {
                 HomingStage::Braking if finished => {
                     self.start_homing_stage(axis, HomingStage::BackOff, hw);
                 }
+                HomingStage::Return if finished => {
+                    self.start_homing_stage(axis, HomingStage::SlowApproach, hw);
+                }
                 HomingStage::SlowApproach if switch => {
                     self.stop_axis_now(axis, hw);
+                    if self.check[i] != Check::Off {
+                        let position = hw.with_stepper(axis, |s| s.position());
+                        let error_steps = self.position_error(axis, position);
+                        self.emit(Event::PositionChecked { axis, error_steps });
+                    }
                     hw.with_stepper(axis, |s| s.set_position(h.home_position));
                     self.homed[i] = true;
+                }
+                HomingStage::SlowApproach if finished && self.check[i] == Check::Near => {
+                    // The switch is not where the count said: search for
+                    // it; the count goes on, so the error is still measured.
+                    self.check[i] = Check::Wide;
+                    self.start_homing_stage(axis, HomingStage::FastApproach, hw);
                 }
                 HomingStage::FastApproach | HomingStage::SlowApproach if finished => {
                     self.homing_failed(axis, HomingFailure::SwitchNotFound, hw);
@@ -816,10 +910,30 @@ impl Controller {
         for axis in Axis::ALL {
             let i = axis.index();
             let rising = inputs.home[i] && !self.prev_inputs.home[i];
+            let falling = !inputs.home[i] && self.prev_inputs.home[i];
             let homing = self.motion[i].as_ref().is_some_and(|m| m.homing.is_some());
-            let position = hw.with_stepper(axis, |s| s.position());
-            if rising && self.homed[i] && !homing && self.far_from_home(axis, position) {
+            if !self.homed[i] || homing || !(rising || falling) {
+                continue;
+            }
+            let c = &self.config.axes[i];
+            let continuous = c.continuous;
+            let toward = if c.homing.direction == Direction::Positive { 1 } else { -1 };
+            let (position, direction) = hw.with_stepper(axis, |s| (s.position(), s.direction()));
+            // A limit switch far from home is a crash or a broken switch,
+            // not a count to correct: a person must look. (The disk's index
+            // flag is passed every turn; only its home edge is checked.)
+            if rising && !continuous && self.far_from_home(axis, position) {
                 self.raise_fault(FaultFlags::UNEXPECTED_HOME_SWITCH, Some(axis), hw);
+                continue;
+            }
+            let moving = self.motion[i].is_some();
+            let home_edge = (rising && direction == toward) || (falling && direction == -toward);
+            if moving && home_edge {
+                let error_steps = self.position_error(axis, position);
+                if error_steps.unsigned_abs() > protocol::POSITION_TOLERANCE_STEPS as u32 {
+                    self.emit(Event::PositionChecked { axis, error_steps });
+                    self.raise_fault(FaultFlags::POSITION_LOST, Some(axis), hw);
+                }
             }
         }
         let silent = self.now.saturating_sub(self.last_rx) > LINK_TIMEOUT_MS * TICKS_PER_MS;

@@ -53,6 +53,8 @@ pub const TESTS: &[SelfTest] = &[
     ("driver_fault_latches", driver_fault_latches),
     ("emergency_stop_request", emergency_stop_request),
     ("unexpected_home_switch", unexpected_home_switch),
+    ("lost_steps_caught_at_the_index_flag", lost_steps_caught_at_the_index_flag),
+    ("homing_when_homed_checks_the_count", homing_when_homed_checks_the_count),
     ("link_silence_while_moving", link_silence_while_moving),
     ("watchdog_boot_latches", watchdog_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
@@ -545,6 +547,54 @@ pub fn unexpected_home_switch() -> TestResult {
         rig.events.iter().any(|e| matches!(e, Event::FaultRaised { axis: Some(Axis::Track), .. })),
         "names the axis"
     );
+    Ok(())
+}
+
+fn reported_error(rig: &Rig, axis: Axis) -> Option<i32> {
+    rig.events.iter().rev().find_map(|e| match e {
+        Event::PositionChecked { axis: a, error_steps } if *a == axis => Some(*error_steps),
+        _ => None,
+    })
+}
+
+pub fn lost_steps_caught_at_the_index_flag() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    // Round the disk both ways: the index flag's home edge agrees.
+    for t in [8_000, 15_000, 3_000, 12_000, 1_000] {
+        move_to(&mut rig, [Some(t), None, None])?;
+        rig.run_until_idle(10_000);
+        ensure!(rig.ctrl.faults().is_empty(), "no false alarm at the index flag");
+    }
+    // The disk slips 400 steps (the back-off distance): physically behind
+    // its count; the next pass of the flag downwards shows it.
+    rig.physical[0] -= 400;
+    move_to(&mut rig, [Some(14_000), None, None])?;
+    rig.run_until_idle(10_000);
+    assert_faulted(&rig, FaultFlags::POSITION_LOST)?;
+    let error = reported_error(&rig, Axis::Disk).ok_or("PositionChecked")?;
+    ensure!((error - 400).abs() <= 2, "the error is reported");
+    ensure!(!rig.ctrl.is_homed(Axis::Disk), "homing lost");
+    Ok(())
+}
+
+pub fn homing_when_homed_checks_the_count() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    ensure!(reported_error(&rig, Axis::Track).is_none(), "plain homing checks nothing");
+    move_to(&mut rig, [Some(6_000), Some(100_000), Some(3_000)])?;
+    rig.run_until_idle(10_000);
+    // Slips: the track by less than its back-off, the tilt by more.
+    rig.physical[1] -= 1_000;
+    rig.physical[2] -= 1_500;
+    ensure!(rig.home_all(), "the check homes");
+    let e = |a| reported_error(&rig, a).ok_or("PositionChecked");
+    ensure!((e(Axis::Track)? - 1_000).abs() <= 2, "track error");
+    ensure!((e(Axis::Tilt)? - 1_500).abs() <= 2, "tilt error (wide search)");
+    ensure!(e(Axis::Disk)?.abs() <= 2, "disk kept its count");
+    let track_err = rig.physical(Axis::Track) - rig.position(Axis::Track) as i64;
+    ensure!(track_err.abs() <= 1, "counts right again");
+    ensure!(rig.ctrl.faults().is_empty(), "a check is not a fault");
     Ok(())
 }
 

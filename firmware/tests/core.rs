@@ -42,6 +42,8 @@ selftests!(
     driver_fault_latches,
     emergency_stop_request,
     unexpected_home_switch,
+    lost_steps_caught_at_the_index_flag,
+    homing_when_homed_checks_the_count,
     link_silence_while_moving,
     watchdog_boot_latches,
     config_save_and_reload,

@@ -15,8 +15,6 @@ use hil_sim::geometry::{AxisValues, ScannerGeometry};
 use hil_sim::materials::{self, Sample};
 use hil_sim::optics::{Exposure, Frame, OpticalSim};
 
-/// The shipped default file is the generated default (regenerate with
-/// `UPDATE_GEOMETRY=1 cargo test -p hil-sim --test optics`).
 const SEED: u64 = 7;
 
 fn nominal() -> ScannerGeometry {

@@ -173,25 +173,103 @@ fn driver_fault_input_scheduled() {
     assert_stopped(&mut c);
 }
 
+/// The `PositionChecked` event of `axis` among the events received so far.
+fn position_error(c: &Client, axis: Axis) -> Option<i32> {
+    c.events.iter().rev().find_map(|e| match e {
+        Event::PositionChecked { axis: a, error_steps } if *a == axis => Some(*error_steps),
+        _ => None,
+    })
+}
+
 #[test]
 fn lost_steps_on_disk_are_caught_at_the_index_flag() {
+    // 1 000 steps, and 400 (the back-off distance, which the old
+    // "far from home" rule let through), moving up and moving down.
+    for (lost, forward) in [(1_000, true), (400, true), (400, false), (40, false)] {
+        let mut c = Client::new(config(5, FaultPlan::none()));
+        c.hello();
+        c.home_all();
+        let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [Some(t), None, None] };
+        // Slip while turning half a revolution.
+        assert_eq!(c.request(mv(8_000)), Reply::Ack);
+        inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Disk, steps: lost });
+        c.wait_idle(Duration::from_secs(10));
+        assert_eq!(c.link.device().lost_steps(Axis::Disk), lost);
+        // Continue round (or back) across the index flag's home edge.
+        let route: &[i32] = if forward { &[15_000, 3_000] } else { &[1_000, 12_000] };
+        for &t in route {
+            assert_eq!(c.request(mv(t)), Reply::Ack);
+            c.wait_idle(Duration::from_secs(10));
+        }
+        let axis = fault_event(&mut c, FaultFlags::POSITION_LOST);
+        assert_eq!(axis, Some(Axis::Disk));
+        // Counted more than made going up: +lost; going down the count is
+        // short of home by as much the other way round.
+        let error = position_error(&c, Axis::Disk).expect("the error is reported");
+        assert!((error - lost as i32).abs() <= 8, "lost {lost}, reported {error}");
+        assert_stopped(&mut c);
+        assert!(!c.status().axes[0].homed, "an axis that lost steps must be homed again");
+    }
+}
+
+#[test]
+fn the_index_flag_is_passed_both_ways_without_a_false_alarm() {
     let mut c = Client::new(config(5, FaultPlan::none()));
     c.hello();
     c.home_all();
-    // Slip 1 000 steps while turning half a revolution.
     let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [Some(t), None, None] };
-    assert_eq!(c.request(mv(8_000)), Reply::Ack);
-    inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Disk, steps: 1_000 });
-    c.wait_idle(Duration::from_secs(10));
-    assert_eq!(c.link.device().lost_steps(Axis::Disk), 1_000);
-    // Continue round: the index flag now shows up 1 000 steps early.
-    assert_eq!(c.request(mv(15_000)), Reply::Ack);
-    c.wait_idle(Duration::from_secs(10));
-    assert_eq!(c.request(mv(3_000)), Reply::Ack);
-    let axis = fault_event(&mut c, FaultFlags::UNEXPECTED_HOME_SWITCH);
-    assert_eq!(axis, Some(Axis::Disk));
-    assert_stopped(&mut c);
-    assert!(!c.status().axes[0].homed, "an axis that lost steps must be homed again");
+    for t in [8_000, 15_000, 3_000, 12_000, 100, 15_900, 7_000, 2_000] {
+        assert_eq!(c.request(mv(t)), Reply::Ack);
+        let s = c.wait_idle(Duration::from_secs(10));
+        assert!(s.faults.is_empty(), "to {t}: {:?}", c.events);
+    }
+    assert_eq!(position_error(&c, Axis::Disk), None, "no error to report");
+}
+
+#[test]
+fn homing_a_homed_axis_checks_its_count() {
+    let mut c = Client::new(config(11, FaultPlan::none()));
+    c.hello();
+    c.home_all();
+    assert!(c.events.iter().all(|e| !matches!(e, Event::PositionChecked { .. })), "plain homing");
+    let mv = Request::Move {
+        mode: MoveMode::Absolute,
+        targets: [Some(6_000), Some(200_000), Some(4_000)],
+    };
+    assert_eq!(c.request(mv), Reply::Ack);
+    // Off the switches first (a loss on the switch is caught at its edge).
+    c.wait_event(Duration::from_millis(1_000), |_| false);
+    inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Track, steps: 400 });
+    inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Tilt, steps: 2_000 });
+    let s = c.wait_idle(Duration::from_secs(20));
+    assert!(s.faults.is_empty(), "{s:?} {:?}", c.events);
+    c.events.clear();
+    let t0 = c.link.now();
+    c.home_all();
+    let seconds = (c.link.now() - t0) as f64 / firmware::hal::TICK_HZ as f64;
+    // Lost moving up: the axes are short of their count by what they lost.
+    assert!((position_error(&c, Axis::Track).unwrap() - 400).abs() <= 16, "{:?}", c.events);
+    // The tilt lost more than its back-off: found by the wide search.
+    assert!((position_error(&c, Axis::Tilt).unwrap() - 2_000).abs() <= 16, "{:?}", c.events);
+    let disk = position_error(&c, Axis::Disk).unwrap();
+    assert!(disk.abs() <= POSITION_TOLERANCE_STEPS, "disk {disk}");
+    // Checking is homing: the counts are right again.
+    for axis in Axis::ALL {
+        let phys = c.link.device().physical_position(axis);
+        let count = c.status().axes[axis.index()].position_steps as i64;
+        let d = if axis == Axis::Disk { (phys - count).rem_euclid(16_000) } else { phys - count };
+        assert!(d.abs() <= 1 || d >= 15_999, "{axis:?}: physical {phys} vs counter {count}");
+    }
+    // Straight back at full speed: the track's 125 mm at 40 mm/s, then
+    // 2 mm slowly, not a 10 mm/s search.
+    assert!(seconds < 8.0, "the check took {seconds:.1} s: {:?}", c.events);
+    // An axis without a lost step reports it.
+    c.events.clear();
+    c.home_all();
+    for axis in Axis::ALL {
+        let e = position_error(&c, axis).unwrap();
+        assert!(e.abs() <= POSITION_TOLERANCE_STEPS, "{axis:?}: {e}");
+    }
 }
 
 /// Inject a fault now, through the device's fault plan.

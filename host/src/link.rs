@@ -65,13 +65,33 @@ impl std::fmt::Debug for SerialTransport {
 impl SerialTransport {
     /// Open `path` (e.g. `/dev/ttyACM0`).
     pub fn open(path: &str) -> Result<SerialTransport, TransportError> {
+        // A regular file, a directory or /dev/null is no serial port: say
+        // so rather than the terminal ioctl's "Not a typewriter".
+        #[cfg(unix)]
+        if let Ok(meta) = std::fs::metadata(path) {
+            use std::os::unix::fs::FileTypeExt;
+            let ft = meta.file_type();
+            if !ft.is_char_device() {
+                let what = if ft.is_dir() { "a directory" } else { "a regular file" };
+                return Err(TransportError::Open(format!("{path}: not a serial port ({what})")));
+            }
+        }
         let serial = crate::discovery::serial_scanners()
             .unwrap_or_default()
             .into_iter()
             .find(|p| p.path == path)
             .and_then(|p| p.serial);
         let mut t = SerialTransport { path: path.to_string(), serial, port: None };
-        t.reconnect()?;
+        t.reconnect().map_err(|e| {
+            // A device node that is no terminal (/dev/null, /dev/zero).
+            use std::io::IsTerminal;
+            match std::fs::File::open(path) {
+                Ok(f) if !f.is_terminal() => TransportError::Open(format!(
+                    "{path}: not a serial port (a device that is no terminal)"
+                )),
+                _ => e,
+            }
+        })?;
         Ok(t)
     }
 }

@@ -10,6 +10,7 @@
 //! its own exit code. After the process is killed at any moment, `resume`
 //! keeps every frame whose file matches its checksum and takes the rest.
 
+use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -32,6 +33,12 @@ pub const MANIFEST_FORMAT: &str = "material-scanner/scan";
 pub const MANIFEST_VERSION: u32 = 1;
 /// Manifest file name in a scan directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
+/// The manifest before the last update (rotated atomically on every save):
+/// `--resume` recovers from it when `manifest.json` is damaged.
+pub const PREVIOUS_MANIFEST_FILE: &str = "manifest.json.prev";
+/// Lock file in a scan directory: a scan holds an exclusive lock on it
+/// (`flock`) while it runs.
+pub const LOCK_FILE: &str = ".lock";
 
 /// Why a scan stopped. Each kind has its own process exit code.
 #[derive(Debug, thiserror::Error)]
@@ -68,6 +75,16 @@ pub enum ScanError {
     /// Anything else the link reported.
     #[error("link: {0}")]
     Link(LinkError),
+    /// Stopped on request (Ctrl-C) after the frame in progress.
+    #[error("interrupted: {kept} of {total} frames kept in {}", dir.display())]
+    Interrupted {
+        /// Frames stored and recorded.
+        kept: usize,
+        /// Frames the scan is for.
+        total: usize,
+        /// The scan directory.
+        dir: PathBuf,
+    },
 }
 
 impl ScanError {
@@ -82,6 +99,7 @@ impl ScanError {
             ScanError::Io(_) => 4,
             ScanError::Conflict(_) => 3,
             ScanError::Link(_) => 1,
+            ScanError::Interrupted { .. } => 130,
         }
     }
 }
@@ -142,6 +160,41 @@ pub struct ScanSettings {
     /// longest.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub bracket_us: Vec<u32>,
+    /// A simulated scanner: what it simulates (material, seed, binning), so
+    /// a resume on another simulated scanner is refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub simulator: Option<String>,
+}
+
+impl ScanSettings {
+    /// The settings that differ from `other`, in words ("exposure_us 50000
+    /// here, 20000 there").
+    pub fn differences(&self, other: &ScanSettings) -> Vec<String> {
+        let mut out = Vec::new();
+        let mut field = |name: &str, a: String, b: String| {
+            if a != b {
+                out.push(format!("{name} {a} (the directory's) vs {b} (this run's)"));
+            }
+        };
+        field("sample name", format!("{:?}", self.sample_name), format!("{:?}", other.sample_name));
+        field("geometry", self.geometry_sha256.clone(), other.geometry_sha256.clone());
+        field("mirrors", self.mirror_count.to_string(), other.mirror_count.to_string());
+        field("exposure", format!("{} µs", self.exposure_us), format!("{} µs", other.exposure_us));
+        field("settle", format!("{} ms", self.settle_ms), format!("{} ms", other.settle_ms));
+        field(
+            "light duty",
+            format!("{} ‰", self.light_duty_permille),
+            format!("{} ‰", other.light_duty_permille),
+        );
+        field(
+            "HDR bracket",
+            format!("{:?} µs", self.bracket_us),
+            format!("{:?} µs", other.bracket_us),
+        );
+        let sim = |s: &Option<String>| s.clone().unwrap_or_else(|| "a real scanner".into());
+        field("scanner", sim(&self.simulator), sim(&other.simulator));
+        out
+    }
 }
 
 /// One stored frame.
@@ -167,6 +220,34 @@ pub struct FrameRecord {
     pub axis_steps: [i32; 3],
     /// The same in degrees, mm, degrees.
     pub axis_units: [f64; 3],
+    /// Whether a position check after this frame found every axis where its
+    /// count said (no steps lost before the frame). Manifests written before
+    /// position checks existed read as verified.
+    #[serde(default = "verified_by_default")]
+    pub verified: bool,
+}
+
+fn verified_by_default() -> bool {
+    true
+}
+
+/// A comparison of the axes' step counts with their switches during a scan.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PositionCheck {
+    /// How: `homing` (the scan homed every axis and compared the counts at
+    /// the switches), `index` (the firmware caught a moving axis' count off
+    /// at its switch edge), `homing-lost` (the device lost its homing — a
+    /// reset or a fault — so the frames since the last check cannot be
+    /// verified).
+    pub kind: String,
+    /// Count minus switch per axis (disk, track, tilt), steps, where measured.
+    pub error_steps: [Option<i32>; 3],
+    /// Every measured error within `protocol::POSITION_TOLERANCE_STEPS` and
+    /// every axis measured.
+    pub passed: bool,
+    /// The frames taken since the previous passed check: verified by this
+    /// one if it passed, taken again if not.
+    pub mirrors: Vec<usize>,
 }
 
 /// The scan directory's manifest.
@@ -191,33 +272,119 @@ pub struct Manifest {
     /// exposure; removed once the merge is stored.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub exposures: Vec<FrameRecord>,
+    /// Position checks, in order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub checks: Vec<PositionCheck>,
 }
 
 impl Manifest {
-    /// Read a scan directory's manifest.
+    /// Read a scan directory's manifest. Every failure is exit 3: no scan
+    /// there, or a damaged manifest.
     pub fn load(dir: &Path) -> Result<Manifest, ScanError> {
-        let path = dir.join(MANIFEST_FILE);
-        let text = std::fs::read_to_string(&path).map_err(|e| io_error(&path, e))?;
-        let m: Manifest = serde_json::from_str(&text).map_err(|e| {
-            ScanError::Conflict(format!("{}: not a scan manifest: {e}", path.display()))
-        })?;
+        Manifest::load_file(&dir.join(MANIFEST_FILE)).map_err(|e| match e {
+            LoadError::Missing => {
+                ScanError::Conflict(format!("no scan at {} (no {MANIFEST_FILE})", dir.display()))
+            }
+            LoadError::Damaged(why) => ScanError::Conflict(why),
+        })
+    }
+
+    fn load_file(path: &Path) -> Result<Manifest, LoadError> {
+        let bytes = match std::fs::read(path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(LoadError::Missing),
+            Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
+                return Err(LoadError::Missing);
+            }
+            Err(e) => {
+                return Err(LoadError::Damaged(format!("{}: cannot read: {e}", path.display())));
+            }
+        };
+        let damaged =
+            |why: String| LoadError::Damaged(format!("{}: damaged: {why}", path.display()));
+        let text = String::from_utf8(bytes).map_err(|_| damaged("not UTF-8 text".into()))?;
+        let m: Manifest = serde_json::from_str(&text)
+            .map_err(|e| damaged(format!("not a scan manifest ({e})")))?;
         if m.format != MANIFEST_FORMAT || m.version != MANIFEST_VERSION {
-            return Err(ScanError::Conflict(format!(
+            return Err(LoadError::Damaged(format!(
                 "{}: {} version {} (this build reads {MANIFEST_FORMAT} {MANIFEST_VERSION})",
                 path.display(),
                 m.format,
                 m.version
             )));
         }
+        let n = m.settings.mirror_count;
+        if let Some(f) = m.frames.iter().chain(&m.exposures).find(|f| f.mirror >= n) {
+            return Err(damaged(format!(
+                "it lists a frame of mirror {} in a scan of mirrors 0…{}",
+                f.mirror,
+                n.saturating_sub(1)
+            )));
+        }
+        if let Some(f) = m.frames.iter().chain(&m.exposures).find(|f| !safe_relative(&f.file)) {
+            return Err(damaged(format!("frame file {:?} is outside frames/", f.file)));
+        }
         Ok(m)
     }
 
+    /// Store atomically, after rotating the current manifest to
+    /// [`PREVIOUS_MANIFEST_FILE`] (a hard link renamed into place: atomic,
+    /// no copy; a copy where the file system has no hard links).
     fn save(&self, dir: &Path) -> Result<(), ScanError> {
         let path = dir.join(MANIFEST_FILE);
+        let prev = dir.join(PREVIOUS_MANIFEST_FILE);
+        if path.is_file() {
+            let tmp = dir.join(format!(".tmp-prev-{}", std::process::id()));
+            let _ = std::fs::remove_file(&tmp);
+            let rotated = match std::fs::hard_link(&path, &tmp) {
+                Ok(()) => std::fs::rename(&tmp, &prev),
+                Err(_) => std::fs::read(&path).and_then(|b| write_atomic(&prev, &b)),
+            };
+            rotated.and_then(|()| crate::fsutil::sync_dir(dir)).map_err(|e| io_error(&prev, e))?;
+        }
         let mut text = serde_json::to_string_pretty(self).expect("manifest serialises");
         text.push('\n');
         write_atomic(&path, text.as_bytes()).map_err(|e| io_error(&path, e))
     }
+}
+
+/// A directory with files but neither manifest is someone else's: refused
+/// unless `--force`.
+fn refuse_foreign(opts: &ScanOptions) -> Result<(), ScanError> {
+    let dir = &opts.out;
+    if opts.force
+        || dir.join(MANIFEST_FILE).exists()
+        || (opts.resume && dir.join(PREVIOUS_MANIFEST_FILE).exists())
+    {
+        return Ok(());
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else { return Ok(()) };
+    let foreign = entries
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .find(|n| n != LOCK_FILE && !n.starts_with(".tmp-"));
+    match foreign {
+        Some(name) => Err(ScanError::Conflict(format!(
+            "{} is not empty ({name} …) and holds no scan (no {MANIFEST_FILE}); choose an \
+             empty or new --out, or pass --force to scan into it anyway",
+            dir.display()
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Why a manifest file could not be read.
+enum LoadError {
+    /// No such file (or no such directory).
+    Missing,
+    /// There, but not a manifest this build reads.
+    Damaged(String),
+}
+
+/// A frame path a manifest may name: relative, under `frames/`, no `..`.
+fn safe_relative(file: &str) -> bool {
+    let p = Path::new(file);
+    p.starts_with("frames") && p.components().all(|c| matches!(c, std::path::Component::Normal(_)))
 }
 
 /// How to scan.
@@ -243,6 +410,17 @@ pub struct ScanOptions {
     pub attempts: u32,
     /// HDR bracket, µs (empty: one exposure of `exposure_us`).
     pub bracket_us: Vec<u32>,
+    /// Check the axes against their switches after every this many frames
+    /// (0: only once every frame is taken). A failed check retakes the
+    /// frames since the last passed one.
+    pub check_every: usize,
+    /// Scan into a non-empty directory that holds no scan.
+    pub force: bool,
+    /// What the simulated scanner simulates (recorded in the settings).
+    pub simulator: Option<String>,
+    /// Set (e.g. by Ctrl-C) to stop after the frame in progress, keeping
+    /// every frame taken.
+    pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 impl ScanOptions {
@@ -259,9 +437,19 @@ impl ScanOptions {
             frame_timeout: Duration::from_secs(10),
             attempts: 3,
             bracket_us: Vec::new(),
+            check_every: DEFAULT_CHECK_EVERY,
+            force: false,
+            simulator: None,
+            interrupt: None,
         }
     }
 }
+
+/// Default frames between position checks.
+pub const DEFAULT_CHECK_EVERY: usize = 10;
+
+/// Failed position checks in a row before the scan gives up (exit 7).
+const MAX_FAILED_CHECKS: usize = 3;
 
 /// Where the time went.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -287,6 +475,8 @@ pub struct ScanReport {
     pub retakes: usize,
     /// Device resets survived.
     pub resets: usize,
+    /// Position checks made.
+    pub checks: usize,
     /// Time split.
     pub timings: ScanTimings,
 }
@@ -299,6 +489,8 @@ pub trait ScanProgress {
     fn frame(&mut self, _mirror: usize) {}
     /// Something worth telling the user.
     fn note(&mut self, _message: &str) {}
+    /// Stored frames of `mirrors` will be taken again.
+    fn retaking(&mut self, _mirrors: &[usize]) {}
 }
 
 /// No progress output.
@@ -369,7 +561,10 @@ pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<MirrorSetup
 /// board went away, which the scan has just recovered from, or a homing
 /// that [`prepare`] runs again.
 const CLEARABLE: FaultFlags = FaultFlags(
-    FaultFlags::LINK_TIMEOUT.0 | FaultFlags::WATCHDOG_RESET.0 | FaultFlags::HOMING_FAILED.0,
+    FaultFlags::LINK_TIMEOUT.0
+        | FaultFlags::WATCHDOG_RESET.0
+        | FaultFlags::HOMING_FAILED.0
+        | FaultFlags::POSITION_LOST.0,
 );
 
 /// All of `faults` named, if any of them needs a person (emergency stop,
@@ -386,7 +581,7 @@ pub fn prepare(
     dev: &mut Device,
     geometry: &ScannerGeometry,
     progress: &mut dyn ScanProgress,
-) -> Result<[AxisConfig; 3], ScanError> {
+) -> Result<Prepared, ScanError> {
     for _ in 0..4 {
         match prepare_once(dev, geometry, progress) {
             Err(ScanError::Link(LinkError::Reset { .. })) => {
@@ -399,11 +594,21 @@ pub fn prepare(
     Err(ScanError::DeviceFault("the device keeps resetting".into()))
 }
 
+/// What [`prepare`] found and did.
+#[derive(Debug, Clone, Copy)]
+pub struct Prepared {
+    /// The device's axis configurations.
+    pub axes: [AxisConfig; 3],
+    /// Some axis was not homed and was homed now: step counts from before
+    /// cannot be checked any more.
+    pub homed: bool,
+}
+
 fn prepare_once(
     dev: &mut Device,
     geometry: &ScannerGeometry,
     progress: &mut dyn ScanProgress,
-) -> Result<[AxisConfig; 3], ScanError> {
+) -> Result<Prepared, ScanError> {
     let mut status = dev.status()?;
     if !status.faults.is_empty() {
         if let Some(names) = faults_needing_a_person(status.faults) {
@@ -426,21 +631,95 @@ fn prepare_once(
         progress.note(&format!("wrote {} mirror table entries", mirrors.written));
     }
     let status = dev.status()?;
-    if status.axes.iter().any(|a| !a.homed) {
+    let homed = status.axes.iter().any(|a| !a.homed);
+    if homed {
         progress.note("homing");
-        dev.clear_events();
-        dev.command(Request::Home { axes: AxisSet::ALL })?;
-        let done =
-            dev.wait_event(Duration::from_secs(90), |e| matches!(e, Event::MotionDone { .. }))?;
-        match done {
-            Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => {}
-            Some(Event::MotionDone { outcome, .. }) => {
-                return Err(ScanError::DeviceFault(format!("homing ended {outcome:?}")));
-            }
-            _ => return Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
-        }
+        home_all(dev)?;
     }
-    Ok(mirrors.axes)
+    Ok(Prepared { axes: mirrors.axes, homed })
+}
+
+/// Home every axis and wait for the end; returns the events that came
+/// meanwhile (position checks of axes that were homed already).
+fn home_all(dev: &mut Device) -> Result<Vec<Event>, ScanError> {
+    dev.clear_events();
+    dev.command(Request::Home { axes: AxisSet::ALL })?;
+    let done =
+        dev.wait_event(Duration::from_secs(90), |e| matches!(e, Event::MotionDone { .. }))?;
+    match done {
+        Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => Ok(dev.take_events()),
+        Some(Event::MotionDone { outcome, .. }) => {
+            let faults = dev.status()?.faults;
+            let by = if faults.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", faults.names().collect::<Vec<_>>().join(", "))
+            };
+            Err(ScanError::DeviceFault(format!("homing {outcome}{by}")))
+        }
+        _ => Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
+    }
+}
+
+/// Check every axis' step count against its switch by homing it (the
+/// firmware reports the count's error for each axis that was homed).
+/// `mirrors` are the frames taken since the last passed check.
+fn check_position(
+    dev: &mut Device,
+    geometry: &ScannerGeometry,
+    mirrors: &[usize],
+    progress: &mut dyn ScanProgress,
+) -> Result<PositionCheck, ScanError> {
+    let mut check = PositionCheck {
+        kind: "homing".into(),
+        error_steps: [None; 3],
+        passed: false,
+        mirrors: mirrors.to_vec(),
+    };
+    if prepare(dev, geometry, progress)?.homed {
+        check.kind = "homing-lost".into();
+        return Ok(check);
+    }
+    match home_all(dev) {
+        Ok(events) => {
+            for e in events {
+                if let Event::PositionChecked { axis, error_steps } = e {
+                    check.error_steps[axis.index()] = Some(error_steps);
+                }
+            }
+            check.passed = check.error_steps.iter().all(|e| {
+                e.is_some_and(|e| e.unsigned_abs() <= protocol::POSITION_TOLERANCE_STEPS as u32)
+            });
+            Ok(check)
+        }
+        // A reset during the check: homing is lost with it.
+        Err(ScanError::Link(LinkError::Reset { .. })) => {
+            progress.note("device reset during the position check");
+            check.kind = "homing-lost".into();
+            prepare(dev, geometry, progress)?;
+            Ok(check)
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// The words for a failed check, e.g. "track off by 400 steps".
+fn describe_check(check: &PositionCheck) -> String {
+    if check.kind == "homing-lost" {
+        return "the device lost its homing, so the frames before cannot be checked".into();
+    }
+    let off: Vec<String> = Axis::ALL
+        .iter()
+        .zip(check.error_steps)
+        .filter_map(|(a, e)| match e {
+            Some(e) if e.unsigned_abs() > protocol::POSITION_TOLERANCE_STEPS as u32 => {
+                Some(format!("{} off by {e} steps", a.name()))
+            }
+            Some(_) => None,
+            None => Some(format!("{} not measured", a.name())),
+        })
+        .collect();
+    off.join(", ")
 }
 
 fn wait_idle(dev: &mut Device, max: Duration) -> Result<protocol::Status, ScanError> {
@@ -479,32 +758,41 @@ fn sha256_hex(bytes: &[u8]) -> String {
     hex(&Sha256::digest(bytes))
 }
 
-/// Open or create the scan directory; returns the manifest with only the
-/// frames whose files are intact.
+/// Open or create the scan directory, locked for this scan; returns the
+/// manifest with only the frames whose files are intact, and the lock
+/// (held until it is dropped).
 fn open_directory(
     opts: &ScanOptions,
     settings: &ScanSettings,
     device: &DeviceRecord,
     camera: &str,
     progress: &mut dyn ScanProgress,
-) -> Result<Manifest, ScanError> {
+) -> Result<(Manifest, std::fs::File), ScanError> {
     let dir = &opts.out;
-    let frames_dir = dir.join("frames");
-    std::fs::create_dir_all(&frames_dir).map_err(|e| io_error(&frames_dir, e))?;
-    let raw_dir = frames_dir.join("raw");
-    if !settings.bracket_us.is_empty() {
-        std::fs::create_dir_all(&raw_dir).map_err(|e| io_error(&raw_dir, e))?;
+    if std::fs::metadata(dir).is_ok_and(|m| !m.is_dir()) {
+        return Err(ScanError::Conflict(format!("{} is not a directory", dir.display())));
     }
-    // Leftovers of an interrupted atomic write.
-    for d in [dir.as_path(), frames_dir.as_path(), raw_dir.as_path()] {
-        if !d.is_dir() {
-            continue;
+    // A folder holding something else is refused before anything is
+    // created in it (checked again under the lock).
+    refuse_foreign(opts)?;
+    std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
+    // One writer per scan directory, for the whole scan.
+    let lock_path = dir.join(LOCK_FILE);
+    let lock = std::fs::File::options()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&lock_path)
+        .map_err(|e| io_error(&lock_path, e))?;
+    match lock.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => {
+            return Err(ScanError::Conflict(format!(
+                "another scan is using {} (it holds {LOCK_FILE}); wait for it or stop it first",
+                dir.display()
+            )));
         }
-        for entry in std::fs::read_dir(d).map_err(|e| io_error(d, e))?.flatten() {
-            if entry.file_name().to_string_lossy().starts_with(".tmp-") {
-                let _ = std::fs::remove_file(entry.path());
-            }
-        }
+        Err(std::fs::TryLockError::Error(e)) => return Err(io_error(&lock_path, e)),
     }
     let fresh = Manifest {
         format: MANIFEST_FORMAT.into(),
@@ -515,24 +803,76 @@ fn open_directory(
         frames: Vec::new(),
         complete: false,
         exposures: Vec::new(),
+        checks: Vec::new(),
     };
-    if !dir.join(MANIFEST_FILE).exists() {
+    let previous = || Manifest::load_file(&dir.join(PREVIOUS_MANIFEST_FILE)).ok();
+    let loaded = match Manifest::load_file(&dir.join(MANIFEST_FILE)) {
+        Ok(m) if !opts.resume => {
+            let _ = m;
+            return Err(ScanError::Conflict(format!(
+                "{} already holds a scan; pass --resume to complete it, or choose another --out",
+                dir.display()
+            )));
+        }
+        Ok(m) => Some(m),
+        Err(LoadError::Damaged(why)) => match previous() {
+            Some(prev) if opts.resume => {
+                // Keep the damaged file for whoever wants to look at it.
+                let kept = dir.join(format!("{MANIFEST_FILE}.damaged"));
+                std::fs::rename(dir.join(MANIFEST_FILE), &kept).map_err(|e| io_error(&kept, e))?;
+                progress.note(&format!(
+                    "{why}; recovering from {PREVIOUS_MANIFEST_FILE} (the damaged one is kept as {})",
+                    kept.display()
+                ));
+                Some(prev)
+            }
+            Some(_) => {
+                return Err(ScanError::Conflict(format!(
+                    "{why}; `--resume` recovers the frames {PREVIOUS_MANIFEST_FILE} lists"
+                )));
+            }
+            None => return Err(ScanError::Conflict(why)),
+        },
+        Err(LoadError::Missing) => match previous() {
+            Some(prev) if opts.resume => {
+                progress.note(&format!(
+                    "{MANIFEST_FILE} is missing; recovering from {PREVIOUS_MANIFEST_FILE}"
+                ));
+                Some(prev)
+            }
+            _ => {
+                refuse_foreign(opts)?;
+                None
+            }
+        },
+    };
+    let frames_dir = dir.join("frames");
+    std::fs::create_dir_all(&frames_dir).map_err(|e| io_error(&frames_dir, e))?;
+    let raw_dir = frames_dir.join("raw");
+    if !settings.bracket_us.is_empty() {
+        std::fs::create_dir_all(&raw_dir).map_err(|e| io_error(&raw_dir, e))?;
+    }
+    // Leftovers of an interrupted atomic write (no other scan runs here).
+    for d in [dir.as_path(), frames_dir.as_path(), raw_dir.as_path()] {
+        if !d.is_dir() {
+            continue;
+        }
+        for entry in std::fs::read_dir(d).map_err(|e| io_error(d, e))?.flatten() {
+            if entry.file_name().to_string_lossy().starts_with(".tmp-") {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+    }
+    let Some(mut m) = loaded else {
         fresh.save(dir)?;
-        return Ok(fresh);
-    }
-    if !opts.resume {
+        return Ok((fresh, lock));
+    };
+    let differences = m.settings.differences(settings);
+    if !differences.is_empty() {
         return Err(ScanError::Conflict(format!(
-            "{} already holds a scan; pass --resume to complete it, or choose another --out",
-            dir.display()
-        )));
-    }
-    let mut m = Manifest::load(dir)?;
-    if m.settings != *settings {
-        return Err(ScanError::Conflict(format!(
-            "{} holds a different scan ({:?}); cannot resume it as {:?}",
+            "{} holds a different scan: {}; cannot resume it with these settings",
             dir.display(),
-            m.settings,
-            settings
+            differences.join("; ")
         )));
     }
     if m.device.device_id != device.device_id {
@@ -543,21 +883,30 @@ fn open_directory(
             device.device_id
         )));
     }
-    let before = m.frames.len();
-    m.frames.retain(|f| frame_intact(dir, f));
+    let (mut missing, mut damaged) = (0, 0);
+    m.frames.retain(|f| match frame_state(dir, f) {
+        FrameState::Intact => true,
+        FrameState::Missing => {
+            missing += 1;
+            false
+        }
+        FrameState::Damaged => {
+            damaged += 1;
+            false
+        }
+    });
     let done: Vec<usize> = m.frames.iter().map(|f| f.mirror).collect();
     m.exposures.retain(|f| !done.contains(&f.mirror) && frame_intact(dir, f));
-    if m.frames.len() < before {
+    if missing + damaged > 0 {
         progress.note(&format!(
-            "{} recorded frame(s) damaged or missing: taking them again",
-            before - m.frames.len()
+            "recorded frames: {missing} missing, {damaged} damaged; taking them again"
         ));
     }
     m.device = device.clone();
     m.camera = camera.into();
     m.complete = false;
     m.save(dir)?;
-    Ok(m)
+    Ok((m, lock))
 }
 
 /// Capture a scan.
@@ -583,6 +932,7 @@ pub fn scan(
         settle_ms: opts.settle_ms,
         light_duty_permille: opts.light_duty_permille,
         bracket_us: opts.bracket_us.clone(),
+        simulator: opts.simulator.clone(),
     };
     if let Some(&bad) = opts
         .bracket_us
@@ -602,28 +952,61 @@ pub fn scan(
         board: info.board,
     };
     let t = Instant::now();
-    let mut manifest = open_directory(opts, &settings, &device, &camera.describe(), progress)?;
+    let (mut manifest, _lock) =
+        open_directory(opts, &settings, &device, &camera.describe(), progress)?;
     report.timings.disk += t.elapsed();
     report.kept = manifest.frames.len();
     progress.start(total, report.kept);
 
     let t = Instant::now();
-    let axes = prepare(dev, geometry, progress)?;
+    let prepared = prepare(dev, geometry, progress)?;
+    let axes = prepared.axes;
     report.timings.link += t.elapsed();
 
     // Frames are encoded and written, and the manifest updated, on a second
     // thread while the next frame is captured; the manifest names a frame
-    // as soon as its file is durable, and only then.
-    let already: Vec<usize> = manifest.frames.iter().map(|f| f.mirror).collect();
-    let raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
+    // as soon as its file is durable, and only then. Frames are verified by
+    // position checks (every `check_every` frames and at the end); a failed
+    // check, or homing lost in between, retakes the frames since the last
+    // passed one.
+    let mut todo: VecDeque<usize> =
+        (0..total).filter(|l| !manifest.frames.iter().any(|f| f.mirror == *l)).collect();
+    let mut unverified: Vec<usize> =
+        manifest.frames.iter().filter(|f| !f.verified).map(|f| f.mirror).collect();
+    let mut raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
+    // Stored frames not verified before the device lost its homing (the
+    // scan was interrupted, the device reset) cannot be verified now.
+    let mut pending_check = (prepared.homed && !unverified.is_empty()).then(|| PositionCheck {
+        kind: "homing-lost".into(),
+        error_steps: [None; 3],
+        passed: false,
+        mirrors: Vec::new(),
+    });
     let manifest = std::thread::scope(|scope| -> Result<Manifest, ScanError> {
-        let (jobs, job_rx) = std::sync::mpsc::sync_channel::<WriteJob>(1);
+        let (jobs, job_rx) = std::sync::mpsc::sync_channel::<Job>(1);
         let (done_tx, done) =
             std::sync::mpsc::channel::<Result<(Option<usize>, Duration), ScanError>>();
         let out = opts.out.as_path();
         let writer = scope.spawn(move || {
             for job in job_rx {
                 let t = Instant::now();
+                let job = match job {
+                    Job::Frame(job) => job,
+                    Job::Check(check) => {
+                        if check.passed {
+                            for f in &mut manifest.frames {
+                                f.verified |= check.mirrors.contains(&f.mirror);
+                            }
+                        }
+                        manifest.checks.push(check);
+                        let result = manifest.save(out).map(|()| (None, t.elapsed()));
+                        let failed = result.is_err();
+                        if done_tx.send(result).is_err() || failed {
+                            break;
+                        }
+                        continue;
+                    }
+                };
                 let raw = job.raw;
                 let result = write_frame(out, job).and_then(|record| {
                     let mirror = record.mirror;
@@ -666,7 +1049,8 @@ pub fn scan(
             Ok(())
         };
         let mut failure = None;
-        'mirrors: for l in (0..total).filter(|l| !already.contains(l)) {
+        let mut failed_checks = 0;
+        'mirrors: loop {
             for result in done.try_iter() {
                 if let Err(e) = stored(result, &mut report, progress) {
                     failure = Some(e);
@@ -675,6 +1059,68 @@ pub fn scan(
             if failure.is_some() {
                 break;
             }
+            if opts.interrupt.as_ref().is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst))
+            {
+                failure = Some(ScanError::Interrupted { kept: 0, total, dir: opts.out.clone() });
+                break;
+            }
+            // Homing lost, or steps lost and caught at a switch: the frames
+            // since the last passed check are taken again.
+            if let Some(mut check) = pending_check.take() {
+                check.mirrors = unverified.clone();
+                progress.note(&format!(
+                    "{}: taking {} again",
+                    describe_check(&check),
+                    mirror_list(&check.mirrors)
+                ));
+                if jobs.send(Job::Check(check)).is_err() {
+                    break;
+                }
+                retake(&mut unverified, &mut todo, &mut raw_kept, &mut report, progress);
+            }
+            let due = !unverified.is_empty()
+                && (todo.is_empty()
+                    || (opts.check_every > 0 && unverified.len() >= opts.check_every));
+            if due {
+                let t = Instant::now();
+                let check = check_position(dev, geometry, &unverified, progress);
+                report.timings.link += t.elapsed();
+                let check = match check {
+                    Ok(c) => c,
+                    Err(e) => {
+                        failure = Some(e);
+                        break;
+                    }
+                };
+                report.checks += 1;
+                let passed = check.passed;
+                if !passed {
+                    failed_checks += 1;
+                    progress.note(&format!(
+                        "position check: {}; taking {} again",
+                        describe_check(&check),
+                        mirror_list(&unverified)
+                    ));
+                }
+                if jobs.send(Job::Check(check)).is_err() {
+                    break;
+                }
+                if passed {
+                    unverified.clear();
+                    failed_checks = 0;
+                } else if failed_checks >= MAX_FAILED_CHECKS {
+                    failure = Some(ScanError::DeviceFault(format!(
+                        "steps lost at {failed_checks} position checks in a row: a motor \
+                         stalls or a belt slips; the scanner needs looking at \
+                         (`--resume` continues once it is fixed)"
+                    )));
+                    break;
+                } else {
+                    retake(&mut unverified, &mut todo, &mut raw_kept, &mut report, progress);
+                }
+                continue;
+            }
+            let Some(l) = todo.pop_front() else { break };
             let bracket = if opts.bracket_us.is_empty() {
                 vec![opts.exposure_us]
             } else {
@@ -706,7 +1152,7 @@ pub fn scan(
                 }
                 let mut o = opts.clone();
                 o.exposure_us = exposure_us;
-                let (frame, fired, status) =
+                let ((frame, fired, status), lost) =
                     match capture_with_retries(dev, camera, geometry, l, &o, &mut report, progress)
                     {
                         Ok(c) => c,
@@ -715,6 +1161,15 @@ pub fn scan(
                             break 'mirrors;
                         }
                     };
+                if let Some(check) = lost {
+                    // Taken after homing again: good. What came before (and
+                    // this mirror's earlier exposures) is taken again.
+                    pending_check = Some(check);
+                    if !taken.is_empty() {
+                        unverified.push(l);
+                        continue 'mirrors;
+                    }
+                }
                 let steps = status.axes.map(|a| a.position_steps);
                 let record = FrameRecord {
                     mirror: l,
@@ -727,6 +1182,7 @@ pub fn scan(
                     exposure_us: fired.exposure_us,
                     axis_steps: steps,
                     axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
+                    verified: false,
                 };
                 if opts.bracket_us.is_empty() {
                     taken.push((frame, exposure_us, record));
@@ -736,7 +1192,11 @@ pub fn scan(
                 // mirror merges to the same bytes.
                 let frame = exrio::quantise_half(frame);
                 if jobs
-                    .send(WriteJob { frame: frame.clone(), record: record.clone(), raw: true })
+                    .send(Job::Frame(WriteJob {
+                        frame: frame.clone(),
+                        record: record.clone(),
+                        raw: true,
+                    }))
                     .is_err()
                 {
                     break 'mirrors;
@@ -774,9 +1234,10 @@ pub fn scan(
                 record.exposure_us = reference;
                 WriteJob { frame: merged, record, raw: false }
             };
-            if jobs.send(job).is_err() {
+            if jobs.send(Job::Frame(job)).is_err() {
                 break; // the writer stopped on an error, reported below
             }
+            unverified.push(l);
         }
         // Frames already taken are stored and recorded even when the scan
         // stops: a resume will not take them again.
@@ -788,11 +1249,14 @@ pub fn scan(
         }
         let manifest =
             writer.join().map_err(|_| ScanError::Io("the frame writer panicked".into()))?;
+        if let Some(ScanError::Interrupted { kept, .. }) = &mut failure {
+            *kept = manifest.frames.len();
+        }
         failure.map_or(Ok(manifest), Err)
     })?;
     let mut manifest = manifest;
-    if manifest.frames.len() < total {
-        return Err(ScanError::Io("frames were not written".into()));
+    if manifest.frames.len() < total || manifest.frames.iter().any(|f| !f.verified) {
+        return Err(ScanError::Io("frames were not written or not verified".into()));
     }
     // Read every frame back before calling the scan complete.
     let t = Instant::now();
@@ -812,7 +1276,25 @@ pub fn scan(
 
 /// Whether a frame's file exists and has its recorded checksum.
 fn frame_intact(dir: &Path, f: &FrameRecord) -> bool {
-    std::fs::read(dir.join(&f.file)).map(|bytes| sha256_hex(&bytes) == f.sha256).unwrap_or(false)
+    frame_state(dir, f) == FrameState::Intact
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FrameState {
+    Intact,
+    /// No file.
+    Missing,
+    /// A file that differs from its checksum (or cannot be read).
+    Damaged,
+}
+
+fn frame_state(dir: &Path, f: &FrameRecord) -> FrameState {
+    match std::fs::read(dir.join(&f.file)) {
+        Ok(bytes) if sha256_hex(&bytes) == f.sha256 => FrameState::Intact,
+        Ok(_) => FrameState::Damaged,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => FrameState::Missing,
+        Err(_) => FrameState::Damaged,
+    }
 }
 
 /// What [`verify`] found in a scan directory.
@@ -822,9 +1304,9 @@ pub struct Verification {
     pub mirror_count: usize,
     /// Frames present with their checksum.
     pub intact: usize,
-    /// Mirrors without a recorded frame.
+    /// Mirrors without a recorded frame, or whose file is gone.
     pub missing: Vec<usize>,
-    /// Mirrors whose file is gone or differs from its checksum.
+    /// Mirrors whose file differs from its checksum.
     pub damaged: Vec<usize>,
 }
 
@@ -846,10 +1328,10 @@ pub fn verify(dir: &Path) -> Result<Verification, ScanError> {
         damaged: Vec::new(),
     };
     for l in 0..m.settings.mirror_count {
-        match m.frames.iter().find(|f| f.mirror == l) {
-            None => v.missing.push(l),
-            Some(f) if frame_intact(dir, f) => v.intact += 1,
-            Some(_) => v.damaged.push(l),
+        match m.frames.iter().find(|f| f.mirror == l).map(|f| frame_state(dir, f)) {
+            None | Some(FrameState::Missing) => v.missing.push(l),
+            Some(FrameState::Intact) => v.intact += 1,
+            Some(FrameState::Damaged) => v.damaged.push(l),
         }
     }
     Ok(v)
@@ -865,6 +1347,8 @@ enum Attempt {
         why: String,
         /// Whether it was a device reset.
         reset: bool,
+        /// An axis caught off its count at its switch, and by how much.
+        position: Option<(Axis, i32)>,
     },
     /// Stop the scan.
     Fatal(ScanError),
@@ -882,11 +1366,13 @@ impl From<ScanError> for Attempt {
 impl From<LinkError> for Attempt {
     fn from(e: LinkError) -> Attempt {
         match e {
-            LinkError::Reset { .. } => Attempt::Recover { why: e.to_string(), reset: true },
+            LinkError::Reset { .. } => {
+                Attempt::Recover { why: e.to_string(), reset: true, position: None }
+            }
             LinkError::Refused { error: protocol::DeviceError::NotHomed, .. }
             | LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }
             | LinkError::Refused { error: protocol::DeviceError::MirrorNotSet, .. } => {
-                Attempt::Recover { why: e.to_string(), reset: false }
+                Attempt::Recover { why: e.to_string(), reset: false, position: None }
             }
             e => Attempt::Fatal(e.into()),
         }
@@ -894,6 +1380,49 @@ impl From<LinkError> for Attempt {
 }
 
 type Captured = (crate::camera::Frame, TriggerFired, protocol::Status);
+
+/// Work for the writer thread, in order.
+enum Job {
+    /// Store a frame.
+    Frame(WriteJob),
+    /// Record a position check (and mark its frames verified if it passed).
+    Check(PositionCheck),
+}
+
+/// Queue the unverified frames to be taken again (first, in order).
+fn retake(
+    unverified: &mut Vec<usize>,
+    todo: &mut VecDeque<usize>,
+    raw_kept: &mut Vec<FrameRecord>,
+    report: &mut ScanReport,
+    progress: &mut dyn ScanProgress,
+) {
+    let mut again = std::mem::take(unverified);
+    again.sort_unstable();
+    again.dedup();
+    for &m in again.iter().rev() {
+        if !todo.contains(&m) {
+            todo.push_front(m);
+        }
+    }
+    raw_kept.retain(|r| !again.contains(&r.mirror));
+    report.retakes += again.len();
+    progress.retaking(&again);
+}
+
+/// "mirror 3" or "mirrors 0–9" or "mirrors 1, 4, 7".
+pub fn mirror_list(mirrors: &[usize]) -> String {
+    let contiguous = mirrors.windows(2).all(|w| w[1] == w[0] + 1);
+    match mirrors {
+        [] => "no mirror".into(),
+        [m] => format!("mirror {m}"),
+        [first, .., last] if contiguous => format!("mirrors {first}–{last}"),
+        _ => format!(
+            "mirrors {}",
+            mirrors.iter().map(|m| m.to_string()).collect::<Vec<_>>().join(", ")
+        ),
+    }
+}
 
 /// A frame to encode and store, with its record (checksum and size to fill).
 struct WriteJob {
@@ -927,12 +1456,15 @@ fn capture_with_retries(
     opts: &ScanOptions,
     report: &mut ScanReport,
     progress: &mut dyn ScanProgress,
-) -> Result<Captured, ScanError> {
+) -> Result<(Captured, Option<PositionCheck>), ScanError> {
     let mut misses = 0;
     let mut recoveries = 0;
+    // Set when the device had to be homed again: the frames before it
+    // cannot be verified any more (or were found wrong).
+    let mut lost: Option<PositionCheck> = None;
     loop {
         match capture_one(dev, camera, l, opts, &mut report.timings) {
-            Ok(r) => return Ok(r),
+            Ok(r) => return Ok((r, lost)),
             Err(Attempt::Camera(e)) => {
                 misses += 1;
                 report.retakes += 1;
@@ -945,7 +1477,7 @@ fn capture_with_retries(
                     });
                 }
             }
-            Err(Attempt::Recover { why, reset }) => {
+            Err(Attempt::Recover { why, reset, position }) => {
                 recoveries += 1;
                 report.retakes += 1;
                 if reset {
@@ -958,8 +1490,20 @@ fn capture_with_retries(
                     )));
                 }
                 let t = Instant::now();
-                prepare(dev, geometry, progress)?;
+                let prepared = prepare(dev, geometry, progress)?;
                 report.timings.link += t.elapsed();
+                if prepared.homed || position.is_some() {
+                    let check = lost.get_or_insert_with(|| PositionCheck {
+                        kind: "homing-lost".into(),
+                        error_steps: [None; 3],
+                        passed: false,
+                        mirrors: Vec::new(),
+                    });
+                    if let Some((axis, error)) = position {
+                        check.kind = "index".into();
+                        check.error_steps[axis.index()] = Some(error);
+                    }
+                }
             }
             Err(Attempt::Fatal(e)) => return Err(e),
         }
@@ -1020,10 +1564,21 @@ fn trigger_step(
                 if let Some(names) = faults_needing_a_person(status.faults) {
                     return Err(Attempt::Fatal(ScanError::DeviceFault(names)));
                 }
-                return Err(Attempt::Recover {
-                    why: format!("capture step interrupted ({other:?})"),
-                    reset: false,
+                let position = dev.take_events().into_iter().find_map(|e| match e {
+                    Event::PositionChecked { axis, error_steps } => Some((axis, error_steps)),
+                    _ => None,
                 });
+                let why = match (position, other) {
+                    (Some((axis, e)), _) => {
+                        format!("the {} axis lost steps (off by {e} at its switch)", axis.name())
+                    }
+                    (None, Event::FaultRaised { faults, .. }) => format!(
+                        "capture step stopped by {}",
+                        faults.names().collect::<Vec<_>>().join(", ")
+                    ),
+                    (None, _) => "capture step aborted".into(),
+                };
+                return Err(Attempt::Recover { why, reset: false, position });
             }
             None => {
                 let status = dev.status()?;
@@ -1038,12 +1593,17 @@ fn trigger_step(
                     return Err(Attempt::Recover {
                         why: "the capture step ended without its trigger".into(),
                         reset: false,
+                        position: None,
                     });
                 }
             }
         }
     }
-    Err(Attempt::Recover { why: "no trigger within the step's time".into(), reset: false })
+    Err(Attempt::Recover {
+        why: "no trigger within the step's time".into(),
+        reset: false,
+        position: None,
+    })
 }
 
 #[cfg(test)]

@@ -39,7 +39,12 @@ pub use frame::{
 pub use msg::*;
 
 /// The protocol version this crate implements.
-pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 0 };
+pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 1 };
+
+/// Largest disagreement between an axis' step count and its home or index
+/// switch that still counts as "no steps lost", steps: the switch's
+/// hysteresis and the 200 µs input sampling at full speed, with margin.
+pub const POSITION_TOLERANCE_STEPS: i32 = 32;
 
 /// USB vendor id of the scanner controller (pid.codes open-source VID).
 pub const USB_VID: u16 = 0x1209;

@@ -307,6 +307,11 @@ impl FaultFlags {
     pub const WATCHDOG_RESET: FaultFlags = FaultFlags(1 << 4);
     /// Homing of an axis failed (switch not found, timeout, stuck switch).
     pub const HOMING_FAILED: FaultFlags = FaultFlags(1 << 5);
+    /// An axis' step count disagreed with its home or index switch by more
+    /// than [`POSITION_TOLERANCE_STEPS`](crate::POSITION_TOLERANCE_STEPS)
+    /// while it moved (steps were lost): the axis is no longer homed, and
+    /// [`Event::PositionChecked`] says by how much.
+    pub const POSITION_LOST: FaultFlags = FaultFlags(1 << 6);
 
     /// Whether no flag is set.
     pub const fn is_empty(self) -> bool {
@@ -320,15 +325,16 @@ impl FaultFlags {
     pub const fn union(self, other: FaultFlags) -> FaultFlags {
         FaultFlags(self.0 | other.0)
     }
-    /// Names of the set flags, for messages.
+    /// Names of the set flags in words, for messages.
     pub fn names(self) -> impl Iterator<Item = &'static str> {
-        const NAMES: [&str; 6] = [
-            "emergency-stop",
-            "driver-fault",
-            "unexpected-home-switch",
-            "link-timeout",
-            "watchdog-reset",
-            "homing-failed",
+        const NAMES: [&str; 7] = [
+            "emergency stop",
+            "driver fault",
+            "home switch hit far from home",
+            "link timeout",
+            "watchdog reset",
+            "homing failed",
+            "position lost (steps lost)",
         ];
         NAMES
             .into_iter()
@@ -484,6 +490,29 @@ wire_type! {
         Aborted,
         /// Homing failed on the axis.
         HomingFailed(Axis, HomingFailure),
+    }
+}
+
+impl core::fmt::Display for HomingFailure {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            HomingFailure::SwitchNotFound => "its switch was not found within its travel",
+            HomingFailure::SwitchStuck => "its switch stayed pressed after backing off",
+            HomingFailure::Timeout => "it took longer than its homing timeout",
+        })
+    }
+}
+
+impl core::fmt::Display for MotionOutcome {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            MotionOutcome::Completed => f.write_str("completed"),
+            MotionOutcome::Stopped => f.write_str("stopped"),
+            MotionOutcome::Aborted => f.write_str("aborted by a fault"),
+            MotionOutcome::HomingFailed(axis, why) => {
+                write!(f, "failed on the {} axis: {why}", axis.name())
+            }
+        }
     }
 }
 
@@ -799,6 +828,19 @@ pub enum Event {
         level: LogLevel,
         /// Text.
         text: LogText,
+    },
+    /// An axis' step count was compared with its home or index switch:
+    /// when homing an axis that was homed already (a position check), and
+    /// when a moving axis crosses its switch's home edge with an error
+    /// beyond [`POSITION_TOLERANCE_STEPS`](crate::POSITION_TOLERANCE_STEPS)
+    /// (then with [`FaultFlags::POSITION_LOST`]).
+    PositionChecked {
+        /// The axis.
+        axis: Axis,
+        /// Counted position minus the switch's home position, steps (for a
+        /// continuous axis the nearest value modulo a turn). Positive: the
+        /// axis counted more steps than it made in the positive direction.
+        error_steps: i32,
     },
 }
 

@@ -86,6 +86,7 @@ fn examples_cover_every_variant() {
         "Event::TriggerFired",
         "Event::FaultRaised",
         "Event::Log",
+        "Event::PositionChecked",
     ] {
         assert!(names.contains(&prefix), "no golden example for {prefix}");
     }
@@ -96,8 +97,8 @@ fn hello_frame_by_hand() {
     // docs/protocol.md §7, byte by byte.
     let mut buf = [0u8; MAX_FRAME_LEN];
     let n = encode_frame(1, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut buf).unwrap();
-    assert_eq!(CRC.checksum(&[0x01, 0x00, 0x01, 0x00]), 0x8680_7908);
-    assert_eq!(&buf[..n], &[0x02, 0x01, 0x02, 0x01, 0x05, 0x08, 0x79, 0x80, 0x86, 0x00]);
+    assert_eq!(CRC.checksum(&[0x01, 0x00, 0x01, 0x01]), 0x74EB_FA0B);
+    assert_eq!(&buf[..n], &[0x02, 0x01, 0x07, 0x01, 0x01, 0x0b, 0xfa, 0xeb, 0x74, 0x00]);
 }
 
 #[test]

@@ -257,6 +257,10 @@ fn axis_set_operations() {
     assert!(s.is_valid() && !AxisSet(0x08).is_valid());
     assert_eq!(
         FaultFlags(0b101).names().collect::<Vec<_>>(),
-        ["emergency-stop", "unexpected-home-switch"]
+        ["emergency stop", "home switch hit far from home"]
+    );
+    assert_eq!(
+        MotionOutcome::HomingFailed(Axis::Track, HomingFailure::SwitchStuck).to_string(),
+        "failed on the track axis: its switch stayed pressed after backing off"
     );
 }

@@ -29,7 +29,8 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
     let pty = server.path().to_string();
     let (code, out, err) = run(&["info", "--device", &pty]);
     assert_eq!(code, Some(0), "{err}");
-    assert!(out.contains("protocol 1.0") && out.contains("track"), "{out}");
+    let version = format!("protocol {}", protocol::PROTOCOL_VERSION);
+    assert!(out.contains(&version) && out.contains("track"), "{out}");
     let (code, out, _) = run(&["status", "--device", &pty]);
     assert_eq!(code, Some(0));
     assert!(out.contains("not homed"), "{out}");
@@ -131,7 +132,9 @@ fn incompatible_firmware_exits_6_with_both_versions() {
     thread.join().unwrap();
     assert_eq!(code, Some(6), "{err}");
     assert!(
-        err.contains("incompatible firmware") && err.contains("2.0") && err.contains("1.0"),
+        err.contains("incompatible firmware")
+            && err.contains("2.0")
+            && err.contains(&protocol::PROTOCOL_VERSION.to_string()),
         "{err}"
     );
 }
@@ -162,7 +165,7 @@ fn an_emergency_stop_exits_7_and_keeps_the_frames_taken() {
     let out = sub(dir.path(), "scan");
     let (code, _, err) = sim_scan(&out, "estop:on@trigger=2");
     assert_eq!(code, Some(7), "{err}");
-    assert!(err.contains("emergency-stop"), "{err}");
+    assert!(err.contains("emergency stop"), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();
     assert!(!m.complete);
     assert!(!m.frames.is_empty(), "frames before the stop are kept");
@@ -222,18 +225,14 @@ fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
 }
 
 #[test]
+#[ignore = "needs a scanner on USB with its bulk interface: run with --ignored where one is connected"]
 fn usb_bulk_handshake_with_a_connected_scanner() {
-    let scanners = match host::discovery::usb_devices() {
-        Ok(list) => list.into_iter().filter(|d| d.vendor_interface.is_some()).collect::<Vec<_>>(),
-        Err(e) => {
-            eprintln!("skipped: cannot list USB devices here ({e})");
-            return;
-        }
-    };
-    let Some(d) = scanners.first() else {
-        eprintln!("skipped: no scanner with a USB bulk interface connected");
-        return;
-    };
+    let scanners: Vec<_> = host::discovery::usb_devices()
+        .expect("USB devices can be listed")
+        .into_iter()
+        .filter(|d| d.vendor_interface.is_some())
+        .collect();
+    let d = scanners.first().expect("a scanner with a USB bulk interface is connected");
     let (code, out, err) = run(&["info", "--device", &format!("usb:{}", d.serial)]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("protocol"), "{out}");
@@ -276,7 +275,7 @@ fn verify_reports_missing_and_damaged_frames() {
     std::fs::write(out.join("frames/mirror-01.exr"), b"not an exr").unwrap();
     let (code, out_text, _) = run(&["verify", &o]);
     assert_eq!(code, Some(3));
-    assert!(out_text.contains("damaged: mirrors [1]"), "{out_text}");
+    assert!(out_text.contains("damaged: mirror 1"), "{out_text}");
     let mut resume = scan.to_vec();
     resume.push("--resume");
     let (code, out_text, err) = run(&resume);

@@ -35,6 +35,38 @@ fn a_deterministic_scan_stores_every_frame_and_its_manifest() {
         assert_eq!((frame.width, frame.height), (512, 512));
         assert!(bytes.len() > 1000);
     }
+    // Content: each frame is the simulator's rendering of its own mirror
+    // (noise-free, at the recorded axes), not a black frame or a
+    // neighbour's.
+    let optics = hil_sim::optics::OpticalSim::as_built(
+        &s.nominal().unwrap(),
+        hil_sim::materials::Sample::small(hil_sim::materials::lookup("leather").unwrap()),
+        s.seed,
+    );
+    let expected = |f: &host::scan::FrameRecord| {
+        optics.expected(&hil_sim::optics::Exposure {
+            axes: hil_sim::geometry::AxisValues::from_array(f.axis_units),
+            exposure_s: f.exposure_us as f64 * 1e-6,
+            light: 1.0,
+        })
+    };
+    let renders: Vec<_> = m.frames.iter().map(expected).collect();
+    for (l, f) in m.frames.iter().enumerate() {
+        let frame = host::exrio::read_rgb(&dir.path().join(&f.file)).unwrap();
+        // Mean absolute difference relative to the mean signal.
+        let diff = |e: &hil_sim::optics::Frame| {
+            let (mut d, mut sum) = (0.0f64, 0.0f64);
+            for (a, b) in frame.rgb.iter().zip(&e.rgb) {
+                d += (a - b).abs() as f64;
+                sum += b.abs() as f64;
+            }
+            d / sum.max(1e-12)
+        };
+        let own = diff(&renders[l]);
+        let neighbour = diff(&renders[(l + 1) % 40]).min(diff(&renders[(l + 39) % 40]));
+        assert!(own < 0.03, "mirror {l}: {own:.3} from its own rendering");
+        assert!(own < 0.25 * neighbour, "mirror {l}: own {own:.3}, neighbour {neighbour:.3}");
+    }
     // The same seed gives the same scan, byte for byte.
     let again = tempfile::tempdir().unwrap();
     run(&s, &ScanOptions::new("leather-1", again.path())).unwrap();
@@ -87,10 +119,13 @@ fn a_damaged_manifest_or_another_scan_is_refused_not_overwritten() {
     opts.sample_name = "b".into();
     let e = run(&s, &opts).unwrap_err();
     assert_eq!(e.exit_code(), 3, "{e}");
-    assert!(e.to_string().contains("different scan"), "{e}");
+    assert!(e.to_string().contains("different scan: sample name \"a\""), "{e}");
+    // Damaged, and so is the previous manifest: nothing to recover from.
     let manifest = dir.path().join("manifest.json");
     let text = std::fs::read_to_string(&manifest).unwrap();
-    std::fs::write(&manifest, &text[..text.len() / 2]).unwrap();
+    for f in ["manifest.json", "manifest.json.prev"] {
+        std::fs::write(dir.path().join(f), &text[..text.len() / 2]).unwrap();
+    }
     opts.sample_name = "a".into();
     let e = run(&s, &opts).unwrap_err();
     assert_eq!(e.exit_code(), 3, "{e}");
@@ -152,4 +187,74 @@ fn a_scan_after_a_link_timeout_waits_for_the_decelerating_axes() {
     let mut opts = ScanOptions::new("leather", dir.path());
     opts.mirrors = Some(2);
     scan(&mut dev, &mut SimCamera(rig), &nominal, &opts, &mut Quiet).unwrap();
+}
+
+/// A scan of 20 mirrors with `faults` (the `--sim-fault` syntax), into a
+/// fresh directory.
+fn faulty_scan(faults: &[&str]) -> (tempfile::TempDir, Result<ScanReport, ScanError>) {
+    let mut plan = hil_sim::FaultPlan::none();
+    for f in faults {
+        let spec: hil_sim::FaultSpec = f.parse().unwrap();
+        plan = plan.with(spec.when, spec.event);
+    }
+    let s = SimSetup { faults: plan, ..setup("rough-metal") };
+    let dir = tempfile::tempdir().unwrap();
+    let mut opts = ScanOptions::new("m", dir.path());
+    opts.mirrors = Some(20);
+    let result = run(&s, &opts);
+    (dir, result)
+}
+
+#[test]
+fn lost_steps_on_any_axis_are_found_and_their_frames_taken_again() {
+    let (clean, report) = faulty_scan(&[]);
+    assert_eq!(report.unwrap().retakes, 0);
+    let m = Manifest::load(clean.path()).unwrap();
+    assert!(m.checks.iter().all(|c| c.passed) && m.checks.len() == 2, "{:?}", m.checks);
+    // Each axis slips while the scan runs: caught at the disk's index flag
+    // as it passes, or by the position check after the frame.
+    for (fault, axis, lost) in [
+        ("lose-steps:disk:400@ms=18000", 0, 400),
+        ("lose-steps:disk:40@ms=18000", 0, 40),
+        ("lose-steps:track:400@ms=24000", 1, 400),
+        ("lose-steps:track:6000@ms=24000", 1, 6000),
+        ("lose-steps:tilt:300@ms=24000", 2, 300),
+    ] {
+        let (dir, report) = faulty_scan(&[fault]);
+        let report = report.unwrap_or_else(|e| panic!("{fault}: {e}"));
+        assert!(report.retakes > 0, "{fault}: {report:?}");
+        let m = Manifest::load(dir.path()).unwrap();
+        assert!(m.complete && m.frames.iter().all(|f| f.verified), "{fault}");
+        let failed: Vec<_> = m.checks.iter().filter(|c| !c.passed).collect();
+        assert_eq!(failed.len(), 1, "{fault}: {:?}", m.checks);
+        let error = failed[0].error_steps[axis].unwrap_or_else(|| panic!("{fault}: {failed:?}"));
+        assert!((error.abs() - lost).abs() <= 8, "{fault}: measured {error}");
+        assert!(!failed[0].mirrors.is_empty());
+        for l in 0..20 {
+            let f = host::scan::frame_file(l);
+            assert!(
+                std::fs::read(clean.path().join(&f)).unwrap()
+                    == std::fs::read(dir.path().join(&f)).unwrap(),
+                "{fault}: {f} differs from the clean scan"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_motor_that_keeps_slipping_ends_the_scan_with_exit_7() {
+    // A slip in every batch of ten frames, retakes included.
+    let (dir, result) = faulty_scan(&[
+        "lose-steps:track:800@trigger=3",
+        "lose-steps:track:800@trigger=13",
+        "lose-steps:track:800@trigger=23",
+        "lose-steps:track:800@trigger=33",
+    ]);
+    let e = result.unwrap_err();
+    assert_eq!(e.exit_code(), 7, "{e}");
+    assert!(e.to_string().contains("steps lost at 3 position checks in a row"), "{e}");
+    let m = Manifest::load(dir.path()).unwrap();
+    assert!(!m.complete);
+    assert_eq!(m.checks.iter().filter(|c| !c.passed).count(), 3, "{:?}", m.checks);
+    assert!(m.frames.iter().all(|f| !f.verified), "nothing unverified counts as good");
 }

@@ -173,13 +173,19 @@ pub fn capture_all(client: &mut Client, mirrors: usize) -> Vec<TriggerFired> {
             light_duty_permille: FULL_DUTY_PERMILLE,
         };
         assert_eq!(client.request(Request::CaptureStep(step)), Reply::Ack, "capture {l}");
-        let e = client
-            .wait_event(
-                Duration::from_secs(10),
-                |e| matches!(e, Event::TriggerFired(t) if t.mirror == Some(l)),
-            )
-            .unwrap_or_else(|| panic!("trigger for mirror {l}"));
-        let Event::TriggerFired(t) = e else { unreachable!() };
+        // Events are not retransmitted: one lost on a noisy link is asked
+        // for (as the host does).
+        let event = client.wait_event(
+            Duration::from_secs(10),
+            |e| matches!(e, Event::TriggerFired(t) if t.mirror == Some(l)),
+        );
+        let t = match event {
+            Some(Event::TriggerFired(t)) => t,
+            _ => match client.request(Request::GetLastTrigger) {
+                Reply::Trigger(Some(t)) if t.mirror == Some(l) => t,
+                other => panic!("trigger for mirror {l}: {other:?}, {:?}", client.events),
+            },
+        };
         fired.push(t);
         let s = client.wait_idle(Duration::from_secs(2));
         assert_eq!(s.state, DeviceState::Idle, "after mirror {l}");

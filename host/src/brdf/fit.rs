@@ -104,7 +104,28 @@ pub enum SampleError {
         /// What is wrong.
         why: &'static str,
     },
+    /// A colour channel has no measured value (every value is missing).
+    #[error("channel {channel} has no measurement: every value is missing (negative)")]
+    ChannelMissing {
+        /// R, G or B.
+        channel: char,
+    },
+    /// Values too large to fit (the fit works in single precision and its
+    /// weights underflow long before): not BRDF values in sr⁻¹.
+    #[error(
+        "channel {channel} has values up to {max:.3e}, beyond any BRDF (at most {MAX_VALUE:.0e} sr⁻¹): are the units right?"
+    )]
+    TooLarge {
+        /// R, G or B.
+        channel: char,
+        /// Its largest value.
+        max: f64,
+    },
 }
+
+/// Largest BRDF value the fit accepts, sr⁻¹ (a mirror-like MERL material
+/// peaks near 10⁴).
+pub const MAX_VALUE: f64 = 1e8;
 
 /// Fitting samples in structure-of-arrays form.
 #[derive(Debug, Clone)]
@@ -189,7 +210,35 @@ impl Samples {
                 }
             }
         }
-        if s.is_empty() { Err(SampleError::Empty) } else { Ok(s) }
+        s.checked()
+    }
+
+    /// Every channel has measured values, none beyond [`MAX_VALUE`].
+    fn checked(self) -> Result<Samples, SampleError> {
+        if self.is_empty() {
+            return Err(SampleError::Empty);
+        }
+        for (values, channel) in self.values.iter().zip(['R', 'G', 'B']) {
+            let max = values.iter().fold(f32::NEG_INFINITY, |m, v| m.max(*v)) as f64;
+            if max < 0.0 {
+                return Err(SampleError::ChannelMissing { channel });
+            }
+            if max > MAX_VALUE {
+                return Err(SampleError::TooLarge { channel, max });
+            }
+        }
+        Ok(self)
+    }
+
+    /// Channels that are zero (or missing) wherever measured: their model
+    /// is black.
+    pub fn black_channels(&self) -> Vec<char> {
+        self.values
+            .iter()
+            .zip(['R', 'G', 'B'])
+            .filter(|(v, _)| v.iter().all(|x| *x <= 0.0))
+            .map(|(_, c)| c)
+            .collect()
     }
 
     /// Scattered measurements (each its own weight: wV = 1).
@@ -210,9 +259,16 @@ impl Samples {
             }
             let hd = from_directions(m.wi, m.wo);
             let bins = (theta_h_bin(hd.theta_h), theta_d_bin(hd.theta_d), phi_d_bin(hd.phi_d));
+            let finite_f32 = m.rgb.iter().all(|v| v.abs() <= f32::MAX as f64);
+            if !finite_f32 {
+                let channel = ['R', 'G', 'B']
+                    [m.rgb.iter().position(|v| v.abs() > f32::MAX as f64).unwrap_or(0)];
+                let max = m.rgb.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                return Err(SampleError::TooLarge { channel, max });
+            }
             s.push(m.wi, m.wo, bins, 1.0, m.rgb);
         }
-        if s.is_empty() { Err(SampleError::Empty) } else { Ok(s) }
+        s.checked()
     }
 
     /// Number of samples.

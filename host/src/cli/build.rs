@@ -19,7 +19,7 @@ pub struct StageBar(ProgressBar);
 
 impl StageBar {
     pub fn new() -> StageBar {
-        let bar = ProgressBar::new(0);
+        let bar = super::progress_bar(0);
         bar.set_style(
             ProgressStyle::with_template("{msg:>20} [{bar:30}] {pos}/{len}, {elapsed}")
                 .expect("valid template"),

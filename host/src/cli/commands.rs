@@ -93,10 +93,13 @@ pub struct Opened {
     pub device: Device,
     pub rig: Option<SimRig>,
     pub geometry_default: Option<ScannerGeometry>,
+    /// What the simulated scanner simulates, recorded in scan manifests.
+    pub simulator: Option<String>,
 }
 
 pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
     let choice = discovery::choose(&args.device).map_err(|e| Failure(5, anyhow!(e)))?;
+    let mut simulator = None;
     let (transport, rig, geometry): (Box<dyn Transport>, _, _) = match choice {
         #[cfg(not(feature = "sim"))]
         DeviceChoice::Simulator => return Err(no_simulator()),
@@ -105,6 +108,10 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
             let setup = args.sim_setup()?;
             let rig = setup.rig().map_err(sim_failure)?;
             let nominal = setup.nominal().map_err(sim_failure)?;
+            simulator = Some(format!(
+                "simulated {}, seed {}, binning {}",
+                setup.material, setup.seed, setup.bin
+            ));
             (Box::new(SimTransport(rig.clone())), Some(rig), Some(nominal))
         }
         DeviceChoice::Serial(path) => {
@@ -124,7 +131,7 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
         }
         e => link_failure(e),
     })?;
-    Ok(Opened { device, rig, geometry_default: geometry })
+    Ok(Opened { device, rig, geometry_default: geometry, simulator })
 }
 
 fn load_geometry(path: Option<&Path>, opened: &Opened) -> Result<ScannerGeometry, Failure> {
@@ -177,10 +184,10 @@ pub fn verify(dir: &Path) -> Result<(), Failure> {
     let v = scan::verify(dir).map_err(scan_failure)?;
     println!("{}: {} of {} frames intact", dir.display(), v.intact, v.mirror_count);
     if !v.missing.is_empty() {
-        println!("missing: mirrors {:?}", v.missing);
+        println!("missing: {}", scan::mirror_list(&v.missing));
     }
     if !v.damaged.is_empty() {
-        println!("damaged: mirrors {:?}", v.damaged);
+        println!("damaged: {}", scan::mirror_list(&v.damaged));
     }
     if v.is_complete() {
         Ok(())
@@ -384,6 +391,9 @@ impl ScanProgress for Bar {
         self.bar.inc(1);
         self.bar.set_message(format!("mirror {mirror}"));
     }
+    fn retaking(&mut self, mirrors: &[usize]) {
+        self.bar.set_position(self.bar.position().saturating_sub(mirrors.len() as u64));
+    }
     fn note(&mut self, message: &str) {
         // A hidden bar (stderr not a terminal) would swallow the line.
         if self.bar.is_hidden() {
@@ -406,6 +416,10 @@ pub struct ScanArgs {
     /// Complete the scan already in `--out`.
     #[arg(long)]
     pub resume: bool,
+    /// Scan into a non-empty `--out` that holds no scan (its files may be
+    /// overwritten).
+    #[arg(long)]
+    pub force: bool,
     /// Nominal geometry file (default: the shipped default scanner).
     #[arg(long)]
     pub geometry: Option<PathBuf>,
@@ -429,6 +443,11 @@ pub struct ScanArgs {
     /// Camera timeout per frame, s.
     #[arg(long, default_value_t = 10.0)]
     pub frame_timeout: f64,
+    /// Check every axis against its switch (by homing) after every N
+    /// frames, and once all are taken (0: only then). A check that finds
+    /// lost steps retakes the frames since the last good one.
+    #[arg(long, default_value_t = scan::DEFAULT_CHECK_EVERY)]
+    pub check_every: usize,
 }
 
 impl ScanArgs {
@@ -493,6 +512,14 @@ pub fn run_scan(
         return Err(Failure(2, anyhow!("--frame-timeout must be 0…3600 s")));
     }
     let geometry = load_geometry(scan_args.geometry.as_deref(), opened)?;
+    if let Some(n) = scan_args.mirrors
+        && !(1..=geometry.mirrors.len()).contains(&n)
+    {
+        return Err(Failure(
+            2,
+            anyhow!("--mirrors {n}: this scanner has mirrors 1…{}", geometry.mirrors.len()),
+        ));
+    }
     let mut camera = camera_for(scan_args.camera.as_deref(), opened.rig.as_ref())?;
     let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
     opts.resume = scan_args.resume;
@@ -500,7 +527,11 @@ pub fn run_scan(
     opts.exposure_us = scan_args.exposure_us;
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
     opts.bracket_us = scan_args.bracket()?;
-    let bar = ProgressBar::new(geometry.mirrors.len() as u64);
+    opts.check_every = scan_args.check_every;
+    opts.force = scan_args.force;
+    opts.simulator = opened.simulator.clone();
+    opts.interrupt = Some(interrupt_flag());
+    let bar = super::progress_bar(geometry.mirrors.len() as u64);
     bar.set_style(
         ProgressStyle::with_template(
             "{prefix} [{bar:30}] {pos}/{len} frames, {elapsed} elapsed, ETA {eta} {msg}",
@@ -511,14 +542,20 @@ pub fn run_scan(
     let mut progress = Bar { bar: bar.clone(), label: label.to_string() };
     let report = scan::scan(&mut opened.device, camera.as_mut(), &geometry, &opts, &mut progress);
     bar.finish_and_clear();
-    let report = report.map_err(scan_failure)?;
+    let report = report.map_err(|e| match e {
+        ScanError::Interrupted { .. } => {
+            Failure(e.exit_code(), anyhow!("{e}; continue with:\n  {}", resume_command()))
+        }
+        e => scan_failure(e),
+    })?;
     let t = report.timings;
     println!(
-        "{label}: {} frames taken, {} kept, {} retaken, {} resets survived; {:.1} s (link {:.1} s, camera {:.1} s, disk {:.1} s) → {}",
+        "{label}: {} frames taken, {} kept, {} retaken, {} resets survived, {} position checks; {:.1} s (link {:.1} s, camera {:.1} s, disk {:.1} s) → {}",
         report.captured,
         report.kept,
         report.retakes,
         report.resets,
+        report.checks,
         t.total.as_secs_f64(),
         t.link.as_secs_f64(),
         t.camera.as_secs_f64(),
@@ -533,6 +570,52 @@ pub fn run_scan(
         );
     }
     Ok(report)
+}
+
+/// Set by the first Ctrl-C: the scan stops after the frame in progress,
+/// keeping every frame; a second Ctrl-C quits at once.
+fn interrupt_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::{Arc, OnceLock};
+    static FLAG: OnceLock<Arc<AtomicBool>> = OnceLock::new();
+    FLAG.get_or_init(|| {
+        let flag = Arc::new(AtomicBool::new(false));
+        let set = flag.clone();
+        let installed = ctrlc::set_handler(move || {
+            if set.swap(true, Ordering::SeqCst) {
+                std::process::exit(130);
+            }
+            eprintln!(
+                "\nscanner: stopping after the frame in progress (Ctrl-C again quits at once)"
+            );
+        });
+        if let Err(e) = installed {
+            tracing::warn!("Ctrl-C will stop at once, not between frames: {e}");
+        }
+        flag
+    })
+    .clone()
+}
+
+/// The command that continues an interrupted scan: this one with
+/// `--resume` (for the demo, the demo again: it resumes by itself).
+fn resume_command() -> String {
+    let args: Vec<String> = std::env::args().collect();
+    let quoted: Vec<String> = args
+        .iter()
+        .map(|a| {
+            if a.chars().all(|c| c.is_ascii_alphanumeric() || "-_./:=,@".contains(c)) {
+                a.clone()
+            } else {
+                format!("'{}'", a.replace('\'', "'\\''"))
+            }
+        })
+        .collect();
+    let mut cmd = quoted.join(" ");
+    if args.get(1).is_some_and(|a| a == "scan") && !args.iter().any(|a| a == "--resume") {
+        cmd.push_str(" --resume");
+    }
+    cmd
 }
 
 /// `scanner scan`
@@ -586,6 +669,7 @@ pub fn demo(
             sample_name: label.into(),
             out: out.join(label),
             resume: true,
+            force: false,
             geometry: None,
             camera: None,
             mirrors,
@@ -593,6 +677,7 @@ pub fn demo(
             exposures: Vec::new(),
             hdr,
             frame_timeout: 10.0,
+            check_every: scan::DEFAULT_CHECK_EVERY,
         };
         run_scan(&mut opened, &scan_args, label)?;
     }

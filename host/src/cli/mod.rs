@@ -309,9 +309,10 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
 }
 
 /// Before any work: the output may be written (not a device node, symlink,
-/// directory or the input: exit 4) and has one of the file types the
+/// directory or the input: exit 4), then has one of the file types the
 /// command writes (exit 2).
 fn check_output(out: &Path, input: &Path, types: &[&str]) -> Result<(), Failure> {
+    crate::fsutil::check_output(out, &[input]).map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
     let ext = out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
     if !types.is_empty() && !ext.as_deref().is_some_and(|e| types.contains(&e)) {
         return Err(Failure(
@@ -319,7 +320,7 @@ fn check_output(out: &Path, input: &Path, types: &[&str]) -> Result<(), Failure>
             anyhow::anyhow!("{}: the output must be .{}", out.display(), types.join(" or .")),
         ));
     }
-    crate::fsutil::check_output(out, &[input]).map_err(|e| Failure(4, anyhow::anyhow!(e)))
+    Ok(())
 }
 
 fn load_brdf(path: &Path) -> anyhow::Result<Box<dyn Brdf>> {
@@ -410,13 +411,18 @@ fn run(cli: Cli) -> Result<(), Failure> {
             }
             check_output(&out, &path, &["json"])?;
             let samples = input(load_samples(&path))?;
+            for c in samples.black_channels() {
+                eprintln!(
+                    "scanner: warning: channel {c} is zero wherever measured: its model is black"
+                );
+            }
             let opts = FitOptions {
                 g,
                 weighting: Weighting::Compressive { p },
                 max_iterations,
                 ..FitOptions::default()
             };
-            let bar = ProgressBar::new((3 * max_iterations) as u64);
+            let bar = progress_bar((3 * max_iterations) as u64);
             bar.set_style(
                 ProgressStyle::with_template(
                     "{spinner} fitting [{bar:30}] {pos}/{len} iterations {msg}",
@@ -485,10 +491,38 @@ fn run(cli: Cli) -> Result<(), Failure> {
     Ok(())
 }
 
+/// Every progress bar is drawn through this, so that log lines are printed
+/// above the bars instead of across them.
+fn bars() -> &'static indicatif::MultiProgress {
+    static BARS: std::sync::OnceLock<indicatif::MultiProgress> = std::sync::OnceLock::new();
+    BARS.get_or_init(indicatif::MultiProgress::new)
+}
+
+/// A progress bar on stderr (hidden when stderr is not a terminal).
+fn progress_bar(len: u64) -> ProgressBar {
+    bars().add(ProgressBar::new(len))
+}
+
+/// Log lines (tracing) on stderr, with the bars lifted out of the way.
+struct LogWriter;
+
+impl std::io::Write for LogWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        bars().suspend(|| std::io::stderr().write_all(buf))?;
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
+    }
+}
+
 /// The `scanner` program.
 pub fn main() -> ExitCode {
+    use std::io::IsTerminal;
     tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
+        // Colour codes only for a person at a terminal.
+        .with_ansi(std::io::stderr().is_terminal())
+        .with_writer(|| LogWriter)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),

@@ -204,6 +204,11 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             5,
             event(Event::Log { level: LogLevel::Warn, text: LogText::truncated("stall?") }),
         ),
+        (
+            "Event::PositionChecked",
+            6,
+            event(Event::PositionChecked { axis: Axis::Disk, error_steps: -400 }),
+        ),
     ]
 }
 

@@ -1,0 +1,488 @@
+//! Capture integrity: one writer per scan directory, outputs that never
+//! destroy what is at their path, damaged manifests recovered, directory
+//! syncs after renames, interruption, and the exit codes and messages the
+//! README's table documents. (Lost steps: `tests/scan.rs`.)
+
+mod common;
+
+use std::path::Path;
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use common::*;
+use hil_sim::FaultPlan;
+use host::scan::Manifest;
+
+fn run(args: &[&str]) -> (Option<i32>, String, String) {
+    let out = scanner().args(args).output().unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// `scanner scan` on the in-process simulator (64² sensor) with `extra`.
+fn sim_scan(out: &Path, mirrors: usize, extra: &[&str]) -> (Option<i32>, String, String) {
+    let o = out.display().to_string();
+    let m = mirrors.to_string();
+    let mut args = vec![
+        "scan",
+        "--device",
+        "sim",
+        "--sim-bin",
+        "64",
+        "--sample-name",
+        "s",
+        "--out",
+        &o,
+        "--mirrors",
+        &m,
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
+/// Every file under `dir` and its bytes.
+fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((p.display().to_string(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+// ----- 2. one writer per scan directory -------------------------------------------
+
+#[test]
+fn a_second_scan_in_a_directory_in_use_exits_3_and_touches_nothing() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let (code, _, err) = sim_scan(&out, 3, &[]);
+    assert_eq!(code, Some(0), "{err}");
+    // Damage a frame so that a resume would write; then hold the scan's
+    // lock as a running scan does (flock: another open file description).
+    std::fs::write(out.join("frames/mirror-01.exr"), b"damaged").unwrap();
+    let lock = std::fs::File::options().write(true).open(out.join(".lock")).unwrap();
+    lock.lock().unwrap();
+    let before = snapshot(&out);
+    for extra in [&["--resume"][..], &[][..]] {
+        let (code, _, err) = sim_scan(&out, 3, extra);
+        assert_eq!(code, Some(3), "{extra:?}: {err}");
+        assert!(err.contains("another scan is using"), "{err}");
+        assert_eq!(snapshot(&out), before, "{extra:?}: nothing written");
+    }
+    // A new directory being created by another scan: the same.
+    let fresh = sub(dir.path(), "fresh");
+    std::fs::create_dir_all(&fresh).unwrap();
+    let lock2 = std::fs::File::create(fresh.join(".lock")).unwrap();
+    lock2.lock().unwrap();
+    let (code, _, err) = sim_scan(&fresh, 2, &[]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(!fresh.join("manifest.json").exists());
+    drop((lock, lock2));
+    // Released: the resume repairs the frame.
+    let (code, _, err) = sim_scan(&out, 3, &["--resume"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(run(&["verify", &out.display().to_string()]).0, Some(0));
+}
+
+#[test]
+fn two_scans_started_together_do_not_both_write_the_directory() {
+    // Two processes race for one directory: the lock lets exactly one scan.
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let o = out.display().to_string();
+    let args = [
+        "scan",
+        "--device",
+        "sim",
+        "--sim-bin",
+        "16",
+        "--sample-name",
+        "s",
+        "--out",
+        &o,
+        "--mirrors",
+        "12",
+        "--check-every",
+        "1",
+    ];
+    let a = scanner().args(args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+    let b = scanner().args(args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+    let (a, b) = (a.wait_with_output().unwrap(), b.wait_with_output().unwrap());
+    let codes = [a.status.code(), b.status.code()];
+    let errs = [&a.stderr, &b.stderr].map(|e| String::from_utf8_lossy(e).into_owned());
+    // One wins; the other finds the directory locked (3) or, if it came
+    // second, already holding a scan (3). Never two exit 0.
+    assert!(codes.contains(&Some(0)) && codes.contains(&Some(3)), "{codes:?} {errs:?}");
+    let m = Manifest::load(&out).unwrap();
+    assert!(m.complete && m.frames.len() == 12);
+    assert_eq!(run(&["verify", &o]).0, Some(0));
+}
+
+// ----- 3. outputs never destroy what is at the path --------------------------------
+
+#[test]
+fn outputs_refuse_device_nodes_symlinks_and_their_inputs_before_any_work() {
+    use std::os::unix::fs::FileTypeExt;
+    let dir = tmp();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    let (code, _, err) = run(&["synth-merl", "--material", "ggx", "-o", &p("t.binary")]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, _, err) = run(&["fit", &p("t.binary"), "-o", &p("m.json"), "--max-iterations", "2"]);
+    assert_eq!(code, Some(0), "{err}");
+    // A device node stays a device node.
+    for dev in ["/dev/full", "/dev/null"] {
+        let (code, _, err) = run(&["fit", &p("t.binary"), "-o", dev, "--max-iterations", "1"]);
+        assert_eq!(code, Some(4), "{dev}: {err}");
+        assert!(err.contains("a device node"), "{err}");
+        assert!(std::fs::metadata(dev).unwrap().file_type().is_char_device(), "{dev} replaced");
+        let (code, _, err) = run(&["synth-merl", "--material", "ggx", "-o", dev]);
+        assert_eq!(code, Some(4), "{dev}: {err}");
+    }
+    // A symbolic link: neither the link nor its target changes.
+    std::fs::write(dir.path().join("target.json"), b"precious").unwrap();
+    std::os::unix::fs::symlink(dir.path().join("target.json"), dir.path().join("link.json"))
+        .unwrap();
+    let (code, _, err) = run(&["fit", &p("t.binary"), "-o", &p("link.json")]);
+    assert_eq!(code, Some(4), "{err}");
+    assert!(err.contains("symbolic link"), "{err}");
+    assert_eq!(std::fs::read(dir.path().join("target.json")).unwrap(), b"precious");
+    assert!(std::fs::symlink_metadata(dir.path().join("link.json")).unwrap().is_symlink());
+    // The input, also under another name.
+    std::fs::hard_link(dir.path().join("m.json"), dir.path().join("same.json")).unwrap();
+    let model = std::fs::read(dir.path().join("m.json")).unwrap();
+    let (code, _, err) = run(&["plot-npf", &p("m.json"), "-o", &p("m.json")]);
+    assert_eq!(code, Some(4), "{err}");
+    assert!(err.contains("would replace the input"), "{err}");
+    let (code, _, err) = run(&["render-brdf", &p("m.json"), "-o", &p("same.json")]);
+    assert_eq!(code, Some(4), "another name of the input: {err}");
+    let (code, _, err) = run(&["fit", &p("t.binary"), "-o", &p("same.json")]);
+    assert_eq!(code, Some(0), "another file may be replaced: {err}");
+    let (code, _, err) = run(&["synth-merl", "--material", "ggx", "-o", &p("t.binary")]);
+    assert_eq!(code, Some(0), "{err}");
+    std::fs::write(dir.path().join("m.json"), &model).unwrap();
+    let (code, _, err) = run(&["fit", &p("m.json"), "-o", &p("m.json")]);
+    assert_ne!(code, Some(0), "{err}");
+    assert_eq!(std::fs::read(dir.path().join("m.json")).unwrap(), model);
+    // Output formats are checked before the work, not after.
+    let t = Instant::now();
+    let (code, _, err) = run(&["render-brdf", &p("m.json"), "-o", &p("x.jpg"), "--size", "4096"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains(".png or .exr"), "{err}");
+    assert!(t.elapsed() < Duration::from_secs(5), "refused before rendering");
+    let (code, _, err) = run(&["plot-npf", &p("m.json"), "-o", &p("x.exr")]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(!dir.path().join("x.jpg").exists() && !dir.path().join("x.exr").exists());
+}
+
+// ----- 4. a folder that holds something else ----------------------------------------
+
+#[test]
+fn a_non_empty_folder_without_a_manifest_is_refused_unless_forced() {
+    let dir = tmp();
+    let out = sub(dir.path(), "photos");
+    std::fs::create_dir_all(out.join("frames")).unwrap();
+    std::fs::write(out.join("frames/mirror-00.exr"), b"someone's file").unwrap();
+    std::fs::write(out.join("notes.txt"), b"keep me").unwrap();
+    let before = snapshot(&out);
+    for extra in [&[][..], &["--resume"][..]] {
+        let (code, _, err) = sim_scan(&out, 2, extra);
+        assert_eq!(code, Some(3), "{extra:?}: {err}");
+        assert!(err.contains("is not empty") && err.contains("--force"), "{err}");
+        assert_eq!(snapshot(&out), before, "nothing touched");
+    }
+    let (code, _, err) = sim_scan(&out, 2, &["--force"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(std::fs::read(out.join("notes.txt")).unwrap(), b"keep me");
+    // An empty folder needs no --force.
+    let empty = sub(dir.path(), "empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    assert_eq!(sim_scan(&empty, 1, &[]).0, Some(0));
+    // A file where the directory should be.
+    let file = dir.path().join("file");
+    std::fs::write(&file, b"x").unwrap();
+    let (code, _, err) = sim_scan(&file, 1, &[]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("not a directory"), "{err}");
+}
+
+// ----- 5. a damaged manifest ----------------------------------------------------------
+
+#[test]
+fn a_damaged_manifest_is_recovered_from_the_previous_one() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let o = out.display().to_string();
+    let (code, _, err) = sim_scan(&out, 4, &[]);
+    assert_eq!(code, Some(0), "{err}");
+    let prev = Manifest::load(&out).unwrap();
+    assert!(out.join("manifest.json.prev").is_file(), "rotated on every save");
+    // Not UTF-8: damaged (3), not a write error (4); nothing changes.
+    std::fs::write(out.join("manifest.json"), b"{\"format\": \"\xff\xfe\"}").unwrap();
+    let before = snapshot(&out);
+    let (code, _, err) = run(&["verify", &o]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("damaged") && err.contains("not UTF-8"), "{err}");
+    let (code, _, err) = sim_scan(&out, 4, &[]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("`--resume` recovers"), "{err}");
+    assert_eq!(snapshot(&out), before);
+    // --resume recovers from manifest.json.prev, re-verifying its frames;
+    // the damaged file is kept aside.
+    let (code, text, err) = sim_scan(&out, 4, &["--resume"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("recovering from manifest.json.prev"), "{err}");
+    assert!(text.contains("0 frames taken, 4 kept"), "{text}");
+    assert!(out.join("manifest.json.damaged").is_file());
+    let m = Manifest::load(&out).unwrap();
+    assert_eq!(m.frames, prev.frames);
+    assert_eq!(run(&["verify", &o]).0, Some(0));
+    // Both gone or damaged: refused, still exit 3.
+    std::fs::write(out.join("manifest.json"), b"[").unwrap();
+    std::fs::write(out.join("manifest.json.prev"), b"[").unwrap();
+    let (code, _, err) = sim_scan(&out, 4, &["--resume"]);
+    assert_eq!(code, Some(3), "{err}");
+}
+
+#[test]
+fn resume_refuses_another_simulator_a_foreign_mirror_and_names_what_differs() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let o = out.display().to_string();
+    let (code, _, err) = sim_scan(&out, 3, &[]);
+    assert_eq!(code, Some(0), "{err}");
+    let m = Manifest::load(&out).unwrap();
+    assert_eq!(m.settings.simulator.as_deref(), Some("simulated woven-fabric, seed 1, binning 64"));
+    // Another simulator seed: another scanner.
+    let (code, _, err) = sim_scan(&out, 3, &["--resume", "--sim-seed", "2"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("scanner simulated woven-fabric, seed 1"), "{err}");
+    // Another exposure: named, no Rust debug output.
+    let (code, _, err) = sim_scan(&out, 3, &["--resume", "--exposure-us", "20000"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("exposure 50000 µs (the directory's) vs 20000 µs"), "{err}");
+    assert!(!err.contains("ScanSettings") && !err.contains("Some("), "{err}");
+    // A deleted frame is missing, not damaged.
+    std::fs::remove_file(out.join("frames/mirror-02.exr")).unwrap();
+    let (code, text, _) = run(&["verify", &o]);
+    assert_eq!(code, Some(3));
+    assert!(text.contains("missing: mirror 2") && !text.contains("damaged"), "{text}");
+    // A manifest that lists a mirror outside the scan is damaged.
+    let text = std::fs::read_to_string(out.join("manifest.json")).unwrap();
+    std::fs::write(out.join("manifest.json"), text.replace("\"mirror\": 1,", "\"mirror\": 57,"))
+        .unwrap();
+    let (code, _, err) = run(&["verify", &o]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("mirror 57 in a scan of mirrors 0…2"), "{err}");
+    let (code, _, err) = sim_scan(&out, 3, &[]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("mirror 57"), "{err}");
+}
+
+// ----- 6. directory fsync after every rename ---------------------------------------
+
+#[test]
+fn every_rename_into_the_scan_is_followed_by_a_directory_fsync() {
+    // strace (installed by scripts/setup.sh) records the system calls.
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let trace = dir.path().join("trace");
+    let status = std::process::Command::new("strace")
+        .args(["-f", "-qq", "-e", "trace=openat,rename,renameat,renameat2,fsync,close", "-o"])
+        .arg(&trace)
+        .arg(env!("CARGO_BIN_EXE_scanner-e2e"))
+        .args(["scan", "--device", "sim", "--sim-bin", "64", "--sample-name", "s", "--out"])
+        .arg(&out)
+        .args(["--mirrors", "3"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .expect("strace runs (scripts/setup.sh installs it)");
+    assert!(status.success());
+    let trace = std::fs::read_to_string(&trace).unwrap();
+    let out_s = out.display().to_string();
+    // Per process: fd → path of directories opened; after each rename into
+    // the scan, an fsync of an fd opened on the destination's directory
+    // must come before that process' next rename.
+    let lines: Vec<&str> = trace.lines().collect();
+    let mut renames = 0;
+    for (i, l) in lines.iter().enumerate() {
+        if !(l.contains("rename") && l.contains(&out_s)) || l.contains("= -1") {
+            continue;
+        }
+        renames += 1;
+        let pid = l.split_whitespace().next().unwrap();
+        let dest = l.rsplit('"').nth(1).unwrap();
+        let parent = Path::new(dest).parent().unwrap().display().to_string();
+        let mut synced = false;
+        let mut fds = Vec::new();
+        for m in &lines[i + 1..] {
+            if !m.starts_with(pid) {
+                continue;
+            }
+            if m.contains(&format!("openat(AT_FDCWD, \"{parent}\""))
+                && let Some(fd) = m.rsplit("= ").next()
+            {
+                fds.push(fd.trim().to_string());
+            }
+            if m.contains("fsync(") && fds.iter().any(|fd| m.contains(&format!("fsync({fd})"))) {
+                synced = true;
+                break;
+            }
+            if m.contains("rename") {
+                break;
+            }
+        }
+        assert!(synced, "no fsync of {parent} after {l}");
+    }
+    assert!(renames >= 3 + 2, "frames and manifests renamed: {renames}");
+}
+
+// ----- exit codes and messages -------------------------------------------------------
+
+#[test]
+fn bad_values_are_refused_before_anything_moves_or_is_written() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    for (extra, what) in [
+        (&["--exposure-us", "0"][..], "--exposure-us 0 outside"),
+        (&["--exposures", "100,50000"][..], "--exposures: 100 µs outside"),
+        (&["--mirrors", "1000"][..], "--mirrors 1000: this scanner has mirrors 1…40"),
+        (&["--mirrors", "0"][..], "--mirrors 0"),
+        (&["--frame-timeout", "5000"][..], "--frame-timeout"),
+    ] {
+        let mut args =
+            vec!["scan", "--device", "sim", "--sim-bin", "64", "--sample-name", "s", "--out"];
+        let o = out.display().to_string();
+        args.push(&o);
+        args.extend_from_slice(extra);
+        let (code, _, err) = run(&args);
+        assert_eq!(code, Some(2), "{extra:?}: {err}");
+        assert!(err.contains(what), "{extra:?}: {err}");
+        assert!(!out.exists(), "{extra:?}: nothing written");
+    }
+    // The corrected command then runs.
+    let (code, _, err) = sim_scan(&out, 1, &["--exposure-us", "20000"]);
+    assert_eq!(code, Some(0), "{err}");
+    // verify: no scan at a missing or empty folder, or a file.
+    let empty = sub(dir.path(), "empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let file = dir.path().join("f");
+    std::fs::write(&file, b"x").unwrap();
+    for d in [dir.path().join("nothing"), empty, file] {
+        let (code, _, err) = run(&["verify", &d.display().to_string()]);
+        assert_eq!(code, Some(3), "{err}");
+        assert!(err.contains("no scan at"), "{err}");
+    }
+}
+
+#[test]
+fn device_errors_are_said_in_words_once() {
+    let dir = tmp();
+    // Homing that fails on a stuck switch: words, not HomingFailed(Track, SwitchStuck).
+    let (code, _, err) =
+        sim_scan(&sub(dir.path(), "a"), 2, &["--sim-fault", "stuck:track:on@ms=0"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("failed on the track axis: its switch stayed pressed"), "{err}");
+    assert!(!err.contains("HomingFailed") && !err.contains("SwitchStuck"), "{err}");
+    // An emergency stop while homing says so.
+    let (code, _, err) = sim_scan(&sub(dir.path(), "b"), 2, &["--sim-fault", "estop:on@ms=300"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("emergency stop"), "{err}");
+    // The error once.
+    let last = err.lines().last().unwrap();
+    assert_eq!(err.matches(last).count(), 1, "printed twice: {err}");
+    // Not a serial port.
+    let file = dir.path().join("not-a-port");
+    std::fs::write(&file, b"x").unwrap();
+    for dev in ["/dev/null", &file.display().to_string()] {
+        let (code, _, err) = run(&["info", "--device", dev]);
+        assert_eq!(code, Some(5), "{err}");
+        assert!(err.contains("not a serial port"), "{err}");
+    }
+}
+
+#[test]
+fn fit_refuses_data_it_cannot_fit_and_names_the_channel() {
+    let dir = tmp();
+    let csv = |name: &str, rgb: [f64; 3]| {
+        let mut text = String::from("wi_x,wi_y,wi_z,wo_x,wo_y,wo_z,r,g,b\n");
+        for k in 0..200 {
+            let t = 0.1 + 1.2 * (k as f64 / 200.0);
+            let s = 0.02 + (k % 7) as f64 * 0.05;
+            text.push_str(&format!(
+                "{},0,{},{},0,{},{},{},{}\n",
+                t.sin(),
+                t.cos(),
+                -(t * 0.7).sin(),
+                (t * 0.7).cos(),
+                rgb[0] * s,
+                rgb[1] * s,
+                rgb[2] * s
+            ));
+        }
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p.display().to_string()
+    };
+    let out = dir.path().join("m.json").display().to_string();
+    let (code, _, err) = run(&["fit", &csv("big.csv", [1e200, 1e200, 1e200]), "-o", &out]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("channel R has values up to"), "{err}");
+    let (code, _, err) = run(&["fit", &csv("huge.csv", [1.0, 1e30, 1.0]), "-o", &out]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("channel G"), "{err}");
+    let (code, _, err) = run(&["fit", &csv("nog.csv", [1.0, -1.0, 1.0]), "-o", &out]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("channel G has no measurement"), "{err}");
+    assert!(!dir.path().join("m.json").exists());
+    let (code, _, err) =
+        run(&["fit", &csv("zerob.csv", [1.0, 0.5, 0.0]), "-o", &out, "--max-iterations", "3"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("channel B is zero wherever measured"), "{err}");
+}
+
+#[test]
+fn ctrl_c_keeps_the_frames_and_prints_the_resume_command() {
+    // A scanner in real time on a pty, so that the scan is still running
+    // when the signal comes.
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let out = sub(dir.path(), "scan");
+    let s = setup("leather", FaultPlan::none());
+    let server = serve(&s, &frames_dir);
+    let args = scan_args(server.path(), &frames_dir, &out, 6);
+    let child =
+        scanner().args(&args).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let end = Instant::now() + Duration::from_secs(60);
+    while Manifest::load(&out).map(|m| m.frames.len()).unwrap_or(0) < 1 {
+        assert!(Instant::now() < end, "no frame within 60 s");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let pid = child.id().to_string();
+    assert!(std::process::Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    let r = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(130), "{err}");
+    let m = Manifest::load(&out).unwrap();
+    assert!(!m.complete && !m.frames.is_empty());
+    assert!(err.contains(&format!("interrupted: {} of 6 frames kept", m.frames.len())), "{err}");
+    // The printed command continues the scan.
+    let command = err.lines().last().unwrap().trim();
+    assert!(command.ends_with("--resume"), "{err}");
+    let status = std::process::Command::new("sh").args(["-c", command]).status().unwrap();
+    assert!(status.success(), "{command}");
+    assert!(Manifest::load(&out).unwrap().complete);
+    drop(server);
+}
