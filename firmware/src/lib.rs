@@ -26,6 +26,7 @@ pub mod selftest;
 pub mod step;
 #[cfg(feature = "selftest")]
 pub mod testkit;
+pub mod timer;
 
 pub use controller::Controller;
 pub use protocol;

@@ -34,6 +34,11 @@ macro_rules! ensure {
 /// Every test: (name, function).
 pub const TESTS: &[SelfTest] = &[
     ("planner_step_times_within_one_tick", planner_step_times_within_one_tick),
+    ("step_times_exact_near_2_32_and_2_40_ticks", step_times_exact_near_2_32_and_2_40_ticks),
+    (
+        "step_timer_loses_no_step_and_fires_none_early",
+        step_timer_loses_no_step_and_fires_none_early,
+    ),
     ("planner_respects_speed_and_acceleration", planner_respects_speed_and_acceleration),
     ("planner_stop_profile", planner_stop_profile),
     ("concurrent_move_reaches_targets", concurrent_move_reaches_targets),
@@ -132,6 +137,113 @@ pub fn planner_step_times_within_one_tick() -> TestResult {
         });
         ensure!(steps == n, "step count differs from the move length");
         ensure!(worst <= 1.0, "a step deviates more than one tick from the trapezoid");
+    }
+    Ok(())
+}
+
+/// Moves that start just before the 32-bit counter wraps (358 s), just
+/// before and after 2^40 ticks (25.45 h, where `now << 24` used to overflow)
+/// and late in a 2^63-tick lifetime: every step within a tick of its exact
+/// time after the start, none due at once.
+pub fn step_times_exact_near_2_32_and_2_40_ticks() -> TestResult {
+    let starts =
+        [(1u64 << 32) - 5_000, (1 << 40) - 5_000, (1 << 40) + 12_345, (1 << 63) - (1 << 41)];
+    for start in starts {
+        for &(n, v, a) in &PROFILES[..4] {
+            let profile = Profile::trapezoid(n, 0.0, v, a);
+            let (mut worst, mut previous, mut ordered) = (0.0f64, start, true);
+            let steps = generate(profile, start, |k, t| {
+                let exact = profile.time_at(k as f64) * TICK_HZ as f64;
+                worst = worst.max(((t - start) as f64 - exact).abs());
+                ordered &= t > previous;
+                previous = t;
+            });
+            ensure!(steps == n, "step count differs from the move length");
+            ensure!(ordered, "steps not strictly after the start and each other");
+            ensure!(worst <= 1.0, "a step deviates more than one tick (late in the uptime)");
+        }
+    }
+    Ok(())
+}
+
+/// The step timer's arming logic (`crate::timer`) on a model of TIM2 in
+/// which the counter runs on at every register access: three axes at
+/// 64 000, 5 000 and 2 000 steps/s start, stop and are halted at random,
+/// with idle gaps of a whole counter period (stale compare flags), from
+/// epochs just before the 32-bit wrap and before 2^40 ticks. Every step
+/// fires at or after its tick (none early), within a bounded latency (none
+/// lost: a lost compare flag would wait a whole counter period), and the
+/// overflow count keeps `now` exact.
+pub fn step_timer_loses_no_step_and_fires_none_early() -> TestResult {
+    use crate::step::{ONE_TICK, Segment};
+    use crate::testkit::{ModelPins, Tim2Model};
+    use crate::timer;
+    use core::sync::atomic::AtomicU32;
+    const STEPS: u64 = 1_000_000;
+    // The ISR runs as soon as a flag is pending; each register access
+    // costs up to 8 ticks, so a step is never more than this late.
+    const MAX_LATENCY: u64 = 400;
+    let rates = [64_000u64, 5_000, 2_000];
+    let epochs = [((1u64 << 32) - 3_000_000, 1u64), ((1 << 40) - 3_000_000, 2)];
+    for (epoch, seed) in epochs {
+        let clock = core::cell::Cell::new(epoch);
+        let mut t = Tim2Model::new(&clock, seed, 8);
+        let overflows = AtomicU32::new((epoch >> 32) as u32);
+        let mut gens = [StepGenerator::new(), StepGenerator::new(), StepGenerator::new()];
+        let mut armed: [Option<u64>; 3] = [None; 3];
+        let (mut steps, mut long_idles, mut next_gap) = (0u64, 0, 0u64);
+        while steps < STEPS {
+            // Every 50 000 steps: let the moves end, then a whole counter
+            // period passes idle (every old CCR is passed again: stale flags).
+            let pausing = steps >= next_gap;
+            if pausing && armed.iter().all(Option::is_none) {
+                t.advance(u32::MAX as u64);
+                long_idles += 1;
+                next_gap += 50_000;
+            }
+            // Thread mode, in critical sections: start moves on idle axes,
+            // now and then halt a moving one.
+            for ch in 0..3 {
+                if armed[ch].is_none() && !pausing && t.random().is_multiple_of(16) {
+                    let count = 1 + (t.random() % 2_000) as u32;
+                    let interval = TICK_HZ as u64 * ONE_TICK / rates[ch];
+                    gens[ch].push(Segment { count, interval, add: 0 }).map_err(|_| "queue")?;
+                    let now = timer::now(&mut t, &overflows);
+                    let first = gens[ch].start(now, 1).ok_or("a first step")?;
+                    timer::arm(&mut t, &overflows, ch, first);
+                    armed[ch] = Some(first);
+                } else if armed[ch].is_some() && t.random().is_multiple_of(20_000) {
+                    gens[ch].halt();
+                    timer::disarm(&mut t, ch);
+                    armed[ch] = None;
+                }
+            }
+            let dt = t.random() % 48;
+            t.advance(dt);
+            // The step interrupt (the board's handler), whenever a flag is
+            // pending.
+            while timer::pending(&mut t) {
+                let was = armed;
+                let mut pins = ModelPins { clock: &clock, raised: [None; 3] };
+                let due = timer::on_interrupt(&mut t, &overflows, &mut gens, &mut pins);
+                for ch in (0..3).filter(|&ch| due[ch]) {
+                    let tick = was[ch].ok_or("a step fired on a disarmed axis")?;
+                    let at = pins.raised[ch].ok_or("a due step without its pulse")?;
+                    ensure!(at >= tick, "a step fired early");
+                    ensure!(at - tick <= MAX_LATENCY, "a step came late (lost flag)");
+                    steps += 1;
+                    armed[ch] = gens[ch].next_step_tick();
+                }
+                ensure!(pins.raised.iter().zip(due).all(|(r, d)| r.is_some() == d), "pulses");
+            }
+            for tick in armed.iter().flatten() {
+                ensure!(t.time() <= tick + MAX_LATENCY, "an armed step never fired (lost flag)");
+            }
+            let before = t.time();
+            let now = timer::now(&mut t, &overflows);
+            ensure!(before <= now && now <= t.time(), "now is the counter, 64-bit");
+        }
+        ensure!(long_idles >= 20, "idle gaps of a counter period exercised");
     }
     Ok(())
 }

@@ -4,8 +4,15 @@
 //! move into segments of `(interval, count, add)`; the interrupt only walks
 //! them with O(1) integer arithmetic per step (three 64-bit adds, a compare and
 //! a shift). Times are kept in fixed point, `ticks << FRAC_BITS`, so intervals
-//! such as 156.25 ticks (64 000 steps/s at 10 MHz) do not drift, and the step
+//! such as 187.5 ticks (64 000 steps/s at 12 MHz) do not drift, and the step
 //! fires at `round(time)` ticks.
+//!
+//! The fixed-point times are relative to the move's start (`origin`), not
+//! to boot: `now << FRAC_BITS` would overflow 64 bits once `now` reaches
+//! 2^40 ticks (25.45 h at 12 MHz), and every step after that would be due at
+//! once. Relative to its start a move has 2^40 ticks (25 h) of exact time,
+//! far beyond the longest move (the full track at the slowest accepted
+//! speed: 9.3 h), and the board's uptime is unbounded (2^64 ticks).
 //!
 //! This module owns the per-axis position counter: the position is what the
 //! step pulses have done, not what was planned.
@@ -49,8 +56,10 @@ pub struct StepGenerator {
     count: u32,
     interval: u64,
     add: i64,
-    /// Fixed-point time of the last step, offset by half a tick so that
-    /// `>> FRAC_BITS` rounds to the nearest tick.
+    /// Tick at which the move started: the origin of `last`.
+    origin: u64,
+    /// Fixed-point time of the last step since `origin`, offset by half a
+    /// tick so that `>> FRAC_BITS` rounds to the nearest tick.
     last: u64,
     position: i32,
     direction: i32,
@@ -71,6 +80,7 @@ impl StepGenerator {
             count: 0,
             interval: 0,
             add: 0,
+            origin: 0,
             last: 0,
             position: 0,
             direction: 1,
@@ -137,21 +147,27 @@ impl StepGenerator {
     /// `now`. Segments must be queued first (or pushed before the first step is
     /// due). Returns the tick of the first step.
     pub fn start(&mut self, now: u64, direction: i32) -> Option<u64> {
-        self.last = (now << FRAC_BITS) + HALF_TICK;
+        self.origin = now;
+        self.last = HALF_TICK;
         self.direction = if direction < 0 { -1 } else { 1 };
         self.count = 0;
         self.running = true;
         self.load_next()
     }
 
-    /// Fixed-point time origin of the move (tick of the last step, rounded).
+    /// Tick of the last step (or of the move's start), rounded.
     pub fn last_step_tick(&self) -> u64 {
-        self.last >> FRAC_BITS
+        self.origin.wrapping_add(self.last >> FRAC_BITS)
     }
 
     /// Tick of the next step, if one is scheduled.
     pub fn next_step_tick(&self) -> Option<u64> {
-        (self.running && self.count > 0).then(|| (self.last + self.interval) >> FRAC_BITS)
+        (self.running && self.count > 0).then(|| self.tick(self.last + self.interval))
+    }
+
+    /// The tick of a fixed-point time since the move's start.
+    fn tick(&self, fixed: u64) -> u64 {
+        self.origin.wrapping_add(fixed >> FRAC_BITS)
     }
 
     /// **The interrupt routine**: account for the step that is due now (the
@@ -166,7 +182,7 @@ impl StepGenerator {
         self.interval = self.interval.wrapping_add_signed(self.add);
         self.count -= 1;
         if self.count > 0 {
-            return Some((self.last + self.interval) >> FRAC_BITS);
+            return Some(self.tick(self.last + self.interval));
         }
         self.load_next()
     }
@@ -177,7 +193,7 @@ impl StepGenerator {
                 self.count = seg.count;
                 self.interval = seg.interval;
                 self.add = seg.add;
-                Some((self.last + self.interval) >> FRAC_BITS)
+                Some(self.tick(self.last + self.interval))
             }
             _ => {
                 self.running = false;
@@ -201,8 +217,8 @@ impl StepGenerator {
         dropped
     }
 
-    /// Fixed-point time of the pending step (the origin for a plan that
-    /// continues after it), if any.
+    /// Fixed-point time of the pending step since the move's start (the
+    /// origin for a plan that continues after it), if any.
     pub fn pending_step_time(&self) -> Option<u64> {
         (self.running && self.count > 0).then(|| self.last + self.interval)
     }

@@ -318,3 +318,114 @@ impl Default for Rig {
         Self::new()
     }
 }
+
+// ----- a model of TIM2 ---------------------------------------------------------------
+
+/// TIM2 as the step timer sees it, with the real semantics: a free-running
+/// 32-bit counter; a compare flag set when the counter *equals* CCRx (whether
+/// or not its interrupt is enabled); UIF at every wrap; rc_w0 status flags;
+/// EGR.CCxG. The counter runs on by a random number of ticks (0 …
+/// `max_step`) at **every register access**, so compare events and
+/// overflows land at every point of the code under test. Time is kept in a
+/// shared [`Cell`](core::cell::Cell) so that a model STEP pin can read it.
+#[derive(Debug)]
+pub struct Tim2Model<'a> {
+    /// Ticks since the model's epoch (the counter is its low 32 bits).
+    pub clock: &'a core::cell::Cell<u64>,
+    sr: u32,
+    dier: u32,
+    ccr: [u32; 3],
+    rng: u64,
+    /// Largest advance per register access, ticks.
+    pub max_step: u64,
+}
+
+impl<'a> Tim2Model<'a> {
+    /// A model at `clock`'s time, counter running, flags clear, UIE set.
+    pub fn new(clock: &'a core::cell::Cell<u64>, seed: u64, max_step: u64) -> Tim2Model<'a> {
+        Tim2Model { clock, sr: 0, dier: crate::timer::UIF, ccr: [0; 3], rng: seed | 1, max_step }
+    }
+
+    /// Ticks since the epoch.
+    pub fn time(&self) -> u64 {
+        self.clock.get()
+    }
+
+    /// A pseudo-random number (xorshift64*).
+    pub fn random(&mut self) -> u64 {
+        self.rng ^= self.rng >> 12;
+        self.rng ^= self.rng << 25;
+        self.rng ^= self.rng >> 27;
+        self.rng.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    /// Let `dt` ticks pass: compare matches and wraps on the way set flags.
+    pub fn advance(&mut self, dt: u64) {
+        if dt == 0 {
+            return;
+        }
+        let time = self.time();
+        for ch in 0..3 {
+            // A tick t in (time, time + dt] with t mod 2^32 == CCR?
+            let first = (self.ccr[ch] as u64).wrapping_sub(time + 1) & 0xFFFF_FFFF;
+            if first < dt {
+                self.sr |= crate::timer::ccif(ch);
+            }
+        }
+        if (time >> 32) != ((time + dt) >> 32) {
+            self.sr |= crate::timer::UIF;
+        }
+        self.clock.set(time + dt);
+    }
+
+    fn bus(&mut self) {
+        let dt = self.random() % (self.max_step + 1);
+        self.advance(dt);
+    }
+}
+
+impl crate::timer::TimerRegs for Tim2Model<'_> {
+    fn cnt(&mut self) -> u32 {
+        self.bus();
+        self.time() as u32
+    }
+    fn sr(&mut self) -> u32 {
+        self.bus();
+        self.sr
+    }
+    fn write_sr(&mut self, value: u32) {
+        self.bus();
+        self.sr &= value; // rc_w0
+    }
+    fn dier(&mut self) -> u32 {
+        self.bus();
+        self.dier
+    }
+    fn write_dier(&mut self, value: u32) {
+        self.bus();
+        self.dier = value;
+    }
+    fn write_ccr(&mut self, ch: usize, value: u32) {
+        self.bus();
+        self.ccr[ch] = value;
+    }
+    fn generate(&mut self, ch: usize) {
+        self.bus();
+        self.sr |= crate::timer::ccif(ch);
+    }
+}
+
+/// STEP lines on the model's clock: when each was raised last.
+#[derive(Debug)]
+pub struct ModelPins<'a> {
+    /// The model's clock.
+    pub clock: &'a core::cell::Cell<u64>,
+    /// Tick of the last rising edge per channel.
+    pub raised: [Option<u64>; 3],
+}
+
+impl crate::timer::StepPins for ModelPins<'_> {
+    fn raise(&mut self, ch: usize) {
+        self.raised[ch] = Some(self.clock.get());
+    }
+}

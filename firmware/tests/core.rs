@@ -23,6 +23,8 @@ macro_rules! selftests {
 
 selftests!(
     planner_step_times_within_one_tick,
+    step_times_exact_near_2_32_and_2_40_ticks,
+    step_timer_loses_no_step_and_fires_none_early,
     planner_respects_speed_and_acceleration,
     planner_stop_profile,
     concurrent_move_reaches_targets,

@@ -36,6 +36,10 @@ pub trait Camera: Send {
     /// The device reported the trigger's rising edge: nothing that arrived
     /// before it can be its frame.
     fn triggered(&mut self) {}
+    /// An earlier trigger's frame may still arrive (its host was killed):
+    /// wait up to `max` for it and set it aside, so it is not taken for the
+    /// next trigger's frame.
+    fn drain(&mut self, _max: Duration) {}
     /// The frame of the trigger that fired, waiting up to `timeout`.
     fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError>;
     /// What this is, for messages and manifests.
@@ -120,6 +124,20 @@ impl Camera for FolderCamera {
         // a retake) may still be landing; the exposure has only begun.
         if let Ok(names) = self.list() {
             self.seen.extend(names);
+        }
+    }
+
+    fn drain(&mut self, max: Duration) {
+        let end = Instant::now() + max;
+        while Instant::now() < end {
+            match self.list() {
+                Ok(names) if names.difference(&self.seen).next().is_some() => {
+                    self.seen.extend(names);
+                    return;
+                }
+                Ok(_) => std::thread::sleep(self.poll),
+                Err(_) => return,
+            }
         }
     }
 

@@ -961,6 +961,7 @@ pub fn scan(
     let t = Instant::now();
     let prepared = prepare(dev, geometry, progress)?;
     let axes = prepared.axes;
+    await_stray_frame(dev, camera, opts, progress)?;
     report.timings.link += t.elapsed();
 
     // Frames are encoded and written, and the manifest updated, on a second
@@ -1387,6 +1388,26 @@ enum Job {
     Frame(WriteJob),
     /// Record a position check (and mark its frames verified if it passed).
     Check(PositionCheck),
+}
+
+/// A host killed during a capture step leaves the device exposing: that
+/// trigger's frame may still be on its way to the camera. Wait for it (up
+/// to the frame timeout after the exposure's end) and set it aside.
+fn await_stray_frame(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    opts: &ScanOptions,
+    progress: &mut dyn ScanProgress,
+) -> Result<(), ScanError> {
+    let Reply::Trigger(Some(t)) = dev.request(Request::GetLastTrigger)? else { return Ok(()) };
+    let now_us = dev.status()?.uptime_ms as u64 * 1000;
+    let end_us = t.timestamp_us + t.exposure_us as u64;
+    let wait_until = end_us + opts.frame_timeout.as_micros() as u64;
+    if now_us < wait_until {
+        progress.note("waiting for the frame of an earlier trigger to set it aside");
+        camera.drain(Duration::from_micros(wait_until - now_us));
+    }
+    Ok(())
 }
 
 /// Queue the unverified frames to be taken again (first, in order).

@@ -403,6 +403,27 @@ fn device_errors_are_said_in_words_once() {
     // The error once.
     let last = err.lines().last().unwrap();
     assert_eq!(err.matches(last).count(), 1, "printed twice: {err}");
+    // Logs to a pipe carry no colour codes.
+    let out = scanner()
+        .args([
+            "scan",
+            "--device",
+            "sim",
+            "--sim-bin",
+            "64",
+            "--sample-name",
+            "s",
+            "--mirrors",
+            "1",
+        ])
+        .arg("--out")
+        .arg(dir.path().join("c"))
+        .env("RUST_LOG", "host=debug")
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && log.contains("DEBUG"), "{log}");
+    assert!(!log.contains('\x1b'), "colour codes in a pipe: {log:?}");
     // Not a serial port.
     let file = dir.path().join("not-a-port");
     std::fs::write(&file, b"x").unwrap();

@@ -27,9 +27,9 @@ use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
 use embassy_stm32::{Peri, peripherals as p};
 use firmware::hal::Inputs;
 
-/// Shortest STEP high time, in core cycles at 96 MHz: 1 µs (TMC2209 needs
-/// 100 ns; set 192 for the DRV8825's 1.9 µs).
-pub const STEP_PULSE_CYCLES: u32 = 96;
+/// Shortest STEP high time, ns: 1 µs (TMC2209 needs 100 ns; set 1 900 for
+/// the DRV8825's 1.9 µs). Converted to core cycles from the clock tree.
+pub const STEP_PULSE_NS: u32 = 1_000;
 
 /// STEP and DIR lines per axis, EN shared.
 pub struct Motors {

@@ -3,24 +3,54 @@
 //! overflows, and compare channels 1–3 scheduling the next step of the DISK,
 //! TRACK and TILT axes. Step pulses come from this hardware timer's compare
 //! interrupts, never from software delays.
+//!
+//! The arming logic is `firmware::timer`, shared with the host tests that
+//! run it against a model of TIM2 (rc_w0 flags, compare events between any
+//! two register accesses); this file only maps its [`TimerRegs`] onto the
+//! registers and keeps `arm`/`disarm` inside a critical section.
 
-use core::sync::atomic::{AtomicU32, Ordering};
+use core::sync::atomic::AtomicU32;
 
 use embassy_stm32::pac;
 use embassy_stm32::pac::timer::vals;
 use firmware::hal::TICK_HZ;
+use firmware::timer::{self, TimerRegs};
 use protocol::Axis;
 
 static OVERFLOWS: AtomicU32 = AtomicU32::new(0);
 
-fn tim() -> pac::timer::TimGp32 {
-    pac::TIM2
+/// TIM2's registers.
+struct Tim2;
+
+impl TimerRegs for Tim2 {
+    fn cnt(&mut self) -> u32 {
+        pac::TIM2.cnt().read()
+    }
+    fn sr(&mut self) -> u32 {
+        pac::TIM2.sr().read().0
+    }
+    fn write_sr(&mut self, value: u32) {
+        // rc_w0: a plain write, never a read-modify-write.
+        pac::TIM2.sr().write_value(pac::timer::regs::SrGp16(value));
+    }
+    fn dier(&mut self) -> u32 {
+        pac::TIM2.dier().read().0
+    }
+    fn write_dier(&mut self, value: u32) {
+        pac::TIM2.dier().write_value(pac::timer::regs::DierGp16(value));
+    }
+    fn write_ccr(&mut self, ch: usize, value: u32) {
+        pac::TIM2.ccr(ch).write_value(value);
+    }
+    fn generate(&mut self, ch: usize) {
+        pac::TIM2.egr().write(|w| w.set_ccg(ch, true));
+    }
 }
 
 /// Start TIM2 at `TICK_HZ` from a `timer_clock_hz` kernel clock.
 pub fn start(timer_clock_hz: u32) {
     embassy_stm32::rcc::enable_and_reset::<embassy_stm32::peripherals::TIM2>();
-    let t = tim();
+    let t = pac::TIM2;
     t.cr1().modify(|w| w.set_cen(false));
     t.psc().write_value((timer_clock_hz / TICK_HZ - 1) as u16);
     t.arr().write_value(u32::MAX);
@@ -30,60 +60,33 @@ pub fn start(timer_clock_hz: u32) {
         // Frozen output-compare: the channels only raise interrupts.
         t.ccmr_output(ch / 2).modify(|w| w.set_ocm(ch % 2, vals::Ocm::FROZEN));
     }
-    t.dier().modify(|w| w.set_uie(true));
+    t.dier().write_value(pac::timer::regs::DierGp16(timer::UIF));
     t.cr1().modify(|w| w.set_cen(true));
-    // SAFETY: the TIM2 handler below only touches TIM2, the step pins and the
-    // controller behind a critical section.
+    // SAFETY: the TIM2 handler only touches TIM2, the step pins and the
+    // step generators (behind a critical section).
     unsafe { cortex_m::peripheral::NVIC::unmask(pac::Interrupt::TIM2) };
 }
 
-/// Ticks since boot. Call with interrupts enabled or inside a critical section.
+/// Ticks since boot.
 pub fn now() -> u64 {
-    critical_section::with(|_| {
-        let t = tim();
-        let mut hi = OVERFLOWS.load(Ordering::Relaxed);
-        let lo = t.cnt().read();
-        // An overflow that happened but is not yet counted by the handler.
-        if t.sr().read().uif() && lo < 0x8000_0000 {
-            hi += 1;
-        }
-        ((hi as u64) << 32) | lo as u64
-    })
+    critical_section::with(|_| timer::now(&mut Tim2, &OVERFLOWS))
 }
 
 /// Schedule the step of `axis` at `tick`; a time already past fires at once.
 pub fn arm(axis: Axis, tick: u64) {
-    let t = tim();
-    let ch = axis.index();
-    t.ccr(ch).write_value(tick as u32);
-    t.dier().modify(|w| w.set_ccie(ch, true));
-    if tick <= now() {
-        t.egr().write(|w| w.set_ccg(ch, true));
-    }
+    critical_section::with(|_| timer::arm(&mut Tim2, &OVERFLOWS, axis.index(), tick));
 }
 
 /// Cancel the scheduled step of `axis`.
 pub fn disarm(axis: Axis) {
-    let t = tim();
-    t.dier().modify(|w| w.set_ccie(axis.index(), false));
-    t.sr().modify(|w| w.set_ccif(axis.index(), false));
+    critical_section::with(|_| timer::disarm(&mut Tim2, axis.index()));
 }
 
-/// Pending compare events (and overflow bookkeeping), for the handler.
-pub fn take_due() -> [bool; 3] {
-    let t = tim();
-    let sr = t.sr().read();
-    let dier = t.dier().read();
-    if sr.uif() {
-        t.sr().modify(|w| w.set_uif(false));
-        OVERFLOWS.fetch_add(1, Ordering::Relaxed);
-    }
-    let mut due = [false; 3];
-    for (ch, d) in due.iter_mut().enumerate() {
-        if sr.ccif(ch) && dier.ccie(ch) {
-            t.sr().modify(|w| w.set_ccif(ch, false));
-            *d = true;
-        }
-    }
-    due
+/// The step interrupt's work on TIM2 (`firmware::timer::on_interrupt`):
+/// call with the step block borrowed (inside its critical section).
+pub fn on_interrupt(
+    generators: &mut [firmware::step::StepGenerator; 3],
+    pins: &mut impl timer::StepPins,
+) -> [bool; 3] {
+    timer::on_interrupt(&mut Tim2, &OVERFLOWS, generators, pins)
 }

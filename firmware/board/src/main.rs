@@ -19,7 +19,7 @@ mod clock;
 mod storage;
 
 use core::cell::RefCell;
-use core::sync::atomic::{AtomicBool, Ordering};
+use core::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 use critical_section::Mutex;
 use defmt::{info, unwrap, warn};
@@ -67,6 +67,15 @@ struct StepBlock {
 }
 
 static STEP: Mutex<RefCell<Option<StepBlock>>> = Mutex::new(RefCell::new(None));
+
+/// The STEP pins for the step interrupt's work.
+struct StepLines<'a>(&'a mut [Output<'static>; 3]);
+
+impl firmware::timer::StepPins for StepLines<'_> {
+    fn raise(&mut self, ch: usize) {
+        self.0[ch].set_high();
+    }
+}
 
 /// Frames for the host, written by whoever holds the machine, read by USB.
 static TX: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
@@ -127,27 +136,33 @@ impl Hardware for BoardHw {
     }
 }
 
+/// STEP high time in core cycles, from the clock tree at start-up
+/// ([`board::STEP_PULSE_NS`] at HCLK).
+static STEP_PULSE_CYCLES: AtomicU32 = AtomicU32::new(u32::MAX);
+
+/// The step interrupt (the highest priority: USB and the time driver
+/// cannot delay a step). Raises the STEP line of every due axis and
+/// advances its generator under a short critical section, holds the pulse
+/// with interrupts enabled, then lowers the lines.
 #[interrupt]
 fn TIM2() {
-    critical_section::with(|cs| {
-        let due = clock::take_due();
+    let raised = critical_section::with(|cs| {
         let mut step = STEP.borrow_ref_mut(cs);
-        let Some(block) = step.as_mut() else { return };
-        for axis in Axis::ALL {
-            if !due[axis.index()] {
-                continue;
+        let Some(block) = step.as_mut() else { return [false; 3] };
+        let StepBlock { generators, pins } = block;
+        clock::on_interrupt(generators, &mut StepLines(pins))
+    });
+    if !raised.iter().any(|r| *r) {
+        return;
+    }
+    let start = cortex_m::peripheral::DWT::cycle_count();
+    let width = STEP_PULSE_CYCLES.load(Ordering::Relaxed);
+    while cortex_m::peripheral::DWT::cycle_count().wrapping_sub(start) < width {}
+    critical_section::with(|cs| {
+        if let Some(block) = STEP.borrow_ref_mut(cs).as_mut() {
+            for axis in Axis::ALL.into_iter().filter(|a| raised[a.index()]) {
+                block.pins[axis.index()].set_low();
             }
-            let start = cortex_m::peripheral::DWT::cycle_count();
-            let pin = &mut block.pins[axis.index()];
-            pin.set_high();
-            match block.generators[axis.index()].step() {
-                Some(next) => clock::arm(axis, next),
-                None => clock::disarm(axis),
-            }
-            while cortex_m::peripheral::DWT::cycle_count().wrapping_sub(start)
-                < board::STEP_PULSE_CYCLES
-            {}
-            pin.set_low();
         }
     });
 }
@@ -191,6 +206,7 @@ async fn main(spawner: Spawner) {
         config.rcc.mux.clk48sel = mux::Clk48sel::PLL1_Q;
     }
     let p = embassy_stm32::init(config);
+    let clocks = *embassy_stm32::rcc::clocks(&p.RCC);
     let reason = reset_reason();
     info!("scanner firmware {} booting ({})", env!("CARGO_PKG_VERSION"), reason);
 
@@ -244,8 +260,22 @@ async fn main(spawner: Spawner) {
     MACHINE
         .borrow()
         .replace(Some(Machine { controller, hw: BoardHw { dir, enable_n, camera, store } }));
-    // APB1 at 48 MHz: its timers run at 96 MHz.
-    clock::start(96_000_000);
+    // The step timer from its kernel clock (APB1 at 48 MHz: its timers run
+    // at 96 MHz), the pulse width from the core clock, as configured above.
+    let core_hz = unwrap!(clocks.hclk1.to_hertz()).0;
+    STEP_PULSE_CYCLES.store(
+        (core_hz as u64 * board::STEP_PULSE_NS as u64).div_ceil(1_000_000_000) as u32,
+        Ordering::Relaxed,
+    );
+    clock::start(embassy_stm32::rcc::frequency::<embassy_stm32::peripherals::TIM2>().0);
+    // TIM2 above everything else (every other interrupt is at the default
+    // P0 until here: USB, the time driver's TIM3).
+    {
+        use embassy_stm32::interrupt::{InterruptExt, Priority};
+        interrupt::OTG_FS.set_priority(Priority::P2);
+        interrupt::TIM3.set_priority(Priority::P2);
+        interrupt::TIM2.set_priority(Priority::P0);
+    }
 
     // USB: CDC-ACM (a tty for any serial tool) and a vendor-class bulk
     // interface (for hosts that talk USB directly, no kernel driver), both
