@@ -42,6 +42,42 @@ use crate::step::StepGenerator;
 
 /// The host counts as gone after this much silence while an axis moves.
 pub const LINK_TIMEOUT_MS: u64 = 500;
+/// An input (emergency stop, driver fault, home switch) counts as changed
+/// once it has read the same for this long: 3 samples at the board's
+/// 5 kHz, so a one-sample glitch latches nothing. An emergency stop stops
+/// every axis at most `DEBOUNCE_US` + one sample period (200 µs) after the
+/// input asserts: 600 µs on the board.
+pub const DEBOUNCE_US: u64 = 400;
+
+/// One debounced input: the accepted level, and the raw level with when
+/// (and at what step count of its axis) it last changed.
+#[derive(Debug, Clone, Copy, Default)]
+struct Debounced {
+    level: bool,
+    raw: bool,
+    since: u64,
+    /// The axis' step count at the first sample of the raw level: where a
+    /// switch edge really was (the acceptance comes `DEBOUNCE_US` later).
+    position: i32,
+}
+
+impl Debounced {
+    fn sample(&mut self, raw: bool, now: u64, position: i32) {
+        if raw != self.raw {
+            self.raw = raw;
+            self.since = now;
+            self.position = position;
+        }
+        if self.raw != self.level && now.saturating_sub(self.since) >= DEBOUNCE_US * TICKS_PER_US {
+            self.level = self.raw;
+        }
+    }
+
+    /// When a pending change will be accepted.
+    fn deadline(&self) -> Option<u64> {
+        (self.raw != self.level).then_some(self.since + DEBOUNCE_US * TICKS_PER_US)
+    }
+}
 /// Events buffered for the host before the oldest is dropped.
 pub const EVENT_QUEUE_LEN: usize = 16;
 
@@ -138,7 +174,10 @@ pub struct Controller {
     last_request: Option<(u8, Reply)>,
     last_rx: u64,
     now: u64,
+    /// The debounced inputs as of the last poll.
     prev_inputs: Inputs,
+    /// Debouncers: home switch per axis, emergency stop, driver fault.
+    debounce: [Debounced; AXIS_COUNT + 2],
     events: Deque<Event, EVENT_QUEUE_LEN>,
     event_seq: u8,
     decoder: FrameDecoder<Request>,
@@ -169,6 +208,7 @@ impl Controller {
             last_rx: 0,
             now: 0,
             prev_inputs: Inputs::default(),
+            debounce: Default::default(),
             events: Deque::new(),
             event_seq: 0,
             decoder: FrameDecoder::new(),
@@ -225,10 +265,8 @@ impl Controller {
         };
         let link = (self.is_moving() && !self.faults.contains(FaultFlags::LINK_TIMEOUT))
             .then_some(self.last_rx + LINK_TIMEOUT_MS * TICKS_PER_MS + 1);
-        match (timed, link) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        let inputs = self.debounce.iter().filter_map(Debounced::deadline).min();
+        [timed, link, inputs].into_iter().flatten().min()
     }
 
     // ----- link ------------------------------------------------------------
@@ -397,11 +435,17 @@ impl Controller {
             }
             Request::EmergencyStop => {
                 self.raise_fault(FaultFlags::EMERGENCY_STOP, None, hw);
+                self.de_energise(hw);
                 Ok(Reply::Ack)
             }
             Request::ClearFault => {
+                // The drivers are disabled (EN released) since the fault: a
+                // TMC2209 clears its fault while disabled, so the fault
+                // input reads clear by the time the host asks again. The
+                // next move enables them.
                 let inputs = self.prev_inputs;
                 if inputs.estop || inputs.driver_fault {
+                    self.de_energise(hw);
                     return Err(DeviceError::FaultLatched);
                 }
                 self.faults = FaultFlags::NONE;
@@ -798,7 +842,7 @@ impl Controller {
             let finished = motion.planner.is_done() && hw.with_stepper(axis, |s| s.is_idle());
             match stage {
                 HomingStage::FastApproach | HomingStage::Return if switch => {
-                    self.hit[i] = Some(hw.with_stepper(axis, |s| s.position()));
+                    self.hit[i] = Some(self.edge_position(axis));
                     self.decelerate_axis(axis, hw);
                     if let Some(m) = &mut self.motion[i] {
                         m.homing = Some(HomingStage::Braking);
@@ -812,12 +856,17 @@ impl Controller {
                 }
                 HomingStage::SlowApproach if switch => {
                     self.stop_axis_now(axis, hw);
+                    // The edge was where the switch first read pressed; the
+                    // axis has gone on a little since (the debounce time).
+                    let edge = self.edge_position(axis);
                     if self.check[i] != Check::Off {
-                        let position = hw.with_stepper(axis, |s| s.position());
-                        let error_steps = self.position_error(axis, position);
+                        let error_steps = self.position_error(axis, edge);
                         self.emit(Event::PositionChecked { axis, error_steps });
                     }
-                    hw.with_stepper(axis, |s| s.set_position(h.home_position));
+                    hw.with_stepper(axis, |s| {
+                        let past = s.position().wrapping_sub(edge);
+                        s.set_position(h.home_position.wrapping_add(past))
+                    });
                     self.homed[i] = true;
                 }
                 HomingStage::SlowApproach if finished && self.check[i] == Check::Near => {
@@ -907,6 +956,9 @@ impl Controller {
         if inputs.driver_fault {
             self.raise_fault(FaultFlags::DRIVER_FAULT, None, hw);
         }
+        if inputs.estop || inputs.driver_fault {
+            self.de_energise(hw);
+        }
         for axis in Axis::ALL {
             let i = axis.index();
             let rising = inputs.home[i] && !self.prev_inputs.home[i];
@@ -918,7 +970,8 @@ impl Controller {
             let c = &self.config.axes[i];
             let continuous = c.continuous;
             let toward = if c.homing.direction == Direction::Positive { 1 } else { -1 };
-            let (position, direction) = hw.with_stepper(axis, |s| (s.position(), s.direction()));
+            let position = self.edge_position(axis);
+            let direction = hw.with_stepper(axis, |s| s.direction());
             // A limit switch far from home is a crash or a broken switch,
             // not a count to correct: a person must look. (The disk's index
             // flag is passed every turn; only its home edge is checked.)
@@ -948,6 +1001,37 @@ impl Controller {
         }
     }
 
+    /// Debounce the raw inputs (see [`DEBOUNCE_US`]).
+    fn debounced(&mut self, raw: &Inputs, hw: &mut impl Hardware) -> Inputs {
+        let now = self.now;
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let position = hw.with_stepper(axis, |s| s.position());
+            self.debounce[i].sample(raw.home[i], now, position);
+        }
+        self.debounce[AXIS_COUNT].sample(raw.estop, now, 0);
+        self.debounce[AXIS_COUNT + 1].sample(raw.driver_fault, now, 0);
+        Inputs {
+            home: core::array::from_fn(|i| self.debounce[i].level),
+            estop: self.debounce[AXIS_COUNT].level,
+            driver_fault: self.debounce[AXIS_COUNT + 1].level,
+        }
+    }
+
+    /// The step count of `axis` where its switch last changed (the first
+    /// sample of the level now accepted).
+    fn edge_position(&self, axis: Axis) -> i32 {
+        self.debounce[axis.index()].position
+    }
+
+    /// Release the drivers (EN off): an emergency stop or a driver fault
+    /// leaves no motor energised. Unpowered axes may be moved by hand, so
+    /// none stays homed.
+    fn de_energise(&mut self, hw: &mut impl Hardware) {
+        hw.set_drivers_enabled(false);
+        self.homed = [false; AXIS_COUNT];
+    }
+
     /// Whether the switch of `axis` is far (more than the back-off distance)
     /// from where homing found it: it cannot legitimately be hit here.
     fn far_from_home(&self, axis: Axis, position: i32) -> bool {
@@ -968,8 +1052,9 @@ impl Controller {
     /// Advance every state machine to tick `now` with the current inputs.
     /// Call it often (the board: every 200 µs and after every interrupt that
     /// ends a move; the simulator: after every event).
-    pub fn poll(&mut self, now: u64, inputs: &Inputs, hw: &mut impl Hardware) {
+    pub fn poll(&mut self, now: u64, raw: &Inputs, hw: &mut impl Hardware) {
         self.now = now;
+        let inputs = &self.debounced(raw, hw);
         self.check_safety(inputs, hw);
         self.poll_homing(inputs, hw);
         self.prev_inputs = *inputs;

@@ -64,6 +64,7 @@ pub const TESTS: &[SelfTest] = &[
     ("watchdog_boot_latches", watchdog_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
+    ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
     ("link_bytes_corruption_and_duplicates", link_bytes_corruption_and_duplicates),
 ];
 
@@ -611,28 +612,60 @@ fn moving_with_light(rig: &mut Rig) -> TestResult {
     Ok(())
 }
 
-pub fn estop_input_latches() -> TestResult {
+/// Sample the inputs as the board does (every 200 µs) until `done` or
+/// `max_us`; returns the time it took, µs.
+fn sample_until(rig: &mut Rig, max_us: u64, done: impl Fn(&Rig) -> bool) -> Option<u64> {
+    let start = rig.now;
+    while rig.now - start <= max_us * TICKS_PER_US {
+        if done(rig) {
+            return Some((rig.now - start) / TICKS_PER_US);
+        }
+        rig.run_until(rig.now + 200 * TICKS_PER_US);
+    }
+    None
+}
+
+/// An input glitch of one 5 kHz sample latches nothing; held, it stops
+/// everything within the stated bound (`DEBOUNCE_US` + one sample), leaves
+/// the motors unpowered, and cannot be cleared while held.
+fn input_latches(set: fn(&mut Rig, bool), fault: FaultFlags) -> TestResult {
+    use crate::controller::DEBOUNCE_US;
     let mut rig = Rig::new();
     moving_with_light(&mut rig)?;
-    rig.estop = true;
+    set(&mut rig, true);
     rig.poll();
-    assert_faulted(&rig, FaultFlags::EMERGENCY_STOP)?;
+    rig.run_until(rig.now + 200 * TICKS_PER_US);
+    set(&mut rig, false);
+    rig.run_until(rig.now + 5 * TICKS_PER_MS);
+    ensure!(rig.ctrl.faults().is_empty() && rig.ctrl.is_moving(), "a glitch latches nothing");
+    set(&mut rig, true);
+    let took = sample_until(&mut rig, 10_000, |r| r.ctrl.faults().contains(fault));
+    ensure!(took.is_some_and(|t| t <= DEBOUNCE_US + 200), "stopped within 600 µs");
+    assert_faulted(&rig, fault)?;
     ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Aborted), "MotionDone(Aborted)");
-    ensure!(!rig.ctrl.is_homed(Axis::Track), "an abrupt stop loses homing");
+    ensure!(!rig.hw.drivers_enabled, "motors de-energised");
+    ensure!(Axis::ALL.iter().all(|a| !rig.ctrl.is_homed(*a)), "unpowered axes lose homing");
     ensure!(rig.request(Request::ClearFault) == Reply::Error(DeviceError::FaultLatched), "held");
-    rig.estop = false;
+    set(&mut rig, false);
     rig.poll();
+    rig.run_until(rig.now + TICKS_PER_MS);
     ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared after release");
     ensure!(rig.ctrl.faults().is_empty(), "no fault");
+    // The next move energises the drivers again.
+    ensure!(rig.home_all(), "homing after the fault");
+    ensure!(rig.hw.drivers_enabled, "energised to move");
     Ok(())
 }
 
+pub fn estop_input_latches() -> TestResult {
+    input_latches(|r, on| r.estop = on, FaultFlags::EMERGENCY_STOP)
+}
+
+/// A TMC2209 clears its fault when its EN is released: the controller
+/// releases EN on the fault, so the host's `ClearFault` succeeds once the
+/// driver has let go of its fault line.
 pub fn driver_fault_latches() -> TestResult {
-    let mut rig = Rig::new();
-    moving_with_light(&mut rig)?;
-    rig.driver_fault = true;
-    rig.poll();
-    assert_faulted(&rig, FaultFlags::DRIVER_FAULT)
+    input_latches(|r, on| r.driver_fault = on, FaultFlags::DRIVER_FAULT)
 }
 
 pub fn emergency_stop_request() -> TestResult {
@@ -780,10 +813,7 @@ pub fn save_config_refused_while_moving_or_faulted() -> TestResult {
         "busy while moving"
     );
     ensure!(rig.hw.saved.is_empty(), "nothing written while moving");
-    rig.estop = true;
-    rig.poll();
-    rig.estop = false;
-    rig.poll();
+    ensure!(rig.request(Request::EmergencyStop) == Reply::Ack, "stopped");
     ensure!(
         rig.request(Request::SaveConfig) == Reply::Error(DeviceError::FaultLatched),
         "refused while faulted"
@@ -791,6 +821,45 @@ pub fn save_config_refused_while_moving_or_faulted() -> TestResult {
     ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
     ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved when idle");
     ensure!(!rig.hw.saved.is_empty(), "written");
+    Ok(())
+}
+
+/// With a fault latched, every request that moves, lights, triggers or
+/// writes flash is refused with `FaultLatched` (the same answer for all),
+/// and nothing moves; queries and `Stop` are still answered.
+pub fn every_motion_request_refused_while_faulted() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.home_all(), "homing");
+    let pos = MirrorPosition { steps: [4_000, 120_000, -1_500] };
+    ensure!(rig.request(Request::SetMirror { mirror: 1, position: pos }) == Reply::Ack, "set");
+    ensure!(rig.request(Request::EmergencyStop) == Reply::Ack, "stop");
+    let refused = [
+        Request::Home { axes: AxisSet::ALL },
+        Request::Move { mode: MoveMode::Absolute, targets: [Some(100), None, None] },
+        Request::Move { mode: MoveMode::Relative, targets: [None, Some(10), None] },
+        Request::GoToMirror { mirror: 1 },
+        Request::CaptureStep(CaptureStep {
+            mirror: 1,
+            settle_ms: 10,
+            exposure_us: 20_000,
+            light_duty_permille: 1000,
+        }),
+        Request::Trigger { exposure_us: 20_000 },
+        Request::SetLight(LightState { on: true, duty_permille: 500 }),
+        Request::SaveConfig,
+    ];
+    for r in refused {
+        ensure!(rig.request(r) == Reply::Error(DeviceError::FaultLatched), "refused while faulted");
+        rig.run_until(rig.now + 10 * TICKS_PER_MS);
+        ensure!(!rig.ctrl.is_moving() && rig.hw.armed.iter().all(Option::is_none), "nothing moves");
+        ensure!(rig.hw.light == 0 && !rig.hw.trigger, "dark");
+        ensure!(rig.hw.saved.is_empty(), "nothing written");
+    }
+    ensure!(matches!(rig.request(Request::GetStatus), Reply::Status(_)), "status answered");
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "stop answered");
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
+    let after = rig.request(Request::GoToMirror { mirror: 1 });
+    ensure!(after == Reply::Error(DeviceError::NotHomed), "after clearing: homing needed");
     Ok(())
 }
 

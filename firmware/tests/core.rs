@@ -50,5 +50,6 @@ selftests!(
     watchdog_boot_latches,
     config_save_and_reload,
     save_config_refused_while_moving_or_faulted,
+    every_motion_request_refused_while_faulted,
     link_bytes_corruption_and_duplicates,
 );

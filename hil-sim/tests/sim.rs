@@ -329,14 +329,19 @@ fn stuck_switch_fails_homing() {
 }
 
 #[test]
-fn chattering_switch_is_an_unexpected_home_switch() {
+fn a_chattering_switch_is_debounced_a_stuck_one_is_an_unexpected_home_switch() {
     let mut c = Client::new(config(9, FaultPlan::none()));
     c.hello();
     c.home_all();
-    let mv = Request::Move { mode: MoveMode::Absolute, targets: [None, Some(250_000), None] };
-    assert_eq!(c.request(mv), Reply::Ack);
-    c.link.sleep(Duration::from_millis(400));
+    // Glitches (5 % of samples) never read pressed for 400 µs on end.
     inject(&mut c, FaultEvent::Switch { axis: Axis::Track, fault: SwitchFault::Chatter(0.05) });
+    let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [None, Some(t), None] };
+    assert_eq!(c.request(mv(250_000)), Reply::Ack);
+    let s = c.wait_idle(Duration::from_secs(10));
+    assert!(s.faults.is_empty() && s.axes[1].position_steps == 250_000, "{s:?} {:?}", c.events);
+    // Pressed for good, far from home: a crash or a broken switch.
+    assert_eq!(c.request(mv(100_000)), Reply::Ack);
+    inject(&mut c, FaultEvent::Switch { axis: Axis::Track, fault: SwitchFault::Stuck(true) });
     let axis = fault_event(&mut c, FaultFlags::UNEXPECTED_HOME_SWITCH);
     assert_eq!(axis, Some(Axis::Track));
     assert_stopped(&mut c);
