@@ -218,6 +218,11 @@ impl Controller {
         c.emit(Event::Boot { boot_id: boot.boot_id, reason: boot.reason });
         if boot.reason == ResetReason::Watchdog {
             c.faults = FaultFlags::WATCHDOG_RESET;
+        }
+        if boot.storage_failed {
+            c.faults = c.faults.union(FaultFlags::STORAGE_FAILED);
+        }
+        if !c.faults.is_empty() {
             c.emit(Event::FaultRaised { faults: c.faults, axis: None });
         }
         c

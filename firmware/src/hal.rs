@@ -59,7 +59,8 @@ pub struct StorageError;
 /// Who the device is and why it booted; fixed for one boot.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BootInfo {
-    /// Random id for this boot.
+    /// An id that differs from boot to boot (the board: a CRC of the chip
+    /// id, the flash boot counter and a RAM boot counter).
     pub boot_id: u32,
     /// Why it booted.
     pub reason: ResetReason,
@@ -69,4 +70,6 @@ pub struct BootInfo {
     pub board: u16,
     /// Capabilities.
     pub capabilities: protocol::Capabilities,
+    /// Persistent storage failed at boot (latched as `STORAGE_FAILED`).
+    pub storage_failed: bool,
 }

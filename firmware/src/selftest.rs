@@ -62,6 +62,7 @@ pub const TESTS: &[SelfTest] = &[
     ("homing_when_homed_checks_the_count", homing_when_homed_checks_the_count),
     ("link_silence_while_moving", link_silence_while_moving),
     ("watchdog_boot_latches", watchdog_boot_latches),
+    ("storage_failure_at_boot_latches", storage_failure_at_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
@@ -777,6 +778,26 @@ pub fn watchdog_boot_latches() -> TestResult {
         matches!(rig.events.first(), Some(Event::Boot { reason: ResetReason::Watchdog, .. })),
         "Boot event first"
     );
+    Ok(())
+}
+
+/// A boot whose flash could not store its counter reports it as a fault:
+/// the host sees it, motion waits for `ClearFault`.
+pub fn storage_failure_at_boot_latches() -> TestResult {
+    let mut rig = Rig::with_storage_failure();
+    ensure!(rig.ctrl.faults().contains(FaultFlags::STORAGE_FAILED), "latched");
+    ensure!(
+        rig.events.iter().any(|e| matches!(e, Event::FaultRaised { faults, .. }
+            if faults.contains(FaultFlags::STORAGE_FAILED))),
+        "reported"
+    );
+    ensure!(
+        rig.request(Request::Home { axes: AxisSet::ALL })
+            == Reply::Error(DeviceError::FaultLatched),
+        "motion refused"
+    );
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
+    ensure!(rig.home_all(), "then homes");
     Ok(())
 }
 

@@ -166,12 +166,26 @@ impl Rig {
 
     /// A freshly booted controller with the given reset reason and capabilities.
     pub fn with_capabilities(reason: ResetReason, capabilities: Capabilities) -> Rig {
+        Self::with_boot(reason, capabilities, false)
+    }
+
+    /// A rig whose boot found its persistent storage failing.
+    pub fn with_storage_failure() -> Rig {
+        Self::with_boot(
+            ResetReason::PowerOn,
+            Capabilities::SIMULATED.union(Capabilities::PERSISTENT_CONFIG),
+            true,
+        )
+    }
+
+    fn with_boot(reason: ResetReason, capabilities: Capabilities, storage_failed: bool) -> Rig {
         let boot = BootInfo {
             boot_id: 0x1234_5678,
             reason,
             device_id: [7; 12],
             board: BOARD_SIMULATOR,
             capabilities,
+            storage_failed,
         };
         let mut rig = Rig {
             ctrl: Controller::new(boot, None),

@@ -48,6 +48,7 @@ selftests!(
     homing_when_homed_checks_the_count,
     link_silence_while_moving,
     watchdog_boot_latches,
+    storage_failure_at_boot_latches,
     config_save_and_reload,
     save_config_refused_while_moving_or_faulted,
     every_motion_request_refused_while_faulted,

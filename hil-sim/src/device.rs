@@ -210,6 +210,7 @@ impl SimDevice {
                 .union(Capabilities::PERSISTENT_CONFIG)
                 .union(Capabilities::PWM_LIGHT)
                 .union(Capabilities::LOG_EVENTS),
+            storage_failed: false,
         }
     }
 

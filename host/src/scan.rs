@@ -564,7 +564,8 @@ const CLEARABLE: FaultFlags = FaultFlags(
     FaultFlags::LINK_TIMEOUT.0
         | FaultFlags::WATCHDOG_RESET.0
         | FaultFlags::HOMING_FAILED.0
-        | FaultFlags::POSITION_LOST.0,
+        | FaultFlags::POSITION_LOST.0
+        | FaultFlags::STORAGE_FAILED.0,
 );
 
 /// All of `faults` named, if any of them needs a person (emergency stop,

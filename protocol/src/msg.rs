@@ -312,6 +312,10 @@ impl FaultFlags {
     /// while it moved (steps were lost): the axis is no longer homed, and
     /// [`Event::PositionChecked`] says by how much.
     pub const POSITION_LOST: FaultFlags = FaultFlags(1 << 6);
+    /// The device could not write its flash at boot (the boot counter): its
+    /// saved configuration may not persist either. Motion is refused until
+    /// `ClearFault`, so that the host notices.
+    pub const STORAGE_FAILED: FaultFlags = FaultFlags(1 << 7);
 
     /// Whether no flag is set.
     pub const fn is_empty(self) -> bool {
@@ -327,7 +331,7 @@ impl FaultFlags {
     }
     /// Names of the set flags in words, for messages.
     pub fn names(self) -> impl Iterator<Item = &'static str> {
-        const NAMES: [&str; 7] = [
+        const NAMES: [&str; 8] = [
             "emergency stop",
             "driver fault",
             "home switch hit far from home",
@@ -335,6 +339,7 @@ impl FaultFlags {
             "watchdog reset",
             "homing failed",
             "position lost (steps lost)",
+            "flash storage failed",
         ];
         NAMES
             .into_iter()
@@ -390,7 +395,8 @@ wire_type! {
         pub capabilities: Capabilities,
         /// Entries in the mirror table.
         pub mirror_count: u8,
-        /// Random id drawn at every boot: a change means the device was reset.
+        /// An id that changes at every boot (the board: a CRC of its chip id and
+        /// its flash and RAM boot counters): a change means the device was reset.
         pub boot_id: u32,
     }
 }
@@ -799,7 +805,7 @@ wire_type! {
 pub enum Event {
     /// Sent once after every boot.
     Boot {
-        /// Random per boot.
+        /// Changes at every boot (see `DeviceInfo::boot_id`).
         boot_id: u32,
         /// Why it booted.
         reason: ResetReason,

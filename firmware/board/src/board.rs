@@ -14,10 +14,10 @@
 //! | emergency stop | PB8 | NC contact to GND, pull-up: open (or a cut wire) = stop |
 //! | driver fault | PB9 | open drain, active low, pull-up |
 //! | camera trigger | PA1 | active high, to the opto-isolator |
-//! | exposure strobe (optional) | PA2 | input, pull-down |
+//! | (reserved: exposure strobe) | PA2 | not configured by this firmware |
 //! | light PWM | PB6 | TIM4 CH1, 20 kHz, active high |
 //! | USB D− / D+ | PA11 / PA12 | CDC-ACM |
-//! | status LED | PC13 | active low |
+//! | (reserved: status LED) | PC13 | not configured by this firmware |
 //! | SWD | PA13 / PA14 | debug probe |
 
 use embassy_stm32::gpio::{Input, Level, Output, Pull, Speed};

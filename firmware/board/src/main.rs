@@ -136,6 +136,13 @@ impl Hardware for BoardHw {
     }
 }
 
+/// The boot counter in RAM (see `main`): in `.uninit`, not zeroed at reset.
+#[unsafe(link_section = ".uninit.RAM_BOOTS")]
+static mut RAM_BOOTS: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
+
+/// Independent watchdog period, µs at the nominal 32 kHz LSI.
+const WATCHDOG_US: u32 = 8_000_000;
+
 /// STEP high time in core cycles, from the clock tree at start-up
 /// ([`board::STEP_PULSE_NS`] at HCLK).
 static STEP_PULSE_CYCLES: AtomicU32 = AtomicU32::new(u32::MAX);
@@ -214,26 +221,48 @@ async fn main(spawner: Spawner) {
     core.DCB.enable_trace();
     core.DWT.enable_cycle_counter();
 
-    let mut watchdog = IndependentWatchdog::new(p.IWDG, 3_000_000);
-    watchdog.unleash();
-
+    // Flash work first (a sector erase may take 4 s), then the watchdog.
     let mut store = storage::Store::new(Flash::new_blocking(p.FLASH));
-    let boot_count = store.next_boot_count();
+    let (boot_count, storage_failed) = match store.next_boot_count() {
+        Ok(n) => (n, false),
+        Err(n) => {
+            warn!("cannot store the boot counter: flash storage failed");
+            (n, true)
+        }
+    };
     let device_id = embassy_stm32::uid::uid();
-    let mut id_and_count = [0u8; 16];
-    id_and_count[..12].copy_from_slice(&device_id);
-    id_and_count[12..].copy_from_slice(&boot_count.to_le_bytes());
+    // The boot id changes every boot even if the flash counter cannot be
+    // stored: a RAM counter outside the zeroed sections survives a warm
+    // reset (+1 per boot) and is arbitrary after power-up.
+    // SAFETY: read and written once, here, before anything else runs.
+    let ram_boots = unsafe {
+        let boots = core::ptr::addr_of_mut!(RAM_BOOTS).cast::<u32>();
+        let n = core::ptr::read_volatile(boots).wrapping_add(1);
+        core::ptr::write_volatile(boots, n);
+        n
+    };
+    let mut id_and_counts = [0u8; 20];
+    id_and_counts[..12].copy_from_slice(&device_id);
+    id_and_counts[12..16].copy_from_slice(&boot_count.to_le_bytes());
+    id_and_counts[16..].copy_from_slice(&ram_boots.to_le_bytes());
+    let mut blob = [0u8; PERSISTED_MAX_LEN];
+    let saved = store.load_config(&mut blob).map(|n| &blob[..n]);
+    // 8 s nominal (LSI 32 kHz): at least 5.4 s at the fastest LSI (47 kHz),
+    // over a 4 s worst-case sector erase (`SaveConfig`); at most 15 s at
+    // the slowest (17 kHz). A hung thread mode stops stepping by itself: the
+    // step queues run dry within milliseconds.
+    let mut watchdog = IndependentWatchdog::new(p.IWDG, WATCHDOG_US);
+    watchdog.unleash();
     let boot = BootInfo {
-        boot_id: protocol::CRC.checksum(&id_and_count),
+        boot_id: protocol::CRC.checksum(&id_and_counts),
         reason,
         device_id,
         board: BOARD_STM32F411_BLACKPILL,
         capabilities: Capabilities::PERSISTENT_CONFIG
             .union(Capabilities::PWM_LIGHT)
             .union(Capabilities::LOG_EVENTS),
+        storage_failed,
     };
-    let mut blob = [0u8; PERSISTED_MAX_LEN];
-    let saved = store.load_config(&mut blob).map(|n| &blob[..n]);
     let controller = Controller::new(boot, saved);
 
     let (motors, sensors, camera) = board::init(board::Pins {

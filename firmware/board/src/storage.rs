@@ -3,8 +3,13 @@
 //! `sequential-storage`'s key-value map.
 //!
 //! Saving is only allowed while the machine is idle (the controller refuses
-//! `SetAxisConfig` while busy and saves from thread mode); a sector erase
-//! stalls the single-bank flash for up to 2 s, which the 3 s watchdog covers.
+//! `SaveConfig` while an axis moves: an erase stalls instruction fetch on the
+//! single-bank F411, and with it the step interrupt). Erase times (STM32F411
+//! datasheet, "Flash memory programming", 128 KB sector): 2 s typical, 4 s
+//! maximum at x8 parallelism (PSIZE = 00, which embassy's erase leaves:
+//! it clears PSIZE after every write), 1 s / 2 s at x32. The watchdog
+//! (`main.rs`) is started after the boot-time flash work and is long enough
+//! for a 4 s erase at the fastest LSI (47 kHz).
 
 use embassy_embedded_hal::adapter::BlockingAsync;
 use embassy_futures::block_on;
@@ -57,13 +62,16 @@ impl Store {
         block_on(self.map.store_item(&mut self.buf, &KEY_CONFIG, &blob)).map_err(|_| StorageError)
     }
 
-    /// Increment and return the boot counter (0 on a blank flash).
-    pub fn next_boot_count(&mut self) -> u32 {
+    /// Increment and return the boot counter (0 on a blank flash); `Err`
+    /// with the count it would have stored if the flash cannot store it.
+    pub fn next_boot_count(&mut self) -> Result<u32, u32> {
         let n = block_on(self.map.fetch_item::<u32>(&mut self.buf, &KEY_BOOT_COUNT))
             .ok()
             .flatten()
             .map_or(0, |n| n.wrapping_add(1));
-        let _ = block_on(self.map.store_item(&mut self.buf, &KEY_BOOT_COUNT, &n));
-        n
+        match block_on(self.map.store_item(&mut self.buf, &KEY_BOOT_COUNT, &n)) {
+            Ok(()) => Ok(n),
+            Err(_) => Err(n),
+        }
     }
 }
