@@ -3,7 +3,7 @@
 
 use heapless::Vec;
 use protocol::{
-    AXIS_COUNT, AxisConfig, Direction, HomingConfig, MAX_MIRRORS, MirrorPosition, Unit,
+    AXIS_COUNT, AxisConfig, BoardConfig, Direction, HomingConfig, MAX_MIRRORS, MirrorPosition, Unit,
 };
 use serde::{Deserialize, Serialize};
 
@@ -109,8 +109,9 @@ pub fn is_valid(c: &AxisConfig) -> bool {
         }
 }
 
-/// Format version of [`PersistedConfig`].
-pub const CONFIG_FORMAT: u16 = 1;
+/// Format version of [`PersistedConfig`] (2 added the board options;
+/// format 1 blobs still load, with the default board options).
+pub const CONFIG_FORMAT: u16 = 2;
 
 /// What [`protocol::Request::SaveConfig`] writes to flash (postcard-encoded).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -121,22 +122,51 @@ pub struct PersistedConfig {
     pub axes: [AxisConfig; AXIS_COUNT],
     /// Mirror table; its length is the mirror count.
     pub mirrors: Vec<Option<MirrorPosition>, MAX_MIRRORS>,
+    /// The board's wiring options.
+    pub board: BoardConfig,
+}
+
+/// Format 1: the same without the board options.
+#[derive(Deserialize)]
+struct PersistedConfigV1 {
+    format: u16,
+    axes: [AxisConfig; AXIS_COUNT],
+    mirrors: Vec<Option<MirrorPosition>, MAX_MIRRORS>,
 }
 
 /// Largest encoded [`PersistedConfig`], bytes.
-pub const PERSISTED_MAX_LEN: usize = 2 + AXIS_COUNT * 64 + 1 + MAX_MIRRORS * 16;
+pub const PERSISTED_MAX_LEN: usize = 2 + AXIS_COUNT * 64 + 1 + MAX_MIRRORS * 16 + 1;
 
 impl Default for PersistedConfig {
     fn default() -> Self {
-        PersistedConfig { format: CONFIG_FORMAT, axes: default_axes(), mirrors: Vec::new() }
+        PersistedConfig {
+            format: CONFIG_FORMAT,
+            axes: default_axes(),
+            mirrors: Vec::new(),
+            board: BoardConfig::default(),
+        }
     }
 }
 
 impl PersistedConfig {
     /// Decode a blob; `None` if it is not a valid configuration of this format.
     pub fn decode(blob: &[u8]) -> Option<PersistedConfig> {
-        let cfg: PersistedConfig = postcard::from_bytes(blob).ok()?;
-        (cfg.format == CONFIG_FORMAT && cfg.axes.iter().all(is_valid)).then_some(cfg)
+        let cfg = match postcard::from_bytes::<PersistedConfig>(blob) {
+            Ok(cfg) if cfg.format == CONFIG_FORMAT => cfg,
+            _ => {
+                let v1: PersistedConfigV1 = postcard::from_bytes(blob).ok()?;
+                if v1.format != 1 {
+                    return None;
+                }
+                PersistedConfig {
+                    format: CONFIG_FORMAT,
+                    axes: v1.axes,
+                    mirrors: v1.mirrors,
+                    board: BoardConfig::default(),
+                }
+            }
+        };
+        cfg.axes.iter().all(is_valid).then_some(cfg)
     }
 
     /// Encode into `buf`; returns the used part.

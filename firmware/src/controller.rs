@@ -449,7 +449,7 @@ impl Controller {
                 // input reads clear by the time the host asks again. The
                 // next move enables them.
                 let inputs = self.prev_inputs;
-                if inputs.estop || inputs.driver_fault {
+                if inputs.estop || inputs.driver_fault_line {
                     self.de_energise(hw);
                     return Err(DeviceError::FaultLatched);
                 }
@@ -481,6 +481,14 @@ impl Controller {
                 let mut buf = [0u8; PERSISTED_MAX_LEN];
                 let blob = self.config.encode(&mut buf).ok_or(DeviceError::Storage)?;
                 hw.save_config(blob).map_err(|_| DeviceError::Storage)?;
+                Ok(Reply::Ack)
+            }
+            Request::GetBoardConfig => Ok(Reply::BoardConfig(self.config.board)),
+            Request::SetBoardConfig(board) => {
+                if self.activity != Activity::Idle {
+                    return Err(DeviceError::Busy);
+                }
+                self.config.board = board;
                 Ok(Reply::Ack)
             }
             Request::GetLastTrigger => Ok(Reply::Trigger(self.last_trigger)),
@@ -958,10 +966,10 @@ impl Controller {
         if inputs.estop {
             self.raise_fault(FaultFlags::EMERGENCY_STOP, None, hw);
         }
-        if inputs.driver_fault {
+        if inputs.driver_fault_line {
             self.raise_fault(FaultFlags::DRIVER_FAULT, None, hw);
         }
-        if inputs.estop || inputs.driver_fault {
+        if inputs.estop || inputs.driver_fault_line {
             self.de_energise(hw);
         }
         for axis in Axis::ALL {
@@ -1015,11 +1023,13 @@ impl Controller {
             self.debounce[i].sample(raw.home[i], now, position);
         }
         self.debounce[AXIS_COUNT].sample(raw.estop, now, 0);
-        self.debounce[AXIS_COUNT + 1].sample(raw.driver_fault, now, 0);
+        let fault = raw.driver_fault_line == self.config.board.driver_fault_active_high;
+        self.debounce[AXIS_COUNT + 1].sample(fault, now, 0);
         Inputs {
             home: core::array::from_fn(|i| self.debounce[i].level),
             estop: self.debounce[AXIS_COUNT].level,
-            driver_fault: self.debounce[AXIS_COUNT + 1].level,
+            // Debounced and interpreted: true = a driver reports a fault.
+            driver_fault_line: self.debounce[AXIS_COUNT + 1].level,
         }
     }
 

@@ -24,8 +24,9 @@ pub struct Inputs {
     pub home: [bool; AXIS_COUNT],
     /// Emergency-stop input asserted.
     pub estop: bool,
-    /// Any stepper driver reports a fault.
-    pub driver_fault: bool,
+    /// The drivers' fault line is high (its electrical level: whether that
+    /// is a fault depends on `BoardConfig::driver_fault_active_high`).
+    pub driver_fault_line: bool,
 }
 
 /// Outputs and services the controller drives.

@@ -64,6 +64,7 @@ pub const TESTS: &[SelfTest] = &[
     ("watchdog_boot_latches", watchdog_boot_latches),
     ("storage_failure_at_boot_latches", storage_failure_at_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
+    ("driver_fault_polarity_is_configurable", driver_fault_polarity_is_configurable),
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
     ("link_bytes_corruption_and_duplicates", link_bytes_corruption_and_duplicates),
@@ -819,6 +820,61 @@ pub fn config_save_and_reload() -> TestResult {
     ensure!(
         PersistedConfig::decode(&rig.hw.saved[..rig.hw.saved.len() - 1]).is_none(),
         "truncated"
+    );
+    // A format-1 blob (before the board options) still loads.
+    let v1 = (1u16, loaded.axes, loaded.mirrors.clone());
+    let mut buf = [0u8; crate::config::PERSISTED_MAX_LEN];
+    let old = postcard::to_slice(&v1, &mut buf).map_err(|_| "encode v1")?;
+    let upgraded = PersistedConfig::decode(old).ok_or("format 1 loads")?;
+    ensure!(upgraded.axes == loaded.axes && upgraded.mirrors == loaded.mirrors, "v1 contents");
+    ensure!(upgraded.board == protocol::BoardConfig::default(), "default board options");
+    Ok(())
+}
+
+/// The driver-fault line's polarity follows `BoardConfig`: active low by
+/// default (DRV8825 nFAULT), active high when set (TMC2209 DIAG); the
+/// setting is saved with the configuration.
+pub fn driver_fault_polarity_is_configurable() -> TestResult {
+    use crate::hal::Inputs;
+    use protocol::BoardConfig;
+    // Hold the fault line at `high` for 2 ms of 200 µs samples.
+    fn hold(rig: &mut Rig, high: bool) {
+        for _ in 0..10 {
+            rig.now += 200 * TICKS_PER_US;
+            rig.hw.now = rig.now;
+            let inputs = Inputs { driver_fault_line: high, ..rig.inputs() };
+            rig.ctrl.poll(rig.now, &inputs, &mut rig.hw);
+        }
+    }
+    let mut rig = Rig::new();
+    ensure!(
+        rig.request(Request::GetBoardConfig) == Reply::BoardConfig(BoardConfig::default()),
+        "default"
+    );
+    hold(&mut rig, true);
+    ensure!(rig.ctrl.faults().is_empty(), "active low: a high line is no fault");
+    hold(&mut rig, false);
+    ensure!(rig.ctrl.faults().contains(FaultFlags::DRIVER_FAULT), "active low: low is a fault");
+    hold(&mut rig, true);
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
+    let high = BoardConfig { driver_fault_active_high: true };
+    ensure!(rig.request(Request::SetBoardConfig(high)) == Reply::Ack, "set");
+    hold(&mut rig, false);
+    ensure!(rig.ctrl.faults().is_empty(), "active high: a low line is no fault");
+    hold(&mut rig, true);
+    ensure!(rig.ctrl.faults().contains(FaultFlags::DRIVER_FAULT), "active high: high is a fault");
+    hold(&mut rig, false);
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
+    ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved");
+    let loaded = PersistedConfig::decode(&rig.hw.saved).ok_or("decodes")?;
+    ensure!(loaded.board == high, "persisted");
+    // Not while moving.
+    ensure!(rig.home_all(), "homing");
+    move_to(&mut rig, [None, Some(200_000), None])?;
+    ensure!(
+        rig.request(Request::SetBoardConfig(BoardConfig::default()))
+            == Reply::Error(DeviceError::Busy),
+        "busy"
     );
     Ok(())
 }

@@ -231,7 +231,10 @@ impl Rig {
         Inputs {
             home: Axis::ALL.map(|a| self.switches[a.index()].actuated(self.physical(a))),
             estop: self.estop,
-            driver_fault: self.driver_fault,
+            // The rig's `driver_fault` is "asserted"; the line level
+            // follows the configured polarity.
+            driver_fault_line: self.driver_fault
+                == self.ctrl.config().board.driver_fault_active_high,
         }
     }
 

@@ -332,7 +332,12 @@ impl SimDevice {
         for (i, h) in home.iter_mut().enumerate() {
             *h = self.switches[i].sample(self.motors[i].position(), &mut self.rng);
         }
-        let inputs = Inputs { home, estop: self.estop, driver_fault: self.driver_fault };
+        // `driver_fault` is "asserted"; the line level follows the
+        // polarity the firmware is configured for (the simulated drivers
+        // are wired to match).
+        let active_high = self.controller.config().board.driver_fault_active_high;
+        let inputs =
+            Inputs { home, estop: self.estop, driver_fault_line: self.driver_fault == active_high };
         self.controller.poll(self.now, &inputs, &mut self.hw);
         self.after_controller();
     }

@@ -46,6 +46,10 @@ pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor:
 /// hysteresis and the 200 µs input sampling at full speed, with margin.
 pub const POSITION_TOLERANCE_STEPS: i32 = 32;
 
+/// Device interface GUID of the vendor-class bulk interface, announced in
+/// the board's MS OS 2.0 descriptors (Windows binds WinUSB to it).
+pub const USB_WINUSB_GUID: &str = "{6E3A5C51-8B7F-4F0C-9F2B-5C1A0D8E7B42}";
+
 /// USB vendor id of the scanner controller (pid.codes open-source VID).
 pub const USB_VID: u16 = 0x1209;
 /// USB product id of the scanner controller.

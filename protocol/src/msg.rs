@@ -731,6 +731,22 @@ wire_type! {
         GetLastTrigger,
         /// Reset the device. Answer: `Ack`, then a new [`Event::Boot`].
         Reset,
+        /// Answer: [`Reply::BoardConfig`] (since 1.1).
+        GetBoardConfig,
+        /// Set the board's wiring options (persisted by `SaveConfig`);
+        /// refused while busy (since 1.1).
+        SetBoardConfig(BoardConfig),
+    }
+}
+
+wire_type! {
+    /// How the board is wired, where drivers differ (persisted with the
+    /// axis configurations).
+    #[derive(Eq, Default)]
+    pub struct BoardConfig {
+        /// The driver-fault input is active high (TMC2209 DIAG, push-pull)
+        /// rather than active low (DRV8825 nFAULT, open drain; the default).
+        pub driver_fault_active_high: bool,
     }
 }
 
@@ -758,6 +774,8 @@ impl Request {
             Request::SaveConfig => "SaveConfig",
             Request::GetLastTrigger => "GetLastTrigger",
             Request::Reset => "Reset",
+            Request::GetBoardConfig => "GetBoardConfig",
+            Request::SetBoardConfig(_) => "SetBoardConfig",
         }
     }
 }
@@ -794,6 +812,8 @@ wire_type! {
         },
         /// The last trigger (`None`: none since boot).
         Trigger(Option<TriggerFired>),
+        /// The board's wiring options (since 1.1).
+        BoardConfig(BoardConfig),
     }
 }
 

@@ -34,6 +34,17 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
     let (code, out, _) = run(&["status", "--device", &pty]);
     assert_eq!(code, Some(0));
     assert!(out.contains("not homed"), "{out}");
+    // The board's wiring options: set, saved, read back by another process.
+    let (code, out, err) = run(&["config", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("active low"), "{out}");
+    let (code, out, err) = run(&["config", "--device", &pty, "--driver-fault", "active-high"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("saved"), "{out}");
+    let (_, out, _) = run(&["config", "--device", &pty]);
+    assert!(out.contains("active high (TMC2209 DIAG)"), "{out}");
+    let (code, _, _) = run(&["config", "--device", &pty, "--driver-fault", "inverted"]);
+    assert_eq!(code, Some(2));
     // Moving before homing is refused by the device, with its reason.
     let (code, _, err) = run(&["move", "--device", &pty, "--disk", "90"]);
     assert_ne!(code, Some(0));

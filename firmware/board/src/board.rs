@@ -12,7 +12,7 @@
 //! | TRACK home switch | PB4 | active low, pull-up |
 //! | TILT home switch | PB5 | active low, pull-up |
 //! | emergency stop | PB8 | NC contact to GND, pull-up: open (or a cut wire) = stop |
-//! | driver fault | PB9 | open drain, active low, pull-up |
+//! | driver fault | PB9 | pull-up; active low (DRV8825 nFAULT, default) or high (TMC2209 DIAG): `BoardConfig` |
 //! | camera trigger | PA1 | active high, to the opto-isolator |
 //! | (reserved: exposure strobe) | PA2 | not configured by this firmware |
 //! | light PWM | PB6 | TIM4 CH1, 20 kHz, active high |
@@ -45,7 +45,7 @@ pub struct Motors {
 pub struct Sensors {
     home: [Input<'static>; 3],
     estop: Input<'static>,
-    driver_fault_n: Input<'static>,
+    driver_fault: Input<'static>,
 }
 
 impl Sensors {
@@ -54,7 +54,7 @@ impl Sensors {
         Inputs {
             home: [self.home[0].is_low(), self.home[1].is_low(), self.home[2].is_low()],
             estop: self.estop.is_high(),
-            driver_fault: self.driver_fault_n.is_low(),
+            driver_fault_line: self.driver_fault.is_high(),
         }
     }
 }
@@ -104,7 +104,7 @@ pub fn init(pins: Pins) -> (Motors, Sensors, Camera) {
             Input::new(pins.pb5, Pull::Up),
         ],
         estop: Input::new(pins.pb8, Pull::Up),
-        driver_fault_n: Input::new(pins.pb9, Pull::Up),
+        driver_fault: Input::new(pins.pb9, Pull::Up),
     };
     let mut light = SimplePwm::new(
         pins.tim4,

@@ -84,6 +84,12 @@ static TX: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
 /// the CDC-ACM one): replies and events go where the host is listening.
 static VENDOR_ACTIVE: AtomicBool = AtomicBool::new(false);
 
+/// Whether the host has sent anything since boot, on either interface.
+static HOST_SPOKE: AtomicBool = AtomicBool::new(false);
+
+/// Vendor request code of the MS OS 2.0 descriptor set.
+const MSOS_VENDOR_CODE: u8 = 0x01;
+
 /// How long a packet may wait for the host to read it before it is dropped
 /// (the host retransmits; a host that switched interfaces must not stall
 /// the other one).
@@ -326,6 +332,7 @@ async fn main(spawner: Spawner) {
 
     static CONFIG_DESC: StaticCell<[u8; 256]> = StaticCell::new();
     static BOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
+    static MSOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
     static CONTROL_BUF: StaticCell<[u8; 64]> = StaticCell::new();
     static STATE: StaticCell<State<'static>> = StaticCell::new();
     let mut builder = embassy_usb::Builder::new(
@@ -333,12 +340,20 @@ async fn main(spawner: Spawner) {
         config,
         CONFIG_DESC.init([0; 256]),
         BOS_DESC.init([0; 256]),
-        &mut [],
+        MSOS_DESC.init([0; 256]),
         CONTROL_BUF.init([0; 64]),
     );
+    // MS OS 2.0 descriptors: Windows binds WinUSB to the vendor interface by
+    // itself (no .inf, no Zadig), with a fixed device interface GUID.
+    builder.msos_descriptor(embassy_usb::msos::windows_version::WIN8_1, MSOS_VENDOR_CODE);
     let class = CdcAcmClass::new(&mut builder, STATE.init(State::new()), 64);
     let (vendor_out, vendor_in) = {
         let mut function = builder.function(0xFF, 0x00, 0x00);
+        function.msos_feature(embassy_usb::msos::CompatibleIdFeatureDescriptor::new("WINUSB", ""));
+        function.msos_feature(embassy_usb::msos::RegistryPropertyFeatureDescriptor::new(
+            "DeviceInterfaceGUIDs",
+            embassy_usb::msos::PropertyData::RegMultiSz(&[protocol::USB_WINUSB_GUID]),
+        ));
         let mut interface = function.interface();
         let mut alt = interface.alt_setting(0xFF, 0x00, 0x00, None);
         (alt.endpoint_bulk_out(None, 64), alt.endpoint_bulk_in(None, 64))
@@ -394,6 +409,7 @@ async fn usb_task(
             info!("host connected (CDC-ACM)");
             while let Ok(n) = receiver.read_packet(&mut packet).await {
                 VENDOR_ACTIVE.store(false, Ordering::Relaxed);
+                HOST_SPOKE.store(true, Ordering::Relaxed);
                 received(&packet[..n]);
             }
             info!("host disconnected (CDC-ACM)");
@@ -406,6 +422,7 @@ async fn usb_task(
             info!("vendor interface enabled");
             while let Ok(n) = vendor_out.read(&mut packet).await {
                 VENDOR_ACTIVE.store(true, Ordering::Relaxed);
+                HOST_SPOKE.store(true, Ordering::Relaxed);
                 received(&packet[..n]);
             }
             info!("vendor interface disabled");
@@ -418,20 +435,32 @@ async fn usb_task(
             // Nothing follows: a full-size last packet must be closed by a
             // zero-length one to end the transfer.
             let last = TX.is_empty();
-            let sent = embassy_time::with_timeout(TX_TIMEOUT, async {
-                if VENDOR_ACTIVE.load(Ordering::Relaxed) {
-                    vendor_in.write_transfer(&buf[..n], last).await
-                } else {
+            // Until the host has spoken on one interface (the Boot event,
+            // events after a reset), everything goes to both.
+            let spoke = HOST_SPOKE.load(Ordering::Relaxed);
+            let vendor = VENDOR_ACTIVE.load(Ordering::Relaxed);
+            let mut delivered = false;
+            if vendor || !spoke {
+                let sent = embassy_time::with_timeout(
+                    TX_TIMEOUT,
+                    vendor_in.write_transfer(&buf[..n], last),
+                )
+                .await;
+                delivered |= matches!(sent, Ok(Ok(())));
+            }
+            if !vendor || !spoke {
+                let sent = embassy_time::with_timeout(TX_TIMEOUT, async {
                     sender.wait_connection().await;
                     sender.write_packet(&buf[..n]).await?;
                     if last && n == buf.len() {
                         sender.write_packet(&[]).await?;
                     }
-                    Ok(())
-                }
-            })
-            .await;
-            if !matches!(sent, Ok(Ok(()))) {
+                    Ok::<(), embassy_usb::driver::EndpointError>(())
+                })
+                .await;
+                delivered |= matches!(sent, Ok(Ok(())));
+            }
+            if !delivered {
                 warn!("{} bytes not read by the host: dropped", n);
             }
         }

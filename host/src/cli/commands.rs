@@ -179,6 +179,38 @@ pub fn devices() -> Result<(), Failure> {
     Ok(())
 }
 
+/// `scanner config`: show the board's wiring options, or set and save them.
+pub fn board_config(
+    args: &DeviceArgs,
+    driver_fault_active_high: Option<bool>,
+) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    if let Some(high) = driver_fault_active_high {
+        let board = protocol::BoardConfig { driver_fault_active_high: high };
+        o.device.command(Request::SetBoardConfig(board)).map_err(link_failure)?;
+        if o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG) {
+            o.device.command(Request::SaveConfig).map_err(link_failure)?;
+            println!("saved to the device's flash");
+        } else {
+            println!("this device cannot save it: it lasts until the device resets");
+        }
+    }
+    match o.device.request(Request::GetBoardConfig).map_err(link_failure)? {
+        protocol::Reply::BoardConfig(b) => {
+            println!(
+                "driver fault line: {}",
+                if b.driver_fault_active_high {
+                    "active high (TMC2209 DIAG)"
+                } else {
+                    "active low (DRV8825 nFAULT)"
+                }
+            );
+            Ok(())
+        }
+        reply => Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply })),
+    }
+}
+
 /// `scanner verify`
 pub fn verify(dir: &Path) -> Result<(), Failure> {
     let v = scan::verify(dir).map_err(scan_failure)?;

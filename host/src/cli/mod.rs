@@ -156,6 +156,15 @@ enum Command {
     },
     /// List connected scanners (serial ports and USB).
     Devices,
+    /// Show or set the board's wiring options (saved to the device's flash).
+    Config {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Polarity of the drivers' fault line: active-low (DRV8825 nFAULT,
+        /// the default) or active-high (TMC2209 DIAG).
+        #[arg(long, value_parser = ["active-low", "active-high"])]
+        driver_fault: Option<String>,
+    },
     /// Handshake and print the device's identity and axes.
     Info {
         #[command(flatten)]
@@ -353,6 +362,9 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
+        Command::Config { device, driver_fault } => {
+            commands::board_config(&device, driver_fault.map(|p| p == "active-high"))?
+        }
         Command::Verify { dir } => commands::verify(&dir)?,
         Command::Calibrate { checkerboard, white, output, geometry, white_albedo, squares } => {
             build::calibrate_cmd(

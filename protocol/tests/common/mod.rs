@@ -134,6 +134,12 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
         ("Request::SaveConfig", 18, Req(Request::SaveConfig)),
         ("Request::GetLastTrigger", 19, Req(Request::GetLastTrigger)),
         ("Request::Reset", 20, Req(Request::Reset)),
+        ("Request::GetBoardConfig", 21, Req(Request::GetBoardConfig)),
+        (
+            "Request::SetBoardConfig",
+            22,
+            Req(Request::SetBoardConfig(BoardConfig { driver_fault_active_high: true })),
+        ),
         ("Reply::Ack", 4, reply(Reply::Ack)),
         ("Reply::Error", 5, reply(Reply::Error(DeviceError::NotHomed))),
         (
@@ -170,6 +176,11 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
         ),
         ("Reply::Pong", 2, reply(Reply::Pong { token: 0xDEAD_BEEF })),
         ("Reply::Trigger", 19, reply(Reply::Trigger(Some(trigger)))),
+        (
+            "Reply::BoardConfig",
+            21,
+            reply(Reply::BoardConfig(BoardConfig { driver_fault_active_high: true })),
+        ),
         (
             "Event::Boot",
             0,
