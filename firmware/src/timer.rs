@@ -134,17 +134,26 @@ pub trait StepPins {
 /// **The step interrupt's work**, as the board runs it (with the step block
 /// borrowed): count an overflow, and for every due channel raise its STEP
 /// line, account for the step and arm the next one (or disarm at the end).
-/// Returns the channels raised. Holding the pulse and lowering the lines
-/// are the caller's (they are time, not work).
+/// Returns the channels raised (a due channel whose generator was halted
+/// meanwhile is disarmed, not pulsed). Holding the pulse and lowering the
+/// lines are the caller's (they are time, not work).
 pub fn on_interrupt(
     r: &mut impl TimerRegs,
     overflows: &AtomicU32,
     generators: &mut [StepGenerator; 3],
     pins: &mut impl StepPins,
 ) -> [bool; 3] {
-    let due = take_due(r, overflows);
+    let mut due = take_due(r, overflows);
     for (ch, generator) in generators.iter_mut().enumerate() {
         if !due[ch] {
+            continue;
+        }
+        // Halted between its compare event and this interrupt (thread mode
+        // halts the generator, then disarms the timer): no pulse, or the
+        // motor would make a step the count does not know.
+        if generator.next_step_tick().is_none() {
+            disarm(r, ch);
+            due[ch] = false;
             continue;
         }
         pins.raise(ch);
