@@ -508,3 +508,61 @@ fn ctrl_c_keeps_the_frames_and_prints_the_resume_command() {
     assert!(Manifest::load(&out).unwrap().complete);
     drop(server);
 }
+
+#[test]
+fn on_a_terminal_log_lines_and_notes_never_share_the_progress_bar_line() {
+    // stderr on a pty: the progress bar is drawn, with colour allowed.
+    use serialport::SerialPort;
+    use std::io::Read;
+    use std::os::fd::{AsRawFd, BorrowedFd};
+    let (mut master, slave) = serialport::TTYPort::pair().unwrap();
+    // SAFETY: the slave outlives the child's copy of its descriptor.
+    let fd = unsafe { BorrowedFd::borrow_raw(slave.as_raw_fd()) }.try_clone_to_owned().unwrap();
+    let dir = tmp();
+    let mut child = scanner()
+        .args([
+            "scan",
+            "--device",
+            "sim",
+            "--sim-bin",
+            "16",
+            "--sample-name",
+            "s",
+            "--mirrors",
+            "12",
+        ])
+        .args(["--sim-fault", "disconnect:1500@trigger=4", "--check-every", "4", "--out"])
+        .arg(dir.path().join("scan"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::from(fd))
+        .spawn()
+        .unwrap();
+    let mut text = Vec::new();
+    let mut buf = [0u8; 4096];
+    master.set_timeout(Duration::from_millis(100)).unwrap();
+    let end = Instant::now() + Duration::from_secs(120);
+    loop {
+        match master.read(&mut buf) {
+            Ok(n) => text.extend_from_slice(&buf[..n]),
+            Err(_) if child.try_wait().unwrap().is_some() => break,
+            Err(_) => assert!(Instant::now() < end, "the scan did not end"),
+        }
+    }
+    assert!(child.wait().unwrap().success());
+    let text = String::from_utf8_lossy(&text);
+    assert!(text.contains("frames,") && text.contains("\r\x1b[2K"), "no bar drawn: {text:?}");
+    // Whatever else is printed starts on a line of its own: after the bar
+    // was erased (`\r`, erase line) or after a newline, never after bar text.
+    let own_line = |what: &str| {
+        let at = text.find(what).unwrap_or_else(|| panic!("no {what:?} in {text:?}"));
+        let before = &text[..at];
+        let start = [before.rfind('\n'), before.rfind("\x1b[2K")].into_iter().flatten().max();
+        let segment = &before[start.unwrap_or(0)..];
+        assert!(!segment.contains("frames,"), "{what:?} printed on the bar's line: {segment:?}");
+    };
+    own_line(" WARN");
+    own_line("s: homing");
+    own_line("s: wrote 40 mirror table entries");
+    // On a terminal, colour is allowed.
+    assert!(text.contains("\x1b[33m WARN"), "{text:?}");
+}
