@@ -1050,16 +1050,8 @@ impl Controller {
     /// Whether the switch of `axis` is far (more than the back-off distance)
     /// from where homing found it: it cannot legitimately be hit here.
     fn far_from_home(&self, axis: Axis, position: i32) -> bool {
-        let c = &self.config.axes[axis.index()];
-        let d = position as i64 - c.homing.home_position as i64;
-        let d = if c.continuous {
-            let rev = c.steps_per_rev as i64;
-            let m = d.rem_euclid(rev);
-            m.min(rev - m)
-        } else {
-            d.abs()
-        };
-        d > c.homing.backoff_steps as i64
+        let backoff = self.config.axes[axis.index()].homing.backoff_steps;
+        self.position_error(axis, position).unsigned_abs() > backoff
     }
 
     // ----- the poll loop ------------------------------------------------------
