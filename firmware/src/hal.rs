@@ -74,3 +74,24 @@ pub struct BootInfo {
     /// Persistent storage failed at boot (latched as `STORAGE_FAILED`).
     pub storage_failed: bool,
 }
+
+/// Where the board sends a packet for the host: `(vendor bulk, CDC-ACM)`.
+/// Until the host has spoken on either interface (the `Boot` event, events
+/// after a reset) everything goes to both, so a host on either sees it;
+/// then only to the interface it last spoke on.
+pub const fn usb_destinations(host_spoke: bool, vendor_active: bool) -> (bool, bool) {
+    if host_spoke { (vendor_active, !vendor_active) } else { (true, true) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::usb_destinations;
+
+    #[test]
+    fn boot_goes_to_both_interfaces_then_to_the_one_the_host_uses() {
+        assert_eq!(usb_destinations(false, false), (true, true));
+        assert_eq!(usb_destinations(false, true), (true, true));
+        assert_eq!(usb_destinations(true, true), (true, false));
+        assert_eq!(usb_destinations(true, false), (false, true));
+    }
+}

@@ -437,10 +437,12 @@ async fn usb_task(
             let last = TX.is_empty();
             // Until the host has spoken on one interface (the Boot event,
             // events after a reset), everything goes to both.
-            let spoke = HOST_SPOKE.load(Ordering::Relaxed);
-            let vendor = VENDOR_ACTIVE.load(Ordering::Relaxed);
+            let (to_vendor, to_cdc) = firmware::hal::usb_destinations(
+                HOST_SPOKE.load(Ordering::Relaxed),
+                VENDOR_ACTIVE.load(Ordering::Relaxed),
+            );
             let mut delivered = false;
-            if vendor || !spoke {
+            if to_vendor {
                 let sent = embassy_time::with_timeout(
                     TX_TIMEOUT,
                     vendor_in.write_transfer(&buf[..n], last),
@@ -448,7 +450,7 @@ async fn usb_task(
                 .await;
                 delivered |= matches!(sent, Ok(Ok(())));
             }
-            if !vendor || !spoke {
+            if to_cdc {
                 let sent = embassy_time::with_timeout(TX_TIMEOUT, async {
                     sender.wait_connection().await;
                     sender.write_packet(&buf[..n]).await?;
