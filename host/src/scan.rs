@@ -645,21 +645,39 @@ fn prepare_once(
 fn home_all(dev: &mut Device) -> Result<Vec<Event>, ScanError> {
     dev.clear_events();
     dev.command(Request::Home { axes: AxisSet::ALL })?;
-    let done =
-        dev.wait_event(Duration::from_secs(90), |e| matches!(e, Event::MotionDone { .. }))?;
-    match done {
-        Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => Ok(dev.take_events()),
-        Some(Event::MotionDone { outcome, .. }) => {
-            let faults = dev.status()?.faults;
-            let by = if faults.is_empty() {
-                String::new()
-            } else {
-                format!(" ({})", faults.names().collect::<Vec<_>>().join(", "))
-            };
-            Err(ScanError::DeviceFault(format!("homing {outcome}{by}")))
+    let end = dev.now() + Duration::from_secs(90);
+    let failed = |dev: &mut Device, outcome: Option<MotionOutcome>| {
+        let faults = dev.status()?.faults;
+        let by = if faults.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", faults.names().collect::<Vec<_>>().join(", "))
+        };
+        let what = outcome.map_or("failed".to_string(), |o| o.to_string());
+        Err(ScanError::DeviceFault(format!("homing {what}{by}")))
+    };
+    while dev.now() < end {
+        match dev
+            .wait_event(Duration::from_millis(500), |e| matches!(e, Event::MotionDone { .. }))?
+        {
+            Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => {
+                return Ok(dev.take_events());
+            }
+            Some(Event::MotionDone { outcome, .. }) => return failed(dev, Some(outcome)),
+            _ => {
+                // Events can be lost on a noisy link: the status says
+                // whether homing is over.
+                let status = dev.status()?;
+                if !matches!(status.state, DeviceState::Homing) {
+                    if status.axes.iter().all(|a| a.homed) && status.faults.is_empty() {
+                        return Ok(dev.take_events());
+                    }
+                    return failed(dev, None);
+                }
+            }
         }
-        _ => Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
     }
+    Err(ScanError::DeviceFault("homing did not finish in 90 s".into()))
 }
 
 /// Check every axis' step count against its switch by homing it (the
