@@ -166,6 +166,13 @@ pub struct ScanSettings {
     pub simulator: Option<String>,
 }
 
+impl PositionCheck {
+    /// A failed check of `kind` (nothing measured yet) over no frames yet.
+    fn failed(kind: CheckKind) -> PositionCheck {
+        PositionCheck { kind, error_steps: [None; 3], passed: false, mirrors: Vec::new() }
+    }
+}
+
 impl ScanSettings {
     /// The settings that differ from `other`, in words ("exposure_us 50000
     /// here, 20000 there").
@@ -231,6 +238,23 @@ fn verified_by_default() -> bool {
     true
 }
 
+/// How a position check was made (`checks[].kind` in the manifest).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CheckKind {
+    /// Every axis homed and its count compared at its switch.
+    Homing,
+    /// The firmware caught a moving axis off its count at a switch edge.
+    Index,
+    /// The device lost its homing (a reset, a fault): nothing to compare.
+    HomingLost,
+}
+
+/// Whether a count error (steps) is within the switches' tolerance.
+fn within_tolerance(error_steps: i32) -> bool {
+    error_steps.unsigned_abs() <= protocol::POSITION_TOLERANCE_STEPS as u32
+}
+
 /// A comparison of the axes' step counts with their switches during a scan.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PositionCheck {
@@ -239,7 +263,7 @@ pub struct PositionCheck {
     /// at its switch edge), `homing-lost` (the device lost its homing — a
     /// reset or a fault — so the frames since the last check cannot be
     /// verified).
-    pub kind: String,
+    pub kind: CheckKind,
     /// Count minus switch per axis (disk, track, tilt), steps, where measured.
     pub error_steps: [Option<i32>; 3],
     /// Every measured error within `protocol::POSITION_TOLERANCE_STEPS` and
@@ -689,14 +713,10 @@ fn check_position(
     mirrors: &[usize],
     progress: &mut dyn ScanProgress,
 ) -> Result<PositionCheck, ScanError> {
-    let mut check = PositionCheck {
-        kind: "homing".into(),
-        error_steps: [None; 3],
-        passed: false,
-        mirrors: mirrors.to_vec(),
-    };
+    let mut check =
+        PositionCheck { mirrors: mirrors.to_vec(), ..PositionCheck::failed(CheckKind::Homing) };
     if prepare(dev, geometry, progress)?.homed {
-        check.kind = "homing-lost".into();
+        check.kind = CheckKind::HomingLost;
         return Ok(check);
     }
     match home_all(dev) {
@@ -706,15 +726,13 @@ fn check_position(
                     check.error_steps[axis.index()] = Some(error_steps);
                 }
             }
-            check.passed = check.error_steps.iter().all(|e| {
-                e.is_some_and(|e| e.unsigned_abs() <= protocol::POSITION_TOLERANCE_STEPS as u32)
-            });
+            check.passed = check.error_steps.iter().all(|e| e.is_some_and(within_tolerance));
             Ok(check)
         }
         // A reset during the check: homing is lost with it.
         Err(ScanError::Link(LinkError::Reset { .. })) => {
             progress.note("device reset during the position check");
-            check.kind = "homing-lost".into();
+            check.kind = CheckKind::HomingLost;
             prepare(dev, geometry, progress)?;
             Ok(check)
         }
@@ -724,16 +742,14 @@ fn check_position(
 
 /// The words for a failed check, e.g. "track off by 400 steps".
 fn describe_check(check: &PositionCheck) -> String {
-    if check.kind == "homing-lost" {
+    if check.kind == CheckKind::HomingLost {
         return "the device lost its homing, so the frames before cannot be checked".into();
     }
     let off: Vec<String> = Axis::ALL
         .iter()
         .zip(check.error_steps)
         .filter_map(|(a, e)| match e {
-            Some(e) if e.unsigned_abs() > protocol::POSITION_TOLERANCE_STEPS as u32 => {
-                Some(format!("{} off by {e} steps", a.name()))
-            }
+            Some(e) if !within_tolerance(e) => Some(format!("{} off by {e} steps", a.name())),
             Some(_) => None,
             None => Some(format!("{} not measured", a.name())),
         })
@@ -826,8 +842,7 @@ fn open_directory(
     };
     let previous = || Manifest::load_file(&dir.join(PREVIOUS_MANIFEST_FILE)).ok();
     let loaded = match Manifest::load_file(&dir.join(MANIFEST_FILE)) {
-        Ok(m) if !opts.resume => {
-            let _ = m;
+        Ok(_) if !opts.resume => {
             return Err(ScanError::Conflict(format!(
                 "{} already holds a scan; pass --resume to complete it, or choose another --out",
                 dir.display()
@@ -996,12 +1011,8 @@ pub fn scan(
     let mut raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
     // Stored frames not verified before the device lost its homing (the
     // scan was interrupted, the device reset) cannot be verified now.
-    let mut pending_check = (prepared.homed && !unverified.is_empty()).then(|| PositionCheck {
-        kind: "homing-lost".into(),
-        error_steps: [None; 3],
-        passed: false,
-        mirrors: Vec::new(),
-    });
+    let mut pending_check = (prepared.homed && !unverified.is_empty())
+        .then(|| PositionCheck::failed(CheckKind::HomingLost));
     let manifest = std::thread::scope(|scope| -> Result<Manifest, ScanError> {
         let (jobs, job_rx) = std::sync::mpsc::sync_channel::<Job>(1);
         let (done_tx, done) =
@@ -1533,14 +1544,10 @@ fn capture_with_retries(
                 let prepared = prepare(dev, geometry, progress)?;
                 report.timings.link += t.elapsed();
                 if prepared.homed || position.is_some() {
-                    let check = lost.get_or_insert_with(|| PositionCheck {
-                        kind: "homing-lost".into(),
-                        error_steps: [None; 3],
-                        passed: false,
-                        mirrors: Vec::new(),
-                    });
+                    let check =
+                        lost.get_or_insert_with(|| PositionCheck::failed(CheckKind::HomingLost));
                     if let Some((axis, error)) = position {
-                        check.kind = "index".into();
+                        check.kind = CheckKind::Index;
                         check.error_steps[axis.index()] = Some(error);
                     }
                 }
