@@ -13,11 +13,10 @@ use hil_sim::SimConfig;
 /// One full session; returns the device time it took, seconds.
 fn scan() -> f64 {
     let mut c = Client::new(SimConfig::new(7));
-    c.hello();
     c.home_all();
     load_mirror_table(&mut c);
     capture_all(&mut c, 40);
-    c.link.now() as f64 / firmware::hal::TICK_HZ as f64
+    c.now_ticks() as f64 / firmware::hal::TICK_HZ as f64
 }
 
 fn capture(c: &mut Criterion) {

@@ -5,7 +5,6 @@ mod common;
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
-use std::time::Duration;
 
 #[test]
 fn serves_on_the_printed_pty_until_killed() {
@@ -20,12 +19,10 @@ fn serves_on_the_printed_pty_until_killed() {
     let path = line.trim().to_string();
     assert!(path.starts_with("/dev/"), "prints the pty path first: {path:?}");
 
-    let mut port =
-        serialport::new(&path, 115_200).timeout(Duration::from_millis(50)).open().unwrap();
-    let answered = common::handshake_over_serial(port.as_mut(), 7).is_some();
+    let answered = common::connect_over_serial(&path);
     child.kill().unwrap();
     let _ = child.wait();
-    assert!(answered, "the simulated controller answered the handshake");
+    assert!(answered.is_ok(), "the simulated controller answered the handshake: {answered:?}");
 }
 
 #[test]

@@ -307,21 +307,20 @@ fn frame_max(f: &Frame) -> f32 {
 fn the_camera_renders_every_trigger_from_the_physical_axis_positions() {
     let mut camera = SimCamera::new(sim(8, "diffuse-white", SEED));
     let mut c = Client::new(SimConfig::new(SEED));
-    c.hello();
     c.home_all();
     // At home the tilt is at −35°: the beam misses every mirror.
     assert_eq!(c.request(Request::Trigger { exposure_us: 50_000 }), Reply::Ack);
     c.wait_event(Duration::from_secs(2), |e| matches!(e, Event::TriggerFired(_))).unwrap();
-    c.link.sleep(Duration::from_millis(100));
-    let dark = camera.collect(c.link.device().truth());
+    c.sleep(Duration::from_millis(100));
+    let dark = c.device(|d| camera.collect(d.truth()));
     assert_eq!(dark.len(), 1);
     assert_dark(&dark[0].1, camera.optics().geometry(), "trigger at home");
     load_mirror_table(&mut c);
     capture_all(&mut c, 40);
-    let frames = camera.collect(c.link.device().truth());
+    let frames = c.device(|d| camera.collect(d.truth()));
     assert_eq!(frames.len(), 40);
     for (l, (index, frame)) in frames.iter().enumerate() {
-        let record = &c.link.device().truth().triggers[*index];
+        let record = &c.device(|d| d.truth().clone()).triggers[*index];
         let e = exposure_of(record).unwrap();
         assert!((e.exposure_s - 0.05).abs() < 1e-3 && e.light == 1.0);
         assert_eq!(camera.optics().mirrors_lighting_sample(e.axes), vec![l]);
@@ -336,19 +335,17 @@ fn lost_steps_visibly_change_the_frame() {
         let mut config = SimConfig::new(SEED);
         config.faults = faults;
         let mut c = Client::new(config);
-        c.hello();
         c.home_all();
         load_mirror_table(&mut c);
         capture_all(&mut c, 4);
-        let frames = camera.collect(c.link.device().truth());
-        let lit: Vec<Vec<usize>> = c
-            .link
-            .device()
-            .truth()
-            .triggers
-            .iter()
-            .map(|r| camera.optics().mirrors_lighting_sample(exposure_of(r).unwrap().axes))
-            .collect();
+        let frames = c.device(|d| camera.collect(d.truth()));
+        let lit: Vec<Vec<usize>> = c.device(|d| {
+            d.truth()
+                .triggers
+                .iter()
+                .map(|r| camera.optics().mirrors_lighting_sample(exposure_of(r).unwrap().axes))
+                .collect()
+        });
         (frames, lit)
     };
     let (clean, clean_lit) = run(FaultPlan::none());

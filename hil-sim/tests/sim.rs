@@ -7,6 +7,7 @@ use std::time::Duration;
 use common::{Client, capture_all, load_mirror_table};
 use hil_sim::physics::SwitchFault;
 use hil_sim::{FaultEvent, FaultPlan, FaultSpec, FaultWhen, SimConfig};
+use host::link::LinkError;
 use protocol::*;
 
 fn config(seed: u64, faults: FaultPlan) -> SimConfig {
@@ -31,13 +32,13 @@ fn assert_at(actual: [i64; 3], target: &MirrorPosition, what: &str) {
 #[test]
 fn homing_and_40_mirror_capture_reach_the_physical_positions() {
     let mut c = Client::new(config(7, FaultPlan::none()));
-    let info = c.hello();
+    let info = c.info();
     assert_eq!(info.board, BOARD_SIMULATOR);
     c.home_all();
     // Homing puts each counter on the physical switch edge.
     let s = c.status();
     for axis in Axis::ALL {
-        let phys = c.link.device().physical_position(axis);
+        let phys = c.device(|d| d.physical_position(axis));
         let count = s.axes[axis.index()].position_steps as i64;
         let d = if axis == Axis::Disk {
             (phys - count).rem_euclid(16_000).min((count - phys).rem_euclid(16_000))
@@ -49,7 +50,7 @@ fn homing_and_40_mirror_capture_reach_the_physical_positions() {
     }
     let table = load_mirror_table(&mut c);
     let fired = capture_all(&mut c, 40);
-    let truth = c.link.device().truth();
+    let truth = c.device(|d| d.truth().clone());
     assert_eq!(truth.triggers.len(), 40);
     for (l, (t, rec)) in fired.iter().zip(&truth.triggers).enumerate() {
         assert_eq!(t.trigger_seq, l as u32 + 1);
@@ -64,9 +65,9 @@ fn homing_and_40_mirror_capture_reach_the_physical_positions() {
         assert_eq!(rec.light_duty, FULL_DUTY_PERMILLE, "lit while exposing");
         assert!(rec.honoured);
     }
-    assert_eq!(c.link.device().light(), 0, "light off after the scan");
-    assert!(Axis::ALL.iter().all(|a| c.link.device().lost_steps(*a) == 0));
-    assert!(c.link.now() > 30 * firmware::hal::TICK_HZ as u64, "simulates tens of seconds");
+    assert_eq!(c.device(|d| d.light()), 0, "light off after the scan");
+    assert!(Axis::ALL.iter().all(|a| c.device(|d| d.lost_steps(*a)) == 0));
+    assert!(c.now_ticks() > 30 * firmware::hal::TICK_HZ as u64, "simulates tens of seconds");
 }
 
 fn scripted_run(seed: u64) -> (Vec<u8>, hil_sim::Truth) {
@@ -76,11 +77,10 @@ fn scripted_run(seed: u64) -> (Vec<u8>, hil_sim::Truth) {
         .after_triggers(3, FaultEvent::IgnoreTriggers(1))
         .at_ms(200, FaultEvent::Switch { axis: Axis::Tilt, fault: SwitchFault::Chatter(0.0) });
     let mut c = Client::new(config(seed, plan));
-    c.hello();
     c.home_all();
     load_mirror_table(&mut c);
     capture_all(&mut c, 6);
-    (c.received, c.link.device().truth().clone())
+    (c.received(), c.device(|d| d.truth().clone()))
 }
 
 #[test]
@@ -98,12 +98,11 @@ fn same_seed_same_run_byte_for_byte() {
 fn capture_survives_corruption_and_lost_bytes() {
     let plan = FaultPlan::none().corrupt(1e-3).drop_bytes(2e-4);
     let mut c = Client::new(config(21, plan));
-    c.hello();
     c.home_all();
     let table = load_mirror_table(&mut c);
     capture_all(&mut c, 40);
-    assert!(c.link.noise().corrupted > 0);
-    let truth = c.link.device().truth();
+    assert!(c.dev.stats.bad_frames > 0);
+    let truth = c.device(|d| d.truth().clone());
     assert_eq!(truth.triggers.len(), 40, "every capture exactly once despite retransmissions");
     for (l, rec) in truth.triggers.iter().enumerate() {
         assert_at(rec.positions, &table[l], &format!("mirror {l}"));
@@ -111,12 +110,11 @@ fn capture_survives_corruption_and_lost_bytes() {
 }
 
 fn moving(c: &mut Client) {
-    c.hello();
     c.home_all();
     let mv =
         Request::Move { mode: MoveMode::Absolute, targets: [Some(8_000), Some(300_000), None] };
     assert_eq!(c.request(mv), Reply::Ack);
-    c.link.sleep(Duration::from_millis(300));
+    c.sleep(Duration::from_millis(300));
 }
 
 fn fault_event(c: &mut Client, flag: FaultFlags) -> Option<Axis> {
@@ -134,17 +132,17 @@ fn assert_stopped(c: &mut Client) {
     let s = c.status();
     assert_eq!(s.state, DeviceState::Faulted);
     assert!(s.axes.iter().all(|a| !a.moving));
-    let before = c.link.device().physical_position(Axis::Track);
-    c.link.sleep(Duration::from_millis(500));
-    assert_eq!(c.link.device().physical_position(Axis::Track), before, "no motion after the fault");
-    assert_eq!(c.link.device().light(), 0);
+    let before = c.device(|d| d.physical_position(Axis::Track));
+    c.sleep(Duration::from_millis(500));
+    assert_eq!(c.device(|d| d.physical_position(Axis::Track)), before, "no motion after the fault");
+    assert_eq!(c.device(|d| d.light()), 0);
 }
 
 #[test]
 fn emergency_stop_input() {
     let mut c = Client::new(config(3, FaultPlan::none()));
     moving(&mut c);
-    c.link.device_mut().set_estop(true);
+    c.device(|d| d.set_estop(true));
     fault_event(&mut c, FaultFlags::EMERGENCY_STOP);
     assert_stopped(&mut c);
     assert_eq!(
@@ -152,8 +150,8 @@ fn emergency_stop_input() {
         Reply::Error(DeviceError::FaultLatched),
         "input still asserted"
     );
-    c.link.device_mut().set_estop(false);
-    c.link.sleep(Duration::from_millis(5));
+    c.device(|d| d.set_estop(false));
+    c.sleep(Duration::from_millis(5));
     assert_eq!(c.request(Request::ClearFault), Reply::Ack);
 }
 
@@ -161,7 +159,6 @@ fn emergency_stop_input() {
 fn driver_fault_input_scheduled() {
     let plan = FaultPlan::none().after_triggers(2, FaultEvent::DriverFault(true));
     let mut c = Client::new(config(4, plan));
-    c.hello();
     c.home_all();
     load_mirror_table(&mut c);
     capture_all(&mut c, 1);
@@ -187,14 +184,13 @@ fn lost_steps_on_disk_are_caught_at_the_index_flag() {
     // "far from home" rule let through), moving up and moving down.
     for (lost, forward) in [(1_000, true), (400, true), (400, false), (40, false)] {
         let mut c = Client::new(config(5, FaultPlan::none()));
-        c.hello();
         c.home_all();
         let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [Some(t), None, None] };
         // Slip while turning half a revolution.
         assert_eq!(c.request(mv(8_000)), Reply::Ack);
         inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Disk, steps: lost });
         c.wait_idle(Duration::from_secs(10));
-        assert_eq!(c.link.device().lost_steps(Axis::Disk), lost);
+        assert_eq!(c.device(|d| d.lost_steps(Axis::Disk)), lost);
         // Continue round (or back) across the index flag's home edge.
         let route: &[i32] = if forward { &[15_000, 3_000] } else { &[1_000, 12_000] };
         for &t in route {
@@ -215,7 +211,6 @@ fn lost_steps_on_disk_are_caught_at_the_index_flag() {
 #[test]
 fn the_index_flag_is_passed_both_ways_without_a_false_alarm() {
     let mut c = Client::new(config(5, FaultPlan::none()));
-    c.hello();
     c.home_all();
     let mv = |t| Request::Move { mode: MoveMode::Absolute, targets: [Some(t), None, None] };
     for t in [8_000, 15_000, 3_000, 12_000, 100, 15_900, 7_000, 2_000] {
@@ -229,7 +224,6 @@ fn the_index_flag_is_passed_both_ways_without_a_false_alarm() {
 #[test]
 fn homing_a_homed_axis_checks_its_count() {
     let mut c = Client::new(config(11, FaultPlan::none()));
-    c.hello();
     c.home_all();
     assert!(c.events.iter().all(|e| !matches!(e, Event::PositionChecked { .. })), "plain homing");
     let mv = Request::Move {
@@ -243,10 +237,10 @@ fn homing_a_homed_axis_checks_its_count() {
     inject(&mut c, FaultEvent::LoseSteps { axis: Axis::Tilt, steps: 2_000 });
     let s = c.wait_idle(Duration::from_secs(20));
     assert!(s.faults.is_empty(), "{s:?} {:?}", c.events);
-    c.events.clear();
-    let t0 = c.link.now();
+    c.clear_events();
+    let t0 = c.now_ticks();
     c.home_all();
-    let seconds = (c.link.now() - t0) as f64 / firmware::hal::TICK_HZ as f64;
+    let seconds = (c.now_ticks() - t0) as f64 / firmware::hal::TICK_HZ as f64;
     // Lost moving up: the axes are short of their count by what they lost.
     assert!((position_error(&c, Axis::Track).unwrap() - 400).abs() <= 16, "{:?}", c.events);
     // The tilt lost more than its back-off: found by the wide search.
@@ -255,7 +249,7 @@ fn homing_a_homed_axis_checks_its_count() {
     assert!(disk.abs() <= POSITION_TOLERANCE_STEPS, "disk {disk}");
     // Checking is homing: the counts are right again.
     for axis in Axis::ALL {
-        let phys = c.link.device().physical_position(axis);
+        let phys = c.device(|d| d.physical_position(axis));
         let count = c.status().axes[axis.index()].position_steps as i64;
         let d = if axis == Axis::Disk { (phys - count).rem_euclid(16_000) } else { phys - count };
         assert!(d.abs() <= 1 || d >= 15_999, "{axis:?}: physical {phys} vs counter {count}");
@@ -264,7 +258,7 @@ fn homing_a_homed_axis_checks_its_count() {
     // 2 mm slowly, not a 10 mm/s search.
     assert!(seconds < 8.0, "the check took {seconds:.1} s: {:?}", c.events);
     // An axis without a lost step reports it.
-    c.events.clear();
+    c.clear_events();
     c.home_all();
     for axis in Axis::ALL {
         let e = position_error(&c, axis).unwrap();
@@ -274,16 +268,15 @@ fn homing_a_homed_axis_checks_its_count() {
 
 /// Inject a fault now, through the device's fault plan.
 fn inject(c: &mut Client, event: FaultEvent) {
-    let now_ms = c.link.now() / firmware::hal::TICKS_PER_MS;
+    let now_ms = c.now_ticks() / firmware::hal::TICKS_PER_MS;
     let spec = FaultSpec { when: FaultWhen::AtTick(now_ms * firmware::hal::TICKS_PER_MS), event };
-    c.link.device_mut().schedule(spec);
-    c.link.sleep(Duration::from_millis(1));
+    c.device(|d| d.schedule(spec));
+    c.sleep(Duration::from_millis(1));
 }
 
 #[test]
 fn motor_stalls_above_its_torque_limit() {
     let mut c = Client::new(config(6, FaultPlan::none()));
-    c.hello();
     c.home_all();
     let Reply::AxisConfig { mut config, .. } =
         c.request(Request::GetAxisConfig { axis: Axis::Track })
@@ -299,9 +292,9 @@ fn motor_stalls_above_its_torque_limit() {
     let mv = Request::Move { mode: MoveMode::Absolute, targets: [None, Some(300_000), None] };
     assert_eq!(c.request(mv), Reply::Ack);
     c.wait_idle(Duration::from_secs(10));
-    let lost = c.link.device().lost_steps(Axis::Track);
+    let lost = c.device(|d| d.lost_steps(Axis::Track));
     assert!(lost > 1_000, "steps above pull-out are lost ({lost})");
-    let physical = c.link.device().physical_position(Axis::Track);
+    let physical = c.device(|d| d.physical_position(Axis::Track));
     assert_eq!(physical + lost as i64, 300_000, "every step either moved the rotor or was lost");
 }
 
@@ -310,7 +303,6 @@ fn stuck_switch_fails_homing() {
     let plan = FaultPlan::none()
         .at_ms(0, FaultEvent::Switch { axis: Axis::Track, fault: SwitchFault::Stuck(true) });
     let mut c = Client::new(config(8, plan));
-    c.hello();
     assert_eq!(c.request(Request::Home { axes: AxisSet::single(Axis::Track) }), Reply::Ack);
     let e =
         c.wait_event(Duration::from_secs(30), |e| matches!(e, Event::MotionDone { .. })).unwrap();
@@ -331,7 +323,6 @@ fn stuck_switch_fails_homing() {
 #[test]
 fn a_chattering_switch_is_debounced_a_stuck_one_is_an_unexpected_home_switch() {
     let mut c = Client::new(config(9, FaultPlan::none()));
-    c.hello();
     c.home_all();
     // Glitches (5 % of samples) never read pressed for 400 µs on end.
     inject(&mut c, FaultEvent::Switch { axis: Axis::Track, fault: SwitchFault::Chatter(0.05) });
@@ -352,9 +343,9 @@ fn disconnect_while_moving_latches_link_timeout() {
     let mut c = Client::new(config(10, FaultPlan::none()));
     moving(&mut c);
     inject(&mut c, FaultEvent::Disconnect { duration_ms: 1_000 });
-    assert!(!c.link.is_connected());
-    c.link.sleep(Duration::from_millis(1_100));
-    assert!(c.link.is_connected());
+    assert!(!c.rig.is_connected());
+    c.sleep(Duration::from_millis(1_100));
+    assert!(c.rig.is_connected());
     let s = c.status();
     assert!(s.faults.contains(FaultFlags::LINK_TIMEOUT), "{s:?}");
     assert!(s.axes.iter().all(|a| !a.moving), "decelerated to rest");
@@ -366,7 +357,7 @@ fn disconnect_while_moving_latches_link_timeout() {
 fn device_reset_is_a_new_boot_without_homing() {
     let plan = FaultPlan::none().after_triggers(2, FaultEvent::Reset);
     let mut c = Client::new(config(12, plan));
-    let first = c.hello();
+    let first = c.info();
     c.home_all();
     load_mirror_table(&mut c);
     assert_eq!(c.request(Request::SaveConfig), Reply::Ack);
@@ -375,35 +366,32 @@ fn device_reset_is_a_new_boot_without_homing() {
     let step =
         CaptureStep { mirror: 1, settle_ms: 150, exposure_us: 50_000, light_duty_permille: 1000 };
     assert_eq!(c.request(Request::CaptureStep(step)), Reply::Ack);
-    let boot = c
-        .wait_event(Duration::from_secs(5), |e| {
-            matches!(e, Event::Boot { reason: ResetReason::Watchdog, .. })
-        })
-        .expect("a Boot event after the reset");
-    let Event::Boot { boot_id, reason } = boot else { unreachable!() };
-    assert_ne!(boot_id, first.boot_id);
-    assert_eq!(reason, ResetReason::Watchdog);
-    // A new session: handshake again, nothing homed, table back from flash.
-    assert_eq!(c.request(Request::GetStatus), Reply::Error(DeviceError::NoHandshake));
-    let info = c.hello();
-    assert_eq!(info.boot_id, boot_id);
+    // The host's client sees the Boot event of a new boot id, greets the
+    // device again and reports the reset.
+    let reset = c.dev.wait_event(Duration::from_secs(5), |_| false);
+    let Err(LinkError::Reset { old, new }) = reset else { panic!("no reset: {reset:?}") };
+    assert_eq!(old, first.boot_id);
+    assert_ne!(new, old);
+    // A new session: nothing homed, the table back from flash.
+    let info = c.info();
+    assert_eq!(info.boot_id, new);
     assert_eq!(info.mirror_count, 40);
     let s = c.status();
     assert!(s.axes.iter().all(|a| !a.homed));
     assert!(s.faults.contains(FaultFlags::WATCHDOG_RESET));
-    assert_eq!(c.link.device().boot_count(), 2);
+    assert_eq!(c.device(|d| d.boot_count()), 2);
 }
 
 #[test]
 fn ignored_trigger_is_recorded_in_the_truth_only() {
     let plan = FaultPlan::none().after_triggers(1, FaultEvent::IgnoreTriggers(1));
     let mut c = Client::new(config(13, plan));
-    c.hello();
     c.home_all();
     load_mirror_table(&mut c);
     let fired = capture_all(&mut c, 3);
     assert_eq!(fired.len(), 3, "the device reports every trigger it fired");
-    let honoured: Vec<bool> = c.link.device().truth().triggers.iter().map(|t| t.honoured).collect();
+    let honoured: Vec<bool> =
+        c.device(|d| d.truth().clone()).triggers.iter().map(|t| t.honoured).collect();
     assert_eq!(honoured, [true, false, true]);
 }
 
@@ -433,12 +421,7 @@ fn fault_specs_parse() {
 fn pty_serves_the_protocol_in_real_time() {
     let server =
         hil_sim::PtyServer::start(hil_sim::SimDevice::new(SimConfig::new(1)), 1.0).unwrap();
-    let mut port = serialport::new(server.path(), 115_200)
-        .timeout(Duration::from_millis(50))
-        .open()
-        .expect("open the pty like a serial port");
-    let info = common::handshake_over_serial(port.as_mut(), 1);
-    let info = info.expect("Info over the pty");
+    let info = common::connect_over_serial(server.path()).expect("Info over the pty");
     assert_eq!(info.board, BOARD_SIMULATOR);
     let device = server.stop().unwrap();
     assert!(device.now() > 0, "simulated time followed the wall clock");

@@ -1,134 +1,157 @@
-//! A minimal protocol client over the deterministic link, for the simulator's
-//! own tests (the host crate has the real one).
+//! The host's own protocol client (`host::link::Device`: sequence numbers,
+//! retransmission, keep-alive, reconnection, reset detection) driving the
+//! simulated scanner, plus what the simulator's tests look at besides: every
+//! byte received (determinism), every event in order, and the simulated
+//! board's physical truth.
 #![allow(dead_code)]
 
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use hil_sim::{LinkError, SimConfig, SimDevice, SimLink};
+use hil_sim::materials::Sample;
+use hil_sim::optics::OpticalSim;
+use hil_sim::{SimConfig, SimDevice, SimRig, materials};
+use host::link::{Device, LinkError, SimTransport, Transport, TransportError};
 use protocol::*;
 
+/// The in-process transport, keeping a copy of every byte received.
+struct Recording {
+    inner: SimTransport,
+    received: Arc<Mutex<Vec<u8>>>,
+}
+
+impl Transport for Recording {
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), TransportError> {
+        self.inner.write_all(bytes)
+    }
+    fn read(&mut self, out: &mut Vec<u8>, timeout: Duration) -> Result<usize, TransportError> {
+        let start = out.len();
+        let n = self.inner.read(out, timeout)?;
+        self.received.lock().unwrap().extend_from_slice(&out[start..]);
+        Ok(n)
+    }
+    fn sleep(&mut self, d: Duration) {
+        self.inner.sleep(d)
+    }
+    fn now(&self) -> Duration {
+        self.inner.now()
+    }
+    fn reconnect(&mut self) -> Result<(), TransportError> {
+        self.inner.reconnect()
+    }
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+}
+
 pub struct Client {
-    pub link: SimLink,
-    seq: u8,
-    decoder: FrameDecoder<ToHost>,
-    /// Every event received, in order.
+    /// The host's client, connected (handshake done).
+    pub dev: Device,
+    /// The simulated scanner (tests read its physical truth).
+    pub rig: SimRig,
+    received: Arc<Mutex<Vec<u8>>>,
+    /// Events taken from the client so far, in arrival order except that an
+    /// event a wait matched comes before those it skipped.
     pub events: Vec<Event>,
-    /// Every byte received (for determinism checks).
-    pub received: Vec<u8>,
-    replies: Vec<(u8, Reply)>,
-    pub retransmissions: u32,
     /// Events before this index came before the last command.
     mark: usize,
 }
 
 impl Client {
+    /// Power on a simulated scanner (its camera on the 8× binned sensor,
+    /// looking at the white target) and connect to it.
     pub fn new(config: SimConfig) -> Client {
-        Client {
-            link: SimLink::new(SimDevice::new(config)),
-            seq: 0,
-            decoder: FrameDecoder::new(),
-            events: Vec::new(),
-            received: Vec::new(),
-            replies: Vec::new(),
-            retransmissions: 0,
-            mark: 0,
-        }
+        let seed = config.seed;
+        let nominal = hil_sim::geometry::ScannerGeometry::default_scanner().with_sensor_scaled(8);
+        let white = Sample::small(materials::by_name("diffuse-white").expect("library material"));
+        let rig = SimRig::new(config, OpticalSim::as_built(&nominal, white, seed));
+        let received = Arc::new(Mutex::new(Vec::new()));
+        let transport = Recording { inner: SimTransport(rig.clone()), received: received.clone() };
+        let dev = Device::connect(Box::new(transport)).expect("handshake with the simulator");
+        Client { dev, rig, received, events: Vec::new(), mark: 0 }
     }
 
-    /// Read for up to `timeout`, dispatching frames; true if anything came.
-    fn pump(&mut self, timeout: Duration) -> bool {
-        let mut buf = Vec::new();
-        match self.link.read(&mut buf, timeout) {
-            Ok(0) | Err(LinkError::Disconnected) => false,
-            Ok(_) => {
-                self.received.extend_from_slice(&buf);
-                for frame in self.decoder.feed(&buf).flatten() {
-                    match frame.msg {
-                        ToHost::Reply(r) => self.replies.push((frame.seq, r)),
-                        ToHost::Event(e) => self.events.push(e),
-                    }
-                }
-                true
-            }
-        }
+    /// The handshake's answer.
+    pub fn info(&self) -> DeviceInfo {
+        *self.dev.info()
     }
 
-    /// Send a request and wait for its reply, retransmitting the same frame
-    /// every 30 ms of device time (up to 100 times, across disconnects).
+    /// Every byte received so far.
+    pub fn received(&self) -> Vec<u8> {
+        self.received.lock().unwrap().clone()
+    }
+
+    /// Run `f` on the simulated board.
+    pub fn device<R>(&self, f: impl FnOnce(&mut SimDevice) -> R) -> R {
+        self.rig.with_device(f)
+    }
+
+    /// Simulated time, ticks.
+    pub fn now_ticks(&self) -> u64 {
+        self.device(|d| d.now())
+    }
+
+    /// Let simulated time pass without reading the link.
+    pub fn sleep(&self, d: Duration) {
+        self.rig.sleep(d)
+    }
+
+    fn log_events(&mut self) {
+        self.events.extend(self.dev.take_events());
+    }
+
+    /// Forget the events received so far.
+    pub fn clear_events(&mut self) {
+        self.log_events();
+        self.events.clear();
+        self.mark = 0;
+    }
+
+    /// Send a request; the device's refusal comes back as `Reply::Error`,
+    /// link failures panic.
     pub fn request(&mut self, request: Request) -> Reply {
         if !matches!(request, Request::Ping { .. } | Request::GetStatus) {
             // Later waits look for what this command causes.
+            self.log_events();
             self.mark = self.events.len();
         }
-        self.seq = self.seq.wrapping_add(1);
-        let seq = self.seq;
-        let mut frame = [0u8; MAX_FRAME_LEN];
-        let n = encode_frame(seq, &request, &mut frame).unwrap();
-        for attempt in 0..100 {
-            if attempt > 0 {
-                self.retransmissions += 1;
-            }
-            if self.link.write(&frame[..n]).is_err() {
-                self.link.sleep(Duration::from_millis(30));
-                continue;
-            }
-            let deadline = self.link.now() + 30 * firmware::hal::TICKS_PER_MS;
-            while self.link.now() < deadline {
-                self.pump(Duration::from_millis(5));
-                if let Some(i) = self.replies.iter().position(|(s, _)| *s == seq) {
-                    let (_, reply) = self.replies.remove(i);
-                    self.replies.clear();
-                    return reply;
-                }
-            }
-        }
-        panic!("no reply to {request:?}");
-    }
-
-    pub fn hello(&mut self) -> DeviceInfo {
-        match self.request(Request::Hello { host_protocol: PROTOCOL_VERSION }) {
-            Reply::Info(info) => info,
-            other => panic!("handshake: {other:?}"),
+        match self.dev.request(request) {
+            Ok(reply) => reply,
+            Err(LinkError::Refused { error, .. }) => Reply::Error(error),
+            Err(e) => panic!("{request:?}: {e}"),
         }
     }
 
     pub fn status(&mut self) -> Status {
-        match self.request(Request::GetStatus) {
-            Reply::Status(s) => s,
-            other => panic!("status: {other:?}"),
-        }
+        self.dev.status().expect("status")
     }
 
-    /// Wait (pinging every 100 ms) until an event since the last command
-    /// matches, at most `max`.
+    /// Wait (pinging as keep-alive) until an event since the last command
+    /// matches, at most `max` of simulated time.
     pub fn wait_event(&mut self, max: Duration, pred: impl Fn(&Event) -> bool) -> Option<Event> {
-        let end = self.link.now() + (max.as_millis() as u64) * firmware::hal::TICKS_PER_MS;
-        let mut seen = self.mark;
-        while self.link.now() < end {
-            while seen < self.events.len() {
-                if pred(&self.events[seen]) {
-                    return Some(self.events[seen].clone());
-                }
-                seen += 1;
-            }
-            self.pump(Duration::from_millis(100));
-            let _ = self.request(Request::Ping { token: 0 });
+        self.log_events();
+        if let Some(e) = self.events[self.mark..].iter().find(|e| pred(e)) {
+            return Some(e.clone());
         }
-        None
+        let found = self.dev.wait_event(max, pred).expect("link");
+        self.events.extend(found.clone());
+        self.log_events();
+        found
     }
 
     /// Wait until the device is idle (status polled every 50 ms).
     pub fn wait_idle(&mut self, max: Duration) -> Status {
-        let end = self.link.now() + (max.as_millis() as u64) * firmware::hal::TICKS_PER_MS;
+        let end = self.dev.now() + max;
         loop {
             let s = self.status();
             if s.state == DeviceState::Idle
                 || s.state == DeviceState::Faulted
-                || self.link.now() >= end
+                || self.dev.now() >= end
             {
+                self.log_events();
                 return s;
             }
-            self.link.sleep(Duration::from_millis(50));
+            self.dev.sleep(Duration::from_millis(50)).expect("link");
         }
     }
 
@@ -144,22 +167,12 @@ impl Client {
     }
 }
 
-/// The default scanner's mirror table from its inverse kinematics.
-pub fn mirror_table() -> Vec<MirrorPosition> {
-    let g = hil_sim::geometry::ScannerGeometry::default_scanner();
-    g.mirror_table(&hil_sim::camera::default_axes()).unwrap()
-}
-
+/// Load the default scanner's mirror table as `scanner setup` does; returns it.
 pub fn load_mirror_table(client: &mut Client) -> Vec<MirrorPosition> {
-    let table = mirror_table();
-    for (l, position) in table.iter().enumerate() {
-        assert_eq!(
-            client.request(Request::SetMirror { mirror: l as u8, position: *position }),
-            Reply::Ack
-        );
-    }
-    assert_eq!(client.request(Request::SetMirrorCount { count: 40 }), Reply::Ack);
-    table
+    let geometry = hil_sim::geometry::ScannerGeometry::default_scanner();
+    let setup = host::scan::setup(&mut client.dev, &geometry).expect("mirror table loaded");
+    assert_eq!(client.dev.info().mirror_count, 40);
+    setup.table
 }
 
 /// One capture step per mirror; returns the TriggerFired events.
@@ -174,7 +187,7 @@ pub fn capture_all(client: &mut Client, mirrors: usize) -> Vec<TriggerFired> {
         };
         assert_eq!(client.request(Request::CaptureStep(step)), Reply::Ack, "capture {l}");
         // Events are not retransmitted: one lost on a noisy link is asked
-        // for (as the host does).
+        // for (as the host's scan does).
         let event = client.wait_event(
             Duration::from_secs(10),
             |e| matches!(e, Event::TriggerFired(t) if t.mirror == Some(l)),
@@ -193,27 +206,9 @@ pub fn capture_all(client: &mut Client, mirrors: usize) -> Vec<TriggerFired> {
     fired
 }
 
-/// Send `Hello` with sequence number `seq` over a serial port (a pty) and
-/// wait up to 5 s of wall time for the `Info` reply.
-pub fn handshake_over_serial(port: &mut dyn serialport::SerialPort, seq: u8) -> Option<DeviceInfo> {
-    let mut frame = [0u8; MAX_FRAME_LEN];
-    let n =
-        encode_frame(seq, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut frame).unwrap();
-    port.write_all(&frame[..n]).unwrap();
-    let mut decoder = FrameDecoder::<ToHost>::new();
-    let mut buf = [0u8; 256];
-    let started = std::time::Instant::now();
-    while started.elapsed() < Duration::from_secs(5) {
-        let got = match port.read(&mut buf) {
-            Ok(n) => n,
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
-            Err(e) => panic!("{e}"),
-        };
-        for f in decoder.feed(&buf[..got]).flatten() {
-            if let (true, ToHost::Reply(Reply::Info(info))) = (f.seq == seq, f.msg) {
-                return Some(info);
-            }
-        }
-    }
-    None
+/// Connect the host's client to a serial port (a pty); the handshake's answer.
+pub fn connect_over_serial(path: &str) -> Result<DeviceInfo, LinkError> {
+    let transport =
+        host::link::SerialTransport::open(path).map_err(|e| LinkError::NoDevice(e.to_string()))?;
+    Ok(*Device::connect(Box::new(transport))?.info())
 }
