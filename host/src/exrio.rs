@@ -1,12 +1,16 @@
 //! OpenEXR frames: written as half-float RGB with lossless PIZ compression
 //! (wavelet + Huffman: on a default 4096² frame 1.7× faster to encode than
-//! ZIP and 14 % smaller), read from any RGB(A) float layout.
+//! ZIP and 14 % smaller) in 256 × 256 tiles, read from any RGB(A) layout —
+//! and, for the builder, only the tiles its views need.
 
 use std::path::Path;
 
 use exr::prelude::*;
 
 use crate::camera::Frame;
+
+/// Tile size of written frames, px.
+pub const TILE: usize = 256;
 
 /// Encode `frame` as a half-float, PIZ-compressed RGB OpenEXR file in memory.
 pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
@@ -32,8 +36,13 @@ fn encode_half_with(
         let i = 3 * (p.y() * w + p.x());
         (f16::from_f32(rgb[i]), f16::from_f32(rgb[i + 1]), f16::from_f32(rgb[i + 2]))
     });
-    let encoding =
-        Encoding { compression, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
+    // Tiles let a reader decode only the parts of a frame it needs (the
+    // mirrors' views cover ≈ 35 % of the default frame's 256² tiles, 65 %
+    // of its 32-line blocks); encoding and whole-frame decoding cost the
+    // same as scan lines. Small images stay scan lines.
+    let blocks =
+        if w.max(h) >= 2 * TILE { Blocks::Tiles(Vec2(TILE, TILE)) } else { Blocks::ScanLines };
+    let encoding = Encoding { compression, blocks, line_order: LineOrder::Increasing };
     let layer = Layer::new((w, h), LayerAttributes::named("frame"), encoding, channels);
     let image = Image::from_layer(layer);
     let mut out = std::io::Cursor::new(Vec::new());
@@ -49,19 +58,244 @@ pub fn quantise_half(mut frame: Frame) -> Frame {
 
 /// Read the first RGB(A) layer of an OpenEXR file as linear float RGB.
 pub fn read_rgb(path: &Path) -> std::result::Result<Frame, String> {
-    let image = read_first_rgba_layer_from_file(
-        path,
-        |res: Vec2<usize>, _| (res, vec![0.0f32; res.width() * res.height() * 3]),
-        |(res, data): &mut (Vec2<usize>, Vec<f32>),
-         p: Vec2<usize>,
-         (r, g, b, _a): (f32, f32, f32, f32)| {
-            let i = 3 * (p.y() * res.width() + p.x());
-            data[i] = r;
-            data[i + 1] = g;
-            data[i + 2] = b;
-        },
-    )
-    .map_err(|e| e.to_string())?;
-    let (res, rgb) = image.layer_data.channel_data.pixels;
-    Ok(Frame { width: res.width() as u32, height: res.height() as u32, rgb })
+    read_rgb_within(path, &|_| true, 1.0)
+}
+
+/// A pixel rectangle of a frame: `[x0, y0, x1, y1)`.
+pub type PixelRect = [usize; 4];
+
+/// Whether two pixel rectangles overlap.
+pub fn rects_overlap(a: PixelRect, b: PixelRect) -> bool {
+    a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3]
+}
+
+/// Read the first layer with R, G and B channels (half, float or uint
+/// samples, any block layout) as linear float RGB, decoding only the blocks
+/// (scan-line groups or tiles) whose pixel rectangle `wanted` accepts; the
+/// pixels of the other blocks are 0. Blocks are decoded on the rayon pool
+/// (the exr crate's own parallel reader builds a thread pool per file).
+/// Values are divided by `unit` as they are decoded (the pixels of blocks
+/// not read are never touched: the frame's memory there stays unmapped).
+pub fn read_rgb_within(
+    path: &Path,
+    wanted: &(dyn Fn(PixelRect) -> bool + Sync),
+    unit: f32,
+) -> std::result::Result<Frame, String> {
+    use exr::block::UncompressedBlock;
+    use exr::block::chunk::Chunk;
+    use exr::block::reader::ChunksReader;
+    use half::slice::HalfFloatSliceExt;
+    use rayon::prelude::*;
+
+    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let reader =
+        exr::block::read(std::io::BufReader::new(file), false).map_err(|e| e.to_string())?;
+    let (layer, offsets) = {
+        let headers = reader.headers();
+        let layer = headers
+            .iter()
+            .position(|h| {
+                ["R", "G", "B"]
+                    .iter()
+                    .all(|n| h.channels.find_index_of_channel(&Text::from(*n)).is_some())
+            })
+            .ok_or("no layer with R, G and B channels")?;
+        let h = &headers[layer];
+        if h.deep {
+            return Err("deep data is not an image".into());
+        }
+        if h.channels.list.iter().any(|c| c.sampling != Vec2(1, 1)) {
+            return Err("subsampled channels are not supported".into());
+        }
+        // Where each channel's samples sit in one line of a block: the
+        // byte offset per sample of the line's width, and the type.
+        let mut before = 0usize;
+        let mut offsets = Vec::new();
+        for c in &h.channels.list {
+            offsets.push((c.name.to_string(), before, c.sample_type));
+            before += c.sample_type.bytes_per_sample();
+        }
+        (layer, offsets)
+    };
+    let header = reader.headers()[layer].clone();
+    let (w, h) = (header.layer_size.width(), header.layer_size.height());
+    if w == 0 || h == 0 || w.checked_mul(h).is_none_or(|n| n > 1 << 30) {
+        return Err(format!("unsupported image size {w}×{h}"));
+    }
+    let chunks = reader
+        .filter_chunks(false, |_, _, block| {
+            let p = block.pixel_position;
+            let s = block.pixel_size;
+            block.layer == layer
+                && block.level == Vec2(0, 0)
+                && wanted([p.x(), p.y(), p.x() + s.width(), p.y() + s.height()])
+        })
+        .map_err(|e| e.to_string())?;
+    let meta = chunks.meta_data().clone();
+    let header = &meta.headers[layer];
+    // Every chunk with the pixel rows it covers, by rows.
+    let mut chunks: Vec<(usize, usize, Chunk)> = chunks
+        .map(|chunk| {
+            let chunk = chunk?;
+            let tile = header.get_block_data_indices(&chunk.compressed_block)?;
+            let bounds = header.get_absolute_block_pixel_coordinates(tile)?;
+            let y0 = bounds.position.y().max(0) as usize;
+            Ok((y0, y0 + bounds.size.height(), chunk))
+        })
+        .collect::<exr::error::Result<_>>()
+        .map_err(|e| e.to_string())?;
+    chunks.sort_by_key(|&(y0, y1, _)| (y0, y1));
+    let find = |name: &str| offsets.iter().find(|(n, _, _)| n == name).map(|&(_, o, t)| (o, t));
+    let rgb_channels: [(usize, SampleType); 3] = [
+        find("R").ok_or("no R channel")?,
+        find("G").ok_or("no G channel")?,
+        find("B").ok_or("no B channel")?,
+    ];
+    let line_bytes: usize = offsets.iter().map(|&(_, _, t)| t.bytes_per_sample()).sum();
+    // Decode one block into `band`, the frame's rows from `band_y`.
+    let decode = |chunk: Chunk,
+                  band: &mut [f32],
+                  band_y: usize|
+     -> std::result::Result<(), String> {
+        let block =
+            UncompressedBlock::decompress_chunk(chunk, &meta, false).map_err(|e| e.to_string())?;
+        let (bx, by) = (block.index.pixel_position.x(), block.index.pixel_position.y());
+        let (bw, bh) = (block.index.pixel_size.width(), block.index.pixel_size.height());
+        if bx + bw > w
+            || by < band_y
+            || 3 * w * (by - band_y + bh) > band.len()
+            || block.data.len() != bw * bh * line_bytes
+        {
+            return Err(format!("block at ({bx}, {by}) of {bw}×{bh} px does not fit the image"));
+        }
+        let (mut halves, mut line_f32) = (vec![f16::ZERO; bw], vec![0.0f32; bw]);
+        for (i, row) in block.data.chunks_exact(bw * line_bytes).enumerate() {
+            let at = 3 * ((by - band_y + i) * w + bx);
+            let line = &mut band[at..at + 3 * bw];
+            for (k, &(offset, ty)) in rgb_channels.iter().enumerate() {
+                let samples = &row[offset * bw..(offset + ty.bytes_per_sample()) * bw];
+                match ty {
+                    SampleType::F16 => {
+                        // The slice conversion uses F16C where the CPU has it.
+                        for (h, b) in halves.iter_mut().zip(samples.chunks_exact(2)) {
+                            *h = f16::from_ne_bytes([b[0], b[1]]);
+                        }
+                        halves.convert_to_f32_slice(&mut line_f32);
+                    }
+                    SampleType::F32 => line_f32
+                        .iter_mut()
+                        .zip(samples.chunks_exact(4))
+                        .for_each(|(o, b)| *o = f32::from_ne_bytes([b[0], b[1], b[2], b[3]])),
+                    SampleType::U32 => {
+                        line_f32.iter_mut().zip(samples.chunks_exact(4)).for_each(|(o, b)| {
+                            *o = u32::from_ne_bytes([b[0], b[1], b[2], b[3]]) as f32
+                        })
+                    }
+                }
+                if unit != 1.0 {
+                    line_f32.iter_mut().for_each(|v| *v /= unit);
+                }
+                line.iter_mut().skip(k).step_by(3).zip(&line_f32).for_each(|(o, v)| *o = *v);
+            }
+        }
+        Ok(())
+    };
+    // Bands of rows that blocks share (a row of tiles, a scan-line block),
+    // each its own slice of the frame: decoded in parallel, written in place.
+    let mut rgb = vec![0.0f32; w * h * 3];
+    let mut bands: Vec<(usize, &mut [f32], Vec<Chunk>)> = Vec::new();
+    let mut rest: &mut [f32] = &mut rgb;
+    let mut rest_y = 0;
+    for (y0, y1, chunk) in chunks {
+        match bands.last_mut() {
+            Some((band_y, band, list)) if *band_y == y0 && *band_y + band.len() / (3 * w) == y1 => {
+                list.push(chunk)
+            }
+            _ => {
+                if y0 < rest_y || y1 > h || y1 <= y0 {
+                    return Err(format!("blocks overlap or leave the image at rows {y0}..{y1}"));
+                }
+                let (_, tail) = std::mem::take(&mut rest).split_at_mut(3 * w * (y0 - rest_y));
+                let (band, tail) = tail.split_at_mut(3 * w * (y1 - y0));
+                rest = tail;
+                rest_y = y1;
+                bands.push((y0, band, vec![chunk]));
+            }
+        }
+    }
+    bands.into_par_iter().try_for_each(|(band_y, band, list)| {
+        list.into_iter().try_for_each(|chunk| decode(chunk, &mut *band, band_y))
+    })?;
+    Ok(Frame { width: w as u32, height: h as u32, rgb })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A frame whose every value is distinct and exact in half float.
+    fn frame(w: u32, h: u32) -> Frame {
+        let rgb = (0..w * h * 3).map(|i| (i % 2039) as f32 / 8.0).collect();
+        Frame { width: w, height: h, rgb }
+    }
+
+    fn write(dir: &Path, name: &str, bytes: &[u8]) -> std::path::PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        p
+    }
+
+    #[test]
+    fn frames_round_trip_tiled_and_small_images_as_scan_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        // 1000 × 700: partial tiles at the right and bottom edges.
+        for (w, h, tiled) in [(1000, 700, true), (300, 200, false)] {
+            let f = frame(w, h);
+            let p = write(dir.path(), "f.exr", &encode_half(&f).unwrap());
+            let meta = exr::meta::MetaData::read_from_file(&p, false).unwrap();
+            let is_tiled = matches!(meta.headers[0].blocks, exr::meta::BlockDescription::Tiles(_));
+            assert_eq!(is_tiled, tiled, "{w}×{h}");
+            assert!(read_rgb(&p).unwrap() == f);
+            let raw = write(dir.path(), "r.exr", &encode_half_uncompressed(&f).unwrap());
+            assert!(read_rgb(&raw).unwrap() == f);
+        }
+    }
+
+    #[test]
+    fn only_the_wanted_blocks_are_decoded() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = frame(1024, 768);
+        let p = write(dir.path(), "f.exr", &encode_half(&f).unwrap());
+        let window = [300, 260, 310, 270];
+        let part = read_rgb_within(&p, &|b| rects_overlap(b, window), 2.0).unwrap();
+        // The tile holding the window ([256, 512) × [256, 512)) is there,
+        // everything else is 0.
+        for y in 0..768 {
+            for x in 0..1024 {
+                let i = 3 * (y * 1024 + x);
+                let inside = (256..512).contains(&x) && (256..512).contains(&y);
+                let want: [f32; 3] =
+                    if inside { std::array::from_fn(|k| f.rgb[i + k] / 2.0) } else { [0.0; 3] };
+                assert_eq!(part.rgb[i..i + 3], want, "({x}, {y})");
+            }
+        }
+    }
+
+    #[test]
+    fn damaged_files_are_errors_not_panics() {
+        let dir = tempfile::tempdir().unwrap();
+        let bytes = encode_half(&frame(600, 600)).unwrap();
+        for cut in [0, 8, 300, bytes.len() / 2, bytes.len() - 1] {
+            let p = write(dir.path(), "cut.exr", &bytes[..cut]);
+            assert!(read_rgb(&p).is_err(), "cut at {cut}");
+        }
+        // Flipped bytes in the pixel data: an error or other values, never a panic.
+        for at in (bytes.len() / 3..bytes.len()).step_by(bytes.len() / 40) {
+            let mut b = bytes.clone();
+            b[at] ^= 0x5a;
+            let p = write(dir.path(), "flip.exr", &b);
+            let _ = read_rgb(&p);
+        }
+        assert!(read_rgb(&dir.path().join("none.exr")).is_err());
+    }
 }

@@ -26,6 +26,7 @@ use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
 use super::plane::{Plane, cell_taps};
 use super::scanread::{ScanFrames, frame_bilinear};
+use crate::exrio::PixelRect;
 
 /// Calibration file format name.
 pub const CALIBRATION_FORMAT: &str = "material-scanner/calibration";
@@ -179,26 +180,71 @@ pub trait BuildProgress: Sync {
 pub struct Silent;
 impl BuildProgress for Silent {}
 
-/// Luminance of frame lit by each light of `scan`, summed.
-pub fn luminance_sum(scan: &ScanFrames, progress: &dyn BuildProgress) -> Result<Plane, BuildError> {
+/// Per row of a `w` × `h` frame, the x ranges `windows` cover, merged.
+fn row_spans(windows: &[PixelRect], w: usize, h: usize) -> Vec<Vec<(usize, usize)>> {
+    (0..h)
+        .map(|y| {
+            let mut spans: Vec<(usize, usize)> = windows
+                .iter()
+                .filter(|r| r[1] <= y && y < r[3] && r[0] < w)
+                .map(|r| (r[0], r[2].min(w)))
+                .collect();
+            spans.sort_unstable();
+            let mut merged: Vec<(usize, usize)> = Vec::new();
+            for (a, b) in spans {
+                match merged.last_mut() {
+                    Some(last) if a <= last.1 => last.1 = last.1.max(b),
+                    _ => merged.push((a, b)),
+                }
+            }
+            merged
+        })
+        .collect()
+}
+
+/// Luminance of frame lit by each light of `scan`, summed over the frame
+/// `windows` (the rest of the frame is not read and stays 0).
+pub fn luminance_sum(
+    scan: &ScanFrames,
+    windows: &[PixelRect],
+    progress: &dyn BuildProgress,
+) -> Result<Plane, BuildError> {
     let lights = scan.lights();
+    let Some(first) = scan.manifest.frames.first() else {
+        return Err(BuildError::Input(format!("{}: no frames", scan.dir.display())));
+    };
+    let (w, h) = (first.width as usize, first.height as usize);
+    let spans = row_spans(windows, w, h);
+    // Only the windows' pixels are touched: the rest of a frame was never
+    // written, and touching it would cost a page fault per 4 KiB.
+    let each_pixel = |mut f: &mut dyn FnMut(usize)| {
+        for (y, row) in spans.iter().enumerate() {
+            for &(a, b) in row {
+                (y * w + a..y * w + b).for_each(&mut f);
+            }
+        }
+    };
     progress.stage("checkerboard frames", lights.len());
     lights
         .par_iter()
-        .map(|&l| {
-            let f = scan.read(l)?;
-            let mut p = Plane::new(f.width as usize, f.height as usize);
-            for (o, px) in p.data.iter_mut().zip(f.rgb.chunks_exact(3)) {
-                *o = (px[0] + px[1] + px[2]) / 3.0;
-            }
-            progress.step();
-            Ok(p)
-        })
-        .try_reduce_with(|mut a, b| {
-            a.data.iter_mut().zip(&b.data).for_each(|(x, y)| *x += y);
-            Ok(a)
-        })
-        .unwrap_or_else(|| Err(BuildError::Input(format!("{}: no frames", scan.dir.display()))))
+        .try_fold(
+            || Plane::new(w, h),
+            |mut acc, &l| {
+                let f = scan.read_within(l, windows)?;
+                each_pixel(&mut |i| {
+                    acc.data[i] += (f.rgb[3 * i] + f.rgb[3 * i + 1] + f.rgb[3 * i + 2]) / 3.0;
+                });
+                progress.step();
+                Ok(acc)
+            },
+        )
+        .try_reduce(
+            || Plane::new(w, h),
+            |mut a, b| {
+                each_pixel(&mut |i| a.data[i] += b.data[i]);
+                Ok(a)
+            },
+        )
 }
 
 /// The light direction (sample-local) of the beam at `axes`, reflected in
@@ -224,7 +270,10 @@ pub fn calibrate(
             opts.white_albedo
         )));
     }
-    let sum = luminance_sum(checker, progress)?;
+    // Only the frame pixels around the nominal views are read.
+    let windows: Vec<PixelRect> =
+        (0..g.mirrors.len()).filter_map(|j| super::locate::search_window(g, j)).collect();
+    let sum = luminance_sum(checker, &windows, progress)?;
     let views: Vec<usize> = (0..g.mirrors.len()).collect();
     progress.stage("locating views", views.len());
     let fits: Vec<RegionFit> = views
@@ -344,7 +393,7 @@ fn colour_calibration(
     let w: Vec<Vec<Vec<[f64; 3]>>> = lights
         .par_iter()
         .map(|&l| {
-            let f = white.read(l)?;
+            let f = white.read_within(l, &view_windows(views))?;
             let cells = cell_means(&f, views, grid);
             progress.step();
             Ok(cells)
@@ -409,6 +458,12 @@ fn colour_calibration(
         view_response: a.iter().map(|v| v.iter().flatten().map(|&x| x as f32).collect()).collect(),
         light_field: b.iter().map(|l| l.iter().map(|&x| x as f32).collect()).collect(),
     })
+}
+
+/// The frame pixels the calibrated `views` are resampled from (bicubic
+/// support included).
+pub fn view_windows(views: &[ViewCalibration]) -> Vec<PixelRect> {
+    views.iter().map(|v| v.homography.window(4.0)).collect()
 }
 
 impl ViewCalibration {

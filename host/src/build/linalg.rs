@@ -172,6 +172,27 @@ impl Homography {
     }
 
     /// The inverse mapping.
+    /// Bounding box `[x0, y0, x1, y1]` of the unit square's image (a view's
+    /// sample in the frame, px).
+    pub fn bounds(&self) -> [f64; 4] {
+        let pts = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|p| self.apply(p));
+        [
+            pts.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min),
+            pts.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min),
+            pts.iter().map(|p| p[0]).fold(f64::NEG_INFINITY, f64::max),
+            pts.iter().map(|p| p[1]).fold(f64::NEG_INFINITY, f64::max),
+        ]
+    }
+
+    /// The pixels within `pad` px of the unit square's image, as a frame
+    /// window `[x0, y0, x1, y1)` (clamped at 0; the reader clips the rest).
+    pub fn window(&self, pad: f64) -> crate::exrio::PixelRect {
+        let b = self.bounds();
+        let lo = |v: f64| (v - pad).floor().max(0.0) as usize;
+        let hi = |v: f64| (v + pad).ceil().max(0.0) as usize + 1;
+        [lo(b[0]), lo(b[1]), hi(b[2]), hi(b[3])]
+    }
+
     pub fn inverse(&self) -> Option<Homography> {
         let m = &self.0;
         let c = [

@@ -95,6 +95,21 @@ pub fn nominal_homography(g: &ScannerGeometry, l: usize) -> Option<Homography> {
     Homography::fit(&src, &dst)
 }
 
+/// How far from its nominal place a view is searched: as far as
+/// manufacturing errors can move it, 60 px of the default 4096² sensor
+/// (scaled to this one), at least 6 px.
+fn search_margin(g: &ScannerGeometry) -> isize {
+    let scale = g.camera.focal_px / 5600.0;
+    (60.0 * scale).max(6.0).round() as isize
+}
+
+/// The frame pixels [`locate`] may look at for `view`: the nominal view
+/// with twice the search margin around it (the refinements look a little
+/// beyond the shifted view).
+pub fn search_window(g: &ScannerGeometry, view: usize) -> Option<crate::exrio::PixelRect> {
+    Some(nominal_homography(g, view)?.window(2.0 * search_margin(g) as f64 + 8.0))
+}
+
 /// Locate view `view` in `sum` (the luminance summed over the checkerboard
 /// frames) starting from the nominal geometry.
 pub fn locate(
@@ -105,10 +120,7 @@ pub fn locate(
 ) -> Result<RegionFit, LocateError> {
     let fail = |reason: String| LocateError::NotFound { view, reason };
     let nominal = nominal_homography(g, view).ok_or_else(|| fail("behind the camera".into()))?;
-    // Search as far as manufacturing errors can move a view: 60 px of the
-    // default 4096² sensor (scaled to this one), at least 6 px.
-    let scale = g.camera.focal_px / 5600.0;
-    let margin = (60.0 * scale).max(6.0).round() as isize;
+    let margin = search_margin(g);
     let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
     let mut phase = shifted;
     for _ in 0..6 {
@@ -132,23 +144,12 @@ pub fn locate(
     Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px })
 }
 
-/// Bounding box (x0, y0, x1, y1) of the sample through `h`, in px.
-fn bbox(h: &Homography) -> [f64; 4] {
-    let pts = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|p| h.apply(p));
-    [
-        pts.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min),
-        pts.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min),
-        pts.iter().map(|p| p[0]).fold(f64::NEG_INFINITY, f64::max),
-        pts.iter().map(|p| p[1]).fold(f64::NEG_INFINITY, f64::max),
-    ]
-}
-
 /// Translate `h` so the sample's silhouette matches the lit pixels: row
 /// and column profiles of the thresholded image against those of the
 /// predicted quadrilateral, searched over ±`margin` px.
 fn coarse_shift(sum: &Plane, h: &Homography, margin: isize) -> Result<Homography, String> {
     let inv = h.inverse().ok_or("degenerate view")?;
-    let b = bbox(h);
+    let b = h.bounds();
     if b[2] < 0.0 || b[3] < 0.0 || b[0] > sum.width as f64 || b[1] > sum.height as f64 {
         return Err("outside the frame".into());
     }
@@ -304,7 +305,7 @@ fn corner_fit(
     h: &Homography,
     target: &Checkerboard,
 ) -> Option<(Homography, usize, f64)> {
-    let b = bbox(h);
+    let b = h.bounds();
     let pad = 4isize;
     let x0 = b[0].floor() as isize - pad;
     let y0 = b[1].floor() as isize - pad;

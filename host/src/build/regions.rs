@@ -126,11 +126,12 @@ pub fn extract_regions(
         .collect::<Result<_, _>>()?;
     let albedo = cal.colour.white_albedo;
     progress.stage("sample frames", lights.len());
+    let windows = super::calibrate::view_windows(&cal.views);
     let per_light: Vec<Vec<Vec<[f32; 3]>>> = lights
         .par_iter()
         .zip(&light_index)
         .map(|(&l, &ci)| {
-            let f = scan.read(l)?;
+            let f = scan.read_within(l, &windows)?;
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
             let images = cal

@@ -8,6 +8,7 @@ use scanner_geometry::ScannerGeometry;
 
 use super::error::BuildError;
 use crate::camera::Frame;
+use crate::exrio::{PixelRect, rects_overlap};
 use crate::scan::{FrameRecord, Manifest};
 
 /// A scan ready to be read.
@@ -82,9 +83,20 @@ impl ScanFrames {
 
     /// The frame lit by mirror `light`, values divided by its exposure (s).
     pub fn read(&self, light: usize) -> Result<Frame, BuildError> {
+        self.read_within(light, &[[0, 0, usize::MAX, usize::MAX]])
+    }
+
+    /// The same, decoding only the blocks of the file that meet one of
+    /// `windows` (frame pixels `[x0, y0, x1, y1)`); other pixels are 0.
+    pub fn read_within(&self, light: usize, windows: &[PixelRect]) -> Result<Frame, BuildError> {
         let rec = self.record(light)?;
         let path = self.dir.join(&rec.file);
-        let mut f = crate::exrio::read_rgb(&path)
+        let t = rec.exposure_us as f32 * 1e-6;
+        if t <= 0.0 {
+            return Err(BuildError::Input(format!("{}: exposure 0", path.display())));
+        }
+        let wanted = |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block));
+        let f = crate::exrio::read_rgb_within(&path, &wanted, t)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
         if (f.width, f.height) != (rec.width, rec.height) {
             return Err(BuildError::Input(format!(
@@ -96,11 +108,6 @@ impl ScanFrames {
                 rec.height
             )));
         }
-        let t = rec.exposure_us as f32 * 1e-6;
-        if t <= 0.0 {
-            return Err(BuildError::Input(format!("{}: exposure 0", path.display())));
-        }
-        f.rgb.iter_mut().for_each(|v| *v /= t);
         Ok(f)
     }
 
