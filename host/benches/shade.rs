@@ -21,7 +21,7 @@ const K: usize = 256;
 const G: usize = 2;
 const QUERIES: usize = 1 << 16;
 
-fn material(interpolation: Interpolation) -> Material {
+fn material(interpolation: Interpolation, half_vector_shift: f64) -> Material {
     let g = ScannerGeometry::default_scanner();
     let n = g.mirrors.len();
     let views: Vec<[f64; 3]> = (0..n).map(|v| g.mirror_direction(v).unwrap().to_array()).collect();
@@ -52,7 +52,7 @@ fn material(interpolation: Interpolation) -> Material {
             colours: K as u32,
             lights_per_index: G as u32,
             interpolation,
-            half_vector_shift: 0.5,
+            half_vector_shift,
             lights: mirrors(&lights),
             views: mirrors(&views),
             provenance: Provenance {
@@ -92,7 +92,7 @@ fn shade(c: &mut Criterion) {
     let mut out = vec![[0f32; 3]; q.len()];
     let mut group = c.benchmark_group("eval");
     group.throughput(Throughput::Elements(q.len() as u64));
-    let default = material(Interpolation::Default);
+    let default = material(Interpolation::Default, 0.5);
     // Baseline: every query at one captured pair (one image, one palette).
     group.bench_function("baseline: eval at one captured pair", |b| {
         let (wi, wo) = (
@@ -112,6 +112,13 @@ fn shade(c: &mut Criterion) {
             black_box(&out);
         })
     });
+    group.bench_function("default interpolation, no half-vector shift", |b| {
+        let unshifted = material(Interpolation::Default, 0.0);
+        b.iter(|| {
+            unshifted.eval_batch(&q, &mut out);
+            black_box(&out);
+        })
+    });
     // A renderer's pattern: a 256² image of the tile under one light and view.
     let image: Vec<ShadeQuery> = (0..QUERIES)
         .map(|i| ShadeQuery {
@@ -127,7 +134,7 @@ fn shade(c: &mut Criterion) {
         })
     });
     group.bench_function("patent interpolation", |b| {
-        let patent = material(PATENT_DEFAULT);
+        let patent = material(PATENT_DEFAULT, 0.5);
         b.iter(|| {
             patent.eval_batch(&q, &mut out);
             black_box(&out);

@@ -96,12 +96,24 @@ pub fn default_pairs(
 ) {
     let (mut lb, mut vb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
     lights.weights(wi, &mut lb);
+    if shift <= 0.0 {
+        // No shift: every light reads the views of wo itself.
+        views.weights(wo, &mut vb);
+        for &(li, wl) in &lb {
+            for &(vi, wv) in &vb {
+                if wl != 0.0 && wv != 0.0 {
+                    pair(vi, li, wv * wl);
+                }
+            }
+        }
+        return;
+    }
     let h = unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]).unwrap_or([0.0, 0.0, 1.0]);
     for &(li, wl) in &lb {
         if wl == 0.0 {
             continue;
         }
-        let v = if shift > 0.0 {
+        let v = {
             let l = light_dirs[li as usize];
             let k = 2.0 * (h[0] * l[0] + h[1] * l[1] + h[2] * l[2]);
             let r = [k * h[0] - l[0], k * h[1] - l[1], k * h[2] - l[2]];
@@ -109,8 +121,6 @@ pub fn default_pairs(
             // Below the horizon: the horizon point of its azimuth.
             v[2] = v[2].max(1e-4);
             unit(v).unwrap_or(wo)
-        } else {
-            wo
         };
         views.weights(v, &mut vb);
         for &(vi, wv) in &vb {
