@@ -9,64 +9,21 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use host::build::material::{PATENT_DEFAULT, patent_table, triangulate};
+use host::build::material::PATENT_DEFAULT;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use scanner_geometry::ScannerGeometry;
-use scanner_shading::format::{DirectionTables, Mirror, Provenance};
-use scanner_shading::{Interpolation, Material, MaterialData, Metadata, ShadeQuery};
+use scanner_shading::{Interpolation, Material, ShadeQuery};
 
-const S: usize = 128;
-const K: usize = 256;
-const G: usize = 2;
+#[path = "support/synthetic.rs"]
+mod synthetic;
+
 const QUERIES: usize = 1 << 16;
 
+/// The size: 40 × 40 directions, S = 128, K = 256, g = 2.
 fn material(interpolation: Interpolation, half_vector_shift: f64) -> Material {
-    let g = ScannerGeometry::default_scanner();
-    let n = g.mirrors.len();
-    let views: Vec<[f64; 3]> = (0..n).map(|v| g.mirror_direction(v).unwrap().to_array()).collect();
-    let lights: Vec<[f64; 3]> = (0..n).map(|l| g.light_direction(l).unwrap().to_array()).collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(1);
-    let groups = n.div_ceil(G);
-    let tables = match interpolation {
-        Interpolation::Default => DirectionTables::Triangles {
-            views: triangulate(&views, "views").unwrap(),
-            lights: triangulate(&lights, "lights").unwrap(),
-        },
-        Interpolation::Patent { columns, rows, points } => DirectionTables::Patent {
-            views: patent_table(&views, columns, rows, points, 1),
-            lights: patent_table(&lights, columns, rows, points, 2),
-        },
-    };
-    let mirrors = |d: &[[f64; 3]]| -> Vec<Mirror> {
-        d.iter().enumerate().map(|(i, &direction)| Mirror { mirror: i as u32, direction }).collect()
-    };
-    let data = MaterialData {
-        meta: Metadata {
-            format: scanner_shading::format::FORMAT.into(),
-            version: scanner_shading::format::VERSION,
-            name: "bench".into(),
-            sample_size_mm: 25.4,
-            extent_mm: [25.4, 25.4],
-            resolution: S as u32,
-            colours: K as u32,
-            lights_per_index: G as u32,
-            interpolation,
-            half_vector_shift,
-            lights: mirrors(&lights),
-            views: mirrors(&views),
-            provenance: Provenance {
-                scan_manifest_sha256: String::new(),
-                geometry_sha256: g.hash(),
-                calibration_sha256: String::new(),
-                builder: "bench".into(),
-            },
-        },
-        palettes: (0..n * n * K).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
-        indices: (0..n * S * S * groups).map(|_| rng.random_range(0..=(K - 1) as u8)).collect(),
-        light_groups: (0..n).map(|l| (l / G) as u8).collect(),
-        tables,
-    };
+    let shape =
+        synthetic::Shape { mirrors: 40, resolution: 128, colours: 256, lights_per_index: 2 };
+    let data = synthetic::synthetic(&shape, interpolation, half_vector_shift, 1);
     Material::from_bytes(&data.to_bytes().unwrap()).unwrap()
 }
 

@@ -1,0 +1,79 @@
+//! A material of random content over the default scanner's directions, for
+//! the shading benchmark and the fuzz seeds (`#[path]`-included by both).
+
+use host::build::material::{patent_table, triangulate};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use scanner_geometry::ScannerGeometry;
+use scanner_shading::format::{DirectionTables, FORMAT, Mirror, Provenance, VERSION};
+use scanner_shading::{Interpolation, MaterialData, Metadata};
+
+/// The size of a synthetic material.
+#[derive(Debug, Clone, Copy)]
+pub struct Shape {
+    /// Directions: the first `mirrors` of the default scanner, as lights and views.
+    pub mirrors: usize,
+    /// Texels per side.
+    pub resolution: usize,
+    /// Palette colours.
+    pub colours: usize,
+    /// Lights per index image.
+    pub lights_per_index: usize,
+}
+
+/// Random palettes and indices over `shape`, seeded by `seed`.
+pub fn synthetic(
+    shape: &Shape,
+    interpolation: Interpolation,
+    half_vector_shift: f64,
+    seed: u64,
+) -> MaterialData {
+    let &Shape { mirrors: n, resolution: s, colours: k, lights_per_index: g } = shape;
+    let geometry = ScannerGeometry::default_scanner();
+    let views: Vec<[f64; 3]> =
+        (0..n).map(|v| geometry.mirror_direction(v).unwrap().to_array()).collect();
+    let lights: Vec<[f64; 3]> =
+        (0..n).map(|l| geometry.light_direction(l).unwrap().to_array()).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let tables = match interpolation {
+        Interpolation::Default => DirectionTables::Triangles {
+            views: triangulate(&views, "views").unwrap(),
+            lights: triangulate(&lights, "lights").unwrap(),
+        },
+        Interpolation::Patent { columns, rows, points } => DirectionTables::Patent {
+            views: patent_table(&views, columns, rows, points, 1),
+            lights: patent_table(&lights, columns, rows, points, 2),
+        },
+    };
+    let mirrors = |d: &[[f64; 3]]| -> Vec<Mirror> {
+        d.iter().enumerate().map(|(i, &direction)| Mirror { mirror: i as u32, direction }).collect()
+    };
+    MaterialData {
+        meta: Metadata {
+            format: FORMAT.into(),
+            version: VERSION,
+            name: "synthetic".into(),
+            sample_size_mm: 25.4,
+            extent_mm: [25.4, 25.4],
+            resolution: s as u32,
+            colours: k as u32,
+            lights_per_index: g as u32,
+            interpolation,
+            half_vector_shift,
+            lights: mirrors(&lights),
+            views: mirrors(&views),
+            provenance: Provenance {
+                scan_manifest_sha256: String::new(),
+                geometry_sha256: geometry.hash(),
+                calibration_sha256: String::new(),
+                builder: "synthetic".into(),
+            },
+        },
+        palettes: (0..n * n * k).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
+        indices: (0..n * s * s * n.div_ceil(g))
+            .map(|_| rng.random_range(0..=(k - 1) as u8))
+            .collect(),
+        light_groups: (0..n).map(|l| (l / g) as u8).collect(),
+        tables,
+    }
+}
