@@ -90,15 +90,14 @@ pub fn read_rgb_within(
     let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
     let reader =
         exr::block::read(std::io::BufReader::new(file), false).map_err(|e| e.to_string())?;
-    let (layer, offsets) = {
+    let (layer, w, h, line_bytes, rgb_channels) = {
         let headers = reader.headers();
+        let has = |h: &exr::meta::header::Header, n: &str| {
+            h.channels.find_index_of_channel(&Text::from(n)).is_some()
+        };
         let layer = headers
             .iter()
-            .position(|h| {
-                ["R", "G", "B"]
-                    .iter()
-                    .all(|n| h.channels.find_index_of_channel(&Text::from(*n)).is_some())
-            })
+            .position(|h| ["R", "G", "B"].iter().all(|n| has(h, n)))
             .ok_or("no layer with R, G and B channels")?;
         let h = &headers[layer];
         if h.deep {
@@ -107,18 +106,18 @@ pub fn read_rgb_within(
         if h.channels.list.iter().any(|c| c.sampling != Vec2(1, 1)) {
             return Err("subsampled channels are not supported".into());
         }
-        // Where each channel's samples sit in one line of a block: the
-        // byte offset per sample of the line's width, and the type.
-        let mut before = 0usize;
-        let mut offsets = Vec::new();
+        // Where R, G and B sit in one line of a block: each channel's
+        // samples for the line's width, in the header's channel order.
+        let mut line_bytes = 0usize;
+        let mut rgb_channels = [(0usize, SampleType::F16); 3];
         for c in &h.channels.list {
-            offsets.push((c.name.to_string(), before, c.sample_type));
-            before += c.sample_type.bytes_per_sample();
+            if let Some(k) = ["R", "G", "B"].iter().position(|n| c.name == **n) {
+                rgb_channels[k] = (line_bytes, c.sample_type);
+            }
+            line_bytes += c.sample_type.bytes_per_sample();
         }
-        (layer, offsets)
+        (layer, h.layer_size.width(), h.layer_size.height(), line_bytes, rgb_channels)
     };
-    let header = reader.headers()[layer].clone();
-    let (w, h) = (header.layer_size.width(), header.layer_size.height());
     if w == 0 || h == 0 || w.checked_mul(h).is_none_or(|n| n > 1 << 30) {
         return Err(format!("unsupported image size {w}×{h}"));
     }
@@ -145,13 +144,6 @@ pub fn read_rgb_within(
         .collect::<exr::error::Result<_>>()
         .map_err(|e| e.to_string())?;
     chunks.sort_by_key(|&(y0, y1, _)| (y0, y1));
-    let find = |name: &str| offsets.iter().find(|(n, _, _)| n == name).map(|&(_, o, t)| (o, t));
-    let rgb_channels: [(usize, SampleType); 3] = [
-        find("R").ok_or("no R channel")?,
-        find("G").ok_or("no G channel")?,
-        find("B").ok_or("no B channel")?,
-    ];
-    let line_bytes: usize = offsets.iter().map(|&(_, _, t)| t.bytes_per_sample()).sum();
     // Decode one block into `band`, the frame's rows from `band_y`.
     let decode = |chunk: Chunk,
                   band: &mut [f32],

@@ -757,7 +757,8 @@ fn describe_check(check: &PositionCheck) -> String {
     off.join(", ")
 }
 
-fn wait_idle(dev: &mut Device, max: Duration) -> Result<protocol::Status, ScanError> {
+/// Poll the status until the device is idle or faulted; an error after `max`.
+pub fn wait_idle(dev: &mut Device, max: Duration) -> Result<protocol::Status, ScanError> {
     let end = dev.now() + max;
     loop {
         let s = dev.status()?;

@@ -139,20 +139,11 @@ impl Client {
         found
     }
 
-    /// Wait until the device is idle (status polled every 50 ms).
+    /// Wait until the device is idle or faulted (the host's own wait).
     pub fn wait_idle(&mut self, max: Duration) -> Status {
-        let end = self.dev.now() + max;
-        loop {
-            let s = self.status();
-            if s.state == DeviceState::Idle
-                || s.state == DeviceState::Faulted
-                || self.dev.now() >= end
-            {
-                self.log_events();
-                return s;
-            }
-            self.dev.sleep(Duration::from_millis(50)).expect("link");
-        }
+        let s = host::scan::wait_idle(&mut self.dev, max).expect("idle within the time");
+        self.log_events();
+        s
     }
 
     pub fn home_all(&mut self) {

@@ -96,33 +96,26 @@ pub fn default_pairs(
 ) {
     let (mut lb, mut vb) = ([(0u16, 0f32); 3], [(0u16, 0f32); 3]);
     lights.weights(wi, &mut lb);
-    if shift <= 0.0 {
-        // No shift: every light reads the views of wo itself.
+    // Without a shift every light reads the views of wo itself: one lookup.
+    let h = if shift > 0.0 {
+        Some(unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]).unwrap_or([0.0, 0.0, 1.0]))
+    } else {
         views.weights(wo, &mut vb);
-        for &(li, wl) in &lb {
-            for &(vi, wv) in &vb {
-                if wl != 0.0 && wv != 0.0 {
-                    pair(vi, li, wv * wl);
-                }
-            }
-        }
-        return;
-    }
-    let h = unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]).unwrap_or([0.0, 0.0, 1.0]);
+        None
+    };
     for &(li, wl) in &lb {
         if wl == 0.0 {
             continue;
         }
-        let v = {
+        if let Some(h) = h {
             let l = light_dirs[li as usize];
             let k = 2.0 * (h[0] * l[0] + h[1] * l[1] + h[2] * l[2]);
             let r = [k * h[0] - l[0], k * h[1] - l[1], k * h[2] - l[2]];
             let mut v: [f32; 3] = std::array::from_fn(|i| (1.0 - shift) * wo[i] + shift * r[i]);
             // Below the horizon: the horizon point of its azimuth.
             v[2] = v[2].max(1e-4);
-            unit(v).unwrap_or(wo)
-        };
-        views.weights(v, &mut vb);
+            views.weights(unit(v).unwrap_or(wo), &mut vb);
+        }
         for &(vi, wv) in &vb {
             if wv != 0.0 {
                 pair(vi, li, wv * wl);

@@ -390,10 +390,11 @@ fn colour_calibration(
     let grid = COLOUR_GRID;
     progress.stage("white frames", lights.len());
     // w[li][vi][cell] = mean frame value per second.
+    let windows = view_windows(views);
     let w: Vec<Vec<Vec<[f64; 3]>>> = lights
         .par_iter()
         .map(|&l| {
-            let f = white.read_within(l, &view_windows(views))?;
+            let f = white.read_within(l, &windows)?;
             let cells = cell_means(&f, views, grid);
             progress.step();
             Ok(cells)

@@ -171,7 +171,6 @@ impl Homography {
         Homography::normalised(mul3(&mul3(&td_inv, &hn.0), &ts_m))
     }
 
-    /// The inverse mapping.
     /// Bounding box `[x0, y0, x1, y1]` of the unit square's image (a view's
     /// sample in the frame, px).
     pub fn bounds(&self) -> [f64; 4] {
@@ -193,6 +192,7 @@ impl Homography {
         [lo(b[0]), lo(b[1]), hi(b[2]), hi(b[3])]
     }
 
+    /// The inverse mapping.
     pub fn inverse(&self) -> Option<Homography> {
         let m = &self.0;
         let c = [
