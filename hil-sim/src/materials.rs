@@ -146,6 +146,7 @@ pub fn by_name(name: &str) -> Option<Arc<dyn Material>> {
     Some(match name {
         "checkerboard" => Arc::new(Checkerboard::default()),
         "diffuse-white" => Arc::new(DiffuseWhite::default()),
+        "glossy-black" => Arc::new(GlossyBlack::default()),
         "woven-fabric" => Arc::new(WovenFabric),
         "leather" => Arc::new(Leather),
         "painted-wood" => Arc::new(PaintedWood),
@@ -179,8 +180,15 @@ pub fn lookup(name: &str) -> Result<Arc<dyn Material>, MaterialError> {
 }
 
 /// Names [`by_name`] knows.
-pub const MATERIAL_NAMES: [&str; 6] =
-    ["checkerboard", "diffuse-white", "woven-fabric", "leather", "painted-wood", "rough-metal"];
+pub const MATERIAL_NAMES: [&str; 7] = [
+    "checkerboard",
+    "diffuse-white",
+    "glossy-black",
+    "woven-fabric",
+    "leather",
+    "painted-wood",
+    "rough-metal",
+];
 
 /// The spatially varying materials (not the calibration targets).
 pub const SVBRDF_NAMES: [&str; 4] = ["woven-fabric", "leather", "painted-wood", "rough-metal"];
@@ -240,6 +248,34 @@ impl Material for DiffuseWhite {
     }
     fn texel(&self, _p: [f64; 2]) -> Texel {
         flat([self.albedo; 3], [0.0; 3], 1.0)
+    }
+}
+
+/// A glossy black tile (black glass or lacquer): no diffuse part, a narrow
+/// dielectric GGX lobe. The simulator's beam is perfectly collimated, so
+/// the lobe's width stands in for both the surface's and the real source's
+/// angular spread (an LED collimator spreads its beam by about a degree).
+/// Its highlights locate the lights (docs/calibration-format.md).
+#[derive(Debug, Clone, Copy)]
+pub struct GlossyBlack {
+    /// Specular reflectance at normal incidence (glass: 0.04).
+    pub f0: f64,
+    /// GGX α.
+    pub alpha: f64,
+}
+
+impl Default for GlossyBlack {
+    fn default() -> GlossyBlack {
+        GlossyBlack { f0: 0.04, alpha: 0.02 }
+    }
+}
+
+impl Material for GlossyBlack {
+    fn name(&self) -> &str {
+        "glossy-black"
+    }
+    fn texel(&self, _p: [f64; 2]) -> Texel {
+        flat([0.0; 3], [self.f0; 3], self.alpha)
     }
 }
 

@@ -1,11 +1,11 @@
 //! The material builder's fidelity and speed table (docs/benchmarks.md):
-//! scans of the two targets and the four library materials on the
+//! scans of the three targets and the four library materials on the
 //! simulator (HDR for the samples), calibration, region images, material
 //! PSNR against `hil-sim truth` at the captured pairs, the calibration's
 //! errors against the as-built scanner, and the metric's own limit (the
 //! 3 × 3-point cell means against 12 × 12-point ones).
 //!
-//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR]`
+//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--targets-only]`
 //! (scans in DIR are reused when complete).
 
 use std::path::PathBuf;
@@ -25,7 +25,12 @@ fn main() {
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
-    let materials = ["woven-fabric", "leather", "painted-wood", "rough-metal"];
+    // `--targets-only`: the calibration's errors alone (three target scans).
+    let materials: &[&str] = if std::env::args().any(|a| a == "--targets-only") {
+        &[]
+    } else {
+        &["woven-fabric", "leather", "painted-wood", "rough-metal"]
+    };
     for (m, hdr) in [("checkerboard", false), ("diffuse-white", false)]
         .into_iter()
         .chain(materials.iter().map(|m| (*m, true)))
@@ -34,11 +39,23 @@ fn main() {
         tests::sim_scan(m, seed, bin, mirrors, hdr, &out.join(m));
         eprintln!("scan {m}: {:.1} s", t.elapsed().as_secs_f64());
     }
+    let exposure = tests::GLOSSY_EXPOSURE_US;
+    tests::sim_scan_at(
+        "glossy-black",
+        seed,
+        bin,
+        mirrors,
+        exposure,
+        false,
+        &out.join("glossy-black"),
+    );
     let g = SimSetup { bin, seed, ..SimSetup::new("checkerboard") }.nominal().unwrap();
     let t = Instant::now();
     let checker = ScanFrames::open(&out.join("checkerboard"), &g).unwrap();
     let white = ScanFrames::open(&out.join("diffuse-white"), &g).unwrap();
-    let cal = calibrate(&g, &checker, &white, &CalibrateOptions::default(), &Silent).unwrap();
+    let glossy = ScanFrames::open(&out.join("glossy-black"), &g).unwrap();
+    let opts = CalibrateOptions::default();
+    let cal = calibrate(&g, &checker, &white, Some(&glossy), &opts, &Silent).unwrap();
     let t_cal = t.elapsed().as_secs_f64();
     // Calibration against the as-built scanner.
     let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
@@ -59,7 +76,7 @@ fn main() {
             }
         }
     }
-    let tests::DirectionErrors { view, view_nominal, light, light_nominal } =
+    let tests::DirectionErrors { view, view_nominal, light, light_checkerboard, light_nominal } =
         tests::direction_errors(&g, &truth, &cal);
     let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
@@ -80,16 +97,25 @@ fn main() {
         max(&view_nominal)
     );
     println!(
-        "light directions: RMS {:.3}° max {:.3}° (nominal RMS {:.3}° max {:.3}°)",
+        "light directions: RMS {:.3}° max {:.3}° (checkerboard alone RMS {:.3}° max {:.3}°; \
+         nominal RMS {:.3}° max {:.3}°); {:?}",
         rms(&light),
         max(&light),
+        rms(&light_checkerboard),
+        max(&light_checkerboard),
         rms(&light_nominal),
-        max(&light_nominal)
+        max(&light_nominal),
+        cal.source_offsets
+    );
+    println!(
+        "as built: disk home {:+.3}°, tilt home {:+.3}°",
+        truth.source.disk_zero_deg - g.source.disk_zero_deg,
+        truth.source.tilt_zero_deg - g.source.tilt_zero_deg
     );
     println!("calibrate: {t_cal:.1} s");
     println!("| material | regions s | PSNR dB | gain-free dB | gain | metric limit dB |");
     println!("|---|---|---|---|---|---|");
-    for m in materials {
+    for &m in materials {
         let t = Instant::now();
         let scan = ScanFrames::open(&out.join(m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();

@@ -32,12 +32,24 @@ fn main() {
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
     tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
+    let glossy = out.join("glossy-black");
+    tests::sim_scan_at(
+        "glossy-black",
+        seed,
+        bin,
+        mirrors,
+        tests::GLOSSY_EXPOSURE_US,
+        false,
+        &glossy,
+    );
     for &m in &materials {
         tests::sim_scan(m, seed, bin, mirrors, true, &out.join(m));
     }
     let checker = ScanFrames::open(&out.join("checkerboard"), &g).unwrap();
     let white = ScanFrames::open(&out.join("diffuse-white"), &g).unwrap();
-    let cal = calibrate(&g, &checker, &white, &CalibrateOptions::default(), &Silent).unwrap();
+    let glossy = ScanFrames::open(&out.join("glossy-black"), &g).unwrap();
+    let opts = CalibrateOptions::default();
+    let cal = calibrate(&g, &checker, &white, Some(&glossy), &opts, &Silent).unwrap();
     let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
         .geometry()
         .clone();

@@ -36,6 +36,23 @@ pub fn sim_scan(
     hdr: bool,
     out: &Path,
 ) -> ScannerGeometry {
+    sim_scan_at(material, seed, bin, mirrors, protocol::DEFAULT_EXPOSURE_US, hdr, out)
+}
+
+/// The exposure of the glossy target's scans, µs (its highlight flanks
+/// stay below full scale).
+pub const GLOSSY_EXPOSURE_US: u32 = 2_000;
+
+/// [`sim_scan`] at exposure `exposure_us` (the bracket's longest with `hdr`).
+pub fn sim_scan_at(
+    material: &str,
+    seed: u64,
+    bin: u32,
+    mirrors: usize,
+    exposure_us: u32,
+    hdr: bool,
+    out: &Path,
+) -> ScannerGeometry {
     let s = SimSetup { bin, seed, ..SimSetup::new(material) };
     let nominal = s.nominal().expect("the simulator's geometry");
     if host::scan::Manifest::load(out).is_ok_and(|m| m.complete) {
@@ -45,6 +62,7 @@ pub fn sim_scan(
     let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).expect("connected");
     let mut opts = ScanOptions::new(material, out);
     opts.mirrors = Some(mirrors);
+    opts.exposure_us = exposure_us;
     opts.resume = true;
     if hdr {
         opts.bracket_us = host::hdr::default_bracket(opts.exposure_us);
@@ -151,6 +169,9 @@ pub struct DirectionErrors {
     pub view_nominal: Vec<f64>,
     /// Per light, calibrated.
     pub light: Vec<f64>,
+    /// Per light, the calibrated mirror planes with the source's nominal
+    /// home positions (what the checkerboard alone gives).
+    pub light_checkerboard: Vec<f64>,
     /// Per light, nominal (towards where the inverse kinematics' beam meets the mirror).
     pub light_nominal: Vec<f64>,
 }
@@ -176,6 +197,11 @@ pub fn direction_errors(
         let n = DVec3::from(truth.mirrors[l.light].normal).normalize();
         let t = world_to_sample(-(beam.dir - 2.0 * beam.dir.dot(n) * n));
         e.light.push(DVec3::from(l.direction).angle_between(t).to_degrees());
+        let view = cal.views.iter().find(|v| v.view == l.light).expect("a calibrated view");
+        let plane = DVec3::from(view.mirror_normal);
+        e.light_checkerboard.push(
+            host::build::calibrate::light_direction(g, l.axes, plane).angle_between(t).to_degrees(),
+        );
         e.light_nominal.push(
             g.light_direction(l.light).expect("a reachable mirror").angle_between(t).to_degrees(),
         );

@@ -20,11 +20,23 @@ use host::simulator::SimSetup;
 use scanner_geometry::ScannerGeometry;
 
 fn take_scan(material: &str, seed: u64, bin: u32, mirrors: usize, out: &Path) -> ScannerGeometry {
+    take_scan_at(material, seed, bin, mirrors, protocol::DEFAULT_EXPOSURE_US, out)
+}
+
+fn take_scan_at(
+    material: &str,
+    seed: u64,
+    bin: u32,
+    mirrors: usize,
+    exposure_us: u32,
+    out: &Path,
+) -> ScannerGeometry {
     let s = SimSetup { bin, seed, ..SimSetup::new(material) };
     let rig = s.rig().unwrap();
     let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
     let mut opts = ScanOptions::new(material, out);
     opts.mirrors = Some(mirrors);
+    opts.exposure_us = exposure_us;
     let nominal = s.nominal().unwrap();
     scan(&mut dev, &mut SimCamera(rig), &nominal, &opts, &mut Quiet).unwrap();
     nominal
@@ -36,9 +48,14 @@ fn calibrated_region_images_match_the_ground_truth() {
     let dir = tempfile::tempdir().unwrap();
     let g = take_scan("checkerboard", seed, bin, mirrors, &dir.path().join("checker"));
     take_scan("diffuse-white", seed, bin, mirrors, &dir.path().join("white"));
+    // The glossy scan lights the first three rings (the first and third
+    // show highlights); a calibration's lights need not be its scans'.
+    take_scan_at("glossy-black", seed, bin, 25, 2_000, &dir.path().join("glossy"));
     let checker = ScanFrames::open(&dir.path().join("checker"), &g).unwrap();
     let white = ScanFrames::open(&dir.path().join("white"), &g).unwrap();
-    let cal = calibrate(&g, &checker, &white, &CalibrateOptions::default(), &Silent).unwrap();
+    let glossy = ScanFrames::open(&dir.path().join("glossy"), &g).unwrap();
+    let opts = CalibrateOptions::default();
+    let cal = calibrate(&g, &checker, &white, Some(&glossy), &opts, &Silent).unwrap();
     assert_eq!(cal.views.len(), 40);
     assert_eq!(cal.lights.len(), mirrors);
     // Every view located within half a pixel of the as-built truth.
@@ -81,11 +98,30 @@ fn calibrated_region_images_match_the_ground_truth() {
     // Directions: errors against the as-built scanner, beside the nominal ones'.
     let errs = tests::direction_errors(&g, truth, &cal);
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
     eprintln!(
-        "view directions: calibrated max {:.3}°, nominal max {:.3}°",
+        "view directions: calibrated RMS {:.3}° max {:.3}°, nominal max {:.3}°",
+        rms(&errs.view),
         max(&errs.view),
         max(&errs.view_nominal)
     );
+    let offsets = cal.source_offsets.as_ref().expect("fitted to the glossy scan");
+    eprintln!(
+        "light directions: RMS {:.3}° max {:.3}° (checkerboard alone {:.3}°, nominal {:.3}°); \
+         {offsets:?}",
+        rms(&errs.light),
+        max(&errs.light),
+        rms(&errs.light_checkerboard),
+        rms(&errs.light_nominal)
+    );
+    eprintln!(
+        "as built: disk home {:+.3}°, tilt home {:+.3}°",
+        truth.source.disk_zero_deg - g.source.disk_zero_deg,
+        truth.source.tilt_zero_deg - g.source.tilt_zero_deg
+    );
+    assert_eq!(offsets.lights, 16, "the first and third rings' lights show their highlights");
+    assert!(rms(&errs.light) <= 0.1, "light directions: RMS {:.3}°", rms(&errs.light));
+    assert!(rms(&errs.light) < rms(&errs.light_checkerboard));
 }
 
 fn scanner(args: &[&str]) -> (Option<i32>, String) {
@@ -194,6 +230,21 @@ fn bad_inputs_exit_3_and_write_nothing() {
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("through mirror 0"), "{err}");
     assert!(!dir.path().join("c3.json").exists());
+    // A "glossy" scan that shows no highlight (the white target's).
+    let (code, err) = scanner(&[
+        "calibrate",
+        "--checkerboard",
+        &d("checker"),
+        "--white",
+        &d("white"),
+        "--glossy",
+        &d("white"),
+        "-o",
+        &d("c4.json"),
+    ]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("the glossy target shows a highlight flank for 0 pairs"), "{err}");
+    assert!(!dir.path().join("c4.json").exists());
     // The output may not replace an input or a device node.
     let (code, err) = scanner(&[
         "calibrate",

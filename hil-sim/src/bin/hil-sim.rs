@@ -52,8 +52,9 @@ struct Args {
 enum Command {
     /// Render a scan's frames at the nominal mirror positions (no device).
     Render {
-        /// Sample material (checkerboard, diffuse-white, woven-fabric,
-        /// leather, painted-wood, rough-metal, or a texture-set directory).
+        /// Sample material (checkerboard, diffuse-white, glossy-black,
+        /// woven-fabric, leather, painted-wood, rough-metal, or a
+        /// texture-set directory).
         #[arg(long, default_value = "woven-fabric")]
         material: String,
         /// Frames (mirrors 0 … N−1).

@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use super::bundle::{AssemblyTolerances, adjust};
 use super::error::BuildError;
+use super::glossy::{SourceOffsets, fit_offsets, highlights, with_offsets};
 use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
 use super::plane::{Plane, cell_taps};
@@ -31,7 +32,7 @@ use crate::exrio::PixelRect;
 /// Calibration file format name.
 pub const CALIBRATION_FORMAT: &str = "material-scanner/calibration";
 /// Calibration file version.
-pub const CALIBRATION_VERSION: u32 = 1;
+pub const CALIBRATION_VERSION: u32 = 2;
 /// Default albedo of the diffuse-white target (a PTFE / Spectralon-class
 /// reflectance standard); set it from the target's certificate.
 pub const DEFAULT_WHITE_ALBEDO: f64 = 0.98;
@@ -144,6 +145,12 @@ pub struct Calibration {
     pub checkerboard_scan: ScanRef,
     /// The diffuse-white scan.
     pub white_scan: ScanRef,
+    /// The glossy-target scan the light directions were fitted to, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub glossy_scan: Option<ScanRef>,
+    /// The source's home offsets fitted to it (zero without one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source_offsets: Option<SourceOffsets>,
     /// Per view, in mirror order.
     pub views: Vec<ViewCalibration>,
     /// Per light, in mirror order.
@@ -256,11 +263,13 @@ pub fn light_direction(g: &ScannerGeometry, axes: [f64; 3], normal: DVec3) -> DV
     world_to_sample(-r)
 }
 
-/// Calibrate from a checkerboard scan and a diffuse-white scan.
+/// Calibrate from a checkerboard scan, a diffuse-white scan and, for the
+/// light directions, optionally a glossy-target scan ([`super::glossy`]).
 pub fn calibrate(
     g: &ScannerGeometry,
     checker: &ScanFrames,
     white: &ScanFrames,
+    glossy: Option<&ScanFrames>,
     opts: &CalibrateOptions,
     progress: &dyn BuildProgress,
 ) -> Result<Calibration, BuildError> {
@@ -318,16 +327,28 @@ pub fn calibrate(
             checker.lights()
         )));
     }
+    let colour = colour_calibration(g, white, &view_cal, &lights, opts.white_albedo, progress)?;
+    // The source's home offsets, from the glossy target's highlights.
+    let source_offsets = match glossy {
+        Some(scan) => {
+            let pairs = highlights(g, scan, adjusted.camera, &view_cal, &colour, progress)?;
+            Some(fit_offsets(g, &pairs)?)
+        }
+        None => None,
+    };
+    let source = match &source_offsets {
+        Some(o) => with_offsets(g, o.disk_deg, o.tilt_deg),
+        None => g.clone(),
+    };
     let mut light_cal = Vec::new();
     for &l in &lights {
         let v = view_cal.iter().find(|v| v.view == l).ok_or_else(|| {
             BuildError::Input(format!("mirror {l} is lit but not seen: cannot calibrate it"))
         })?;
         let axes = checker.axes(l)?;
-        let d = light_direction(g, axes, DVec3::from(v.mirror_normal));
+        let d = light_direction(&source, axes, DVec3::from(v.mirror_normal));
         light_cal.push(LightCalibration { light: l, direction: d.to_array(), axes });
     }
-    let colour = colour_calibration(g, white, &view_cal, &lights, opts.white_albedo, progress)?;
     Ok(Calibration {
         format: CALIBRATION_FORMAT.into(),
         version: CALIBRATION_VERSION,
@@ -342,6 +363,11 @@ pub fn calibrate(
             sample_name: white.manifest.settings.sample_name.clone(),
             manifest_sha256: white.manifest_sha256.clone(),
         },
+        glossy_scan: glossy.map(|s| ScanRef {
+            sample_name: s.manifest.settings.sample_name.clone(),
+            manifest_sha256: s.manifest_sha256.clone(),
+        }),
+        source_offsets,
         views: view_cal,
         lights: light_cal,
         colour,
@@ -513,9 +539,9 @@ impl Calibration {
         let c: Calibration = serde_json::from_str(&text).map_err(|e| {
             BuildError::Input(format!("{}: not a calibration file: {e}", path.display()))
         })?;
-        if c.format != CALIBRATION_FORMAT || c.version != CALIBRATION_VERSION {
+        if c.format != CALIBRATION_FORMAT || !(1..=CALIBRATION_VERSION).contains(&c.version) {
             return Err(BuildError::Input(format!(
-                "{}: {} version {} (this build reads {CALIBRATION_FORMAT} {CALIBRATION_VERSION})",
+                "{}: {} version {} (this build reads {CALIBRATION_FORMAT} 1 to {CALIBRATION_VERSION})",
                 path.display(),
                 c.format,
                 c.version

@@ -75,6 +75,7 @@ pub fn geometry_for(path: Option<&Path>, scan: &Path) -> Result<ScannerGeometry,
 pub fn calibrate_cmd(
     checkerboard: &Path,
     white: &Path,
+    glossy: Option<&Path>,
     output: &Path,
     geometry: Option<&Path>,
     white_albedo: f64,
@@ -86,15 +87,16 @@ pub fn calibrate_cmd(
     if !(2..=64).contains(&squares) {
         return Err(Failure(2, anyhow!("--squares must be in 2…64, got {squares}")));
     }
-    crate::fsutil::check_output(output, &[checkerboard, white])
-        .map_err(|e| Failure(4, anyhow!(e)))?;
+    let inputs: Vec<&Path> = [checkerboard, white].into_iter().chain(glossy).collect();
+    crate::fsutil::check_output(output, &inputs).map_err(|e| Failure(4, anyhow!(e)))?;
     let started = Instant::now();
     let g = geometry_for(geometry, checkerboard)?;
     let checker = ScanFrames::open(checkerboard, &g).map_err(build_failure)?;
     let white_scan = ScanFrames::open(white, &g).map_err(build_failure)?;
+    let glossy_scan = glossy.map(|d| ScanFrames::open(d, &g)).transpose().map_err(build_failure)?;
     let opts = CalibrateOptions { target: Checkerboard { squares }, white_albedo };
     let bar = StageBar::new();
-    let cal = calibrate(&g, &checker, &white_scan, &opts, &bar);
+    let cal = calibrate(&g, &checker, &white_scan, glossy_scan.as_ref(), &opts, &bar);
     bar.finish();
     let cal = cal.map_err(build_failure)?;
     cal.save(output).map_err(build_failure)?;
@@ -105,9 +107,16 @@ pub fn calibrate_cmd(
         .filter(|v| v.corners_used > 0)
         .map(|v| v.corner_rms_px)
         .fold(0.0, f64::max);
+    let lights = match &cal.source_offsets {
+        Some(o) => format!(
+            "source home offsets disk {:+.3}°, tilt {:+.3}° from {} highlights of {} lights",
+            o.disk_deg, o.tilt_deg, o.pairs, o.lights
+        ),
+        None => "nominal source home positions (no --glossy scan)".into(),
+    };
     println!(
         "calibrated {} views and {} lights in {:.1} s: {with_corners} views by their checker corners \
-         (largest fit residual {rms:.3} px), the rest by Fourier phase → {}",
+         (largest fit residual {rms:.3} px), the rest by Fourier phase; {lights} → {}",
         cal.views.len(),
         cal.lights.len(),
         started.elapsed().as_secs_f64(),

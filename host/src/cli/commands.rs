@@ -662,7 +662,12 @@ pub fn demo(_: &Path, _: &str, _: u32, _: Option<usize>, _: u64) -> Result<(), F
     Err(no_simulator())
 }
 
-/// `scanner demo`: a complete simulated session — the two calibration
+/// Exposure of the demo's glossy-target scan, µs: its highlight flanks
+/// stay below full scale.
+#[cfg(feature = "sim")]
+const GLOSSY_EXPOSURE_US: u32 = 2_000;
+
+/// `scanner demo`: a complete simulated session — the three calibration
 /// targets and a material sample, then calibration and region images —
 /// into `out`.
 #[cfg(feature = "sim")]
@@ -683,10 +688,12 @@ pub fn demo(
         .map(|n| n.to_string_lossy().into_owned())
         .filter(|n| !n.is_empty())
         .unwrap_or_else(|| "sample".into());
-    for (sample, label, hdr) in [
-        ("checkerboard", "checkerboard", false),
-        ("diffuse-white", "diffuse-white", false),
-        (material, name.as_str(), true),
+    // The glossy target's highlights are ≈ 40× the white's: a short exposure.
+    for (sample, label, hdr, exposure_us) in [
+        ("checkerboard", "checkerboard", false, protocol::DEFAULT_EXPOSURE_US),
+        ("diffuse-white", "diffuse-white", false, protocol::DEFAULT_EXPOSURE_US),
+        ("glossy-black", "glossy-black", false, GLOSSY_EXPOSURE_US),
+        (material, name.as_str(), true, protocol::DEFAULT_EXPOSURE_US),
     ] {
         let args = DeviceArgs {
             device: "sim".into(),
@@ -705,7 +712,7 @@ pub fn demo(
             geometry: None,
             camera: None,
             mirrors,
-            exposure_us: protocol::DEFAULT_EXPOSURE_US,
+            exposure_us,
             exposures: Vec::new(),
             hdr,
             frame_timeout: 10.0,
@@ -718,6 +725,7 @@ pub fn demo(
     super::build::calibrate_cmd(
         &out.join("checkerboard"),
         &out.join("diffuse-white"),
+        Some(&out.join("glossy-black")),
         &calibration,
         None,
         crate::build::calibrate::DEFAULT_WHITE_ALBEDO,

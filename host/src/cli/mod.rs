@@ -76,6 +76,10 @@ enum Command {
         /// Scan of the diffuse-white target.
         #[arg(long)]
         white: PathBuf,
+        /// Scan of a glossy black target (short exposure): its highlights
+        /// fix the light directions (the source's home offsets).
+        #[arg(long)]
+        glossy: Option<PathBuf>,
         /// Output calibration file (.json).
         #[arg(short, long)]
         output: PathBuf,
@@ -366,16 +370,23 @@ fn run(cli: Cli) -> Result<(), Failure> {
             commands::board_config(&device, driver_fault.map(|p| p == "active-high"))?
         }
         Command::Verify { dir } => commands::verify(&dir)?,
-        Command::Calibrate { checkerboard, white, output, geometry, white_albedo, squares } => {
-            build::calibrate_cmd(
-                &checkerboard,
-                &white,
-                &output,
-                geometry.as_deref(),
-                white_albedo,
-                squares,
-            )?
-        }
+        Command::Calibrate {
+            checkerboard,
+            white,
+            glossy,
+            output,
+            geometry,
+            white_albedo,
+            squares,
+        } => build::calibrate_cmd(
+            &checkerboard,
+            &white,
+            glossy.as_deref(),
+            &output,
+            geometry.as_deref(),
+            white_albedo,
+            squares,
+        )?,
         Command::Regions { input, output } => build::regions_cmd(&input, &output).map(|_| ())?,
         Command::Build {
             input,
