@@ -76,7 +76,7 @@ fn main() {
             }
         }
     }
-    let tests::DirectionErrors { view, view_nominal, light, light_checkerboard, light_nominal } =
+    let tests::DirectionErrors { view, view_nominal, light, light_nominal_source, light_nominal } =
         tests::direction_errors(&g, &truth, &cal);
     let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
@@ -97,12 +97,12 @@ fn main() {
         max(&view_nominal)
     );
     println!(
-        "light directions: RMS {:.3}° max {:.3}° (checkerboard alone RMS {:.3}° max {:.3}°; \
+        "light directions: RMS {:.3}° max {:.3}° (nominal source home positions RMS {:.3}° max {:.3}°; \
          nominal RMS {:.3}° max {:.3}°); {:?}",
         rms(&light),
         max(&light),
-        rms(&light_checkerboard),
-        max(&light_checkerboard),
+        rms(&light_nominal_source),
+        max(&light_nominal_source),
         rms(&light_nominal),
         max(&light_nominal),
         cal.source_offsets

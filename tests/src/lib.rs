@@ -170,8 +170,8 @@ pub struct DirectionErrors {
     /// Per light, calibrated.
     pub light: Vec<f64>,
     /// Per light, the calibrated mirror planes with the source's nominal
-    /// home positions (what the checkerboard alone gives).
-    pub light_checkerboard: Vec<f64>,
+    /// home positions.
+    pub light_nominal_source: Vec<f64>,
     /// Per light, nominal (towards where the inverse kinematics' beam meets the mirror).
     pub light_nominal: Vec<f64>,
 }
@@ -199,7 +199,7 @@ pub fn direction_errors(
         e.light.push(DVec3::from(l.direction).angle_between(t).to_degrees());
         let view = cal.views.iter().find(|v| v.view == l.light).expect("a calibrated view");
         let plane = DVec3::from(view.mirror_normal);
-        e.light_checkerboard.push(
+        e.light_nominal_source.push(
             host::build::calibrate::light_direction(g, l.axes, plane).angle_between(t).to_degrees(),
         );
         e.light_nominal.push(

@@ -107,11 +107,11 @@ fn calibrated_region_images_match_the_ground_truth() {
     );
     let offsets = cal.source_offsets.as_ref().expect("fitted to the glossy scan");
     eprintln!(
-        "light directions: RMS {:.3}° max {:.3}° (checkerboard alone {:.3}°, nominal {:.3}°); \
+        "light directions: RMS {:.3}° max {:.3}° (nominal source home positions {:.3}°, nominal {:.3}°); \
          {offsets:?}",
         rms(&errs.light),
         max(&errs.light),
-        rms(&errs.light_checkerboard),
+        rms(&errs.light_nominal_source),
         rms(&errs.light_nominal)
     );
     eprintln!(
@@ -121,7 +121,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     );
     assert_eq!(offsets.lights, 16, "the first and third rings' lights show their highlights");
     assert!(rms(&errs.light) <= 0.1, "light directions: RMS {:.3}°", rms(&errs.light));
-    assert!(rms(&errs.light) < rms(&errs.light_checkerboard));
+    assert!(rms(&errs.light) < rms(&errs.light_nominal_source));
 }
 
 fn scanner(args: &[&str]) -> (Option<i32>, String) {

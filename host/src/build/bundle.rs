@@ -11,8 +11,11 @@
 //! length against the camera's distance). Solved by Levenberg–Marquardt
 //! with central-difference derivatives.
 
+use rayon::prelude::*;
 use scanner_geometry::{DVec3, ScannerGeometry};
 
+use super::calibrate::light_direction;
+use super::glossy::{Highlight, pair_residuals, with_offsets};
 use super::linalg::{Homography, Normal};
 
 /// Assembly tolerances (1 σ) the calibration assumes: a hand-assembled
@@ -31,6 +34,8 @@ pub struct AssemblyTolerances {
     pub mirror_tilt_deg: f64,
     /// Mirror position along its normal, mm.
     pub mirror_shift_mm: f64,
+    /// Disk and tilt home positions (switch repeatability), degrees.
+    pub source_zero_deg: f64,
 }
 
 impl Default for AssemblyTolerances {
@@ -42,11 +47,16 @@ impl Default for AssemblyTolerances {
             principal_px: 3.0,
             mirror_tilt_deg: 0.15,
             mirror_shift_mm: 0.3,
+            source_zero_deg: 0.1,
         }
     }
 }
 
 const CAMERA: usize = 9;
+
+/// One highlight pair's linearisation: its parameters, residuals and the
+/// residuals' derivative along each parameter.
+type GlossyBlock = (Vec<usize>, Vec<f64>, Vec<Vec<f64>>);
 
 /// The adjusted geometry: per mirror (plane point, unit normal), the camera centre.
 #[derive(Debug, Clone)]
@@ -57,6 +67,21 @@ pub struct Adjusted {
     pub planes: Vec<(DVec3, DVec3)>,
     /// RMS reprojection residual, px.
     pub rms_px: f64,
+    /// With highlights: the source's home offsets (disk, tilt, degrees),
+    /// the glossy target's α and the highlights' RMS residual (relative).
+    pub source: Option<([f64; 2], f64, f64)>,
+}
+
+/// A glossy target's highlight flanks to adjust the source's home offsets
+/// (and the mirror planes and camera they involve) with.
+#[derive(Debug, Clone, Copy)]
+pub struct Highlights<'a> {
+    /// The pairs (their own normals and viewers are not used).
+    pub pairs: &'a [Highlight],
+    /// Their noise, relative to each pair's peak.
+    pub sigma: f64,
+    /// Starting point: disk and tilt offsets (degrees), α.
+    pub start: ([f64; 2], f64),
 }
 
 struct Model<'a> {
@@ -67,7 +92,42 @@ struct Model<'a> {
 
 impl Model<'_> {
     fn n(&self) -> usize {
+        self.sigma.len()
+    }
+
+    /// Index of the first source parameter (disk, tilt, ln α).
+    fn source(&self) -> usize {
         CAMERA + 3 * self.views.len()
+    }
+
+    /// A highlight pair's residuals (divided by `sigma`); None if its
+    /// mirrors are not among the views.
+    fn glossy(&self, p: &[f64], h: &Highlight, sigma: f64) -> Option<Vec<f64>> {
+        let kl = self.views.iter().position(|&v| v == h.light)?;
+        let km = self.views.iter().position(|&v| v == h.view)?;
+        let s = self.source();
+        let gp = with_offsets(self.g, p[s], p[s + 1]);
+        let wi = light_direction(&gp, h.axes, self.plane(p, kl).1);
+        let (c, ..) = self.camera(p);
+        let (point, n) = self.plane(p, km);
+        let viewer = c - 2.0 * (c - point).dot(n) * n;
+        let mut r = pair_residuals(h, wi, viewer, p[s + 2].exp());
+        r.iter_mut().for_each(|x| *x /= sigma);
+        Some(r)
+    }
+
+    /// The parameters a highlight pair depends on.
+    fn glossy_params(&self, h: &Highlight) -> Option<Vec<usize>> {
+        let kl = self.views.iter().position(|&v| v == h.light)?;
+        let km = self.views.iter().position(|&v| v == h.view)?;
+        let s = self.source();
+        Some(
+            (3..6)
+                .chain([CAMERA + 3 * kl, CAMERA + 3 * kl + 1])
+                .chain(CAMERA + 3 * km..CAMERA + 3 * km + 3)
+                .chain(s..s + 3)
+                .collect(),
+        )
     }
 
     fn plane(&self, p: &[f64], k: usize) -> (DVec3, DVec3) {
@@ -111,16 +171,19 @@ impl Model<'_> {
 }
 
 /// Adjust the nominal geometry `g` to the located views (`views[k]` with
-/// homography `homographies[k]`, corner precision `sigma_px`).
+/// homography `homographies[k]`, corner precision `sigma_px`) and, if
+/// given, a glossy target's highlights (which adds the source's home
+/// offsets and the target's α to the unknowns).
 pub fn adjust(
     g: &ScannerGeometry,
     views: &[usize],
     homographies: &[Homography],
     sigma_px: f64,
     tol: &AssemblyTolerances,
+    highlights: Option<Highlights<'_>>,
 ) -> Adjusted {
     let scale = g.camera.focal_px / 5600.0;
-    let mut sigma = vec![
+    let mut sigma: Vec<f64> = vec![
         tol.camera_rotation_deg.to_radians(),
         tol.camera_rotation_deg.to_radians(),
         tol.camera_rotation_deg.to_radians(),
@@ -137,6 +200,10 @@ pub fn adjust(
             tol.mirror_tilt_deg.to_radians(),
             tol.mirror_shift_mm,
         ]);
+    }
+    if highlights.is_some() {
+        // ln α is held by a prior too weak to matter.
+        sigma.extend([tol.source_zero_deg, tol.source_zero_deg, 10.0]);
     }
     let model = Model { g, views, sigma };
     let n = model.n();
@@ -167,12 +234,48 @@ pub fn adjust(
                 eq.add_sparse(&jy, (base[1] - target[1]) / sigma_px);
             }
         }
+        if let Some(hl) = &highlights {
+            // Each pair's residuals and derivatives, pairs in parallel.
+            let blocks: Vec<GlossyBlock> = hl
+                .pairs
+                .par_iter()
+                .filter_map(|h| {
+                    let base = model.glossy(p, h, hl.sigma)?;
+                    let params = model.glossy_params(h)?;
+                    let cols = params
+                        .iter()
+                        .map(|&i| {
+                            let step = 1e-3 * model.sigma[i];
+                            let mut q = p.to_vec();
+                            q[i] += step;
+                            let a = model.glossy(&q, h, hl.sigma).expect("same mirrors");
+                            q[i] -= 2.0 * step;
+                            let b = model.glossy(&q, h, hl.sigma).expect("same mirrors");
+                            a.iter().zip(&b).map(|(x, y)| (x - y) / (2.0 * step)).collect()
+                        })
+                        .collect();
+                    Some((params, base, cols))
+                })
+                .collect();
+            let mut j = Vec::new();
+            for (params, base, cols) in blocks {
+                for (r, &res) in base.iter().enumerate() {
+                    j.clear();
+                    j.extend(params.iter().zip(&cols).map(|(&i, c)| (i, c[r])));
+                    eq.add_sparse(&j, res);
+                }
+            }
+        }
         for (i, (&pi, &si)) in p.iter().zip(&model.sigma).enumerate() {
             eq.add_sparse(&[(i, 1.0 / si)], pi / si);
         }
         eq
     };
     let mut p = vec![0.0; n];
+    if let Some(hl) = &highlights {
+        let s = model.source();
+        (p[s], p[s + 1], p[s + 2]) = (hl.start.0[0], hl.start.0[1], hl.start.1.ln());
+    }
     let mut lambda = 1e-3;
     let mut eq = build(&p);
     for _ in 0..30 {
@@ -204,9 +307,17 @@ pub fn adjust(
         }
     }
     let (camera, _, _, _) = model.camera(&p);
+    let source = highlights.map(|hl| {
+        let r: Vec<f64> =
+            hl.pairs.iter().filter_map(|h| model.glossy(&p, h, 1.0)).flatten().collect();
+        let rms = (r.iter().map(|x| x * x).sum::<f64>() / r.len().max(1) as f64).sqrt();
+        let s = model.source();
+        ([p[s], p[s + 1]], p[s + 2].exp(), rms)
+    });
     Adjusted {
         camera,
         planes: (0..views.len()).map(|k| model.plane(&p, k)).collect(),
         rms_px: (sq / count as f64).sqrt(),
+        source,
     }
 }

@@ -20,7 +20,7 @@ use scanner_geometry::DVec3;
 use scanner_geometry::{AxisValues, ScannerGeometry, world_to_sample};
 use serde::{Deserialize, Serialize};
 
-use super::bundle::{AssemblyTolerances, adjust};
+use super::bundle::{Adjusted, AssemblyTolerances, Highlights, adjust};
 use super::error::BuildError;
 use super::glossy::{SourceOffsets, fit_offsets, highlights, with_offsets};
 use super::linalg::Homography;
@@ -302,24 +302,9 @@ pub fn calibrate(
         .map(|f| f.corner_rms_px)
         .fold(0.0, f64::max)
         .max(0.05);
-    let adjusted = adjust(g, &views, &homographies, corner_sigma, &AssemblyTolerances::default());
-    let centre = g.sample_point([0.5, 0.5]);
-    let mut view_cal = Vec::new();
-    for (k, fit) in fits.iter().enumerate() {
-        let (point, normal) = adjusted.planes[k];
-        let virtual_camera = adjusted.camera - 2.0 * (adjusted.camera - point).dot(normal) * normal;
-        let dir = world_to_sample((virtual_camera - centre).normalize());
-        view_cal.push(ViewCalibration {
-            view: fit.view,
-            homography: fit.best(),
-            homography_phase: fit.phase,
-            corners_used: fit.corners_used,
-            corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
-            direction: dir.to_array(),
-            mirror_point_mm: point.to_array(),
-            mirror_normal: normal.to_array(),
-        });
-    }
+    let tol = AssemblyTolerances::default();
+    let adjusted = adjust(g, &views, &homographies, corner_sigma, &tol, None);
+    let mut view_cal = view_calibrations(g, &fits, &adjusted);
     let lights: Vec<usize> = white.lights();
     if lights != checker.lights() {
         return Err(BuildError::Input(format!(
@@ -328,11 +313,39 @@ pub fn calibrate(
         )));
     }
     let colour = colour_calibration(g, white, &view_cal, &lights, opts.white_albedo, progress)?;
-    // The source's home offsets, from the glossy target's highlights.
+    // The source's home offsets, from the glossy target's highlights,
+    // adjusted together with the camera and the mirror planes.
     let source_offsets = match glossy {
         Some(scan) => {
             let pairs = highlights(g, scan, adjusted.camera, &view_cal, &colour, progress)?;
-            Some(fit_offsets(g, &pairs)?)
+            // Offsets and α with the checkerboard's geometry held: the
+            // starting point and the noise level of the joint adjustment.
+            let first = fit_offsets(g, &pairs)?;
+            let mut start = ([first.disk_deg, first.tilt_deg], first.alpha);
+            let mut sigma = first.rms_rel.max(1e-4);
+            let mut joint = adjusted.clone();
+            for _ in 0..2 {
+                let hl = Highlights { pairs: &pairs, sigma, start };
+                joint = adjust(g, &views, &homographies, corner_sigma, &tol, Some(hl));
+                let (offsets, alpha, rms) = joint.source.expect("adjusted with highlights");
+                (start, sigma) = ((offsets, alpha), rms.max(1e-4));
+            }
+            view_cal = view_calibrations(g, &fits, &joint);
+            let (offsets, alpha, rms_rel) = joint.source.expect("adjusted with highlights");
+            if !offsets.iter().all(|x| x.is_finite() && x.abs() <= 2.0) {
+                return Err(BuildError::Input(format!(
+                    "the glossy target's highlights fit no plausible source offset \
+                     (disk {:.3}°, tilt {:.3}°)",
+                    offsets[0], offsets[1]
+                )));
+            }
+            Some(SourceOffsets {
+                disk_deg: offsets[0],
+                tilt_deg: offsets[1],
+                alpha,
+                rms_rel,
+                ..first
+            })
         }
         None => None,
     };
@@ -372,6 +385,32 @@ pub fn calibrate(
         lights: light_cal,
         colour,
     })
+}
+
+/// Per located view, its calibration from the adjusted geometry.
+fn view_calibrations(
+    g: &ScannerGeometry,
+    fits: &[RegionFit],
+    adjusted: &Adjusted,
+) -> Vec<ViewCalibration> {
+    let centre = g.sample_point([0.5, 0.5]);
+    fits.iter()
+        .zip(&adjusted.planes)
+        .map(|(fit, &(point, normal))| {
+            let camera = adjusted.camera;
+            let virtual_camera = camera - 2.0 * (camera - point).dot(normal) * normal;
+            ViewCalibration {
+                view: fit.view,
+                homography: fit.best(),
+                homography_phase: fit.phase,
+                corners_used: fit.corners_used,
+                corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
+                direction: world_to_sample((virtual_camera - centre).normalize()).to_array(),
+                mirror_point_mm: point.to_array(),
+                mirror_normal: normal.to_array(),
+            }
+        })
+        .collect()
 }
 
 /// Mean RGB of every view's G × G uv cells in one frame (4 × 4 samples a cell).

@@ -11,18 +11,20 @@
 //! ≈ 1.2° through a mirror — moves with the beam.
 //!
 //! The fit: every frame value y over a view's uv grid, divided by the
-//! view's white response, is modelled as `s · D(n · h) + b`, with D the
-//! GGX distribution of unknown α, h the half vector between the light's
-//! direction and the direction from that sample point to the view's
-//! (calibrated) virtual camera, and s, b per (light, view) pair (they
-//! absorb Fresnel, shadowing, the beam's strength and any diffuse part,
-//! all constant over 1.2°). The unknowns shared by all pairs — the disk
+//! view's white response, is modelled as `s · f_s(ωi, ωo) cos θi + b`,
+//! with f_s a dielectric microfacet lobe (GGX of unknown α, Smith G,
+//! Schlick F with F0 = 0.04), ωi the light's direction and ωo the direction
+//! from that sample point to the view's (calibrated) virtual camera; s and
+//! b per (light, view) pair absorb the beam's strength, the target's
+//! actual F0 and any diffuse part. The unknowns shared by all pairs — the disk
 //! and tilt home offsets and α — are fitted by Levenberg–Marquardt, s and b
 //! solved in closed form inside (variable projection).
 
 use rayon::prelude::*;
 use scanner_geometry::{DVec3, ScannerGeometry, world_to_sample};
 use serde::{Deserialize, Serialize};
+
+use crate::brdf::analytic::{Ndf, schlick};
 
 use super::calibrate::{BuildProgress, ColourCalibration, ViewCalibration, light_direction};
 use super::error::BuildError;
@@ -72,11 +74,15 @@ pub struct Highlight {
     pub values: Vec<f64>,
 }
 
-/// GGX normal distribution at cos θh = `c`.
-fn ggx(c: f64, alpha: f64) -> f64 {
-    let a2 = alpha * alpha;
-    let t = c * c * (a2 - 1.0) + 1.0;
-    a2 / (std::f64::consts::PI * t * t)
+/// F0 of the glossy target (a dielectric: glass, lacquer).
+pub const TARGET_F0: f64 = 0.04;
+
+/// The target's specular f · cos θi (up to scale) for unit sample-local
+/// directions: GGX D, Smith G1 G1, Schlick F with [`TARGET_F0`].
+fn specular(wi: DVec3, wo: DVec3, alpha: f64) -> f64 {
+    let ndf = Ndf::Ggx(alpha);
+    let h = (wi + wo).normalize();
+    ndf.d(h.z) * ndf.g1(wi.z) * ndf.g1(wo.z) * schlick(TARGET_F0, wi.dot(h)) / (4.0 * wo.z)
 }
 
 /// `g` with the source's home positions moved by (disk, tilt) degrees.
@@ -87,37 +93,40 @@ pub fn with_offsets(g: &ScannerGeometry, disk_deg: f64, tilt_deg: f64) -> Scanne
     g
 }
 
-/// Residuals of all pairs for parameters (disk°, tilt°, ln α), each pair's
-/// scale and offset solved in closed form.
+/// One pair's residuals (relative to its peak) for light direction `wi`
+/// (sample-local), the view's virtual camera `viewer` (world, mm) and the
+/// target's α, the pair's scale and offset solved in closed form.
+pub fn pair_residuals(h: &Highlight, wi: DVec3, viewer: DVec3, alpha: f64) -> Vec<f64> {
+    let d: Vec<f64> = h
+        .points
+        .iter()
+        .map(|&q| specular(wi, world_to_sample((viewer - q).normalize()), alpha))
+        .collect();
+    // y ≈ s·d + b by least squares.
+    let n = d.len() as f64;
+    let (sd, sy) = (d.iter().sum::<f64>(), h.values.iter().sum::<f64>());
+    let sdd = d.iter().map(|x| x * x).sum::<f64>();
+    let sdy = d.iter().zip(&h.values).map(|(x, y)| x * y).sum::<f64>();
+    let det = n * sdd - sd * sd;
+    let (s, b) = if det.abs() > 1e-300 {
+        ((n * sdy - sd * sy) / det, (sdd * sy - sd * sdy) / det)
+    } else {
+        (0.0, sy / n)
+    };
+    let peak = h.values.iter().copied().fold(f64::MIN, f64::max).max(1e-300);
+    d.iter().zip(&h.values).map(|(x, y)| (y - s * x - b) / peak).collect()
+}
+
+/// Residuals of all pairs for parameters (disk°, tilt°, ln α) with the
+/// pairs' own mirror normals and virtual cameras.
 fn residuals(g: &ScannerGeometry, pairs: &[Highlight], p: [f64; 3]) -> Vec<f64> {
     let gp = with_offsets(g, p[0], p[1]);
-    let alpha = p[2].exp();
-    let mut out = Vec::new();
-    for h in pairs {
-        let wi = light_direction(&gp, h.axes, h.light_normal);
-        let d: Vec<f64> = h
-            .points
-            .iter()
-            .map(|&q| {
-                let wo = world_to_sample((h.viewer - q).normalize());
-                ggx((wi + wo).normalize().z, alpha)
-            })
-            .collect();
-        // y ≈ s·d + b by least squares.
-        let n = d.len() as f64;
-        let (sd, sy) = (d.iter().sum::<f64>(), h.values.iter().sum::<f64>());
-        let sdd = d.iter().map(|x| x * x).sum::<f64>();
-        let sdy = d.iter().zip(&h.values).map(|(x, y)| x * y).sum::<f64>();
-        let det = n * sdd - sd * sd;
-        let (s, b) = if det.abs() > 1e-300 {
-            ((n * sdy - sd * sy) / det, (sdd * sy - sd * sdy) / det)
-        } else {
-            (0.0, sy / n)
-        };
-        let peak = h.values.iter().copied().fold(f64::MIN, f64::max).max(1e-300);
-        out.extend(d.iter().zip(&h.values).map(|(x, y)| (y - s * x - b) / peak));
-    }
-    out
+    pairs
+        .iter()
+        .flat_map(|h| {
+            pair_residuals(h, light_direction(&gp, h.axes, h.light_normal), h.viewer, p[2].exp())
+        })
+        .collect()
 }
 
 fn cost(r: &[f64]) -> f64 {
@@ -346,7 +355,7 @@ mod tests {
                     .iter()
                     .map(|&q| {
                         let wo = world_to_sample((viewer - q).normalize());
-                        3.0 * ggx((wi + wo).normalize().z, alpha) + 0.1
+                        3.0 * specular(wi, wo, alpha) + 0.1
                     })
                     .collect();
                 pairs.push(Highlight {
