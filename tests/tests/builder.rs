@@ -202,49 +202,29 @@ fn bad_inputs_exit_3_and_write_nothing() {
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));
     rewrite_frames(&dir.path().join("dark"), |v| *v *= 0.001);
-    let (code, err) = scanner(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checker"),
-        "--white",
-        &d("dark"),
-        "-o",
-        &d("c2.json"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let calibrate_refused = |checker: &str, white: &str, glossy: Option<&str>, out: &str| {
+        let mut args = vec!["calibrate".to_string(), "--checkerboard".into(), d(checker)];
+        args.extend(["--white".into(), d(white), "-o".into(), d(out)]);
+        if let Some(glossy) = glossy {
+            args.extend(["--glossy".into(), d(glossy)]);
+        }
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (code, err) = scanner(&args);
+        assert_eq!(code, Some(3), "{err}");
+        assert!(!dir.path().join(out).exists());
+        err
+    };
+    let err = calibrate_refused("checker", "dark", None, "c2.json");
     assert!(err.contains("noise floor"), "{err}");
-    assert!(!dir.path().join("c2.json").exists());
     // A region that cannot be found: the checkerboard scan of a blank (white) sample
     // has no pattern to lock onto — name the mirror.
     copy_dir(&dir.path().join("checker"), &dir.path().join("blank"));
     rewrite_frames(&dir.path().join("blank"), |v| *v = 0.0);
-    let (code, err) = scanner(&[
-        "calibrate",
-        "--checkerboard",
-        &d("blank"),
-        "--white",
-        &d("white"),
-        "-o",
-        &d("c3.json"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let err = calibrate_refused("blank", "white", None, "c3.json");
     assert!(err.contains("through mirror 0"), "{err}");
-    assert!(!dir.path().join("c3.json").exists());
     // A "glossy" scan that shows no highlight (the white target's).
-    let (code, err) = scanner(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checker"),
-        "--white",
-        &d("white"),
-        "--glossy",
-        &d("white"),
-        "-o",
-        &d("c4.json"),
-    ]);
-    assert_eq!(code, Some(3), "{err}");
+    let err = calibrate_refused("checker", "white", Some("white"), "c4.json");
     assert!(err.contains("the glossy target shows a highlight flank for 0 pairs"), "{err}");
-    assert!(!dir.path().join("c4.json").exists());
     // The output may not replace an input or a device node.
     let (code, err) = scanner(&[
         "calibrate",
