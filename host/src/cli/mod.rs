@@ -35,8 +35,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Run the main job: a complete simulated scan of a material sample and
-    /// of the two calibration targets.
+    /// Run the main job: a complete simulated scan of the three calibration
+    /// targets and a material sample, the calibration, the material file and
+    /// a preview.
     Demo {
         /// Output folder (one scan directory per sample).
         #[arg(long, default_value = "demo-out")]
