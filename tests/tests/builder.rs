@@ -198,6 +198,20 @@ fn bad_inputs_exit_3_and_write_nothing() {
     std::fs::write(d("bad.json"), "{\"format\": \"material-scanner/calibration\"").unwrap();
     let err = regions_refused("leather", "bad.json", "r4");
     assert!(err.contains("not a calibration file"), "{err}");
+    // A version-1 file (no glossy scan) still reads; an unknown version does not.
+    let text = std::fs::read_to_string(d("cal.json")).unwrap();
+    assert!(text.contains("\"version\":2") && !text.contains("source_offsets"), "{text:.80}");
+    std::fs::write(d("v1.json"), text.replace("\"version\":2", "\"version\":1")).unwrap();
+    let (v1, r5) = (d("v1.json"), d("r5"));
+    let (code, err) =
+        scanner(&["regions", "--scan", &d("leather"), "--calibration", &v1, "-o", &r5]);
+    assert_eq!(code, Some(0), "{err}");
+    std::fs::write(d("v3.json"), text.replace("\"version\":2", "\"version\":3")).unwrap();
+    let err = regions_refused("leather", "v3.json", "r6");
+    assert!(
+        err.contains("version 3 (this build reads material-scanner/calibration 1 to 2)"),
+        "{err}"
+    );
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));
