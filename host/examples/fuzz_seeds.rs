@@ -8,7 +8,7 @@
 mod synthetic;
 
 use scanner_shading::Interpolation;
-use synthetic::{Shape, synthetic};
+use synthetic::{Shape, synthetic, with_texel_model};
 
 fn main() {
     let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: fuzz_seeds DIR"));
@@ -24,6 +24,10 @@ fn main() {
         ("default-6", synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 6)),
         ("default-3", synthetic(&shape(3, 2, 2, 1), Interpolation::Default, 0.0, 3)),
         ("patent-5", synthetic(&shape(5, 4, 4, 2), patent, 0.5, 5)),
+        (
+            "texel-model-6",
+            with_texel_model(synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 7), 8),
+        ),
     ] {
         let bytes = m.to_bytes().unwrap();
         // Every seed is a material the reader accepts.

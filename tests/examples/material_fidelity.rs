@@ -5,7 +5,7 @@
 //! default and with the patent's interpolation — the palettisation error
 //! alone, and both interpolations at random novel pairs (θ ≤ 60°).
 //!
-//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent]`
+//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off]`
 //! (scans in DIR are reused when complete; `builder_fidelity` shares them).
 
 use std::path::PathBuf;
@@ -14,7 +14,7 @@ use std::time::Instant;
 use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::calibrate::{CalibrateOptions, Silent};
-use host::build::material::{MaterialOptions, PATENT_DEFAULT, build_material};
+use host::build::material::{MaterialOptions, PATENT_DEFAULT, TexelModelChoice, build_material};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
 use scanner_shading::Material;
@@ -30,6 +30,12 @@ fn main() {
         tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
     let materials: Vec<&str> = list.split(',').collect();
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
+    let texel_model = match tests::arg("--texel-model", "auto".to_string()).as_str() {
+        "auto" => TexelModelChoice::Auto,
+        "on" => TexelModelChoice::On,
+        "off" => TexelModelChoice::Off,
+        other => panic!("--texel-model {other}: auto, on or off"),
+    };
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
     tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
     let glossy = out.join("glossy-black");
@@ -60,9 +66,9 @@ fn main() {
     );
     println!(
         "| material | regions dB | material dB (default) | material dB (patent) | palettes alone dB | \
-         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) | β |"
+         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) | β | texel model |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
         let scan = ScanFrames::open(&out.join(m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
@@ -79,7 +85,7 @@ fn main() {
             let bytes = data.to_bytes().unwrap();
             (Material::from_bytes(&bytes).unwrap(), bytes.len(), t.elapsed().as_secs_f64())
         };
-        let (default, size_d, t_d) = build(MaterialOptions::default());
+        let (default, size_d, t_d) = build(MaterialOptions { texel_model, ..Default::default() });
         let patent_interp = if with_patent {
             PATENT_DEFAULT
         } else {
@@ -97,8 +103,9 @@ fn main() {
             ..
         } = tests::material_scores(&regions, [&default, &patent], &sample, &captured, &pairs);
         let shift = default.metadata().half_vector_shift;
+        let model = if default.metadata().texel_model { "yes" } else { "no" };
         println!(
-            "| {m} | {reg:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} | {shift} |",
+            "| {m} | {reg:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} | {shift} | {model} |",
             size_d as f64 / 1e6,
             size_p as f64 / 1e6
         );

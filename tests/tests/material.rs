@@ -14,7 +14,7 @@ use hil_sim::optics::OpticalSim;
 use host::build::Calibration;
 use host::build::calibrate::Silent;
 use host::build::extract_regions;
-use host::build::material::{MaterialOptions, build_material};
+use host::build::material::{MaterialOptions, TexelModelChoice, build_material};
 use host::build::scanread::ScanFrames;
 use scanner_formats::queries::{Query, read_answers, write_queries};
 use scanner_shading::{Interpolation, Material};
@@ -73,12 +73,12 @@ fn a_built_material_shades_like_the_sample() {
     let scan = ScanFrames::open(&p("leather"), &g).unwrap();
     let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
     let prov = meta.provenance.clone();
-    let build = |interpolation| {
-        let opts = MaterialOptions { interpolation, ..Default::default() };
+    let build_with = |opts: MaterialOptions| {
         let data = build_material(&regions, "leather", 25.4, prov.clone(), &opts, &Silent).unwrap();
         let bytes = data.to_bytes().unwrap();
         (Material::from_bytes(&bytes).unwrap(), bytes)
     };
+    let build = |interpolation| build_with(MaterialOptions { interpolation, ..Default::default() });
     let (default, bytes) = build(Interpolation::Default);
     assert_eq!(bytes, std::fs::read(p("leather.material")).unwrap(), "deterministic");
     let patent_interp = Interpolation::Patent { columns: 256, rows: 64, points: 500 };
@@ -108,6 +108,60 @@ fn a_built_material_shades_like_the_sample() {
     assert!(pal > 40.0, "palettisation {pal}");
     assert!(pal - pal_patent > 10.0, "default {pal} vs patent {pal_patent} at captured pairs");
     assert!(nov_d >= nov_p - 0.1, "novel pairs: default {nov_d} vs patent {nov_p}");
+
+    // The texel model: kept by the leave-one-light-out choice, and no worse
+    // at novel pairs than the same interpolation without it (the glossy
+    // sample's gain is tested below).
+    let (plain, _) =
+        build_with(MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() });
+    let with_without =
+        tests::material_scores(&regions, [&default, &plain], &sample, &captured, &novel);
+    let [nov_m, nov_plain] = with_without.novel;
+    eprintln!(
+        "leather texel model: {} (β {}); novel pairs {nov_m:.2} dB, without the model \
+         {nov_plain:.2} dB (β {})",
+        meta.texel_model,
+        meta.half_vector_shift,
+        plain.metadata().half_vector_shift
+    );
+    assert!(meta.texel_model, "leather: the builder kept no texel model");
+    assert!(!plain.metadata().texel_model);
+    assert!(nov_m >= nov_plain - 0.1, "novel pairs: {nov_m} with the model, {nov_plain} without");
+
+    // A glossy sample: the model carries the highlights between mirrors.
+    tests::sim_scan("rough-metal", seed, bin, mirrors, true, &p("metal"));
+    let scan = ScanFrames::open(&p("metal"), &g).unwrap();
+    let metal_regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+    let build_metal = |texel_model| {
+        let opts = MaterialOptions { texel_model, ..Default::default() };
+        let data =
+            build_material(&metal_regions, "rough-metal", 25.4, prov.clone(), &opts, &Silent)
+                .unwrap();
+        Material::from_bytes(&data.to_bytes().unwrap()).unwrap()
+    };
+    let (auto, off) = (build_metal(TexelModelChoice::Auto), build_metal(TexelModelChoice::Off));
+    let metal = Sample::small(lookup("rough-metal").unwrap());
+    let metal_captured = tests::as_built_pairs(&truth_geometry, &cal, &metal_regions);
+    let sc = tests::material_scores(&metal_regions, [&auto, &off], &metal, &metal_captured, &novel);
+    eprintln!(
+        "rough-metal, 1024² sensor: texel model {} (β {}): captured pairs {:.2} dB, novel pairs \
+         {:.2} dB; without the model (β {}) {:.2} and {:.2} dB",
+        auto.metadata().texel_model,
+        auto.metadata().half_vector_shift,
+        sc.captured[0],
+        sc.novel[0],
+        off.metadata().half_vector_shift,
+        sc.captured[1],
+        sc.novel[1]
+    );
+    assert!(auto.metadata().texel_model, "rough-metal: the builder kept no texel model");
+    assert!((sc.captured[0] - sc.captured[1]).abs() < 0.1, "captured pairs stay as captured");
+    assert!(
+        sc.novel[0] >= sc.novel[1] + 6.0,
+        "rough-metal novel pairs: {:.2} dB with the model, {:.2} without",
+        sc.novel[0],
+        sc.novel[1]
+    );
 
     // `scanner shade` answers what `Material::eval` answers.
     let queries: Vec<Query> = novel

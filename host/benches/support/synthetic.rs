@@ -68,6 +68,7 @@ pub fn synthetic(
                 calibration_sha256: String::new(),
                 builder: "synthetic".into(),
             },
+            texel_model: false,
         },
         palettes: (0..n * n * k).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
         indices: (0..n * s * s * n.div_ceil(g))
@@ -75,5 +76,28 @@ pub fn synthetic(
             .collect(),
         light_groups: (0..n).map(|l| (l / g) as u8).collect(),
         tables,
+        texels: Vec::new(),
     }
+}
+
+/// `data` with a random texel model (version 2): albedos and F0 in
+/// [0, 1], α in [0.05, 0.5], normals within 20° of the sample's.
+pub fn with_texel_model(mut data: MaterialData, seed: u64) -> MaterialData {
+    use scanner_shading::texel::TexelParams;
+    let s = data.meta.resolution as usize;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    data.meta.version = scanner_shading::format::VERSION_TEXEL_MODEL;
+    data.meta.texel_model = true;
+    data.texels = (0..s * s)
+        .map(|_| {
+            let (x, y): (f32, f32) = (rng.random_range(-0.25..0.25), rng.random_range(-0.25..0.25));
+            TexelParams {
+                diffuse: [rng.random(), rng.random(), rng.random()],
+                specular: [rng.random(), rng.random(), rng.random()],
+                alpha: rng.random_range(0.05..0.5),
+                normal: [x, y, (1.0 - x * x - y * y).sqrt()],
+            }
+        })
+        .collect();
+    data
 }

@@ -12,11 +12,16 @@ use safetensors::tensor::{Dtype, SafeTensors, View};
 use serde::{Deserialize, Serialize};
 
 use crate::error::MaterialError;
+use crate::texel::{STORED, TexelParams};
 
 /// `Metadata::format`.
 pub const FORMAT: &str = "material-scanner/material";
-/// The format version this crate writes and reads.
+/// The format version this crate writes for a material without a texel
+/// model; such files are also version-1 files.
 pub const VERSION: u32 = 1;
+/// The format version of a material with a texel model
+/// (`Metadata::texel_model`). This crate reads both.
+pub const VERSION_TEXEL_MODEL: u32 = 2;
 /// The safetensors metadata key holding the JSON [`Metadata`].
 pub const METADATA_KEY: &str = "material";
 /// Most (mirror, weight) pairs one patent-table cell may hold.
@@ -117,6 +122,12 @@ pub struct Metadata {
     pub views: Vec<Mirror>,
     /// Where the material came from.
     pub provenance: Provenance,
+    /// Default interpolation only (version 2): the file holds a fitted
+    /// texel model (tensor `texel_model`), and the shading interpolates the
+    /// captured images' residuals from it rather than the images
+    /// themselves. Absent in version 1.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub texel_model: bool,
 }
 
 /// A patent direction table in compressed rows: the pairs of cell `c` are
@@ -166,6 +177,9 @@ pub struct MaterialData {
     pub light_groups: Vec<u8>,
     /// The direction tables.
     pub tables: DirectionTables,
+    /// `[S][S]` (row t along v, column s along u): the fitted texel model,
+    /// when `meta.texel_model`; empty otherwise.
+    pub texels: Vec<TexelParams>,
 }
 
 /// A tensor to serialise.
@@ -252,6 +266,27 @@ impl MaterialData {
                 Tensor { dtype: Dtype::U8, shape: vec![l], data: self.light_groups.clone() },
             ),
         ];
+        if self.meta.texel_model {
+            if self.texels.len() != s * s {
+                return Err(MaterialError::Tensor(format!(
+                    "texel_model: {} texels for {s} × {s}",
+                    self.texels.len()
+                )));
+            }
+            tensors.push((
+                "texel_model".to_string(),
+                Tensor {
+                    dtype: Dtype::F16,
+                    shape: vec![s, s, STORED],
+                    data: u16_bytes(
+                        self.texels
+                            .iter()
+                            .flat_map(|p| p.to_stored())
+                            .map(|x| half::f16::from_f32(x).to_bits()),
+                    ),
+                },
+            ));
+        }
         match &self.tables {
             DirectionTables::Triangles { views, lights } => {
                 for (name, t) in [("view_triangles", views), ("light_triangles", lights)] {
@@ -417,13 +452,36 @@ impl MaterialData {
                 DirectionTables::Patent { views: table("view", v)?, lights: table("light", l)? }
             }
         };
+        let texels = if meta.texel_model {
+            expected.push("texel_model".into());
+            let raw = tensor(&st, "texel_model", Dtype::F16, &[s, s, STORED])?;
+            let vals: Vec<f32> = raw
+                .chunks_exact(2)
+                .map(|c| half::f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32())
+                .collect();
+            vals.chunks_exact(STORED)
+                .enumerate()
+                .map(|(i, v)| {
+                    TexelParams::check_stored(v).map_err(|e| {
+                        MaterialError::Value(format!(
+                            "texel_model: texel ({}, {}): {e}",
+                            i % s,
+                            i / s
+                        ))
+                    })?;
+                    Ok(TexelParams::from_stored(v))
+                })
+                .collect::<Result<Vec<_>, MaterialError>>()?
+        } else {
+            Vec::new()
+        };
         if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == n)) {
             return Err(MaterialError::Tensor(format!(
                 "unexpected tensor `{extra}` for {:?} interpolation",
                 meta.interpolation
             )));
         }
-        Ok(MaterialData { meta, palettes, indices, light_groups, tables })
+        Ok(MaterialData { meta, palettes, indices, light_groups, tables, texels })
     }
 }
 
@@ -454,8 +512,22 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
     if m.format != FORMAT {
         return bad(format!("format is {:?}, not {FORMAT:?}", m.format));
     }
-    if m.version != VERSION {
-        return bad(format!("version {} (this reader reads version {VERSION})", m.version));
+    if !(VERSION..=VERSION_TEXEL_MODEL).contains(&m.version) {
+        return bad(format!(
+            "version {} (this reader reads versions {VERSION}…{VERSION_TEXEL_MODEL})",
+            m.version
+        ));
+    }
+    if m.texel_model != (m.version == VERSION_TEXEL_MODEL) {
+        return bad(format!(
+            "version {} with{} a texel model: a texel model is version {VERSION_TEXEL_MODEL}'s, \
+             and only its",
+            m.version,
+            if m.texel_model { "" } else { "out" }
+        ));
+    }
+    if m.texel_model && m.interpolation != Interpolation::Default {
+        return bad("a texel model is only for the default interpolation".into());
     }
     if !(m.sample_size_mm.is_finite() && m.sample_size_mm > 0.0) {
         return bad(format!("sample_size_mm {} is not a positive size", m.sample_size_mm));

@@ -27,6 +27,7 @@
 pub mod error;
 pub mod format;
 pub mod locate;
+pub mod texel;
 
 use std::path::Path;
 
@@ -55,6 +56,7 @@ enum Directions {
         views: TriangleLocator,
         lights: TriangleLocator,
         light_dirs: Vec<[f32; 3]>,
+        view_dirs: Vec<[f32; 3]>,
         shift: f32,
     },
     /// The patent's cell tables.
@@ -76,6 +78,8 @@ pub struct Material {
     indices: Vec<u8>,
     light_groups: Vec<u8>,
     directions: Directions,
+    /// `[S][S]` stored texel-model values ([`texel::STORED`] each), or empty.
+    texels: Vec<[f32; texel::STORED]>,
 }
 
 /// The default interpolation's weights (docs/material-format.md,
@@ -190,6 +194,7 @@ impl Material {
                 views: TriangleLocator::new(&vd, views, "view_triangles")?,
                 lights: TriangleLocator::new(&ld, lights, "light_triangles")?,
                 light_dirs: ld,
+                view_dirs: vd,
                 shift: m.half_vector_shift as f32,
             },
             DirectionTables::Patent { views, lights } => {
@@ -213,6 +218,7 @@ impl Material {
             indices: d.indices,
             light_groups: d.light_groups,
             directions,
+            texels: d.texels.iter().map(|p| p.to_stored()).collect(),
             meta: d.meta,
         })
     }
@@ -239,6 +245,18 @@ impl Material {
             ((y0 * s + x0) * g, (y0 * s + x1) * g, (y1 * s + x0) * g, (y1 * s + x1) * g);
         let (w00, w10, w01, w11) =
             ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty);
+        // The texel model at uv, its parameters interpolated bilinearly.
+        let model = (!self.texels.is_empty()).then(|| {
+            let (a, b, c, d) = (
+                &self.texels[o00 / g],
+                &self.texels[o10 / g],
+                &self.texels[o01 / g],
+                &self.texels[o11 / g],
+            );
+            let v: [f32; texel::STORED] =
+                std::array::from_fn(|i| w00 * a[i] + w10 * b[i] + w01 * c[i] + w11 * d[i]);
+            texel::TexelParams::from_stored(&v)
+        });
         let mut acc = [0.0f32; 3];
         let mut pair = |vi: u16, li: u16, w: f32| {
             let img = &self.indices[vi as usize * s * s * g..][..s * s * g];
@@ -249,12 +267,25 @@ impl Material {
             let c10 = pal[img[o10 + grp] as usize];
             let c01 = pal[img[o01 + grp] as usize];
             let c11 = pal[img[o11 + grp] as usize];
+            let mut f: [f32; 3] =
+                std::array::from_fn(|k| w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
+            // With a model, the residual f − f_model of the captured pair.
+            if let (Some(p), Directions::Triangles { light_dirs, view_dirs, .. }) =
+                (&model, &self.directions)
+            {
+                let (l, v) = (light_dirs[li as usize], view_dirs[vi as usize]);
+                let m = texel::reflected(p, l, v);
+                let inv = 1.0 / l[2];
+                for k in 0..3 {
+                    f[k] -= m[k] * inv;
+                }
+            }
             for k in 0..3 {
-                acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
+                acc[k] += w * f[k];
             }
         };
         match &self.directions {
-            Directions::Triangles { views, lights, light_dirs, shift } => {
+            Directions::Triangles { views, lights, light_dirs, shift, .. } => {
                 default_pairs(lights, light_dirs, views, *shift, wi, wo, pair);
             }
             Directions::Cells { views, lights } => {
@@ -269,7 +300,13 @@ impl Material {
                 }
             }
         }
-        acc.map(|x| x * wi[2])
+        match model {
+            Some(p) => {
+                let m = texel::reflected(&p, wi, wo);
+                std::array::from_fn(|k| (acc[k] * wi[2] + m[k]).max(0.0))
+            }
+            None => acc.map(|x| x * wi[2]),
+        }
     }
 
     /// [`Self::eval`] over many queries: `out[i]` answers `queries[i]`.

@@ -96,11 +96,13 @@ fn material(interpolation: Interpolation) -> MaterialData {
                 calibration_sha256: "2".repeat(64),
                 builder: "test".into(),
             },
+            texel_model: false,
         },
         palettes,
         indices,
         light_groups: (0..n).map(|l| (l / g) as u8).collect(),
         tables,
+        texels: Vec::new(),
     }
 }
 
@@ -283,4 +285,121 @@ fn damaged_files_are_refused_without_panicking() {
 fn the_material_is_shareable_between_threads() {
     fn assert_sync<T: Send + Sync>() {}
     assert_sync::<Material>();
+}
+
+/// [`material`] with a texel model: texel column c has α 0.1 + 0.05 c, a
+/// specular F0 0.5 and a normal tilted along u.
+fn material_with_model() -> MaterialData {
+    let mut d = material(Interpolation::Default);
+    let s = d.meta.resolution as usize;
+    d.meta.version = format::VERSION_TEXEL_MODEL;
+    d.meta.texel_model = true;
+    d.texels = (0..s * s)
+        .map(|i| {
+            let c = (i % s) as f32;
+            let n = unit_f32([0.1, 0.02 * c, 1.0]);
+            texel::TexelParams {
+                diffuse: [0.2, 0.3, 0.4],
+                specular: [0.5; 3],
+                alpha: 0.1 + 0.05 * c,
+                normal: n,
+            }
+        })
+        .collect();
+    d
+}
+
+#[test]
+fn with_a_texel_model_captured_pairs_are_still_exact_and_the_rest_follows_the_model() {
+    let data = material_with_model();
+    let bytes = data.to_bytes().unwrap();
+    let m = Material::from_bytes(&bytes).unwrap();
+    assert!(m.metadata().texel_model);
+    let (dirs, _) = ring();
+    let uv = [3.5 / 8.0, 0.3];
+    for (l, dl) in dirs.iter().enumerate() {
+        for (v, dv) in dirs.iter().enumerate() {
+            let got = m.eval(uv, f32v(*dl), f32v(*dv));
+            let cos = dl[2] as f32;
+            let want = [(l + 1) as f32 / 100.0 * cos, (v + 1) as f32 / 100.0 * cos, 0.03 * cos];
+            assert!(close(got, want, 2e-3), "l {l} v {v}: {got:?} vs {want:?}");
+        }
+    }
+    // Between captured pairs: the model's value plus the barycentric mix of
+    // the residuals. With captured images equal to the model, eval is the
+    // model everywhere.
+    let mut d = material_with_model();
+    let stored = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();
+    let (nl, nv, k) = (dirs.len(), dirs.len(), d.meta.colours as usize);
+    // Palettes: the model at texel column c (all rows alike) and the pair.
+    let texel_of = |c: usize| stored.texels[c];
+    for l in 0..nl {
+        for v in 0..nv {
+            for c in 0..k {
+                let p = texel::TexelParams::from_stored(&texel_of(c));
+                d.palettes[(l * nv + v) * k + c] =
+                    texel::reflected(&p, f32v(dirs[l]), f32v(dirs[v]));
+            }
+        }
+    }
+    let m = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..200 {
+        let (wi, wo) = (random_dir(&mut rng, 60.0), random_dir(&mut rng, 60.0));
+        let c = rng.random_range(0..8);
+        let uv = [(c as f32 + 0.5) / 8.0, rng.random::<f32>()];
+        let p = texel::TexelParams::from_stored(&texel_of(c));
+        let want = texel::reflected(&p, wi, wo);
+        let got = m.eval(uv, wi, wo);
+        // float16 palettes: the residuals are the rounding, ≤ 1e-3 relative.
+        for ch in 0..3 {
+            assert!(
+                (got[ch] - want[ch]).abs() <= 2e-3 * want[ch].max(0.05),
+                "{wi:?} {wo:?}: {got:?} vs {want:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_texel_models_are_refused() {
+    let e = |d: MaterialData| d.to_bytes().unwrap_err().to_string();
+    let mut d = material_with_model();
+    d.texels[9].alpha = 0.0;
+    assert!(e(d).contains("texel_model: texel (1, 1): α 0"), "α");
+    let mut d = material_with_model();
+    d.texels[2].specular[1] = 1.5;
+    assert!(e(d).contains("outside [0, 1]"));
+    let mut d = material_with_model();
+    d.texels[3].normal = [0.9, 0.5, 0.1];
+    assert!(e(d).contains("not above the sample"));
+    let mut d = material_with_model();
+    d.texels[3].diffuse[0] = f32::NAN;
+    assert!(e(d).contains("outside [0, 1]"));
+    // Version and flag must agree; the patent's interpolation has no model.
+    let mut d = material_with_model();
+    d.meta.version = format::VERSION;
+    assert!(e(d).contains("texel model is version 2"));
+    let mut d = material(Interpolation::Default);
+    d.meta.version = format::VERSION_TEXEL_MODEL;
+    assert!(e(d).contains("version 2 without a texel model"));
+    let mut d = material_with_model();
+    d.texels.pop();
+    assert!(e(d).contains("texel_model"));
+    // A version-1 file does not mention the model at all.
+    let v1 = material(Interpolation::Default).to_bytes().unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(&v1).unwrap();
+    assert!(!header.metadata().as_ref().unwrap()[format::METADATA_KEY].contains("texel"));
+    // Damage anywhere in a version-2 file: an error or a material, never a panic.
+    let good = material_with_model().to_bytes().unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for _ in 0..300 {
+        let mut b = good.clone();
+        let i = rng.random_range(0..b.len());
+        b[i] ^= 1 << rng.random_range(0..8);
+        if let Ok(m) = Material::from_bytes(&b) {
+            let v = m.eval([0.3, 0.6], [0.1, 0.2, 0.97], [-0.3, 0.1, 0.95]);
+            assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "{v:?}");
+        }
+    }
 }

@@ -14,6 +14,8 @@ use super::calibrate::BuildProgress;
 use super::error::BuildError;
 use super::palette::{group_lights, palettise};
 use super::regions::RegionSet;
+use super::texel_fit;
+use scanner_shading::texel::TexelParams;
 
 /// How to build a material.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -26,6 +28,21 @@ pub struct MaterialOptions {
     pub interpolation: Interpolation,
     /// Seed of the k-means and the patent table's random points.
     pub seed: u64,
+    /// Whether a default-interpolation material carries a fitted texel
+    /// model (the patent's never does).
+    pub texel_model: TexelModelChoice,
+}
+
+/// When the builder fits and stores a texel model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum TexelModelChoice {
+    /// When it predicts held-out lights better (leave-one-light-out).
+    #[default]
+    Auto,
+    /// Always.
+    On,
+    /// Never.
+    Off,
 }
 
 impl Default for MaterialOptions {
@@ -35,6 +52,7 @@ impl Default for MaterialOptions {
             lights_per_index: 2,
             interpolation: Interpolation::Default,
             seed: 1,
+            texel_model: TexelModelChoice::Auto,
         }
     }
 }
@@ -223,12 +241,20 @@ fn unit32(d: [f64; 3]) -> [f32; 3] {
     d.map(|x| (x / l) as f32)
 }
 
-/// Leave-one-light-out prediction error of the default interpolation for
-/// each of [`SHIFTS`]: every light's images predicted from the other
-/// lights' (`scanner_shading::default_pairs`, the shading's own weights)
-/// at 8 × 8 texels, the mean squared error against the captured values.
-pub fn shift_errors(regions: &RegionSet, view_tris: &[[u16; 3]]) -> Result<Vec<f64>, BuildError> {
+/// Leave-one-light-out prediction errors of the default interpolation:
+/// every light's images predicted from the other lights' (the shading's
+/// own weights, `scanner_shading::default_pairs`) at 8 × 8 texels, the
+/// mean squared error against the captured values, for each of
+/// [`SHIFTS`] — `[shift][0]` without a texel model, `[shift][1]` with one
+/// (fitted without the held light, residuals interpolated) when
+/// `with_model`.
+pub fn shift_errors(
+    regions: &RegionSet,
+    view_tris: &[[u16; 3]],
+    with_model: bool,
+) -> Result<Vec<[f64; 2]>, BuildError> {
     use scanner_shading::locate::TriangleLocator;
+    use scanner_shading::texel::reflected;
     let internal = |e: scanner_shading::MaterialError| BuildError::Input(e.to_string());
     let (nl, nv, s) = (regions.lights.len(), regions.views.len(), regions.size);
     let vd: Vec<[f32; 3]> = regions.view_dirs.iter().map(|&d| unit32(d)).collect();
@@ -240,7 +266,8 @@ pub fn shift_errors(regions: &RegionSet, view_tris: &[[u16; 3]]) -> Result<Vec<f
             y * s + x
         })
         .collect();
-    let per_light: Vec<Vec<f64>> = (0..nl)
+    let dirs = texel_fit::pair_dirs(regions);
+    let per_light: Vec<Vec<[f64; 2]>> = (0..nl)
         .into_par_iter()
         .map(|held| {
             let others: Vec<usize> = (0..nl).filter(|&l| l != held).collect();
@@ -249,15 +276,29 @@ pub fn shift_errors(regions: &RegionSet, view_tris: &[[u16; 3]]) -> Result<Vec<f
             let Ok(lights) = triangulate(&od, "light directions").and_then(|t| {
                 TriangleLocator::new(&od32, &t, "light directions").map_err(internal)
             }) else {
-                return vec![0.0; SHIFTS.len()];
+                return vec![[0.0; 2]; SHIFTS.len()];
+            };
+            // The model of each scored texel, fitted without the held light.
+            let models: Vec<TexelParams> = if with_model {
+                let keep: Vec<usize> = (0..nl * nv).filter(|&i| i / nv != held).collect();
+                let d: Vec<_> = keep.iter().map(|&i| dirs[i]).collect();
+                texels
+                    .iter()
+                    .map(|&t| {
+                        let y: Vec<[f32; 3]> = keep.iter().map(|&i| regions.images[i][t]).collect();
+                        texel_fit::fit_texel(&texel_fit::Observations { dirs: &d, values: &y }).0
+                    })
+                    .collect()
+            } else {
+                Vec::new()
             };
             let wi = ld[held];
             SHIFTS
                 .iter()
                 .map(|&shift| {
-                    let mut err = 0.0;
+                    let mut err = [0.0; 2];
                     for (v, &wo) in vd.iter().enumerate() {
-                        let mut pred = vec![[0f64; 3]; texels.len()];
+                        let mut pred = vec![[[0f64; 3]; 2]; texels.len()];
                         scanner_shading::default_pairs(
                             &lights,
                             &od32,
@@ -269,26 +310,43 @@ pub fn shift_errors(regions: &RegionSet, view_tris: &[[u16; 3]]) -> Result<Vec<f
                                 let l = others[lj as usize];
                                 let k = w as f64 * wi[2] as f64 / ld[l][2] as f64;
                                 let img = regions.image(l, vi as usize);
-                                for (p, &t) in pred.iter_mut().zip(&texels) {
+                                for (i, (p, &t)) in pred.iter_mut().zip(&texels).enumerate() {
+                                    let m = models
+                                        .get(i)
+                                        .map_or([0.0; 3], |m| reflected(m, ld[l], vd[vi as usize]));
                                     for c in 0..3 {
-                                        p[c] += k * img[t][c] as f64;
+                                        p[0][c] += k * img[t][c] as f64;
+                                        p[1][c] += k * (img[t][c] - m[c]) as f64;
                                     }
                                 }
                             },
                         );
                         let img = regions.image(held, v);
-                        for (p, &t) in pred.iter().zip(&texels) {
+                        for (i, (p, &t)) in pred.iter().zip(&texels).enumerate() {
+                            let m = models.get(i).map_or([0.0; 3], |m| reflected(m, wi, wo));
                             for c in 0..3 {
-                                err += (p[c] - img[t][c] as f64).powi(2);
+                                let y = img[t][c] as f64;
+                                err[0] += (p[0][c] - y).powi(2);
+                                err[1] += ((p[1][c] + m[c] as f64).max(0.0) - y).powi(2);
                             }
                         }
                     }
-                    err / (nv * texels.len() * 3) as f64
+                    err.map(|e| e / (nv * texels.len() * 3) as f64)
                 })
                 .collect()
         })
         .collect();
-    Ok((0..SHIFTS.len()).map(|k| per_light.iter().map(|e| e[k]).sum::<f64>() / nl as f64).collect())
+    Ok((0..SHIFTS.len())
+        .map(|k| {
+            std::array::from_fn(|m| {
+                if m == 1 && !with_model {
+                    f64::INFINITY
+                } else {
+                    per_light.iter().map(|e| e[k][m]).sum::<f64>() / nl as f64
+                }
+            })
+        })
+        .collect())
 }
 
 /// Build the material of `regions`.
@@ -343,15 +401,27 @@ pub fn build_material(
         }
     }
     let mut half_vector_shift = 0.0;
+    let mut texel_model = false;
     let tables = match opts.interpolation {
         Interpolation::Default => {
             let views = triangulate(&regions.view_dirs, "view directions")?;
             let lights = triangulate(&regions.light_dirs, "light directions")?;
+            texel_model = opts.texel_model == TexelModelChoice::On;
             if nl >= 4 {
-                progress.stage("half-vector shift", 1);
-                let errs = shift_errors(regions, &views)?;
-                let best = (0..SHIFTS.len()).min_by(|&a, &b| errs[a].total_cmp(&errs[b]));
-                half_vector_shift = SHIFTS[best.unwrap_or(0)];
+                progress.stage("interpolation choice", 1);
+                let auto = opts.texel_model == TexelModelChoice::Auto;
+                let errs = shift_errors(regions, &views, auto || texel_model)?;
+                let allowed: &[usize] = match opts.texel_model {
+                    TexelModelChoice::Auto => &[0, 1],
+                    TexelModelChoice::On => &[1],
+                    TexelModelChoice::Off => &[0],
+                };
+                let best = (0..SHIFTS.len())
+                    .flat_map(|k| allowed.iter().map(move |&m| (k, m)))
+                    .min_by(|a, b| errs[a.0][a.1].total_cmp(&errs[b.0][b.1]))
+                    .unwrap_or((0, 0));
+                half_vector_shift = SHIFTS[best.0];
+                texel_model = best.1 == 1;
                 progress.step();
             }
             DirectionTables::Triangles { views, lights }
@@ -365,6 +435,12 @@ pub fn build_material(
             DirectionTables::Patent { views, lights }
         }
     };
+    let texels = if texel_model {
+        progress.stage("texel model", s);
+        texel_fit::fit_texels(regions, &|| progress.step())
+    } else {
+        Vec::new()
+    };
     let mirror = |m: &usize, d: &[f64; 3]| {
         let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         Mirror { mirror: *m as u32, direction: d.map(|x| x / len) }
@@ -372,7 +448,11 @@ pub fn build_material(
     Ok(MaterialData {
         meta: Metadata {
             format: scanner_shading::format::FORMAT.into(),
-            version: scanner_shading::format::VERSION,
+            version: if texel_model {
+                scanner_shading::format::VERSION_TEXEL_MODEL
+            } else {
+                scanner_shading::format::VERSION
+            },
             name: name.into(),
             sample_size_mm,
             extent_mm: [sample_size_mm, sample_size_mm],
@@ -394,10 +474,12 @@ pub fn build_material(
                 .map(|(m, d)| mirror(m, d))
                 .collect(),
             provenance,
+            texel_model,
         },
         palettes,
         indices,
         light_groups,
         tables,
+        texels,
     })
 }

@@ -18,6 +18,7 @@ pub mod palette;
 pub mod plane;
 pub mod regions;
 pub mod scanread;
+pub mod texel_fit;
 
 pub use calibrate::{Calibration, calibrate};
 pub use error::BuildError;

@@ -321,7 +321,7 @@ pub fn build_cmd(
     let (psnr, _, _) = material_psnr(&m, &r);
     println!(
         "{}: {} lights × {} views at {}² px, {} colours ({} lights per index image), {} \
-         interpolation (half-vector shift {}), {:.1} MB, in {built:.1} s; palettes at the \
+         interpolation (half-vector shift {}{}), {:.1} MB, in {built:.1} s; palettes at the \
          captured pairs: {psnr:.1} dB against the region images",
         output.display(),
         regions.lights.len(),
@@ -335,6 +335,7 @@ pub fn build_cmd(
                 format!("patent ({columns} × {rows} cells, {points} points)"),
         },
         material.metadata().half_vector_shift,
+        if material.metadata().texel_model { ", texel model" } else { "" },
         bytes.len() as f64 / 1e6,
     );
     Ok(Built { material, regions })

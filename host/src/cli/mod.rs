@@ -129,6 +129,11 @@ enum Command {
         /// Patent table: random points per cell.
         #[arg(long, default_value_t = 1000)]
         patent_points: u32,
+        /// Default interpolation: fit a texel model (Lambert + GGX per
+        /// texel) and interpolate the captured images' residuals from it —
+        /// `auto` when it predicts held-out lights better.
+        #[arg(long, value_parser = ["auto", "on", "off"], default_value = "auto")]
+        texel_model: String,
     },
     /// Shade a material at the queries of a query file (docs/query-format.md).
     Shade {
@@ -398,6 +403,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             patent_columns,
             patent_rows,
             patent_points,
+            texel_model,
         } => {
             let interpolation = if interpolation == "patent" {
                 scanner_shading::Interpolation::Patent {
@@ -412,6 +418,11 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 colours,
                 lights_per_index,
                 interpolation,
+                texel_model: match texel_model.as_str() {
+                    "on" => crate::build::material::TexelModelChoice::On,
+                    "off" => crate::build::material::TexelModelChoice::Off,
+                    _ => crate::build::material::TexelModelChoice::Auto,
+                },
                 ..Default::default()
             };
             build::build_cmd(&input, &output, &opts).map(|_| ())?

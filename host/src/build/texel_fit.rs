@@ -1,0 +1,360 @@
+//! Fitting the texel model (`scanner_shading::texel`) to every texel of the
+//! region images: per texel, the normal's two slopes and ln α are found by
+//! Levenberg–Marquardt with variable projection — for given (n, α) the
+//! diffuse albedo and F0 of each channel are the box-constrained ([0, 1]²)
+//! least-squares solution, exactly — over all captured (light, view) pairs.
+
+use rayon::prelude::*;
+use scanner_shading::texel::{TexelParams, terms};
+
+use super::regions::RegionSet;
+
+/// Smallest and largest α the fit considers.
+const ALPHA_RANGE: (f32, f32) = (0.003, 1.0);
+/// Largest normal slope |x/z|, |y/z| (≈ 63° tilt).
+const MAX_SLOPE: f32 = 2.0;
+/// Levenberg–Marquardt iterations at most.
+const ITERATIONS: usize = 30;
+
+/// Observations of one texel: pairs (wi, wo) and f · cos θi.
+#[derive(Debug, Clone, Copy)]
+pub struct Observations<'a> {
+    /// Unit directions towards light and viewer per pair.
+    pub dirs: &'a [([f32; 3], [f32; 3])],
+    /// Measured f · cos θi per pair.
+    pub values: &'a [[f32; 3]],
+}
+
+/// The nonlinear unknowns: slopes of the normal and ln α.
+type Theta = [f32; 3];
+
+fn normal_of(t: &Theta) -> [f32; 3] {
+    let l = (t[0] * t[0] + t[1] * t[1] + 1.0).sqrt();
+    [t[0] / l, t[1] / l, 1.0 / l]
+}
+
+fn clamp_theta(t: Theta) -> Theta {
+    [
+        t[0].clamp(-MAX_SLOPE, MAX_SLOPE),
+        t[1].clamp(-MAX_SLOPE, MAX_SLOPE),
+        t[2].clamp(ALPHA_RANGE.0.ln(), ALPHA_RANGE.1.ln()),
+    ]
+}
+
+/// min over (a, b) ∈ [0, 1]² of a²·dd + 2ab·ds + b²·ss − 2a·dz − 2b·sz
+/// (the squared error less Σ z²): the unconstrained optimum if inside,
+/// else the best of the four edges' clamped 1-D optima.
+fn box_ls(dd: f64, ds: f64, ss: f64, dz: f64, sz: f64) -> (f64, f64, f64) {
+    let q =
+        |a: f64, b: f64| a * a * dd + 2.0 * a * b * ds + b * b * ss - 2.0 * a * dz - 2.0 * b * sz;
+    let det = dd * ss - ds * ds;
+    if det > 1e-12 * (dd * ss).max(1e-300) {
+        let (a, b) = ((dz * ss - sz * ds) / det, (sz * dd - dz * ds) / det);
+        if (0.0..=1.0).contains(&a) && (0.0..=1.0).contains(&b) {
+            return (a, b, q(a, b));
+        }
+    }
+    let mut best = (0.0, 0.0, 0.0);
+    let mut consider = |a: f64, b: f64| {
+        let v = q(a, b);
+        if v < best.2 {
+            best = (a, b, v);
+        }
+    };
+    for edge in [0.0, 1.0] {
+        // a fixed at the edge, b free.
+        let b = if ss > 0.0 { ((sz - edge * ds) / ss).clamp(0.0, 1.0) } else { 0.0 };
+        consider(edge, b);
+        let a = if dd > 0.0 { ((dz - edge * ds) / dd).clamp(0.0, 1.0) } else { 0.0 };
+        consider(a, edge);
+    }
+    best
+}
+
+/// Scratch space of one fit: the terms per pair.
+#[derive(Debug, Default)]
+struct Scratch {
+    terms: Vec<[f32; 3]>,
+}
+
+/// The projected fit at θ: linear parameters and the squared error; with
+/// `resid`, also every residual (3 per pair).
+fn project(
+    obs: &Observations<'_>,
+    theta: &Theta,
+    scratch: &mut Scratch,
+    resid: Option<&mut [f32]>,
+) -> (TexelParams, f64) {
+    let n = normal_of(theta);
+    let alpha = theta[2].exp();
+    let a2 = alpha * alpha;
+    scratch.terms.clear();
+    scratch.terms.extend(obs.dirs.iter().map(|&(wi, wo)| terms(n, a2, wi, wo)));
+    let (mut dd, mut ds, mut ss) = (0f64, 0f64, 0f64);
+    let (mut dz, mut sz, mut zz) = ([0f64; 3], [0f64; 3], [0f64; 3]);
+    for (t, y) in scratch.terms.iter().zip(obs.values) {
+        let (d, s, o) = (t[0] as f64, t[1] as f64, t[2] as f64);
+        dd += d * d;
+        ds += d * s;
+        ss += s * s;
+        for c in 0..3 {
+            let z = y[c] as f64 - o;
+            dz[c] += d * z;
+            sz[c] += s * z;
+            zz[c] += z * z;
+        }
+    }
+    let mut p = TexelParams { alpha, normal: n, ..Default::default() };
+    let mut sse = 0.0;
+    for c in 0..3 {
+        let (a, b, q) = box_ls(dd, ds, ss, dz[c], sz[c]);
+        p.diffuse[c] = a as f32;
+        p.specular[c] = b as f32;
+        sse += (zz[c] + q).max(0.0);
+    }
+    if let Some(r) = resid {
+        for ((t, y), r) in scratch.terms.iter().zip(obs.values).zip(r.chunks_exact_mut(3)) {
+            for c in 0..3 {
+                r[c] = y[c] - (p.diffuse[c] * t[0] + p.specular[c] * t[1] + t[2]);
+            }
+        }
+    }
+    (p, sse)
+}
+
+/// Fit one texel; the parameters and the RMS residual.
+pub fn fit_texel(obs: &Observations<'_>) -> (TexelParams, f64) {
+    let m = obs.dirs.len();
+    let mut scratch = Scratch::default();
+    if m == 0 {
+        return (TexelParams::default(), 0.0);
+    }
+    // Starting points: the sample's normal at a few roughnesses, and the
+    // half vector of the pair that most exceeds a diffuse-only fit.
+    let mut starts: Vec<Theta> = [0.03f32, 0.1, 0.3, 0.7].map(|a| [0.0, 0.0, a.ln()]).to_vec();
+    {
+        let flat = [0.0, 0.0, 1.0];
+        let (mut num, mut den) = (0f64, 0f64);
+        let diff: Vec<f32> = obs
+            .dirs
+            .iter()
+            .zip(obs.values)
+            .map(|(&(wi, wo), y)| {
+                let d = terms(flat, 1.0, wi, wo)[0];
+                let ysum = y[0] + y[1] + y[2];
+                num += (d * ysum) as f64;
+                den += (d * d) as f64;
+                d
+            })
+            .collect();
+        let rho = if den > 0.0 { (num / den) as f32 } else { 0.0 };
+        if let Some((i, _)) = obs
+            .values
+            .iter()
+            .zip(&diff)
+            .map(|(y, d)| y[0] + y[1] + y[2] - rho * d)
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+        {
+            let (wi, wo) = obs.dirs[i];
+            let h = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
+            if h[2] > 0.1 {
+                for a in [0.05f32, 0.2] {
+                    starts.push([h[0] / h[2], h[1] / h[2], a.ln()]);
+                }
+            }
+        }
+    }
+    let mut theta = starts[0];
+    let mut best = f64::INFINITY;
+    for s in starts {
+        let s = clamp_theta(s);
+        let (_, e) = project(obs, &s, &mut scratch, None);
+        if e < best {
+            best = e;
+            theta = s;
+        }
+    }
+    // Levenberg–Marquardt on the projected residuals, forward differences.
+    let mut r0 = vec![0f32; 3 * m];
+    let mut rj = vec![vec![0f32; 3 * m]; 3];
+    let (mut params, mut sse) = project(obs, &theta, &mut scratch, Some(&mut r0));
+    let mut lambda = 1e-3;
+    const STEP: f32 = 2e-3;
+    for _ in 0..ITERATIONS {
+        for (k, rk) in rj.iter_mut().enumerate() {
+            let mut t = theta;
+            // Step inwards at the upper bound.
+            let upper = [MAX_SLOPE, MAX_SLOPE, ALPHA_RANGE.1.ln()];
+            let h = if theta[k] + STEP > upper[k] { -STEP } else { STEP };
+            t[k] += h;
+            project(obs, &t, &mut scratch, Some(rk));
+            for (a, b) in rk.iter_mut().zip(&r0) {
+                // Jacobian of the model = −d(residual).
+                *a = (b - *a) / h;
+            }
+        }
+        let mut jtj = [[0f64; 3]; 3];
+        let mut jtr = [0f64; 3];
+        for i in 0..3 * m {
+            let j = [rj[0][i] as f64, rj[1][i] as f64, rj[2][i] as f64];
+            for a in 0..3 {
+                jtr[a] += j[a] * r0[i] as f64;
+                for b in 0..3 {
+                    jtj[a][b] += j[a] * j[b];
+                }
+            }
+        }
+        let mut improved = false;
+        for _ in 0..8 {
+            let mut a = jtj;
+            for (k, row) in a.iter_mut().enumerate() {
+                row[k] += lambda * jtj[k][k].max(1e-12);
+            }
+            let Some(delta) = solve3(a, jtr) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let cand = clamp_theta(std::array::from_fn(|k| theta[k] + delta[k] as f32));
+            let (p, e) = project(obs, &cand, &mut scratch, None);
+            if e < sse {
+                let converged = (sse - e) <= 1e-7 * sse;
+                theta = cand;
+                params = p;
+                sse = e;
+                lambda = (lambda * 0.3).max(1e-7);
+                improved = !converged;
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !improved {
+            break;
+        }
+        project(obs, &theta, &mut scratch, Some(&mut r0));
+    }
+    (params, (sse / (3 * m) as f64).sqrt())
+}
+
+/// Solve a 3 × 3 system by Cramer's rule; `None` if singular.
+fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let det3 = |m: [[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det3(a);
+    if !(d.is_finite() && d.abs() > 1e-300) {
+        return None;
+    }
+    Some(std::array::from_fn(|k| {
+        let mut m = a;
+        for r in 0..3 {
+            m[r][k] = b[r];
+        }
+        det3(m) / d
+    }))
+}
+
+/// The pairs' unit directions of a region set, `[light][view]` order.
+pub fn pair_dirs(regions: &RegionSet) -> Vec<([f32; 3], [f32; 3])> {
+    let unit = |d: [f64; 3]| {
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        d.map(|x| (x / l) as f32)
+    };
+    let mut out = Vec::with_capacity(regions.lights.len() * regions.views.len());
+    for &l in &regions.light_dirs {
+        for &v in &regions.view_dirs {
+            out.push((unit(l), unit(v)));
+        }
+    }
+    out
+}
+
+/// The values of texel `t` over all pairs, `[light][view]` order.
+pub fn texel_values(regions: &RegionSet, t: usize) -> Vec<[f32; 3]> {
+    regions.images.iter().map(|img| img[t]).collect()
+}
+
+/// Fit every texel of `regions` (row-major, S × S); `step` is called once
+/// per row.
+pub fn fit_texels(regions: &RegionSet, step: &(dyn Fn() + Sync)) -> Vec<TexelParams> {
+    let dirs = pair_dirs(regions);
+    let s = regions.size;
+    (0..s)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            let out: Vec<TexelParams> = (0..s)
+                .map(|col| {
+                    let values = texel_values(regions, row * s + col);
+                    fit_texel(&Observations { dirs: &dirs, values: &values }).0
+                })
+                .collect();
+            step();
+            out
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scanner_shading::texel::reflected;
+
+    fn dirs() -> Vec<([f32; 3], [f32; 3])> {
+        // A 6 × 6 ring layout of lights and views.
+        let ring = |k: usize| {
+            let (th, ph) = (
+                (15.0 + 20.0 * (k / 6) as f32).to_radians(),
+                (60.0 * (k % 6) as f32 + 7.0 * (k / 6) as f32).to_radians(),
+            );
+            [th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()]
+        };
+        let mut out = Vec::new();
+        for l in 0..18 {
+            for v in 0..18 {
+                out.push((ring(l), ring(v)));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn recovers_a_texel_from_exact_values() {
+        let d = dirs();
+        let n = {
+            let v = [0.12f32, -0.08, 1.0];
+            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            v.map(|x| x / l)
+        };
+        for (alpha, diffuse, spec) in [
+            (0.25f32, [0.4f32, 0.3, 0.2], [0.04f32, 0.04, 0.04]),
+            (0.12, [0.05, 0.05, 0.08], [0.9, 0.7, 0.5]),
+        ] {
+            let truth = TexelParams { diffuse, specular: spec, alpha, normal: n };
+            let values: Vec<[f32; 3]> =
+                d.iter().map(|&(wi, wo)| reflected(&truth, wi, wo)).collect();
+            let (p, rms) = fit_texel(&Observations { dirs: &d, values: &values });
+            assert!((p.alpha / alpha - 1.0).abs() < 0.02, "α {} vs {alpha}", p.alpha);
+            for c in 0..3 {
+                assert!((p.diffuse[c] - diffuse[c]).abs() < 0.01, "{p:?}");
+                assert!((p.specular[c] - spec[c]).abs() < 0.02 * spec[c].max(0.05), "{p:?}");
+            }
+            let dot: f32 = (0..3).map(|k| p.normal[k] * n[k]).sum();
+            assert!(dot.min(1.0).acos().to_degrees() < 0.3, "normal {:?}", p.normal);
+            let peak = values.iter().flatten().fold(0f32, |a, &b| a.max(b));
+            assert!(rms < 1e-3 * peak as f64, "rms {rms}");
+        }
+    }
+
+    #[test]
+    fn box_ls_stays_in_the_box() {
+        // Optimum at (2, −1): constrained to (1, 0)-ish edges.
+        let (a, b, _) = box_ls(1.0, 0.0, 1.0, 2.0, -1.0);
+        assert_eq!((a, b), (1.0, 0.0));
+        let (a, b, q) = box_ls(2.0, 0.5, 1.0, 0.6, 0.3);
+        let det = 2.0 - 0.25;
+        assert!((a - (0.6 - 0.15) / det).abs() < 1e-12 && (b - (0.6 - 0.3) / det).abs() < 1e-12);
+        assert!(q < 0.0);
+    }
+}
