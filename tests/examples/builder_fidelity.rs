@@ -36,7 +36,7 @@ fn main() {
         .chain(materials.iter().map(|m| (*m, true)))
     {
         let t = Instant::now();
-        tests::sim_scan(m, seed, bin, mirrors, hdr, &out.join(m));
+        tests::sim_scan(m, seed, bin, mirrors, hdr, &tests::scan_dir(&out, m));
         eprintln!("scan {m}: {:.1} s", t.elapsed().as_secs_f64());
     }
     let exposure = tests::GLOSSY_EXPOSURE_US;
@@ -117,7 +117,7 @@ fn main() {
     println!("|---|---|---|---|---|---|");
     for &m in materials {
         let t = Instant::now();
-        let scan = ScanFrames::open(&out.join(m), &g).unwrap();
+        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
         let t_reg = t.elapsed().as_secs_f64();
         let sample = Sample::small(lookup(m).unwrap());

@@ -49,7 +49,7 @@ fn main() {
         &glossy,
     );
     for &m in &materials {
-        tests::sim_scan(m, seed, bin, mirrors, true, &out.join(m));
+        tests::sim_scan(m, seed, bin, mirrors, true, &tests::scan_dir(&out, m));
     }
     let checker = ScanFrames::open(&out.join("checkerboard"), &g).unwrap();
     let white = ScanFrames::open(&out.join("diffuse-white"), &g).unwrap();
@@ -70,7 +70,7 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
-        let scan = ScanFrames::open(&out.join(m), &g).unwrap();
+        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
         let provenance = Provenance {
             scan_manifest_sha256: "-".into(),

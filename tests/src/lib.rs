@@ -1,7 +1,7 @@
 //! End-to-end tests across firmware, simulator and host live in `tests/tests/`;
 //! this library holds what they share with the long-running examples.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use hil_sim::materials::Sample;
 use host::build::Calibration;
@@ -253,4 +253,12 @@ pub fn material_scores(
         }),
         novel: materials.map(|m| pairs_psnr(novel, &t_nov, &|_, q| shade(m, q)).0),
     }
+}
+
+/// Where the fidelity examples keep the scan of material `m` under `out`:
+/// `out/NAME`, NAME being a library name or a texture-set directory's last
+/// component (never the texture set's own directory).
+pub fn scan_dir(out: &Path, m: &str) -> PathBuf {
+    let name = Path::new(m).file_name().map_or_else(|| m.into(), |n| n.to_owned());
+    out.join(name)
 }
