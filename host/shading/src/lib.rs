@@ -137,6 +137,54 @@ pub fn unit(d: [f32; 3]) -> Option<[f32; 3]> {
     })
 }
 
+/// Model evaluations per query: the query itself and up to 3 × 3 mixed
+/// pairs, padded to a multiple of 4 lanes.
+const MODEL_SLOTS: usize = 12;
+
+/// The directions at which a query evaluates the texel model, structure
+/// of arrays: slot 0 the query, then the mixed pairs with their weights
+/// divided by their light's cos θi; unused slots point straight up with
+/// weight 0.
+#[derive(Debug, Clone, Copy)]
+struct ModelLanes {
+    wi: [[f32; MODEL_SLOTS]; 3],
+    wo: [[f32; MODEL_SLOTS]; 3],
+    weight: [f32; MODEL_SLOTS],
+    used: usize,
+}
+
+impl Default for ModelLanes {
+    fn default() -> Self {
+        let mut up = [[0.0; MODEL_SLOTS]; 3];
+        up[2] = [1.0; MODEL_SLOTS];
+        ModelLanes { wi: up, wo: up, weight: [0.0; MODEL_SLOTS], used: 1 }
+    }
+}
+
+impl ModelLanes {
+    #[inline(always)]
+    fn push(&mut self, wi: [f32; 3], wo: [f32; 3], weight: f32) {
+        // Never more than 9 pairs (3 light × 3 view weights); a guard all the same.
+        if self.used < MODEL_SLOTS {
+            let k = self.used;
+            for a in 0..3 {
+                self.wi[a][k] = wi[a];
+                self.wo[a][k] = wo[a];
+            }
+            self.weight[k] = weight;
+            self.used += 1;
+        }
+    }
+
+    #[inline(always)]
+    fn set_query(&mut self, wi: [f32; 3], wo: [f32; 3]) {
+        for a in 0..3 {
+            self.wi[a][0] = wi[a];
+            self.wo[a][0] = wo[a];
+        }
+    }
+}
+
 /// Bilinear taps of a coordinate in [0, 1) over `n` pixel centres, clamped
 /// at the borders: (low, high, weight of high).
 #[inline]
@@ -258,6 +306,9 @@ impl Material {
             texel::TexelParams::from_stored(&v)
         });
         let mut acc = [0.0f32; 3];
+        // With a model: the query's directions in slot 0, each mixed pair's
+        // in the next, weighted by w / cos θi(light); evaluated together.
+        let mut lanes = ModelLanes::default();
         let mut pair = |vi: u16, li: u16, w: f32| {
             let img = &self.indices[vi as usize * s * s * g..][..s * s * g];
             let grp = self.light_groups[li as usize] as usize;
@@ -267,21 +318,14 @@ impl Material {
             let c10 = pal[img[o10 + grp] as usize];
             let c01 = pal[img[o01 + grp] as usize];
             let c11 = pal[img[o11 + grp] as usize];
-            let mut f: [f32; 3] =
-                std::array::from_fn(|k| w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
-            // With a model, the residual f − f_model of the captured pair.
-            if let (Some(p), Directions::Triangles { light_dirs, view_dirs, .. }) =
-                (&model, &self.directions)
+            for k in 0..3 {
+                acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
+            }
+            if let (true, Directions::Triangles { light_dirs, view_dirs, .. }) =
+                (model.is_some(), &self.directions)
             {
                 let (l, v) = (light_dirs[li as usize], view_dirs[vi as usize]);
-                let m = texel::reflected(p, l, v);
-                let inv = 1.0 / l[2];
-                for k in 0..3 {
-                    f[k] -= m[k] * inv;
-                }
-            }
-            for k in 0..3 {
-                acc[k] += w * f[k];
+                lanes.push(l, v, w / l[2]);
             }
         };
         match &self.directions {
@@ -302,8 +346,20 @@ impl Material {
         }
         match model {
             Some(p) => {
-                let m = texel::reflected(&p, wi, wo);
-                std::array::from_fn(|k| (acc[k] * wi[2] + m[k]).max(0.0))
+                // M(wi, wo) + cos θi · Σ (f_k − M_k / cos θi(l_k)) w_k.
+                lanes.set_query(wi, wo);
+                let t = texel::terms_batch(p.normal, p.alpha * p.alpha, &lanes.wi, &lanes.wo);
+                let (mut sd, mut ss, mut so) = (0.0, 0.0, 0.0);
+                for k in 1..MODEL_SLOTS {
+                    sd += lanes.weight[k] * t[0][k];
+                    ss += lanes.weight[k] * t[1][k];
+                    so += lanes.weight[k] * t[2][k];
+                }
+                std::array::from_fn(|c| {
+                    let m = p.diffuse[c] * t[0][0] + p.specular[c] * t[1][0] + t[2][0];
+                    let mixed = p.diffuse[c] * sd + p.specular[c] * ss + so;
+                    ((acc[c] - mixed) * wi[2] + m).max(0.0)
+                })
             }
             None => acc.map(|x| x * wi[2]),
         }

@@ -57,6 +57,26 @@ pub fn terms(n: [f32; 3], a2: f32, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
     [m * ci / PI, m * common * (1.0 - s), m * common * s]
 }
 
+/// [`terms`] for N pairs at once, structure of arrays (`wi[axis][pair]`),
+/// so that the compiler evaluates several pairs per vector instruction:
+/// `out[term][pair]`.
+#[inline(always)]
+pub fn terms_batch<const N: usize>(
+    n: [f32; 3],
+    a2: f32,
+    wi: &[[f32; N]; 3],
+    wo: &[[f32; N]; 3],
+) -> [[f32; N]; 3] {
+    let mut out = [[0.0; N]; 3];
+    for k in 0..N {
+        let t = terms(n, a2, [wi[0][k], wi[1][k], wi[2][k]], [wo[0][k], wo[1][k], wo[2][k]]);
+        out[0][k] = t[0];
+        out[1][k] = t[1];
+        out[2][k] = t[2];
+    }
+    out
+}
+
 /// f · cos θi of a texel (cos against its normal) for unit directions.
 #[inline]
 pub fn reflected(p: &TexelParams, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
