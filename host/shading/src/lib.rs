@@ -350,10 +350,10 @@ impl Material {
                 lanes.set_query(wi, wo);
                 let t = texel::terms_batch(p.normal, p.alpha * p.alpha, &lanes.wi, &lanes.wo);
                 let (mut sd, mut ss, mut so) = (0.0, 0.0, 0.0);
-                for k in 1..MODEL_SLOTS {
-                    sd += lanes.weight[k] * t[0][k];
-                    ss += lanes.weight[k] * t[1][k];
-                    so += lanes.weight[k] * t[2][k];
+                for (k, &w) in lanes.weight.iter().enumerate().skip(1) {
+                    sd += w * t[0][k];
+                    ss += w * t[1][k];
+                    so += w * t[2][k];
                 }
                 std::array::from_fn(|c| {
                     let m = p.diffuse[c] * t[0][0] + p.specular[c] * t[1][0] + t[2][0];
