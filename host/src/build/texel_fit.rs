@@ -7,6 +7,7 @@
 use rayon::prelude::*;
 use scanner_shading::texel::{TexelParams, terms};
 
+use super::linalg::solve_spd;
 use super::regions::RegionSet;
 
 /// Smallest and largest α the fit considers.
@@ -211,7 +212,7 @@ pub fn fit_texel(obs: &Observations<'_>) -> (TexelParams, f64) {
             for (k, row) in a.iter_mut().enumerate() {
                 row[k] += lambda * jtj[k][k].max(1e-12);
             }
-            let Some(delta) = solve3(a, jtr) else {
+            let Some(delta) = solve_spd(3, a.as_flattened(), &jtr) else {
                 lambda *= 10.0;
                 continue;
             };
@@ -234,26 +235,6 @@ pub fn fit_texel(obs: &Observations<'_>) -> (TexelParams, f64) {
         project(obs, &theta, &mut scratch, Some(&mut r0));
     }
     (params, (sse / (3 * m) as f64).sqrt())
-}
-
-/// Solve a 3 × 3 system by Cramer's rule; `None` if singular.
-fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
-    let det3 = |m: [[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det3(a);
-    if !(d.is_finite() && d.abs() > 1e-300) {
-        return None;
-    }
-    Some(std::array::from_fn(|k| {
-        let mut m = a;
-        for r in 0..3 {
-            m[r][k] = b[r];
-        }
-        det3(m) / d
-    }))
 }
 
 /// The pairs' unit directions of a region set, `[light][view]` order.
