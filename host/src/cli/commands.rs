@@ -99,6 +99,8 @@ pub struct Opened {
 
 pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
     let choice = discovery::choose(&args.device).map_err(|e| Failure(5, anyhow!(e)))?;
+    // Assigned only when the simulator is built in.
+    #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
     let mut simulator = None;
     let (transport, rig, geometry): (Box<dyn Transport>, _, _) = match choice {
         #[cfg(not(feature = "sim"))]
