@@ -30,12 +30,9 @@ fn main() {
         tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
     let materials: Vec<&str> = list.split(',').collect();
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
-    let texel_model = match tests::arg("--texel-model", "auto".to_string()).as_str() {
-        "auto" => TexelModelChoice::Auto,
-        "on" => TexelModelChoice::On,
-        "off" => TexelModelChoice::Off,
-        other => panic!("--texel-model {other}: auto, on or off"),
-    };
+    let texel_model: TexelModelChoice = tests::arg("--texel-model", "auto".to_string())
+        .parse()
+        .unwrap_or_else(|e| panic!("--texel-model: {e}"));
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
     tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
     let glossy = out.join("glossy-black");

@@ -309,6 +309,12 @@ impl Material {
         // With a model: the query's directions in slot 0, each mixed pair's
         // in the next, weighted by w / cos θi(light); evaluated together.
         let mut lanes = ModelLanes::default();
+        let model_dirs = match (&model, &self.directions) {
+            (Some(_), Directions::Triangles { light_dirs, view_dirs, .. }) => {
+                Some((light_dirs, view_dirs))
+            }
+            _ => None,
+        };
         let mut pair = |vi: u16, li: u16, w: f32| {
             let img = &self.indices[vi as usize * s * s * g..][..s * s * g];
             let grp = self.light_groups[li as usize] as usize;
@@ -321,9 +327,7 @@ impl Material {
             for k in 0..3 {
                 acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
             }
-            if let (true, Directions::Triangles { light_dirs, view_dirs, .. }) =
-                (model.is_some(), &self.directions)
-            {
+            if let Some((light_dirs, view_dirs)) = model_dirs {
                 let (l, v) = (light_dirs[li as usize], view_dirs[vi as usize]);
                 lanes.push(l, v, w / l[2]);
             }

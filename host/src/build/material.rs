@@ -14,7 +14,7 @@ use super::calibrate::BuildProgress;
 use super::error::BuildError;
 use super::palette::{group_lights, palettise};
 use super::regions::RegionSet;
-use super::texel_fit;
+use super::texel_fit::{self, unit32};
 use scanner_shading::texel::TexelParams;
 
 /// How to build a material.
@@ -43,6 +43,20 @@ pub enum TexelModelChoice {
     On,
     /// Never.
     Off,
+}
+
+impl std::str::FromStr for TexelModelChoice {
+    type Err = String;
+
+    /// `auto`, `on` or `off`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(TexelModelChoice::Auto),
+            "on" => Ok(TexelModelChoice::On),
+            "off" => Ok(TexelModelChoice::Off),
+            other => Err(format!("texel model {other:?}: auto, on or off")),
+        }
+    }
 }
 
 impl Default for MaterialOptions {
@@ -236,11 +250,6 @@ pub fn shade(
 /// The half-vector shifts the builder chooses from.
 pub const SHIFTS: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
 
-fn unit32(d: [f64; 3]) -> [f32; 3] {
-    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    d.map(|x| (x / l) as f32)
-}
-
 /// Leave-one-light-out prediction errors of the default interpolation:
 /// every light's images predicted from the other lights' (the shading's
 /// own weights, `scanner_shading::default_pairs`) at 8 × 8 texels, the
@@ -409,8 +418,8 @@ pub fn build_material(
             texel_model = opts.texel_model == TexelModelChoice::On;
             if nl >= 4 {
                 progress.stage("interpolation choice", 1);
-                let auto = opts.texel_model == TexelModelChoice::Auto;
-                let errs = shift_errors(regions, &views, auto || texel_model)?;
+                let with_model = opts.texel_model != TexelModelChoice::Off;
+                let errs = shift_errors(regions, &views, with_model)?;
                 let allowed: &[usize] = match opts.texel_model {
                     TexelModelChoice::Auto => &[0, 1],
                     TexelModelChoice::On => &[1],

@@ -237,19 +237,23 @@ pub fn fit_texel(obs: &Observations<'_>) -> (TexelParams, f64) {
     (params, (sse / (3 * m) as f64).sqrt())
 }
 
+/// `d` normalised in f64, then as f32.
+pub fn unit32(d: [f64; 3]) -> [f32; 3] {
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    d.map(|x| (x / l) as f32)
+}
+
 /// The pairs' unit directions of a region set, `[light][view]` order.
 pub fn pair_dirs(regions: &RegionSet) -> Vec<([f32; 3], [f32; 3])> {
-    let unit = |d: [f64; 3]| {
-        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        d.map(|x| (x / l) as f32)
-    };
-    let mut out = Vec::with_capacity(regions.lights.len() * regions.views.len());
-    for &l in &regions.light_dirs {
-        for &v in &regions.view_dirs {
-            out.push((unit(l), unit(v)));
-        }
-    }
-    out
+    let views: Vec<[f32; 3]> = regions.view_dirs.iter().map(|&v| unit32(v)).collect();
+    regions
+        .light_dirs
+        .iter()
+        .flat_map(|&l| {
+            let l = unit32(l);
+            views.iter().map(move |&v| (l, v))
+        })
+        .collect()
 }
 
 /// The values of texel `t` over all pairs, `[light][view]` order.

@@ -418,11 +418,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 colours,
                 lights_per_index,
                 interpolation,
-                texel_model: match texel_model.as_str() {
-                    "on" => crate::build::material::TexelModelChoice::On,
-                    "off" => crate::build::material::TexelModelChoice::Off,
-                    _ => crate::build::material::TexelModelChoice::Auto,
-                },
+                texel_model: texel_model.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?,
                 ..Default::default()
             };
             build::build_cmd(&input, &output, &opts).map(|_| ())?
