@@ -279,106 +279,262 @@ impl Material {
     /// f(uv, wi, wo) · cos θi, linear RGB (see the crate documentation).
     #[inline]
     pub fn eval(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
-        let (Some(wi), Some(wo)) = (unit(wi), unit(wo)) else {
-            return [0.0; 3];
-        };
-        if wi[2] <= 0.0 || wo[2] <= 0.0 || !uv[0].is_finite() || !uv[1].is_finite() {
-            return [0.0; 3];
-        }
-        let s = self.size;
-        let (x0, x1, tx) = taps(s, uv[0] - uv[0].floor());
-        let (y0, y1, ty) = taps(s, uv[1] - uv[1].floor());
-        let g = self.groups;
-        let (o00, o10, o01, o11) =
-            ((y0 * s + x0) * g, (y0 * s + x1) * g, (y1 * s + x0) * g, (y1 * s + x1) * g);
-        let (w00, w10, w01, w11) =
-            ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty);
-        // The texel model at uv, its parameters interpolated bilinearly.
-        let model = (!self.texels.is_empty()).then(|| {
-            let (a, b, c, d) = (
-                &self.texels[o00 / g],
-                &self.texels[o10 / g],
-                &self.texels[o01 / g],
-                &self.texels[o11 / g],
-            );
-            let v: [f32; texel::STORED] =
-                std::array::from_fn(|i| w00 * a[i] + w10 * b[i] + w01 * c[i] + w11 * d[i]);
-            texel::TexelParams::from_stored(&v)
-        });
-        let mut acc = [0.0f32; 3];
-        // With a model: the query's directions in slot 0, each mixed pair's
-        // in the next, weighted by w / cos θi(light); evaluated together.
-        let mut lanes = ModelLanes::default();
-        let model_dirs = match (&model, &self.directions) {
-            (Some(_), Directions::Triangles { light_dirs, view_dirs, .. }) => {
-                Some((light_dirs, view_dirs))
-            }
-            _ => None,
-        };
-        let mut pair = |vi: u16, li: u16, w: f32| {
-            let img = &self.indices[vi as usize * s * s * g..][..s * s * g];
-            let grp = self.light_groups[li as usize] as usize;
-            let pal = &self.palettes[(vi as usize * self.lights + li as usize) * self.colours..]
-                [..self.colours];
-            let c00 = pal[img[o00 + grp] as usize];
-            let c10 = pal[img[o10 + grp] as usize];
-            let c01 = pal[img[o01 + grp] as usize];
-            let c11 = pal[img[o11 + grp] as usize];
-            for k in 0..3 {
-                acc[k] += w * (w00 * c00[k] + w10 * c10[k] + w01 * c01[k] + w11 * c11[k]);
-            }
-            if let Some((light_dirs, view_dirs)) = model_dirs {
-                let (l, v) = (light_dirs[li as usize], view_dirs[vi as usize]);
-                lanes.push(l, v, w / l[2]);
-            }
-        };
         match &self.directions {
-            Directions::Triangles { views, lights, light_dirs, shift, .. } => {
-                default_pairs(lights, light_dirs, views, *shift, wi, wo, pair);
+            Directions::Triangles { .. } => {
+                let mut s = Staged::default();
+                self.stage(uv, wi, wo, &mut s);
+                self.gather(&mut s);
+                self.finish(&s)
             }
             Directions::Cells { views, lights } => {
+                let Some((wi, wo, at)) = self.footprint(uv, wi, wo) else {
+                    return [0.0; 3];
+                };
+                let mut acc = [0.0f32; 3];
                 let lw = lights.weights(wi);
                 for &(vi, wv) in views.weights(wo) {
                     for &(li, wl) in lw {
                         let w = wv * wl;
                         if w != 0.0 {
-                            pair(vi, li, w);
+                            let p = self.pair(vi, li, w);
+                            let idx = self.indices_at(&p, &at);
+                            let c = bilinear(&self.palettes[p.palette..][..self.colours], idx, &at);
+                            for k in 0..3 {
+                                acc[k] += w * c[k];
+                            }
                         }
                     }
                 }
+                acc.map(|x| x * wi[2])
             }
-        }
-        match model {
-            Some(p) => {
-                // M(wi, wo) + cos θi · Σ (f_k − M_k / cos θi(l_k)) w_k.
-                lanes.set_query(wi, wo);
-                let t = texel::terms_batch(p.normal, p.alpha * p.alpha, &lanes.wi, &lanes.wo);
-                let (mut sd, mut ss, mut so) = (0.0, 0.0, 0.0);
-                for (k, &w) in lanes.weight.iter().enumerate().skip(1) {
-                    sd += w * t[0][k];
-                    ss += w * t[1][k];
-                    so += w * t[2][k];
-                }
-                std::array::from_fn(|c| {
-                    let m = p.diffuse[c] * t[0][0] + p.specular[c] * t[1][0] + t[2][0];
-                    let mixed = p.diffuse[c] * sd + p.specular[c] * ss + so;
-                    ((acc[c] - mixed) * wi[2] + m).max(0.0)
-                })
-            }
-            None => acc.map(|x| x * wi[2]),
         }
     }
 
     /// [`Self::eval`] over many queries: `out[i]` answers `queries[i]`.
     ///
+    /// With the default interpolation the queries go through in blocks:
+    /// first every query of a block finds its pairs and asks the memory for
+    /// their index bytes, then reads them and asks for the palette colours,
+    /// then sums — so the cache misses of a block overlap instead of
+    /// following one another (docs/benchmarks.md, "Shading speed").
+    ///
     /// # Panics
     /// If the slices' lengths differ.
     pub fn eval_batch(&self, queries: &[ShadeQuery], out: &mut [[f32; 3]]) {
         assert_eq!(queries.len(), out.len(), "one answer per query");
-        for (q, o) in queries.iter().zip(out) {
-            *o = self.eval(q.uv, q.wi, q.wo);
+        if let Directions::Cells { .. } = self.directions {
+            for (q, o) in queries.iter().zip(out) {
+                *o = self.eval(q.uv, q.wi, q.wo);
+            }
+            return;
+        }
+        let mut staged = [Staged::default(); BLOCK];
+        for (qs, os) in queries.chunks(BLOCK).zip(out.chunks_mut(BLOCK)) {
+            for (q, s) in qs.iter().zip(&mut staged) {
+                self.stage(q.uv, q.wi, q.wo, s);
+            }
+            for s in &mut staged[..qs.len()] {
+                self.gather(s);
+            }
+            for (s, o) in staged.iter().zip(os) {
+                *o = self.finish(s);
+            }
         }
     }
+
+    /// Unit directions above the horizon and the bilinear footprint of uv,
+    /// or `None` for black.
+    #[inline(always)]
+    fn footprint(
+        &self,
+        uv: [f32; 2],
+        wi: [f32; 3],
+        wo: [f32; 3],
+    ) -> Option<([f32; 3], [f32; 3], Footprint)> {
+        let (wi, wo) = (unit(wi)?, unit(wo)?);
+        if wi[2] <= 0.0 || wo[2] <= 0.0 || !uv[0].is_finite() || !uv[1].is_finite() {
+            return None;
+        }
+        let s = self.size;
+        let (x0, x1, tx) = taps(s, uv[0] - uv[0].floor());
+        let (y0, y1, ty) = taps(s, uv[1] - uv[1].floor());
+        let texel = [y0 * s + x0, y0 * s + x1, y1 * s + x0, y1 * s + x1].map(|t| t as u32);
+        let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
+        Some((wi, wo, Footprint { texel, w }))
+    }
+
+    /// Where (view, light)'s index bytes and palette start.
+    #[inline(always)]
+    fn pair(&self, view: u16, light: u16, w: f32) -> Pair {
+        let image = view as usize * self.size * self.size * self.groups
+            + self.light_groups[light as usize] as usize;
+        let palette = (view as usize * self.lights + light as usize) * self.colours;
+        Pair { image, palette, w, view, light }
+    }
+
+    /// The palette indices of a pair at the footprint's four texels.
+    #[inline(always)]
+    fn indices_at(&self, p: &Pair, at: &Footprint) -> [u8; 4] {
+        let img = &self.indices[p.image..];
+        let [t0, t1, t2, t3] = at.texel.map(|t| t as usize * self.groups);
+        [img[t0], img[t1], img[t2], img[t3]]
+    }
+
+    /// Stage 1 (default interpolation): directions, footprint and pairs;
+    /// prefetches the pairs' index bytes and the texel model.
+    #[inline(always)]
+    fn stage(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3], s: &mut Staged) {
+        s.pairs = 0;
+        let Directions::Triangles { views, lights, light_dirs, shift, .. } = &self.directions
+        else {
+            unreachable!("staged only with the default interpolation")
+        };
+        let Some((wi, wo, at)) = self.footprint(uv, wi, wo) else {
+            return;
+        };
+        (s.wi, s.wo, s.at) = (wi, wo, at);
+        default_pairs(lights, light_dirs, views, *shift, wi, wo, |vi, li, w| {
+            // Never more than 9 pairs (3 light × 3 view weights); a guard all the same.
+            if s.pairs < MAX_PAIRS {
+                let p = self.pair(vi, li, w);
+                for t in at.texel {
+                    prefetch(&self.indices[p.image + t as usize * self.groups]);
+                }
+                s.pair[s.pairs] = p;
+                s.pairs += 1;
+            }
+        });
+        if !self.texels.is_empty() {
+            for t in at.texel {
+                prefetch(&self.texels[t as usize]);
+            }
+        }
+    }
+
+    /// Stage 2: the pairs' palette indices; prefetches their colours.
+    #[inline(always)]
+    fn gather(&self, s: &mut Staged) {
+        for k in 0..s.pairs {
+            let p = s.pair[k];
+            let idx = self.indices_at(&p, &s.at);
+            s.idx[k] = idx;
+            let pal = &self.palettes[p.palette..][..self.colours];
+            for i in idx {
+                prefetch(&pal[i as usize]);
+            }
+        }
+    }
+
+    /// Stage 3: the sum over the pairs, with the texel model if the file
+    /// has one.
+    #[inline(always)]
+    fn finish(&self, s: &Staged) -> [f32; 3] {
+        if s.pairs == 0 {
+            return [0.0; 3];
+        }
+        let mut acc = [0.0f32; 3];
+        for k in 0..s.pairs {
+            let p = &s.pair[k];
+            let c = bilinear(&self.palettes[p.palette..][..self.colours], s.idx[k], &s.at);
+            for ch in 0..3 {
+                acc[ch] += p.w * c[ch];
+            }
+        }
+        let Directions::Triangles { light_dirs, view_dirs, .. } = &self.directions else {
+            unreachable!("staged only with the default interpolation")
+        };
+        if self.texels.is_empty() {
+            return acc.map(|x| x * s.wi[2]);
+        }
+        // The texel model at uv, its parameters interpolated bilinearly.
+        let tx = s.at.texel.map(|t| &self.texels[t as usize]);
+        let w = s.at.w;
+        let v: [f32; texel::STORED] = std::array::from_fn(|i| {
+            w[0] * tx[0][i] + w[1] * tx[1][i] + w[2] * tx[2][i] + w[3] * tx[3][i]
+        });
+        let p = texel::TexelParams::from_stored(&v);
+        // M(wi, wo) + cos θi · Σ (f_k − M_k / cos θi(l_k)) w_k: the query's
+        // directions in slot 0, each mixed pair's in the next, weighted by
+        // w / cos θi(light); evaluated together.
+        let mut lanes = ModelLanes::default();
+        lanes.set_query(s.wi, s.wo);
+        for p in &s.pair[..s.pairs] {
+            let (l, v) = (light_dirs[p.light as usize], view_dirs[p.view as usize]);
+            lanes.push(l, v, p.w / l[2]);
+        }
+        let t = texel::terms_batch(p.normal, p.alpha * p.alpha, &lanes.wi, &lanes.wo);
+        let (mut sd, mut ss, mut so) = (0.0, 0.0, 0.0);
+        for (k, &w) in lanes.weight.iter().enumerate().skip(1) {
+            sd += w * t[0][k];
+            ss += w * t[1][k];
+            so += w * t[2][k];
+        }
+        std::array::from_fn(|c| {
+            let m = p.diffuse[c] * t[0][0] + p.specular[c] * t[1][0] + t[2][0];
+            let mixed = p.diffuse[c] * sd + p.specular[c] * ss + so;
+            ((acc[c] - mixed) * s.wi[2] + m).max(0.0)
+        })
+    }
+}
+
+/// Queries per block of [`Material::eval_batch`].
+const BLOCK: usize = 32;
+/// Pairs per query of the default interpolation: 3 light × 3 view weights.
+const MAX_PAIRS: usize = 9;
+
+/// The bilinear colour of a pair from its palette and four indices.
+#[inline(always)]
+fn bilinear(pal: &[[f32; 3]], idx: [u8; 4], at: &Footprint) -> [f32; 3] {
+    let c =
+        [pal[idx[0] as usize], pal[idx[1] as usize], pal[idx[2] as usize], pal[idx[3] as usize]];
+    std::array::from_fn(|k| {
+        at.w[0] * c[0][k] + at.w[1] * c[1][k] + at.w[2] * c[2][k] + at.w[3] * c[3][k]
+    })
+}
+
+/// A captured pair of a query: where its index bytes (image and light
+/// group) and palette start, its weight and its directions.
+#[derive(Debug, Clone, Copy, Default)]
+struct Pair {
+    image: usize,
+    palette: usize,
+    w: f32,
+    view: u16,
+    light: u16,
+}
+
+/// The four texels of a bilinear lookup (`y · S + x`) and their weights.
+#[derive(Debug, Clone, Copy, Default)]
+struct Footprint {
+    texel: [u32; 4],
+    w: [f32; 4],
+}
+
+/// A query between the stages of the default interpolation.
+#[derive(Debug, Clone, Copy, Default)]
+struct Staged {
+    wi: [f32; 3],
+    wo: [f32; 3],
+    at: Footprint,
+    /// Pairs used; 0 for black.
+    pairs: usize,
+    pair: [Pair; MAX_PAIRS],
+    /// Each pair's palette indices at the footprint.
+    idx: [[u8; 4]; MAX_PAIRS],
+}
+
+/// Ask the memory for the cache line holding `x` (a hint; no effect on
+/// results).
+#[inline(always)]
+fn prefetch<T>(x: &T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch never faults, and `x` is a valid reference anyway.
+    unsafe {
+        use std::arch::x86_64::{_MM_HINT_T1, _mm_prefetch};
+        _mm_prefetch::<_MM_HINT_T1>((x as *const T).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = x;
 }
 
 #[cfg(test)]

@@ -18,6 +18,7 @@ use crate::format::CellTable;
 
 type V3 = [f32; 3];
 
+#[inline(always)]
 fn dot(a: V3, b: V3) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
@@ -39,6 +40,7 @@ struct Tri {
 
 impl Tri {
     /// Barycentric weights of `d` (not normalised).
+    #[inline(always)]
     fn raw(&self, d: V3) -> V3 {
         [dot(self.inv[0], d), dot(self.inv[1], d), dot(self.inv[2], d)]
     }
@@ -52,31 +54,46 @@ struct Edge {
     b: V3,
     /// Unit normal of the great circle through a and b.
     n: V3,
+    /// n × a and b × n: d projects inside the arc iff d · na ≥ 0 and d · nb ≥ 0.
+    na: V3,
+    nb: V3,
     /// a · b.
     c: f32,
 }
 
 impl Edge {
+    fn new(ids: [u16; 2], a: V3, b: V3) -> Option<Edge> {
+        let n = cross(a, b);
+        let len = dot(n, n).sqrt();
+        (len > 1e-9).then(|| {
+            let n = n.map(|x| x / len);
+            Edge { ids, a, b, n, na: cross(n, a), nb: cross(b, n), c: dot(a, b) }
+        })
+    }
+
     /// The nearest point of the arc to `d`: (cosine of the angle to it,
     /// weights on the two ends).
+    ///
+    /// The projection p = d − (d·n) n of d on the arc's great circle lies
+    /// within the arc iff (a × p) · n ≥ 0 and (p × b) · n ≥ 0, i.e.
+    /// d · (n × a) ≥ 0 and d · (b × n) ≥ 0; and a · p = a · d, b · p = b · d
+    /// since a and b are normal to n.
+    #[inline]
     fn nearest(&self, d: V3) -> (f32, [f32; 2]) {
-        let dn = dot(d, self.n);
-        let p = [d[0] - dn * self.n[0], d[1] - dn * self.n[1], d[2] - dn * self.n[2]];
-        let plen = dot(p, p).sqrt();
-        if plen > 1e-6
-            && dot(cross(self.a, p), self.n) >= 0.0
-            && dot(cross(p, self.b), self.n) >= 0.0
-        {
-            let (ap, bp) = (dot(self.a, p), dot(self.b, p));
-            let den = 1.0 - self.c * self.c;
-            let (al, be) = ((ap - self.c * bp) / den, (bp - self.c * ap) / den);
-            let (al, be) = (al.max(0.0), be.max(0.0));
-            let s = al + be;
-            if s > 0.0 {
-                return (plen, [al / s, be / s]);
+        let (da, db) = (dot(d, self.a), dot(d, self.b));
+        if dot(d, self.na) >= 0.0 && dot(d, self.nb) >= 0.0 {
+            let dn = dot(d, self.n);
+            let plen = (dot(d, d) - dn * dn).max(0.0).sqrt();
+            if plen > 1e-6 {
+                let den = 1.0 - self.c * self.c;
+                let (al, be) = ((da - self.c * db) / den, (db - self.c * da) / den);
+                let (al, be) = (al.max(0.0), be.max(0.0));
+                let s = al + be;
+                if s > 0.0 {
+                    return (plen, [al / s, be / s]);
+                }
             }
         }
-        let (da, db) = (dot(d, self.a), dot(d, self.b));
         if da >= db { (da, [1.0, 0.0]) } else { (db, [0.0, 1.0]) }
     }
 }
@@ -141,18 +158,7 @@ impl TriangleLocator {
         }
         let edges: Vec<Edge> = edge_list
             .iter()
-            .filter_map(|&[p, q]| {
-                let (a, b) = (dirs[p as usize], dirs[q as usize]);
-                let n = cross(a, b);
-                let len = dot(n, n).sqrt();
-                (len > 1e-9).then(|| Edge {
-                    ids: [p, q],
-                    a,
-                    b,
-                    n: n.map(|x| x / len),
-                    c: dot(a, b),
-                })
-            })
+            .filter_map(|&[p, q]| Edge::new([p, q], dirs[p as usize], dirs[q as usize]))
             .collect();
         let mut loc = TriangleLocator {
             dirs: dirs.to_vec(),
@@ -243,6 +249,7 @@ impl TriangleLocator {
         best.map(|(_, e)| e)
     }
 
+    #[inline(always)]
     fn tri_weights(&self, t: &Tri, d: V3, out: &mut Weights3) -> bool {
         let w = t.raw(d);
         if w[0] < INSIDE || w[1] < INSIDE || w[2] < INSIDE {
@@ -255,9 +262,8 @@ impl TriangleLocator {
         if s <= 0.0 {
             return false;
         }
-        for k in 0..3 {
-            out[k] = (t.ids[k], w[k] / s);
-        }
+        // Divided, not multiplied by 1/s: exactly 1 at a vertex.
+        *out = [(t.ids[0], w[0] / s), (t.ids[1], w[1] / s), (t.ids[2], w[2] / s)];
         true
     }
 

@@ -403,3 +403,37 @@ fn bad_texel_models_are_refused() {
         }
     }
 }
+
+#[test]
+fn a_batch_answers_each_query_as_eval_does() {
+    // Random indices, so every texel and pair differs; 100 queries (not a
+    // multiple of the block) with black ones among them.
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    for mut d in [material(Interpolation::Default), material_with_model()] {
+        let k = d.meta.colours;
+        for i in &mut d.indices {
+            *i = rng.random_range(0..k) as u8;
+        }
+        let m = Material::from_data(d).unwrap();
+        let queries: Vec<ShadeQuery> = (0..100)
+            .map(|i| ShadeQuery {
+                uv: [rng.random::<f32>() * 3.0 - 1.0, rng.random()],
+                wi: match i % 17 {
+                    3 => [f32::NAN, 0.0, 1.0],
+                    5 => [0.3, 0.1, -0.2],
+                    _ => random_dir(&mut rng, 89.0),
+                },
+                wo: if i % 23 == 7 { [0.0; 3] } else { random_dir(&mut rng, 89.0) },
+            })
+            .collect();
+        let mut out = vec![[f32::NAN; 3]; queries.len()];
+        m.eval_batch(&queries, &mut out);
+        let mut lit = 0;
+        for (q, o) in queries.iter().zip(&out) {
+            assert_eq!(*o, m.eval(q.uv, q.wi, q.wo), "{q:?}");
+            lit += o.iter().any(|&c| c > 0.0) as usize;
+        }
+        // 17 black by construction; the model may clamp a few more to 0.
+        assert!(lit >= 60, "{lit} of 100 lit");
+    }
+}
