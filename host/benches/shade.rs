@@ -69,6 +69,15 @@ fn shade(c: &mut Criterion) {
             black_box(&out);
         })
     });
+    // The same queries through `eval` one at a time: what the blocks buy.
+    group.bench_function("default interpolation, eval per query", |b| {
+        b.iter(|| {
+            for (q, o) in q.iter().zip(out.iter_mut()) {
+                *o = default.eval(q.uv, q.wi, q.wo);
+            }
+            black_box(&out);
+        })
+    });
     group.bench_function("default interpolation with a texel model", |b| {
         let shape =
             synthetic::Shape { mirrors: 40, resolution: 128, colours: 256, lights_per_index: 2 };
