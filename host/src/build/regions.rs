@@ -13,7 +13,7 @@ use scanner_geometry::ScannerGeometry;
 use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::cell_taps;
-use super::scanread::{ScanFrames, frame_bicubic};
+use super::scanread::ScanFrames;
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -151,8 +151,7 @@ pub fn extract_regions(
                         if b < 0.02 {
                             continue;
                         }
-                        let p = view.frame_point(uv);
-                        let s = frame_bicubic(&f, p[0], p[1]);
+                        let s = view.region_sample(&f, uv);
                         let w = cal.colour.view(vi, uv).map(|a| a * b);
                         *px = std::array::from_fn(|k| {
                             if w[k] > 0.0 { (s[k] / w[k] * scale) as f32 } else { 0.0 }

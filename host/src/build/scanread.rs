@@ -139,23 +139,51 @@ pub fn frame_bilinear(f: &Frame, x: f64, y: f64) -> [f64; 3] {
 /// Catmull–Rom bicubic RGB sample of a frame at continuous (x, y).
 #[inline]
 pub fn frame_bicubic(f: &Frame, x: f64, y: f64) -> [f64; 3] {
+    bicubic_taps(f, x, y, |_, _| true).0
+}
+
+/// [`frame_bicubic`] over only the taps whose pixel centres `usable`
+/// accepts, the weights renormalised over them; `None` when those carry
+/// less than `min_weight` of the filter (the rest would be extrapolation).
+#[inline]
+pub fn frame_bicubic_masked(
+    f: &Frame,
+    x: f64,
+    y: f64,
+    usable: impl Fn(f64, f64) -> bool,
+    min_weight: f64,
+) -> Option<[f64; 3]> {
+    let (s, w) = bicubic_taps(f, x, y, usable);
+    (w >= min_weight).then(|| s.map(|v| v / w))
+}
+
+/// The Catmull–Rom sum over the usable taps (edges clamped) and the sum of
+/// their weights.
+#[inline(always)]
+fn bicubic_taps(f: &Frame, x: f64, y: f64, usable: impl Fn(f64, f64) -> bool) -> ([f64; 3], f64) {
     let (w, h) = (f.width as isize, f.height as isize);
     let (fx, fy) = (x - 0.5, y - 0.5);
     let (x0, y0) = (fx.floor(), fy.floor());
     let wx = super::plane::catmull_rom(fx - x0);
     let wy = super::plane::catmull_rom(fy - y0);
     let (x0, y0) = (x0 as isize, y0 as isize);
-    let mut out = [0.0; 3];
+    let (mut out, mut sum) = ([0.0; 3], 0.0);
     for (j, wyj) in wy.iter().enumerate() {
-        let yy = (y0 + j as isize - 1).clamp(0, h - 1);
+        let ty = y0 + j as isize - 1;
+        let yy = ty.clamp(0, h - 1);
         for (i, wxi) in wx.iter().enumerate() {
-            let xx = (x0 + i as isize - 1).clamp(0, w - 1);
+            let tx = x0 + i as isize - 1;
+            if !usable(tx as f64 + 0.5, ty as f64 + 0.5) {
+                continue;
+            }
+            let xx = tx.clamp(0, w - 1);
             let k = 3 * (yy * w + xx) as usize;
             let wgt = wyj * wxi;
             out[0] += wgt * f.rgb[k] as f64;
             out[1] += wgt * f.rgb[k + 1] as f64;
             out[2] += wgt * f.rgb[k + 2] as f64;
+            sum += wgt;
         }
     }
-    out
+    (out, sum)
 }
