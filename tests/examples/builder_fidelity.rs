@@ -2,10 +2,14 @@
 //! scans of the three targets and the four library materials on the
 //! simulator (HDR for the samples), calibration, region images, material
 //! PSNR against `hil-sim truth` at the captured pairs, the calibration's
-//! errors against the as-built scanner, and the metric's own limit (the
-//! 3 × 3-point cell means against 12 × 12-point ones).
+//! errors against the as-built scanner, and the metric's own limits: its
+//! point sampling (the 3 × 3-point cell means against 12 × 12-point ones),
+//! its nominal directions (the truth at the as-built scanner's directions
+//! against the truth at the nominal ones) and its distant viewer (the
+//! truth seen from the as-built virtual camera, whose direction varies
+//! over the sample, against the truth from its direction at the centre).
 //!
-//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--targets-only]`
+//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--targets-only]`
 //! (scans in DIR are reused when complete).
 
 use std::path::PathBuf;
@@ -19,11 +23,14 @@ use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
 use host::simulator::SimSetup;
 use scanner_formats::queries::Query;
+use scanner_geometry::{DVec3, world_to_sample};
 
 fn main() {
     let bin: u32 = tests::arg("--bin", 1);
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);
+    // `--size S`: region images of S × S (default: the builder's choice).
+    let size: usize = tests::arg("--size", 0);
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     // `--targets-only`: the calibration's errors alone (three target scans).
     let materials: &[&str] = if std::env::args().any(|a| a == "--targets-only") {
@@ -113,17 +120,23 @@ fn main() {
         truth.source.tilt_zero_deg - g.source.tilt_zero_deg
     );
     println!("calibrate: {t_cal:.1} s");
-    println!("| material | regions s | PSNR dB | gain-free dB | gain | metric limit dB |");
-    println!("|---|---|---|---|---|---|");
+    println!(
+        "| material | regions s | PSNR dB | gain-free dB | gain | point-sampling limit dB | \
+         nominal-direction limit dB | distant-viewer limit dB | PSNR at the as-built directions dB |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
     for &m in materials {
         let t = Instant::now();
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+        let regions =
+            extract_regions(&g, &cal, &scan, (size > 0).then_some(size), &Silent).unwrap();
         let t_reg = t.elapsed().as_secs_f64();
         let sample = Sample::small(lookup(m).unwrap());
         let (psnr, gain_free, gain) = tests::captured_pair_psnr(&g, &regions, &sample);
         // The metric's limit on every 16th pair: 3 × 3 points vs 12 × 12.
         let (mut three, mut dense) = (Vec::new(), Vec::new());
+        let (mut built, mut per_point) = (Vec::new(), Vec::new());
+        let as_built = tests::as_built_pairs(&truth, &cal, &regions);
         for p in (0..regions.lights.len() * regions.views.len()).step_by(16) {
             let (l, v) =
                 (regions.lights[p / regions.views.len()], regions.views[p % regions.views.len()]);
@@ -132,6 +145,15 @@ fn main() {
                 g.mirror_direction(v).unwrap().to_array(),
             );
             three.extend(hil_sim::truth::answer(&sample, &pair_queries(wi, wo)));
+            let (bi, bo) = as_built[p];
+            let mut q = pair_queries(bi, bo);
+            built.extend(hil_sim::truth::answer(&sample, &q));
+            // The virtual camera's direction from each point.
+            let c = truth.mirrors[v].reflect_point(DVec3::from(truth.camera.position_mm));
+            for q in &mut q {
+                q.wo = world_to_sample((c - truth.sample_point(q.uv)).normalize()).to_array();
+            }
+            per_point.extend(hil_sim::truth::answer(&sample, &q));
             let n = 12;
             let fine: Vec<Query> = (0..32 * 32)
                 .flat_map(|c| {
@@ -157,6 +179,16 @@ fn main() {
             }
         }
         let (limit, _, _) = material_psnr(&dense, &three);
-        println!("| {m} | {t_reg:.1} | {psnr:.2} | {gain_free:.2} | {gain:.4} | {limit:.2} |");
+        let (direction_limit, _, _) = material_psnr(&built, &three);
+        let (viewer_limit, _, _) = material_psnr(&per_point, &built);
+        let nv = regions.views.len();
+        let (at_built, _, _) =
+            tests::pairs_psnr(&as_built, &tests::truth_answers(&as_built, &sample), &|p, q| {
+                q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
+            });
+        println!(
+            "| {m} | {t_reg:.1} | {psnr:.2} | {gain_free:.2} | {gain:.4} | {limit:.2} | \
+             {direction_limit:.2} | {viewer_limit:.2} | {at_built:.2} |"
+        );
     }
 }
