@@ -181,11 +181,8 @@ fn main() {
         let (limit, _, _) = material_psnr(&dense, &three);
         let (direction_limit, _, _) = material_psnr(&built, &three);
         let (viewer_limit, _, _) = material_psnr(&per_point, &built);
-        let nv = regions.views.len();
         let (at_built, _, _) =
-            tests::pairs_psnr(&as_built, &tests::truth_answers(&as_built, &sample), &|p, q| {
-                q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
-            });
+            tests::regions_psnr(&as_built, &tests::truth_answers(&as_built, &sample), &regions);
         println!(
             "| {m} | {t_reg:.1} | {psnr:.2} | {gain_free:.2} | {gain:.4} | {limit:.2} | \
              {direction_limit:.2} | {viewer_limit:.2} | {at_built:.2} |"

@@ -153,8 +153,18 @@ pub fn captured_pair_psnr(
                 .map(move |&v| (wi, g.mirror_direction(v).expect("a mirror").to_array()))
         })
         .collect();
+    regions_psnr(&pairs, &truth_answers(&pairs, sample), regions)
+}
+
+/// Material PSNR of the region images against `truth` at `pairs`, one pair
+/// per region image in `regions` order (light-major).
+pub fn regions_psnr(
+    pairs: &[([f64; 3], [f64; 3])],
+    truth: &[[f32; 3]],
+    regions: &RegionSet,
+) -> (f64, f64, f64) {
     let nv = regions.views.len();
-    pairs_psnr(&pairs, &truth_answers(&pairs, sample), &|p, q| {
+    pairs_psnr(pairs, truth, &|p, q| {
         q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
     })
 }
@@ -238,10 +248,7 @@ pub fn material_scores(
     use host::build::fidelity::captured_pair_answers;
     use host::build::material::shade;
     let (t_cap, t_nov) = (truth_answers(captured, sample), truth_answers(novel, sample));
-    let nv = regions.views.len();
-    let (regions_db, _, _) = pairs_psnr(captured, &t_cap, &|p, q| {
-        q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
-    });
+    let (regions_db, _, _) = regions_psnr(captured, &t_cap, regions);
     let captured_db = materials.map(|m| pairs_psnr(captured, &t_cap, &|_, q| shade(m, q)));
     MaterialScores {
         regions: regions_db,

@@ -298,7 +298,7 @@ impl Material {
                         if w != 0.0 {
                             let p = self.pair(vi, li, w);
                             let idx = self.indices_at(&p, &at);
-                            let c = bilinear(&self.palettes[p.palette..][..self.colours], idx, &at);
+                            let c = bilinear(self.palette(&p), idx, &at);
                             for k in 0..3 {
                                 acc[k] += w * c[k];
                             }
@@ -372,6 +372,12 @@ impl Material {
         Pair { image, palette, w, view, light }
     }
 
+    /// A pair's palette.
+    #[inline(always)]
+    fn palette(&self, p: &Pair) -> &[[f32; 3]] {
+        &self.palettes[p.palette..][..self.colours]
+    }
+
     /// The palette indices of a pair at the footprint's four texels.
     #[inline(always)]
     fn indices_at(&self, p: &Pair, at: &Footprint) -> [u8; 4] {
@@ -418,7 +424,7 @@ impl Material {
             let p = s.pair[k];
             let idx = self.indices_at(&p, &s.at);
             s.idx[k] = idx;
-            let pal = &self.palettes[p.palette..][..self.colours];
+            let pal = self.palette(&p);
             for i in idx {
                 prefetch(&pal[i as usize]);
             }
@@ -435,7 +441,7 @@ impl Material {
         let mut acc = [0.0f32; 3];
         for k in 0..s.pairs {
             let p = &s.pair[k];
-            let c = bilinear(&self.palettes[p.palette..][..self.colours], s.idx[k], &s.at);
+            let c = bilinear(self.palette(p), s.idx[k], &s.at);
             for ch in 0..3 {
                 acc[ch] += p.w * c[ch];
             }

@@ -541,7 +541,7 @@ impl ViewCalibration {
         self.sampler().frame_point(uv)
     }
 
-    /// [`Self::frame_point`] with the inset computed once, for many points.
+    /// [`Self::frame_point`] and the region resampling, set up once for many points.
     pub fn sampler(&self) -> ViewSampler {
         ViewSampler::new(self.homography)
     }
@@ -557,13 +557,10 @@ struct FrameEdge {
     half: f64,
 }
 
-/// A view's homography with its edge insets in uv and the sample's edges in
-/// the frame.
+/// A view's homography with its scale and the sample's edges in the frame.
 #[derive(Debug, Clone, Copy)]
 pub struct ViewSampler {
     homography: Homography,
-    /// [`EDGE_PX`] in uv, per axis.
-    inset: [f64; 2],
     /// Frame px per unit of u and of v at the sample's centre.
     px_per_uv: [f64; 2],
     edges: [FrameEdge; 4],
@@ -586,18 +583,21 @@ impl ViewSampler {
             }
             FrameEdge { n, c: n[0] * a[0] + n[1] * a[1], half: 0.5 * (n[0].abs() + n[1].abs()) }
         });
-        ViewSampler {
-            homography: h,
-            inset: px.map(|p| (EDGE_PX / p).min(0.5)),
-            px_per_uv: px,
-            edges,
-        }
+        ViewSampler { homography: h, px_per_uv: px, edges }
     }
 
     /// See [`ViewCalibration::frame_point`].
     #[inline]
     pub fn frame_point(&self, uv: [f64; 2]) -> [f64; 2] {
-        let [du, dv] = self.inset;
+        self.inset_point(uv, EDGE_PX)
+    }
+
+    /// The frame point of `uv` moved in to at least `edge_px` frame px
+    /// from the sample's edges (measured along u and v at the centre; at
+    /// most to the centre).
+    #[inline]
+    fn inset_point(&self, uv: [f64; 2], edge_px: f64) -> [f64; 2] {
+        let [du, dv] = self.px_per_uv.map(|px| (edge_px / px).min(0.5));
         self.homography.apply([uv[0].clamp(du, 1.0 - du), uv[1].clamp(dv, 1.0 - dv)])
     }
 
@@ -631,8 +631,7 @@ impl ViewSampler {
             return s;
         }
         for k in [1.0, 2.0, 4.0] {
-            let [du, dv] = self.px_per_uv.map(|px| (k * REGION_EDGE_PX / px).min(0.5));
-            let q = self.homography.apply([uv[0].clamp(du, 1.0 - du), uv[1].clamp(dv, 1.0 - dv)]);
+            let q = self.inset_point(uv, k * REGION_EDGE_PX);
             if let Some(s) = frame_bicubic_masked(f, q[0], q[1], clean, 0.25) {
                 return s;
             }
