@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use hil_sim::materials::Sample;
 use host::build::Calibration;
 use host::build::RegionSet;
-use host::build::fidelity::{material_psnr, pair_queries};
+use host::build::fidelity::{CELLS, cell_means, material_psnr, pair_queries};
 use host::camera::SimCamera;
 use host::link::{Device, SimTransport};
 use host::scan::{Quiet, ScanOptions, scan};
@@ -134,15 +134,11 @@ pub fn pairs_psnr(
     material_psnr(&est, truth)
 }
 
-/// Material PSNR of `regions` against the ground truth of `sample` at the
-/// captured pairs (the nominal mirror directions): (PSNR, gain-free PSNR,
-/// gain).
-pub fn captured_pair_psnr(
-    g: &ScannerGeometry,
-    regions: &RegionSet,
-    sample: &Sample,
-) -> (f64, f64, f64) {
-    let pairs: Vec<([f64; 3], [f64; 3])> = regions
+/// The captured pairs of `regions` at the nominal mirror directions (light:
+/// towards where the inverse kinematics' beam meets the mirror; view:
+/// towards the mirror's centre), light-major like the region images.
+pub fn captured_pairs(g: &ScannerGeometry, regions: &RegionSet) -> Vec<([f64; 3], [f64; 3])> {
+    regions
         .lights
         .iter()
         .flat_map(|&l| {
@@ -152,8 +148,35 @@ pub fn captured_pair_psnr(
                 .iter()
                 .map(move |&v| (wi, g.mirror_direction(v).expect("a mirror").to_array()))
         })
-        .collect();
+        .collect()
+}
+
+/// Material PSNR of `regions` against the ground truth of `sample` at the
+/// captured pairs ([`captured_pairs`]): (PSNR, gain-free PSNR, gain).
+pub fn captured_pair_psnr(
+    g: &ScannerGeometry,
+    regions: &RegionSet,
+    sample: &Sample,
+) -> (f64, f64, f64) {
+    let pairs = captured_pairs(g, regions);
     regions_psnr(&pairs, &truth_answers(&pairs, sample), regions)
+}
+
+/// The region images' answers to every [`pair_queries`] of `pairs`, one
+/// pair per region image in `regions` order (light-major).
+pub fn region_answers(pairs: &[([f64; 3], [f64; 3])], regions: &RegionSet) -> Vec<[f32; 3]> {
+    use rayon::prelude::*;
+    let nv = regions.views.len();
+    pairs
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(p, &(wi, wo))| {
+            pair_queries(wi, wo)
+                .iter()
+                .map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32))
+                .collect::<Vec<_>>()
+        })
+        .collect()
 }
 
 /// Material PSNR of the region images against `truth` at `pairs`, one pair
@@ -163,10 +186,62 @@ pub fn regions_psnr(
     truth: &[[f32; 3]],
     regions: &RegionSet,
 ) -> (f64, f64, f64) {
-    let nv = regions.views.len();
-    pairs_psnr(pairs, truth, &|p, q| {
-        q.iter().map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32)).collect()
-    })
+    material_psnr(&region_answers(pairs, regions), truth)
+}
+
+/// How the error of an estimate spreads over the pairs: both arguments
+/// answer the same [`pair_queries`] concatenated over the pairs, as for
+/// [`material_psnr`].
+#[derive(Debug, Clone)]
+pub struct PairErrors {
+    /// Each pair's squared error over its cells and channels, mean.
+    pub mse: Vec<f64>,
+    /// The material PSNR's peak (99th percentile of the truth's cells).
+    pub peak: f64,
+}
+
+impl PairErrors {
+    pub fn new(estimate: &[[f32; 3]], truth: &[[f32; 3]]) -> PairErrors {
+        let (e, t) = (cell_means(estimate), cell_means(truth));
+        let mut tv: Vec<f64> = t.iter().flatten().copied().collect();
+        tv.sort_by(f64::total_cmp);
+        let peak = tv[((tv.len() as f64 * 0.99) as usize).min(tv.len() - 1)];
+        let cells = CELLS * CELLS;
+        let mse = e
+            .chunks(cells)
+            .zip(t.chunks(cells))
+            .map(|(a, b)| {
+                a.iter()
+                    .zip(b)
+                    .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>())
+                    .sum::<f64>()
+                    / (3 * cells) as f64
+            })
+            .collect();
+        PairErrors { mse, peak }
+    }
+
+    /// PSNR of a mean squared error against the peak, dB.
+    pub fn db(&self, mse: f64) -> f64 {
+        10.0 * (self.peak * self.peak / mse).log10()
+    }
+
+    /// The pairs, worst first.
+    pub fn worst_first(&self) -> Vec<usize> {
+        let mut order: Vec<usize> = (0..self.mse.len()).collect();
+        order.sort_by(|&a, &b| self.mse[b].total_cmp(&self.mse[a]));
+        order
+    }
+
+    /// The share of the total squared error in the worst `fraction` of the
+    /// pairs, and the PSNR of the others.
+    pub fn concentration(&self, fraction: f64) -> (f64, f64) {
+        let order = self.worst_first();
+        let k = ((order.len() as f64 * fraction).round() as usize).min(order.len() - 1);
+        let total: f64 = self.mse.iter().sum();
+        let top: f64 = order[..k].iter().map(|&p| self.mse[p]).sum();
+        (top / total, self.db((total - top) / (order.len() - k) as f64))
+    }
 }
 
 /// Angles (degrees) between a calibration's directions and the as-built
