@@ -27,6 +27,8 @@ pub mod step;
 #[cfg(feature = "selftest")]
 pub mod testkit;
 pub mod timer;
+#[cfg(feature = "usb")]
+pub mod usb;
 
 pub use controller::Controller;
 pub use protocol;

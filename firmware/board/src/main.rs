@@ -36,13 +36,13 @@ use embassy_sync::blocking_mutex::ThreadModeMutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
 use embassy_time::{Duration, Ticker};
-use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
+use embassy_usb::class::cdc_acm::CdcAcmClass;
 use embassy_usb::driver::{Endpoint, EndpointIn, EndpointOut};
 use firmware::Controller;
 use firmware::config::PERSISTED_MAX_LEN;
 use firmware::hal::{BootInfo, Hardware, StorageError};
 use firmware::step::StepGenerator;
-use protocol::{Axis, BOARD_STM32F411_BLACKPILL, Capabilities, ResetReason, USB_PID, USB_VID};
+use protocol::{Axis, BOARD_STM32F411_BLACKPILL, Capabilities, ResetReason};
 use static_cell::StaticCell;
 use {defmt_rtt as _, panic_probe as _};
 
@@ -86,9 +86,6 @@ static VENDOR_ACTIVE: AtomicBool = AtomicBool::new(false);
 
 /// Whether the host has sent anything since boot, on either interface.
 static HOST_SPOKE: AtomicBool = AtomicBool::new(false);
-
-/// Vendor request code of the MS OS 2.0 descriptor set.
-const MSOS_VENDOR_CODE: u8 = 0x01;
 
 /// How long a packet may wait for the host to read it before it is dropped
 /// (the host retransmits; a host that switched interfaces must not stall
@@ -312,53 +309,23 @@ async fn main(spawner: Spawner) {
         interrupt::TIM2.set_priority(Priority::P0);
     }
 
-    // USB: CDC-ACM (a tty for any serial tool) and a vendor-class bulk
-    // interface (for hosts that talk USB directly, no kernel driver), both
-    // carrying the same framed protocol (docs/protocol.md §1). The F411's
-    // OTG_FS has 4 IN and 4 OUT endpoints — IN: EP0, CDC notification, CDC
-    // bulk, vendor bulk; OUT: EP0, CDC bulk, vendor bulk — and 320 FIFO words
-    // (≈ 112 used); EP_OUT holds the 3 × 64-byte OUT packets.
+    // USB: CDC-ACM and a vendor-class bulk interface carrying the same
+    // framed protocol, with MS OS 2.0 descriptors for WinUSB — the shared
+    // `firmware::usb` device (descriptors tested on the host). The F411's
+    // OTG_FS has 4 IN and 4 OUT endpoints and 320 FIFO words (≈ 112 used);
+    // EP_OUT holds the 3 × 64-byte OUT packets.
     static EP_OUT: StaticCell<[u8; 256]> = StaticCell::new();
     let mut usb_config = usb::Config::default();
     usb_config.vbus_detection = false;
     let driver =
         Driver::new_fs(p.USB_OTG_FS, Irqs, p.PA12, p.PA11, EP_OUT.init([0; 256]), usb_config);
-    let mut config = embassy_usb::Config::new(USB_VID, USB_PID);
-    config.manufacturer = Some("Material Scanner");
-    config.product = Some("Scanner controller");
-    config.serial_number = Some(embassy_stm32::uid::uid_hex());
-    config.max_power = 100;
-    config.max_packet_size_0 = 64;
-
-    static CONFIG_DESC: StaticCell<[u8; 256]> = StaticCell::new();
-    static BOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
-    static MSOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
-    static CONTROL_BUF: StaticCell<[u8; 64]> = StaticCell::new();
-    static STATE: StaticCell<State<'static>> = StaticCell::new();
-    let mut builder = embassy_usb::Builder::new(
-        driver,
-        config,
-        CONFIG_DESC.init([0; 256]),
-        BOS_DESC.init([0; 256]),
-        MSOS_DESC.init([0; 256]),
-        CONTROL_BUF.init([0; 64]),
-    );
-    // MS OS 2.0 descriptors: Windows binds WinUSB to the vendor interface by
-    // itself (no .inf, no Zadig), with a fixed device interface GUID.
-    builder.msos_descriptor(embassy_usb::msos::windows_version::WIN8_1, MSOS_VENDOR_CODE);
-    let class = CdcAcmClass::new(&mut builder, STATE.init(State::new()), 64);
-    let (vendor_out, vendor_in) = {
-        let mut function = builder.function(0xFF, 0x00, 0x00);
-        function.msos_feature(embassy_usb::msos::CompatibleIdFeatureDescriptor::new("WINUSB", ""));
-        function.msos_feature(embassy_usb::msos::RegistryPropertyFeatureDescriptor::new(
-            "DeviceInterfaceGUIDs",
-            embassy_usb::msos::PropertyData::RegMultiSz(&[protocol::USB_WINUSB_GUID]),
-        ));
-        let mut interface = function.interface();
-        let mut alt = interface.alt_setting(0xFF, 0x00, 0x00, None);
-        (alt.endpoint_bulk_out(None, 64), alt.endpoint_bulk_in(None, 64))
-    };
-    let usb = builder.build();
+    static USB_BUFFERS: StaticCell<firmware::usb::UsbBuffers<'static>> = StaticCell::new();
+    let firmware::usb::UsbParts { device: usb, cdc: class, vendor_out, vendor_in } =
+        firmware::usb::build(
+            driver,
+            embassy_stm32::uid::uid_hex(),
+            USB_BUFFERS.init(Default::default()),
+        );
     spawner.spawn(unwrap!(usb_task(usb, class, vendor_out, vendor_in)));
 
     // Control loop: inputs at 5 kHz, the controller's timers, the watchdog.
