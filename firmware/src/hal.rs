@@ -75,6 +75,20 @@ pub struct BootInfo {
     pub storage_failed: bool,
 }
 
+/// The board's boot id: the protocol's CRC-32C over the chip id, the flash
+/// boot counter and the RAM boot counter (little-endian). Two boots of one
+/// chip whose counters differ in either counter get different ids: the
+/// inputs then differ within one 32-bit field, an error burst of at most
+/// 32 bits, which a CRC of degree 32 always detects — so a failed flash store (the
+/// flash counter repeats) still changes the id through the RAM counter.
+pub fn boot_id(device_id: &[u8; 12], flash_boots: u32, ram_boots: u32) -> u32 {
+    let mut bytes = [0u8; 20];
+    bytes[..12].copy_from_slice(device_id);
+    bytes[12..16].copy_from_slice(&flash_boots.to_le_bytes());
+    bytes[16..].copy_from_slice(&ram_boots.to_le_bytes());
+    protocol::CRC.checksum(&bytes)
+}
+
 /// Where the board sends a packet for the host: `(vendor bulk, CDC-ACM)`.
 /// Until the host has spoken on either interface (the `Boot` event, events
 /// after a reset) everything goes to both, so a host on either sees it;
@@ -85,7 +99,28 @@ pub const fn usb_destinations(host_spoke: bool, vendor_active: bool) -> (bool, b
 
 #[cfg(test)]
 mod tests {
-    use super::usb_destinations;
+    use super::{boot_id, usb_destinations};
+
+    #[test]
+    fn the_boot_id_changes_with_either_counter() {
+        let chip = *b"\x27\x00\x41\x00\x0e\x51\x38\x33\x30\x32\x36\x39";
+        // A stuck flash counter (storage failed) with the RAM counter
+        // counting, and the other way round, from values that wrap.
+        for start in [0u32, 1, 0x7FFF_FFF0, u32::MAX - 20] {
+            let distinct = |mut ids: [u32; 40]| {
+                ids.sort_unstable();
+                ids.windows(2).all(|w| w[0] != w[1])
+            };
+            let ram = core::array::from_fn(|k| boot_id(&chip, 7, start.wrapping_add(k as u32)));
+            assert!(distinct(ram), "RAM counter from {start:#x}");
+            let flash = core::array::from_fn(|k| boot_id(&chip, start.wrapping_add(k as u32), 3));
+            assert!(distinct(flash), "flash counter from {start:#x}");
+        }
+        // Another chip with the same counters: another id.
+        let mut other = chip;
+        other[11] ^= 1;
+        assert_ne!(boot_id(&chip, 5, 9), boot_id(&other, 5, 9));
+    }
 
     #[test]
     fn boot_goes_to_both_interfaces_then_to_the_one_the_host_uses() {

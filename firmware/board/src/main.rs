@@ -244,10 +244,6 @@ async fn main(spawner: Spawner) {
         core::ptr::write_volatile(boots, n);
         n
     };
-    let mut id_and_counts = [0u8; 20];
-    id_and_counts[..12].copy_from_slice(&device_id);
-    id_and_counts[12..16].copy_from_slice(&boot_count.to_le_bytes());
-    id_and_counts[16..].copy_from_slice(&ram_boots.to_le_bytes());
     let mut blob = [0u8; PERSISTED_MAX_LEN];
     let saved = store.load_config(&mut blob).map(|n| &blob[..n]);
     // 8 s nominal (LSI 32 kHz): at least 5.4 s at the fastest LSI (47 kHz),
@@ -257,7 +253,7 @@ async fn main(spawner: Spawner) {
     let mut watchdog = IndependentWatchdog::new(p.IWDG, WATCHDOG_US);
     watchdog.unleash();
     let boot = BootInfo {
-        boot_id: protocol::CRC.checksum(&id_and_counts),
+        boot_id: firmware::hal::boot_id(&device_id, boot_count, ram_boots),
         reason,
         device_id,
         board: BOARD_STM32F411_BLACKPILL,
