@@ -77,10 +77,11 @@ pub struct BootInfo {
 
 /// The board's boot id: the protocol's CRC-32C over the chip id, the flash
 /// boot counter and the RAM boot counter (little-endian). Two boots of one
-/// chip whose counters differ in either counter get different ids: the
-/// inputs then differ within one 32-bit field, an error burst of at most
-/// 32 bits, which a CRC of degree 32 always detects — so a failed flash store (the
-/// flash counter repeats) still changes the id through the RAM counter.
+/// chip where only one counter differs always get different ids (the
+/// inputs differ within one 32-bit field: a burst a CRC of degree 32
+/// always detects), so a failed flash store (the flash counter repeats)
+/// still changes the id through the RAM counter; where both differ, ids
+/// collide with probability 2⁻³².
 pub fn boot_id(device_id: &[u8; 12], flash_boots: u32, ram_boots: u32) -> u32 {
     let mut bytes = [0u8; 20];
     bytes[..12].copy_from_slice(device_id);
