@@ -118,6 +118,17 @@ pub fn truth_answers(pairs: &[([f64; 3], [f64; 3])], sample: &Sample) -> Vec<[f3
 /// Answers to one pair's queries, given the pair's index.
 pub type Estimate<'a> = dyn Fn(usize, &[Query]) -> Vec<[f32; 3]> + Sync + 'a;
 
+/// `estimate`'s answers (given the pair's index and its queries) to every
+/// [`pair_queries`] of `pairs`, concatenated.
+pub fn pairs_answers(pairs: &[([f64; 3], [f64; 3])], estimate: &Estimate<'_>) -> Vec<[f32; 3]> {
+    use rayon::prelude::*;
+    pairs
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(p, &(wi, wo))| estimate(p, &pair_queries(wi, wo)))
+        .collect()
+}
+
 /// Material PSNR (PSNR, gain-free, gain) of `estimate`'s answers (given
 /// the pair's index and its queries) against `truth` ([`truth_answers`]).
 pub fn pairs_psnr(
@@ -125,13 +136,7 @@ pub fn pairs_psnr(
     truth: &[[f32; 3]],
     estimate: &Estimate<'_>,
 ) -> (f64, f64, f64) {
-    use rayon::prelude::*;
-    let est: Vec<[f32; 3]> = pairs
-        .par_iter()
-        .enumerate()
-        .flat_map_iter(|(p, &(wi, wo))| estimate(p, &pair_queries(wi, wo)))
-        .collect();
-    material_psnr(&est, truth)
+    material_psnr(&pairs_answers(pairs, estimate), truth)
 }
 
 /// The captured pairs of `regions` at the nominal mirror directions (light:
@@ -308,6 +313,9 @@ pub struct MaterialScores {
     pub against_regions: [f64; 2],
     /// The materials against the truth at the novel pairs.
     pub novel: [f64; 2],
+    /// The default material at the captured pairs: the worst 5 % of the
+    /// pairs' share of the squared error, and the PSNR of the others.
+    pub worst_5: (f64, f64),
 }
 
 /// Score `materials` ([default, patent]) built from `regions` against the
@@ -324,8 +332,10 @@ pub fn material_scores(
     use host::build::material::shade;
     let (t_cap, t_nov) = (truth_answers(captured, sample), truth_answers(novel, sample));
     let (regions_db, _, _) = regions_psnr(captured, &t_cap, regions);
-    let captured_db = materials.map(|m| pairs_psnr(captured, &t_cap, &|_, q| shade(m, q)));
+    let answers = materials.map(|m| pairs_answers(captured, &|_, q| shade(m, q)));
+    let captured_db = answers.each_ref().map(|a| material_psnr(a, &t_cap));
     MaterialScores {
+        worst_5: PairErrors::new(&answers[0], &t_cap).concentration(0.05),
         regions: regions_db,
         captured: captured_db.map(|x| x.0),
         gain: captured_db[0].2,

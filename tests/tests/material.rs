@@ -97,6 +97,7 @@ fn a_built_material_shades_like_the_sample() {
         gain,
         against_regions: [pal, pal_patent],
         novel: [nov_d, nov_p],
+        ..
     } = scores;
     eprintln!(
         "leather, 1024² sensor: regions {reg:.2} dB; material at the captured pairs {cap_d:.2} dB \
