@@ -145,17 +145,20 @@ fn main() {
         // The metric's limits on every 17th pair (every view, most lights):
         // 3 × 3 points vs 12 × 12, and so on; and on the worst pair.
         let as_built = tests::as_built_pairs(&truth, &cal, &regions);
+        let truth_built = tests::truth_answers(&as_built, &sample);
+        // One pair's answers within answers to all pairs.
+        let per = truth_at.len() / pairs.len();
+        let of = |all: &[[f32; 3]], p: usize| all[p * per..(p + 1) * per].to_vec();
         let worst = errors.worst_first()[0];
         let limits = |chosen: &[usize]| {
             let (mut three, mut dense) = (Vec::new(), Vec::new());
             let (mut built, mut per_point) = (Vec::new(), Vec::new());
             for &p in chosen {
                 let (wi, wo) = pairs[p];
-                three.extend(hil_sim::truth::answer(&sample, &pair_queries(wi, wo)));
+                three.extend(of(&truth_at, p));
+                built.extend(of(&truth_built, p));
                 let v = regions.views[p % regions.views.len()];
-                let (bi, bo) = as_built[p];
-                let mut q = pair_queries(bi, bo);
-                built.extend(hil_sim::truth::answer(&sample, &q));
+                let mut q = pair_queries(as_built[p].0, as_built[p].1);
                 // The virtual camera's direction from each point.
                 let c = truth.mirrors[v].reflect_point(DVec3::from(truth.camera.position_mm));
                 for q in &mut q {
@@ -195,8 +198,7 @@ fn main() {
         };
         let every_17th: Vec<usize> = (0..pairs.len()).step_by(17).collect();
         let (limit, direction_limit, viewer_limit) = limits(&every_17th);
-        let (at_built, _, _) =
-            tests::regions_psnr(&as_built, &tests::truth_answers(&as_built, &sample), &regions);
+        let (at_built, _, _) = tests::regions_psnr(&as_built, &truth_built, &regions);
         println!(
             "| {m} | {t_reg:.1} | {psnr:.2} | {gain_free:.2} | {gain:.4} | {limit:.2} | \
              {direction_limit:.2} | {viewer_limit:.2} | {at_built:.2} | {:.0} % | {without:.2} |",
@@ -207,13 +209,8 @@ fn main() {
         let mirror_angle = (-wi[0] * wo[0] - wi[1] * wo[1] + wi[2] * wo[2]).clamp(-1.0, 1.0);
         let at_built_worst = {
             let q = pair_queries(as_built[worst].0, as_built[worst].1);
-            let nv = regions.views.len();
-            let est: Vec<[f32; 3]> = q
-                .iter()
-                .map(|q| regions.sample(worst / nv, worst % nv, q.uv).map(|x| x as f32))
-                .collect();
-            let e = tests::PairErrors::new(&est, &hil_sim::truth::answer(&sample, &q)).mse;
-            errors.db(e[0])
+            let est = tests::region_pair_answers(&regions, worst, &q);
+            errors.db(tests::PairErrors::new(&est, &of(&truth_built, worst)).mse[0])
         };
         worst_lines.push(format!(
             "{m}: worst pair light {} view {} (θi {:.0}°, θo {:.0}°, {:.1}° from the mirror direction): \

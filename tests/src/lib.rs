@@ -167,21 +167,16 @@ pub fn captured_pair_psnr(
     regions_psnr(&pairs, &truth_answers(&pairs, sample), regions)
 }
 
+/// Region image `image` (light-major: light · views + view) at `queries`.
+pub fn region_pair_answers(regions: &RegionSet, image: usize, queries: &[Query]) -> Vec<[f32; 3]> {
+    let nv = regions.views.len();
+    queries.iter().map(|q| regions.sample(image / nv, image % nv, q.uv).map(|x| x as f32)).collect()
+}
+
 /// The region images' answers to every [`pair_queries`] of `pairs`, one
 /// pair per region image in `regions` order (light-major).
 pub fn region_answers(pairs: &[([f64; 3], [f64; 3])], regions: &RegionSet) -> Vec<[f32; 3]> {
-    use rayon::prelude::*;
-    let nv = regions.views.len();
-    pairs
-        .par_iter()
-        .enumerate()
-        .flat_map_iter(|(p, &(wi, wo))| {
-            pair_queries(wi, wo)
-                .iter()
-                .map(|q| regions.sample(p / nv, p % nv, q.uv).map(|x| x as f32))
-                .collect::<Vec<_>>()
-        })
-        .collect()
+    pairs_answers(pairs, &|p, q| region_pair_answers(regions, p, q))
 }
 
 /// Material PSNR of the region images against `truth` at `pairs`, one pair
@@ -208,9 +203,7 @@ pub struct PairErrors {
 impl PairErrors {
     pub fn new(estimate: &[[f32; 3]], truth: &[[f32; 3]]) -> PairErrors {
         let (e, t) = (cell_means(estimate), cell_means(truth));
-        let mut tv: Vec<f64> = t.iter().flatten().copied().collect();
-        tv.sort_by(f64::total_cmp);
-        let peak = tv[((tv.len() as f64 * 0.99) as usize).min(tv.len() - 1)];
+        let peak = host::build::fidelity::peak(&t);
         let cells = CELLS * CELLS;
         let mse = e
             .chunks(cells)

@@ -50,6 +50,14 @@ pub fn cell_means(values: &[[f32; 3]]) -> Vec<[f64; 3]> {
         .collect()
 }
 
+/// The material PSNR's peak: the 99th percentile of the truth's cell
+/// values ([`cell_means`]) over all cells and channels.
+pub fn peak(truth_cells: &[[f64; 3]]) -> f64 {
+    let mut tv: Vec<f64> = truth_cells.iter().flatten().copied().collect();
+    tv.sort_by(f64::total_cmp);
+    tv[((tv.len() as f64 * 0.99) as usize).min(tv.len() - 1)]
+}
+
 /// Material PSNR of an estimate against the truth, both as answers to the
 /// same [`pair_queries`] concatenated over the pairs: (PSNR, gain-free
 /// PSNR, the best gain), dB.
@@ -57,9 +65,7 @@ pub fn material_psnr(estimate: &[[f32; 3]], truth: &[[f32; 3]]) -> (f64, f64, f6
     assert_eq!(estimate.len(), truth.len(), "answers to the same queries");
     let e = cell_means(estimate);
     let t = cell_means(truth);
-    let mut tv: Vec<f64> = t.iter().flatten().copied().collect();
-    tv.sort_by(f64::total_cmp);
-    let peak = tv[((tv.len() as f64 * 0.99) as usize).min(tv.len() - 1)];
+    let peak = peak(&t);
     let n = (e.len() * 3) as f64;
     let mse = |s: f64| {
         e.iter()
