@@ -81,15 +81,17 @@ fn main() {
             let data =
                 build_material(&regions, m, 25.4, provenance.clone(), &opts, &Silent).unwrap();
             let bytes = data.to_bytes().unwrap();
-            (Material::from_bytes(&bytes).unwrap(), bytes.len(), t.elapsed().as_secs_f64())
+            let m = Material::from_bytes(&bytes).unwrap();
+            (m, bytes.len(), t.elapsed().as_secs_f64(), data.texels)
         };
-        let (default, size_d, t_d) = build(MaterialOptions { texel_model, ..Default::default() });
+        let (default, size_d, t_d, texels) =
+            build(MaterialOptions { texel_model, ..Default::default() });
         let patent_interp = if with_patent {
             PATENT_DEFAULT
         } else {
             scanner_shading::Interpolation::Patent { columns: 1, rows: 1, points: 1 }
         };
-        let (patent, size_p, t_p) =
+        let (patent, size_p, t_p, _) =
             build(MaterialOptions { interpolation: patent_interp, ..Default::default() });
         let sample = Sample::small(lookup(m).unwrap());
         let captured = tests::as_built_pairs(&truth, &cal, &regions);
@@ -100,7 +102,14 @@ fn main() {
             novel: [nov_d, nov_p],
             worst_5: (share, without),
             ..
-        } = tests::material_scores(&regions, [&default, &patent], &sample, &captured, &pairs);
+        } = tests::material_scores(
+            &regions,
+            [&default, &patent],
+            [&texels, &[]],
+            &sample,
+            &captured,
+            &pairs,
+        );
         let shift = default.metadata().half_vector_shift;
         let model = if default.metadata().texel_model { "yes" } else { "no" };
         println!(

@@ -302,7 +302,8 @@ pub struct MaterialScores {
     pub captured: [f64; 2],
     /// The default material's best gain against the truth there.
     pub gain: f64,
-    /// The materials against the region images at the captured pairs.
+    /// The materials against the images they were built from at the
+    /// captured pairs (the palettisation error alone).
     pub against_regions: [f64; 2],
     /// The materials against the truth at the novel pairs.
     pub novel: [f64; 2],
@@ -313,10 +314,13 @@ pub struct MaterialScores {
 
 /// Score `materials` ([default, patent]) built from `regions` against the
 /// ground truth of `sample` at the `captured` pairs (in `regions` order,
-/// [`as_built_pairs`]) and at the `novel` ones.
+/// [`as_built_pairs`]) and at the `novel` ones; `texels` are the texel
+/// models the builder fitted for each (`MaterialData::texels`, empty for
+/// none), which the palettisation error is measured with.
 pub fn material_scores(
     regions: &RegionSet,
     materials: [&scanner_shading::Material; 2],
+    texels: [&[scanner_shading::texel::TexelParams]; 2],
     sample: &Sample,
     captured: &[([f64; 3], [f64; 3])],
     novel: &[([f64; 3], [f64; 3])],
@@ -332,8 +336,8 @@ pub fn material_scores(
         regions: regions_db,
         captured: captured_db.map(|x| x.0),
         gain: captured_db[0].2,
-        against_regions: materials.map(|m| {
-            let (a, b) = captured_pair_answers(m, regions);
+        against_regions: [0, 1].map(|i| {
+            let (a, b) = captured_pair_answers(materials[i], regions, texels[i]);
             material_psnr(&a, &b).0
         }),
         novel: materials.map(|m| pairs_psnr(novel, &t_nov, &|_, q| shade(m, q)).0),

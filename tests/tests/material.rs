@@ -76,13 +76,13 @@ fn a_built_material_shades_like_the_sample() {
     let build_with = |opts: MaterialOptions| {
         let data = build_material(&regions, "leather", 25.4, prov.clone(), &opts, &Silent).unwrap();
         let bytes = data.to_bytes().unwrap();
-        (Material::from_bytes(&bytes).unwrap(), bytes)
+        (Material::from_bytes(&bytes).unwrap(), bytes, data.texels)
     };
     let build = |interpolation| build_with(MaterialOptions { interpolation, ..Default::default() });
-    let (default, bytes) = build(Interpolation::Default);
+    let (default, bytes, texels) = build(Interpolation::Default);
     assert_eq!(bytes, std::fs::read(p("leather.material")).unwrap(), "deterministic");
     let patent_interp = Interpolation::Patent { columns: 256, rows: 64, points: 500 };
-    let (patent, _) = build(patent_interp);
+    let (patent, ..) = build(patent_interp);
     let sample = Sample::small(lookup("leather").unwrap());
     let truth_geometry =
         OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
@@ -90,7 +90,14 @@ fn a_built_material_shades_like_the_sample() {
             .clone();
     let captured = tests::as_built_pairs(&truth_geometry, &cal, &regions);
     let novel = tests::random_pairs(60, 60.0, 7);
-    let scores = tests::material_scores(&regions, [&default, &patent], &sample, &captured, &novel);
+    let scores = tests::material_scores(
+        &regions,
+        [&default, &patent],
+        [&texels, &[]],
+        &sample,
+        &captured,
+        &novel,
+    );
     let tests::MaterialScores {
         regions: reg,
         captured: [cap_d, cap_p],
@@ -113,10 +120,16 @@ fn a_built_material_shades_like_the_sample() {
     // The texel model: kept by the leave-one-light-out choice, and no worse
     // at novel pairs than the same interpolation without it (the glossy
     // sample's gain is tested below).
-    let (plain, _) =
+    let (plain, ..) =
         build_with(MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() });
-    let with_without =
-        tests::material_scores(&regions, [&default, &plain], &sample, &captured, &novel);
+    let with_without = tests::material_scores(
+        &regions,
+        [&default, &plain],
+        [&texels, &[]],
+        &sample,
+        &captured,
+        &novel,
+    );
     let [nov_m, nov_plain] = with_without.novel;
     eprintln!(
         "leather texel model: {} (β {}); novel pairs {nov_m:.2} dB, without the model \
@@ -138,12 +151,20 @@ fn a_built_material_shades_like_the_sample() {
         let data =
             build_material(&metal_regions, "rough-metal", 25.4, prov.clone(), &opts, &Silent)
                 .unwrap();
-        Material::from_bytes(&data.to_bytes().unwrap()).unwrap()
+        (Material::from_bytes(&data.to_bytes().unwrap()).unwrap(), data.texels)
     };
-    let (auto, off) = (build_metal(TexelModelChoice::Auto), build_metal(TexelModelChoice::Off));
+    let ((auto, auto_texels), (off, _)) =
+        (build_metal(TexelModelChoice::Auto), build_metal(TexelModelChoice::Off));
     let metal = Sample::small(lookup("rough-metal").unwrap());
     let metal_captured = tests::as_built_pairs(&truth_geometry, &cal, &metal_regions);
-    let sc = tests::material_scores(&metal_regions, [&auto, &off], &metal, &metal_captured, &novel);
+    let sc = tests::material_scores(
+        &metal_regions,
+        [&auto, &off],
+        [&auto_texels, &[]],
+        &metal,
+        &metal_captured,
+        &novel,
+    );
     eprintln!(
         "rough-metal, 1024² sensor: texel model {} (β {}): captured pairs {:.2} dB, novel pairs \
          {:.2} dB; without the model (β {}) {:.2} and {:.2} dB",
@@ -156,7 +177,15 @@ fn a_built_material_shades_like_the_sample() {
         sc.novel[1]
     );
     assert!(auto.metadata().texel_model, "rough-metal: the builder kept no texel model");
-    assert!((sc.captured[0] - sc.captured[1]).abs() < 0.1, "captured pairs stay as captured");
+    // At the captured pairs the model only carries each texel's value from
+    // the direction it was seen under to the pair's central one; across the
+    // highlights' flanks that is worth something (measured +0.78 dB).
+    assert!(
+        sc.captured[0] >= sc.captured[1] + 0.3,
+        "rough-metal captured pairs: {:.2} dB with the model, {:.2} without",
+        sc.captured[0],
+        sc.captured[1]
+    );
     assert!(
         sc.novel[0] >= sc.novel[1] + 6.0,
         "rough-metal novel pairs: {:.2} dB with the model, {:.2} without",

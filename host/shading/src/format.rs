@@ -168,7 +168,8 @@ pub struct MaterialData {
     /// The JSON metadata.
     pub meta: Metadata,
     /// `[L][V][K]` RGB: f · cos θi at the captured light direction, linear,
-    /// stored as float16.
+    /// stored as float16; with a texel model, at the pair's central
+    /// directions (docs/material-format.md, "Texel model").
     pub palettes: Vec<[f32; 3]>,
     /// `[V][S][S][G]` palette indices: view, row t (along v), column s
     /// (along u), light group.

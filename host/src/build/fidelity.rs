@@ -82,12 +82,16 @@ pub fn material_psnr(estimate: &[[f32; 3]], truth: &[[f32; 3]]) -> (f64, f64, f6
 }
 
 /// The material's answers to [`pair_queries`] at every captured pair (its
-/// own calibrated directions), beside the region images' own values at
-/// the same points: the palettisation error alone, as (material, regions)
-/// concatenated over the pairs for [`material_psnr`].
+/// own calibrated directions), beside the values of the images it was
+/// built from at the same points — the region images, each carried to its
+/// pair's central directions by the texel model `texels` when the material
+/// has one (`texel_fit::centred_image`; empty `texels`: none): the
+/// palettisation error alone, as (material, images) concatenated over the
+/// pairs for [`material_psnr`].
 pub fn captured_pair_answers(
     material: &scanner_shading::Material,
     regions: &super::RegionSet,
+    texels: &[scanner_shading::texel::TexelParams],
 ) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     use rayon::prelude::*;
     let pairs: Vec<(usize, usize)> = (0..regions.lights.len())
@@ -99,7 +103,17 @@ pub fn captured_pair_answers(
         .map(|&(li, vi)| {
             let q = pair_queries(regions.light_dirs[li], regions.view_dirs[vi]);
             let mat = super::material::shade(material, &q);
-            let reg = q.iter().map(|q| regions.sample(li, vi, q.uv).map(|x| x as f32)).collect();
+            let centred;
+            let img = if texels.is_empty() {
+                regions.image(li, vi)
+            } else {
+                centred = super::texel_fit::centred_image(regions, texels, li, vi);
+                &centred
+            };
+            let reg = q
+                .iter()
+                .map(|q| super::regions::bilinear(regions.size, img, q.uv).map(|x| x as f32))
+                .collect();
             (mat, reg)
         })
         .collect();

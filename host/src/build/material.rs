@@ -256,7 +256,9 @@ pub const SHIFTS: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
 /// mean squared error against the captured values, for each of
 /// [`SHIFTS`] — `[shift][0]` without a texel model, `[shift][1]` with one
 /// (fitted without the held light, residuals interpolated) when
-/// `with_model`.
+/// `with_model`. The model is fitted, subtracted and added back at each
+/// texel's own directions ([`texel_fit::texel_dirs`]), so the prediction is
+/// of the value the texel was captured with.
 pub fn shift_errors(
     regions: &RegionSet,
     view_tris: &[[u16; 3]],
@@ -275,7 +277,9 @@ pub fn shift_errors(
             y * s + x
         })
         .collect();
-    let dirs = texel_fit::pair_dirs(regions);
+    // Each scored texel's own directions: its view directions, and all pairs.
+    let texel_views: Vec<_> = texels.iter().map(|&t| texel_fit::texel_views(regions, t)).collect();
+    let texel_dirs: Vec<_> = texels.iter().map(|&t| texel_fit::texel_dirs(regions, t)).collect();
     let per_light: Vec<Vec<[f64; 2]>> = (0..nl)
         .into_par_iter()
         .map(|held| {
@@ -290,10 +294,11 @@ pub fn shift_errors(
             // The model of each scored texel, fitted without the held light.
             let models: Vec<TexelParams> = if with_model {
                 let keep: Vec<usize> = (0..nl * nv).filter(|&i| i / nv != held).collect();
-                let d: Vec<_> = keep.iter().map(|&i| dirs[i]).collect();
                 texels
                     .iter()
-                    .map(|&t| {
+                    .zip(&texel_dirs)
+                    .map(|(&t, dirs)| {
+                        let d: Vec<_> = keep.iter().map(|&i| dirs[i]).collect();
                         let y: Vec<[f32; 3]> = keep.iter().map(|&i| regions.images[i][t]).collect();
                         texel_fit::fit_texel(&texel_fit::Observations { dirs: &d, values: &y }).0
                     })
@@ -320,9 +325,9 @@ pub fn shift_errors(
                                 let k = w as f64 * wi[2] as f64 / ld[l][2] as f64;
                                 let img = regions.image(l, vi as usize);
                                 for (i, (p, &t)) in pred.iter_mut().zip(&texels).enumerate() {
-                                    let m = models
-                                        .get(i)
-                                        .map_or([0.0; 3], |m| reflected(m, ld[l], vd[vi as usize]));
+                                    let m = models.get(i).map_or([0.0; 3], |m| {
+                                        reflected(m, ld[l], texel_views[i][vi as usize])
+                                    });
                                     for c in 0..3 {
                                         p[0][c] += k * img[t][c] as f64;
                                         p[1][c] += k * (img[t][c] - m[c]) as f64;
@@ -332,7 +337,9 @@ pub fn shift_errors(
                         );
                         let img = regions.image(held, v);
                         for (i, (p, &t)) in pred.iter().zip(&texels).enumerate() {
-                            let m = models.get(i).map_or([0.0; 3], |m| reflected(m, wi, wo));
+                            let m = models
+                                .get(i)
+                                .map_or([0.0; 3], |m| reflected(m, wi, texel_views[i][v]));
                             for c in 0..3 {
                                 let y = img[t][c] as f64;
                                 err[0] += (p[0][c] - y).powi(2);
@@ -375,40 +382,6 @@ pub fn build_material(
     let members: Vec<Vec<usize>> = (0..groups)
         .map(|grp| (0..nl).filter(|&l| light_groups[l] as usize == grp).collect())
         .collect();
-    let k = opts.colours;
-    progress.stage("palettes", nv);
-    let per_view: Vec<Vec<super::palette::GroupPalettes>> = (0..nv)
-        .into_par_iter()
-        .map(|vi| {
-            let out = members
-                .par_iter()
-                .enumerate()
-                .map(|(grp, ls)| {
-                    let imgs: Vec<&[[f32; 3]]> = ls.iter().map(|&l| regions.image(l, vi)).collect();
-                    let seed =
-                        opts.seed ^ ((vi * 256 + grp) as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
-                    palettise(&imgs, k, seed)
-                })
-                .collect();
-            progress.step();
-            out
-        })
-        .collect();
-    let mut indices = vec![0u8; nv * s * s * groups];
-    let mut palettes = vec![[0f32; 3]; nl * nv * k];
-    for (vi, view) in per_view.iter().enumerate() {
-        for (grp, gp) in view.iter().enumerate() {
-            for (t, &i) in gp.indices.iter().enumerate() {
-                indices[(vi * s * s + t) * groups + grp] = i;
-            }
-            for (slot, &l) in members[grp].iter().enumerate() {
-                let dst = &mut palettes[(l * nv + vi) * k..][..k];
-                for (d, src) in dst.iter_mut().zip(&gp.palettes[slot]) {
-                    *d = *src;
-                }
-            }
-        }
-    }
     let mut half_vector_shift = 0.0;
     let mut texel_model = false;
     let tables = match opts.interpolation {
@@ -450,6 +423,53 @@ pub fn build_material(
     } else {
         Vec::new()
     };
+    let k = opts.colours;
+    progress.stage("palettes", nv);
+    let per_view: Vec<Vec<super::palette::GroupPalettes>> = (0..nv)
+        .into_par_iter()
+        .map(|vi| {
+            let out = members
+                .par_iter()
+                .enumerate()
+                .map(|(grp, ls)| {
+                    // With a texel model, each image as the model carries it to
+                    // the pair's central directions (the shading's M(lⱼ, vᵢ)).
+                    let centred: Vec<Vec<[f32; 3]>> = if texels.is_empty() {
+                        Vec::new()
+                    } else {
+                        ls.iter()
+                            .map(|&l| texel_fit::centred_image(regions, &texels, l, vi))
+                            .collect()
+                    };
+                    let imgs: Vec<&[[f32; 3]]> = if texels.is_empty() {
+                        ls.iter().map(|&l| regions.image(l, vi)).collect()
+                    } else {
+                        centred.iter().map(|i| i.as_slice()).collect()
+                    };
+                    let seed =
+                        opts.seed ^ ((vi * 256 + grp) as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
+                    palettise(&imgs, k, seed)
+                })
+                .collect();
+            progress.step();
+            out
+        })
+        .collect();
+    let mut indices = vec![0u8; nv * s * s * groups];
+    let mut palettes = vec![[0f32; 3]; nl * nv * k];
+    for (vi, view) in per_view.iter().enumerate() {
+        for (grp, gp) in view.iter().enumerate() {
+            for (t, &i) in gp.indices.iter().enumerate() {
+                indices[(vi * s * s + t) * groups + grp] = i;
+            }
+            for (slot, &l) in members[grp].iter().enumerate() {
+                let dst = &mut palettes[(l * nv + vi) * k..][..k];
+                for (d, src) in dst.iter_mut().zip(&gp.palettes[slot]) {
+                    *d = *src;
+                }
+            }
+        }
+    }
     let mirror = |m: &usize, d: &[f64; 3]| {
         let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         Mirror { mirror: *m as u32, direction: d.map(|x| x / len) }

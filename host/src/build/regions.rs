@@ -26,11 +26,31 @@ pub struct RegionSet {
     pub views: Vec<usize>,
     /// Calibrated direction towards each light, sample-local.
     pub light_dirs: Vec<[f64; 3]>,
-    /// Calibrated direction towards each viewer, sample-local.
+    /// Calibrated direction towards each viewer from the sample's centre,
+    /// sample-local.
     pub view_dirs: Vec<[f64; 3]>,
+    /// Each view's virtual camera, sample-local mm from the sample's centre
+    /// ([`super::calibrate::ViewCalibration::viewer_mm`]): the viewer is
+    /// ≈ 1.2 m away, so its direction varies over the sample by up to
+    /// ≈ 0.6° ([`Self::view_dir_at`]).
+    pub viewers_mm: Vec<[f64; 3]>,
+    /// Side of the sample, mm (uv ∈ [0, 1]² spans it).
+    pub sample_mm: f64,
     /// `images[li * views.len() + vi]`: S × S RGB, row t = v, column s = u,
     /// pixel (s, t) at uv ((s + 0.5)/S, (t + 0.5)/S).
     pub images: Vec<Vec<[f32; 3]>>,
+}
+
+/// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
+/// out like a region image.
+pub fn bilinear(size: usize, img: &[[f32; 3]], uv: [f64; 2]) -> [f64; 3] {
+    let (x0, x1, tx) = cell_taps(size, uv[0]);
+    let (y0, y1, ty) = cell_taps(size, uv[1]);
+    let at = |i: usize, j: usize, k: usize| img[j * size + i][k] as f64;
+    std::array::from_fn(|k| {
+        (at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx) * (1.0 - ty)
+            + (at(x0, y1, k) * (1.0 - tx) + at(x1, y1, k) * tx) * ty
+    })
 }
 
 impl RegionSet {
@@ -39,16 +59,26 @@ impl RegionSet {
         &self.images[li * self.views.len() + vi]
     }
 
+    /// Unit direction from sample position `uv` towards view `vi`'s virtual
+    /// camera, sample-local: the direction region image (·, vi) saw the
+    /// sample at there ([`Self::view_dirs`] is the one from the centre).
+    pub fn view_dir_at(&self, vi: usize, uv: [f64; 2]) -> [f64; 3] {
+        let c = self.viewers_mm[vi];
+        let d =
+            [c[0] - (uv[0] - 0.5) * self.sample_mm, c[1] - (uv[1] - 0.5) * self.sample_mm, c[2]];
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        d.map(|x| x / l)
+    }
+
+    /// uv of texel `t` (row-major, centre of the texel).
+    pub fn texel_uv(&self, t: usize) -> [f64; 2] {
+        let s = self.size;
+        [((t % s) as f64 + 0.5) / s as f64, ((t / s) as f64 + 0.5) / s as f64]
+    }
+
     /// Bilinear lookup at uv (clamped to the sample).
     pub fn sample(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
-        let img = self.image(li, vi);
-        let (x0, x1, tx) = cell_taps(self.size, uv[0]);
-        let (y0, y1, ty) = cell_taps(self.size, uv[1]);
-        let at = |i: usize, j: usize, k: usize| img[j * self.size + i][k] as f64;
-        std::array::from_fn(|k| {
-            (at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx) * (1.0 - ty)
-                + (at(x0, y1, k) * (1.0 - tx) + at(x1, y1, k) * tx) * ty
-        })
+        bilinear(self.size, self.image(li, vi), uv)
     }
 
     /// Write every region as `l{LL}-v{VV}.exr` (half float) into `dir`.
@@ -168,6 +198,8 @@ pub fn extract_regions(
         size,
         light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
         view_dirs: cal.views.iter().map(|v| v.direction).collect(),
+        viewers_mm: cal.views.iter().map(|v| v.viewer_mm(g)).collect(),
+        sample_mm: g.sample.size_mm,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
         images: per_light.into_iter().flatten().collect(),

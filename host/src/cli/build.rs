@@ -317,7 +317,7 @@ pub fn build_cmd(
     crate::fsutil::write_atomic(output, &bytes)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
     let built = started.elapsed().as_secs_f64();
-    let (m, r) = captured_pair_answers(&material, &regions);
+    let (m, r) = captured_pair_answers(&material, &regions, &data.texels);
     let (psnr, _, _) = material_psnr(&m, &r);
     println!(
         "{}: {} lights × {} views at {}² px, {} colours ({} lights per index image), {} \
