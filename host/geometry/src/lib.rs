@@ -256,8 +256,7 @@ impl MirrorSpec {
 
     /// Mirror image of point `p` in the mirror's plane.
     pub fn reflect_point(&self, p: DVec3) -> DVec3 {
-        let n = DVec3::from(self.normal).normalize();
-        p - 2.0 * (p - self.center()).dot(n) * n
+        reflect_in_plane(p, self.center(), DVec3::from(self.normal).normalize())
     }
 
     /// Mirror image of direction `d`.
@@ -471,6 +470,12 @@ pub struct ScannerGeometry {
     /// The mirrors, numbered from 0 in this order.
     #[serde(rename = "mirror")]
     pub mirrors: Vec<MirrorSpec>,
+}
+
+/// Mirror image of point `p` in the plane through `point` with unit
+/// normal `normal` (a mirror's virtual image of the camera, say).
+pub fn reflect_in_plane(p: DVec3, point: DVec3, normal: DVec3) -> DVec3 {
+    p - 2.0 * (p - point).dot(normal) * normal
 }
 
 /// World ↔ sample-local frame: tangent +x, bitangent −y, normal −z (the

@@ -17,7 +17,7 @@
 
 use rayon::prelude::*;
 use scanner_geometry::DVec3;
-use scanner_geometry::{AxisValues, ScannerGeometry, world_to_sample};
+use scanner_geometry::{AxisValues, ScannerGeometry, reflect_in_plane, world_to_sample};
 use serde::{Deserialize, Serialize};
 
 use super::bundle::{Adjusted, AssemblyTolerances, Highlights, adjust};
@@ -398,7 +398,7 @@ fn view_calibrations(
         .zip(&adjusted.planes)
         .map(|(fit, &(point, normal))| {
             let camera = adjusted.camera;
-            let virtual_camera = camera - 2.0 * (camera - point).dot(normal) * normal;
+            let virtual_camera = reflect_in_plane(camera, point, normal);
             ViewCalibration {
                 view: fit.view,
                 homography: fit.best(),
@@ -546,16 +546,20 @@ impl ViewCalibration {
         ViewSampler::new(self.homography)
     }
 
+    /// `camera` (world, mm) mirrored in the calibrated mirror plane.
+    pub fn virtual_camera(&self, camera: DVec3) -> DVec3 {
+        reflect_in_plane(camera, DVec3::from(self.mirror_point_mm), DVec3::from(self.mirror_normal))
+    }
+
     /// The view's virtual camera (the camera mirrored in the calibrated
     /// mirror plane), sample-local mm from the sample's centre: on the
     /// calibrated direction, at the distance of the nominal camera mirrored
     /// in the calibrated plane (the camera's own calibrated shift, ≤ 1 mm
     /// at ≈ 1 200 mm, moves it by less than 0.05°).
     pub fn viewer_mm(&self, g: &ScannerGeometry) -> [f64; 3] {
-        let (point, normal) = (DVec3::from(self.mirror_point_mm), DVec3::from(self.mirror_normal));
-        let camera = DVec3::from(g.camera.position_mm);
-        let mirrored = camera - 2.0 * (camera - point).dot(normal) * normal;
-        let distance = (mirrored - g.sample_point([0.5, 0.5])).length();
+        let distance = (self.virtual_camera(DVec3::from(g.camera.position_mm))
+            - g.sample_point([0.5, 0.5]))
+        .length();
         (DVec3::from(self.direction).normalize() * distance).to_array()
     }
 }

@@ -103,16 +103,10 @@ pub fn captured_pair_answers(
         .map(|&(li, vi)| {
             let q = pair_queries(regions.light_dirs[li], regions.view_dirs[vi]);
             let mat = super::material::shade(material, &q);
-            let centred;
-            let img = if texels.is_empty() {
-                regions.image(li, vi)
-            } else {
-                centred = super::texel_fit::centred_image(regions, texels, li, vi);
-                &centred
-            };
+            let img = super::texel_fit::held_image(regions, texels, li, vi);
             let reg = q
                 .iter()
-                .map(|q| super::regions::bilinear(regions.size, img, q.uv).map(|x| x as f32))
+                .map(|q| super::regions::bilinear(regions.size, &img, q.uv).map(|x| x as f32))
                 .collect();
             (mat, reg)
         })

@@ -269,9 +269,7 @@ pub fn highlights(
             let f = glossy.read_within(l, &windows)?;
             let mut out = Vec::new();
             for (vi, v) in near {
-                let point = DVec3::from(v.mirror_point_mm);
-                let normal = DVec3::from(v.mirror_normal);
-                let viewer = camera - 2.0 * (camera - point).dot(normal) * normal;
+                let viewer = v.virtual_camera(camera);
                 let sampler = v.sampler();
                 let (mut points, mut values) = (Vec::new(), Vec::new());
                 for k in 0..GRID * GRID {

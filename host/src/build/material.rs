@@ -257,7 +257,7 @@ pub const SHIFTS: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
 /// [`SHIFTS`] — `[shift][0]` without a texel model, `[shift][1]` with one
 /// (fitted without the held light, residuals interpolated) when
 /// `with_model`. The model is fitted, subtracted and added back at each
-/// texel's own directions ([`texel_fit::texel_dirs`]), so the prediction is
+/// texel's own directions ([`texel_fit::texel_views`]), so the prediction is
 /// of the value the texel was captured with.
 pub fn shift_errors(
     regions: &RegionSet,
@@ -277,9 +277,8 @@ pub fn shift_errors(
             y * s + x
         })
         .collect();
-    // Each scored texel's own directions: its view directions, and all pairs.
+    // Each scored texel's own view directions.
     let texel_views: Vec<_> = texels.iter().map(|&t| texel_fit::texel_views(regions, t)).collect();
-    let texel_dirs: Vec<_> = texels.iter().map(|&t| texel_fit::texel_dirs(regions, t)).collect();
     let per_light: Vec<Vec<[f64; 2]>> = (0..nl)
         .into_par_iter()
         .map(|held| {
@@ -296,9 +295,9 @@ pub fn shift_errors(
                 let keep: Vec<usize> = (0..nl * nv).filter(|&i| i / nv != held).collect();
                 texels
                     .iter()
-                    .zip(&texel_dirs)
-                    .map(|(&t, dirs)| {
-                        let d: Vec<_> = keep.iter().map(|&i| dirs[i]).collect();
+                    .zip(&texel_views)
+                    .map(|(&t, views)| {
+                        let d: Vec<_> = keep.iter().map(|&i| (ld[i / nv], views[i % nv])).collect();
                         let y: Vec<[f32; 3]> = keep.iter().map(|&i| regions.images[i][t]).collect();
                         texel_fit::fit_texel(&texel_fit::Observations { dirs: &d, values: &y }).0
                     })
@@ -434,18 +433,11 @@ pub fn build_material(
                 .map(|(grp, ls)| {
                     // With a texel model, each image as the model carries it to
                     // the pair's central directions (the shading's M(lⱼ, vᵢ)).
-                    let centred: Vec<Vec<[f32; 3]>> = if texels.is_empty() {
-                        Vec::new()
-                    } else {
-                        ls.iter()
-                            .map(|&l| texel_fit::centred_image(regions, &texels, l, vi))
-                            .collect()
-                    };
-                    let imgs: Vec<&[[f32; 3]]> = if texels.is_empty() {
-                        ls.iter().map(|&l| regions.image(l, vi)).collect()
-                    } else {
-                        centred.iter().map(|i| i.as_slice()).collect()
-                    };
+                    let held: Vec<_> = ls
+                        .iter()
+                        .map(|&l| texel_fit::held_image(regions, &texels, l, vi))
+                        .collect();
+                    let imgs: Vec<&[[f32; 3]]> = held.iter().map(|i| i.as_ref()).collect();
                     let seed =
                         opts.seed ^ ((vi * 256 + grp) as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
                     palettise(&imgs, k, seed)

@@ -319,6 +319,22 @@ pub fn centred_image(
         .collect()
 }
 
+/// The image the material holds for pair (`li`, `vi`): the region image
+/// itself without a texel model (empty `texels`), [`centred_image`] with
+/// one.
+pub fn held_image<'a>(
+    regions: &'a RegionSet,
+    texels: &[TexelParams],
+    li: usize,
+    vi: usize,
+) -> std::borrow::Cow<'a, [[f32; 3]]> {
+    if texels.is_empty() {
+        std::borrow::Cow::Borrowed(regions.image(li, vi))
+    } else {
+        std::borrow::Cow::Owned(centred_image(regions, texels, li, vi))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
