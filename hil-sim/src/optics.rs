@@ -21,6 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
+use std::sync::{Arc, Mutex};
 
 use crate::geometry::{
     AsBuilt, AxisValues, Beam, Facet, ScannerGeometry, Tolerances, world_to_sample,
@@ -108,8 +109,10 @@ struct LitMirror {
 
 /// Noise-free electrons of the last lit exposure per unit of
 /// exposure × duty, by the axis positions they were rendered at.
-type ElectronCache =
-    std::sync::Arc<std::sync::Mutex<Option<(AxisValues, Vec<Option<Vec<[f32; 3]>>>)>>>;
+type ElectronCache = Arc<Mutex<Option<(AxisValues, Arc<ElectronRows>)>>>;
+
+/// Expected electrons per camera row (`None`: a row no light reaches).
+type ElectronRows = Vec<Option<Vec<[f32; 3]>>>;
 
 /// The optical simulator of one as-built scanner holding one sample.
 #[derive(Debug, Clone)]
@@ -403,23 +406,21 @@ impl OpticalSim {
             .collect()
     }
 
-    /// [`Self::electrons`], reusing the scene of the previous lit exposure
-    /// at the same axis positions (electrons scale with exposure × duty).
-    fn electrons_cached(&self, exposure: &Exposure) -> Vec<Option<Vec<[f32; 3]>>> {
+    /// [`Self::electrons`] as rows and a factor to scale them by, reusing
+    /// the scene of the previous lit exposure at the same axis positions
+    /// (electrons scale with exposure × duty).
+    fn electrons_cached(&self, exposure: &Exposure) -> (Arc<ElectronRows>, f32) {
         let scale = exposure.exposure_s * exposure.light.clamp(0.0, 1.0);
         if scale <= 0.0 {
-            return self.electrons(exposure);
+            return (Arc::new(self.electrons(exposure)), 1.0);
         }
         let mut cache = self.cache.lock().unwrap_or_else(|p| p.into_inner());
         if cache.as_ref().is_none_or(|(axes, _)| *axes != exposure.axes) {
             let unit = Exposure { axes: exposure.axes, exposure_s: 1.0, light: 1.0 };
-            *cache = Some((exposure.axes, self.electrons(&unit)));
+            *cache = Some((exposure.axes, Arc::new(self.electrons(&unit))));
         }
         let (_, unit) = cache.as_ref().expect("filled above");
-        let k = scale as f32;
-        unit.iter()
-            .map(|row| row.as_ref().map(|r| r.iter().map(|p| p.map(|v| v * k)).collect()))
-            .collect()
+        (Arc::clone(unit), scale as f32)
     }
 
     /// Noise seed of an exposure: the simulator seed and the exposure's
@@ -439,7 +440,9 @@ impl OpticalSim {
         let k = (s.max_code() / s.full_well_e / s.max_code()) as f32;
         let w = self.geometry.camera.width as usize;
         let mut rgb = Vec::with_capacity(w * self.geometry.camera.height as usize * 3);
-        for row in self.electrons_cached(exposure) {
+        let (rows, scale) = self.electrons_cached(exposure);
+        let k = k * scale;
+        for row in rows.iter() {
             match row {
                 Some(r) => rgb.extend(r.iter().flat_map(|p| p.map(|v| v * k))),
                 None => rgb.extend(std::iter::repeat_n(0.0, w * 3)),
@@ -450,9 +453,9 @@ impl OpticalSim {
 
     /// Render the frame of `exposure`.
     pub fn render(&self, exposure: &Exposure) -> Frame {
-        let electrons = self.electrons_cached(exposure);
+        let (electrons, scale) = self.electrons_cached(exposure);
         let seed = self.exposure_seed(exposure);
-        sensor_readout(&self.geometry.sensor, self.geometry.camera.width, electrons, seed)
+        sensor_readout(&self.geometry.sensor, self.geometry.camera.width, &electrons, scale, seed)
     }
 
     /// The Fig. 9 direct image: `piece` seen straight along `dir`
@@ -499,7 +502,7 @@ impl OpticalSim {
         for v in [dir.x, dir.y, dir.z, px_per_mm, exposure_s] {
             h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
         }
-        sensor_readout(&self.geometry.sensor, n as u32, electrons, h)
+        sensor_readout(&self.geometry.sensor, n as u32, &electrons, 1.0, h)
     }
 }
 
@@ -573,12 +576,14 @@ impl DarkCodes {
     }
 }
 
-/// Shot noise (Gaussian, variance = signal), read noise, clipping at the
-/// full well, quantisation.
+/// Shot noise (Gaussian, variance = signal) and read noise (Gaussian) of
+/// `electrons` × `scale`, clipping at the full well, quantisation. The two
+/// independent Gaussians are drawn as one, of their summed variance.
 fn sensor_readout(
     sensor: &crate::geometry::SensorSpec,
     width: u32,
-    electrons: Vec<Option<Vec<[f32; 3]>>>,
+    electrons: &ElectronRows,
+    scale: f32,
     seed: u64,
 ) -> Frame {
     let height = electrons.len() as u32;
@@ -586,6 +591,7 @@ fn sensor_readout(
     let max = sensor.max_code();
     let gain = max / sensor.full_well_e;
     let read = sensor.read_noise_e;
+    let read2 = read * read;
     let dark = DarkCodes::new(read, gain, max);
     let codes: Vec<f32> = (0..dark.cdf.len()).map(|k| (k as f64 / max) as f32).collect();
     let mut rgb = vec![0.0f32; w * height as usize * 3];
@@ -595,11 +601,10 @@ fn sensor_readout(
         for x in 0..w {
             let e = row.as_ref().map_or([0.0; 3], |r| r[x]);
             for k in 0..3 {
-                let s = e[k] as f64;
+                let s = (e[k] * scale) as f64;
                 out[3 * x + k] = if s > 0.0 {
-                    let z1: f64 = rng.sample(StandardNormal);
-                    let z2: f64 = rng.sample(StandardNormal);
-                    let noisy = s + s.sqrt() * z2 + read * z1;
+                    let z: f64 = rng.sample(StandardNormal);
+                    let noisy = s + (s + read2).sqrt() * z;
                     ((noisy * gain).round().clamp(0.0, max) / max) as f32
                 } else {
                     codes[dark.sample(rng.random::<u32>())]

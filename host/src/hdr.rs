@@ -25,6 +25,9 @@ pub struct MergeStats {
     pub black: usize,
 }
 
+/// Per ADC code of one exposure: (weight, weight / exposure time).
+type CodeWeights = Vec<(f32, f32)>;
+
 /// Merge `frames` (each with its exposure in µs; all the same size) into
 /// one frame in units of the `reference_us` exposure.
 pub fn merge(
@@ -43,51 +46,75 @@ pub fn merge(
     let max = sensor.max_code();
     let gain = max / sensor.full_well_e;
     let read2 = sensor.read_noise_e * sensor.read_noise_e;
+    let top = max as usize;
     let shortest =
         frames.iter().enumerate().min_by_key(|(_, (_, t))| *t).map(|(i, _)| i).unwrap_or(0);
+    // Per exposure, per ADC code c: the weight 1/Var(r) and the weight
+    // over t (for Σ w·v/t); 0 for black (0) and saturated (top) codes.
+    let tables: Vec<(&[f32], CodeWeights)> = frames
+        .iter()
+        .map(|&(f, t_us)| {
+            let t = t_us as f64 * 1e-6;
+            let table = (0..=top)
+                .map(|c| {
+                    if c == 0 || c == top {
+                        return (0.0, 0.0);
+                    }
+                    let e = c as f64 / gain;
+                    let var_code = gain * gain * (e + read2) + 1.0 / 12.0;
+                    let wgt = (max * t).powi(2) / var_code;
+                    (wgt as f32, (wgt / t) as f32)
+                })
+                .collect();
+            (f.rgb.as_slice(), table)
+        })
+        .collect();
+    let to_reference = (reference_us as f64 * 1e-6) as f32;
+    let maxf = max as f32;
     let mut out = vec![0.0f32; first.rgb.len()];
     use rayon::prelude::*;
-    let chunk = 3 * w as usize;
+    let chunk = (3 * w as usize).max(1);
+    // Row by row, exposure by exposure (short loops over one row's values).
     let stats = out
-        .par_chunks_mut(chunk.max(1))
+        .par_chunks_mut(chunk)
         .enumerate()
-        .map(|(row, line)| {
-            let mut stats = MergeStats::default();
-            for (j, o) in line.iter_mut().enumerate() {
-                let i = row * chunk + j;
-                let (mut num, mut den) = (0.0f64, 0.0f64);
-                let mut all_clipped = true;
-                for &(f, t_us) in frames {
-                    let v = f.rgb[i] as f64;
-                    let code = (v * max).round();
-                    if code >= max {
-                        continue;
+        .map_init(
+            || (vec![0.0f32; chunk], vec![0.0f32; chunk], vec![true; chunk]),
+            |(num, den, all_clipped), (row, line)| {
+                let start = row * chunk;
+                let n = line.len();
+                let (num, den, all_clipped) = (&mut num[..n], &mut den[..n], &mut all_clipped[..n]);
+                num.fill(0.0);
+                den.fill(0.0);
+                all_clipped.fill(true);
+                for (rgb, table) in &tables {
+                    let table: &[(f32, f32)] = table;
+                    for (j, &v) in rgb[start..start + n].iter().enumerate() {
+                        // The ADC code, rounded (half-float storage may
+                        // leave the value off by a fraction of a code); NaN → 0.
+                        let code = ((v * maxf + 0.5) as usize).min(top);
+                        let (wgt, wgt_over_t) = table[code];
+                        all_clipped[j] &= code == top;
+                        num[j] += wgt_over_t * v;
+                        den[j] += wgt;
                     }
-                    all_clipped = false;
-                    if code <= 0.0 {
-                        continue;
-                    }
-                    let t = t_us as f64 * 1e-6;
-                    let e = code / gain;
-                    let var_code = gain * gain * (e + read2) + 1.0 / 12.0;
-                    let var_rate = var_code / (max * t).powi(2);
-                    let wgt = 1.0 / var_rate;
-                    num += wgt * v / t;
-                    den += wgt;
                 }
-                *o = if den > 0.0 {
-                    (num / den * reference_us as f64 * 1e-6) as f32
-                } else if all_clipped {
-                    stats.clipped += 1;
-                    let (f, t) = frames[shortest];
-                    (f.rgb[i] as f64 * reference_us as f64 / t as f64) as f32
-                } else {
-                    stats.black += 1;
-                    0.0
-                };
-            }
-            stats
-        })
+                let mut stats = MergeStats::default();
+                for (j, o) in line.iter_mut().enumerate() {
+                    *o = if den[j] > 0.0 {
+                        num[j] / den[j] * to_reference
+                    } else if all_clipped[j] {
+                        stats.clipped += 1;
+                        let (f, t) = frames[shortest];
+                        (f.rgb[start + j] as f64 * reference_us as f64 / t as f64) as f32
+                    } else {
+                        stats.black += 1;
+                        0.0
+                    };
+                }
+                stats
+            },
+        )
         .reduce(MergeStats::default, |a, b| MergeStats {
             clipped: a.clipped + b.clipped,
             black: a.black + b.black,
@@ -141,6 +168,46 @@ mod tests {
         let (m, stats) = merge(&[(&saturated, 1_000), (&saturated, 10_000)], &s, 10_000).unwrap();
         assert_eq!(stats.clipped, 3);
         assert!((m.rgb[0] - 10.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn merges_as_the_inverse_variance_weighted_mean() {
+        let s = sensor();
+        let max = s.max_code();
+        let gain = max / s.full_well_e;
+        let exposures = [500u32, 4_000, 20_000];
+        // Codes over the whole range, each exposure a different one.
+        let codes: Vec<[u32; 3]> = (0..200u32)
+            .map(|i| [i * 7 % 4096, (i * 131 + 5) % 4096, (i * 977 + 11) % 4096])
+            .collect();
+        let frames: Vec<Frame> = (0..3)
+            .map(|k| {
+                let v: Vec<f32> =
+                    codes.iter().flat_map(|c| [c[k] as f32 / max as f32; 3]).collect();
+                frame(&v)
+            })
+            .collect();
+        let inputs: Vec<(&Frame, u32)> = frames.iter().zip(exposures).collect();
+        let (m, _) = merge(&inputs, &s, 20_000).unwrap();
+        for (i, c) in codes.iter().enumerate() {
+            let (mut num, mut den) = (0.0f64, 0.0f64);
+            for k in 0..3 {
+                if c[k] == 0 || c[k] == 4095 {
+                    continue;
+                }
+                let t = exposures[k] as f64 * 1e-6;
+                let var_code = gain * gain * (c[k] as f64 / gain + 9.0) + 1.0 / 12.0;
+                let wgt = (max * t).powi(2) / var_code;
+                num += wgt * (c[k] as f64 / max) / t;
+                den += wgt;
+            }
+            let want = if den > 0.0 { num / den * 0.02 } else { 0.0 };
+            let got = m.rgb[3 * i] as f64;
+            let clipped = c.iter().all(|&c| c == 4095);
+            if !clipped {
+                assert!((got - want).abs() <= 1e-5 * want.abs() + 1e-9, "{c:?}: {got} vs {want}");
+            }
+        }
     }
 
     #[test]

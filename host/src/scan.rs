@@ -12,6 +12,7 @@
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use protocol::{
@@ -1158,7 +1159,8 @@ pub fn scan(
             } else {
                 opts.bracket_us.clone()
             };
-            let mut taken: Vec<(crate::camera::Frame, u32, FrameRecord)> = Vec::new();
+            // Shared with the writer: a raw exposure is stored and merged.
+            let mut taken: Vec<(Arc<crate::camera::Frame>, u32, FrameRecord)> = Vec::new();
             for &exposure_us in &bracket {
                 let file = if opts.bracket_us.is_empty() {
                     frame_file(l)
@@ -1173,7 +1175,7 @@ pub fn scan(
                     report.timings.disk += t.elapsed();
                     match frame {
                         Ok(f) => {
-                            taken.push((f, exposure_us, rec.clone()));
+                            taken.push((Arc::new(f), exposure_us, rec.clone()));
                             continue;
                         }
                         Err(e) => {
@@ -1217,15 +1219,15 @@ pub fn scan(
                     verified: false,
                 };
                 if opts.bracket_us.is_empty() {
-                    taken.push((frame, exposure_us, record));
+                    taken.push((Arc::new(frame), exposure_us, record));
                     break;
                 }
                 // Merge what is stored: the half-float frame, so a resumed
                 // mirror merges to the same bytes.
-                let frame = exrio::quantise_half(frame);
+                let frame = Arc::new(exrio::quantise_half(frame));
                 if jobs
                     .send(Job::Frame(WriteJob {
-                        frame: frame.clone(),
+                        frame: Arc::clone(&frame),
                         record: record.clone(),
                         raw: true,
                     }))
@@ -1241,7 +1243,7 @@ pub fn scan(
             } else {
                 let reference = *bracket.iter().max().expect("a bracket");
                 let inputs: Vec<(&crate::camera::Frame, u32)> =
-                    taken.iter().map(|(f, e, _)| (f, *e)).collect();
+                    taken.iter().map(|(f, e, _)| (&**f, *e)).collect();
                 let (merged, stats) = match crate::hdr::merge(&inputs, &geometry.sensor, reference)
                 {
                     Ok(m) => m,
@@ -1264,7 +1266,7 @@ pub fn scan(
                 let mut record = longest.clone();
                 record.file = frame_file(l);
                 record.exposure_us = reference;
-                WriteJob { frame: merged, record, raw: false }
+                WriteJob { frame: Arc::new(merged), record, raw: false }
             };
             if jobs.send(Job::Frame(job)).is_err() {
                 break; // the writer stopped on an error, reported below
@@ -1478,7 +1480,7 @@ pub fn mirror_list(mirrors: &[usize]) -> String {
 
 /// A frame to encode and store, with its record (checksum and size to fill).
 struct WriteJob {
-    frame: crate::camera::Frame,
+    frame: Arc<crate::camera::Frame>,
     record: FrameRecord,
     /// One exposure of an HDR bracket (recorded in `Manifest::exposures`).
     raw: bool,
