@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Fuzz the material reader (and the protocol decoder) with cargo-fuzz.
+# Fuzz the material reader, the query/answer file readers and the protocol
+# decoder with cargo-fuzz.
 #   scripts/fuzz.sh [SECONDS per target, default 300]
 # Needs the nightly toolchain (rustup toolchain install nightly) and
 # cargo-fuzz (cargo install cargo-fuzz); libFuzzer is built with the system
@@ -7,11 +8,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 seconds=${1:-300}
-corpus=fuzz/corpus/material
-mkdir -p "$corpus" fuzz/corpus/decoder
-# Start from valid files, so the fuzzer gets past the container checks.
-cargo run -q --release -p host --example fuzz_seeds -- "$corpus"
-for target in material decoder; do
+mkdir -p fuzz/corpus/decoder
+# Start from valid files, so the fuzzer gets past the container checks
+# (fuzz/corpus/material, fuzz/corpus/queries).
+cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
+for target in material queries decoder; do
     (cd fuzz && cargo +nightly fuzz run --release "$target" "corpus/$target" -- \
         -max_total_time="$seconds" -rss_limit_mb=4096 -max_len=1048576)
 done

@@ -1,17 +1,20 @@
-//! Seed inputs for the material reader's fuzz target (`scripts/fuzz.sh`):
-//! small valid material files, one per interpolation, so that the fuzzer
-//! starts from files that pass the container and metadata checks.
+//! Seed inputs for the fuzz targets (`scripts/fuzz.sh`): small valid
+//! material files, one per interpolation, in `DIR/material`, and small
+//! query and answer files (`.npy` and `.csv`) in `DIR/queries`, so that the
+//! fuzzer starts from files that pass the container and header checks.
 //!
 //! `cargo run -p host --example fuzz_seeds -- DIR`
 
 #[path = "../benches/support/synthetic.rs"]
 mod synthetic;
 
+use scanner_formats::queries::{Query, write_answers, write_queries};
 use scanner_shading::Interpolation;
 use synthetic::{Shape, synthetic, with_texel_model};
 
 fn main() {
-    let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: fuzz_seeds DIR"));
+    let root = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: fuzz_seeds DIR"));
+    let dir = root.join("material");
     std::fs::create_dir_all(&dir).unwrap();
     let patent = Interpolation::Patent { columns: 16, rows: 4, points: 20 };
     let shape = |mirrors, resolution, colours, lights_per_index| Shape {
@@ -35,4 +38,21 @@ fn main() {
         std::fs::write(dir.join(format!("{name}.material")), &bytes).unwrap();
         println!("{name}: {} bytes", bytes.len());
     }
+    let dir = root.join("queries");
+    std::fs::create_dir_all(&dir).unwrap();
+    let queries: Vec<Query> = (0..3)
+        .map(|i| {
+            let t = i as f64 * 0.4;
+            Query::from_row([0.1 * i as f64, 0.7, t.sin(), 0.0, t.cos(), 0.0, -t.sin(), t.cos()], i)
+                .unwrap()
+        })
+        .collect();
+    for name in ["q.npy", "q.csv"] {
+        write_queries(&dir.join(name), &queries).unwrap();
+    }
+    let answers = [[0.25f32, 0.5, 1.0], [0.0, 1e-3, 7.5]];
+    for name in ["a.npy", "a.csv"] {
+        write_answers(&dir.join(name), &answers).unwrap();
+    }
+    println!("query and answer files in {}", dir.display());
 }

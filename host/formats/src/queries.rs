@@ -45,7 +45,11 @@ impl Query {
             }
         }
         let unit = |v: [f64; 3], name: &str| {
-            let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            // Scaled by the largest component first, so that no square
+            // overflows (1e200 would give a zero "unit" vector).
+            let big = v.iter().fold(0.0f64, |m, c| m.max(c.abs()));
+            let s = v.map(|c| c / big);
+            let len = big * (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
             if len > 1e-6 {
                 Ok(v.map(|c| c / len))
             } else {
@@ -133,11 +137,22 @@ pub fn check_extension(path: &Path) -> Result<(), QueryError> {
     kind(path).map(|_| ())
 }
 
+fn read_bytes(path: &Path) -> Result<Vec<u8>, QueryError> {
+    kind(path)?;
+    std::fs::read(path).map_err(|source| QueryError::Io { path: path.to_path_buf(), source })
+}
+
 /// Read a query file.
 pub fn read_queries(path: &Path) -> Result<Vec<Query>, QueryError> {
+    parse_queries(path, &read_bytes(path)?)
+}
+
+/// A query file's content: `bytes` as read from `path` (whose extension
+/// says `.npy` or `.csv`; the path is only named in errors).
+pub fn parse_queries(path: &Path, bytes: &[u8]) -> Result<Vec<Query>, QueryError> {
     let rows = match kind(path)? {
-        Kind::Npy => read_npy::<8>(path)?,
-        Kind::Csv => read_csv::<8>(path, &QUERY_COLUMNS)?,
+        Kind::Npy => parse_npy::<8>(path, bytes)?,
+        Kind::Csv => parse_csv::<8>(path, bytes, &QUERY_COLUMNS)?,
     };
     rows.into_iter()
         .enumerate()
@@ -159,9 +174,14 @@ pub fn write_queries(path: &Path, queries: &[Query]) -> Result<(), QueryError> {
 
 /// Read an answer file.
 pub fn read_answers(path: &Path) -> Result<Vec<[f32; 3]>, QueryError> {
+    parse_answers(path, &read_bytes(path)?)
+}
+
+/// An answer file's content (`path` as for [`parse_queries`]).
+pub fn parse_answers(path: &Path, bytes: &[u8]) -> Result<Vec<[f32; 3]>, QueryError> {
     let rows = match kind(path)? {
-        Kind::Npy => read_npy::<3>(path)?,
-        Kind::Csv => read_csv::<3>(path, &ANSWER_COLUMNS)?,
+        Kind::Npy => parse_npy::<3>(path, bytes)?,
+        Kind::Csv => parse_csv::<3>(path, bytes, &ANSWER_COLUMNS)?,
     };
     Ok(rows.into_iter().map(|r| r.map(|v| v as f32)).collect())
 }
@@ -174,11 +194,12 @@ pub fn write_answers(path: &Path, answers: &[[f32; 3]]) -> Result<(), QueryError
     }
 }
 
-fn read_npy<const C: usize>(path: &Path) -> Result<Vec<[f64; C]>, QueryError> {
-    let bytes = std::fs::read(path)
-        .map_err(|source| QueryError::Io { path: path.to_path_buf(), source })?;
-    let npy = npyz::NpyFile::new(&bytes[..])
-        .map_err(|e| format_err(path, format!("not a .npy file: {e}")))?;
+fn parse_npy<const C: usize>(path: &Path, bytes: &[u8]) -> Result<Vec<[f64; C]>, QueryError> {
+    if shape_overflows(bytes) {
+        return Err(format_err(path, "shape has more elements than any file can hold"));
+    }
+    let npy =
+        npyz::NpyFile::new(bytes).map_err(|e| format_err(path, format!("not a .npy file: {e}")))?;
     let shape = npy.shape().to_vec();
     if shape.len() != 2 || shape[1] != C as u64 {
         return Err(format_err(path, format!("shape {shape:?}, expected (N, {C})")));
@@ -186,10 +207,23 @@ fn read_npy<const C: usize>(path: &Path) -> Result<Vec<[f64; C]>, QueryError> {
     let n = usize::try_from(shape[0]).map_err(|_| format_err(path, "too many rows"))?;
     let fortran = npy.order() == npyz::Order::Fortran;
     let dtype = npy.dtype().descr();
-    let flat: Vec<f64> = match dtype.trim_matches('\'').trim_start_matches(['<', '=', '|']) {
-        "f8" => npy.into_vec::<f64>(),
-        "f4" => npy.into_vec::<f32>().map(|v| v.into_iter().map(f64::from).collect()),
+    let item = match dtype.trim_matches('\'').trim_start_matches(['<', '=', '|']) {
+        "f8" => 8,
+        "f4" => 4,
         _ => return Err(format_err(path, format!("dtype {dtype}, expected float32 or float64"))),
+    };
+    // The header's shape must fit in the file before anything is allocated
+    // for it: a forged row count would otherwise ask for exabytes.
+    if n.checked_mul(C * item).is_none_or(|data| data > bytes.len()) {
+        return Err(format_err(
+            path,
+            format!("shape ({n}, {C}) needs more data than the file's {} bytes", bytes.len()),
+        ));
+    }
+    let flat: Vec<f64> = if item == 8 {
+        npy.into_vec::<f64>()
+    } else {
+        npy.into_vec::<f32>().map(|v| v.into_iter().map(f64::from).collect())
     }
     .map_err(|e| format_err(path, format!("truncated or unreadable data: {e}")))?;
     if flat.len() != n * C {
@@ -198,6 +232,38 @@ fn read_npy<const C: usize>(path: &Path) -> Result<Vec<[f64; C]>, QueryError> {
     Ok((0..n)
         .map(|i| std::array::from_fn(|k| if fortran { flat[k * n + i] } else { flat[i * C + k] }))
         .collect())
+}
+
+/// Whether a `.npy` header's shape multiplies out beyond u64. npyz 0.9
+/// multiplies the shape unchecked (a panic in debug builds, a wrapped count
+/// in release ones), so a forged shape is caught here first. Only the
+/// `'shape': (…)` entry of the header is looked at; anything this does not
+/// recognise is left to npyz's own checks.
+fn shape_overflows(bytes: &[u8]) -> bool {
+    let header = &bytes[..bytes.len().min(64 * 1024)];
+    let Some(at) = header.windows(8).position(|w| w == b"'shape':") else {
+        return false;
+    };
+    let rest = &header[at + 8..];
+    let (Some(open), Some(close)) =
+        (rest.iter().position(|&b| b == b'('), rest.iter().position(|&b| b == b')'))
+    else {
+        return false;
+    };
+    if close < open {
+        return false;
+    }
+    let Ok(tuple) = std::str::from_utf8(&rest[open + 1..close]) else {
+        return false;
+    };
+    let mut product: Option<u64> = Some(1);
+    for dim in tuple.split(',').map(str::trim).filter(|d| !d.is_empty()) {
+        let Ok(d) = dim.parse::<u64>() else {
+            return false;
+        };
+        product = product.and_then(|p| p.checked_mul(d));
+    }
+    product.is_none()
 }
 
 trait NpyValue: Copy + npyz::AutoSerialize + npyz::Serialize {}
@@ -218,11 +284,12 @@ fn write_npy<T: NpyValue, const C: usize>(path: &Path, rows: &[[T; C]]) -> Resul
     .map_err(|source| QueryError::Io { path: path.to_path_buf(), source })
 }
 
-fn read_csv<const C: usize>(path: &Path, names: &[&str; C]) -> Result<Vec<[f64; C]>, QueryError> {
-    let mut reader = csv::ReaderBuilder::new()
-        .trim(csv::Trim::All)
-        .from_path(path)
-        .map_err(|e| csv_err(path, e))?;
+fn parse_csv<const C: usize>(
+    path: &Path,
+    bytes: &[u8],
+    names: &[&str; C],
+) -> Result<Vec<[f64; C]>, QueryError> {
+    let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).from_reader(bytes);
     let header = reader.headers().map_err(|e| csv_err(path, e))?.clone();
     let mut index = [usize::MAX; C];
     for (col, name) in header.iter().enumerate() {

@@ -80,6 +80,18 @@ fn float32_and_fortran_order_npy_files_are_read_and_directions_normalised() {
     assert_eq!(read_queries(&path).unwrap(), q);
 }
 
+#[test]
+fn huge_and_tiny_finite_directions_are_normalised_without_overflow() {
+    let q = Query::from_row([0.5, 0.5, 1e200, 0.0, 1e200, 0.0, 3e300, 4e300], 0).unwrap();
+    let s = std::f64::consts::FRAC_1_SQRT_2;
+    assert!((q.wi[0] - s).abs() < 1e-15 && (q.wi[2] - s).abs() < 1e-15, "{q:?}");
+    assert!((q.wo[1] - 0.6).abs() < 1e-15 && (q.wo[2] - 0.8).abs() < 1e-15, "{q:?}");
+    let q = Query::from_row([0.5, 0.5, 0.0, 0.0, 2e-6, 0.0, 1e-6, 1e-6], 0).unwrap();
+    assert_eq!(q.wi, [0.0, 0.0, 1.0]);
+    assert!((q.wo[1] - s).abs() < 1e-15, "{q:?}");
+    assert!(Query::from_row([0.5, 0.5, 0.0, 0.0, 1e-7, 0.0, 0.0, 1.0], 0).is_err());
+}
+
 fn refused(path: &Path) -> String {
     read_queries(path).unwrap_err().to_string()
 }
@@ -108,6 +120,19 @@ fn bad_query_files_are_refused_with_their_reason() {
     assert!(refused(&p("int.npy")).contains("expected float32 or float64"));
     write("trunc.npy", &npy_bytes("<f8", false, "(2, 8)", &[0u8; 64]));
     assert!(refused(&p("trunc.npy")).contains("trunc.npy"));
+    // A forged row count: refused before anything is allocated for it.
+    for (shape, reason) in [
+        ("(1000000000000000, 8)", "needs more data than the file's 192 bytes"),
+        ("(1152921504606846976, 8)", "needs more data than the file's 192 bytes"),
+        ("(4611686018427387904, 8)", "shape has more elements than any file can hold"),
+    ] {
+        write("forged.npy", &npy_bytes("<f8", false, shape, &[0u8; 64]));
+        assert!(
+            refused(&p("forged.npy")).contains(reason),
+            "{shape}: {}",
+            refused(&p("forged.npy"))
+        );
+    }
     write("junk.npy", b"not numpy at all");
     assert!(refused(&p("junk.npy")).contains("not a .npy file"));
     assert!(refused(&p("q.txt")).contains("unknown file type"));

@@ -19,7 +19,8 @@
 //! Mitsuba's `BSDF::eval` and unlike pbrt's `f()` (which excludes it).
 //! Directions are in the sample's frame (docs/scanner-geometry.md): z along
 //! the sample's normal, x along +u, y along +v, both pointing away from the
-//! surface; they are normalised, and a zero or non-finite one gives black.
+//! surface; they are normalised, and one shorter than 1e-6 or not finite
+//! gives black.
 //! Below the horizon (wi.z ≤ 0 or wo.z ≤ 0) the answer is 0. uv ∈ [0, 1]²
 //! spans the material's extent (`Metadata::extent_mm`) and wraps outside
 //! it, so a renderer may tile the material.
@@ -128,13 +129,29 @@ pub fn default_pairs(
     }
 }
 
-/// `d` normalised, or `None` if it is zero or not finite.
+/// `d` normalised, or `None` if it is shorter than 1e-6 or not finite.
+#[inline]
 pub fn unit(d: [f32; 3]) -> Option<[f32; 3]> {
     let l2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-    (l2.is_finite() && l2 > 1e-12).then(|| {
+    if l2.is_finite() && l2 > 1e-12 {
         let r = 1.0 / l2.sqrt();
-        d.map(|x| x * r)
-    })
+        Some(d.map(|x| x * r))
+    } else {
+        unit_rescaled(d)
+    }
+}
+
+/// [`unit`] of a direction whose squared length over- or underflows f32:
+/// scaled by its largest component first.
+#[cold]
+fn unit_rescaled(d: [f32; 3]) -> Option<[f32; 3]> {
+    let big = d.iter().fold(0.0f32, |m, c| m.max(c.abs()));
+    if !big.is_finite() || !d.iter().all(|c| c.is_finite()) || big == 0.0 {
+        return None;
+    }
+    let s = d.map(|c| c / big);
+    let len = (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
+    (big * len > 1e-6).then(|| s.map(|c| c / len))
 }
 
 /// Model evaluations per query: the query itself and up to 3 × 3 mixed

@@ -210,6 +210,17 @@ fn beyond_the_outer_ring_clamps_and_below_the_horizon_is_black() {
     let a = m.eval([0.5, 0.5], [0.0, 0.0, 5.0], [0.0, 0.0, 0.5]);
     let b = m.eval([0.5, 0.5], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]);
     assert_eq!(a, b);
+    // Finite directions whose squares overflow or underflow f32 too; only
+    // those shorter than 1e-6 are black.
+    let (wi, wo) = ([0.3f32, -0.2, 0.9], [-0.4f32, 0.1, 0.8]);
+    let want = m.eval([0.5, 0.5], wi, wo);
+    assert!(want.iter().any(|&c| c > 0.0));
+    for k in [1e30f32, 1e-10, 1e-20] {
+        let got = m.eval([0.5, 0.5], wi.map(|c| c * k), wo.map(|c| c * k));
+        let ok = if k > 1e-6 { close(got, want, 1e-6) } else { got == [0.0; 3] };
+        assert!(ok, "scale {k}: {got:?} against {want:?}");
+    }
+    assert_eq!(m.eval([0.5, 0.5], [f32::INFINITY, 0.0, 1.0], wo), [0.0; 3]);
 }
 
 #[test]
