@@ -11,7 +11,7 @@
 //! Then how the error spreads over the pairs: the worst 5 %'s share, and
 //! each material's worst pair with those limits computed on it alone.
 //!
-//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--targets-only]`
+//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--materials a,b] [--targets-only]`
 //! (scans in DIR are reused when complete).
 
 use std::path::PathBuf;
@@ -35,10 +35,13 @@ fn main() {
     let size: usize = tests::arg("--size", 0);
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     // `--targets-only`: the calibration's errors alone (three target scans).
-    let materials: &[&str] = if std::env::args().any(|a| a == "--targets-only") {
-        &[]
+    // `--materials a,b`: library names or texture-set directories.
+    let list: String =
+        tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
+    let materials: Vec<&str> = if std::env::args().any(|a| a == "--targets-only") {
+        Vec::new()
     } else {
-        &["woven-fabric", "leather", "painted-wood", "rough-metal"]
+        list.split(',').collect()
     };
     for (m, hdr) in [("checkerboard", false), ("diffuse-white", false)]
         .into_iter()
@@ -129,7 +132,7 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let mut worst_lines = Vec::new();
-    for &m in materials {
+    for &m in &materials {
         let t = Instant::now();
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions =

@@ -195,9 +195,7 @@ pub fn write_answers(path: &Path, answers: &[[f32; 3]]) -> Result<(), QueryError
 }
 
 fn parse_npy<const C: usize>(path: &Path, bytes: &[u8]) -> Result<Vec<[f64; C]>, QueryError> {
-    if shape_overflows(bytes) {
-        return Err(format_err(path, "shape has more elements than any file can hold"));
-    }
+    check_npy_header(bytes).map_err(|reason| format_err(path, reason))?;
     let npy =
         npyz::NpyFile::new(bytes).map_err(|e| format_err(path, format!("not a .npy file: {e}")))?;
     let shape = npy.shape().to_vec();
@@ -234,36 +232,54 @@ fn parse_npy<const C: usize>(path: &Path, bytes: &[u8]) -> Result<Vec<[f64; C]>,
         .collect())
 }
 
-/// Whether a `.npy` header's shape multiplies out beyond u64. npyz 0.9
-/// multiplies the shape unchecked (a panic in debug builds, a wrapped count
-/// in release ones), so a forged shape is caught here first. Only the
-/// `'shape': (…)` entry of the header is looked at; anything this does not
-/// recognise is left to npyz's own checks.
-fn shape_overflows(bytes: &[u8]) -> bool {
-    let header = &bytes[..bytes.len().min(64 * 1024)];
+/// Checks of a `.npy` header that npyz 0.9 does not make safely, before
+/// it parses it: its Python-literal parser backtracks exponentially on
+/// nested brackets (a few hundred bytes of `{'a':{'a':…` never finish), and
+/// it multiplies the shape unchecked (a panic in debug builds, a wrapped
+/// count in release ones). A query or answer file's header is one flat
+/// dictionary — `descr` a string, `shape` a tuple of integers — so more
+/// than one `{` or `(`, or any `[`, is refused here. A file that is not
+/// `.npy` at all is left to npyz's own error.
+fn check_npy_header(bytes: &[u8]) -> Result<(), String> {
+    if !bytes.starts_with(b"\x93NUMPY") || bytes.len() < 12 {
+        return Ok(());
+    }
+    let (len, start): (usize, usize) = match bytes[6] {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
+        _ => return Ok(()),
+    };
+    let header = &bytes[start..bytes.len().min(start.saturating_add(len))];
+    let count = |c: u8| header.iter().filter(|&&b| b == c).count();
+    if count(b'{') > 1 || count(b'(') > 1 || count(b'[') > 0 {
+        return Err("the header is not one flat dictionary with a shape tuple (nested or \
+                    structured dtypes are not query or answer files)"
+            .into());
+    }
     let Some(at) = header.windows(8).position(|w| w == b"'shape':") else {
-        return false;
+        return Ok(());
     };
     let rest = &header[at + 8..];
     let (Some(open), Some(close)) =
         (rest.iter().position(|&b| b == b'('), rest.iter().position(|&b| b == b')'))
     else {
-        return false;
+        return Ok(());
     };
-    if close < open {
-        return false;
-    }
-    let Ok(tuple) = std::str::from_utf8(&rest[open + 1..close]) else {
-        return false;
+    let Some(Ok(tuple)) = (open < close).then(|| std::str::from_utf8(&rest[open + 1..close]))
+    else {
+        return Ok(());
     };
     let mut product: Option<u64> = Some(1);
     for dim in tuple.split(',').map(str::trim).filter(|d| !d.is_empty()) {
         let Ok(d) = dim.parse::<u64>() else {
-            return false;
+            return Ok(());
         };
         product = product.and_then(|p| p.checked_mul(d));
     }
-    product.is_none()
+    match product {
+        Some(_) => Ok(()),
+        None => Err("shape has more elements than any file can hold".into()),
+    }
 }
 
 trait NpyValue: Copy + npyz::AutoSerialize + npyz::Serialize {}

@@ -133,6 +133,18 @@ fn bad_query_files_are_refused_with_their_reason() {
             refused(&p("forged.npy"))
         );
     }
+    // Nested brackets, which npyz's header parser takes exponential time
+    // over (found by the fuzz target): refused at once.
+    let nested = format!("{}0{}", "{'a':".repeat(40), "}".repeat(40));
+    let mut bytes = npy_bytes("<f8", false, "(0, 8)", &[]);
+    let header = format!("{nested}\n");
+    bytes.truncate(8);
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    write("nested.npy", &bytes);
+    assert!(refused(&p("nested.npy")).contains("not one flat dictionary"));
+    write("structured.npy", &npy_bytes("[('x', '<f8')]", false, "(1, 8)", &[0u8; 64]));
+    assert!(refused(&p("structured.npy")).contains("not one flat dictionary"));
     write("junk.npy", b"not numpy at all");
     assert!(refused(&p("junk.npy")).contains("not a .npy file"));
     assert!(refused(&p("q.txt")).contains("unknown file type"));
