@@ -20,6 +20,7 @@ pub mod camera;
 #[cfg(feature = "cli")]
 pub mod cli;
 pub mod discovery;
+pub mod exposure;
 pub mod exrio;
 pub mod fsutil;
 pub mod hdr;

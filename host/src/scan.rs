@@ -165,6 +165,23 @@ pub struct ScanSettings {
     /// a resume on another simulated scanner is refused.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simulator: Option<String>,
+    /// Auto exposure: `exposure_us` and `bracket_us` are chosen by
+    /// metering (docs/scan-format.md, "Auto exposure").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_exposure: Option<AutoExposure>,
+    /// What metering measured (auto exposure, once metered).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub metering: Option<crate::exposure::Metering>,
+}
+
+/// What auto exposure chooses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AutoExposure {
+    /// One exposure per mirror.
+    Single,
+    /// An HDR bracket per mirror.
+    Hdr,
 }
 
 impl PositionCheck {
@@ -187,18 +204,34 @@ impl ScanSettings {
         field("sample name", format!("{:?}", self.sample_name), format!("{:?}", other.sample_name));
         field("geometry", self.geometry_sha256.clone(), other.geometry_sha256.clone());
         field("mirrors", self.mirror_count.to_string(), other.mirror_count.to_string());
-        field("exposure", format!("{} µs", self.exposure_us), format!("{} µs", other.exposure_us));
+        let auto = |a: Option<AutoExposure>| match a {
+            None => "fixed".to_string(),
+            Some(AutoExposure::Single) => "auto, one exposure".to_string(),
+            Some(AutoExposure::Hdr) => "auto, HDR".to_string(),
+        };
+        field("exposure choice", auto(self.auto_exposure), auto(other.auto_exposure));
+        // Auto exposure: the directory's metered exposures are the scan's.
+        let metered = self.auto_exposure.is_some() && other.auto_exposure.is_some();
+        if !metered {
+            field(
+                "exposure",
+                format!("{} µs", self.exposure_us),
+                format!("{} µs", other.exposure_us),
+            );
+        }
         field("settle", format!("{} ms", self.settle_ms), format!("{} ms", other.settle_ms));
         field(
             "light duty",
             format!("{} ‰", self.light_duty_permille),
             format!("{} ‰", other.light_duty_permille),
         );
-        field(
-            "HDR bracket",
-            format!("{:?} µs", self.bracket_us),
-            format!("{:?} µs", other.bracket_us),
-        );
+        if !metered {
+            field(
+                "HDR bracket",
+                format!("{:?} µs", self.bracket_us),
+                format!("{:?} µs", other.bracket_us),
+            );
+        }
         let sim = |s: &Option<String>| s.clone().unwrap_or_else(|| "a real scanner".into());
         field("scanner", sim(&self.simulator), sim(&other.simulator));
         out
@@ -435,6 +468,9 @@ pub struct ScanOptions {
     pub attempts: u32,
     /// HDR bracket, µs (empty: one exposure of `exposure_us`).
     pub bracket_us: Vec<u32>,
+    /// Auto exposure: meter first (at `exposure_us`), then choose the
+    /// exposure or bracket ([`crate::exposure`]); `bracket_us` is ignored.
+    pub auto_exposure: Option<AutoExposure>,
     /// Check the axes against their switches after every this many frames
     /// (0: only once every frame is taken). A failed check retakes the
     /// frames since the last passed one.
@@ -462,6 +498,7 @@ impl ScanOptions {
             frame_timeout: Duration::from_secs(10),
             attempts: 3,
             bracket_us: Vec::new(),
+            auto_exposure: None,
             check_every: DEFAULT_CHECK_EVERY,
             force: false,
             simulator: None,
@@ -967,8 +1004,10 @@ pub fn scan(
         exposure_us: opts.exposure_us,
         settle_ms: opts.settle_ms,
         light_duty_permille: opts.light_duty_permille,
-        bracket_us: opts.bracket_us.clone(),
+        bracket_us: if opts.auto_exposure.is_some() { Vec::new() } else { opts.bracket_us.clone() },
         simulator: opts.simulator.clone(),
+        auto_exposure: opts.auto_exposure,
+        metering: None,
     };
     if let Some(&bad) = opts
         .bracket_us
@@ -999,6 +1038,48 @@ pub fn scan(
     let axes = prepared.axes;
     await_stray_frame(dev, camera, opts, progress)?;
     report.timings.link += t.elapsed();
+
+    // Auto exposure: metered once per scan (a resumed scan keeps what its
+    // first run chose); the exposures chosen stand in for the options'.
+    let metered_opts;
+    let opts = match opts.auto_exposure {
+        None => opts,
+        Some(mode) => {
+            if manifest.settings.metering.is_none() {
+                let metering = meter(dev, camera, geometry, opts, total, &mut report, progress)?;
+                let choice = crate::exposure::choose(&metering, mode == AutoExposure::Hdr);
+                progress.note(&format!(
+                    "metered {}: the sample's 95th percentile at {:.3} and its peak at {} of full \
+                     scale at {} µs → {}",
+                    mirror_list(&metering.mirrors),
+                    metering.body,
+                    metering.peak.map_or("saturation".into(), |p| format!("{p:.3}")),
+                    metering.exposure_us,
+                    if choice.bracket_us.is_empty() {
+                        format!("{} µs", choice.exposure_us)
+                    } else {
+                        format!("bracket {:?} µs", choice.bracket_us)
+                    }
+                ));
+                manifest.settings.exposure_us = choice.exposure_us;
+                manifest.settings.bracket_us = choice.bracket_us;
+                manifest.settings.metering = Some(metering);
+                let t = Instant::now();
+                if !manifest.settings.bracket_us.is_empty() {
+                    let raw = opts.out.join("frames").join("raw");
+                    std::fs::create_dir_all(&raw).map_err(|e| io_error(&raw, e))?;
+                }
+                manifest.save(&opts.out)?;
+                report.timings.disk += t.elapsed();
+            }
+            metered_opts = ScanOptions {
+                exposure_us: manifest.settings.exposure_us,
+                bracket_us: manifest.settings.bracket_us.clone(),
+                ..opts.clone()
+            };
+            &metered_opts
+        }
+    };
 
     // Frames are encoded and written, and the manifest updated, on a second
     // thread while the next frame is captured; the manifest names a frame
@@ -1498,6 +1579,46 @@ fn write_frame(dir: &Path, job: WriteJob) -> Result<FrameRecord, ScanError> {
     record.width = frame.width;
     record.height = frame.height;
     Ok(record)
+}
+
+/// Auto exposure's metering frames ([`crate::exposure`]): the metering
+/// mirrors at `opts.exposure_us`, taken again 10× shorter while the
+/// sample's body saturates. Nothing is stored.
+fn meter(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    geometry: &ScannerGeometry,
+    opts: &ScanOptions,
+    total: usize,
+    report: &mut ScanReport,
+    progress: &mut dyn ScanProgress,
+) -> Result<crate::exposure::Metering, ScanError> {
+    use crate::exposure::{Metering, measure, meter_mirrors, sample_values};
+    let mirrors = meter_mirrors(total);
+    let mut exposure_us = opts.exposure_us;
+    loop {
+        let mut o = opts.clone();
+        o.exposure_us = exposure_us;
+        let mut values = Vec::new();
+        for &l in &mirrors {
+            // A reset or lost steps on the way do not matter: nothing is kept.
+            let ((frame, _, _), _) =
+                capture_with_retries(dev, camera, geometry, l, &o, report, progress)?;
+            values.extend(sample_values(&frame, geometry));
+        }
+        if values.is_empty() {
+            return Err(ScanError::Conflict(
+                "auto exposure: the geometry projects the sample outside the camera's frames"
+                    .into(),
+            ));
+        }
+        let (body, peak, too_bright) = measure(&mut values);
+        if too_bright && exposure_us > protocol::MIN_EXPOSURE_US {
+            exposure_us = (exposure_us / 10).max(protocol::MIN_EXPOSURE_US);
+            continue;
+        }
+        return Ok(Metering { exposure_us, mirrors, body, peak });
+    }
 }
 
 /// Capture mirror `l`, taking the step again after a missed frame and

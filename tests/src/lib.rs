@@ -43,7 +43,9 @@ pub fn sim_scan(
 /// stay below full scale).
 pub const GLOSSY_EXPOSURE_US: u32 = 2_000;
 
-/// [`sim_scan`] at exposure `exposure_us` (the bracket's longest with `hdr`).
+/// [`sim_scan`] at exposure `exposure_us`; with `hdr`, auto exposure's
+/// metered bracket (as `scanner demo` scans its sample), metered at
+/// `exposure_us`.
 pub fn sim_scan_at(
     material: &str,
     seed: u64,
@@ -65,7 +67,7 @@ pub fn sim_scan_at(
     opts.exposure_us = exposure_us;
     opts.resume = true;
     if hdr {
-        opts.bracket_us = host::hdr::default_bracket(opts.exposure_us);
+        opts.auto_exposure = Some(host::scan::AutoExposure::Hdr);
     }
     scan(&mut dev, &mut SimCamera(rig), &nominal, &opts, &mut Quiet).expect("a clean scan");
     nominal

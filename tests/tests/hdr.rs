@@ -108,3 +108,65 @@ fn a_bracket_merges_without_clipping_and_matches_the_truth() {
     assert!(peak > 5.0, "a real highlight: {peak}");
     assert!(rms < 1.3 && mean.abs() < 0.15, "within noise: RMS z {rms}, mean z {mean}");
 }
+
+/// Auto exposure (docs/scan-format.md): a dark matte sample gets a longer
+/// exposure than the default, a glossy one a bracket reaching down to its
+/// highlights; the choice is recorded, kept on resume, and merged without
+/// saturation.
+#[test]
+fn auto_exposure_meters_the_sample_and_a_resume_keeps_its_choice() {
+    let dir = common::tmp();
+    let gloss = dir.path().join("gloss");
+    glossy_set(&gloss);
+    let dark = dir.path().join("dark");
+    std::fs::create_dir_all(&dark).unwrap();
+    std::fs::write(dark.join("material.toml"), "format = 1\nname = \"dark\"\nsize_mm = 40.0\n")
+        .unwrap();
+    for (name, v) in [
+        ("diffuse.exr", [0.03f32; 3]),
+        ("specular.exr", [0.02; 3]),
+        ("roughness.exr", [0.9; 3]),
+        ("normal.exr", [0.5, 0.5, 1.0]),
+    ] {
+        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dark.join(name)).unwrap();
+    }
+    // The dark sample, one exposure: longer than the default 50 ms.
+    let out = dir.path().join("dark-scan");
+    let (code, err) = scan(&dark.display().to_string(), &out, &["--exposure-us", "auto"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("metered mirrors 0–3"), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    let metering = m.settings.metering.clone().expect("metering recorded");
+    assert_eq!(m.settings.auto_exposure, Some(host::scan::AutoExposure::Single));
+    assert!(m.settings.bracket_us.is_empty());
+    assert!(m.settings.exposure_us > 200_000, "{metering:?} → {} µs", m.settings.exposure_us);
+    assert!(m.frames.iter().all(|f| f.exposure_us == m.settings.exposure_us));
+    // The glossy sample, HDR: a bracket of 5× steps reaching below 2 ms.
+    let out = dir.path().join("gloss-scan");
+    let gloss = gloss.display().to_string();
+    let (code, err) = scan(&gloss, &out, &["--exposure-us", "auto", "--hdr"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("saturated"), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    let b = m.settings.bracket_us.clone();
+    let metering = m.settings.metering.clone().expect("metering recorded");
+    assert!((3..=5).contains(&b.len()), "{b:?} from {metering:?}");
+    assert!(b.windows(2).all(|w| w[1] / w[0] == 5 || w[0] == 1_000), "5× steps: {b:?}");
+    assert_eq!(*b.last().unwrap(), m.settings.exposure_us);
+    // Its highlights, ≈ 20× a white target's level, pass 50 ms's full scale
+    // at the metered mirrors; the shortest exposure holds them.
+    let fits = metering.peak.is_some_and(|p| p * b[0] as f64 / metering.exposure_us as f64 <= 0.8);
+    assert!(fits || b[0] == 1_000 || b.len() == 5, "{b:?} from {metering:?}");
+    assert!(b[0] < 10_000, "{b:?} from {metering:?}");
+    // A resume keeps the directory's choice (nothing to take: it is
+    // complete), whatever metering would say now; fixed exposures are refused.
+    let (code, err) = scan(&gloss, &out, &["--exposure-us", "auto", "--hdr", "--resume"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("metered"), "not metered again: {err}");
+    assert_eq!(host::scan::Manifest::load(&out).unwrap().settings.bracket_us, b);
+    let (code, err) = scan(&gloss, &out, &["--hdr", "--resume"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("exposure choice"), "{err}");
+    let (code, err) = scan(&gloss, &out, &["--exposure-us", "auto", "--exposures", "2000,5000"]);
+    assert_eq!(code, Some(2), "{err}");
+}

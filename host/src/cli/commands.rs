@@ -464,14 +464,17 @@ pub struct ScanArgs {
     /// Scan only mirrors 0 … N−1.
     #[arg(long)]
     pub mirrors: Option<usize>,
-    /// Exposure, µs.
-    #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
-    pub exposure_us: u32,
+    /// Exposure, µs, or `auto`: metered on a few mirrors first, then the
+    /// exposure (with --hdr, the bracket) that suits the sample
+    /// (docs/scan-format.md, "Auto exposure").
+    #[arg(long, default_value_t = Exposure::Us(protocol::DEFAULT_EXPOSURE_US))]
+    pub exposure_us: Exposure,
     /// HDR: take these exposures (µs, comma-separated) per mirror and
     /// store their merge (docs/scan-format.md, "HDR").
     #[arg(long, value_delimiter = ',', conflicts_with = "hdr")]
     pub exposures: Vec<u32>,
-    /// HDR with the default bracket around --exposure-us (×1/25, ×1/5, ×1).
+    /// HDR with the default bracket around --exposure-us (×1/25, ×1/5, ×1),
+    /// or the metered one with `--exposure-us auto`.
     #[arg(long)]
     pub hdr: bool,
     /// Camera timeout per frame, s.
@@ -484,24 +487,76 @@ pub struct ScanArgs {
     pub check_every: usize,
 }
 
+/// `--exposure-us`: microseconds, or `auto`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Exposure {
+    /// Metered ([`crate::exposure`]).
+    Auto,
+    /// Fixed, µs.
+    Us(u32),
+}
+
+impl std::fmt::Display for Exposure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Exposure::Auto => f.write_str("auto"),
+            Exposure::Us(us) => write!(f, "{us}"),
+        }
+    }
+}
+
+impl std::str::FromStr for Exposure {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.eq_ignore_ascii_case("auto") {
+            return Ok(Exposure::Auto);
+        }
+        s.parse().map(Exposure::Us).map_err(|_| format!("{s:?} is neither µs nor `auto`"))
+    }
+}
+
 impl ScanArgs {
-    /// The HDR bracket asked for (empty: a single exposure), checked
-    /// before anything moves.
+    /// Auto exposure asked for, if any.
+    pub fn auto_exposure(&self) -> Option<scan::AutoExposure> {
+        (self.exposure_us == Exposure::Auto).then_some(if self.hdr {
+            scan::AutoExposure::Hdr
+        } else {
+            scan::AutoExposure::Single
+        })
+    }
+
+    /// The fixed exposure, or the metering frames' with `auto`, µs.
+    pub fn base_exposure_us(&self) -> u32 {
+        match self.exposure_us {
+            Exposure::Auto => protocol::DEFAULT_EXPOSURE_US,
+            Exposure::Us(us) => us,
+        }
+    }
+
+    /// The HDR bracket asked for (empty: a single exposure, or a metered
+    /// one), checked before anything moves.
     pub fn bracket(&self) -> Result<Vec<u32>, Failure> {
         let range = protocol::MIN_EXPOSURE_US..=protocol::MAX_EXPOSURE_US;
-        if !range.contains(&self.exposure_us) {
+        let exposure_us = self.base_exposure_us();
+        if !range.contains(&exposure_us) {
             return Err(Failure(
                 2,
-                anyhow!(
-                    "--exposure-us {} outside {}…{}",
-                    self.exposure_us,
-                    range.start(),
-                    range.end()
-                ),
+                anyhow!("--exposure-us {exposure_us} outside {}…{}", range.start(), range.end()),
             ));
         }
+        if self.exposure_us == Exposure::Auto {
+            if !self.exposures.is_empty() {
+                return Err(Failure(
+                    2,
+                    anyhow!(
+                        "--exposures names fixed exposures; it does not go with --exposure-us auto"
+                    ),
+                ));
+            }
+            return Ok(Vec::new());
+        }
         let mut b = if self.hdr {
-            crate::hdr::default_bracket(self.exposure_us)
+            crate::hdr::default_bracket(exposure_us)
         } else {
             self.exposures.clone()
         };
@@ -516,7 +571,7 @@ impl ScanArgs {
         if b.len() > 8 {
             return Err(Failure(2, anyhow!("--exposures: at most 8 exposures")));
         }
-        Ok(if b.len() == 1 && !self.hdr && b[0] == self.exposure_us { Vec::new() } else { b })
+        Ok(if b.len() == 1 && !self.hdr && b[0] == exposure_us { Vec::new() } else { b })
     }
 }
 
@@ -558,7 +613,8 @@ pub fn run_scan(
     let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
     opts.resume = scan_args.resume;
     opts.mirrors = scan_args.mirrors;
-    opts.exposure_us = scan_args.exposure_us;
+    opts.exposure_us = scan_args.base_exposure_us();
+    opts.auto_exposure = scan_args.auto_exposure();
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
     opts.bracket_us = scan_args.bracket()?;
     opts.check_every = scan_args.check_every;
@@ -691,11 +747,13 @@ pub fn demo(
         .filter(|n| !n.is_empty())
         .unwrap_or_else(|| "sample".into());
     // The glossy target's highlights are ≈ 40× the white's: a short exposure.
+    // The sample: metered, HDR.
+    let fixed = |us| Exposure::Us(us);
     for (sample, label, hdr, exposure_us) in [
-        ("checkerboard", "checkerboard", false, protocol::DEFAULT_EXPOSURE_US),
-        ("diffuse-white", "diffuse-white", false, protocol::DEFAULT_EXPOSURE_US),
-        ("glossy-black", "glossy-black", false, GLOSSY_EXPOSURE_US),
-        (material, name.as_str(), true, protocol::DEFAULT_EXPOSURE_US),
+        ("checkerboard", "checkerboard", false, fixed(protocol::DEFAULT_EXPOSURE_US)),
+        ("diffuse-white", "diffuse-white", false, fixed(protocol::DEFAULT_EXPOSURE_US)),
+        ("glossy-black", "glossy-black", false, fixed(GLOSSY_EXPOSURE_US)),
+        (material, name.as_str(), true, Exposure::Auto),
     ] {
         let args = DeviceArgs {
             device: "sim".into(),

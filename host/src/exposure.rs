@@ -1,0 +1,215 @@
+//! Auto exposure (`scanner scan --exposure-us auto`, docs/scan-format.md,
+//! "Auto exposure"): a few metering frames, the sample's values in them,
+//! and the exposure or HDR bracket chosen from those values.
+//!
+//! A fixed exposure suits one brightness only: at the default 50 ms the
+//! diffuse-white target reaches ≈ 0.2 of full scale and a near-black
+//! sample ≈ 0.01 (a few dozen electrons: shot noise of 10 % per pixel),
+//! while a polished metal's highlights pass it 20-fold. Metering puts the
+//! bulk of the sample's values high on the sensor's range in the longest
+//! exposure and extends the bracket down until its highlights fit.
+//!
+//! The values are read where the nominal geometry projects the sample's
+//! central half (uv 0.25…0.75) in every view, so that neither the holder
+//! around it nor the as-built scanner's offsets (≈ 24 px) count.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Frame;
+use scanner_geometry::ScannerGeometry;
+
+/// Percentile of the sample's values that sets the longest exposure.
+pub const BODY_PERCENTILE: f64 = 0.95;
+/// Where the longest exposure of an HDR bracket puts that percentile, as
+/// a fraction of full scale (the shorter exposures take what it clips).
+pub const HDR_BODY_TARGET: f64 = 0.5;
+/// Percentile taken as the sample's peak (robust to a few hot pixels).
+pub const PEAK_PERCENTILE: f64 = 0.9999;
+/// Where the shortest exposure of a bracket (or a single auto exposure)
+/// must keep the peak, as a fraction of full scale.
+pub const PEAK_TARGET: f64 = 0.8;
+/// Longest exposure auto exposure picks, µs: a 40-mirror scan then spends
+/// at most ≈ 40 s more exposing than at the default.
+pub const AUTO_MAX_US: u32 = 1_000_000;
+/// Ratio between consecutive exposures of an auto bracket.
+pub const BRACKET_STEP: u32 = 5;
+/// Exposures of an auto bracket: at least this many, for highlights at
+/// mirrors that were not metered (25× headroom above the longest's full scale)…
+pub const BRACKET_MIN_LEN: usize = 3;
+/// … and at most this many.
+pub const BRACKET_MAX_LEN: usize = 5;
+/// Mirrors metered (spread over those scanned).
+pub const METER_MIRRORS: usize = 8;
+/// A metering frame whose body is above this fraction of full scale is
+/// taken again 10× shorter.
+const BODY_TOO_BRIGHT: f64 = 0.9;
+/// Values at or above this fraction of full scale are saturated.
+const SATURATED: f32 = 0.999;
+
+/// What metering measured and chose (recorded in the scan's settings).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Metering {
+    /// The exposure the metering frames were taken at, µs.
+    pub exposure_us: u32,
+    /// The mirrors metered.
+    pub mirrors: Vec<usize>,
+    /// [`BODY_PERCENTILE`] of the sample's values, fraction of full scale
+    /// at `exposure_us`.
+    pub body: f64,
+    /// [`PEAK_PERCENTILE`] of the same; `None` when it was saturated.
+    pub peak: Option<f64>,
+}
+
+/// The exposures auto exposure chose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Choice {
+    /// The (longest) exposure, µs.
+    pub exposure_us: u32,
+    /// HDR: every exposure per mirror, ascending (empty: one exposure).
+    pub bracket_us: Vec<u32>,
+}
+
+/// The mirrors to meter among the first `total`: [`METER_MIRRORS`] spread
+/// evenly (all of them if fewer).
+pub fn meter_mirrors(total: usize) -> Vec<usize> {
+    let n = METER_MIRRORS.min(total);
+    let mut m: Vec<usize> = (0..n).map(|k| k * total / n).collect();
+    m.dedup();
+    m
+}
+
+/// The sample's values in `frame` (every channel, fraction of full
+/// scale): nearest pixels at 11 × 11 points over the central half of the
+/// sample in each of the geometry's views.
+pub fn sample_values(frame: &Frame, g: &ScannerGeometry) -> Vec<f32> {
+    let (w, h) = (frame.width as usize, frame.height as usize);
+    let mut out = Vec::new();
+    for view in 0..g.mirrors.len() {
+        for j in 0..11 {
+            for i in 0..11 {
+                let uv = [0.25 + 0.05 * i as f64, 0.25 + 0.05 * j as f64];
+                let Some(p) = g.view_point(view, uv) else { continue };
+                if !(p[0] >= 0.0 && p[1] >= 0.0) {
+                    continue;
+                }
+                let (x, y) = (p[0] as usize, p[1] as usize);
+                if x < w && y < h && frame.rgb.len() >= 3 * w * h {
+                    out.extend_from_slice(&frame.rgb[3 * (y * w + x)..][..3]);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The `p` quantile of `values` (sorted in place), nearest rank; 0 for none.
+fn quantile(values: &mut [f32], p: f64) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    values.sort_unstable_by(f32::total_cmp);
+    values[((values.len() - 1) as f64 * p).round() as usize] as f64
+}
+
+/// Body and peak of the values of metering frames taken at one exposure;
+/// whether the body is too bright to measure at it.
+pub fn measure(values: &mut [f32]) -> (f64, Option<f64>, bool) {
+    let body = quantile(values, BODY_PERCENTILE);
+    let peak = quantile(values, PEAK_PERCENTILE);
+    let peak = (peak < SATURATED as f64).then_some(peak);
+    (body, peak, body > BODY_TOO_BRIGHT)
+}
+
+/// The exposure (or, with `hdr`, the bracket) for what `metering` saw.
+///
+/// - One exposure: the peak at [`PEAK_TARGET`] of full scale (the body at
+///   [`HDR_BODY_TARGET`] if the peak was saturated), within the device's
+///   limits and [`AUTO_MAX_US`].
+/// - HDR: the longest exposure puts the body at [`HDR_BODY_TARGET`]; then
+///   exposures [`BRACKET_STEP`]× shorter follow, at least
+///   [`BRACKET_MIN_LEN`] of them and more while the peak would still pass
+///   [`PEAK_TARGET`] (a saturated peak: down to the device's shortest), at
+///   most [`BRACKET_MAX_LEN`].
+pub fn choose(metering: &Metering, hdr: bool) -> Choice {
+    let (min, max) = (protocol::MIN_EXPOSURE_US, AUTO_MAX_US.min(protocol::MAX_EXPOSURE_US));
+    let t_m = metering.exposure_us as f64;
+    // The exposure at which a value `v` (at the metering exposure) reaches `target`.
+    let at = |v: f64, target: f64| {
+        let t = if v > 0.0 { t_m * target / v } else { f64::INFINITY };
+        t.clamp(min as f64, max as f64).round() as u32
+    };
+    if !hdr {
+        let t = match metering.peak {
+            Some(p) => at(p, PEAK_TARGET),
+            None => at(metering.body, HDR_BODY_TARGET),
+        };
+        return Choice { exposure_us: t, bracket_us: Vec::new() };
+    }
+    let longest = at(metering.body, HDR_BODY_TARGET);
+    let mut bracket = vec![longest];
+    loop {
+        let shortest = *bracket.last().expect("one exposure");
+        let peak_fits = metering.peak.is_some_and(|p| p * shortest as f64 / t_m <= PEAK_TARGET);
+        if shortest <= min
+            || bracket.len() >= BRACKET_MAX_LEN
+            || (peak_fits && bracket.len() >= BRACKET_MIN_LEN)
+        {
+            break;
+        }
+        bracket.push((shortest / BRACKET_STEP).max(min));
+    }
+    bracket.sort_unstable();
+    bracket.dedup();
+    Choice { exposure_us: longest, bracket_us: bracket }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn metering(body: f64, peak: Option<f64>) -> Metering {
+        Metering { exposure_us: 50_000, mirrors: vec![0], body, peak }
+    }
+
+    #[test]
+    fn a_dark_sample_gets_a_long_exposure_and_a_bright_one_a_short_one() {
+        // Body 0.02 of full scale at 50 ms: 0.5 at 1.25 s, capped at 1 s.
+        let c = choose(&metering(0.02, Some(0.05)), true);
+        assert_eq!(c.exposure_us, AUTO_MAX_US);
+        assert_eq!(c.bracket_us, vec![40_000, 200_000, 1_000_000]);
+        // Body 0.1: 250 ms; a matte sample keeps the three-step minimum.
+        let c = choose(&metering(0.1, Some(0.2)), true);
+        assert_eq!(c.bracket_us, vec![10_000, 50_000, 250_000]);
+        // One exposure: the peak at 0.8 of full scale.
+        assert_eq!(choose(&metering(0.1, Some(0.2)), false).exposure_us, 200_000);
+        assert!(choose(&metering(0.1, Some(0.2)), false).bracket_us.is_empty());
+    }
+
+    #[test]
+    fn highlights_extend_the_bracket_down_to_the_device_limit() {
+        // Peak 20× full scale at 50 ms, body 0.25: longest 100 ms; the peak
+        // fits at ≤ 2 ms: 100, 20, 4, then 0.8 → the device's 1 ms.
+        let c = choose(&metering(0.25, Some(20.0)), true);
+        assert_eq!(c.bracket_us, vec![1_000, 4_000, 20_000, 100_000]);
+        // Saturated peak: as short as the device goes, at most five exposures.
+        let c = choose(&metering(0.001, None), true);
+        assert_eq!(c.bracket_us.len(), BRACKET_MAX_LEN);
+        assert_eq!(c.exposure_us, AUTO_MAX_US);
+        let c = choose(&metering(0.4, None), true);
+        assert_eq!(c.bracket_us, vec![1_000, 2_500, 12_500, 62_500]);
+    }
+
+    #[test]
+    fn a_black_frame_gets_the_longest_exposure_and_measure_finds_saturation() {
+        let c = choose(&metering(0.0, Some(0.0)), true);
+        assert_eq!(c.exposure_us, AUTO_MAX_US);
+        let mut v: Vec<f32> = (0..10_000).rev().map(|i| i as f32 / 20_000.0).collect();
+        let (body, peak, too_bright) = measure(&mut v);
+        assert!((body - 0.475).abs() < 1e-3 && !too_bright, "{body}");
+        assert!((peak.unwrap() - 0.49995).abs() < 1e-3, "{peak:?}");
+        let mut v = vec![1.0f32; 100];
+        assert_eq!(measure(&mut v), (1.0, None, true));
+        assert_eq!(meter_mirrors(40), vec![0, 5, 10, 15, 20, 25, 30, 35]);
+        assert_eq!(meter_mirrors(3), vec![0, 1, 2]);
+    }
+}

@@ -1,0 +1,145 @@
+//! Writes five texture sets (docs/texture-set.md) unlike the library
+//! materials and unlike each other, for checking that the builder
+//! generalises (docs/benchmarks.md, "Samples outside the library"). Nothing
+//! in the builder was tuned to them.
+//!
+//! - `red-plastic`: a glossy dielectric (F0 0.04, roughness 0.25–0.32)
+//!   with an orange-peel bump (slopes ±0.03, 2 mm);
+//! - `gold-foil`: a bare metal (F0 (1.0, 0.77, 0.33), no diffuse,
+//!   roughness 0.22–0.34), crumpled (slopes up to ±0.2, 3–7 mm);
+//! - `dark-rubber`: near-black (albedo 0.03), rough (0.85), fine bumps
+//!   (0.8 mm) — the noise floor;
+//! - `printed-paper`: matte white paper with 0.3 mm dark lines every 2 mm
+//!   and a 5 mm dot screen — high contrast below the camera's resolution;
+//! - `green-tile`: the glTF metallic-roughness form (`baseColor`,
+//!   `metallicRoughness`), a glazed tile with metallic flecks.
+//!
+//! `cargo run --release -p tests --example unseen_samples -- DIR`, then
+//! `cargo run --release -p tests --example material_fidelity -- --materials DIR/red-plastic,…`.
+
+use std::f64::consts::PI;
+use std::path::Path;
+
+const W: u32 = 512;
+
+fn srgb(c: f64) -> f64 {
+    if c <= 0.0031308 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
+}
+
+fn byte(x: f64) -> u8 {
+    (x * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+/// One texel of a set: (diffuse or base colour, F0 or [_, roughness,
+/// metallic], roughness, height-field slopes (∂h/∂x, ∂h/∂y)).
+struct Texel {
+    colour: [f64; 3],
+    specular: [f64; 3],
+    roughness: f64,
+    slope: (f64, f64),
+}
+
+/// Writes a set of `size_mm` whose texel at material point (x, y) mm is
+/// `f(x, y)`; `gltf` writes the metallic-roughness form (`specular` then
+/// holds [0, roughness, metallic]).
+fn write_set(dir: &Path, name: &str, size_mm: f64, gltf: bool, f: impl Fn(f64, f64) -> Texel) {
+    let dir = dir.join(name);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(
+        dir.join("material.toml"),
+        format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:.1}\n"),
+    )
+    .unwrap();
+    let mut colour = image::RgbImage::new(W, W);
+    let mut specular = image::RgbImage::new(W, W);
+    let mut roughness = image::GrayImage::new(W, W);
+    let mut normal = image::RgbImage::new(W, W);
+    for r in 0..W {
+        for c in 0..W {
+            let (x, y) =
+                ((c as f64 + 0.5) / W as f64 * size_mm, (r as f64 + 0.5) / W as f64 * size_mm);
+            let t = f(x, y);
+            let (hx, hy) = t.slope;
+            let l = (hx * hx + hy * hy + 1.0).sqrt();
+            let n = [-hx / l, -hy / l, 1.0 / l];
+            colour.put_pixel(c, r, image::Rgb(t.colour.map(|v| byte(srgb(v)))));
+            if gltf {
+                specular.put_pixel(c, r, image::Rgb(t.specular.map(byte)));
+            } else {
+                specular.put_pixel(c, r, image::Rgb(t.specular.map(|v| byte(srgb(v)))));
+                roughness.put_pixel(c, r, image::Luma([byte(t.roughness)]));
+            }
+            normal.put_pixel(c, r, image::Rgb(n.map(|v| byte((v + 1.0) / 2.0))));
+        }
+    }
+    if gltf {
+        colour.save(dir.join("baseColor.png")).unwrap();
+        specular.save(dir.join("metallicRoughness.png")).unwrap();
+    } else {
+        colour.save(dir.join("diffuse.png")).unwrap();
+        specular.save(dir.join("specular.png")).unwrap();
+        roughness.save(dir.join("roughness.png")).unwrap();
+    }
+    normal.save(dir.join("normal.png")).unwrap();
+    println!("{}: {name}, {W}² maps over {size_mm} mm", dir.display());
+}
+
+/// A sum of sines of periods `periods` mm (the slopes of a smooth bump).
+fn bumps(x: f64, y: f64, periods: &[f64], amplitude: f64) -> (f64, f64) {
+    let (mut sx, mut sy) = (0.0, 0.0);
+    for (i, &p) in periods.iter().enumerate() {
+        let k = 2.0 * PI / p;
+        let phase = 1.7 * i as f64;
+        sx += amplitude * (k * x + phase).cos() * (k * y * 0.9 + 0.5 * phase).sin();
+        sy += amplitude * (k * x + phase).sin() * (k * y * 0.9 + 0.5 * phase).cos();
+    }
+    (sx / periods.len() as f64, sy / periods.len() as f64)
+}
+
+fn main() {
+    let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: unseen_samples DIR"));
+    // The sizes divide the 25.4 mm sample into whole periods where the
+    // patterns are periodic; the maps tile at size_mm.
+    write_set(&dir, "red-plastic", 32.0, false, |x, y| Texel {
+        colour: [0.45, 0.04, 0.03],
+        specular: [0.04; 3],
+        roughness: 0.285 + 0.035 * (2.0 * PI * x / 16.0).sin() * (2.0 * PI * y / 8.0).cos(),
+        slope: bumps(x, y, &[2.0], 0.03),
+    });
+    write_set(&dir, "gold-foil", 28.0, false, |x, y| Texel {
+        colour: [0.0; 3],
+        specular: [1.0, 0.77, 0.33],
+        roughness: 0.28 + 0.06 * (2.0 * PI * (x + 0.5 * y) / 7.0).sin(),
+        slope: bumps(x, y, &[7.0, 4.0, 3.0], 0.2),
+    });
+    write_set(&dir, "dark-rubber", 24.0, false, |x, y| Texel {
+        colour: [0.03, 0.03, 0.032],
+        specular: [0.04; 3],
+        roughness: 0.85,
+        slope: bumps(x, y, &[0.8], 0.08),
+    });
+    write_set(&dir, "printed-paper", 20.0, false, |x, y| {
+        let line = (x % 2.0) < 0.3;
+        let (dx, dy) = ((x % 5.0) - 2.5, (y % 5.0) - 2.5);
+        let dot = dx * dx + dy * dy < 1.0;
+        let ink = if line {
+            [0.03, 0.03, 0.05]
+        } else if dot {
+            [0.05, 0.30, 0.60]
+        } else {
+            [0.80, 0.79, 0.74]
+        };
+        Texel { colour: ink, specular: [0.04; 3], roughness: 0.9, slope: (0.0, 0.0) }
+    });
+    write_set(&dir, "green-tile", 30.0, true, |x, y| {
+        let fleck = ((x * 3.7).sin() * (y * 4.3).sin()).abs() > 0.97;
+        let (base, metallic) =
+            if fleck { ([0.9, 0.8, 0.5], 1.0) } else { ([0.08, 0.35, 0.15], 0.0) };
+        Texel {
+            colour: base,
+            specular: [0.0, 0.35 + 0.1 * (2.0 * PI * y / 10.0).sin(), metallic],
+            roughness: 0.0,
+            slope: bumps(x, y, &[10.0, 6.0], 0.05),
+        }
+    });
+}
