@@ -56,8 +56,14 @@ pub struct Metering {
     /// [`BODY_PERCENTILE`] of the sample's values, fraction of full scale
     /// at `exposure_us`.
     pub body: f64,
-    /// [`PEAK_PERCENTILE`] of the same; `None` when it was saturated.
+    /// [`PEAK_PERCENTILE`] of the sample's values, in the same units (above
+    /// 1 when it saturated at `exposure_us` and was measured at
+    /// `peak_exposure_us`); `None` when it saturated even there.
     pub peak: Option<f64>,
+    /// The exposure the peak was measured at, µs (`exposure_us`, or
+    /// shorter metering frames when the peak saturated at it).
+    #[serde(default)]
+    pub peak_exposure_us: u32,
 }
 
 /// The exposures auto exposure chose.
@@ -123,44 +129,51 @@ pub fn measure(values: &mut [f32]) -> (f64, Option<f64>, bool) {
 /// The exposure (or, with `hdr`, the bracket) for what `metering` saw.
 ///
 /// - One exposure: the peak at [`PEAK_TARGET`] of full scale (the body at
-///   [`HDR_BODY_TARGET`] if the peak was saturated), within the device's
+///   [`HDR_BODY_TARGET`] if the peak saturated), within the device's
 ///   limits and [`AUTO_MAX_US`].
-/// - HDR: the longest exposure puts the body at [`HDR_BODY_TARGET`]; then
-///   exposures [`BRACKET_STEP`]× shorter follow, at least
-///   [`BRACKET_MIN_LEN`] of them and more while the peak would still pass
-///   [`PEAK_TARGET`] (a saturated peak: down to the device's shortest), at
-///   most [`BRACKET_MAX_LEN`].
+/// - HDR: the longest exposure puts the body at [`HDR_BODY_TARGET`] of
+///   full scale and the shortest the peak at [`PEAK_TARGET`] (a peak that
+///   saturated every metering frame: the device's shortest exposure), with
+///   equal ratios of at most [`BRACKET_STEP`] between them — so the body
+///   and the highlights are each measured high on the sensor's range. At
+///   least [`BRACKET_MIN_LEN`] exposures (more, [`BRACKET_STEP`]× shorter,
+///   as headroom for highlights at mirrors that were not metered), at most
+///   [`BRACKET_MAX_LEN`] (a wider range gives up the top of the peak).
 pub fn choose(metering: &Metering, hdr: bool) -> Choice {
-    let (min, max) = (protocol::MIN_EXPOSURE_US, AUTO_MAX_US.min(protocol::MAX_EXPOSURE_US));
+    let (min, max) =
+        (protocol::MIN_EXPOSURE_US as f64, AUTO_MAX_US.min(protocol::MAX_EXPOSURE_US) as f64);
     let t_m = metering.exposure_us as f64;
     // The exposure at which a value `v` (at the metering exposure) reaches `target`.
     let at = |v: f64, target: f64| {
         let t = if v > 0.0 { t_m * target / v } else { f64::INFINITY };
-        t.clamp(min as f64, max as f64).round() as u32
+        t.clamp(min, max)
     };
     if !hdr {
         let t = match metering.peak {
             Some(p) => at(p, PEAK_TARGET),
             None => at(metering.body, HDR_BODY_TARGET),
         };
-        return Choice { exposure_us: t, bracket_us: Vec::new() };
+        return Choice { exposure_us: t.round() as u32, bracket_us: Vec::new() };
     }
-    let longest = at(metering.body, HDR_BODY_TARGET);
-    let mut bracket = vec![longest];
-    loop {
+    let top = at(metering.body, HDR_BODY_TARGET);
+    let bottom = metering.peak.map_or(min, |p| at(p, PEAK_TARGET)).min(top);
+    let step = BRACKET_STEP as f64;
+    let mut steps = ((top / bottom).ln() / step.ln() - 1e-9).ceil().max(0.0) as i32;
+    let mut ratio = if steps > 0 { (top / bottom).powf(1.0 / steps as f64) } else { step };
+    if steps as usize >= BRACKET_MAX_LEN {
+        steps = BRACKET_MAX_LEN as i32 - 1;
+        ratio = step;
+    }
+    let mut bracket: Vec<f64> = (0..=steps).map(|k| top / ratio.powi(k)).collect();
+    while bracket.len() < BRACKET_MIN_LEN {
         let shortest = *bracket.last().expect("one exposure");
-        let peak_fits = metering.peak.is_some_and(|p| p * shortest as f64 / t_m <= PEAK_TARGET);
-        if shortest <= min
-            || bracket.len() >= BRACKET_MAX_LEN
-            || (peak_fits && bracket.len() >= BRACKET_MIN_LEN)
-        {
-            break;
-        }
-        bracket.push((shortest / BRACKET_STEP).max(min));
+        bracket.push(shortest / step);
     }
+    let mut bracket: Vec<u32> =
+        bracket.into_iter().map(|t| t.clamp(min, max).round() as u32).collect();
     bracket.sort_unstable();
     bracket.dedup();
-    Choice { exposure_us: longest, bracket_us: bracket }
+    Choice { exposure_us: *bracket.last().expect("one exposure"), bracket_us: bracket }
 }
 
 #[cfg(test)]
@@ -168,35 +181,39 @@ mod tests {
     use super::*;
 
     fn metering(body: f64, peak: Option<f64>) -> Metering {
-        Metering { exposure_us: 50_000, mirrors: vec![0], body, peak }
+        Metering { exposure_us: 50_000, mirrors: vec![0], body, peak, peak_exposure_us: 50_000 }
     }
 
     #[test]
     fn a_dark_sample_gets_a_long_exposure_and_a_bright_one_a_short_one() {
-        // Body 0.02 of full scale at 50 ms: 0.5 at 1.25 s, capped at 1 s.
-        let c = choose(&metering(0.02, Some(0.05)), true);
+        // Body 0.02 of full scale at 50 ms: 0.5 at 1.25 s, capped at 1 s;
+        // the peak fits there: two more, 5× shorter each, as headroom.
+        let c = choose(&metering(0.02, Some(0.03)), true);
         assert_eq!(c.exposure_us, AUTO_MAX_US);
         assert_eq!(c.bracket_us, vec![40_000, 200_000, 1_000_000]);
-        // Body 0.1: 250 ms; a matte sample keeps the three-step minimum.
+        // Body 0.1: 250 ms; the peak (0.2) at 0.8 of full scale at 200 ms.
         let c = choose(&metering(0.1, Some(0.2)), true);
-        assert_eq!(c.bracket_us, vec![10_000, 50_000, 250_000]);
+        assert_eq!(c.bracket_us, vec![40_000, 200_000, 250_000]);
         // One exposure: the peak at 0.8 of full scale.
         assert_eq!(choose(&metering(0.1, Some(0.2)), false).exposure_us, 200_000);
         assert!(choose(&metering(0.1, Some(0.2)), false).bracket_us.is_empty());
     }
 
     #[test]
-    fn highlights_extend_the_bracket_down_to_the_device_limit() {
-        // Peak 20× full scale at 50 ms, body 0.25: longest 100 ms; the peak
-        // fits at ≤ 2 ms: 100, 20, 4, then 0.8 → the device's 1 ms.
+    fn the_bracket_spans_body_to_peak_in_equal_steps_of_at_most_5() {
+        // Body 0.25 at 50 ms: longest 100 ms; peak 20× full scale: 2 ms
+        // holds it at 0.8. 50× in three equal steps of 3.68×.
         let c = choose(&metering(0.25, Some(20.0)), true);
-        assert_eq!(c.bracket_us, vec![1_000, 4_000, 20_000, 100_000]);
-        // Saturated peak: as short as the device goes, at most five exposures.
-        let c = choose(&metering(0.001, None), true);
-        assert_eq!(c.bracket_us.len(), BRACKET_MAX_LEN);
-        assert_eq!(c.exposure_us, AUTO_MAX_US);
+        assert_eq!(c.bracket_us, vec![2_000, 7_368, 27_144, 100_000]);
+        // Saturated peak: down to the device's shortest, at most five exposures
+        // (a range beyond 5⁴ gives up the top of the peak).
         let c = choose(&metering(0.4, None), true);
-        assert_eq!(c.bracket_us, vec![1_000, 2_500, 12_500, 62_500]);
+        assert_eq!(c.bracket_us, vec![1_000, 3_969, 15_749, 62_500]);
+        let c = choose(&metering(0.001, None), true);
+        assert_eq!(c.bracket_us, vec![1_600, 8_000, 40_000, 200_000, 1_000_000]);
+        for c in [choose(&metering(0.25, Some(20.0)), true), choose(&metering(0.4, None), true)] {
+            assert!(c.bracket_us.windows(2).all(|w| w[1] as f64 / w[0] as f64 <= 5.0 + 1e-3));
+        }
     }
 
     #[test]

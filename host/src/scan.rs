@@ -1583,7 +1583,8 @@ fn write_frame(dir: &Path, job: WriteJob) -> Result<FrameRecord, ScanError> {
 
 /// Auto exposure's metering frames ([`crate::exposure`]): the metering
 /// mirrors at `opts.exposure_us`, taken again 10× shorter while the
-/// sample's body saturates. Nothing is stored.
+/// sample's body saturates; then, if its peak saturated, 25× shorter (and
+/// at the device's shortest) for the peak. Nothing is stored.
 fn meter(
     dev: &mut Device,
     camera: &mut dyn Camera,
@@ -1595,8 +1596,10 @@ fn meter(
 ) -> Result<crate::exposure::Metering, ScanError> {
     use crate::exposure::{Metering, measure, meter_mirrors, sample_values};
     let mirrors = meter_mirrors(total);
-    let mut exposure_us = opts.exposure_us;
-    loop {
+    let mut take = |exposure_us: u32,
+                    report: &mut ScanReport,
+                    progress: &mut dyn ScanProgress|
+     -> Result<(f64, Option<f64>, bool), ScanError> {
         let mut o = opts.clone();
         o.exposure_us = exposure_us;
         let mut values = Vec::new();
@@ -1612,13 +1615,27 @@ fn meter(
                     .into(),
             ));
         }
-        let (body, peak, too_bright) = measure(&mut values);
-        if too_bright && exposure_us > protocol::MIN_EXPOSURE_US {
-            exposure_us = (exposure_us / 10).max(protocol::MIN_EXPOSURE_US);
+        Ok(measure(&mut values))
+    };
+    let min = protocol::MIN_EXPOSURE_US;
+    let mut exposure_us = opts.exposure_us;
+    let (body, mut peak) = loop {
+        let (body, peak, too_bright) = take(exposure_us, report, progress)?;
+        if too_bright && exposure_us > min {
+            exposure_us = (exposure_us / 10).max(min);
             continue;
         }
-        return Ok(Metering { exposure_us, mirrors, body, peak });
+        break (body, peak);
+    };
+    let mut peak_exposure_us = exposure_us;
+    while peak.is_none() && peak_exposure_us > min {
+        peak_exposure_us =
+            if peak_exposure_us == exposure_us { (exposure_us / 25).max(min) } else { min };
+        let (_, p, _) = take(peak_exposure_us, report, progress)?;
+        // In the units of the body's metering exposure.
+        peak = p.map(|p| p * exposure_us as f64 / peak_exposure_us as f64);
     }
+    Ok(Metering { exposure_us, mirrors: mirrors.clone(), body, peak, peak_exposure_us })
 }
 
 /// Capture mirror `l`, taking the step again after a missed frame and

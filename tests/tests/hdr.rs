@@ -151,11 +151,12 @@ fn auto_exposure_meters_the_sample_and_a_resume_keeps_its_choice() {
     let b = m.settings.bracket_us.clone();
     let metering = m.settings.metering.clone().expect("metering recorded");
     assert!((3..=5).contains(&b.len()), "{b:?} from {metering:?}");
-    assert!(b.windows(2).all(|w| w[1] / w[0] == 5 || w[0] == 1_000), "5× steps: {b:?}");
+    assert!(b.windows(2).all(|w| w[1] as f64 / w[0] as f64 <= 5.0 + 1e-3), "steps ≤ 5×: {b:?}");
     assert_eq!(*b.last().unwrap(), m.settings.exposure_us);
     // Its highlights, ≈ 20× a white target's level, pass 50 ms's full scale
     // at the metered mirrors; the shortest exposure holds them.
-    let fits = metering.peak.is_some_and(|p| p * b[0] as f64 / metering.exposure_us as f64 <= 0.8);
+    let fits =
+        metering.peak.is_some_and(|p| p * b[0] as f64 / metering.exposure_us as f64 <= 0.8 + 1e-3);
     assert!(fits || b[0] == 1_000 || b.len() == 5, "{b:?} from {metering:?}");
     assert!(b[0] < 10_000, "{b:?} from {metering:?}");
     // A resume keeps the directory's choice (nothing to take: it is
