@@ -130,6 +130,28 @@ fn auto_exposure_meters_the_sample_and_a_resume_keeps_its_choice() {
     ] {
         image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dark.join(name)).unwrap();
     }
+    // The dark sample, HDR, stopped by an E-stop after metering (triggers
+    // 0–3) and in the middle of mirror 1's bracket: the resume takes the
+    // directory's bracket and is not metered again.
+    let out = dir.path().join("dark-hdr");
+    let dark_set = dark.display().to_string();
+    let (code, err) = scan(
+        &dark_set,
+        &out,
+        &["--exposure-us", "auto", "--hdr", "--sim-fault", "estop:on@trigger=8"],
+    );
+    assert_ne!(code, Some(0), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    let bracket = m.settings.bracket_us.clone();
+    assert_eq!(bracket.len(), 3, "{:?}", m.settings.metering);
+    assert!(!m.complete && !m.frames.is_empty(), "{err}");
+    let (code, err) = scan(&dark_set, &out, &["--exposure-us", "auto", "--hdr", "--resume"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("metered"), "not metered again: {err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    assert!(m.complete && m.frames.len() == 4 && m.exposures.is_empty());
+    assert_eq!(m.settings.bracket_us, bracket);
+    assert!(m.frames.iter().all(|f| f.exposure_us == *bracket.last().unwrap()));
     // The dark sample, one exposure: longer than the default 50 ms.
     let out = dir.path().join("dark-scan");
     let (code, err) = scan(&dark.display().to_string(), &out, &["--exposure-us", "auto"]);
