@@ -285,14 +285,18 @@ pub fn calibrate(
     let sum = luminance_sum(checker, &windows, progress)?;
     let views: Vec<usize> = (0..g.mirrors.len()).collect();
     progress.stage("locating views", views.len());
-    let fits: Vec<RegionFit> = views
+    // Every view is located before the first failure in mirror order is
+    // reported: rayon's own `Result` collect returns whichever failed first
+    // in time, a different mirror from run to run.
+    let fits: Vec<Result<RegionFit, BuildError>> = views
         .par_iter()
         .map(|&j| {
             let r = locate(g, j, &sum, &opts.target).map_err(|e| BuildError::Input(e.to_string()));
             progress.step();
             r
         })
-        .collect::<Result<_, _>>()?;
+        .collect();
+    let fits: Vec<RegionFit> = fits.into_iter().collect::<Result<_, _>>()?;
     drop(sum);
     // The camera and the mirror planes, adjusted to all views at once.
     let homographies: Vec<Homography> = fits.iter().map(RegionFit::best).collect();
