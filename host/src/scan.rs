@@ -823,6 +823,16 @@ pub fn raw_file(l: usize, exposure_us: u32) -> String {
     format!("frames/raw/mirror-{l:02}-e{exposure_us:07}.exr")
 }
 
+/// The folder of [`raw_file`]s in scan directory `dir`, created when an
+/// HDR bracket will use it.
+fn raw_dir(dir: &Path, bracket_us: &[u32]) -> Result<PathBuf, ScanError> {
+    let raw = dir.join("frames").join("raw");
+    if !bracket_us.is_empty() {
+        std::fs::create_dir_all(&raw).map_err(|e| io_error(&raw, e))?;
+    }
+    Ok(raw)
+}
+
 /// Lower-case hex of `bytes` (device ids, checksums).
 pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
@@ -921,10 +931,7 @@ fn open_directory(
     };
     let frames_dir = dir.join("frames");
     std::fs::create_dir_all(&frames_dir).map_err(|e| io_error(&frames_dir, e))?;
-    let raw_dir = frames_dir.join("raw");
-    if !settings.bracket_us.is_empty() {
-        std::fs::create_dir_all(&raw_dir).map_err(|e| io_error(&raw_dir, e))?;
-    }
+    let raw_dir = raw_dir(dir, &settings.bracket_us)?;
     // Leftovers of an interrupted atomic write (no other scan runs here).
     for d in [dir.as_path(), frames_dir.as_path(), raw_dir.as_path()] {
         if !d.is_dir() {
@@ -1065,10 +1072,7 @@ pub fn scan(
                 manifest.settings.bracket_us = choice.bracket_us;
                 manifest.settings.metering = Some(metering);
                 let t = Instant::now();
-                if !manifest.settings.bracket_us.is_empty() {
-                    let raw = opts.out.join("frames").join("raw");
-                    std::fs::create_dir_all(&raw).map_err(|e| io_error(&raw, e))?;
-                }
+                raw_dir(&opts.out, &manifest.settings.bracket_us)?;
                 manifest.save(&opts.out)?;
                 report.timings.disk += t.elapsed();
             }
