@@ -1076,11 +1076,38 @@ impl Controller {
                     self.activity = Activity::Idle;
                 }
             }
-            Activity::Exposing { until } if now >= until => {
-                self.end_exposure(hw);
-                self.activity = Activity::Idle;
+            Activity::Exposing { .. } => {
+                self.end_exposure_due(now, hw);
             }
             _ => {}
+        }
+    }
+
+    /// The tick at which the running exposure ends, if one is running. The
+    /// board wakes there and calls [`Self::end_exposure_due`] instead of
+    /// waiting for its next 200 µs poll, so that the trigger pulse (the
+    /// camera's exposure) lasts the exposure asked for, not up to a poll
+    /// period more (3.2 instead of 3.09 ms: 3.5 % more light than the host
+    /// counts on).
+    pub fn exposure_end(&self) -> Option<u64> {
+        match self.activity {
+            Activity::Exposing { until } => Some(until),
+            _ => None,
+        }
+    }
+
+    /// End the running exposure (trigger low, the light back to its idle
+    /// state) if its end is due at `now`; whether it ended. Inputs are not
+    /// sampled: [`Self::poll`] does that.
+    pub fn end_exposure_due(&mut self, now: u64, hw: &mut impl Hardware) -> bool {
+        match self.activity {
+            Activity::Exposing { until } if now >= until => {
+                self.now = now;
+                self.end_exposure(hw);
+                self.activity = Activity::Idle;
+                true
+            }
+            _ => false,
         }
     }
 

@@ -293,6 +293,12 @@ impl SimDevice {
             if let Some((t, _)) = step {
                 next = next.min(t);
             }
+            // The board wakes at the exposure's end (firmware/board: the
+            // control task's timer), so the pulse lasts what was asked.
+            let exposure_end = self.controller.exposure_end();
+            if let Some(t) = exposure_end {
+                next = next.min(t);
+            }
             if let Some(FaultWhen::AtTick(t)) = fault {
                 next = next.min(t);
             }
@@ -307,6 +313,10 @@ impl SimDevice {
                 _ if next == self.next_poll => {
                     self.poll();
                     self.next_poll += POLL_TICKS;
+                }
+                _ if exposure_end == Some(next) => {
+                    self.controller.end_exposure_due(next, &mut self.hw);
+                    self.after_controller();
                 }
                 _ => {}
             }

@@ -8,7 +8,9 @@
 //!   [`STEP`]; the controller plans outside that lock, so planning (soft
 //!   f64 on the M4) never delays a step.
 //! - The control task polls the inputs every 200 µs (5 kHz) and the
-//!   controller's timers, feeds the watchdog and queues outgoing frames.
+//!   controller's timers, feeds the watchdog and queues outgoing frames;
+//!   it also wakes at a running exposure's end, so the trigger pulse lasts
+//!   the exposure asked for.
 //! - The USB task serves CDC-ACM; received bytes go straight to the
 //!   controller, replies and events go back through a pipe.
 #![no_std]
@@ -25,6 +27,7 @@ use critical_section::Mutex;
 use defmt::{info, unwrap, warn};
 use embassy_executor::Spawner;
 use embassy_futures::join::join4;
+use embassy_futures::select::{Either, select};
 use embassy_stm32::flash::Flash;
 use embassy_stm32::gpio::Output;
 use embassy_stm32::peripherals::USB_OTG_FS;
@@ -35,7 +38,7 @@ use embassy_stm32::{Config, bind_interrupts, interrupt, pac};
 use embassy_sync::blocking_mutex::ThreadModeMutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
-use embassy_time::{Duration, Ticker};
+use embassy_time::{Duration, Ticker, Timer};
 use embassy_usb::class::cdc_acm::CdcAcmClass;
 use embassy_usb::driver::{Endpoint, EndpointIn, EndpointOut};
 use firmware::Controller;
@@ -324,10 +327,30 @@ async fn main(spawner: Spawner) {
         );
     spawner.spawn(unwrap!(usb_task(usb, class, vendor_out, vendor_in)));
 
-    // Control loop: inputs at 5 kHz, the controller's timers, the watchdog.
+    // Control loop: inputs at 5 kHz, the controller's timers, the watchdog;
+    // and the end of a running exposure at its tick, not at the next poll
+    // (the trigger pulse is the camera's exposure: it must last what the
+    // host asked, within the task's wake-up latency, not up to 200 µs more).
+    // An exposure the USB task starts is seen at the next poll, before it
+    // ends: exposures are at least `MIN_EXPOSURE_US` (1 ms) > 200 µs.
     let mut ticker = Ticker::every(Duration::from_micros(200));
     loop {
-        ticker.next().await;
+        let exposure_end =
+            MACHINE.borrow().borrow().as_ref().and_then(|m| m.controller.exposure_end());
+        if let Some(end) = exposure_end {
+            let wait_us = end.saturating_sub(clock::now()).div_ceil(firmware::hal::TICKS_PER_US);
+            if let Either::Second(()) = select(ticker.next(), Timer::after_micros(wait_us)).await {
+                let mut machine = MACHINE.borrow().borrow_mut();
+                if let Some(m) = machine.as_mut() {
+                    m.controller.end_exposure_due(clock::now(), &mut m.hw);
+                    m.controller.drain_events(&mut send);
+                }
+                // Not due yet (woken early): the next turn waits again.
+                continue;
+            }
+        } else {
+            ticker.next().await;
+        }
         let inputs = sensors.read();
         let reset = {
             let mut machine = MACHINE.borrow().borrow_mut();
