@@ -108,6 +108,74 @@ pub fn sample_values(frame: &Frame, g: &ScannerGeometry) -> Vec<f32> {
     out
 }
 
+/// How far around the sample, in sample sides, a saturated value counts
+/// against an auto bracket: the as-built scanner's offsets (≈ 24 px, up to
+/// ≈ 0.2 of a view's side) and the sample's edge.
+pub const CLIP_MARGIN: f64 = 0.25;
+
+/// Frame pixels of one row: (row, first column, end column).
+pub type Span = (u32, u32, u32);
+
+/// The pixels of a `width` × `height` frame where the geometry's views show
+/// the sample, [`CLIP_MARGIN`] around it included: per view, the rows of
+/// the projected square uv ∈ [−m, 1 + m]² (convex: the projection is a
+/// homography). Views that do not project are left out.
+pub fn sample_spans(g: &ScannerGeometry, width: u32, height: u32) -> Vec<Span> {
+    let (lo, hi) = (-CLIP_MARGIN, 1.0 + CLIP_MARGIN);
+    let mut out = Vec::new();
+    for view in 0..g.mirrors.len() {
+        let corners = [[lo, lo], [hi, lo], [hi, hi], [lo, hi]].map(|uv| g.view_point(view, uv));
+        let Some(q) = corners.into_iter().collect::<Option<Vec<[f64; 2]>>>() else { continue };
+        if q.iter().flatten().any(|c| !c.is_finite()) {
+            continue;
+        }
+        let y_min = q.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min).max(0.0);
+        let y_max = q.iter().map(|p| p[1]).fold(f64::NEG_INFINITY, f64::max).min(height as f64);
+        let mut y = y_min.floor();
+        while y < y_max {
+            // Where the row's centre line crosses the quad's edges.
+            let yc = y + 0.5;
+            let (mut x0, mut x1) = (f64::INFINITY, f64::NEG_INFINITY);
+            for k in 0..4 {
+                let (a, b) = (q[k], q[(k + 1) % 4]);
+                if (a[1] <= yc) != (b[1] <= yc) {
+                    let x = a[0] + (yc - a[1]) / (b[1] - a[1]) * (b[0] - a[0]);
+                    (x0, x1) = (x0.min(x), x1.max(x));
+                }
+            }
+            let (first, end) = (x0.floor().max(0.0), x1.ceil().min(width as f64));
+            if first < end {
+                out.push((y as u32, first as u32, end as u32));
+            }
+            y += 1.0;
+        }
+    }
+    out
+}
+
+/// Values (every channel) of `frame` at the sensor's top code within `spans`.
+pub fn saturated_in(frame: &Frame, spans: &[Span], max_code: f64) -> usize {
+    let (w, top) = (frame.width as usize, max_code as usize);
+    let maxf = max_code as f32;
+    spans
+        .iter()
+        .filter_map(|&(y, x0, x1)| {
+            frame.rgb.get(3 * (y as usize * w + x0 as usize)..3 * (y as usize * w + x1 as usize))
+        })
+        .map(|row| row.iter().filter(|&&v| crate::hdr::adc_code(v, maxf, top) == top).count())
+        .sum()
+}
+
+/// The exposure an auto HDR bracket adds at a mirror whose shortest
+/// exposure so far, `shortest_us`, left `saturated` values on the sample
+/// (highlights that metering did not see: at a mirror it did not meter,
+/// or rarer than its peak percentile): [`BRACKET_STEP`]× shorter, down to
+/// the device's shortest. `None` when nothing saturated or it is there.
+pub fn extension(shortest_us: u32, saturated: usize) -> Option<u32> {
+    (saturated > 0 && shortest_us > protocol::MIN_EXPOSURE_US)
+        .then(|| (shortest_us / BRACKET_STEP).max(protocol::MIN_EXPOSURE_US))
+}
+
 /// The `p` quantile of `values` (sorted in place), nearest rank; 0 for none.
 fn quantile(values: &mut [f32], p: f64) -> f64 {
     if values.is_empty() {
@@ -228,5 +296,39 @@ mod tests {
         assert_eq!(measure(&mut v), (1.0, None, true));
         assert_eq!(meter_mirrors(40), vec![0, 5, 10, 15, 20, 25, 30, 35]);
         assert_eq!(meter_mirrors(3), vec![0, 1, 2]);
+    }
+
+    #[test]
+    fn saturation_counts_on_the_sample_only_and_extends_the_bracket_down_to_the_device() {
+        let g = ScannerGeometry::default_scanner().with_sensor_scaled(8);
+        let (w, h) = (g.camera.width, g.camera.height);
+        let spans = sample_spans(&g, w, h);
+        let inside = |p: [f64; 2]| {
+            let (x, y) = (p[0] as u32, p[1] as u32);
+            spans.iter().any(|&(r, a, b)| r == y && (a..b).contains(&x))
+        };
+        // Every view's sample, corners and centre, is covered; the margin
+        // is bounded (the views cover a small part of the frame).
+        for view in 0..g.mirrors.len() {
+            for uv in [[0.0, 0.0], [1.0, 0.0], [0.5, 0.5], [0.0, 1.0], [0.99, 0.99]] {
+                assert!(inside(g.view_point(view, uv).unwrap()), "view {view} at {uv:?}");
+            }
+        }
+        let covered: u64 = spans.iter().map(|&(_, a, b)| (b - a) as u64).sum();
+        assert!(covered < (w as u64 * h as u64) / 2, "{covered} of {w}×{h}");
+        // Top codes count inside the spans only, every channel.
+        let mut f = Frame { width: w, height: h, rgb: vec![0.2; (3 * w * h) as usize] };
+        let p = g.view_point(7, [0.3, 0.6]).unwrap();
+        let at = 3 * (p[1] as usize * w as usize + p[0] as usize);
+        f.rgb[at..at + 3].fill(1.0);
+        let outside = (0..w * h).find(|&i| !inside([(i % w) as f64, (i / w) as f64])).unwrap();
+        f.rgb[3 * outside as usize] = 1.0;
+        // Half-float storage leaves the top code a fraction of a code low.
+        f.rgb[at + 2] = 1.0 - 0.3 / g.sensor.max_code() as f32;
+        assert_eq!(saturated_in(&f, &spans, g.sensor.max_code()), 3);
+        assert_eq!(extension(50_000, 0), None);
+        assert_eq!(extension(50_000, 3), Some(10_000));
+        assert_eq!(extension(3_000, 1), Some(protocol::MIN_EXPOSURE_US));
+        assert_eq!(extension(protocol::MIN_EXPOSURE_US, 9), None);
     }
 }

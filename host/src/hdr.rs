@@ -28,6 +28,14 @@ pub struct MergeStats {
 /// Per ADC code of one exposure: (weight, weight / exposure time).
 type CodeWeights = Vec<(f32, f32)>;
 
+/// The ADC code of a stored value (fraction of full scale), rounded, since
+/// half-float storage may leave it off by a fraction of a code; NaN → 0,
+/// at most `top` (the sensor's max code, saturation).
+#[inline(always)]
+pub fn adc_code(v: f32, max_code: f32, top: usize) -> usize {
+    ((v * max_code + 0.5) as usize).min(top)
+}
+
 /// Merge `frames` (each with its exposure in µs; all the same size) into
 /// one frame in units of the `reference_us` exposure.
 pub fn merge(
@@ -90,9 +98,7 @@ pub fn merge(
                 for (rgb, table) in &tables {
                     let table: &[(f32, f32)] = table;
                     for (j, &v) in rgb[start..start + n].iter().enumerate() {
-                        // The ADC code, rounded (half-float storage may
-                        // leave the value off by a fraction of a code); NaN → 0.
-                        let code = ((v * maxf + 0.5) as usize).min(top);
+                        let code = adc_code(v, maxf, top);
                         let (wgt, wgt_over_t) = table[code];
                         all_clipped[j] &= code == top;
                         num[j] += wgt_over_t * v;

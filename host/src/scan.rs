@@ -266,6 +266,11 @@ pub struct FrameRecord {
     /// position checks existed read as verified.
     #[serde(default = "verified_by_default")]
     pub verified: bool,
+    /// HDR: the exposures merged into this frame, µs, ascending, when they
+    /// are not the scan's `bracket_us` (auto exposure adds shorter ones at a
+    /// mirror whose highlights the bracket clipped); empty otherwise.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub bracket_us: Vec<u32>,
 }
 
 fn verified_by_default() -> bool {
@@ -1096,6 +1101,8 @@ pub fn scan(
     let mut unverified: Vec<usize> =
         manifest.frames.iter().filter(|f| !f.verified).map(|f| f.mirror).collect();
     let mut raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
+    let extend_bracket = opts.auto_exposure == Some(AutoExposure::Hdr);
+    let mut spans: Option<Vec<crate::exposure::Span>> = None;
     // Stored frames not verified before the device lost its homing (the
     // scan was interrupted, the device reset) cannot be verified now.
     let mut pending_check = (prepared.homed && !unverified.is_empty())
@@ -1239,14 +1246,42 @@ pub fn scan(
                 continue;
             }
             let Some(l) = todo.pop_front() else { break };
-            let bracket = if opts.bracket_us.is_empty() {
+            let mut bracket = if opts.bracket_us.is_empty() {
                 vec![opts.exposure_us]
             } else {
                 opts.bracket_us.clone()
             };
             // Shared with the writer: a raw exposure is stored and merged.
             let mut taken: Vec<(Arc<crate::camera::Frame>, u32, FrameRecord)> = Vec::new();
-            for &exposure_us in &bracket {
+            let mut next = 0;
+            loop {
+                if next == bracket.len() {
+                    // Auto HDR: highlights the bracket clipped on the sample
+                    // get shorter exposures (decided from the stored
+                    // frames alone, so a resume decides the same).
+                    let Some(t) = extend_bracket
+                        .then(|| {
+                            let (f, e, _) = taken.iter().min_by_key(|(_, e, _)| *e)?;
+                            let spans = spans.get_or_insert_with(|| {
+                                crate::exposure::sample_spans(geometry, f.width, f.height)
+                            });
+                            let n =
+                                crate::exposure::saturated_in(f, spans, geometry.sensor.max_code());
+                            let t = crate::exposure::extension(*e, n)?;
+                            progress.note(&format!(
+                                "mirror {l}: {n} values saturated on the sample at {e} µs; \
+                                 adding {t} µs"
+                            ));
+                            Some(t)
+                        })
+                        .flatten()
+                    else {
+                        break;
+                    };
+                    bracket.push(t);
+                }
+                let exposure_us = bracket[next];
+                next += 1;
                 let file = if opts.bracket_us.is_empty() {
                     frame_file(l)
                 } else {
@@ -1302,6 +1337,7 @@ pub fn scan(
                     axis_steps: steps,
                     axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
                     verified: false,
+                    bracket_us: Vec::new(),
                 };
                 if opts.bracket_us.is_empty() {
                     taken.push((Arc::new(frame), exposure_us, record));
@@ -1351,6 +1387,10 @@ pub fn scan(
                 let mut record = longest.clone();
                 record.file = frame_file(l);
                 record.exposure_us = reference;
+                if bracket != opts.bracket_us {
+                    bracket.sort_unstable();
+                    record.bracket_us = bracket;
+                }
                 WriteJob { frame: Arc::new(merged), record, raw: false }
             };
             if jobs.send(Job::Frame(job)).is_err() {
@@ -1717,6 +1757,24 @@ fn capture_one(
     let t = Instant::now();
     let frame = camera.wait_frame(opts.frame_timeout);
     timings.camera += t.elapsed();
+    // The device takes no step with a fault latched, so a fault now was
+    // raised during this one — an E-stop or a driver fault turns the light
+    // off, perhaps in the middle of the exposure. The frame is discarded
+    // (taken from the camera first, so that it cannot pass for the next
+    // trigger's).
+    if !status.faults.is_empty() {
+        let names = status.faults.names().collect::<Vec<_>>().join(", ");
+        return Err(match faults_needing_a_person(status.faults) {
+            Some(why) => Attempt::Fatal(ScanError::DeviceFault(format!(
+                "{why} during mirror {l}'s exposure (its frame is discarded)"
+            ))),
+            None => Attempt::Recover {
+                why: format!("{names} during the exposure; its frame is discarded"),
+                reset: false,
+                position: None,
+            },
+        });
+    }
     Ok((frame.map_err(Attempt::Camera)?, fired, status))
 }
 
