@@ -1076,9 +1076,7 @@ impl Controller {
                     self.activity = Activity::Idle;
                 }
             }
-            Activity::Exposing { .. } => {
-                self.end_exposure_due(now, hw);
-            }
+            Activity::Exposing { .. } => self.end_exposure_due(now, hw),
             _ => {}
         }
     }
@@ -1097,17 +1095,15 @@ impl Controller {
     }
 
     /// End the running exposure (trigger low, the light back to its idle
-    /// state) if its end is due at `now`; whether it ended. Inputs are not
-    /// sampled: [`Self::poll`] does that.
-    pub fn end_exposure_due(&mut self, now: u64, hw: &mut impl Hardware) -> bool {
-        match self.activity {
-            Activity::Exposing { until } if now >= until => {
-                self.now = now;
-                self.end_exposure(hw);
-                self.activity = Activity::Idle;
-                true
-            }
-            _ => false,
+    /// state) if its end is due at `now`. Inputs are not sampled:
+    /// [`Self::poll`] does that.
+    pub fn end_exposure_due(&mut self, now: u64, hw: &mut impl Hardware) {
+        if let Activity::Exposing { until } = self.activity
+            && now >= until
+        {
+            self.now = now;
+            self.end_exposure(hw);
+            self.activity = Activity::Idle;
         }
     }
 

@@ -635,11 +635,16 @@ const CLEARABLE: FaultFlags = FaultFlags(
         | FaultFlags::STORAGE_FAILED.0,
 );
 
+/// `faults` named, comma-separated.
+fn fault_list(faults: FaultFlags) -> String {
+    faults.names().collect::<Vec<_>>().join(", ")
+}
+
 /// All of `faults` named, if any of them needs a person (emergency stop,
 /// driver fault, an unexpected home switch).
 fn faults_needing_a_person(faults: FaultFlags) -> Option<String> {
     let serious = FaultFlags(faults.0 & !CLEARABLE.0);
-    (!serious.is_empty()).then(|| faults.names().collect::<Vec<_>>().join(", "))
+    (!serious.is_empty()).then(|| fault_list(faults))
 }
 
 /// Bring the device to a state where capture steps run: faults that only
@@ -682,8 +687,7 @@ fn prepare_once(
         if let Some(names) = faults_needing_a_person(status.faults) {
             return Err(ScanError::DeviceFault(names));
         }
-        progress
-            .note(&format!("clearing {}", status.faults.names().collect::<Vec<_>>().join(", ")));
+        progress.note(&format!("clearing {}", fault_list(status.faults)));
         dev.command(Request::ClearFault)?;
         // A faulted device reports "faulted", not what its axes do: a
         // link timeout decelerates them, and they may still be moving.
@@ -715,11 +719,8 @@ fn home_all(dev: &mut Device) -> Result<Vec<Event>, ScanError> {
     let end = dev.now() + Duration::from_secs(90);
     let failed = |dev: &mut Device, outcome: Option<MotionOutcome>| {
         let faults = dev.status()?.faults;
-        let by = if faults.is_empty() {
-            String::new()
-        } else {
-            format!(" ({})", faults.names().collect::<Vec<_>>().join(", "))
-        };
+        let by =
+            if faults.is_empty() { String::new() } else { format!(" ({})", fault_list(faults)) };
         let what = outcome.map_or("failed".to_string(), |o| o.to_string());
         Err(ScanError::DeviceFault(format!("homing {what}{by}")))
     };
@@ -1259,25 +1260,18 @@ pub fn scan(
                     // Auto HDR: highlights the bracket clipped on the sample
                     // get shorter exposures (decided from the stored
                     // frames alone, so a resume decides the same).
-                    let Some(t) = extend_bracket
-                        .then(|| {
-                            let (f, e, _) = taken.iter().min_by_key(|(_, e, _)| *e)?;
-                            let spans = spans.get_or_insert_with(|| {
-                                crate::exposure::sample_spans(geometry, f.width, f.height)
-                            });
-                            let n =
-                                crate::exposure::saturated_in(f, spans, geometry.sensor.max_code());
-                            let t = crate::exposure::extension(*e, n)?;
-                            progress.note(&format!(
-                                "mirror {l}: {n} values saturated on the sample at {e} µs; \
-                                 adding {t} µs"
-                            ));
-                            Some(t)
-                        })
-                        .flatten()
-                    else {
+                    if !extend_bracket {
                         break;
-                    };
+                    }
+                    let Some((f, e, _)) = taken.iter().min_by_key(|(_, e, _)| *e) else { break };
+                    let spans = spans.get_or_insert_with(|| {
+                        crate::exposure::sample_spans(geometry, f.width, f.height)
+                    });
+                    let n = crate::exposure::saturated_in(f, spans, geometry.sensor.max_code());
+                    let Some(t) = crate::exposure::extension(*e, n) else { break };
+                    progress.note(&format!(
+                        "mirror {l}: {n} values saturated on the sample at {e} µs; adding {t} µs"
+                    ));
                     bracket.push(t);
                 }
                 let exposure_us = bracket[next];
@@ -1763,13 +1757,15 @@ fn capture_one(
     // (taken from the camera first, so that it cannot pass for the next
     // trigger's).
     if !status.faults.is_empty() {
-        let names = status.faults.names().collect::<Vec<_>>().join(", ");
         return Err(match faults_needing_a_person(status.faults) {
             Some(why) => Attempt::Fatal(ScanError::DeviceFault(format!(
                 "{why} during mirror {l}'s exposure (its frame is discarded)"
             ))),
             None => Attempt::Recover {
-                why: format!("{names} during the exposure; its frame is discarded"),
+                why: format!(
+                    "{} during the exposure; its frame is discarded",
+                    fault_list(status.faults)
+                ),
                 reset: false,
                 position: None,
             },
@@ -1822,10 +1818,9 @@ fn trigger_step(
                     (Some((axis, e)), _) => {
                         format!("the {} axis lost steps (off by {e} at its switch)", axis.name())
                     }
-                    (None, Event::FaultRaised { faults, .. }) => format!(
-                        "capture step stopped by {}",
-                        faults.names().collect::<Vec<_>>().join(", ")
-                    ),
+                    (None, Event::FaultRaised { faults, .. }) => {
+                        format!("capture step stopped by {}", fault_list(faults))
+                    }
                     (None, _) => "capture step aborted".into(),
                 };
                 return Err(Attempt::Recover { why, reset: false, position });
