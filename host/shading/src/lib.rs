@@ -49,6 +49,9 @@ pub struct ShadeQuery {
 }
 
 /// The direction lookups of the file's interpolation.
+// One per material, never in a collection: boxing the larger variant would
+// only add a pointer to every lookup.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 enum Directions {
     /// Default: triangles, with the unit light directions and the

@@ -54,6 +54,12 @@ struct Edge {
     b: V3,
     /// Unit normal of the great circle through a and b.
     n: V3,
+    /// `n` or `−n`, whichever points away from every direction, if one
+    /// does: the arc then supports the triangulation (it lies on the
+    /// boundary of a convex set), and a direction beyond its great circle
+    /// whose projection falls within the arc has that projection as its
+    /// nearest covered point ([`Edge::answers`]).
+    outward: Option<V3>,
     /// n × a and b × n: d projects inside the arc iff d · na ≥ 0 and d · nb ≥ 0.
     na: V3,
     nb: V3,
@@ -67,8 +73,28 @@ impl Edge {
         let len = dot(n, n).sqrt();
         (len > 1e-9).then(|| {
             let n = n.map(|x| x / len);
-            Edge { ids, a, b, n, na: cross(n, a), nb: cross(b, n), c: dot(a, b) }
+            Edge { ids, a, b, n, outward: None, na: cross(n, a), nb: cross(b, n), c: dot(a, b) }
         })
+    }
+
+    /// Set [`Self::outward`] if every direction of `dirs` lies on one side
+    /// of the arc's great circle (within float rounding).
+    fn find_outward(&mut self, dirs: &[V3]) {
+        const ON: f32 = 1e-6;
+        let side = |s: f32| dirs.iter().all(|&d| s * dot(d, self.n) <= ON);
+        self.outward = [1.0f32, -1.0].into_iter().find(|&s| side(s)).map(|s| self.n.map(|x| s * x));
+    }
+
+    /// Whether the arc alone answers `d`: it supports the triangulation,
+    /// `d` lies beyond its great circle and projects within the arc. Then
+    /// every covered direction is at least as far from `d` as the great
+    /// circle is (a path from `d` to any of them crosses it), and the
+    /// projection — covered — is exactly that far: no other arc is nearer.
+    #[inline(always)]
+    fn answers(&self, d: V3) -> bool {
+        self.outward.is_some_and(|o| dot(d, o) > 0.0)
+            && dot(d, self.na) >= 0.0
+            && dot(d, self.nb) >= 0.0
     }
 
     /// The nearest point of the arc to `d`: (cosine of the angle to it,
@@ -103,6 +129,10 @@ impl Edge {
 const GRID: usize = 64;
 /// How far below zero a barycentric weight may be and still count as inside.
 const INSIDE: f32 = -1e-6;
+/// Cells per side of the fast-path grid ([`TriangleLocator::primary`]).
+const FINE: usize = 128;
+/// No fast path for the cell ([`TriangleLocator::primary`]).
+const NONE: u8 = u8::MAX;
 
 /// The default interpolation's lookup.
 #[derive(Debug, Clone)]
@@ -113,6 +143,15 @@ pub struct TriangleLocator {
     /// Per grid cell: (start in `cands`, triangles, then edges).
     cells: Vec<(u32, u16, u16)>,
     cands: Vec<u16>,
+    /// Per cell of a finer grid (`FINE` per side, same projection): the
+    /// triangle `c`, or the supporting arc `c − tris.len()`, that answers
+    /// most of the cell, or `NONE`. A lookup tries it first and keeps its
+    /// answer only if its own test passes (inside the triangle;
+    /// [`Edge::answers`]), so the table only decides how fast, never what.
+    /// One byte per cell (16 KB; the material's random reads evict it from
+    /// L1 all the same, and 2 bytes measured slower): the triangles and
+    /// arcs past the 255th get no fast path.
+    primary: Vec<u8>,
 }
 
 impl TriangleLocator {
@@ -156,18 +195,23 @@ impl TriangleLocator {
                 _ => return bad(format!("{n} directions but no triangles")),
             }
         }
-        let edges: Vec<Edge> = edge_list
+        let mut edges: Vec<Edge> = edge_list
             .iter()
             .filter_map(|&[p, q]| Edge::new([p, q], dirs[p as usize], dirs[q as usize]))
             .collect();
+        for e in &mut edges {
+            e.find_outward(dirs);
+        }
         let mut loc = TriangleLocator {
             dirs: dirs.to_vec(),
             tris: out,
             edges,
             cells: Vec::new(),
             cands: Vec::new(),
+            primary: Vec::new(),
         };
         loc.build_grid();
+        loc.build_primary();
         Ok(loc)
     }
 
@@ -238,9 +282,80 @@ impl TriangleLocator {
         }
     }
 
+    /// The fast-path table: per fine cell, the answer of most of 4 × 4
+    /// points over it (found through the coarse grid), if it is a triangle
+    /// or an arc that [`Edge::answers`] them.
+    fn build_primary(&mut self) {
+        const SUB: usize = 4;
+        if self.dirs.len() < 3 {
+            return;
+        }
+        let mut primary = Vec::with_capacity(FINE * FINE);
+        for cy in 0..FINE {
+            for cx in 0..FINE {
+                let mut votes: Vec<(u8, u32)> = Vec::new();
+                for sy in 0..SUB {
+                    for sx in 0..SUB {
+                        let at = |c: usize, s: usize| {
+                            -1.0 + 2.0 * (c as f32 + (s as f32 + 0.5) / SUB as f32) / FINE as f32
+                        };
+                        let (x, y) = (at(cx, sx), at(cy, sy));
+                        let r2 = x * x + y * y;
+                        if r2 >= 1.0 {
+                            continue;
+                        }
+                        let d = [x, y, (1.0 - r2).sqrt()];
+                        let Some(id) = self.answering(d) else { continue };
+                        match votes.iter_mut().find(|v| v.0 == id) {
+                            Some(v) => v.1 += 1,
+                            None => votes.push((id, 1)),
+                        }
+                    }
+                }
+                let best = votes.iter().max_by_key(|v| v.1).map_or(NONE, |v| v.0);
+                primary.push(best);
+            }
+        }
+        self.primary = primary;
+    }
+
+    /// What answers `d` in [`Self::primary`]'s code: the triangle holding
+    /// it, or `tris.len() + e` for a boundary arc `e` that
+    /// [`Edge::answers`] it; `None` if neither or the code is too large.
+    fn answering(&self, d: V3) -> Option<u8> {
+        let (start, nt, ne) = self.cells[Self::cell(GRID, d)];
+        let cands = &self.cands[start as usize..start as usize + nt as usize + ne as usize];
+        let (tris, arcs) = cands.split_at(nt as usize);
+        let mut scratch = [(0, 0.0); 3];
+        let code = |i: usize| u8::try_from(i).ok().filter(|&c| c != NONE);
+        if let Some(&t) =
+            tris.iter().find(|&&t| self.tri_weights(&self.tris[t as usize], d, &mut scratch))
+        {
+            return code(t as usize);
+        }
+        arcs.iter()
+            .find(|&&e| self.edges[e as usize].answers(d))
+            .and_then(|&e| code(self.tris.len() + e as usize))
+    }
+
+    /// The cell of direction `d` in a grid of `n` per side over its
+    /// orthographic (x, y).
+    #[inline(always)]
+    fn cell(n: usize, d: V3) -> usize {
+        let at = |c: f32| (((c + 1.0) * 0.5 * n as f32) as usize).min(n - 1);
+        at(d[1]) * n + at(d[0])
+    }
+
+    /// The arc nearest to `d` among `among`: one that [`Edge::answers`] it
+    /// if there is one (provably nearest, and no float tie with an arc
+    /// that clamps to the shared end decides otherwise), else the one of
+    /// the largest cosine.
     fn nearest_edge(&self, d: V3, among: impl Iterator<Item = usize>) -> Option<usize> {
         let mut best: Option<(f32, usize)> = None;
         for e in among {
+            if self.edges[e].answers(d) {
+                return Some(e);
+            }
             let (s, _) = self.edges[e].nearest(d);
             if best.is_none_or(|(b, _)| s > b) {
                 best = Some((s, e));
@@ -280,8 +395,21 @@ impl TriangleLocator {
             *out = [(0, 1.0), (0, 0.0), (0, 0.0)];
             return;
         }
-        let cell = |c: f32| (((c + 1.0) * 0.5 * GRID as f32) as usize).min(GRID - 1);
-        let (start, nt, ne) = self.cells[cell(d[1]) * GRID + cell(d[0])];
+        // The fast path: the cell's usual answer, if its test passes.
+        if let Some(&c) = self.primary.get(Self::cell(FINE, d)) {
+            let c = c as usize;
+            if let Some(t) = self.tris.get(c) {
+                if self.tri_weights(t, d, out) {
+                    return;
+                }
+            } else if c != NONE as usize {
+                let e = c - self.tris.len();
+                if self.edges[e].answers(d) {
+                    return self.edge_weights(e, d, out);
+                }
+            }
+        }
+        let (start, nt, ne) = self.cells[Self::cell(GRID, d)];
         let cands = &self.cands[start as usize..start as usize + nt as usize + ne as usize];
         for &t in &cands[..nt as usize] {
             if self.tri_weights(&self.tris[t as usize], d, out) {

@@ -504,3 +504,66 @@ pub fn build_material(
         texels,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use scanner_geometry::ScannerGeometry;
+    use scanner_shading::locate::{TriangleLocator, Weights3};
+
+    use super::triangulate;
+
+    /// The locator's fast path and coarse grid against its exhaustive
+    /// search, on real triangulations: the default scanner's view and
+    /// light directions and scattered random sets, over the whole
+    /// hemisphere (beyond the outer ring too, down to the horizon).
+    #[test]
+    fn the_locator_agrees_with_its_exhaustive_search_on_scanner_triangulations() {
+        let g = ScannerGeometry::default_scanner();
+        let n = g.mirrors.len();
+        let mut sets: Vec<Vec<[f64; 3]>> = vec![
+            (0..n).map(|v| g.mirror_direction(v).unwrap().to_array()).collect(),
+            (0..n).filter_map(|l| g.light_direction(l).ok().map(|d| d.to_array())).collect(),
+        ];
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for count in [3, 5, 12, 40] {
+            sets.push(
+                (0..count)
+                    .map(|_| {
+                        let t = rng.random::<f64>() * 75f64.to_radians();
+                        let p = rng.random::<f64>() * std::f64::consts::TAU;
+                        [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+                    })
+                    .collect(),
+            );
+        }
+        for dirs in &sets {
+            let tris = triangulate(dirs, "test").unwrap();
+            let d32: Vec<[f32; 3]> = dirs.iter().map(|d| d.map(|x| x as f32)).collect();
+            let loc = TriangleLocator::new(&d32, &tris, "test").unwrap();
+            let dense = |w: &Weights3| {
+                let mut v = vec![0f32; dirs.len()];
+                for &(i, x) in w {
+                    v[i as usize] += x;
+                }
+                v
+            };
+            for _ in 0..200_000 {
+                let z = rng.random::<f32>().max(1e-4);
+                let p = rng.random::<f32>() * std::f32::consts::TAU;
+                let r = (1.0 - z * z).sqrt();
+                let d = [r * p.cos(), r * p.sin(), z];
+                let (mut a, mut b) = ([(0, 0.0); 3], [(0, 0.0); 3]);
+                loc.weights(d, &mut a);
+                loc.weights_exhaustive(d, &mut b);
+                let (da, db) = (dense(&a), dense(&b));
+                assert!(
+                    da.iter().zip(&db).all(|(x, y)| (x - y).abs() < 1e-5),
+                    "{} directions, {d:?}: {a:?} against {b:?}",
+                    dirs.len()
+                );
+            }
+        }
+    }
+}
