@@ -134,6 +134,21 @@ const FINE: usize = 128;
 /// No fast path for the cell ([`TriangleLocator::primary`]).
 const NONE: u8 = u8::MAX;
 
+/// The direction at grid position (gx, gy) ∈ [0, n]² (cell units) of a
+/// grid of `n` cells per side over a direction's orthographic (x, y), and
+/// whether it lies on the hemisphere; a position beyond the unit circle
+/// maps to the horizon point of its azimuth.
+fn grid_direction(n: usize, gx: f32, gy: f32) -> (V3, bool) {
+    let (x, y) = (-1.0 + 2.0 * gx / n as f32, -1.0 + 2.0 * gy / n as f32);
+    let r2 = x * x + y * y;
+    if r2 < 1.0 {
+        ([x, y, (1.0 - r2).sqrt()], true)
+    } else {
+        let r = r2.sqrt();
+        ([x / r, y / r, 0.0], false)
+    }
+}
+
 /// The default interpolation's lookup.
 #[derive(Debug, Clone)]
 pub struct TriangleLocator {
@@ -235,17 +250,8 @@ impl TriangleLocator {
                 let mut edges: Vec<usize> = Vec::new();
                 for sy in 0..SUB {
                     for sx in 0..SUB {
-                        let x =
-                            -1.0 + 2.0 * (cx as f32 + sx as f32 / (SUB - 1) as f32) / GRID as f32;
-                        let y =
-                            -1.0 + 2.0 * (cy as f32 + sy as f32 / (SUB - 1) as f32) / GRID as f32;
-                        let r2 = x * x + y * y;
-                        let d = if r2 < 1.0 {
-                            [x, y, (1.0 - r2).sqrt()]
-                        } else {
-                            let r = r2.sqrt();
-                            [x / r, y / r, 0.0]
-                        };
+                        let at = |c: usize, s: usize| c as f32 + s as f32 / (SUB - 1) as f32;
+                        let (d, _) = grid_direction(GRID, at(cx, sx), at(cy, sy));
                         let before = tris.len();
                         tris.extend(
                             (0..self.tris.len())
@@ -296,16 +302,11 @@ impl TriangleLocator {
                 let mut votes: Vec<(u8, u32)> = Vec::new();
                 for sy in 0..SUB {
                     for sx in 0..SUB {
-                        let at = |c: usize, s: usize| {
-                            -1.0 + 2.0 * (c as f32 + (s as f32 + 0.5) / SUB as f32) / FINE as f32
-                        };
-                        let (x, y) = (at(cx, sx), at(cy, sy));
-                        let r2 = x * x + y * y;
-                        if r2 >= 1.0 {
+                        let at = |c: usize, s: usize| c as f32 + (s as f32 + 0.5) / SUB as f32;
+                        let (d, on_hemisphere) = grid_direction(FINE, at(cx, sx), at(cy, sy));
+                        let Some(id) = on_hemisphere.then(|| self.answering(d)).flatten() else {
                             continue;
-                        }
-                        let d = [x, y, (1.0 - r2).sqrt()];
-                        let Some(id) = self.answering(d) else { continue };
+                        };
                         match votes.iter_mut().find(|v| v.0 == id) {
                             Some(v) => v.1 += 1,
                             None => votes.push((id, 1)),
@@ -323,9 +324,7 @@ impl TriangleLocator {
     /// it, or `tris.len() + e` for a boundary arc `e` that
     /// [`Edge::answers`] it; `None` if neither or the code is too large.
     fn answering(&self, d: V3) -> Option<u8> {
-        let (start, nt, ne) = self.cells[Self::cell(GRID, d)];
-        let cands = &self.cands[start as usize..start as usize + nt as usize + ne as usize];
-        let (tris, arcs) = cands.split_at(nt as usize);
+        let (tris, arcs) = self.candidates(d);
         let mut scratch = [(0, 0.0); 3];
         let code = |i: usize| u8::try_from(i).ok().filter(|&c| c != NONE);
         if let Some(&t) =
@@ -336,6 +335,14 @@ impl TriangleLocator {
         arcs.iter()
             .find(|&&e| self.edges[e as usize].answers(d))
             .and_then(|&e| code(self.tris.len() + e as usize))
+    }
+
+    /// The coarse grid's candidate triangles and boundary arcs for `d`.
+    #[inline(always)]
+    fn candidates(&self, d: V3) -> (&[u16], &[u16]) {
+        let (start, nt, ne) = self.cells[Self::cell(GRID, d)];
+        let start = start as usize;
+        self.cands[start..start + nt as usize + ne as usize].split_at(nt as usize)
     }
 
     /// The cell of direction `d` in a grid of `n` per side over its
@@ -409,17 +416,14 @@ impl TriangleLocator {
                 }
             }
         }
-        let (start, nt, ne) = self.cells[Self::cell(GRID, d)];
-        let cands = &self.cands[start as usize..start as usize + nt as usize + ne as usize];
-        for &t in &cands[..nt as usize] {
+        let (tris, arcs) = self.candidates(d);
+        for &t in tris {
             if self.tri_weights(&self.tris[t as usize], d, out) {
                 return;
             }
         }
-        if ne > 0 {
-            let e = self
-                .nearest_edge(d, cands[nt as usize..].iter().map(|&e| e as usize))
-                .expect("a listed edge");
+        if !arcs.is_empty() {
+            let e = self.nearest_edge(d, arcs.iter().map(|&e| e as usize)).expect("a listed edge");
             return self.edge_weights(e, d, out);
         }
         // Not where the grid expected it (within float rounding of an
