@@ -159,6 +159,24 @@ fn bad_inputs_exit_3_and_write_nothing() {
     ]);
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
+    // Its own output is replaced whole; a directory holding anything else
+    // (a user's file, the scan itself, the folder of the inputs) is refused
+    // before any work, exit 4, and left as it was.
+    let regions_to = |out: &str| {
+        scanner(&["regions", "--scan", &d("leather"), "--calibration", &d("cal.json"), "-o", out])
+    };
+    assert_eq!(regions_to(&d("regions")).0, Some(0));
+    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
+    std::fs::write(dir.path().join("regions/notes.txt"), "mine").unwrap();
+    for out in [d("regions"), d("leather"), dir.path().display().to_string()] {
+        let before = walk(Path::new(&out)).len();
+        let (code, err) = regions_to(&out);
+        assert_eq!(code, Some(4), "{err}");
+        assert!(err.contains("which this command did not write"), "{err}");
+        assert_eq!(walk(Path::new(&out)).len(), before);
+    }
+    assert_eq!(std::fs::read_to_string(dir.path().join("regions/notes.txt")).unwrap(), "mine");
+    std::fs::remove_file(dir.path().join("regions/notes.txt")).unwrap();
 
     // Each refusal exits 3 and leaves no output directory.
     let regions_refused = |scan: &str, cal: &str, out: &str| -> String {

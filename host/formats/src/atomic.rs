@@ -23,6 +23,25 @@ pub enum OutputError {
         /// What is there.
         what: &'static str,
     },
+    /// An output directory holds a file the command did not write.
+    #[error(
+        "{}: holds {}, which this command did not write; refusing to replace it (choose a new or \
+         empty directory)",
+        path.display(),
+        file.display()
+    )]
+    Foreign {
+        /// The output directory.
+        path: PathBuf,
+        /// The first file found that is not the command's.
+        file: PathBuf,
+    },
+    /// The output directory has no name of its own (`.`, `..`, `/`).
+    #[error("{}: name a directory of its own for the output", path.display())]
+    Unnamed {
+        /// The output path.
+        path: PathBuf,
+    },
     /// The output is one of the inputs.
     #[error("{}: the output would replace the input {}", path.display(), input.display())]
     IsInput {
@@ -107,6 +126,100 @@ fn same_file(a: &Path, b: &Path) -> bool {
     }
 }
 
+/// Check that the directory `path` may be replaced by a command's output
+/// directory: nothing there, or a directory (not a link) holding only
+/// files whose names `ours` accepts — so never a user's other files, a
+/// scan, or a directory holding an input.
+pub fn check_output_dir(path: &Path, ours: impl Fn(&str) -> bool) -> Result<(), OutputError> {
+    if path.file_name().is_none() {
+        return Err(OutputError::Unnamed { path: path.to_path_buf() });
+    }
+    let meta = match std::fs::symlink_metadata(path) {
+        Ok(m) => m,
+        Err(_) => return Ok(()), // nothing there (or unreachable: the write will say)
+    };
+    let ft = meta.file_type();
+    if !ft.is_dir() {
+        let what = if ft.is_symlink() {
+            "a symbolic link"
+        } else if ft.is_file() {
+            "a file, not a directory"
+        } else {
+            special_kind(&ft)
+        };
+        return Err(OutputError::NotRegular { path: path.to_path_buf(), what });
+    }
+    let foreign = |file: PathBuf| OutputError::Foreign { path: path.to_path_buf(), file };
+    let entries = std::fs::read_dir(path).map_err(|_| foreign(path.to_path_buf()))?;
+    for entry in entries {
+        let entry = entry.map_err(|_| foreign(path.to_path_buf()))?;
+        let name = entry.file_name();
+        let is_file = entry.file_type().is_ok_and(|t| t.is_file());
+        if !is_file || !name.to_str().is_some_and(&ours) {
+            return Err(foreign(entry.path()));
+        }
+    }
+    Ok(())
+}
+
+/// A new, uniquely named, empty directory beside `output` to fill before
+/// [`replace_dir`] puts it in place; removed if dropped first.
+pub fn staging_dir(output: &Path) -> std::io::Result<tempfile::TempDir> {
+    let name = output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    tempfile::Builder::new().prefix(&format!(".{name}.partial-")).tempdir_in(parent_of(output))
+}
+
+fn parent_of(path: &Path) -> &Path {
+    match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    }
+}
+
+/// Put the finished directory `staging` (from [`staging_dir`]) at
+/// `output`, whose old content (checked with [`check_output_dir`]) is
+/// swapped out in one step where the system can (Linux), then removed. A
+/// reader, or another process writing the same output, sees the old
+/// directory or the new one, never a mixture.
+pub fn replace_dir(staging: tempfile::TempDir, output: &Path) -> std::io::Result<()> {
+    sync_dir(staging.path())?;
+    let exists = std::fs::symlink_metadata(output).is_ok();
+    if !exists {
+        std::fs::rename(staging.path(), output)?;
+        // Renamed away: nothing left for the guard to remove.
+        let _ = staging.keep();
+    } else if !exchange(staging.path(), output)? {
+        // No atomic exchange here: move the old one aside under a unique name first.
+        let old = staging_dir(output)?;
+        std::fs::rename(output, old.path())?;
+        if let Err(e) = std::fs::rename(staging.path(), output) {
+            let _ = std::fs::rename(old.path(), output);
+            return Err(e);
+        }
+        let _ = staging.keep();
+        drop(old); // removes the old output
+    }
+    // After an exchange `staging` holds the old output; dropping it removes it.
+    sync_dir(parent_of(output))
+}
+
+/// Swap two directories atomically; `Ok(false)` where the file system
+/// cannot.
+#[cfg(target_os = "linux")]
+fn exchange(a: &Path, b: &Path) -> std::io::Result<bool> {
+    use rustix::fs::{CWD, RenameFlags, renameat_with};
+    match renameat_with(CWD, a, CWD, b, RenameFlags::EXCHANGE) {
+        Ok(()) => Ok(true),
+        Err(e) if e == rustix::io::Errno::INVAL || e == rustix::io::Errno::NOSYS => Ok(false),
+        Err(e) => Err(e.into()),
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn exchange(_: &Path, _: &Path) -> std::io::Result<bool> {
+    Ok(false)
+}
+
 /// Write `bytes` to `path` atomically.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes))
@@ -118,11 +231,15 @@ pub fn write_atomic_with(
     fill: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
     check_output(path, &[])?;
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(dir)?;
+    let dir = parent_of(path);
+    // tempfile's own error names its random temporary path; name the directory.
+    let mut tmp = tempfile::Builder::new().prefix(".tmp-").tempfile_in(dir).map_err(|e| {
+        let why = match std::fs::metadata(dir) {
+            Err(d) => d.to_string(),
+            Ok(_) => e.get_ref().map_or_else(|| e.to_string(), |p| p.to_string()),
+        };
+        std::io::Error::new(e.kind(), format!("cannot create a file in {}: {why}", dir.display()))
+    })?;
     // Temporary files are created private (0600); a finished file should
     // have the permissions of the one it replaces, or ordinary ones.
     #[cfg(unix)]
@@ -187,5 +304,55 @@ mod tests {
         std::fs::hard_link(&file, &other).unwrap();
         assert!(matches!(check_output(&other, &[&file]), Err(OutputError::IsInput { .. })));
         assert!(check_output(&dir.path().join("new"), &[&file]).is_ok());
+    }
+
+    fn exr(name: &str) -> bool {
+        name.ends_with(".exr")
+    }
+
+    #[test]
+    fn an_output_directory_replaces_only_what_the_command_wrote() {
+        let root = tempfile::tempdir().unwrap();
+        let out = root.path().join("regions");
+        // Nothing there, then its own files: replaced whole.
+        for (round, names) in [["a.exr", "b.exr"], ["c.exr", "d.exr"]].iter().enumerate() {
+            check_output_dir(&out, exr).unwrap();
+            let staging = staging_dir(&out).unwrap();
+            for n in names {
+                std::fs::write(staging.path().join(n), format!("{round}")).unwrap();
+            }
+            replace_dir(staging, &out).unwrap();
+            let mut got: Vec<String> = std::fs::read_dir(&out)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().into_string().unwrap())
+                .collect();
+            got.sort();
+            assert_eq!(got, names.to_vec());
+        }
+        // Nothing left beside it: no staging, no old copy.
+        assert_eq!(std::fs::read_dir(root.path()).unwrap().count(), 1);
+        // A user's file, a subdirectory, a link, a file, no name: refused, untouched.
+        std::fs::write(out.join("thesis.txt"), "mine").unwrap();
+        let e = check_output_dir(&out, exr).unwrap_err();
+        assert!(e.to_string().contains("thesis.txt"), "{e}");
+        std::fs::remove_file(out.join("thesis.txt")).unwrap();
+        std::fs::create_dir(out.join("sub")).unwrap();
+        assert!(matches!(check_output_dir(&out, exr), Err(OutputError::Foreign { .. })));
+        #[cfg(unix)]
+        {
+            let link = root.path().join("link");
+            std::os::unix::fs::symlink(&out, &link).unwrap();
+            assert!(matches!(check_output_dir(&link, exr), Err(OutputError::NotRegular { .. })));
+        }
+        let file = root.path().join("f");
+        std::fs::write(&file, "x").unwrap();
+        assert!(matches!(check_output_dir(&file, exr), Err(OutputError::NotRegular { .. })));
+        assert!(matches!(check_output_dir(Path::new("."), exr), Err(OutputError::Unnamed { .. })));
+        assert!(matches!(check_output_dir(Path::new("/"), exr), Err(OutputError::Unnamed { .. })));
+        // A dropped staging directory leaves nothing.
+        let staging = staging_dir(&out).unwrap();
+        let p = staging.path().to_path_buf();
+        drop(staging);
+        assert!(!p.exists());
     }
 }

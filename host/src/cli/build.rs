@@ -167,9 +167,10 @@ impl ScanInputs {
 /// `scanner regions`
 pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::RegionSet, Failure> {
     input.check()?;
-    if output.exists() && !output.is_dir() {
-        return Err(Failure(4, anyhow!("{}: exists and is not a directory", output.display())));
-    }
+    let check = || {
+        crate::fsutil::check_output_dir(output, is_region_file).map_err(|e| Failure(4, anyhow!(e)))
+    };
+    check()?;
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
     let bar = StageBar::new();
@@ -177,15 +178,13 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     bar.finish();
     let regions = regions.map_err(build_failure)?;
     let extracted = started.elapsed().as_secs_f64();
-    // Written into a fresh sibling directory, then renamed into place: no
-    // partial output on failure.
-    let staging = staging_dir(output);
-    let _ = std::fs::remove_dir_all(&staging);
-    if let Err(e) = regions.write_exr(&staging) {
-        let _ = std::fs::remove_dir_all(&staging);
-        return Err(build_failure(e));
-    }
-    replace_dir(&staging, output).map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+    // Written into a fresh sibling directory, then swapped into place: no
+    // partial output on failure, and never a mixture of two runs.
+    let place = |e: std::io::Error| Failure(4, anyhow!("{}: {e}", output.display()));
+    let staging = crate::fsutil::staging_dir(output).map_err(place)?;
+    regions.write_exr(staging.path()).map_err(build_failure)?;
+    check()?;
+    crate::fsutil::replace_dir(staging, output).map_err(place)?;
     println!(
         "{} region images of {}² px ({} lights × {} views) in {extracted:.1} s (+ {:.1} s writing) → {}",
         regions.images.len(),
@@ -230,34 +229,13 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
 }
 
-fn staging_dir(output: &Path) -> PathBuf {
-    let name = output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    output.with_file_name(format!(".{name}.partial"))
-}
-
-/// Put `staging` where `output` is (an existing output directory is
-/// replaced only after the new one is complete).
-fn replace_dir(staging: &Path, output: &Path) -> std::io::Result<()> {
-    if output.exists() {
-        let old = output.with_file_name(format!(
-            ".{}.old",
-            output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
-        ));
-        let _ = std::fs::remove_dir_all(&old);
-        std::fs::rename(output, &old)?;
-        std::fs::rename(staging, output)?;
-        std::fs::remove_dir_all(&old)?;
-    } else {
-        std::fs::rename(staging, output)?;
-    }
-    if let Some(parent) = output.parent() {
-        crate::fsutil::sync_dir(if parent.as_os_str().is_empty() {
-            Path::new(".")
-        } else {
-            parent
-        })?;
-    }
-    Ok(())
+/// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more).
+fn is_region_file(name: &str) -> bool {
+    let digits = |s: &str| s.len() >= 2 && s.bytes().all(|b| b.is_ascii_digit());
+    name.strip_prefix('l')
+        .and_then(|r| r.strip_suffix(".exr"))
+        .and_then(|r| r.split_once("-v"))
+        .is_some_and(|(l, v)| digits(l) && digits(v))
 }
 
 /// What `scanner build` made.
@@ -352,8 +330,7 @@ pub fn shade_cmd(material: &Path, queries: &Path, output: &Path) -> Result<(), F
     check_extension(output).map_err(query_failure)?;
     crate::fsutil::check_output(output, &[material, queries])
         .map_err(|e| Failure(4, anyhow!(e)))?;
-    let m = scanner_shading::Material::open(material)
-        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let m = open_material(material)?;
     let q = read_queries(queries).map_err(query_failure)?;
     let started = Instant::now();
     let answers = crate::build::material::shade(&m, &q);
@@ -465,8 +442,7 @@ pub fn preview(
 /// `scanner preview`
 pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
     super::check_output(output, material, &["png"])?;
-    let m = scanner_shading::Material::open(material)
-        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let m = open_material(material)?;
     let views: Vec<[f64; 3]> = m.metadata().views.iter().map(|v| v.direction).collect();
     let (view, off) = novel_view(&views);
     preview(&m, view, None, output)?;
@@ -476,4 +452,13 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
         output.display(),
     );
     Ok(())
+}
+
+/// A material file for a command, or exit 3 with the file named once.
+fn open_material(path: &Path) -> Result<scanner_shading::Material, Failure> {
+    scanner_shading::Material::open(path).map_err(|e| {
+        let e = e.to_string();
+        let named = e.starts_with(&path.display().to_string());
+        Failure(3, if named { anyhow!(e) } else { anyhow!("{}: {e}", path.display()) })
+    })
 }

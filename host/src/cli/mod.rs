@@ -562,8 +562,24 @@ pub fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(Failure(code, e)) => {
-            eprintln!("scanner: {e:#}");
+            eprintln!("scanner: {}", message(&e));
             ExitCode::from(code)
         }
     }
+}
+
+/// An error and its causes on one line, each cause once: many errors
+/// already quote their source in their own message.
+fn message(e: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in e.chain() {
+        let part = cause.to_string();
+        if !text.contains(&part) {
+            if !text.is_empty() {
+                text.push_str(": ");
+            }
+            text.push_str(&part);
+        }
+    }
+    text
 }
