@@ -745,6 +745,11 @@ pub fn demo(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .filter(|n| !n.is_empty())
+        .map(|n| {
+            // A texture set named like a target gets a scan directory of its own.
+            let taken = ["checkerboard", "diffuse-white", "glossy-black"];
+            if taken.contains(&n.as_str()) { format!("sample-{n}") } else { n }
+        })
         .unwrap_or_else(|| "sample".into());
     // The glossy target's highlights are ≈ 40× the white's: a short exposure.
     // The sample: metered, HDR.
@@ -782,15 +787,30 @@ pub fn demo(
     }
     let scanned = started.elapsed().as_secs_f64();
     let calibration = out.join("calibration.json");
-    super::build::calibrate_cmd(
-        &out.join("checkerboard"),
-        &out.join("diffuse-white"),
-        Some(&out.join("glossy-black")),
-        &calibration,
-        None,
-        crate::build::calibrate::DEFAULT_WHITE_ALBEDO,
-        8,
-    )?;
+    let calibrate = |glossy: Option<&Path>| {
+        super::build::calibrate_cmd(
+            &out.join("checkerboard"),
+            &out.join("diffuse-white"),
+            glossy,
+            &calibration,
+            None,
+            crate::build::calibrate::DEFAULT_WHITE_ALBEDO,
+            8,
+        )
+    };
+    match calibrate(Some(&out.join("glossy-black"))) {
+        // A few mirrors may show too few highlights to place the source:
+        // the nominal source positions then, said so.
+        Err(Failure(3, e)) if mirrors.is_some() => {
+            eprintln!(
+                "demo: {e:#}; with only {} mirrors, calibrating with the nominal source \
+                 positions instead",
+                mirrors.unwrap_or_default()
+            );
+            calibrate(None)?;
+        }
+        r => r?,
+    }
     let material_file = out.join(format!("{name}.material"));
     let input = super::build::ScanInputs {
         scan: out.join(&name),
