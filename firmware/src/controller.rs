@@ -924,7 +924,9 @@ impl Controller {
 
     fn fire_trigger(&mut self, exposure_us: u32, mirror: Option<u8>, hw: &mut impl Hardware) {
         self.trigger_seq = self.trigger_seq.wrapping_add(1);
-        hw.set_trigger(true);
+        let ticks = exposure_us as u64 * TICKS_PER_US;
+        // A pulse the hardware ends: the light stays on until it has.
+        let ended = hw.start_trigger_pulse(ticks).unwrap_or(0);
         let fired = TriggerFired {
             trigger_seq: self.trigger_seq,
             timestamp_us: self.now / TICKS_PER_US,
@@ -933,7 +935,7 @@ impl Controller {
         };
         self.last_trigger = Some(fired);
         self.emit(Event::TriggerFired(fired));
-        self.activity = Activity::Exposing { until: self.now + exposure_us as u64 * TICKS_PER_US };
+        self.activity = Activity::Exposing { until: (self.now + ticks).max(ended) };
     }
 
     fn end_exposure(&mut self, hw: &mut impl Hardware) {
@@ -1081,12 +1083,15 @@ impl Controller {
         }
     }
 
-    /// The tick at which the running exposure ends, if one is running. The
-    /// board wakes there and calls [`Self::end_exposure_due`] instead of
-    /// waiting for its next 200 µs poll, so that the trigger pulse (the
-    /// camera's exposure) lasts the exposure asked for, not up to a poll
-    /// period more (3.2 instead of 3.09 ms: 3.5 % more light than the host
-    /// counts on).
+    /// The tick at which the running exposure ends, if one is running: the
+    /// asked exposure after the trigger rose, or where the hardware reported
+    /// its pulse over ([`Hardware::start_trigger_pulse`]) if later. The board
+    /// and the simulator wake there and call [`Self::end_exposure_due`]
+    /// instead of waiting for the next 200 µs poll. Where the controller
+    /// ends the pulse itself (the simulator), this makes it last the
+    /// exposure asked for, not up to a poll period more (3.2 instead of
+    /// 3.09 ms: 3.5 % more light than the host counts on); where the board's
+    /// timer ends it, the light goes back and the next step starts at once.
     pub fn exposure_end(&self) -> Option<u64> {
         match self.activity {
             Activity::Exposing { until } => Some(until),

@@ -46,8 +46,22 @@ pub trait Hardware {
     fn set_drivers_enabled(&mut self, enabled: bool);
     /// Light output: 0 = off, else PWM duty in per mille.
     fn set_light(&mut self, duty_permille: u16);
-    /// Camera trigger output level.
+    /// Camera trigger output level. `false` lowers it at once: the end of
+    /// an exposure, or an abort in the middle of one.
     fn set_trigger(&mut self, high: bool);
+    /// Raise the camera trigger for `ticks` ticks: the camera's exposure.
+    ///
+    /// A board whose timer ends the pulse by itself ([`crate::trigger`])
+    /// does so and returns the tick by which the pulse has certainly ended;
+    /// the controller then keeps the light on until that tick and only
+    /// then calls `set_trigger(false)`. The default raises the line and
+    /// returns `None`: the controller lowers it `ticks` later, and the
+    /// pulse is as exact as its wake-up at that tick (the simulator's is).
+    fn start_trigger_pulse(&mut self, ticks: u64) -> Option<u64> {
+        let _ = ticks;
+        self.set_trigger(true);
+        None
+    }
     /// Persist the configuration blob (axis configs and mirror table).
     fn save_config(&mut self, blob: &[u8]) -> Result<(), StorageError>;
 }

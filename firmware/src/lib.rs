@@ -27,6 +27,7 @@ pub mod step;
 #[cfg(feature = "selftest")]
 pub mod testkit;
 pub mod timer;
+pub mod trigger;
 #[cfg(feature = "usb")]
 pub mod usb;
 

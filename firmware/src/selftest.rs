@@ -51,6 +51,8 @@ pub const TESTS: &[SelfTest] = &[
     ("disk_takes_shortest_way", disk_takes_shortest_way),
     ("capture_step_sequence", capture_step_sequence),
     ("bare_trigger", bare_trigger),
+    ("trigger_pulse_exact_on_the_timer_model", trigger_pulse_exact_on_the_timer_model),
+    ("hardware_trigger_pulse_keeps_the_light_on", hardware_trigger_pulse_keeps_the_light_on),
     ("dispatcher_errors", dispatcher_errors),
     ("duplicate_sequence_not_reexecuted", duplicate_sequence_not_reexecuted),
     ("handshake_required_and_versions", handshake_required_and_versions),
@@ -497,14 +499,7 @@ pub fn capture_step_sequence() -> TestResult {
     ensure!(fired.exposure_us == 50_000, "exposure reported");
 
     // Outputs: light on (800), trigger high, trigger low, light off.
-    let o = &rig.hw.outputs;
-    ensure!(o.len() == 4, "four output edges");
-    let (Output::Light(t_on, 800), Output::Trigger(t_hi, true)) = (o[0], o[1]) else {
-        return Err("light on, then trigger high");
-    };
-    let (Output::Trigger(t_lo, false), Output::Light(t_off, 0)) = (o[2], o[3]) else {
-        return Err("trigger low, then light off");
-    };
+    let [t_on, t_hi, t_lo, t_off] = capture_edges(&rig.hw.outputs)?;
     ensure!(t_on <= t_hi && t_lo <= t_off, "light spans the exposure");
     ensure!(t_lo - t_hi == 50_000 * TICKS_PER_US, "pulse width = exposure");
     ensure!(fired.timestamp_us == t_hi / TICKS_PER_US, "timestamp at the rising edge");
@@ -512,6 +507,19 @@ pub fn capture_step_sequence() -> TestResult {
     ensure!(t_hi - last_step >= 150 * TICKS_PER_MS, "settled 150 ms after the last step");
     ensure!(t_hi - last_step <= 150 * TICKS_PER_MS + TICKS_PER_MS, "and no more than 1 ms later");
     Ok(())
+}
+
+/// A capture step's outputs at duty 800: the ticks of light on, trigger
+/// high, trigger low and light off, in that order and nothing else.
+fn capture_edges(o: &[Output]) -> Result<[u64; 4], &'static str> {
+    ensure!(o.len() == 4, "four output edges");
+    let (Output::Light(t_on, 800), Output::Trigger(t_hi, true)) = (o[0], o[1]) else {
+        return Err("light on, then trigger high");
+    };
+    let (Output::Trigger(t_lo, false), Output::Light(t_off, 0)) = (o[2], o[3]) else {
+        return Err("trigger low, then light off");
+    };
+    Ok([t_on, t_hi, t_lo, t_off])
 }
 
 pub fn bare_trigger() -> TestResult {
@@ -522,6 +530,102 @@ pub fn bare_trigger() -> TestResult {
     let reply = rig.request(Request::GetLastTrigger);
     let Reply::Trigger(Some(t)) = reply else { return Err("last trigger") };
     ensure!(t.trigger_seq == 1 && t.mirror.is_none(), "bare trigger recorded");
+    Ok(())
+}
+
+/// The one-pulse trigger (`crate::trigger`) on a model of its timer whose
+/// counter runs on by up to 40 ticks at every register access: every pulse
+/// from 1 ms to 2 s lasts exactly its ticks, starts at the first tick after
+/// `start`, has ended by the tick the board reports, and an abort lowers
+/// the line at once and for good.
+pub fn trigger_pulse_exact_on_the_timer_model() -> TestResult {
+    use crate::testkit::PulseTimerModel;
+    use crate::trigger::{force_low, running, start};
+    use protocol::{MAX_EXPOSURE_US, MIN_EXPOSURE_US};
+    let clock = core::cell::Cell::new(0u64);
+    let mut m = PulseTimerModel::new(&clock, 0x9E37_79B9, 40);
+    let mut rng = 0x2545_F491_4F6C_DD1Du64;
+    let mut random = move || crate::testkit::xorshift64star(&mut rng);
+    for i in 0..300 {
+        let us = match i {
+            0 => MIN_EXPOSURE_US,
+            1 => MAX_EXPOSURE_US,
+            2 => 3_090, // not a multiple of the 200 µs poll
+            _ => {
+                MIN_EXPOSURE_US + (random() % (MAX_EXPOSURE_US - MIN_EXPOSURE_US + 1) as u64) as u32
+            }
+        };
+        let ticks = us as u64 * TICKS_PER_US;
+        m.edges.clear();
+        let called = clock.get();
+        start(&mut m, ticks);
+        let returned = clock.get();
+        let ended_by = returned + ticks + 1; // what the board reports
+        m.advance(random() % ticks);
+        ensure!(running(&mut m) || clock.get() >= returned + ticks, "running during the pulse");
+        m.advance(ticks + 1);
+        ensure!(!m.is_high() && !running(&mut m), "the timer ended the pulse by itself");
+        ensure!(m.edges.len() == 2, "one rise and one fall");
+        let ((rise, up), (fall, down)) = (m.edges[0], m.edges[1]);
+        ensure!(up && !down, "a rise, then a fall");
+        ensure!(fall - rise == ticks, "the pulse lasts exactly the exposure");
+        ensure!(rise > called && rise <= returned + 1, "it starts at the first tick after start");
+        ensure!(fall <= ended_by, "it has ended by the reported tick");
+        // The controller lowers the line at the reported tick: no edge.
+        force_low(&mut m);
+        ensure!(m.edges.len() == 2, "lowering an ended pulse changes nothing");
+        m.advance(random() % 100_000);
+    }
+    // An abort in the middle of a pulse: low at once, and it stays low.
+    m.edges.clear();
+    start(&mut m, 100 * TICKS_PER_MS);
+    m.advance(10 * TICKS_PER_MS);
+    let before = clock.get();
+    force_low(&mut m);
+    let after = clock.get();
+    ensure!(m.edges.len() == 2 && !m.is_high(), "an abort lowers the line");
+    ensure!(m.edges[1].0 >= before && m.edges[1].0 <= after, "at the write");
+    m.advance(200 * TICKS_PER_MS);
+    ensure!(m.edges.len() == 2 && !running(&mut m), "and the counter stopped");
+    // A pulse after the abort is whole.
+    start(&mut m, 5 * TICKS_PER_MS);
+    m.advance(6 * TICKS_PER_MS);
+    ensure!(m.edges.len() == 4, "the next pulse");
+    ensure!(m.edges[3].0 - m.edges[2].0 == 5 * TICKS_PER_MS, "is whole");
+    Ok(())
+}
+
+/// With the pulse ended by the board's timer, the controller keeps the
+/// light on until the tick the board reports and lowers the line after
+/// it (no edge: the pulse is exact); an emergency stop in the middle of a
+/// pulse still drops the line at once.
+pub fn hardware_trigger_pulse_keeps_the_light_on() -> TestResult {
+    let mut rig = Rig::new();
+    rig.hw.hardware_pulse = true;
+    ensure!(rig.home_all(), "homing");
+    let pos = MirrorPosition { steps: [4_000, 120_000, -1_500] };
+    ensure!(rig.request(Request::SetMirror { mirror: 5, position: pos }) == Reply::Ack, "set");
+    rig.hw.outputs.clear();
+    let step =
+        CaptureStep { mirror: 5, settle_ms: 150, exposure_us: 3_090, light_duty_permille: 800 };
+    ensure!(rig.request(Request::CaptureStep(step)) == Reply::Ack, "capture accepted");
+    ensure!(rig.run_until_idle(10_000), "capture ends");
+    let [t_on, t_hi, t_lo, t_off] = capture_edges(&rig.hw.outputs)?;
+    ensure!(t_lo - t_hi == 3_090 * TICKS_PER_US, "pulse width = exposure");
+    ensure!(t_on <= t_hi && t_lo < t_off, "the light outlasts the pulse");
+    // An emergency stop 1 ms into a 100 ms pulse.
+    rig.hw.outputs.clear();
+    ensure!(rig.request(Request::Trigger { exposure_us: 100_000 }) == Reply::Ack, "trigger");
+    rig.run_until(rig.now + TICKS_PER_MS);
+    ensure!(rig.request(Request::EmergencyStop) == Reply::Ack, "stop");
+    let o = &rig.hw.outputs;
+    let (Some(Output::Trigger(t_hi, true)), Some(Output::Trigger(t_lo, false))) =
+        (o.first().copied(), o.get(1).copied())
+    else {
+        return Err("trigger high, then low");
+    };
+    ensure!(t_lo - t_hi == TICKS_PER_MS, "the stop cut the pulse at once");
+    ensure!(!rig.hw.trigger, "low");
     Ok(())
 }
 

@@ -49,6 +49,12 @@ pub struct MockHw {
     pub storage_fails: bool,
     /// The step generators (the interrupt's side).
     pub steppers: [StepGenerator; AXIS_COUNT],
+    /// End trigger pulses "in hardware", like the board's one-pulse timer
+    /// ([`crate::trigger`]): the fall is at the asked tick, whenever the
+    /// controller calls `set_trigger(false)` after it.
+    pub hardware_pulse: bool,
+    /// The tick at which the running hardware pulse falls.
+    pub pulse_falls_at: Option<u64>,
 }
 
 impl Hardware for MockHw {
@@ -74,10 +80,24 @@ impl Hardware for MockHw {
         self.light = duty_permille;
     }
     fn set_trigger(&mut self, high: bool) {
+        // A hardware pulse already over fell at its own tick.
+        let at = match self.pulse_falls_at.take() {
+            Some(fall) if !high && fall <= self.now => fall,
+            _ => self.now,
+        };
         if self.trigger != high {
-            let _ = self.outputs.push(Output::Trigger(self.now, high));
+            let _ = self.outputs.push(Output::Trigger(at, high));
         }
         self.trigger = high;
+    }
+    fn start_trigger_pulse(&mut self, ticks: u64) -> Option<u64> {
+        self.set_trigger(true);
+        if !self.hardware_pulse {
+            return None;
+        }
+        self.pulse_falls_at = Some(self.now + ticks);
+        // As the board: the end estimated a tick late (timer phase).
+        Some(self.now + ticks + 1)
     }
     fn save_config(&mut self, blob: &[u8]) -> Result<(), StorageError> {
         if self.storage_fails {
@@ -368,12 +388,9 @@ impl<'a> Tim2Model<'a> {
         self.clock.get()
     }
 
-    /// A pseudo-random number (xorshift64*).
+    /// A pseudo-random number.
     pub fn random(&mut self) -> u64 {
-        self.rng ^= self.rng >> 12;
-        self.rng ^= self.rng << 25;
-        self.rng ^= self.rng >> 27;
-        self.rng.wrapping_mul(0x2545_F491_4F6C_DD1D)
+        xorshift64star(&mut self.rng)
     }
 
     /// Let `dt` ticks pass: compare matches and wraps on the way set flags.
@@ -430,6 +447,146 @@ impl crate::timer::TimerRegs for Tim2Model<'_> {
         self.bus();
         self.sr |= crate::timer::ccif(ch);
     }
+}
+
+/// A model of the trigger's one-pulse timer ([`crate::trigger`]): a
+/// 32-bit up-counter of prescaled ticks with CR1.CEN/OPM, ARR, one
+/// output-compare channel and its output level, on a shared clock that
+/// also advances by a random 0 … `max_step` ticks at every register access
+/// (the code runs while the counter counts). Records the output's edges.
+#[derive(Debug)]
+pub struct PulseTimerModel<'a> {
+    /// Ticks since the model's epoch.
+    pub clock: &'a core::cell::Cell<u64>,
+    cr1: u32,
+    cnt: u32,
+    arr: u32,
+    ccr: u32,
+    mode: crate::trigger::OutputMode,
+    high: bool,
+    /// The output's edges: (tick, level).
+    pub edges: Vec<(u64, bool), 64>,
+    rng: u64,
+    /// Largest advance per register access, ticks.
+    pub max_step: u64,
+}
+
+impl<'a> PulseTimerModel<'a> {
+    /// A stopped timer, output forced low.
+    pub fn new(clock: &'a core::cell::Cell<u64>, seed: u64, max_step: u64) -> PulseTimerModel<'a> {
+        PulseTimerModel {
+            clock,
+            cr1: 0,
+            cnt: 0,
+            arr: u32::MAX,
+            ccr: 0,
+            mode: crate::trigger::OutputMode::ForceInactive,
+            high: false,
+            edges: Vec::new(),
+            rng: seed | 1,
+            max_step,
+        }
+    }
+
+    /// Whether the output is high now.
+    pub fn is_high(&self) -> bool {
+        self.high
+    }
+
+    /// The output level the mode and counter give.
+    fn level(&self) -> bool {
+        use crate::trigger::OutputMode::*;
+        match self.mode {
+            ForceInactive => false,
+            ForceActive => true,
+            Pwm2 => self.cnt >= self.ccr,
+        }
+    }
+
+    fn set_level(&mut self, at: u64) {
+        let high = self.level();
+        if high != self.high {
+            self.high = high;
+            let _ = self.edges.push((at, high));
+        }
+    }
+
+    /// Let `dt` ticks pass.
+    pub fn advance(&mut self, mut dt: u64) {
+        let mut t = self.clock.get();
+        while dt > 0 && self.cr1 & crate::trigger::CEN != 0 {
+            if self.cnt < self.arr {
+                // Count up to ARR; the output may rise on the way (at CNT = CCR).
+                let step = dt.min((self.arr - self.cnt) as u64);
+                let (from, to) = (self.cnt as u64, self.cnt as u64 + step);
+                self.cnt = to as u32;
+                let ccr = self.ccr as u64;
+                if from < ccr && ccr <= to {
+                    let keep = self.cnt;
+                    self.cnt = self.ccr;
+                    self.set_level(t + (ccr - from));
+                    self.cnt = keep;
+                }
+                self.set_level(t + step);
+                t += step;
+                dt -= step;
+            } else {
+                // The tick after ARR: the update, which stops a one-pulse counter.
+                t += 1;
+                dt -= 1;
+                self.cnt = 0;
+                if self.cr1 & crate::trigger::OPM != 0 {
+                    self.cr1 &= !crate::trigger::CEN;
+                }
+                self.set_level(t);
+            }
+        }
+        self.clock.set(t + dt);
+    }
+
+    fn bus(&mut self) {
+        let dt = xorshift64star(&mut self.rng) % (self.max_step + 1);
+        self.advance(dt);
+    }
+}
+
+impl crate::trigger::PulseRegs for PulseTimerModel<'_> {
+    fn cr1(&mut self) -> u32 {
+        self.bus();
+        self.cr1
+    }
+    fn write_cr1(&mut self, value: u32) {
+        self.bus();
+        self.cr1 = value;
+    }
+    fn write_arr(&mut self, value: u32) {
+        self.bus();
+        self.arr = value;
+    }
+    fn write_ccr(&mut self, value: u32) {
+        self.bus();
+        self.ccr = value;
+        self.set_level(self.clock.get());
+    }
+    fn set_mode(&mut self, mode: crate::trigger::OutputMode) {
+        self.bus();
+        self.mode = mode;
+        self.set_level(self.clock.get());
+    }
+    fn generate_update(&mut self) {
+        self.bus();
+        self.cnt = 0;
+        self.set_level(self.clock.get());
+    }
+}
+
+/// The next number of a xorshift64* sequence (`state` ≠ 0): the models'
+/// and the tests' seeded randomness.
+pub fn xorshift64star(state: &mut u64) -> u64 {
+    *state ^= *state >> 12;
+    *state ^= *state << 25;
+    *state ^= *state >> 27;
+    state.wrapping_mul(0x2545_F491_4F6C_DD1D)
 }
 
 /// STEP lines on the model's clock: when each was raised last.

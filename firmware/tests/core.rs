@@ -37,6 +37,8 @@ selftests!(
     disk_takes_shortest_way,
     capture_step_sequence,
     bare_trigger,
+    trigger_pulse_exact_on_the_timer_model,
+    hardware_trigger_pulse_keeps_the_light_on,
     dispatcher_errors,
     duplicate_sequence_not_reexecuted,
     handshake_required_and_versions,

@@ -13,7 +13,7 @@
 //! | TILT home switch | PB5 | active low, pull-up |
 //! | emergency stop | PB8 | NC contact to GND, pull-up: open (or a cut wire) = stop |
 //! | driver fault | PB9 | pull-up; active low (DRV8825 nFAULT, default) or high (TMC2209 DIAG): `BoardConfig` |
-//! | camera trigger | PA1 | active high, to the opto-isolator |
+//! | camera trigger | PA1 | TIM5 CH2 one-pulse (`pulse.rs`), active high, to the opto-isolator |
 //! | (reserved: exposure strobe) | PA2 | not configured by this firmware |
 //! | light PWM | PB6 | TIM4 CH1, 20 kHz, active high |
 //! | USB D− / D+ | PA11 / PA12 | CDC-ACM |
@@ -21,8 +21,9 @@
 //! | SWD | PA13 / PA14 | debug probe |
 
 use embassy_stm32::gpio::{Input, Level, Output, Pull, Speed};
-use embassy_stm32::peripherals::TIM4;
+use embassy_stm32::peripherals::{TIM4, TIM5};
 use embassy_stm32::time::khz;
+use embassy_stm32::timer::Ch2;
 use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
 use embassy_stm32::{Peri, peripherals as p};
 use firmware::hal::Inputs;
@@ -61,8 +62,10 @@ impl Sensors {
 
 /// Camera trigger and light.
 pub struct Camera {
-    /// Trigger output (active high).
-    pub trigger: Output<'static>,
+    /// Trigger output (active high): PA1 as TIM5 CH2, driven by `pulse.rs`.
+    /// Held, never read: dropping it would disconnect the pin from TIM5.
+    #[allow(dead_code)]
+    pub trigger: PwmPin<'static, TIM5, Ch2>,
     /// Light PWM (TIM4 CH1).
     pub light: SimplePwm<'static, TIM4>,
 }
@@ -85,6 +88,8 @@ pub struct Pins {
     pub pa1: Peri<'static, p::PA1>,
     pub pb6: Peri<'static, p::PB6>,
     pub tim4: Peri<'static, p::TIM4>,
+    /// Owned so nothing else takes the trigger's timer.
+    pub tim5: Peri<'static, p::TIM5>,
 }
 
 /// Configure every pin.
@@ -117,6 +122,11 @@ pub fn init(pins: Pins) -> (Motors, Sensors, Camera) {
     );
     light.ch1().set_duty_cycle_fully_off();
     light.ch1().enable();
-    let camera = Camera { trigger: Output::new(pins.pa1, Level::Low, Speed::High), light };
+    // TIM5 first, its output forced low, then the pin handed to it (a
+    // high-impedance input from reset until here, as before).
+    let _ = pins.tim5;
+    crate::pulse::init(embassy_stm32::rcc::frequency::<TIM5>().0);
+    let trigger = PwmPin::new(pins.pa1, embassy_stm32::gpio::OutputType::PushPull);
+    let camera = Camera { trigger, light };
     (motors, sensors, camera)
 }

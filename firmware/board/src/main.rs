@@ -7,10 +7,12 @@
 //!   generators and STEP pins are the only state the interrupt shares, in
 //!   [`STEP`]; the controller plans outside that lock, so planning (soft
 //!   f64 on the M4) never delays a step.
+//! - TIM5 ends each camera trigger pulse in hardware (`pulse.rs`, one-pulse
+//!   mode on PA1), so an exposure lasts exactly the ticks asked for.
 //! - The control task polls the inputs every 200 µs (5 kHz) and the
 //!   controller's timers, feeds the watchdog and queues outgoing frames;
-//!   it also wakes at a running exposure's end, so the trigger pulse lasts
-//!   the exposure asked for.
+//!   it also wakes when a running exposure has ended, to turn the light
+//!   back and report without waiting for the next poll.
 //! - The USB task serves CDC-ACM; received bytes go straight to the
 //!   controller, replies and events go back through a pipe.
 #![no_std]
@@ -18,6 +20,7 @@
 
 mod board;
 mod clock;
+mod pulse;
 mod storage;
 
 use core::cell::RefCell;
@@ -135,7 +138,10 @@ impl Hardware for BoardHw {
         ch.set_duty_cycle_fraction(duty_permille.min(1000) as u32, 1000);
     }
     fn set_trigger(&mut self, high: bool) {
-        self.camera.trigger.set_level(high.into());
+        if high { pulse::force_high() } else { pulse::force_low() }
+    }
+    fn start_trigger_pulse(&mut self, ticks: u64) -> Option<u64> {
+        Some(pulse::start(ticks))
     }
     fn save_config(&mut self, blob: &[u8]) -> Result<(), StorageError> {
         self.store.save_config(blob)
@@ -283,6 +289,7 @@ async fn main(spawner: Spawner) {
         pa1: p.PA1,
         pb6: p.PB6,
         tim4: p.TIM4,
+        tim5: p.TIM5,
     });
     let board::Motors { step, dir, enable_n } = motors;
     critical_section::with(|cs| {
@@ -328,9 +335,9 @@ async fn main(spawner: Spawner) {
     spawner.spawn(unwrap!(usb_task(usb, class, vendor_out, vendor_in)));
 
     // Control loop: inputs at 5 kHz, the controller's timers, the watchdog;
-    // and the end of a running exposure at its tick, not at the next poll
-    // (the trigger pulse is the camera's exposure: it must last what the
-    // host asked, within the task's wake-up latency, not up to 200 µs more).
+    // and the end of a running exposure when TIM5 has ended its pulse (the
+    // tick `start_trigger_pulse` reported), not at the next poll: the light
+    // goes back and the next capture step starts without up to 200 µs more.
     // An exposure the USB task starts is seen at the next poll, before it
     // ends: exposures are at least `MIN_EXPOSURE_US` (1 ms) > 200 µs.
     let mut ticker = Ticker::every(Duration::from_micros(200));
