@@ -177,6 +177,14 @@ fn bad_inputs_exit_3_and_write_nothing() {
     }
     assert_eq!(std::fs::read_to_string(dir.path().join("regions/notes.txt")).unwrap(), "mine");
     std::fs::remove_file(dir.path().join("regions/notes.txt")).unwrap();
+    // A material written over the scan's own manifest: refused, exit 4.
+    let manifest = std::fs::read(dir.path().join("leather/manifest.json")).unwrap();
+    let over = d("leather/manifest.json");
+    let (code, err) =
+        scanner(&["build", "--scan", &d("leather"), "--calibration", &d("cal.json"), "-o", &over]);
+    assert_eq!(code, Some(4), "{err}");
+    assert!(err.contains("would replace a file of the input"), "{err}");
+    assert_eq!(std::fs::read(dir.path().join("leather/manifest.json")).unwrap(), manifest);
 
     // Each refusal exits 3 and leaves no output directory.
     let regions_refused = |scan: &str, cal: &str, out: &str| -> String {

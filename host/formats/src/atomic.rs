@@ -23,6 +23,19 @@ pub enum OutputError {
         /// What is there.
         what: &'static str,
     },
+    /// The output would replace one of an input directory's own records.
+    #[error(
+        "{}: would replace a file of the input {} (its manifest, lock or frames); choose \
+         another file",
+        path.display(),
+        input.display()
+    )]
+    InsideInput {
+        /// The output path.
+        path: PathBuf,
+        /// The input directory it lies in.
+        input: PathBuf,
+    },
     /// An output directory holds a file the command did not write.
     #[error(
         "{}: holds {}, which this command did not write; refusing to replace it (choose a new or \
@@ -86,8 +99,30 @@ pub fn check_output(path: &Path, inputs: &[&Path]) -> Result<(), OutputError> {
                 input: input.to_path_buf(),
             });
         }
+        if within(path, input) {
+            return Err(OutputError::InsideInput {
+                path: path.to_path_buf(),
+                input: input.to_path_buf(),
+            });
+        }
     }
     Ok(())
+}
+
+/// Whether the existing file `path` is one of the input directory `dir`'s
+/// own records: anything in its subdirectories (a scan's frames), or at
+/// its top level a `manifest*` file or a dotfile (a scan's manifest, its
+/// previous copy, its lock). An output of the command's own beside them
+/// (`scan/sample.material`) may be replaced.
+fn within(path: &Path, dir: &Path) -> bool {
+    let (Ok(d), Ok(p)) = (dir.canonicalize(), parent_of(path).canonicalize()) else {
+        return false;
+    };
+    if !d.is_dir() || !p.starts_with(&d) {
+        return false;
+    }
+    let name = path.file_name().map(|n| n.to_string_lossy()).unwrap_or_default();
+    p != d || name.starts_with("manifest") || name.starts_with('.')
 }
 
 #[cfg(unix)]
@@ -304,6 +339,18 @@ mod tests {
         std::fs::hard_link(&file, &other).unwrap();
         assert!(matches!(check_output(&other, &[&file]), Err(OutputError::IsInput { .. })));
         assert!(check_output(&dir.path().join("new"), &[&file]).is_ok());
+        // A file inside an input directory (a scan's manifest): refused; a
+        // new file beside it is allowed.
+        let scan = dir.path().join("scan");
+        std::fs::create_dir_all(scan.join("frames")).unwrap();
+        std::fs::write(scan.join("manifest.json"), "{}").unwrap();
+        std::fs::write(scan.join("frames/mirror-00.exr"), "x").unwrap();
+        for inside in ["manifest.json", "frames/mirror-00.exr"] {
+            let e = check_output(&scan.join(inside), &[&scan]).unwrap_err();
+            assert!(matches!(e, OutputError::InsideInput { .. }), "{e}");
+        }
+        std::fs::write(scan.join("sample.material"), "x").unwrap();
+        assert!(check_output(&scan.join("sample.material"), &[&scan]).is_ok());
     }
 
     fn exr(name: &str) -> bool {
