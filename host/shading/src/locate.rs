@@ -174,6 +174,16 @@ impl TriangleLocator {
     pub fn new(dirs: &[V3], tris: &[[u16; 3]], what: &str) -> Result<Self, MaterialError> {
         let bad = |s: String| Err(MaterialError::Value(format!("{what}: {s}")));
         let n = dirs.len();
+        // Euler: a triangulation of n points on a sphere has 2n − 4
+        // triangles, of a patch of it fewer. More would be overlapping
+        // triangles — and would only make opening the file slow.
+        if tris.len() > (2 * n).saturating_sub(4) {
+            return bad(format!(
+                "{} triangles over {n} directions: more than a triangulation has ({})",
+                tris.len(),
+                (2 * n).saturating_sub(4)
+            ));
+        }
         let mut out = Vec::with_capacity(tris.len());
         let mut uses: std::collections::BTreeMap<(u16, u16), u32> = Default::default();
         for t in tris {

@@ -278,6 +278,18 @@ fn damaged_files_are_refused_without_panicking() {
         views[0] = [0, 1, 9];
     }
     assert!(d.to_bytes().unwrap_err().to_string().contains("outside 0…6"));
+    // More triangles than any triangulation of the directions has (they
+    // would only make opening the file slow).
+    let mut d = material(Interpolation::Default);
+    if let DirectionTables::Triangles { views, .. } = &mut d.tables {
+        let extra: Vec<[u16; 3]> = (0..11).map(|i| [0, 1 + i % 5, 2 + i % 5]).collect();
+        *views = extra;
+    }
+    let e = Material::from_data(d).unwrap_err().to_string();
+    assert!(
+        e.contains("11 triangles over 7 directions: more than a triangulation has (10)"),
+        "{e}"
+    );
     let mut d = material(Interpolation::Default);
     d.meta.version = 7;
     assert!(d.to_bytes().unwrap_err().to_string().contains("version 7"));
