@@ -256,6 +256,13 @@ fn bad_inputs_exit_3_and_write_nothing() {
     };
     let err = calibrate_refused("checker", "dark", None, "c2.json");
     assert!(err.contains("noise floor"), "{err}");
+    // Scans swapped by mistake: the checkerboard as the white target (not
+    // uniform), a glossy sample as the white target (not diffuse).
+    let err = calibrate_refused("checker", "checker", None, "c5.json");
+    assert!(err.contains("not a uniform white target"), "{err}");
+    take_scan("rough-metal", seed, bin, mirrors, &dir.path().join("metal"));
+    let err = calibrate_refused("checker", "metal", None, "c6.json");
+    assert!(err.contains("not a diffuse white target"), "{err}");
     // A region that cannot be found: the checkerboard scan of a blank (white) sample
     // has no pattern to lock onto — name the mirror.
     copy_dir(&dir.path().join("checker"), &dir.path().join("blank"));

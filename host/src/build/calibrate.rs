@@ -488,6 +488,7 @@ fn colour_calibration(
             10.0 * read_codes.max(1.0)
         )));
     }
+    check_uniform(&w, grid, &white.dir)?;
     let (nl, nv, nc) = (lights.len(), views.len(), grid * grid);
     let mut a = vec![vec![[1.0f64; 3]; nc]; nv];
     let mut b = vec![vec![1.0f64; nc]; nl];
@@ -522,12 +523,105 @@ fn colour_calibration(
             b.iter_mut().flatten().for_each(|x| *x /= mean);
         }
     }
+    // A diffuse target's frames are the product of the two factors: a
+    // glossy or textured sample's are not.
+    let residual = factor_residual(&w, &a, &b);
+    if residual > 0.25 {
+        return Err(BuildError::Input(format!(
+            "{}: not a diffuse white target: the view × light factors miss its cells by {:.0} % \
+             (median; a diffuse target's by under 1 %). Is it a sample scan?",
+            white.dir.display(),
+            residual * 100.0
+        )));
+    }
+    if residual > 0.05 {
+        tracing::warn!(
+            "{}: the white target departs from a diffuse reflector by {:.0} % (median of its \
+             cells; the simulator's white: 0.6 %): its certified albedo may not hold at these \
+             angles",
+            white.dir.display(),
+            residual * 100.0
+        );
+    }
     Ok(ColourCalibration {
         grid,
         white_albedo: albedo,
         view_response: a.iter().map(|v| v.iter().flatten().map(|&x| x as f32).collect()).collect(),
         light_field: b.iter().map(|l| l.iter().map(|&x| x as f32).collect()).collect(),
     })
+}
+
+/// The median over cells, lights, views and channels of |w − a·b| / w:
+/// how far the white scan's cell means `w[l][v][c]` are from the product
+/// of the fitted view response `a[v][c]` and light field `b[l][c]`.
+fn factor_residual(w: &[Vec<Vec<[f64; 3]>>], a: &[Vec<[f64; 3]>], b: &[Vec<f64>]) -> f64 {
+    let mut rel: Vec<f64> = Vec::new();
+    for (wl, bl) in w.iter().zip(b) {
+        for (wv, av) in wl.iter().zip(a) {
+            for ((cell, ac), bc) in wv.iter().zip(av).zip(bl) {
+                for k in 0..3 {
+                    if cell[k] > 0.0 {
+                        rel.push(((cell[k] - ac[k] * bc) / cell[k]).abs());
+                    }
+                }
+            }
+        }
+    }
+    rel.sort_by(f64::total_cmp);
+    rel.get(rel.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// A diffuse-white target is uniform: what varies over it in one frame
+/// (the beam's profile, vignetting) varies smoothly, so neighbouring cells
+/// differ by a few per cent. A patterned scan — the checkerboard given as
+/// `--white`, a sample — has edges between cells: its factors would carry
+/// the pattern into every material. Refused when the median over all
+/// cells of the largest ratio to a neighbour exceeds 1.15 (the
+/// simulator's white: 1.009 at 4096², 1.001 at 512²; the checkerboard:
+/// 6.5, and 1.26 with its edges blurred at 512²; woven-fabric 1.67).
+fn check_uniform(
+    w: &[Vec<Vec<[f64; 3]>>],
+    grid: usize,
+    dir: &std::path::Path,
+) -> Result<(), BuildError> {
+    let mut contrast: Vec<f64> = Vec::new();
+    for cells in w.iter().flatten() {
+        let lum = |x: usize, y: usize| {
+            let c = cells[y * grid + x];
+            (c[0] + c[1] + c[2]) / 3.0
+        };
+        for y in 0..grid {
+            for x in 0..grid {
+                let here = lum(x, y);
+                let neighbours = [
+                    (x > 0).then(|| lum(x - 1, y)),
+                    (x + 1 < grid).then(|| lum(x + 1, y)),
+                    (y > 0).then(|| lum(x, y - 1)),
+                    (y + 1 < grid).then(|| lum(x, y + 1)),
+                ];
+                let worst = neighbours
+                    .into_iter()
+                    .flatten()
+                    .filter(|&n| n > 0.0 && here > 0.0)
+                    .map(|n| (here / n).ln().abs())
+                    .fold(None, |m: Option<f64>, r| Some(m.map_or(r, |m| m.max(r))));
+                contrast.extend(worst);
+            }
+        }
+    }
+    contrast.sort_by(f64::total_cmp);
+    let Some(&median) = contrast.get(contrast.len() / 2) else {
+        return Ok(());
+    };
+    if median > 1.15f64.ln() {
+        return Err(BuildError::Input(format!(
+            "{}: not a uniform white target: neighbouring cells of a view differ by {:.2}× \
+             (median; a white target's by about 1 %). Is it the checkerboard or a sample scan?",
+            dir.display(),
+            median.exp()
+        )));
+    }
+    Ok(())
 }
 
 /// The frame pixels the calibrated `views` are resampled from (bicubic
