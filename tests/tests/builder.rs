@@ -263,6 +263,10 @@ fn bad_inputs_exit_3_and_write_nothing() {
     take_scan("rough-metal", seed, bin, mirrors, &dir.path().join("metal"));
     let err = calibrate_refused("checker", "metal", None, "c6.json");
     assert!(err.contains("not a diffuse white target"), "{err}");
+    // A sample as the checkerboard: its pattern would drag the outline
+    // anywhere (and the corner search on it ran for minutes).
+    let err = calibrate_refused("leather", "white", None, "c7.json");
+    assert!(err.contains("is it a checkerboard scan?"), "{err}");
     // A region that cannot be found: the checkerboard scan of a blank (white) sample
     // has no pattern to lock onto — name the mirror.
     copy_dir(&dir.path().join("checker"), &dir.path().join("blank"));

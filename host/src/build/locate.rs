@@ -137,6 +137,23 @@ pub fn locate(
             break;
         }
     }
+    // The phase alignment moves the outline by at most a square or so; a
+    // pattern that is not the checkerboard (a sample scanned as one) can
+    // send it anywhere — beyond the frame region read for the view, or to
+    // a scale at which the corner search would take minutes.
+    let drift = (0..4)
+        .map(|k| {
+            let uv = [(k & 1) as f64, (k >> 1) as f64];
+            let (a, b) = (shifted.apply(uv), phase.apply(uv));
+            (a[0] - b[0]).hypot(a[1] - b[1])
+        })
+        .fold(0.0, f64::max);
+    if drift.is_nan() || drift > margin as f64 {
+        return Err(fail(format!(
+            "the checker pattern would move the view's outline by {drift:.0} px (at most {margin} \
+             px): is it a checkerboard scan?"
+        )));
+    }
     let (corners, corners_used, corner_rms_px) = match corner_fit(sum, &phase, target) {
         Some((h, n, rms)) => (Some(h), n, rms),
         None => (None, 0, f64::NAN),
