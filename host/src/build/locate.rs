@@ -125,13 +125,7 @@ pub fn locate(
     let mut phase = shifted;
     for _ in 0..6 {
         let Some(next) = phase_refine(sum, &phase, target) else { break };
-        let moved = (0..4)
-            .map(|k| {
-                let uv = [(k & 1) as f64, (k >> 1) as f64];
-                let (a, b) = (phase.apply(uv), next.apply(uv));
-                (a[0] - b[0]).hypot(a[1] - b[1])
-            })
-            .fold(0.0, f64::max);
+        let moved = outline_distance(&phase, &next);
         phase = next;
         if moved < 0.01 {
             break;
@@ -141,13 +135,7 @@ pub fn locate(
     // pattern that is not the checkerboard (a sample scanned as one) can
     // send it anywhere — beyond the frame region read for the view, or to
     // a scale at which the corner search would take minutes.
-    let drift = (0..4)
-        .map(|k| {
-            let uv = [(k & 1) as f64, (k >> 1) as f64];
-            let (a, b) = (shifted.apply(uv), phase.apply(uv));
-            (a[0] - b[0]).hypot(a[1] - b[1])
-        })
-        .fold(0.0, f64::max);
+    let drift = outline_distance(&shifted, &phase);
     if drift.is_nan() || drift > margin as f64 {
         return Err(fail(format!(
             "the checker pattern would move the view's outline by {drift:.0} px (at most {margin} \
@@ -159,6 +147,18 @@ pub fn locate(
         None => (None, 0, f64::NAN),
     };
     Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px })
+}
+
+/// How far apart two homographies put the sample's corners: the largest
+/// of the four distances, px (NaN if either is not finite there).
+fn outline_distance(a: &Homography, b: &Homography) -> f64 {
+    (0..4)
+        .map(|k| {
+            let uv = [(k & 1) as f64, (k >> 1) as f64];
+            let (p, q) = (a.apply(uv), b.apply(uv));
+            (p[0] - q[0]).hypot(p[1] - q[1])
+        })
+        .fold(0.0, |m: f64, d| if d.is_nan() || m.is_nan() { f64::NAN } else { m.max(d) })
 }
 
 /// Translate `h` so the sample's silhouette matches the lit pixels: row
