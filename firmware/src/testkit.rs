@@ -519,14 +519,12 @@ impl<'a> PulseTimerModel<'a> {
                 // Count up to ARR; the output may rise on the way (at CNT = CCR).
                 let step = dt.min((self.arr - self.cnt) as u64);
                 let (from, to) = (self.cnt as u64, self.cnt as u64 + step);
-                self.cnt = to as u32;
                 let ccr = self.ccr as u64;
                 if from < ccr && ccr <= to {
-                    let keep = self.cnt;
                     self.cnt = self.ccr;
                     self.set_level(t + (ccr - from));
-                    self.cnt = keep;
                 }
+                self.cnt = to as u32;
                 self.set_level(t + step);
                 t += step;
                 dt -= step;

@@ -79,17 +79,7 @@ pub fn check_output(path: &Path, inputs: &[&Path]) -> Result<(), OutputError> {
         Ok(m) => m,
         Err(_) => return Ok(()), // nothing there (or unreachable: the write will say)
     };
-    let ft = meta.file_type();
-    let what = if ft.is_symlink() {
-        Some("a symbolic link")
-    } else if ft.is_dir() {
-        Some("a directory")
-    } else if ft.is_file() {
-        None
-    } else {
-        Some(special_kind(&ft))
-    };
-    if let Some(what) = what {
+    if let Some(what) = refusal(&meta.file_type(), false) {
         return Err(OutputError::NotRegular { path: path.to_path_buf(), what });
     }
     for input in inputs {
@@ -123,6 +113,20 @@ fn within(path: &Path, dir: &Path) -> bool {
     }
     let name = path.file_name().map(|n| n.to_string_lossy()).unwrap_or_default();
     p != d || name.starts_with("manifest") || name.starts_with('.')
+}
+
+/// What is at an output path if it is not what the output may replace —
+/// a regular file, or with `want_dir` a real directory — else `None`.
+fn refusal(ft: &std::fs::FileType, want_dir: bool) -> Option<&'static str> {
+    if ft.is_symlink() {
+        Some("a symbolic link")
+    } else if ft.is_dir() {
+        (!want_dir).then_some("a directory")
+    } else if ft.is_file() {
+        want_dir.then_some("a file, not a directory")
+    } else {
+        Some(special_kind(ft))
+    }
 }
 
 #[cfg(unix)]
@@ -173,15 +177,7 @@ pub fn check_output_dir(path: &Path, ours: impl Fn(&str) -> bool) -> Result<(), 
         Ok(m) => m,
         Err(_) => return Ok(()), // nothing there (or unreachable: the write will say)
     };
-    let ft = meta.file_type();
-    if !ft.is_dir() {
-        let what = if ft.is_symlink() {
-            "a symbolic link"
-        } else if ft.is_file() {
-            "a file, not a directory"
-        } else {
-            special_kind(&ft)
-        };
+    if let Some(what) = refusal(&meta.file_type(), true) {
         return Err(OutputError::NotRegular { path: path.to_path_buf(), what });
     }
     let foreign = |file: PathBuf| OutputError::Foreign { path: path.to_path_buf(), file };

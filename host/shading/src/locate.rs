@@ -177,11 +177,11 @@ impl TriangleLocator {
         // Euler: a triangulation of n points on a sphere has 2n − 4
         // triangles, of a patch of it fewer. More would be overlapping
         // triangles — and would only make opening the file slow.
-        if tris.len() > (2 * n).saturating_sub(4) {
+        let most = (2 * n).saturating_sub(4);
+        if tris.len() > most {
             return bad(format!(
-                "{} triangles over {n} directions: more than a triangulation has ({})",
-                tris.len(),
-                (2 * n).saturating_sub(4)
+                "{} triangles over {n} directions: more than a triangulation has ({most})",
+                tris.len()
             ));
         }
         let mut out = Vec::with_capacity(tris.len());

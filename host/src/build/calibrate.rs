@@ -567,8 +567,13 @@ fn factor_residual(w: &[Vec<Vec<[f64; 3]>>], a: &[Vec<[f64; 3]>], b: &[Vec<f64>]
             }
         }
     }
-    rel.sort_by(f64::total_cmp);
-    rel.get(rel.len() / 2).copied().unwrap_or(0.0)
+    median(rel).unwrap_or(0.0)
+}
+
+/// The upper median (element `len / 2` in order), `None` for no values.
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    let mid = values.len() / 2;
+    (!values.is_empty()).then(|| *values.select_nth_unstable_by(mid, f64::total_cmp).1)
 }
 
 /// A diffuse-white target is uniform: what varies over it in one frame
@@ -604,13 +609,12 @@ fn check_uniform(
                     .flatten()
                     .filter(|&n| n > 0.0 && here > 0.0)
                     .map(|n| (here / n).ln().abs())
-                    .fold(None, |m: Option<f64>, r| Some(m.map_or(r, |m| m.max(r))));
+                    .reduce(f64::max);
                 contrast.extend(worst);
             }
         }
     }
-    contrast.sort_by(f64::total_cmp);
-    let Some(&median) = contrast.get(contrast.len() / 2) else {
+    let Some(median) = median(contrast) else {
         return Ok(());
     };
     if median > 1.15f64.ln() {

@@ -798,18 +798,18 @@ pub fn demo(
             8,
         )
     };
-    match calibrate(Some(&out.join("glossy-black"))) {
+    match (calibrate(Some(&out.join("glossy-black"))), mirrors) {
         // A few mirrors may show too few highlights to place the source:
         // the nominal source positions then, said so.
-        Err(Failure(3, e)) if mirrors.is_some() => {
+        (Err(Failure(3, e)), Some(n)) => {
             eprintln!(
-                "demo: {e:#}; with only {} mirrors, calibrating with the nominal source \
+                "demo: {}; with only {n} mirrors, calibrating with the nominal source \
                  positions instead",
-                mirrors.unwrap_or_default()
+                super::message(&e)
             );
             calibrate(None)?;
         }
-        r => r?,
+        (r, _) => r?,
     }
     let material_file = out.join(format!("{name}.material"));
     let input = super::build::ScanInputs {

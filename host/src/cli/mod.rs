@@ -570,7 +570,7 @@ pub fn main() -> ExitCode {
 
 /// An error and its causes on one line, each cause once: many errors
 /// already quote their source in their own message.
-fn message(e: &anyhow::Error) -> String {
+pub(crate) fn message(e: &anyhow::Error) -> String {
     let mut text = String::new();
     for cause in e.chain() {
         let part = cause.to_string();
