@@ -276,6 +276,12 @@ fn bad_inputs_exit_3_and_write_nothing() {
     // A "glossy" scan that shows no highlight (the white target's).
     let err = calibrate_refused("checker", "white", Some("white"), "c4.json");
     assert!(err.contains("the glossy target shows a highlight flank for 0 pairs"), "{err}");
+    // Samples as the glossy target: the leather's sheen fits no source
+    // offset, the rough metal's lobe shows no flank.
+    let err = calibrate_refused("checker", "white", Some("leather"), "c8.json");
+    assert!(err.contains("fit no plausible source offset"), "{err}");
+    let err = calibrate_refused("checker", "white", Some("metal"), "c9.json");
+    assert!(err.contains("a highlight flank for 0 pairs"), "{err}");
     // The output may not replace an input or a device node.
     let (code, err) = scanner(&[
         "calibrate",
