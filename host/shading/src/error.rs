@@ -26,4 +26,14 @@ pub enum MaterialError {
     /// a degenerate triangle.
     #[error("{0}")]
     Value(String),
+    /// A file whose content is refused for the reason in `source` (what
+    /// [`Material::open`](crate::Material::open) returns for a damaged
+    /// file, so that every message names it).
+    #[error("{path}: {source}")]
+    File {
+        /// The file.
+        path: String,
+        /// What is wrong with its content.
+        source: Box<MaterialError>,
+    },
 }

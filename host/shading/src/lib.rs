@@ -220,16 +220,15 @@ fn taps(n: usize, u: f32) -> (usize, usize, f32) {
 impl Material {
     /// Open and check a material file (docs/material-format.md).
     pub fn open(path: &Path) -> Result<Material, MaterialError> {
-        let io = |source| MaterialError::Io { path: path.display().to_string(), source };
+        let name = || path.display().to_string();
+        let io = |source| MaterialError::Io { path: name(), source };
+        let in_file = |e| MaterialError::File { path: name(), source: Box::new(e) };
         let md = std::fs::metadata(path).map_err(io)?;
         if !md.is_file() {
-            return Err(MaterialError::Container(format!(
-                "{}: not a regular file",
-                path.display()
-            )));
+            return Err(in_file(MaterialError::Container("not a regular file".into())));
         }
         let bytes = std::fs::read(path).map_err(io)?;
-        Material::from_bytes(&bytes)
+        Material::from_bytes(&bytes).map_err(in_file)
     }
 
     /// A material from a file's bytes.

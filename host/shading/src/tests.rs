@@ -302,6 +302,20 @@ fn damaged_files_are_refused_without_panicking() {
             .unwrap();
     let e = Material::from_bytes(&other).unwrap_err().to_string();
     assert!(e.contains("not a material file"), "{e}");
+    // Opened from a file, every refusal names the file once.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("other.material");
+    std::fs::write(&path, &other).unwrap();
+    let e = Material::open(&path).unwrap_err();
+    let name = path.display().to_string();
+    assert!(
+        matches!(&e, MaterialError::File { path, source }
+        if *path == name && matches!(**source, MaterialError::Metadata(_))),
+        "{e:?}"
+    );
+    assert_eq!(e.to_string(), format!("{name}: {}", std::error::Error::source(&e).unwrap()));
+    let e = Material::open(dir.path()).unwrap_err().to_string();
+    assert_eq!(e, format!("{}: not a regular file", dir.path().display()));
 }
 
 #[test]

@@ -454,11 +454,7 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
     Ok(())
 }
 
-/// A material file for a command, or exit 3 with the file named once.
+/// A material file for a command, or exit 3 (its errors name the file).
 fn open_material(path: &Path) -> Result<scanner_shading::Material, Failure> {
-    scanner_shading::Material::open(path).map_err(|e| {
-        let e = e.to_string();
-        let named = e.starts_with(&path.display().to_string());
-        Failure(3, if named { anyhow!(e) } else { anyhow!("{}: {e}", path.display()) })
-    })
+    scanner_shading::Material::open(path).map_err(|e| Failure(3, anyhow!(e)))
 }
