@@ -307,9 +307,11 @@ impl TriangleLocator {
             return;
         }
         let mut primary = Vec::with_capacity(FINE * FINE);
+        // At most SUB² distinct answers per cell: one buffer for all cells.
+        let mut votes: Vec<(u8, u32)> = Vec::with_capacity(SUB * SUB);
         for cy in 0..FINE {
             for cx in 0..FINE {
-                let mut votes: Vec<(u8, u32)> = Vec::new();
+                votes.clear();
                 for sy in 0..SUB {
                     for sx in 0..SUB {
                         let at = |c: usize, s: usize| c as f32 + (s as f32 + 0.5) / SUB as f32;
