@@ -45,6 +45,44 @@ pub const METER_MIRRORS: usize = 8;
 const BODY_TOO_BRIGHT: f64 = 0.9;
 /// Values at or above this fraction of full scale are saturated.
 const SATURATED: f32 = 0.999;
+/// The dimmest light duty, ‰, that stands in for an exposure shorter than
+/// the device's shortest ([`protocol::MIN_EXPOSURE_US`]): 1 µs of light
+/// per 50 µs period of the board's 20 kHz PWM, which a constant-current
+/// LED driver switches cleanly. Exposures below 1 ms reach down to 20 µs.
+pub const MIN_DIM_PERMILLE: u16 = 20;
+
+/// The shortest exposure a scan can take at light duty `duty` ‰, µs:
+/// at full duty the device's shortest exposure dimmed to
+/// [`MIN_DIM_PERMILLE`], else the device's shortest.
+///
+/// Exposures are counted in µs of light at the scan's duty. One shorter
+/// than [`protocol::MIN_EXPOSURE_US`] is taken as that exposure with the
+/// light dimmed in proportion ([`realise`]): the camera integrates
+/// 1 ms = 20 whole periods of the light's PWM, so it collects exactly
+/// the light of a `t` µs exposure at full duty, from the same scene.
+pub fn shortest_us(duty: u16) -> u32 {
+    if duty == protocol::FULL_DUTY_PERMILLE {
+        protocol::MIN_EXPOSURE_US * MIN_DIM_PERMILLE as u32 / protocol::FULL_DUTY_PERMILLE as u32
+    } else {
+        protocol::MIN_EXPOSURE_US
+    }
+}
+
+/// How an exposure of `t` µs of light at duty `duty` ‰ is taken: (the
+/// device's exposure, µs; its light duty, ‰). Below the device's shortest
+/// exposure (at full duty only): 1 ms with the light at `t` ‰.
+/// `None` below [`shortest_us`] or above the device's longest.
+pub fn realise(t: u32, duty: u16) -> Option<(u32, u16)> {
+    if !(shortest_us(duty)..=protocol::MAX_EXPOSURE_US).contains(&t) {
+        return None;
+    }
+    if t >= protocol::MIN_EXPOSURE_US {
+        return Some((t, duty));
+    }
+    // t µs of light in 1 000 µs: t ‰.
+    let permille = t * protocol::FULL_DUTY_PERMILLE as u32 / protocol::MIN_EXPOSURE_US;
+    Some((protocol::MIN_EXPOSURE_US, permille as u16))
+}
 
 /// What metering measured and chose (recorded in the scan's settings).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -167,13 +205,12 @@ pub fn saturated_in(frame: &Frame, spans: &[Span], max_code: f64) -> usize {
 }
 
 /// The exposure an auto HDR bracket adds at a mirror whose shortest
-/// exposure so far, `shortest_us`, left `saturated` values on the sample
+/// exposure so far, `taken_us`, left `saturated` values on the sample
 /// (highlights that metering did not see: at a mirror it did not meter,
 /// or rarer than its peak percentile): [`BRACKET_STEP`]× shorter, down to
-/// the device's shortest. `None` when nothing saturated or it is there.
-pub fn extension(shortest_us: u32, saturated: usize) -> Option<u32> {
-    (saturated > 0 && shortest_us > protocol::MIN_EXPOSURE_US)
-        .then(|| (shortest_us / BRACKET_STEP).max(protocol::MIN_EXPOSURE_US))
+/// `floor_us` ([`shortest_us`]). `None` when nothing saturated or it is there.
+pub fn extension(taken_us: u32, saturated: usize, floor_us: u32) -> Option<u32> {
+    (saturated > 0 && taken_us > floor_us).then(|| (taken_us / BRACKET_STEP).max(floor_us))
 }
 
 /// The `p` quantile of `values` (sorted in place), nearest rank; 0 for none.
@@ -194,22 +231,22 @@ pub fn measure(values: &mut [f32]) -> (f64, Option<f64>, bool) {
     (body, peak, body > BODY_TOO_BRIGHT)
 }
 
-/// The exposure (or, with `hdr`, the bracket) for what `metering` saw.
+/// The exposure (or, with `hdr`, the bracket) for what `metering` saw,
+/// none shorter than `floor_us` ([`shortest_us`]).
 ///
 /// - One exposure: the peak at [`PEAK_TARGET`] of full scale (the body at
-///   [`HDR_BODY_TARGET`] if the peak saturated), within the device's
-///   limits and [`AUTO_MAX_US`].
+///   [`HDR_BODY_TARGET`] if the peak saturated), within `floor_us`, the
+///   device's longest and [`AUTO_MAX_US`].
 /// - HDR: the longest exposure puts the body at [`HDR_BODY_TARGET`] of
 ///   full scale and the shortest the peak at [`PEAK_TARGET`] (a peak that
-///   saturated every metering frame: the device's shortest exposure), with
+///   saturated every metering frame: `floor_us`), with
 ///   equal ratios of at most [`BRACKET_STEP`] between them — so the body
 ///   and the highlights are each measured high on the sensor's range. At
 ///   least [`BRACKET_MIN_LEN`] exposures (more, [`BRACKET_STEP`]× shorter,
 ///   as headroom for highlights at mirrors that were not metered), at most
 ///   [`BRACKET_MAX_LEN`] (a wider range gives up the top of the peak).
-pub fn choose(metering: &Metering, hdr: bool) -> Choice {
-    let (min, max) =
-        (protocol::MIN_EXPOSURE_US as f64, AUTO_MAX_US.min(protocol::MAX_EXPOSURE_US) as f64);
+pub fn choose(metering: &Metering, hdr: bool, floor_us: u32) -> Choice {
+    let (min, max) = (floor_us as f64, AUTO_MAX_US.min(protocol::MAX_EXPOSURE_US) as f64);
     let t_m = metering.exposure_us as f64;
     // The exposure at which a value `v` (at the metering exposure) reaches `target`.
     let at = |v: f64, target: f64| {
@@ -248,6 +285,9 @@ pub fn choose(metering: &Metering, hdr: bool) -> Choice {
 mod tests {
     use super::*;
 
+    /// The device's shortest exposure as the floor (no dimming).
+    const MS: u32 = protocol::MIN_EXPOSURE_US;
+
     fn metering(body: f64, peak: Option<f64>) -> Metering {
         Metering { exposure_us: 50_000, mirrors: vec![0], body, peak, peak_exposure_us: 50_000 }
     }
@@ -256,37 +296,67 @@ mod tests {
     fn a_dark_sample_gets_a_long_exposure_and_a_bright_one_a_short_one() {
         // Body 0.02 of full scale at 50 ms: 0.5 at 1.25 s, capped at 1 s;
         // the peak fits there: two more, 5× shorter each, as headroom.
-        let c = choose(&metering(0.02, Some(0.03)), true);
+        let c = choose(&metering(0.02, Some(0.03)), true, MS);
         assert_eq!(c.exposure_us, AUTO_MAX_US);
         assert_eq!(c.bracket_us, vec![40_000, 200_000, 1_000_000]);
         // Body 0.1: 250 ms; the peak (0.2) at 0.8 of full scale at 200 ms.
-        let c = choose(&metering(0.1, Some(0.2)), true);
+        let c = choose(&metering(0.1, Some(0.2)), true, MS);
         assert_eq!(c.bracket_us, vec![40_000, 200_000, 250_000]);
         // One exposure: the peak at 0.8 of full scale.
-        assert_eq!(choose(&metering(0.1, Some(0.2)), false).exposure_us, 200_000);
-        assert!(choose(&metering(0.1, Some(0.2)), false).bracket_us.is_empty());
+        assert_eq!(choose(&metering(0.1, Some(0.2)), false, MS).exposure_us, 200_000);
+        assert!(choose(&metering(0.1, Some(0.2)), false, MS).bracket_us.is_empty());
     }
 
     #[test]
     fn the_bracket_spans_body_to_peak_in_equal_steps_of_at_most_5() {
         // Body 0.25 at 50 ms: longest 100 ms; peak 20× full scale: 2 ms
         // holds it at 0.8. 50× in three equal steps of 3.68×.
-        let c = choose(&metering(0.25, Some(20.0)), true);
+        let c = choose(&metering(0.25, Some(20.0)), true, MS);
         assert_eq!(c.bracket_us, vec![2_000, 7_368, 27_144, 100_000]);
         // Saturated peak: down to the device's shortest, at most five exposures
         // (a range beyond 5⁴ gives up the top of the peak).
-        let c = choose(&metering(0.4, None), true);
+        let c = choose(&metering(0.4, None), true, MS);
         assert_eq!(c.bracket_us, vec![1_000, 3_969, 15_749, 62_500]);
-        let c = choose(&metering(0.001, None), true);
+        let c = choose(&metering(0.001, None), true, MS);
         assert_eq!(c.bracket_us, vec![1_600, 8_000, 40_000, 200_000, 1_000_000]);
-        for c in [choose(&metering(0.25, Some(20.0)), true), choose(&metering(0.4, None), true)] {
+        for c in
+            [choose(&metering(0.25, Some(20.0)), true, MS), choose(&metering(0.4, None), true, MS)]
+        {
             assert!(c.bracket_us.windows(2).all(|w| w[1] as f64 / w[0] as f64 <= 5.0 + 1e-3));
         }
     }
 
     #[test]
+    fn exposures_below_the_devices_shortest_dim_the_light() {
+        let full = protocol::FULL_DUTY_PERMILLE;
+        assert_eq!(shortest_us(full), 20);
+        assert_eq!(shortest_us(500), protocol::MIN_EXPOSURE_US);
+        assert_eq!(realise(50_000, full), Some((50_000, full)));
+        assert_eq!(realise(1_000, full), Some((1_000, full)));
+        // t µs of light in the device's 1 ms: t ‰.
+        assert_eq!(realise(999, full), Some((1_000, 999)));
+        assert_eq!(realise(40, full), Some((1_000, 40)));
+        assert_eq!(realise(20, full), Some((1_000, MIN_DIM_PERMILLE)));
+        assert_eq!(realise(19, full), None);
+        assert_eq!(realise(protocol::MAX_EXPOSURE_US + 1, full), None);
+        // At a duty of its own the scan is not dimmed further.
+        assert_eq!(realise(5_000, 500), Some((5_000, 500)));
+        assert_eq!(realise(999, 500), None);
+        // A peak that saturates 1 ms gets a bracket down to where it fits,
+        // or to the floor; equal steps of at most 5×.
+        let c = choose(&metering(0.25, Some(200.0)), true, shortest_us(full));
+        assert_eq!(c.bracket_us, vec![200, 946, 4_472, 21_147, 100_000]);
+        let c = choose(&metering(0.25, None), true, shortest_us(full));
+        assert_eq!(c.bracket_us, vec![160, 800, 4_000, 20_000, 100_000], "five at most");
+        let c = choose(&metering(0.25, Some(20.0)), false, shortest_us(full));
+        assert_eq!(c.exposure_us, 2_000);
+        let c = choose(&metering(0.9, Some(4000.0)), false, shortest_us(full));
+        assert_eq!(c.exposure_us, 20);
+    }
+
+    #[test]
     fn a_black_frame_gets_the_longest_exposure_and_measure_finds_saturation() {
-        let c = choose(&metering(0.0, Some(0.0)), true);
+        let c = choose(&metering(0.0, Some(0.0)), true, MS);
         assert_eq!(c.exposure_us, AUTO_MAX_US);
         let mut v: Vec<f32> = (0..10_000).rev().map(|i| i as f32 / 20_000.0).collect();
         let (body, peak, too_bright) = measure(&mut v);
@@ -326,9 +396,15 @@ mod tests {
         // Half-float storage leaves the top code a fraction of a code low.
         f.rgb[at + 2] = 1.0 - 0.3 / g.sensor.max_code() as f32;
         assert_eq!(saturated_in(&f, &spans, g.sensor.max_code()), 3);
-        assert_eq!(extension(50_000, 0), None);
-        assert_eq!(extension(50_000, 3), Some(10_000));
-        assert_eq!(extension(3_000, 1), Some(protocol::MIN_EXPOSURE_US));
-        assert_eq!(extension(protocol::MIN_EXPOSURE_US, 9), None);
+        assert_eq!(extension(50_000, 0, MS), None);
+        assert_eq!(extension(50_000, 3, MS), Some(10_000));
+        assert_eq!(extension(3_000, 1, MS), Some(protocol::MIN_EXPOSURE_US));
+        assert_eq!(extension(protocol::MIN_EXPOSURE_US, 9, MS), None);
+        // With the light dimmed, on below the device's shortest exposure.
+        let floor = shortest_us(protocol::FULL_DUTY_PERMILLE);
+        assert_eq!(extension(protocol::MIN_EXPOSURE_US, 9, floor), Some(200));
+        assert_eq!(extension(200, 9, floor), Some(40));
+        assert_eq!(extension(40, 9, floor), Some(20));
+        assert_eq!(extension(20, 9, floor), None);
     }
 }

@@ -271,6 +271,12 @@ pub struct FrameRecord {
     /// mirror whose highlights the bracket clipped); empty otherwise.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub bracket_us: Vec<u32>,
+    /// The light's duty during this exposure, ‰, when it is not the
+    /// scan's: an exposure shorter than the device's shortest, taken as
+    /// that with the light dimmed ([`crate::exposure::realise`]);
+    /// `exposure_us` is then the equivalent at the scan's duty.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub light_duty_permille: Option<u16>,
 }
 
 fn verified_by_default() -> bool {
@@ -1022,14 +1028,14 @@ pub fn scan(
         auto_exposure: opts.auto_exposure,
         metering: None,
     };
+    let floor_us = crate::exposure::shortest_us(opts.light_duty_permille);
     if let Some(&bad) = opts
         .bracket_us
         .iter()
-        .find(|&&e| !(protocol::MIN_EXPOSURE_US..=protocol::MAX_EXPOSURE_US).contains(&e))
+        .find(|&&e| crate::exposure::realise(e, opts.light_duty_permille).is_none())
     {
         return Err(ScanError::Conflict(format!(
-            "exposure {bad} µs outside {}…{} µs",
-            protocol::MIN_EXPOSURE_US,
+            "exposure {bad} µs outside {floor_us}…{} µs",
             protocol::MAX_EXPOSURE_US
         )));
     }
@@ -1060,7 +1066,8 @@ pub fn scan(
         Some(mode) => {
             if manifest.settings.metering.is_none() {
                 let metering = meter(dev, camera, geometry, opts, total, &mut report, progress)?;
-                let choice = crate::exposure::choose(&metering, mode == AutoExposure::Hdr);
+                let choice =
+                    crate::exposure::choose(&metering, mode == AutoExposure::Hdr, floor_us);
                 progress.note(&format!(
                     "metered {}: the sample's 95th percentile at {:.3} and its peak at {} of full \
                      scale at {} µs → {}",
@@ -1268,7 +1275,7 @@ pub fn scan(
                         crate::exposure::sample_spans(geometry, f.width, f.height)
                     });
                     let n = crate::exposure::saturated_in(f, spans, geometry.sensor.max_code());
-                    let Some(t) = crate::exposure::extension(*e, n) else { break };
+                    let Some(t) = crate::exposure::extension(*e, n, floor_us) else { break };
                     progress.note(&format!(
                         "mirror {l}: {n} values saturated on the sample at {e} µs; adding {t} µs"
                     ));
@@ -1298,8 +1305,7 @@ pub fn scan(
                         }
                     }
                 }
-                let mut o = opts.clone();
-                o.exposure_us = exposure_us;
+                let o = realised(opts, exposure_us)?;
                 let ((frame, fired, status), lost) =
                     match capture_with_retries(dev, camera, geometry, l, &o, &mut report, progress)
                     {
@@ -1327,11 +1333,13 @@ pub fn scan(
                     height: 0,
                     trigger_seq: fired.trigger_seq,
                     device_timestamp_us: fired.timestamp_us,
-                    exposure_us: fired.exposure_us,
+                    exposure_us,
                     axis_steps: steps,
                     axis_units: AxisValues::from_steps(steps.map(i64::from), &axes).to_array(),
                     verified: false,
                     bracket_us: Vec::new(),
+                    light_duty_permille: (o.light_duty_permille != opts.light_duty_permille)
+                        .then_some(o.light_duty_permille),
                 };
                 if opts.bracket_us.is_empty() {
                     taken.push((Arc::new(frame), exposure_us, record));
@@ -1638,8 +1646,7 @@ fn meter(
                     report: &mut ScanReport,
                     progress: &mut dyn ScanProgress|
      -> Result<(f64, Option<f64>, bool), ScanError> {
-        let mut o = opts.clone();
-        o.exposure_us = exposure_us;
+        let o = realised(opts, exposure_us)?;
         let mut values = Vec::new();
         for &l in &mirrors {
             // A reset or lost steps on the way do not matter: nothing is kept.
@@ -1655,7 +1662,7 @@ fn meter(
         }
         Ok(measure(&mut values))
     };
-    let min = protocol::MIN_EXPOSURE_US;
+    let min = crate::exposure::shortest_us(opts.light_duty_permille);
     let mut exposure_us = opts.exposure_us;
     let (body, mut peak) = loop {
         let (body, peak, too_bright) = take(exposure_us, report, progress)?;
@@ -1667,13 +1674,26 @@ fn meter(
     };
     let mut peak_exposure_us = exposure_us;
     while peak.is_none() && peak_exposure_us > min {
-        peak_exposure_us =
-            if peak_exposure_us == exposure_us { (exposure_us / 25).max(min) } else { min };
+        peak_exposure_us = (peak_exposure_us / 25).max(min);
         let (_, p, _) = take(peak_exposure_us, report, progress)?;
         // In the units of the body's metering exposure.
         peak = p.map(|p| p * exposure_us as f64 / peak_exposure_us as f64);
     }
     Ok(Metering { exposure_us, mirrors: mirrors.clone(), body, peak, peak_exposure_us })
+}
+
+/// `opts` for an exposure of `t` µs of light at its duty
+/// ([`crate::exposure::realise`]: dimmed below the device's shortest).
+fn realised(opts: &ScanOptions, t: u32) -> Result<ScanOptions, ScanError> {
+    let (exposure_us, light_duty_permille) = crate::exposure::realise(t, opts.light_duty_permille)
+        .ok_or_else(|| {
+            ScanError::Conflict(format!(
+                "exposure {t} µs outside {}…{} µs",
+                crate::exposure::shortest_us(opts.light_duty_permille),
+                protocol::MAX_EXPOSURE_US
+            ))
+        })?;
+    Ok(ScanOptions { exposure_us, light_duty_permille, ..opts.clone() })
 }
 
 /// Capture mirror `l`, taking the step again after a missed frame and

@@ -279,3 +279,56 @@ fn auto_hdr_extends_the_bracket_where_highlights_metering_missed_clip() {
     let (_, rms, mean, _) = highlights_against_truth(&set, &out2, 3);
     assert!(rms < 1.3 && mean.abs() < 0.2, "resumed: RMS z {rms}, mean z {mean}");
 }
+
+/// A near-mirror (GGX α = 0.01, F0 = 0.95: highlights ≈ 2 500× a white
+/// target) saturates even the device's shortest exposure, 1 ms. Exposures
+/// below it are taken at 1 ms with the light dimmed in proportion
+/// (docs/scan-format.md, "HDR"): a fixed bracket reaching 100 µs and the
+/// auto bracket's extension both merge to frames whose highlights match
+/// the truth within noise — which they would miss tenfold if the light
+/// were not dimmed as recorded.
+#[test]
+fn a_near_mirror_is_held_by_exposures_below_1_ms_with_the_light_dimmed() {
+    let dir = common::tmp();
+    let set = dir.path().join("mirror");
+    std::fs::create_dir_all(&set).unwrap();
+    std::fs::write(set.join("material.toml"), "format = 1\nname = \"mirror\"\nsize_mm = 40.0\n")
+        .unwrap();
+    for (name, v) in [
+        ("diffuse.exr", [0.0f32; 3]),
+        ("specular.exr", [0.95; 3]),
+        ("roughness.exr", [0.1; 3]),
+        ("normal.exr", [0.5, 0.5, 1.0]),
+    ] {
+        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(set.join(name)).unwrap();
+    }
+    let set = set.display().to_string();
+    // The device's shortest exposure at full light clips the highlights.
+    let (code, err) = scan(&set, &dir.path().join("ms"), &["--exposures", "1000,5000,25000"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("saturated even at 1000 µs"), "{err}");
+    // 100 µs: 1 ms at 100 ‰.
+    let fixed = dir.path().join("fixed");
+    let (code, err) = scan(&set, &fixed, &["--exposures", "100,1000,10000"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("saturated"), "{err}");
+    let (n, rms, mean, peak) = highlights_against_truth(&set, &fixed, 3);
+    // Above 1 ms's full scale (in units of the longest, 10 ms).
+    assert!(n > 50 && peak > 2.0 * 10_000.0 / 1_000.0, "{n} values up to {peak}");
+    assert!(rms < 1.3 && mean.abs() < 0.2, "within noise: RMS z {rms}, mean z {mean}");
+    // Auto HDR extends the metered bracket below 1 ms where it clips.
+    let auto = dir.path().join("auto");
+    let (code, err) = scan(&set, &auto, &["--exposure-us", "auto", "--hdr"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("saturated even"), "{err}");
+    let m = host::scan::Manifest::load(&auto).unwrap();
+    let shortest =
+        |f: &host::scan::FrameRecord| *f.bracket_us.first().unwrap_or(&m.settings.bracket_us[0]);
+    assert!(m.frames.iter().any(|f| shortest(f) < 1_000), "{err}");
+    let (n, rms, mean, _) = highlights_against_truth(&set, &auto, 3);
+    assert!(n > 50 && rms < 1.3 && mean.abs() < 0.2, "{n} values: RMS z {rms}, mean z {mean}");
+    // Below the dimmest duty: refused before anything moves.
+    let (code, err) = scan(&set, &dir.path().join("x"), &["--exposures", "10,1000"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("10 µs outside 20…2000000"), "{err}");
+}

@@ -464,8 +464,9 @@ pub struct ScanArgs {
     /// Scan only mirrors 0 … N−1.
     #[arg(long)]
     pub mirrors: Option<usize>,
-    /// Exposure, µs, or `auto`: metered on a few mirrors first, then the
-    /// exposure (with --hdr, the bracket) that suits the sample
+    /// Exposure, µs (20 … 2 000 000; below the device's 1 000 the light is
+    /// dimmed in proportion), or `auto`: metered on a few mirrors first,
+    /// then the exposure (with --hdr, the bracket) that suits the sample
     /// (docs/scan-format.md, "Auto exposure").
     #[arg(long, default_value_t = Exposure::Us(protocol::DEFAULT_EXPOSURE_US))]
     pub exposure_us: Exposure,
@@ -536,7 +537,10 @@ impl ScanArgs {
     /// The HDR bracket asked for (empty: a single exposure, or a metered
     /// one), checked before anything moves.
     pub fn bracket(&self) -> Result<Vec<u32>, Failure> {
-        let range = protocol::MIN_EXPOSURE_US..=protocol::MAX_EXPOSURE_US;
+        // The CLI scans at full light duty: exposures below the device's
+        // shortest are taken with the light dimmed.
+        let floor = crate::exposure::shortest_us(protocol::FULL_DUTY_PERMILLE);
+        let range = floor..=protocol::MAX_EXPOSURE_US;
         let exposure_us = self.base_exposure_us();
         if !range.contains(&exposure_us) {
             return Err(Failure(
