@@ -357,7 +357,7 @@ fn bad_values_are_refused_before_anything_moves_or_is_written() {
     let out = sub(dir.path(), "scan");
     for (extra, what) in [
         (&["--exposure-us", "0"][..], "--exposure-us 0 outside"),
-        (&["--exposures", "100,50000"][..], "--exposures: 100 µs outside"),
+        (&["--exposures", "10,50000"][..], "--exposures: 10 µs outside"),
         (&["--mirrors", "1000"][..], "--mirrors 1000: this scanner has mirrors 1…40"),
         (&["--mirrors", "0"][..], "--mirrors 0"),
         (&["--frame-timeout", "5000"][..], "--frame-timeout"),
