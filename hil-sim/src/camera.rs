@@ -79,15 +79,38 @@ impl SimCamera {
     }
 }
 
-/// Write `frame` to `path` as OpenEXR (32-bit float RGB), atomically: a
-/// temporary file in the same folder, then a rename — a folder watcher
-/// never sees a partial frame.
-pub fn write_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result<()> {
-    let dir = path.parent().unwrap_or(std::path::Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("frame.exr");
-    let tmp = dir.join(format!(".{name}.tmp"));
+/// Encode `frame` as OpenEXR (32-bit float RGB).
+fn encode_exr(frame: &Frame) -> std::io::Result<Vec<u8>> {
     let img = image::Rgb32FImage::from_raw(frame.width, frame.height, frame.rgb.clone())
         .ok_or_else(|| std::io::Error::other("frame size mismatch"))?;
-    img.save_with_format(&tmp, image::ImageFormat::OpenExr).map_err(std::io::Error::other)?;
-    std::fs::rename(&tmp, path)
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut bytes, image::ImageFormat::OpenExr).map_err(std::io::Error::other)?;
+    Ok(bytes.into_inner())
+}
+
+/// Write `frame` to `path` as OpenEXR (32-bit float RGB), durably and
+/// atomically (`scanner_formats::atomic::write_atomic`: a temporary file in
+/// the same folder, fsync, rename, fsync of the folder). A device node, a
+/// symlink or a directory at `path` is refused, not replaced. Every error's
+/// message names `path`.
+pub fn write_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result<()> {
+    scanner_formats::atomic::check_output(path, &[])?;
+    encode_exr(frame)
+        .and_then(|bytes| scanner_formats::atomic::write_atomic(path, &bytes))
+        .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))
+}
+
+/// Drop `frame` into a camera's spool folder as `path`: a uniquely named
+/// temporary file in the same folder, then a rename, so that a folder
+/// watcher never sees a partial frame — as a camera's capture program
+/// writes. Not fsynced: after a crash the host retakes a lost frame.
+pub fn drop_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result<()> {
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("frame.exr");
+    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+    let bytes = encode_exr(frame)?;
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(&tmp, path).inspect_err(|_| {
+        let _ = std::fs::remove_file(&tmp);
+    })
 }

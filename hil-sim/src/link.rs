@@ -23,7 +23,7 @@ use serialport::{SerialPort, TTYPort};
 
 use std::path::PathBuf;
 
-use crate::camera::{SimCamera, write_frame_exr};
+use crate::camera::{SimCamera, drop_frame_exr};
 use crate::device::SimDevice;
 use crate::faults::FaultEvent;
 use crate::optics::Exposure;
@@ -231,7 +231,7 @@ impl PtyServer {
                     for (index, exposure) in rx {
                         let frame = optics.render(&exposure);
                         let path = dir.join(format!("frame-{index:06}.exr"));
-                        if let Err(e) = write_frame_exr(&frame, &path) {
+                        if let Err(e) = drop_frame_exr(&frame, &path) {
                             eprintln!("hil-sim camera: cannot write {}: {e}", path.display());
                         }
                     }

@@ -51,6 +51,27 @@ fn render_and_direct_write_their_frames() {
     assert!(status.success());
     let frame = image::open(out.join("frame-01.exr")).unwrap();
     assert_eq!((frame.width(), frame.height()), (256, 256));
+    // Only the two frames: no temporary file left behind.
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), 2);
+    // A symlink where a frame goes is refused, its target untouched.
+    #[cfg(unix)]
+    {
+        let target = dir.path().join("precious");
+        std::fs::write(&target, b"keep").unwrap();
+        std::fs::remove_file(out.join("frame-00.exr")).unwrap();
+        std::os::unix::fs::symlink(&target, out.join("frame-00.exr")).unwrap();
+        let o = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+            .args(["render", "--bin", "16", "--mirrors", "1", "--material", "leather", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(4));
+        assert!(
+            String::from_utf8_lossy(&o.stderr).contains("frame-00.exr: a symbolic link; refusing"),
+            "{o:?}"
+        );
+        assert_eq!(std::fs::read(&target).unwrap(), b"keep");
+    }
     let direct = dir.path().join("direct");
     let status = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
         .args(["direct", "--material", "rough-metal", "--out"])

@@ -137,8 +137,7 @@ fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), Fail> 
     for (k, &(l, d)) in dirs.iter().take(4).enumerate() {
         let frame = sim.direct_image(&Sample::large(m.clone()), d, px_per_mm, 0.05);
         let path = out.join(format!("direct-{k}-mirror-{l:02}.exr"));
-        hil_sim::camera::write_frame_exr(&frame, &path)
-            .map_err(|e| Fail(4, format!("{}: {e}", path.display())))?;
+        hil_sim::camera::write_frame_exr(&frame, &path).map_err(|e| Fail(4, e.to_string()))?;
         eprintln!("{}: {}×{} px", path.display(), frame.width, frame.height);
     }
     Ok(())
@@ -171,8 +170,7 @@ fn render(
         let render_s = t.elapsed().as_secs_f64();
         if let Some(dir) = out {
             let path = dir.join(format!("frame-{l:02}.exr"));
-            hil_sim::camera::write_frame_exr(&frame, &path)
-                .map_err(|e| Fail(4, format!("{}: {e}", path.display())))?;
+            hil_sim::camera::write_frame_exr(&frame, &path).map_err(|e| Fail(4, e.to_string()))?;
         }
         eprintln!("frame {l:2}: rendered in {render_s:.3} s");
     }
