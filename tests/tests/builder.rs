@@ -238,6 +238,23 @@ fn bad_inputs_exit_3_and_write_nothing() {
         err.contains("version 3 (this build reads material-scanner/calibration 1 to 2)"),
         "{err}"
     );
+    // Hand-edited calibrations: each refused with what is wrong.
+    let edited = |name: &str, edit: &dyn Fn(&mut serde_json::Value)| -> String {
+        let mut c: serde_json::Value = serde_json::from_str(&text).unwrap();
+        edit(&mut c);
+        std::fs::write(d(name), c.to_string()).unwrap();
+        regions_refused("leather", name, "r7")
+    };
+    let err = edited("e1.json", &|c| c["views"][1]["view"] = 99.into());
+    assert!(err.contains("names mirror 99; the scanner has mirrors 0…39"), "{err}");
+    let err = edited("e2.json", &|c| c["lights"][1]["light"] = c["lights"][0]["light"].clone());
+    assert!(err.contains("light 0 calibrated twice"), "{err}");
+    let err = edited("e3.json", &|c| c["colour"]["light_field"][0][0] = (-1.0).into());
+    assert!(err.contains("colour field with a negative or non-finite value"), "{err}");
+    let err = edited("e4.json", &|c| c["views"][2]["direction"] = serde_json::json!([0, 0, 2]));
+    assert!(err.contains("view 2: bad homography or direction"), "{err}");
+    let err = edited("e5.json", &|c| c["camera_px"] = serde_json::json!([4096, 4096]));
+    assert!(err.contains("a 4096×4096 px camera, the scanner's is 512×512 px"), "{err}");
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));

@@ -809,19 +809,69 @@ impl Calibration {
             return Err("colour field of the wrong size".into());
         }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
-        for v in &self.views {
-            if !finite(&v.homography.0) || !finite(&v.direction) || v.homography.inverse().is_none()
+        let unit =
+            |d: &[f64; 3]| finite(d) && (d.iter().map(|x| x * x).sum::<f64>() - 1.0).abs() < 1e-6;
+        for (k, v) in self.views.iter().enumerate() {
+            if !finite(&v.homography.0) || !unit(&v.direction) || v.homography.inverse().is_none() {
+                return Err(format!(
+                    "view {}: bad homography or direction (not a finite unit vector)",
+                    v.view
+                ));
+            }
+            if !finite(&v.homography_phase.0)
+                || !finite(&v.mirror_point_mm)
+                || !unit(&v.mirror_normal)
             {
-                return Err(format!("view {}: bad homography or direction", v.view));
+                return Err(format!("view {}: bad phase homography or mirror plane", v.view));
+            }
+            if self.views[..k].iter().any(|o| o.view == v.view) {
+                return Err(format!("view {} calibrated twice", v.view));
             }
         }
-        for l in &self.lights {
-            if !finite(&l.direction) {
-                return Err(format!("light {}: bad direction", l.light));
+        for (k, l) in self.lights.iter().enumerate() {
+            if !unit(&l.direction) || !finite(&l.axes) {
+                return Err(format!(
+                    "light {}: bad direction (not a finite unit vector) or axes",
+                    l.light
+                ));
             }
+            if self.lights[..k].iter().any(|o| o.light == l.light) {
+                return Err(format!("light {} calibrated twice", l.light));
+            }
+        }
+        let fields = self.colour.view_response.iter().chain(&self.colour.light_field);
+        if fields.flatten().any(|x| !(x.is_finite() && *x >= 0.0)) {
+            return Err("colour field with a negative or non-finite value".into());
         }
         if !(self.colour.white_albedo > 0.0 && self.colour.white_albedo <= 1.0) {
             return Err("white albedo outside (0, 1]".into());
+        }
+        Ok(())
+    }
+
+    /// Check that this calibration is of scanner `g`: the same geometry
+    /// hash, camera size and mirrors.
+    pub fn check_geometry(&self, g: &ScannerGeometry) -> Result<(), BuildError> {
+        if self.geometry_sha256 != g.hash() {
+            return Err(BuildError::Input(format!(
+                "the calibration is of geometry {}…, the scanner's is {}…",
+                &self.geometry_sha256.get(..12).unwrap_or("?"),
+                &g.hash()[..12]
+            )));
+        }
+        if self.camera_px != [g.camera.width, g.camera.height] {
+            return Err(BuildError::Input(format!(
+                "the calibration is of a {}×{} px camera, the scanner's is {}×{} px",
+                self.camera_px[0], self.camera_px[1], g.camera.width, g.camera.height
+            )));
+        }
+        let n = g.mirrors.len();
+        let labels = self.views.iter().map(|v| v.view).chain(self.lights.iter().map(|l| l.light));
+        if let Some(m) = labels.into_iter().find(|&m| m >= n) {
+            return Err(BuildError::Input(format!(
+                "the calibration names mirror {m}; the scanner has mirrors 0…{}",
+                n.saturating_sub(1)
+            )));
         }
         Ok(())
     }

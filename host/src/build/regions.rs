@@ -128,13 +128,7 @@ pub fn extract_regions(
     size: Option<usize>,
     progress: &dyn BuildProgress,
 ) -> Result<RegionSet, BuildError> {
-    if cal.geometry_sha256 != g.hash() {
-        return Err(BuildError::Input(format!(
-            "the calibration is of geometry {}…, the scanner's is {}…",
-            &cal.geometry_sha256.get(..12).unwrap_or("?"),
-            &g.hash()[..12]
-        )));
-    }
+    cal.check_geometry(g)?;
     if scan.manifest.settings.geometry_sha256 != cal.geometry_sha256 {
         return Err(BuildError::Input(format!(
             "{}: taken with another geometry than the calibration's",
