@@ -12,15 +12,18 @@
 //! - `printed-paper`: matte white paper with 0.3 mm dark lines every 2 mm
 //!   and a 5 mm dot screen — high contrast below the camera's resolution;
 //! - `green-tile`: the glTF metallic-roughness form (`baseColor`,
-//!   `metallicRoughness`), a glazed tile with metallic flecks.
+//!   `metallicRoughness`), a glazed tile with metallic flecks;
+//! - `chrome`: a near-mirror (F0 0.9, roughness 0.12: GGX α 0.0144) with a
+//!   gentle waviness (slopes ±0.04, 8 and 4 mm), on 64² maps: highlights
+//!   ≈ 2 500× a white target, beyond the device's shortest exposure;
+//! - `brushed`: a brushed metal (F0 0.6, roughness 0.25–0.35) with grooves
+//!   of 0.25 mm across y (slopes ±0.3), on 256² maps over 4 mm.
 //!
 //! `cargo run --release -p tests --example unseen_samples -- DIR`, then
 //! `cargo run --release -p tests --example material_fidelity -- --materials DIR/red-plastic,…`.
 
 use std::f64::consts::PI;
 use std::path::Path;
-
-const W: u32 = 512;
 
 fn srgb(c: f64) -> f64 {
     if c <= 0.0031308 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
@@ -39,10 +42,16 @@ struct Texel {
     slope: (f64, f64),
 }
 
-/// Writes a set of `size_mm` whose texel at material point (x, y) mm is
-/// `f(x, y)`; `gltf` writes the metallic-roughness form (`specular` then
-/// holds [0, roughness, metallic]).
-fn write_set(dir: &Path, name: &str, size_mm: f64, gltf: bool, f: impl Fn(f64, f64) -> Texel) {
+/// Writes a set of `size_mm` in W × W maps whose texel at material point
+/// (x, y) mm is `f(x, y)`; `gltf` writes the metallic-roughness form
+/// (`specular` then holds [0, roughness, metallic]).
+fn write_set<const W: u32>(
+    dir: &Path,
+    name: &str,
+    size_mm: f64,
+    gltf: bool,
+    f: impl Fn(f64, f64) -> Texel,
+) {
     let dir = dir.join(name);
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(
@@ -100,25 +109,25 @@ fn main() {
     let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: unseen_samples DIR"));
     // The sizes divide the 25.4 mm sample into whole periods where the
     // patterns are periodic; the maps tile at size_mm.
-    write_set(&dir, "red-plastic", 32.0, false, |x, y| Texel {
+    write_set::<512>(&dir, "red-plastic", 32.0, false, |x, y| Texel {
         colour: [0.45, 0.04, 0.03],
         specular: [0.04; 3],
         roughness: 0.285 + 0.035 * (2.0 * PI * x / 16.0).sin() * (2.0 * PI * y / 8.0).cos(),
         slope: bumps(x, y, &[2.0], 0.03),
     });
-    write_set(&dir, "gold-foil", 28.0, false, |x, y| Texel {
+    write_set::<512>(&dir, "gold-foil", 28.0, false, |x, y| Texel {
         colour: [0.0; 3],
         specular: [1.0, 0.77, 0.33],
         roughness: 0.28 + 0.06 * (2.0 * PI * (x + 0.5 * y) / 7.0).sin(),
         slope: bumps(x, y, &[7.0, 4.0, 3.0], 0.2),
     });
-    write_set(&dir, "dark-rubber", 24.0, false, |x, y| Texel {
+    write_set::<512>(&dir, "dark-rubber", 24.0, false, |x, y| Texel {
         colour: [0.03, 0.03, 0.032],
         specular: [0.04; 3],
         roughness: 0.85,
         slope: bumps(x, y, &[0.8], 0.08),
     });
-    write_set(&dir, "printed-paper", 20.0, false, |x, y| {
+    write_set::<512>(&dir, "printed-paper", 20.0, false, |x, y| {
         let line = (x % 2.0) < 0.3;
         let (dx, dy) = ((x % 5.0) - 2.5, (y % 5.0) - 2.5);
         let dot = dx * dx + dy * dy < 1.0;
@@ -131,7 +140,7 @@ fn main() {
         };
         Texel { colour: ink, specular: [0.04; 3], roughness: 0.9, slope: (0.0, 0.0) }
     });
-    write_set(&dir, "green-tile", 30.0, true, |x, y| {
+    write_set::<512>(&dir, "green-tile", 30.0, true, |x, y| {
         let fleck = ((x * 3.7).sin() * (y * 4.3).sin()).abs() > 0.97;
         let (base, metallic) =
             if fleck { ([0.9, 0.8, 0.5], 1.0) } else { ([0.08, 0.35, 0.15], 0.0) };
@@ -140,6 +149,23 @@ fn main() {
             specular: [0.0, 0.35 + 0.1 * (2.0 * PI * y / 10.0).sin(), metallic],
             roughness: 0.0,
             slope: bumps(x, y, &[10.0, 6.0], 0.05),
+        }
+    });
+    write_set::<64>(&dir, "chrome", 8.0, false, |x, y| Texel {
+        colour: [0.0; 3],
+        specular: [0.90, 0.91, 0.92],
+        roughness: 0.12,
+        slope: (0.04 * (2.0 * PI * x / 8.0).cos(), 0.04 * (2.0 * PI * y / 4.0).cos()),
+    });
+    // In the 256² maps' pixels (p = 64 px/mm · x − ½): roughness varies
+    // along the grooves, which wander slightly.
+    write_set::<256>(&dir, "brushed", 4.0, false, |x, y| {
+        let (px, py) = (64.0 * x - 0.5, 64.0 * y - 0.5);
+        Texel {
+            colour: [0.02; 3],
+            specular: [0.6; 3],
+            roughness: 0.3 + 0.05 * (0.7 * px + 0.01 * py).sin(),
+            slope: (0.0, 0.3 * (2.0 * PI * 4.0 * y + 0.3 * (0.05 * px).sin()).sin()),
         }
     });
 }
