@@ -29,8 +29,21 @@ pub fn exposure_of(record: &TriggerRecord) -> Option<Exposure> {
     Some(Exposure {
         axes: axis_values(record.positions),
         exposure_s: (fall - record.rise) as f64 / TICK_HZ as f64,
-        light: record.light_duty as f64 / 1000.0,
+        light: light_output(record.light_duty, record.light_edge_loss_ns),
     })
+}
+
+/// The light's output at `duty` ‰, relative to full light, from a driver
+/// that loses `edge_loss_ns` of light at every pulse of the board's
+/// [`protocol::LIGHT_PWM_HZ`] PWM (0: an ideal driver, output = duty). At
+/// full duty the light is on without edges.
+pub fn light_output(duty: u16, edge_loss_ns: u32) -> f64 {
+    if duty >= protocol::FULL_DUTY_PERMILLE {
+        return 1.0;
+    }
+    let period_ns = 1e9 / protocol::LIGHT_PWM_HZ as f64;
+    let on_ns = duty as f64 / protocol::FULL_DUTY_PERMILLE as f64 * period_ns;
+    (on_ns - edge_loss_ns as f64).max(0.0) / period_ns
 }
 
 /// A camera wired to the simulated board's trigger output.

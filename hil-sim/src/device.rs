@@ -34,6 +34,9 @@ pub struct TriggerRecord {
     pub positions: [i64; AXIS_COUNT],
     /// Light duty (per mille) at the rising edge.
     pub light_duty: u16,
+    /// Light lost per PWM pulse by the light's driver at the rising edge,
+    /// ns (0 unless a `slow-light` fault says otherwise).
+    pub light_edge_loss_ns: u32,
     /// Whether the camera honoured the trigger (a fault can make it ignore one).
     pub honoured: bool,
 }
@@ -64,6 +67,7 @@ pub struct SimHw {
     saved: Option<Vec<u8>>,
     truth: Truth,
     ignore_triggers: u32,
+    light_edge_loss_ns: u32,
     positions: [i64; AXIS_COUNT],
 }
 
@@ -99,6 +103,7 @@ impl Hardware for SimHw {
                 fall: None,
                 positions: self.positions,
                 light_duty: self.light,
+                light_edge_loss_ns: self.light_edge_loss_ns,
                 honoured,
             });
         } else if !high
@@ -178,6 +183,7 @@ impl SimDevice {
             saved: None,
             truth: Truth::default(),
             ignore_triggers: 0,
+            light_edge_loss_ns: 0,
             positions: start,
         };
         let boot = Self::boot_info(&mut rng, ResetReason::PowerOn);
@@ -387,6 +393,7 @@ impl SimDevice {
                 FaultEvent::DriverFault(on) => self.driver_fault = on,
                 FaultEvent::EmergencyStop(on) => self.estop = on,
                 FaultEvent::IgnoreTriggers(n) => self.hw.ignore_triggers += n,
+                FaultEvent::SlowLight { edge_ns } => self.hw.light_edge_loss_ns = edge_ns,
                 // Link faults are applied by the link.
                 FaultEvent::Disconnect { .. } => self.faults.push_link_event(self.now, event),
             }

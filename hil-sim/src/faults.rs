@@ -6,7 +6,8 @@
 //! fault is written `KIND[:ARGS]@ms=N` or `KIND[:ARGS]@trigger=N`, e.g.
 //! `reset@trigger=10`, `disconnect:300@ms=20000`, `lose-steps:disk:400@ms=9000`,
 //! `stuck:track:on@ms=0`, `chatter:tilt:0.2@ms=5000`, `switch-ok:tilt@ms=9000`,
-//! `driver-fault:on@ms=7000`, `estop:off@ms=8000`, `ignore-trigger:1@trigger=3`.
+//! `driver-fault:on@ms=7000`, `estop:off@ms=8000`, `ignore-trigger:1@trigger=3`,
+//! `slow-light:200@ms=0`.
 
 use std::str::FromStr;
 
@@ -55,6 +56,13 @@ pub enum FaultEvent {
     EmergencyStop(bool),
     /// The camera ignores the next `n` triggers.
     IgnoreTriggers(u32),
+    /// From now on the light's driver loses `edge_ns` of light at every
+    /// PWM pulse (slow edges): a dimmed light gives less than its duty
+    /// (see [`crate::camera::light_output`]); 0 mends it.
+    SlowLight {
+        /// Light lost per PWM pulse, ns.
+        edge_ns: u32,
+    },
 }
 
 /// Link noise and scheduled faults.
@@ -222,6 +230,12 @@ impl FromStr for FaultSpec {
             "estop" => FaultEvent::EmergencyStop(
                 parts.get(1).and_then(|s| parse_on_off(s)).ok_or_else(|| err("on or off"))?,
             ),
+            "slow-light" => FaultEvent::SlowLight {
+                edge_ns: parts
+                    .get(1)
+                    .and_then(|s| s.parse().ok())
+                    .ok_or_else(|| err("bad edge loss, ns"))?,
+            },
             "ignore-trigger" => FaultEvent::IgnoreTriggers(
                 parts.get(1).and_then(|s| s.parse().ok()).ok_or_else(|| err("bad count"))?,
             ),

@@ -424,7 +424,17 @@ fn fault_specs_parse() {
     assert_eq!(f.when, FaultWhen::AtTick(9_000 * firmware::hal::TICKS_PER_MS));
     let f: FaultSpec = "chatter:tilt:0.2@ms=1".parse().unwrap();
     assert_eq!(f.event, FaultEvent::Switch { axis: Axis::Tilt, fault: SwitchFault::Chatter(0.2) });
+    let f: FaultSpec = "slow-light:200@ms=0".parse().unwrap();
+    assert_eq!(f.event, FaultEvent::SlowLight { edge_ns: 200 });
+    // The light that fault makes: 1 µs of every 50 µs at 20 ‰, less 0.2 µs.
+    use hil_sim::camera::light_output;
+    assert_eq!(light_output(20, 0), 0.02);
+    assert!((light_output(20, 200) - 0.016).abs() < 1e-12);
+    assert_eq!(light_output(1000, 200), 1.0, "at full duty no edges");
+    assert_eq!(light_output(2, 200), 0.0);
     for bad in [
+        "slow-light@ms=0",
+        "slow-light:-3@ms=0",
         "reset",
         "reset@ms=x",
         "stuck:wheel:on@ms=1",

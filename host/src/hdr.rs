@@ -128,6 +128,69 @@ pub fn merge(
     Ok((Frame { width: w, height: h, rgb: out }, stats))
 }
 
+/// How two exposures of a bracket agree: the rate (value per µs) the
+/// shorter one measured over the longer one's, median over the values both
+/// measured well. 1 when the light and the exposure times are what the
+/// merge assumes; a dimmed light (exposures below 1 ms) that gives more or
+/// less than its duty, or an exposure that lasts longer or shorter than
+/// asked, moves it.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ExposureRatio {
+    /// The shorter exposure, µs of light.
+    pub shorter_us: u32,
+    /// The next longer exposure, µs of light.
+    pub longer_us: u32,
+    /// Median over the values of (shorter's rate) / (longer's rate).
+    pub ratio: f64,
+    /// Values compared.
+    pub values: usize,
+}
+
+/// Only one value in this many is compared (coprime with 3: every channel).
+const AGREEMENT_STRIDE: usize = 7;
+/// A value is compared where the shorter exposure's is at least this
+/// fraction of full scale (≥ 500 electrons on the default sensor: shot
+/// noise ≤ 4.5 %) and the longer's at most [`AGREEMENT_HIGH`].
+const AGREEMENT_LOW: f32 = 0.05;
+/// See [`AGREEMENT_LOW`]: clear of saturation.
+const AGREEMENT_HIGH: f32 = 0.9;
+/// Fewer values than this give no ratio.
+pub const AGREEMENT_MIN_VALUES: usize = 100;
+
+/// For each exposure of `frames` (each with its exposure in µs) but the
+/// longest, its [`ExposureRatio`] to the next longer one; `None` where
+/// fewer than [`AGREEMENT_MIN_VALUES`] values were measured well by both.
+pub fn exposure_ratios(frames: &[(&Frame, u32)]) -> Vec<Option<ExposureRatio>> {
+    let mut order: Vec<&(&Frame, u32)> = frames.iter().collect();
+    order.sort_by_key(|(_, t)| *t);
+    order
+        .windows(2)
+        .map(|w| {
+            let ((short, ts), (long, tl)) = (w[0], w[1]);
+            let scale = *tl as f64 / *ts as f64;
+            let mut ratios: Vec<f32> = short
+                .rgb
+                .iter()
+                .zip(&long.rgb)
+                .step_by(AGREEMENT_STRIDE)
+                .filter(|&(&a, &b)| a >= AGREEMENT_LOW && b <= AGREEMENT_HIGH && b > 0.0)
+                .map(|(&a, &b)| (a as f64 / b as f64 * scale) as f32)
+                .collect();
+            if ratios.len() < AGREEMENT_MIN_VALUES {
+                return None;
+            }
+            let mid = ratios.len() / 2;
+            let (_, median, _) = ratios.select_nth_unstable_by(mid, f32::total_cmp);
+            Some(ExposureRatio {
+                shorter_us: *ts,
+                longer_us: *tl,
+                ratio: *median as f64,
+                values: ratios.len(),
+            })
+        })
+        .collect()
+}
+
 /// The bracket `--hdr` takes around `exposure_us`: ×1/25, ×1/5, ×1 (a 25×
 /// wider range above the base exposure's full scale), within the device's
 /// exposure limits.
@@ -156,6 +219,27 @@ mod tests {
 
     fn frame(v: &[f32]) -> Frame {
         Frame { width: v.len() as u32 / 3, height: 1, rgb: v.to_vec() }
+    }
+
+    #[test]
+    fn exposure_ratios_measure_a_light_that_gives_less_than_its_duty() {
+        // A scene of 30 000 values from 0.001 to 36 (of the 10 ms exposure's
+        // full scale); the 100 µs exposure's light gives 0.8 of its duty.
+        let scene: Vec<f32> = (0..30_000).map(|i| 0.001 * 1.00035f32.powi(i)).collect();
+        let at =
+            |t: f32, k: f32| frame(&scene.iter().map(|v| (v * t * k).min(1.0)).collect::<Vec<_>>());
+        let (dim, mid, long) = (at(0.01, 0.8), at(0.1, 1.0), at(1.0, 1.0));
+        let r = exposure_ratios(&[(&long, 10_000), (&dim, 100), (&mid, 1_000)]);
+        assert_eq!(r.len(), 2);
+        let r0 = r[0].unwrap();
+        assert_eq!((r0.shorter_us, r0.longer_us), (100, 1_000));
+        assert!((r0.ratio - 0.8).abs() < 1e-4 && r0.values >= AGREEMENT_MIN_VALUES, "{r0:?}");
+        let r1 = r[1].unwrap();
+        assert_eq!((r1.shorter_us, r1.longer_us), (1_000, 10_000));
+        assert!((r1.ratio - 1.0).abs() < 1e-4, "{r1:?}");
+        // Too few values measured well by both: no ratio.
+        let few = frame(&scene[..60]);
+        assert_eq!(exposure_ratios(&[(&few, 1_000), (&few, 2_000)]), vec![None]);
     }
 
     #[test]

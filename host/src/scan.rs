@@ -277,7 +277,16 @@ pub struct FrameRecord {
     /// `exposure_us` is then the equivalent at the scan's duty.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub light_duty_permille: Option<u16>,
+    /// HDR: how each exposure merged into this frame agreed with the next
+    /// longer one ([`crate::hdr::exposure_ratios`]; those with too few
+    /// values measured well by both are left out); empty otherwise.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub exposure_ratios: Vec<crate::hdr::ExposureRatio>,
 }
+
+/// An HDR exposure whose light per µs differs from the next longer one's
+/// by more than this (relative) is reported: the merge assumes none.
+pub const EXPOSURE_RATIO_TOLERANCE: f64 = 0.03;
 
 fn verified_by_default() -> bool {
     true
@@ -1340,6 +1349,7 @@ pub fn scan(
                     bracket_us: Vec::new(),
                     light_duty_permille: (o.light_duty_permille != opts.light_duty_permille)
                         .then_some(o.light_duty_permille),
+                    exposure_ratios: Vec::new(),
                 };
                 if opts.bracket_us.is_empty() {
                     taken.push((Arc::new(frame), exposure_us, record));
@@ -1382,11 +1392,34 @@ pub fn scan(
                         bracket.iter().min().expect("a bracket")
                     ));
                 }
+                let ratios: Vec<crate::hdr::ExposureRatio> =
+                    crate::hdr::exposure_ratios(&inputs).into_iter().flatten().collect();
+                for r in &ratios {
+                    if (r.ratio - 1.0).abs() > EXPOSURE_RATIO_TOLERANCE {
+                        let dimmed = taken
+                            .iter()
+                            .find(|(_, e, _)| *e == r.shorter_us)
+                            .and_then(|(_, _, rec)| rec.light_duty_permille)
+                            .map(|d| format!(" (taken at 1 ms with the light at {d} ‰)"))
+                            .unwrap_or_default();
+                        progress.note(&format!(
+                            "mirror {l}: the {} µs exposure{dimmed} measured {:.3}× the light per \
+                             µs of the {} µs one over {} values; the merge assumes 1: check the \
+                             light's linearity{} and the exposure times",
+                            r.shorter_us,
+                            r.ratio,
+                            r.longer_us,
+                            r.values,
+                            if dimmed.is_empty() { "" } else { " at low duty" },
+                        ));
+                    }
+                }
                 let (_, _, longest) = taken
                     .iter()
                     .find(|(_, e, _)| *e == reference)
                     .expect("the reference exposure was taken");
                 let mut record = longest.clone();
+                record.exposure_ratios = ratios;
                 record.file = frame_file(l);
                 record.exposure_us = reference;
                 if bracket != opts.bracket_us {

@@ -284,6 +284,9 @@ pub const MIN_EXPOSURE_US: u32 = 1_000;
 pub const MAX_EXPOSURE_US: u32 = 2_000_000;
 /// Full light duty.
 pub const FULL_DUTY_PERMILLE: u16 = 1000;
+/// The light's PWM frequency on the board, Hz: a duty of d ‰ lights
+/// d/1000 of every 50 µs period.
+pub const LIGHT_PWM_HZ: u32 = 20_000;
 
 wire_type! {
     /// Latched fault flags (bit mask). A set flag stops all motion and switches

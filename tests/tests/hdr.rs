@@ -316,6 +316,30 @@ fn a_near_mirror_is_held_by_exposures_below_1_ms_with_the_light_dimmed() {
     // Above 1 ms's full scale (in units of the longest, 10 ms).
     assert!(n > 50 && peak > 2.0 * 10_000.0 / 1_000.0, "{n} values up to {peak}");
     assert!(rms < 1.3 && mean.abs() < 0.2, "within noise: RMS z {rms}, mean z {mean}");
+    // Each merged frame records how its exposures agreed: the dimmed
+    // 100 µs with the 1 ms, the 1 ms with the 10 ms.
+    let ratios = |dir: &std::path::Path| -> Vec<host::hdr::ExposureRatio> {
+        let m = host::scan::Manifest::load(dir).unwrap();
+        m.frames.iter().flat_map(|f| f.exposure_ratios.clone()).collect()
+    };
+    let clean = ratios(&fixed);
+    assert!(clean.iter().any(|r| r.shorter_us == 100), "{clean:?}");
+    assert!(clean.iter().all(|r| (r.ratio - 1.0).abs() < 0.015), "{clean:?}");
+    assert!(!err.contains("the merge assumes 1"), "{err}");
+    // A light driver that loses 0.5 µs of every 5 µs pulse at 100 ‰ gives
+    // 0.9 of its duty: said, and recorded.
+    let slow = dir.path().join("slow");
+    let (code, err) =
+        scan(&set, &slow, &["--exposures", "100,1000,10000", "--sim-fault", "slow-light:500@ms=0"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains("the 100 µs exposure (taken at 1 ms with the light at 100 ‰) measured 0.9")
+            && err.contains("check the light's linearity at low duty"),
+        "{err}"
+    );
+    let dimmed: Vec<_> = ratios(&slow).into_iter().filter(|r| r.shorter_us == 100).collect();
+    assert!(!dimmed.is_empty(), "{:?}", ratios(&slow));
+    assert!(dimmed.iter().all(|r| (r.ratio - 0.9).abs() < 0.015), "{dimmed:?}");
     // Auto HDR extends the metered bracket below 1 ms where it clips.
     let auto = dir.path().join("auto");
     let (code, err) = scan(&set, &auto, &["--exposure-us", "auto", "--hdr"]);

@@ -22,7 +22,7 @@
 
 use embassy_stm32::gpio::{Input, Level, Output, Pull, Speed};
 use embassy_stm32::peripherals::{TIM4, TIM5};
-use embassy_stm32::time::khz;
+use embassy_stm32::time::Hertz;
 use embassy_stm32::timer::Ch2;
 use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
 use embassy_stm32::{Peri, peripherals as p};
@@ -117,7 +117,7 @@ pub fn init(pins: Pins) -> (Motors, Sensors, Camera) {
         None,
         None,
         None,
-        khz(20),
+        Hertz(protocol::LIGHT_PWM_HZ),
         Default::default(),
     );
     light.ch1().set_duty_cycle_fully_off();
