@@ -255,6 +255,19 @@ fn bad_inputs_exit_3_and_write_nothing() {
     assert!(err.contains("view 2: bad homography or direction"), "{err}");
     let err = edited("e5.json", &|c| c["camera_px"] = serde_json::json!([4096, 4096]));
     assert!(err.contains("a 4096×4096 px camera, the scanner's is 512×512 px"), "{err}");
+    let err = edited("e6.json", &|c| {
+        c["views"][1]["homography"][2] =
+            (c["views"][1]["homography"][2].as_f64().unwrap() + 1e6).into()
+    });
+    assert!(err.contains("view 1 puts the sample outside the 512×512 px frame"), "{err}");
+    let err = edited("e7.json", &|c| c["views"][1]["homography"][6] = (-2.0).into());
+    assert!(err.contains("view 1: its homography folds the sample over"), "{err}");
+    let err = edited("e8.json", &|c| {
+        for f in c["colour"]["light_field"].as_array_mut().unwrap() {
+            f.as_array_mut().unwrap().iter_mut().for_each(|x| *x = 0.0.into());
+        }
+    });
+    assert!(err.contains("a light's field is 0 everywhere"), "{err}");
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));

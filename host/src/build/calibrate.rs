@@ -840,8 +840,30 @@ impl Calibration {
             }
         }
         let fields = self.colour.view_response.iter().chain(&self.colour.light_field);
-        if fields.flatten().any(|x| !(x.is_finite() && *x >= 0.0)) {
+        if fields.clone().flatten().any(|x| !(x.is_finite() && *x >= 0.0)) {
             return Err("colour field with a negative or non-finite value".into());
+        }
+        if fields.clone().any(|f| !f.iter().any(|&x| x > 0.0)) {
+            return Err("a view's response or a light's field is 0 everywhere".into());
+        }
+        // The light fields are normalised to a mean of 1 over all lights and cells.
+        let (sum, n) = self
+            .colour
+            .light_field
+            .iter()
+            .flatten()
+            .fold((0.0, 0usize), |(s, n), &x| (s + x as f64, n + 1));
+        if n > 0 && (sum / n as f64 - 1.0).abs() > 1e-3 {
+            return Err(format!("light fields' mean {:.4}, not 1", sum / n as f64));
+        }
+        for v in &self.views {
+            // Positive depth over the whole sample (w is linear in uv: its
+            // corners decide), so the sample maps to one convex quadrilateral.
+            let h = &v.homography.0;
+            let corners = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+            if corners.iter().any(|c| h[6] * c[0] + h[7] * c[1] + h[8] <= 0.0) {
+                return Err(format!("view {}: its homography folds the sample over", v.view));
+            }
         }
         if !(self.colour.white_albedo > 0.0 && self.colour.white_albedo <= 1.0) {
             return Err("white albedo outside (0, 1]".into());
@@ -864,6 +886,17 @@ impl Calibration {
                 "the calibration is of a {}×{} px camera, the scanner's is {}×{} px",
                 self.camera_px[0], self.camera_px[1], g.camera.width, g.camera.height
             )));
+        }
+        let (w, h) = (g.camera.width as f64, g.camera.height as f64);
+        for v in &self.views {
+            let corners =
+                [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|c| v.homography.apply(c));
+            if corners.iter().any(|p| !(0.0..=w).contains(&p[0]) || !(0.0..=h).contains(&p[1])) {
+                return Err(BuildError::Input(format!(
+                    "the calibration's view {} puts the sample outside the {}×{} px frame",
+                    v.view, g.camera.width, g.camera.height
+                )));
+            }
         }
         let n = g.mirrors.len();
         let labels = self.views.iter().map(|v| v.view).chain(self.lights.iter().map(|l| l.light));
