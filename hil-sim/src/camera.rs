@@ -122,8 +122,7 @@ pub fn drop_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result<
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("frame.exr");
     let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
     let bytes = encode_exr(frame)?;
-    std::fs::write(&tmp, bytes)?;
-    std::fs::rename(&tmp, path).inspect_err(|_| {
+    std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, path)).inspect_err(|_| {
         let _ = std::fs::remove_file(&tmp);
     })
 }
