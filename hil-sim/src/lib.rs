@@ -19,6 +19,7 @@
 //! - [`camera`]: the simulated camera, rendering at each trigger pulse from
 //!   the simulated axes' physical positions.
 //! - [`rig`]: board and camera in one deterministic process ([`SimRig`]).
+//! - [`defects`]: the sensor's stuck and dead pixels, when asked for.
 //! - [`texture_set`]: user-defined samples from image maps
 //!   (docs/texture-set.md); [`materials::lookup`] takes a library name or a
 //!   texture-set directory.
@@ -26,6 +27,7 @@
 //! The simulator stands in for hardware and knows nothing of host internals.
 
 pub mod camera;
+pub mod defects;
 pub mod device;
 pub mod faults;
 pub mod geometry;

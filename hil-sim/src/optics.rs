@@ -127,6 +127,8 @@ pub struct OpticalSim {
     boxes: Vec<Option<[u32; 4]>>,
     /// The mirrors, ready for tracing.
     facets: Vec<Facet>,
+    /// The sensor's defective pixels (none unless asked for).
+    defects: Arc<[crate::defects::PixelDefect]>,
 }
 
 impl OpticalSim {
@@ -151,7 +153,21 @@ impl OpticalSim {
             })
             .collect();
         let facets = as_built.mirrors.iter().map(|m| m.facet()).collect();
-        OpticalSim { geometry: as_built, sample, seed, boxes, facets, cache: Default::default() }
+        OpticalSim {
+            geometry: as_built,
+            sample,
+            seed,
+            boxes,
+            facets,
+            cache: Default::default(),
+            defects: Arc::new([]),
+        }
+    }
+
+    /// The same scanner whose sensor has `defects` (frames only: the
+    /// noise-free [`OpticalSim::expected`] stays the light's truth).
+    pub fn with_defects(self, defects: Vec<crate::defects::PixelDefect>) -> OpticalSim {
+        OpticalSim { defects: defects.into(), ..self }
     }
 
     /// The simulator of a scanner built to `nominal` with the default
@@ -455,7 +471,15 @@ impl OpticalSim {
     pub fn render(&self, exposure: &Exposure) -> Frame {
         let (electrons, scale) = self.electrons_cached(exposure);
         let seed = self.exposure_seed(exposure);
-        sensor_readout(&self.geometry.sensor, self.geometry.camera.width, &electrons, scale, seed)
+        let mut frame = sensor_readout(
+            &self.geometry.sensor,
+            self.geometry.camera.width,
+            &electrons,
+            scale,
+            seed,
+        );
+        crate::defects::apply(&mut frame, &self.defects);
+        frame
     }
 
     /// The Fig. 9 direct image: `piece` seen straight along `dir`

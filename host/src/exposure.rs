@@ -102,6 +102,10 @@ pub struct Metering {
     /// shorter metering frames when the peak saturated at it).
     #[serde(default)]
     pub peak_exposure_us: u32,
+    /// The sensor's defective pixels the metering frames showed
+    /// ([`crate::defects`]); the scan's frames have them replaced.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub defects: Vec<crate::defects::PixelDefect>,
 }
 
 /// The exposures auto exposure chose.
@@ -122,10 +126,10 @@ pub fn meter_mirrors(total: usize) -> Vec<usize> {
     m
 }
 
-/// The sample's values in `frame` (every channel, fraction of full
-/// scale): nearest pixels at 11 × 11 points over the central half of the
-/// sample in each of the geometry's views.
-pub fn sample_values(frame: &Frame, g: &ScannerGeometry) -> Vec<f32> {
+/// The sample's pixels in `frame` (index, RGB as fractions of full scale):
+/// nearest pixels at 11 × 11 points over the central half of the sample in
+/// each of the geometry's views.
+pub fn sample_pixels(frame: &Frame, g: &ScannerGeometry) -> Vec<(u32, [f32; 3])> {
     let (w, h) = (frame.width as usize, frame.height as usize);
     let mut out = Vec::new();
     for view in 0..g.mirrors.len() {
@@ -138,12 +142,29 @@ pub fn sample_values(frame: &Frame, g: &ScannerGeometry) -> Vec<f32> {
                 }
                 let (x, y) = (p[0] as usize, p[1] as usize);
                 if x < w && y < h && frame.rgb.len() >= 3 * w * h {
-                    out.extend_from_slice(&frame.rgb[3 * (y * w + x)..][..3]);
+                    let px = y * w + x;
+                    let v = &frame.rgb[3 * px..3 * px + 3];
+                    out.push((px as u32, [v[0], v[1], v[2]]));
                 }
             }
         }
     }
     out
+}
+
+/// The values (every channel) of `pixels` of `width` × `height` frames,
+/// the sensor's `defects` left out.
+pub fn sample_values(
+    pixels: &[(u32, [f32; 3])],
+    defects: &crate::defects::DefectMap,
+    width: u32,
+    height: u32,
+) -> Vec<f32> {
+    pixels
+        .iter()
+        .filter(|(p, _)| !defects.contains_in(width, height, *p as usize))
+        .flat_map(|(_, v)| *v)
+        .collect()
 }
 
 /// How far around the sample, in sample sides, a saturated value counts
@@ -191,16 +212,31 @@ pub fn sample_spans(g: &ScannerGeometry, width: u32, height: u32) -> Vec<Span> {
     out
 }
 
-/// Values (every channel) of `frame` at the sensor's top code within `spans`.
-pub fn saturated_in(frame: &Frame, spans: &[Span], max_code: f64) -> usize {
+/// Values (every channel) of `frame` at the sensor's top code within
+/// `spans`, the pixels of `defects` left out.
+pub fn saturated_in(
+    frame: &Frame,
+    spans: &[Span],
+    max_code: f64,
+    defects: &crate::defects::DefectMap,
+) -> usize {
     let (w, top) = (frame.width as usize, max_code as usize);
     let maxf = max_code as f32;
     spans
         .iter()
         .filter_map(|&(y, x0, x1)| {
-            frame.rgb.get(3 * (y as usize * w + x0 as usize)..3 * (y as usize * w + x1 as usize))
+            let first = y as usize * w + x0 as usize;
+            frame.rgb.get(3 * first..3 * (y as usize * w + x1 as usize)).map(|row| (first, row))
         })
-        .map(|row| row.iter().filter(|&&v| crate::hdr::adc_code(v, maxf, top) == top).count())
+        .map(|(first, row)| {
+            row.iter()
+                .enumerate()
+                .filter(|&(i, &v)| {
+                    crate::hdr::adc_code(v, maxf, top) == top
+                        && !defects.contains(frame, first + i / 3)
+                })
+                .count()
+        })
         .sum()
 }
 
@@ -289,7 +325,14 @@ mod tests {
     const MS: u32 = protocol::MIN_EXPOSURE_US;
 
     fn metering(body: f64, peak: Option<f64>) -> Metering {
-        Metering { exposure_us: 50_000, mirrors: vec![0], body, peak, peak_exposure_us: 50_000 }
+        Metering {
+            exposure_us: 50_000,
+            mirrors: vec![0],
+            body,
+            peak,
+            peak_exposure_us: 50_000,
+            defects: Vec::new(),
+        }
     }
 
     #[test]
@@ -395,7 +438,16 @@ mod tests {
         f.rgb[3 * outside as usize] = 1.0;
         // Half-float storage leaves the top code a fraction of a code low.
         f.rgb[at + 2] = 1.0 - 0.3 / g.sensor.max_code() as f32;
-        assert_eq!(saturated_in(&f, &spans, g.sensor.max_code()), 3);
+        let none = crate::defects::DefectMap::default();
+        assert_eq!(saturated_in(&f, &spans, g.sensor.max_code(), &none), 3);
+        // A defective pixel is left out.
+        let stuck = crate::defects::PixelDefect {
+            x: p[0] as u32,
+            y: p[1] as u32,
+            kind: crate::defects::DefectKind::Stuck,
+        };
+        let map = crate::defects::DefectMap::new(&[stuck], w, h);
+        assert_eq!(saturated_in(&f, &spans, g.sensor.max_code(), &map), 0);
         assert_eq!(extension(50_000, 0, MS), None);
         assert_eq!(extension(50_000, 3, MS), Some(10_000));
         assert_eq!(extension(3_000, 1, MS), Some(protocol::MIN_EXPOSURE_US));

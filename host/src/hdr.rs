@@ -15,6 +15,7 @@
 use scanner_geometry::SensorSpec;
 
 use crate::camera::Frame;
+use crate::defects::DefectMap;
 
 /// What a merge found.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -37,11 +38,14 @@ pub fn adc_code(v: f32, max_code: f32, top: usize) -> usize {
 }
 
 /// Merge `frames` (each with its exposure in µs; all the same size) into
-/// one frame in units of the `reference_us` exposure.
+/// one frame in units of the `reference_us` exposure. The pixels of
+/// `defects` are not counted in the stats and are replaced by their
+/// neighbours' mean ([`DefectMap::patch`]).
 pub fn merge(
     frames: &[(&Frame, u32)],
     sensor: &SensorSpec,
     reference_us: u32,
+    defects: &DefectMap,
 ) -> Result<(Frame, MergeStats), String> {
     let Some((first, _)) = frames.first() else { return Err("no exposures to merge".into()) };
     let (w, h) = (first.width, first.height);
@@ -107,14 +111,15 @@ pub fn merge(
                 }
                 let mut stats = MergeStats::default();
                 for (j, o) in line.iter_mut().enumerate() {
+                    let counted = !defects.contains(first, (start + j) / 3);
                     *o = if den[j] > 0.0 {
                         num[j] / den[j] * to_reference
                     } else if all_clipped[j] {
-                        stats.clipped += 1;
+                        stats.clipped += usize::from(counted);
                         let (f, t) = frames[shortest];
                         (f.rgb[start + j] as f64 * reference_us as f64 / t as f64) as f32
                     } else {
-                        stats.black += 1;
+                        stats.black += usize::from(counted);
                         0.0
                     };
                 }
@@ -125,7 +130,9 @@ pub fn merge(
             clipped: a.clipped + b.clipped,
             black: a.black + b.black,
         });
-    Ok((Frame { width: w, height: h, rgb: out }, stats))
+    let mut merged = Frame { width: w, height: h, rgb: out };
+    defects.patch(&mut merged);
+    Ok((merged, stats))
 }
 
 /// How two exposures of a bracket agree: the rate (value per µs) the
@@ -249,15 +256,27 @@ mod tests {
         // Pixel 1: black at 1 ms, 0.01 at 10 ms.
         let short = frame(&[0.5, 0.5, 0.5, 0.0, 0.0, 0.0]);
         let long = frame(&[1.0, 1.0, 1.0, 0.01, 0.01, 0.01]);
-        let (m, stats) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000).unwrap();
+        let (m, stats) =
+            merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &DefectMap::default()).unwrap();
         assert!((m.rgb[0] - 5.0).abs() < 1e-5, "{}", m.rgb[0]);
         assert!((m.rgb[3] - 0.01).abs() < 1e-6, "{}", m.rgb[3]);
         assert_eq!(stats, MergeStats::default());
         // Saturated everywhere: counted, the shortest exposure scaled.
         let saturated = frame(&[1.0; 3]);
-        let (m, stats) = merge(&[(&saturated, 1_000), (&saturated, 10_000)], &s, 10_000).unwrap();
+        let (m, stats) =
+            merge(&[(&saturated, 1_000), (&saturated, 10_000)], &s, 10_000, &DefectMap::default())
+                .unwrap();
         assert_eq!(stats.clipped, 3);
         assert!((m.rgb[0] - 10.0).abs() < 1e-5);
+        // A stuck pixel of the sensor (the middle one) is neither counted
+        // nor kept: its neighbours' mean stands in.
+        let short = frame(&[0.02, 0.02, 0.02, 1.0, 1.0, 1.0, 0.04, 0.04, 0.04]);
+        let long = frame(&[0.2, 0.2, 0.2, 1.0, 1.0, 1.0, 0.4, 0.4, 0.4]);
+        use crate::defects::{DefectKind, PixelDefect};
+        let map = DefectMap::new(&[PixelDefect { x: 1, y: 0, kind: DefectKind::Stuck }], 3, 1);
+        let (m, stats) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &map).unwrap();
+        assert_eq!(stats, MergeStats::default());
+        assert!((m.rgb[3] - 0.3).abs() < 1e-3 && (m.rgb[0] - 0.2).abs() < 1e-3, "{:?}", m.rgb);
     }
 
     #[test]
@@ -278,7 +297,7 @@ mod tests {
             })
             .collect();
         let inputs: Vec<(&Frame, u32)> = frames.iter().zip(exposures).collect();
-        let (m, _) = merge(&inputs, &s, 20_000).unwrap();
+        let (m, _) = merge(&inputs, &s, 20_000, &DefectMap::default()).unwrap();
         for (i, c) in codes.iter().enumerate() {
             let (mut num, mut den) = (0.0f64, 0.0f64);
             for k in 0..3 {
@@ -305,7 +324,8 @@ mod tests {
         let s = sensor();
         // 0.2 at 1 ms and 0.21 at 10 ms ×⅒: the merge sits near the long one.
         let (short, long) = (frame(&[0.02, 0.02, 0.02]), frame(&[0.21, 0.21, 0.21]));
-        let (m, _) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000).unwrap();
+        let (m, _) =
+            merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &DefectMap::default()).unwrap();
         assert!(m.rgb[0] > 0.208 && m.rgb[0] < 0.21, "{}", m.rgb[0]);
     }
 }

@@ -6,6 +6,8 @@
 //! - [`camera`]: cameras on the trigger line (simulated, folder source).
 //! - [`scan`]: mirror table set-up and scan capture into a scan directory
 //!   (`docs/scan-format.md`), frames as OpenEXR ([`exrio`]).
+//! - [`exposure`], [`hdr`], [`defects`]: auto exposure, HDR merging, and
+//!   the sensor's defective pixels found while metering.
 //! - [`simulator`]: the simulated scanner as the host starts it.
 //! - [`build`]: the material builder — calibration and region images.
 //! - [`brdf`]: measured BRDFs — MERL tables, the NPF model, AWLS fitting,
@@ -19,6 +21,7 @@ pub mod build;
 pub mod camera;
 #[cfg(feature = "cli")]
 pub mod cli;
+pub mod defects;
 pub mod discovery;
 pub mod exposure;
 pub mod exrio;

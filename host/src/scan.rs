@@ -1120,6 +1120,13 @@ pub fn scan(
     let mut raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
     let extend_bracket = opts.auto_exposure == Some(AutoExposure::Hdr);
     let mut spans: Option<Vec<crate::exposure::Span>> = None;
+    // The sensor's defective pixels metering found (auto exposure only):
+    // left out of the saturation counts and replaced in the frames.
+    let defects = crate::defects::DefectMap::new(
+        manifest.settings.metering.as_ref().map_or(&[][..], |m| &m.defects),
+        geometry.camera.width,
+        geometry.camera.height,
+    );
     // Stored frames not verified before the device lost its homing (the
     // scan was interrupted, the device reset) cannot be verified now.
     let mut pending_check = (prepared.homed && !unverified.is_empty())
@@ -1283,7 +1290,12 @@ pub fn scan(
                     let spans = spans.get_or_insert_with(|| {
                         crate::exposure::sample_spans(geometry, f.width, f.height)
                     });
-                    let n = crate::exposure::saturated_in(f, spans, geometry.sensor.max_code());
+                    let n = crate::exposure::saturated_in(
+                        f,
+                        spans,
+                        geometry.sensor.max_code(),
+                        &defects,
+                    );
                     let Some(t) = crate::exposure::extension(*e, n, floor_us) else { break };
                     progress.note(&format!(
                         "mirror {l}: {n} values saturated on the sample at {e} µs; adding {t} µs"
@@ -1352,6 +1364,8 @@ pub fn scan(
                     exposure_ratios: Vec::new(),
                 };
                 if opts.bracket_us.is_empty() {
+                    let mut frame = frame;
+                    defects.patch(&mut frame);
                     taken.push((Arc::new(frame), exposure_us, record));
                     break;
                 }
@@ -1377,8 +1391,8 @@ pub fn scan(
                 let reference = *bracket.iter().max().expect("a bracket");
                 let inputs: Vec<(&crate::camera::Frame, u32)> =
                     taken.iter().map(|(f, e, _)| (&**f, *e)).collect();
-                let (merged, stats) = match crate::hdr::merge(&inputs, &geometry.sensor, reference)
-                {
+                let merged = crate::hdr::merge(&inputs, &geometry.sensor, reference, &defects);
+                let (merged, stats) = match merged {
                     Ok(m) => m,
                     Err(e) => {
                         failure = Some(ScanError::Io(format!("mirror {l}: {e}")));
@@ -1673,20 +1687,33 @@ fn meter(
     report: &mut ScanReport,
     progress: &mut dyn ScanProgress,
 ) -> Result<crate::exposure::Metering, ScanError> {
-    use crate::exposure::{Metering, measure, meter_mirrors, sample_values};
+    use crate::defects::{DefectFinder, DefectMap};
+    use crate::exposure::{Metering, measure, meter_mirrors, sample_pixels, sample_values};
     let mirrors = meter_mirrors(total);
+    // Every metering frame, whatever its exposure, also looks for the
+    // sensor's defective pixels; those found so far are left out of the
+    // sample's values (a stuck pixel is no highlight).
+    let mut finder: Option<DefectFinder> = None;
     let mut take = |exposure_us: u32,
                     report: &mut ScanReport,
                     progress: &mut dyn ScanProgress|
      -> Result<(f64, Option<f64>, bool), ScanError> {
         let o = realised(opts, exposure_us)?;
-        let mut values = Vec::new();
+        let mut pixels = Vec::new();
+        let mut size = (0, 0);
         for &l in &mirrors {
             // A reset or lost steps on the way do not matter: nothing is kept.
             let ((frame, _, _), _) =
                 capture_with_retries(dev, camera, geometry, l, &o, report, progress)?;
-            values.extend(sample_values(&frame, geometry));
+            size = (frame.width, frame.height);
+            pixels.extend(sample_pixels(&frame, geometry));
+            finder
+                .get_or_insert_with(|| DefectFinder::new(geometry, frame.width, frame.height))
+                .add(&frame);
         }
+        let defects = finder.as_ref().and_then(|f| f.defects().ok()).unwrap_or_default();
+        let mut values =
+            sample_values(&pixels, &DefectMap::new(&defects, size.0, size.1), size.0, size.1);
         if values.is_empty() {
             return Err(ScanError::Conflict(
                 "auto exposure: the geometry projects the sample outside the camera's frames"
@@ -1712,7 +1739,23 @@ fn meter(
         // In the units of the body's metering exposure.
         peak = p.map(|p| p * exposure_us as f64 / peak_exposure_us as f64);
     }
-    Ok(Metering { exposure_us, mirrors: mirrors.clone(), body, peak, peak_exposure_us })
+    let defects = match finder.map(|f| f.defects()) {
+        Some(Ok(found)) => found,
+        Some(Err(why)) => {
+            progress.note(&format!("sensor defects: {why}; none are replaced"));
+            Vec::new()
+        }
+        None => Vec::new(),
+    };
+    if !defects.is_empty() {
+        let stuck = defects.iter().filter(|d| d.kind == crate::defects::DefectKind::Stuck).count();
+        progress.note(&format!(
+            "sensor defects: {stuck} stuck and {} dead pixels where the sample is seen; \
+             the frames have them replaced by their neighbours' mean",
+            defects.len() - stuck
+        ));
+    }
+    Ok(Metering { exposure_us, mirrors: mirrors.clone(), body, peak, peak_exposure_us, defects })
 }
 
 /// `opts` for an exposure of `t` µs of light at its duty

@@ -5,6 +5,7 @@
 
 use std::path::PathBuf;
 
+use hil_sim::defects::DefectSpec;
 use hil_sim::geometry::ScannerGeometry;
 use hil_sim::materials::{self, MaterialError, Sample};
 use hil_sim::optics::OpticalSim;
@@ -48,12 +49,20 @@ pub struct SimSetup {
     pub bin: u32,
     /// Faults to inject.
     pub faults: FaultPlan,
+    /// The sensor's defective pixels (`hil_sim::defects`; none by default).
+    pub defects: Vec<DefectSpec>,
 }
 
 impl SimSetup {
     /// `material` with seed 1, full resolution, no faults.
     pub fn new(material: &str) -> SimSetup {
-        SimSetup { material: material.into(), seed: 1, bin: 1, faults: FaultPlan::none() }
+        SimSetup {
+            material: material.into(),
+            seed: 1,
+            bin: 1,
+            faults: FaultPlan::none(),
+            defects: Vec::new(),
+        }
     }
 
     /// The nominal geometry of the simulated scanner (what the host gets).
@@ -66,7 +75,11 @@ impl SimSetup {
 
     fn optics(&self) -> Result<OpticalSim, SimError> {
         let material = materials::lookup(&self.material)?;
-        Ok(OpticalSim::as_built(&self.nominal()?, Sample::small(material), self.seed))
+        let nominal = self.nominal()?;
+        let (w, h) = (nominal.camera.width, nominal.camera.height);
+        let defects =
+            hil_sim::defects::place(&self.defects, w, h, self.seed).map_err(SimError::Usage)?;
+        Ok(OpticalSim::as_built(&nominal, Sample::small(material), self.seed).with_defects(defects))
     }
 
     fn config(&self) -> SimConfig {

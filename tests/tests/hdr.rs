@@ -356,3 +356,139 @@ fn a_near_mirror_is_held_by_exposures_below_1_ms_with_the_light_dimmed() {
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("10 µs outside 20…2000000"), "{err}");
 }
+
+/// A real sensor's stuck pixels read the top code at every exposure; on
+/// the sample's views they look like highlights no exposure holds. Auto
+/// exposure finds them (and dead pixels) in its metering frames
+/// (docs/scan-format.md, "Sensor defects"): no mirror's bracket is
+/// extended for them, nothing is reported saturated, the merged frames
+/// (and a single auto exposure) hold their neighbours' mean — within a few
+/// per cent of the light's truth there — while the raw exposures keep what
+/// the sensor read.
+#[test]
+fn stuck_and_dead_sensor_pixels_are_found_while_metering_and_replaced() {
+    use host::defects::{DefectKind, PixelDefect};
+    let dir = common::tmp();
+    let set = dir.path().join("matte");
+    std::fs::create_dir_all(&set).unwrap();
+    std::fs::write(set.join("material.toml"), "format = 1\nname = \"matte\"\nsize_mm = 25.4\n")
+        .unwrap();
+    let map = |name: &str, v: [f32; 3]| {
+        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(set.join(name)).unwrap();
+    };
+    map("diffuse.exr", [0.4, 0.3, 0.2]);
+    map("specular.exr", [0.04; 3]);
+    map("roughness.exr", [0.9; 3]);
+    map("normal.exr", [0.5, 0.5, 1.0]);
+    let set = set.display().to_string();
+    let g = scanner_geometry::ScannerGeometry::default_scanner().with_sensor_scaled(4);
+    let at = |view: usize, uv: [f64; 2]| {
+        let p = g.view_point(view, uv).unwrap();
+        (p[0] as u32, p[1] as u32)
+    };
+    let placed = [
+        (DefectKind::Stuck, at(0, [0.5, 0.5])),
+        (DefectKind::Stuck, at(2, [0.3, 0.7])),
+        (DefectKind::Stuck, at(3, [0.8, 0.2])),
+        (DefectKind::Dead, at(1, [0.5, 0.5])),
+    ];
+    let specs: Vec<String> = placed
+        .iter()
+        .map(|(k, (x, y))| {
+            format!("{}:{x},{y}", if *k == DefectKind::Stuck { "stuck" } else { "dead" })
+        })
+        .chain(["random:40".to_string()])
+        .collect();
+    let mut args = vec!["--exposure-us", "auto", "--hdr"];
+    for s in &specs {
+        args.extend(["--sim-defect", s.as_str()]);
+    }
+    let out = dir.path().join("scan");
+    let (code, err) = scan(&set, &out, &args);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("saturated"), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    let found = &m.settings.metering.as_ref().unwrap().defects;
+    assert!(err.contains("sensor defects:"), "{err}");
+    // Every placed defect is found, and nothing the sensor does not have.
+    let parsed: Vec<hil_sim::defects::DefectSpec> =
+        specs.iter().map(|s| s.parse().unwrap()).collect();
+    let truth = hil_sim::defects::place(&parsed, g.camera.width, g.camera.height, 3).unwrap();
+    let truth: Vec<PixelDefect> = truth
+        .iter()
+        .map(|d| match *d {
+            hil_sim::defects::PixelDefect::Stuck { x, y } => {
+                PixelDefect { x, y, kind: DefectKind::Stuck }
+            }
+            hil_sim::defects::PixelDefect::Dead { x, y } => {
+                PixelDefect { x, y, kind: DefectKind::Dead }
+            }
+        })
+        .collect();
+    for (kind, (x, y)) in placed {
+        assert!(
+            found.contains(&PixelDefect { x, y, kind }),
+            "{kind:?} ({x}, {y}) not in {found:?}"
+        );
+    }
+    assert!(found.iter().all(|d| truth.contains(d)), "{found:?}");
+    eprintln!(
+        "{} defects found ({} placed, 80 at random over the frame)",
+        found.len(),
+        placed.len()
+    );
+    // No mirror's bracket was extended.
+    assert!(m.frames.iter().all(|f| f.bracket_us.is_empty()), "{:?}", m.frames);
+    let sim = OpticalSim::as_built(&g, Sample::small(lookup(&set).unwrap()), 3);
+    let check = |dir: &std::path::Path, m: &host::scan::Manifest| {
+        let mut worst = 0.0f64;
+        for f in &m.frames {
+            let frame = host::exrio::read_rgb(&dir.join(&f.file)).unwrap();
+            let truth = sim.expected(&Exposure {
+                axes: AxisValues::from_array(f.axis_units),
+                exposure_s: f.exposure_us as f64 * 1e-6,
+                light: 1.0,
+            });
+            for d in found {
+                let i = 3 * (d.y * frame.width + d.x) as usize;
+                let t = truth.rgb[i..i + 3].iter().map(|&v| v as f64).sum::<f64>();
+                if t < 0.05 {
+                    continue; // not lit in this frame
+                }
+                let v = frame.rgb[i..i + 3].iter().map(|&v| v as f64).sum::<f64>();
+                worst = worst.max((v / t - 1.0).abs());
+            }
+        }
+        worst
+    };
+    let worst = check(&out, &m);
+    eprintln!("replaced pixels: at most {:.2} % from the truth", 100.0 * worst);
+    assert!(worst < 0.05, "a replaced pixel {:.1} % from the truth", 100.0 * worst);
+    // A fixed bracket meters nothing: the same sensor's stuck pixels stay
+    // clipped, scaled to 10× full scale by the merge, and are reported.
+    let fixed = dir.path().join("fixed");
+    let mut fixed_args = vec!["--exposures", "2000,20000"];
+    for s in &specs {
+        fixed_args.extend(["--sim-defect", s.as_str()]);
+    }
+    let (code, err) = scan(&set, &fixed, &fixed_args);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("saturated even at 2000 µs"), "{err}");
+    let mf = host::scan::Manifest::load(&fixed).unwrap();
+    let frame = host::exrio::read_rgb(&fixed.join(&mf.frames[0].file)).unwrap();
+    let (x, y) = placed[0].1;
+    assert_eq!(frame.rgb[3 * (y * frame.width + x) as usize], 10.0);
+    // One auto exposure: its frames are replaced too.
+    let single = dir.path().join("single");
+    args.retain(|a| *a != "--hdr");
+    let (code, err) = scan(&set, &single, &args);
+    assert_eq!(code, Some(0), "{err}");
+    let m1 = host::scan::Manifest::load(&single).unwrap();
+    assert_eq!(&m1.settings.metering.as_ref().unwrap().defects, found);
+    let worst = check(&single, &m1);
+    assert!(
+        worst < 0.05,
+        "single exposure: a replaced pixel {:.1} % from the truth",
+        100.0 * worst
+    );
+}

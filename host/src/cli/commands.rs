@@ -15,13 +15,16 @@ use scanner_geometry::{AxisValues, ScannerGeometry};
 #[cfg(feature = "sim")]
 use crate::{camera::SimCamera, link::SimTransport, simulator::SimSetup};
 #[cfg(feature = "sim")]
-use hil_sim::{FaultPlan, FaultSpec, SimRig};
+use hil_sim::{FaultPlan, FaultSpec, SimRig, defects::DefectSpec};
 /// Built without the simulator: there is never a simulated rig.
 #[cfg(not(feature = "sim"))]
 type SimRig = std::convert::Infallible;
 /// Built without the simulator: `--sim-fault` is parsed, then refused.
 #[cfg(not(feature = "sim"))]
 type FaultSpec = String;
+/// Built without the simulator: `--sim-defect` is parsed, then refused.
+#[cfg(not(feature = "sim"))]
+type DefectSpec = String;
 
 #[cfg(feature = "sim")]
 fn sim_failure(e: crate::simulator::SimError) -> Failure {
@@ -59,6 +62,10 @@ pub struct DeviceArgs {
     /// Simulator: a fault to inject, e.g. `reset@trigger=10` (repeatable).
     #[arg(long = "sim-fault")]
     pub sim_faults: Vec<FaultSpec>,
+    /// Simulator: a defective sensor pixel, `stuck:X,Y`, `dead:X,Y` or
+    /// `random:N` (N of each, seeded) (repeatable).
+    #[arg(long = "sim-defect")]
+    pub sim_defects: Vec<DefectSpec>,
 }
 
 impl DeviceArgs {
@@ -76,6 +83,7 @@ impl DeviceArgs {
             seed: self.sim_seed,
             bin: self.sim_bin,
             faults,
+            defects: self.sim_defects.clone(),
         })
     }
 }
@@ -771,6 +779,7 @@ pub fn demo(
             sim_bin: bin,
             sim_corrupt: 0.0,
             sim_faults: Vec::new(),
+            sim_defects: Vec::new(),
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {

@@ -1,0 +1,434 @@
+//! Defective sensor pixels (docs/scan-format.md, "Sensor defects"): found
+//! in auto exposure's metering frames, recorded with the metering, and
+//! replaced in the scan's frames by the mean of their neighbours.
+//!
+//! A real sensor has a few pixels stuck at the top code whatever the light
+//! and a few dead ones that always read 0. On the sample's views a stuck
+//! pixel looks like a highlight no exposure holds: auto HDR would extend
+//! every mirror's bracket down to its shortest exposure for it, and the
+//! merge would scale its clipped value to thousands of times full scale.
+//!
+//! The metering frames show the sample lit from several mirrors. A value
+//! is a defect when it reads the top code in every metering frame (stuck;
+//! anywhere in the frame) or 0 in every one (dead; looked for where the
+//! sample is seen, the only place it shows) and, in at least one, stands out
+//! from its eight neighbours: at most one of them (a pair of defects) at
+//! the same extreme, and they average below half of full scale (stuck) or
+//! at least [`DEAD_CONTRAST_CODES`] codes (dead; a working pixel there
+//! reads 0 with a probability below 10⁻⁷). A highlight moves with the
+//! light and a saturated or black patch or line of the sample has
+//! neighbours like it, so neither is taken for a defect.
+
+use std::collections::HashSet;
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Frame;
+use crate::exposure::{Span, sample_spans};
+use scanner_geometry::ScannerGeometry;
+
+/// Fewest metering frames that can tell a defect from the sample.
+pub const MIN_FRAMES: usize = 4;
+/// A stuck candidate stands out when its neighbours average below this
+/// fraction of full scale.
+pub const STUCK_CONTRAST: f32 = 0.5;
+/// A dead candidate stands out when its neighbours average at least this
+/// many ADC codes.
+pub const DEAD_CONTRAST_CODES: f64 = 16.0;
+/// A candidate with more neighbours at its extreme than this (the pixel
+/// next to it in a pair of defects) is part of a saturated or black patch
+/// or line of the sample, not a defect.
+pub const MAX_ALIKE_NEIGHBOURS: u32 = 1;
+/// More defects than this fraction of the frame's pixels is not a sensor's
+/// defects but something the rule does not suit: none are recorded.
+pub const MAX_FRACTION: f64 = 0.01;
+
+/// What a defective pixel reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DefectKind {
+    /// The top code, whatever the light.
+    Stuck,
+    /// 0, whatever the light.
+    Dead,
+}
+
+/// One defective pixel of the camera's frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PixelDefect {
+    /// Column.
+    pub x: u32,
+    /// Row.
+    pub y: u32,
+    /// What it reads.
+    pub kind: DefectKind,
+}
+
+/// A value (3 · pixel + channel) at the top code or 0 in every frame so far.
+#[derive(Debug, Clone, Copy)]
+struct Candidate {
+    value: u32,
+    stuck: bool,
+    /// Some frame showed it against its neighbours.
+    contrast: bool,
+}
+
+/// Finds defective pixels over a series of frames of the same camera.
+#[derive(Debug)]
+pub struct DefectFinder {
+    width: u32,
+    height: u32,
+    max_code: f64,
+    spans: Vec<Span>,
+    frames: usize,
+    candidates: Vec<Candidate>,
+    /// A frame of another size arrived: nothing can be decided.
+    mixed: bool,
+}
+
+/// Why a finder recorded no defects although it may have seen some.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NotDecided {
+    /// Fewer frames than [`MIN_FRAMES`].
+    #[error(
+        "{0} metering frames are too few to tell a sensor defect from the sample (at least {MIN_FRAMES})"
+    )]
+    TooFewFrames(usize),
+    /// Frames of different sizes.
+    #[error("the metering frames differ in size")]
+    Mixed,
+    /// More candidates than [`MAX_FRACTION`] of the frame's pixels.
+    #[error(
+        "{found} pixels of {examined} read the same extreme value in every metering frame: more \
+         than a sensor's defects, so none are treated as such"
+    )]
+    TooMany {
+        /// Pixels that passed the rule.
+        found: usize,
+        /// Pixels examined.
+        examined: usize,
+    },
+}
+
+impl DefectFinder {
+    /// A finder over `width` × `height` frames: stuck pixels anywhere,
+    /// dead ones where `geometry` shows the sample (with
+    /// [`crate::exposure::CLIP_MARGIN`] around it), the only place they
+    /// can be seen.
+    pub fn new(geometry: &ScannerGeometry, width: u32, height: u32) -> DefectFinder {
+        DefectFinder {
+            width,
+            height,
+            max_code: geometry.sensor.max_code(),
+            spans: sample_spans(geometry, width, height),
+            frames: 0,
+            candidates: Vec::new(),
+            mixed: false,
+        }
+    }
+
+    /// Take one more frame into account.
+    pub fn add(&mut self, frame: &Frame) {
+        let (w, h) = (self.width as usize, self.height as usize);
+        if (frame.width, frame.height) != (self.width, self.height) || frame.rgb.len() != 3 * w * h
+        {
+            self.mixed = true;
+            return;
+        }
+        let maxf = self.max_code as f32;
+        let top = self.max_code as usize;
+        let code = |v: u32| crate::hdr::adc_code(frame.rgb[v as usize], maxf, top);
+        if self.frames == 0 {
+            // Stuck: anywhere in the frame (the top code is rare where no
+            // light is). Dead: where the sample is seen, lit.
+            let stuck = frame
+                .rgb
+                .iter()
+                .enumerate()
+                .filter(|&(_, &v)| crate::hdr::adc_code(v, maxf, top) == top);
+            self.candidates.extend(stuck.map(|(v, _)| Candidate {
+                value: v as u32,
+                stuck: true,
+                contrast: false,
+            }));
+            for &(y, x0, x1) in &self.spans {
+                for v in 3 * (y * self.width + x0)..3 * (y * self.width + x1) {
+                    if code(v) == 0 {
+                        self.candidates.push(Candidate { value: v, stuck: false, contrast: false });
+                    }
+                }
+            }
+            self.candidates.sort_unstable_by_key(|c| c.value);
+            self.candidates.dedup_by_key(|c| c.value);
+        } else {
+            self.candidates.retain(|c| code(c.value) == if c.stuck { top } else { 0 });
+        }
+        let dead_level = (DEAD_CONTRAST_CODES / self.max_code) as f32;
+        for c in &mut self.candidates {
+            if c.contrast {
+                continue;
+            }
+            let (p, ch) = ((c.value / 3) as usize, (c.value % 3) as usize);
+            let (x, y) = (p % w, p / w);
+            let extreme = if c.stuck { top } else { 0 };
+            let (mut sum, mut n, mut alike) = (0.0f32, 0u32, 0u32);
+            for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                    if (nx, ny) != (x, y) {
+                        let v = frame.rgb[3 * (ny * w + nx) + ch];
+                        sum += v;
+                        n += 1;
+                        alike += u32::from(crate::hdr::adc_code(v, maxf, top) == extreme);
+                    }
+                }
+            }
+            if n == 0 || alike > MAX_ALIKE_NEIGHBOURS {
+                continue;
+            }
+            let mean = sum / n as f32;
+            c.contrast = if c.stuck { mean < STUCK_CONTRAST } else { mean >= dead_level };
+        }
+        self.frames += 1;
+    }
+
+    /// The defective pixels found in the frames so far (a pixel with a
+    /// stuck value is stuck), in row-major order.
+    pub fn defects(&self) -> Result<Vec<PixelDefect>, NotDecided> {
+        if self.mixed {
+            return Err(NotDecided::Mixed);
+        }
+        if self.frames < MIN_FRAMES {
+            return Err(NotDecided::TooFewFrames(self.frames));
+        }
+        let mut found: Vec<PixelDefect> = Vec::new();
+        for c in self.candidates.iter().filter(|c| c.contrast) {
+            let p = c.value / 3;
+            let kind = if c.stuck { DefectKind::Stuck } else { DefectKind::Dead };
+            let d = PixelDefect { x: p % self.width, y: p / self.width, kind };
+            match found.last_mut() {
+                Some(last) if (last.x, last.y) == (d.x, d.y) => {
+                    if kind == DefectKind::Stuck {
+                        last.kind = kind;
+                    }
+                }
+                _ => found.push(d),
+            }
+        }
+        let examined = self.width as usize * self.height as usize;
+        if found.len() as f64 > MAX_FRACTION * examined as f64 {
+            return Err(NotDecided::TooMany { found: found.len(), examined });
+        }
+        Ok(found)
+    }
+}
+
+/// The defective pixels of one camera's frames, for lookups.
+#[derive(Debug, Clone, Default)]
+pub struct DefectMap {
+    width: u32,
+    height: u32,
+    pixels: HashSet<u32>,
+}
+
+impl DefectMap {
+    /// The map of `defects` in `width` × `height` frames (defects outside
+    /// them are left out).
+    pub fn new(defects: &[PixelDefect], width: u32, height: u32) -> DefectMap {
+        let pixels = defects
+            .iter()
+            .filter(|d| d.x < width && d.y < height)
+            .map(|d| d.y * width + d.x)
+            .collect();
+        DefectMap { width, height, pixels }
+    }
+
+    /// No defects.
+    pub fn is_empty(&self) -> bool {
+        self.pixels.is_empty()
+    }
+
+    /// Whether pixel `index` (row-major) of `frame` is defective (never, in
+    /// a frame of another size than the map's).
+    #[inline]
+    pub fn contains(&self, frame: &Frame, index: usize) -> bool {
+        self.contains_in(frame.width, frame.height, index)
+    }
+
+    /// Whether pixel `index` (row-major) of a `width` × `height` frame is
+    /// defective.
+    #[inline]
+    pub fn contains_in(&self, width: u32, height: u32, index: usize) -> bool {
+        !self.pixels.is_empty()
+            && (width, height) == (self.width, self.height)
+            && self.pixels.contains(&(index as u32))
+    }
+
+    /// Replace every defective pixel of `frame` (of this map's size) by the
+    /// mean, per channel, of its working neighbours within 1 pixel (2 if
+    /// none; 0 if none there either). Returns the pixels replaced.
+    pub fn patch(&self, frame: &mut Frame) -> usize {
+        let (w, h) = (frame.width as usize, frame.height as usize);
+        if self.pixels.is_empty()
+            || (frame.width, frame.height) != (self.width, self.height)
+            || frame.rgb.len() != 3 * w * h
+        {
+            return 0;
+        }
+        for &p in &self.pixels {
+            let (x, y) = (p as usize % w, p as usize / w);
+            let mut value = [0.0f32; 3];
+            for r in 1..=2usize {
+                let (mut sum, mut n) = ([0.0f32; 3], 0u32);
+                for ny in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                    for nx in x.saturating_sub(r)..=(x + r).min(w - 1) {
+                        if self.pixels.contains(&((ny * w + nx) as u32)) {
+                            continue;
+                        }
+                        let i = 3 * (ny * w + nx);
+                        for (s, v) in sum.iter_mut().zip(&frame.rgb[i..i + 3]) {
+                            *s += v;
+                        }
+                        n += 1;
+                    }
+                }
+                if n > 0 {
+                    value = sum.map(|s| s / n as f32);
+                    break;
+                }
+            }
+            frame.rgb[3 * p as usize..][..3].copy_from_slice(&value);
+        }
+        self.pixels.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn geometry() -> ScannerGeometry {
+        ScannerGeometry::default_scanner().with_sensor_scaled(8)
+    }
+
+    /// A frame of the sample's views: `level` everywhere, with a seeded
+    /// ±3 % texture; frame `k` has a saturated highlight at a pixel of
+    /// view 3 that moves with k.
+    fn frame(g: &ScannerGeometry, level: f32, k: usize) -> Frame {
+        let (w, h) = (g.camera.width, g.camera.height);
+        let mut rgb: Vec<f32> = (0..3 * w as u64 * h as u64)
+            .map(|i| {
+                level * (1.0 + 0.03 * ((i.wrapping_mul(2_654_435_761) >> 7) % 100) as f32 / 100.0)
+            })
+            .collect();
+        let p = g.view_point(3, [0.2 + 0.1 * k as f64, 0.5]).unwrap();
+        let i = 3 * (p[1] as usize * w as usize + p[0] as usize);
+        rgb[i..i + 3].fill(1.0);
+        Frame { width: w, height: h, rgb }
+    }
+
+    #[test]
+    fn stuck_and_dead_pixels_are_found_and_the_sample_is_not() {
+        let g = geometry();
+        let (w, h) = (g.camera.width, g.camera.height);
+        let at = |view: usize, uv: [f64; 2]| {
+            let p = g.view_point(view, uv).unwrap();
+            (p[0] as u32, p[1] as u32)
+        };
+        // Two single stuck pixels and a pair.
+        let pair = at(30, [0.5, 0.5]);
+        let stuck = [at(0, [0.5, 0.5]), at(7, [0.1, 0.9]), pair, (pair.0 + 1, pair.1)];
+        let dead = at(12, [0.6, 0.3]);
+        // A saturated 3 × 3 patch (bright sample) and a black one (dark
+        // sample) that stay put: not defects.
+        let (bx, by) = at(20, [0.5, 0.5]);
+        let (kx, ky) = at(25, [0.5, 0.5]);
+        let mut finder = DefectFinder::new(&g, w, h);
+        for k in 0..6 {
+            let mut f = frame(&g, 0.2 + 0.05 * k as f32, k);
+            let mut set = |x: u32, y: u32, v: f32| {
+                let i = 3 * (y * w + x) as usize;
+                f.rgb[i..i + 3].fill(v);
+            };
+            for (x, y) in stuck {
+                set(x, y, 1.0);
+            }
+            set(dead.0, dead.1, 0.0);
+            for dy in 0..3 {
+                for dx in 0..3 {
+                    set(bx + dx, by + dy, 1.0);
+                    set(kx + dx, ky + dy, 0.0);
+                }
+            }
+            // A stuck pixel outside the sample's views is found too, a dead
+            // one there cannot be seen.
+            set(1, 1, 1.0);
+            set(5, 1, 0.0);
+            finder.add(&f);
+        }
+        let found = finder.defects().unwrap();
+        let mut want: Vec<PixelDefect> = stuck
+            .iter()
+            .map(|&(x, y)| PixelDefect { x, y, kind: DefectKind::Stuck })
+            .chain([PixelDefect { x: dead.0, y: dead.1, kind: DefectKind::Dead }])
+            .chain([PixelDefect { x: 1, y: 1, kind: DefectKind::Stuck }])
+            .collect();
+        want.sort_by_key(|d| (d.y, d.x));
+        assert_eq!(found, want);
+        // Too few frames, or frames of two sizes: nothing decided.
+        let mut few = DefectFinder::new(&g, w, h);
+        for k in 0..3 {
+            few.add(&frame(&g, 0.3, k));
+        }
+        assert_eq!(few.defects().unwrap_err(), NotDecided::TooFewFrames(3));
+        let mut mixed = DefectFinder::new(&g, w, h);
+        mixed.add(&Frame { width: 2, height: 2, rgb: vec![0.0; 12] });
+        assert_eq!(mixed.defects().unwrap_err(), NotDecided::Mixed);
+        // A frame black where the sample is: every pixel of it reads 0 but
+        // none stands out, so none is a defect.
+        let mut black = DefectFinder::new(&g, w, h);
+        for _ in 0..5 {
+            black.add(&Frame { width: w, height: h, rgb: vec![0.0; (3 * w * h) as usize] });
+        }
+        assert_eq!(black.defects().unwrap(), vec![]);
+    }
+
+    #[test]
+    fn too_many_are_not_defects_and_patching_takes_the_neighbours_mean() {
+        let g = geometry();
+        let (w, h) = (g.camera.width, g.camera.height);
+        // Every 4th pixel of every 2nd row stuck: a pattern, not a sensor.
+        let mut finder = DefectFinder::new(&g, w, h);
+        for k in 0..4 {
+            let mut f = frame(&g, 0.3, k);
+            for p in (0..(w * h) as usize)
+                .filter(|p| p.is_multiple_of(4) && (p / w as usize).is_multiple_of(2))
+            {
+                f.rgb[3 * p..3 * p + 3].fill(1.0);
+            }
+            finder.add(&f);
+        }
+        assert!(matches!(finder.defects(), Err(NotDecided::TooMany { .. })));
+        // Patching: the mean of working neighbours, two adjacent defects.
+        let mut f = Frame { width: 5, height: 4, rgb: (0..60).map(|i| i as f32).collect() };
+        let d = |x, y| PixelDefect { x, y, kind: DefectKind::Stuck };
+        let map = DefectMap::new(&[d(2, 1), d(3, 1), d(9, 9)], 5, 4);
+        assert!(map.contains(&f, 7) && map.contains(&f, 8) && !map.contains(&f, 6));
+        let before = f.clone();
+        assert_eq!(map.patch(&mut f), 2);
+        // (2, 1): neighbours (1..=3, 0..=2) but (3, 1), red channel.
+        let red = |x: usize, y: usize| before.rgb[3 * (y * 5 + x)];
+        let want = [(1, 0), (2, 0), (3, 0), (1, 1), (1, 2), (2, 2), (3, 2)]
+            .iter()
+            .map(|&(x, y)| red(x, y))
+            .sum::<f32>()
+            / 7.0;
+        assert_eq!(f.rgb[3 * 7], want);
+        let changed: Vec<usize> = (0..20).filter(|&p| f.rgb[3 * p] != before.rgb[3 * p]).collect();
+        assert_eq!(changed, vec![7, 8]);
+        // Another size: untouched.
+        let mut other = Frame { width: 4, height: 5, rgb: vec![1.0; 60] };
+        assert_eq!(map.patch(&mut other), 0);
+        assert!(!map.contains(&other, 7));
+    }
+}
