@@ -128,15 +128,23 @@ impl DefectFinder {
         }
     }
 
-    /// Take one more frame into account.
+    /// Take one more frame into account (values as stored: fractions of
+    /// full scale).
     pub fn add(&mut self, frame: &Frame) {
+        self.add_scaled(frame, 1.0);
+    }
+
+    /// Take one more frame into account whose values are `1 / scale` of
+    /// the sensor's fractions of full scale (a frame read per second of
+    /// exposure: `scale` = the exposure in s).
+    pub fn add_scaled(&mut self, frame: &Frame, scale: f32) {
         let (w, h) = (self.width as usize, self.height as usize);
         if (frame.width, frame.height) != (self.width, self.height) || frame.rgb.len() != 3 * w * h
         {
             self.mixed = true;
             return;
         }
-        let maxf = self.max_code as f32;
+        let maxf = self.max_code as f32 * scale;
         let top = self.max_code as usize;
         let code = |v: u32| crate::hdr::adc_code(frame.rgb[v as usize], maxf, top);
         if self.frames == 0 {
@@ -164,7 +172,7 @@ impl DefectFinder {
         } else {
             self.candidates.retain(|c| code(c.value) == if c.stuck { top } else { 0 });
         }
-        let dead_level = (DEAD_CONTRAST_CODES / self.max_code) as f32;
+        let dead_level = (DEAD_CONTRAST_CODES / self.max_code) as f32 / scale;
         for c in &mut self.candidates {
             if c.contrast {
                 continue;
@@ -187,7 +195,7 @@ impl DefectFinder {
                 continue;
             }
             let mean = sum / n as f32;
-            c.contrast = if c.stuck { mean < STUCK_CONTRAST } else { mean >= dead_level };
+            c.contrast = if c.stuck { mean * scale < STUCK_CONTRAST } else { mean >= dead_level };
         }
         self.frames += 1;
     }
@@ -223,6 +231,15 @@ impl DefectFinder {
     }
 }
 
+/// `a` and `b` together, in row-major order, one entry per pixel (stuck
+/// where either says so).
+pub fn union(a: &[PixelDefect], b: &[PixelDefect]) -> Vec<PixelDefect> {
+    let mut all: Vec<PixelDefect> = a.iter().chain(b).copied().collect();
+    all.sort_by_key(|d| (d.y, d.x, d.kind != DefectKind::Stuck));
+    all.dedup_by_key(|d| (d.x, d.y));
+    all
+}
+
 /// The defective pixels of one camera's frames, for lookups.
 #[derive(Debug, Clone, Default)]
 pub struct DefectMap {
@@ -241,6 +258,12 @@ impl DefectMap {
             .map(|d| d.y * width + d.x)
             .collect();
         DefectMap { width, height, pixels }
+    }
+
+    /// Add `defects` (those outside the map's frame size are left out).
+    pub fn extend(&mut self, defects: &[PixelDefect]) {
+        let (w, h) = (self.width, self.height);
+        self.pixels.extend(defects.iter().filter(|d| d.x < w && d.y < h).map(|d| d.y * w + d.x));
     }
 
     /// No defects.
@@ -268,6 +291,13 @@ impl DefectMap {
     /// mean, per channel, of its working neighbours within 1 pixel (2 if
     /// none; 0 if none there either). Returns the pixels replaced.
     pub fn patch(&self, frame: &mut Frame) -> usize {
+        self.patch_where(frame, |_, _| true)
+    }
+
+    /// [`DefectMap::patch`] for a frame whose pixels hold values only where
+    /// `usable(x, y)` (a frame read in windows): the defects there are
+    /// replaced, from neighbours there.
+    pub fn patch_where(&self, frame: &mut Frame, usable: impl Fn(usize, usize) -> bool) -> usize {
         let (w, h) = (frame.width as usize, frame.height as usize);
         if self.pixels.is_empty()
             || (frame.width, frame.height) != (self.width, self.height)
@@ -275,14 +305,19 @@ impl DefectMap {
         {
             return 0;
         }
+        let mut patched = 0;
         for &p in &self.pixels {
             let (x, y) = (p as usize % w, p as usize / w);
+            if !usable(x, y) {
+                continue;
+            }
+            patched += 1;
             let mut value = [0.0f32; 3];
             for r in 1..=2usize {
                 let (mut sum, mut n) = ([0.0f32; 3], 0u32);
                 for ny in y.saturating_sub(r)..=(y + r).min(h - 1) {
                     for nx in x.saturating_sub(r)..=(x + r).min(w - 1) {
-                        if self.pixels.contains(&((ny * w + nx) as u32)) {
+                        if self.pixels.contains(&((ny * w + nx) as u32)) || !usable(nx, ny) {
                             continue;
                         }
                         let i = 3 * (ny * w + nx);
@@ -299,7 +334,7 @@ impl DefectMap {
             }
             frame.rgb[3 * p as usize..][..3].copy_from_slice(&value);
         }
-        self.pixels.len()
+        patched
     }
 }
 

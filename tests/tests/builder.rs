@@ -31,7 +31,20 @@ fn take_scan_at(
     exposure_us: u32,
     out: &Path,
 ) -> ScannerGeometry {
-    let s = SimSetup { bin, seed, ..SimSetup::new(material) };
+    take_scan_with(material, seed, bin, mirrors, exposure_us, &[], out)
+}
+
+/// A scan by a camera whose sensor has `defects` (`hil_sim::defects`).
+fn take_scan_with(
+    material: &str,
+    seed: u64,
+    bin: u32,
+    mirrors: usize,
+    exposure_us: u32,
+    defects: &[hil_sim::defects::DefectSpec],
+    out: &Path,
+) -> ScannerGeometry {
+    let s = SimSetup { bin, seed, defects: defects.to_vec(), ..SimSetup::new(material) };
     let rig = s.rig().unwrap();
     let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
     let mut opts = ScanOptions::new(material, out);
@@ -268,6 +281,19 @@ fn bad_inputs_exit_3_and_write_nothing() {
         }
     });
     assert!(err.contains("a light's field is 0 everywhere"), "{err}");
+    let err = edited("e9.json", &|c| {
+        c["defects"] = serde_json::json!([{"x": 600, "y": 3, "kind": "stuck"}])
+    });
+    assert!(err.contains("sensor defect at (600, 3) outside the 512×512 px frame"), "{err}");
+    let err = edited("e10.json", &|c| {
+        c["defects"] =
+            serde_json::json!([{"x": 6, "y": 3, "kind": "stuck"}, {"x": 6, "y": 3, "kind": "dead"}])
+    });
+    assert!(err.contains("a sensor defect listed twice"), "{err}");
+    let err = edited("e11.json", &|c| {
+        c["defects"] = serde_json::json!([{"x": 6, "y": 3, "kind": "hot"}])
+    });
+    assert!(err.contains("not a calibration file") && err.contains("hot"), "{err}");
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));
@@ -361,4 +387,112 @@ fn walk(d: &Path) -> Vec<std::path::PathBuf> {
         }
     }
     out
+}
+
+/// A sensor's stuck and dead pixels in fixed-exposure scans (not metered):
+/// calibration finds them in the white target's frames
+/// (docs/calibration-format.md), records them, and they are replaced in
+/// every frame it and the region extraction read — so the calibration and
+/// the region images match those of a flawless sensor (same seed, same
+/// noise), where the unreplaced stuck pixels would be bright specks.
+#[test]
+fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
+    use hil_sim::defects::{DefectSpec, PixelDefect as SimDefect, place};
+    use host::defects::{DefectKind, PixelDefect};
+    let (bin, mirrors, seed) = (8, 6, 2);
+    let dir = tempfile::tempdir().unwrap();
+    let g = ScannerGeometry::default_scanner().with_sensor_scaled(bin);
+    let at = |view: usize, uv: [f64; 2]| {
+        let p = g.view_point(view, uv).unwrap();
+        (p[0] as u32, p[1] as u32)
+    };
+    let mut specs: Vec<DefectSpec> = [(0, [0.5, 0.5]), (9, [0.3, 0.6]), (17, [0.7, 0.4])]
+        .iter()
+        .map(|&(v, uv)| {
+            let (x, y) = at(v, uv);
+            DefectSpec::Pixel(SimDefect::Stuck { x, y })
+        })
+        .collect();
+    for (v, uv) in [(4, [0.5, 0.5]), (23, [0.4, 0.4])] {
+        let (x, y) = at(v, uv);
+        specs.push(DefectSpec::Pixel(SimDefect::Dead { x, y }));
+    }
+    specs.push(DefectSpec::Random(20));
+    let scans = |name: &str, defects: &[DefectSpec]| {
+        let d = dir.path().join(name);
+        let exposure = protocol::DEFAULT_EXPOSURE_US;
+        for m in ["checkerboard", "diffuse-white", "leather"] {
+            take_scan_with(m, seed, bin, mirrors, exposure, defects, &d.join(m));
+        }
+        let open = |m: &str| ScanFrames::open(&d.join(m), &g).unwrap();
+        let (checker, white) = (open("checkerboard"), open("diffuse-white"));
+        let cal =
+            calibrate(&g, &checker, &white, None, &CalibrateOptions::default(), &Silent).unwrap();
+        let regions = extract_regions(&g, &cal, &open("leather"), None, &Silent).unwrap();
+        let mut raw_cal = cal.clone();
+        raw_cal.defects.clear();
+        let raw = extract_regions(&g, &raw_cal, &open("leather"), None, &Silent).unwrap();
+        (cal, (regions, raw))
+    };
+    let (clean_cal, (clean, _)) = scans("clean", &[]);
+    let (cal, (regions, raw)) = scans("defects", &specs);
+    assert!(clean_cal.defects.is_empty(), "{:?}", clean_cal.defects);
+    // Every placed defect found, nothing the sensor does not have.
+    let truth: Vec<PixelDefect> = place(&specs, g.camera.width, g.camera.height, seed)
+        .unwrap()
+        .iter()
+        .map(|d| match *d {
+            SimDefect::Stuck { x, y } => PixelDefect { x, y, kind: DefectKind::Stuck },
+            SimDefect::Dead { x, y } => PixelDefect { x, y, kind: DefectKind::Dead },
+        })
+        .collect();
+    for d in &truth[..5] {
+        assert!(cal.defects.contains(d), "{d:?} not found: {:?}", cal.defects);
+    }
+    assert!(cal.defects.iter().all(|d| truth.contains(d)), "{:?}", cal.defects);
+    // The colour calibration and the region images as with a flawless
+    // sensor (same seed, same noise), up to the noise and texture of the
+    // replaced pixels themselves: at this binning a pixel is a region
+    // image's pixel or more, and the white's photon noise is ≈ 2 % per pixel.
+    let worst = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .filter(|(_, b)| b.is_finite() && **b > 1e-6)
+            .map(|(a, b)| ((a - b) / b).abs() as f64)
+            .fold(0.0, f64::max)
+    };
+    let response = clean_cal
+        .colour
+        .view_response
+        .iter()
+        .zip(&cal.colour.view_response)
+        .map(|(c, d)| worst(d, c))
+        .fold(0.0, f64::max);
+    let flat = |r: &host::build::regions::RegionSet| -> Vec<f32> {
+        r.images.iter().flatten().flatten().copied().collect()
+    };
+    let (replaced, flawless, kept) = (flat(&regions), flat(&clean), flat(&raw));
+    let peak = flawless.iter().fold(0.0f32, |m, &v| m.max(v)) as f64;
+    // RMS difference over the flawless images' RMS; largest over their peak.
+    let rms = |a: &[f32]| {
+        let d: f64 = a.iter().zip(&flawless).map(|(x, y)| ((x - y) as f64).powi(2)).sum();
+        (d / flawless.iter().map(|y| (*y as f64).powi(2)).sum::<f64>()).sqrt()
+    };
+    let largest = |a: &[f32]| {
+        a.iter().zip(&flawless).map(|(x, y)| (x - y).abs() as f64 / peak).fold(0.0, f64::max)
+    };
+    eprintln!(
+        "{} defects found; view response within {:.2} %; region images: RMS {:.2} %, largest \
+         {:.1} % of the peak off (the same calibration not replacing them in the sample's \
+         frames: {:.1} %, {:.0} %)",
+        cal.defects.len(),
+        100.0 * response,
+        100.0 * rms(&replaced),
+        100.0 * largest(&replaced),
+        100.0 * rms(&kept),
+        100.0 * largest(&kept),
+    );
+    assert!(response < 0.1, "view response {:.2} % off", 100.0 * response);
+    assert!(rms(&replaced) < 0.01 && largest(&replaced) < 0.3);
+    assert!(rms(&kept) > 0.1, "the defects do not show in the region images");
 }

@@ -27,6 +27,7 @@ use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
 use super::plane::{Plane, cell_taps};
 use super::scanread::{ScanFrames, frame_bicubic, frame_bicubic_masked, frame_bilinear};
+use crate::defects::{DefectFinder, PixelDefect};
 use crate::exrio::PixelRect;
 
 /// Calibration file format name.
@@ -157,6 +158,11 @@ pub struct Calibration {
     pub lights: Vec<LightCalibration>,
     /// Colour calibration; its fields are indexed like `views` and `lights`.
     pub colour: ColourCalibration,
+    /// The camera's defective pixels (docs/scan-format.md, "Sensor
+    /// defects"), found in the white scan: replaced in every frame the
+    /// calibration reads or extracts regions from.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub defects: Vec<PixelDefect>,
 }
 
 /// Calibration settings.
@@ -282,6 +288,16 @@ pub fn calibrate(
     // Only the frame pixels around the nominal views are read.
     let windows: Vec<PixelRect> =
         (0..g.mirrors.len()).filter_map(|j| super::locate::search_window(g, j)).collect();
+    // The sensor's defects, from the white frames, replaced in every scan's.
+    let defects = sensor_defects(g, white, &windows, progress)?;
+    let with_defects = |s: &ScanFrames| {
+        let mut s = s.clone();
+        s.add_defects(&defects);
+        s
+    };
+    let (checker, white) = (&with_defects(checker), &with_defects(white));
+    let glossy = glossy.map(with_defects);
+    let glossy = glossy.as_ref();
     let sum = luminance_sum(checker, &windows, progress)?;
     let views: Vec<usize> = (0..g.mirrors.len()).collect();
     progress.stage("locating views", views.len());
@@ -388,7 +404,56 @@ pub fn calibrate(
         views: view_cal,
         lights: light_cal,
         colour,
+        defects,
     })
+}
+
+/// The sensor's defective pixels ([`crate::defects`]) a calibration
+/// records: those the white scan's metering found, and those its frames
+/// show within `windows` — the white target lit by every mirror in turn,
+/// the best frames to find them in. Frames merged from several exposures
+/// (where a stuck pixel is no longer at the top code) are not looked at.
+fn sensor_defects(
+    g: &ScannerGeometry,
+    white: &ScanFrames,
+    windows: &[PixelRect],
+    progress: &dyn BuildProgress,
+) -> Result<Vec<PixelDefect>, BuildError> {
+    let merged = !white.manifest.settings.bracket_us.is_empty()
+        || white.manifest.frames.iter().any(|f| !f.bracket_us.is_empty());
+    if merged {
+        return Ok(white.defects().to_vec());
+    }
+    let (w, h) = (g.camera.width, g.camera.height);
+    let mut finder = DefectFinder::new(g, w, h);
+    let lights = white.lights();
+    progress.stage("sensor defects", lights.len());
+    // Two frames at a time (each a full frame in memory), in order.
+    for pair in lights.chunks(2) {
+        let frames: Vec<(crate::camera::Frame, f32)> = pair
+            .par_iter()
+            .map(|&l| {
+                let t = white
+                    .manifest
+                    .frames
+                    .iter()
+                    .find(|f| f.mirror == l)
+                    .map_or(0.0, |f| f.exposure_us as f32 * 1e-6);
+                white.read_within(l, windows).map(|f| (f, t))
+            })
+            .collect::<Result<_, BuildError>>()?;
+        for (f, t) in &frames {
+            finder.add_scaled(f, *t);
+            progress.step();
+        }
+    }
+    match finder.defects() {
+        Ok(found) => Ok(crate::defects::union(white.defects(), &found)),
+        Err(why) => {
+            tracing::warn!("{}: sensor defects: {why}", white.dir.display());
+            Ok(white.defects().to_vec())
+        }
+    }
 }
 
 /// Per located view, its calibration from the adjusted geometry.
@@ -867,6 +932,16 @@ impl Calibration {
         }
         if !(self.colour.white_albedo > 0.0 && self.colour.white_albedo <= 1.0) {
             return Err("white albedo outside (0, 1]".into());
+        }
+        let [cw, ch] = self.camera_px;
+        if let Some(d) = self.defects.iter().find(|d| d.x >= cw || d.y >= ch) {
+            return Err(format!(
+                "sensor defect at ({}, {}) outside the {cw}×{ch} px frame",
+                d.x, d.y
+            ));
+        }
+        if crate::defects::union(&self.defects, &[]).len() != self.defects.len() {
+            return Err("a sensor defect listed twice".into());
         }
         Ok(())
     }

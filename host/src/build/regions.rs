@@ -139,6 +139,15 @@ pub fn extract_regions(
     if !(4..=4096).contains(&size) {
         return Err(BuildError::Input(format!("region size {size} outside 4…4096")));
     }
+    // The camera's defects the calibration found are replaced too.
+    let mut with_defects;
+    let scan = if cal.defects.is_empty() {
+        scan
+    } else {
+        with_defects = scan.clone();
+        with_defects.add_defects(&cal.defects);
+        &with_defects
+    };
     let lights = scan.lights();
     let light_index: Vec<usize> = lights
         .iter()

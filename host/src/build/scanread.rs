@@ -8,6 +8,7 @@ use scanner_geometry::ScannerGeometry;
 
 use super::error::BuildError;
 use crate::camera::Frame;
+use crate::defects::{DefectMap, PixelDefect};
 use crate::exrio::{PixelRect, rects_overlap};
 use crate::scan::{FrameRecord, Manifest};
 
@@ -20,6 +21,11 @@ pub struct ScanFrames {
     pub manifest: Manifest,
     /// SHA-256 of the manifest file.
     pub manifest_sha256: String,
+    /// The sensor's defective pixels: those its metering found, and any
+    /// added ([`ScanFrames::add_defects`]); replaced in every frame read.
+    defects: DefectMap,
+    /// The same, listed.
+    defect_list: Vec<PixelDefect>,
 }
 
 impl ScanFrames {
@@ -64,7 +70,22 @@ impl ScanFrames {
         use sha2::Digest;
         let manifest_sha256 =
             sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256 })
+        let defect_list =
+            manifest.settings.metering.as_ref().map_or(Vec::new(), |m| m.defects.clone());
+        let defects = DefectMap::new(&defect_list, geometry.camera.width, geometry.camera.height);
+        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects, defect_list })
+    }
+
+    /// Replace `defects` too in the frames read from now on (the sensor's
+    /// defects a calibration found).
+    pub fn add_defects(&mut self, defects: &[PixelDefect]) {
+        self.defects.extend(defects);
+        self.defect_list = crate::defects::union(&self.defect_list, defects);
+    }
+
+    /// The sensor's defective pixels replaced in the frames read.
+    pub fn defects(&self) -> &[PixelDefect] {
+        &self.defect_list
     }
 
     /// Lit mirrors, in order.
@@ -96,7 +117,7 @@ impl ScanFrames {
             return Err(BuildError::Input(format!("{}: exposure 0", path.display())));
         }
         let wanted = |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block));
-        let f = crate::exrio::read_rgb_within(&path, &wanted, t)
+        let mut f = crate::exrio::read_rgb_within(&path, &wanted, t)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
         if (f.width, f.height) != (rec.width, rec.height) {
             return Err(BuildError::Input(format!(
@@ -108,6 +129,11 @@ impl ScanFrames {
                 rec.height
             )));
         }
+        // Within the windows only: the rest of the frame was not decoded.
+        let inside = |x: usize, y: usize| {
+            windows.iter().any(|w| (w[0]..w[2]).contains(&x) && (w[1]..w[3]).contains(&y))
+        };
+        self.defects.patch_where(&mut f, inside);
         Ok(f)
     }
 
