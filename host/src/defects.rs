@@ -12,12 +12,14 @@
 //! is a defect when it reads the top code in every metering frame (stuck;
 //! anywhere in the frame) or 0 in every one (dead; looked for where the
 //! sample is seen, the only place it shows) and, in at least one, stands out
-//! from its eight neighbours: at most one of them (a pair of defects) at
-//! the same extreme, and they average below half of full scale (stuck) or
-//! at least [`DEAD_CONTRAST_CODES`] codes (dead; a working pixel there
-//! reads 0 with a probability below 10⁻⁷). A highlight moves with the
-//! light and a saturated or black patch or line of the sample has
-//! neighbours like it, so neither is taken for a defect.
+//! from its eight neighbours. Stuck: at most one of them (a pair of
+//! defects) at the top code, and they average below half of full scale.
+//! Dead: all but at most one read at least [`DEAD_CONTRAST_CODES`] codes (a
+//! working pixel lit like them reads 0 with a probability below 10⁻⁷). A
+//! highlight moves with the light, and a saturated or dark patch or line of
+//! the sample, or the dark side of a view's edge (whose pixels read 0 by
+//! read noise alone two times in three), has neighbours like it, so none of
+//! them is taken for a defect.
 
 use std::collections::HashSet;
 
@@ -32,12 +34,12 @@ pub const MIN_FRAMES: usize = 4;
 /// A stuck candidate stands out when its neighbours average below this
 /// fraction of full scale.
 pub const STUCK_CONTRAST: f32 = 0.5;
-/// A dead candidate stands out when its neighbours average at least this
-/// many ADC codes.
+/// A dead candidate stands out when its neighbours (all but
+/// [`MAX_ALIKE_NEIGHBOURS`]) read at least this many ADC codes.
 pub const DEAD_CONTRAST_CODES: f64 = 16.0;
-/// A candidate with more neighbours at its extreme than this (the pixel
-/// next to it in a pair of defects) is part of a saturated or black patch
-/// or line of the sample, not a defect.
+/// A candidate with more neighbours like it than this (at the top code;
+/// below [`DEAD_CONTRAST_CODES`]) — more than the other pixel of a pair of
+/// defects — is part of a saturated or dark patch or line, not a defect.
 pub const MAX_ALIKE_NEIGHBOURS: u32 = 1;
 /// More defects than this fraction of the frame's pixels is not a sensor's
 /// defects but something the rule does not suit: none are recorded.
@@ -179,7 +181,11 @@ impl DefectFinder {
             }
             let (p, ch) = ((c.value / 3) as usize, (c.value % 3) as usize);
             let (x, y) = (p % w, p / w);
-            let extreme = if c.stuck { top } else { 0 };
+            // Neighbours like the candidate: at the top code (stuck), or
+            // below the dead level (dead: dark, not only at 0).
+            let like = |v: f32| {
+                if c.stuck { crate::hdr::adc_code(v, maxf, top) == top } else { v < dead_level }
+            };
             let (mut sum, mut n, mut alike) = (0.0f32, 0u32, 0u32);
             for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
                 for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
@@ -187,15 +193,14 @@ impl DefectFinder {
                         let v = frame.rgb[3 * (ny * w + nx) + ch];
                         sum += v;
                         n += 1;
-                        alike += u32::from(crate::hdr::adc_code(v, maxf, top) == extreme);
+                        alike += u32::from(like(v));
                     }
                 }
             }
             if n == 0 || alike > MAX_ALIKE_NEIGHBOURS {
                 continue;
             }
-            let mean = sum / n as f32;
-            c.contrast = if c.stuck { mean * scale < STUCK_CONTRAST } else { mean >= dead_level };
+            c.contrast = !c.stuck || (sum / n as f32) * scale < STUCK_CONTRAST;
         }
         self.frames += 1;
     }
@@ -393,6 +398,20 @@ mod tests {
                 for dx in 0..3 {
                     set(bx + dx, by + dy, 1.0);
                     set(kx + dx, ky + dy, 0.0);
+                }
+            }
+            // A dark patch whose pixels read a code or two, and 0 (read
+            // noise) on a sparse grid: its zeros on the edge have lit
+            // neighbours on one side, dark ones on the other — not dead.
+            let (ex, ey) = at(35, [0.3, 0.3]);
+            for dy in 0..6 {
+                for dx in 0..6 {
+                    let zero = (ex + dx) % 3 == 0 && (ey + dy) % 3 == 0;
+                    set(
+                        ex + dx,
+                        ey + dy,
+                        if zero { 0.0 } else { 2.0 / g.sensor.max_code() as f32 },
+                    );
                 }
             }
             // A stuck pixel outside the sample's views is found too, a dead

@@ -10,15 +10,27 @@ use hil_sim::optics::{Exposure, OpticalSim};
 use scanner_geometry::AxisValues;
 
 fn glossy_set(dir: &std::path::Path) {
+    uniform_set(dir, "gloss", 40.0, [0.05; 3], 0.9, 0.1f32.sqrt());
+}
+
+/// A texture set of one flat, uniform material.
+fn uniform_set(
+    dir: &std::path::Path,
+    name: &str,
+    size_mm: f64,
+    diffuse: [f32; 3],
+    f0: f32,
+    roughness: f32,
+) {
     std::fs::create_dir_all(dir).unwrap();
-    std::fs::write(dir.join("material.toml"), "format = 1\nname = \"gloss\"\nsize_mm = 40.0\n")
-        .unwrap();
+    let toml = format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n");
+    std::fs::write(dir.join("material.toml"), toml).unwrap();
     let map = |name: &str, v: [f32; 3]| {
         image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dir.join(name)).unwrap();
     };
-    map("diffuse.exr", [0.05; 3]);
-    map("specular.exr", [0.9; 3]);
-    map("roughness.exr", [0.1f32.sqrt(); 3]);
+    map("diffuse.exr", diffuse);
+    map("specular.exr", [f0; 3]);
+    map("roughness.exr", [roughness; 3]);
     map("normal.exr", [0.5, 0.5, 1.0]);
 }
 
@@ -370,16 +382,7 @@ fn stuck_and_dead_sensor_pixels_are_found_while_metering_and_replaced() {
     use host::defects::{DefectKind, PixelDefect};
     let dir = common::tmp();
     let set = dir.path().join("matte");
-    std::fs::create_dir_all(&set).unwrap();
-    std::fs::write(set.join("material.toml"), "format = 1\nname = \"matte\"\nsize_mm = 25.4\n")
-        .unwrap();
-    let map = |name: &str, v: [f32; 3]| {
-        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(set.join(name)).unwrap();
-    };
-    map("diffuse.exr", [0.4, 0.3, 0.2]);
-    map("specular.exr", [0.04; 3]);
-    map("roughness.exr", [0.9; 3]);
-    map("normal.exr", [0.5, 0.5, 1.0]);
+    uniform_set(&set, "matte", 25.4, [0.4, 0.3, 0.2], 0.04, 0.9);
     let set = set.display().to_string();
     let g = scanner_geometry::ScannerGeometry::default_scanner().with_sensor_scaled(4);
     let at = |view: usize, uv: [f64; 2]| {
