@@ -467,6 +467,27 @@ fn stuck_and_dead_sensor_pixels_are_found_while_metering_and_replaced() {
     let worst = check(&out, &m);
     eprintln!("replaced pixels: at most {:.2} % from the truth", 100.0 * worst);
     assert!(worst < 0.05, "a replaced pixel {:.1} % from the truth", 100.0 * worst);
+    // Stopped during mirror 2's exposures and resumed: not metered again,
+    // the recorded defects replaced in the mirrors merged after the resume,
+    // to the same bytes.
+    let stopped = dir.path().join("stopped");
+    let trigger = m.frames.iter().find(|f| f.mirror == 2).unwrap().trigger_seq;
+    let fault = format!("estop:on@trigger={trigger}");
+    let mut stop_args = args.clone();
+    stop_args.extend(["--sim-fault", fault.as_str()]);
+    let (code, err) = scan(&set, &stopped, &stop_args);
+    assert_ne!(code, Some(0), "{err}");
+    let mut resume_args = args.clone();
+    resume_args.push("--resume");
+    let (code, err) = scan(&set, &stopped, &resume_args);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!err.contains("metered") && !err.contains("saturated"), "{err}");
+    let resumed = host::scan::Manifest::load(&stopped).unwrap();
+    assert_eq!(&resumed.settings.metering.as_ref().unwrap().defects, found);
+    for f in &m.frames {
+        let again = resumed.frames.iter().find(|r| r.mirror == f.mirror).unwrap();
+        assert_eq!(again.sha256, f.sha256, "mirror {}", f.mirror);
+    }
     // A fixed bracket meters nothing: the same sensor's stuck pixels stay
     // clipped, scaled to 10× full scale by the merge, and are reported.
     let fixed = dir.path().join("fixed");
