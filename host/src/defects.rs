@@ -21,8 +21,6 @@
 //! read noise alone two times in three), has neighbours like it, so none of
 //! them is taken for a defect.
 
-use std::collections::HashSet;
-
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Frame;
@@ -245,30 +243,40 @@ pub fn union(a: &[PixelDefect], b: &[PixelDefect]) -> Vec<PixelDefect> {
     all
 }
 
-/// The defective pixels of one camera's frames, for lookups.
+/// The defective pixels of one camera's frames, for lookups: a bit per
+/// pixel (a lookup is one load, for the merge's every unmeasured value).
 #[derive(Debug, Clone, Default)]
 pub struct DefectMap {
     width: u32,
     height: u32,
-    pixels: HashSet<u32>,
+    /// Defective pixels (row-major indices), ascending.
+    pixels: Vec<u32>,
+    /// Bit `i` set: pixel `i` is defective (empty when there are none).
+    bits: Vec<u64>,
 }
 
 impl DefectMap {
     /// The map of `defects` in `width` × `height` frames (defects outside
     /// them are left out).
     pub fn new(defects: &[PixelDefect], width: u32, height: u32) -> DefectMap {
-        let pixels = defects
-            .iter()
-            .filter(|d| d.x < width && d.y < height)
-            .map(|d| d.y * width + d.x)
-            .collect();
-        DefectMap { width, height, pixels }
+        let mut map = DefectMap { width, height, ..DefectMap::default() };
+        map.extend(defects);
+        map
     }
 
     /// Add `defects` (those outside the map's frame size are left out).
     pub fn extend(&mut self, defects: &[PixelDefect]) {
         let (w, h) = (self.width, self.height);
-        self.pixels.extend(defects.iter().filter(|d| d.x < w && d.y < h).map(|d| d.y * w + d.x));
+        let added = defects.iter().filter(|d| d.x < w && d.y < h).map(|d| d.y * w + d.x);
+        self.pixels.extend(added);
+        self.pixels.sort_unstable();
+        self.pixels.dedup();
+        if !self.pixels.is_empty() {
+            self.bits = vec![0; (w as usize * h as usize).div_ceil(64)];
+            for &p in &self.pixels {
+                self.bits[p as usize / 64] |= 1 << (p % 64);
+            }
+        }
     }
 
     /// No defects.
@@ -287,9 +295,9 @@ impl DefectMap {
     /// defective.
     #[inline]
     pub fn contains_in(&self, width: u32, height: u32, index: usize) -> bool {
-        !self.pixels.is_empty()
+        !self.bits.is_empty()
             && (width, height) == (self.width, self.height)
-            && self.pixels.contains(&(index as u32))
+            && self.bits.get(index / 64).is_some_and(|b| b & (1 << (index % 64)) != 0)
     }
 
     /// Replace every defective pixel of `frame` (of this map's size) by the
@@ -322,7 +330,8 @@ impl DefectMap {
                 let (mut sum, mut n) = ([0.0f32; 3], 0u32);
                 for ny in y.saturating_sub(r)..=(y + r).min(h - 1) {
                     for nx in x.saturating_sub(r)..=(x + r).min(w - 1) {
-                        if self.pixels.contains(&((ny * w + nx) as u32)) || !usable(nx, ny) {
+                        if self.contains_in(self.width, self.height, ny * w + nx) || !usable(nx, ny)
+                        {
                             continue;
                         }
                         let i = 3 * (ny * w + nx);

@@ -111,15 +111,16 @@ pub fn merge(
                 }
                 let mut stats = MergeStats::default();
                 for (j, o) in line.iter_mut().enumerate() {
-                    let counted = !defects.contains(first, (start + j) / 3);
+                    // Looked up only for the few values no exposure measured.
+                    let counted = || usize::from(!defects.contains(first, (start + j) / 3));
                     *o = if den[j] > 0.0 {
                         num[j] / den[j] * to_reference
                     } else if all_clipped[j] {
-                        stats.clipped += usize::from(counted);
+                        stats.clipped += counted();
                         let (f, t) = frames[shortest];
                         (f.rgb[start + j] as f64 * reference_us as f64 / t as f64) as f32
                     } else {
-                        stats.black += usize::from(counted);
+                        stats.black += counted();
                         0.0
                     };
                 }

@@ -1,0 +1,62 @@
+//! HDR merging with and without the sensor's defects (docs/benchmarks.md,
+//! "Sensor defects"): a 2048² frame (a quarter of the default sensor's
+//! pixels), three exposures 5× apart, a quarter of the frame lit and
+//! highlights clipping the longest; the defect map's lookups are made for
+//! every value no exposure measured (≈ 30 % of a mostly dark frame).
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use host::camera::Frame;
+use host::defects::{DefectKind, DefectMap, PixelDefect};
+use scanner_geometry::ScannerGeometry;
+
+const SIZE: u32 = 2048;
+
+/// Exposure `t` (µs) of a scene lit in its middle quarter, with read noise
+/// and clipping as the sensor gives them (a seeded hash, no RNG crate).
+fn exposure(t: u32, max: f32) -> Frame {
+    let n = (SIZE * SIZE) as usize;
+    let rgb = (0..3 * n)
+        .map(|i| {
+            let p = i / 3;
+            let (x, y) = ((p % SIZE as usize) as u32, (p / SIZE as usize) as u32);
+            let lit =
+                (SIZE / 4..3 * SIZE / 4).contains(&x) && (SIZE / 4..3 * SIZE / 4).contains(&y);
+            let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
+            let noise = (h % 5) as f32 - 2.0; // ± 2 codes
+            let signal = if lit { 0.002 * t as f32 * (1.0 + (x % 97) as f32 / 10.0) } else { 0.0 };
+            ((signal * max + noise).round().clamp(0.0, max)) / max
+        })
+        .collect();
+    Frame { width: SIZE, height: SIZE, rgb }
+}
+
+fn merge(c: &mut Criterion) {
+    let sensor = ScannerGeometry::default_scanner().sensor;
+    let max = sensor.max_code() as f32;
+    let frames: Vec<(Frame, u32)> = [400, 2_000, 10_000].map(|t| (exposure(t, max), t)).into();
+    let inputs: Vec<(&Frame, u32)> = frames.iter().map(|(f, t)| (f, *t)).collect();
+    // 64 stuck and 64 dead pixels spread over the frame.
+    let defects: Vec<PixelDefect> = (0..128u32)
+        .map(|k| PixelDefect {
+            x: (k * 7919) % SIZE,
+            y: (k * 104_729) % SIZE,
+            kind: if k % 2 == 0 { DefectKind::Stuck } else { DefectKind::Dead },
+        })
+        .collect();
+    let map = DefectMap::new(&defects, SIZE, SIZE);
+    let mut g = c.benchmark_group("hdr merge 2048², 3 exposures");
+    g.sample_size(10).measurement_time(Duration::from_secs(8));
+    g.bench_function("no defects (baseline)", |b| {
+        b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 10_000, &DefectMap::default()))
+    });
+    g.bench_function("128 defects", |b| {
+        b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 10_000, &map))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, merge);
+criterion_main!(benches);
