@@ -1,8 +1,11 @@
 //! HDR merging with and without the sensor's defects (docs/benchmarks.md,
 //! "Sensor defects"): a 2048² frame (a quarter of the default sensor's
 //! pixels), three exposures 5× apart, a quarter of the frame lit and
-//! highlights clipping the longest; the defect map's lookups are made for
-//! every value no exposure measured (≈ 30 % of a mostly dark frame).
+//! highlights clipping the longest. The defect map is looked up for every
+//! value no exposure measured: here ≈ 45 % of them (the dark three
+//! quarters' noise is the same in every exposure and reads 0 three times
+//! in five), more than a real dark frame's ≈ 29 % (0 two times in three,
+//! independently).
 
 use std::hint::black_box;
 use std::time::Duration;
