@@ -495,4 +495,32 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
     assert!(response < 0.1, "view response {:.2} % off", 100.0 * response);
     assert!(rms(&replaced) < 0.01 && largest(&replaced) < 0.3);
     assert!(rms(&kept) > 0.1, "the defects do not show in the region images");
+    // The command line says what it found and what it replaces.
+    let d = |n: &str| dir.path().join("defects").join(n).display().to_string();
+    let run = |args: &[&str]| {
+        let out = common::scanner().args(args).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let (cal_file, regions_dir) = (d("cal.json"), d("regions"));
+    let said = run(&[
+        "calibrate",
+        "--checkerboard",
+        &d("checkerboard"),
+        "--white",
+        &d("diffuse-white"),
+        "-o",
+        &cal_file,
+    ]);
+    let stuck = cal.defects.iter().filter(|d| d.kind == DefectKind::Stuck).count();
+    let counts = format!("{stuck} stuck and {} dead pixels", cal.defects.len() - stuck);
+    assert!(said.contains(&format!("sensor defects: {counts}, found in the white")), "{said}");
+    let said =
+        run(&["regions", "--scan", &d("leather"), "--calibration", &cal_file, "-o", &regions_dir]);
+    assert!(
+        said.contains(&format!(
+            "replaced in leather's frames: {counts} (0 from the scan's metering"
+        )),
+        "{said}"
+    );
 }

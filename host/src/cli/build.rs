@@ -122,7 +122,36 @@ pub fn calibrate_cmd(
         started.elapsed().as_secs_f64(),
         output.display()
     );
+    if !cal.defects.is_empty() {
+        println!(
+            "sensor defects: {}, found in the white target's frames; replaced in every frame \
+             read with this calibration",
+            defect_counts(&cal.defects)
+        );
+    }
     Ok(())
+}
+
+/// "3 stuck and 1 dead pixels".
+fn defect_counts(defects: &[crate::defects::PixelDefect]) -> String {
+    let stuck = defects.iter().filter(|d| d.kind == crate::defects::DefectKind::Stuck).count();
+    format!("{stuck} stuck and {} dead pixels", defects.len() - stuck)
+}
+
+/// Say which of the camera's defective pixels the frames of `scan` will
+/// have replaced (its metering's and the calibration's), if any.
+fn say_defects(scan: &ScanFrames, cal: &Calibration) {
+    let all = crate::defects::union(scan.defects(), &cal.defects);
+    if !all.is_empty() {
+        println!(
+            "sensor defects replaced in {}'s frames: {} ({} from the scan's metering, {} from \
+             the calibration)",
+            scan.manifest.settings.sample_name,
+            defect_counts(&all),
+            scan.defects().len(),
+            cal.defects.len()
+        );
+    }
 }
 
 /// The inputs of `scanner regions` and `scanner build`: a sample scan and
@@ -173,6 +202,7 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     check()?;
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
+    say_defects(&frames, &cal);
     let bar = StageBar::new();
     let regions = extract_regions(&g, &cal, &frames, input.size, &bar);
     bar.finish();
@@ -268,6 +298,7 @@ pub fn build_cmd(
         .map_err(|e| Failure(4, anyhow!(e)))?;
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
+    say_defects(&frames, &cal);
     let provenance = scanner_shading::format::Provenance {
         scan_manifest_sha256: sha256_file(&scan.join(crate::scan::MANIFEST_FILE))?,
         geometry_sha256: g.hash(),
