@@ -6,6 +6,8 @@
 //! - `stuck:X,Y` — pixel (X, Y) of the frame reads the top code in every
 //!   channel at every exposure;
 //! - `dead:X,Y` — it reads 0;
+//! - `hot:X,Y,RATE` — it gathers RATE dark electrons per second of
+//!   exposure on top of its light (dark current), in every channel;
 //! - `random:N` — N stuck and N dead pixels at positions drawn from the
 //!   simulator's seed over the whole frame.
 //!
@@ -19,7 +21,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::optics::Frame;
 
 /// One defective pixel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum PixelDefect {
     /// Reads the top code in every channel.
     Stuck {
@@ -35,10 +37,30 @@ pub enum PixelDefect {
         /// Row.
         y: u32,
     },
+    /// Gathers dark electrons at `e_per_s` per second of exposure.
+    Hot {
+        /// Column.
+        x: u32,
+        /// Row.
+        y: u32,
+        /// Dark current, electrons per second.
+        e_per_s: f32,
+    },
+}
+
+impl PixelDefect {
+    /// Its pixel (column, row).
+    pub fn position(&self) -> (u32, u32) {
+        match *self {
+            PixelDefect::Stuck { x, y }
+            | PixelDefect::Dead { x, y }
+            | PixelDefect::Hot { x, y, .. } => (x, y),
+        }
+    }
 }
 
 /// A `--sim-defect` argument.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DefectSpec {
     /// One pixel.
     Pixel(PixelDefect),
@@ -48,7 +70,7 @@ pub enum DefectSpec {
 
 /// A `--sim-defect` argument that does not parse.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("sensor defect `{spec}`: {why} (stuck:X,Y, dead:X,Y or random:N)")]
+#[error("sensor defect `{spec}`: {why} (stuck:X,Y, dead:X,Y, hot:X,Y,RATE or random:N)")]
 pub struct DefectSpecError {
     spec: String,
     why: &'static str,
@@ -73,6 +95,18 @@ impl FromStr for DefectSpec {
             "dead" => {
                 let (x, y) = xy()?;
                 DefectSpec::Pixel(PixelDefect::Dead { x, y })
+            }
+            "hot" => {
+                let (pos, rate) = rest.rsplit_once(',').ok_or_else(|| err("missing the rate"))?;
+                let e_per_s = rate
+                    .trim()
+                    .parse::<f32>()
+                    .ok()
+                    .filter(|r| r.is_finite() && *r > 0.0)
+                    .ok_or_else(|| err("bad dark current, electrons per second"))?;
+                let (x, y) = pos.split_once(',').ok_or_else(|| err("missing `,`"))?;
+                let p = |s: &str| s.trim().parse::<u32>().map_err(|_| err("bad pixel position"));
+                DefectSpec::Pixel(PixelDefect::Hot { x: p(x)?, y: p(y)?, e_per_s })
             }
             "random" => DefectSpec::Random(
                 rest.trim()
@@ -100,7 +134,7 @@ pub fn place(
     for spec in specs {
         match *spec {
             DefectSpec::Pixel(d) => {
-                let (PixelDefect::Stuck { x, y } | PixelDefect::Dead { x, y }) = d;
+                let (x, y) = d.position();
                 if x >= width || y >= height {
                     return Err(format!(
                         "sensor defect at ({x}, {y}) outside the {width} × {height} frame"
@@ -121,18 +155,35 @@ pub fn place(
     Ok(out)
 }
 
-/// Apply `defects` to a frame read out by the sensor (values are ADC code /
-/// max code: stuck 1, dead 0).
-pub fn apply(frame: &mut Frame, defects: &[PixelDefect]) {
+/// Apply `defects` to a frame read out by the sensor after `exposure_s`
+/// (values are ADC code / max code: stuck 1, dead 0, hot its dark
+/// electrons added, clipped at full scale).
+pub fn apply(
+    frame: &mut Frame,
+    defects: &[PixelDefect],
+    exposure_s: f64,
+    sensor: &crate::geometry::SensorSpec,
+) {
     let w = frame.width as usize;
     for d in defects {
-        let (PixelDefect::Stuck { x, y } | PixelDefect::Dead { x, y }) = *d;
-        let v = if matches!(d, PixelDefect::Stuck { .. }) { 1.0 } else { 0.0 };
+        let (x, y) = d.position();
         let i = 3 * (y as usize * w + x as usize);
-        if x < frame.width
-            && let Some(px) = frame.rgb.get_mut(i..i + 3)
-        {
-            px.fill(v);
+        if x >= frame.width {
+            continue;
+        }
+        let Some(px) = frame.rgb.get_mut(i..i + 3) else { continue };
+        match *d {
+            PixelDefect::Stuck { .. } => px.fill(1.0),
+            PixelDefect::Dead { .. } => px.fill(0.0),
+            PixelDefect::Hot { e_per_s, .. } => {
+                // Electrons to codes and back to a fraction of full scale,
+                // on whole codes as the ADC gives them.
+                let max = sensor.max_code();
+                let dark = e_per_s as f64 * exposure_s / sensor.full_well_e;
+                for v in px {
+                    *v = ((((*v as f64) + dark) * max).round().min(max) / max) as f32;
+                }
+            }
         }
     }
 }
@@ -152,7 +203,20 @@ mod tests {
             DefectSpec::Pixel(PixelDefect::Dead { x: 0, y: 7 })
         );
         assert_eq!("random:5".parse::<DefectSpec>().unwrap(), DefectSpec::Random(5));
-        for bad in ["stuck", "stuck:1", "stuck:a,2", "hot:1,2", "random:x", "dead:-1,2"] {
+        assert_eq!(
+            "hot:3,4,2500".parse::<DefectSpec>().unwrap(),
+            DefectSpec::Pixel(PixelDefect::Hot { x: 3, y: 4, e_per_s: 2500.0 })
+        );
+        for bad in [
+            "stuck",
+            "stuck:1",
+            "stuck:a,2",
+            "warm:1,2",
+            "hot:1,2",
+            "hot:1,2,-5",
+            "random:x",
+            "dead:-1,2",
+        ] {
             let e = bad.parse::<DefectSpec>().unwrap_err().to_string();
             assert!(e.contains(bad), "{e}");
         }
@@ -162,14 +226,19 @@ mod tests {
         assert_eq!(a, place(&specs, 64, 32, 9).unwrap(), "seeded");
         assert_ne!(a, place(&specs, 64, 32, 10).unwrap());
         assert!(a.iter().all(|d| {
-            let (PixelDefect::Stuck { x, y } | PixelDefect::Dead { x, y }) = *d;
+            let (x, y) = d.position();
             x < 64 && y < 32
         }));
         assert!(place(&["stuck:64,0".parse().unwrap()], 64, 32, 1).unwrap_err().contains("64"));
         let mut f = Frame { width: 4, height: 2, rgb: vec![0.3; 24] };
-        apply(&mut f, &[PixelDefect::Stuck { x: 1, y: 1 }, PixelDefect::Dead { x: 3, y: 0 }]);
+        let sensor = crate::geometry::ScannerGeometry::default_scanner().sensor;
+        let hot = PixelDefect::Hot { x: 2, y: 1, e_per_s: 10_000.0 };
+        let defects = [PixelDefect::Stuck { x: 1, y: 1 }, PixelDefect::Dead { x: 3, y: 0 }, hot];
+        apply(&mut f, &defects, 0.1, &sensor);
         assert_eq!(f.pixel(1, 1), [1.0; 3]);
         assert_eq!(f.pixel(3, 0), [0.0; 3]);
         assert_eq!(f.pixel(0, 0), [0.3; 3]);
+        // 1 000 dark electrons of a 10 000 e⁻ full well: +0.1 of full scale.
+        assert!((f.pixel(2, 1)[0] - 0.4).abs() < 1e-3, "{:?}", f.pixel(2, 1));
     }
 }

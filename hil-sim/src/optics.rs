@@ -478,7 +478,12 @@ impl OpticalSim {
             scale,
             seed,
         );
-        crate::defects::apply(&mut frame, &self.defects);
+        crate::defects::apply(
+            &mut frame,
+            &self.defects,
+            exposure.exposure_s,
+            &self.geometry.sensor,
+        );
         frame
     }
 

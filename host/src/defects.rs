@@ -1,6 +1,7 @@
 //! Defective sensor pixels (docs/scan-format.md, "Sensor defects"): found
-//! in auto exposure's metering frames, recorded with the metering, and
-//! replaced in the scan's frames by the mean of their neighbours.
+//! in auto exposure's metering frames (stuck, dead) and a dark frame (hot,
+//! [`dark_frame_defects`]), recorded with the metering, and replaced in
+//! the scan's frames by the mean of their neighbours.
 //!
 //! A real sensor has a few pixels stuck at the top code whatever the light
 //! and a few dead ones that always read 0. On the sample's views a stuck
@@ -51,6 +52,9 @@ pub enum DefectKind {
     Stuck,
     /// 0, whatever the light.
     Dead,
+    /// A dark signal of its own (dark current) that the light adds to:
+    /// found in a dark frame.
+    Hot,
 }
 
 /// One defective pixel of the camera's frames.
@@ -100,8 +104,8 @@ pub enum NotDecided {
     Mixed,
     /// More candidates than [`MAX_FRACTION`] of the frame's pixels.
     #[error(
-        "{found} pixels of {examined} read the same extreme value in every metering frame: more \
-         than a sensor's defects, so none are treated as such"
+        "{found} pixels of {examined} look defective: more than a sensor's defects, so none are \
+         treated as such"
     )]
     TooMany {
         /// Pixels that passed the rule.
@@ -232,6 +236,40 @@ impl DefectFinder {
         }
         Ok(found)
     }
+}
+
+/// A pixel of a dark frame (the light off, the scan's longest exposure)
+/// at this many ADC codes or more is hot: its dark signal alone is what a
+/// sample 250× darker than full scale gives (read noise: 1.2 codes RMS).
+pub const HOT_CODES: f64 = 16.0;
+
+/// The hot pixels a dark frame shows (values as stored: fractions of full
+/// scale): any channel at [`HOT_CODES`] or more; at the top code, stuck.
+/// More than [`MAX_FRACTION`] of the frame: not a sensor's defects (a
+/// light left on, a camera that does not see the dark).
+pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefect>, NotDecided> {
+    let (w, maxf, top) = (frame.width.max(1) as usize, max_code as f32, max_code as usize);
+    let found: Vec<PixelDefect> = frame
+        .rgb
+        .chunks_exact(3)
+        .enumerate()
+        .filter_map(|(p, rgb)| {
+            let code = rgb.iter().map(|&v| crate::hdr::adc_code(v, maxf, top)).max()?;
+            let kind = if code == top {
+                DefectKind::Stuck
+            } else if code as f64 >= HOT_CODES {
+                DefectKind::Hot
+            } else {
+                return None;
+            };
+            Some(PixelDefect { x: (p % w) as u32, y: (p / w) as u32, kind })
+        })
+        .collect();
+    let examined = frame.rgb.len() / 3;
+    if found.len() as f64 > MAX_FRACTION * examined as f64 {
+        return Err(NotDecided::TooMany { found: found.len(), examined });
+    }
+    Ok(found)
 }
 
 /// `a` and `b` together, in row-major order, one entry per pixel (stuck
@@ -454,6 +492,27 @@ mod tests {
             black.add(&Frame { width: w, height: h, rgb: vec![0.0; (3 * w * h) as usize] });
         }
         assert_eq!(black.defects().unwrap(), vec![]);
+    }
+
+    #[test]
+    fn a_dark_frame_shows_hot_and_stuck_pixels() {
+        let max = 4095.0;
+        let code = |c: f64| (c / max) as f32;
+        // Read noise: 0–4 codes; a pixel at 20 codes in green, one at the top.
+        let mut rgb: Vec<f32> = (0..3 * 64 * 8).map(|i| code((i % 5) as f64)).collect();
+        rgb[3 * (3 * 64 + 10) + 1] = code(20.0);
+        rgb[3 * (5 * 64 + 40)..][..3].fill(1.0);
+        let f = Frame { width: 64, height: 8, rgb };
+        assert_eq!(
+            dark_frame_defects(&f, max).unwrap(),
+            vec![
+                PixelDefect { x: 10, y: 3, kind: DefectKind::Hot },
+                PixelDefect { x: 40, y: 5, kind: DefectKind::Stuck },
+            ]
+        );
+        // The light left on: everything "hot", nothing recorded.
+        let lit = Frame { width: 64, height: 8, rgb: vec![0.3; 3 * 64 * 8] };
+        assert!(matches!(dark_frame_defects(&lit, max), Err(NotDecided::TooMany { .. })));
     }
 
     #[test]

@@ -1075,8 +1075,37 @@ pub fn scan(
         Some(mode) => {
             if manifest.settings.metering.is_none() {
                 let metering = meter(dev, camera, geometry, opts, total, &mut report, progress)?;
+                let mut metering = metering;
                 let choice =
                     crate::exposure::choose(&metering, mode == AutoExposure::Hdr, floor_us);
+                // Hot pixels: a dark frame at the longest exposure the scan takes.
+                let longest = realised(opts, choice.exposure_us)?.exposure_us;
+                match dark_frame(dev, camera, opts, longest, &mut report) {
+                    Ok(frame) => {
+                        metering.dark_exposure_us = Some(longest);
+                        let max = geometry.sensor.max_code();
+                        match crate::defects::dark_frame_defects(&frame, max) {
+                            Ok(found) => {
+                                let hot = found
+                                    .iter()
+                                    .filter(|d| d.kind == crate::defects::DefectKind::Hot)
+                                    .count();
+                                if hot > 0 {
+                                    progress.note(&format!(
+                                        "sensor defects: {hot} hot pixels in a dark frame of \
+                                         {longest} µs; the frames have them replaced by their \
+                                         neighbours' mean"
+                                    ));
+                                }
+                                metering.defects = crate::defects::union(&metering.defects, &found);
+                            }
+                            Err(why) => progress
+                                .note(&format!("sensor defects: dark frame: {why}; none replaced")),
+                        }
+                    }
+                    Err(why) => progress
+                        .note(&format!("no dark frame ({why}): hot pixels are not looked for")),
+                }
                 progress.note(&format!(
                     "metered {}: the sample's 95th percentile at {:.3} and its peak at {} of full \
                      scale at {} µs → {}",
@@ -1755,7 +1784,55 @@ fn meter(
             defects.len() - stuck
         ));
     }
-    Ok(Metering { exposure_us, mirrors: mirrors.clone(), body, peak, peak_exposure_us, defects })
+    Ok(Metering {
+        exposure_us,
+        mirrors: mirrors.clone(),
+        body,
+        peak,
+        peak_exposure_us,
+        defects,
+        dark_exposure_us: None,
+    })
+}
+
+/// One frame with the light off (a bare trigger of `exposure_us`): the
+/// sensor's dark signal. A failure is returned in words; the scan goes on
+/// without it.
+fn dark_frame(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    opts: &ScanOptions,
+    exposure_us: u32,
+    report: &mut ScanReport,
+) -> Result<crate::camera::Frame, String> {
+    let t = Instant::now();
+    let fired = (|| -> Result<bool, String> {
+        let off = protocol::LightState { on: false, duty_permille: opts.light_duty_permille };
+        dev.command(Request::SetLight(off)).map_err(|e| e.to_string())?;
+        camera.arm().map_err(|e| e.to_string())?;
+        dev.clear_events();
+        dev.command(Request::Trigger { exposure_us }).map_err(|e| e.to_string())?;
+        let wait = Duration::from_secs(5) + Duration::from_micros(exposure_us as u64);
+        let event = dev
+            .wait_event(wait, |e| matches!(e, Event::TriggerFired(t) if t.mirror.is_none()))
+            .map_err(|e| e.to_string())?;
+        Ok(event.is_some())
+    })();
+    report.timings.link += t.elapsed();
+    if !fired? {
+        return Err("the device did not fire the trigger".into());
+    }
+    let t = Instant::now();
+    let frame = camera.wait_frame(opts.frame_timeout).map_err(|e| e.to_string());
+    report.timings.camera += t.elapsed();
+    let t = Instant::now();
+    let idle = wait_idle(dev, Duration::from_secs(10)).map_err(|e| e.to_string());
+    report.timings.link += t.elapsed();
+    let status = idle?;
+    if !status.faults.is_empty() {
+        return Err(format!("{} during the dark frame", fault_list(status.faults)));
+    }
+    frame
 }
 
 /// `opts` for an exposure of `t` µs of light at its duty

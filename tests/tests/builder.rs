@@ -291,9 +291,9 @@ fn bad_inputs_exit_3_and_write_nothing() {
     });
     assert!(err.contains("a sensor defect listed twice"), "{err}");
     let err = edited("e11.json", &|c| {
-        c["defects"] = serde_json::json!([{"x": 6, "y": 3, "kind": "hot"}])
+        c["defects"] = serde_json::json!([{"x": 6, "y": 3, "kind": "warm"}])
     });
-    assert!(err.contains("not a calibration file") && err.contains("hot"), "{err}");
+    assert!(err.contains("not a calibration file") && err.contains("warm"), "{err}");
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));
@@ -444,6 +444,7 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
         .map(|d| match *d {
             SimDefect::Stuck { x, y } => PixelDefect { x, y, kind: DefectKind::Stuck },
             SimDefect::Dead { x, y } => PixelDefect { x, y, kind: DefectKind::Dead },
+            SimDefect::Hot { x, y, .. } => PixelDefect { x, y, kind: DefectKind::Hot },
         })
         .collect();
     for d in &truth[..5] {
@@ -513,7 +514,7 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
         &cal_file,
     ]);
     let stuck = cal.defects.iter().filter(|d| d.kind == DefectKind::Stuck).count();
-    let counts = format!("{stuck} stuck and {} dead pixels", cal.defects.len() - stuck);
+    let counts = format!("{stuck} stuck, 0 hot and {} dead pixels", cal.defects.len() - stuck);
     assert!(said.contains(&format!("sensor defects: {counts}, found in the white")), "{said}");
     let said =
         run(&["regions", "--scan", &d("leather"), "--calibration", &cal_file, "-o", &regions_dir]);

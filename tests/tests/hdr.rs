@@ -162,14 +162,14 @@ fn auto_exposure_meters_the_sample_and_a_resume_keeps_its_choice() {
         image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dark.join(name)).unwrap();
     }
     // The dark sample, HDR, stopped by an E-stop after metering (triggers
-    // 0–3) and in the middle of mirror 1's bracket: the resume takes the
-    // directory's bracket and is not metered again.
+    // 1–4, the dark frame 5) and in the middle of mirror 1's bracket: the
+    // resume takes the directory's bracket and is not metered again.
     let out = dir.path().join("dark-hdr");
     let dark_set = dark.display().to_string();
     let (code, err) = scan(
         &dark_set,
         &out,
-        &["--exposure-us", "auto", "--hdr", "--sim-fault", "estop:on@trigger=8"],
+        &["--exposure-us", "auto", "--hdr", "--sim-fault", "estop:on@trigger=9"],
     );
     assert_ne!(code, Some(0), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();
@@ -371,14 +371,14 @@ fn a_near_mirror_is_held_by_exposures_below_1_ms_with_the_light_dimmed() {
 
 /// A real sensor's stuck pixels read the top code at every exposure; on
 /// the sample's views they look like highlights no exposure holds. Auto
-/// exposure finds them (and dead pixels) in its metering frames
-/// (docs/scan-format.md, "Sensor defects"): no mirror's bracket is
+/// exposure finds them (and dead pixels) in its metering frames, and hot
+/// ones in a dark frame (docs/scan-format.md, "Sensor defects"): no mirror's bracket is
 /// extended for them, nothing is reported saturated, the merged frames
 /// (and a single auto exposure) hold their neighbours' mean — within a few
 /// per cent of the light's truth there — while the raw exposures keep what
 /// the sensor read.
 #[test]
-fn stuck_and_dead_sensor_pixels_are_found_while_metering_and_replaced() {
+fn stuck_dead_and_hot_sensor_pixels_are_found_while_metering_and_replaced() {
     use host::defects::{DefectKind, PixelDefect};
     let dir = common::tmp();
     let set = dir.path().join("matte");
@@ -394,11 +394,16 @@ fn stuck_and_dead_sensor_pixels_are_found_while_metering_and_replaced() {
         (DefectKind::Stuck, at(2, [0.3, 0.7])),
         (DefectKind::Stuck, at(3, [0.8, 0.2])),
         (DefectKind::Dead, at(1, [0.5, 0.5])),
+        (DefectKind::Hot, at(1, [0.7, 0.3])),
     ];
+    // The hot pixel: 5 000 dark electrons per second (0.1 of full scale at
+    // 200 ms).
     let specs: Vec<String> = placed
         .iter()
-        .map(|(k, (x, y))| {
-            format!("{}:{x},{y}", if *k == DefectKind::Stuck { "stuck" } else { "dead" })
+        .map(|(k, (x, y))| match k {
+            DefectKind::Stuck => format!("stuck:{x},{y}"),
+            DefectKind::Dead => format!("dead:{x},{y}"),
+            DefectKind::Hot => format!("hot:{x},{y},5000"),
         })
         .chain(["random:40".to_string()])
         .collect();
@@ -425,6 +430,9 @@ fn stuck_and_dead_sensor_pixels_are_found_while_metering_and_replaced() {
             }
             hil_sim::defects::PixelDefect::Dead { x, y } => {
                 PixelDefect { x, y, kind: DefectKind::Dead }
+            }
+            hil_sim::defects::PixelDefect::Hot { x, y, .. } => {
+                PixelDefect { x, y, kind: DefectKind::Hot }
             }
         })
         .collect();

@@ -132,10 +132,16 @@ pub fn calibrate_cmd(
     Ok(())
 }
 
-/// "3 stuck and 1 dead pixels".
+/// "3 stuck, 0 hot and 1 dead pixels".
 fn defect_counts(defects: &[crate::defects::PixelDefect]) -> String {
-    let stuck = defects.iter().filter(|d| d.kind == crate::defects::DefectKind::Stuck).count();
-    format!("{stuck} stuck and {} dead pixels", defects.len() - stuck)
+    use crate::defects::DefectKind;
+    let count = |k: DefectKind| defects.iter().filter(|d| d.kind == k).count();
+    format!(
+        "{} stuck, {} hot and {} dead pixels",
+        count(DefectKind::Stuck),
+        count(DefectKind::Hot),
+        count(DefectKind::Dead)
+    )
 }
 
 /// Say which of the camera's defective pixels the frames of `scan` will
