@@ -97,14 +97,16 @@ impl FromStr for DefectSpec {
                 DefectSpec::Pixel(PixelDefect::Dead { x, y })
             }
             "hot" => {
-                let (pos, rate) = rest.rsplit_once(',').ok_or_else(|| err("missing the rate"))?;
+                let parts: Vec<&str> = rest.split(',').collect();
+                let [x, y, rate] = parts[..] else {
+                    return Err(err("a hot pixel is X,Y,RATE (dark electrons per second)"));
+                };
                 let e_per_s = rate
                     .trim()
                     .parse::<f32>()
                     .ok()
                     .filter(|r| r.is_finite() && *r > 0.0)
                     .ok_or_else(|| err("bad dark current, electrons per second"))?;
-                let (x, y) = pos.split_once(',').ok_or_else(|| err("missing `,`"))?;
                 let p = |s: &str| s.trim().parse::<u32>().map_err(|_| err("bad pixel position"));
                 DefectSpec::Pixel(PixelDefect::Hot { x: p(x)?, y: p(y)?, e_per_s })
             }

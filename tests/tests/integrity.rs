@@ -361,7 +361,8 @@ fn bad_values_are_refused_before_anything_moves_or_is_written() {
         (&["--mirrors", "1000"][..], "--mirrors 1000: this scanner has mirrors 1…40"),
         (&["--mirrors", "0"][..], "--mirrors 0"),
         (&["--frame-timeout", "5000"][..], "--frame-timeout"),
-        (&["--sim-defect", "hot:1,2"][..], "sensor defect `hot:1,2`: unknown kind"),
+        (&["--sim-defect", "warm:1,2"][..], "sensor defect `warm:1,2`: unknown kind"),
+        (&["--sim-defect", "hot:1,2"][..], "`hot:1,2`: a hot pixel is X,Y,RATE"),
         (&["--sim-defect", "stuck:64,0"][..], "sensor defect at (64, 0) outside the 64 × 64 frame"),
     ] {
         let mut args =
