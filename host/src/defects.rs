@@ -272,6 +272,17 @@ pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefec
     Ok(found)
 }
 
+/// How many of each kind: "3 stuck, 0 hot and 1 dead pixels".
+pub fn counts(defects: &[PixelDefect]) -> String {
+    let count = |k: DefectKind| defects.iter().filter(|d| d.kind == k).count();
+    format!(
+        "{} stuck, {} hot and {} dead pixels",
+        count(DefectKind::Stuck),
+        count(DefectKind::Hot),
+        count(DefectKind::Dead)
+    )
+}
+
 /// `a` and `b` together, in row-major order, one entry per pixel (stuck
 /// where either says so).
 pub fn union(a: &[PixelDefect], b: &[PixelDefect]) -> Vec<PixelDefect> {
@@ -287,8 +298,8 @@ pub fn union(a: &[PixelDefect], b: &[PixelDefect]) -> Vec<PixelDefect> {
 pub struct DefectMap {
     width: u32,
     height: u32,
-    /// Defective pixels (row-major indices), ascending.
-    pixels: Vec<u32>,
+    /// The defects, row-major, one per pixel ([`union`]).
+    defects: Vec<PixelDefect>,
     /// Bit `i` set: pixel `i` is defective (empty when there are none).
     bits: Vec<u64>,
 }
@@ -305,37 +316,40 @@ impl DefectMap {
     /// Add `defects` (those outside the map's frame size are left out).
     pub fn extend(&mut self, defects: &[PixelDefect]) {
         let (w, h) = (self.width, self.height);
-        let added = defects.iter().filter(|d| d.x < w && d.y < h).map(|d| d.y * w + d.x);
-        self.pixels.extend(added);
-        self.pixels.sort_unstable();
-        self.pixels.dedup();
-        if !self.pixels.is_empty() {
+        let inside: Vec<PixelDefect> =
+            defects.iter().filter(|d| d.x < w && d.y < h).copied().collect();
+        self.defects = union(&self.defects, &inside);
+        if !self.defects.is_empty() {
             self.bits = vec![0; (w as usize * h as usize).div_ceil(64)];
-            for &p in &self.pixels {
-                self.bits[p as usize / 64] |= 1 << (p % 64);
+            for d in &self.defects {
+                let p = d.y as usize * w as usize + d.x as usize;
+                self.bits[p / 64] |= 1 << (p % 64);
             }
         }
     }
 
+    /// The defects, row-major, one per pixel.
+    pub fn defects(&self) -> &[PixelDefect] {
+        &self.defects
+    }
+
     /// No defects.
     pub fn is_empty(&self) -> bool {
-        self.pixels.is_empty()
+        self.defects.is_empty()
     }
 
     /// Whether pixel `index` (row-major) of `frame` is defective (never, in
     /// a frame of another size than the map's).
     #[inline]
     pub fn contains(&self, frame: &Frame, index: usize) -> bool {
-        self.contains_in(frame.width, frame.height, index)
+        (frame.width, frame.height) == (self.width, self.height) && self.contains_pixel(index)
     }
 
-    /// Whether pixel `index` (row-major) of a `width` × `height` frame is
+    /// Whether pixel `index` (row-major) of a frame of the map's size is
     /// defective.
     #[inline]
-    pub fn contains_in(&self, width: u32, height: u32, index: usize) -> bool {
-        !self.bits.is_empty()
-            && (width, height) == (self.width, self.height)
-            && self.bits.get(index / 64).is_some_and(|b| b & (1 << (index % 64)) != 0)
+    pub fn contains_pixel(&self, index: usize) -> bool {
+        self.bits.get(index / 64).is_some_and(|b| b & (1 << (index % 64)) != 0)
     }
 
     /// Replace every defective pixel of `frame` (of this map's size) by the
@@ -350,15 +364,15 @@ impl DefectMap {
     /// replaced, from neighbours there.
     pub fn patch_where(&self, frame: &mut Frame, usable: impl Fn(usize, usize) -> bool) -> usize {
         let (w, h) = (frame.width as usize, frame.height as usize);
-        if self.pixels.is_empty()
+        if self.defects.is_empty()
             || (frame.width, frame.height) != (self.width, self.height)
             || frame.rgb.len() != 3 * w * h
         {
             return 0;
         }
         let mut patched = 0;
-        for &p in &self.pixels {
-            let (x, y) = (p as usize % w, p as usize / w);
+        for d in &self.defects {
+            let (x, y) = (d.x as usize, d.y as usize);
             if !usable(x, y) {
                 continue;
             }
@@ -368,8 +382,7 @@ impl DefectMap {
                 let (mut sum, mut n) = ([0.0f32; 3], 0u32);
                 for ny in y.saturating_sub(r)..=(y + r).min(h - 1) {
                     for nx in x.saturating_sub(r)..=(x + r).min(w - 1) {
-                        if self.contains_in(self.width, self.height, ny * w + nx) || !usable(nx, ny)
-                        {
+                        if self.contains_pixel(ny * w + nx) || !usable(nx, ny) {
                             continue;
                         }
                         let i = 3 * (ny * w + nx);
@@ -384,7 +397,7 @@ impl DefectMap {
                     break;
                 }
             }
-            frame.rgb[3 * p as usize..][..3].copy_from_slice(&value);
+            frame.rgb[3 * (y * w + x)..][..3].copy_from_slice(&value);
         }
         patched
     }

@@ -156,17 +156,12 @@ pub fn sample_pixels(frame: &Frame, g: &ScannerGeometry) -> Vec<(u32, [f32; 3])>
     out
 }
 
-/// The values (every channel) of `pixels` of `width` × `height` frames,
+/// The values (every channel) of `pixels` (of frames of the map's size),
 /// the sensor's `defects` left out.
-pub fn sample_values(
-    pixels: &[(u32, [f32; 3])],
-    defects: &crate::defects::DefectMap,
-    width: u32,
-    height: u32,
-) -> Vec<f32> {
+pub fn sample_values(pixels: &[(u32, [f32; 3])], defects: &crate::defects::DefectMap) -> Vec<f32> {
     pixels
         .iter()
-        .filter(|(p, _)| !defects.contains_in(width, height, *p as usize))
+        .filter(|(p, _)| !defects.contains_pixel(*p as usize))
         .flat_map(|(_, v)| *v)
         .collect()
 }

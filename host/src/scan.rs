@@ -1074,38 +1074,14 @@ pub fn scan(
         None => opts,
         Some(mode) => {
             if manifest.settings.metering.is_none() {
-                let metering = meter(dev, camera, geometry, opts, total, &mut report, progress)?;
-                let mut metering = metering;
+                let mut metering =
+                    meter(dev, camera, geometry, opts, total, &mut report, progress)?;
                 let choice =
                     crate::exposure::choose(&metering, mode == AutoExposure::Hdr, floor_us);
                 // Hot pixels: a dark frame at the longest exposure the scan takes.
                 let longest = realised(opts, choice.exposure_us)?.exposure_us;
-                match dark_frame(dev, camera, opts, longest, &mut report) {
-                    Ok(frame) => {
-                        metering.dark_exposure_us = Some(longest);
-                        let max = geometry.sensor.max_code();
-                        match crate::defects::dark_frame_defects(&frame, max) {
-                            Ok(found) => {
-                                let hot = found
-                                    .iter()
-                                    .filter(|d| d.kind == crate::defects::DefectKind::Hot)
-                                    .count();
-                                if hot > 0 {
-                                    progress.note(&format!(
-                                        "sensor defects: {hot} hot pixels in a dark frame of \
-                                         {longest} µs; the frames have them replaced by their \
-                                         neighbours' mean"
-                                    ));
-                                }
-                                metering.defects = crate::defects::union(&metering.defects, &found);
-                            }
-                            Err(why) => progress
-                                .note(&format!("sensor defects: dark frame: {why}; none replaced")),
-                        }
-                    }
-                    Err(why) => progress
-                        .note(&format!("no dark frame ({why}): hot pixels are not looked for")),
-                }
+                let dark = DarkFrame { geometry, opts, exposure_us: longest };
+                dark.find_hot_pixels(dev, camera, &mut metering, &mut report, progress);
                 progress.note(&format!(
                     "metered {}: the sample's 95th percentile at {:.3} and its peak at {} of full \
                      scale at {} µs → {}",
@@ -1741,8 +1717,7 @@ fn meter(
                 .add(&frame);
         }
         let defects = finder.as_ref().and_then(|f| f.defects().ok()).unwrap_or_default();
-        let mut values =
-            sample_values(&pixels, &DefectMap::new(&defects, size.0, size.1), size.0, size.1);
+        let mut values = sample_values(&pixels, &DefectMap::new(&defects, size.0, size.1));
         if values.is_empty() {
             return Err(ScanError::Conflict(
                 "auto exposure: the geometry projects the sample outside the camera's frames"
@@ -1777,11 +1752,10 @@ fn meter(
         None => Vec::new(),
     };
     if !defects.is_empty() {
-        let stuck = defects.iter().filter(|d| d.kind == crate::defects::DefectKind::Stuck).count();
         progress.note(&format!(
-            "sensor defects: {stuck} stuck and {} dead pixels where the sample is seen; \
-             the frames have them replaced by their neighbours' mean",
-            defects.len() - stuck
+            "sensor defects: {} in the metering frames; the frames have them replaced by their \
+             neighbours' mean",
+            crate::defects::counts(&defects)
         ));
     }
     Ok(Metering {
@@ -1795,44 +1769,89 @@ fn meter(
     })
 }
 
-/// One frame with the light off (a bare trigger of `exposure_us`): the
-/// sensor's dark signal. A failure is returned in words; the scan goes on
-/// without it.
-fn dark_frame(
-    dev: &mut Device,
-    camera: &mut dyn Camera,
-    opts: &ScanOptions,
+/// A dark frame: the light off, a bare trigger (docs/scan-format.md,
+/// "Sensor defects").
+struct DarkFrame<'a> {
+    geometry: &'a ScannerGeometry,
+    opts: &'a ScanOptions,
+    /// The device's exposure, µs.
     exposure_us: u32,
-    report: &mut ScanReport,
-) -> Result<crate::camera::Frame, String> {
-    let t = Instant::now();
-    let fired = (|| -> Result<bool, String> {
-        let off = protocol::LightState { on: false, duty_permille: opts.light_duty_permille };
-        dev.command(Request::SetLight(off)).map_err(|e| e.to_string())?;
-        camera.arm().map_err(|e| e.to_string())?;
-        dev.clear_events();
-        dev.command(Request::Trigger { exposure_us }).map_err(|e| e.to_string())?;
-        let wait = Duration::from_secs(5) + Duration::from_micros(exposure_us as u64);
-        let event = dev
-            .wait_event(wait, |e| matches!(e, Event::TriggerFired(t) if t.mirror.is_none()))
-            .map_err(|e| e.to_string())?;
-        Ok(event.is_some())
-    })();
-    report.timings.link += t.elapsed();
-    if !fired? {
-        return Err("the device did not fire the trigger".into());
+}
+
+impl DarkFrame<'_> {
+    /// Take the dark frame and add the hot (and stuck) pixels it shows to
+    /// `metering`'s defects; a dark frame that cannot be taken or shows
+    /// too much is said, and the scan goes on without it.
+    fn find_hot_pixels(
+        &self,
+        dev: &mut Device,
+        camera: &mut dyn Camera,
+        metering: &mut crate::exposure::Metering,
+        report: &mut ScanReport,
+        progress: &mut dyn ScanProgress,
+    ) {
+        let frame = match self.take(dev, camera, report) {
+            Ok(f) => f,
+            Err(why) => {
+                progress.note(&format!("no dark frame ({why}): hot pixels are not looked for"));
+                return;
+            }
+        };
+        metering.dark_exposure_us = Some(self.exposure_us);
+        match crate::defects::dark_frame_defects(&frame, self.geometry.sensor.max_code()) {
+            Ok(found) => {
+                let hot = found.iter().filter(|d| d.kind == crate::defects::DefectKind::Hot);
+                let hot = hot.count();
+                if hot > 0 {
+                    progress.note(&format!(
+                        "sensor defects: {hot} hot pixels in a dark frame of {} µs; the frames \
+                         have them replaced by their neighbours' mean",
+                        self.exposure_us
+                    ));
+                }
+                metering.defects = crate::defects::union(&metering.defects, &found);
+            }
+            Err(why) => progress.note(&format!("sensor defects: dark frame: {why}; none replaced")),
+        }
     }
-    let t = Instant::now();
-    let frame = camera.wait_frame(opts.frame_timeout).map_err(|e| e.to_string());
-    report.timings.camera += t.elapsed();
-    let t = Instant::now();
-    let idle = wait_idle(dev, Duration::from_secs(10)).map_err(|e| e.to_string());
-    report.timings.link += t.elapsed();
-    let status = idle?;
-    if !status.faults.is_empty() {
-        return Err(format!("{} during the dark frame", fault_list(status.faults)));
+
+    /// The frame; a failure in words.
+    fn take(
+        &self,
+        dev: &mut Device,
+        camera: &mut dyn Camera,
+        report: &mut ScanReport,
+    ) -> Result<crate::camera::Frame, String> {
+        let (opts, exposure_us) = (self.opts, self.exposure_us);
+        let t = Instant::now();
+        let fired = (|| -> Result<bool, String> {
+            let off = protocol::LightState { on: false, duty_permille: opts.light_duty_permille };
+            dev.command(Request::SetLight(off)).map_err(|e| e.to_string())?;
+            camera.arm().map_err(|e| e.to_string())?;
+            dev.clear_events();
+            dev.command(Request::Trigger { exposure_us }).map_err(|e| e.to_string())?;
+            let wait = Duration::from_secs(5) + Duration::from_micros(exposure_us as u64);
+            let event = dev
+                .wait_event(wait, |e| matches!(e, Event::TriggerFired(t) if t.mirror.is_none()))
+                .map_err(|e| e.to_string())?;
+            Ok(event.is_some())
+        })();
+        report.timings.link += t.elapsed();
+        if !fired? {
+            return Err("the device did not fire the trigger".into());
+        }
+        let t = Instant::now();
+        let frame = camera.wait_frame(opts.frame_timeout).map_err(|e| e.to_string());
+        report.timings.camera += t.elapsed();
+        let t = Instant::now();
+        let idle = wait_idle(dev, Duration::from_secs(10)).map_err(|e| e.to_string());
+        report.timings.link += t.elapsed();
+        let status = idle?;
+        if !status.faults.is_empty() {
+            return Err(format!("{} during the dark frame", fault_list(status.faults)));
+        }
+        frame
     }
-    frame
 }
 
 /// `opts` for an exposure of `t` µs of light at its duty

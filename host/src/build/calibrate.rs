@@ -432,15 +432,7 @@ fn sensor_defects(
     for pair in lights.chunks(2) {
         let frames: Vec<(crate::camera::Frame, f32)> = pair
             .par_iter()
-            .map(|&l| {
-                let t = white
-                    .manifest
-                    .frames
-                    .iter()
-                    .find(|f| f.mirror == l)
-                    .map_or(0.0, |f| f.exposure_us as f32 * 1e-6);
-                white.read_within(l, windows).map(|f| (f, t))
-            })
+            .map(|&l| Ok((white.read_within(l, windows)?, white.exposure_s(l)?)))
             .collect::<Result<_, BuildError>>()?;
         for (f, t) in &frames {
             finder.add_scaled(f, *t);

@@ -24,8 +24,6 @@ pub struct ScanFrames {
     /// The sensor's defective pixels: those its metering found, and any
     /// added ([`ScanFrames::add_defects`]); replaced in every frame read.
     defects: DefectMap,
-    /// The same, listed.
-    defect_list: Vec<PixelDefect>,
 }
 
 impl ScanFrames {
@@ -70,22 +68,20 @@ impl ScanFrames {
         use sha2::Digest;
         let manifest_sha256 =
             sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-        let defect_list =
-            manifest.settings.metering.as_ref().map_or(Vec::new(), |m| m.defects.clone());
-        let defects = DefectMap::new(&defect_list, geometry.camera.width, geometry.camera.height);
-        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects, defect_list })
+        let metered = manifest.settings.metering.as_ref().map_or(&[][..], |m| &m.defects);
+        let defects = DefectMap::new(metered, geometry.camera.width, geometry.camera.height);
+        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects })
     }
 
     /// Replace `defects` too in the frames read from now on (the sensor's
     /// defects a calibration found).
     pub fn add_defects(&mut self, defects: &[PixelDefect]) {
         self.defects.extend(defects);
-        self.defect_list = crate::defects::union(&self.defect_list, defects);
     }
 
     /// The sensor's defective pixels replaced in the frames read.
     pub fn defects(&self) -> &[PixelDefect] {
-        &self.defect_list
+        self.defects.defects()
     }
 
     /// Lit mirrors, in order.
@@ -102,6 +98,17 @@ impl ScanFrames {
         })
     }
 
+    /// The exposure of the frame lit by `light`, s (what [`ScanFrames::read`]
+    /// divides by); an exposure of 0 is refused.
+    pub fn exposure_s(&self, light: usize) -> Result<f32, BuildError> {
+        let rec = self.record(light)?;
+        if rec.exposure_us == 0 {
+            let path = self.dir.join(&rec.file);
+            return Err(BuildError::Input(format!("{}: exposure 0", path.display())));
+        }
+        Ok(rec.exposure_us as f32 * 1e-6)
+    }
+
     /// The frame lit by mirror `light`, values divided by its exposure (s).
     pub fn read(&self, light: usize) -> Result<Frame, BuildError> {
         self.read_within(light, &[[0, 0, usize::MAX, usize::MAX]])
@@ -112,10 +119,7 @@ impl ScanFrames {
     pub fn read_within(&self, light: usize, windows: &[PixelRect]) -> Result<Frame, BuildError> {
         let rec = self.record(light)?;
         let path = self.dir.join(&rec.file);
-        let t = rec.exposure_us as f32 * 1e-6;
-        if t <= 0.0 {
-            return Err(BuildError::Input(format!("{}: exposure 0", path.display())));
-        }
+        let t = self.exposure_s(light)?;
         let wanted = |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block));
         let mut f = crate::exrio::read_rgb_within(&path, &wanted, t)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;

@@ -126,22 +126,10 @@ pub fn calibrate_cmd(
         println!(
             "sensor defects: {}, found in the white target's frames; replaced in every frame \
              read with this calibration",
-            defect_counts(&cal.defects)
+            crate::defects::counts(&cal.defects)
         );
     }
     Ok(())
-}
-
-/// "3 stuck, 0 hot and 1 dead pixels".
-fn defect_counts(defects: &[crate::defects::PixelDefect]) -> String {
-    use crate::defects::DefectKind;
-    let count = |k: DefectKind| defects.iter().filter(|d| d.kind == k).count();
-    format!(
-        "{} stuck, {} hot and {} dead pixels",
-        count(DefectKind::Stuck),
-        count(DefectKind::Hot),
-        count(DefectKind::Dead)
-    )
 }
 
 /// Say which of the camera's defective pixels the frames of `scan` will
@@ -153,7 +141,7 @@ fn say_defects(scan: &ScanFrames, cal: &Calibration) {
             "sensor defects replaced in {}'s frames: {} ({} from the scan's metering, {} from \
              the calibration)",
             scan.manifest.settings.sample_name,
-            defect_counts(&all),
+            crate::defects::counts(&all),
             scan.defects().len(),
             cal.defects.len()
         );
