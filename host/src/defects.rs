@@ -1,7 +1,8 @@
 //! Defective sensor pixels (docs/scan-format.md, "Sensor defects"): found
-//! in auto exposure's metering frames (stuck, dead) and a dark frame (hot,
-//! [`dark_frame_defects`]), recorded with the metering, and replaced in
-//! the scan's frames by the mean of their neighbours.
+//! in auto exposure's metering frames (stuck, dead), every scan's dark
+//! frame (hot and stuck, [`dark_frame_defects`]) and a calibration's white
+//! frames, recorded with the scan (or calibration), and replaced in the
+//! frames by the mean of their neighbours.
 //!
 //! A real sensor has a few pixels stuck at the top code whatever the light
 //! and a few dead ones that always read 0. On the sample's views a stuck

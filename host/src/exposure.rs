@@ -106,10 +106,6 @@ pub struct Metering {
     /// ([`crate::defects`]); the scan's frames have them replaced.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub defects: Vec<crate::defects::PixelDefect>,
-    /// The exposure of the dark frame (the light off) that looked for hot
-    /// pixels, µs of the device (absent: none was taken).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub dark_exposure_us: Option<u32>,
 }
 
 /// The exposures auto exposure chose.
@@ -331,7 +327,6 @@ mod tests {
             peak,
             peak_exposure_us: 50_000,
             defects: Vec::new(),
-            dark_exposure_us: None,
         }
     }
 

@@ -172,6 +172,21 @@ pub struct ScanSettings {
     /// What metering measured (auto exposure, once metered).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub metering: Option<crate::exposure::Metering>,
+    /// The dark frame the scan took for hot pixels (absent: none taken
+    /// yet, or it could not be).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dark: Option<DarkRecord>,
+}
+
+/// A scan's dark frame: the light off, a bare trigger of the longest
+/// exposure the scan takes (docs/scan-format.md, "Sensor defects").
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DarkRecord {
+    /// Its exposure, µs of the device.
+    pub exposure_us: u32,
+    /// The hot (and stuck) pixels it showed.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub defects: Vec<crate::defects::PixelDefect>,
 }
 
 /// What auto exposure chooses.
@@ -192,6 +207,15 @@ impl PositionCheck {
 }
 
 impl ScanSettings {
+    /// The sensor's defective pixels the scan found and replaces in its
+    /// frames: its metering's and its dark frame's.
+    pub fn defects(&self) -> Vec<crate::defects::PixelDefect> {
+        crate::defects::union(
+            self.metering.as_ref().map_or(&[][..], |m| &m.defects),
+            self.dark.as_ref().map_or(&[][..], |d| &d.defects),
+        )
+    }
+
     /// The settings that differ from `other`, in words ("exposure_us 50000
     /// here, 20000 there").
     pub fn differences(&self, other: &ScanSettings) -> Vec<String> {
@@ -1036,6 +1060,7 @@ pub fn scan(
         simulator: opts.simulator.clone(),
         auto_exposure: opts.auto_exposure,
         metering: None,
+        dark: None,
     };
     let floor_us = crate::exposure::shortest_us(opts.light_duty_permille);
     if let Some(&bad) = opts
@@ -1074,14 +1099,9 @@ pub fn scan(
         None => opts,
         Some(mode) => {
             if manifest.settings.metering.is_none() {
-                let mut metering =
-                    meter(dev, camera, geometry, opts, total, &mut report, progress)?;
+                let metering = meter(dev, camera, geometry, opts, total, &mut report, progress)?;
                 let choice =
                     crate::exposure::choose(&metering, mode == AutoExposure::Hdr, floor_us);
-                // Hot pixels: a dark frame at the longest exposure the scan takes.
-                let longest = realised(opts, choice.exposure_us)?.exposure_us;
-                let dark = DarkFrame { geometry, opts, exposure_us: longest };
-                dark.find_hot_pixels(dev, camera, &mut metering, &mut report, progress);
                 progress.note(&format!(
                     "metered {}: the sample's 95th percentile at {:.3} and its peak at {} of full \
                      scale at {} µs → {}",
@@ -1112,6 +1132,20 @@ pub fn scan(
         }
     };
 
+    // Hot pixels: once per scan, a dark frame at the longest exposure it
+    // takes (a scan interrupted before it has one takes it on resuming;
+    // the frames stored before are replaced when read).
+    if manifest.settings.dark.is_none() {
+        let longest = opts.bracket_us.iter().copied().max().unwrap_or(opts.exposure_us);
+        let dark = DarkFrame { geometry, opts, exposure_us: realised(opts, longest)?.exposure_us };
+        if let Some(record) = dark.find_hot_pixels(dev, camera, &mut report, progress) {
+            manifest.settings.dark = Some(record);
+            let t = Instant::now();
+            manifest.save(&opts.out)?;
+            report.timings.disk += t.elapsed();
+        }
+    }
+
     // Frames are encoded and written, and the manifest updated, on a second
     // thread while the next frame is captured; the manifest names a frame
     // as soon as its file is durable, and only then. Frames are verified by
@@ -1125,10 +1159,10 @@ pub fn scan(
     let mut raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
     let extend_bracket = opts.auto_exposure == Some(AutoExposure::Hdr);
     let mut spans: Option<Vec<crate::exposure::Span>> = None;
-    // The sensor's defective pixels metering found (auto exposure only):
-    // left out of the saturation counts and replaced in the frames.
+    // The sensor's defective pixels metering and the dark frame found: left
+    // out of the saturation counts and replaced in the frames.
     let defects = crate::defects::DefectMap::new(
-        manifest.settings.metering.as_ref().map_or(&[][..], |m| &m.defects),
+        &manifest.settings.defects(),
         geometry.camera.width,
         geometry.camera.height,
     );
@@ -1758,15 +1792,7 @@ fn meter(
             crate::defects::counts(&defects)
         ));
     }
-    Ok(Metering {
-        exposure_us,
-        mirrors: mirrors.clone(),
-        body,
-        peak,
-        peak_exposure_us,
-        defects,
-        dark_exposure_us: None,
-    })
+    Ok(Metering { exposure_us, mirrors: mirrors.clone(), body, peak, peak_exposure_us, defects })
 }
 
 /// A dark frame: the light off, a bare trigger (docs/scan-format.md,
@@ -1779,40 +1805,42 @@ struct DarkFrame<'a> {
 }
 
 impl DarkFrame<'_> {
-    /// Take the dark frame and add the hot (and stuck) pixels it shows to
-    /// `metering`'s defects; a dark frame that cannot be taken or shows
-    /// too much is said, and the scan goes on without it.
+    /// Take the dark frame and find the hot (and stuck) pixels it shows; a
+    /// dark frame that cannot be taken is said (`None`: the scan goes on
+    /// without it), one that shows too much is recorded with none.
     fn find_hot_pixels(
         &self,
         dev: &mut Device,
         camera: &mut dyn Camera,
-        metering: &mut crate::exposure::Metering,
         report: &mut ScanReport,
         progress: &mut dyn ScanProgress,
-    ) {
+    ) -> Option<DarkRecord> {
         let frame = match self.take(dev, camera, report) {
             Ok(f) => f,
             Err(why) => {
                 progress.note(&format!("no dark frame ({why}): hot pixels are not looked for"));
-                return;
+                return None;
             }
         };
-        metering.dark_exposure_us = Some(self.exposure_us);
-        match crate::defects::dark_frame_defects(&frame, self.geometry.sensor.max_code()) {
-            Ok(found) => {
-                let hot = found.iter().filter(|d| d.kind == crate::defects::DefectKind::Hot);
-                let hot = hot.count();
-                if hot > 0 {
-                    progress.note(&format!(
-                        "sensor defects: {hot} hot pixels in a dark frame of {} µs; the frames \
-                         have them replaced by their neighbours' mean",
-                        self.exposure_us
-                    ));
+        let defects =
+            match crate::defects::dark_frame_defects(&frame, self.geometry.sensor.max_code()) {
+                Ok(found) => {
+                    if !found.is_empty() {
+                        progress.note(&format!(
+                            "sensor defects: {} in a dark frame of {} µs; the frames have them \
+                         replaced by their neighbours' mean",
+                            crate::defects::counts(&found),
+                            self.exposure_us
+                        ));
+                    }
+                    found
                 }
-                metering.defects = crate::defects::union(&metering.defects, &found);
-            }
-            Err(why) => progress.note(&format!("sensor defects: dark frame: {why}; none replaced")),
-        }
+                Err(why) => {
+                    progress.note(&format!("sensor defects: dark frame: {why}; none replaced"));
+                    Vec::new()
+                }
+            };
+        Some(DarkRecord { exposure_us: self.exposure_us, defects })
     }
 
     /// The frame; a failure in words.
@@ -1834,6 +1862,9 @@ impl DarkFrame<'_> {
             let event = dev
                 .wait_event(wait, |e| matches!(e, Event::TriggerFired(t) if t.mirror.is_none()))
                 .map_err(|e| e.to_string())?;
+            if event.is_some() {
+                camera.triggered();
+            }
             Ok(event.is_some())
         })();
         report.timings.link += t.elapsed();

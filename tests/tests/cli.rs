@@ -174,7 +174,8 @@ fn sim_scan(out: &std::path::Path, fault: &str) -> (Option<i32>, String, String)
 fn an_emergency_stop_exits_7_and_keeps_the_frames_taken() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
-    let (code, _, err) = sim_scan(&out, "estop:on@trigger=2");
+    // Trigger 1 is the dark frame, 2 mirror 0's exposure.
+    let (code, _, err) = sim_scan(&out, "estop:on@trigger=3");
     assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("emergency stop"), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();

@@ -26,9 +26,13 @@ fn a_deterministic_scan_stores_every_frame_and_its_manifest() {
     assert!(m.complete);
     assert_eq!(m.frames.len(), 40);
     assert_eq!(m.settings.geometry_sha256, s.nominal().unwrap().hash());
+    // Its dark frame, at the scan's exposure, shows a flawless sensor.
+    let dark = m.settings.dark.as_ref().expect("a dark frame recorded");
+    assert_eq!((dark.exposure_us, dark.defects.len()), (opts.exposure_us, 0));
     for (l, f) in m.frames.iter().enumerate() {
         assert_eq!(f.mirror, l);
-        assert_eq!(f.trigger_seq as usize, l + 1);
+        // Trigger 1 is the dark frame.
+        assert_eq!(f.trigger_seq as usize, l + 2);
         let bytes = std::fs::read(dir.path().join(&f.file)).unwrap();
         assert_eq!(f.sha256.len(), 64);
         let frame = host::exrio::read_rgb(&dir.path().join(&f.file)).unwrap();

@@ -409,7 +409,8 @@ pub fn calibrate(
 }
 
 /// The sensor's defective pixels ([`crate::defects`]) a calibration
-/// records: those the white scan's metering found, and those its frames
+/// records: those the white scan recorded (its metering's, its dark
+/// frame's), and those its frames
 /// show within `windows` — the white target lit by every mirror in turn,
 /// the best frames to find them in. Frames merged from several exposures
 /// (where a stuck pixel is no longer at the top code) are not looked at.

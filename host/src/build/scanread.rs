@@ -68,8 +68,8 @@ impl ScanFrames {
         use sha2::Digest;
         let manifest_sha256 =
             sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-        let metered = manifest.settings.metering.as_ref().map_or(&[][..], |m| &m.defects);
-        let defects = DefectMap::new(metered, geometry.camera.width, geometry.camera.height);
+        let found = manifest.settings.defects();
+        let defects = DefectMap::new(&found, geometry.camera.width, geometry.camera.height);
         Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects })
     }
 

@@ -133,13 +133,14 @@ pub fn calibrate_cmd(
 }
 
 /// Say which of the camera's defective pixels the frames of `scan` will
-/// have replaced (its metering's and the calibration's), if any.
+/// have replaced (those it recorded itself — its metering's, its dark
+/// frame's — and the calibration's), if any.
 fn say_defects(scan: &ScanFrames, cal: &Calibration) {
     let all = crate::defects::union(scan.defects(), &cal.defects);
     if !all.is_empty() {
         println!(
-            "sensor defects replaced in {}'s frames: {} ({} from the scan's metering, {} from \
-             the calibration)",
+            "sensor defects replaced in {}'s frames: {} ({} recorded by the scan, {} by the \
+             calibration)",
             scan.manifest.settings.sample_name,
             crate::defects::counts(&all),
             scan.defects().len(),
