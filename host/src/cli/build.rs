@@ -415,12 +415,18 @@ pub fn novel_view(views: &[[f64; 3]]) -> ([f64; 3], f64) {
 /// Answers to queries from another source than the material.
 pub type Truth<'a> = dyn Fn(&[scanner_formats::queries::Query]) -> Vec<[f32; 3]> + 'a;
 
+/// Points per preview pixel, per axis.
+pub const PREVIEW_SUB: u32 = 3;
+
 /// Preview lights: (θ, φ) in degrees.
 pub const PREVIEW_LIGHTS: [(f64, f64); 3] = [(25.0, 60.0), (45.0, 200.0), (60.0, 320.0)];
 
-/// A preview PNG: the material on a 2 × 2 tile under [`PREVIEW_LIGHTS`]
-/// seen from `view` (columns), and under it the same from `truth` when
-/// given (the simulator's ground truth for a simulated sample).
+/// A preview PNG: the material over its extent (uv 0…1; a scanned sample
+/// need not tile without a seam) under [`PREVIEW_LIGHTS`] seen from `view`
+/// (columns), and under it the same from `truth` when given (the
+/// simulator's ground truth for a simulated sample). Each pixel is the
+/// mean of [`PREVIEW_SUB`]² points over it, so that neither row aliases a
+/// texture finer than the preview's pixels.
 pub fn preview(
     material: &scanner_shading::Material,
     view: [f64; 3],
@@ -433,14 +439,15 @@ pub fn preview(
     let rows = if truth.is_some() { 2 } else { 1 };
     let (w, h) = (PREVIEW_LIGHTS.len() as u32 * (PX + GAP) + GAP, rows * (PX + GAP) + GAP);
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
+    const SUB: u32 = PREVIEW_SUB;
+    let n = PX * SUB;
     for (c, &(t, p)) in PREVIEW_LIGHTS.iter().enumerate() {
         let wi = polar(t, p);
-        // Two tiles across: uv wraps.
-        let queries: Vec<Query> = (0..PX * PX)
+        // Sub-point (sx, sy) of pixel (x, y) at query x·SUB + sx + n·(…).
+        let queries: Vec<Query> = (0..n * n)
             .map(|i| {
-                let (x, y) = ((i % PX) as f64 + 0.5, (i / PX) as f64 + 0.5);
-                let uv = [(2.0 * x / PX as f64).fract(), (2.0 * y / PX as f64).fract()];
-                Query { uv, wi, wo: view }
+                let (x, y) = ((i % n) as f64 + 0.5, (i / n) as f64 + 0.5);
+                Query { uv: [x / n as f64, y / n as f64], wi, wo: view }
             })
             .collect();
         let mut panels = vec![crate::build::material::shade(material, &queries)];
@@ -449,12 +456,14 @@ pub fn preview(
         }
         for (r, vals) in panels.iter().enumerate() {
             let (x0, y0) = (GAP + c as u32 * (PX + GAP), GAP + r as u32 * (PX + GAP));
-            for (i, v) in vals.iter().enumerate() {
-                img.put_pixel(
-                    x0 + i as u32 % PX,
-                    y0 + i as u32 / PX,
-                    image::Rgb(v.map(encode_srgb)),
-                );
+            for (y, x) in (0..PX).flat_map(|y| (0..PX).map(move |x| (y, x))) {
+                let mut sum = [0.0f32; 3];
+                for (sy, sx) in (0..SUB).flat_map(|sy| (0..SUB).map(move |sx| (sy, sx))) {
+                    let v = vals[((y * SUB + sy) * n + x * SUB + sx) as usize];
+                    (0..3).for_each(|k| sum[k] += v[k]);
+                }
+                let mean = sum.map(|s| s / (SUB * SUB) as f32);
+                img.put_pixel(x0 + x, y0 + y, image::Rgb(mean.map(encode_srgb)));
             }
         }
     }

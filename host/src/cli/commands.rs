@@ -851,7 +851,7 @@ pub fn demo(
     let (theta, phi) = super::build::angles(view);
     println!(
         "demo: four scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
-         look at {}: a 2 × 2 tile of the material (top) and of the simulator's ground truth \
+         look at {}: the material over the sample (top) and the simulator's ground truth \
          (bottom), seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest mirror), lit from \
          (θ, φ) = {}",
         started.elapsed().as_secs_f64() - scanned,

@@ -146,7 +146,7 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// A preview PNG of a material: a 2 × 2 tile under three light
+    /// A preview PNG of a material: the sample's extent under three light
     /// directions, seen from the direction farthest from every captured view
     /// (20°…45° from the normal).
     Preview {
