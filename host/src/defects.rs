@@ -21,7 +21,11 @@
 //! highlight moves with the light, and a saturated or dark patch or line of
 //! the sample, or the dark side of a view's edge (whose pixels read 0 by
 //! read noise alone two times in three), has neighbours like it, so none of
-//! them is taken for a defect.
+//! them is taken for a defect; nor is any value of a cluster of three or
+//! more touching ones, a line's ends included. Only on a uniform target
+//! ([`DefectFinder::uniform_target`]: the calibration's white) are dead
+//! clusters up to [`MAX_CLUSTER_SIDE`]² taken, when what surrounds them
+//! was lit.
 
 use serde::{Deserialize, Serialize};
 
@@ -70,6 +74,11 @@ pub struct PixelDefect {
     pub kind: DefectKind,
 }
 
+/// The largest dead cluster a uniform target's frames can show
+/// ([`DefectFinder::uniform_target`]): pixels within a square of this
+/// side.
+pub const MAX_CLUSTER_SIDE: u32 = 3;
+
 /// A value (3 · pixel + channel) at the top code or 0 in every frame so far.
 #[derive(Debug, Clone, Copy)]
 struct Candidate {
@@ -77,7 +86,14 @@ struct Candidate {
     stuck: bool,
     /// Some frame showed it against its neighbours.
     contrast: bool,
+    /// Dead: bit `k` set when neighbour `k` ([`NEIGHBOURS`]) read at least
+    /// [`DEAD_CONTRAST_CODES`] in some frame.
+    lit: u8,
 }
+
+/// The eight neighbours' offsets, in the order of [`Candidate::lit`]'s bits.
+const NEIGHBOURS: [(i64, i64); 8] =
+    [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)];
 
 /// Finds defective pixels over a series of frames of the same camera.
 #[derive(Debug)]
@@ -90,6 +106,8 @@ pub struct DefectFinder {
     candidates: Vec<Candidate>,
     /// A frame of another size arrived: nothing can be decided.
     mixed: bool,
+    /// The frames show a uniform target: dead clusters are looked for.
+    clusters: bool,
 }
 
 /// Why a finder recorded no defects although it may have seen some.
@@ -130,7 +148,18 @@ impl DefectFinder {
             frames: 0,
             candidates: Vec::new(),
             mixed: false,
+            clusters: false,
         }
+    }
+
+    /// A finder over frames of a uniform target (a calibration's diffuse
+    /// white), which finds dead **clusters** too: pixels within a
+    /// [`MAX_CLUSTER_SIDE`]-pixel square that read 0 in every frame, and
+    /// around which every pixel but [`MAX_ALIKE_NEIGHBOURS`] was lit in
+    /// some frame. On a sample that is what a small black spot looks like,
+    /// so [`DefectFinder::new`] takes no more than pairs.
+    pub fn uniform_target(geometry: &ScannerGeometry, width: u32, height: u32) -> DefectFinder {
+        DefectFinder { clusters: true, ..DefectFinder::new(geometry, width, height) }
     }
 
     /// Take one more frame into account (values as stored: fractions of
@@ -164,11 +193,13 @@ impl DefectFinder {
                 value: v as u32,
                 stuck: true,
                 contrast: false,
+                lit: 0,
             }));
             for &(y, x0, x1) in &self.spans {
                 for v in 3 * (y * self.width + x0)..3 * (y * self.width + x1) {
                     if code(v) == 0 {
-                        self.candidates.push(Candidate { value: v, stuck: false, contrast: false });
+                        let c = Candidate { value: v, stuck: false, contrast: false, lit: 0 };
+                        self.candidates.push(c);
                     }
                 }
             }
@@ -179,7 +210,10 @@ impl DefectFinder {
         }
         let dead_level = (DEAD_CONTRAST_CODES / self.max_code) as f32 / scale;
         for c in &mut self.candidates {
-            if c.contrast {
+            // On a uniform target a dead value keeps gathering which of its
+            // neighbours were lit, for the cluster rule.
+            let gathering = self.clusters && !c.stuck;
+            if c.contrast && !gathering {
                 continue;
             }
             let (p, ch) = ((c.value / 3) as usize, (c.value % 3) as usize);
@@ -190,14 +224,18 @@ impl DefectFinder {
                 if c.stuck { crate::hdr::adc_code(v, maxf, top) == top } else { v < dead_level }
             };
             let (mut sum, mut n, mut alike) = (0.0f32, 0u32, 0u32);
-            for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
-                for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
-                    if (nx, ny) != (x, y) {
-                        let v = frame.rgb[3 * (ny * w + nx) + ch];
-                        sum += v;
-                        n += 1;
-                        alike += u32::from(like(v));
-                    }
+            for (k, (dx, dy)) in NEIGHBOURS.iter().enumerate() {
+                let (nx, ny) = (x as i64 + dx, y as i64 + dy);
+                if nx < 0 || ny < 0 || nx >= w as i64 || ny >= h as i64 {
+                    continue;
+                }
+                let v = frame.rgb[3 * (ny as usize * w + nx as usize) + ch];
+                sum += v;
+                n += 1;
+                let same = like(v);
+                alike += u32::from(same);
+                if !c.stuck && !same {
+                    c.lit |= 1 << k;
                 }
             }
             if n == 0 || alike > MAX_ALIKE_NEIGHBOURS {
@@ -218,7 +256,8 @@ impl DefectFinder {
             return Err(NotDecided::TooFewFrames(self.frames));
         }
         let mut found: Vec<PixelDefect> = Vec::new();
-        for c in self.candidates.iter().filter(|c| c.contrast) {
+        let accepted = self.accepted();
+        for c in self.candidates.iter().filter(|c| accepted.binary_search(&c.value).is_ok()) {
             let p = c.value / 3;
             let kind = if c.stuck { DefectKind::Stuck } else { DefectKind::Dead };
             let d = PixelDefect { x: p % self.width, y: p / self.width, kind };
@@ -236,6 +275,84 @@ impl DefectFinder {
             return Err(NotDecided::TooMany { found: found.len(), examined });
         }
         Ok(found)
+    }
+
+    /// The candidate values (sorted) taken for defects. Candidates group
+    /// into 8-connected clusters of one kind and channel. A single or a
+    /// pair is a defect when each of its values stood out in some frame
+    /// (the pair rule). A larger cluster is a saturated or black patch or
+    /// line of the sample, ends included — except, on a uniform target
+    /// ([`DefectFinder::uniform_target`]), a dead cluster within a
+    /// [`MAX_CLUSTER_SIDE`] square whose surroundings were lit: every pixel
+    /// around it but [`MAX_ALIKE_NEIGHBOURS`] read at least
+    /// [`DEAD_CONTRAST_CODES`] in some frame.
+    fn accepted(&self) -> Vec<u32> {
+        let (w, h) = (self.width as i64, self.height as i64);
+        let inside = |x: i64, y: i64| x >= 0 && y >= 0 && x < w && y < h;
+        let by_value: std::collections::HashMap<u32, &Candidate> =
+            self.candidates.iter().map(|c| (c.value, c)).collect();
+        let mut seen = std::collections::HashSet::new();
+        let mut out = Vec::new();
+        for c in &self.candidates {
+            if !seen.insert(c.value) {
+                continue;
+            }
+            // The cluster: a flood over candidates of the same kind and
+            // channel.
+            let ch = c.value % 3;
+            let mut cluster = vec![c.value];
+            let mut i = 0;
+            while i < cluster.len() {
+                let p = (cluster[i] / 3) as i64;
+                for (dx, dy) in NEIGHBOURS {
+                    let (nx, ny) = (p % w + dx, p / w + dy);
+                    if !inside(nx, ny) {
+                        continue;
+                    }
+                    let v = 3 * (ny * w + nx) as u32 + ch;
+                    if by_value.get(&v).is_some_and(|n| n.stuck == c.stuck) && seen.insert(v) {
+                        cluster.push(v);
+                    }
+                }
+                i += 1;
+            }
+            if cluster.len() <= 2 {
+                out.extend(cluster.iter().filter(|v| by_value[v].contrast));
+                continue;
+            }
+            if !self.clusters || c.stuck {
+                continue;
+            }
+            let span = |coord: &dyn Fn(i64) -> i64| {
+                let (lo, hi) = cluster
+                    .iter()
+                    .map(|&v| coord((v / 3) as i64))
+                    .fold((i64::MAX, i64::MIN), |(l, h), x| (l.min(x), h.max(x)));
+                hi - lo + 1
+            };
+            let side = MAX_CLUSTER_SIDE as i64;
+            if span(&|p| p % w) > side || span(&|p| p / w) > side {
+                continue;
+            }
+            // The pixels around it, and whether some frame lit them.
+            let mut around: std::collections::HashMap<i64, bool> = Default::default();
+            for &v in &cluster {
+                let p = (v / 3) as i64;
+                for (k, (dx, dy)) in NEIGHBOURS.iter().enumerate() {
+                    let (nx, ny) = (p % w + dx, p / w + dy);
+                    let q = ny * w + nx;
+                    if inside(nx, ny) && !cluster.contains(&(3 * q as u32 + ch)) {
+                        *around.entry(q).or_default() |= by_value[&v].lit & (1 << k) != 0;
+                    }
+                }
+            }
+            let unlit = around.values().filter(|&&lit| !lit).count();
+            if unlit as u32 <= MAX_ALIKE_NEIGHBOURS {
+                out.extend(cluster);
+            }
+        }
+        out.sort_unstable();
+        out
     }
 }
 
@@ -506,6 +623,65 @@ mod tests {
             black.add(&Frame { width: w, height: h, rgb: vec![0.0; (3 * w * h) as usize] });
         }
         assert_eq!(black.defects().unwrap(), vec![]);
+    }
+
+    #[test]
+    fn a_uniform_targets_frames_show_dead_clusters() {
+        let g = geometry();
+        let (w, h) = (g.camera.width, g.camera.height);
+        let at = |view: usize, uv: [f64; 2]| {
+            let p = g.view_point(view, uv).unwrap();
+            (p[0] as u32, p[1] as u32)
+        };
+        let shape = |(x, y): (u32, u32), offsets: &[(u32, u32)]| -> Vec<(u32, u32)> {
+            offsets.iter().map(|&(dx, dy)| (x + dx, y + dy)).collect()
+        };
+        let clusters = [
+            shape(at(2, [0.5, 0.5]), &[(0, 0), (1, 0), (2, 0)]), // a row of 3
+            shape(at(9, [0.4, 0.6]), &[(0, 0), (1, 0), (0, 1), (1, 1)]), // 2 × 2
+            shape(at(14, [0.5, 0.5]), &[(1, 0), (0, 1), (1, 1), (2, 1), (1, 2)]), // a plus
+            shape(at(22, [0.5, 0.5]), &[(0, 0), (1, 1), (2, 2)]), // a diagonal
+            (0..3)
+                .flat_map(|y| (0..3).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    let (cx, cy) = at(27, [0.5, 0.5]);
+                    (cx + x, cy + y)
+                })
+                .collect(), // 3 × 3
+        ];
+        // Too big for a cluster: 4 in a row, and a 4 × 4 block.
+        let too_big = [
+            shape(at(31, [0.5, 0.5]), &[(0, 0), (1, 0), (2, 0), (3, 0)]),
+            (0..4)
+                .flat_map(|y| (0..4).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    let (cx, cy) = at(36, [0.5, 0.5]);
+                    (cx + x, cy + y)
+                })
+                .collect::<Vec<_>>(),
+        ];
+        let run = |mut finder: DefectFinder| {
+            for k in 0..6 {
+                let mut f = frame(&g, 0.3 + 0.05 * k as f32, k);
+                for (x, y) in clusters.iter().chain(&too_big).flatten() {
+                    let i = 3 * (y * w + x) as usize;
+                    f.rgb[i..i + 3].fill(0.0);
+                }
+                finder.add(&f);
+            }
+            finder.defects().unwrap()
+        };
+        let mut want: Vec<PixelDefect> = clusters
+            .iter()
+            .flatten()
+            .map(|&(x, y)| PixelDefect { x, y, kind: DefectKind::Dead })
+            .collect();
+        want.sort_by_key(|d| (d.y, d.x));
+        assert_eq!(run(DefectFinder::uniform_target(&g, w, h)), want);
+        // On a sample a cluster is a black spot: none of it is taken, not
+        // even the ends of a row, whose one dead neighbour the pair rule
+        // allows.
+        assert_eq!(run(DefectFinder::new(&g, w, h)), vec![]);
     }
 
     #[test]

@@ -426,7 +426,7 @@ fn sensor_defects(
         return Ok(white.defects().to_vec());
     }
     let (w, h) = (g.camera.width, g.camera.height);
-    let mut finder = DefectFinder::new(g, w, h);
+    let mut finder = DefectFinder::uniform_target(g, w, h);
     let lights = white.lights();
     progress.stage("sensor defects", lights.len());
     // Two frames at a time (each a full frame in memory), in order.
