@@ -132,6 +132,18 @@ pub enum NotDecided {
         /// Pixels examined.
         examined: usize,
     },
+    /// A dark frame whose typical pixel is above [`DARK_MEDIAN_CODES`]:
+    /// the camera's frames carry a black level, or light reaches the
+    /// sensor with the scanner's light off.
+    #[error(
+        "its median pixel reads {median_codes} codes, not 0: the camera's frames carry a black \
+         level (its capture program must subtract it, docs/scan-format.md) or light reaches the \
+         sensor with the scanner's light off"
+    )]
+    NotDark {
+        /// The median of every value, ADC codes.
+        median_codes: u32,
+    },
 }
 
 impl DefectFinder {
@@ -361,12 +373,34 @@ impl DefectFinder {
 /// sample 250× darker than full scale gives (read noise: 1.2 codes RMS).
 pub const HOT_CODES: f64 = 16.0;
 
+/// A dark frame's median value above this many ADC codes is not dark (read
+/// noise alone: 1.2 codes RMS, a median of 0 or 1).
+pub const DARK_MEDIAN_CODES: u32 = 4;
+
 /// The hot pixels a dark frame shows (values as stored: fractions of full
 /// scale): any channel at [`HOT_CODES`] or more; at the top code, stuck.
-/// More than [`MAX_FRACTION`] of the frame: not a sensor's defects (a
-/// light left on, a camera that does not see the dark).
+/// A median above [`DARK_MEDIAN_CODES`]: not dark (a black level, stray
+/// light). More than [`MAX_FRACTION`] of the frame: not a sensor's defects
+/// (a light left on).
 pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefect>, NotDecided> {
     let (w, maxf, top) = (frame.width.max(1) as usize, max_code as f32, max_code as usize);
+    // The median code, from a histogram of every value.
+    let mut histogram = vec![0usize; top + 1];
+    for &v in &frame.rgb {
+        histogram[crate::hdr::adc_code(v, maxf, top)] += 1;
+    }
+    let half = frame.rgb.len().div_ceil(2);
+    let (mut below, mut median) = (0, 0);
+    for (code, &n) in histogram.iter().enumerate() {
+        below += n;
+        if below >= half {
+            median = code;
+            break;
+        }
+    }
+    if median as u32 > DARK_MEDIAN_CODES {
+        return Err(NotDecided::NotDark { median_codes: median as u32 });
+    }
     let found: Vec<PixelDefect> = frame
         .rgb
         .chunks_exact(3)
@@ -700,9 +734,21 @@ mod tests {
                 PixelDefect { x: 40, y: 5, kind: DefectKind::Stuck },
             ]
         );
-        // The light left on: everything "hot", nothing recorded.
-        let lit = Frame { width: 64, height: 8, rgb: vec![0.3; 3 * 64 * 8] };
+        // The light left on over a third of the frame (the sample's views):
+        // everything there "hot", nothing recorded.
+        let mut lit = f.clone();
+        lit.rgb[..3 * 64 * 3].fill(0.3);
         assert!(matches!(dark_frame_defects(&lit, max), Err(NotDecided::TooMany { .. })));
+        // A black level of 64 codes (or stray light) over the whole frame:
+        // not dark, said with its median.
+        let offset = Frame { rgb: f.rgb.iter().map(|v| v + code(64.0)).collect(), ..f.clone() };
+        assert_eq!(
+            dark_frame_defects(&offset, max).unwrap_err(),
+            NotDecided::NotDark { median_codes: 66 }
+        );
+        // A median of a few codes is still dark.
+        let low = Frame { rgb: f.rgb.iter().map(|v| v + code(2.0)).collect(), ..f.clone() };
+        assert_eq!(dark_frame_defects(&low, max).unwrap().len(), 2);
     }
 
     #[test]
