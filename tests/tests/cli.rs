@@ -192,6 +192,37 @@ fn a_camera_that_never_delivers_exits_8() {
 }
 
 #[test]
+fn a_dark_frame_the_camera_misses_is_said_and_taken_on_resuming() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    // The camera misses the first trigger: the dark frame's.
+    let (code, _, err) = sim_scan(&out, "ignore-trigger:1@trigger=0");
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("no dark frame (camera: no frame within 1s)"), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    assert!(m.complete && m.settings.dark.is_none(), "{:?}", m.settings.dark);
+    // Resumed, the scan takes it: a flawless sensor's, at the scan's exposure.
+    let (code, _, err) = run(&[
+        "scan",
+        "--device",
+        "sim",
+        "--sim-bin",
+        "8",
+        "--sample-name",
+        "x",
+        "--out",
+        &out.display().to_string(),
+        "--mirrors",
+        "4",
+        "--resume",
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+    let m = host::scan::Manifest::load(&out).unwrap();
+    let dark = m.settings.dark.expect("a dark frame on resuming");
+    assert_eq!((dark.exposure_us, dark.defects.len()), (protocol::DEFAULT_EXPOSURE_US, 0));
+}
+
+#[test]
 fn a_bad_fault_spec_is_a_usage_error() {
     let dir = tmp();
     let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "explode@trigger=1");
