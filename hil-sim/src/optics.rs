@@ -129,6 +129,8 @@ pub struct OpticalSim {
     facets: Vec<Facet>,
     /// The sensor's defective pixels (none unless asked for).
     defects: Arc<[crate::defects::PixelDefect]>,
+    /// A black level left in the frames, ADC codes (0 unless asked for).
+    black_level_codes: u32,
 }
 
 impl OpticalSim {
@@ -161,6 +163,7 @@ impl OpticalSim {
             facets,
             cache: Default::default(),
             defects: Arc::new([]),
+            black_level_codes: 0,
         }
     }
 
@@ -168,6 +171,13 @@ impl OpticalSim {
     /// noise-free [`OpticalSim::expected`] stays the light's truth).
     pub fn with_defects(self, defects: Vec<crate::defects::PixelDefect>) -> OpticalSim {
         OpticalSim { defects: defects.into(), ..self }
+    }
+
+    /// The same scanner whose camera leaves a black level of `codes` in its
+    /// frames (a capture program that does not subtract it; frames only).
+    /// The ADC still clips at its top code.
+    pub fn with_black_level(self, codes: u32) -> OpticalSim {
+        OpticalSim { black_level_codes: codes, ..self }
     }
 
     /// The simulator of a scanner built to `nominal` with the default
@@ -484,6 +494,13 @@ impl OpticalSim {
             exposure.exposure_s,
             &self.geometry.sensor,
         );
+        if self.black_level_codes > 0 {
+            let max = self.geometry.sensor.max_code();
+            let offset = self.black_level_codes as f64;
+            for v in &mut frame.rgb {
+                *v = (((*v as f64 * max).round() + offset).min(max) / max) as f32;
+            }
+        }
         frame
     }
 

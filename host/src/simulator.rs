@@ -51,6 +51,9 @@ pub struct SimSetup {
     pub faults: FaultPlan,
     /// The sensor's defective pixels (`hil_sim::defects`; none by default).
     pub defects: Vec<DefectSpec>,
+    /// A black level the camera leaves in its frames, ADC codes (0: none,
+    /// as docs/scan-format.md asks).
+    pub black_level_codes: u32,
 }
 
 impl SimSetup {
@@ -62,6 +65,7 @@ impl SimSetup {
             bin: 1,
             faults: FaultPlan::none(),
             defects: Vec::new(),
+            black_level_codes: 0,
         }
     }
 
@@ -79,7 +83,16 @@ impl SimSetup {
         let (w, h) = (nominal.camera.width, nominal.camera.height);
         let defects =
             hil_sim::defects::place(&self.defects, w, h, self.seed).map_err(SimError::Usage)?;
-        Ok(OpticalSim::as_built(&nominal, Sample::small(material), self.seed).with_defects(defects))
+        let max = nominal.sensor.max_code();
+        if self.black_level_codes as f64 >= max {
+            return Err(SimError::Usage(format!(
+                "a black level of {} codes is not below the top code {max}",
+                self.black_level_codes
+            )));
+        }
+        Ok(OpticalSim::as_built(&nominal, Sample::small(material), self.seed)
+            .with_defects(defects)
+            .with_black_level(self.black_level_codes))
     }
 
     fn config(&self) -> SimConfig {

@@ -223,6 +223,38 @@ fn a_dark_frame_the_camera_misses_is_said_and_taken_on_resuming() {
 }
 
 #[test]
+fn a_camera_that_leaves_its_black_level_in_gets_no_hot_pixels_and_is_told() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let args = |out: &std::path::Path, level: &'static str| -> Vec<String> {
+        ["scan", "--device", "sim", "--sim-bin", "8", "--sample-name", "x", "--mirrors", "2"]
+            .iter()
+            .map(|s| s.to_string())
+            .chain(["--sim-black-level".into(), level.into(), "--out".into()])
+            .chain([out.display().to_string()])
+            .collect()
+    };
+    let argv = args(&out, "64");
+    let (code, _, err) = run(&argv.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(code, Some(0), "{err}");
+    // Read noise around 64 codes: the median is 64.
+    assert!(
+        err.contains("dark frame: its median pixel reads 64 codes, not 0: the camera's frames carry a black level"),
+        "{err}"
+    );
+    let m = host::scan::Manifest::load(&out).unwrap();
+    let dark = m.settings.dark.expect("the dark frame recorded");
+    assert!(dark.defects.is_empty(), "{:?}", dark.defects);
+    // A level at or above the top code is refused before anything is written.
+    let bad = sub(dir.path(), "bad");
+    let argv = args(&bad, "4095");
+    let (code, _, err) = run(&argv.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("not below the top code 4095"), "{err}");
+    assert!(!bad.join("manifest.json").exists());
+}
+
+#[test]
 fn a_bad_fault_spec_is_a_usage_error() {
     let dir = tmp();
     let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "explode@trigger=1");

@@ -62,10 +62,15 @@ pub struct DeviceArgs {
     /// Simulator: a fault to inject, e.g. `reset@trigger=10` (repeatable).
     #[arg(long = "sim-fault")]
     pub sim_faults: Vec<FaultSpec>,
-    /// Simulator: a defective sensor pixel, `stuck:X,Y`, `dead:X,Y` or
-    /// `random:N` (N of each, seeded) (repeatable).
+    /// Simulator: a defective sensor pixel, `stuck:X,Y`, `dead:X,Y`,
+    /// `hot:X,Y,E_PER_S` or `random:N` (N stuck and N dead, seeded)
+    /// (repeatable).
     #[arg(long = "sim-defect")]
     pub sim_defects: Vec<DefectSpec>,
+    /// Simulator: a black level of CODES left in the camera's frames (a
+    /// capture program that does not subtract it).
+    #[arg(long, default_value_t = 0, value_name = "CODES")]
+    pub sim_black_level: u32,
 }
 
 impl DeviceArgs {
@@ -84,6 +89,7 @@ impl DeviceArgs {
             bin: self.sim_bin,
             faults,
             defects: self.sim_defects.clone(),
+            black_level_codes: self.sim_black_level,
         })
     }
 }
@@ -780,6 +786,7 @@ pub fn demo(
             sim_corrupt: 0.0,
             sim_faults: Vec::new(),
             sim_defects: Vec::new(),
+            sim_black_level: 0,
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
