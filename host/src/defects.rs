@@ -384,10 +384,25 @@ pub const DARK_MEDIAN_CODES: u32 = 4;
 /// (a light left on).
 pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefect>, NotDecided> {
     let (w, maxf, top) = (frame.width.max(1) as usize, max_code as f32, max_code as usize);
-    // The median code, from a histogram of every value.
+    // One pass: a histogram of every value's code (for the median), and
+    // the pixels with a channel at the hot level.
     let mut histogram = vec![0usize; top + 1];
-    for &v in &frame.rgb {
-        histogram[crate::hdr::adc_code(v, maxf, top)] += 1;
+    let mut found: Vec<PixelDefect> = Vec::new();
+    for (p, rgb) in frame.rgb.chunks_exact(3).enumerate() {
+        let mut code = 0;
+        for &v in rgb {
+            let c = crate::hdr::adc_code(v, maxf, top);
+            histogram[c] += 1;
+            code = code.max(c);
+        }
+        let kind = if code == top {
+            DefectKind::Stuck
+        } else if code as f64 >= HOT_CODES {
+            DefectKind::Hot
+        } else {
+            continue;
+        };
+        found.push(PixelDefect { x: (p % w) as u32, y: (p / w) as u32, kind });
     }
     let half = frame.rgb.len().div_ceil(2);
     let (mut below, mut median) = (0, 0);
@@ -401,22 +416,6 @@ pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefec
     if median as u32 > DARK_MEDIAN_CODES {
         return Err(NotDecided::NotDark { median_codes: median as u32 });
     }
-    let found: Vec<PixelDefect> = frame
-        .rgb
-        .chunks_exact(3)
-        .enumerate()
-        .filter_map(|(p, rgb)| {
-            let code = rgb.iter().map(|&v| crate::hdr::adc_code(v, maxf, top)).max()?;
-            let kind = if code == top {
-                DefectKind::Stuck
-            } else if code as f64 >= HOT_CODES {
-                DefectKind::Hot
-            } else {
-                return None;
-            };
-            Some(PixelDefect { x: (p % w) as u32, y: (p / w) as u32, kind })
-        })
-        .collect();
     let examined = frame.rgb.len() / 3;
     if found.len() as f64 > MAX_FRACTION * examined as f64 {
         return Err(NotDecided::TooMany { found: found.len(), examined });

@@ -150,24 +150,17 @@ fn incompatible_firmware_exits_6_with_both_versions() {
     );
 }
 
+/// A 4-mirror 512² simulated scan into `out`, with `extra` options.
+fn sim_scan_with(out: &std::path::Path, extra: &[&str]) -> (Option<i32>, String, String) {
+    let out = out.display().to_string();
+    let mut args = vec!["scan", "--device", "sim", "--sim-bin", "8", "--sample-name", "x"];
+    args.extend(["--out", &out, "--mirrors", "4"]);
+    args.extend(extra);
+    run(&args)
+}
+
 fn sim_scan(out: &std::path::Path, fault: &str) -> (Option<i32>, String, String) {
-    run(&[
-        "scan",
-        "--device",
-        "sim",
-        "--sim-bin",
-        "8",
-        "--sim-fault",
-        fault,
-        "--sample-name",
-        "x",
-        "--out",
-        &out.display().to_string(),
-        "--mirrors",
-        "4",
-        "--frame-timeout",
-        "1",
-    ])
+    sim_scan_with(out, &["--sim-fault", fault, "--frame-timeout", "1"])
 }
 
 #[test]
@@ -202,20 +195,7 @@ fn a_dark_frame_the_camera_misses_is_said_and_taken_on_resuming() {
     let m = host::scan::Manifest::load(&out).unwrap();
     assert!(m.complete && m.settings.dark.is_none(), "{:?}", m.settings.dark);
     // Resumed, the scan takes it: a flawless sensor's, at the scan's exposure.
-    let (code, _, err) = run(&[
-        "scan",
-        "--device",
-        "sim",
-        "--sim-bin",
-        "8",
-        "--sample-name",
-        "x",
-        "--out",
-        &out.display().to_string(),
-        "--mirrors",
-        "4",
-        "--resume",
-    ]);
+    let (code, _, err) = sim_scan_with(&out, &["--resume"]);
     assert_eq!(code, Some(0), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();
     let dark = m.settings.dark.expect("a dark frame on resuming");
@@ -226,16 +206,7 @@ fn a_dark_frame_the_camera_misses_is_said_and_taken_on_resuming() {
 fn a_camera_that_leaves_its_black_level_in_gets_no_hot_pixels_and_is_told() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
-    let args = |out: &std::path::Path, level: &'static str| -> Vec<String> {
-        ["scan", "--device", "sim", "--sim-bin", "8", "--sample-name", "x", "--mirrors", "2"]
-            .iter()
-            .map(|s| s.to_string())
-            .chain(["--sim-black-level".into(), level.into(), "--out".into()])
-            .chain([out.display().to_string()])
-            .collect()
-    };
-    let argv = args(&out, "64");
-    let (code, _, err) = run(&argv.iter().map(String::as_str).collect::<Vec<_>>());
+    let (code, _, err) = sim_scan_with(&out, &["--sim-black-level", "64"]);
     assert_eq!(code, Some(0), "{err}");
     // Read noise around 64 codes: the median is 64.
     assert!(
@@ -247,8 +218,7 @@ fn a_camera_that_leaves_its_black_level_in_gets_no_hot_pixels_and_is_told() {
     assert!(dark.defects.is_empty(), "{:?}", dark.defects);
     // A level at or above the top code is refused before anything is written.
     let bad = sub(dir.path(), "bad");
-    let argv = args(&bad, "4095");
-    let (code, _, err) = run(&argv.iter().map(String::as_str).collect::<Vec<_>>());
+    let (code, _, err) = sim_scan_with(&bad, &["--sim-black-level", "4095"]);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("not below the top code 4095"), "{err}");
     assert!(!bad.join("manifest.json").exists());
