@@ -185,7 +185,7 @@ impl TextureSet {
     /// Load and check a texture-set directory.
     pub fn load(dir: &Path) -> Result<TextureSet, TextureSetError> {
         let manifest_path = dir.join("material.toml");
-        let text = std::fs::read_to_string(&manifest_path)
+        let text = scanner_formats::input::read_to_string(&manifest_path)
             .map_err(|e| err(&manifest_path, format!("cannot read: {e}")))?;
         let m: Manifest =
             toml::from_str(&text).map_err(|e| err(&manifest_path, e.message().to_string()))?;

@@ -142,7 +142,7 @@ pub fn read_rgb_within(
     use half::slice::HalfFloatSliceExt;
     use rayon::prelude::*;
 
-    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let file = scanner_formats::input::open(path).map_err(|e| e.to_string())?;
     let reader =
         exr::block::read(std::io::BufReader::new(file), false).map_err(|e| e.to_string())?;
     let (layer, w, h, line_bytes, rgb_channels) = {

@@ -392,7 +392,7 @@ impl Manifest {
     }
 
     fn load_file(path: &Path) -> Result<Manifest, LoadError> {
-        let bytes = match std::fs::read(path) {
+        let bytes = match scanner_formats::input::read(path) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(LoadError::Missing),
             Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
@@ -440,7 +440,7 @@ impl Manifest {
             let _ = std::fs::remove_file(&tmp);
             let rotated = match std::fs::hard_link(&path, &tmp) {
                 Ok(()) => std::fs::rename(&tmp, &prev),
-                Err(_) => std::fs::read(&path).and_then(|b| write_atomic(&prev, &b)),
+                Err(_) => scanner_formats::input::read(&path).and_then(|b| write_atomic(&prev, &b)),
             };
             rotated.and_then(|()| crate::fsutil::sync_dir(dir)).map_err(|e| io_error(&prev, e))?;
         }
@@ -1536,7 +1536,7 @@ enum FrameState {
 }
 
 fn frame_state(dir: &Path, f: &FrameRecord) -> FrameState {
-    match std::fs::read(dir.join(&f.file)) {
+    match scanner_formats::input::read(&dir.join(&f.file)) {
         Ok(bytes) if sha256_hex(&bytes) == f.sha256 => FrameState::Intact,
         Ok(_) => FrameState::Damaged,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => FrameState::Missing,
@@ -1677,19 +1677,33 @@ fn retake(
     progress.retaking(&again);
 }
 
-/// "mirror 3" or "mirrors 0–9" or "mirrors 1, 4, 7".
+/// "mirror 3", "mirrors 0–9" or "mirrors 1, 4–7, 9": runs of consecutive
+/// mirrors, at most [`MIRROR_LIST_RUNS`] of them.
 pub fn mirror_list(mirrors: &[usize]) -> String {
-    let contiguous = mirrors.windows(2).all(|w| w[1] == w[0] + 1);
+    // Runs of consecutive mirrors, as `a` or `a–b`.
+    let mut runs: Vec<(usize, usize)> = Vec::new();
+    for &m in mirrors {
+        match runs.last_mut() {
+            Some((_, last)) if m == *last + 1 => *last = m,
+            _ => runs.push((m, m)),
+        }
+    }
+    let say = |&(a, b): &(usize, usize)| if a == b { a.to_string() } else { format!("{a}–{b}") };
+    let shown: Vec<String> = runs.iter().take(MIRROR_LIST_RUNS).map(say).collect();
+    let more = if runs.len() > MIRROR_LIST_RUNS {
+        format!(", … ({} mirrors in all)", mirrors.len())
+    } else {
+        String::new()
+    };
     match mirrors {
         [] => "no mirror".into(),
         [m] => format!("mirror {m}"),
-        [first, .., last] if contiguous => format!("mirrors {first}–{last}"),
-        _ => format!(
-            "mirrors {}",
-            mirrors.iter().map(|m| m.to_string()).collect::<Vec<_>>().join(", ")
-        ),
+        _ => format!("mirrors {}{more}", shown.join(", ")),
     }
 }
+
+/// [`mirror_list`] names this many runs at most.
+const MIRROR_LIST_RUNS: usize = 12;
 
 /// A frame to encode and store, with its record (checksum and size to fill).
 struct WriteJob {
@@ -2077,6 +2091,22 @@ fn trigger_step(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn mirror_lists_name_runs_and_stay_short() {
+        assert_eq!(mirror_list(&[]), "no mirror");
+        assert_eq!(mirror_list(&[3]), "mirror 3");
+        assert_eq!(mirror_list(&[0, 1, 2, 3]), "mirrors 0–3");
+        assert_eq!(mirror_list(&[1, 4, 5, 6, 7, 9]), "mirrors 1, 4–7, 9");
+        // A damaged manifest's 100 000 mirrors: one run, not 100 000 numbers.
+        let many: Vec<usize> = (40..100_000).collect();
+        assert_eq!(mirror_list(&many), "mirrors 40–99999");
+        let every_other: Vec<usize> = (0..40).step_by(2).collect();
+        assert_eq!(
+            mirror_list(&every_other),
+            "mirrors 0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, … (20 mirrors in all)"
+        );
+    }
 
     #[test]
     fn a_full_disk_has_its_own_error_and_exit_code() {

@@ -188,6 +188,77 @@ fn outputs_refuse_device_nodes_symlinks_and_their_inputs_before_any_work() {
 
 // ----- 4. a folder that holds something else ----------------------------------------
 
+/// `scanner ARGS`, killed (and the test failed) if it has not ended
+/// within 60 s: a command that reads an endless device or waits on a FIFO
+/// would otherwise hang the test run.
+fn run_bounded(args: &[&str]) -> (Option<i32>, String) {
+    let mut child =
+        scanner().args(args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > Duration::from_secs(60) {
+            child.kill().unwrap();
+            panic!("scanner {args:?} still running after 60 s");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+// ----- 4. inputs are read only from regular files --------------------------------
+
+#[test]
+fn inputs_that_are_devices_or_fifos_are_refused_before_anything_is_read() {
+    let dir = tmp();
+    let p = |n: &str| dir.path().join(n).display().to_string();
+    // An endless device behind a name that looks like an input: reading
+    // it to the end would fill the memory.
+    for name in ["zero.binary", "zero.json", "zero.toml"] {
+        std::os::unix::fs::symlink("/dev/zero", dir.path().join(name)).unwrap();
+    }
+    // A FIFO with no writer: opening it to read would wait for ever.
+    let fifo = std::ffi::CString::new(p("fifo.csv")).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o600) }, 0);
+    let scan = dir.path().join("scan");
+    std::fs::create_dir(&scan).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", scan.join("manifest.json")).unwrap();
+    let o = scan.display().to_string();
+    let cases: [(&[&str], &str); 6] = [
+        (&["fit", &p("zero.binary"), "-o", &p("m.json")], "a device, not a regular file"),
+        (&["fit", &p("fifo.csv"), "-o", &p("m.json")], "a FIFO, not a regular file"),
+        (&["render-brdf", &p("zero.json"), "-o", &p("s.png")], "a device, not a regular file"),
+        (&["verify", &o], "a device, not a regular file"),
+        (
+            &[
+                "scan",
+                "--sim-bin",
+                "64",
+                "--geometry",
+                &p("zero.toml"),
+                "--sample-name",
+                "s",
+                "--out",
+                &p("s"),
+            ],
+            "a device, not a regular file",
+        ),
+        (
+            &["calibrate", "--checkerboard", &o, "--white", &o, "-o", &p("c.json")],
+            "a device, not a regular file",
+        ),
+    ];
+    for (args, said) in cases {
+        let (code, err) = run_bounded(args);
+        assert_eq!(code, Some(3), "{args:?}: {err}");
+        assert!(err.contains(said), "{args:?}: {err}");
+    }
+    // Nothing was written.
+    for name in ["m.json", "s.png", "s", "c.json"] {
+        assert!(!dir.path().join(name).exists(), "{name} written");
+    }
+}
+
 #[test]
 fn a_non_empty_folder_without_a_manifest_is_refused_unless_forced() {
     let dir = tmp();

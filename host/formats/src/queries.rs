@@ -139,7 +139,7 @@ pub fn check_extension(path: &Path) -> Result<(), QueryError> {
 
 fn read_bytes(path: &Path) -> Result<Vec<u8>, QueryError> {
     kind(path)?;
-    std::fs::read(path).map_err(|source| QueryError::Io { path: path.to_path_buf(), source })
+    crate::input::read(path).map_err(|source| QueryError::Io { path: path.to_path_buf(), source })
 }
 
 /// Read a query file.

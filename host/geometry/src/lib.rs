@@ -563,7 +563,7 @@ impl ScannerGeometry {
 
     /// Read a geometry file.
     pub fn load(path: &std::path::Path) -> Result<ScannerGeometry, GeometryError> {
-        let text = std::fs::read_to_string(path)
+        let text = scanner_formats::input::read_to_string(path)
             .map_err(|source| GeometryError::Io { path: path.to_path_buf(), source })?;
         Self::from_toml(&text)
     }

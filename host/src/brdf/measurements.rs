@@ -56,14 +56,10 @@ pub fn read_csv(path: &Path) -> Result<Vec<Measurement>, MeasurementError> {
     let name = path.display().to_string();
     let malformed =
         |line: u64, why: String| MeasurementError::Malformed { path: name.clone(), line, why };
-    let mut reader = csv::ReaderBuilder::new()
-        .trim(csv::Trim::All)
-        .comment(Some(b'#'))
-        .from_path(path)
-        .map_err(|e| match e.into_kind() {
-            csv::ErrorKind::Io(source) => MeasurementError::Io { path: name.clone(), source },
-            other => malformed(1, format!("{other:?}")),
-        })?;
+    let file = scanner_formats::input::open(path)
+        .map_err(|source| MeasurementError::Io { path: name.clone(), source })?;
+    let mut reader =
+        csv::ReaderBuilder::new().trim(csv::Trim::All).comment(Some(b'#')).from_reader(file);
     let header = reader.headers().map_err(|e| malformed(1, e.to_string()))?.clone();
     let mut index = [0usize; 9];
     for (slot, column) in index.iter_mut().zip(COLUMNS) {

@@ -113,7 +113,7 @@ impl MerlTable {
     pub fn read(path: &Path) -> Result<MerlTable, MerlError> {
         let name = path.display().to_string();
         let io = |source| MerlError::Io { path: name.clone(), source };
-        let mut file = std::fs::File::open(path).map_err(io)?;
+        let mut file = scanner_formats::input::open(path).map_err(io)?;
         let size = file.metadata().map_err(io)?.len();
         let mut header = [0u8; 12];
         if size < 12 {

@@ -147,8 +147,8 @@ impl NpfModel {
     /// Read a model file.
     pub fn load(path: &Path) -> Result<NpfModel, ModelError> {
         let name = path.display().to_string();
-        let bytes =
-            std::fs::read(path).map_err(|source| ModelError::Io { path: name.clone(), source })?;
+        let bytes = scanner_formats::input::read(path)
+            .map_err(|source| ModelError::Io { path: name.clone(), source })?;
         let file: ModelFile = serde_json::from_slice(&bytes)
             .map_err(|source| ModelError::Json { path: name.clone(), source })?;
         let invalid = |why: String| ModelError::Invalid { path: name.clone(), why };

@@ -834,7 +834,7 @@ pub const REGION_EDGE_PX: f64 = 1.0;
 impl Calibration {
     /// Read and check a calibration file.
     pub fn load(path: &std::path::Path) -> Result<Calibration, BuildError> {
-        let text = std::fs::read_to_string(path)
+        let text = scanner_formats::input::read_to_string(path)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
         let c: Calibration = serde_json::from_str(&text).map_err(|e| {
             BuildError::Input(format!("{}: not a calibration file: {e}", path.display()))

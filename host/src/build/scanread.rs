@@ -31,7 +31,7 @@ impl ScanFrames {
     /// complete, of this geometry, frames of the camera's size.
     pub fn open(dir: &Path, geometry: &ScannerGeometry) -> Result<ScanFrames, BuildError> {
         let path = dir.join(crate::scan::MANIFEST_FILE);
-        let bytes = std::fs::read(&path)
+        let bytes = scanner_formats::input::read(&path)
             .map_err(|e| BuildError::Input(format!("no scan at {}: {e}", dir.display())))?;
         let manifest = Manifest::load(dir).map_err(|e| BuildError::Input(e.to_string()))?;
         let want = geometry.hash();
@@ -44,12 +44,20 @@ impl ScanFrames {
             )));
         }
         let count = manifest.settings.mirror_count;
+        if count > geometry.mirrors.len() {
+            return Err(BuildError::Input(format!(
+                "{}: a scan of {count} mirrors; the scanner has {}",
+                dir.display(),
+                geometry.mirrors.len()
+            )));
+        }
         let missing: Vec<usize> =
             (0..count).filter(|l| !manifest.frames.iter().any(|f| f.mirror == *l)).collect();
         if !missing.is_empty() || !manifest.complete {
             return Err(BuildError::Input(format!(
-                "{}: incomplete scan, frames missing for mirrors {missing:?} (finish it with --resume)",
-                dir.display()
+                "{}: incomplete scan, frames missing for {} (finish it with --resume)",
+                dir.display(),
+                crate::scan::mirror_list(&missing)
             )));
         }
         for f in &manifest.frames {

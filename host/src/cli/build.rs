@@ -274,7 +274,8 @@ pub struct Built {
 
 fn sha256_file(path: &Path) -> Result<String, Failure> {
     use sha2::Digest;
-    let bytes = std::fs::read(path).map_err(|e| Failure(3, anyhow!("{}: {e}", path.display())))?;
+    let bytes = scanner_formats::input::read(path)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", path.display())))?;
     Ok(crate::scan::hex(&sha2::Sha256::digest(&bytes)))
 }
 
