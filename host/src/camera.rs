@@ -46,6 +46,73 @@ pub trait Camera: Send {
     fn describe(&self) -> String;
 }
 
+/// A camera whose frames carry a black level (an offset of `codes` ADC codes
+/// its capture program leaves in): every value has it subtracted, at 0 at
+/// least, except those at the top code, which stay there as saturated
+/// (the format's values: docs/scan-format.md).
+pub struct BlackLevel<'a> {
+    inner: &'a mut dyn Camera,
+    /// The offset, as a fraction of full scale.
+    offset: f32,
+    max_code: f32,
+}
+
+impl std::fmt::Debug for BlackLevel<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BlackLevel")
+            .field("camera", &self.inner.describe())
+            .field("codes", &(self.offset * self.max_code))
+            .finish()
+    }
+}
+
+impl<'a> BlackLevel<'a> {
+    /// `inner`'s frames less `codes` (`max_code`: the sensor's top code).
+    pub fn new(inner: &'a mut dyn Camera, codes: u32, max_code: f64) -> BlackLevel<'a> {
+        BlackLevel { inner, offset: (codes as f64 / max_code) as f32, max_code: max_code as f32 }
+    }
+}
+
+/// Subtract `offset` (a fraction of full scale) from every value of
+/// `frame` below the top code `max_code` (at 0 at least); values at the top
+/// code (saturated) are left as they are; NaN becomes 0 (as the merge
+/// reads it).
+pub fn subtract_black_level(frame: &mut Frame, offset: f32, max_code: f32) {
+    if offset <= 0.0 {
+        return;
+    }
+    let top = max_code as usize;
+    for v in &mut frame.rgb {
+        if crate::hdr::adc_code(*v, max_code, top) < top {
+            *v = (*v - offset).max(0.0);
+        }
+    }
+}
+
+impl Camera for BlackLevel<'_> {
+    fn arm(&mut self) -> Result<(), CameraError> {
+        self.inner.arm()
+    }
+
+    fn triggered(&mut self) {
+        self.inner.triggered()
+    }
+
+    fn drain(&mut self, max: Duration) {
+        self.inner.drain(max)
+    }
+
+    fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError> {
+        let mut frame = self.inner.wait_frame(timeout)?;
+        subtract_black_level(&mut frame, self.offset, self.max_code);
+        Ok(frame)
+    }
+
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+}
+
 /// The simulator's camera (in-process; frames rendered when the trigger
 /// pulse ends; time is the simulator's).
 #[cfg(feature = "sim")]
@@ -168,5 +235,42 @@ impl Camera for FolderCamera {
 
     fn describe(&self) -> String {
         format!("folder {}", self.dir.display())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_black_level_is_subtracted_below_the_top_code_only() {
+        let max = 4095.0f32;
+        let code = |c: f32| c / max;
+        let mut f = Frame {
+            width: 2,
+            height: 2,
+            rgb: vec![
+                code(64.0),
+                code(60.0),
+                code(1064.0),
+                code(4095.0),
+                code(4094.0),
+                f32::NAN,
+                code(0.0),
+                code(64.5),
+                code(100.0),
+                code(3000.0),
+                code(70.0),
+                code(64.0),
+            ],
+        };
+        subtract_black_level(&mut f, code(64.0), max);
+        let codes: Vec<f32> = f.rgb.iter().map(|v| (v * max * 100.0).round() / 100.0).collect();
+        // Noise below the level clips at 0, like a camera without one; the
+        // top code stays saturated; NaN becomes 0.
+        assert_eq!(
+            codes,
+            [0.0, 0.0, 1000.0, 4095.0, 4030.0, 0.0, 0.0, 0.5, 36.0, 2936.0, 6.0, 0.0]
+        );
     }
 }

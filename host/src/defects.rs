@@ -137,8 +137,8 @@ pub enum NotDecided {
     /// sensor with the scanner's light off.
     #[error(
         "its median pixel reads {median_codes} codes, not 0: the camera's frames carry a black \
-         level (its capture program must subtract it, docs/scan-format.md) or light reaches the \
-         sensor with the scanner's light off"
+         level (scan with --black-level {median_codes}, or have its capture program subtract it; \
+         docs/scan-format.md) or light reaches the sensor with the scanner's light off"
     )]
     NotDark {
         /// The median of every value, ADC codes.

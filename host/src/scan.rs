@@ -176,6 +176,15 @@ pub struct ScanSettings {
     /// yet, or it could not be).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dark: Option<DarkRecord>,
+    /// The black level (ADC codes) the camera's frames carried and the
+    /// scan subtracted from every value as it arrived (`--black-level`);
+    /// the stored frames are without it.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub black_level_codes: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 /// A scan's dark frame: the light off, a bare trigger of the longest
@@ -256,6 +265,11 @@ impl ScanSettings {
                 format!("{:?} µs", other.bracket_us),
             );
         }
+        field(
+            "black level",
+            format!("{} codes", self.black_level_codes),
+            format!("{} codes", other.black_level_codes),
+        );
         let sim = |s: &Option<String>| s.clone().unwrap_or_else(|| "a real scanner".into());
         field("scanner", sim(&self.simulator), sim(&other.simulator));
         out
@@ -523,6 +537,9 @@ pub struct ScanOptions {
     pub force: bool,
     /// What the simulated scanner simulates (recorded in the settings).
     pub simulator: Option<String>,
+    /// The camera's frames carry this black level (ADC codes): subtract it
+    /// from every value ([`crate::camera::BlackLevel`]).
+    pub black_level_codes: u32,
     /// Set (e.g. by Ctrl-C) to stop after the frame in progress, keeping
     /// every frame taken.
     pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
@@ -546,6 +563,7 @@ impl ScanOptions {
             check_every: DEFAULT_CHECK_EVERY,
             force: false,
             simulator: None,
+            black_level_codes: 0,
             interrupt: None,
         }
     }
@@ -1061,7 +1079,17 @@ pub fn scan(
         auto_exposure: opts.auto_exposure,
         metering: None,
         dark: None,
+        black_level_codes: opts.black_level_codes,
     };
+    let max_code = geometry.sensor.max_code();
+    if opts.black_level_codes as f64 >= max_code {
+        return Err(ScanError::Conflict(format!(
+            "black level {} codes: at or above the sensor's top code {max_code}",
+            opts.black_level_codes
+        )));
+    }
+    let mut subtracting = crate::camera::BlackLevel::new(camera, opts.black_level_codes, max_code);
+    let camera: &mut dyn Camera = &mut subtracting;
     let floor_us = crate::exposure::shortest_us(opts.light_duty_permille);
     if let Some(&bad) = opts
         .bracket_us

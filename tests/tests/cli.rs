@@ -208,9 +208,10 @@ fn a_camera_that_leaves_its_black_level_in_gets_no_hot_pixels_and_is_told() {
     let out = sub(dir.path(), "scan");
     let (code, _, err) = sim_scan_with(&out, &["--sim-black-level", "64"]);
     assert_eq!(code, Some(0), "{err}");
-    // Read noise around 64 codes: the median is 64.
+    // Read noise around 64 codes: the median is 64; the scan says how to
+    // take it out.
     assert!(
-        err.contains("dark frame: its median pixel reads 64 codes, not 0: the camera's frames carry a black level"),
+        err.contains("dark frame: its median pixel reads 64 codes, not 0: the camera's frames carry a black level (scan with --black-level 64"),
         "{err}"
     );
     let m = host::scan::Manifest::load(&out).unwrap();
@@ -222,6 +223,59 @@ fn a_camera_that_leaves_its_black_level_in_gets_no_hot_pixels_and_is_told() {
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("not below the top code 4095"), "{err}");
     assert!(!bad.join("manifest.json").exists());
+    let (code, _, err) = sim_scan_with(&bad, &["--black-level", "4095"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--black-level 4095: at or above the sensor's top code"), "{err}");
+    assert!(!bad.join("manifest.json").exists());
+}
+
+#[test]
+fn black_level_subtracts_what_the_camera_left_in() {
+    let dir = tmp();
+    let (clean, offset, fixed) =
+        (sub(dir.path(), "clean"), sub(dir.path(), "offset"), sub(dir.path(), "fixed"));
+    for (out, extra) in [
+        (&clean, &[][..]),
+        (&offset, &["--sim-black-level", "64"][..]),
+        (&fixed, &["--sim-black-level", "64", "--black-level", "64"][..]),
+    ] {
+        let (code, _, err) = sim_scan_with(out, extra);
+        assert_eq!(code, Some(0), "{err}");
+        if out == &fixed {
+            assert!(!err.contains("median pixel"), "the dark frame is dark: {err}");
+        }
+    }
+    let fixed_manifest = host::scan::Manifest::load(&fixed).unwrap();
+    assert_eq!(fixed_manifest.settings.black_level_codes, 64);
+    assert!(fixed_manifest.settings.dark.is_some());
+    assert_eq!(host::scan::Manifest::load(&clean).unwrap().settings.black_level_codes, 0);
+    // The same seed renders the same light and noise: with the level taken
+    // out, every value below the offset camera's clipping point is the clean
+    // camera's to the code; left in, the frames read 64 codes high.
+    let codes = |dir: &std::path::Path, l: usize| {
+        let f = host::exrio::read_rgb(&dir.join(format!("frames/mirror-{l:02}.exr"))).unwrap();
+        f.rgb.iter().map(|v| v * 4095.0).collect::<Vec<f32>>()
+    };
+    for l in 0..4 {
+        let (c, o, x) = (codes(&clean, l), codes(&offset, l), codes(&fixed, l));
+        let mut worst = 0.0f32;
+        let (mut bias_left, mut n) = (0.0f64, 0usize);
+        for ((&c, &o), &x) in c.iter().zip(&o).zip(&x) {
+            if c > 0.5 && c < 4095.0 - 64.0 - 1.0 {
+                worst = worst.max((x - c).abs());
+                bias_left += (o - c) as f64;
+                n += 1;
+            }
+        }
+        assert!(n > 1000, "mirror {l}: {n} lit values");
+        assert!(worst <= 1.0, "mirror {l}: {worst} codes from the clean camera's");
+        let bias = bias_left / n as f64;
+        assert!((bias - 64.0).abs() < 1.0, "mirror {l}: left in, {bias} codes high");
+    }
+    // A resume with another level is refused.
+    let (code, _, err) = sim_scan_with(&fixed, &["--sim-black-level", "64", "--resume"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("black level 64 codes (the directory's) vs 0 codes"), "{err}");
 }
 
 #[test]

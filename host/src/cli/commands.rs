@@ -500,6 +500,11 @@ pub struct ScanArgs {
     /// lost steps retakes the frames since the last good one.
     #[arg(long, default_value_t = scan::DEFAULT_CHECK_EVERY)]
     pub check_every: usize,
+    /// The camera's frames carry a black level of CODES ADC codes (its
+    /// capture program leaves it in; the dark frame says the median it
+    /// reads): subtract it from every value as frames arrive.
+    #[arg(long, default_value_t = 0, value_name = "CODES")]
+    pub black_level: u32,
 }
 
 /// `--exposure-us`: microseconds, or `auto`.
@@ -627,6 +632,16 @@ pub fn run_scan(
             anyhow!("--mirrors {n}: this scanner has mirrors 1…{}", geometry.mirrors.len()),
         ));
     }
+    let top = geometry.sensor.max_code();
+    if scan_args.black_level as f64 >= top {
+        return Err(Failure(
+            2,
+            anyhow!(
+                "--black-level {}: at or above the sensor's top code {top}",
+                scan_args.black_level
+            ),
+        ));
+    }
     let mut camera = camera_for(scan_args.camera.as_deref(), opened.rig.as_ref())?;
     let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
     opts.resume = scan_args.resume;
@@ -636,6 +651,7 @@ pub fn run_scan(
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
     opts.bracket_us = scan_args.bracket()?;
     opts.check_every = scan_args.check_every;
+    opts.black_level_codes = scan_args.black_level;
     opts.force = scan_args.force;
     opts.simulator = opened.simulator.clone();
     opts.interrupt = Some(interrupt_flag());
@@ -802,6 +818,7 @@ pub fn demo(
             hdr,
             frame_timeout: 10.0,
             check_every: scan::DEFAULT_CHECK_EVERY,
+            black_level: 0,
         };
         run_scan(&mut opened, &scan_args, label)?;
     }
