@@ -27,6 +27,10 @@ pub enum CameraError {
     /// The camera's output could not be read.
     #[error("camera: {0}")]
     Io(String),
+    /// A frame arrived that is not one of the scan's (its size, its
+    /// values): taking it again would not help.
+    #[error("camera: {0}")]
+    Unusable(String),
 }
 
 /// A camera on the scanner's trigger line.
@@ -46,50 +50,118 @@ pub trait Camera: Send {
     fn describe(&self) -> String;
 }
 
-/// A camera whose frames carry a black level (an offset of `codes` ADC codes
-/// its capture program leaves in): every value has it subtracted, at 0 at
-/// least, except those at the top code, which stay there as saturated
-/// (the format's values: docs/scan-format.md).
-pub struct BlackLevel<'a> {
+/// The scan's view of a camera: every frame checked against the sensor the
+/// geometry describes (its size; values within full scale, as
+/// docs/scan-format.md defines them) and, for a camera whose capture
+/// program leaves a black level of `codes` ADC codes in, that level
+/// subtracted from every value below the top code (at 0 at least; the top
+/// code stays, as saturated).
+pub struct ScanCamera<'a> {
     inner: &'a mut dyn Camera,
-    /// The offset, as a fraction of full scale.
+    width: u32,
+    height: u32,
+    /// The black level, as a fraction of full scale.
     offset: f32,
     max_code: f32,
 }
 
-impl std::fmt::Debug for BlackLevel<'_> {
+impl std::fmt::Debug for ScanCamera<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("BlackLevel")
+        f.debug_struct("ScanCamera")
             .field("camera", &self.inner.describe())
-            .field("codes", &(self.offset * self.max_code))
+            .field("size", &(self.width, self.height))
+            .field("black_level_codes", &(self.offset * self.max_code))
             .finish()
     }
 }
 
-impl<'a> BlackLevel<'a> {
-    /// `inner`'s frames less `codes` (`max_code`: the sensor's top code).
-    pub fn new(inner: &'a mut dyn Camera, codes: u32, max_code: f64) -> BlackLevel<'a> {
-        BlackLevel { inner, offset: (codes as f64 / max_code) as f32, max_code: max_code as f32 }
-    }
-}
-
-/// Subtract `offset` (a fraction of full scale) from every value of
-/// `frame` below the top code `max_code` (at 0 at least); values at the top
-/// code (saturated) are left as they are; NaN becomes 0 (as the merge
-/// reads it).
-pub fn subtract_black_level(frame: &mut Frame, offset: f32, max_code: f32) {
-    if offset <= 0.0 {
-        return;
-    }
-    let top = max_code as usize;
-    for v in &mut frame.rgb {
-        if crate::hdr::adc_code(*v, max_code, top) < top {
-            *v = (*v - offset).max(0.0);
+impl<'a> ScanCamera<'a> {
+    /// `inner`'s frames, of the `sensor`'s `width` × `height` px, less a
+    /// black level of `black_level_codes`.
+    pub fn new(
+        inner: &'a mut dyn Camera,
+        sensor: &scanner_geometry::SensorSpec,
+        width: u32,
+        height: u32,
+        black_level_codes: u32,
+    ) -> ScanCamera<'a> {
+        let max_code = sensor.max_code();
+        ScanCamera {
+            inner,
+            width,
+            height,
+            offset: (black_level_codes as f64 / max_code) as f32,
+            max_code: max_code as f32,
         }
     }
 }
 
-impl Camera for BlackLevel<'_> {
+/// Why a frame is not one of the scan's: another size than the sensor's,
+/// or values beyond full scale (a capture program that writes ADC codes or
+/// another unit, not code / top code) or not numbers.
+pub fn check_frame(frame: &Frame, width: u32, height: u32) -> Result<(), CameraError> {
+    if (frame.width, frame.height) != (width, height)
+        || frame.rgb.len() != width as usize * height as usize * 3
+    {
+        return Err(CameraError::Unusable(format!(
+            "a frame of {}×{} px; the geometry's camera has {width}×{height} px (set the \
+             camera's resolution and binning, or scan with its geometry)",
+            frame.width, frame.height
+        )));
+    }
+    // Half float holds the top code's 1.0 exactly; allow a rounding's worth.
+    const FULL_SCALE: f32 = 1.0 + 1e-3;
+    use rayon::prelude::*;
+    // (values above full scale, not numbers, the largest above)
+    let (above, not_numbers, largest) = frame
+        .rgb
+        .par_chunks(1 << 16)
+        .map(|values| {
+            let (mut above, mut not_numbers, mut largest) = (0usize, 0usize, 0.0f32);
+            for &v in values {
+                if !v.is_finite() {
+                    not_numbers += 1;
+                } else if v > FULL_SCALE {
+                    above += 1;
+                    largest = largest.max(v);
+                }
+            }
+            (above, not_numbers, largest)
+        })
+        .reduce(|| (0, 0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2.max(b.2)));
+    if not_numbers > 0 {
+        return Err(CameraError::Unusable(format!(
+            "{not_numbers} values are not numbers (NaN or infinite)"
+        )));
+    }
+    if above > 0 {
+        return Err(CameraError::Unusable(format!(
+            "{above} values above full scale, up to {largest}: frames hold code / top code \
+             (1.0 at the top code, docs/scan-format.md), not ADC codes or another unit"
+        )));
+    }
+    Ok(())
+}
+
+/// Subtract `offset` (a fraction of full scale) from every value of
+/// `frame` below the top code `max_code` (at 0 at least); values at the top
+/// code (saturated) are left as they are.
+pub fn subtract_black_level(frame: &mut Frame, offset: f32, max_code: f32) {
+    if offset <= 0.0 {
+        return;
+    }
+    use rayon::prelude::*;
+    let top = max_code as usize;
+    frame.rgb.par_chunks_mut(1 << 16).for_each(|values| {
+        for v in values {
+            if crate::hdr::adc_code(*v, max_code, top) < top {
+                *v = (*v - offset).max(0.0);
+            }
+        }
+    });
+}
+
+impl Camera for ScanCamera<'_> {
     fn arm(&mut self) -> Result<(), CameraError> {
         self.inner.arm()
     }
@@ -104,6 +176,7 @@ impl Camera for BlackLevel<'_> {
 
     fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError> {
         let mut frame = self.inner.wait_frame(timeout)?;
+        check_frame(&frame, self.width, self.height)?;
         subtract_black_level(&mut frame, self.offset, self.max_code);
         Ok(frame)
     }
@@ -272,5 +345,32 @@ mod tests {
             codes,
             [0.0, 0.0, 1000.0, 4095.0, 4030.0, 0.0, 0.0, 0.5, 36.0, 2936.0, 6.0, 0.0]
         );
+    }
+
+    #[test]
+    fn frames_of_another_size_or_unit_are_unusable() {
+        let frame = |w: u32, h: u32, v: f32| Frame {
+            width: w,
+            height: h,
+            rgb: vec![v; (w * h * 3) as usize],
+        };
+        assert!(check_frame(&frame(4, 2, 0.5), 4, 2).is_ok());
+        assert!(check_frame(&frame(4, 2, 1.0), 4, 2).is_ok(), "the top code");
+        assert!(check_frame(&frame(4, 2, -0.01), 4, 2).is_ok(), "noise below a subtracted level");
+        let e = check_frame(&frame(2, 4, 0.5), 4, 2).unwrap_err().to_string();
+        assert!(e.contains("a frame of 2×4 px; the geometry's camera has 4×2 px"), "{e}");
+        let mut short = frame(4, 2, 0.5);
+        short.rgb.pop();
+        assert!(check_frame(&short, 4, 2).is_err());
+        // A capture program that writes ADC codes.
+        let mut codes = frame(4, 2, 0.5);
+        codes.rgb[5] = 4095.0;
+        let e = check_frame(&codes, 4, 2).unwrap_err().to_string();
+        assert!(e.contains("1 values above full scale, up to 4095"), "{e}");
+        let mut nan = frame(4, 2, 0.5);
+        nan.rgb[0] = f32::NAN;
+        nan.rgb[1] = f32::INFINITY;
+        let e = check_frame(&nan, 4, 2).unwrap_err().to_string();
+        assert!(e.contains("2 values are not numbers"), "{e}");
     }
 }

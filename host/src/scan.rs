@@ -538,7 +538,7 @@ pub struct ScanOptions {
     /// What the simulated scanner simulates (recorded in the settings).
     pub simulator: Option<String>,
     /// The camera's frames carry this black level (ADC codes): subtract it
-    /// from every value ([`crate::camera::BlackLevel`]).
+    /// from every value ([`crate::camera::ScanCamera`]).
     pub black_level_codes: u32,
     /// Set (e.g. by Ctrl-C) to stop after the frame in progress, keeping
     /// every frame taken.
@@ -1088,8 +1088,15 @@ pub fn scan(
             opts.black_level_codes
         )));
     }
-    let mut subtracting = crate::camera::BlackLevel::new(camera, opts.black_level_codes, max_code);
-    let camera: &mut dyn Camera = &mut subtracting;
+    let (width, height) = (geometry.camera.width, geometry.camera.height);
+    let mut checked = crate::camera::ScanCamera::new(
+        camera,
+        &geometry.sensor,
+        width,
+        height,
+        opts.black_level_codes,
+    );
+    let camera: &mut dyn Camera = &mut checked;
     let floor_us = crate::exposure::shortest_us(opts.light_duty_permille);
     if let Some(&bad) = opts
         .bracket_us
@@ -2036,7 +2043,12 @@ fn capture_one(
             },
         });
     }
-    Ok((frame.map_err(Attempt::Camera)?, fired, status))
+    let frame = frame.map_err(|e| match e {
+        // Another size or unit: every retake would be the same.
+        CameraError::Unusable(_) => Attempt::Fatal(ScanError::Conflict(format!("mirror {l}: {e}"))),
+        e => Attempt::Camera(e),
+    })?;
+    Ok((frame, fired, status))
 }
 
 /// Arm the camera, run the capture step and return its trigger. Events can

@@ -262,3 +262,58 @@ fn a_motor_that_keeps_slipping_ends_the_scan_with_exit_7() {
     assert_eq!(m.checks.iter().filter(|c| !c.passed).count(), 3, "{:?}", m.checks);
     assert!(m.frames.iter().all(|f| !f.verified), "nothing unverified counts as good");
 }
+
+/// A camera whose capture program writes its frames in ADC codes (0…4095)
+/// instead of code / top code.
+struct CodesCamera(SimCamera);
+
+impl host::camera::Camera for CodesCamera {
+    fn arm(&mut self) -> Result<(), host::camera::CameraError> {
+        self.0.arm()
+    }
+    fn wait_frame(
+        &mut self,
+        timeout: std::time::Duration,
+    ) -> Result<host::camera::Frame, host::camera::CameraError> {
+        let mut f = self.0.wait_frame(timeout)?;
+        f.rgb.iter_mut().for_each(|v| *v *= 4095.0);
+        Ok(f)
+    }
+    fn describe(&self) -> String {
+        "a camera writing ADC codes".into()
+    }
+}
+
+#[test]
+fn frames_of_another_unit_or_size_stop_the_scan_at_the_first_mirror() {
+    let s = setup("leather");
+    let rig = s.rig().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let mut opts = ScanOptions::new("leather", dir.path());
+    opts.mirrors = Some(4);
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    let e =
+        scan(&mut dev, &mut CodesCamera(SimCamera(rig)), &s.nominal().unwrap(), &opts, &mut Quiet)
+            .unwrap_err();
+    assert_eq!(e.exit_code(), 3, "{e}");
+    let said = e.to_string();
+    assert!(said.starts_with("mirror 0: camera: "), "{said}");
+    assert!(said.contains("values above full scale, up to 367"), "{said}");
+    assert!(said.contains("not ADC codes"), "{said}");
+    let m = Manifest::load(dir.path()).unwrap();
+    assert!(m.frames.is_empty() && !m.complete, "nothing stored: {:?}", m.frames.len());
+    // A camera set to another resolution than the geometry's (here: the
+    // geometry of the unbinned 4096² sensor, frames binned to 512²).
+    let rig = s.rig().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let opts = ScanOptions { mirrors: Some(4), ..ScanOptions::new("leather", dir.path()) };
+    let full = SimSetup { bin: 1, ..s.clone() }.nominal().unwrap();
+    assert_eq!(full.camera.width, 4096);
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    let e = scan(&mut dev, &mut SimCamera(rig), &full, &opts, &mut Quiet).unwrap_err();
+    assert_eq!(e.exit_code(), 3, "{e}");
+    assert!(
+        e.to_string().contains("a frame of 512×512 px; the geometry's camera has 4096×4096 px"),
+        "{e}"
+    );
+}
