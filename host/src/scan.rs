@@ -1189,6 +1189,12 @@ pub fn scan(
     // passed one.
     let mut todo: VecDeque<usize> =
         (0..total).filter(|l| !manifest.frames.iter().any(|f| f.mirror == *l)).collect();
+    let per_frame = frame_bytes(width, height, !opts.bracket_us.is_empty());
+    if let Some(free) = scanner_formats::atomic::free_bytes(&opts.out)
+        && let Some(note) = disk_space_note(free, todo.len(), per_frame)
+    {
+        progress.note(&note);
+    }
     let mut unverified: Vec<usize> =
         manifest.frames.iter().filter(|f| !f.verified).map(|f| f.mirror).collect();
     let mut raw_kept: Vec<FrameRecord> = manifest.exposures.clone();
@@ -1737,6 +1743,36 @@ pub fn mirror_list(mirrors: &[usize]) -> String {
     }
 }
 
+/// About how many bytes a stored frame of `width` × `height` px takes:
+/// half-float PIZ EXR, ≈ 0.8 byte a pixel for a single exposure's integer
+/// codes and ≈ 3.0 for an HDR merge (the default 4096² frames: 13 and 51
+/// MB), with a margin.
+fn frame_bytes(width: u32, height: u32, hdr: bool) -> u64 {
+    let per_pixel = if hdr { 3.2 } else { 1.0 };
+    (width as f64 * height as f64 * per_pixel) as u64
+}
+
+/// What to say when `frames` more frames of ≈ `per_frame` bytes will not fit
+/// in `free` bytes (nothing when they fit).
+fn disk_space_note(free: u64, frames: usize, per_frame: u64) -> Option<String> {
+    let need = per_frame.saturating_mul(frames as u64);
+    let size = |b: u64| {
+        if b >= 1_000_000_000 {
+            format!("{:.2} GB", b as f64 / 1e9)
+        } else {
+            format!("{:.1} MB", b as f64 / 1e6)
+        }
+    };
+    (need > free).then(|| {
+        format!(
+            "the disk has {} free; the {frames} frames still to take need ≈ {}: the scan stops \
+             when it is full (exit 9), and `--resume` goes on once there is room",
+            size(free),
+            size(need)
+        )
+    })
+}
+
 /// [`mirror_list`] names this many runs at most.
 const MIRROR_LIST_RUNS: usize = 12;
 
@@ -2131,6 +2167,31 @@ fn trigger_step(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_scan_that_will_not_fit_on_the_disk_is_said_at_its_start() {
+        // The default 4096² camera: 13 MB a single frame, 51 MB an HDR merge.
+        let (single, hdr) = (frame_bytes(4096, 4096, false), frame_bytes(4096, 4096, true));
+        assert!((13_000_000..20_000_000).contains(&single), "{single}");
+        assert!((51_000_000..60_000_000).contains(&hdr), "{hdr}");
+        assert_eq!(disk_space_note(10_000_000_000, 40, hdr), None);
+        let note = disk_space_note(1_000_000_000, 40, hdr).unwrap();
+        assert!(
+            note.starts_with(
+                "the disk has 1.00 GB free; the 40 frames still to take need ≈ 2.15 GB"
+            ),
+            "{note}"
+        );
+        assert_eq!(disk_space_note(0, 0, hdr), None, "nothing left to take");
+        let note = disk_space_note(5_000_000, 40, frame_bytes(512, 512, true)).unwrap();
+        assert!(
+            note.starts_with(
+                "the disk has 5.0 MB free; the 40 frames still to take need ≈ 33.6 MB"
+            ),
+            "{note}"
+        );
+        assert!(scanner_formats::atomic::free_bytes(&std::env::temp_dir()).is_some_and(|b| b > 0));
+    }
 
     #[test]
     fn mirror_lists_name_runs_and_stay_short() {

@@ -289,6 +289,21 @@ pub fn write_atomic_with(
     sync_dir(dir)
 }
 
+/// Bytes an unprivileged writer may still store on the file system that
+/// holds `dir` (`None` where that cannot be asked).
+pub fn free_bytes(dir: &Path) -> Option<u64> {
+    #[cfg(target_os = "linux")]
+    {
+        let s = rustix::fs::statvfs(dir).ok()?;
+        Some(s.f_bavail.saturating_mul(s.f_frsize))
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = dir;
+        None
+    }
+}
+
 /// Flush a directory's entries (after a rename into it).
 pub fn sync_dir(dir: &Path) -> std::io::Result<()> {
     #[cfg(unix)]
