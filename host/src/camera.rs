@@ -94,6 +94,11 @@ impl<'a> ScanCamera<'a> {
             max_code: max_code as f32,
         }
     }
+
+    /// Subtract a black level of `codes` from now on.
+    pub fn set_black_level(&mut self, codes: u32) {
+        self.offset = (codes as f64 / self.max_code as f64) as f32;
+    }
 }
 
 /// Why a frame is not one of the scan's: another size than the sensor's,

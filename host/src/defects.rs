@@ -137,8 +137,9 @@ pub enum NotDecided {
     /// sensor with the scanner's light off.
     #[error(
         "its median pixel reads {median_codes} codes, not 0: the camera's frames carry a black \
-         level (scan with --black-level {median_codes}, or have its capture program subtract it; \
-         docs/scan-format.md) or light reaches the sensor with the scanner's light off"
+         level (scan with --black-level {median_codes} or --black-level auto, or have its capture \
+         program subtract it; docs/scan-format.md) or light reaches the sensor with the \
+         scanner's light off"
     )]
     NotDark {
         /// The median of every value, ADC codes.
@@ -404,15 +405,7 @@ pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefec
         };
         found.push(PixelDefect { x: (p % w) as u32, y: (p / w) as u32, kind });
     }
-    let half = frame.rgb.len().div_ceil(2);
-    let (mut below, mut median) = (0, 0);
-    for (code, &n) in histogram.iter().enumerate() {
-        below += n;
-        if below >= half {
-            median = code;
-            break;
-        }
-    }
+    let median = histogram_median(&histogram, frame.rgb.len());
     if median as u32 > DARK_MEDIAN_CODES {
         return Err(NotDecided::NotDark { median_codes: median as u32 });
     }
@@ -421,6 +414,33 @@ pub fn dark_frame_defects(frame: &Frame, max_code: f64) -> Result<Vec<PixelDefec
         return Err(NotDecided::TooMany { found: found.len(), examined });
     }
     Ok(found)
+}
+
+/// The median ADC code of a histogram of `count` values.
+fn histogram_median(histogram: &[usize], count: usize) -> usize {
+    let half = count.div_ceil(2);
+    let mut below = 0;
+    for (code, &n) in histogram.iter().enumerate() {
+        below += n;
+        if below >= half {
+            return code;
+        }
+    }
+    0
+}
+
+/// The black level a frame taken with the light off shows: its median ADC
+/// code over every value, or 0 when that is read noise alone (at most
+/// [`DARK_MEDIAN_CODES`]: subtracting a code or two of noise would bias a
+/// camera without a black level).
+pub fn black_level_codes(frame: &Frame, max_code: f64) -> u32 {
+    let (maxf, top) = (max_code as f32, max_code as usize);
+    let mut histogram = vec![0usize; top + 1];
+    for &v in &frame.rgb {
+        histogram[crate::hdr::adc_code(v, maxf, top)] += 1;
+    }
+    let median = histogram_median(&histogram, frame.rgb.len()) as u32;
+    if median > DARK_MEDIAN_CODES { median } else { 0 }
 }
 
 /// How many of each kind: "3 stuck, 0 hot and 1 dead pixels".
@@ -748,6 +768,11 @@ mod tests {
         // A median of a few codes is still dark.
         let low = Frame { rgb: f.rgb.iter().map(|v| v + code(2.0)).collect(), ..f.clone() };
         assert_eq!(dark_frame_defects(&low, max).unwrap().len(), 2);
+        // The black level `--black-level auto` takes: the offset frame's
+        // median; none for noise of a code or two.
+        assert_eq!(black_level_codes(&offset, max), 66);
+        assert_eq!(black_level_codes(&low, max), 0);
+        assert_eq!(black_level_codes(&f, max), 0);
     }
 
     #[test]

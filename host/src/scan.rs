@@ -181,6 +181,20 @@ pub struct ScanSettings {
     /// the stored frames are without it.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub black_level_codes: u32,
+    /// `--black-level auto`: the level is the median of a frame taken with
+    /// the light off at the scan's start (docs/scan-format.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub black_level_auto: Option<AutoBlackLevel>,
+}
+
+/// How `--black-level auto` measured the black level.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AutoBlackLevel {
+    /// The exposure of the frame it was measured in, µs of the device;
+    /// absent until it is measured (a scan interrupted before measures it
+    /// on resuming).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exposure_us: Option<u32>,
 }
 
 fn is_zero(v: &u32) -> bool {
@@ -265,11 +279,12 @@ impl ScanSettings {
                 format!("{:?} µs", other.bracket_us),
             );
         }
-        field(
-            "black level",
-            format!("{} codes", self.black_level_codes),
-            format!("{} codes", other.black_level_codes),
-        );
+        // Auto: the directory's measured level is the scan's.
+        let level = |s: &ScanSettings| match s.black_level_auto {
+            Some(_) => "auto".to_string(),
+            None => format!("{} codes", s.black_level_codes),
+        };
+        field("black level", level(self), level(other));
         let sim = |s: &Option<String>| s.clone().unwrap_or_else(|| "a real scanner".into());
         field("scanner", sim(&self.simulator), sim(&other.simulator));
         out
@@ -540,6 +555,9 @@ pub struct ScanOptions {
     /// The camera's frames carry this black level (ADC codes): subtract it
     /// from every value ([`crate::camera::ScanCamera`]).
     pub black_level_codes: u32,
+    /// Measure the black level (`black_level_codes` is then ignored) in a
+    /// frame with the light off at the scan's start.
+    pub black_level_auto: bool,
     /// Set (e.g. by Ctrl-C) to stop after the frame in progress, keeping
     /// every frame taken.
     pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
@@ -564,6 +582,7 @@ impl ScanOptions {
             force: false,
             simulator: None,
             black_level_codes: 0,
+            black_level_auto: false,
             interrupt: None,
         }
     }
@@ -1079,7 +1098,8 @@ pub fn scan(
         auto_exposure: opts.auto_exposure,
         metering: None,
         dark: None,
-        black_level_codes: opts.black_level_codes,
+        black_level_codes: if opts.black_level_auto { 0 } else { opts.black_level_codes },
+        black_level_auto: opts.black_level_auto.then_some(AutoBlackLevel { exposure_us: None }),
     };
     let max_code = geometry.sensor.max_code();
     if opts.black_level_codes as f64 >= max_code {
@@ -1094,7 +1114,7 @@ pub fn scan(
         &geometry.sensor,
         width,
         height,
-        opts.black_level_codes,
+        settings.black_level_codes,
     );
     let camera: &mut dyn Camera = &mut checked;
     let floor_us = crate::exposure::shortest_us(opts.light_duty_permille);
@@ -1126,6 +1146,40 @@ pub fn scan(
     let axes = prepared.axes;
     await_stray_frame(dev, camera, opts, progress)?;
     report.timings.link += t.elapsed();
+
+    // `--black-level auto`: measured once per scan, before metering, in a
+    // frame with the light off (a resumed scan keeps what its first run
+    // measured); every frame from then on has it subtracted.
+    if manifest.settings.black_level_auto.is_some_and(|a| a.exposure_us.is_none()) {
+        let exposure_us = protocol::MIN_EXPOSURE_US;
+        let bias = DarkFrame { geometry, opts, exposure_us };
+        let mut attempt = 0;
+        let frame = loop {
+            attempt += 1;
+            match bias.take(dev, camera, &mut report) {
+                Ok(f) => break f,
+                Err(why) if attempt >= opts.attempts.max(1) => {
+                    return Err(ScanError::Conflict(format!(
+                        "black level: no frame with the light off after {attempt} attempts ({why})"
+                    )));
+                }
+                Err(why) => progress.note(&format!("black level: {why}; taking it again")),
+            }
+        };
+        let codes = crate::defects::black_level_codes(&frame, geometry.sensor.max_code());
+        progress.note(&format!(
+            "black level: {codes} codes (the median of a {exposure_us} µs frame with the light \
+             off), subtracted from every frame"
+        ));
+        manifest.settings.black_level_codes = codes;
+        manifest.settings.black_level_auto =
+            Some(AutoBlackLevel { exposure_us: Some(exposure_us) });
+        let t = Instant::now();
+        manifest.save(&opts.out)?;
+        report.timings.disk += t.elapsed();
+    }
+    checked.set_black_level(manifest.settings.black_level_codes);
+    let camera: &mut dyn Camera = &mut checked;
 
     // Auto exposure: metered once per scan (a resumed scan keeps what its
     // first run chose); the exposures chosen stand in for the options'.

@@ -234,17 +234,35 @@ fn black_level_subtracts_what_the_camera_left_in() {
     let dir = tmp();
     let (clean, offset, fixed) =
         (sub(dir.path(), "clean"), sub(dir.path(), "offset"), sub(dir.path(), "fixed"));
+    let (auto, clean_auto) = (sub(dir.path(), "auto"), sub(dir.path(), "clean-auto"));
     for (out, extra) in [
         (&clean, &[][..]),
         (&offset, &["--sim-black-level", "64"][..]),
         (&fixed, &["--sim-black-level", "64", "--black-level", "64"][..]),
+        (&auto, &["--sim-black-level", "64", "--black-level", "auto"][..]),
+        (&clean_auto, &["--black-level", "auto"][..]),
     ] {
         let (code, _, err) = sim_scan_with(out, extra);
         assert_eq!(code, Some(0), "{err}");
-        if out == &fixed {
+        if out != &offset {
             assert!(!err.contains("median pixel"), "the dark frame is dark: {err}");
         }
+        if out == &auto {
+            assert!(
+                err.contains(
+                    "black level: 64 codes (the median of a 1000 µs frame with the light off)"
+                ),
+                "{err}"
+            );
+        }
     }
+    // Auto on a camera without a black level measures none: read noise
+    // alone is not taken for one.
+    let m = host::scan::Manifest::load(&clean_auto).unwrap();
+    assert_eq!(m.settings.black_level_codes, 0);
+    let m = host::scan::Manifest::load(&auto).unwrap();
+    assert_eq!(m.settings.black_level_codes, 64);
+    assert_eq!(m.settings.black_level_auto.unwrap().exposure_us, Some(1000));
     let fixed_manifest = host::scan::Manifest::load(&fixed).unwrap();
     assert_eq!(fixed_manifest.settings.black_level_codes, 64);
     assert!(fixed_manifest.settings.dark.is_some());
@@ -258,6 +276,14 @@ fn black_level_subtracts_what_the_camera_left_in() {
     };
     for l in 0..4 {
         let (c, o, x) = (codes(&clean, l), codes(&offset, l), codes(&fixed, l));
+        // Auto's extra frame shifts the simulator's noise: within noise of
+        // the clean camera, not to the code.
+        let (a, ca) = (codes(&auto, l), codes(&clean_auto, l));
+        let mean_diff = |p: &[f32], q: &[f32]| {
+            p.iter().zip(q).map(|(p, q)| (p - q) as f64).sum::<f64>() / p.len() as f64
+        };
+        assert!(mean_diff(&a, &c).abs() < 0.1, "mirror {l}: auto {}", mean_diff(&a, &c));
+        assert!(mean_diff(&ca, &c).abs() < 0.1, "mirror {l}: {}", mean_diff(&ca, &c));
         let mut worst = 0.0f32;
         let (mut bias_left, mut n) = (0.0f64, 0usize);
         for ((&c, &o), &x) in c.iter().zip(&o).zip(&x) {
@@ -276,6 +302,9 @@ fn black_level_subtracts_what_the_camera_left_in() {
     let (code, _, err) = sim_scan_with(&fixed, &["--sim-black-level", "64", "--resume"]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("black level 64 codes (the directory's) vs 0 codes"), "{err}");
+    let (code, _, err) = sim_scan_with(&auto, &["--sim-black-level", "64", "--resume"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("black level auto (the directory's) vs 0 codes"), "{err}");
 }
 
 #[test]

@@ -482,8 +482,8 @@ pub struct ScanArgs {
     /// dimmed in proportion), or `auto`: metered on a few mirrors first,
     /// then the exposure (with --hdr, the bracket) that suits the sample
     /// (docs/scan-format.md, "Auto exposure").
-    #[arg(long, default_value_t = Exposure::Us(protocol::DEFAULT_EXPOSURE_US))]
-    pub exposure_us: Exposure,
+    #[arg(long, default_value_t = OrAuto::Fixed(protocol::DEFAULT_EXPOSURE_US))]
+    pub exposure_us: OrAuto,
     /// HDR: take these exposures (µs, comma-separated) per mirror and
     /// store their merge (docs/scan-format.md, "HDR").
     #[arg(long, value_delimiter = ',', conflicts_with = "hdr")]
@@ -502,43 +502,47 @@ pub struct ScanArgs {
     pub check_every: usize,
     /// The camera's frames carry a black level of CODES ADC codes (its
     /// capture program leaves it in; the dark frame says the median it
-    /// reads): subtract it from every value as frames arrive.
-    #[arg(long, default_value_t = 0, value_name = "CODES")]
-    pub black_level: u32,
+    /// reads): subtract it from every value as frames arrive. `auto`: take
+    /// the median of a frame with the light off at the scan's start (0 when
+    /// that is read noise alone).
+    #[arg(long, default_value_t = OrAuto::Fixed(0), value_name = "CODES|auto")]
+    pub black_level: OrAuto,
 }
 
-/// `--exposure-us`: microseconds, or `auto`.
+/// `--exposure-us` (microseconds) and `--black-level` (ADC codes): a
+/// number, or `auto`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Exposure {
-    /// Metered ([`crate::exposure`]).
+pub enum OrAuto {
+    /// Measured by the scan (`--exposure-us`: metered, [`crate::exposure`];
+    /// `--black-level`: from a frame with the light off).
     Auto,
-    /// Fixed, µs.
-    Us(u32),
+    /// Given: µs, or ADC codes.
+    Fixed(u32),
 }
 
-impl std::fmt::Display for Exposure {
+impl std::fmt::Display for OrAuto {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Exposure::Auto => f.write_str("auto"),
-            Exposure::Us(us) => write!(f, "{us}"),
+            OrAuto::Auto => f.write_str("auto"),
+            OrAuto::Fixed(us) => write!(f, "{us}"),
         }
     }
 }
 
-impl std::str::FromStr for Exposure {
+impl std::str::FromStr for OrAuto {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         if s.eq_ignore_ascii_case("auto") {
-            return Ok(Exposure::Auto);
+            return Ok(OrAuto::Auto);
         }
-        s.parse().map(Exposure::Us).map_err(|_| format!("{s:?} is neither µs nor `auto`"))
+        s.parse().map(OrAuto::Fixed).map_err(|_| format!("{s:?} is neither a number nor `auto`"))
     }
 }
 
 impl ScanArgs {
     /// Auto exposure asked for, if any.
     pub fn auto_exposure(&self) -> Option<scan::AutoExposure> {
-        (self.exposure_us == Exposure::Auto).then_some(if self.hdr {
+        (self.exposure_us == OrAuto::Auto).then_some(if self.hdr {
             scan::AutoExposure::Hdr
         } else {
             scan::AutoExposure::Single
@@ -548,8 +552,8 @@ impl ScanArgs {
     /// The fixed exposure, or the metering frames' with `auto`, µs.
     pub fn base_exposure_us(&self) -> u32 {
         match self.exposure_us {
-            Exposure::Auto => protocol::DEFAULT_EXPOSURE_US,
-            Exposure::Us(us) => us,
+            OrAuto::Auto => protocol::DEFAULT_EXPOSURE_US,
+            OrAuto::Fixed(us) => us,
         }
     }
 
@@ -567,7 +571,7 @@ impl ScanArgs {
                 anyhow!("--exposure-us {exposure_us} outside {}…{}", range.start(), range.end()),
             ));
         }
-        if self.exposure_us == Exposure::Auto {
+        if self.exposure_us == OrAuto::Auto {
             if !self.exposures.is_empty() {
                 return Err(Failure(
                     2,
@@ -633,13 +637,12 @@ pub fn run_scan(
         ));
     }
     let top = geometry.sensor.max_code();
-    if scan_args.black_level as f64 >= top {
+    if let OrAuto::Fixed(codes) = scan_args.black_level
+        && codes as f64 >= top
+    {
         return Err(Failure(
             2,
-            anyhow!(
-                "--black-level {}: at or above the sensor's top code {top}",
-                scan_args.black_level
-            ),
+            anyhow!("--black-level {codes}: at or above the sensor's top code {top}"),
         ));
     }
     let mut camera = camera_for(scan_args.camera.as_deref(), opened.rig.as_ref())?;
@@ -651,7 +654,10 @@ pub fn run_scan(
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
     opts.bracket_us = scan_args.bracket()?;
     opts.check_every = scan_args.check_every;
-    opts.black_level_codes = scan_args.black_level;
+    match scan_args.black_level {
+        OrAuto::Auto => opts.black_level_auto = true,
+        OrAuto::Fixed(codes) => opts.black_level_codes = codes,
+    }
     opts.force = scan_args.force;
     opts.simulator = opened.simulator.clone();
     opts.interrupt = Some(interrupt_flag());
@@ -787,12 +793,12 @@ pub fn demo(
         .unwrap_or_else(|| "sample".into());
     // The glossy target's highlights are ≈ 40× the white's: a short exposure.
     // The sample: metered, HDR.
-    let fixed = |us| Exposure::Us(us);
+    let fixed = |us| OrAuto::Fixed(us);
     for (sample, label, hdr, exposure_us) in [
         ("checkerboard", "checkerboard", false, fixed(protocol::DEFAULT_EXPOSURE_US)),
         ("diffuse-white", "diffuse-white", false, fixed(protocol::DEFAULT_EXPOSURE_US)),
         ("glossy-black", "glossy-black", false, fixed(GLOSSY_EXPOSURE_US)),
-        (material, name.as_str(), true, Exposure::Auto),
+        (material, name.as_str(), true, OrAuto::Auto),
     ] {
         let args = DeviceArgs {
             device: "sim".into(),
@@ -818,7 +824,7 @@ pub fn demo(
             hdr,
             frame_timeout: 10.0,
             check_every: scan::DEFAULT_CHECK_EVERY,
-            black_level: 0,
+            black_level: OrAuto::Fixed(0),
         };
         run_scan(&mut opened, &scan_args, label)?;
     }
