@@ -1156,7 +1156,7 @@ pub fn scan(
         let mut attempt = 0;
         let frame = loop {
             attempt += 1;
-            match bias.take(dev, camera, &mut report) {
+            match bias.take(dev, camera, &mut report)? {
                 Ok(f) => break f,
                 Err(why) if attempt >= opts.attempts.max(1) => {
                     return Err(ScanError::Conflict(format!(
@@ -1227,7 +1227,7 @@ pub fn scan(
     if manifest.settings.dark.is_none() {
         let longest = opts.bracket_us.iter().copied().max().unwrap_or(opts.exposure_us);
         let dark = DarkFrame { geometry, opts, exposure_us: realised(opts, longest)?.exposure_us };
-        if let Some(record) = dark.find_hot_pixels(dev, camera, &mut report, progress) {
+        if let Some(record) = dark.find_hot_pixels(dev, camera, &mut report, progress)? {
             manifest.settings.dark = Some(record);
             let t = Instant::now();
             manifest.save(&opts.out)?;
@@ -1946,19 +1946,20 @@ struct DarkFrame<'a> {
 impl DarkFrame<'_> {
     /// Take the dark frame and find the hot (and stuck) pixels it shows; a
     /// dark frame that cannot be taken is said (`None`: the scan goes on
-    /// without it), one that shows too much is recorded with none.
+    /// without it), one that shows too much is recorded with none; a frame
+    /// of another size or unit stops the scan.
     fn find_hot_pixels(
         &self,
         dev: &mut Device,
         camera: &mut dyn Camera,
         report: &mut ScanReport,
         progress: &mut dyn ScanProgress,
-    ) -> Option<DarkRecord> {
-        let frame = match self.take(dev, camera, report) {
+    ) -> Result<Option<DarkRecord>, ScanError> {
+        let frame = match self.take(dev, camera, report)? {
             Ok(f) => f,
             Err(why) => {
                 progress.note(&format!("no dark frame ({why}): hot pixels are not looked for"));
-                return None;
+                return Ok(None);
             }
         };
         let defects =
@@ -1979,16 +1980,18 @@ impl DarkFrame<'_> {
                     Vec::new()
                 }
             };
-        Some(DarkRecord { exposure_us: self.exposure_us, defects })
+        Ok(Some(DarkRecord { exposure_us: self.exposure_us, defects }))
     }
 
-    /// The frame; a failure in words.
+    /// The frame; a failure in words (the scan may go on); a frame the
+    /// camera delivers that is not one of the scan's stops it (another size
+    /// or unit: [`crate::camera::check_frame`]).
     fn take(
         &self,
         dev: &mut Device,
         camera: &mut dyn Camera,
         report: &mut ScanReport,
-    ) -> Result<crate::camera::Frame, String> {
+    ) -> Result<Result<crate::camera::Frame, String>, ScanError> {
         let (opts, exposure_us) = (self.opts, self.exposure_us);
         let t = Instant::now();
         let fired = (|| -> Result<bool, String> {
@@ -2007,20 +2010,31 @@ impl DarkFrame<'_> {
             Ok(event.is_some())
         })();
         report.timings.link += t.elapsed();
-        if !fired? {
-            return Err("the device did not fire the trigger".into());
+        match fired {
+            Ok(true) => {}
+            Ok(false) => return Ok(Err("the device did not fire the trigger".into())),
+            Err(why) => return Ok(Err(why)),
         }
         let t = Instant::now();
-        let frame = camera.wait_frame(opts.frame_timeout).map_err(|e| e.to_string());
+        let frame = camera.wait_frame(opts.frame_timeout);
         report.timings.camera += t.elapsed();
         let t = Instant::now();
-        let idle = wait_idle(dev, Duration::from_secs(10)).map_err(|e| e.to_string());
+        let idle = wait_idle(dev, Duration::from_secs(10));
         report.timings.link += t.elapsed();
-        let status = idle?;
+        let frame = match frame {
+            Err(e @ CameraError::Unusable(_)) => {
+                return Err(ScanError::Conflict(format!("a frame with the light off: {e}")));
+            }
+            frame => frame.map_err(|e| e.to_string()),
+        };
+        let status = match idle {
+            Ok(status) => status,
+            Err(e) => return Ok(Err(e.to_string())),
+        };
         if !status.faults.is_empty() {
-            return Err(format!("{} during the dark frame", fault_list(status.faults)));
+            return Ok(Err(format!("{} during the dark frame", fault_list(status.faults))));
         }
-        frame
+        Ok(frame)
     }
 }
 
