@@ -76,22 +76,18 @@ impl std::fmt::Debug for ScanCamera<'_> {
 }
 
 impl<'a> ScanCamera<'a> {
-    /// `inner`'s frames, of the `sensor`'s `width` × `height` px, less a
-    /// black level of `black_level_codes`.
+    /// `inner`'s frames, checked against the camera `geometry` describes
+    /// (no black level subtracted until [`ScanCamera::set_black_level`]).
     pub fn new(
         inner: &'a mut dyn Camera,
-        sensor: &scanner_geometry::SensorSpec,
-        width: u32,
-        height: u32,
-        black_level_codes: u32,
+        geometry: &scanner_geometry::ScannerGeometry,
     ) -> ScanCamera<'a> {
-        let max_code = sensor.max_code();
         ScanCamera {
             inner,
-            width,
-            height,
-            offset: (black_level_codes as f64 / max_code) as f32,
-            max_code: max_code as f32,
+            width: geometry.camera.width,
+            height: geometry.camera.height,
+            offset: 0.0,
+            max_code: geometry.sensor.max_code() as f32,
         }
     }
 

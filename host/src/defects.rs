@@ -598,14 +598,17 @@ mod tests {
         Frame { width: w, height: h, rgb }
     }
 
+    /// The frame pixel where `view` shows sample point `uv`.
+    fn pixel_at(g: &ScannerGeometry, view: usize, uv: [f64; 2]) -> (u32, u32) {
+        let p = g.view_point(view, uv).unwrap();
+        (p[0] as u32, p[1] as u32)
+    }
+
     #[test]
     fn stuck_and_dead_pixels_are_found_and_the_sample_is_not() {
         let g = geometry();
         let (w, h) = (g.camera.width, g.camera.height);
-        let at = |view: usize, uv: [f64; 2]| {
-            let p = g.view_point(view, uv).unwrap();
-            (p[0] as u32, p[1] as u32)
-        };
+        let at = |view: usize, uv: [f64; 2]| pixel_at(&g, view, uv);
         // Two single stuck pixels and a pair.
         let pair = at(30, [0.5, 0.5]);
         let stuck = [at(0, [0.5, 0.5]), at(7, [0.1, 0.9]), pair, (pair.0 + 1, pair.1)];
@@ -682,10 +685,7 @@ mod tests {
     fn a_uniform_targets_frames_show_dead_clusters() {
         let g = geometry();
         let (w, h) = (g.camera.width, g.camera.height);
-        let at = |view: usize, uv: [f64; 2]| {
-            let p = g.view_point(view, uv).unwrap();
-            (p[0] as u32, p[1] as u32)
-        };
+        let at = |view: usize, uv: [f64; 2]| pixel_at(&g, view, uv);
         let shape = |(x, y): (u32, u32), offsets: &[(u32, u32)]| -> Vec<(u32, u32)> {
             offsets.iter().map(|&(dx, dy)| (x + dx, y + dy)).collect()
         };

@@ -1108,14 +1108,9 @@ pub fn scan(
             opts.black_level_codes
         )));
     }
-    let (width, height) = (geometry.camera.width, geometry.camera.height);
-    let mut checked = crate::camera::ScanCamera::new(
-        camera,
-        &geometry.sensor,
-        width,
-        height,
-        settings.black_level_codes,
-    );
+    // Frames checked as they arrive; the black level is set once it is
+    // known (the directory's, or measured below).
+    let mut checked = crate::camera::ScanCamera::new(camera, geometry);
     let camera: &mut dyn Camera = &mut checked;
     let floor_us = crate::exposure::shortest_us(opts.light_duty_permille);
     if let Some(&bad) = opts
@@ -1243,6 +1238,7 @@ pub fn scan(
     // passed one.
     let mut todo: VecDeque<usize> =
         (0..total).filter(|l| !manifest.frames.iter().any(|f| f.mirror == *l)).collect();
+    let (width, height) = (geometry.camera.width, geometry.camera.height);
     let per_frame = frame_bytes(width, height, !opts.bracket_us.is_empty());
     if let Some(free) = scanner_formats::atomic::free_bytes(&opts.out)
         && let Some(note) = disk_space_note(free, todo.len(), per_frame)
