@@ -8,6 +8,7 @@ use firmware::hal::TICK_HZ;
 use crate::device::{TriggerRecord, Truth};
 use crate::geometry::AxisValues;
 use crate::optics::{Exposure, Frame, OpticalSim};
+use scanner_geometry::{IntegerCodes, SensorSpec};
 
 /// Physical axis values of motor positions (steps from the home/index
 /// switch edges; the geometry's zero offsets apply in its kinematics).
@@ -113,15 +114,69 @@ pub fn write_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result
         .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", path.display())))
 }
 
-/// Drop `frame` into a camera's spool folder as `path`: a uniquely named
-/// temporary file in the same folder, then a rename, so that a folder
-/// watcher never sees a partial frame — as a camera's capture program
-/// writes. Not fsynced: after a crash the host retakes a lost frame.
-pub fn drop_frame_exr(frame: &Frame, path: &std::path::Path) -> std::io::Result<()> {
+/// The files a camera's capture program writes its frames as.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FrameFiles {
+    /// OpenEXR, 32-bit float RGB, in the frames' unit (code / top code).
+    #[default]
+    Exr,
+    /// 16-bit RGB PNG of the sensor's codes, stored as `IntegerCodes` says.
+    Png(IntegerCodes),
+    /// 16-bit RGB TIFF (uncompressed) of the codes, likewise.
+    Tiff(IntegerCodes),
+}
+
+impl FrameFiles {
+    /// The files' extension.
+    pub fn extension(self) -> &'static str {
+        match self {
+            FrameFiles::Exr => "exr",
+            FrameFiles::Png(_) => "png",
+            FrameFiles::Tiff(_) => "tiff",
+        }
+    }
+
+    /// `frame` of a `sensor` encoded as such a file.
+    pub fn encode(self, frame: &Frame, sensor: &SensorSpec) -> std::io::Result<Vec<u8>> {
+        let (format, codes) = match self {
+            FrameFiles::Exr => return encode_exr(frame),
+            FrameFiles::Png(codes) => (image::ImageFormat::Png, codes),
+            FrameFiles::Tiff(codes) => (image::ImageFormat::Tiff, codes),
+        };
+        let full = sensor.integer_full_scale(codes, 16).ok_or_else(|| {
+            std::io::Error::other(format!(
+                "a {}-bit sensor's codes need more than 16 bits",
+                sensor.bits
+            ))
+        })? as f64;
+        let values = frame.rgb.iter().map(|&v| (v as f64 * full).round().clamp(0.0, full) as u16);
+        let img = image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(
+            frame.width,
+            frame.height,
+            values.collect::<Vec<u16>>(),
+        )
+        .ok_or_else(|| std::io::Error::other("frame size mismatch"))?;
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, format).map_err(std::io::Error::other)?;
+        Ok(bytes.into_inner())
+    }
+}
+
+/// Drop `frame` into a camera's spool folder as `path`, encoded as `files`
+/// says: a uniquely named temporary file in the same folder, then a rename,
+/// so that a folder watcher never sees a partial frame — as a camera's
+/// capture program writes. Not fsynced: after a crash the host retakes a
+/// lost frame.
+pub fn drop_frame(
+    frame: &Frame,
+    sensor: &SensorSpec,
+    files: FrameFiles,
+    path: &std::path::Path,
+) -> std::io::Result<()> {
     let dir = path.parent().unwrap_or(std::path::Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("frame.exr");
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("frame");
     let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
-    let bytes = encode_exr(frame)?;
+    let bytes = files.encode(frame, sensor)?;
     std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, path)).inspect_err(|_| {
         let _ = std::fs::remove_file(&tmp);
     })

@@ -23,7 +23,7 @@ use serialport::{SerialPort, TTYPort};
 
 use std::path::PathBuf;
 
-use crate::camera::{SimCamera, drop_frame_exr};
+use crate::camera::{FrameFiles, SimCamera, drop_frame};
 use crate::device::SimDevice;
 use crate::faults::FaultEvent;
 use crate::optics::Exposure;
@@ -213,25 +213,27 @@ impl PtyServer {
     }
 
     /// [`PtyServer::start`] with a simulated camera on the trigger output
-    /// that drops each frame into `camera.1` as `frame-NNNNNN.exr` (NNNNNN:
-    /// the trigger pulse's index since power-on), written atomically — as a
-    /// real camera's capture program would. Frames render on their own thread.
+    /// that drops each frame into `camera.1` as `frame-NNNNNN.EXT` (NNNNNN:
+    /// the trigger pulse's index since power-on; the files as `camera.2`
+    /// says), written atomically — as a real camera's capture program
+    /// would. Frames render on their own thread.
     pub fn start_with_camera(
         mut device: SimDevice,
         speed: f64,
-        camera: Option<(SimCamera, PathBuf)>,
+        camera: Option<(SimCamera, PathBuf, FrameFiles)>,
     ) -> std::io::Result<PtyServer> {
         let mut renderer = None;
         let mut camera = match camera {
-            Some((cam, dir)) => {
+            Some((cam, dir, files)) => {
                 std::fs::create_dir_all(&dir)?;
                 let (tx, rx) = std::sync::mpsc::channel::<(usize, Exposure)>();
                 let optics = cam.optics().clone();
                 renderer = Some(std::thread::spawn(move || {
+                    let sensor = optics.geometry().sensor.clone();
                     for (index, exposure) in rx {
                         let frame = optics.render(&exposure);
-                        let path = dir.join(format!("frame-{index:06}.exr"));
-                        if let Err(e) = drop_frame_exr(&frame, &path) {
+                        let path = dir.join(format!("frame-{index:06}.{}", files.extension()));
+                        if let Err(e) = drop_frame(&frame, &sensor, files, &path) {
                             eprintln!("hil-sim camera: cannot write {}: {e}", path.display());
                         }
                     }

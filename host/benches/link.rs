@@ -16,7 +16,8 @@ use protocol::Request;
 fn round_trips(c: &mut Criterion) {
     let setup = SimSetup { bin: 8, ..SimSetup::new("leather") };
     let frames = tempfile::tempdir().unwrap();
-    let server = setup.serve(1.0, frames.path().to_path_buf()).unwrap();
+    let server =
+        setup.serve(1.0, frames.path().to_path_buf(), hil_sim::camera::FrameFiles::Exr).unwrap();
     let mut pty = Device::connect(Box::new(SerialTransport::open(server.path()).unwrap())).unwrap();
     let mut sim = Device::connect(Box::new(SimTransport(setup.rig().unwrap()))).unwrap();
     let mut group = c.benchmark_group("link");

@@ -48,6 +48,11 @@ pub trait Camera: Send {
     fn wait_frame(&mut self, timeout: Duration) -> Result<Frame, CameraError>;
     /// What this is, for messages and manifests.
     fn describe(&self) -> String;
+    /// How its integer frame files hold the sensor's codes (recorded in the
+    /// scan's settings, so that a resume reads them the same way).
+    fn integer_codes(&self) -> scanner_geometry::IntegerCodes {
+        scanner_geometry::IntegerCodes::Native
+    }
 }
 
 /// The scan's view of a camera: every frame checked against the sensor the
@@ -211,28 +216,39 @@ impl Camera for SimCamera {
 }
 
 /// Frames from a folder another program writes into, matched to triggers by
-/// order and time: the first new `.exr` file (in name order) that appears
-/// after the device reported the trigger's rising edge is its frame (files
-/// landing between arming and the trigger belong to earlier pulses). Hidden
-/// files (`.name`) and `*.tmp` are in-progress writes and ignored; a file
-/// that does not decode yet is read again until it does.
+/// order and time: the first new frame file (in name order: `.exr`, `.png`,
+/// `.tif`, `.tiff`; [`crate::frame_file`]) that appears after the device
+/// reported the trigger's rising edge is its frame (files landing between
+/// arming and the trigger belong to earlier pulses). Hidden files (`.name`)
+/// and `*.tmp` are in-progress writes and ignored; a file that does not
+/// decode yet is read again until it does. Integer images hold the sensor's
+/// codes as `codes` says.
 #[derive(Debug)]
 pub struct FolderCamera {
     dir: PathBuf,
     seen: BTreeSet<String>,
+    sensor: scanner_geometry::SensorSpec,
+    codes: scanner_geometry::IntegerCodes,
     /// Poll period.
     pub poll: Duration,
 }
 
 impl FolderCamera {
-    /// Watch `dir` (it must exist).
-    pub fn new(dir: &Path) -> Result<FolderCamera, CameraError> {
+    /// Watch `dir` (it must exist) for frames of `sensor`, integer images
+    /// holding its codes as `codes` says.
+    pub fn new(
+        dir: &Path,
+        sensor: &scanner_geometry::SensorSpec,
+        codes: scanner_geometry::IntegerCodes,
+    ) -> Result<FolderCamera, CameraError> {
         if !dir.is_dir() {
             return Err(CameraError::Io(format!("{} is not a folder", dir.display())));
         }
         let mut c = FolderCamera {
             dir: dir.to_path_buf(),
             seen: BTreeSet::new(),
+            sensor: sensor.clone(),
+            codes,
             poll: Duration::from_millis(20),
         };
         c.seen = c.list()?;
@@ -246,9 +262,7 @@ impl FolderCamera {
             .filter_map(|e| e.ok())
             .filter_map(|e| e.file_name().into_string().ok())
             .filter(|n| {
-                !n.starts_with('.')
-                    && !n.ends_with(".tmp")
-                    && n.to_ascii_lowercase().ends_with(".exr")
+                !n.starts_with('.') && !n.ends_with(".tmp") && crate::frame_file::is_frame_file(n)
             })
             .collect())
     }
@@ -288,13 +302,18 @@ impl Camera for FolderCamera {
         loop {
             let names = self.list()?;
             if let Some(name) = names.difference(&self.seen).next().cloned() {
-                match crate::exrio::read_rgb(&self.dir.join(&name)) {
+                use crate::frame_file::{FrameFileError, read_frame_file};
+                match read_frame_file(&self.dir.join(&name), &self.sensor, self.codes) {
                     Ok(f) => {
                         self.seen.insert(name);
                         return Ok(f);
                     }
                     // Perhaps still being written: try again.
-                    Err(e) => last_error = Some(format!("{name}: {e}")),
+                    Err(FrameFileError::Decode(e)) => last_error = Some(e),
+                    Err(FrameFileError::Unusable(e)) => {
+                        self.seen.insert(name);
+                        return Err(CameraError::Unusable(e));
+                    }
                 }
             }
             if Instant::now() >= end {
@@ -309,6 +328,10 @@ impl Camera for FolderCamera {
 
     fn describe(&self) -> String {
         format!("folder {}", self.dir.display())
+    }
+
+    fn integer_codes(&self) -> scanner_geometry::IntegerCodes {
+        self.codes
     }
 }
 

@@ -25,6 +25,7 @@ pub mod defects;
 pub mod discovery;
 pub mod exposure;
 pub mod exrio;
+pub mod frame_file;
 pub mod fsutil;
 pub mod hdr;
 pub mod link;

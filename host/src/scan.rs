@@ -185,6 +185,14 @@ pub struct ScanSettings {
     /// the light off at the scan's start (docs/scan-format.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub black_level_auto: Option<AutoBlackLevel>,
+    /// How the camera's integer frame files held the sensor's codes
+    /// (`--camera-codes`; absent: native).
+    #[serde(default, skip_serializing_if = "is_native")]
+    pub camera_codes: scanner_geometry::IntegerCodes,
+}
+
+fn is_native(c: &scanner_geometry::IntegerCodes) -> bool {
+    *c == scanner_geometry::IntegerCodes::Native
 }
 
 /// How `--black-level auto` measured the black level.
@@ -285,6 +293,7 @@ impl ScanSettings {
             None => format!("{} codes", s.black_level_codes),
         };
         field("black level", level(self), level(other));
+        field("camera codes", self.camera_codes.name().into(), other.camera_codes.name().into());
         let sim = |s: &Option<String>| s.clone().unwrap_or_else(|| "a real scanner".into());
         field("scanner", sim(&self.simulator), sim(&other.simulator));
         out
@@ -1100,6 +1109,7 @@ pub fn scan(
         dark: None,
         black_level_codes: if opts.black_level_auto { 0 } else { opts.black_level_codes },
         black_level_auto: opts.black_level_auto.then_some(AutoBlackLevel { exposure_us: None }),
+        camera_codes: camera.integer_codes(),
     };
     let max_code = geometry.sensor.max_code();
     if opts.black_level_codes as f64 >= max_code {

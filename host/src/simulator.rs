@@ -107,13 +107,18 @@ impl SimSetup {
     }
 
     /// Serve the board on a pty (time running at `speed` × real time), the
-    /// camera dropping frames into `frames`.
-    pub fn serve(&self, speed: f64, frames: PathBuf) -> Result<hil_sim::PtyServer, SimError> {
+    /// camera dropping frames into `frames` as `files`.
+    pub fn serve(
+        &self,
+        speed: f64,
+        frames: PathBuf,
+        files: hil_sim::camera::FrameFiles,
+    ) -> Result<hil_sim::PtyServer, SimError> {
         let camera = hil_sim::camera::SimCamera::new(self.optics()?);
         hil_sim::PtyServer::start_with_camera(
             hil_sim::SimDevice::new(self.config()),
             speed,
-            Some((camera, frames)),
+            Some((camera, frames, files)),
         )
         .map_err(|e| SimError::Serve(e.to_string()))
     }

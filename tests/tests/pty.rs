@@ -3,6 +3,7 @@
 
 mod common;
 
+use std::path::Path;
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
@@ -37,11 +38,18 @@ fn a_scan_over_the_pty_stores_every_frame_and_matches_the_in_process_scan() {
         assert!(frame.rgb.iter().any(|&v| v > 0.02), "mirror {l} lit");
     }
     // The same scanner simulated in-process and deterministic: same frames.
-    let reference = sub(dir.path(), "in-process");
+    assert_same_frames_as_in_process(&s, &out, &sub(dir.path(), "in-process"));
+    drop(server);
+}
+
+/// Assert the scan in `out` stored the frames, byte for byte, that the same
+/// scanner simulated in-process (and deterministic) gives; that scan goes to
+/// `reference`.
+fn assert_same_frames_as_in_process(s: &host::simulator::SimSetup, out: &Path, reference: &Path) {
     let rig = s.rig().unwrap();
     let mut dev =
         host::link::Device::connect(Box::new(host::link::SimTransport(rig.clone()))).unwrap();
-    let mut opts = host::scan::ScanOptions::new("e2e", &reference);
+    let mut opts = host::scan::ScanOptions::new("e2e", reference);
     opts.mirrors = Some(MIRRORS);
     host::scan::scan(
         &mut dev,
@@ -51,13 +59,57 @@ fn a_scan_over_the_pty_stores_every_frame_and_matches_the_in_process_scan() {
         &mut host::scan::Quiet,
     )
     .unwrap();
-    let a = frames(&out);
-    let b = frames(&reference);
+    let a = frames(out);
+    let b = frames(reference);
     assert_eq!(a.len(), b.len());
     for ((name, x), (_, y)) in a.iter().zip(&b) {
         assert!(x == y, "{name}: pty and in-process frames differ");
     }
+}
+
+#[test]
+fn sixteen_bit_tiff_frames_give_the_same_scan_and_a_wrong_convention_is_named() {
+    use hil_sim::camera::FrameFiles;
+    use scanner_geometry::IntegerCodes;
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let s = setup("leather", FaultPlan::none());
+    // A capture program that writes 16-bit TIFFs of 12-bit codes × 16.
+    let server = serve_files(&s, &frames_dir, FrameFiles::Tiff(IntegerCodes::Shifted));
+    // Read as the codes themselves, the first frame that shows it stops the
+    // scan and names the option: the dark frame when a thousand of its
+    // values are non-zero, else mirror 0, far above 4095.
+    let wrong = sub(dir.path(), "wrong");
+    let r =
+        scanner().args(scan_args(server.path(), &frames_dir, &wrong, MIRRORS)).output().unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(3), "{err}");
+    assert!(err.contains("frame-") && err.contains(".tiff: "), "{err}");
+    assert!(err.contains("the capture program shifts its codes left (× 16)"), "{err}");
+    assert!(err.contains("scan with --camera-codes shifted"), "{err}");
+    assert!(Manifest::load(&wrong).map_or(true, |m| m.frames.is_empty()), "nothing stored");
+    // Nor can a resume read them another way than the scan began with.
+    let mut resume = scan_args(server.path(), &frames_dir, &wrong, MIRRORS);
+    resume.extend(["--camera-codes".into(), "shifted".into(), "--resume".into()]);
+    let r = scanner().args(&resume).output().unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(3), "{err}");
+    assert!(err.contains("camera codes native (the directory's) vs shifted (this run's)"), "{err}");
+    // Read as shifted: the frames the in-process scanner gives, byte for byte.
+    let out = sub(dir.path(), "scan");
+    let mut args = scan_args(server.path(), &frames_dir, &out, MIRRORS);
+    args.extend(["--camera-codes".into(), "shifted".into()]);
+    let r = scanner().args(&args).output().unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(
+        std::fs::read_dir(&frames_dir)
+            .unwrap()
+            .flatten()
+            .any(|e| e.file_name().to_string_lossy().ends_with(".tiff")),
+        "the camera wrote TIFFs"
+    );
     drop(server);
+    assert_same_frames_as_in_process(&s, &out, &sub(dir.path(), "in-process"));
 }
 
 #[test]

@@ -174,6 +174,49 @@ impl SensorSpec {
     pub fn max_code(&self) -> f64 {
         ((1u64 << self.bits) - 1) as f64
     }
+
+    /// The integer that stands for the top code in an image of
+    /// `file_bits`-bit integers whose capture program stores this sensor's
+    /// codes as `codes` says (docs/scan-format.md, "Frames from a folder"):
+    /// a value v of such an image is v / this, in the frames' unit.
+    /// `None` when the file's integers are too narrow for the codes.
+    pub fn integer_full_scale(&self, codes: IntegerCodes, file_bits: u32) -> Option<u64> {
+        if file_bits < self.bits || file_bits > 32 {
+            return None;
+        }
+        let top = (1u64 << self.bits) - 1;
+        Some(match codes {
+            IntegerCodes::Native => top,
+            IntegerCodes::Shifted => top << (file_bits - self.bits),
+            IntegerCodes::Scaled => (1u64 << file_bits) - 1,
+        })
+    }
+}
+
+/// How a camera's capture program stores the sensor's ADC codes in an image
+/// of integers (a 16-bit PNG or TIFF, say, from a 12-bit sensor).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum IntegerCodes {
+    /// The codes themselves: 0 … 4 095 for 12 bits.
+    #[default]
+    Native,
+    /// Shifted left to the integer's top bits: code × 16 (0 … 65 520) for
+    /// 12 bits in 16; the low bits are 0.
+    Shifted,
+    /// Stretched over the integer's range: code × 65 535 / 4 095, rounded.
+    Scaled,
+}
+
+impl IntegerCodes {
+    /// The name on the command line and in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            IntegerCodes::Native => "native",
+            IntegerCodes::Shifted => "shifted",
+            IntegerCodes::Scaled => "scaled",
+        }
+    }
 }
 
 /// Source kinematics: disk, radial track, fold mirror, beam.

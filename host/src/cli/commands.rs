@@ -475,6 +475,12 @@ pub struct ScanArgs {
     /// the simulator brings its own.
     #[arg(long)]
     pub camera: Option<String>,
+    /// How the folder camera's 16-bit PNG and TIFF frames hold the
+    /// sensor's codes: as they are (0…4095 for 12 bits), shifted left
+    /// (0…65520), or scaled to 0…65535. A frame that contradicts it stops
+    /// the scan and names the one that reads it.
+    #[arg(long, value_enum, default_value_t = CameraCodes::Native)]
+    pub camera_codes: CameraCodes,
     /// Scan only mirrors 0 … N−1.
     #[arg(long)]
     pub mirrors: Option<usize>,
@@ -507,6 +513,28 @@ pub struct ScanArgs {
     /// that is read noise alone).
     #[arg(long, default_value_t = OrAuto::Fixed(0), value_name = "CODES|auto")]
     pub black_level: OrAuto,
+}
+
+/// How a capture program stores the sensor's codes in integer images
+/// ([`scanner_geometry::IntegerCodes`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CameraCodes {
+    /// The codes as they are: 0…4095 for a 12-bit sensor.
+    Native,
+    /// Shifted left to the top bits: 0…65520 for 12 bits in 16.
+    Shifted,
+    /// Stretched over the integer's range: 0…65535.
+    Scaled,
+}
+
+impl From<CameraCodes> for scanner_geometry::IntegerCodes {
+    fn from(c: CameraCodes) -> Self {
+        match c {
+            CameraCodes::Native => scanner_geometry::IntegerCodes::Native,
+            CameraCodes::Shifted => scanner_geometry::IntegerCodes::Shifted,
+            CameraCodes::Scaled => scanner_geometry::IntegerCodes::Scaled,
+        }
+    }
 }
 
 /// `--exposure-us` (microseconds) and `--black-level` (ADC codes): a
@@ -602,14 +630,24 @@ impl ScanArgs {
     }
 }
 
-fn camera_for(arg: Option<&str>, rig: Option<&SimRig>) -> Result<Box<dyn Camera>, Failure> {
-    match (arg, rig) {
+fn camera_for(
+    args: &ScanArgs,
+    sensor: &scanner_geometry::SensorSpec,
+    rig: Option<&SimRig>,
+) -> Result<Box<dyn Camera>, Failure> {
+    match (args.camera.as_deref(), rig) {
         (Some(spec), _) => {
             let dir = spec
                 .strip_prefix("folder:")
                 .ok_or_else(|| Failure(2, anyhow!("--camera must be folder:DIR, got {spec:?}")))?;
-            Ok(Box::new(FolderCamera::new(Path::new(dir)).map_err(|e| Failure(8, anyhow!(e)))?))
+            let camera = FolderCamera::new(Path::new(dir), sensor, args.camera_codes.into())
+                .map_err(|e| Failure(8, anyhow!(e)))?;
+            Ok(Box::new(camera))
         }
+        (None, _) if args.camera_codes != CameraCodes::Native => Err(Failure(
+            2,
+            anyhow!("--camera-codes is for a camera's frame files (--camera folder:DIR)"),
+        )),
         #[cfg(feature = "sim")]
         (None, Some(rig)) => Ok(Box::new(SimCamera(rig.clone()))),
         #[cfg(not(feature = "sim"))]
@@ -645,7 +683,7 @@ pub fn run_scan(
             anyhow!("--black-level {codes}: at or above the sensor's top code {top}"),
         ));
     }
-    let mut camera = camera_for(scan_args.camera.as_deref(), opened.rig.as_ref())?;
+    let mut camera = camera_for(scan_args, &geometry.sensor, opened.rig.as_ref())?;
     let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
     opts.resume = scan_args.resume;
     opts.mirrors = scan_args.mirrors;
@@ -818,6 +856,7 @@ pub fn demo(
             force: false,
             geometry: None,
             camera: None,
+            camera_codes: CameraCodes::Native,
             mirrors,
             exposure_us,
             exposures: Vec::new(),
@@ -896,20 +935,52 @@ pub fn demo(
     Ok(())
 }
 
+/// The files `scanner sim`'s camera writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FrameFormat {
+    /// OpenEXR, 32-bit float.
+    Exr,
+    /// 16-bit PNG.
+    Png,
+    /// 16-bit TIFF.
+    Tiff,
+}
+
 /// `scanner sim` without the simulator: refused.
 #[cfg(not(feature = "sim"))]
-pub fn sim(_: &DeviceArgs, _: f64, _: &Path) -> Result<(), Failure> {
+pub fn sim(
+    _: &DeviceArgs,
+    _: f64,
+    _: &Path,
+    _: FrameFormat,
+    _: CameraCodes,
+) -> Result<(), Failure> {
     Err(no_simulator())
 }
 
 /// `scanner sim`: serve the simulated scanner on a pty until Ctrl-C.
 #[cfg(feature = "sim")]
-pub fn sim(args: &DeviceArgs, speed: f64, frames: &Path) -> Result<(), Failure> {
+pub fn sim(
+    args: &DeviceArgs,
+    speed: f64,
+    frames: &Path,
+    format: FrameFormat,
+    codes: CameraCodes,
+) -> Result<(), Failure> {
+    use hil_sim::camera::FrameFiles;
     if !(speed > 0.0 && speed <= 4.0) {
         return Err(Failure(2, anyhow!("--speed must be in (0, 4]")));
     }
+    let files = match format {
+        FrameFormat::Exr if codes != CameraCodes::Native => {
+            return Err(Failure(2, anyhow!("--frame-codes is for PNG and TIFF frames")));
+        }
+        FrameFormat::Exr => FrameFiles::Exr,
+        FrameFormat::Png => FrameFiles::Png(codes.into()),
+        FrameFormat::Tiff => FrameFiles::Tiff(codes.into()),
+    };
     let setup = args.sim_setup()?;
-    let server = setup.serve(speed, frames.to_path_buf()).map_err(sim_failure)?;
+    let server = setup.serve(speed, frames.to_path_buf(), files).map_err(sim_failure)?;
     // The scanner's nominal geometry (binning included) for the host.
     let geometry_file = frames.join("geometry.toml");
     let nominal = setup.nominal().map_err(sim_failure)?;

@@ -243,6 +243,14 @@ enum Command {
         /// Folder for the camera's frames.
         #[arg(long, default_value = "sim-frames")]
         frames: PathBuf,
+        /// The files the simulated camera writes: OpenEXR (floats), or
+        /// 16-bit PNG or TIFF of its codes (as --frame-codes says).
+        #[arg(long, value_enum, default_value_t = commands::FrameFormat::Exr)]
+        frame_format: commands::FrameFormat,
+        /// How PNG and TIFF frames hold the codes (scan them with the same
+        /// --camera-codes).
+        #[arg(long, value_enum, default_value_t = commands::CameraCodes::Native)]
+        frame_codes: commands::CameraCodes,
     },
     /// Fit an NPF model to a MERL table.
     Fit {
@@ -435,7 +443,9 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Light { device, state, duty } => commands::light(&device, state == "on", duty)?,
         Command::Trigger { device, exposure_us } => commands::trigger(&device, exposure_us)?,
-        Command::Sim { device, speed, frames } => commands::sim(&device, speed, &frames)?,
+        Command::Sim { device, speed, frames, frame_format, frame_codes } => {
+            commands::sim(&device, speed, &frames, frame_format, frame_codes)?
+        }
         Command::Fit { input: path, output: out, g, p, max_iterations } => {
             if !(1.0..=2.0).contains(&p) {
                 return Err(Failure(2, anyhow::anyhow!("--p must be in [1, 2], got {p}")));

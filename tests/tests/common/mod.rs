@@ -17,9 +17,19 @@ pub fn setup(material: &str, faults: FaultPlan) -> SimSetup {
 /// keep-alive stays inside the device's 500 ms link timeout.
 pub const SPEED: f64 = 3.0;
 
-/// Serve `setup` on a pty; frames and the nominal geometry go to `frames`.
+/// Serve `setup` on a pty; frames (OpenEXR) and the nominal geometry go to
+/// `frames`.
 pub fn serve(setup: &SimSetup, frames: &Path) -> PtyServer {
-    let server = setup.serve(SPEED, frames.to_path_buf()).unwrap();
+    serve_files(setup, frames, hil_sim::camera::FrameFiles::Exr)
+}
+
+/// [`serve`], the camera writing its frames as `files`.
+pub fn serve_files(
+    setup: &SimSetup,
+    frames: &Path,
+    files: hil_sim::camera::FrameFiles,
+) -> PtyServer {
+    let server = setup.serve(SPEED, frames.to_path_buf(), files).unwrap();
     std::fs::write(frames.join("geometry.toml"), setup.nominal().unwrap().to_toml()).unwrap();
     server
 }
