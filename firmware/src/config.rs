@@ -3,7 +3,8 @@
 
 use heapless::Vec;
 use protocol::{
-    AXIS_COUNT, AxisConfig, BoardConfig, Direction, HomingConfig, MAX_MIRRORS, MirrorPosition, Unit,
+    AXIS_COUNT, AxisConfig, BoardConfig, Direction, HomeSensors, HomingConfig, MAX_MIRRORS,
+    MirrorPosition, Unit,
 };
 use serde::{Deserialize, Serialize};
 
@@ -109,9 +110,10 @@ pub fn is_valid(c: &AxisConfig) -> bool {
         }
 }
 
-/// Format version of [`PersistedConfig`] (2 added the board options;
-/// format 1 blobs still load, with the default board options).
-pub const CONFIG_FORMAT: u16 = 2;
+/// Format version of [`PersistedConfig`] (2 added the board options, 3
+/// the home sensors' polarity; blobs of formats 1 and 2 still load, with
+/// the defaults for what they lack).
+pub const CONFIG_FORMAT: u16 = 3;
 
 /// What [`protocol::Request::SaveConfig`] writes to flash (postcard-encoded).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -124,18 +126,29 @@ pub struct PersistedConfig {
     pub mirrors: Vec<Option<MirrorPosition>, MAX_MIRRORS>,
     /// The board's wiring options.
     pub board: BoardConfig,
+    /// The home / index sensors' polarity.
+    pub home: HomeSensors,
+}
+
+/// Format 2: the same without the home sensors' polarity.
+#[derive(Deserialize)]
+struct PersistedConfigV2 {
+    _format: u16,
+    axes: [AxisConfig; AXIS_COUNT],
+    mirrors: Vec<Option<MirrorPosition>, MAX_MIRRORS>,
+    board: BoardConfig,
 }
 
 /// Format 1: the same without the board options.
 #[derive(Deserialize)]
 struct PersistedConfigV1 {
-    format: u16,
+    _format: u16,
     axes: [AxisConfig; AXIS_COUNT],
     mirrors: Vec<Option<MirrorPosition>, MAX_MIRRORS>,
 }
 
 /// Largest encoded [`PersistedConfig`], bytes.
-pub const PERSISTED_MAX_LEN: usize = 2 + AXIS_COUNT * 64 + 1 + MAX_MIRRORS * 16 + 1;
+pub const PERSISTED_MAX_LEN: usize = 2 + AXIS_COUNT * 64 + 1 + MAX_MIRRORS * 16 + 1 + AXIS_COUNT;
 
 impl Default for PersistedConfig {
     fn default() -> Self {
@@ -144,6 +157,7 @@ impl Default for PersistedConfig {
             axes: default_axes(),
             mirrors: Vec::new(),
             board: BoardConfig::default(),
+            home: HomeSensors::default(),
         }
     }
 }
@@ -151,20 +165,30 @@ impl Default for PersistedConfig {
 impl PersistedConfig {
     /// Decode a blob; `None` if it is not a valid configuration of this format.
     pub fn decode(blob: &[u8]) -> Option<PersistedConfig> {
-        let cfg = match postcard::from_bytes::<PersistedConfig>(blob) {
-            Ok(cfg) if cfg.format == CONFIG_FORMAT => cfg,
-            _ => {
-                let v1: PersistedConfigV1 = postcard::from_bytes(blob).ok()?;
-                if v1.format != 1 {
-                    return None;
+        let format = postcard::from_bytes::<u16>(blob).ok()?;
+        let cfg = match format {
+            CONFIG_FORMAT => postcard::from_bytes::<PersistedConfig>(blob).ok()?,
+            2 => {
+                let v2: PersistedConfigV2 = postcard::from_bytes(blob).ok()?;
+                PersistedConfig {
+                    format: CONFIG_FORMAT,
+                    axes: v2.axes,
+                    mirrors: v2.mirrors,
+                    board: v2.board,
+                    home: HomeSensors::default(),
                 }
+            }
+            1 => {
+                let v1: PersistedConfigV1 = postcard::from_bytes(blob).ok()?;
                 PersistedConfig {
                     format: CONFIG_FORMAT,
                     axes: v1.axes,
                     mirrors: v1.mirrors,
                     board: BoardConfig::default(),
+                    home: HomeSensors::default(),
                 }
             }
+            _ => return None,
         };
         cfg.axes.iter().all(is_valid).then_some(cfg)
     }

@@ -491,6 +491,26 @@ impl Controller {
                 self.config.board = board;
                 Ok(Reply::Ack)
             }
+            Request::GetHomeSensors => Ok(Reply::HomeSensors(self.config.home)),
+            Request::SetHomeSensors(home) => {
+                if self.activity != Activity::Idle {
+                    return Err(DeviceError::Busy);
+                }
+                for axis in Axis::ALL {
+                    let i = axis.index();
+                    if home.active_high[i] != self.config.home.active_high[i] {
+                        // The same line now means the opposite: so does
+                        // what was read of it, at once (no edge), and the
+                        // axis' home is no longer known.
+                        let d = &mut self.debounce[i];
+                        (d.level, d.raw) = (!d.level, !d.raw);
+                        self.prev_inputs.home_line[i] = !self.prev_inputs.home_line[i];
+                        self.homed[i] = false;
+                    }
+                }
+                self.config.home = home;
+                Ok(Reply::Ack)
+            }
             Request::GetLastTrigger => Ok(Reply::Trigger(self.last_trigger)),
             Request::Reset => {
                 self.halt_all(hw);
@@ -765,7 +785,7 @@ impl Controller {
             self.check[i] = if self.homed[i] { Check::Near } else { Check::Off };
             self.hit[i] = None;
             self.homed[i] = false;
-            let stage = if self.prev_inputs.home[i] {
+            let stage = if self.prev_inputs.home_line[i] {
                 HomingStage::BackOff
             } else if self.check[i] == Check::Near {
                 HomingStage::Return
@@ -851,7 +871,7 @@ impl Controller {
                 self.homing_failed(axis, HomingFailure::Timeout, hw);
                 return;
             }
-            let switch = inputs.home[i];
+            let switch = inputs.home_line[i];
             let finished = motion.planner.is_done() && hw.with_stepper(axis, |s| s.is_idle());
             match stage {
                 HomingStage::FastApproach | HomingStage::Return if switch => {
@@ -976,8 +996,8 @@ impl Controller {
         }
         for axis in Axis::ALL {
             let i = axis.index();
-            let rising = inputs.home[i] && !self.prev_inputs.home[i];
-            let falling = !inputs.home[i] && self.prev_inputs.home[i];
+            let rising = inputs.home_line[i] && !self.prev_inputs.home_line[i];
+            let falling = !inputs.home_line[i] && self.prev_inputs.home_line[i];
             let homing = self.motion[i].as_ref().is_some_and(|m| m.homing.is_some());
             if !self.homed[i] || homing || !(rising || falling) {
                 continue;
@@ -1022,13 +1042,15 @@ impl Controller {
         for axis in Axis::ALL {
             let i = axis.index();
             let position = hw.with_stepper(axis, |s| s.position());
-            self.debounce[i].sample(raw.home[i], now, position);
+            let actuated = raw.home_line[i] == self.config.home.active_high[i];
+            self.debounce[i].sample(actuated, now, position);
         }
         self.debounce[AXIS_COUNT].sample(raw.estop, now, 0);
         let fault = raw.driver_fault_line == self.config.board.driver_fault_active_high;
         self.debounce[AXIS_COUNT + 1].sample(fault, now, 0);
         Inputs {
-            home: core::array::from_fn(|i| self.debounce[i].level),
+            // Debounced and interpreted: true = actuated.
+            home_line: core::array::from_fn(|i| self.debounce[i].level),
             estop: self.debounce[AXIS_COUNT].level,
             // Debounced and interpreted: true = a driver reports a fault.
             driver_fault_line: self.debounce[AXIS_COUNT + 1].level,

@@ -20,8 +20,10 @@ pub const TICKS_PER_US: u64 = TICK_HZ as u64 / 1_000_000;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Inputs {
-    /// Home / index switch per axis (true = actuated).
-    pub home: [bool; AXIS_COUNT],
+    /// The home / index sensor's line per axis is high (its electrical
+    /// level: whether that is actuated depends on
+    /// `HomeSensors::active_high`).
+    pub home_line: [bool; AXIS_COUNT],
     /// Emergency-stop input asserted.
     pub estop: bool,
     /// The drivers' fault line is high (its electrical level: whether that

@@ -67,6 +67,7 @@ pub const TESTS: &[SelfTest] = &[
     ("storage_failure_at_boot_latches", storage_failure_at_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
     ("driver_fault_polarity_is_configurable", driver_fault_polarity_is_configurable),
+    ("home_sensor_polarity_is_configurable", home_sensor_polarity_is_configurable),
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
     ("link_bytes_corruption_and_duplicates", link_bytes_corruption_and_duplicates),
@@ -960,6 +961,79 @@ pub fn config_save_and_reload() -> TestResult {
     let upgraded = PersistedConfig::decode(old).ok_or("format 1 loads")?;
     ensure!(upgraded.axes == loaded.axes && upgraded.mirrors == loaded.mirrors, "v1 contents");
     ensure!(upgraded.board == protocol::BoardConfig::default(), "default board options");
+    ensure!(upgraded.home == protocol::HomeSensors::default(), "default home sensors");
+    // So does a format-2 blob (before the home sensors' polarity).
+    let board = protocol::BoardConfig { driver_fault_active_high: true };
+    let v2 = (2u16, loaded.axes, loaded.mirrors.clone(), board);
+    let old = postcard::to_slice(&v2, &mut buf).map_err(|_| "encode v2")?;
+    let upgraded = PersistedConfig::decode(old).ok_or("format 2 loads")?;
+    ensure!(upgraded.axes == loaded.axes && upgraded.mirrors == loaded.mirrors, "v2 contents");
+    ensure!(upgraded.board == board, "v2 board options");
+    ensure!(upgraded.home == protocol::HomeSensors::default(), "default home sensors");
+    // A format this firmware does not know is refused, not misread.
+    let v9 = (9u16, loaded.axes, loaded.mirrors.clone(), board, [true; 3]);
+    let unknown = postcard::to_slice(&v9, &mut buf).map_err(|_| "encode v9")?;
+    ensure!(PersistedConfig::decode(unknown).is_none(), "unknown format");
+    Ok(())
+}
+
+/// The home / index sensors' polarity follows `HomeSensors`: a sensor whose
+/// line is high when actuated cannot home while the axis is set active low
+/// (it reads actuated everywhere but at the switch: the back-off never
+/// leaves it), homes exactly as a default-wired one once set, and the
+/// setting is saved; changing it un-homes the axis, and is refused while
+/// anything moves.
+pub fn home_sensor_polarity_is_configurable() -> TestResult {
+    use protocol::HomeSensors;
+    let mut reference = Rig::new();
+    ensure!(reference.home_all(), "a default-wired rig homes");
+    let mut rig = Rig::new();
+    rig.switch_active_high = [false, true, false];
+    ensure!(
+        rig.request(Request::GetHomeSensors) == Reply::HomeSensors(HomeSensors::default()),
+        "default: active low"
+    );
+    ensure!(!rig.home_all(), "the track's sensor read the wrong way round");
+    ensure!(rig.ctrl.faults().contains(FaultFlags::HOMING_FAILED), "homing failed");
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
+    let track_high = HomeSensors { active_high: [false, true, false] };
+    ensure!(rig.request(Request::SetHomeSensors(track_high)) == Reply::Ack, "set");
+    ensure!(rig.request(Request::GetHomeSensors) == Reply::HomeSensors(track_high), "read back");
+    // Where the failed homing left it does not matter: from the reference's
+    // start, it homes to the same count at the same physical place.
+    ensure!(rig.home_all(), "homes once set");
+    ensure!(rig.ctrl.faults().is_empty(), "no fault");
+    for axis in Axis::ALL {
+        let offset = |r: &Rig| r.physical(axis) - r.position(axis) as i64;
+        ensure!(offset(&rig) == offset(&reference), "the same home as a default-wired sensor");
+    }
+    // Out and back: no fault.
+    for target in [200_000, 2_000] {
+        ensure!(move_to(&mut rig, [None, Some(target), None])? == Reply::Ack, "move");
+        rig.run_until_idle(20_000);
+        ensure!(rig.position(Axis::Track) == target, "there");
+    }
+    ensure!(rig.ctrl.faults().is_empty(), "no fault on the way");
+    ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved");
+    let loaded = PersistedConfig::decode(&rig.hw.saved).ok_or("decodes")?;
+    ensure!(loaded.home == track_high, "persisted");
+    // Not while moving.
+    ensure!(move_to(&mut rig, [None, Some(150_000), None])? == Reply::Ack, "a move");
+    ensure!(
+        rig.request(Request::SetHomeSensors(HomeSensors::default()))
+            == Reply::Error(DeviceError::Busy),
+        "busy"
+    );
+    rig.run_until_idle(10_000);
+    // Changed back: the track is no longer homed, the others are.
+    ensure!(rig.request(Request::SetHomeSensors(HomeSensors::default())) == Reply::Ack, "reset");
+    ensure!(!rig.ctrl.is_homed(Axis::Track), "the track un-homed");
+    ensure!(rig.ctrl.is_homed(Axis::Disk) && rig.ctrl.is_homed(Axis::Tilt), "others homed");
+    ensure!(rig.ctrl.faults().is_empty(), "no edge, no fault");
+    ensure!(
+        move_to(&mut rig, [None, Some(10_000), None])? == Reply::Error(DeviceError::NotHomed),
+        "no move until homed again"
+    );
     Ok(())
 }
 

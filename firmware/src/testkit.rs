@@ -154,6 +154,9 @@ pub struct Rig {
     pub physical: [i64; AXIS_COUNT],
     /// Home switch per axis.
     pub switches: [Switch; AXIS_COUNT],
+    /// How each switch is wired: its line is high when actuated (false:
+    /// low when actuated, the board's default).
+    pub switch_active_high: [bool; AXIS_COUNT],
     /// E-stop and driver-fault inputs.
     pub estop: bool,
     /// Driver fault input.
@@ -218,6 +221,7 @@ impl Rig {
                 Switch::Below(0),
                 Switch::Below(-9_333),
             ],
+            switch_active_high: [false; AXIS_COUNT],
             estop: false,
             driver_fault: false,
             keepalive: true,
@@ -249,7 +253,10 @@ impl Rig {
     /// Current input snapshot.
     pub fn inputs(&self) -> Inputs {
         Inputs {
-            home: Axis::ALL.map(|a| self.switches[a.index()].actuated(self.physical(a))),
+            home_line: Axis::ALL.map(|a| {
+                self.switches[a.index()].actuated(self.physical(a))
+                    == self.switch_active_high[a.index()]
+            }),
             estop: self.estop,
             // The rig's `driver_fault` is "asserted"; the line level
             // follows the configured polarity.

@@ -129,6 +129,11 @@ pub struct SimConfig {
     pub motors: [MotorModel; AXIS_COUNT],
     /// Faults to inject.
     pub faults: FaultPlan,
+    /// How each axis' home / index sensor is wired: its line high when
+    /// actuated (false: low when actuated, the board's default). The
+    /// firmware reads them as its `HomeSensors` setting says, so a
+    /// mismatch is what a real board with the wrong setting does.
+    pub home_active_high: [bool; AXIS_COUNT],
 }
 
 impl SimConfig {
@@ -138,6 +143,7 @@ impl SimConfig {
             seed,
             motors: Axis::ALL.map(MotorModel::default_for),
             faults: FaultPlan::default(),
+            home_active_high: [false; AXIS_COUNT],
         }
     }
 }
@@ -149,6 +155,7 @@ pub struct SimDevice {
     hw: SimHw,
     motors: [SimMotor; AXIS_COUNT],
     switches: [SimSwitch; AXIS_COUNT],
+    home_active_high: [bool; AXIS_COUNT],
     estop: bool,
     driver_fault: bool,
     now: u64,
@@ -192,6 +199,7 @@ impl SimDevice {
             hw,
             motors,
             switches: Axis::ALL.map(SimSwitch::default_for),
+            home_active_high: config.home_active_high,
             estop: false,
             driver_fault: false,
             now: 0,
@@ -344,16 +352,20 @@ impl SimDevice {
     }
 
     fn poll(&mut self) {
-        let mut home = [false; AXIS_COUNT];
-        for (i, h) in home.iter_mut().enumerate() {
-            *h = self.switches[i].sample(self.motors[i].position(), &mut self.rng);
+        let mut home_line = [false; AXIS_COUNT];
+        for (i, h) in home_line.iter_mut().enumerate() {
+            let actuated = self.switches[i].sample(self.motors[i].position(), &mut self.rng);
+            *h = actuated == self.home_active_high[i];
         }
         // `driver_fault` is "asserted"; the line level follows the
         // polarity the firmware is configured for (the simulated drivers
         // are wired to match).
         let active_high = self.controller.config().board.driver_fault_active_high;
-        let inputs =
-            Inputs { home, estop: self.estop, driver_fault_line: self.driver_fault == active_high };
+        let inputs = Inputs {
+            home_line,
+            estop: self.estop,
+            driver_fault_line: self.driver_fault == active_high,
+        };
         self.controller.poll(self.now, &inputs, &mut self.hw);
         self.after_controller();
     }

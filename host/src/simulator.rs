@@ -54,6 +54,9 @@ pub struct SimSetup {
     /// A black level the camera leaves in its frames, ADC codes (0: none,
     /// as docs/scan-format.md asks).
     pub black_level_codes: u32,
+    /// Home / index sensors wired active high, per axis (the board's
+    /// default is active low).
+    pub home_active_high: [bool; 3],
 }
 
 impl SimSetup {
@@ -66,6 +69,7 @@ impl SimSetup {
             faults: FaultPlan::none(),
             defects: Vec::new(),
             black_level_codes: 0,
+            home_active_high: [false; 3],
         }
     }
 
@@ -98,6 +102,7 @@ impl SimSetup {
     fn config(&self) -> SimConfig {
         let mut c = SimConfig::new(self.seed);
         c.faults = self.faults.clone();
+        c.home_active_high = self.home_active_high;
         c
     }
 

@@ -739,6 +739,12 @@ wire_type! {
         /// Set the board's wiring options (persisted by `SaveConfig`);
         /// refused while busy (since 1.1).
         SetBoardConfig(BoardConfig),
+        /// Answer: [`Reply::HomeSensors`] (since 1.2).
+        GetHomeSensors,
+        /// Set which level of each home / index sensor means actuated
+        /// (persisted by `SaveConfig`); refused while busy; an axis whose
+        /// polarity changes is no longer homed (since 1.2).
+        SetHomeSensors(HomeSensors),
     }
 }
 
@@ -750,6 +756,19 @@ wire_type! {
         /// The driver-fault input is active high (TMC2209 DIAG, push-pull)
         /// rather than active low (DRV8825 nFAULT, open drain; the default).
         pub driver_fault_active_high: bool,
+    }
+}
+
+wire_type! {
+    /// How each axis' home / index sensor signals (persisted with the axis
+    /// configurations; since 1.2).
+    #[derive(Eq, Default)]
+    pub struct HomeSensors {
+        /// Per axis (disk, track, tilt): the sensor's output is high when
+        /// actuated (a push-pull optical or Hall sensor) rather than low (a
+        /// switch or open-collector sensor to ground against the board's
+        /// pull-up; the default).
+        pub active_high: [bool; AXIS_COUNT],
     }
 }
 
@@ -779,6 +798,8 @@ impl Request {
             Request::Reset => "Reset",
             Request::GetBoardConfig => "GetBoardConfig",
             Request::SetBoardConfig(_) => "SetBoardConfig",
+            Request::GetHomeSensors => "GetHomeSensors",
+            Request::SetHomeSensors(_) => "SetHomeSensors",
         }
     }
 }
@@ -817,6 +838,8 @@ wire_type! {
         Trigger(Option<TriggerFired>),
         /// The board's wiring options (since 1.1).
         BoardConfig(BoardConfig),
+        /// The home / index sensors' polarity (since 1.2).
+        HomeSensors(HomeSensors),
     }
 }
 

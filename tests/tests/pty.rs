@@ -221,3 +221,46 @@ fn without_resume_an_existing_scan_is_not_touched() {
     assert!(String::from_utf8_lossy(&r.stderr).contains("--resume"));
     assert_eq!(frames(&out), before);
 }
+
+#[test]
+fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let mut s = setup("leather", FaultPlan::none());
+    // The track's sensor is a push-pull one: high when actuated.
+    s.home_active_high = [false, true, false];
+    let server = serve(&s, &frames_dir);
+    let run = |args: &[&str]| {
+        let r = scanner().args(args).args(["--device", server.path()]).output().unwrap();
+        let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+        (r.status.code(), text(&r.stdout), text(&r.stderr))
+    };
+    let (code, out, err) = run(&["config"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.contains("home sensors: disk active low, track active low, tilt active low"),
+        "{out}"
+    );
+    // Read active low, it seems pressed wherever the track is but home.
+    let (code, _, err) = run(&["home"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("track failed: its switch stayed pressed after backing off"), "{err}");
+    assert!(err.contains("--home-sensor track=active-high"), "{err}");
+    let (code, _, err) = run(&["home"]);
+    assert_ne!(code, Some(0));
+    assert!(err.contains("fault latched") && err.contains("`scanner clear` clears it"), "{err}");
+    let (code, out, err) = run(&["clear"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("cleared: homing failed"), "{out}");
+    let (code, _, err) = run(&["config", "--home-sensor", "track=up"]);
+    assert_eq!(code, Some(2), "{err}");
+    let (code, out, err) = run(&["config", "--home-sensor", "track=active-high"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("track must be homed again"), "{out}");
+    assert!(out.contains("saved to the device's flash"), "{out}");
+    assert!(out.contains("disk active low, track active high, tilt active low"), "{out}");
+    let (code, out, err) = run(&["home"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("homing: done at [0, 0, -9333] steps"), "{out}");
+    drop(server);
+}

@@ -8,9 +8,9 @@
 //! | TRACK STEP / DIR | PB14 / PB15 | |
 //! | TILT STEP / DIR | PA8 / PA9 | |
 //! | drivers EN (all) | PA10 | active low |
-//! | DISK index flag | PB3 | active low, pull-up |
-//! | TRACK home switch | PB4 | active low, pull-up |
-//! | TILT home switch | PB5 | active low, pull-up |
+//! | DISK index flag | PB3 | pull-up; active low (default) or high: `HomeSensors` |
+//! | TRACK home switch | PB4 | pull-up; active low (default) or high: `HomeSensors` |
+//! | TILT home switch | PB5 | pull-up; active low (default) or high: `HomeSensors` |
 //! | emergency stop | PB8 | NC contact to GND, pull-up: open (or a cut wire) = stop |
 //! | driver fault | PB9 | pull-up; active low (DRV8825 nFAULT, default) or high (TMC2209 DIAG): `BoardConfig` |
 //! | camera trigger | PA1 | TIM5 CH2 one-pulse (`pulse.rs`), active high, to the opto-isolator |
@@ -53,7 +53,7 @@ impl Sensors {
     /// Sample every input.
     pub fn read(&self) -> Inputs {
         Inputs {
-            home: [self.home[0].is_low(), self.home[1].is_low(), self.home[2].is_low()],
+            home_line: [self.home[0].is_high(), self.home[1].is_high(), self.home[2].is_high()],
             estop: self.estop.is_high(),
             driver_fault_line: self.driver_fault.is_high(),
         }

@@ -71,6 +71,11 @@ pub struct DeviceArgs {
     /// capture program that does not subtract it).
     #[arg(long, default_value_t = 0, value_name = "CODES")]
     pub sim_black_level: u32,
+    /// Simulator: these axes' home / index sensors are wired active high
+    /// (comma-separated; the board reads them as `scanner config
+    /// --home-sensors` says).
+    #[arg(long, value_delimiter = ',', value_parser = super::parse_axis, value_name = "AXES")]
+    pub sim_home_active_high: Vec<Axis>,
 }
 
 impl DeviceArgs {
@@ -90,6 +95,7 @@ impl DeviceArgs {
             faults,
             defects: self.sim_defects.clone(),
             black_level_codes: self.sim_black_level,
+            home_active_high: Axis::ALL.map(|a| self.sim_home_active_high.contains(&a)),
         })
     }
 }
@@ -99,7 +105,39 @@ fn scan_failure(e: ScanError) -> Failure {
 }
 
 fn link_failure(e: LinkError) -> Failure {
-    scan_failure(ScanError::from(e))
+    let latched =
+        matches!(e, LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. });
+    let f = scan_failure(ScanError::from(e));
+    if latched {
+        Failure(f.0, anyhow!("{} (`scanner status` names it, `scanner clear` clears it)", f.1))
+    } else {
+        f
+    }
+}
+
+/// `scanner clear`: clear the device's latched faults.
+pub fn clear(args: &DeviceArgs) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let faults = o.device.status().map_err(link_failure)?.faults;
+    if faults.is_empty() {
+        println!("no fault latched");
+        return Ok(());
+    }
+    let names = faults.names().collect::<Vec<_>>().join(", ");
+    match o.device.command(Request::ClearFault) {
+        Ok(()) => {
+            println!("cleared: {names}");
+            Ok(())
+        }
+        Err(LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }) => Err(Failure(
+            7,
+            anyhow!(
+                "{names}: not cleared — the emergency stop is still open or a driver still \
+                 reports a fault; release it first"
+            ),
+        )),
+        Err(e) => Err(link_failure(e)),
+    }
 }
 
 /// An open device (and the simulator behind it, if simulated).
@@ -199,11 +237,42 @@ pub fn devices() -> Result<(), Failure> {
 pub fn board_config(
     args: &DeviceArgs,
     driver_fault_active_high: Option<bool>,
+    home_sensors: &[(Axis, bool)],
 ) -> Result<(), Failure> {
     let mut o = open(args)?;
+    // Home sensors' polarity: since protocol 1.2.
+    let theirs = o.device.info().protocol;
+    let has_home_sensors = theirs.minor >= 2;
+    if !home_sensors.is_empty() && !has_home_sensors {
+        return Err(Failure(
+            6,
+            anyhow!(
+                "the device's firmware (protocol {theirs}) reads every home sensor active low: \
+                 update it to set their polarity"
+            ),
+        ));
+    }
     if let Some(high) = driver_fault_active_high {
         let board = protocol::BoardConfig { driver_fault_active_high: high };
         o.device.command(Request::SetBoardConfig(board)).map_err(link_failure)?;
+    }
+    if !home_sensors.is_empty() {
+        let mut home = home_sensors_of(&mut o.device)?;
+        let before = home;
+        for &(axis, high) in home_sensors {
+            home.active_high[axis.index()] = high;
+        }
+        o.device.command(Request::SetHomeSensors(home)).map_err(link_failure)?;
+        let changed: Vec<&str> = Axis::ALL
+            .iter()
+            .filter(|a| home.active_high[a.index()] != before.active_high[a.index()])
+            .map(|a| a.name())
+            .collect();
+        if !changed.is_empty() {
+            println!("{} must be homed again (scanner home)", changed.join(", "));
+        }
+    }
+    if driver_fault_active_high.is_some() || !home_sensors.is_empty() {
         if o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG) {
             o.device.command(Request::SaveConfig).map_err(link_failure)?;
             println!("saved to the device's flash");
@@ -212,18 +281,40 @@ pub fn board_config(
         }
     }
     match o.device.request(Request::GetBoardConfig).map_err(link_failure)? {
-        protocol::Reply::BoardConfig(b) => {
-            println!(
-                "driver fault line: {}",
-                if b.driver_fault_active_high {
-                    "active high (TMC2209 DIAG)"
-                } else {
-                    "active low (DRV8825 nFAULT)"
-                }
-            );
-            Ok(())
+        protocol::Reply::BoardConfig(b) => println!(
+            "driver fault line: {}",
+            if b.driver_fault_active_high {
+                "active high (TMC2209 DIAG)"
+            } else {
+                "active low (DRV8825 nFAULT)"
+            }
+        ),
+        reply => {
+            return Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply }));
         }
-        reply => Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply })),
+    }
+    let home = if has_home_sensors {
+        home_sensors_of(&mut o.device)?
+    } else {
+        protocol::HomeSensors::default()
+    };
+    let polarity = |high: bool| if high { "active high" } else { "active low" };
+    println!(
+        "home sensors: {}{}",
+        Axis::ALL
+            .iter()
+            .map(|a| format!("{} {}", a.name(), polarity(home.active_high[a.index()])))
+            .collect::<Vec<_>>()
+            .join(", "),
+        if has_home_sensors { "" } else { " (fixed by this firmware)" }
+    );
+    Ok(())
+}
+
+fn home_sensors_of(dev: &mut Device) -> Result<protocol::HomeSensors, Failure> {
+    match dev.request(Request::GetHomeSensors).map_err(link_failure)? {
+        protocol::Reply::HomeSensors(h) => Ok(h),
+        reply => Err(link_failure(LinkError::Unexpected { request: "GetHomeSensors", reply })),
     }
 }
 
@@ -310,6 +401,21 @@ fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
         }) => {
             println!("{what}: done at {positions:?} steps");
             Ok(())
+        }
+        Some(Event::MotionDone {
+            outcome: protocol::MotionOutcome::HomingFailed(axis, why),
+            ..
+        }) => {
+            use protocol::HomingFailure;
+            let hint = match why {
+                HomingFailure::SwitchStuck | HomingFailure::SwitchNotFound => format!(
+                    " (or its sensor's polarity is set the wrong way round: `scanner config` \
+                     shows it, `--home-sensor {}=active-high` or `=active-low` sets it)",
+                    axis.name()
+                ),
+                HomingFailure::Timeout => String::new(),
+            };
+            Err(Failure(7, anyhow!("{what}: {} failed: {why}{hint}", axis.name())))
         }
         Some(Event::MotionDone { outcome, .. }) => Err(Failure(7, anyhow!("{what}: {outcome:?}"))),
         _ => Err(Failure(7, anyhow!("{what}: no end of motion within 120 s"))),
@@ -847,6 +953,7 @@ pub fn demo(
             sim_faults: Vec::new(),
             sim_defects: Vec::new(),
             sim_black_level: 0,
+            sim_home_active_high: Vec::new(),
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {

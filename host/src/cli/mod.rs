@@ -174,6 +174,19 @@ enum Command {
         /// the default) or active-high (TMC2209 DIAG).
         #[arg(long, value_parser = ["active-low", "active-high"])]
         driver_fault: Option<String>,
+        /// Polarity of an axis' home / index sensor, `AXIS=active-low`
+        /// (a switch or open-collector sensor to ground; the default) or
+        /// `AXIS=active-high` (a push-pull optical or Hall sensor whose
+        /// output is high when actuated); comma-separated or repeated. An
+        /// axis whose polarity changes must be homed again.
+        #[arg(long, value_delimiter = ',', value_parser = parse_home_sensor, value_name = "AXIS=POLARITY")]
+        home_sensor: Vec<(protocol::Axis, bool)>,
+    },
+    /// Clear the device's latched faults (a failed homing, a lost link, an
+    /// emergency stop once released…).
+    Clear {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
     },
     /// Handshake and print the device's identity and axes.
     Info {
@@ -320,7 +333,20 @@ enum Material {
 #[derive(Debug)]
 pub struct Failure(pub u8, pub anyhow::Error);
 
-fn parse_axis(s: &str) -> Result<protocol::Axis, String> {
+/// `AXIS=active-high|active-low` → (axis, active high).
+fn parse_home_sensor(s: &str) -> Result<(protocol::Axis, bool), String> {
+    let (axis, polarity) = s
+        .split_once('=')
+        .ok_or_else(|| format!("{s:?}: give AXIS=active-high or AXIS=active-low"))?;
+    let high = match polarity {
+        "active-high" => true,
+        "active-low" => false,
+        other => return Err(format!("{other:?}: active-high or active-low")),
+    };
+    Ok((parse_axis(axis)?, high))
+}
+
+pub(crate) fn parse_axis(s: &str) -> Result<protocol::Axis, String> {
     protocol::Axis::ALL
         .into_iter()
         .find(|a| a.name() == s)
@@ -380,10 +406,11 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
-        Command::Config { device, driver_fault } => {
-            commands::board_config(&device, driver_fault.map(|p| p == "active-high"))?
+        Command::Config { device, driver_fault, home_sensor } => {
+            commands::board_config(&device, driver_fault.map(|p| p == "active-high"), &home_sensor)?
         }
         Command::Verify { dir } => commands::verify(&dir)?,
+        Command::Clear { device } => commands::clear(&device)?,
         Command::Calibrate {
             checkerboard,
             white,

@@ -140,6 +140,12 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             22,
             Req(Request::SetBoardConfig(BoardConfig { driver_fault_active_high: true })),
         ),
+        ("Request::GetHomeSensors", 23, Req(Request::GetHomeSensors)),
+        (
+            "Request::SetHomeSensors",
+            24,
+            Req(Request::SetHomeSensors(HomeSensors { active_high: [true, false, true] })),
+        ),
         ("Reply::Ack", 4, reply(Reply::Ack)),
         ("Reply::Error", 5, reply(Reply::Error(DeviceError::NotHomed))),
         (
@@ -180,6 +186,11 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             "Reply::BoardConfig",
             21,
             reply(Reply::BoardConfig(BoardConfig { driver_fault_active_high: true })),
+        ),
+        (
+            "Reply::HomeSensors",
+            23,
+            reply(Reply::HomeSensors(HomeSensors { active_high: [false, true, false] })),
         ),
         (
             "Event::Boot",
