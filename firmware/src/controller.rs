@@ -30,9 +30,9 @@ use heapless::Deque;
 use protocol::{
     AXIS_COUNT, Axis, AxisSet, AxisStatus, Capabilities, CaptureStep, DeviceError, DeviceInfo,
     DeviceState, Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame,
-    FrameDecoder, HomingFailure, LightState, LogLevel, LogText, MAX_EXPOSURE_US, MAX_FRAME_LEN,
-    MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply,
-    Request, ResetReason, Status, ToHost, TriggerFired, encode_frame,
+    FrameDecoder, HomingFailure, InputState, LightState, LogLevel, LogText, MAX_EXPOSURE_US,
+    MAX_FRAME_LEN, MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode,
+    PROTOCOL_VERSION, Reply, Request, ResetReason, Status, ToHost, TriggerFired, encode_frame,
 };
 
 use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid};
@@ -492,6 +492,7 @@ impl Controller {
                 Ok(Reply::Ack)
             }
             Request::GetHomeSensors => Ok(Reply::HomeSensors(self.config.home)),
+            Request::GetInputs => Ok(Reply::Inputs(self.input_state())),
             Request::SetHomeSensors(home) => {
                 if self.activity != Activity::Idle {
                     return Err(DeviceError::Busy);
@@ -1033,6 +1034,21 @@ impl Controller {
             hw.set_trigger(false);
             self.controlled_stop(hw);
             self.emit(Event::FaultRaised { faults: self.faults, axis: None });
+        }
+    }
+
+    /// The inputs as last sampled: each line's level (from what its
+    /// debouncer last saw, read back through the polarity) and the
+    /// debounced reading.
+    fn input_state(&self) -> InputState {
+        let home = &self.config.home.active_high;
+        let fault = &self.debounce[AXIS_COUNT + 1];
+        InputState {
+            home_line_high: core::array::from_fn(|i| self.debounce[i].raw == home[i]),
+            home_actuated: self.prev_inputs.home_line,
+            estop_open: self.prev_inputs.estop,
+            driver_fault_line_high: fault.raw == self.config.board.driver_fault_active_high,
+            driver_fault: self.prev_inputs.driver_fault_line,
         }
     }
 

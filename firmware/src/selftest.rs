@@ -993,12 +993,29 @@ pub fn home_sensor_polarity_is_configurable() -> TestResult {
         rig.request(Request::GetHomeSensors) == Reply::HomeSensors(HomeSensors::default()),
         "default: active low"
     );
+    // Away from its switch the track's line is low: read active low, that
+    // is actuated; GetInputs shows both.
+    let inputs = |rig: &mut Rig| match rig.request(Request::GetInputs) {
+        Reply::Inputs(i) => Ok(i),
+        _ => Err("GetInputs answers Inputs"),
+    };
+    // (sampled once, then accepted after the debounce time)
+    for _ in 0..2 {
+        let later = rig.now + TICKS_PER_MS;
+        rig.run_until(later);
+    }
+    let i = inputs(&mut rig)?;
+    ensure!(i.home_line_high == [true, false, true], "line levels");
+    ensure!(i.home_actuated == [false, true, false], "the track reads actuated");
+    ensure!(!i.estop_open && i.driver_fault_line_high && !i.driver_fault, "the other inputs");
     ensure!(!rig.home_all(), "the track's sensor read the wrong way round");
     ensure!(rig.ctrl.faults().contains(FaultFlags::HOMING_FAILED), "homing failed");
     ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
     let track_high = HomeSensors { active_high: [false, true, false] };
     ensure!(rig.request(Request::SetHomeSensors(track_high)) == Reply::Ack, "set");
     ensure!(rig.request(Request::GetHomeSensors) == Reply::HomeSensors(track_high), "read back");
+    let i = inputs(&mut rig)?;
+    ensure!(!i.home_line_high[1] && !i.home_actuated[1], "read active high: not actuated");
     // Where the failed homing left it does not matter: from the reference's
     // start, it homes to the same count at the same physical place.
     ensure!(rig.home_all(), "homes once set");

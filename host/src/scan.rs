@@ -421,7 +421,18 @@ impl Manifest {
     /// Read a scan directory's manifest. Every failure is exit 3: no scan
     /// there, or a damaged manifest.
     pub fn load(dir: &Path) -> Result<Manifest, ScanError> {
-        Manifest::load_file(&dir.join(MANIFEST_FILE)).map_err(|e| match e {
+        Manifest::load_hashed(dir).map(|(m, _)| m)
+    }
+
+    /// [`Manifest::load`], with the SHA-256 (hex) of the very bytes parsed.
+    pub fn load_hashed(dir: &Path) -> Result<(Manifest, String), ScanError> {
+        let path = dir.join(MANIFEST_FILE);
+        let parsed = Manifest::read_bytes(&path).and_then(|bytes| {
+            use sha2::Digest;
+            let sha = hex(&sha2::Sha256::digest(&bytes));
+            Ok((Manifest::parse(&path, bytes)?, sha))
+        });
+        parsed.map_err(|e| match e {
             LoadError::Missing => {
                 ScanError::Conflict(format!("no scan at {} (no {MANIFEST_FILE})", dir.display()))
             }
@@ -430,16 +441,20 @@ impl Manifest {
     }
 
     fn load_file(path: &Path) -> Result<Manifest, LoadError> {
-        let bytes = match scanner_formats::input::read(path) {
-            Ok(b) => b,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(LoadError::Missing),
-            Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
-                return Err(LoadError::Missing);
-            }
-            Err(e) => {
-                return Err(LoadError::Damaged(format!("{}: cannot read: {e}", path.display())));
-            }
-        };
+        Manifest::parse(path, Manifest::read_bytes(path)?)
+    }
+
+    fn read_bytes(path: &Path) -> Result<Vec<u8>, LoadError> {
+        match scanner_formats::input::read(path) {
+            Ok(b) => Ok(b),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(LoadError::Missing),
+            Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => Err(LoadError::Missing),
+            Err(e) => Err(LoadError::Damaged(format!("{}: cannot read: {e}", path.display()))),
+        }
+    }
+
+    /// The manifest in `bytes`, read from `path` (named in errors).
+    fn parse(path: &Path, bytes: Vec<u8>) -> Result<Manifest, LoadError> {
         let damaged =
             |why: String| LoadError::Damaged(format!("{}: damaged: {why}", path.display()));
         let text = String::from_utf8(bytes).map_err(|_| damaged("not UTF-8 text".into()))?;

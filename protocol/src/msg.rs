@@ -745,6 +745,9 @@ wire_type! {
         /// (persisted by `SaveConfig`); refused while busy; an axis whose
         /// polarity changes is no longer homed (since 1.2).
         SetHomeSensors(HomeSensors),
+        /// Answer: [`Reply::Inputs`], the inputs as last sampled: for wiring
+        /// a board up (since 1.2).
+        GetInputs,
     }
 }
 
@@ -769,6 +772,26 @@ wire_type! {
         /// switch or open-collector sensor to ground against the board's
         /// pull-up; the default).
         pub active_high: [bool; AXIS_COUNT],
+    }
+}
+
+wire_type! {
+    /// The board's inputs as last sampled: each line's electrical level and
+    /// what the controller makes of it (since 1.2).
+    #[derive(Eq, Default)]
+    pub struct InputState {
+        /// Per axis: the home / index sensor's line is high.
+        pub home_line_high: [bool; AXIS_COUNT],
+        /// Per axis: the sensor counts as actuated (its line read as
+        /// [`HomeSensors`] says, debounced).
+        pub home_actuated: [bool; AXIS_COUNT],
+        /// The emergency-stop input is open: stop (debounced).
+        pub estop_open: bool,
+        /// The drivers' fault line is high.
+        pub driver_fault_line_high: bool,
+        /// A driver reports a fault (the line read as [`BoardConfig`] says,
+        /// debounced).
+        pub driver_fault: bool,
     }
 }
 
@@ -800,6 +823,7 @@ impl Request {
             Request::SetBoardConfig(_) => "SetBoardConfig",
             Request::GetHomeSensors => "GetHomeSensors",
             Request::SetHomeSensors(_) => "SetHomeSensors",
+            Request::GetInputs => "GetInputs",
         }
     }
 }
@@ -840,6 +864,8 @@ wire_type! {
         BoardConfig(BoardConfig),
         /// The home / index sensors' polarity (since 1.2).
         HomeSensors(HomeSensors),
+        /// The inputs as last sampled (since 1.2).
+        Inputs(InputState),
     }
 }
 

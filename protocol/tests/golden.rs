@@ -66,7 +66,7 @@ fn examples_cover_every_variant() {
     let names: Vec<&str> = examples().iter().map(|(n, _, _)| *n).collect();
     let variant = |r: &Request| r.name();
     let requests = names.iter().filter(|n| n.starts_with("Request::")).count();
-    assert_eq!(requests, 24);
+    assert_eq!(requests, 25);
     for (name, _, ex) in examples() {
         if let Example::ToDevice(r) = ex {
             assert_eq!(name, format!("Request::{}", variant(&r)));
@@ -83,6 +83,7 @@ fn examples_cover_every_variant() {
         "Reply::Trigger",
         "Reply::BoardConfig",
         "Reply::HomeSensors",
+        "Reply::Inputs",
         "Event::Boot",
         "Event::MotionDone",
         "Event::TriggerFired",

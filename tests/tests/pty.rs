@@ -241,13 +241,25 @@ fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
         out.contains("home sensors: disk active low, track active low, tilt active low"),
         "{out}"
     );
+    // Far from its switch, the track's sensor holds its line low: read
+    // active low, that is "actuated" — what `scanner inputs` shows.
+    let (code, out, err) = run(&["inputs", "--watch", "0.3"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("track home switch   line low  → ACTUATED (read active low)"), "{out}");
+    assert!(
+        out.contains("disk  index flag    line high → not actuated (read active low)"),
+        "{out}"
+    );
+    assert!(out.contains("emergency stop      closed (run)"), "{out}");
+    assert!(out.contains("driver fault        line high → no fault (read active low)"), "{out}");
+    assert!(out.contains("watching …"), "{out}");
     // Read active low, it seems pressed wherever the track is but home.
     let (code, _, err) = run(&["home"]);
     assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("track failed: its switch stayed pressed after backing off"), "{err}");
     assert!(err.contains("--home-sensor track=active-high"), "{err}");
     let (code, _, err) = run(&["home"]);
-    assert_ne!(code, Some(0));
+    assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("fault latched") && err.contains("`scanner clear` clears it"), "{err}");
     let (code, out, err) = run(&["clear"]);
     assert_eq!(code, Some(0), "{err}");
@@ -259,6 +271,11 @@ fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
     assert!(out.contains("track must be homed again"), "{out}");
     assert!(out.contains("saved to the device's flash"), "{out}");
     assert!(out.contains("disk active low, track active high, tilt active low"), "{out}");
+    let (_, out, _) = run(&["inputs"]);
+    assert!(
+        out.contains("track home switch   line low  → not actuated (read active high)"),
+        "{out}"
+    );
     let (code, out, err) = run(&["home"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("homing: done at [0, 0, -9333] steps"), "{out}");

@@ -989,7 +989,7 @@ impl Calibration {
     pub fn hash(&self) -> String {
         use sha2::Digest;
         let text = serde_json::to_string(self).expect("calibration serialises");
-        sha2::Sha256::digest(text.as_bytes()).iter().map(|b| format!("{b:02x}")).collect()
+        crate::scan::hex(&sha2::Sha256::digest(text.as_bytes()))
     }
 }
 

@@ -30,10 +30,8 @@ impl ScanFrames {
     /// Open the scan in `dir`, taken with the scanner `geometry` describes:
     /// complete, of this geometry, frames of the camera's size.
     pub fn open(dir: &Path, geometry: &ScannerGeometry) -> Result<ScanFrames, BuildError> {
-        let path = dir.join(crate::scan::MANIFEST_FILE);
-        let bytes = scanner_formats::input::read(&path)
-            .map_err(|e| BuildError::Input(format!("no scan at {}: {e}", dir.display())))?;
-        let manifest = Manifest::load(dir).map_err(|e| BuildError::Input(e.to_string()))?;
+        let (manifest, manifest_sha256) =
+            Manifest::load_hashed(dir).map_err(|e| BuildError::Input(e.to_string()))?;
         let want = geometry.hash();
         if manifest.settings.geometry_sha256 != want {
             return Err(BuildError::Input(format!(
@@ -73,9 +71,6 @@ impl ScanFrames {
                 )));
             }
         }
-        use sha2::Digest;
-        let manifest_sha256 =
-            sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
         let found = manifest.settings.defects();
         let defects = DefectMap::new(&found, geometry.camera.width, geometry.camera.height);
         Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects })

@@ -1,7 +1,7 @@
 //! The `scanner` commands that talk to a scanner (real or simulated).
 
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use crate::camera::{Camera, FolderCamera};
 use crate::discovery::{self, DeviceChoice};
@@ -108,8 +108,9 @@ fn link_failure(e: LinkError) -> Failure {
     let latched =
         matches!(e, LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. });
     let f = scan_failure(ScanError::from(e));
+    // A latched fault needs a person: exit 7, as the fault itself did.
     if latched {
-        Failure(f.0, anyhow!("{} (`scanner status` names it, `scanner clear` clears it)", f.1))
+        Failure(7, anyhow!("{} (`scanner status` names it, `scanner clear` clears it)", f.1))
     } else {
         f
     }
@@ -309,6 +310,93 @@ pub fn board_config(
         if has_home_sensors { "" } else { " (fixed by this firmware)" }
     );
     Ok(())
+}
+
+/// `scanner inputs`
+pub fn inputs(args: &DeviceArgs, watch: Option<f64>) -> Result<(), Failure> {
+    if let Some(s) = watch
+        && !(s.is_finite() && (0.0..=86_400.0).contains(&s))
+    {
+        return Err(Failure(2, anyhow!("--watch takes 0…86400 s (0 or none: until Ctrl-C)")));
+    }
+    let mut o = open(args)?;
+    let theirs = o.device.info().protocol;
+    if theirs.minor < 2 {
+        return Err(Failure(
+            6,
+            anyhow!(
+                "the device's firmware (protocol {theirs}) cannot report its inputs: update it"
+            ),
+        ));
+    }
+    let home = home_sensors_of(&mut o.device)?;
+    let fault_high = match o.device.request(Request::GetBoardConfig).map_err(link_failure)? {
+        protocol::Reply::BoardConfig(b) => b.driver_fault_active_high,
+        reply => {
+            return Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply }));
+        }
+    };
+    let read = |dev: &mut Device| match dev.request(Request::GetInputs).map_err(link_failure)? {
+        protocol::Reply::Inputs(i) => Ok(i),
+        reply => Err(link_failure(LinkError::Unexpected { request: "GetInputs", reply })),
+    };
+    let mut last = read(&mut o.device)?;
+    for line in describe_inputs(&last, &home, fault_high) {
+        println!("{line}");
+    }
+    let Some(seconds) = watch else { return Ok(()) };
+    let started = Instant::now();
+    let end = (seconds > 0.0).then(|| started + Duration::from_secs_f64(seconds));
+    println!("watching{} …", if end.is_some() { "" } else { " (Ctrl-C stops)" });
+    while end.is_none_or(|end| Instant::now() < end) {
+        std::thread::sleep(Duration::from_millis(20));
+        let now = read(&mut o.device)?;
+        if now != last {
+            let before = describe_inputs(&last, &home, fault_high);
+            for (line, was) in describe_inputs(&now, &home, fault_high).iter().zip(&before) {
+                if line != was {
+                    println!("{:8.3} s  {line}", started.elapsed().as_secs_f64());
+                }
+            }
+            last = now;
+        }
+    }
+    Ok(())
+}
+
+/// One line per input: its level and what the board makes of it.
+fn describe_inputs(
+    i: &protocol::InputState,
+    home: &protocol::HomeSensors,
+    fault_high: bool,
+) -> Vec<String> {
+    let level = |high: bool| if high { "high" } else { "low " };
+    let read_as = |high: bool| if high { "read active high" } else { "read active low" };
+    let mut out: Vec<String> = Axis::ALL
+        .iter()
+        .map(|a| {
+            let k = a.index();
+            let sensor = if *a == Axis::Disk { "index flag " } else { "home switch" };
+            format!(
+                "{:5} {sensor}   line {} → {} ({})",
+                a.name(),
+                level(i.home_line_high[k]),
+                if i.home_actuated[k] { "ACTUATED" } else { "not actuated" },
+                read_as(home.active_high[k])
+            )
+        })
+        .collect();
+    out.push(format!(
+        "emergency stop      {}",
+        if i.estop_open { "OPEN → stop" } else { "closed (run)" }
+    ));
+    out.push(format!(
+        "driver fault        line {} → {} ({})",
+        level(i.driver_fault_line_high),
+        if i.driver_fault { "FAULT" } else { "no fault" },
+        read_as(fault_high)
+    ));
+    out
 }
 
 fn home_sensors_of(dev: &mut Device) -> Result<protocol::HomeSensors, Failure> {

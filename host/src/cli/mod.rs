@@ -198,6 +198,17 @@ enum Command {
         #[command(flatten)]
         device: commands::DeviceArgs,
     },
+    /// Print the board's inputs — home sensors, emergency stop, driver
+    /// fault: each line's level and what the board makes of it — for
+    /// wiring a board up.
+    Inputs {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Then print every change for SECONDS (no value: until Ctrl-C):
+        /// press a switch by hand and see it.
+        #[arg(long, num_args = 0..=1, default_missing_value = "0", value_name = "SECONDS")]
+        watch: Option<f64>,
+    },
     /// Home axes (all by default).
     Home {
         #[command(flatten)]
@@ -464,6 +475,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,
+        Command::Inputs { device, watch } => commands::inputs(&device, watch)?,
         Command::Home { device, axes } => commands::home(&device, &axes)?,
         Command::Move { device, disk, track, tilt, relative, steps } => {
             commands::move_axes(&device, [disk, track, tilt], relative, steps)?

@@ -146,6 +146,7 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             24,
             Req(Request::SetHomeSensors(HomeSensors { active_high: [true, false, true] })),
         ),
+        ("Request::GetInputs", 25, Req(Request::GetInputs)),
         ("Reply::Ack", 4, reply(Reply::Ack)),
         ("Reply::Error", 5, reply(Reply::Error(DeviceError::NotHomed))),
         (
@@ -191,6 +192,17 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             "Reply::HomeSensors",
             23,
             reply(Reply::HomeSensors(HomeSensors { active_high: [false, true, false] })),
+        ),
+        (
+            "Reply::Inputs",
+            25,
+            reply(Reply::Inputs(InputState {
+                home_line_high: [true, true, false],
+                home_actuated: [false, true, true],
+                estop_open: false,
+                driver_fault_line_high: true,
+                driver_fault: false,
+            })),
         ),
         (
             "Event::Boot",
