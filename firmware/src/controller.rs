@@ -49,6 +49,18 @@ pub const LINK_TIMEOUT_MS: u64 = 500;
 /// input asserts: 600 µs on the board.
 pub const DEBOUNCE_US: u64 = 400;
 
+/// The inputs as the controller reads them: debounced, each line read as
+/// its polarity says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct Readings {
+    /// Per axis: the home / index sensor is actuated.
+    home: [bool; AXIS_COUNT],
+    /// The emergency stop is open.
+    estop: bool,
+    /// A driver reports a fault.
+    driver_fault: bool,
+}
+
 /// One debounced input: the accepted level, and the raw level with when
 /// (and at what step count of its axis) it last changed.
 #[derive(Debug, Clone, Copy, Default)]
@@ -175,7 +187,7 @@ pub struct Controller {
     last_rx: u64,
     now: u64,
     /// The debounced inputs as of the last poll.
-    prev_inputs: Inputs,
+    prev_inputs: Readings,
     /// Debouncers: home switch per axis, emergency stop, driver fault.
     debounce: [Debounced; AXIS_COUNT + 2],
     events: Deque<Event, EVENT_QUEUE_LEN>,
@@ -207,7 +219,7 @@ impl Controller {
             last_request: None,
             last_rx: 0,
             now: 0,
-            prev_inputs: Inputs::default(),
+            prev_inputs: Readings::default(),
             debounce: Default::default(),
             events: Deque::new(),
             event_seq: 0,
@@ -449,7 +461,7 @@ impl Controller {
                 // input reads clear by the time the host asks again. The
                 // next move enables them.
                 let inputs = self.prev_inputs;
-                if inputs.estop || inputs.driver_fault_line {
+                if inputs.estop || inputs.driver_fault {
                     self.de_energise(hw);
                     return Err(DeviceError::FaultLatched);
                 }
@@ -505,7 +517,7 @@ impl Controller {
                         // axis' home is no longer known.
                         let d = &mut self.debounce[i];
                         (d.level, d.raw) = (!d.level, !d.raw);
-                        self.prev_inputs.home_line[i] = !self.prev_inputs.home_line[i];
+                        self.prev_inputs.home[i] = !self.prev_inputs.home[i];
                         self.homed[i] = false;
                     }
                 }
@@ -786,7 +798,7 @@ impl Controller {
             self.check[i] = if self.homed[i] { Check::Near } else { Check::Off };
             self.hit[i] = None;
             self.homed[i] = false;
-            let stage = if self.prev_inputs.home_line[i] {
+            let stage = if self.prev_inputs.home[i] {
                 HomingStage::BackOff
             } else if self.check[i] == Check::Near {
                 HomingStage::Return
@@ -858,7 +870,7 @@ impl Controller {
     }
 
     /// Advance the homing sequences after inputs changed or moves ended.
-    fn poll_homing(&mut self, inputs: &Inputs, hw: &mut impl Hardware) {
+    fn poll_homing(&mut self, inputs: &Readings, hw: &mut impl Hardware) {
         let Activity::Homing { axes, started, stopping } = self.activity else { return };
         if stopping {
             return;
@@ -872,7 +884,7 @@ impl Controller {
                 self.homing_failed(axis, HomingFailure::Timeout, hw);
                 return;
             }
-            let switch = inputs.home_line[i];
+            let switch = inputs.home[i];
             let finished = motion.planner.is_done() && hw.with_stepper(axis, |s| s.is_idle());
             match stage {
                 HomingStage::FastApproach | HomingStage::Return if switch => {
@@ -985,20 +997,20 @@ impl Controller {
         }
     }
 
-    fn check_safety(&mut self, inputs: &Inputs, hw: &mut impl Hardware) {
+    fn check_safety(&mut self, inputs: &Readings, hw: &mut impl Hardware) {
         if inputs.estop {
             self.raise_fault(FaultFlags::EMERGENCY_STOP, None, hw);
         }
-        if inputs.driver_fault_line {
+        if inputs.driver_fault {
             self.raise_fault(FaultFlags::DRIVER_FAULT, None, hw);
         }
-        if inputs.estop || inputs.driver_fault_line {
+        if inputs.estop || inputs.driver_fault {
             self.de_energise(hw);
         }
         for axis in Axis::ALL {
             let i = axis.index();
-            let rising = inputs.home_line[i] && !self.prev_inputs.home_line[i];
-            let falling = !inputs.home_line[i] && self.prev_inputs.home_line[i];
+            let rising = inputs.home[i] && !self.prev_inputs.home[i];
+            let falling = !inputs.home[i] && self.prev_inputs.home[i];
             let homing = self.motion[i].as_ref().is_some_and(|m| m.homing.is_some());
             if !self.homed[i] || homing || !(rising || falling) {
                 continue;
@@ -1045,15 +1057,15 @@ impl Controller {
         let fault = &self.debounce[AXIS_COUNT + 1];
         InputState {
             home_line_high: core::array::from_fn(|i| self.debounce[i].raw == home[i]),
-            home_actuated: self.prev_inputs.home_line,
+            home_actuated: self.prev_inputs.home,
             estop_open: self.prev_inputs.estop,
             driver_fault_line_high: fault.raw == self.config.board.driver_fault_active_high,
-            driver_fault: self.prev_inputs.driver_fault_line,
+            driver_fault: self.prev_inputs.driver_fault,
         }
     }
 
     /// Debounce the raw inputs (see [`DEBOUNCE_US`]).
-    fn debounced(&mut self, raw: &Inputs, hw: &mut impl Hardware) -> Inputs {
+    fn debounced(&mut self, raw: &Inputs, hw: &mut impl Hardware) -> Readings {
         let now = self.now;
         for axis in Axis::ALL {
             let i = axis.index();
@@ -1064,12 +1076,10 @@ impl Controller {
         self.debounce[AXIS_COUNT].sample(raw.estop, now, 0);
         let fault = raw.driver_fault_line == self.config.board.driver_fault_active_high;
         self.debounce[AXIS_COUNT + 1].sample(fault, now, 0);
-        Inputs {
-            // Debounced and interpreted: true = actuated.
-            home_line: core::array::from_fn(|i| self.debounce[i].level),
+        Readings {
+            home: core::array::from_fn(|i| self.debounce[i].level),
             estop: self.debounce[AXIS_COUNT].level,
-            // Debounced and interpreted: true = a driver reports a fault.
-            driver_fault_line: self.debounce[AXIS_COUNT + 1].level,
+            driver_fault: self.debounce[AXIS_COUNT + 1].level,
         }
     }
 
