@@ -141,8 +141,13 @@ impl OpticalSim {
             .mirrors
             .iter()
             .map(|m| {
-                let pts: Option<Vec<[f64; 2]>> =
-                    m.corners().iter().map(|&c| cam.project(c)).collect();
+                // Points along the edges, not the corners alone: a lens'
+                // distortion bends the edges.
+                let c = m.corners();
+                let pts: Option<Vec<[f64; 2]>> = (0..4)
+                    .flat_map(|i| (0..8).map(move |j| (i, j as f64 / 8.0)))
+                    .map(|(i, t)| cam.project(c[i] + (c[(i + 1) % 4] - c[i]) * t))
+                    .collect();
                 let pts = pts?;
                 let x0 = pts.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min).floor() - 1.0;
                 let y0 = pts.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min).floor() - 1.0;
@@ -178,6 +183,15 @@ impl OpticalSim {
     /// The ADC still clips at its top code.
     pub fn with_black_level(self, codes: u32) -> OpticalSim {
         OpticalSim { black_level_codes: codes, ..self }
+    }
+
+    /// The same scanner with a camera lens of radial distortion `k`
+    /// (`scanner_geometry::radial_distort`; the default is a pinhole).
+    pub fn with_lens_distortion(self, k: [f64; 2]) -> OpticalSim {
+        let mut g = self.geometry.clone();
+        g.camera.distortion = k;
+        let (defects, black_level_codes) = (self.defects.clone(), self.black_level_codes);
+        OpticalSim { defects, black_level_codes, ..OpticalSim::new(g, self.sample, self.seed) }
     }
 
     /// The simulator of a scanner built to `nominal` with the default
@@ -565,21 +579,18 @@ struct CameraRays {
     right: DVec3,
     down: DVec3,
     forward: DVec3,
-    principal: [f64; 2],
-    focal: f64,
+    camera: crate::geometry::CameraSpec,
 }
 
 impl CameraRays {
     fn new(cam: &crate::geometry::CameraSpec) -> CameraRays {
         let (right, down, forward) = cam.basis();
-        CameraRays { right, down, forward, principal: cam.principal_px, focal: cam.focal_px }
+        CameraRays { right, down, forward, camera: cam.clone() }
     }
 
     fn ray(&self, x: f64, y: f64) -> DVec3 {
-        (self.forward
-            + self.right * ((x - self.principal[0]) / self.focal)
-            + self.down * ((y - self.principal[1]) / self.focal))
-            .normalize()
+        let n = self.camera.undistorted(x, y);
+        (self.forward + self.right * n[0] + self.down * n[1]).normalize()
     }
 }
 

@@ -57,6 +57,10 @@ pub struct SimSetup {
     /// Home / index sensors wired active high, per axis (the board's
     /// default is active low).
     pub home_active_high: [bool; 3],
+    /// The camera lens' radial distortion k1, k2
+    /// (`scanner_geometry::radial_distort`; the nominal geometry knows
+    /// none: calibration measures it).
+    pub lens_distortion: [f64; 2],
 }
 
 impl SimSetup {
@@ -70,6 +74,7 @@ impl SimSetup {
             defects: Vec::new(),
             black_level_codes: 0,
             home_active_high: [false; 3],
+            lens_distortion: [0.0; 2],
         }
     }
 
@@ -94,9 +99,18 @@ impl SimSetup {
                 self.black_level_codes
             )));
         }
-        Ok(OpticalSim::as_built(&nominal, Sample::small(material), self.seed)
+        let mut sim = OpticalSim::as_built(&nominal, Sample::small(material), self.seed)
             .with_defects(defects)
-            .with_black_level(self.black_level_codes))
+            .with_black_level(self.black_level_codes);
+        if self.lens_distortion != [0.0; 2] {
+            // Checked as a geometry file's would be.
+            let mut lens = nominal.clone();
+            lens.camera.distortion = self.lens_distortion;
+            ScannerGeometry::from_toml(&lens.to_toml())
+                .map_err(|e| SimError::Usage(format!("lens distortion: {e}")))?;
+            sim = sim.with_lens_distortion(self.lens_distortion);
+        }
+        Ok(sim)
     }
 
     fn config(&self) -> SimConfig {

@@ -542,3 +542,61 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
         "{said}"
     );
 }
+
+/// A camera lens with barrel distortion, which the geometry file does not
+/// know: the bundle adjustment measures it (k1) from the views' shapes
+/// across the image, and the views' and lights' directions come out as
+/// well as a pinhole camera's do; a pinhole model of the same lens misses
+/// them.
+#[test]
+fn a_lens_with_radial_distortion_is_calibrated() {
+    use host::build::bundle::AssemblyTolerances;
+    let (bin, mirrors, seed) = (2, 6, 5);
+    // Barrel distortion of 0.7 % at the middle of the sensor's edges (≈ 7 px
+    // of 2048), 1.3 % at its corners (≈ 19 px).
+    let lens = [-0.05, 0.0];
+    let dir = tempfile::tempdir().unwrap();
+    let g = ScannerGeometry::default_scanner().with_sensor_scaled(bin);
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+    // Calibrate a scanner whose lens has `k`, the bundle adjustment allowed
+    // `tolerances`: view and light direction errors against its truth, and
+    // the lens it found.
+    let calibrated = |k: [f64; 2], tolerances| {
+        let sub = dir.path().join(format!("{}", k[0]));
+        for target in ["checkerboard", "diffuse-white"] {
+            let out = sub.join(target);
+            if out.exists() {
+                continue;
+            }
+            let s = SimSetup { bin, seed, lens_distortion: k, ..SimSetup::new(target) };
+            let rig = s.rig().unwrap();
+            let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+            let mut opts = ScanOptions::new(target, &out);
+            opts.mirrors = Some(mirrors);
+            assert_eq!(s.nominal().unwrap(), g, "the geometry file knows no distortion");
+            scan(&mut dev, &mut SimCamera(rig), &g, &opts, &mut Quiet).unwrap();
+        }
+        let checker = ScanFrames::open(&sub.join("checkerboard"), &g).unwrap();
+        let white = ScanFrames::open(&sub.join("diffuse-white"), &g).unwrap();
+        let opts = CalibrateOptions { tolerances, ..CalibrateOptions::default() };
+        let cal = calibrate(&g, &checker, &white, None, &opts, &Silent).unwrap();
+        let sim = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
+            .with_lens_distortion(k);
+        let e = tests::direction_errors(&g, sim.geometry(), &cal);
+        (rms(&e.view), rms(&e.light), cal.lens_distortion)
+    };
+    let pinhole_model = AssemblyTolerances { lens_k1: 1e-9, ..AssemblyTolerances::default() };
+    let (view, light, found) = calibrated(lens, AssemblyTolerances::default());
+    let (view_p, light_p, _) = calibrated(lens, pinhole_model);
+    let (view_0, light_0, found_0) = calibrated([0.0; 2], AssemblyTolerances::default());
+    eprintln!(
+        "lens k1 {}: found {:+.4}; view directions RMS {view:.3}° (pinhole model {view_p:.3}°, \
+         a pinhole camera {view_0:.3}°), lights {light:.3}° ({light_p:.3}°, {light_0:.3}°); \
+         a pinhole camera's k1 found {:+.4}",
+        lens[0], found[0], found_0[0]
+    );
+    assert!((found[0] - lens[0]).abs() < 0.01, "k1 found {:+.4}", found[0]);
+    assert!(found_0[0].abs() < 0.01, "a pinhole's k1 found {:+.4}", found_0[0]);
+    assert!(view <= 1.1 * view_0 && light <= 1.1 * light_0, "as good as a pinhole camera's");
+    assert!(view_p > 1.25 * view, "the distortion matters: {view_p:.3}° against {view:.3}°");
+}

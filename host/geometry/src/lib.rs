@@ -100,7 +100,7 @@ pub struct SampleMount {
     pub holder_radius_mm: f64,
 }
 
-/// Pinhole camera.
+/// Pinhole camera, with radial lens distortion if its lens has some.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraSpec {
@@ -118,6 +118,43 @@ pub struct CameraSpec {
     pub focal_px: f64,
     /// Principal point (x, y), px from the top-left corner.
     pub principal_px: [f64; 2],
+    /// Radial lens distortion (k1, k2) ([`radial_distort`]); absent: none.
+    #[serde(default, skip_serializing_if = "is_pinhole")]
+    pub distortion: [f64; 2],
+}
+
+fn is_pinhole(k: &[f64; 2]) -> bool {
+    *k == [0.0; 2]
+}
+
+/// Radial lens distortion of normalised image coordinates n = (X/Z, Y/Z)
+/// (camera frame: x right, y down, z forward): n · (1 + k1 r² + k2 r⁴),
+/// r² = |n|² — the Brown–Conrady radial terms (OpenCV's k1, k2). k1 < 0
+/// is barrel distortion, k1 > 0 pincushion.
+pub fn radial_distort(k: [f64; 2], n: [f64; 2]) -> [f64; 2] {
+    let r2 = n[0] * n[0] + n[1] * n[1];
+    let s = 1.0 + r2 * (k[0] + k[1] * r2);
+    [n[0] * s, n[1] * s]
+}
+
+/// The inverse of [`radial_distort`] (Newton's method on the radius), for
+/// distortions that are monotonic over the image ([`ScannerGeometry::validate`]).
+pub fn radial_undistort(k: [f64; 2], d: [f64; 2]) -> [f64; 2] {
+    let rd = d[0].hypot(d[1]);
+    if k == [0.0; 2] || rd == 0.0 {
+        return d;
+    }
+    let mut r = rd;
+    for _ in 0..30 {
+        let r2 = r * r;
+        let f = r * (1.0 + r2 * (k[0] + k[1] * r2)) - rd;
+        let step = f / (1.0 + r2 * (3.0 * k[0] + 5.0 * k[1] * r2));
+        r -= step;
+        if step.abs() < 1e-15 {
+            break;
+        }
+    }
+    [d[0] * r / rd, d[1] * r / rd]
 }
 
 impl CameraSpec {
@@ -134,9 +171,18 @@ impl CameraSpec {
     /// are at half-integers).
     pub fn ray(&self, x: f64, y: f64) -> DVec3 {
         let (r, dn, f) = self.basis();
-        (f + r * ((x - self.principal_px[0]) / self.focal_px)
-            + dn * ((y - self.principal_px[1]) / self.focal_px))
-            .normalize()
+        let n = self.undistorted(x, y);
+        (f + r * n[0] + dn * n[1]).normalize()
+    }
+
+    /// Normalised image coordinates (X/Z, Y/Z) of the ray through image
+    /// point (x, y): the lens' distortion undone.
+    pub fn undistorted(&self, x: f64, y: f64) -> [f64; 2] {
+        let d = [
+            (x - self.principal_px[0]) / self.focal_px,
+            (y - self.principal_px[1]) / self.focal_px,
+        ];
+        radial_undistort(self.distortion, d)
     }
 
     /// Image point of world point `p` (None if behind the camera).
@@ -145,9 +191,10 @@ impl CameraSpec {
         let v = p - DVec3::from(self.position_mm);
         let z = v.dot(f);
         (z > 1e-9).then(|| {
+            let n = radial_distort(self.distortion, [v.dot(r) / z, v.dot(dn) / z]);
             [
-                self.principal_px[0] + self.focal_px * v.dot(r) / z,
-                self.principal_px[1] + self.focal_px * v.dot(dn) / z,
+                self.principal_px[0] + self.focal_px * n[0],
+                self.principal_px[1] + self.focal_px * n[1],
             ]
         })
     }
@@ -567,6 +614,7 @@ impl ScannerGeometry {
                 height: 4096,
                 focal_px: 5600.0,
                 principal_px: [2048.0, 2048.0],
+                distortion: [0.0; 2],
             },
             ellipsoid,
             sample: SampleMount { size_mm: 25.4, holder_radius_mm: 20.0 },
@@ -644,6 +692,23 @@ impl ScannerGeometry {
         }
         if !(c.focal_px.is_finite() && c.focal_px > 0.0) {
             return bad("camera focal_px must be positive".into());
+        }
+        // The distortion must map the image one to one: its radius grows
+        // with the undistorted one out to beyond the sensor's corners.
+        let corner = [0.0, c.width as f64]
+            .iter()
+            .flat_map(|&x| [0.0, c.height as f64].map(|y| (x, y)))
+            .map(|(x, y)| (x - c.principal_px[0]).hypot(y - c.principal_px[1]) / c.focal_px)
+            .fold(0.0, f64::max);
+        let [k1, k2] = c.distortion;
+        let monotonic = (0..=100).all(|i| {
+            let r2 = (1.5 * corner * i as f64 / 100.0).powi(2);
+            1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2) > 0.05
+        });
+        if !(k1.is_finite() && k2.is_finite() && monotonic) {
+            return bad(format!(
+                "camera distortion [{k1}, {k2}] does not map the image one to one"
+            ));
         }
         let f = DVec3::from(c.forward);
         let up = DVec3::from(c.up);

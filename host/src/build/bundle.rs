@@ -4,7 +4,7 @@
 //!
 //! Unknowns, as deviations from the nominal geometry: camera rotation
 //! (3, small-angle), position (3), focal length (relative, 1), principal
-//! point (2); per mirror its tilt about its two edges (2) and its shift
+//! point (2), the lens' radial distortion k1 (1); per mirror its tilt about its two edges (2) and its shift
 //! along its normal (1). Each is held to its nominal value by a Gaussian
 //! prior of the scanner's assembly tolerances ([`AssemblyTolerances`]),
 //! which fixes the directions the views alone leave weak (the focal
@@ -30,6 +30,13 @@ pub struct AssemblyTolerances {
     pub focal_rel: f64,
     /// Principal point, px of a 4096² sensor.
     pub principal_px: f64,
+    /// The lens' radial distortion k1 about the geometry file's
+    /// (`scanner_geometry::radial_distort`): loose, a stock lens' is
+    /// rarely known; the views' shapes across the image measure it. (Its
+    /// k2 is the geometry file's: over the views' narrow field, r⁴ and r²
+    /// are too alike to tell apart — fitted together, a true (−0.05, 0)
+    /// came out (−0.061, +0.139) with no better directions.)
+    pub lens_k1: f64,
     /// Mirror tilt, each edge, degrees.
     pub mirror_tilt_deg: f64,
     /// Mirror position along its normal, mm.
@@ -45,6 +52,7 @@ impl Default for AssemblyTolerances {
             camera_shift_mm: 0.5,
             focal_rel: 0.003,
             principal_px: 3.0,
+            lens_k1: 0.1,
             mirror_tilt_deg: 0.15,
             mirror_shift_mm: 0.3,
             source_zero_deg: 0.1,
@@ -52,7 +60,7 @@ impl Default for AssemblyTolerances {
     }
 }
 
-const CAMERA: usize = 9;
+const CAMERA: usize = 10;
 
 /// One highlight pair's linearisation: its parameters, residuals and the
 /// residuals' derivative along each parameter.
@@ -63,6 +71,8 @@ type GlossyBlock = (Vec<usize>, Vec<f64>, Vec<Vec<f64>>);
 pub struct Adjusted {
     /// Camera pinhole, mm.
     pub camera: DVec3,
+    /// The lens' radial distortion (k1 fitted, k2 the geometry file's).
+    pub lens_distortion: [f64; 2],
     /// Per view in the order given: (point, normal) of its mirror plane.
     pub planes: Vec<(DVec3, DVec3)>,
     /// RMS reprojection residual, px.
@@ -138,7 +148,7 @@ impl Model<'_> {
         (m.center() + n0 * q[2], n)
     }
 
-    fn camera(&self, p: &[f64]) -> (DVec3, [DVec3; 3], f64, [f64; 2]) {
+    fn camera(&self, p: &[f64]) -> (DVec3, [DVec3; 3], f64, [f64; 2], [f64; 2]) {
         let cam = &self.g.camera;
         let (r, d, f) = cam.basis();
         let w = DVec3::new(p[0], p[1], p[2]);
@@ -156,6 +166,7 @@ impl Model<'_> {
             [rot(r), rot(d), rot(f)],
             cam.focal_px * (1.0 + p[6]),
             [cam.principal_px[0] + p[7], cam.principal_px[1] + p[8]],
+            [cam.distortion[0] + p[9], cam.distortion[1]],
         )
     }
 
@@ -163,10 +174,11 @@ impl Model<'_> {
         let (point, n) = self.plane(p, k);
         let s = self.g.sample_point(uv);
         let s2 = s - 2.0 * (s - point).dot(n) * n;
-        let (c, [r, d, f], fl, pp) = self.camera(p);
+        let (c, [r, d, f], fl, pp, k) = self.camera(p);
         let v = s2 - c;
         let z = v.dot(f);
-        [pp[0] + fl * v.dot(r) / z, pp[1] + fl * v.dot(d) / z]
+        let n = scanner_geometry::radial_distort(k, [v.dot(r) / z, v.dot(d) / z]);
+        [pp[0] + fl * n[0], pp[1] + fl * n[1]]
     }
 }
 
@@ -193,6 +205,7 @@ pub fn adjust(
         tol.focal_rel,
         tol.principal_px * scale,
         tol.principal_px * scale,
+        tol.lens_k1,
     ];
     for _ in views {
         sigma.extend([
@@ -306,7 +319,7 @@ pub fn adjust(
             count += 1;
         }
     }
-    let (camera, _, _, _) = model.camera(&p);
+    let (camera, _, _, _, lens_distortion) = model.camera(&p);
     let source = highlights.map(|hl| {
         let r: Vec<f64> =
             hl.pairs.iter().filter_map(|h| model.glossy(&p, h, 1.0)).flatten().collect();
@@ -316,6 +329,7 @@ pub fn adjust(
     });
     Adjusted {
         camera,
+        lens_distortion,
         planes: (0..views.len()).map(|k| model.plane(&p, k)).collect(),
         rms_px: (sq / count as f64).sqrt(),
         source,

@@ -163,6 +163,12 @@ pub struct Calibration {
     /// calibration reads or extracts regions from.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub defects: Vec<PixelDefect>,
+    /// The camera lens' radial distortion (k1, k2) the adjustment found
+    /// (`scanner_geometry::radial_distort`; k1 fitted, k2 the geometry
+    /// file's): for the record — the views' homographies and directions
+    /// already account for it. Absent in files from before it was fitted.
+    #[serde(default)]
+    pub lens_distortion: [f64; 2],
 }
 
 /// Calibration settings.
@@ -172,11 +178,18 @@ pub struct CalibrateOptions {
     pub target: Checkerboard,
     /// The white target's albedo.
     pub white_albedo: f64,
+    /// How far the scanner may be from its geometry file (the bundle
+    /// adjustment's priors).
+    pub tolerances: AssemblyTolerances,
 }
 
 impl Default for CalibrateOptions {
     fn default() -> CalibrateOptions {
-        CalibrateOptions { target: Checkerboard::default(), white_albedo: DEFAULT_WHITE_ALBEDO }
+        CalibrateOptions {
+            target: Checkerboard::default(),
+            white_albedo: DEFAULT_WHITE_ALBEDO,
+            tolerances: AssemblyTolerances::default(),
+        }
     }
 }
 
@@ -322,9 +335,10 @@ pub fn calibrate(
         .map(|f| f.corner_rms_px)
         .fold(0.0, f64::max)
         .max(0.05);
-    let tol = AssemblyTolerances::default();
+    let tol = opts.tolerances;
     let adjusted = adjust(g, &views, &homographies, corner_sigma, &tol, None);
     let mut view_cal = view_calibrations(g, &fits, &adjusted);
+    let mut lens_distortion = adjusted.lens_distortion;
     let lights: Vec<usize> = white.lights();
     if lights != checker.lights() {
         return Err(BuildError::Input(format!(
@@ -351,6 +365,7 @@ pub fn calibrate(
                 (start, sigma) = ((offsets, alpha), rms.max(1e-4));
             }
             view_cal = view_calibrations(g, &fits, &joint);
+            lens_distortion = joint.lens_distortion;
             let (offsets, alpha, rms_rel) = joint.source.expect("adjusted with highlights");
             if !offsets.iter().all(|x| x.is_finite() && x.abs() <= 2.0) {
                 return Err(BuildError::Input(format!(
@@ -405,6 +420,7 @@ pub fn calibrate(
         lights: light_cal,
         colour,
         defects,
+        lens_distortion,
     })
 }
 

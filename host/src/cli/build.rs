@@ -94,7 +94,11 @@ pub fn calibrate_cmd(
     let checker = ScanFrames::open(checkerboard, &g).map_err(build_failure)?;
     let white_scan = ScanFrames::open(white, &g).map_err(build_failure)?;
     let glossy_scan = glossy.map(|d| ScanFrames::open(d, &g)).transpose().map_err(build_failure)?;
-    let opts = CalibrateOptions { target: Checkerboard { squares }, white_albedo };
+    let opts = CalibrateOptions {
+        target: Checkerboard { squares },
+        white_albedo,
+        ..CalibrateOptions::default()
+    };
     let bar = StageBar::new();
     let cal = calibrate(&g, &checker, &white_scan, glossy_scan.as_ref(), &opts, &bar);
     bar.finish();
@@ -116,10 +120,12 @@ pub fn calibrate_cmd(
     };
     println!(
         "calibrated {} views and {} lights in {:.1} s: {with_corners} views by their checker corners \
-         (largest fit residual {rms:.3} px), the rest by Fourier phase; {lights} → {}",
+         (largest fit residual {rms:.3} px), the rest by Fourier phase; {lights}; lens \
+         distortion k1 {:+.4} → {}",
         cal.views.len(),
         cal.lights.len(),
         started.elapsed().as_secs_f64(),
+        cal.lens_distortion[0],
         output.display()
     );
     if !cal.defects.is_empty() {

@@ -76,6 +76,16 @@ pub struct DeviceArgs {
     /// --home-sensors` says).
     #[arg(long, value_delimiter = ',', value_parser = super::parse_axis, value_name = "AXES")]
     pub sim_home_active_high: Vec<Axis>,
+    /// Simulator: the camera lens' radial distortion K1,K2 (the nominal
+    /// geometry knows none: calibration measures K1).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        num_args = 2,
+        allow_negative_numbers = true,
+        value_name = "K1,K2"
+    )]
+    pub sim_lens_distortion: Vec<f64>,
 }
 
 impl DeviceArgs {
@@ -96,6 +106,11 @@ impl DeviceArgs {
             defects: self.sim_defects.clone(),
             black_level_codes: self.sim_black_level,
             home_active_high: Axis::ALL.map(|a| self.sim_home_active_high.contains(&a)),
+            lens_distortion: match self.sim_lens_distortion[..] {
+                [] => [0.0; 2],
+                [k1, k2] => [k1, k2],
+                _ => return Err(Failure(2, anyhow!("--sim-lens-distortion takes K1,K2"))),
+            },
         })
     }
 }
@@ -1042,6 +1057,7 @@ pub fn demo(
             sim_defects: Vec::new(),
             sim_black_level: 0,
             sim_home_active_high: Vec::new(),
+            sim_lens_distortion: Vec::new(),
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
