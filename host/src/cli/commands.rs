@@ -78,14 +78,8 @@ pub struct DeviceArgs {
     pub sim_home_active_high: Vec<Axis>,
     /// Simulator: the camera lens' radial distortion K1,K2 (the nominal
     /// geometry knows none: calibration measures K1).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        num_args = 2,
-        allow_negative_numbers = true,
-        value_name = "K1,K2"
-    )]
-    pub sim_lens_distortion: Vec<f64>,
+    #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
+    pub sim_lens_distortion: Option<[f64; 2]>,
 }
 
 impl DeviceArgs {
@@ -106,12 +100,21 @@ impl DeviceArgs {
             defects: self.sim_defects.clone(),
             black_level_codes: self.sim_black_level,
             home_active_high: Axis::ALL.map(|a| self.sim_home_active_high.contains(&a)),
-            lens_distortion: match self.sim_lens_distortion[..] {
-                [] => [0.0; 2],
-                [k1, k2] => [k1, k2],
-                _ => return Err(Failure(2, anyhow!("--sim-lens-distortion takes K1,K2"))),
-            },
+            lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
         })
+    }
+}
+
+/// `K1,K2`: two numbers.
+fn parse_k1_k2(s: &str) -> Result<[f64; 2], String> {
+    let k: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{s:?}: {e}"))?;
+    match k[..] {
+        [k1, k2] if k1.is_finite() && k2.is_finite() => Ok([k1, k2]),
+        _ => Err(format!("{s:?}: give two finite numbers, K1,K2")),
     }
 }
 
@@ -1057,7 +1060,7 @@ pub fn demo(
             sim_defects: Vec::new(),
             sim_black_level: 0,
             sim_home_active_high: Vec::new(),
-            sim_lens_distortion: Vec::new(),
+            sim_lens_distortion: None,
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
