@@ -78,6 +78,25 @@ impl SimSetup {
         }
     }
 
+    /// What is simulated, in words, as scan manifests record it
+    /// (`settings.simulator`: a resume on another simulated scanner is
+    /// refused): material, seed and binning, and whatever differs from a
+    /// default scanner.
+    pub fn describe(&self) -> String {
+        let mut s =
+            format!("simulated {}, seed {}, binning {}", self.material, self.seed, self.bin);
+        if !self.defects.is_empty() {
+            s += &format!(", sensor defects {:?}", self.defects);
+        }
+        if self.black_level_codes > 0 {
+            s += &format!(", black level {} codes", self.black_level_codes);
+        }
+        if self.lens_distortion != [0.0; 2] {
+            s += &format!(", lens distortion {:?}", self.lens_distortion);
+        }
+        s
+    }
+
     /// The nominal geometry of the simulated scanner (what the host gets).
     pub fn nominal(&self) -> Result<ScannerGeometry, SimError> {
         if self.bin == 0 || self.bin > 64 {

@@ -57,8 +57,20 @@ pub fn sim_scan_at(
 ) -> ScannerGeometry {
     let s = SimSetup { bin, seed, ..SimSetup::new(material) };
     let nominal = s.nominal().expect("the simulator's geometry");
-    if host::scan::Manifest::load(out).is_ok_and(|m| m.complete) {
-        return nominal;
+    // A complete scan of this very simulated scanner is reused; another's
+    // (another seed, say) is refused by the resume below.
+    let simulator = s.describe();
+    if let Ok(m) = host::scan::Manifest::load(out) {
+        let theirs = m.settings.simulator.as_deref().unwrap_or("no simulator recorded");
+        assert!(
+            theirs == simulator,
+            "{}: a scan of another simulated scanner ({theirs}; this is {simulator}): delete it \
+             or choose another --out",
+            out.display()
+        );
+        if m.complete {
+            return nominal;
+        }
     }
     let rig = s.rig().expect("a simulated scanner");
     let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).expect("connected");
@@ -66,6 +78,7 @@ pub fn sim_scan_at(
     opts.mirrors = Some(mirrors);
     opts.exposure_us = exposure_us;
     opts.resume = true;
+    opts.simulator = Some(simulator);
     if hdr {
         opts.auto_exposure = Some(host::scan::AutoExposure::Hdr);
     }

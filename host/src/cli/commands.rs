@@ -181,10 +181,7 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
             let setup = args.sim_setup()?;
             let rig = setup.rig().map_err(sim_failure)?;
             let nominal = setup.nominal().map_err(sim_failure)?;
-            simulator = Some(format!(
-                "simulated {}, seed {}, binning {}",
-                setup.material, setup.seed, setup.bin
-            ));
+            simulator = Some(setup.describe());
             (Box::new(SimTransport(rig.clone())), Some(rig), Some(nominal))
         }
         DeviceChoice::Serial(path) => {
