@@ -87,3 +87,33 @@ fn unreadable_files_are_typed_errors() {
     let e = ScannerGeometry::from_toml("format = 1").unwrap_err();
     assert!(matches!(e, GeometryError::Parse(_)), "{e:?}");
 }
+
+#[test]
+fn lens_distortion_round_trips_and_must_map_the_image_one_to_one() {
+    use scanner_geometry::{radial_distort, radial_undistort};
+    for k in [[-0.05, 0.0], [0.08, -0.02], [-0.2, 0.05], [0.0, 0.0]] {
+        for n in [[0.0, 0.0], [0.1, -0.05], [-0.3, 0.2], [0.37, 0.37]] {
+            let d = radial_distort(k, n);
+            let back = radial_undistort(k, d);
+            assert!(
+                (back[0] - n[0]).abs() < 1e-12 && (back[1] - n[1]).abs() < 1e-12,
+                "{k:?} {n:?}"
+            );
+        }
+    }
+    // A ray and its projection agree through the lens.
+    let mut g = ScannerGeometry::default_scanner();
+    g.camera.distortion = [-0.05, 0.01];
+    let p = g.camera.position_mm;
+    let ray = g.camera.ray(300.5, 3900.5);
+    let x = g.camera.project(scanner_geometry::DVec3::from(p) + ray * 1000.0).unwrap();
+    assert!((x[0] - 300.5).abs() < 1e-6 && (x[1] - 3900.5).abs() < 1e-6, "{x:?}");
+    // The hash of a pinhole geometry does not change with the new key.
+    let text = ScannerGeometry::default_scanner().to_toml();
+    assert!(!text.contains("distortion"), "absent when zero");
+    assert!(ScannerGeometry::from_toml(&g.to_toml()).is_ok());
+    // One that folds the image over is refused.
+    g.camera.distortion = [-2.0, 0.0];
+    let err = ScannerGeometry::from_toml(&g.to_toml()).unwrap_err().to_string();
+    assert!(err.contains("does not map the image one to one"), "{err}");
+}
