@@ -184,8 +184,23 @@ fn coarse_shift(sum: &Plane, h: &Homography, margin: isize) -> Result<Homography
         return Err("the view is smaller than 4 × 4 px".into());
     }
     inner.sort_by(f32::total_cmp);
-    let dark = inner[inner.len() / 4] as f64;
-    let bright = inner[inner.len() * 9 / 10] as f64;
+    let mut dark = inner[inner.len() / 4] as f64;
+    let mut bright = inner[inner.len() * 9 / 10] as f64;
+    if bright <= 0.0 {
+        // The view is far enough from its prediction (a small view, or a
+        // lens the geometry file does not know) that the prediction's
+        // middle is dark: the levels from the whole search window, where
+        // the lit view is a small part.
+        let mut window = Vec::new();
+        for y in b[1].floor() as isize - margin..=b[3].ceil() as isize + margin {
+            for x in b[0].floor() as isize - margin..=b[2].ceil() as isize + margin {
+                window.push(sum.at(x, y));
+            }
+        }
+        window.sort_by(f32::total_cmp);
+        dark = 0.0;
+        bright = window[window.len() * 99 / 100] as f64;
+    }
     if !(bright > 0.0 && dark >= 0.0) {
         return Err("no light in the predicted view".into());
     }

@@ -128,6 +128,16 @@ pub fn calibrate_cmd(
         cal.lens_distortion[0],
         output.display()
     );
+    // Far beyond its prior, the fitted k1 is pulled towards the file's.
+    let k1 = (cal.lens_distortion[0], g.camera.distortion[0]);
+    if (k1.0 - k1.1).abs() > 2.0 * opts.tolerances.lens_k1 {
+        eprintln!(
+            "scanner: warning: the lens distorts more than the geometry file says (k1 {:+.3} \
+             against {:+.3}): set its [camera] distortion near the value found and calibrate \
+             again",
+            k1.0, k1.1
+        );
+    }
     if !cal.defects.is_empty() {
         println!(
             "sensor defects: {}, found in the white target's frames; replaced in every frame \
