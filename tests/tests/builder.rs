@@ -601,12 +601,12 @@ fn a_lens_with_radial_distortion_is_calibrated() {
     assert!(view_p > 1.25 * view, "the distortion matters: {view_p:.3}° against {view:.3}°");
     // On a coarse sensor the same lens puts the smallest views near the
     // image's corners farther from their predictions than their own size
-    // (mirror 33 of 1024² was "not found: no light in the predicted
-    // view"): still every view is located, the search window's levels
+    // (seed 1: mirror 33 of 1024² was "not found: no light in the
+    // predicted view"): still every view is located, the search window's levels
     // standing in for the prediction's dark middle.
     let coarse = ScannerGeometry::default_scanner().with_sensor_scaled(4);
     for target in ["checkerboard", "diffuse-white"] {
-        let s = SimSetup { bin: 4, seed, lens_distortion: lens, ..SimSetup::new(target) };
+        let s = SimSetup { bin: 4, seed: 1, lens_distortion: lens, ..SimSetup::new(target) };
         let rig = s.rig().unwrap();
         let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
         let mut opts = ScanOptions::new(target, &dir.path().join("coarse").join(target));
