@@ -261,6 +261,12 @@ fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
     let (code, _, err) = run(&["home"]);
     assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("fault latched") && err.contains("`scanner clear` clears it"), "{err}");
+    // The device saves nothing while a fault is latched: nothing changes.
+    let (code, _, err) = run(&["config", "--home-sensor", "track=active-high"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("homing failed latched") && err.contains("nothing changed"), "{err}");
+    let (_, out, _) = run(&["config"]);
+    assert!(out.contains("track active low"), "{out}");
     let (code, out, err) = run(&["clear"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("cleared: homing failed"), "{out}");

@@ -268,6 +268,24 @@ pub fn board_config(
             ),
         ));
     }
+    let changes = driver_fault_active_high.is_some() || !home_sensors.is_empty();
+    let persistent =
+        o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG);
+    if changes && persistent {
+        // The device saves nothing while a fault is latched: change nothing
+        // rather than a setting that would not survive a reset.
+        let faults = o.device.status().map_err(link_failure)?.faults;
+        if !faults.is_empty() {
+            return Err(Failure(
+                7,
+                anyhow!(
+                    "{} latched: the device saves no settings until it is cleared (`scanner \
+                     clear`); nothing changed",
+                    faults.names().collect::<Vec<_>>().join(", ")
+                ),
+            ));
+        }
+    }
     if let Some(high) = driver_fault_active_high {
         let board = protocol::BoardConfig { driver_fault_active_high: high };
         o.device.command(Request::SetBoardConfig(board)).map_err(link_failure)?;
@@ -288,8 +306,8 @@ pub fn board_config(
             println!("{} must be homed again (scanner home)", changed.join(", "));
         }
     }
-    if driver_fault_active_high.is_some() || !home_sensors.is_empty() {
-        if o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG) {
+    if changes {
+        if persistent {
             o.device.command(Request::SaveConfig).map_err(link_failure)?;
             println!("saved to the device's flash");
         } else {
