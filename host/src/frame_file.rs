@@ -79,64 +79,26 @@ pub fn read_frame_file(
         .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
     let (width, height) = (image.width(), image.height());
     let unusable = |what: String| FrameFileError::Unusable(format!("{name}: {what}"));
-    let rgb = match image {
-        DynamicImage::ImageRgb32F(b) => floats(b.as_raw(), 3),
-        DynamicImage::ImageRgba32F(b) => floats(b.as_raw(), 4),
-        DynamicImage::ImageLuma16(b) => {
-            integers(b.as_raw(), 1, 16, sensor, codes).map_err(unusable)?
+    // Grey is replicated and alpha dropped by the crate's conversion to RGB
+    // of the same depth (values unchanged).
+    use image::ColorType::*;
+    let rgb = match image.color() {
+        Rgb32F | Rgba32F => image.into_rgb32f().into_raw(),
+        L8 | La8 | Rgb8 | Rgba8 => {
+            integers(image.into_rgb8().as_raw(), 8, sensor, codes).map_err(unusable)?
         }
-        DynamicImage::ImageLumaA16(b) => {
-            integers(b.as_raw(), 2, 16, sensor, codes).map_err(unusable)?
+        L16 | La16 | Rgb16 | Rgba16 => {
+            integers(image.into_rgb16().as_raw(), 16, sensor, codes).map_err(unusable)?
         }
-        DynamicImage::ImageRgb16(b) => {
-            integers(b.as_raw(), 3, 16, sensor, codes).map_err(unusable)?
-        }
-        DynamicImage::ImageRgba16(b) => {
-            integers(b.as_raw(), 4, 16, sensor, codes).map_err(unusable)?
-        }
-        DynamicImage::ImageLuma8(b) => {
-            integers(b.as_raw(), 1, 8, sensor, codes).map_err(unusable)?
-        }
-        DynamicImage::ImageLumaA8(b) => {
-            integers(b.as_raw(), 2, 8, sensor, codes).map_err(unusable)?
-        }
-        DynamicImage::ImageRgb8(b) => {
-            integers(b.as_raw(), 3, 8, sensor, codes).map_err(unusable)?
-        }
-        DynamicImage::ImageRgba8(b) => {
-            integers(b.as_raw(), 4, 8, sensor, codes).map_err(unusable)?
-        }
-        other => {
-            return Err(unusable(format!("{:?} pixels are not a camera frame", other.color())));
-        }
+        other => return Err(unusable(format!("{other:?} pixels are not a camera frame"))),
     };
     Ok(Frame { width, height, rgb })
 }
 
-/// Interleaved values of `channels` per pixel (grey, grey + alpha, RGB,
-/// RGBA) as RGB.
-fn to_rgb<T: Copy>(values: &[T], channels: usize, f: impl Fn(T) -> f32) -> Vec<f32> {
-    let mut rgb = Vec::with_capacity(values.len() / channels * 3);
-    for px in values.chunks_exact(channels) {
-        if channels < 3 {
-            let g = f(px[0]);
-            rgb.extend_from_slice(&[g, g, g]);
-        } else {
-            rgb.extend_from_slice(&[f(px[0]), f(px[1]), f(px[2])]);
-        }
-    }
-    rgb
-}
-
-fn floats(values: &[f32], channels: usize) -> Vec<f32> {
-    to_rgb(values, channels, |v| v)
-}
-
-/// Integers of `file_bits` bits holding `sensor`'s codes as `codes` says,
-/// in the frames' unit; refused when the values contradict the convention.
+/// RGB integers of `file_bits` bits holding `sensor`'s codes as `codes`
+/// says, in the frames' unit; refused when the values contradict the convention.
 fn integers<T: Copy + Into<u32>>(
     values: &[T],
-    channels: usize,
     file_bits: u32,
     sensor: &SensorSpec,
     codes: IntegerCodes,
@@ -150,17 +112,14 @@ fn integers<T: Copy + Into<u32>>(
     })?;
     // Every value's low bits are 0 when a capture program shifts the codes.
     let step = 1u32 << (file_bits - bits);
-    let colours = if channels < 3 { 1 } else { 3 };
     let (mut max, mut nonzero, mut off_step, mut example) = (0u32, 0usize, 0usize, 0u32);
-    for px in values.chunks_exact(channels) {
-        for &v in &px[..colours] {
-            let v: u32 = v.into();
-            max = max.max(v);
-            nonzero += (v != 0) as usize;
-            if !v.is_multiple_of(step) {
-                off_step += 1;
-                example = v;
-            }
+    for &v in values {
+        let v: u32 = v.into();
+        max = max.max(v);
+        nonzero += (v != 0) as usize;
+        if !v.is_multiple_of(step) {
+            off_step += 1;
+            example = v;
         }
     }
     let shifted_hint = format!(
@@ -197,7 +156,7 @@ fn integers<T: Copy + Into<u32>>(
     }
     // One division per possible value, not per value.
     let unit: Vec<f32> = (0..=top).map(|v| (v as f64 / full as f64) as f32).collect();
-    Ok(to_rgb(values, channels, |v| unit[Into::<u32>::into(v) as usize]))
+    Ok(values.iter().map(|&v| unit[Into::<u32>::into(v) as usize]).collect())
 }
 
 #[cfg(test)]

@@ -125,8 +125,7 @@ impl SimSetup {
             // Checked as a geometry file's would be.
             let mut lens = nominal.clone();
             lens.camera.distortion = self.lens_distortion;
-            ScannerGeometry::from_toml(&lens.to_toml())
-                .map_err(|e| SimError::Usage(format!("lens distortion: {e}")))?;
+            lens.validate().map_err(|e| SimError::Usage(format!("lens distortion: {e}")))?;
             sim = sim.with_lens_distortion(self.lens_distortion);
         }
         Ok(sim)

@@ -674,7 +674,8 @@ impl ScannerGeometry {
         digest.iter().map(|b| format!("{b:02x}")).collect()
     }
 
-    fn validate(&self) -> Result<(), GeometryError> {
+    /// Check what [`ScannerGeometry::from_toml`] checks of a file's contents.
+    pub fn validate(&self) -> Result<(), GeometryError> {
         let bad = |m: String| Err(GeometryError::Invalid(m));
         if self.format != GEOMETRY_FORMAT {
             return bad(format!("format {} (this build reads {GEOMETRY_FORMAT})", self.format));

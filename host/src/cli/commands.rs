@@ -314,19 +314,14 @@ pub fn board_config(
             println!("this device cannot save it: it lasts until the device resets");
         }
     }
-    match o.device.request(Request::GetBoardConfig).map_err(link_failure)? {
-        protocol::Reply::BoardConfig(b) => println!(
-            "driver fault line: {}",
-            if b.driver_fault_active_high {
-                "active high (TMC2209 DIAG)"
-            } else {
-                "active low (DRV8825 nFAULT)"
-            }
-        ),
-        reply => {
-            return Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply }));
+    println!(
+        "driver fault line: {}",
+        if board_config_of(&mut o.device)?.driver_fault_active_high {
+            "active high (TMC2209 DIAG)"
+        } else {
+            "active low (DRV8825 nFAULT)"
         }
-    }
+    );
     let home = if has_home_sensors {
         home_sensors_of(&mut o.device)?
     } else {
@@ -363,12 +358,7 @@ pub fn inputs(args: &DeviceArgs, watch: Option<f64>) -> Result<(), Failure> {
         ));
     }
     let home = home_sensors_of(&mut o.device)?;
-    let fault_high = match o.device.request(Request::GetBoardConfig).map_err(link_failure)? {
-        protocol::Reply::BoardConfig(b) => b.driver_fault_active_high,
-        reply => {
-            return Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply }));
-        }
-    };
+    let fault_high = board_config_of(&mut o.device)?.driver_fault_active_high;
     let read = |dev: &mut Device| match dev.request(Request::GetInputs).map_err(link_failure)? {
         protocol::Reply::Inputs(i) => Ok(i),
         reply => Err(link_failure(LinkError::Unexpected { request: "GetInputs", reply })),
@@ -430,6 +420,13 @@ fn describe_inputs(
         read_as(fault_high)
     ));
     out
+}
+
+fn board_config_of(dev: &mut Device) -> Result<protocol::BoardConfig, Failure> {
+    match dev.request(Request::GetBoardConfig).map_err(link_failure)? {
+        protocol::Reply::BoardConfig(b) => Ok(b),
+        reply => Err(link_failure(LinkError::Unexpected { request: "GetBoardConfig", reply })),
+    }
 }
 
 fn home_sensors_of(dev: &mut Device) -> Result<protocol::HomeSensors, Failure> {
