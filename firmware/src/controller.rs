@@ -85,6 +85,12 @@ impl Debounced {
         }
     }
 
+    /// The line is read the other way round from now on: what was
+    /// sampled and accepted of it means the opposite, at once (no edge).
+    fn invert(&mut self) {
+        (self.level, self.raw) = (!self.level, !self.raw);
+    }
+
     /// When a pending change will be accepted.
     fn deadline(&self) -> Option<u64> {
         (self.raw != self.level).then_some(self.since + DEBOUNCE_US * TICKS_PER_US)
@@ -500,6 +506,15 @@ impl Controller {
                 if self.activity != Activity::Idle {
                     return Err(DeviceError::Busy);
                 }
+                if board.driver_fault_active_high != self.config.board.driver_fault_active_high {
+                    // As for the home sensors: the same line now means the
+                    // opposite, at once. A fault latched only because the
+                    // line was read the wrong way round can be cleared
+                    // straight away; a line that now reads a fault latches
+                    // one at the next poll.
+                    self.debounce[AXIS_COUNT + 1].invert();
+                    self.prev_inputs.driver_fault = !self.prev_inputs.driver_fault;
+                }
                 self.config.board = board;
                 Ok(Reply::Ack)
             }
@@ -515,8 +530,7 @@ impl Controller {
                         // The same line now means the opposite: so does
                         // what was read of it, at once (no edge), and the
                         // axis' home is no longer known.
-                        let d = &mut self.debounce[i];
-                        (d.level, d.raw) = (!d.level, !d.raw);
+                        self.debounce[i].invert();
                         self.prev_inputs.home[i] = !self.prev_inputs.home[i];
                         self.homed[i] = false;
                     }

@@ -1056,7 +1056,10 @@ pub fn home_sensor_polarity_is_configurable() -> TestResult {
 
 /// The driver-fault line's polarity follows `BoardConfig`: active low by
 /// default (DRV8825 nFAULT), active high when set (TMC2209 DIAG); the
-/// setting is saved with the configuration.
+/// setting is saved with the configuration. Changing it reads the line the
+/// other way at once: a board whose drivers signal the other way latches a
+/// fault at power-on that cannot be cleared, and is rescued by setting the
+/// polarity, clearing and saving, with no wait between.
 pub fn driver_fault_polarity_is_configurable() -> TestResult {
     use crate::hal::Inputs;
     use protocol::BoardConfig;
@@ -1081,7 +1084,13 @@ pub fn driver_fault_polarity_is_configurable() -> TestResult {
     hold(&mut rig, true);
     ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
     let high = BoardConfig { driver_fault_active_high: true };
+    // The line stays high: read active high, that is a fault, from the next poll.
     ensure!(rig.request(Request::SetBoardConfig(high)) == Reply::Ack, "set");
+    let inputs = Inputs { driver_fault_line: true, ..rig.inputs() };
+    rig.ctrl.poll(rig.now, &inputs, &mut rig.hw);
+    ensure!(rig.ctrl.faults().contains(FaultFlags::DRIVER_FAULT), "the same level, now a fault");
+    hold(&mut rig, false);
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared");
     hold(&mut rig, false);
     ensure!(rig.ctrl.faults().is_empty(), "active high: a low line is no fault");
     hold(&mut rig, true);
@@ -1091,6 +1100,25 @@ pub fn driver_fault_polarity_is_configurable() -> TestResult {
     ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved");
     let loaded = PersistedConfig::decode(&rig.hw.saved).ok_or("decodes")?;
     ensure!(loaded.board == high, "persisted");
+    // A board set active low whose drivers hold the line low when all is
+    // well (TMC2209 DIAG): a fault from power-on that cannot be cleared…
+    let mut rig = Rig::new();
+    hold(&mut rig, false);
+    ensure!(rig.ctrl.faults().contains(FaultFlags::DRIVER_FAULT), "wrong way round: a fault");
+    ensure!(
+        rig.request(Request::ClearFault) == Reply::Error(DeviceError::FaultLatched),
+        "the line still reads a fault"
+    );
+    ensure!(
+        rig.request(Request::SaveConfig) == Reply::Error(DeviceError::FaultLatched),
+        "nothing saved while it is latched"
+    );
+    // …until the polarity is set: cleared and saved at once, no poll between.
+    ensure!(rig.request(Request::SetBoardConfig(high)) == Reply::Ack, "set");
+    ensure!(rig.request(Request::ClearFault) == Reply::Ack, "cleared at once");
+    ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved");
+    hold(&mut rig, false);
+    ensure!(rig.ctrl.faults().is_empty(), "and it stays clear");
     // Not while moving.
     ensure!(rig.home_all(), "homing");
     move_to(&mut rig, [None, Some(200_000), None])?;

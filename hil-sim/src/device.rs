@@ -134,6 +134,10 @@ pub struct SimConfig {
     /// firmware reads them as its `HomeSensors` setting says, so a
     /// mismatch is what a real board with the wrong setting does.
     pub home_active_high: [bool; AXIS_COUNT],
+    /// How the drivers' fault line is wired: high on a fault (TMC2209
+    /// DIAG, push-pull), or low (false: DRV8825 nFAULT, the board's
+    /// default). The firmware reads it as its `BoardConfig` says.
+    pub driver_fault_active_high: bool,
 }
 
 impl SimConfig {
@@ -144,6 +148,7 @@ impl SimConfig {
             motors: Axis::ALL.map(MotorModel::default_for),
             faults: FaultPlan::default(),
             home_active_high: [false; AXIS_COUNT],
+            driver_fault_active_high: false,
         }
     }
 }
@@ -156,6 +161,7 @@ pub struct SimDevice {
     motors: [SimMotor; AXIS_COUNT],
     switches: [SimSwitch; AXIS_COUNT],
     home_active_high: [bool; AXIS_COUNT],
+    driver_fault_active_high: bool,
     estop: bool,
     driver_fault: bool,
     now: u64,
@@ -200,6 +206,7 @@ impl SimDevice {
             motors,
             switches: Axis::ALL.map(SimSwitch::default_for),
             home_active_high: config.home_active_high,
+            driver_fault_active_high: config.driver_fault_active_high,
             estop: false,
             driver_fault: false,
             now: 0,
@@ -357,14 +364,12 @@ impl SimDevice {
             let actuated = self.switches[i].sample(self.motors[i].position(), &mut self.rng);
             *h = actuated == self.home_active_high[i];
         }
-        // `driver_fault` is "asserted"; the line level follows the
-        // polarity the firmware is configured for (the simulated drivers
-        // are wired to match).
-        let active_high = self.controller.config().board.driver_fault_active_high;
+        // `driver_fault` is "asserted"; the line level follows the drivers'
+        // wiring, whatever the firmware is set to read.
         let inputs = Inputs {
             home_line,
             estop: self.estop,
-            driver_fault_line: self.driver_fault == active_high,
+            driver_fault_line: self.driver_fault == self.driver_fault_active_high,
         };
         self.controller.poll(self.now, &inputs, &mut self.hw);
         self.after_controller();

@@ -57,6 +57,9 @@ pub struct SimSetup {
     /// Home / index sensors wired active high, per axis (the board's
     /// default is active low).
     pub home_active_high: [bool; 3],
+    /// The drivers' fault line is wired active high (TMC2209 DIAG; the
+    /// board's default is active low).
+    pub driver_fault_active_high: bool,
     /// The camera lens' radial distortion k1, k2
     /// (`scanner_geometry::radial_distort`; the nominal geometry knows
     /// none: calibration measures it).
@@ -74,6 +77,7 @@ impl SimSetup {
             defects: Vec::new(),
             black_level_codes: 0,
             home_active_high: [false; 3],
+            driver_fault_active_high: false,
             lens_distortion: [0.0; 2],
         }
     }
@@ -135,6 +139,7 @@ impl SimSetup {
         let mut c = SimConfig::new(self.seed);
         c.faults = self.faults.clone();
         c.home_active_high = self.home_active_high;
+        c.driver_fault_active_high = self.driver_fault_active_high;
         c
     }
 

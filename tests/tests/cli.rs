@@ -38,11 +38,22 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
     let (code, out, err) = run(&["config", "--device", &pty]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("active low"), "{out}");
-    let (code, out, err) = run(&["config", "--device", &pty, "--driver-fault", "active-high"]);
+    // Its drivers hold the fault line high when all is well (active low):
+    // read active high, that is a fault, and no such polarity is saved.
+    let (code, _, err) = run(&["config", "--device", &pty, "--driver-fault", "active-high"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(
+        err.contains("the driver fault line is high, a fault read active high")
+            && err.contains("nothing changed"),
+        "{err}"
+    );
+    let (_, out, _) = run(&["config", "--device", &pty]);
+    assert!(out.contains("driver fault line: active low (DRV8825 nFAULT)"), "{out}");
+    let (_, out, _) = run(&["status", "--device", &pty]);
+    assert!(!out.contains("driver fault"), "the moment read the wrong way is cleared: {out}");
+    let (code, out, err) = run(&["config", "--device", &pty, "--driver-fault", "active-low"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("saved"), "{out}");
-    let (_, out, _) = run(&["config", "--device", &pty]);
-    assert!(out.contains("active high (TMC2209 DIAG)"), "{out}");
     let (code, _, _) = run(&["config", "--device", &pty, "--driver-fault", "inverted"]);
     assert_eq!(code, Some(2));
     // Moving before homing is refused by the device, with its reason.

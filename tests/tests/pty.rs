@@ -222,6 +222,60 @@ fn without_resume_an_existing_scan_is_not_touched() {
     assert_eq!(frames(&out), before);
 }
 
+/// Drivers whose fault line is active high (TMC2209 DIAG) on a board set
+/// active low: the idle line reads as a fault from power-on, which no
+/// `scanner clear` clears and no setting could be saved under. Setting the
+/// polarity rescues it: set, cleared and saved in one command.
+#[test]
+fn drivers_that_signal_faults_the_other_way_are_rescued_by_setting_the_polarity() {
+    let dir = tmp();
+    let mut s = setup("leather", FaultPlan::none());
+    s.driver_fault_active_high = true;
+    let server = serve(&s, &sub(dir.path(), "camera"));
+    let run = |args: &[&str]| {
+        let r = scanner().args(args).args(["--device", server.path()]).output().unwrap();
+        let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+        (r.status.code(), text(&r.stdout), text(&r.stderr))
+    };
+    let (_, out, _) = run(&["status"]);
+    assert!(out.contains("driver fault"), "{out}");
+    let (code, _, err) = run(&["home"]);
+    assert_eq!(code, Some(7), "{err}");
+    let (code, _, err) = run(&["clear"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(
+        err.contains("the driver fault line is still low, read active low as a fault")
+            && err.contains("`scanner config --driver-fault active-high`"),
+        "{err}"
+    );
+    // Another setting is still refused while it is latched…
+    let (code, _, err) = run(&["config", "--home-sensor", "track=active-high"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("nothing changed"), "{err}");
+    // …and setting the polarity the wrong way again changes nothing.
+    let (code, _, err) = run(&["config", "--driver-fault", "active-low"]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(
+        err.contains("the driver fault line is low, a fault read active low")
+            && err.contains("nothing changed"),
+        "{err}"
+    );
+    let (code, out, err) = run(&["config", "--driver-fault", "active-high"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.contains("cleared: driver fault (its line reads no fault read active high)"),
+        "{out}"
+    );
+    assert!(out.contains("saved to the device's flash"), "{out}");
+    assert!(out.contains("driver fault line: active high (TMC2209 DIAG)"), "{out}");
+    let (_, out, _) = run(&["inputs"]);
+    assert!(out.contains("driver fault        line low  → no fault (read active high)"), "{out}");
+    let (code, out, err) = run(&["home"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("homing: done"), "{out}");
+    drop(server);
+}
+
 #[test]
 fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
     let dir = tmp();

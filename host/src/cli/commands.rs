@@ -35,7 +35,7 @@ fn sim_failure(e: crate::simulator::SimError) -> Failure {
 fn no_simulator() -> Failure {
     Failure(2, anyhow!("this scanner was built without the simulator (cargo feature `sim`)"))
 }
-use protocol::{Axis, AxisSet, Event, LightState, MoveMode, Request};
+use protocol::{Axis, AxisSet, Event, FaultFlags, LightState, MoveMode, Request};
 
 use super::Failure;
 
@@ -76,6 +76,11 @@ pub struct DeviceArgs {
     /// --home-sensors` says).
     #[arg(long, value_delimiter = ',', value_parser = super::parse_axis, value_name = "AXES")]
     pub sim_home_active_high: Vec<Axis>,
+    /// Simulator: the drivers' fault line is wired active-high (TMC2209
+    /// DIAG) or active-low (DRV8825 nFAULT, the default), whatever the
+    /// board is set to read.
+    #[arg(long, value_parser = super::parse_polarity, value_name = "POLARITY")]
+    pub sim_driver_fault: Option<bool>,
     /// Simulator: the camera lens' radial distortion K1,K2 (the nominal
     /// geometry knows none: calibration measures K1).
     #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
@@ -100,6 +105,7 @@ impl DeviceArgs {
             defects: self.sim_defects.clone(),
             black_level_codes: self.sim_black_level,
             home_active_high: Axis::ALL.map(|a| self.sim_home_active_high.contains(&a)),
+            driver_fault_active_high: self.sim_driver_fault.unwrap_or(false),
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
         })
     }
@@ -143,20 +149,52 @@ pub fn clear(args: &DeviceArgs) -> Result<(), Failure> {
         return Ok(());
     }
     let names = faults.names().collect::<Vec<_>>().join(", ");
-    match o.device.command(Request::ClearFault) {
-        Ok(()) => {
-            println!("cleared: {names}");
-            Ok(())
-        }
-        Err(LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }) => Err(Failure(
-            7,
-            anyhow!(
-                "{names}: not cleared — the emergency stop is still open or a driver still \
-                 reports a fault; release it first"
-            ),
-        )),
-        Err(e) => Err(link_failure(e)),
+    if clear_fault(&mut o.device)? {
+        println!("cleared: {names}");
+        return Ok(());
     }
+    // What still holds it, as far as the device can tell (protocol 1.2).
+    let why = match inputs_of(&mut o.device) {
+        Ok(i) if i.estop_open => "the emergency stop is still open: release it first".to_string(),
+        Ok(i) if i.driver_fault => {
+            let high = board_config_of(&mut o.device)?.driver_fault_active_high;
+            format!(
+                "the driver fault line is still {}, read {} as a fault: a driver reports a \
+                 fault (power it down and find why) — or, if nothing is wrong, the drivers \
+                 signal the other way round and `scanner config --driver-fault {}` sets it",
+                if i.driver_fault_line_high { "high" } else { "low" },
+                polarity_name(high),
+                if high { "active-low" } else { "active-high" }
+            )
+        }
+        _ => "the emergency stop is still open or a driver still reports a fault; release it \
+              first"
+            .to_string(),
+    };
+    Err(Failure(7, anyhow!("{names}: not cleared — {why}")))
+}
+
+/// Ask the device to clear its latched faults: false if an input still
+/// holds one (the emergency stop, a driver's fault line). Asked twice 20 ms
+/// apart: firmware before the polarity change read at once took its
+/// 0.4 ms debounce to see a just-changed polarity.
+fn clear_fault(device: &mut Device) -> Result<bool, Failure> {
+    for attempt in 0..2 {
+        match device.command(Request::ClearFault) {
+            Ok(()) => return Ok(true),
+            Err(LinkError::Refused { error: protocol::DeviceError::FaultLatched, .. }) => {
+                if attempt == 0 {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+            }
+            Err(e) => return Err(link_failure(e)),
+        }
+    }
+    Ok(false)
+}
+
+fn polarity_name(high: bool) -> &'static str {
+    if high { "active high" } else { "active low" }
 }
 
 /// An open device (and the simulator behind it, if simulated).
@@ -271,10 +309,15 @@ pub fn board_config(
     let changes = driver_fault_active_high.is_some() || !home_sensors.is_empty();
     let persistent =
         o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG);
-    if changes && persistent {
+    let faults = o.device.status().map_err(link_failure)?.faults;
+    // A driver fault latched because its line is read the wrong way round
+    // (drivers that signal the other way: it latches at power-on and no
+    // `scanner clear` clears it) is what setting the polarity is for: set,
+    // cleared, saved.
+    let rescue = driver_fault_active_high.is_some() && faults == FaultFlags::DRIVER_FAULT;
+    if changes && persistent && !rescue {
         // The device saves nothing while a fault is latched: change nothing
         // rather than a setting that would not survive a reset.
-        let faults = o.device.status().map_err(link_failure)?.faults;
         if !faults.is_empty() {
             return Err(Failure(
                 7,
@@ -287,8 +330,51 @@ pub fn board_config(
         }
     }
     if let Some(high) = driver_fault_active_high {
+        let before = board_config_of(&mut o.device)?;
         let board = protocol::BoardConfig { driver_fault_active_high: high };
         o.device.command(Request::SetBoardConfig(board)).map_err(link_failure)?;
+        // No polarity is saved under which the drivers report a fault now:
+        // the line is read the new way at once (protocol 1.2 tells).
+        let line = if has_home_sensors { Some(inputs_of(&mut o.device)?) } else { None };
+        let reads_fault = match line {
+            Some(i) => i.driver_fault,
+            None => rescue && !clear_fault(&mut o.device)?,
+        };
+        if reads_fault {
+            o.device.command(Request::SetBoardConfig(before)).map_err(link_failure)?;
+            // Read the wrong way for a moment, it may have latched a fault
+            // of its own: cleared, as it was before.
+            if faults.is_empty() && !clear_fault(&mut o.device)? {
+                return Err(Failure(
+                    7,
+                    anyhow!("a driver fault latched while the polarity changed"),
+                ));
+            }
+            let level = match line {
+                Some(i) if i.driver_fault_line_high => "is high",
+                Some(_) => "is low",
+                None => "still reads a fault",
+            };
+            return Err(Failure(
+                7,
+                anyhow!(
+                    "the driver fault line {level}, a fault read {}: the drivers signal the \
+                     other way round, or one is faulted (`scanner inputs` shows the line); \
+                     nothing changed",
+                    polarity_name(high)
+                ),
+            ));
+        }
+        if rescue {
+            if !clear_fault(&mut o.device)? {
+                o.device.command(Request::SetBoardConfig(before)).map_err(link_failure)?;
+                return Err(Failure(7, anyhow!("the driver fault did not clear; nothing changed")));
+            }
+            println!(
+                "cleared: driver fault (its line reads no fault read {})",
+                polarity_name(high)
+            );
+        }
     }
     if !home_sensors.is_empty() {
         let mut home = home_sensors_of(&mut o.device)?;
@@ -327,7 +413,7 @@ pub fn board_config(
     } else {
         protocol::HomeSensors::default()
     };
-    let polarity = |high: bool| if high { "active high" } else { "active low" };
+    let polarity = polarity_name;
     println!(
         "home sensors: {}{}",
         Axis::ALL
@@ -359,11 +445,7 @@ pub fn inputs(args: &DeviceArgs, watch: Option<f64>) -> Result<(), Failure> {
     }
     let home = home_sensors_of(&mut o.device)?;
     let fault_high = board_config_of(&mut o.device)?.driver_fault_active_high;
-    let read = |dev: &mut Device| match dev.request(Request::GetInputs).map_err(link_failure)? {
-        protocol::Reply::Inputs(i) => Ok(i),
-        reply => Err(link_failure(LinkError::Unexpected { request: "GetInputs", reply })),
-    };
-    let mut last = read(&mut o.device)?;
+    let mut last = inputs_of(&mut o.device)?;
     for line in describe_inputs(&last, &home, fault_high) {
         println!("{line}");
     }
@@ -373,7 +455,7 @@ pub fn inputs(args: &DeviceArgs, watch: Option<f64>) -> Result<(), Failure> {
     println!("watching{} …", if end.is_some() { "" } else { " (Ctrl-C stops)" });
     while end.is_none_or(|end| Instant::now() < end) {
         std::thread::sleep(Duration::from_millis(20));
-        let now = read(&mut o.device)?;
+        let now = inputs_of(&mut o.device)?;
         if now != last {
             let before = describe_inputs(&last, &home, fault_high);
             for (line, was) in describe_inputs(&now, &home, fault_high).iter().zip(&before) {
@@ -385,6 +467,14 @@ pub fn inputs(args: &DeviceArgs, watch: Option<f64>) -> Result<(), Failure> {
         }
     }
     Ok(())
+}
+
+/// The device's inputs (protocol 1.2).
+fn inputs_of(device: &mut Device) -> Result<protocol::InputState, Failure> {
+    match device.request(Request::GetInputs).map_err(link_failure)? {
+        protocol::Reply::Inputs(i) => Ok(i),
+        reply => Err(link_failure(LinkError::Unexpected { request: "GetInputs", reply })),
+    }
 }
 
 /// One line per input: its level and what the board makes of it.
@@ -1072,6 +1162,7 @@ pub fn demo(
             sim_defects: Vec::new(),
             sim_black_level: 0,
             sim_home_active_high: Vec::new(),
+            sim_driver_fault: None,
             sim_lens_distortion: None,
         };
         let mut opened = open(&args)?;

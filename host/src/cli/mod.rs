@@ -349,12 +349,16 @@ fn parse_home_sensor(s: &str) -> Result<(protocol::Axis, bool), String> {
     let (axis, polarity) = s
         .split_once('=')
         .ok_or_else(|| format!("{s:?}: give AXIS=active-high or AXIS=active-low"))?;
-    let high = match polarity {
-        "active-high" => true,
-        "active-low" => false,
-        other => return Err(format!("{other:?}: active-high or active-low")),
-    };
-    Ok((parse_axis(axis)?, high))
+    Ok((parse_axis(axis)?, parse_polarity(polarity)?))
+}
+
+/// `active-high|active-low` → active high.
+pub(crate) fn parse_polarity(s: &str) -> Result<bool, String> {
+    match s {
+        "active-high" => Ok(true),
+        "active-low" => Ok(false),
+        other => Err(format!("{other:?}: active-high or active-low")),
+    }
 }
 
 pub(crate) fn parse_axis(s: &str) -> Result<protocol::Axis, String> {
