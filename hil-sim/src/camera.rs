@@ -3,7 +3,7 @@
 //! length as exposure and the light's duty.
 
 use firmware::config;
-use firmware::hal::TICK_HZ;
+use firmware::hal::{TICK_HZ, TICKS_PER_US};
 
 use crate::device::{TriggerRecord, Truth};
 use crate::geometry::AxisValues;
@@ -21,16 +21,42 @@ pub fn default_axes() -> [protocol::AxisConfig; 3] {
     [config::disk_default(), config::track_default(), config::tilt_default()]
 }
 
-/// The exposure a finished, honoured trigger pulse made (None otherwise).
-pub fn exposure_of(record: &TriggerRecord) -> Option<Exposure> {
+/// The exposure a finished, honoured trigger pulse made (None otherwise)
+/// on a camera that exposes for the pulse's length (trigger-width mode),
+/// `latency` ticks after its edges: the light it collects is the light's
+/// output ([`light_output`] of the duty `light` logged as (tick, ‰)
+/// changes) over that window, as a mean over it. With no latency and the
+/// light steady through the pulse, the light at the pulse's duty.
+pub fn exposure_of(record: &TriggerRecord, light: &[(u64, u16)], latency: u64) -> Option<Exposure> {
     let fall = record.fall?;
     if !record.honoured {
         return None;
     }
+    let (start, end) = (record.rise + latency, fall + latency);
+    // The duty in force at `t`: the last change at or before it.
+    let duty_at = |t: u64| {
+        let k = light.partition_point(|&(tick, _)| tick <= t);
+        if k == 0 { 0 } else { light[k - 1].1 }
+    };
+    let output = |duty: u16| light_output(duty, record.light_edge_loss_ns);
+    let changes = &light[light.partition_point(|&(tick, _)| tick <= start)..];
+    let changes = &changes[..changes.partition_point(|&(tick, _)| tick < end)];
+    let mut duty = duty_at(start);
+    let mean = if changes.is_empty() {
+        output(duty)
+    } else {
+        let mut sum = 0.0;
+        let mut t = start;
+        for &(tick, next) in changes {
+            sum += output(duty) * (tick - t) as f64;
+            (t, duty) = (tick, next);
+        }
+        (sum + output(duty) * (end - t) as f64) / (end - start) as f64
+    };
     Some(Exposure {
         axes: axis_values(record.positions),
         exposure_s: (fall - record.rise) as f64 / TICK_HZ as f64,
-        light: light_output(record.light_duty, record.light_edge_loss_ns),
+        light: mean,
     })
 }
 
@@ -52,12 +78,24 @@ pub fn light_output(duty: u16, edge_loss_ns: u32) -> f64 {
 pub struct SimCamera {
     optics: OpticalSim,
     next: usize,
+    /// Trigger latency, ticks.
+    latency: u64,
 }
 
 impl SimCamera {
-    /// A camera seeing through `optics`.
+    /// A camera seeing through `optics`, exposing exactly while its trigger
+    /// is high.
     pub fn new(optics: OpticalSim) -> SimCamera {
-        SimCamera { optics, next: 0 }
+        SimCamera { optics, next: 0, latency: 0 }
+    }
+
+    /// The same camera exposing `us` µs after each edge of its trigger
+    /// pulse (an opto-isolated input's delay, a trigger debounce): it
+    /// still exposes for the pulse's length, but later than the board's
+    /// light, which follows the pulse.
+    pub fn with_trigger_latency(mut self, us: u32) -> SimCamera {
+        self.latency = us as u64 * TICKS_PER_US;
+        self
     }
 
     /// The optics (ground truth).
@@ -75,10 +113,11 @@ impl SimCamera {
     pub fn take_exposures(&mut self, truth: &Truth) -> Vec<(usize, Exposure)> {
         let mut out = Vec::new();
         while let Some(record) = truth.triggers.get(self.next) {
-            if record.fall.is_none() {
+            // Its exposure is over, and the light's record with it.
+            if record.fall.is_none_or(|fall| truth.now < fall + self.latency) {
                 break;
             }
-            if let Some(e) = exposure_of(record) {
+            if let Some(e) = exposure_of(record, &truth.light, self.latency) {
                 out.push((self.next, e));
             }
             self.next += 1;

@@ -51,6 +51,8 @@ pub struct Truth {
     pub light: Vec<(u64, u16)>,
     /// Boots: (tick, boot id).
     pub boots: Vec<(u64, u32)>,
+    /// The board's clock: what happened up to this tick is recorded.
+    pub now: u64,
 }
 
 /// The simulated hardware behind the controller.
@@ -138,6 +140,9 @@ pub struct SimConfig {
     /// DIAG, push-pull), or low (false: DRV8825 nFAULT, the board's
     /// default). The firmware reads it as its `BoardConfig` says.
     pub driver_fault_active_high: bool,
+    /// The camera's trigger latency, µs: it exposes for the pulse's length
+    /// but this long after each of its edges ([`crate::camera::SimCamera::with_trigger_latency`]).
+    pub trigger_latency_us: u32,
 }
 
 impl SimConfig {
@@ -149,6 +154,7 @@ impl SimConfig {
             faults: FaultPlan::default(),
             home_active_high: [false; AXIS_COUNT],
             driver_fault_active_high: false,
+            trigger_latency_us: 0,
         }
     }
 }
@@ -325,10 +331,12 @@ impl SimDevice {
             }
             if next > end {
                 self.now = end;
+                self.hw.truth.now = end;
                 return;
             }
             self.now = next;
             self.hw.now = next;
+            self.hw.truth.now = next;
             match step {
                 Some((t, i)) if t == next => self.step_interrupt(i),
                 _ if next == self.next_poll => {

@@ -35,8 +35,8 @@ impl SimRig {
     /// Power on a simulated scanner with `optics` behind its camera.
     pub fn new(config: SimConfig, optics: OpticalSim) -> SimRig {
         let inner = Inner {
+            camera: SimCamera::new(optics).with_trigger_latency(config.trigger_latency_us),
             link: SimLink::new(SimDevice::new(config)),
-            camera: SimCamera::new(optics),
             frames: VecDeque::new(),
         };
         SimRig { inner: Arc::new(Mutex::new(inner)) }

@@ -321,7 +321,8 @@ fn the_camera_renders_every_trigger_from_the_physical_axis_positions() {
     assert_eq!(frames.len(), 40);
     for (l, (index, frame)) in frames.iter().enumerate() {
         let record = &c.device(|d| d.truth().clone()).triggers[*index];
-        let e = exposure_of(record).unwrap();
+        let light = c.device(|d| d.truth().light.clone());
+        let e = exposure_of(record, &light, 0).unwrap();
         assert!((e.exposure_s - 0.05).abs() < 1e-3 && e.light == 1.0);
         assert_eq!(camera.optics().mirrors_lighting_sample(e.axes), vec![l]);
         assert!(frame_max(frame) > 0.03, "mirror {l} lit");
@@ -343,7 +344,10 @@ fn lost_steps_visibly_change_the_frame() {
             d.truth()
                 .triggers
                 .iter()
-                .map(|r| camera.optics().mirrors_lighting_sample(exposure_of(r).unwrap().axes))
+                .map(|r| {
+                    let e = exposure_of(r, &d.truth().light, 0).unwrap();
+                    camera.optics().mirrors_lighting_sample(e.axes)
+                })
                 .collect()
         });
         (frames, lit)

@@ -1574,7 +1574,9 @@ pub fn scan(
                         progress.note(&format!(
                             "mirror {l}: the {} µs exposure{dimmed} measured {:.3}× the light per \
                              µs of the {} µs one over {} values; the merge assumes 1: check the \
-                             light's linearity{} and the exposure times",
+                             light's linearity{}, the exposure times, and that the camera \
+                             exposes while its trigger is high (one that starts later — a trigger \
+                             delay or debounce set in it — misses the light's last µs)",
                             r.shorter_us,
                             r.ratio,
                             r.longer_us,

@@ -60,6 +60,9 @@ pub struct SimSetup {
     /// The drivers' fault line is wired active high (TMC2209 DIAG; the
     /// board's default is active low).
     pub driver_fault_active_high: bool,
+    /// The camera's trigger latency, µs (it exposes this long after each
+    /// edge of the trigger pulse; the board's light follows the pulse).
+    pub trigger_latency_us: u32,
     /// The camera lens' radial distortion k1, k2
     /// (`scanner_geometry::radial_distort`; the nominal geometry knows
     /// none: calibration measures it).
@@ -78,6 +81,7 @@ impl SimSetup {
             black_level_codes: 0,
             home_active_high: [false; 3],
             driver_fault_active_high: false,
+            trigger_latency_us: 0,
             lens_distortion: [0.0; 2],
         }
     }
@@ -97,6 +101,9 @@ impl SimSetup {
         }
         if self.lens_distortion != [0.0; 2] {
             s += &format!(", lens distortion {:?}", self.lens_distortion);
+        }
+        if self.trigger_latency_us > 0 {
+            s += &format!(", camera trigger latency {} µs", self.trigger_latency_us);
         }
         s
     }
@@ -140,6 +147,7 @@ impl SimSetup {
         c.faults = self.faults.clone();
         c.home_active_high = self.home_active_high;
         c.driver_fault_active_high = self.driver_fault_active_high;
+        c.trigger_latency_us = self.trigger_latency_us;
         c
     }
 
@@ -156,7 +164,8 @@ impl SimSetup {
         frames: PathBuf,
         files: hil_sim::camera::FrameFiles,
     ) -> Result<hil_sim::PtyServer, SimError> {
-        let camera = hil_sim::camera::SimCamera::new(self.optics()?);
+        let camera = hil_sim::camera::SimCamera::new(self.optics()?)
+            .with_trigger_latency(self.trigger_latency_us);
         hil_sim::PtyServer::start_with_camera(
             hil_sim::SimDevice::new(self.config()),
             speed,

@@ -369,6 +369,41 @@ fn a_near_mirror_is_held_by_exposures_below_1_ms_with_the_light_dimmed() {
     assert!(err.contains("10 µs outside 20…2000000"), "{err}");
 }
 
+/// The board's light follows the trigger pulse; a camera that exposes
+/// later than its trigger's edges (an opto-isolated input's delay, a
+/// trigger debounce set in the camera) misses the light's last µs: a fixed
+/// time, so a larger share of the shorter exposures. The merge's exposure
+/// agreement sees it and says what to check; on time, the same bracket
+/// agrees to 1.5 %.
+#[test]
+fn a_camera_that_exposes_later_than_its_trigger_is_reported() {
+    let dir = common::tmp();
+    let ratios = |extra: &[&str]| {
+        let out = dir.path().join(format!("s{}", extra.len()));
+        let mut args = vec!["--exposures", "20000,100000"];
+        args.extend_from_slice(extra);
+        let (code, err) = scan("diffuse-white", &out, &args);
+        assert_eq!(code, Some(0), "{err}");
+        let m = host::scan::Manifest::load(&out).unwrap();
+        let r: Vec<f64> =
+            m.frames.iter().flat_map(|f| f.exposure_ratios.iter().map(|r| r.ratio)).collect();
+        assert_eq!(r.len(), 4, "every mirror's pair measured: {r:?}");
+        (r, err)
+    };
+    let (on_time, err) = ratios(&[]);
+    assert!(on_time.iter().all(|r| (r - 1.0).abs() < 0.015), "{on_time:?}");
+    assert!(!err.contains("the merge assumes 1"), "{err}");
+    // 2 ms late: (20 − 2) / 20 of the light per µs against (100 − 2) / 100.
+    let (late, err) = ratios(&["--sim-trigger-latency-us", "2000"]);
+    let expected = (18.0 / 20.0) / (98.0 / 100.0);
+    assert!(late.iter().all(|r| (r - expected).abs() < 0.01), "{late:?} against {expected}");
+    assert!(
+        err.contains("the 20000 µs exposure measured 0.91")
+            && err.contains("that the camera exposes while its trigger is high"),
+        "{err}"
+    );
+}
+
 /// A real sensor's stuck pixels read the top code at every exposure; on
 /// the sample's views they look like highlights no exposure holds. Auto
 /// exposure finds them (and dead pixels) in its metering frames, and hot

@@ -81,6 +81,11 @@ pub struct DeviceArgs {
     /// board is set to read.
     #[arg(long, value_parser = super::parse_polarity, value_name = "POLARITY")]
     pub sim_driver_fault: Option<bool>,
+    /// Simulator: the camera exposes US µs after each edge of its trigger
+    /// pulse (the board's light follows the pulse: short exposures lose
+    /// light, which the HDR merge's exposure agreement reports).
+    #[arg(long, default_value_t = 0, value_name = "US")]
+    pub sim_trigger_latency_us: u32,
     /// Simulator: the camera lens' radial distortion K1,K2 (the nominal
     /// geometry knows none: calibration measures K1).
     #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
@@ -106,6 +111,7 @@ impl DeviceArgs {
             black_level_codes: self.sim_black_level,
             home_active_high: Axis::ALL.map(|a| self.sim_home_active_high.contains(&a)),
             driver_fault_active_high: self.sim_driver_fault.unwrap_or(false),
+            trigger_latency_us: self.sim_trigger_latency_us,
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
         })
     }
@@ -1163,6 +1169,7 @@ pub fn demo(
             sim_black_level: 0,
             sim_home_active_high: Vec::new(),
             sim_driver_fault: None,
+            sim_trigger_latency_us: 0,
             sim_lens_distortion: None,
         };
         let mut opened = open(&args)?;
