@@ -28,11 +28,12 @@
 
 use heapless::Deque;
 use protocol::{
-    AXIS_COUNT, Axis, AxisSet, AxisStatus, Capabilities, CaptureStep, DeviceError, DeviceInfo,
-    DeviceState, Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame,
-    FrameDecoder, HomingFailure, InputState, LightState, LogLevel, LogText, MAX_EXPOSURE_US,
-    MAX_FRAME_LEN, MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode,
-    PROTOCOL_VERSION, Reply, Request, ResetReason, Status, ToHost, TriggerFired, encode_frame,
+    AXIS_COUNT, Axis, AxisSet, AxisStatus, Capabilities, DeviceError, DeviceInfo, DeviceState,
+    Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame, FrameDecoder,
+    HomingFailure, InputState, LightState, LogLevel, LogText, MAX_EXPOSURE_US, MAX_FRAME_LEN,
+    MAX_LIGHT_MARGIN_US, MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode,
+    PROTOCOL_VERSION, Reply, Request, ResetReason, Status, TimedCaptureStep, ToHost, TriggerFired,
+    encode_frame,
 };
 
 use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid};
@@ -156,7 +157,7 @@ enum Activity {
     /// A move (`Move`, `GoToMirror`, or the motion of a capture step).
     Moving {
         axes: AxisSet,
-        capture: Option<CaptureStep>,
+        capture: Option<TimedCaptureStep>,
         stopping: bool,
     },
     Homing {
@@ -165,11 +166,18 @@ enum Activity {
         stopping: bool,
     },
     Settling {
-        step: CaptureStep,
+        step: TimedCaptureStep,
         until: u64,
     },
+    /// The light is on, the trigger not yet: a step's light margin.
+    Leading {
+        step: TimedCaptureStep,
+        until: u64,
+    },
+    /// The trigger is high; after it, the light stays on `trail` ticks.
     Exposing {
         until: u64,
+        trail: u64,
     },
 }
 
@@ -188,6 +196,9 @@ pub struct Controller {
     light: LightState,
     trigger_seq: u32,
     last_trigger: Option<TriggerFired>,
+    /// When the light, left on after a pulse for its step's margin, goes
+    /// back to its idle state.
+    light_trail: Option<u64>,
     handshake: bool,
     last_request: Option<(u8, Reply)>,
     last_rx: u64,
@@ -221,6 +232,7 @@ impl Controller {
             light: LightState { on: false, duty_permille: FULL_DUTY_PERMILLE },
             trigger_seq: 0,
             last_trigger: None,
+            light_trail: None,
             handshake: false,
             last_request: None,
             last_rx: 0,
@@ -277,7 +289,9 @@ impl Controller {
     /// (settle or exposure end, homing or link timeout), if any.
     pub fn next_deadline(&self) -> Option<u64> {
         let timed = match self.activity {
-            Activity::Settling { until, .. } | Activity::Exposing { until } => Some(until),
+            Activity::Settling { until, .. }
+            | Activity::Leading { until, .. }
+            | Activity::Exposing { until, .. } => Some(until),
             Activity::Homing { started, axes, .. } => axes
                 .iter()
                 .map(|a| {
@@ -289,7 +303,7 @@ impl Controller {
         let link = (self.is_moving() && !self.faults.contains(FaultFlags::LINK_TIMEOUT))
             .then_some(self.last_rx + LINK_TIMEOUT_MS * TICKS_PER_MS + 1);
         let inputs = self.debounce.iter().filter_map(Debounced::deadline).min();
-        [timed, link, inputs].into_iter().flatten().min()
+        [timed, link, inputs, self.light_trail].into_iter().flatten().min()
     }
 
     // ----- link ------------------------------------------------------------
@@ -424,9 +438,15 @@ impl Controller {
                 if state.duty_permille > FULL_DUTY_PERMILLE {
                     return Err(DeviceError::OutOfRange);
                 }
-                if matches!(self.activity, Activity::Exposing { .. } | Activity::Settling { .. }) {
+                if matches!(
+                    self.activity,
+                    Activity::Exposing { .. }
+                        | Activity::Settling { .. }
+                        | Activity::Leading { .. }
+                ) {
                     return Err(DeviceError::Busy);
                 }
+                self.light_trail = None;
                 self.light = state;
                 hw.set_light(if state.on { state.duty_permille } else { 0 });
                 Ok(Reply::Ack)
@@ -437,21 +457,18 @@ impl Controller {
                 if self.activity != Activity::Idle {
                     return Err(DeviceError::Busy);
                 }
-                self.fire_trigger(exposure_us, None, hw);
+                // A bare trigger (a dark frame) sees the light as set, not
+                // a capture step's margin.
+                if self.light_trail.is_some() {
+                    self.restore_light(hw);
+                }
+                self.fire_trigger(exposure_us, None, 0, hw);
                 Ok(Reply::Ack)
             }
             Request::CaptureStep(step) => {
-                self.ensure_can_move()?;
-                check_exposure(step.exposure_us)?;
-                if step.light_duty_permille == 0 || step.light_duty_permille > FULL_DUTY_PERMILLE {
-                    return Err(DeviceError::OutOfRange);
-                }
-                let position = self.mirror(step.mirror)?;
-                let targets =
-                    self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
-                self.start_move(targets, Some(step), hw)?;
-                Ok(Reply::Ack)
+                self.capture_step(TimedCaptureStep { step, light_margin_us: 0 }, hw)
             }
+            Request::TimedCaptureStep(timed) => self.capture_step(timed, hw),
             Request::Stop => {
                 self.controlled_stop(hw);
                 Ok(Reply::Ack)
@@ -603,6 +620,28 @@ impl Controller {
         if self.faults.is_empty() { Ok(()) } else { Err(DeviceError::FaultLatched) }
     }
 
+    /// Start a capture step: the move to its mirror, then settle, light,
+    /// trigger.
+    fn capture_step(
+        &mut self,
+        timed: TimedCaptureStep,
+        hw: &mut impl Hardware,
+    ) -> Result<Reply, DeviceError> {
+        self.ensure_can_move()?;
+        let step = timed.step;
+        check_exposure(step.exposure_us)?;
+        if step.light_duty_permille == 0
+            || step.light_duty_permille > FULL_DUTY_PERMILLE
+            || timed.light_margin_us > MAX_LIGHT_MARGIN_US
+        {
+            return Err(DeviceError::OutOfRange);
+        }
+        let position = self.mirror(step.mirror)?;
+        let targets = self.resolve_targets(MoveMode::Absolute, position.steps.map(Some), hw)?;
+        self.start_move(targets, Some(timed), hw)?;
+        Ok(Reply::Ack)
+    }
+
     fn ensure_can_move(&self) -> Result<(), DeviceError> {
         self.ensure_no_fault()?;
         if self.activity != Activity::Idle {
@@ -677,7 +716,7 @@ impl Controller {
     fn start_move(
         &mut self,
         deltas: [i32; AXIS_COUNT],
-        capture: Option<CaptureStep>,
+        capture: Option<TimedCaptureStep>,
         hw: &mut impl Hardware,
     ) -> Result<(), DeviceError> {
         let mut axes = AxisSet::NONE;
@@ -726,8 +765,8 @@ impl Controller {
             Activity::Moving { stopping, .. } | Activity::Homing { stopping, .. } => {
                 *stopping = true
             }
-            Activity::Settling { .. } | Activity::Exposing { .. } => {
-                self.end_exposure(hw);
+            Activity::Settling { .. } | Activity::Leading { .. } | Activity::Exposing { .. } => {
+                self.end_exposure(0, hw);
                 self.activity = Activity::Idle;
                 return;
             }
@@ -792,9 +831,10 @@ impl Controller {
         let positions = self.positions(hw);
         self.emit(Event::MotionDone { axes, outcome, positions });
         self.activity = match (capture, outcome) {
-            (Some(step), MotionOutcome::Completed) => {
-                Activity::Settling { step, until: self.now + step.settle_ms as u64 * TICKS_PER_MS }
-            }
+            (Some(step), MotionOutcome::Completed) => Activity::Settling {
+                step,
+                until: self.now + step.step.settle_ms as u64 * TICKS_PER_MS,
+            },
             _ => Activity::Idle,
         };
     }
@@ -969,7 +1009,15 @@ impl Controller {
 
     // ----- capture ------------------------------------------------------------
 
-    fn fire_trigger(&mut self, exposure_us: u32, mirror: Option<u8>, hw: &mut impl Hardware) {
+    /// Raise the trigger for `exposure_us`; the light (if on for a step)
+    /// stays on `trail` ticks after the pulse.
+    fn fire_trigger(
+        &mut self,
+        exposure_us: u32,
+        mirror: Option<u8>,
+        trail: u64,
+        hw: &mut impl Hardware,
+    ) {
         self.trigger_seq = self.trigger_seq.wrapping_add(1);
         let ticks = exposure_us as u64 * TICKS_PER_US;
         // A pulse the hardware ends: the light stays on until it has.
@@ -982,11 +1030,23 @@ impl Controller {
         };
         self.last_trigger = Some(fired);
         self.emit(Event::TriggerFired(fired));
-        self.activity = Activity::Exposing { until: (self.now + ticks).max(ended) };
+        self.activity = Activity::Exposing { until: (self.now + ticks).max(ended), trail };
     }
 
-    fn end_exposure(&mut self, hw: &mut impl Hardware) {
+    /// Trigger low; the light back to its idle state now, or `trail` ticks
+    /// from now.
+    fn end_exposure(&mut self, trail: u64, hw: &mut impl Hardware) {
         hw.set_trigger(false);
+        if trail > 0 {
+            self.light_trail = Some(self.now + trail);
+        } else {
+            self.restore_light(hw);
+        }
+    }
+
+    /// The light as the host last set it.
+    fn restore_light(&mut self, hw: &mut impl Hardware) {
+        self.light_trail = None;
         hw.set_light(if self.light.on { self.light.duty_permille } else { 0 });
     }
 
@@ -999,6 +1059,7 @@ impl Controller {
         let was_moving = self.is_moving();
         self.halt_all(hw);
         self.light.on = false;
+        self.light_trail = None;
         hw.set_light(0);
         hw.set_trigger(false);
         if was_moving || matches!(self.activity, Activity::Moving { .. } | Activity::Homing { .. })
@@ -1056,6 +1117,7 @@ impl Controller {
             // Decelerate rather than halt: no steps are lost, homing is kept.
             self.faults = self.faults.union(FaultFlags::LINK_TIMEOUT);
             self.light.on = false;
+            self.light_trail = None;
             hw.set_light(0);
             hw.set_trigger(false);
             self.controlled_stop(hw);
@@ -1131,46 +1193,63 @@ impl Controller {
         self.prev_inputs = *inputs;
         self.refill(hw);
         self.poll_motion_end(hw);
-        match self.activity {
-            Activity::Settling { step, until } if now >= until => {
-                if self.faults.is_empty() {
-                    hw.set_light(step.light_duty_permille);
-                    self.fire_trigger(step.exposure_us, Some(step.mirror), hw);
-                } else {
-                    self.activity = Activity::Idle;
-                }
-            }
-            Activity::Exposing { .. } => self.end_exposure_due(now, hw),
-            _ => {}
-        }
-    }
-
-    /// The tick at which the running exposure ends, if one is running: the
-    /// asked exposure after the trigger rose, or where the hardware reported
-    /// its pulse over ([`Hardware::start_trigger_pulse`]) if later. The board
-    /// and the simulator wake there and call [`Self::end_exposure_due`]
-    /// instead of waiting for the next 200 µs poll. Where the controller
-    /// ends the pulse itself (the simulator), this makes it last the
-    /// exposure asked for, not up to a poll period more (3.2 instead of
-    /// 3.09 ms: 3.5 % more light than the host counts on); where the board's
-    /// timer ends it, the light goes back and the next step starts at once.
-    pub fn exposure_end(&self) -> Option<u64> {
-        match self.activity {
-            Activity::Exposing { until } => Some(until),
-            _ => None,
-        }
-    }
-
-    /// End the running exposure (trigger low, the light back to its idle
-    /// state) if its end is due at `now`. Inputs are not sampled:
-    /// [`Self::poll`] does that.
-    pub fn end_exposure_due(&mut self, now: u64, hw: &mut impl Hardware) {
-        if let Activity::Exposing { until } = self.activity
+        if let Activity::Settling { step, until } = self.activity
             && now >= until
         {
-            self.now = now;
-            self.end_exposure(hw);
-            self.activity = Activity::Idle;
+            if self.faults.is_empty() {
+                // The last step's light margin, if still running, is over.
+                self.light_trail = None;
+                hw.set_light(step.step.light_duty_permille);
+                let margin = step.light_margin_us as u64 * TICKS_PER_US;
+                self.activity = Activity::Leading { step, until: now + margin };
+            } else {
+                self.activity = Activity::Idle;
+            }
+        }
+        self.capture_due(now, hw);
+    }
+
+    /// The tick at which the running capture has timed work, if any: the
+    /// trigger's rise after a step's light margin, the exposure's end (the
+    /// asked exposure after the trigger rose, or where the hardware reported
+    /// its pulse over ([`Hardware::start_trigger_pulse`]) if later), the
+    /// light's return after its margin. The board and the simulator wake
+    /// there and call [`Self::capture_due`] instead of waiting for the next
+    /// 200 µs poll. Where the controller ends the pulse itself (the
+    /// simulator), this makes it last the exposure asked for, not up to a
+    /// poll period more (3.2 instead of 3.09 ms: 3.5 % more light than the
+    /// host counts on); where the board's timer ends it, the light goes
+    /// back and the next step starts at once.
+    pub fn capture_deadline(&self) -> Option<u64> {
+        let stage = match self.activity {
+            Activity::Leading { until, .. } | Activity::Exposing { until, .. } => Some(until),
+            _ => None,
+        };
+        match (stage, self.light_trail) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// Do the capture's timed work due at `now` ([`Self::capture_deadline`]):
+    /// raise the trigger after the light margin, end the pulse (trigger
+    /// low, the light back to its idle state now or after the margin),
+    /// return the light. Inputs are not sampled: [`Self::poll`] does that.
+    pub fn capture_due(&mut self, now: u64, hw: &mut impl Hardware) {
+        self.now = now;
+        if self.light_trail.is_some_and(|t| now >= t) {
+            self.restore_light(hw);
+        }
+        match self.activity {
+            Activity::Leading { step, until } if now >= until => {
+                let trail = step.light_margin_us as u64 * TICKS_PER_US;
+                self.fire_trigger(step.step.exposure_us, Some(step.step.mirror), trail, hw);
+            }
+            Activity::Exposing { until, trail } if now >= until => {
+                self.end_exposure(trail, hw);
+                self.activity = Activity::Idle;
+            }
+            _ => {}
         }
     }
 

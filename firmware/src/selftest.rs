@@ -53,6 +53,7 @@ pub const TESTS: &[SelfTest] = &[
     ("bare_trigger", bare_trigger),
     ("trigger_pulse_exact_on_the_timer_model", trigger_pulse_exact_on_the_timer_model),
     ("hardware_trigger_pulse_keeps_the_light_on", hardware_trigger_pulse_keeps_the_light_on),
+    ("light_margin_around_the_pulse", light_margin_around_the_pulse),
     ("dispatcher_errors", dispatcher_errors),
     ("duplicate_sequence_not_reexecuted", duplicate_sequence_not_reexecuted),
     ("handshake_required_and_versions", handshake_required_and_versions),
@@ -627,6 +628,107 @@ pub fn hardware_trigger_pulse_keeps_the_light_on() -> TestResult {
     };
     ensure!(t_lo - t_hi == TICKS_PER_MS, "the stop cut the pulse at once");
     ensure!(!rig.hw.trigger, "low");
+    Ok(())
+}
+
+/// A `TimedCaptureStep` (protocol 1.3) lights the sample its margin before
+/// the trigger rises and as long after the pulse, which stays exactly the
+/// exposure; the step is over when the pulse ends. The margin still
+/// running ends at a bare trigger (a dark frame sees the light as set) and
+/// at the next step's light; a margin over the maximum is refused.
+pub fn light_margin_around_the_pulse() -> TestResult {
+    use protocol::{MAX_LIGHT_MARGIN_US, TimedCaptureStep};
+    // Run until a step's pulse is over (its trigger fired and low again):
+    // the step is done; its light margin may still run. The tick it ended.
+    fn until_pulse_over(rig: &mut Rig) -> Result<u64, &'static str> {
+        rig.events.clear();
+        for _ in 0..100_000 {
+            rig.run_until(rig.now + 50 * TICKS_PER_US);
+            let fired = rig.events.iter().any(|e| matches!(e, Event::TriggerFired(_)));
+            if fired && !rig.hw.trigger {
+                return Ok(rig.now);
+            }
+        }
+        Err("no pulse")
+    }
+    let mut rig = Rig::new();
+    rig.hw.hardware_pulse = true;
+    ensure!(rig.home_all(), "homing");
+    let pos = MirrorPosition { steps: [4_000, 120_000, -1_500] };
+    ensure!(rig.request(Request::SetMirror { mirror: 5, position: pos }) == Reply::Ack, "set");
+    let step =
+        CaptureStep { mirror: 5, settle_ms: 150, exposure_us: 3_090, light_duty_permille: 800 };
+    let timed =
+        |light_margin_us| Request::TimedCaptureStep(TimedCaptureStep { step, light_margin_us });
+    rig.hw.outputs.clear();
+    rig.events.clear();
+    ensure!(rig.request(timed(250)) == Reply::Ack, "accepted");
+    ensure!(rig.run_until_idle(10_000), "capture ends");
+    let [t_on, t_hi, t_lo, t_off] = capture_edges(&rig.hw.outputs)?;
+    ensure!(t_hi - t_on == 250 * TICKS_PER_US, "the light 250 µs before the pulse");
+    ensure!(t_lo - t_hi == 3_090 * TICKS_PER_US, "pulse width = exposure");
+    // The pulse ends in hardware; the light goes back 250 µs after the
+    // tick the board reports it over by (a tick or two after the fall).
+    let after = t_off - t_lo;
+    ensure!((250 * TICKS_PER_US..=251 * TICKS_PER_US).contains(&after), "and 250 µs after it");
+    let fired = rig.events.iter().find_map(|e| match e {
+        Event::TriggerFired(t) => Some(*t),
+        _ => None,
+    });
+    ensure!(fired.is_some_and(|f| f.timestamp_us == t_hi / TICKS_PER_US), "timestamp at the rise");
+    // The step is over when its pulse is: the next request is not busy.
+    rig.hw.outputs.clear();
+    ensure!(rig.request(timed(5_000)) == Reply::Ack, "accepted");
+    until_pulse_over(&mut rig)?;
+    ensure!(rig.hw.light == 800, "the margin runs on");
+    // A dark frame then sees the light as set: off before its pulse.
+    ensure!(rig.request(Request::Trigger { exposure_us: 1_000 }) == Reply::Ack, "bare trigger");
+    rig.run_until(rig.now + 10 * TICKS_PER_MS);
+    let o = &rig.hw.outputs;
+    let dark_rise = o.iter().rev().find_map(|e| match e {
+        Output::Trigger(t, true) => Some(*t),
+        _ => None,
+    });
+    let light_off = o.iter().find_map(|e| match e {
+        Output::Light(t, 0) => Some(*t),
+        _ => None,
+    });
+    ensure!(
+        matches!((light_off, dark_rise), (Some(off), Some(rise)) if off <= rise),
+        "the light off before the dark frame's pulse"
+    );
+    ensure!(o.iter().filter(|e| matches!(e, Output::Light(_, 800))).count() == 1, "lit once");
+    // The next step's light ends the last one's margin: its own margin
+    // and pulse run at its duty, undisturbed (no move, no settling: the
+    // first margin would end in the middle of the second pulse).
+    rig.hw.outputs.clear();
+    let quick = CaptureStep { settle_ms: 0, exposure_us: 10_000, ..step };
+    let quick = |light_margin_us| {
+        Request::TimedCaptureStep(TimedCaptureStep { step: quick, light_margin_us })
+    };
+    ensure!(rig.request(quick(5_000)) == Reply::Ack, "accepted");
+    until_pulse_over(&mut rig)?;
+    ensure!(rig.request(quick(100)) == Reply::Ack, "the next step at once");
+    let second_over = until_pulse_over(&mut rig)?;
+    rig.run_until(rig.now + 10 * TICKS_PER_MS);
+    let o = &rig.hw.outputs;
+    let second_rise = o
+        .iter()
+        .filter_map(|e| match e {
+            Output::Trigger(t, true) => Some(*t),
+            _ => None,
+        })
+        .nth(1)
+        .ok_or("two pulses")?;
+    let dark_during = o.iter().any(|e| {
+        matches!(e, Output::Light(t, d) if *d != 800
+            && *t >= second_rise - 100 * TICKS_PER_US && *t < second_over)
+    });
+    ensure!(!dark_during, "the first margin never darkens the second step");
+    ensure!(
+        rig.request(timed(MAX_LIGHT_MARGIN_US + 1)) == Reply::Error(DeviceError::OutOfRange),
+        "a margin over the maximum is refused"
+    );
     Ok(())
 }
 

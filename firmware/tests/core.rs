@@ -39,6 +39,7 @@ selftests!(
     bare_trigger,
     trigger_pulse_exact_on_the_timer_model,
     hardware_trigger_pulse_keeps_the_light_on,
+    light_margin_around_the_pulse,
     dispatcher_errors,
     duplicate_sequence_not_reexecuted,
     handshake_required_and_versions,

@@ -320,9 +320,10 @@ impl SimDevice {
             if let Some((t, _)) = step {
                 next = next.min(t);
             }
-            // The board wakes at the exposure's end (firmware/board: the
-            // control task's timer), so the pulse lasts what was asked.
-            let exposure_end = self.controller.exposure_end();
+            // The board wakes when a capture's timed work is due
+            // (firmware/board: the control task's timer), so the pulse lasts
+            // what was asked.
+            let exposure_end = self.controller.capture_deadline();
             if let Some(t) = exposure_end {
                 next = next.min(t);
             }
@@ -344,7 +345,7 @@ impl SimDevice {
                     self.next_poll += POLL_TICKS;
                 }
                 _ if exposure_end == Some(next) => {
-                    self.controller.end_exposure_due(next, &mut self.hw);
+                    self.controller.capture_due(next, &mut self.hw);
                     self.after_controller();
                 }
                 _ => {}

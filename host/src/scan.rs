@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use protocol::{
     Axis, AxisConfig, AxisSet, CaptureStep, DeviceState, Event, FaultFlags, MirrorPosition,
-    MotionOutcome, Reply, Request, TriggerFired,
+    MotionOutcome, Reply, Request, TimedCaptureStep, TriggerFired,
 };
 use scanner_geometry::{AxisValues, GeometryError, ScannerGeometry};
 use serde::{Deserialize, Serialize};
@@ -189,6 +189,15 @@ pub struct ScanSettings {
     /// (`--camera-codes`; absent: native).
     #[serde(default, skip_serializing_if = "is_native")]
     pub camera_codes: scanner_geometry::IntegerCodes,
+    /// The light went on this long before each trigger pulse and off as
+    /// long after it, µs (`--light-margin-us`; absent: 0, the light on
+    /// exactly during the pulse).
+    #[serde(default, skip_serializing_if = "is_zero_u16")]
+    pub light_margin_us: u16,
+}
+
+fn is_zero_u16(v: &u16) -> bool {
+    *v == 0
 }
 
 fn is_native(c: &scanner_geometry::IntegerCodes) -> bool {
@@ -294,6 +303,11 @@ impl ScanSettings {
         };
         field("black level", level(self), level(other));
         field("camera codes", self.camera_codes.name().into(), other.camera_codes.name().into());
+        field(
+            "light margin",
+            format!("{} µs", self.light_margin_us),
+            format!("{} µs", other.light_margin_us),
+        );
         let sim = |s: &Option<String>| s.clone().unwrap_or_else(|| "a real scanner".into());
         field("scanner", sim(&self.simulator), sim(&other.simulator));
         out
@@ -582,6 +596,10 @@ pub struct ScanOptions {
     /// Measure the black level (`black_level_codes` is then ignored) in a
     /// frame with the light off at the scan's start.
     pub black_level_auto: bool,
+    /// Light on this long before each trigger pulse and off as long after
+    /// it, µs (0 ..= `protocol::MAX_LIGHT_MARGIN_US`; firmware of protocol
+    /// 1.3): for a camera that exposes later than its trigger's edges.
+    pub light_margin_us: u16,
     /// Set (e.g. by Ctrl-C) to stop after the frame in progress, keeping
     /// every frame taken.
     pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
@@ -607,6 +625,7 @@ impl ScanOptions {
             simulator: None,
             black_level_codes: 0,
             black_level_auto: false,
+            light_margin_us: 0,
             interrupt: None,
         }
     }
@@ -1125,7 +1144,22 @@ pub fn scan(
         black_level_codes: if opts.black_level_auto { 0 } else { opts.black_level_codes },
         black_level_auto: opts.black_level_auto.then_some(AutoBlackLevel { exposure_us: None }),
         camera_codes: camera.integer_codes(),
+        light_margin_us: opts.light_margin_us,
     };
+    if opts.light_margin_us > protocol::MAX_LIGHT_MARGIN_US {
+        return Err(ScanError::Conflict(format!(
+            "light margin {} µs: at most {} µs",
+            opts.light_margin_us,
+            protocol::MAX_LIGHT_MARGIN_US
+        )));
+    }
+    if opts.light_margin_us > 0 && info.protocol.minor < 3 {
+        return Err(ScanError::Incompatible(format!(
+            "the device's firmware (protocol {}) cannot light around the trigger pulse \
+             (--light-margin-us): update it",
+            info.protocol
+        )));
+    }
     let max_code = geometry.sensor.max_code();
     if opts.black_level_codes as f64 >= max_code {
         return Err(ScanError::Conflict(format!(
@@ -2190,12 +2224,17 @@ fn trigger_step(
     camera.arm().map_err(Attempt::Camera)?;
     let before = dev.status()?.trigger_seq;
     dev.clear_events();
-    dev.command(Request::CaptureStep(CaptureStep {
+    let step = CaptureStep {
         mirror: l as u8,
         settle_ms: opts.settle_ms,
         exposure_us: opts.exposure_us,
         light_duty_permille: opts.light_duty_permille,
-    }))?;
+    };
+    dev.command(match opts.light_margin_us {
+        // Firmware before protocol 1.3 knows only the plain step.
+        0 => Request::CaptureStep(step),
+        light_margin_us => Request::TimedCaptureStep(TimedCaptureStep { step, light_margin_us }),
+    })?;
     // Longest move (half a disk turn, full track) + settle + exposure, with margin.
     let end = dev.now() + Duration::from_secs(30) + Duration::from_micros(opts.exposure_us as u64);
     while dev.now() < end {

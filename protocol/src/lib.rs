@@ -39,7 +39,7 @@ pub use frame::{
 pub use msg::*;
 
 /// The protocol version this crate implements.
-pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 2 };
+pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 3 };
 
 /// Largest disagreement between an axis' step count and its home or index
 /// switch that still counts as "no steps lost", steps: the switch's

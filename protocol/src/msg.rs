@@ -274,6 +274,24 @@ wire_type! {
     }
 }
 
+wire_type! {
+    /// A capture step whose light goes on `light_margin_us` before the
+    /// trigger rises and off as long after it falls (since 1.3): for a
+    /// camera that exposes later than its trigger's edges (an
+    /// opto-isolated input's delay) or a light that takes time to come
+    /// up. The exposure is still the pulse; the light covers it.
+    #[derive(Eq, Hash)]
+    pub struct TimedCaptureStep {
+        /// The step.
+        pub step: CaptureStep,
+        /// Light before and after the pulse, µs (0 ..= [`MAX_LIGHT_MARGIN_US`]).
+        pub light_margin_us: u16,
+    }
+}
+
+/// Longest light margin of a [`TimedCaptureStep`], µs.
+pub const MAX_LIGHT_MARGIN_US: u16 = 10_000;
+
 /// Default settle time of a capture step (spec/hardware.md).
 pub const DEFAULT_SETTLE_MS: u16 = 150;
 /// Default exposure of a capture step (spec/hardware.md).
@@ -748,6 +766,9 @@ wire_type! {
         /// Answer: [`Reply::Inputs`], the inputs as last sampled: for wiring
         /// a board up (since 1.2).
         GetInputs,
+        /// A capture step with the light on around its pulse (since 1.3).
+        /// Answer: like [`Request::CaptureStep`].
+        TimedCaptureStep(TimedCaptureStep),
     }
 }
 
@@ -824,6 +845,7 @@ impl Request {
             Request::GetHomeSensors => "GetHomeSensors",
             Request::SetHomeSensors(_) => "SetHomeSensors",
             Request::GetInputs => "GetInputs",
+            Request::TimedCaptureStep(_) => "TimedCaptureStep",
         }
     }
 }

@@ -402,6 +402,16 @@ fn a_camera_that_exposes_later_than_its_trigger_is_reported() {
             && err.contains("that the camera exposes while its trigger is high"),
         "{err}"
     );
+    // The light on 2.5 ms around each pulse (protocol 1.3) covers the late
+    // exposure: the bracket agrees again, and the manifest says how.
+    let (mended, err) = ratios(&["--sim-trigger-latency-us", "2000", "--light-margin-us", "2500"]);
+    assert!(mended.iter().all(|r| (r - 1.0).abs() < 0.015), "{mended:?}");
+    assert!(!err.contains("the merge assumes 1"), "{err}");
+    let m = host::scan::Manifest::load(&dir.path().join("s4")).unwrap();
+    assert_eq!(m.settings.light_margin_us, 2500);
+    let (code, err) = scan("diffuse-white", &dir.path().join("x"), &["--light-margin-us", "10001"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("light margin 10001 µs: at most 10000 µs"), "{err}");
 }
 
 /// A real sensor's stuck pixels read the top code at every exposure; on

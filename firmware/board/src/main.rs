@@ -335,21 +335,22 @@ async fn main(spawner: Spawner) {
     spawner.spawn(unwrap!(usb_task(usb, class, vendor_out, vendor_in)));
 
     // Control loop: inputs at 5 kHz, the controller's timers, the watchdog;
-    // and the end of a running exposure when TIM5 has ended its pulse (the
-    // tick `start_trigger_pulse` reported), not at the next poll: the light
-    // goes back and the next capture step starts without up to 200 µs more.
-    // An exposure the USB task starts is seen at the next poll, before it
-    // ends: exposures are at least `MIN_EXPOSURE_US` (1 ms) > 200 µs.
+    // and a capture's timed work when it is due, not at the next poll: the
+    // trigger's rise after a step's light margin, the end of a running
+    // exposure when TIM5 has ended its pulse (the tick `start_trigger_pulse`
+    // reported; the light goes back and the next capture step starts without
+    // up to 200 µs more), the light's return after its margin. An exposure
+    // the USB task starts is seen at the next poll, before it ends:
+    // exposures are at least `MIN_EXPOSURE_US` (1 ms) > 200 µs.
     let mut ticker = Ticker::every(Duration::from_micros(200));
     loop {
-        let exposure_end =
-            MACHINE.borrow().borrow().as_ref().and_then(|m| m.controller.exposure_end());
-        if let Some(end) = exposure_end {
+        let due = MACHINE.borrow().borrow().as_ref().and_then(|m| m.controller.capture_deadline());
+        if let Some(end) = due {
             let wait_us = end.saturating_sub(clock::now()).div_ceil(firmware::hal::TICKS_PER_US);
             if let Either::Second(()) = select(ticker.next(), Timer::after_micros(wait_us)).await {
                 let mut machine = MACHINE.borrow().borrow_mut();
                 if let Some(m) = machine.as_mut() {
-                    m.controller.end_exposure_due(clock::now(), &mut m.hw);
+                    m.controller.capture_due(clock::now(), &mut m.hw);
                     m.controller.drain_events(&mut send);
                 }
                 // Not due yet (woken early): the next turn waits again.

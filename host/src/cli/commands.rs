@@ -833,6 +833,12 @@ pub struct ScanArgs {
     /// that is read noise alone).
     #[arg(long, default_value_t = OrAuto::Fixed(0), value_name = "CODES|auto")]
     pub black_level: OrAuto,
+    /// Switch the light on US µs before each trigger pulse and off as long
+    /// after it (0 … 10 000; firmware of protocol 1.3): for a camera that
+    /// exposes later than its trigger's edges, which would otherwise miss
+    /// the light's last µs (the HDR merge's exposure agreement shows it).
+    #[arg(long, default_value_t = 0, value_name = "US")]
+    pub light_margin_us: u16,
 }
 
 /// How a capture program stores the sensor's codes in integer images
@@ -1017,6 +1023,7 @@ pub fn run_scan(
         OrAuto::Fixed(codes) => opts.black_level_codes = codes,
     }
     opts.force = scan_args.force;
+    opts.light_margin_us = scan_args.light_margin_us;
     opts.simulator = opened.simulator.clone();
     opts.interrupt = Some(interrupt_flag());
     let bar = super::progress_bar(geometry.mirrors.len() as u64);
@@ -1188,6 +1195,7 @@ pub fn demo(
             frame_timeout: 10.0,
             check_every: scan::DEFAULT_CHECK_EVERY,
             black_level: OrAuto::Fixed(0),
+            light_margin_us: 0,
         };
         run_scan(&mut opened, &scan_args, label)?;
     }

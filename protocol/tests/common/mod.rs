@@ -147,6 +147,19 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             Req(Request::SetHomeSensors(HomeSensors { active_high: [true, false, true] })),
         ),
         ("Request::GetInputs", 25, Req(Request::GetInputs)),
+        (
+            "Request::TimedCaptureStep",
+            26,
+            Req(Request::TimedCaptureStep(TimedCaptureStep {
+                step: CaptureStep {
+                    mirror: 17,
+                    settle_ms: DEFAULT_SETTLE_MS,
+                    exposure_us: DEFAULT_EXPOSURE_US,
+                    light_duty_permille: FULL_DUTY_PERMILLE,
+                },
+                light_margin_us: 200,
+            })),
+        ),
         ("Reply::Ack", 4, reply(Reply::Ack)),
         ("Reply::Error", 5, reply(Reply::Error(DeviceError::NotHomed))),
         (
