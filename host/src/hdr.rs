@@ -154,6 +154,21 @@ pub struct ExposureRatio {
     pub values: usize,
 }
 
+impl ExposureRatio {
+    /// The camera's trigger delay that would explain the ratio, µs, for
+    /// exposures whose trigger pulses lasted `shorter_pulse_us` and
+    /// `longer_pulse_us` (a dimmed exposure's pulse is the device's 1 ms):
+    /// a camera exposing d late for a pulse of t, the light following the
+    /// pulse, collects (t − d)/t of it, so the ratio is
+    /// (1 − d/tₛ)/(1 − d/tₗ) and d = (1 − r)/(1/tₛ − r/tₗ). None unless it
+    /// is a delay shorter than the shorter pulse (a ratio below 1).
+    pub fn trigger_delay_us(&self, shorter_pulse_us: u32, longer_pulse_us: u32) -> Option<f64> {
+        let (ts, tl, r) = (shorter_pulse_us as f64, longer_pulse_us as f64, self.ratio);
+        let d = (1.0 - r) / (1.0 / ts - r / tl);
+        (r < 1.0 && d.is_finite() && d > 0.0 && d < ts).then_some(d)
+    }
+}
+
 /// Only one value in this many is compared (coprime with 3: every channel).
 const AGREEMENT_STRIDE: usize = 7;
 /// A value is compared where the shorter exposure's is at least this
@@ -248,6 +263,26 @@ mod tests {
         // Too few values measured well by both: no ratio.
         let few = frame(&scene[..60]);
         assert_eq!(exposure_ratios(&[(&few, 1_000), (&few, 2_000)]), vec![None]);
+    }
+
+    #[test]
+    fn a_ratio_below_1_gives_the_trigger_delay_that_would_explain_it() {
+        let late = |d: f64, ts: f64, tl: f64| ExposureRatio {
+            shorter_us: ts as u32,
+            longer_us: tl as u32,
+            ratio: (1.0 - d / ts) / (1.0 - d / tl),
+            values: 1_000,
+        };
+        let r = late(2_000.0, 20_000.0, 100_000.0);
+        assert!((r.trigger_delay_us(20_000, 100_000).unwrap() - 2_000.0).abs() < 1e-6);
+        // A dimmed 100 µs exposure is a 1 ms pulse.
+        let r = late(50.0, 1_000.0, 10_000.0);
+        assert!((r.trigger_delay_us(1_000, 10_000).unwrap() - 50.0).abs() < 1e-9);
+        // More light than asked, or a loss beyond the pulse: no delay.
+        let more = ExposureRatio { ratio: 1.05, ..r };
+        assert_eq!(more.trigger_delay_us(1_000, 10_000), None);
+        let all = ExposureRatio { ratio: 0.0, ..r };
+        assert_eq!(all.trigger_delay_us(1_000, 10_000), None);
     }
 
     #[test]

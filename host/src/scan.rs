@@ -1599,18 +1599,37 @@ pub fn scan(
                     crate::hdr::exposure_ratios(&inputs).into_iter().flatten().collect();
                 for r in &ratios {
                     if (r.ratio - 1.0).abs() > EXPOSURE_RATIO_TOLERANCE {
-                        let dimmed = taken
-                            .iter()
-                            .find(|(_, e, _)| *e == r.shorter_us)
-                            .and_then(|(_, _, rec)| rec.light_duty_permille)
+                        let duty = |us: u32| {
+                            taken
+                                .iter()
+                                .find(|(_, e, _)| *e == us)
+                                .and_then(|(_, _, rec)| rec.light_duty_permille)
+                        };
+                        let dimmed = duty(r.shorter_us)
                             .map(|d| format!(" (taken at 1 ms with the light at {d} ‰)"))
+                            .unwrap_or_default();
+                        // The trigger pulses' lengths: a dimmed exposure's is 1 ms.
+                        let pulse = |us: u32| {
+                            if duty(us).is_some() { protocol::MIN_EXPOSURE_US } else { us }
+                        };
+                        let delay = r
+                            .trigger_delay_us(pulse(r.shorter_us), pulse(r.longer_us))
+                            .map(|d| {
+                                // A margin a quarter over it, in 10 µs.
+                                let margin = ((d * 1.25 / 10.0).ceil() * 10.0)
+                                    .min(protocol::MAX_LIGHT_MARGIN_US as f64);
+                                format!(
+                                    "; as a delay it is ≈ {d:.0} µs, and --light-margin-us \
+                                     {margin:.0} lights around it"
+                                )
+                            })
                             .unwrap_or_default();
                         progress.note(&format!(
                             "mirror {l}: the {} µs exposure{dimmed} measured {:.3}× the light per \
                              µs of the {} µs one over {} values; the merge assumes 1: check the \
                              light's linearity{}, the exposure times, and that the camera \
                              exposes while its trigger is high (one that starts later — a trigger \
-                             delay or debounce set in it — misses the light's last µs)",
+                             delay or debounce set in it — misses the light's last µs{delay})",
                             r.shorter_us,
                             r.ratio,
                             r.longer_us,

@@ -402,6 +402,14 @@ fn a_camera_that_exposes_later_than_its_trigger_is_reported() {
             && err.contains("that the camera exposes while its trigger is high"),
         "{err}"
     );
+    // The delay it would be, and the margin that covers it, are said.
+    let suggested: Vec<u32> = err
+        .split("--light-margin-us ")
+        .skip(1)
+        .map(|rest| rest.split(' ').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(suggested.len(), 4, "{err}");
+    assert!(suggested.iter().all(|&m| (2_000..=2_800).contains(&m)), "{suggested:?}");
     // The light on 2.5 ms around each pulse (protocol 1.3) covers the late
     // exposure: the bracket agrees again, and the manifest says how.
     let (mended, err) = ratios(&["--sim-trigger-latency-us", "2000", "--light-margin-us", "2500"]);
