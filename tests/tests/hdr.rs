@@ -417,6 +417,18 @@ fn a_camera_that_exposes_later_than_its_trigger_is_reported() {
     assert!(!err.contains("the merge assumes 1"), "{err}");
     let m = host::scan::Manifest::load(&dir.path().join("s4")).unwrap();
     assert_eq!(m.settings.light_margin_us, 2500);
+    let again = [
+        "--exposures",
+        "20000,100000",
+        "--sim-trigger-latency-us",
+        "2000",
+        "--light-margin-us",
+        "100",
+        "--resume",
+    ];
+    let (code, err) = scan("diffuse-white", &dir.path().join("s4"), &again);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("light margin 2500 µs (the directory's) vs 100 µs"), "{err}");
     let (code, err) = scan("diffuse-white", &dir.path().join("x"), &["--light-margin-us", "10001"]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("light margin 10001 µs: at most 10000 µs"), "{err}");
