@@ -388,6 +388,31 @@ fn a_bad_geometry_file_exits_3() {
     assert!(err.contains("scanner geometry"), "{err}");
 }
 
+/// The settle time after each move is the user's (a real build's arm rings
+/// for as long as it rings): recorded, kept by a resume, bounded.
+#[test]
+fn the_settle_time_is_a_scan_option() {
+    let dir = tmp();
+    let o = sub(dir.path(), "scan").display().to_string();
+    let scan = |settle: &str, resume: bool| {
+        let mut args = vec!["scan", "--device", "sim", "--sim-bin", "16", "--sample-name", "s"];
+        args.extend(["--out", &o, "--mirrors", "2", "--settle-ms", settle]);
+        if resume {
+            args.push("--resume");
+        }
+        run(&args)
+    };
+    let (code, _, err) = scan("400", false);
+    assert_eq!(code, Some(0), "{err}");
+    let m = host::scan::Manifest::load(std::path::Path::new(&o)).unwrap();
+    assert_eq!(m.settings.settle_ms, 400);
+    let (code, _, err) = scan("150", true);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("settle 400 ms (the directory's) vs 150 ms"), "{err}");
+    let (code, _, err) = scan("60001", true);
+    assert_eq!(code, Some(2), "{err}");
+}
+
 #[test]
 fn verify_reports_missing_and_damaged_frames() {
     let dir = tmp();

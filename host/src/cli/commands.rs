@@ -826,6 +826,13 @@ pub struct ScanArgs {
     /// lost steps retakes the frames since the last good one.
     #[arg(long, default_value_t = scan::DEFAULT_CHECK_EVERY)]
     pub check_every: usize,
+    /// Wait this long after each move before the light and the trigger,
+    /// ms (0 … 60 000): long enough for the mirror arm and the sample to
+    /// stop ringing on your build (a frame blurred or doubled along the
+    /// disk's motion says it is too short).
+    #[arg(long, default_value_t = protocol::DEFAULT_SETTLE_MS, value_name = "MS",
+          value_parser = clap::value_parser!(u16).range(0..=60_000))]
+    pub settle_ms: u16,
     /// The camera's frames carry a black level of CODES ADC codes (its
     /// capture program leaves it in; the dark frame says the median it
     /// reads): subtract it from every value as frames arrive. `auto`: take
@@ -1018,6 +1025,7 @@ pub fn run_scan(
     opts.frame_timeout = Duration::from_secs_f64(scan_args.frame_timeout);
     opts.bracket_us = scan_args.bracket()?;
     opts.check_every = scan_args.check_every;
+    opts.settle_ms = scan_args.settle_ms;
     match scan_args.black_level {
         OrAuto::Auto => opts.black_level_auto = true,
         OrAuto::Fixed(codes) => opts.black_level_codes = codes,
@@ -1194,6 +1202,7 @@ pub fn demo(
             hdr,
             frame_timeout: 10.0,
             check_every: scan::DEFAULT_CHECK_EVERY,
+            settle_ms: protocol::DEFAULT_SETTLE_MS,
             black_level: OrAuto::Fixed(0),
             light_margin_us: 0,
         };
