@@ -73,7 +73,7 @@ pub struct DeviceArgs {
     pub sim_black_level: u32,
     /// Simulator: these axes' home / index sensors are wired active high
     /// (comma-separated; the board reads them as `scanner config
-    /// --home-sensors` says).
+    /// --home-sensor` says).
     #[arg(long, value_delimiter = ',', value_parser = super::parse_axis, value_name = "AXES")]
     pub sim_home_active_high: Vec<Axis>,
     /// Simulator: the drivers' fault line is wired active-high (TMC2209
