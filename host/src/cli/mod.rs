@@ -171,7 +171,10 @@ enum Command {
         #[command(flatten)]
         device: commands::DeviceArgs,
         /// Polarity of the drivers' fault line: active-low (DRV8825 nFAULT,
-        /// the default) or active-high (TMC2209 DIAG).
+        /// the default) or active-high (TMC2209 DIAG). A driver fault latched
+        /// because the line was read the wrong way round is cleared by setting
+        /// the right one; a polarity under which the line reads a fault is
+        /// not saved.
         #[arg(long, value_parser = ["active-low", "active-high"])]
         driver_fault: Option<String>,
         /// Polarity of an axis' home / index sensor, `AXIS=active-low`
