@@ -446,9 +446,8 @@ impl Controller {
                 ) {
                     return Err(DeviceError::Busy);
                 }
-                self.light_trail = None;
                 self.light = state;
-                hw.set_light(if state.on { state.duty_permille } else { 0 });
+                self.restore_light(hw);
                 Ok(Reply::Ack)
             }
             Request::Trigger { exposure_us } => {
@@ -1044,7 +1043,7 @@ impl Controller {
         }
     }
 
-    /// The light as the host last set it.
+    /// The light as the host last set it (any margin's trail is over).
     fn restore_light(&mut self, hw: &mut impl Hardware) {
         self.light_trail = None;
         hw.set_light(if self.light.on { self.light.duty_permille } else { 0 });
@@ -1059,8 +1058,7 @@ impl Controller {
         let was_moving = self.is_moving();
         self.halt_all(hw);
         self.light.on = false;
-        self.light_trail = None;
-        hw.set_light(0);
+        self.restore_light(hw);
         hw.set_trigger(false);
         if was_moving || matches!(self.activity, Activity::Moving { .. } | Activity::Homing { .. })
         {
@@ -1117,8 +1115,7 @@ impl Controller {
             // Decelerate rather than halt: no steps are lost, homing is kept.
             self.faults = self.faults.union(FaultFlags::LINK_TIMEOUT);
             self.light.on = false;
-            self.light_trail = None;
-            hw.set_light(0);
+            self.restore_light(hw);
             hw.set_trigger(false);
             self.controlled_stop(hw);
             self.emit(Event::FaultRaised { faults: self.faults, axis: None });

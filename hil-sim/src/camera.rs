@@ -33,15 +33,13 @@ pub fn exposure_of(record: &TriggerRecord, light: &[(u64, u16)], latency: u64) -
         return None;
     }
     let (start, end) = (record.rise + latency, fall + latency);
-    // The duty in force at `t`: the last change at or before it.
-    let duty_at = |t: u64| {
-        let k = light.partition_point(|&(tick, _)| tick <= t);
-        if k == 0 { 0 } else { light[k - 1].1 }
-    };
     let output = |duty: u16| light_output(duty, record.light_edge_loss_ns);
-    let changes = &light[light.partition_point(|&(tick, _)| tick <= start)..];
+    // The duty in force at the start (the last change at or before it),
+    // and the changes within the window.
+    let k = light.partition_point(|&(tick, _)| tick <= start);
+    let mut duty = if k == 0 { 0 } else { light[k - 1].1 };
+    let changes = &light[k..];
     let changes = &changes[..changes.partition_point(|&(tick, _)| tick < end)];
-    let mut duty = duty_at(start);
     let mean = if changes.is_empty() {
         output(duty)
     } else {

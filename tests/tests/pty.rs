@@ -222,6 +222,13 @@ fn without_resume_an_existing_scan_is_not_touched() {
     assert_eq!(frames(&out), before);
 }
 
+/// Run `scanner ARGS --device PATH`: (exit code, stdout, stderr).
+fn on_device(path: &str, args: &[&str]) -> (Option<i32>, String, String) {
+    let r = scanner().args(args).args(["--device", path]).output().unwrap();
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    (r.status.code(), text(&r.stdout), text(&r.stderr))
+}
+
 /// Drivers whose fault line is active high (TMC2209 DIAG) on a board set
 /// active low: the idle line reads as a fault from power-on, which no
 /// `scanner clear` clears and no setting could be saved under. Setting the
@@ -232,11 +239,7 @@ fn drivers_that_signal_faults_the_other_way_are_rescued_by_setting_the_polarity(
     let mut s = setup("leather", FaultPlan::none());
     s.driver_fault_active_high = true;
     let server = serve(&s, &sub(dir.path(), "camera"));
-    let run = |args: &[&str]| {
-        let r = scanner().args(args).args(["--device", server.path()]).output().unwrap();
-        let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
-        (r.status.code(), text(&r.stdout), text(&r.stderr))
-    };
+    let run = |args: &[&str]| on_device(server.path(), args);
     let (_, out, _) = run(&["status"]);
     assert!(out.contains("driver fault"), "{out}");
     let (code, _, err) = run(&["home"]);
@@ -284,11 +287,7 @@ fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
     // The track's sensor is a push-pull one: high when actuated.
     s.home_active_high = [false, true, false];
     let server = serve(&s, &frames_dir);
-    let run = |args: &[&str]| {
-        let r = scanner().args(args).args(["--device", server.path()]).output().unwrap();
-        let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
-        (r.status.code(), text(&r.stdout), text(&r.stderr))
-    };
+    let run = |args: &[&str]| on_device(server.path(), args);
     let (code, out, err) = run(&["config"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(

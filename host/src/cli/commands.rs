@@ -180,6 +180,61 @@ pub fn clear(args: &DeviceArgs) -> Result<(), Failure> {
     Err(Failure(7, anyhow!("{names}: not cleared — {why}")))
 }
 
+/// Set the drivers' fault-line polarity to `high` (`faults`: those latched
+/// before) — unless the line reads a fault under it now (the wrong
+/// polarity, or a driver really is faulted): then it is put back and
+/// nothing changes, exit 7. A driver fault latched only because the line
+/// was read the wrong way round is cleared. The device reads the line the
+/// new way at once; since protocol 1.2 (`inputs`) it says how it reads,
+/// before, only whether the fault now clears.
+fn set_driver_fault_polarity(
+    device: &mut Device,
+    high: bool,
+    faults: FaultFlags,
+    inputs: bool,
+) -> Result<(), Failure> {
+    let before = board_config_of(device)?;
+    let board = protocol::BoardConfig { driver_fault_active_high: high };
+    device.command(Request::SetBoardConfig(board)).map_err(link_failure)?;
+    let rescue = faults == FaultFlags::DRIVER_FAULT;
+    let line = if inputs { Some(inputs_of(device)?) } else { None };
+    let cleared = match line {
+        Some(i) if i.driver_fault => false,
+        _ => !rescue || clear_fault(device)?,
+    };
+    if cleared {
+        if rescue {
+            println!(
+                "cleared: driver fault (its line reads no fault read {})",
+                polarity_name(high)
+            );
+        }
+        return Ok(());
+    }
+    device.command(Request::SetBoardConfig(before)).map_err(link_failure)?;
+    // Read the wrong way for a moment, it may have latched a fault of its
+    // own: cleared, as it was before.
+    if faults.is_empty() && !clear_fault(device)? {
+        return Err(Failure(7, anyhow!("a driver fault latched while the polarity changed")));
+    }
+    let level = match line {
+        Some(i) if !i.driver_fault => {
+            return Err(Failure(7, anyhow!("the driver fault did not clear; nothing changed")));
+        }
+        Some(i) if i.driver_fault_line_high => "is high",
+        Some(_) => "is low",
+        None => "still reads a fault",
+    };
+    Err(Failure(
+        7,
+        anyhow!(
+            "the driver fault line {level}, a fault read {}: the drivers signal the other way \
+             round, or one is faulted (`scanner inputs` shows the line); nothing changed",
+            polarity_name(high)
+        ),
+    ))
+}
+
 /// Ask the device to clear its latched faults: false if an input still
 /// holds one (the emergency stop, a driver's fault line). Asked twice 20 ms
 /// apart: firmware before the polarity change read at once took its
@@ -318,69 +373,22 @@ pub fn board_config(
     let faults = o.device.status().map_err(link_failure)?.faults;
     // A driver fault latched because its line is read the wrong way round
     // (drivers that signal the other way: it latches at power-on and no
-    // `scanner clear` clears it) is what setting the polarity is for: set,
-    // cleared, saved.
+    // `scanner clear` clears it) is what setting the polarity is for.
     let rescue = driver_fault_active_high.is_some() && faults == FaultFlags::DRIVER_FAULT;
-    if changes && persistent && !rescue {
-        // The device saves nothing while a fault is latched: change nothing
-        // rather than a setting that would not survive a reset.
-        if !faults.is_empty() {
-            return Err(Failure(
-                7,
-                anyhow!(
-                    "{} latched: the device saves no settings until it is cleared (`scanner \
-                     clear`); nothing changed",
-                    faults.names().collect::<Vec<_>>().join(", ")
-                ),
-            ));
-        }
+    // Otherwise the device saves nothing while a fault is latched: change
+    // nothing rather than a setting that would not survive a reset.
+    if changes && persistent && !rescue && !faults.is_empty() {
+        return Err(Failure(
+            7,
+            anyhow!(
+                "{} latched: the device saves no settings until it is cleared (`scanner \
+                 clear`); nothing changed",
+                faults.names().collect::<Vec<_>>().join(", ")
+            ),
+        ));
     }
     if let Some(high) = driver_fault_active_high {
-        let before = board_config_of(&mut o.device)?;
-        let board = protocol::BoardConfig { driver_fault_active_high: high };
-        o.device.command(Request::SetBoardConfig(board)).map_err(link_failure)?;
-        // No polarity is saved under which the drivers report a fault now:
-        // the line is read the new way at once (protocol 1.2 tells).
-        let line = if has_home_sensors { Some(inputs_of(&mut o.device)?) } else { None };
-        let reads_fault = match line {
-            Some(i) => i.driver_fault,
-            None => rescue && !clear_fault(&mut o.device)?,
-        };
-        if reads_fault {
-            o.device.command(Request::SetBoardConfig(before)).map_err(link_failure)?;
-            // Read the wrong way for a moment, it may have latched a fault
-            // of its own: cleared, as it was before.
-            if faults.is_empty() && !clear_fault(&mut o.device)? {
-                return Err(Failure(
-                    7,
-                    anyhow!("a driver fault latched while the polarity changed"),
-                ));
-            }
-            let level = match line {
-                Some(i) if i.driver_fault_line_high => "is high",
-                Some(_) => "is low",
-                None => "still reads a fault",
-            };
-            return Err(Failure(
-                7,
-                anyhow!(
-                    "the driver fault line {level}, a fault read {}: the drivers signal the \
-                     other way round, or one is faulted (`scanner inputs` shows the line); \
-                     nothing changed",
-                    polarity_name(high)
-                ),
-            ));
-        }
-        if rescue {
-            if !clear_fault(&mut o.device)? {
-                o.device.command(Request::SetBoardConfig(before)).map_err(link_failure)?;
-                return Err(Failure(7, anyhow!("the driver fault did not clear; nothing changed")));
-            }
-            println!(
-                "cleared: driver fault (its line reads no fault read {})",
-                polarity_name(high)
-            );
-        }
+        set_driver_fault_polarity(&mut o.device, high, faults, has_home_sensors)?;
     }
     if !home_sensors.is_empty() {
         let mut home = home_sensors_of(&mut o.device)?;
@@ -419,12 +427,11 @@ pub fn board_config(
     } else {
         protocol::HomeSensors::default()
     };
-    let polarity = polarity_name;
     println!(
         "home sensors: {}{}",
         Axis::ALL
             .iter()
-            .map(|a| format!("{} {}", a.name(), polarity(home.active_high[a.index()])))
+            .map(|a| format!("{} {}", a.name(), polarity_name(home.active_high[a.index()])))
             .collect::<Vec<_>>()
             .join(", "),
         if has_home_sensors { "" } else { " (fixed by this firmware)" }
