@@ -474,3 +474,85 @@ fn a_batch_answers_each_query_as_eval_does() {
         assert!(lit >= 60, "{lit} of 100 lit");
     }
 }
+
+/// Counts the allocations of the thread that makes them, so that tests
+/// running beside one another on other threads do not disturb the count.
+struct CountingAllocator;
+
+thread_local! {
+    static ALLOCATIONS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+// SAFETY: every call is forwarded to the system allocator unchanged; the
+// count is a const-initialised thread-local `Cell` without a destructor,
+// which never allocates and is usable for the thread's whole life.
+unsafe impl std::alloc::GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: the caller's contract, passed on.
+        unsafe { std::alloc::System.alloc(layout) }
+    }
+
+    unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: the caller's contract, passed on.
+        unsafe { std::alloc::System.alloc_zeroed(layout) }
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new: usize) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: the caller's contract, passed on.
+        unsafe { std::alloc::System.realloc(ptr, layout, new) }
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        // SAFETY: the caller's contract, passed on.
+        unsafe { std::alloc::System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static COUNTING: CountingAllocator = CountingAllocator;
+
+fn allocations() -> usize {
+    ALLOCATIONS.with(|c| c.get())
+}
+
+#[test]
+fn no_query_allocates() {
+    // The crate documentation promises it: a renderer calls `eval` from its
+    // inner loop on many threads.
+    let before = allocations();
+    std::hint::black_box(Vec::<u8>::with_capacity(16));
+    assert_eq!(allocations(), before + 1, "the counter counts this thread's allocations");
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let patent = Interpolation::Patent { columns: 16, rows: 4, points: 10 };
+    for d in [material(Interpolation::Default), material_with_model(), material(patent)] {
+        let m = Material::from_data(d).unwrap();
+        // Inside the ring, beyond it, at a captured direction, below the
+        // horizon, NaN, zero and huge vectors, uv far outside [0, 1].
+        let queries: Vec<ShadeQuery> = (0..300)
+            .map(|i| ShadeQuery {
+                uv: [rng.random::<f32>() * 50.0 - 25.0, rng.random()],
+                wi: match i % 7 {
+                    1 => [f32::NAN, 0.0, 1.0],
+                    2 => [0.3, 0.1, -0.2],
+                    3 => [0.0, 0.0, 1.0],
+                    4 => [1e30, 0.0, 1e30],
+                    _ => random_dir(&mut rng, 89.0),
+                },
+                wo: if i % 11 == 5 { [0.0; 3] } else { random_dir(&mut rng, 89.0) },
+            })
+            .collect();
+        let mut out = vec![[0.0f32; 3]; queries.len()];
+        let mut sum = 0.0f32;
+        let before = allocations();
+        m.eval_batch(&queries, &mut out);
+        for q in &queries {
+            sum += m.eval(q.uv, q.wi, q.wo)[0];
+        }
+        let made = allocations() - before;
+        assert_eq!(made, 0, "{made} allocations in 600 queries ({:?})", m.metadata().interpolation);
+        assert!(sum > 0.0 && out.iter().any(|o| o[0] > 0.0), "the queries shade something");
+    }
+}
