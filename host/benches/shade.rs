@@ -112,6 +112,19 @@ fn shade(c: &mut Criterion) {
             black_box(&out);
         })
     });
+    // A query file's pattern (the material PSNR's): pairs of random
+    // directions, each asked at 64 random uv.
+    let runs: Vec<ShadeQuery> = q
+        .iter()
+        .enumerate()
+        .map(|(i, x)| ShadeQuery { wi: q[i / 64 * 64].wi, wo: q[i / 64 * 64].wo, ..*x })
+        .collect();
+    group.bench_function("default interpolation, random uv, 64 per direction pair", |b| {
+        b.iter(|| {
+            default.eval_batch(&runs, &mut out);
+            black_box(&out);
+        })
+    });
     group.bench_function("patent interpolation", |b| {
         let patent = material(PATENT_DEFAULT, 0.5);
         b.iter(|| {

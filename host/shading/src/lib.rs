@@ -157,6 +157,14 @@ fn unit_rescaled(d: [f32; 3]) -> Option<[f32; 3]> {
     (big * len > 1e-6).then(|| s.map(|c| c / len))
 }
 
+/// Both directions normalised ([`unit`]), or `None` if either cannot be or
+/// lies on or below the horizon (black).
+#[inline(always)]
+fn unit_above(wi: [f32; 3], wo: [f32; 3]) -> Option<([f32; 3], [f32; 3])> {
+    let (wi, wo) = (unit(wi)?, unit(wo)?);
+    (wi[2] > 0.0 && wo[2] > 0.0).then_some((wi, wo))
+}
+
 /// Model evaluations per query: the query itself and up to 3 × 3 mixed
 /// pairs, padded to a multiple of 4 lanes.
 const MODEL_SLOTS: usize = 12;
@@ -301,7 +309,7 @@ impl Material {
         match &self.directions {
             Directions::Triangles { .. } => {
                 let mut s = Staged::default();
-                self.stage(uv, wi, wo, &mut s);
+                self.stage(uv, wi, wo, &mut s, false);
                 self.gather(&mut s);
                 self.finish(&s)
             }
@@ -336,6 +344,11 @@ impl Material {
     /// their index bytes, then reads them and asks for the palette colours,
     /// then sums — so the cache misses of a block overlap instead of
     /// following one another (docs/benchmarks.md, "Shading speed").
+    /// A query whose wi and wo are those of the query before it (the same
+    /// bits) reuses its direction lookup: put the queries that share
+    /// directions one after another — an image under one light seen from
+    /// one direction, a uv grid per pair — and they cost little more than
+    /// their texel reads. The answers are the same in any order.
     ///
     /// # Panics
     /// If the slices' lengths differ.
@@ -348,9 +361,19 @@ impl Material {
             return;
         }
         let mut staged = [Staged::default(); BLOCK];
+        // The entry staged last (in this block or at the end of the one
+        // before), whose lookup the next query reuses if it has the same
+        // directions.
+        let mut last: Option<usize> = None;
         for (qs, os) in queries.chunks(BLOCK).zip(out.chunks_mut(BLOCK)) {
-            for (q, s) in qs.iter().zip(&mut staged) {
-                self.stage(q.uv, q.wi, q.wo, s);
+            for (k, q) in qs.iter().enumerate() {
+                let key = Some(Lookup::key(q.wi, q.wo));
+                let reuse = last.is_some_and(|p| p != k && staged[p].dirs.key == key);
+                if let (true, Some(p)) = (reuse, last) {
+                    staged[k].dirs = staged[p].dirs;
+                }
+                self.stage(q.uv, q.wi, q.wo, &mut staged[k], reuse);
+                last = Some(k);
             }
             for s in &mut staged[..qs.len()] {
                 self.gather(s);
@@ -370,8 +393,15 @@ impl Material {
         wi: [f32; 3],
         wo: [f32; 3],
     ) -> Option<([f32; 3], [f32; 3], Footprint)> {
-        let (wi, wo) = (unit(wi)?, unit(wo)?);
-        if wi[2] <= 0.0 || wo[2] <= 0.0 || !uv[0].is_finite() || !uv[1].is_finite() {
+        let (wi, wo) = unit_above(wi, wo)?;
+        Some((wi, wo, self.texels_at(uv)?))
+    }
+
+    /// The bilinear footprint of uv (wrapped into [0, 1)), or `None` if uv
+    /// is not finite.
+    #[inline(always)]
+    fn texels_at(&self, uv: [f32; 2]) -> Option<Footprint> {
+        if !uv[0].is_finite() || !uv[1].is_finite() {
             return None;
         }
         let s = self.size;
@@ -379,7 +409,7 @@ impl Material {
         let (y0, y1, ty) = taps(s, uv[1] - uv[1].floor());
         let texel = [y0 * s + x0, y0 * s + x1, y1 * s + x0, y1 * s + x1].map(|t| t as u32);
         let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
-        Some((wi, wo, Footprint { texel, w }))
+        Some(Footprint { texel, w })
     }
 
     /// Where (view, light)'s index bytes and palette start.
@@ -405,31 +435,61 @@ impl Material {
         [img[t0], img[t1], img[t2], img[t3]]
     }
 
-    /// Stage 1 (default interpolation): directions, footprint and pairs;
-    /// prefetches the pairs' index bytes and the texel model.
+    /// The direction half of stage 1 (default interpolation): the unit
+    /// directions and captured pairs of (wi, wo), which do not depend on uv,
+    /// into `l`.
+    /// Prefetches each pair's index bytes at `at` as it is found.
     #[inline(always)]
-    fn stage(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3], s: &mut Staged) {
-        s.pairs = 0;
+    fn look_up(&self, wi: [f32; 3], wo: [f32; 3], l: &mut Lookup, at: &Footprint) {
         let Directions::Triangles { views, lights, light_dirs, shift, .. } = &self.directions
         else {
             unreachable!("staged only with the default interpolation")
         };
-        let Some((wi, wo, at)) = self.footprint(uv, wi, wo) else {
+        l.key = Some(Lookup::key(wi, wo));
+        l.pairs = 0;
+        let Some((wi, wo)) = unit_above(wi, wo) else {
             return;
         };
-        (s.wi, s.wo, s.at) = (wi, wo, at);
+        (l.wi, l.wo) = (wi, wo);
         default_pairs(lights, light_dirs, views, *shift, wi, wo, |vi, li, w| {
             // Never more than 9 pairs (3 light × 3 view weights); a guard all the same.
-            if s.pairs < MAX_PAIRS {
+            if l.pairs < MAX_PAIRS {
                 let p = self.pair(vi, li, w);
-                for t in at.texel {
-                    prefetch(&self.indices[p.image + t as usize * self.groups]);
-                }
-                s.pair[s.pairs] = p;
-                s.pairs += 1;
+                self.prefetch_indices(&p, at);
+                l.pair[l.pairs] = p;
+                l.pairs += 1;
             }
         });
-        if !self.texels.is_empty() {
+    }
+
+    /// Ask the memory for a pair's index bytes at a footprint.
+    #[inline(always)]
+    fn prefetch_indices(&self, p: &Pair, at: &Footprint) {
+        for t in at.texel {
+            prefetch(&self.indices[p.image + t as usize * self.groups]);
+        }
+    }
+
+    /// Stage 1 (default interpolation): directions, footprint and pairs;
+    /// prefetches the pairs' index bytes and the texel model. With `reuse`,
+    /// `s.dirs` already holds the lookup of these directions (the query
+    /// before it had the same).
+    #[inline(always)]
+    fn stage(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3], s: &mut Staged, reuse: bool) {
+        let Some(at) = self.texels_at(uv) else {
+            s.dirs.pairs = 0;
+            s.dirs.key = None;
+            return;
+        };
+        if reuse {
+            for p in &s.dirs.pair[..s.dirs.pairs] {
+                self.prefetch_indices(p, &at);
+            }
+        } else {
+            self.look_up(wi, wo, &mut s.dirs, &at);
+        }
+        s.at = at;
+        if s.dirs.pairs > 0 && !self.texels.is_empty() {
             for t in at.texel {
                 prefetch(&self.texels[t as usize]);
             }
@@ -439,8 +499,8 @@ impl Material {
     /// Stage 2: the pairs' palette indices; prefetches their colours.
     #[inline(always)]
     fn gather(&self, s: &mut Staged) {
-        for k in 0..s.pairs {
-            let p = s.pair[k];
+        for k in 0..s.dirs.pairs {
+            let p = s.dirs.pair[k];
             let idx = self.indices_at(&p, &s.at);
             s.idx[k] = idx;
             let pal = self.palette(&p);
@@ -454,12 +514,12 @@ impl Material {
     /// has one.
     #[inline(always)]
     fn finish(&self, s: &Staged) -> [f32; 3] {
-        if s.pairs == 0 {
+        if s.dirs.pairs == 0 {
             return [0.0; 3];
         }
         let mut acc = [0.0f32; 3];
-        for k in 0..s.pairs {
-            let p = &s.pair[k];
+        for k in 0..s.dirs.pairs {
+            let p = &s.dirs.pair[k];
             let c = bilinear(self.palette(p), s.idx[k], &s.at);
             for ch in 0..3 {
                 acc[ch] += p.w * c[ch];
@@ -469,7 +529,7 @@ impl Material {
             unreachable!("staged only with the default interpolation")
         };
         if self.texels.is_empty() {
-            return acc.map(|x| x * s.wi[2]);
+            return acc.map(|x| x * s.dirs.wi[2]);
         }
         // The texel model at uv, its parameters interpolated bilinearly.
         let tx = s.at.texel.map(|t| &self.texels[t as usize]);
@@ -482,8 +542,8 @@ impl Material {
         // directions in slot 0, each mixed pair's in the next, weighted by
         // w / cos θi(light); evaluated together.
         let mut lanes = ModelLanes::default();
-        lanes.set_query(s.wi, s.wo);
-        for p in &s.pair[..s.pairs] {
+        lanes.set_query(s.dirs.wi, s.dirs.wo);
+        for p in &s.dirs.pair[..s.dirs.pairs] {
             let (l, v) = (light_dirs[p.light as usize], view_dirs[p.view as usize]);
             lanes.push(l, v, p.w / l[2]);
         }
@@ -497,7 +557,7 @@ impl Material {
         std::array::from_fn(|c| {
             let m = p.diffuse[c] * t[0][0] + p.specular[c] * t[1][0] + t[2][0];
             let mixed = p.diffuse[c] * sd + p.specular[c] * ss + so;
-            ((acc[c] - mixed) * s.wi[2] + m).max(0.0)
+            ((acc[c] - mixed) * s.dirs.wi[2] + m).max(0.0)
         })
     }
 }
@@ -538,14 +598,32 @@ struct Footprint {
 /// A query between the stages of the default interpolation.
 #[derive(Debug, Clone, Copy, Default)]
 struct Staged {
-    wi: [f32; 3],
-    wo: [f32; 3],
+    /// Its unit directions and pairs (none: black).
+    dirs: Lookup,
     at: Footprint,
-    /// Pairs used; 0 for black.
-    pairs: usize,
-    pair: [Pair; MAX_PAIRS],
     /// Each pair's palette indices at the footprint.
     idx: [[u8; 4]; MAX_PAIRS],
+}
+
+/// Directions looked up ([`Material::look_up`]) and what they gave: their
+/// unit vectors and captured pairs (none: black).
+#[derive(Debug, Clone, Copy, Default)]
+struct Lookup {
+    /// The bits of the (wi, wo) looked up; `None` if not these directions'
+    /// lookup (not yet made, or a query black for its uv).
+    key: Option<[[u32; 3]; 2]>,
+    wi: [f32; 3],
+    wo: [f32; 3],
+    pairs: usize,
+    pair: [Pair; MAX_PAIRS],
+}
+
+impl Lookup {
+    /// What identifies a lookup: the bits of the directions as given.
+    #[inline(always)]
+    fn key(wi: [f32; 3], wo: [f32; 3]) -> [[u32; 3]; 2] {
+        [wi, wo].map(|d| d.map(f32::to_bits))
+    }
 }
 
 /// Ask the memory for the cache line holding `x` (a hint; no effect on

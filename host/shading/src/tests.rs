@@ -441,17 +441,37 @@ fn bad_texel_models_are_refused() {
     }
 }
 
+/// The default interpolation's test materials, without and with a texel
+/// model, their index images random so that every texel and pair differs.
+fn scrambled(rng: &mut ChaCha8Rng) -> [Material; 2] {
+    [material(Interpolation::Default), material_with_model()].map(|mut d| {
+        let k = d.meta.colours;
+        for i in &mut d.indices {
+            *i = rng.random_range(0..k) as u8;
+        }
+        Material::from_data(d).unwrap()
+    })
+}
+
+/// Asserts that `eval_batch` answers every query exactly as `eval` does;
+/// how many answers are lit.
+fn batch_as_eval(m: &Material, queries: &[ShadeQuery]) -> usize {
+    let mut out = vec![[f32::NAN; 3]; queries.len()];
+    m.eval_batch(queries, &mut out);
+    let mut lit = 0;
+    for (q, o) in queries.iter().zip(&out) {
+        assert_eq!(*o, m.eval(q.uv, q.wi, q.wo), "{q:?}");
+        lit += o.iter().any(|&c| c > 0.0) as usize;
+    }
+    lit
+}
+
 #[test]
 fn a_batch_answers_each_query_as_eval_does() {
     // Random indices, so every texel and pair differs; 100 queries (not a
     // multiple of the block) with black ones among them.
     let mut rng = ChaCha8Rng::seed_from_u64(9);
-    for mut d in [material(Interpolation::Default), material_with_model()] {
-        let k = d.meta.colours;
-        for i in &mut d.indices {
-            *i = rng.random_range(0..k) as u8;
-        }
-        let m = Material::from_data(d).unwrap();
+    for m in scrambled(&mut rng) {
         let queries: Vec<ShadeQuery> = (0..100)
             .map(|i| ShadeQuery {
                 uv: [rng.random::<f32>() * 3.0 - 1.0, rng.random()],
@@ -463,15 +483,38 @@ fn a_batch_answers_each_query_as_eval_does() {
                 wo: if i % 23 == 7 { [0.0; 3] } else { random_dir(&mut rng, 89.0) },
             })
             .collect();
-        let mut out = vec![[f32::NAN; 3]; queries.len()];
-        m.eval_batch(&queries, &mut out);
-        let mut lit = 0;
-        for (q, o) in queries.iter().zip(&out) {
-            assert_eq!(*o, m.eval(q.uv, q.wi, q.wo), "{q:?}");
-            lit += o.iter().any(|&c| c > 0.0) as usize;
-        }
+        let lit = batch_as_eval(&m, &queries);
         // 17 black by construction; the model may clamp a few more to 0.
         assert!(lit >= 60, "{lit} of 100 lit");
+    }
+}
+
+#[test]
+fn a_batch_reuses_a_lookup_only_for_the_same_directions() {
+    // Runs of queries sharing their directions (as an image under one light
+    // and view does), runs that differ in wi only, in wo only or by one
+    // bit, black directions repeated and a NaN uv inside a run: every
+    // answer as `eval`'s.
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    for m in scrambled(&mut rng) {
+        let mut queries = Vec::new();
+        let (mut wi, mut wo) = (random_dir(&mut rng, 80.0), random_dir(&mut rng, 80.0));
+        for run in 0..60 {
+            match run % 6 {
+                0 => wi = random_dir(&mut rng, 80.0),
+                1 => wo = random_dir(&mut rng, 80.0),
+                2 => wi[0] = f32::from_bits(wi[0].to_bits() ^ 1),
+                3 => wo = [0.3, 0.1, -0.2],
+                4 => wi = [f32::NAN, 0.0, 1.0],
+                _ => (wi, wo) = (random_dir(&mut rng, 80.0), random_dir(&mut rng, 80.0)),
+            }
+            for i in 0..rng.random_range(1..7) {
+                let u = if run % 5 == 2 && i == 1 { f32::NAN } else { rng.random() };
+                queries.push(ShadeQuery { uv: [u, rng.random()], wi, wo });
+            }
+        }
+        let lit = batch_as_eval(&m, &queries);
+        assert!(lit > queries.len() / 3, "{lit} of {} lit", queries.len());
     }
 }
 
