@@ -361,19 +361,17 @@ impl Material {
             return;
         }
         let mut staged = [Staged::default(); BLOCK];
-        // The entry staged last (in this block or at the end of the one
-        // before), whose lookup the next query reuses if it has the same
-        // directions.
-        let mut last: Option<usize> = None;
         for (qs, os) in queries.chunks(BLOCK).zip(out.chunks_mut(BLOCK)) {
             for (k, q) in qs.iter().enumerate() {
-                let key = Some(Lookup::key(q.wi, q.wo));
-                let reuse = last.is_some_and(|p| p != k && staged[p].dirs.key == key);
-                if let (true, Some(p)) = (reuse, last) {
+                // The entry staged just before (at the end of the previous
+                // block for the first; before any query, one without a
+                // key): its lookup serves if it has the same directions.
+                let p = (k + BLOCK - 1) % BLOCK;
+                let reuse = staged[p].dirs.key == Some(Lookup::key(q.wi, q.wo));
+                if reuse {
                     staged[k].dirs = staged[p].dirs;
                 }
                 self.stage(q.uv, q.wi, q.wo, &mut staged[k], reuse);
-                last = Some(k);
             }
             for s in &mut staged[..qs.len()] {
                 self.gather(s);
@@ -437,8 +435,7 @@ impl Material {
 
     /// The direction half of stage 1 (default interpolation): the unit
     /// directions and captured pairs of (wi, wo), which do not depend on uv,
-    /// into `l`.
-    /// Prefetches each pair's index bytes at `at` as it is found.
+    /// into `l`, prefetching each pair's index bytes at `at` as it is found.
     #[inline(always)]
     fn look_up(&self, wi: [f32; 3], wo: [f32; 3], l: &mut Lookup, at: &Footprint) {
         let Directions::Triangles { views, lights, light_dirs, shift, .. } = &self.directions
@@ -562,8 +559,10 @@ impl Material {
     }
 }
 
-/// Queries per block of [`Material::eval_batch`].
+/// Queries per block of [`Material::eval_batch`] (more than one: a query
+/// reuses the lookup of the entry staged before it, which must be another).
 const BLOCK: usize = 32;
+const _: () = assert!(BLOCK > 1);
 /// Pairs per query of the default interpolation: 3 light × 3 view weights.
 const MAX_PAIRS: usize = 9;
 
