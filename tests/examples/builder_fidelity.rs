@@ -12,7 +12,7 @@
 //! limits on those pairs, and each material's worst pair with the limits
 //! computed on it alone.
 //!
-//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--materials a,b] [--targets-only]`
+//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--detail all-views|own-view] [--materials a,b] [--targets-only]`
 //! (scans in DIR are reused when complete).
 
 use std::path::PathBuf;
@@ -32,8 +32,6 @@ fn main() {
     let bin: u32 = tests::arg("--bin", 1);
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);
-    // `--size S`: region images of S × S (default: the builder's choice).
-    let size: usize = tests::arg("--size", 0);
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     // `--targets-only`: the calibration's errors alone (three target scans).
     // `--materials a,b`: library names or texture-set directories.
@@ -136,8 +134,7 @@ fn main() {
     for &m in &materials {
         let t = Instant::now();
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions =
-            extract_regions(&g, &cal, &scan, (size > 0).then_some(size), &Silent).unwrap();
+        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
         let t_reg = t.elapsed().as_secs_f64();
         let sample = Sample::small(lookup(m).unwrap());
         let pairs = tests::captured_pairs(&g, &regions);

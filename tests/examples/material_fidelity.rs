@@ -5,7 +5,7 @@
 //! default and with the patent's interpolation — the palettisation error
 //! alone, and both interpolations at random novel pairs (θ ≤ 60°).
 //!
-//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off]`
+//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off] [--detail all-views|own-view]`
 //! (scans in DIR are reused when complete; `builder_fidelity` shares them).
 
 use std::path::PathBuf;
@@ -69,7 +69,7 @@ fn main() {
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
         let provenance = Provenance {
             scan_manifest_sha256: "-".into(),
             geometry_sha256: g.hash(),

@@ -5,8 +5,9 @@ use std::path::{Path, PathBuf};
 
 use hil_sim::materials::Sample;
 use host::build::Calibration;
-use host::build::RegionSet;
 use host::build::fidelity::{CELLS, cell_means, material_psnr, pair_queries};
+use host::build::superres::SharpenOptions;
+use host::build::{RegionOptions, RegionSet};
 use host::camera::SimCamera;
 use host::link::{Device, SimTransport};
 use host::scan::{Quiet, ScanOptions, scan};
@@ -24,6 +25,18 @@ pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
         .and_then(|i| args.get(i + 1))
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
+}
+
+/// The examples' region options: `--detail all-views|own-view` (default
+/// all-views) and `--size S` (default 0: the builder's choice).
+pub fn region_options() -> RegionOptions {
+    let size: usize = arg("--size", 0);
+    let sharpen = match arg("--detail", "all-views".to_string()).as_str() {
+        "all-views" => Some(SharpenOptions::default()),
+        "own-view" => None,
+        other => panic!("--detail {other}: all-views or own-view"),
+    };
+    RegionOptions { size: (size > 0).then_some(size), sharpen }
 }
 
 /// Scan `material` on the simulator into `out` (HDR if asked), unless a

@@ -13,9 +13,9 @@ use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::Calibration;
 use host::build::calibrate::Silent;
-use host::build::extract_regions;
 use host::build::material::{MaterialOptions, TexelModelChoice, build_material};
 use host::build::scanread::ScanFrames;
+use host::build::{RegionOptions, extract_regions};
 use scanner_formats::queries::{Query, read_answers, write_queries};
 use scanner_shading::{Interpolation, Material};
 
@@ -71,7 +71,7 @@ fn a_built_material_shades_like_the_sample() {
     // interpolations (the CLI's file is the default one, byte for byte).
     let cal = Calibration::load(&p("cal.json")).unwrap();
     let scan = ScanFrames::open(&p("leather"), &g).unwrap();
-    let regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+    let regions = extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
     let prov = meta.provenance.clone();
     let build_with = |opts: MaterialOptions| {
         let data = build_material(&regions, "leather", 25.4, prov.clone(), &opts, &Silent).unwrap();
@@ -145,7 +145,8 @@ fn a_built_material_shades_like_the_sample() {
     // A glossy sample: the model carries the highlights between mirrors.
     tests::sim_scan("rough-metal", seed, bin, mirrors, true, &p("metal"));
     let scan = ScanFrames::open(&p("metal"), &g).unwrap();
-    let metal_regions = extract_regions(&g, &cal, &scan, None, &Silent).unwrap();
+    let metal_regions =
+        extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
     let build_metal = |texel_model| {
         let opts = MaterialOptions { texel_model, ..Default::default() };
         let data =

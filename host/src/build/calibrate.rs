@@ -779,6 +779,19 @@ impl ViewSampler {
         ViewSampler { homography: h, px_per_uv: px, edges }
     }
 
+    /// The homography (sample uv → frame px).
+    pub fn homography(&self) -> &Homography {
+        &self.homography
+    }
+
+    /// Whether the pixel square centred at frame point `p` lies on the
+    /// sample, [`CLEAN_MARGIN_PX`] inside its calibrated edge: the frame
+    /// pixels the region images use.
+    #[inline]
+    pub fn pixel_on_sample(&self, p: [f64; 2]) -> bool {
+        self.depth(p) >= CLEAN_MARGIN_PX
+    }
+
     /// See [`ViewCalibration::frame_point`].
     #[inline]
     pub fn frame_point(&self, uv: [f64; 2]) -> [f64; 2] {
@@ -819,7 +832,7 @@ impl ViewSampler {
         if self.depth(p) >= 2.0 * std::f64::consts::SQRT_2 + CLEAN_MARGIN_PX {
             return frame_bicubic(f, p[0], p[1]);
         }
-        let clean = |x: f64, y: f64| self.depth([x, y]) >= CLEAN_MARGIN_PX;
+        let clean = |x: f64, y: f64| self.pixel_on_sample([x, y]);
         if let Some(s) = frame_bicubic_masked(f, p[0], p[1], clean, 0.5) {
             return s;
         }

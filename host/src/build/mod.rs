@@ -18,10 +18,11 @@ pub mod palette;
 pub mod plane;
 pub mod regions;
 pub mod scanread;
+pub mod superres;
 pub mod texel_fit;
 
 pub use calibrate::{Calibration, calibrate};
 pub use error::BuildError;
-pub use regions::{RegionSet, extract_regions};
+pub use regions::{RegionOptions, RegionSet, extract_regions};
 pub mod bundle;
 pub mod fidelity;

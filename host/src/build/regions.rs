@@ -14,6 +14,7 @@ use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::cell_taps;
 use super::scanread::ScanFrames;
+use super::superres::{SharpenOptions, ViewPixels, sharpen_light};
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -120,12 +121,35 @@ pub fn default_size(cal: &Calibration) -> usize {
     (longest.ceil() as usize).max(8).next_power_of_two()
 }
 
+/// How [`extract_regions`] extracts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RegionOptions {
+    /// Side of the region images (default: [`default_size`]).
+    pub size: Option<usize>,
+    /// Give every light's images the detail all views hold together
+    /// ([`super::superres`]); `None`: each view's own resampling alone.
+    pub sharpen: Option<SharpenOptions>,
+}
+
+impl Default for RegionOptions {
+    fn default() -> Self {
+        RegionOptions { size: None, sharpen: Some(SharpenOptions::default()) }
+    }
+}
+
+impl RegionOptions {
+    /// The default options at region size `size` (`None`: the default size).
+    pub fn sized(size: Option<usize>) -> RegionOptions {
+        RegionOptions { size, ..RegionOptions::default() }
+    }
+}
+
 /// Extract the calibrated region images of `scan`.
 pub fn extract_regions(
     g: &ScannerGeometry,
     cal: &Calibration,
     scan: &ScanFrames,
-    size: Option<usize>,
+    opts: &RegionOptions,
     progress: &dyn BuildProgress,
 ) -> Result<RegionSet, BuildError> {
     cal.check_geometry(g)?;
@@ -135,7 +159,7 @@ pub fn extract_regions(
             scan.dir.display()
         )));
     }
-    let size = size.unwrap_or_else(|| default_size(cal));
+    let size = opts.size.unwrap_or_else(|| default_size(cal));
     if !(4..=4096).contains(&size) {
         return Err(BuildError::Input(format!("region size {size} outside 4…4096")));
     }
@@ -167,32 +191,48 @@ pub fn extract_regions(
             let f = scan.read_within(l, &windows)?;
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
-            let images = cal
-                .views
+            let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
+            // f · cos θi of frame value `s` at uv in view `vi`, or `None`
+            // where this beam leaves the sample unlit (below 2 % of its
+            // mean: nothing to divide by).
+            let value = |vi: usize, uv: [f64; 2], s: [f64; 3]| -> Option<[f32; 3]> {
+                let b = cal.colour.light(ci, uv);
+                if b < 0.02 {
+                    return None;
+                }
+                let w = cal.colour.view(vi, uv).map(|a| a * b);
+                Some(std::array::from_fn(|k| {
+                    if w[k] > 0.0 { (s[k] / w[k] * scale) as f32 } else { 0.0 }
+                }))
+            };
+            let mut images: Vec<Vec<[f32; 3]>> = samplers
                 .iter()
                 .enumerate()
-                .map(|(vi, v)| {
-                    let view = v.sampler();
+                .map(|(vi, view)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
                     for (i, px) in img.iter_mut().enumerate() {
                         let uv = [
                             ((i % size) as f64 + 0.5) / size as f64,
                             ((i / size) as f64 + 0.5) / size as f64,
                         ];
-                        // Unlit by this beam (below 2 % of its mean): nothing to divide by.
-                        let b = cal.colour.light(ci, uv);
-                        if b < 0.02 {
-                            continue;
+                        if let Some(v) = value(vi, uv, view.region_sample(&f, uv)) {
+                            *px = v;
                         }
-                        let s = view.region_sample(&f, uv);
-                        let w = cal.colour.view(vi, uv).map(|a| a * b);
-                        *px = std::array::from_fn(|k| {
-                            if w[k] > 0.0 { (s[k] / w[k] * scale) as f32 } else { 0.0 }
-                        });
                     }
                     img
                 })
                 .collect();
+            if let Some(sharpen) = &opts.sharpen {
+                let values: Vec<_> = (0..samplers.len())
+                    .map(|vi| move |uv: [f64; 2], s: [f32; 3]| value(vi, uv, s.map(f64::from)))
+                    .collect();
+                let views: Vec<ViewPixels<'_>> = samplers
+                    .iter()
+                    .zip(&values)
+                    .map(|(sampler, value)| ViewPixels { sampler, value })
+                    .collect();
+                sharpen_light(&views, &f, size, sharpen, &mut images);
+            }
             progress.step();
             Ok(images)
         })

@@ -12,7 +12,8 @@ use super::Failure;
 use crate::build::calibrate::{BuildProgress, CalibrateOptions, Calibration};
 use crate::build::locate::Checkerboard;
 use crate::build::scanread::ScanFrames;
-use crate::build::{BuildError, calibrate, extract_regions};
+use crate::build::superres::SharpenOptions;
+use crate::build::{BuildError, RegionOptions, calibrate, extract_regions};
 
 /// A progress bar per builder stage.
 pub struct StageBar(ProgressBar);
@@ -182,6 +183,21 @@ pub struct ScanInputs {
     /// no view is undersampled at).
     #[arg(long)]
     pub size: Option<usize>,
+    /// Where each region image's detail comes from: `all-views` solves,
+    /// per light, for the image every view's pixels agree on, and gives
+    /// each view's image its detail (finer than any one view resolves);
+    /// `own-view` resamples each view's pixels alone.
+    #[arg(long, value_enum, default_value_t = Detail::AllViews)]
+    pub detail: Detail,
+}
+
+/// `--detail` of `scanner regions` and `scanner build`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Detail {
+    /// Every view's pixels together (multi-view super-resolution).
+    AllViews,
+    /// Each view's own pixels.
+    OwnView,
 }
 
 impl ScanInputs {
@@ -192,6 +208,14 @@ impl ScanInputs {
                 Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")))
             }
             _ => Ok(()),
+        }
+    }
+
+    /// How to extract the region images.
+    fn region_options(&self) -> RegionOptions {
+        RegionOptions {
+            size: self.size,
+            sharpen: (self.detail == Detail::AllViews).then(SharpenOptions::default),
         }
     }
 
@@ -215,7 +239,7 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     let (cal, g, frames) = input.open()?;
     say_defects(&frames, &cal);
     let bar = StageBar::new();
-    let regions = extract_regions(&g, &cal, &frames, input.size, &bar);
+    let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
     bar.finish();
     let regions = regions.map_err(build_failure)?;
     let extracted = started.elapsed().as_secs_f64();
@@ -318,7 +342,7 @@ pub fn build_cmd(
         builder: format!("scanner {}", env!("CARGO_PKG_VERSION")),
     };
     let bar = StageBar::new();
-    let regions = extract_regions(&g, &cal, &frames, input.size, &bar);
+    let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
     let data = regions.and_then(|r| {
         build_material(
             &r,

@@ -1247,6 +1247,7 @@ pub fn demo(
         calibration: calibration.clone(),
         geometry: None,
         size: None,
+        detail: super::build::Detail::AllViews,
     };
     let built = super::build::build_cmd(
         &input,
