@@ -177,39 +177,22 @@ fn bad_inputs_exit_3_and_write_nothing() {
         &d("cal.json"),
     ]);
     assert_eq!(code, Some(0), "{err}");
-    let (code, err) = scanner(&[
-        "regions",
-        "--scan",
-        &d("leather"),
-        "--calibration",
-        &d("cal.json"),
-        "-o",
-        &d("regions"),
-    ]);
+    let (leather, cal) = (d("leather"), d("cal.json"));
+    let regions_with = |out: &str, more: &[&str]| {
+        let args = ["regions", "--scan", &leather, "--calibration", &cal, "-o", out];
+        scanner(&[&args[..], more].concat())
+    };
+    let (code, err) = regions_with(&d("regions"), &[]);
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
     // Its own output is replaced whole; a directory holding anything else
     // (a user's file, the scan itself, the folder of the inputs) is refused
     // before any work, exit 4, and left as it was.
-    let regions_to = |out: &str| {
-        scanner(&["regions", "--scan", &d("leather"), "--calibration", &d("cal.json"), "-o", out])
-    };
+    let regions_to = |out: &str| regions_with(out, &[]);
     assert_eq!(regions_to(&d("regions")).0, Some(0));
     assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
     // `--detail own-view`: each view's resampling alone, other images.
-    let with_detail = |detail: &str, out: &str| {
-        scanner(&[
-            "regions",
-            "--scan",
-            &d("leather"),
-            "--calibration",
-            &d("cal.json"),
-            "-o",
-            out,
-            "--detail",
-            detail,
-        ])
-    };
+    let with_detail = |detail: &str, out: &str| regions_with(out, &["--detail", detail]);
     assert_eq!(with_detail("own-view", &d("regions-own")).0, Some(0));
     let differ = std::fs::read_dir(d("regions"))
         .unwrap()

@@ -454,6 +454,13 @@ mod tests {
             .collect()
     }
 
+    /// [`homographies`] and their samplers.
+    fn views() -> (Vec<Homography>, Vec<ViewSampler>) {
+        let hs = homographies();
+        let samplers = hs.iter().map(|h| ViewSampler::new(*h)).collect();
+        (hs, samplers)
+    }
+
     /// The frame: each pixel the mean of `sample` over its square (8 × 8
     /// points), 0 off the sample; view k's values scaled by `level(k)`.
     fn frame(
@@ -544,8 +551,7 @@ mod tests {
 
     #[test]
     fn all_views_resolve_detail_no_view_does() {
-        let hs = homographies();
-        let samplers: Vec<ViewSampler> = hs.iter().map(|h| ViewSampler::new(*h)).collect();
+        let (hs, samplers) = views();
         let f = frame(&hs, pattern, |_| 1.0);
         let own = own_view(&samplers, &f);
         let sharp = sharpened(&samplers, &f, own.clone());
@@ -559,8 +565,7 @@ mod tests {
     fn each_view_keeps_its_own_level() {
         // Views that see the sample at different levels (a sheen, a
         // highlight): the detail is shared, each image's level stays.
-        let hs = homographies();
-        let samplers: Vec<ViewSampler> = hs.iter().map(|h| ViewSampler::new(*h)).collect();
+        let (hs, samplers) = views();
         let level = |k: usize| 0.5 + 0.15 * k as f32;
         let f = frame(&hs, pattern, level);
         let own = own_view(&samplers, &f);
@@ -582,8 +587,7 @@ mod tests {
         // A dark glossy sample: every view sees its highlight somewhere
         // else. No one image explains them; no view takes the others'
         // highlights, nor loses its own.
-        let hs = homographies();
-        let samplers: Vec<ViewSampler> = hs.iter().map(|h| ViewSampler::new(*h)).collect();
+        let (hs, samplers) = views();
         let glossy = |k: usize, uv: [f64; 2]| {
             let c = [0.2 + 0.05 * k as f64, 0.8 - 0.05 * k as f64];
             let r2 = (uv[0] - c[0]).powi(2) + (uv[1] - c[1]).powi(2);
@@ -607,8 +611,7 @@ mod tests {
 
     #[test]
     fn a_uniform_sample_stays_as_it_was() {
-        let hs = homographies();
-        let samplers: Vec<ViewSampler> = hs.iter().map(|h| ViewSampler::new(*h)).collect();
+        let (hs, samplers) = views();
         let f = frame(&hs, |_| [0.2, 0.5, 0.9], |_| 1.0);
         let own = own_view(&samplers, &f);
         let sharp = sharpened(&samplers, &f, own.clone());
@@ -621,8 +624,7 @@ mod tests {
 
     #[test]
     fn no_usable_pixel_leaves_the_images() {
-        let hs = homographies();
-        let samplers: Vec<ViewSampler> = hs.iter().map(|h| ViewSampler::new(*h)).collect();
+        let (hs, samplers) = views();
         let f = frame(&hs, pattern, |_| 1.0);
         let own = own_view(&samplers, &f);
         let unlit = |_: [f64; 2], _: [f32; 3]| None;
