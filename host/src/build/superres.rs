@@ -39,9 +39,9 @@
 //! others. So each texel and channel takes the factor to a power t ∈ [0, 1]
 //! by how well X explains the pixels that cover it: their relative RMS
 //! residual e (√(Σ w r²/Σ w b²), w their coverage of the texel), t = 1 for
-//! e ≤ 0.3, 0 for e ≥ 0.6, linear between. On the simulator's rough metal e is
-//! 0.8–0.94 everywhere and its images stay as they were; the woven fabric's
-//! median is 0.15–0.23.
+//! e ≤ 0.3, 0 for e ≥ 0.6, linear between. On the simulator's rough metal e
+//! (of the luminance) is 0.8–0.94 everywhere and its images stay as they
+//! were; the woven fabric's median is 0.15–0.23.
 
 use crate::build::calibrate::ViewSampler;
 use crate::build::linalg::Homography;
