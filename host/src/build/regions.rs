@@ -14,7 +14,7 @@ use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::cell_taps;
 use super::scanread::ScanFrames;
-use super::superres::{SharpenOptions, ViewPixels, sharpen_light};
+use super::superres::{SharpenOptions, sharpen_light};
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -137,13 +137,6 @@ impl Default for RegionOptions {
     }
 }
 
-impl RegionOptions {
-    /// The default options at region size `size` (`None`: the default size).
-    pub fn sized(size: Option<usize>) -> RegionOptions {
-        RegionOptions { size, ..RegionOptions::default() }
-    }
-}
-
 /// Extract the calibrated region images of `scan`.
 pub fn extract_regions(
     g: &ScannerGeometry,
@@ -184,6 +177,7 @@ pub fn extract_regions(
     let albedo = cal.colour.white_albedo;
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
+    let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
     let per_light: Vec<Vec<Vec<[f32; 3]>>> = lights
         .par_iter()
         .zip(&light_index)
@@ -191,7 +185,6 @@ pub fn extract_regions(
             let f = scan.read_within(l, &windows)?;
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
-            let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
             // f · cos θi of frame value `s` at uv in view `vi`, or `None`
             // where this beam leaves the sample unlit (below 2 % of its
             // mean: nothing to divide by).
@@ -223,15 +216,7 @@ pub fn extract_regions(
                 })
                 .collect();
             if let Some(sharpen) = &opts.sharpen {
-                let values: Vec<_> = (0..samplers.len())
-                    .map(|vi| move |uv: [f64; 2], s: [f32; 3]| value(vi, uv, s.map(f64::from)))
-                    .collect();
-                let views: Vec<ViewPixels<'_>> = samplers
-                    .iter()
-                    .zip(&values)
-                    .map(|(sampler, value)| ViewPixels { sampler, value })
-                    .collect();
-                sharpen_light(&views, &f, size, sharpen, &mut images);
+                sharpen_light(&samplers, &value, &f, size, sharpen, &mut images);
             }
             progress.step();
             Ok(images)

@@ -97,26 +97,38 @@ impl Rows {
         let (a, b) = (self.start[i] as usize, self.start[i + 1] as usize);
         (&self.texel[a..b], &self.weight[a..b])
     }
-}
 
-/// A view of the sample for [`sharpen_light`]: its sampler (homography and
-/// edges) and what turns a frame value at uv into f · cos θi (`None`: not
-/// usable there, e.g. unlit).
-pub struct ViewPixels<'a> {
-    pub sampler: &'a ViewSampler,
-    pub value: &'a (dyn Fn([f64; 2], [f32; 3]) -> Option<[f32; 3]> + Sync),
-}
-
-impl std::fmt::Debug for ViewPixels<'_> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ViewPixels").field("sampler", self.sampler).finish_non_exhaustive()
+    /// Row `i` of the forward model applied to `x`: what the pixel would
+    /// read if the sample were `x`.
+    #[inline]
+    fn forward(&self, i: usize, x: &[[f32; 3]]) -> [f32; 3] {
+        let (t, w) = self.row(i);
+        let mut y = [0.0f32; 3];
+        for (&t, &w) in t.iter().zip(w) {
+            let v = x[t as usize];
+            for k in 0..3 {
+                y[k] += w * v[k];
+            }
+        }
+        y
     }
 }
 
+/// What turns view `vi`'s frame value at uv into f · cos θi (`None`: not
+/// usable there, e.g. unlit): the region images' own normalisation.
+pub type PixelValue<'a> = dyn Fn(usize, [f64; 2], [f64; 3]) -> Option<[f32; 3]> + Sync + 'a;
+
 /// The rows of one view: every frame pixel whose square lies on the sample.
-fn view_rows(view: &ViewPixels<'_>, frame: &Frame, size: usize, points: usize) -> Rows {
+fn view_rows(
+    vi: usize,
+    sampler: &ViewSampler,
+    value: &PixelValue<'_>,
+    frame: &Frame,
+    size: usize,
+    points: usize,
+) -> Rows {
     let mut rows = Rows { scale: 1.0, start: vec![0], ..Rows::default() };
-    let h: &Homography = view.sampler.homography();
+    let h: &Homography = sampler.homography();
     let Some(inv) = h.inverse() else {
         return rows;
     };
@@ -126,13 +138,13 @@ fn view_rows(view: &ViewPixels<'_>, frame: &Frame, size: usize, points: usize) -
     let share = 1.0 / (points * points) as f64;
     for py in y0..y1 {
         for px in x0..x1 {
-            if !view.sampler.pixel_on_sample([px as f64 + 0.5, py as f64 + 0.5]) {
+            if !sampler.pixel_on_sample([px as f64 + 0.5, py as f64 + 0.5]) {
                 continue;
             }
             let i = (py * frame.width as usize + px) * 3;
-            let raw = [frame.rgb[i], frame.rgb[i + 1], frame.rgb[i + 2]];
+            let raw = std::array::from_fn(|k| frame.rgb[i + k] as f64);
             let centre = inv.apply([px as f64 + 0.5, py as f64 + 0.5]);
-            let Some(value) = (view.value)(centre, raw) else {
+            let Some(value) = value(vi, centre, raw) else {
                 continue;
             };
             if !value.iter().all(|v| v.is_finite()) {
@@ -184,14 +196,7 @@ fn normal_apply(rows: &[Rows], size: usize, lambda: f32, x: &[[f32; 3]], out: &m
     for r in rows {
         for i in 0..r.len() {
             let (t, w) = r.row(i);
-            let mut y = [0.0f32; 3];
-            for (&t, &w) in t.iter().zip(w) {
-                let v = x[t as usize];
-                for k in 0..3 {
-                    y[k] += w * v[k];
-                }
-            }
-            let y = y.map(|v| v * r.scale);
+            let y = r.forward(i, x).map(|v| v * r.scale);
             for (&t, &w) in t.iter().zip(w) {
                 let o = &mut out[t as usize];
                 for k in 0..3 {
@@ -308,12 +313,7 @@ fn misfit(rows: &[Rows], size: usize, x: &[[f32; 3]]) -> Vec<[f32; 3]> {
     for r in rows {
         for i in 0..r.len() {
             let (t, w) = r.row(i);
-            let mut y = [0.0f32; 3];
-            for (&t, &w) in t.iter().zip(w) {
-                for k in 0..3 {
-                    y[k] += w * x[t as usize][k];
-                }
-            }
+            let y = r.forward(i, x);
             let b = r.value[i];
             for (&t, &w) in t.iter().zip(w) {
                 let w = (r.scale * w) as f64;
@@ -362,18 +362,22 @@ fn blur(img: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
 /// that all `views`' pixels of `frame` hold together (see the module
 /// documentation). Leaves them as they are if no pixel is usable.
 pub fn sharpen_light(
-    views: &[ViewPixels<'_>],
+    samplers: &[ViewSampler],
+    value: &PixelValue<'_>,
     frame: &Frame,
     size: usize,
     opts: &SharpenOptions,
     images: &mut [Vec<[f32; 3]>],
 ) {
-    assert_eq!(views.len(), images.len(), "one region image per view");
+    assert_eq!(samplers.len(), images.len(), "one region image per view");
     if images.is_empty() {
         return;
     }
-    let mut rows: Vec<Rows> =
-        views.iter().map(|v| view_rows(v, frame, size, opts.points)).collect();
+    let mut rows: Vec<Rows> = samplers
+        .iter()
+        .enumerate()
+        .map(|(vi, v)| view_rows(vi, v, value, frame, size, opts.points))
+        .collect();
     let seeing: Vec<usize> = rows.iter().map(Rows::len).filter(|&n| n > 0).collect();
     if seeing.is_empty() {
         return;
@@ -527,10 +531,8 @@ mod tests {
         f: &Frame,
         mut images: Vec<Vec<[f32; 3]>>,
     ) -> Vec<Vec<[f32; 3]>> {
-        let identity = |_: [f64; 2], s: [f32; 3]| Some(s);
-        let views: Vec<ViewPixels<'_>> =
-            samplers.iter().map(|sampler| ViewPixels { sampler, value: &identity }).collect();
-        sharpen_light(&views, f, S, &SharpenOptions::default(), &mut images);
+        let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
+        sharpen_light(samplers, &identity, f, S, &SharpenOptions::default(), &mut images);
         images
     }
 
@@ -633,11 +635,9 @@ mod tests {
         let (hs, samplers) = views();
         let f = frame(&hs, pattern, |_| 1.0);
         let own = own_view(&samplers, &f);
-        let unlit = |_: [f64; 2], _: [f32; 3]| None;
-        let views: Vec<ViewPixels<'_>> =
-            samplers.iter().map(|sampler| ViewPixels { sampler, value: &unlit }).collect();
+        let unlit = |_: usize, _: [f64; 2], _: [f64; 3]| None;
         let mut images = own.clone();
-        sharpen_light(&views, &f, S, &SharpenOptions::default(), &mut images);
+        sharpen_light(&samplers, &unlit, &f, S, &SharpenOptions::default(), &mut images);
         assert_eq!(images, own);
     }
 }
