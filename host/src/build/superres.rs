@@ -23,7 +23,8 @@
 //! below), and λ is relative to the data term's mean diagonal, so neither
 //! depends on the number of views or the pixels per texel. Conjugate
 //! gradients on the normal equations, from M, for a fixed number of
-//! iterations.
+//! iterations. The views are solved in two interleaved halves, and X is
+//! the mean of the two solutions (as fast as one solve over all views).
 //!
 //! X is view-independent, so the region images keep their own view's level
 //! and take only X's detail: `R'_v = R_v · (X / M) · (⟨M⟩ / ⟨X⟩)` per
@@ -42,6 +43,16 @@
 //! e ≤ 0.3, 0 for e ≥ 0.6, linear between. On the simulator's rough metal e
 //! (of the luminance) is 0.8–0.94 everywhere and its images stay as they
 //! were; the woven fabric's median is 0.15–0.23.
+//!
+//! Nor is all of X's detail the sample's where the views agree: the solve
+//! sharpens the pixels' noise as readily as the texture. The halves' noises
+//! are independent, their textures the same, so the product of their log
+//! detail, locally averaged, estimates the power of the detail that is the
+//! sample's; over the power of X's own log detail it is Wiener's gain
+//! (signal over signal plus noise, clamped to [0, 1]), which scales the
+//! power t above per texel and channel. A smooth glossy sample
+//! (`red-plastic`, outside the library) lost 0.8 dB at its captured pairs
+//! without it, all of it on the pairs without highlights.
 
 use crate::build::calibrate::ViewSampler;
 use crate::build::linalg::Homography;
@@ -74,6 +85,9 @@ const LOCAL_PASSES: usize = 8;
 /// those between a power of it in proportion.
 const MISFIT_FULL: f32 = 0.3;
 const MISFIT_NONE: f32 = 0.6;
+/// Binomial passes of the local means behind the detail's gain (σ ≈ 1.4
+/// texels): the power of the detail and the part of it both halves hold.
+const GAIN_PASSES: usize = 2;
 
 /// One view's pixels on the sample: rows of the forward model (sparse:
 /// texel, weight) and the pixels' values.
@@ -191,7 +205,7 @@ fn bilinear_taps(size: usize, uv: [f64; 2], mut tap: impl FnMut(u32, f64)) {
 
 /// The normal equations' operator: (AᵀA + λ L) x, L the 4-neighbour graph
 /// Laplacian of the S × S grid.
-fn normal_apply(rows: &[Rows], size: usize, lambda: f32, x: &[[f32; 3]], out: &mut [[f32; 3]]) {
+fn normal_apply(rows: &[&Rows], size: usize, lambda: f32, x: &[[f32; 3]], out: &mut [[f32; 3]]) {
     out.fill([0.0; 3]);
     for r in rows {
         for i in 0..r.len() {
@@ -248,7 +262,7 @@ fn dot3(a: &[[f32; 3]], b: &[[f32; 3]]) -> [f64; 3] {
 /// Solve for the image that explains every view's pixels (see the module
 /// documentation), starting from `start`; `None` if no pixel is usable.
 fn solve(
-    rows: &[Rows],
+    rows: &[&Rows],
     size: usize,
     opts: &SharpenOptions,
     start: &[[f32; 3]],
@@ -307,7 +321,7 @@ fn solve(
 /// squares cover it (weighted by their coverage): √(Σ w (A x − b)² / Σ w b²).
 /// Per channel: a white highlight on a red body stands out in green and
 /// blue however bright the red is.
-fn misfit(rows: &[Rows], size: usize, x: &[[f32; 3]]) -> Vec<[f32; 3]> {
+fn misfit(rows: &[&Rows], size: usize, x: &[[f32; 3]]) -> Vec<[f32; 3]> {
     let n = size * size;
     let (mut num, mut den) = (vec![[0.0f64; 3]; n], vec![[0.0f64; 3]; n]);
     for r in rows {
@@ -378,13 +392,15 @@ pub fn sharpen_light(
         .enumerate()
         .map(|(vi, v)| view_rows(vi, v, value, frame, size, opts.points))
         .collect();
-    let seeing: Vec<usize> = rows.iter().map(Rows::len).filter(|&n| n > 0).collect();
-    if seeing.is_empty() {
+    rows.retain(|r| r.len() > 0);
+    // Two halves, each solved alone: their agreement tells the detail from
+    // the noise. Fewer than two views: nothing to check it by.
+    if rows.len() < 2 {
         return;
     }
-    let typical = seeing.iter().sum::<usize>() as f32 / seeing.len() as f32;
+    let typical = rows.iter().map(Rows::len).sum::<usize>() as f32 / rows.len() as f32;
     for r in &mut rows {
-        r.scale = if r.len() > 0 { typical / r.len() as f32 } else { 0.0 };
+        r.scale = typical / r.len() as f32;
     }
     let n = size * size;
     let mut mean = vec![[0.0f32; 3]; n];
@@ -395,13 +411,20 @@ pub fn sharpen_light(
             }
         }
     }
-    let Some(x) = solve(&rows, size, opts, &mean) else {
+    let half = |odd: usize| -> Option<Vec<[f32; 3]>> {
+        let h: Vec<&Rows> = rows.iter().skip(odd).step_by(2).collect();
+        solve(&h, size, opts, &mean)
+    };
+    let (Some(xa), Some(xb)) = (half(0), half(1)) else {
         return;
     };
+    let x: Vec<[f32; 3]> =
+        xa.iter().zip(&xb).map(|(a, b)| std::array::from_fn(|k| 0.5 * (a[k] + b[k]))).collect();
     // Where the views do not agree on one image (a highlight or a sheen
     // that moves with the view: X explains little of their pixels), X's
     // detail is not the sample's; it is taken only where X explains them.
-    let trust: Vec<[f32; 3]> = misfit(&rows, size, &x)
+    let all: Vec<&Rows> = rows.iter().collect();
+    let mut trust: Vec<[f32; 3]> = misfit(&all, size, &x)
         .iter()
         .map(|e| e.map(|e| ((MISFIT_NONE - e) / (MISFIT_NONE - MISFIT_FULL)).clamp(0.0, 1.0)))
         .collect();
@@ -409,20 +432,39 @@ pub fn sharpen_light(
         (mean.iter().map(|m| m[k] as f64).sum::<f64>() / n as f64) as f32 * 1e-3
     });
     let local = |img: &[[f32; 3]]| (0..LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, size));
-    let (xl, ml) = (local(&x), local(&mean));
-    let ratio: Vec<[f32; 3]> = (0..n)
-        .map(|t| {
-            std::array::from_fn(|k| {
-                let (x, m, xl, ml) = (x[t][k], mean[t][k], xl[t][k], ml[t][k]);
-                let r = (x * ml) / (m * xl);
-                if m > level[k] && m > 0.0 && xl > 0.0 && r.is_finite() {
-                    r.clamp(1.0 / MAX_RATIO, MAX_RATIO)
-                } else {
-                    1.0
-                }
+    let ml = local(&mean);
+    // The detail factor of an all-views image: (x / m) · (⟨m⟩ / ⟨x⟩).
+    let ratio_of = |x: &[[f32; 3]]| -> Vec<[f32; 3]> {
+        let xl = local(x);
+        (0..n)
+            .map(|t| {
+                std::array::from_fn(|k| {
+                    let (x, m, xl, ml) = (x[t][k], mean[t][k], xl[t][k], ml[t][k]);
+                    let r = (x * ml) / (m * xl);
+                    if m > level[k] && m > 0.0 && xl > 0.0 && r.is_finite() {
+                        r.clamp(1.0 / MAX_RATIO, MAX_RATIO)
+                    } else {
+                        1.0
+                    }
+                })
             })
-        })
-        .collect();
+            .collect()
+    };
+    let ratio = ratio_of(&x);
+    // Only the detail the halves agree on: per texel and channel, the
+    // share of the detail's power that both halves hold (Wiener's gain,
+    // signal over signal plus noise, with the signal's power estimated by
+    // the product of the halves' log detail, whose noises are independent).
+    let (ra, rb) = (ratio_of(&xa), ratio_of(&xb));
+    let smooth = |img: Vec<[f32; 3]>| (0..GAIN_PASSES).fold(img, |a, _| blur(&a, size));
+    let agreed: Vec<[f32; 3]> =
+        smooth((0..n).map(|t| std::array::from_fn(|k| ra[t][k].ln() * rb[t][k].ln())).collect());
+    let power: Vec<[f32; 3]> = smooth(ratio.iter().map(|r| r.map(|r| r.ln().powi(2))).collect());
+    for ((tr, a), p) in trust.iter_mut().zip(&agreed).zip(&power) {
+        for k in 0..3 {
+            tr[k] *= if p[k] > 0.0 { (a[k] / p[k]).clamp(0.0, 1.0) } else { 0.0 };
+        }
+    }
     for img in images.iter_mut() {
         for ((v, r), trust) in img.iter_mut().zip(&ratio).zip(&trust) {
             for k in 0..3 {
@@ -566,7 +608,10 @@ mod tests {
         let (before, after) = (rms(&own, |_, uv| pattern(uv)), rms(&sharp, |_, uv| pattern(uv)));
         let db = 20.0 * (before / after).log10();
         println!("own views {before:.4}, all views {after:.4} RMS: {db:.2} dB");
-        assert!(db >= 2.0, "{db:.2} dB");
+        // 2.4 dB with one solve over all 12 views; 2.0 since only the
+        // detail two halves of 6 views agree on is taken (on the scanner's
+        // 40 views the woven fabric lost nothing to it).
+        assert!(db >= 1.8, "{db:.2} dB");
     }
 
     #[test]
@@ -583,7 +628,9 @@ mod tests {
         };
         for k in 0..hs.len() {
             let (a, b) = (mean(&own[k]), mean(&sharp[k]));
-            assert!((b / a - 1.0).abs() < 0.01, "view {k}: level {a:.4} → {b:.4}");
+            // Within 1.2 %: the halves' agreement, which varies over the
+            // texels, weighs this sample's ±60 % detail unevenly.
+            assert!((b / a - 1.0).abs() < 0.015, "view {k}: level {a:.4} → {b:.4}");
         }
         let before = rms(&own, |k, uv| pattern(uv).map(|x| x * level(k)));
         let after = rms(&sharp, |k, uv| pattern(uv).map(|x| x * level(k)));
@@ -615,6 +662,32 @@ mod tests {
         let before = rms(&own, glossy);
         let after = rms(&sharp, glossy);
         assert!(after <= 1.05 * before, "{before:.4} → {after:.4}");
+    }
+
+    #[test]
+    fn noise_is_not_taken_for_detail() {
+        // A smooth sample seen through noisy pixels (1 % of the level,
+        // independent per pixel, seeded): the all-views solve resolves the
+        // noise as "detail"; its halves do not agree on it, so the images
+        // do not take it.
+        use rand::{Rng, SeedableRng};
+        let (hs, samplers) = views();
+        let smooth = |uv: [f64; 2]| {
+            let a = (std::f64::consts::TAU * uv[0]).sin() * 0.1;
+            [0.5 + a, 0.4 - a, 0.3 + 0.5 * a].map(|x| x as f32)
+        };
+        let mut f = frame(&hs, smooth, |_| 1.0);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for v in f.rgb.iter_mut().filter(|v| **v > 0.0) {
+            *v *= 1.0 + 0.01 * (rng.random::<f32>() - 0.5) * 12f32.sqrt();
+        }
+        let own = own_view(&samplers, &f);
+        let sharp = sharpened(&samplers, &f, own.clone());
+        let before = rms(&own, |_, uv| smooth(uv));
+        let after = rms(&sharp, |_, uv| smooth(uv));
+        println!("noisy smooth sample: own views {before:.5}, all views {after:.5} RMS");
+        // 1.06 × with the halves' agreement, 1.43 × without it.
+        assert!(after <= 1.1 * before, "{before:.5} → {after:.5}");
     }
 
     #[test]
