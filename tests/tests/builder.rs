@@ -123,7 +123,9 @@ fn calibrated_region_images_match_the_ground_truth() {
         "woven-fabric, 2048² sensor: own view {:.2} dB, all views {:.2} dB",
         fabric[0], fabric[1]
     );
-    assert!(fabric[1] >= fabric[0] + 0.8, "{fabric:?}");
+    // 17.60 → 20.72 dB (each view taking the detail its own pixels lose;
+    // 19.33 with one factor for every view).
+    assert!(fabric[1] >= fabric[0] + 2.0, "{fabric:?}");
     // Directions: errors against the as-built scanner, beside the nominal ones'.
     let errs = tests::direction_errors(&g, truth, &cal);
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);

@@ -26,18 +26,25 @@
 //! iterations. The views are solved in two interleaved halves, and X is
 //! the mean of the two solutions (as fast as one solve over all views).
 //!
-//! X is view-independent, so the region images keep their own view's level
-//! and take only X's detail: `R'_v = R_v · (X / M) · (⟨M⟩ / ⟨X⟩)` per
-//! channel, M the views' mean image (the same data, blurred by every view's
-//! pixels), ⟨·⟩ a local mean (binomial, σ ≈ 2.8 texels): the structure
-//! coarser than that, and any level that X and M weigh differently, stay
-//! each view's own. The factor is clamped to [1/4, 4] and left at 1 where M
-//! is below 10⁻³ of its mean.
+//! X is view-independent; each view's image keeps its own level and takes
+//! only the detail its own pixels lose: `R'_v = R_v + s_v · (X − B_v(X))`
+//! per channel, B_v(X) what view v would make of a sample that is X (X
+//! seen through v's pixels by the forward model, then resampled by the
+//! region images' own filter), s_v = ⟨R_v⟩ / ⟨B_v(X)⟩ (⟨·⟩ a local mean,
+//! binomial, σ ≈ 2.8 texels; clamped to [1/4, 4]) so the detail keeps in
+//! proportion to the view's level (a sheen, a highlight), values floored at
+//! 0. A frontal view, whose pixels are finest, takes little; a grazing one
+//! most. The detail is added, not multiplied: at the thin dark lines of a
+//! print, X / B_v(X) divides by small values and cost 2.2 dB (at novel
+//! pairs, `printed-paper`) where the sum gains 0.6. An earlier version
+//! gave every view the same factor X / M against the views' mean image M:
+//! it sharpened the frontal views twice (−1.7 dB on the print at views
+//! within 10° of the normal).
 //!
 //! That holds where the views agree on one image. Where they do not — a
 //! glossy sample's highlights and sheen move with the view — X is a
 //! compromise whose "detail" would print one view's highlight into the
-//! others. So each texel and channel takes the factor to a power t ∈ [0, 1]
+//! others. So each texel and channel takes the detail in a share t ∈ [0, 1]
 //! by how well X explains the pixels that cover it: their relative RMS
 //! residual e (√(Σ w r²/Σ w b²), w their coverage of the texel), t = 1 for
 //! e ≤ 0.3, 0 for e ≥ 0.6, linear between. On the simulator's rough metal e
@@ -47,10 +54,10 @@
 //! Nor is all of X's detail the sample's where the views agree: the solve
 //! sharpens the pixels' noise as readily as the texture. The halves' noises
 //! are independent, their textures the same, so the product of their log
-//! detail, locally averaged, estimates the power of the detail that is the
-//! sample's; over the power of X's own log detail it is Wiener's gain
-//! (signal over signal plus noise, clamped to [0, 1]), which scales the
-//! power t above per texel and channel. A smooth glossy sample
+//! detail (against M: (X / M) · (⟨M⟩ / ⟨X⟩)), locally averaged, estimates
+//! the power of the detail that is the sample's; over the power of X's own
+//! log detail it is Wiener's gain (signal over signal plus noise, clamped
+//! to [0, 1]), which scales the share t above per texel and channel. A smooth glossy sample
 //! (`red-plastic`, outside the library) lost 0.8 dB at its captured pairs
 //! without it, all of it on the pairs without highlights.
 
@@ -75,14 +82,15 @@ impl Default for SharpenOptions {
     }
 }
 
-/// Largest factor the detail may scale a texel by (and 1 / it the least).
+/// Largest ratio of levels (a view's to X's, and X's detail to the mean
+/// image's) taken (and 1 / it the least).
 const MAX_RATIO: f32 = 4.0;
-/// Binomial passes of the local means the detail is taken against (σ ≈ 2.8
-/// texels): the coarser structure stays each view's own.
+/// Binomial passes of the local means that levels are taken over (σ ≈ 2.8
+/// texels).
 const LOCAL_PASSES: usize = 8;
 /// The texels whose pixels X explains to this relative RMS residual
 /// ([`misfit`]) take all of its detail, those beyond [`MISFIT_NONE`] none,
-/// those between a power of it in proportion.
+/// those between a share of it in proportion.
 const MISFIT_FULL: f32 = 0.3;
 const MISFIT_NONE: f32 = 0.6;
 /// Binomial passes of the local means behind the detail's gain (σ ≈ 1.4
@@ -93,6 +101,13 @@ const GAIN_PASSES: usize = 2;
 /// texel, weight) and the pixels' values.
 #[derive(Default)]
 struct Rows {
+    /// The view's index among the region images.
+    view: usize,
+    /// The frame window the rows' pixels lie in: its corner and size.
+    origin: [usize; 2],
+    extent: [usize; 2],
+    /// Each row's pixel within the window (`y · width + x`).
+    pixel: Vec<u32>,
     /// Weight of every row of the view: views count alike, however many
     /// pixels they see the sample with (as in the views' mean image).
     scale: f32,
@@ -128,6 +143,40 @@ impl Rows {
     }
 }
 
+/// What view `r` would make of a sample that is `x`: its pixels as the
+/// forward model reads them from `x`, resampled at the S × S texel centres
+/// the way the region images are ([`ViewSampler::region_sample`]): `x`
+/// blurred by this view's own pixels and filter.
+fn own_view_image(r: &Rows, sampler: &ViewSampler, x: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
+    let [w, h] = r.extent;
+    let mut rgb = vec![0.0f32; w * h * 3];
+    for i in 0..r.len() {
+        rgb[r.pixel[i] as usize * 3..][..3].copy_from_slice(&r.forward(i, x));
+    }
+    let window = Frame { width: w as u32, height: h as u32, rgb };
+    // The view's homography into the window.
+    let (ox, oy) = (r.origin[0] as f64, r.origin[1] as f64);
+    let m = sampler.homography().0;
+    let shifted = ViewSampler::new(Homography([
+        m[0] - ox * m[6],
+        m[1] - ox * m[7],
+        m[2] - ox * m[8],
+        m[3] - oy * m[6],
+        m[4] - oy * m[7],
+        m[5] - oy * m[8],
+        m[6],
+        m[7],
+        m[8],
+    ]));
+    (0..size * size)
+        .map(|t| {
+            let uv =
+                [((t % size) as f64 + 0.5) / size as f64, ((t / size) as f64 + 0.5) / size as f64];
+            shifted.region_sample(&window, uv).map(|v| v as f32)
+        })
+        .collect()
+}
+
 /// What turns view `vi`'s frame value at uv into f · cos θi (`None`: not
 /// usable there, e.g. unlit): the region images' own normalisation.
 pub type PixelValue<'a> = dyn Fn(usize, [f64; 2], [f64; 3]) -> Option<[f32; 3]> + Sync + 'a;
@@ -141,13 +190,15 @@ fn view_rows(
     size: usize,
     points: usize,
 ) -> Rows {
-    let mut rows = Rows { scale: 1.0, start: vec![0], ..Rows::default() };
+    let mut rows = Rows { view: vi, scale: 1.0, start: vec![0], ..Rows::default() };
     let h: &Homography = sampler.homography();
     let Some(inv) = h.inverse() else {
         return rows;
     };
     let [x0, y0, x1, y1] = h.window(1.0);
     let (x1, y1) = (x1.min(frame.width as usize), y1.min(frame.height as usize));
+    rows.origin = [x0, y0];
+    rows.extent = [x1.saturating_sub(x0), y1.saturating_sub(y0)];
     let mut acc: Vec<(u32, f32)> = Vec::with_capacity(32);
     let share = 1.0 / (points * points) as f64;
     for py in y0..y1 {
@@ -185,6 +236,7 @@ fn view_rows(
                 rows.weight.push(w);
             }
             rows.start.push(rows.texel.len() as u32);
+            rows.pixel.push(((py - y0) * rows.extent[0] + (px - x0)) as u32);
             rows.value.push(value);
         }
     }
@@ -465,10 +517,21 @@ pub fn sharpen_light(
             tr[k] *= if p[k] > 0.0 { (a[k] / p[k]).clamp(0.0, 1.0) } else { 0.0 };
         }
     }
-    for img in images.iter_mut() {
-        for ((v, r), trust) in img.iter_mut().zip(&ratio).zip(&trust) {
+    // Each view takes the detail its own pixels and resampling lose: X less
+    // X as this view would see it, in proportion to the view's level.
+    for r in &rows {
+        let own = own_view_image(r, &samplers[r.view], &x, size);
+        let image = &mut images[r.view];
+        let (il, ol) = (local(image), local(&own));
+        for t in 0..n {
             for k in 0..3 {
-                v[k] *= r[k].powf(trust[k]);
+                let s = if ol[t][k] > 0.0 {
+                    (il[t][k] / ol[t][k]).clamp(1.0 / MAX_RATIO, MAX_RATIO)
+                } else {
+                    1.0
+                };
+                let v = &mut image[t][k];
+                *v = (*v + trust[t][k] * s * (x[t][k] - own[t][k])).max(0.0);
             }
         }
     }
@@ -608,9 +671,8 @@ mod tests {
         let (before, after) = (rms(&own, |_, uv| pattern(uv)), rms(&sharp, |_, uv| pattern(uv)));
         let db = 20.0 * (before / after).log10();
         println!("own views {before:.4}, all views {after:.4} RMS: {db:.2} dB");
-        // 2.4 dB with one solve over all 12 views; 2.0 since only the
-        // detail two halves of 6 views agree on is taken (on the scanner's
-        // 40 views the woven fabric lost nothing to it).
+        // 2.26 dB; 2.57 if the detail were taken whether or not two halves
+        // of 6 views agree on it (the noise test below is why it is not).
         assert!(db >= 1.8, "{db:.2} dB");
     }
 
@@ -624,13 +686,21 @@ mod tests {
         let own = own_view(&samplers, &f);
         let sharp = sharpened(&samplers, &f, own.clone());
         let mean = |img: &[[f32; 3]]| {
-            img.iter().flatten().map(|&x| x as f64).sum::<f64>() / (img.len() * 3) as f64
+            let inner = |t: usize| {
+                let (x, y) = (t % S, t / S);
+                x >= 2 && y >= 2 && x + 2 < S && y + 2 < S
+            };
+            let v: Vec<f64> =
+                (0..img.len()).filter(|&t| inner(t)).flat_map(|t| img[t]).map(f64::from).collect();
+            v.iter().sum::<f64>() / v.len() as f64
         };
         for k in 0..hs.len() {
+            // Over the inner texels (within 0.5 % here). The outer two,
+            // which the region images resample from positions moved in
+            // from the edge, take X's own edge there: −2 % on the whole
+            // image of the brightest view.
             let (a, b) = (mean(&own[k]), mean(&sharp[k]));
-            // Within 1.2 %: the halves' agreement, which varies over the
-            // texels, weighs this sample's ±60 % detail unevenly.
-            assert!((b / a - 1.0).abs() < 0.015, "view {k}: level {a:.4} → {b:.4}");
+            assert!((b / a - 1.0).abs() < 0.01, "view {k}: level {a:.4} → {b:.4}");
         }
         let before = rms(&own, |k, uv| pattern(uv).map(|x| x * level(k)));
         let after = rms(&sharp, |k, uv| pattern(uv).map(|x| x * level(k)));
@@ -686,7 +756,7 @@ mod tests {
         let before = rms(&own, |_, uv| smooth(uv));
         let after = rms(&sharp, |_, uv| smooth(uv));
         println!("noisy smooth sample: own views {before:.5}, all views {after:.5} RMS");
-        // 1.06 × with the halves' agreement, 1.43 × without it.
+        // 1.02 × with the halves' agreement, 1.36 × without it.
         assert!(after <= 1.1 * before, "{before:.5} → {after:.5}");
     }
 
