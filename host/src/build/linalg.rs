@@ -192,6 +192,23 @@ impl Homography {
         [lo(b[0]), lo(b[1]), hi(b[2]), hi(b[3])]
     }
 
+    /// This mapping followed by a shift of `d` (e.g. into a frame window
+    /// whose corner is at −d).
+    pub fn translated(&self, d: [f64; 2]) -> Homography {
+        let m = &self.0;
+        Homography([
+            m[0] + d[0] * m[6],
+            m[1] + d[0] * m[7],
+            m[2] + d[0] * m[8],
+            m[3] + d[1] * m[6],
+            m[4] + d[1] * m[7],
+            m[5] + d[1] * m[8],
+            m[6],
+            m[7],
+            m[8],
+        ])
+    }
+
     /// The inverse mapping.
     pub fn inverse(&self) -> Option<Homography> {
         let m = &self.0;
@@ -251,6 +268,9 @@ mod tests {
         let b = h.apply([0.3 - e, 0.6]);
         assert!(((a[0] - b[0]) / (2.0 * e) - j[0][0]).abs() < 1e-4);
         assert!(((a[1] - b[1]) / (2.0 * e) - j[1][0]).abs() < 1e-4);
+        // Translated: the same point, shifted.
+        let (p, q) = (h.apply([0.3, 0.6]), h.translated([-17.0, 4.5]).apply([0.3, 0.6]));
+        assert!((q[0] - (p[0] - 17.0)).abs() < 1e-9 && (q[1] - (p[1] + 4.5)).abs() < 1e-9);
     }
 
     #[test]

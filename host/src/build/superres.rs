@@ -57,9 +57,10 @@
 //! detail (against M: (X / M) · (⟨M⟩ / ⟨X⟩)), locally averaged, estimates
 //! the power of the detail that is the sample's; over the power of X's own
 //! log detail it is Wiener's gain (signal over signal plus noise, clamped
-//! to [0, 1]), which scales the share t above per texel and channel. A smooth glossy sample
-//! (`red-plastic`, outside the library) lost 0.8 dB at its captured pairs
-//! without it, all of it on the pairs without highlights.
+//! to [0, 1]), which scales the share t above per texel and channel. A
+//! smooth glossy sample (`red-plastic`, outside the library) lost 0.8 dB at
+//! its captured pairs without it, all of it on the pairs without
+//! highlights.
 
 use crate::build::calibrate::ViewSampler;
 use crate::build::linalg::Homography;
@@ -154,20 +155,9 @@ fn own_view_image(r: &Rows, sampler: &ViewSampler, x: &[[f32; 3]], size: usize) 
         rgb[r.pixel[i] as usize * 3..][..3].copy_from_slice(&r.forward(i, x));
     }
     let window = Frame { width: w as u32, height: h as u32, rgb };
-    // The view's homography into the window.
-    let (ox, oy) = (r.origin[0] as f64, r.origin[1] as f64);
-    let m = sampler.homography().0;
-    let shifted = ViewSampler::new(Homography([
-        m[0] - ox * m[6],
-        m[1] - ox * m[7],
-        m[2] - ox * m[8],
-        m[3] - oy * m[6],
-        m[4] - oy * m[7],
-        m[5] - oy * m[8],
-        m[6],
-        m[7],
-        m[8],
-    ]));
+    // The view's sampler in the window's pixels.
+    let origin = r.origin.map(|o| -(o as f64));
+    let shifted = ViewSampler::new(sampler.homography().translated(origin));
     (0..size * size)
         .map(|t| {
             let uv =
