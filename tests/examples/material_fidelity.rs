@@ -5,7 +5,7 @@
 //! default and with the patent's interpolation — the palettisation error
 //! alone, and both interpolations at random novel pairs (θ ≤ 60°).
 //!
-//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off] [--detail all-views|own-view]`
+//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off] [--detail all-views|own-view] [--lights-per-index 2]`
 //! (scans in DIR are reused when complete; `builder_fidelity` shares them).
 
 use std::path::PathBuf;
@@ -30,6 +30,7 @@ fn main() {
         tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
     let materials: Vec<&str> = list.split(',').collect();
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
+    let lights_per_index: usize = tests::arg("--lights-per-index", 2);
     let texel_model: TexelModelChoice = tests::arg("--texel-model", "auto".to_string())
         .parse()
         .unwrap_or_else(|e| panic!("--texel-model: {e}"));
@@ -85,7 +86,7 @@ fn main() {
             (m, bytes.len(), t.elapsed().as_secs_f64(), data.texels)
         };
         let (default, size_d, t_d, texels) =
-            build(MaterialOptions { texel_model, ..Default::default() });
+            build(MaterialOptions { texel_model, lights_per_index, ..Default::default() });
         let patent_interp = if with_patent {
             PATENT_DEFAULT
         } else {
