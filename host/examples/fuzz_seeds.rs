@@ -10,7 +10,7 @@ mod synthetic;
 
 use scanner_formats::queries::{Query, write_answers, write_queries};
 use scanner_shading::Interpolation;
-use synthetic::{Shape, synthetic, with_texel_model};
+use synthetic::{Shape, synthetic, with_detail, with_texel_model};
 
 fn main() {
     let root = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: fuzz_seeds DIR"));
@@ -30,6 +30,13 @@ fn main() {
         (
             "texel-model-6",
             with_texel_model(synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 7), 8),
+        ),
+        (
+            "detail-6",
+            with_detail(
+                with_texel_model(synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 9), 10),
+                11,
+            ),
         ),
     ] {
         let bytes = m.to_bytes().unwrap();

@@ -201,6 +201,23 @@ pub fn region_pair_answers(regions: &RegionSet, image: usize, queries: &[Query])
     queries.iter().map(|q| regions.sample(image / nv, image % nv, q.uv).map(|x| x as f32)).collect()
 }
 
+/// [`region_pair_answers`] times the region set's detail layer
+/// ([`RegionSet::detail_at`]): what the images and the layer hold together.
+pub fn detailed_pair_answers(
+    regions: &RegionSet,
+    image: usize,
+    queries: &[Query],
+) -> Vec<[f32; 3]> {
+    let nv = regions.views.len();
+    queries
+        .iter()
+        .map(|q| {
+            let (v, d) = (regions.sample(image / nv, image % nv, q.uv), regions.detail_at(q.uv));
+            std::array::from_fn(|k| (v[k] * d[k]) as f32)
+        })
+        .collect()
+}
+
 /// The region images' answers to every [`pair_queries`] of `pairs`, one
 /// pair per region image in `regions` order (light-major).
 pub fn region_answers(pairs: &[([f64; 3], [f64; 3])], regions: &RegionSet) -> Vec<[f32; 3]> {
@@ -326,6 +343,8 @@ pub fn direction_errors(
 pub struct MaterialScores {
     /// The region images against the truth at the captured pairs.
     pub regions: f64,
+    /// The region images times the detail layer there.
+    pub regions_detail: f64,
     /// The materials against the truth at the captured pairs.
     pub captured: [f64; 2],
     /// The default material's best gain against the truth there.
@@ -357,11 +376,14 @@ pub fn material_scores(
     use host::build::material::shade;
     let (t_cap, t_nov) = (truth_answers(captured, sample), truth_answers(novel, sample));
     let (regions_db, _, _) = regions_psnr(captured, &t_cap, regions);
+    let detailed = pairs_answers(captured, &|p, q| detailed_pair_answers(regions, p, q));
+    let (regions_detail_db, _, _) = material_psnr(&detailed, &t_cap);
     let answers = materials.map(|m| pairs_answers(captured, &|_, q| shade(m, q)));
     let captured_db = answers.each_ref().map(|a| material_psnr(a, &t_cap));
     MaterialScores {
         worst_5: PairErrors::new(&answers[0], &t_cap).concentration(0.05),
         regions: regions_db,
+        regions_detail: regions_detail_db,
         captured: captured_db.map(|x| x.0),
         gain: captured_db[0].2,
         against_regions: [0, 1].map(|i| {

@@ -81,6 +81,18 @@ fn a_built_material_shades_like_the_sample() {
     let build = |interpolation| build_with(MaterialOptions { interpolation, ..Default::default() });
     let (default, bytes, texels) = build(Interpolation::Default);
     assert_eq!(bytes, std::fs::read(p("leather.material")).unwrap(), "deterministic");
+    // The views' detail beyond S × S is in the file, and the file within 16 MB.
+    assert!(default.metadata().detail, "a detail layer");
+    assert!(bytes.len() <= 16_000_000, "{} bytes", bytes.len());
+    // A smaller budget: fewer light groups, more lights share an index image.
+    let budget = bytes.len() - bytes.len() / 8;
+    let (tight, tight_bytes, _) = build_with(MaterialOptions {
+        max_bytes: Some(budget),
+        texel_model: TexelModelChoice::On,
+        ..Default::default()
+    });
+    assert!(tight_bytes.len() <= budget, "{} > {budget} bytes", tight_bytes.len());
+    assert_eq!(tight.metadata().lights_per_index, 3);
     let patent_interp = Interpolation::Patent { columns: 256, rows: 64, points: 500 };
     let (patent, ..) = build(patent_interp);
     let sample = Sample::small(lookup("leather").unwrap());

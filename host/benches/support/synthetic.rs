@@ -69,6 +69,7 @@ pub fn synthetic(
                 builder: "synthetic".into(),
             },
             texel_model: false,
+            detail: false,
         },
         palettes: (0..n * n * k).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
         indices: (0..n * s * s * n.div_ceil(g))
@@ -77,7 +78,20 @@ pub fn synthetic(
         light_groups: (0..n).map(|l| (l / g) as u8).collect(),
         tables,
         texels: Vec::new(),
+        detail: Vec::new(),
     }
+}
+
+/// `data` with a random detail layer (version 3): factors in [½, 2].
+pub fn with_detail(mut data: MaterialData, seed: u64) -> MaterialData {
+    let f = 2 * data.meta.resolution as usize;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    data.meta.version = scanner_shading::format::VERSION_DETAIL;
+    data.meta.detail = true;
+    data.detail = (0..f * f)
+        .map(|_| std::array::from_fn(|_| 2f32.powf(rng.random_range(-1.0..1.0))))
+        .collect();
+    data
 }
 
 /// `data` with a random texel model (version 2): albedos and F0 in

@@ -22,6 +22,12 @@ pub const VERSION: u32 = 1;
 /// The format version of a material with a texel model
 /// (`Metadata::texel_model`). This crate reads both.
 pub const VERSION_TEXEL_MODEL: u32 = 2;
+/// The format version of a material with a detail layer
+/// (`Metadata::detail`), with or without a texel model. This crate reads
+/// versions 1 to 3.
+pub const VERSION_DETAIL: u32 = 3;
+/// The detail layer's range: every factor lies in [1 / it, it].
+pub const DETAIL_RANGE: f32 = 4.0;
 /// The safetensors metadata key holding the JSON [`Metadata`].
 pub const METADATA_KEY: &str = "material";
 /// Most (mirror, weight) pairs one patent-table cell may hold.
@@ -95,7 +101,7 @@ pub struct Provenance {
 pub struct Metadata {
     /// Always [`FORMAT`].
     pub format: String,
-    /// Always [`VERSION`] for this reader.
+    /// [`VERSION`], [`VERSION_TEXEL_MODEL`] or [`VERSION_DETAIL`].
     pub version: u32,
     /// The sample's name.
     pub name: String,
@@ -107,7 +113,7 @@ pub struct Metadata {
     pub resolution: u32,
     /// Colours per palette, K ≤ 256.
     pub colours: u32,
-    /// Lights sharing one index image, g (their palettes differ).
+    /// Most lights sharing one index image, g (their palettes differ).
     pub lights_per_index: u32,
     /// How directions between the captured ones are shaded.
     pub interpolation: Interpolation,
@@ -128,6 +134,10 @@ pub struct Metadata {
     /// themselves. Absent in version 1.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub texel_model: bool,
+    /// Version 3: the file holds a detail layer (tensor `detail`), a
+    /// 2S × 2S factor that multiplies every answer. Absent before.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub detail: bool,
 }
 
 /// A patent direction table in compressed rows: the pairs of cell `c` are
@@ -181,6 +191,9 @@ pub struct MaterialData {
     /// `[S][S]` (row t along v, column s along u): the fitted texel model,
     /// when `meta.texel_model`; empty otherwise.
     pub texels: Vec<TexelParams>,
+    /// `[2S][2S]` RGB (row along v, column along u): the detail layer's
+    /// factors, when `meta.detail`; empty otherwise.
+    pub detail: Vec<[f32; 3]>,
 }
 
 /// A tensor to serialise.
@@ -237,9 +250,11 @@ fn cell_tensors(prefix: &str, t: &CellTable, out: &mut Vec<(String, Tensor)>) {
 }
 
 impl MaterialData {
-    /// The number of light groups G = ⌈L / g⌉.
+    /// The number of light groups G: one more than the largest in
+    /// `light_groups` (⌈L / g⌉ when every group but the last holds g
+    /// lights).
     pub fn groups(&self) -> usize {
-        self.meta.lights.len().div_ceil(self.meta.lights_per_index.max(1) as usize)
+        self.light_groups.iter().map(|&x| x as usize + 1).max().unwrap_or(0)
     }
 
     /// The file's bytes. Fails only if the content is inconsistent (it is
@@ -247,6 +262,13 @@ impl MaterialData {
     pub fn to_bytes(&self) -> Result<Vec<u8>, MaterialError> {
         let (l, v) = (self.meta.lights.len(), self.meta.views.len());
         let (s, k, g) = (self.meta.resolution as usize, self.meta.colours as usize, self.groups());
+        if self.indices.len() != v * s * s * g {
+            return Err(MaterialError::Tensor(format!(
+                "indices: {} bytes, not {v} × {s} × {s} × {g} (light groups 0…{})",
+                self.indices.len(),
+                g.saturating_sub(1)
+            )));
+        }
         let mut tensors = vec![
             (
                 "palettes".to_string(),
@@ -284,6 +306,25 @@ impl MaterialData {
                             .iter()
                             .flat_map(|p| p.to_stored())
                             .map(|x| half::f16::from_f32(x).to_bits()),
+                    ),
+                },
+            ));
+        }
+        if self.meta.detail {
+            if self.detail.len() != 4 * s * s {
+                return Err(MaterialError::Tensor(format!(
+                    "detail: {} factors for {f} × {f}",
+                    self.detail.len(),
+                    f = 2 * s
+                )));
+            }
+            tensors.push((
+                "detail".to_string(),
+                Tensor {
+                    dtype: Dtype::F16,
+                    shape: vec![2 * s, 2 * s, 3],
+                    data: u16_bytes(
+                        self.detail.iter().flatten().map(|&x| half::f16::from_f32(x).to_bits()),
                     ),
                 },
             ));
@@ -332,7 +373,18 @@ impl MaterialData {
         check_metadata(&meta)?;
         let (l, v) = (meta.lights.len(), meta.views.len());
         let (s, k) = (meta.resolution as usize, meta.colours as usize);
-        let g = l.div_ceil(meta.lights_per_index as usize);
+        // G, the light groups: the index images' last axis, between
+        // ⌈L / g⌉ (every group full) and L (one light each).
+        let g = match st.tensor("indices") {
+            Ok(t) if t.shape().len() == 4 => t.shape()[3],
+            _ => l.div_ceil(meta.lights_per_index as usize),
+        };
+        if !(l.div_ceil(meta.lights_per_index as usize)..=l.min(256)).contains(&g) {
+            return Err(MaterialError::Tensor(format!(
+                "indices: {g} light groups for {l} lights of up to {} per group",
+                meta.lights_per_index
+            )));
+        }
 
         let mut expected: Vec<String> =
             ["palettes", "indices", "light_groups"].map(String::from).to_vec();
@@ -367,6 +419,11 @@ impl MaterialData {
             return Err(MaterialError::Value(format!(
                 "light_groups: a group holds more than {} lights",
                 meta.lights_per_index
+            )));
+        }
+        if let Some(empty) = per_group.iter().position(|&n| n == 0) {
+            return Err(MaterialError::Value(format!(
+                "light_groups: group {empty} of {g} holds no light"
             )));
         }
         let tables = match meta.interpolation {
@@ -476,13 +533,35 @@ impl MaterialData {
         } else {
             Vec::new()
         };
+        let detail = if meta.detail {
+            expected.push("detail".into());
+            let raw = tensor(&st, "detail", Dtype::F16, &[2 * s, 2 * s, 3])?;
+            let vals: Vec<f32> = raw
+                .chunks_exact(2)
+                .map(|c| half::f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32())
+                .collect();
+            if let Some(i) =
+                vals.iter().position(|x| !(1.0 / DETAIL_RANGE..=DETAIL_RANGE).contains(x))
+            {
+                let t = i / 3;
+                return Err(MaterialError::Value(format!(
+                    "detail: factor {} at ({}, {}) outside 1/{DETAIL_RANGE}…{DETAIL_RANGE}",
+                    vals[i],
+                    t % (2 * s),
+                    t / (2 * s)
+                )));
+            }
+            vals.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+        } else {
+            Vec::new()
+        };
         if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == n)) {
             return Err(MaterialError::Tensor(format!(
                 "unexpected tensor `{extra}` for {:?} interpolation",
                 meta.interpolation
             )));
         }
-        Ok(MaterialData { meta, palettes, indices, light_groups, tables, texels })
+        Ok(MaterialData { meta, palettes, indices, light_groups, tables, texels, detail })
     }
 }
 
@@ -513,13 +592,21 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
     if m.format != FORMAT {
         return bad(format!("format is {:?}, not {FORMAT:?}", m.format));
     }
-    if !(VERSION..=VERSION_TEXEL_MODEL).contains(&m.version) {
+    if !(VERSION..=VERSION_DETAIL).contains(&m.version) {
         return bad(format!(
-            "version {} (this reader reads versions {VERSION}…{VERSION_TEXEL_MODEL})",
+            "version {} (this reader reads versions {VERSION}…{VERSION_DETAIL})",
             m.version
         ));
     }
-    if m.texel_model != (m.version == VERSION_TEXEL_MODEL) {
+    if m.detail != (m.version == VERSION_DETAIL) {
+        return bad(format!(
+            "version {} with{} a detail layer: a detail layer is version {VERSION_DETAIL}'s, \
+             and only its",
+            m.version,
+            if m.detail { "" } else { "out" }
+        ));
+    }
+    if m.version < VERSION_DETAIL && m.texel_model != (m.version == VERSION_TEXEL_MODEL) {
         return bad(format!(
             "version {} with{} a texel model: a texel model is version {VERSION_TEXEL_MODEL}'s, \
              and only its",

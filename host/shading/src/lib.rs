@@ -84,6 +84,8 @@ pub struct Material {
     directions: Directions,
     /// `[S][S]` stored texel-model values ([`texel::STORED`] each), or empty.
     texels: Vec<[f32; texel::STORED]>,
+    /// `[2S][2S]` detail factors, or empty.
+    detail: Vec<[f32; 3]>,
 }
 
 /// The default interpolation's weights (docs/material-format.md,
@@ -294,6 +296,7 @@ impl Material {
             light_groups: d.light_groups,
             directions,
             texels: d.texels.iter().map(|p| p.to_stored()).collect(),
+            detail: d.detail,
             meta: d.meta,
         })
     }
@@ -332,7 +335,8 @@ impl Material {
                         }
                     }
                 }
-                acc.map(|x| x * wi[2])
+                let d = self.detail_at(uv);
+                std::array::from_fn(|k| acc[k] * wi[2] * d[k])
             }
         }
     }
@@ -408,6 +412,23 @@ impl Material {
         let texel = [y0 * s + x0, y0 * s + x1, y1 * s + x0, y1 * s + x1].map(|t| t as u32);
         let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
         Some(Footprint { texel, w })
+    }
+
+    /// The detail layer's factors at uv (bilinear on its 2S × 2S grid, uv
+    /// wrapped like [`Self::texels_at`]); 1 without a layer.
+    #[inline(always)]
+    fn detail_at(&self, uv: [f32; 2]) -> [f32; 3] {
+        if self.detail.is_empty() {
+            return [1.0; 3];
+        }
+        let f = 2 * self.size;
+        let (x0, x1, tx) = taps(f, uv[0] - uv[0].floor());
+        let (y0, y1, ty) = taps(f, uv[1] - uv[1].floor());
+        let d = |x: usize, y: usize| self.detail[y * f + x];
+        let (a, b, c, e) = (d(x0, y0), d(x1, y0), d(x0, y1), d(x1, y1));
+        std::array::from_fn(|k| {
+            (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + e[k] * tx) * ty
+        })
     }
 
     /// Where (view, light)'s index bytes and palette start.
@@ -486,6 +507,12 @@ impl Material {
             self.look_up(wi, wo, &mut s.dirs, &at);
         }
         s.at = at;
+        s.uv = uv;
+        if s.dirs.pairs > 0 && !self.detail.is_empty() {
+            let f = 2 * self.size;
+            let (x, y) = (taps(f, uv[0] - uv[0].floor()).0, taps(f, uv[1] - uv[1].floor()).0);
+            prefetch(&self.detail[y * f + x]);
+        }
         if s.dirs.pairs > 0 && !self.texels.is_empty() {
             for t in at.texel {
                 prefetch(&self.texels[t as usize]);
@@ -525,8 +552,9 @@ impl Material {
         let Directions::Triangles { light_dirs, view_dirs, .. } = &self.directions else {
             unreachable!("staged only with the default interpolation")
         };
+        let d = self.detail_at(s.uv);
         if self.texels.is_empty() {
-            return acc.map(|x| x * s.dirs.wi[2]);
+            return std::array::from_fn(|c| acc[c] * s.dirs.wi[2] * d[c]);
         }
         // The texel model at uv, its parameters interpolated bilinearly.
         let tx = s.at.texel.map(|t| &self.texels[t as usize]);
@@ -554,7 +582,7 @@ impl Material {
         std::array::from_fn(|c| {
             let m = p.diffuse[c] * t[0][0] + p.specular[c] * t[1][0] + t[2][0];
             let mixed = p.diffuse[c] * sd + p.specular[c] * ss + so;
-            ((acc[c] - mixed) * s.dirs.wi[2] + m).max(0.0)
+            ((acc[c] - mixed) * s.dirs.wi[2] + m).max(0.0) * d[c]
         })
     }
 }
@@ -600,6 +628,8 @@ struct Staged {
     /// Its unit directions and pairs (none: black).
     dirs: Lookup,
     at: Footprint,
+    /// The query's uv (for the detail layer).
+    uv: [f32; 2],
     /// Each pair's palette indices at the footprint.
     idx: [[u8; 4]; MAX_PAIRS],
 }

@@ -97,12 +97,14 @@ fn material(interpolation: Interpolation) -> MaterialData {
                 builder: "test".into(),
             },
             texel_model: false,
+            detail: false,
         },
         palettes,
         indices,
         light_groups: (0..n).map(|l| (l / g) as u8).collect(),
         tables,
         texels: Vec::new(),
+        detail: Vec::new(),
     }
 }
 
@@ -295,7 +297,8 @@ fn damaged_files_are_refused_without_panicking() {
     assert!(d.to_bytes().unwrap_err().to_string().contains("version 7"));
     let mut d = material(Interpolation::Default);
     d.light_groups[0] = 9;
-    assert!(d.to_bytes().unwrap_err().to_string().contains("group 9"));
+    let e = d.to_bytes().unwrap_err().to_string();
+    assert!(e.contains("× 10 (light groups 0…9)"), "{e}");
     // A safetensors file that is not a material.
     let other =
         safetensors::serialize(Vec::<(&str, safetensors::tensor::TensorView<'_>)>::new(), None)
@@ -598,4 +601,141 @@ fn no_query_allocates() {
         assert_eq!(made, 0, "{made} allocations in 600 queries ({:?})", m.metadata().interpolation);
         assert!(sum > 0.0 && out.iter().any(|o| o[0] > 0.0), "the queries shade something");
     }
+}
+
+/// `d` with a detail layer (version 3): factors 2^((x + 2y) mod 5 − 2)/2
+/// over its 2S × 2S grid, ⅓…1.4 (within ¼…4), differing per channel.
+fn with_detail(mut d: MaterialData) -> MaterialData {
+    let f = 2 * d.meta.resolution as usize;
+    d.meta.version = format::VERSION_DETAIL;
+    d.meta.detail = true;
+    d.detail = (0..f * f)
+        .map(|t| {
+            let (x, y) = (t % f, t / f);
+            std::array::from_fn(|c| 2f32.powf((((x + 2 * y + c) % 5) as f32 - 2.0) / 2.0))
+        })
+        .collect();
+    d
+}
+
+#[test]
+fn a_detail_layer_multiplies_every_answer() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    for base in [
+        material(Interpolation::Default),
+        material_with_model(),
+        material(Interpolation::Patent { columns: 24, rows: 6, points: 10 }),
+    ] {
+        let detailed = with_detail(base.clone());
+        let layer = detailed.detail.clone();
+        let (plain, detailed) = (
+            Material::from_bytes(&base.to_bytes().unwrap()).unwrap(),
+            Material::from_bytes(&detailed.to_bytes().unwrap()).unwrap(),
+        );
+        let f = 16usize;
+        for _ in 0..200 {
+            // At a 2S texel centre (there the layer's own value), uv also
+            // wrapped by a whole turn.
+            let (x, y) = (rng.random_range(0..f), rng.random_range(0..f));
+            let uv = [(x as f32 + 0.5) / f as f32, (y as f32 + 0.5) / f as f32];
+            let (wi, wo) = (random_dir(&mut rng, 60.0), random_dir(&mut rng, 60.0));
+            let (a, b) = (plain.eval(uv, wi, wo), detailed.eval([uv[0] + 1.0, uv[1]], wi, wo));
+            let want: [f32; 3] = std::array::from_fn(|c| a[c] * layer[y * f + x][c]);
+            assert!(close(b, want, 1e-3), "{b:?} against {want:?} at {uv:?}");
+        }
+        // Halfway between two 2S texel centres along u: their mean.
+        let (wi, wo) = ([0.1, 0.2, 0.97], [-0.3, 0.1, 0.95]);
+        let uv = [3.0 / f as f32, 5.5 / f as f32];
+        let (a, b) = (plain.eval(uv, wi, wo), detailed.eval(uv, wi, wo));
+        for c in 0..3 {
+            let m = 0.5 * (layer[5 * f + 2][c] + layer[5 * f + 3][c]);
+            assert!((b[c] - a[c] * m).abs() <= 1e-3 * b[c].abs().max(1e-3), "{c}");
+        }
+        // The batch answers as `eval` does.
+        let queries: Vec<ShadeQuery> = (0..500)
+            .map(|_| ShadeQuery {
+                uv: [rng.random(), rng.random()],
+                wi: random_dir(&mut rng, 80.0),
+                wo: random_dir(&mut rng, 80.0),
+            })
+            .collect();
+        assert!(batch_as_eval(&detailed, &queries) > 0);
+    }
+}
+
+#[test]
+fn bad_detail_layers_are_refused() {
+    let e = |d: MaterialData| d.to_bytes().unwrap_err().to_string();
+    for (bad, what) in [(5.0, "factor 5"), (0.1, "factor 0.0999"), (f32::NAN, "factor NaN")] {
+        let mut d = with_detail(material(Interpolation::Default));
+        d.detail[37][1] = bad;
+        let msg = e(d);
+        assert!(msg.contains(what) && msg.contains("(5, 2)"), "{msg}");
+    }
+    let mut d = with_detail(material(Interpolation::Default));
+    d.detail.pop();
+    assert!(e(d).contains("detail: 255 factors for 16 × 16"));
+    // Version and flag must agree, both ways.
+    let mut d = with_detail(material(Interpolation::Default));
+    d.meta.version = format::VERSION_TEXEL_MODEL;
+    assert!(e(d).contains("a detail layer is version 3"));
+    let mut d = material(Interpolation::Default);
+    d.meta.version = format::VERSION_DETAIL;
+    assert!(e(d).contains("version 3 without a detail layer"));
+    // A layer the metadata does not announce is an unexpected tensor.
+    let good = with_detail(material(Interpolation::Default)).to_bytes().unwrap();
+    let st = safetensors::SafeTensors::deserialize(&good).unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(&good).unwrap();
+    let json = header.metadata().as_ref().unwrap()[format::METADATA_KEY]
+        .replace("\"detail\":true", "")
+        .replace(",}", "}")
+        .replace("\"version\":3", "\"version\":1");
+    let tensors: Vec<(String, safetensors::tensor::TensorView)> =
+        st.tensors().into_iter().collect();
+    let info = std::collections::HashMap::from([(format::METADATA_KEY.to_string(), json)]);
+    let bytes = safetensors::serialize(tensors, Some(info)).unwrap();
+    let msg = Material::from_bytes(&bytes).unwrap_err().to_string();
+    assert!(msg.contains("unexpected tensor `detail`"), "{msg}");
+    // Damage anywhere in a version-3 file: an error or a material, never a panic.
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    for _ in 0..300 {
+        let mut b = good.clone();
+        let i = rng.random_range(0..b.len());
+        b[i] ^= 1 << rng.random_range(0..8);
+        if let Ok(m) = Material::from_bytes(&b) {
+            let v = m.eval([0.3, 0.6], [0.1, 0.2, 0.97], [-0.3, 0.1, 0.95]);
+            assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "{v:?}");
+        }
+    }
+}
+
+#[test]
+fn light_groups_may_differ_in_size() {
+    // Seven lights in three groups (3, 2, 2) instead of ⌈7 / 2⌉ = 4.
+    let regroup = |groups: &[u8], g: u32| {
+        let mut d = material(Interpolation::Default);
+        let (n, s) = (d.meta.lights.len(), d.meta.resolution as usize);
+        let count = groups.iter().map(|&x| x as usize + 1).max().unwrap();
+        d.meta.lights_per_index = g;
+        d.light_groups = groups.to_vec();
+        d.indices = (0..n * s * s * count).map(|i| ((i / count) % s) as u8).collect();
+        d
+    };
+    let d = regroup(&[0, 0, 0, 1, 1, 2, 2], 3);
+    let m = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();
+    let (dirs, _) = ring();
+    for (l, dl) in dirs.iter().enumerate() {
+        let got = m.eval([3.5 / 8.0, 0.3], f32v(*dl), f32v(dirs[2]));
+        let cos = dl[2] as f32;
+        let want = [(l + 1) as f32 / 100.0 * cos, 0.03 * cos, 0.03 * cos];
+        assert!(close(got, want, 1e-3), "light {l}: {got:?} against {want:?}");
+    }
+    let e = |d: MaterialData| d.to_bytes().unwrap_err().to_string();
+    // A group without a light, more lights in one than g, more groups than lights.
+    assert!(e(regroup(&[0, 0, 0, 2, 2, 3, 3], 3)).contains("group 1 of 4 holds no light"));
+    assert!(e(regroup(&[0, 0, 0, 1, 1, 2, 2], 2)).contains("3 light groups for 7 lights"));
+    let mut d = regroup(&[0, 1, 2, 3, 4, 5, 6], 1);
+    d.indices.extend(std::iter::repeat_n(0, 7 * 64));
+    d.light_groups[6] = 7;
+    assert!(e(d).contains("light groups for 7 lights"));
 }

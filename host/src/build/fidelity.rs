@@ -106,7 +106,13 @@ pub fn captured_pair_answers(
             let img = super::texel_fit::held_image(regions, texels, li, vi);
             let reg = q
                 .iter()
-                .map(|q| super::regions::bilinear(regions.size, &img, q.uv).map(|x| x as f32))
+                .map(|q| {
+                    let (v, d) = (
+                        super::regions::bilinear(regions.size, &img, q.uv),
+                        regions.detail_at(q.uv),
+                    );
+                    std::array::from_fn(|k| (v[k] * d[k]) as f32)
+                })
                 .collect();
             (mat, reg)
         })

@@ -12,7 +12,7 @@ use spade::{DelaunayTriangulation, Point2, Triangulation};
 
 use super::calibrate::BuildProgress;
 use super::error::BuildError;
-use super::palette::{group_lights, palettise};
+use super::palette::{group_lights, group_lights_into, palettise};
 use super::regions::RegionSet;
 use super::texel_fit::{self, unit32};
 use scanner_shading::texel::TexelParams;
@@ -31,7 +31,15 @@ pub struct MaterialOptions {
     /// Whether a default-interpolation material carries a fitted texel
     /// model (the patent's never does).
     pub texel_model: TexelModelChoice,
+    /// Largest file wanted, bytes (`None`: no limit). Where the file would
+    /// be larger, more lights share an index image (up to 4), the fewest
+    /// that need to.
+    pub max_bytes: Option<usize>,
 }
+
+/// [`MaterialOptions::max_bytes`] by default: the 16 MB a 40 × 40 material
+/// at S = 128 with 256 colours may take.
+pub const MAX_BYTES: usize = 16_000_000;
 
 /// When the builder fits and stores a texel model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -67,6 +75,7 @@ impl Default for MaterialOptions {
             interpolation: Interpolation::Default,
             seed: 1,
             texel_model: TexelModelChoice::Auto,
+            max_bytes: Some(MAX_BYTES),
         }
     }
 }
@@ -376,8 +385,27 @@ pub fn build_material(
     opts.check().map_err(BuildError::Input)?;
     let (nl, nv, s) = (regions.lights.len(), regions.views.len(), regions.size);
     let g = opts.lights_per_index.min(nl);
-    let light_groups = group_lights(&regions.light_dirs, g);
-    let groups = light_groups.iter().map(|&x| x as usize + 1).max().unwrap_or(0);
+    let mut light_groups = group_lights(&regions.light_dirs, g);
+    let mut groups = light_groups.iter().map(|&x| x as usize + 1).max().unwrap_or(0);
+    if let Some(max) = opts.max_bytes {
+        // Everything but the index images (a texel model counted whether or
+        // not it is chosen below; 64 KB for the tables and the header),
+        // then as many index images as fit, if fewer than g gives.
+        let k = opts.colours;
+        let fixed = nl * nv * k * 6
+            + s * s * scanner_shading::texel::STORED * 2
+            + regions.detail.as_ref().map_or(0, |d| d.len() * 6)
+            + 65_536;
+        let fit = max.saturating_sub(fixed) / (nv * s * s).max(1);
+        if fit < groups {
+            groups = fit.max(nl.div_ceil(4)).max(1);
+            light_groups = group_lights_into(&regions.light_dirs, groups);
+        }
+    }
+    let g = (0..groups)
+        .map(|grp| light_groups.iter().filter(|&&x| x as usize == grp).count())
+        .max()
+        .unwrap_or(1);
     let members: Vec<Vec<usize>> = (0..groups)
         .map(|grp| (0..nl).filter(|&l| light_groups[l] as usize == grp).collect())
         .collect();
@@ -466,10 +494,24 @@ pub fn build_material(
         let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         Mirror { mirror: *m as u32, direction: d.map(|x| x / len) }
     };
+    let detail: Vec<[f32; 3]> = regions
+        .detail
+        .clone()
+        .unwrap_or_default()
+        .into_iter()
+        .map(|d| {
+            let r = scanner_shading::format::DETAIL_RANGE;
+            // Within the file's range after rounding to float16.
+            d.map(|x| if x.is_finite() { x.clamp(1.0 / r, r) } else { 1.0 })
+        })
+        .collect();
+    let with_detail = !detail.is_empty();
     Ok(MaterialData {
         meta: Metadata {
             format: scanner_shading::format::FORMAT.into(),
-            version: if texel_model {
+            version: if with_detail {
+                scanner_shading::format::VERSION_DETAIL
+            } else if texel_model {
                 scanner_shading::format::VERSION_TEXEL_MODEL
             } else {
                 scanner_shading::format::VERSION
@@ -496,12 +538,14 @@ pub fn build_material(
                 .collect(),
             provenance,
             texel_model,
+            detail: with_detail,
         },
         palettes,
         indices,
         light_groups,
         tables,
         texels,
+        detail,
     })
 }
 

@@ -54,6 +54,36 @@ pub fn group_lights(dirs: &[[f64; 3]], g: usize) -> Vec<u8> {
     group.into_iter().map(|x| x as u8).collect()
 }
 
+/// Exactly `count` groups (1…L) of ⌈L / count⌉ or ⌊L / count⌋ lights,
+/// the larger first, each light with its nearest ungrouped neighbours, in
+/// light order: `groups[light] = group`.
+pub fn group_lights_into(dirs: &[[f64; 3]], count: usize) -> Vec<u8> {
+    let n = dirs.len();
+    let count = count.clamp(1, n.max(1));
+    let (base, extra) = (n / count, n % count);
+    let mut group = vec![usize::MAX; n];
+    let mut next = 0;
+    for l in 0..n {
+        if group[l] != usize::MAX {
+            continue;
+        }
+        group[l] = next;
+        let quota = base + usize::from(next < extra);
+        for _ in 1..quota {
+            let dot = |a: usize| (0..3).map(|k| dirs[a][k] * dirs[l][k]).sum::<f64>();
+            let best = (0..n)
+                .filter(|&o| group[o] == usize::MAX)
+                .max_by(|&a, &b| dot(a).total_cmp(&dot(b)));
+            match best {
+                Some(o) => group[o] = next,
+                None => break,
+            }
+        }
+        next += 1;
+    }
+    group.into_iter().map(|x| x as u8).collect()
+}
+
 /// One group's palettes: `indices[texel]`, `palettes[image][colour]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GroupPalettes {
@@ -231,5 +261,21 @@ mod tests {
         let dirs = [d(10.0, 0.0), d(50.0, 0.0), d(12.0, 5.0), d(52.0, 3.0), d(30.0, 180.0)];
         assert_eq!(group_lights(&dirs, 2), vec![0, 1, 0, 1, 2]);
         assert_eq!(group_lights(&dirs, 1), vec![0, 1, 2, 3, 4]);
+    }
+
+    #[test]
+    fn lights_are_grouped_into_a_given_number_of_groups() {
+        let d = |t: f64, p: f64| {
+            let (t, p) = (t.to_radians(), p.to_radians());
+            [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+        };
+        let dirs = [d(10.0, 0.0), d(50.0, 0.0), d(12.0, 5.0), d(52.0, 3.0), d(30.0, 180.0)];
+        // The larger groups first, each light with its nearest.
+        assert_eq!(group_lights_into(&dirs, 2), vec![0, 1, 0, 1, 0]);
+        assert_eq!(group_lights_into(&dirs, 3), vec![0, 1, 0, 1, 2]);
+        assert_eq!(group_lights_into(&dirs, 5), vec![0, 1, 2, 3, 4]);
+        // Out of range: one group, or one light each.
+        assert_eq!(group_lights_into(&dirs, 0), vec![0; 5]);
+        assert_eq!(group_lights_into(&dirs, 9), vec![0, 1, 2, 3, 4]);
     }
 }

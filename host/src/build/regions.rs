@@ -14,7 +14,7 @@ use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::cell_taps;
 use super::scanread::ScanFrames;
-use super::superres::{SharpenOptions, sharpen_light};
+use super::superres::{SharpenOptions, shared_detail, sharpen_light};
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -40,6 +40,11 @@ pub struct RegionSet {
     /// `images[li * views.len() + vi]`: S × S RGB, row t = v, column s = u,
     /// pixel (s, t) at uv ((s + 0.5)/S, (t + 0.5)/S).
     pub images: Vec<Vec<[f32; 3]>>,
+    /// The detail the views resolve together beyond S × S, shared by every
+    /// pair: a 2S × 2S RGB factor (laid out like the images) that multiplies
+    /// a pair's S × S image looked up bilinearly, itself looked up
+    /// bilinearly; `None` without multi-view detail.
+    pub detail: Option<Vec<[f32; 3]>>,
 }
 
 /// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
@@ -77,12 +82,22 @@ impl RegionSet {
         [((t % s) as f64 + 0.5) / s as f64, ((t / s) as f64 + 0.5) / s as f64]
     }
 
+    /// The detail layer's factors at uv (bilinear on its 2S × 2S grid,
+    /// clamped to the sample); 1 without a layer.
+    pub fn detail_at(&self, uv: [f64; 2]) -> [f64; 3] {
+        match &self.detail {
+            Some(d) => bilinear(2 * self.size, d, uv),
+            None => [1.0; 3],
+        }
+    }
+
     /// Bilinear lookup at uv (clamped to the sample).
     pub fn sample(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
         bilinear(self.size, self.image(li, vi), uv)
     }
 
-    /// Write every region as `l{LL}-v{VV}.exr` (half float) into `dir`.
+    /// Write every region as `l{LL}-v{VV}.exr` (half float) into `dir`, and
+    /// the detail layer, if any, as `detail.exr` (2S × 2S).
     pub fn write_exr(&self, dir: &Path) -> Result<(), BuildError> {
         let out = |e: String| BuildError::Output(e);
         std::fs::create_dir_all(dir).map_err(|e| out(format!("{}: {e}", dir.display())))?;
@@ -97,7 +112,20 @@ impl RegionSet {
             let path = dir.join(format!("l{:02}-v{:02}.exr", self.lights[li], self.views[vi]));
             crate::fsutil::write_atomic(&path, &bytes)
                 .map_err(|e| out(format!("{}: {e}", path.display())))
-        })
+        })?;
+        if let Some(d) = &self.detail {
+            let f = 2 * self.size as u32;
+            let frame = crate::camera::Frame {
+                width: f,
+                height: f,
+                rgb: d.iter().flatten().copied().collect(),
+            };
+            let bytes = crate::exrio::encode_half(&frame).map_err(out)?;
+            let path = dir.join("detail.exr");
+            crate::fsutil::write_atomic(&path, &bytes)
+                .map_err(|e| out(format!("{}: {e}", path.display())))?;
+        }
+        Ok(())
     }
 }
 
@@ -178,7 +206,7 @@ pub fn extract_regions(
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
-    let per_light: Vec<Vec<Vec<[f32; 3]>>> = lights
+    let per_light: Vec<(Vec<Vec<[f32; 3]>>, Option<Vec<[f32; 3]>>)> = lights
         .par_iter()
         .zip(&light_index)
         .map(|(&l, &ci)| {
@@ -215,14 +243,17 @@ pub fn extract_regions(
                     img
                 })
                 .collect();
-            if let Some(sharpen) = &opts.sharpen {
-                sharpen_light(&samplers, &value, &f, size, sharpen, &mut images);
-            }
+            let detail = opts
+                .sharpen
+                .as_ref()
+                .and_then(|o| sharpen_light(&samplers, &value, &f, size, o, &mut images));
             progress.step();
-            Ok(images)
+            Ok((images, detail))
         })
         .collect::<Result<_, BuildError>>()?;
+    let (per_light, details): (Vec<_>, Vec<_>) = per_light.into_iter().unzip();
     Ok(RegionSet {
+        detail: shared_detail(&details, 2 * size),
         size,
         light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
         view_dirs: cal.views.iter().map(|v| v.direction).collect(),

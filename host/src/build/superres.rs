@@ -414,70 +414,29 @@ fn blur(img: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
     pass(&pass(img, true), false)
 }
 
-/// Give the region images of one light (`images[view]`, S × S) the detail
-/// that all `views`' pixels of `frame` hold together (see the module
-/// documentation). Leaves them as they are if no pixel is usable.
-pub fn sharpen_light(
-    samplers: &[ViewSampler],
-    value: &PixelValue<'_>,
-    frame: &Frame,
+/// Per texel and channel of an `size`² all-views image `x` solved as the
+/// mean of two `halves`, the share of its detail (against the views' mean
+/// image `mean`) that both halves hold: Wiener's gain, signal over signal
+/// plus noise, the signal's power estimated by the product of the halves'
+/// log detail, whose noises are independent. `scale` widens the local
+/// means (1 on the S grid; 4, twice the σ in texels, on the 2S one) so
+/// that they cover the same area of the sample on either grid.
+fn agreed_share(
+    x: &[[f32; 3]],
+    halves: &[Vec<[f32; 3]>; 2],
+    mean: &[[f32; 3]],
     size: usize,
-    opts: &SharpenOptions,
-    images: &mut [Vec<[f32; 3]>],
-) {
-    assert_eq!(samplers.len(), images.len(), "one region image per view");
-    if images.is_empty() {
-        return;
-    }
-    let mut rows: Vec<Rows> = samplers
-        .iter()
-        .enumerate()
-        .map(|(vi, v)| view_rows(vi, v, value, frame, size, opts.points))
-        .collect();
-    rows.retain(|r| r.len() > 0);
-    // Two halves, each solved alone: their agreement tells the detail from
-    // the noise. Fewer than two views: nothing to check it by.
-    if rows.len() < 2 {
-        return;
-    }
-    let typical = rows.iter().map(Rows::len).sum::<usize>() as f32 / rows.len() as f32;
-    for r in &mut rows {
-        r.scale = typical / r.len() as f32;
-    }
+    scale: usize,
+    level: [f32; 3],
+) -> Vec<[f32; 3]> {
     let n = size * size;
-    let mut mean = vec![[0.0f32; 3]; n];
-    for img in images.iter() {
-        for (m, v) in mean.iter_mut().zip(img) {
-            for k in 0..3 {
-                m[k] += v[k] / images.len() as f32;
-            }
-        }
-    }
-    let half = |odd: usize| -> Option<Vec<[f32; 3]>> {
-        let h: Vec<&Rows> = rows.iter().skip(odd).step_by(2).collect();
-        solve(&h, size, opts, &mean)
+    let local = |img: &[[f32; 3]], passes: usize| {
+        (0..scale * passes).fold(img.to_vec(), |a, _| blur(&a, size))
     };
-    let (Some(xa), Some(xb)) = (half(0), half(1)) else {
-        return;
-    };
-    let x: Vec<[f32; 3]> =
-        xa.iter().zip(&xb).map(|(a, b)| std::array::from_fn(|k| 0.5 * (a[k] + b[k]))).collect();
-    // Where the views do not agree on one image (a highlight or a sheen
-    // that moves with the view: X explains little of their pixels), X's
-    // detail is not the sample's; it is taken only where X explains them.
-    let all: Vec<&Rows> = rows.iter().collect();
-    let mut trust: Vec<[f32; 3]> = misfit(&all, size, &x)
-        .iter()
-        .map(|e| e.map(|e| ((MISFIT_NONE - e) / (MISFIT_NONE - MISFIT_FULL)).clamp(0.0, 1.0)))
-        .collect();
-    let level: [f32; 3] = std::array::from_fn(|k| {
-        (mean.iter().map(|m| m[k] as f64).sum::<f64>() / n as f64) as f32 * 1e-3
-    });
-    let local = |img: &[[f32; 3]]| (0..LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, size));
-    let ml = local(&mean);
+    let ml = local(mean, LOCAL_PASSES);
     // The detail factor of an all-views image: (x / m) · (⟨m⟩ / ⟨x⟩).
     let ratio_of = |x: &[[f32; 3]]| -> Vec<[f32; 3]> {
-        let xl = local(x);
+        let xl = local(x, LOCAL_PASSES);
         (0..n)
             .map(|t| {
                 std::array::from_fn(|k| {
@@ -492,21 +451,135 @@ pub fn sharpen_light(
             })
             .collect()
     };
-    let ratio = ratio_of(&x);
-    // Only the detail the halves agree on: per texel and channel, the
-    // share of the detail's power that both halves hold (Wiener's gain,
-    // signal over signal plus noise, with the signal's power estimated by
-    // the product of the halves' log detail, whose noises are independent).
-    let (ra, rb) = (ratio_of(&xa), ratio_of(&xb));
-    let smooth = |img: Vec<[f32; 3]>| (0..GAIN_PASSES).fold(img, |a, _| blur(&a, size));
-    let agreed: Vec<[f32; 3]> =
-        smooth((0..n).map(|t| std::array::from_fn(|k| ra[t][k].ln() * rb[t][k].ln())).collect());
-    let power: Vec<[f32; 3]> = smooth(ratio.iter().map(|r| r.map(|r| r.ln().powi(2))).collect());
-    for ((tr, a), p) in trust.iter_mut().zip(&agreed).zip(&power) {
-        for k in 0..3 {
-            tr[k] *= if p[k] > 0.0 { (a[k] / p[k]).clamp(0.0, 1.0) } else { 0.0 };
+    let ratio = ratio_of(x);
+    let (ra, rb) = (ratio_of(&halves[0]), ratio_of(&halves[1]));
+    let agreed = local(
+        &(0..n).map(|t| std::array::from_fn(|k| ra[t][k].ln() * rb[t][k].ln())).collect::<Vec<_>>(),
+        GAIN_PASSES,
+    );
+    let power =
+        local(&ratio.iter().map(|r| r.map(|r| r.ln().powi(2))).collect::<Vec<_>>(), GAIN_PASSES);
+    agreed
+        .iter()
+        .zip(&power)
+        .map(|(a, p)| {
+            std::array::from_fn(|k| if p[k] > 0.0 { (a[k] / p[k]).clamp(0.0, 1.0) } else { 0.0 })
+        })
+        .collect()
+}
+
+/// An S × S image looked up bilinearly at the 2S × 2S grid's texel centres
+/// (what the material's S × S lookups give there).
+fn double(img: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
+    let f = 2 * size;
+    (0..f * f)
+        .map(|t| {
+            let uv = [((t % f) as f64 + 0.5) / f as f64, ((t / f) as f64 + 0.5) / f as f64];
+            super::regions::bilinear(size, img, uv).map(|v| v as f32)
+        })
+        .collect()
+}
+
+/// The views' rows on a `size`² grid, each view counting alike (`None`:
+/// fewer than two views with usable pixels, nothing to check the detail
+/// by).
+fn light_rows(
+    samplers: &[ViewSampler],
+    value: &PixelValue<'_>,
+    frame: &Frame,
+    size: usize,
+    points: usize,
+) -> Option<Vec<Rows>> {
+    let mut rows: Vec<Rows> = samplers
+        .iter()
+        .enumerate()
+        .map(|(vi, v)| view_rows(vi, v, value, frame, size, points))
+        .collect();
+    rows.retain(|r| r.len() > 0);
+    if rows.len() < 2 {
+        return None;
+    }
+    let typical = rows.iter().map(Rows::len).sum::<usize>() as f32 / rows.len() as f32;
+    for r in &mut rows {
+        r.scale = typical / r.len() as f32;
+    }
+    Some(rows)
+}
+
+/// X solved from two interleaved halves of the views (`rows`) on a
+/// `size`² grid, starting from `start`: (X, [X_A, X_B]) and each texel's
+/// trust — the share of X's detail taken: how well X explains the pixels
+/// that cover it ([`misfit`]), times the share both halves agree on
+/// ([`agreed_share`] against `mean`, the views' mean image on that grid).
+fn solve_halves(
+    rows: &[Rows],
+    size: usize,
+    opts: &SharpenOptions,
+    start: &[[f32; 3]],
+    mean: &[[f32; 3]],
+    scale: usize,
+    level: [f32; 3],
+) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+    let half = |odd: usize| -> Option<Vec<[f32; 3]>> {
+        let h: Vec<&Rows> = rows.iter().skip(odd).step_by(2).collect();
+        solve(&h, size, opts, start)
+    };
+    let halves = [half(0)?, half(1)?];
+    let x: Vec<[f32; 3]> = halves[0]
+        .iter()
+        .zip(&halves[1])
+        .map(|(a, b)| std::array::from_fn(|k| 0.5 * (a[k] + b[k])))
+        .collect();
+    // Where the views do not agree on one image (a highlight or a sheen
+    // that moves with the view: X explains little of their pixels), X's
+    // detail is not the sample's; it is taken only where X explains them.
+    // Nor is all of it the sample's where they do: the halves' agreement.
+    let all: Vec<&Rows> = rows.iter().collect();
+    let gain = agreed_share(&x, &halves, mean, size, scale, level);
+    let trust = misfit(&all, size, &x)
+        .iter()
+        .zip(&gain)
+        .map(|(e, g)| {
+            std::array::from_fn(|k| {
+                ((MISFIT_NONE - e[k]) / (MISFIT_NONE - MISFIT_FULL)).clamp(0.0, 1.0) * g[k]
+            })
+        })
+        .collect();
+    Some((x, trust))
+}
+
+/// Give the region images of one light (`images[view]`, S × S) the detail
+/// that all `views`' pixels of `frame` hold together (see the module
+/// documentation), and return the light's log detail beyond S × S
+/// ([`fine_detail`]). `None`, images untouched: fewer than two views with
+/// usable pixels.
+pub fn sharpen_light(
+    samplers: &[ViewSampler],
+    value: &PixelValue<'_>,
+    frame: &Frame,
+    size: usize,
+    opts: &SharpenOptions,
+    images: &mut [Vec<[f32; 3]>],
+) -> Option<Vec<[f32; 3]>> {
+    assert_eq!(samplers.len(), images.len(), "one region image per view");
+    if images.is_empty() {
+        return None;
+    }
+    let rows = light_rows(samplers, value, frame, size, opts.points)?;
+    let n = size * size;
+    let mut mean = vec![[0.0f32; 3]; n];
+    for img in images.iter() {
+        for (m, v) in mean.iter_mut().zip(img) {
+            for k in 0..3 {
+                m[k] += v[k] / images.len() as f32;
+            }
         }
     }
+    let level: [f32; 3] = std::array::from_fn(|k| {
+        (mean.iter().map(|m| m[k] as f64).sum::<f64>() / n as f64) as f32 * 1e-3
+    });
+    let (x, trust) = solve_halves(&rows, size, opts, &mean, &mean, 1, level)?;
+    let local = |img: &[[f32; 3]]| (0..LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, size));
     // Each view takes the detail its own pixels and resampling lose: X less
     // X as this view would see it, in proportion to the view's level.
     for r in &rows {
@@ -525,6 +598,95 @@ pub fn sharpen_light(
             }
         }
     }
+    drop(rows);
+    fine_detail(samplers, value, frame, size, opts, &x, &mean, level)
+}
+
+/// The light's detail beyond S × S, for the detail layer: X solved again on
+/// the 2S × 2S grid (from X at S), and per texel and channel
+/// t · ln((X / X_S) · (⟨X_S⟩ / ⟨X⟩)), X_S the S × S solution looked up
+/// bilinearly on the 2S grid, ⟨·⟩ local means (σ ≈ 5.6 texels of 2S), t the
+/// trust on that grid. The S × S images do not take X at 2S: there each view's pixels
+/// alias its finest patterns into their levels, so the views' different
+/// levels (a sheen) bend it.
+#[allow(clippy::too_many_arguments)]
+fn fine_detail(
+    samplers: &[ViewSampler],
+    value: &PixelValue<'_>,
+    frame: &Frame,
+    size: usize,
+    opts: &SharpenOptions,
+    x: &[[f32; 3]],
+    mean: &[[f32; 3]],
+    level: [f32; 3],
+) -> Option<Vec<[f32; 3]>> {
+    let fine = 2 * size;
+    let rows = light_rows(samplers, value, frame, fine, opts.points)?;
+    let (xf, trust) =
+        solve_halves(&rows, fine, opts, &double(x, size), &double(mean, size), 4, level)?;
+    // Against X at S looked up there, each over its own local level (the
+    // two solves need not agree on it).
+    let coarse = double(x, size);
+    let local = |img: &[[f32; 3]]| (0..4 * LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, fine));
+    let (fl, cl) = (local(&xf), local(&coarse));
+    Some(
+        (0..fine * fine)
+            .map(|t| {
+                std::array::from_fn(|k| {
+                    let (f, c) = (xf[t][k] * cl[t][k], coarse[t][k] * fl[t][k]);
+                    if f > level[k] && c > level[k] {
+                        trust[t][k] * (f / c).clamp(1.0 / MAX_RATIO, MAX_RATIO).ln()
+                    } else {
+                        0.0
+                    }
+                })
+            })
+            .collect(),
+    )
+}
+
+/// The detail layer shared by every pair, from the lights' log detail
+/// ([`sharpen_light`]; a light without one counts as no detail): their
+/// mean, in the share that the two halves of the lights (alternate lights)
+/// agree on — Wiener's gain again, now against what differs between lights
+/// (a shadow's or a sheen's direction, each light's own noise) — and
+/// exponentiated. `None` if no light has one.
+pub fn shared_detail(details: &[Option<Vec<[f32; 3]>>], fine: usize) -> Option<Vec<[f32; 3]>> {
+    if details.iter().all(Option::is_none) {
+        return None;
+    }
+    let mean_of = |odd: Option<usize>| -> Vec<[f32; 3]> {
+        let mut sum = vec![[0.0f32; 3]; fine * fine];
+        let mut n = 0usize;
+        for (l, d) in details.iter().enumerate() {
+            if odd.is_some_and(|o| l % 2 != o) {
+                continue;
+            }
+            n += 1;
+            for (s, v) in sum.iter_mut().zip(d.iter().flatten()) {
+                for k in 0..3 {
+                    s[k] += v[k];
+                }
+            }
+        }
+        sum.into_iter().map(|s| s.map(|v| v / n.max(1) as f32)).collect()
+    };
+    let (d, da, db) = (mean_of(None), mean_of(Some(0)), mean_of(Some(1)));
+    let smooth = |img: Vec<[f32; 3]>| (0..4 * GAIN_PASSES).fold(img, |a, _| blur(&a, fine));
+    let agreed =
+        smooth(da.iter().zip(&db).map(|(a, b)| std::array::from_fn(|k| a[k] * b[k])).collect());
+    let power = smooth(d.iter().map(|v| v.map(|v| v * v)).collect());
+    Some(
+        (0..fine * fine)
+            .map(|t| {
+                std::array::from_fn(|k| {
+                    let (a, p) = (agreed[t][k], power[t][k]);
+                    let g = if p > 0.0 { (a / p).clamp(0.0, 1.0) } else { 0.0 };
+                    (g * d[t][k]).exp()
+                })
+            })
+            .collect(),
+    )
 }
 
 #[cfg(test)]
@@ -664,6 +826,59 @@ mod tests {
         // 2.26 dB; 2.57 if the detail were taken whether or not two halves
         // of 6 views agree on it (the noise test below is why it is not).
         assert!(db >= 1.8, "{db:.2} dB");
+    }
+
+    #[test]
+    fn the_detail_layer_holds_what_s_cannot() {
+        // Looked up between the S × S texel centres (at the 2S grid's), the
+        // images hold a bilinear blend; the layer restores the sample there.
+        let (hs, samplers) = views();
+        let f = frame(&hs, pattern, |_| 1.0);
+        let mut images = own_view(&samplers, &f);
+        let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
+        let log =
+            sharpen_light(&samplers, &identity, &f, S, &SharpenOptions::default(), &mut images)
+                .expect("a layer");
+        let layer = shared_detail(&[Some(log.clone()), Some(log)], 2 * S).expect("a layer");
+        let fine = 2 * S;
+        let (mut with, mut without, mut n) = (0.0, 0.0, 0usize);
+        for img in &images {
+            for t in 0..fine * fine {
+                let (x, y) = (t % fine, t / fine);
+                if x < 4 || y < 4 || x + 4 >= fine || y + 4 >= fine {
+                    continue;
+                }
+                let uv = [(x as f64 + 0.5) / fine as f64, (y as f64 + 0.5) / fine as f64];
+                let v = super::super::regions::bilinear(S, img, uv);
+                let w = pattern(uv);
+                for c in 0..3 {
+                    without += (v[c] - w[c] as f64).powi(2);
+                    with += (v[c] * layer[t][c] as f64 - w[c] as f64).powi(2);
+                    n += 1;
+                }
+            }
+        }
+        let (with, without) = ((with / n as f64).sqrt(), (without / n as f64).sqrt());
+        let db = 20.0 * (without / with).log10();
+        println!("at the 2S grid: images {without:.4}, × the layer {with:.4} RMS: {db:.2} dB");
+        assert!(db >= 0.5, "{db:.2} dB");
+    }
+
+    #[test]
+    fn lights_that_disagree_on_the_detail_leave_the_layer_flat() {
+        // Two lights whose detail is opposite (a shadow that moves with the
+        // light): their halves do not agree, the layer stays near 1.
+        let n = 16 * 16;
+        let a: Vec<[f32; 3]> = (0..n).map(|t| [if t % 2 == 0 { 0.3 } else { -0.3 }; 3]).collect();
+        let b: Vec<[f32; 3]> = a.iter().map(|v| v.map(|x| -x)).collect();
+        let flat = shared_detail(&[Some(a.clone()), Some(b)], 16).unwrap();
+        assert!(flat.iter().flatten().all(|&x| (x - 1.0).abs() < 1e-6), "{:?}", &flat[..2]);
+        // Two that agree keep it.
+        let kept = shared_detail(&[Some(a.clone()), Some(a.clone())], 16).unwrap();
+        for (k, v) in kept.iter().zip(&a) {
+            assert!((k[0].ln() - v[0]).abs() < 1e-5, "{} against {}", k[0].ln(), v[0]);
+        }
+        assert!(shared_detail(&[None, None], 16).is_none());
     }
 
     #[test]

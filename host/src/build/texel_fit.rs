@@ -416,6 +416,7 @@ mod tests {
             viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1200.0)).collect(),
             sample_mm: 25.4,
             images: Vec::new(),
+            detail: None,
         };
         set.images = (0..18 * 18)
             .map(|p| {

@@ -117,6 +117,10 @@ enum Command {
         /// Lights sharing one index image (1…4; each light keeps its own palette).
         #[arg(long, default_value_t = 2)]
         lights_per_index: usize,
+        /// Largest file, MB (10⁶ bytes; 0: no limit): where the file would be
+        /// larger, more lights share an index image (up to 4).
+        #[arg(long, default_value_t = 16.0)]
+        max_size_mb: f64,
         /// How directions between the captured ones are shaded.
         #[arg(long, value_parser = ["default", "patent"], default_value = "default")]
         interpolation: String,
@@ -452,6 +456,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             output,
             colours,
             lights_per_index,
+            max_size_mb,
             interpolation,
             patent_columns,
             patent_rows,
@@ -467,9 +472,16 @@ fn run(cli: Cli) -> Result<(), Failure> {
             } else {
                 scanner_shading::Interpolation::Default
             };
+            if !(max_size_mb.is_finite() && max_size_mb >= 0.0) {
+                return Err(Failure(
+                    2,
+                    anyhow::anyhow!("--max-size-mb {max_size_mb}: a size in MB, or 0 for no limit"),
+                ));
+            }
             let opts = crate::build::material::MaterialOptions {
                 colours,
                 lights_per_index,
+                max_bytes: (max_size_mb > 0.0).then_some((max_size_mb * 1e6) as usize),
                 interpolation,
                 texel_model: texel_model.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?,
                 ..Default::default()
