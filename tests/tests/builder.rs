@@ -186,19 +186,23 @@ fn bad_inputs_exit_3_and_write_nothing() {
     };
     let (code, err) = regions_with(&d("regions"), &[]);
     assert_eq!(code, Some(0), "{err}");
-    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
+    // 3 × 40 region images and the detail layer.
+    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40 + 1);
+    assert!(dir.path().join("regions/detail.exr").is_file());
     // Its own output is replaced whole; a directory holding anything else
     // (a user's file, the scan itself, the folder of the inputs) is refused
     // before any work, exit 4, and left as it was.
     let regions_to = |out: &str| regions_with(out, &[]);
     assert_eq!(regions_to(&d("regions")).0, Some(0));
-    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40);
+    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40 + 1);
     // `--detail own-view`: each view's resampling alone, other images.
     let with_detail = |detail: &str, out: &str| regions_with(out, &["--detail", detail]);
     assert_eq!(with_detail("own-view", &d("regions-own")).0, Some(0));
+    assert_eq!(std::fs::read_dir(d("regions-own")).unwrap().count(), 3 * 40, "no layer");
     let differ = std::fs::read_dir(d("regions"))
         .unwrap()
         .map(|e| e.unwrap().file_name())
+        .filter(|n| n != "detail.exr")
         .filter(|n| {
             std::fs::read(dir.path().join("regions").join(n)).unwrap()
                 != std::fs::read(dir.path().join("regions-own").join(n)).unwrap()

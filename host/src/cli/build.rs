@@ -294,13 +294,16 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
 }
 
-/// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more).
+/// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more)
+/// or the detail layer's `detail.exr`.
 fn is_region_file(name: &str) -> bool {
     let digits = |s: &str| s.len() >= 2 && s.bytes().all(|b| b.is_ascii_digit());
-    name.strip_prefix('l')
-        .and_then(|r| r.strip_suffix(".exr"))
-        .and_then(|r| r.split_once("-v"))
-        .is_some_and(|(l, v)| digits(l) && digits(v))
+    name == "detail.exr"
+        || name
+            .strip_prefix('l')
+            .and_then(|r| r.strip_suffix(".exr"))
+            .and_then(|r| r.split_once("-v"))
+            .is_some_and(|(l, v)| digits(l) && digits(v))
 }
 
 /// What `scanner build` made.
