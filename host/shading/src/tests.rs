@@ -690,7 +690,7 @@ fn bad_detail_layers_are_refused() {
         .replace("\"detail\":true", "")
         .replace(",}", "}")
         .replace("\"version\":3", "\"version\":1");
-    let tensors: Vec<(String, safetensors::tensor::TensorView)> =
+    let tensors: Vec<(String, safetensors::tensor::TensorView<'_>)> =
         st.tensors().into_iter().collect();
     let info = std::collections::HashMap::from([(format::METADATA_KEY.to_string(), json)]);
     let bytes = safetensors::serialize(tensors, Some(info)).unwrap();

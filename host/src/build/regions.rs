@@ -14,7 +14,7 @@ use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::cell_taps;
 use super::scanread::ScanFrames;
-use super::superres::{SharpenOptions, shared_detail, sharpen_light};
+use super::superres::{Image, SharpenOptions, shared_detail, sharpen_light};
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -206,7 +206,7 @@ pub fn extract_regions(
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
-    let per_light: Vec<(Vec<Vec<[f32; 3]>>, Option<Vec<[f32; 3]>>)> = lights
+    let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
         .par_iter()
         .zip(&light_index)
         .map(|(&l, &ci)| {

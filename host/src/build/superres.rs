@@ -167,6 +167,9 @@ fn own_view_image(r: &Rows, sampler: &ViewSampler, x: &[[f32; 3]], size: usize) 
         .collect()
 }
 
+/// An S × S (or 2S × 2S) RGB image, row-major.
+pub type Image = Vec<[f32; 3]>;
+
 /// What turns view `vi`'s frame value at uv into f · cos θi (`None`: not
 /// usable there, e.g. unlit): the region images' own normalisation.
 pub type PixelValue<'a> = dyn Fn(usize, [f64; 2], [f64; 3]) -> Option<[f32; 3]> + Sync + 'a;
@@ -519,7 +522,7 @@ fn solve_halves(
     mean: &[[f32; 3]],
     scale: usize,
     level: [f32; 3],
-) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+) -> Option<(Image, Image)> {
     let half = |odd: usize| -> Option<Vec<[f32; 3]>> {
         let h: Vec<&Rows> = rows.iter().skip(odd).step_by(2).collect();
         solve(&h, size, opts, start)
@@ -843,7 +846,7 @@ mod tests {
         let fine = 2 * S;
         let (mut with, mut without, mut n) = (0.0, 0.0, 0usize);
         for img in &images {
-            for t in 0..fine * fine {
+            for (t, d) in layer.iter().enumerate() {
                 let (x, y) = (t % fine, t / fine);
                 if x < 4 || y < 4 || x + 4 >= fine || y + 4 >= fine {
                     continue;
@@ -853,7 +856,7 @@ mod tests {
                 let w = pattern(uv);
                 for c in 0..3 {
                     without += (v[c] - w[c] as f64).powi(2);
-                    with += (v[c] * layer[t][c] as f64 - w[c] as f64).powi(2);
+                    with += (v[c] * d[c] as f64 - w[c] as f64).powi(2);
                     n += 1;
                 }
             }
