@@ -365,11 +365,20 @@ pub fn build_cmd(
     crate::fsutil::write_atomic(output, &bytes)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
     let built = started.elapsed().as_secs_f64();
+    if let Some(max) = opts.max_bytes.filter(|&m| bytes.len() > m) {
+        eprintln!(
+            "warning: {} is {:.2} MB, over --max-size-mb {:.2}: at most 4 lights share an index \
+             image",
+            output.display(),
+            bytes.len() as f64 / 1e6,
+            max as f64 / 1e6
+        );
+    }
     let (m, r) = captured_pair_answers(&material, &regions, &data.texels);
     let (psnr, _, _) = material_psnr(&m, &r);
     println!(
-        "{}: {} lights × {} views at {}² px, {} colours ({} lights per index image), {} \
-         interpolation (half-vector shift {}{}), {:.1} MB, in {built:.1} s; palettes at the \
+        "{}: {} lights × {} views at {}² px, {} colours (up to {} lights per index image), {} \
+         interpolation (half-vector shift {}{}{}), {:.1} MB, in {built:.1} s; palettes at the \
          captured pairs: {psnr:.1} dB against the region images",
         output.display(),
         regions.lights.len(),
@@ -384,6 +393,7 @@ pub fn build_cmd(
         },
         material.metadata().half_vector_shift,
         if material.metadata().texel_model { ", texel model" } else { "" },
+        if material.metadata().detail { ", detail layer" } else { "" },
         bytes.len() as f64 / 1e6,
     );
     Ok(Built { material, regions })
