@@ -431,10 +431,15 @@ fn bad_texel_models_are_refused() {
     let (_, header) = safetensors::SafeTensors::read_metadata(&v1).unwrap();
     assert!(!header.metadata().as_ref().unwrap()[format::METADATA_KEY].contains("texel"));
     // Damage anywhere in a version-2 file: an error or a material, never a panic.
-    let good = material_with_model().to_bytes().unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    damage_never_panics(&material_with_model().to_bytes().unwrap(), 11);
+}
+
+/// 300 single-bit flips anywhere in `good`: each an error or a material
+/// that shades finite values ≥ 0, never a panic.
+fn damage_never_panics(good: &[u8], seed: u64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
     for _ in 0..300 {
-        let mut b = good.clone();
+        let mut b = good.to_vec();
         let i = rng.random_range(0..b.len());
         b[i] ^= 1 << rng.random_range(0..8);
         if let Ok(m) = Material::from_bytes(&b) {
@@ -697,16 +702,7 @@ fn bad_detail_layers_are_refused() {
     let msg = Material::from_bytes(&bytes).unwrap_err().to_string();
     assert!(msg.contains("unexpected tensor `detail`"), "{msg}");
     // Damage anywhere in a version-3 file: an error or a material, never a panic.
-    let mut rng = ChaCha8Rng::seed_from_u64(12);
-    for _ in 0..300 {
-        let mut b = good.clone();
-        let i = rng.random_range(0..b.len());
-        b[i] ^= 1 << rng.random_range(0..8);
-        if let Ok(m) = Material::from_bytes(&b) {
-            let v = m.eval([0.3, 0.6], [0.1, 0.2, 0.97], [-0.3, 0.1, 0.95]);
-            assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "{v:?}");
-        }
-    }
+    damage_never_panics(&good, 12);
 }
 
 #[test]

@@ -31,27 +31,7 @@ use rand_chacha::ChaCha8Rng;
 /// Groups of up to `g` lights, each light with its nearest ungrouped
 /// neighbours, in light order: `groups[light] = group`.
 pub fn group_lights(dirs: &[[f64; 3]], g: usize) -> Vec<u8> {
-    let g = g.max(1);
-    let mut group = vec![usize::MAX; dirs.len()];
-    let mut next = 0;
-    for l in 0..dirs.len() {
-        if group[l] != usize::MAX {
-            continue;
-        }
-        group[l] = next;
-        for _ in 1..g {
-            let dot = |a: usize| (0..3).map(|k| dirs[a][k] * dirs[l][k]).sum::<f64>();
-            let best = (0..dirs.len())
-                .filter(|&o| group[o] == usize::MAX)
-                .max_by(|&a, &b| dot(a).total_cmp(&dot(b)));
-            match best {
-                Some(o) => group[o] = next,
-                None => break,
-            }
-        }
-        next += 1;
-    }
-    group.into_iter().map(|x| x as u8).collect()
+    grouped(dirs, |_| g.max(1))
 }
 
 /// Exactly `count` groups (1…L) of ⌈L / count⌉ or ⌊L / count⌋ lights,
@@ -61,17 +41,22 @@ pub fn group_lights_into(dirs: &[[f64; 3]], count: usize) -> Vec<u8> {
     let n = dirs.len();
     let count = count.clamp(1, n.max(1));
     let (base, extra) = (n / count, n % count);
-    let mut group = vec![usize::MAX; n];
+    grouped(dirs, |group| base + usize::from(group < extra))
+}
+
+/// Lights in order, each ungrouped one starting a group of up to
+/// `quota(group)` with its nearest ungrouped neighbours.
+fn grouped(dirs: &[[f64; 3]], quota: impl Fn(usize) -> usize) -> Vec<u8> {
+    let mut group = vec![usize::MAX; dirs.len()];
     let mut next = 0;
-    for l in 0..n {
+    for l in 0..dirs.len() {
         if group[l] != usize::MAX {
             continue;
         }
         group[l] = next;
-        let quota = base + usize::from(next < extra);
-        for _ in 1..quota {
+        for _ in 1..quota(next) {
             let dot = |a: usize| (0..3).map(|k| dirs[a][k] * dirs[l][k]).sum::<f64>();
-            let best = (0..n)
+            let best = (0..dirs.len())
                 .filter(|&o| group[o] == usize::MAX)
                 .max_by(|&a, &b| dot(a).total_cmp(&dot(b)));
             match best {
@@ -252,24 +237,25 @@ mod tests {
         assert_eq!(palettise(&[&ramp], 64, 2), p);
     }
 
-    #[test]
-    fn lights_are_grouped_with_their_nearest() {
+    /// Five lights: two pairs of neighbours and one apart.
+    fn five_lights() -> [[f64; 3]; 5] {
         let d = |t: f64, p: f64| {
-            let (t, p) = (t.to_radians(), p.to_radians());
+            let (t, p) = (f64::to_radians(t), f64::to_radians(p));
             [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
         };
-        let dirs = [d(10.0, 0.0), d(50.0, 0.0), d(12.0, 5.0), d(52.0, 3.0), d(30.0, 180.0)];
+        [d(10.0, 0.0), d(50.0, 0.0), d(12.0, 5.0), d(52.0, 3.0), d(30.0, 180.0)]
+    }
+
+    #[test]
+    fn lights_are_grouped_with_their_nearest() {
+        let dirs = five_lights();
         assert_eq!(group_lights(&dirs, 2), vec![0, 1, 0, 1, 2]);
         assert_eq!(group_lights(&dirs, 1), vec![0, 1, 2, 3, 4]);
     }
 
     #[test]
     fn lights_are_grouped_into_a_given_number_of_groups() {
-        let d = |t: f64, p: f64| {
-            let (t, p) = (t.to_radians(), p.to_radians());
-            [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
-        };
-        let dirs = [d(10.0, 0.0), d(50.0, 0.0), d(12.0, 5.0), d(52.0, 3.0), d(30.0, 180.0)];
+        let dirs = five_lights();
         // The larger groups first, each light with its nearest.
         assert_eq!(group_lights_into(&dirs, 2), vec![0, 1, 0, 1, 0]);
         assert_eq!(group_lights_into(&dirs, 3), vec![0, 1, 0, 1, 2]);
