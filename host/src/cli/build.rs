@@ -368,7 +368,7 @@ pub fn build_cmd(
     if let Some(max) = opts.max_bytes.filter(|&m| bytes.len() > m) {
         eprintln!(
             "warning: {} is {:.2} MB, over --max-size-mb {:.2}: at most 4 lights share an index \
-             image",
+             image, and the patent's cell tables are not shrunk",
             output.display(),
             bytes.len() as f64 / 1e6,
             max as f64 / 1e6
