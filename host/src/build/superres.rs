@@ -557,10 +557,11 @@ fn light_rows(
 }
 
 /// X solved from two interleaved halves of the views (`rows`) on a
-/// `size`² grid, starting from `start`: (X, [X_A, X_B]) and each texel's
-/// trust — the share of X's detail taken: how well X explains the pixels
+/// `size`² grid (X the mean of the halves' solutions X_A and X_B),
+/// starting from `start`: (X, each texel's trust — the share of X's detail
+/// taken: how well X explains the pixels
 /// that cover it ([`misfit`]), times the share both halves agree on
-/// ([`agreed_share`] against `mean`, the views' mean image on that grid).
+/// ([`agreed_share`] against `mean`, the views' mean image on that grid)).
 fn solve_halves(
     rows: &[Rows],
     size: usize,
