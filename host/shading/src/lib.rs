@@ -335,7 +335,7 @@ impl Material {
                         }
                     }
                 }
-                let d = self.detail_at(uv);
+                let d = self.detail_at(&Footprint::on(2 * self.size, uv));
                 std::array::from_fn(|k| acc[k] * wi[2] * d[k])
             }
         }
@@ -406,29 +406,18 @@ impl Material {
         if !uv[0].is_finite() || !uv[1].is_finite() {
             return None;
         }
-        let s = self.size;
-        let (x0, x1, tx) = taps(s, uv[0] - uv[0].floor());
-        let (y0, y1, ty) = taps(s, uv[1] - uv[1].floor());
-        let texel = [y0 * s + x0, y0 * s + x1, y1 * s + x0, y1 * s + x1].map(|t| t as u32);
-        let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
-        Some(Footprint { texel, w })
+        Some(Footprint::on(self.size, uv))
     }
 
-    /// The detail layer's factors at uv (bilinear on its 2S × 2S grid, uv
-    /// wrapped like [`Self::texels_at`]); 1 without a layer.
+    /// The detail layer's factors at its footprint `at` (on its 2S × 2S
+    /// grid); 1 without a layer.
     #[inline(always)]
-    fn detail_at(&self, uv: [f32; 2]) -> [f32; 3] {
+    fn detail_at(&self, at: &Footprint) -> [f32; 3] {
         if self.detail.is_empty() {
             return [1.0; 3];
         }
-        let f = 2 * self.size;
-        let (x0, x1, tx) = taps(f, uv[0] - uv[0].floor());
-        let (y0, y1, ty) = taps(f, uv[1] - uv[1].floor());
-        let d = |x: usize, y: usize| self.detail[y * f + x];
-        let (a, b, c, e) = (d(x0, y0), d(x1, y0), d(x0, y1), d(x1, y1));
-        std::array::from_fn(|k| {
-            (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + e[k] * tx) * ty
-        })
+        let d = at.texel.map(|t| self.detail[t as usize]);
+        std::array::from_fn(|k| (0..4).map(|i| at.w[i] * d[i][k]).sum())
     }
 
     /// Where (view, light)'s index bytes and palette start.
@@ -507,11 +496,9 @@ impl Material {
             self.look_up(wi, wo, &mut s.dirs, &at);
         }
         s.at = at;
-        s.uv = uv;
         if s.dirs.pairs > 0 && !self.detail.is_empty() {
-            let f = 2 * self.size;
-            let (x, y) = (taps(f, uv[0] - uv[0].floor()).0, taps(f, uv[1] - uv[1].floor()).0);
-            prefetch(&self.detail[y * f + x]);
+            s.fine = Footprint::on(2 * self.size, uv);
+            prefetch(&self.detail[s.fine.texel[0] as usize]);
         }
         if s.dirs.pairs > 0 && !self.texels.is_empty() {
             for t in at.texel {
@@ -552,7 +539,7 @@ impl Material {
         let Directions::Triangles { light_dirs, view_dirs, .. } = &self.directions else {
             unreachable!("staged only with the default interpolation")
         };
-        let d = self.detail_at(s.uv);
+        let d = self.detail_at(&s.fine);
         if self.texels.is_empty() {
             return std::array::from_fn(|c| acc[c] * s.dirs.wi[2] * d[c]);
         }
@@ -622,14 +609,27 @@ struct Footprint {
     w: [f32; 4],
 }
 
+impl Footprint {
+    /// The bilinear footprint of a finite uv (wrapped into [0, 1)) on an
+    /// n × n grid of texel centres.
+    #[inline(always)]
+    fn on(n: usize, uv: [f32; 2]) -> Footprint {
+        let (x0, x1, tx) = taps(n, uv[0] - uv[0].floor());
+        let (y0, y1, ty) = taps(n, uv[1] - uv[1].floor());
+        let texel = [y0 * n + x0, y0 * n + x1, y1 * n + x0, y1 * n + x1].map(|t| t as u32);
+        let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
+        Footprint { texel, w }
+    }
+}
+
 /// A query between the stages of the default interpolation.
 #[derive(Debug, Clone, Copy, Default)]
 struct Staged {
     /// Its unit directions and pairs (none: black).
     dirs: Lookup,
     at: Footprint,
-    /// The query's uv (for the detail layer).
-    uv: [f32; 2],
+    /// The uv's footprint on the detail layer's 2S × 2S grid (with a layer).
+    fine: Footprint,
     /// Each pair's palette indices at the footprint.
     idx: [[u8; 4]; MAX_PAIRS],
 }
