@@ -91,22 +91,32 @@ fn shade(c: &mut Criterion) {
             black_box(&out);
         })
     });
-    group.bench_function("default interpolation with a texel model and a detail layer", |b| {
-        let shape =
-            synthetic::Shape { mirrors: 40, resolution: 128, colours: 256, lights_per_index: 2 };
-        let data = synthetic::with_detail(
-            synthetic::with_texel_model(
-                synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1),
-                5,
-            ),
-            6,
-        );
-        let detailed = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
-        b.iter(|| {
-            detailed.eval_batch(&q, &mut out);
-            black_box(&out);
-        })
-    });
+    for (name, components) in [
+        ("default interpolation with a texel model and a detail layer", 0),
+        ("default interpolation with a texel model and a detail layer with 2 light components", 2),
+    ] {
+        group.bench_function(name, |b| {
+            let shape = synthetic::Shape {
+                mirrors: 40,
+                resolution: 128,
+                colours: 256,
+                lights_per_index: 2,
+            };
+            let data = synthetic::with_detail(
+                synthetic::with_texel_model(
+                    synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1),
+                    5,
+                ),
+                components,
+                6,
+            );
+            let detailed = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+            b.iter(|| {
+                detailed.eval_batch(&q, &mut out);
+                black_box(&out);
+            })
+        });
+    }
     group.bench_function("default interpolation, no half-vector shift", |b| {
         let unshifted = material(Interpolation::Default, 0.0);
         b.iter(|| {

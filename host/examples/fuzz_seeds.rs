@@ -35,8 +35,13 @@ fn main() {
             "detail-6",
             with_detail(
                 with_texel_model(synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 9), 10),
+                0,
                 11,
             ),
+        ),
+        (
+            "light-detail-6",
+            with_detail(synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 12), 2, 13),
         ),
     ] {
         let bytes = m.to_bytes().unwrap();

@@ -212,7 +212,8 @@ pub fn detailed_pair_answers(
     queries
         .iter()
         .map(|q| {
-            let (v, d) = (regions.sample(image / nv, image % nv, q.uv), regions.detail_at(q.uv));
+            let (v, d) =
+                (regions.sample(image / nv, image % nv, q.uv), regions.detail_at(image / nv, q.uv));
             std::array::from_fn(|k| (v[k] * d[k]) as f32)
         })
         .collect()

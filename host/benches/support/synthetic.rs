@@ -70,6 +70,7 @@ pub fn synthetic(
             },
             texel_model: false,
             detail: false,
+            detail_components: 0,
         },
         palettes: (0..n * n * k).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
         indices: (0..n * s * s * n.div_ceil(g))
@@ -79,18 +80,32 @@ pub fn synthetic(
         tables,
         texels: Vec::new(),
         detail: Vec::new(),
+        detail_bases: Vec::new(),
+        detail_coefficients: Vec::new(),
     }
 }
 
-/// `data` with a random detail layer (version 3): factors in [½, 2].
-pub fn with_detail(mut data: MaterialData, seed: u64) -> MaterialData {
+/// `data` with a random detail layer (version 3, or 4 with `components`
+/// light components): factors in [½, 2], components in [−1, 1] with
+/// coefficients in [−0.3, 0.3].
+pub fn with_detail(mut data: MaterialData, components: usize, seed: u64) -> MaterialData {
     let f = 2 * data.meta.resolution as usize;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    data.meta.version = scanner_shading::format::VERSION_DETAIL;
+    data.meta.version = if components > 0 {
+        scanner_shading::format::VERSION_LIGHT_DETAIL
+    } else {
+        scanner_shading::format::VERSION_DETAIL
+    };
     data.meta.detail = true;
+    data.meta.detail_components = components as u32;
     data.detail = (0..f * f)
         .map(|_| std::array::from_fn(|_| 2f32.powf(rng.random_range(-1.0..1.0))))
         .collect();
+    data.detail_bases = (0..components * f * f)
+        .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)))
+        .collect();
+    data.detail_coefficients =
+        (0..data.meta.lights.len() * components).map(|_| rng.random_range(-0.3..0.3)).collect();
     data
 }
 

@@ -23,11 +23,18 @@ pub const VERSION: u32 = 1;
 /// (`Metadata::texel_model`). This crate reads both.
 pub const VERSION_TEXEL_MODEL: u32 = 2;
 /// The format version of a material with a detail layer
-/// (`Metadata::detail`), with or without a texel model. This crate reads
-/// versions 1 to 3.
+/// (`Metadata::detail`), with or without a texel model.
 pub const VERSION_DETAIL: u32 = 3;
+/// The format version of a material whose detail layer has light
+/// components (`Metadata::detail_components` ≥ 1). This crate reads
+/// versions 1 to 4.
+pub const VERSION_LIGHT_DETAIL: u32 = 4;
 /// The detail layer's range: every factor lies in [1 / it, it].
 pub const DETAIL_RANGE: f32 = 4.0;
+/// Most light components of a detail layer.
+pub const MAX_DETAIL_COMPONENTS: u32 = 8;
+/// The light components' coefficients lie in [−it, it].
+pub const DETAIL_COEFFICIENT_RANGE: f32 = 64.0;
 /// The safetensors metadata key holding the JSON [`Metadata`].
 pub const METADATA_KEY: &str = "material";
 /// Most (mirror, weight) pairs one patent-table cell may hold.
@@ -101,7 +108,8 @@ pub struct Provenance {
 pub struct Metadata {
     /// Always [`FORMAT`].
     pub format: String,
-    /// [`VERSION`], [`VERSION_TEXEL_MODEL`] or [`VERSION_DETAIL`].
+    /// [`VERSION`], [`VERSION_TEXEL_MODEL`], [`VERSION_DETAIL`] or
+    /// [`VERSION_LIGHT_DETAIL`].
     pub version: u32,
     /// The sample's name.
     pub name: String,
@@ -138,6 +146,14 @@ pub struct Metadata {
     /// 2S × 2S factor that multiplies every answer. Absent before.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub detail: bool,
+    /// Version 4: the detail layer's light components R (tensors
+    /// `detail_bases` and `detail_coefficients`). Absent (0) before.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub detail_components: u32,
+}
+
+fn is_zero(x: &u32) -> bool {
+    *x == 0
 }
 
 /// A patent direction table in compressed rows: the pairs of cell `c` are
@@ -192,8 +208,13 @@ pub struct MaterialData {
     /// when `meta.texel_model`; empty otherwise.
     pub texels: Vec<TexelParams>,
     /// `[2S][2S]` RGB (row along v, column along u): the detail layer's
-    /// factors, when `meta.detail`; empty otherwise.
+    /// shared factors, when `meta.detail`; empty otherwise.
     pub detail: Vec<[f32; 3]>,
+    /// `[R][2S][2S]` RGB, each in [−1, 1]: the detail layer's light
+    /// components (log factors), R = `meta.detail_components`.
+    pub detail_bases: Vec<[f32; 3]>,
+    /// `[L][R]`: each light's coefficients on the light components.
+    pub detail_coefficients: Vec<f32>,
 }
 
 /// A tensor to serialise.
@@ -326,6 +347,39 @@ impl MaterialData {
                     data: u16_bytes(
                         self.detail.iter().flatten().map(|&x| half::f16::from_f32(x).to_bits()),
                     ),
+                },
+            ));
+        }
+        let r = self.meta.detail_components as usize;
+        if r > 0 {
+            let f = 2 * s;
+            if self.detail_bases.len() != r * f * f || self.detail_coefficients.len() != l * r {
+                return Err(MaterialError::Tensor(format!(
+                    "detail components: {} basis values and {} coefficients for {r} × {f} × {f} \
+                     and {l} × {r}",
+                    self.detail_bases.len(),
+                    self.detail_coefficients.len()
+                )));
+            }
+            tensors.push((
+                "detail_bases".to_string(),
+                Tensor {
+                    dtype: Dtype::F16,
+                    shape: vec![r, f, f, 3],
+                    data: u16_bytes(
+                        self.detail_bases
+                            .iter()
+                            .flatten()
+                            .map(|&x| half::f16::from_f32(x).to_bits()),
+                    ),
+                },
+            ));
+            tensors.push((
+                "detail_coefficients".to_string(),
+                Tensor {
+                    dtype: Dtype::F32,
+                    shape: vec![l, r],
+                    data: self.detail_coefficients.iter().flat_map(|x| x.to_le_bytes()).collect(),
                 },
             ));
         }
@@ -555,13 +609,59 @@ impl MaterialData {
         } else {
             Vec::new()
         };
+        let r = meta.detail_components as usize;
+        let (detail_bases, detail_coefficients) = if r > 0 {
+            expected.extend(["detail_bases", "detail_coefficients"].map(String::from));
+            let f = 2 * s;
+            let raw = tensor(&st, "detail_bases", Dtype::F16, &[r, f, f, 3])?;
+            let vals: Vec<f32> = raw
+                .chunks_exact(2)
+                .map(|c| half::f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32())
+                .collect();
+            if let Some(i) = vals.iter().position(|x| !(-1.0..=1.0).contains(x)) {
+                let t = i / 3;
+                return Err(MaterialError::Value(format!(
+                    "detail_bases: {} at component {}, ({}, {}) outside −1…1",
+                    vals[i],
+                    t / (f * f),
+                    t % f,
+                    t / f % f
+                )));
+            }
+            let bases = vals.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let coefficients: Vec<f32> = tensor(&st, "detail_coefficients", Dtype::F32, &[l, r])?
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            let range = DETAIL_COEFFICIENT_RANGE;
+            if let Some(i) = coefficients.iter().position(|x| !(-range..=range).contains(x)) {
+                return Err(MaterialError::Value(format!(
+                    "detail_coefficients: {} of light {} outside −{range}…{range}",
+                    coefficients[i],
+                    i / r
+                )));
+            }
+            (bases, coefficients)
+        } else {
+            (Vec::new(), Vec::new())
+        };
         if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == n)) {
             return Err(MaterialError::Tensor(format!(
                 "unexpected tensor `{extra}` for {:?} interpolation",
                 meta.interpolation
             )));
         }
-        Ok(MaterialData { meta, palettes, indices, light_groups, tables, texels, detail })
+        Ok(MaterialData {
+            meta,
+            palettes,
+            indices,
+            light_groups,
+            tables,
+            texels,
+            detail,
+            detail_bases,
+            detail_coefficients,
+        })
     }
 }
 
@@ -592,18 +692,31 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
     if m.format != FORMAT {
         return bad(format!("format is {:?}, not {FORMAT:?}", m.format));
     }
-    if !(VERSION..=VERSION_DETAIL).contains(&m.version) {
+    if !(VERSION..=VERSION_LIGHT_DETAIL).contains(&m.version) {
         return bad(format!(
-            "version {} (this reader reads versions {VERSION}…{VERSION_DETAIL})",
+            "version {} (this reader reads versions {VERSION}…{VERSION_LIGHT_DETAIL})",
             m.version
         ));
     }
-    if m.detail != (m.version == VERSION_DETAIL) {
+    if m.detail != (m.version >= VERSION_DETAIL) {
         return bad(format!(
-            "version {} with{} a detail layer: a detail layer is version {VERSION_DETAIL}'s, \
-             and only its",
+            "version {} with{} a detail layer: a detail layer is versions {VERSION_DETAIL} and \
+             {VERSION_LIGHT_DETAIL}'s, and only theirs",
             m.version,
             if m.detail { "" } else { "out" }
+        ));
+    }
+    if (m.detail_components > 0) != (m.version == VERSION_LIGHT_DETAIL) {
+        return bad(format!(
+            "version {} with {} light components: light components are version \
+             {VERSION_LIGHT_DETAIL}'s, and only its (at least one)",
+            m.version, m.detail_components
+        ));
+    }
+    if m.detail_components > MAX_DETAIL_COMPONENTS {
+        return bad(format!(
+            "detail_components {} outside 0…{MAX_DETAIL_COMPONENTS}",
+            m.detail_components
         ));
     }
     if m.version < VERSION_DETAIL && m.texel_model != (m.version == VERSION_TEXEL_MODEL) {

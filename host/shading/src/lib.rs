@@ -84,8 +84,27 @@ pub struct Material {
     directions: Directions,
     /// `[S][S]` stored texel-model values ([`texel::STORED`] each), or empty.
     texels: Vec<[f32; texel::STORED]>,
-    /// `[2S][2S]` detail factors, or empty.
+    /// `[2S][2S]` shared detail factors, or empty.
     detail: Vec<[f32; 3]>,
+    /// The detail layer's light components R (0: none).
+    components: usize,
+    /// `[2S][2S][R]` the light components' log factors.
+    detail_bases: Vec<[f32; 3]>,
+    /// `[L][R]` each light's coefficients on them.
+    detail_coefficients: Vec<f32>,
+}
+
+/// The detail layer's factor at a point (docs/material-format.md, "Detail
+/// layer"): the shared factor `shared` times e to the light components'
+/// sum `log`, within [1 / [`format::DETAIL_RANGE`],
+/// [`format::DETAIL_RANGE`]].
+#[inline]
+pub fn detail_factor(shared: [f32; 3], log: [f32; 3]) -> [f32; 3] {
+    let r = format::DETAIL_RANGE;
+    std::array::from_fn(|k| {
+        let f = shared[k] * log[k].exp();
+        if f.is_nan() { shared[k] } else { f.clamp(1.0 / r, r) }
+    })
 }
 
 /// The default interpolation's weights (docs/material-format.md,
@@ -297,6 +316,14 @@ impl Material {
             directions,
             texels: d.texels.iter().map(|p| p.to_stored()).collect(),
             detail: d.detail,
+            components: m.detail_components as usize,
+            detail_bases: {
+                // Texel-major: a lookup's components lie together.
+                let r = m.detail_components as usize;
+                let n = d.detail_bases.len().checked_div(r).unwrap_or(0);
+                (0..n * r).map(|i| d.detail_bases[(i % r) * n + i / r]).collect()
+            },
+            detail_coefficients: d.detail_coefficients,
             meta: d.meta,
         })
     }
@@ -322,6 +349,8 @@ impl Material {
                 };
                 let mut acc = [0.0f32; 3];
                 let lw = lights.weights(wi);
+                let mut pairs = [(0u16, 0f32); format::MAX_CELL_PAIRS];
+                let mut n = 0;
                 for &(vi, wv) in views.weights(wo) {
                     for &(li, wl) in lw {
                         let w = wv * wl;
@@ -335,7 +364,16 @@ impl Material {
                         }
                     }
                 }
-                let d = self.detail_at(&Footprint::on(2 * self.size, uv));
+                if self.components > 0 {
+                    // The lights' weights (each light's view weights sum to one).
+                    for &(li, wl) in lw {
+                        if wl != 0.0 && n < pairs.len() {
+                            pairs[n] = (li, wl);
+                            n += 1;
+                        }
+                    }
+                }
+                let d = self.detail_at(&Footprint::on(2 * self.size, uv), &pairs[..n]);
                 std::array::from_fn(|k| acc[k] * wi[2] * d[k])
             }
         }
@@ -410,14 +448,38 @@ impl Material {
     }
 
     /// The detail layer's factors at its footprint `at` (on its 2S × 2S
-    /// grid); 1 without a layer.
+    /// grid) for a query whose lights are `lights` (light, weight): the
+    /// light components' coefficients are the lights' weighted mean. 1
+    /// without a layer.
     #[inline(always)]
-    fn detail_at(&self, at: &Footprint) -> [f32; 3] {
+    fn detail_at(&self, at: &Footprint, lights: &[(u16, f32)]) -> [f32; 3] {
         if self.detail.is_empty() {
             return [1.0; 3];
         }
         let d = at.texel.map(|t| self.detail[t as usize]);
-        std::array::from_fn(|k| (0..4).map(|i| at.w[i] * d[i][k]).sum())
+        let shared = std::array::from_fn(|k| (0..4).map(|i| at.w[i] * d[i][k]).sum());
+        let r = self.components;
+        if r == 0 {
+            return shared;
+        }
+        let mut log = [0.0f32; 3];
+        let total: f32 = lights.iter().map(|l| l.1).sum();
+        if total > 0.0 {
+            for c in 0..r {
+                let coef = lights
+                    .iter()
+                    .map(|&(l, w)| w * self.detail_coefficients[l as usize * r + c])
+                    .sum::<f32>()
+                    / total;
+                for i in 0..4 {
+                    let b = self.detail_bases[at.texel[i] as usize * r + c];
+                    for k in 0..3 {
+                        log[k] += coef * at.w[i] * b[k];
+                    }
+                }
+            }
+        }
+        detail_factor(shared, log)
     }
 
     /// Where (view, light)'s index bytes and palette start.
@@ -499,6 +561,9 @@ impl Material {
         if s.dirs.pairs > 0 && !self.detail.is_empty() {
             s.fine = Footprint::on(2 * self.size, uv);
             prefetch(&self.detail[s.fine.texel[0] as usize]);
+            if self.components > 0 {
+                prefetch(&self.detail_bases[s.fine.texel[0] as usize * self.components]);
+            }
         }
         if s.dirs.pairs > 0 && !self.texels.is_empty() {
             for t in at.texel {
@@ -539,7 +604,15 @@ impl Material {
         let Directions::Triangles { light_dirs, view_dirs, .. } = &self.directions else {
             unreachable!("staged only with the default interpolation")
         };
-        let d = self.detail_at(&s.fine);
+        let d = if self.components > 0 {
+            let mut lights = [(0u16, 0f32); MAX_PAIRS];
+            for (l, p) in lights.iter_mut().zip(&s.dirs.pair[..s.dirs.pairs]) {
+                *l = (p.light, p.w);
+            }
+            self.detail_at(&s.fine, &lights[..s.dirs.pairs])
+        } else {
+            self.detail_at(&s.fine, &[])
+        };
         if self.texels.is_empty() {
             return std::array::from_fn(|c| acc[c] * s.dirs.wi[2] * d[c]);
         }

@@ -98,6 +98,7 @@ fn material(interpolation: Interpolation) -> MaterialData {
             },
             texel_model: false,
             detail: false,
+            detail_components: 0,
         },
         palettes,
         indices,
@@ -105,6 +106,8 @@ fn material(interpolation: Interpolation) -> MaterialData {
         tables,
         texels: Vec::new(),
         detail: Vec::new(),
+        detail_bases: Vec::new(),
+        detail_coefficients: Vec::new(),
     }
 }
 
@@ -683,7 +686,7 @@ fn bad_detail_layers_are_refused() {
     // Version and flag must agree, both ways.
     let mut d = with_detail(material(Interpolation::Default));
     d.meta.version = format::VERSION_TEXEL_MODEL;
-    assert!(e(d).contains("a detail layer is version 3"));
+    assert!(e(d).contains("a detail layer is versions 3 and 4's"));
     let mut d = material(Interpolation::Default);
     d.meta.version = format::VERSION_DETAIL;
     assert!(e(d).contains("version 3 without a detail layer"));
@@ -734,4 +737,151 @@ fn light_groups_may_differ_in_size() {
     d.indices.extend(std::iter::repeat_n(0, 7 * 64));
     d.light_groups[6] = 7;
     assert!(e(d).contains("light groups for 7 lights"));
+}
+
+/// `d` with a detail layer (version 4) of two light components: component
+/// r at 2S texel (x, y) is sin(0.7 (r + 1) x + 0.3 y + c) per channel c,
+/// light l's coefficients (0.1 (l − 3), 0.05 l − 0.1).
+fn with_light_detail(d: MaterialData) -> MaterialData {
+    let mut d = with_detail(d);
+    let (f, nl) = (2 * d.meta.resolution as usize, d.meta.lights.len());
+    d.meta.version = format::VERSION_LIGHT_DETAIL;
+    d.meta.detail_components = 2;
+    d.detail_bases = (0..2 * f * f)
+        .map(|i| {
+            let (r, t) = (i / (f * f), i % (f * f));
+            let (x, y) = ((t % f) as f32, (t / f) as f32);
+            std::array::from_fn(|c| (0.7 * (r + 1) as f32 * x + 0.3 * y + c as f32).sin())
+        })
+        .collect();
+    d.detail_coefficients =
+        (0..nl).flat_map(|l| [0.1 * (l as f32 - 3.0), 0.05 * l as f32 - 0.1]).collect();
+    d
+}
+
+#[test]
+fn light_components_follow_the_light() {
+    let base = material(Interpolation::Default);
+    let d = with_light_detail(base.clone());
+    let f = 16usize;
+    let (plain, lit) = (
+        Material::from_bytes(&base.to_bytes().unwrap()).unwrap(),
+        Material::from_bytes(&d.to_bytes().unwrap()).unwrap(),
+    );
+    let (dirs, _) = ring();
+    // At every captured light, at 2S texel centres: the shared factor times
+    // e^(Σ c_lr B_r), clamped to the layer's range.
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    for (l, dl) in dirs.iter().enumerate() {
+        for _ in 0..20 {
+            let (x, y) = (rng.random_range(0..f), rng.random_range(0..f));
+            let t = y * f + x;
+            let uv = [(x as f32 + 0.5) / f as f32, (y as f32 + 0.5) / f as f32];
+            let wo = f32v(dirs[rng.random_range(0..dirs.len())]);
+            let (a, b) = (plain.eval(uv, f32v(*dl), wo), lit.eval(uv, f32v(*dl), wo));
+            let want: [f32; 3] = std::array::from_fn(|c| {
+                let log = d.detail_coefficients[2 * l] * d.detail_bases[t][c]
+                    + d.detail_coefficients[2 * l + 1] * d.detail_bases[f * f + t][c];
+                a[c] * (d.detail[t][c] * log.exp()).clamp(0.25, 4.0)
+            });
+            assert!(close(b, want, 2e-3), "light {l} at {uv:?}: {b:?} against {want:?}");
+        }
+    }
+    // Between lights, continuous: a small step of wi changes the answer by
+    // a small amount.
+    for _ in 0..2000 {
+        let wi = random_dir(&mut rng, 75.0);
+        let e = unit_f32([wi[0] + 1e-4, wi[1] - 1e-4, wi[2]]);
+        let (a, b) =
+            (lit.eval([0.4, 0.6], wi, [0.0, 0.0, 1.0]), lit.eval([0.4, 0.6], e, [0.0, 0.0, 1.0]));
+        assert!((0..3).all(|k| (a[k] - b[k]).abs() < 2e-3), "{wi:?}: {a:?} vs {b:?}");
+    }
+    // The lights differ: at a 2S texel centre, seen from the zenith, lights
+    // 0 and 6 (coefficients (−0.3, −0.1) and (0.3, 0.2)) give two factors.
+    let uv = [3.5 / f as f32, 9.5 / f as f32];
+    let ratio = |l: usize| {
+        let (a, b) = (
+            plain.eval(uv, f32v(dirs[l]), f32v(dirs[0])),
+            lit.eval(uv, f32v(dirs[l]), f32v(dirs[0])),
+        );
+        b[0] / a[0]
+    };
+    let b = |r: usize| d.detail_bases[r * f * f + 9 * f + 3][0];
+    let want = |l: usize| {
+        let c = &d.detail_coefficients[2 * l..];
+        d.detail[9 * f + 3][0] * (c[0] * b(0) + c[1] * b(1)).exp()
+    };
+    assert!((want(0) / want(6) - 1.0).abs() > 0.2, "a test point where the lights differ");
+    for l in [0, 6] {
+        assert!((ratio(l) - want(l)).abs() < 2e-3 * want(l), "light {l}: {}", ratio(l));
+    }
+    // The batch answers as `eval` does, with the patent's tables too.
+    let queries: Vec<ShadeQuery> = (0..500)
+        .map(|_| ShadeQuery {
+            uv: [rng.random(), rng.random()],
+            wi: random_dir(&mut rng, 80.0),
+            wo: random_dir(&mut rng, 80.0),
+        })
+        .collect();
+    assert!(batch_as_eval(&lit, &queries) > 0);
+    for base in [
+        material_with_model(),
+        material(Interpolation::Patent { columns: 24, rows: 6, points: 10 }),
+    ] {
+        let m = Material::from_bytes(&with_light_detail(base).to_bytes().unwrap()).unwrap();
+        assert!(batch_as_eval(&m, &queries) > 0);
+    }
+}
+
+#[test]
+fn bad_light_components_are_refused() {
+    let e = |d: MaterialData| match d.to_bytes() {
+        Ok(_) => "accepted".to_string(),
+        Err(e) => e.to_string(),
+    };
+    let good = || with_light_detail(material(Interpolation::Default));
+    let mut d = good();
+    d.detail_bases[16 * 16 + 37][2] = 1.5;
+    let msg = e(d);
+    assert!(msg.contains("detail_bases: 1.5 at component 1, (5, 2) outside −1…1"), "{msg}");
+    for (bad, what) in
+        [(100.0, "100 of light 3"), (f32::NAN, "NaN of light 3"), (f32::INFINITY, "inf of light 3")]
+    {
+        let mut d = good();
+        d.detail_coefficients[7] = bad;
+        let msg = e(d);
+        assert!(msg.contains(&format!("detail_coefficients: {what} outside −64…64")), "{msg}");
+    }
+    let mut d = good();
+    d.detail_coefficients.pop();
+    assert!(e(d).contains("detail components: 512 basis values and 13 coefficients"));
+    // Version and components must agree, both ways; at most eight.
+    let mut d = good();
+    d.meta.version = format::VERSION_DETAIL;
+    assert!(e(d).contains("version 3 with 2 light components"));
+    let mut d = with_detail(material(Interpolation::Default));
+    d.meta.version = format::VERSION_LIGHT_DETAIL;
+    assert!(e(d).contains("version 4 with 0 light components"));
+    let mut d = good();
+    let f2 = 16 * 16;
+    d.meta.detail_components = 9;
+    d.detail_bases = (0..9 * f2).map(|i| d.detail_bases[i % (2 * f2)]).collect();
+    d.detail_coefficients = vec![0.1; 7 * 9];
+    let msg = e(d);
+    assert!(msg.contains("detail_components 9 outside 0…8"), "{msg}");
+    // Components the metadata does not announce are unexpected tensors.
+    let bytes = good().to_bytes().unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+    let json = header.metadata().as_ref().unwrap()[format::METADATA_KEY]
+        .replace(",\"detail_components\":2", "")
+        .replace("\"version\":4", "\"version\":3");
+    let tensors: Vec<(String, safetensors::tensor::TensorView<'_>)> =
+        st.tensors().into_iter().collect();
+    let info = std::collections::HashMap::from([(format::METADATA_KEY.to_string(), json)]);
+    let stripped = safetensors::serialize(tensors, Some(info)).unwrap();
+    let msg = Material::from_bytes(&stripped).unwrap_err().to_string();
+    assert!(msg.contains("unexpected tensor `detail_"), "{msg}");
+    // Damage anywhere in a version-4 file: an error or a material, never a panic.
+    damage_never_panics(&bytes, 13);
 }

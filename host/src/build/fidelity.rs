@@ -109,7 +109,7 @@ pub fn captured_pair_answers(
                 .map(|q| {
                     let (v, d) = (
                         super::regions::bilinear(regions.size, &img, q.uv),
-                        regions.detail_at(q.uv),
+                        regions.detail_at(li, q.uv),
                     );
                     std::array::from_fn(|k| (v[k] * d[k]) as f32)
                 })

@@ -1,5 +1,7 @@
-//! The little dense linear algebra the calibration needs: symmetric
-//! positive-definite solves (Cholesky) for normal equations, and plane
+//! The little dense linear algebra the builder needs: symmetric
+//! positive-definite solves (Cholesky) for normal equations, the
+//! eigenvectors of a small symmetric matrix (cyclic Jacobi: the detail
+//! layer's light components, a Gram matrix of one row per light), and plane
 //! homographies (normalised DLT, then Gauss–Newton on the reprojection
 //! error).
 
@@ -41,6 +43,63 @@ pub fn solve_spd(n: usize, a: &[f64], b: &[f64]) -> Option<Vec<f64>> {
         x[i] = s / l[i * n + i];
     }
     Some(x)
+}
+
+/// Eigenvalues and unit eigenvectors of a symmetric `n × n` matrix `a`
+/// (row-major), by cyclic Jacobi rotations: `(values, vectors)` with
+/// `vectors[i]` belonging to `values[i]`, largest value first. O(n³) a
+/// sweep, for the small matrices it serves (n ≤ a few hundred).
+pub fn symmetric_eigen(n: usize, a: &[f64]) -> (Vec<f64>, Vec<Vec<f64>>) {
+    debug_assert_eq!(a.len(), n * n);
+    let mut a = a.to_vec();
+    let mut v = vec![0.0; n * n];
+    for i in 0..n {
+        v[i * n + i] = 1.0;
+    }
+    let scale = a.iter().map(|x| x * x).sum::<f64>();
+    for _sweep in 0..64 {
+        let off: f64 = (0..n)
+            .flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i * n + j] * a[i * n + j])
+            .sum();
+        if off <= 1e-30 * scale || off.is_nan() {
+            break;
+        }
+        for p in 0..n {
+            for q in p + 1..n {
+                let apq = a[p * n + q];
+                if apq == 0.0 {
+                    continue;
+                }
+                // The rotation that zeroes a[p][q] (Golub & Van Loan, 8.5.2).
+                let theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..n {
+                    let (akp, akq) = (a[k * n + p], a[k * n + q]);
+                    a[k * n + p] = c * akp - s * akq;
+                    a[k * n + q] = s * akp + c * akq;
+                }
+                for k in 0..n {
+                    let (apk, aqk) = (a[p * n + k], a[q * n + k]);
+                    a[p * n + k] = c * apk - s * aqk;
+                    a[q * n + k] = s * apk + c * aqk;
+                }
+                for k in 0..n {
+                    let (vkp, vkq) = (v[k * n + p], v[k * n + q]);
+                    v[k * n + p] = c * vkp - s * vkq;
+                    v[k * n + q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&i, &j| a[j * n + j].total_cmp(&a[i * n + i]));
+    let values = order.iter().map(|&i| a[i * n + i]).collect();
+    let vectors = order.iter().map(|&i| (0..n).map(|k| v[k * n + i]).collect()).collect();
+    (values, vectors)
 }
 
 /// Accumulates the normal equations JᵀJ δ = −Jᵀr of a least-squares problem.
@@ -246,6 +305,51 @@ fn similarity(p: &[[f64; 2]]) -> ([f64; 2], f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn symmetric_eigen_finds_every_pair() {
+        // A = Q diag(d) Qᵀ with a known rotation Q (two of its values equal).
+        let n = 5;
+        let d = [7.0, 3.0, 3.0, -1.0, 0.5];
+        let q: Vec<Vec<f64>> = (0..n)
+            .map(|i| {
+                let raw: Vec<f64> = (0..n)
+                    .map(|k| ((i * 7 + k * 3) as f64 * 0.91).sin() + (i == k) as u8 as f64)
+                    .collect();
+                raw
+            })
+            .collect();
+        // Orthonormalise the rows (Gram–Schmidt).
+        let mut o: Vec<Vec<f64>> = Vec::new();
+        for r in q {
+            let mut r = r;
+            for b in &o {
+                let p: f64 = r.iter().zip(b).map(|(x, y)| x * y).sum();
+                r.iter_mut().zip(b).for_each(|(x, y)| *x -= p * y);
+            }
+            let l = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+            o.push(r.iter().map(|x| x / l).collect());
+        }
+        let a: Vec<f64> =
+            (0..n * n).map(|ij| (0..n).map(|k| o[k][ij / n] * d[k] * o[k][ij % n]).sum()).collect();
+        let (values, vectors) = symmetric_eigen(n, &a);
+        let mut want = d.to_vec();
+        want.sort_by(|x, y| y.total_cmp(x));
+        for (v, w) in values.iter().zip(&want) {
+            assert!((v - w).abs() < 1e-10, "{values:?} against {want:?}");
+        }
+        for (val, vec) in values.iter().zip(&vectors) {
+            let len = vec.iter().map(|x| x * x).sum::<f64>().sqrt();
+            assert!((len - 1.0).abs() < 1e-10);
+            for i in 0..n {
+                let av: f64 = (0..n).map(|k| a[i * n + k] * vec[k]).sum();
+                assert!((av - val * vec[i]).abs() < 1e-9, "A v ≠ λ v");
+            }
+        }
+        // The largest one's vector is ± the first row of Q.
+        let dot: f64 = vectors[0].iter().zip(&o[0]).map(|(x, y)| x * y).sum();
+        assert!((dot.abs() - 1.0).abs() < 1e-10);
+    }
 
     #[test]
     fn a_homography_is_recovered_from_its_points_and_inverted() {

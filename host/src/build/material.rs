@@ -394,7 +394,10 @@ pub fn build_material(
         let k = opts.colours;
         let fixed = nl * nv * k * 6
             + s * s * scanner_shading::texel::STORED * 2
-            + regions.detail.as_ref().map_or(0, |d| d.len() * 6)
+            + regions
+                .detail
+                .as_ref()
+                .map_or(0, |d| (1 + d.bases.len()) * d.shared.len() * 6 + d.bases.len() * nl * 4)
             + 65_536;
         let fit = max.saturating_sub(fixed) / (nv * s * s).max(1);
         if fit < groups {
@@ -494,22 +497,14 @@ pub fn build_material(
         let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         Mirror { mirror: *m as u32, direction: d.map(|x| x / len) }
     };
-    let detail: Vec<[f32; 3]> = regions
-        .detail
-        .clone()
-        .unwrap_or_default()
-        .into_iter()
-        .map(|d| {
-            let r = scanner_shading::format::DETAIL_RANGE;
-            // Within the file's range after rounding to float16.
-            d.map(|x| if x.is_finite() { x.clamp(1.0 / r, r) } else { 1.0 })
-        })
-        .collect();
+    let (detail, detail_bases, detail_coefficients, components) = detail_tensors(regions);
     let with_detail = !detail.is_empty();
     Ok(MaterialData {
         meta: Metadata {
             format: scanner_shading::format::FORMAT.into(),
-            version: if with_detail {
+            version: if components > 0 {
+                scanner_shading::format::VERSION_LIGHT_DETAIL
+            } else if with_detail {
                 scanner_shading::format::VERSION_DETAIL
             } else if texel_model {
                 scanner_shading::format::VERSION_TEXEL_MODEL
@@ -539,6 +534,7 @@ pub fn build_material(
             provenance,
             texel_model,
             detail: with_detail,
+            detail_components: components as u32,
         },
         palettes,
         indices,
@@ -546,7 +542,33 @@ pub fn build_material(
         tables,
         texels,
         detail,
+        detail_bases,
+        detail_coefficients,
     })
+}
+
+/// The region set's detail layer as the file stores it: the shared factors
+/// (within the file's range after rounding to float16), the light
+/// components (`[R][2S][2S]`, within −1…1) and their coefficients
+/// (`[L][R]`, within the file's range), and R. All empty without a layer.
+#[allow(clippy::type_complexity)]
+fn detail_tensors(regions: &RegionSet) -> (Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<f32>, usize) {
+    use scanner_shading::format::{DETAIL_COEFFICIENT_RANGE, DETAIL_RANGE};
+    let Some(d) = &regions.detail else {
+        return (Vec::new(), Vec::new(), Vec::new(), 0);
+    };
+    let finite =
+        |x: f32, lo: f32, hi: f32, or: f32| if x.is_finite() { x.clamp(lo, hi) } else { or };
+    let shared = d
+        .shared
+        .iter()
+        .map(|v| v.map(|x| finite(x, 1.0 / DETAIL_RANGE, DETAIL_RANGE, 1.0)))
+        .collect();
+    let bases = d.bases.iter().flatten().map(|v| v.map(|x| finite(x, -1.0, 1.0, 0.0))).collect();
+    let range = DETAIL_COEFFICIENT_RANGE;
+    let coefficients =
+        d.coefficients.iter().flatten().map(|&x| finite(x, -range, range, 0.0)).collect();
+    (shared, bases, coefficients, d.bases.len())
 }
 
 #[cfg(test)]

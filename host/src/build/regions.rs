@@ -14,7 +14,7 @@ use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::cell_taps;
 use super::scanread::ScanFrames;
-use super::superres::{Image, SharpenOptions, shared_detail, sharpen_light};
+use super::superres::{DetailLayer, Image, SharpenOptions, detail_layer, sharpen_light};
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -40,11 +40,11 @@ pub struct RegionSet {
     /// `images[li * views.len() + vi]`: S × S RGB, row t = v, column s = u,
     /// pixel (s, t) at uv ((s + 0.5)/S, (t + 0.5)/S).
     pub images: Vec<Vec<[f32; 3]>>,
-    /// The detail the views resolve together beyond S × S, shared by every
-    /// pair: a 2S × 2S RGB factor (laid out like the images) that multiplies
-    /// a pair's S × S image looked up bilinearly, itself looked up
-    /// bilinearly; `None` without multi-view detail.
-    pub detail: Option<Vec<[f32; 3]>>,
+    /// The detail the views resolve together beyond S × S: a 2S × 2S RGB
+    /// factor per light (laid out like the images) that multiplies a pair's
+    /// S × S image looked up bilinearly, itself looked up bilinearly
+    /// ([`Self::detail_at`]); `None` without multi-view detail.
+    pub detail: Option<DetailLayer>,
 }
 
 /// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
@@ -82,13 +82,15 @@ impl RegionSet {
         [((t % s) as f64 + 0.5) / s as f64, ((t / s) as f64 + 0.5) / s as f64]
     }
 
-    /// The detail layer's factors at uv (bilinear on its 2S × 2S grid,
-    /// clamped to the sample); 1 without a layer.
-    pub fn detail_at(&self, uv: [f64; 2]) -> [f64; 3] {
-        match &self.detail {
-            Some(d) => bilinear(2 * self.size, d, uv),
-            None => [1.0; 3],
-        }
+    /// The detail layer's factors for light `li` at uv (its parts bilinear
+    /// on the 2S × 2S grid, clamped to the sample); 1 without a layer.
+    pub fn detail_at(&self, li: usize, uv: [f64; 2]) -> [f64; 3] {
+        let Some(d) = &self.detail else {
+            return [1.0; 3];
+        };
+        let at = |img: &[[f32; 3]]| bilinear(2 * self.size, img, uv).map(|x| x as f32);
+        let bases: Vec<[f32; 3]> = d.bases.iter().map(|b| at(b)).collect();
+        d.factor(li, at(&d.shared), &bases).map(f64::from)
     }
 
     /// Bilinear lookup at uv (clamped to the sample).
@@ -97,7 +99,9 @@ impl RegionSet {
     }
 
     /// Write every region as `l{LL}-v{VV}.exr` (half float) into `dir`, and
-    /// the detail layer, if any, as `detail.exr` (2S × 2S).
+    /// the detail layer, if any: its shared factor as `detail.exr`, and with
+    /// light components each light's whole factor as `detail-l{LL}.exr`
+    /// (2S × 2S).
     pub fn write_exr(&self, dir: &Path) -> Result<(), BuildError> {
         let out = |e: String| BuildError::Output(e);
         std::fs::create_dir_all(dir).map_err(|e| out(format!("{}: {e}", dir.display())))?;
@@ -113,19 +117,30 @@ impl RegionSet {
             crate::fsutil::write_atomic(&path, &bytes)
                 .map_err(|e| out(format!("{}: {e}", path.display())))
         })?;
-        if let Some(d) = &self.detail {
-            let f = 2 * self.size as u32;
-            let frame = crate::camera::Frame {
-                width: f,
-                height: f,
-                rgb: d.iter().flatten().copied().collect(),
-            };
+        let Some(d) = &self.detail else {
+            return Ok(());
+        };
+        let f = 2 * self.size;
+        let write = |name: String, rgb: Vec<f32>| -> Result<(), BuildError> {
+            let frame = crate::camera::Frame { width: f as u32, height: f as u32, rgb };
             let bytes = crate::exrio::encode_half(&frame).map_err(out)?;
-            let path = dir.join("detail.exr");
+            let path = dir.join(name);
             crate::fsutil::write_atomic(&path, &bytes)
-                .map_err(|e| out(format!("{}: {e}", path.display())))?;
+                .map_err(|e| out(format!("{}: {e}", path.display())))
+        };
+        write("detail.exr".into(), d.shared.iter().flatten().copied().collect())?;
+        if d.bases.is_empty() {
+            return Ok(());
         }
-        Ok(())
+        (0..self.lights.len()).into_par_iter().try_for_each(|li| {
+            let rgb = (0..f * f)
+                .flat_map(|t| {
+                    let bases: Vec<[f32; 3]> = d.bases.iter().map(|b| b[t]).collect();
+                    d.factor(li, d.shared[t], &bases)
+                })
+                .collect();
+            write(format!("detail-l{:02}.exr", self.lights[li]), rgb)
+        })
     }
 }
 
@@ -253,7 +268,7 @@ pub fn extract_regions(
         .collect::<Result<_, BuildError>>()?;
     let (per_light, details): (Vec<_>, Vec<_>) = per_light.into_iter().unzip();
     Ok(RegionSet {
-        detail: shared_detail(&details, 2 * size),
+        detail: detail_layer(&details, 2 * size),
         size,
         light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
         view_dirs: cal.views.iter().map(|v| v.direction).collect(),

@@ -740,6 +740,160 @@ pub fn shared_detail(details: &[Option<Vec<[f32; 3]>>], fine: usize) -> Option<V
     )
 }
 
+/// Most light components of the detail layer ([`light_components`]).
+pub const MAX_LIGHT_COMPONENTS: usize = 2;
+/// A light component is kept if the other half of the lights holds at
+/// least this share of its energy ([`light_components`]).
+const HELD_OUT_SHARE: f64 = 0.5;
+
+/// The detail layer: a factor shared by every pair, and what changes with
+/// the light beyond it ([`detail_layer`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DetailLayer {
+    /// 2S × 2S RGB factors shared by every pair ([`shared_detail`]).
+    pub shared: Image,
+    /// The light components: 2S × 2S RGB log detail, each scaled to
+    /// max |value| = 1 (none when the lights agree).
+    pub bases: Vec<Image>,
+    /// Per light (in region-set order), one coefficient per component.
+    pub coefficients: Vec<Vec<f32>>,
+}
+
+impl DetailLayer {
+    /// The factor for light `li` from its parts at one point: `shared` the
+    /// shared factor there, `bases[r]` each component's value there.
+    pub fn factor(&self, li: usize, shared: [f32; 3], bases: &[[f32; 3]]) -> [f32; 3] {
+        let c = &self.coefficients[li];
+        let log = std::array::from_fn(|k| bases.iter().zip(c).map(|(b, c)| c * b[k]).sum());
+        scanner_shading::detail_factor(shared, log)
+    }
+}
+
+/// The detail layer from the lights' log detail ([`sharpen_light`]; a
+/// light without one counts as no detail): the shared factor
+/// ([`shared_detail`]) and the light components ([`light_components`]).
+/// `None` if no light has detail.
+pub fn detail_layer(details: &[Option<Image>], fine: usize) -> Option<DetailLayer> {
+    let shared = shared_detail(details, fine)?;
+    let (bases, coefficients) = light_components(details, fine);
+    Some(DetailLayer { shared, bases, coefficients })
+}
+
+/// What changes with the light in the lights' log detail: the leading
+/// principal components (up to [`MAX_LIGHT_COMPONENTS`]) of each light's
+/// log detail less the lights' mean, and each light's coefficients on them
+/// (zero for a light without detail). A grazing light shadows a pore or a
+/// grain that a steep one lights; one shared factor gives them the mean.
+///
+/// The components are those of the lights' Gram matrix (one row per light,
+/// [`symmetric_eigen`](super::linalg::symmetric_eigen)). A component is
+/// kept only if the lights agree on it: fitted on one half of the lights
+/// (alternate lights) it must hold at least [`HELD_OUT_SHARE`] of its
+/// energy in the other half, both ways — noise, and detail that one light
+/// alone shows, fail. The lights' own coefficients are not shrunk: each
+/// is the light's projection on a component, which averages over every
+/// texel.
+pub fn light_components(details: &[Option<Image>], fine: usize) -> (Vec<Image>, Vec<Vec<f32>>) {
+    use rayon::prelude::*;
+    let n = fine * fine;
+    let nl = details.len();
+    let with: Vec<usize> = (0..nl).filter(|&l| details[l].is_some()).collect();
+    let none = (Vec::new(), vec![Vec::new(); nl]);
+    if with.len() < 4 {
+        return none;
+    }
+    // Residuals from the mean over all lights (a light without detail
+    // counting as zero, as in the shared factor).
+    let mut mean = vec![[0.0f64; 3]; n];
+    for d in details.iter().flatten() {
+        for (m, v) in mean.iter_mut().zip(d) {
+            for k in 0..3 {
+                m[k] += v[k] as f64 / nl as f64;
+            }
+        }
+    }
+    let resid: Vec<Vec<f32>> = with
+        .par_iter()
+        .map(|&l| {
+            let d = details[l].as_ref().expect("a light with detail");
+            d.iter()
+                .zip(&mean)
+                .flat_map(|(v, m)| (0..3).map(move |k| (v[k] as f64 - m[k]) as f32))
+                .collect()
+        })
+        .collect();
+    let dot =
+        |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum::<f64>();
+    let m = resid.len();
+    let gram: Vec<f64> = (0..m * m)
+        .into_par_iter()
+        .map(|ij| {
+            let (i, j) = (ij / m, ij % m);
+            if j <= i { dot(&resid[i], &resid[j]) } else { 0.0 }
+        })
+        .collect();
+    let gram_of = |rows: &[usize]| -> Vec<f64> {
+        let k = rows.len();
+        (0..k * k)
+            .map(|ij| {
+                let (a, b) = (rows[ij / k], rows[ij % k]);
+                gram[a.max(b) * m + a.min(b)]
+            })
+            .collect()
+    };
+    // Unit components (as images) of a set of residual rows.
+    let components = |rows: &[usize], count: usize| -> Vec<Vec<f32>> {
+        let (values, vectors) = super::linalg::symmetric_eigen(rows.len(), &gram_of(rows));
+        values
+            .iter()
+            .zip(&vectors)
+            .take(count)
+            .filter(|(v, _)| **v > 0.0)
+            .map(|(v, vec)| {
+                let mut b = vec![0.0f32; 3 * n];
+                for (&r, &w) in rows.iter().zip(vec) {
+                    let w = (w / v.sqrt()) as f32;
+                    b.iter_mut().zip(&resid[r]).for_each(|(b, x)| *b += w * x);
+                }
+                b
+            })
+            .collect()
+    };
+    let all: Vec<usize> = (0..m).collect();
+    let halves = [0, 1].map(|h| all.iter().copied().filter(|i| i % 2 == h).collect::<Vec<_>>());
+    let half_components = halves.each_ref().map(|h| components(h, MAX_LIGHT_COMPONENTS));
+    // The energy the first r components of one half hold in the rows of a
+    // half (each component's share counted once: they are orthonormal).
+    let held = |comps: &[Vec<f32>], rows: &[usize], r: usize| -> f64 {
+        rows.iter()
+            .map(|&i| comps.iter().take(r).map(|c| dot(c, &resid[i]).powi(2)).sum::<f64>())
+            .sum()
+    };
+    // Whether the r-th component fitted on half h holds, per light, at
+    // least HELD_OUT_SHARE of its energy in the other half.
+    let agrees = |h: usize, r: usize| -> bool {
+        let comps = &half_components[h];
+        let gain =
+            |rows: &[usize]| (held(comps, rows, r) - held(comps, rows, r - 1)) / rows.len() as f64;
+        comps.len() >= r && gain(&halves[1 - h]) >= HELD_OUT_SHARE * gain(&halves[h])
+    };
+    let keep = (1..=MAX_LIGHT_COMPONENTS).take_while(|&r| agrees(0, r) && agrees(1, r)).count();
+    if keep == 0 {
+        return none;
+    }
+    let comps = components(&all, keep);
+    let mut coefficients = vec![vec![0.0f32; comps.len()]; nl];
+    let mut bases = Vec::with_capacity(comps.len());
+    for (r, c) in comps.iter().enumerate() {
+        let top = c.iter().fold(0.0f32, |a, x| a.max(x.abs())).max(f32::MIN_POSITIVE);
+        for (i, &l) in with.iter().enumerate() {
+            coefficients[l][r] = (dot(c, &resid[i]) * top as f64) as f32;
+        }
+        bases.push(c.chunks_exact(3).map(|v| [v[0] / top, v[1] / top, v[2] / top]).collect());
+    }
+    (bases, coefficients)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -930,6 +1084,78 @@ mod tests {
             assert!((k[0].ln() - v[0]).abs() < 1e-5, "{} against {}", k[0].ln(), v[0]);
         }
         assert!(shared_detail(&[None, None], 16).is_none());
+    }
+
+    /// Log details of `lights` lights on a 32² grid: a shared pattern, the
+    /// light's share `s(l)` of a second one, and the light's own noise.
+    fn light_details(lights: usize, s: impl Fn(usize) -> f32, noise: f32) -> Vec<Option<Image>> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        (0..lights)
+            .map(|l| {
+                Some(
+                    (0..32 * 32)
+                        .map(|t| {
+                            let (x, y) = ((t % 32) as f32, (t / 32) as f32);
+                            let shared = 0.2 * (0.9 * x).sin() * (0.7 * y).cos();
+                            let moving = 0.3 * (0.5 * x + 1.3 * y).sin();
+                            std::array::from_fn(|k| {
+                                shared
+                                    + s(l) * moving * (1.0 - 0.2 * k as f32)
+                                    + noise * rng.random_range(-1.0..1.0)
+                            })
+                        })
+                        .collect(),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn light_components_hold_what_changes_with_the_light() {
+        // A pattern whose strength changes with the light (a shadow that
+        // grows as the light drops): one component, and each light's
+        // coefficients rebuild its detail to within its noise.
+        let share = |l: usize| (l as f32 * 0.7).cos();
+        let details = light_details(12, share, 0.02);
+        let layer = detail_layer(&details, 32).unwrap();
+        assert_eq!(layer.bases.len(), 1, "one component");
+        let top = layer.bases[0].iter().flatten().fold(0.0f32, |a, x| a.max(x.abs()));
+        assert!((top - 1.0).abs() < 1e-6, "scaled to max |value| = 1");
+        let mean: Image = (0..32 * 32)
+            .map(|t| {
+                std::array::from_fn(|k| {
+                    details.iter().flatten().map(|d| d[t][k]).sum::<f32>() / 12.0
+                })
+            })
+            .collect();
+        for (l, d) in details.iter().enumerate() {
+            let d = d.as_ref().unwrap();
+            let (mut miss, mut power) = (0.0f64, 0.0f64);
+            for t in 0..32 * 32 {
+                for k in 0..3 {
+                    let e = (d[t][k] - mean[t][k]) as f64;
+                    let r = (layer.coefficients[l][0] * layer.bases[0][t][k]) as f64;
+                    miss += (e - r).powi(2);
+                    power += e * e;
+                }
+            }
+            // The noise alone is 0.02² / 3 per value (uniform), 1.3e-4; the
+            // moving pattern's power 0.3² / 2 · share² ≈ 0.03 · share².
+            assert!(miss / (3.0 * 1024.0) < 2.0e-4, "light {l}: {:.2e}", miss / 3072.0);
+            assert!(miss < 0.1 * power || share(l).abs() < 0.3, "light {l}: {miss} of {power}");
+        }
+    }
+
+    #[test]
+    fn lights_that_differ_only_by_their_noise_have_no_component() {
+        let details = light_details(12, |_| 0.0, 0.05);
+        let layer = detail_layer(&details, 32).unwrap();
+        assert!(layer.bases.is_empty(), "{} components", layer.bases.len());
+        assert!(layer.coefficients.iter().all(Vec::is_empty));
+        // Nor do too few lights to split in halves.
+        let (bases, _) = light_components(&light_details(3, |l| l as f32 - 1.0, 0.0), 32);
+        assert!(bases.is_empty());
     }
 
     #[test]

@@ -295,10 +295,11 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
 }
 
 /// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more)
-/// or the detail layer's `detail.exr`.
+/// or the detail layer's `detail.exr` and `detail-l{LL}.exr`.
 fn is_region_file(name: &str) -> bool {
     let digits = |s: &str| s.len() >= 2 && s.bytes().all(|b| b.is_ascii_digit());
     name == "detail.exr"
+        || name.strip_prefix("detail-l").and_then(|r| r.strip_suffix(".exr")).is_some_and(digits)
         || name
             .strip_prefix('l')
             .and_then(|r| r.strip_suffix(".exr"))
@@ -393,7 +394,12 @@ pub fn build_cmd(
         },
         material.metadata().half_vector_shift,
         if material.metadata().texel_model { ", texel model" } else { "" },
-        if material.metadata().detail { ", detail layer" } else { "" },
+        match material.metadata() {
+            m if m.detail_components > 0 =>
+                format!(", detail layer with {} light components", m.detail_components),
+            m if m.detail => ", detail layer".to_string(),
+            _ => String::new(),
+        },
         bytes.len() as f64 / 1e6,
     );
     Ok(Built { material, regions })
@@ -546,4 +552,22 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
 /// A material file for a command, or exit 3 (its errors name the file).
 fn open_material(path: &Path) -> Result<scanner_shading::Material, Failure> {
     scanner_shading::Material::open(path).map_err(|e| Failure(3, anyhow!(e)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::is_region_file;
+
+    #[test]
+    fn region_files_are_told_from_others() {
+        for ok in ["l00-v39.exr", "l123-v07.exr", "detail.exr", "detail-l05.exr", "detail-l112.exr"]
+        {
+            assert!(is_region_file(ok), "{ok}");
+        }
+        for not in
+            ["l0-v39.exr", "l00-v39.png", "detail-l5.exr", "detail-lab.exr", "notes.txt", "detail"]
+        {
+            assert!(!is_region_file(not), "{not}");
+        }
+    }
 }
