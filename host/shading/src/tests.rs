@@ -168,6 +168,17 @@ fn random_dir(rng: &mut ChaCha8Rng, max_theta_deg: f32) -> [f32; 3] {
     [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
 }
 
+/// `n` queries at random uv in [0, 1)², directions within 80° of the normal.
+fn random_queries(rng: &mut ChaCha8Rng, n: usize) -> Vec<ShadeQuery> {
+    (0..n)
+        .map(|_| ShadeQuery {
+            uv: [rng.random(), rng.random()],
+            wi: random_dir(rng, 80.0),
+            wo: random_dir(rng, 80.0),
+        })
+        .collect()
+}
+
 #[test]
 fn the_grid_finds_what_an_exhaustive_search_finds() {
     let (dirs, tris) = ring();
@@ -626,6 +637,18 @@ fn with_detail(mut d: MaterialData) -> MaterialData {
     d
 }
 
+/// A material file's bytes with its metadata JSON edited by `edit`, the
+/// tensors as they were.
+fn with_metadata(bytes: &[u8], edit: impl Fn(&str) -> String) -> Vec<u8> {
+    let st = safetensors::SafeTensors::deserialize(bytes).unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes).unwrap();
+    let json = edit(&header.metadata().as_ref().unwrap()[format::METADATA_KEY]);
+    let tensors: Vec<(String, safetensors::tensor::TensorView<'_>)> =
+        st.tensors().into_iter().collect();
+    let info = std::collections::HashMap::from([(format::METADATA_KEY.to_string(), json)]);
+    safetensors::serialize(tensors, Some(info)).unwrap()
+}
+
 #[test]
 fn a_detail_layer_multiplies_every_answer() {
     let mut rng = ChaCha8Rng::seed_from_u64(21);
@@ -660,14 +683,7 @@ fn a_detail_layer_multiplies_every_answer() {
             assert!((b[c] - a[c] * m).abs() <= 1e-3 * b[c].abs().max(1e-3), "{c}");
         }
         // The batch answers as `eval` does.
-        let queries: Vec<ShadeQuery> = (0..500)
-            .map(|_| ShadeQuery {
-                uv: [rng.random(), rng.random()],
-                wi: random_dir(&mut rng, 80.0),
-                wo: random_dir(&mut rng, 80.0),
-            })
-            .collect();
-        assert!(batch_as_eval(&detailed, &queries) > 0);
+        assert!(batch_as_eval(&detailed, &random_queries(&mut rng, 500)) > 0);
     }
 }
 
@@ -692,16 +708,11 @@ fn bad_detail_layers_are_refused() {
     assert!(e(d).contains("version 3 without a detail layer"));
     // A layer the metadata does not announce is an unexpected tensor.
     let good = with_detail(material(Interpolation::Default)).to_bytes().unwrap();
-    let st = safetensors::SafeTensors::deserialize(&good).unwrap();
-    let (_, header) = safetensors::SafeTensors::read_metadata(&good).unwrap();
-    let json = header.metadata().as_ref().unwrap()[format::METADATA_KEY]
-        .replace("\"detail\":true", "")
-        .replace(",}", "}")
-        .replace("\"version\":3", "\"version\":1");
-    let tensors: Vec<(String, safetensors::tensor::TensorView<'_>)> =
-        st.tensors().into_iter().collect();
-    let info = std::collections::HashMap::from([(format::METADATA_KEY.to_string(), json)]);
-    let bytes = safetensors::serialize(tensors, Some(info)).unwrap();
+    let bytes = with_metadata(&good, |json| {
+        json.replace("\"detail\":true", "")
+            .replace(",}", "}")
+            .replace("\"version\":3", "\"version\":1")
+    });
     let msg = Material::from_bytes(&bytes).unwrap_err().to_string();
     assert!(msg.contains("unexpected tensor `detail`"), "{msg}");
     // Damage anywhere in a version-3 file: an error or a material, never a panic.
@@ -816,13 +827,7 @@ fn light_components_follow_the_light() {
         assert!((ratio(l) - want(l)).abs() < 2e-3 * want(l), "light {l}: {}", ratio(l));
     }
     // The batch answers as `eval` does, with the patent's tables too.
-    let queries: Vec<ShadeQuery> = (0..500)
-        .map(|_| ShadeQuery {
-            uv: [rng.random(), rng.random()],
-            wi: random_dir(&mut rng, 80.0),
-            wo: random_dir(&mut rng, 80.0),
-        })
-        .collect();
+    let queries = random_queries(&mut rng, 500);
     assert!(batch_as_eval(&lit, &queries) > 0);
     for base in [
         material_with_model(),
@@ -871,15 +876,9 @@ fn bad_light_components_are_refused() {
     assert!(msg.contains("detail_components 9 outside 0…8"), "{msg}");
     // Components the metadata does not announce are unexpected tensors.
     let bytes = good().to_bytes().unwrap();
-    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
-    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
-    let json = header.metadata().as_ref().unwrap()[format::METADATA_KEY]
-        .replace(",\"detail_components\":2", "")
-        .replace("\"version\":4", "\"version\":3");
-    let tensors: Vec<(String, safetensors::tensor::TensorView<'_>)> =
-        st.tensors().into_iter().collect();
-    let info = std::collections::HashMap::from([(format::METADATA_KEY.to_string(), json)]);
-    let stripped = safetensors::serialize(tensors, Some(info)).unwrap();
+    let stripped = with_metadata(&bytes, |json| {
+        json.replace(",\"detail_components\":2", "").replace("\"version\":4", "\"version\":3")
+    });
     let msg = Material::from_bytes(&stripped).unwrap_err().to_string();
     assert!(msg.contains("unexpected tensor `detail_"), "{msg}");
     // Damage anywhere in a version-4 file: an error or a material, never a panic.
