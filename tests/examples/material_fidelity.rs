@@ -64,10 +64,10 @@ fn main() {
     );
     println!(
         "| material | regions dB | regions × detail dB | material dB (default) | material dB (patent) | palettes alone dB | \
-         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) | β | texel model | \
+         novel dB (default) | novel dB (patent) | file MB (default / patent) | palettes+tables s (default / patent) | β | texel model | light components | \
          captured, default: worst 5 % of pairs' share of the error | PSNR of the other 95 % dB |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
@@ -115,9 +115,10 @@ fn main() {
         let shift = default.metadata().half_vector_shift;
         let model = if default.metadata().texel_model { "yes" } else { "no" };
         println!(
-            "| {m} | {reg:.2} | {reg_d:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} | {shift} | {model} | {:.0} % | {without:.2} |",
+            "| {m} | {reg:.2} | {reg_d:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} | {shift} | {model} | {} | {:.0} % | {without:.2} |",
             size_d as f64 / 1e6,
             size_p as f64 / 1e6,
+            default.metadata().detail_components,
             100.0 * share
         );
     }

@@ -112,6 +112,13 @@ fn a_built_material_shades_like_the_sample() {
         &captured,
         &novel,
     );
+    // The layer's light components are in the file as the builder kept them
+    // (at this sensor's 1024² none are kept for the leather; at 4096², two:
+    // docs/benchmarks.md, "What changes with the light").
+    let layer = regions.detail.as_ref().expect("a detail layer");
+    eprintln!("leather detail layer: {} light components", layer.bases.len());
+    assert_eq!(meta.detail_components as usize, layer.bases.len());
+    assert_eq!(meta.version > scanner_shading::format::VERSION_DETAIL, !layer.bases.is_empty());
     let tests::MaterialScores {
         regions: reg,
         captured: [cap_d, cap_p],

@@ -578,7 +578,85 @@ mod tests {
     use scanner_geometry::ScannerGeometry;
     use scanner_shading::locate::{TriangleLocator, Weights3};
 
-    use super::triangulate;
+    use super::{MaterialOptions, TexelModelChoice, build_material, triangulate};
+    use crate::build::RegionSet;
+    use crate::build::calibrate::Silent;
+    use crate::build::superres::DetailLayer;
+
+    /// The detail layer's light components go into the file in its layout
+    /// ([R][2S][2S], [L][R]) and come back out of the shading: at a captured
+    /// pair and a 2S texel centre, the material answers its region image
+    /// times its own light's factor.
+    #[test]
+    fn the_built_file_shades_each_light_with_its_own_detail() {
+        let (n, s) = (9usize, 8usize);
+        let f = 2 * s;
+        let dirs: Vec<[f64; 3]> = (0..n)
+            .map(|k| {
+                let (th, ph) = ((10.0 + 15.0 * (k % 3) as f64).to_radians(), 0.9 * k as f64);
+                [th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()]
+            })
+            .collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let regions = RegionSet {
+            size: s,
+            lights: (0..n).collect(),
+            views: (0..n).collect(),
+            light_dirs: dirs.clone(),
+            view_dirs: dirs.clone(),
+            viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1200.0)).collect(),
+            sample_mm: 25.4,
+            // Few colours per image, so that 256-colour palettes hold them.
+            images: (0..n * n)
+                .map(|p| {
+                    let cos = dirs[p / n][2] as f32;
+                    (0..s * s)
+                        .map(|t| [0.1 + 0.02 * (t % 5) as f32, 0.2, 0.05 * p as f32 + 0.01])
+                        .map(|c| c.map(|x| x * cos))
+                        .collect()
+                })
+                .collect(),
+            detail: Some(DetailLayer {
+                shared: (0..f * f).map(|_| [rng.random_range(0.7..1.4); 3]).collect(),
+                bases: (0..2)
+                    .map(|_| {
+                        (0..f * f)
+                            .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)))
+                            .collect()
+                    })
+                    .collect(),
+                coefficients: (0..n)
+                    .map(|l| vec![0.1 * l as f32 - 0.4, 0.3 - 0.05 * l as f32])
+                    .collect(),
+            }),
+        };
+        let opts = MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() };
+        let prov = scanner_shading::format::Provenance {
+            scan_manifest_sha256: String::new(),
+            geometry_sha256: String::new(),
+            calibration_sha256: String::new(),
+            builder: "test".into(),
+        };
+        let data = build_material(&regions, "test", 25.4, prov, &opts, &Silent).unwrap();
+        assert_eq!(data.meta.version, scanner_shading::format::VERSION_LIGHT_DETAIL);
+        assert_eq!(data.meta.detail_components, 2);
+        let m = scanner_shading::Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+        let f32v = |d: [f64; 3]| d.map(|x| x as f32);
+        for _ in 0..300 {
+            let (li, vi) = (rng.random_range(0..n), rng.random_range(0..n));
+            let (x, y) = (rng.random_range(1..f - 1), rng.random_range(1..f - 1));
+            let uv = [(x as f64 + 0.5) / f as f64, (y as f64 + 0.5) / f as f64];
+            let got = m.eval(uv.map(|x| x as f32), f32v(dirs[li]), f32v(dirs[vi]));
+            let (img, d) = (regions.sample(li, vi, uv), regions.detail_at(li, uv));
+            for k in 0..3 {
+                let want = (img[k] * d[k]) as f32;
+                assert!(
+                    (got[k] - want).abs() <= 2e-3 * want.abs() + 1e-5,
+                    "pair ({li}, {vi}) at {uv:?}: {got:?} against {want}"
+                );
+            }
+        }
+    }
 
     /// The locator's fast path and coarse grid against its exhaustive
     /// search, on real triangulations: the default scanner's view and
