@@ -84,12 +84,12 @@ pub struct Material {
     directions: Directions,
     /// `[S][S]` stored texel-model values ([`texel::STORED`] each), or empty.
     texels: Vec<[f32; texel::STORED]>,
-    /// `[2S][2S]` shared detail factors, or empty.
+    /// `[2S][2S][1 + R]`: per texel the shared detail factor, then the
+    /// light components' log factors (one lookup's values together), or
+    /// empty.
     detail: Vec<[f32; 3]>,
     /// The detail layer's light components R (0: none).
     components: usize,
-    /// `[2S][2S][R]` the light components' log factors.
-    detail_bases: Vec<[f32; 3]>,
     /// `[L][R]` each light's coefficients on them.
     detail_coefficients: Vec<f32>,
 }
@@ -315,14 +315,16 @@ impl Material {
             light_groups: d.light_groups,
             directions,
             texels: d.texels.iter().map(|p| p.to_stored()).collect(),
-            detail: d.detail,
-            components: m.detail_components as usize,
-            detail_bases: {
-                // Texel-major: a lookup's components lie together.
-                let r = m.detail_components as usize;
-                let n = d.detail_bases.len().checked_div(r).unwrap_or(0);
-                (0..n * r).map(|i| d.detail_bases[(i % r) * n + i / r]).collect()
+            detail: {
+                let (r, n) = (m.detail_components as usize, d.detail.len());
+                (0..n * (1 + r))
+                    .map(|i| match i % (1 + r) {
+                        0 => d.detail[i / (1 + r)],
+                        c => d.detail_bases[(c - 1) * n + i / (1 + r)],
+                    })
+                    .collect()
             },
+            components: m.detail_components as usize,
             detail_coefficients: d.detail_coefficients,
             meta: d.meta,
         })
@@ -456,25 +458,29 @@ impl Material {
         if self.detail.is_empty() {
             return [1.0; 3];
         }
-        let d = at.texel.map(|t| self.detail[t as usize]);
-        let shared = std::array::from_fn(|k| (0..4).map(|i| at.w[i] * d[i][k]).sum());
         let r = self.components;
+        let d = at.texel.map(|t| self.detail[t as usize * (1 + r)]);
+        let shared = std::array::from_fn(|k| (0..4).map(|i| at.w[i] * d[i][k]).sum());
         if r == 0 {
             return shared;
         }
         let mut log = [0.0f32; 3];
-        let total: f32 = lights.iter().map(|l| l.1).sum();
+        let mut coef = [0.0f32; format::MAX_DETAIL_COMPONENTS as usize];
+        let mut total = 0.0f32;
+        for &(l, w) in lights {
+            let row = &self.detail_coefficients[l as usize * r..][..r];
+            for (c, x) in coef.iter_mut().zip(row) {
+                *c += w * x;
+            }
+            total += w;
+        }
         if total > 0.0 {
-            for c in 0..r {
-                let coef = lights
-                    .iter()
-                    .map(|&(l, w)| w * self.detail_coefficients[l as usize * r + c])
-                    .sum::<f32>()
-                    / total;
-                for i in 0..4 {
-                    let b = self.detail_bases[at.texel[i] as usize * r + c];
+            for i in 0..4 {
+                let at_i = &self.detail[at.texel[i] as usize * (1 + r) + 1..][..r];
+                for (b, c) in at_i.iter().zip(&coef) {
+                    let cw = c * at.w[i] / total;
                     for k in 0..3 {
-                        log[k] += coef * at.w[i] * b[k];
+                        log[k] += cw * b[k];
                     }
                 }
             }
@@ -560,9 +566,9 @@ impl Material {
         s.at = at;
         if s.dirs.pairs > 0 && !self.detail.is_empty() {
             s.fine = Footprint::on(2 * self.size, uv);
-            prefetch(&self.detail[s.fine.texel[0] as usize]);
-            if self.components > 0 {
-                prefetch(&self.detail_bases[s.fine.texel[0] as usize * self.components]);
+            // Its two rows (each pair of taps shares a line, or nearly).
+            for t in [s.fine.texel[0], s.fine.texel[2]] {
+                prefetch(&self.detail[t as usize * (1 + self.components)]);
             }
         }
         if s.dirs.pairs > 0 && !self.texels.is_empty() {
