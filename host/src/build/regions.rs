@@ -88,9 +88,7 @@ impl RegionSet {
         let Some(d) = &self.detail else {
             return [1.0; 3];
         };
-        let at = |img: &[[f32; 3]]| bilinear(2 * self.size, img, uv).map(|x| x as f32);
-        let bases: Vec<[f32; 3]> = d.bases.iter().map(|b| at(b)).collect();
-        d.factor(li, at(&d.shared), &bases).map(f64::from)
+        d.factor(li, |img| bilinear(2 * self.size, img, uv).map(|x| x as f32)).map(f64::from)
     }
 
     /// Bilinear lookup at uv (clamped to the sample).
@@ -133,12 +131,7 @@ impl RegionSet {
             return Ok(());
         }
         (0..self.lights.len()).into_par_iter().try_for_each(|li| {
-            let rgb = (0..f * f)
-                .flat_map(|t| {
-                    let bases: Vec<[f32; 3]> = d.bases.iter().map(|b| b[t]).collect();
-                    d.factor(li, d.shared[t], &bases)
-                })
-                .collect();
+            let rgb = (0..f * f).flat_map(|t| d.factor(li, |img| img[t])).collect();
             write(format!("detail-l{:02}.exr", self.lights[li]), rgb)
         })
     }

@@ -760,12 +760,17 @@ pub struct DetailLayer {
 }
 
 impl DetailLayer {
-    /// The factor for light `li` from its parts at one point: `shared` the
-    /// shared factor there, `bases[r]` each component's value there.
-    pub fn factor(&self, li: usize, shared: [f32; 3], bases: &[[f32; 3]]) -> [f32; 3] {
-        let c = &self.coefficients[li];
-        let log = std::array::from_fn(|k| bases.iter().zip(c).map(|(b, c)| c * b[k]).sum());
-        scanner_shading::detail_factor(shared, log)
+    /// The factor for light `li` at one point, `at` giving each of the
+    /// layer's images (the shared factor, each component) there.
+    pub fn factor(&self, li: usize, at: impl Fn(&[[f32; 3]]) -> [f32; 3]) -> [f32; 3] {
+        let mut log = [0.0f32; 3];
+        for (b, c) in self.bases.iter().zip(&self.coefficients[li]) {
+            let v = at(b);
+            for k in 0..3 {
+                log[k] += c * v[k];
+            }
+        }
+        scanner_shading::detail_factor(at(&self.shared), log)
     }
 }
 
