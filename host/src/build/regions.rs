@@ -272,3 +272,51 @@ pub fn extract_regions(
         images: per_light.into_iter().flatten().collect(),
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `scanner regions`' files: every image, the shared layer, and with
+    /// light components each light's whole layer, named by its mirror.
+    #[test]
+    fn each_light_s_layer_is_written_beside_the_images() {
+        let (s, f) = (4usize, 8usize);
+        let dirs = vec![[0.0, 0.0, 1.0], [0.5, 0.0, 0.866], [0.0, 0.5, 0.866]];
+        let set = RegionSet {
+            size: s,
+            lights: vec![3, 7, 12],
+            views: vec![0, 1, 2],
+            light_dirs: dirs.clone(),
+            view_dirs: dirs.clone(),
+            viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1200.0)).collect(),
+            sample_mm: 25.4,
+            images: vec![vec![[0.25; 3]; s * s]; 9],
+            detail: Some(DetailLayer {
+                shared: (0..f * f).map(|t| [1.0 + 0.01 * t as f32; 3]).collect(),
+                bases: vec![(0..f * f).map(|t| [(t % 3) as f32 * 0.5 - 0.5; 3]).collect()],
+                coefficients: vec![vec![-0.5], vec![0.0], vec![0.75]],
+            }),
+        };
+        let dir = tempfile::tempdir().unwrap();
+        set.write_exr(dir.path()).unwrap();
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 9 + 1 + 3);
+        let d = set.detail.as_ref().unwrap();
+        for (li, m) in set.lights.iter().enumerate() {
+            let got = crate::exrio::read_rgb(&dir.path().join(format!("detail-l{m:02}.exr")))
+                .unwrap();
+            assert_eq!((got.width, got.height), (f as u32, f as u32));
+            for t in [0, 5, 37, 63] {
+                let want = d.factor(li, |img| img[t]);
+                for k in 0..3 {
+                    let v = got.rgb[3 * t + k];
+                    assert!((v - want[k]).abs() < 2e-3 * want[k], "light {m}, texel {t}: {v}");
+                }
+            }
+        }
+        // Light 7's coefficient is 0: its layer is the shared one.
+        let shared = crate::exrio::read_rgb(&dir.path().join("detail.exr")).unwrap();
+        let l7 = crate::exrio::read_rgb(&dir.path().join("detail-l07.exr")).unwrap();
+        assert_eq!(shared.rgb, l7.rgb);
+    }
+}
