@@ -742,8 +742,9 @@ pub fn shared_detail(details: &[Option<Vec<[f32; 3]>>], fine: usize) -> Option<V
 
 /// Most light components of the detail layer ([`light_components`]).
 pub const MAX_LIGHT_COMPONENTS: usize = 2;
-/// A light component is kept if the other half of the lights holds at
-/// least this share of its energy ([`light_components`]).
+/// A light component fitted on one half of the lights is kept if the
+/// other half holds, per light, at least this share of the energy it holds
+/// in its own ([`light_components`]).
 const HELD_OUT_SHARE: f64 = 0.5;
 
 /// The detail layer: a factor shared by every pair, and what changes with
