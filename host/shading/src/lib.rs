@@ -367,7 +367,7 @@ impl Material {
                     }
                 }
                 if self.components > 0 {
-                    // The light cells. weights.
+                    // The light cells' weights.
                     for &(li, wl) in lw {
                         if wl != 0.0 && n < pairs.len() {
                             pairs[n] = (li, wl);
