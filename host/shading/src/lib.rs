@@ -351,7 +351,7 @@ impl Material {
                 };
                 let mut acc = [0.0f32; 3];
                 let lw = lights.weights(wi);
-                let mut pairs = [(0u16, 0f32); format::MAX_CELL_PAIRS];
+                let mut light_weights = [(0u16, 0f32); format::MAX_CELL_PAIRS];
                 let mut n = 0;
                 for &(vi, wv) in views.weights(wo) {
                     for &(li, wl) in lw {
@@ -369,13 +369,13 @@ impl Material {
                 if self.components > 0 {
                     // The light cells' weights.
                     for &(li, wl) in lw {
-                        if wl != 0.0 && n < pairs.len() {
-                            pairs[n] = (li, wl);
+                        if wl != 0.0 && n < light_weights.len() {
+                            light_weights[n] = (li, wl);
                             n += 1;
                         }
                     }
                 }
-                let d = self.detail_at(&Footprint::on(2 * self.size, uv), &pairs[..n]);
+                let d = self.detail_at(&Footprint::on(2 * self.size, uv), &light_weights[..n]);
                 std::array::from_fn(|k| acc[k] * wi[2] * d[k])
             }
         }

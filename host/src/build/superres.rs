@@ -868,20 +868,17 @@ pub fn light_components(details: &[Option<Image>], fine: usize) -> (Vec<Image>, 
     let all: Vec<usize> = (0..m).collect();
     let halves = [0, 1].map(|h| all.iter().copied().filter(|i| i % 2 == h).collect::<Vec<_>>());
     let half_components = halves.each_ref().map(|h| components(h, MAX_LIGHT_COMPONENTS));
-    // The energy the first r components of one half hold in the rows of a
-    // half (each component's share counted once: they are orthonormal).
-    let held = |comps: &[Vec<f32>], rows: &[usize], r: usize| -> f64 {
-        rows.iter()
-            .map(|&i| comps.iter().take(r).map(|c| dot(c, &resid[i]).powi(2)).sum::<f64>())
-            .sum()
-    };
     // Whether the r-th component fitted on half h holds, per light, at
-    // least HELD_OUT_SHARE of its energy in the other half.
+    // least HELD_OUT_SHARE of its energy in the other half (the components
+    // are orthonormal: each one's energy in a row is its own projection's).
     let agrees = |h: usize, r: usize| -> bool {
-        let comps = &half_components[h];
-        let gain =
-            |rows: &[usize]| (held(comps, rows, r) - held(comps, rows, r - 1)) / rows.len() as f64;
-        comps.len() >= r && gain(&halves[1 - h]) >= HELD_OUT_SHARE * gain(&halves[h])
+        let Some(c) = half_components[h].get(r - 1) else {
+            return false;
+        };
+        let energy = |rows: &[usize]| {
+            rows.iter().map(|&i| dot(c, &resid[i]).powi(2)).sum::<f64>() / rows.len() as f64
+        };
+        energy(&halves[1 - h]) >= HELD_OUT_SHARE * energy(&halves[h])
     };
     let keep = (1..=MAX_LIGHT_COMPONENTS).take_while(|&r| agrees(0, r) && agrees(1, r)).count();
     if keep == 0 {
