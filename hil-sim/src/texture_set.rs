@@ -89,7 +89,8 @@ enum Channels {
     Rgb,
     /// RGB without the grey convenience (normals).
     StrictRgb,
-    /// One channel: a grey PNG, or an EXR whose R, G and B are equal.
+    /// One channel: a grey image (alpha ignored), or an RGB one whose R, G
+    /// and B are equal.
     Grey,
 }
 
@@ -97,10 +98,18 @@ fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.040_45 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
 }
 
-/// Load `path` as linear values with the channel layout asked for.
-fn load_map(path: &Path, enc: Encoding, want: Channels) -> Result<Map, TextureSetError> {
+/// A map as stored: `channels` (1 or 3) values per pixel, row-major, alpha
+/// dropped; PNG values in [0, 1] still encoded.
+struct Stored {
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: Vec<f32>,
+}
+
+/// Decode a PNG (or any format the `image` crate guesses) as stored.
+fn read_image(path: &Path) -> Result<Stored, TextureSetError> {
     use image::DynamicImage as D;
-    let is_exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     let img = image::ImageReader::open(path)
         .map_err(|e| err(path, format!("cannot open: {e}")))?
         .with_guessed_format()
@@ -108,42 +117,99 @@ fn load_map(path: &Path, enc: Encoding, want: Channels) -> Result<Map, TextureSe
         .decode()
         .map_err(|e| err(path, format!("cannot decode: {e}")))?;
     let (width, height) = (img.width() as usize, img.height() as usize);
+    let (channels, data): (usize, Vec<f32>) = match &img {
+        D::ImageLuma8(_) | D::ImageLuma16(_) | D::ImageLumaA8(_) | D::ImageLumaA16(_) => {
+            (1, img.to_luma32f().into_raw())
+        }
+        D::ImageRgb8(_)
+        | D::ImageRgba8(_)
+        | D::ImageRgb16(_)
+        | D::ImageRgba16(_)
+        | D::ImageRgb32F(_)
+        | D::ImageRgba32F(_) => (3, img.to_rgb32f().into_raw()),
+        other => return Err(err(path, format!("unsupported pixel type {:?}", other.color()))),
+    };
+    Ok(Stored { width, height, channels, data })
+}
+
+/// Decode an OpenEXR file's first layer as stored: its `R`, `G` and `B`
+/// channels, else its `Y` (luminance) channel, else its one channel other
+/// than `A`. Any sample type; subsampled channels are refused.
+fn read_exr(path: &Path) -> Result<Stored, TextureSetError> {
+    use exr::prelude::{AnyChannel, FlatSamples};
+    let image = exr::prelude::read_first_flat_layer_from_file(path)
+        .map_err(|e| err(path, format!("cannot decode: {e}")))?;
+    let layer = &image.layer_data;
+    let (width, height) = (layer.size.width(), layer.size.height());
+    let list = &layer.channel_data.list;
+    let find = |name: &str| list.iter().find(|c| c.name.eq(name));
+    let names = || list.iter().map(|c| c.name.to_string()).collect::<Vec<_>>().join(", ");
+    let chosen: Vec<&AnyChannel<FlatSamples>> = match (find("R"), find("G"), find("B"), find("Y")) {
+        (Some(r), Some(g), Some(b), _) => vec![r, g, b],
+        (_, _, _, Some(_)) if find("RY").is_some() || find("BY").is_some() => {
+            return Err(err(path, "luminance/chroma (Y, RY, BY) image: store R, G, B or Y alone"));
+        }
+        (_, _, _, Some(y)) => vec![y],
+        _ => {
+            let colour: Vec<_> = list.iter().filter(|c| !c.name.eq("A")).collect();
+            if colour.len() != 1 {
+                return Err(err(
+                    path,
+                    format!("channels [{}]: expected R, G and B, or one channel", names()),
+                ));
+            }
+            colour
+        }
+    };
+    for c in &chosen {
+        if c.sample_data.len() != width * height {
+            return Err(err(path, format!("channel {} is subsampled", c.name)));
+        }
+    }
+    let channels = chosen.len();
+    let mut data = vec![0.0f32; width * height * channels];
+    for (k, c) in chosen.iter().enumerate() {
+        for (i, v) in c.sample_data.values_as_f32().enumerate() {
+            data[i * channels + k] = v;
+        }
+    }
+    Ok(Stored { width, height, channels, data })
+}
+
+/// Load `path` as linear values with the channel layout asked for.
+fn load_map(path: &Path, enc: Encoding, want: Channels) -> Result<Map, TextureSetError> {
+    let is_exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    let Stored { width, height, channels: src_channels, data: raw } =
+        if is_exr { read_exr(path)? } else { read_image(path)? };
     if width == 0 || height == 0 {
         return Err(err(path, "empty image"));
     }
-    // Source channels as stored (alpha dropped), values in [0, 1] for PNG.
-    let (src_channels, raw): (usize, Vec<f32>) = match &img {
-        D::ImageLuma8(_) | D::ImageLuma16(_) => (1, img.to_luma32f().into_raw()),
-        D::ImageRgb8(_) | D::ImageRgba8(_) | D::ImageRgb16(_) | D::ImageRgba16(_) => {
-            (3, img.to_rgb32f().into_raw())
-        }
-        D::ImageRgb32F(_) | D::ImageRgba32F(_) => (3, img.to_rgb32f().into_raw()),
-        D::ImageLumaA8(_) | D::ImageLumaA16(_) => {
-            return Err(err(path, "grey + alpha image: use grey or RGB"));
-        }
-        other => return Err(err(path, format!("unsupported pixel type {:?}", other.color()))),
-    };
     let decode = |v: f32| if !is_exr && enc == Encoding::Srgb { srgb_to_linear(v) } else { v };
     if let Some(i) = raw.iter().position(|v| !v.is_finite()) {
         let px = i / src_channels;
         return Err(err(path, format!("pixel ({}, {}) is {}", px % width, px / width, raw[i])));
     }
     let data: Vec<f32> = match (want, src_channels) {
-        (Channels::Rgb | Channels::StrictRgb, 3) => raw.into_iter().map(decode).collect(),
         (Channels::Rgb, 1) => raw.into_iter().flat_map(|v| [decode(v); 3]).collect(),
-        (Channels::StrictRgb, n) => {
+        (Channels::Rgb | Channels::StrictRgb, 3) => raw.into_iter().map(decode).collect(),
+        (Channels::Rgb | Channels::StrictRgb, n) => {
             return Err(err(path, format!("{n} channel(s), expected RGB")));
         }
         (Channels::Grey, 1) => raw.into_iter().map(decode).collect(),
-        (Channels::Grey, _) if is_exr => {
-            let grey = raw.chunks_exact(3).all(|c| c[0] == c[1] && c[1] == c[2]);
-            if !grey {
-                return Err(err(path, "3 different channels, expected one (grey)"));
+        (Channels::Grey, _) => {
+            // Grey stored as RGB (R = G = B) is grey.
+            if let Some(i) = raw.chunks_exact(3).position(|c| c[0] != c[1] || c[1] != c[2]) {
+                return Err(err(
+                    path,
+                    format!(
+                        "3 different channels at pixel ({}, {}), expected one (grey, or R = G = B)",
+                        i % width,
+                        i / width
+                    ),
+                ));
             }
-            raw.chunks_exact(3).map(|c| c[0]).collect()
+            raw.chunks_exact(3).map(|c| decode(c[0])).collect()
         }
-        (Channels::Grey, n) => return Err(err(path, format!("{n} channels, expected one (grey)"))),
-        (_, n) => return Err(err(path, format!("{n} channels"))),
     };
     let channels = if want == Channels::Grey { 1 } else { 3 };
     Ok(Map { width, height, channels, data })

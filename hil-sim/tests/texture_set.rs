@@ -35,6 +35,21 @@ fn exr(dir: &Path, name: &str, w: u32, h: u32, f: impl Fn(u32, u32) -> [f32; 3])
     image::Rgb32FImage::from_fn(w, h, |x, y| image::Rgb(f(x, y))).save(dir.join(name)).unwrap();
 }
 
+/// An EXR of W × H px with the named f32 channels.
+fn exr_channels(dir: &Path, name: &str, channels: &[(&str, fn(u32, u32) -> f32)]) {
+    use exr::prelude::{AnyChannel, AnyChannels, FlatSamples, Image, SmallVec, WritableImage};
+    let list = channels
+        .iter()
+        .map(|(n, f)| {
+            let values = (0..W * H).map(|i| f(i % W, i / W)).collect();
+            AnyChannel::new(*n, FlatSamples::F32(values))
+        })
+        .collect();
+    let image =
+        Image::from_channels((W as usize, H as usize), AnyChannels::sort(SmallVec::from_vec(list)));
+    image.write().to_file(dir.join(name)).unwrap();
+}
+
 fn srgb(c: f64) -> f64 {
     if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
 }
@@ -113,6 +128,71 @@ fn the_gltf_form_converts_to_diffuse_and_f0() {
     assert_eq!(metal.normal, DVec3::Z);
 }
 
+/// The same roughness (a 16-bit grey ramp) stored every way a tool may write
+/// a grey map, and a grey + alpha diffuse map: each loads exactly as the
+/// grey PNG does.
+#[test]
+fn grey_maps_load_however_they_are_stored() {
+    fn ramp(x: u32, _: u32) -> f32 {
+        (x * 8000) as f32 / 65535.0
+    }
+    let reference = {
+        let dir = tempfile::tempdir().unwrap();
+        classic(dir.path());
+        TextureSet::load(dir.path()).unwrap()
+    };
+    let variants: [(&str, fn(&Path)); 5] = [
+        ("RGB PNG, R = G = B", |d| {
+            image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_fn(W, H, |x, _| {
+                image::Rgb([(x * 8000) as u16; 3])
+            })
+            .save(d.join("roughness.png"))
+            .unwrap()
+        }),
+        ("grey + alpha PNG", |d| {
+            image::ImageBuffer::<image::LumaA<u16>, Vec<u16>>::from_fn(W, H, |x, _| {
+                image::LumaA([(x * 8000) as u16, 1000])
+            })
+            .save(d.join("roughness.png"))
+            .unwrap()
+        }),
+        ("EXR with Y alone", |d| {
+            std::fs::remove_file(d.join("roughness.png")).unwrap();
+            exr_channels(d, "roughness.exr", &[("Y", ramp)]);
+        }),
+        ("EXR with one channel and alpha", |d| {
+            std::fs::remove_file(d.join("roughness.png")).unwrap();
+            exr_channels(d, "roughness.exr", &[("roughness", ramp), ("A", |_, _| 0.25)]);
+        }),
+        ("EXR, R = G = B", |d| {
+            std::fs::remove_file(d.join("roughness.png")).unwrap();
+            exr(d, "roughness.exr", W, H, |x, y| [ramp(x, y); 3]);
+        }),
+    ];
+    for (what, write) in variants {
+        let dir = tempfile::tempdir().unwrap();
+        classic(dir.path());
+        write(dir.path());
+        let set = TextureSet::load(dir.path()).unwrap_or_else(|e| panic!("{what}: {e}"));
+        for (c, r) in [(0, 0), (3, 1), (7, 3)] {
+            let (a, b) = (set.texel(centre(c, r)), reference.texel(centre(c, r)));
+            assert!(
+                (a.roughness - b.roughness).abs() < 1e-6,
+                "{what} at ({c}, {r}): {a:?} against {b:?}"
+            );
+        }
+    }
+    // A grey + alpha colour map is grey: R = G = B, alpha ignored.
+    let dir = tempfile::tempdir().unwrap();
+    classic(dir.path());
+    image::GrayAlphaImage::from_fn(W, H, |x, _| image::LumaA([(x * 30) as u8, 7]))
+        .save(dir.path().join("diffuse.png"))
+        .unwrap();
+    let set = TextureSet::load(dir.path()).unwrap();
+    let d = set.texel(centre(4, 2)).diffuse;
+    assert!((d[0] - srgb(120.0 / 255.0)).abs() < 1e-6 && d[0] == d[1] && d[1] == d[2], "{d:?}");
+}
+
 fn refusal(setup: impl Fn(&Path)) -> String {
     let dir = tempfile::tempdir().unwrap();
     classic(dir.path());
@@ -137,12 +217,32 @@ fn bad_sets_are_refused_naming_the_file() {
         exr(d, "diffuse.exr", W, H, |x, _| [if x == 5 { f32::NAN } else { 0.5 }, 0.5, 0.5]);
     });
     assert!(e.contains("diffuse.exr: pixel (5, 0) is NaN"), "{e}");
-    let e = refusal(|d| rgb8(d, "roughness.png", |_, _| [1, 2, 3]));
-    assert!(e.contains("roughness.png: 3 channels, expected one (grey)"), "{e}");
+    let e = refusal(|d| rgb8(d, "roughness.png", |x, _| [9, 9, if x == 2 { 8 } else { 9 }]));
+    assert!(
+        e.contains("roughness.png: 3 different channels at pixel (2, 0), expected one (grey"),
+        "{e}"
+    );
     let e = refusal(|d| {
         image::GrayAlphaImage::new(W, H).save(d.join("normal.png")).unwrap();
     });
-    assert!(e.contains("normal.png: grey + alpha"), "{e}");
+    assert!(e.contains("normal.png: 1 channel(s), expected RGB"), "{e}");
+    let e = refusal(|d| {
+        std::fs::remove_file(d.join("roughness.png")).unwrap();
+        exr_channels(d, "roughness.exr", &[("U", |_, _| 0.5), ("V", |_, _| 0.5)]);
+    });
+    assert!(
+        e.contains("roughness.exr: channels [U, V]: expected R, G and B, or one channel"),
+        "{e}"
+    );
+    let e = refusal(|d| {
+        std::fs::remove_file(d.join("diffuse.png")).unwrap();
+        exr_channels(
+            d,
+            "diffuse.exr",
+            &[("Y", |_, _| 0.5), ("RY", |_, _| 0.0), ("BY", |_, _| 0.0)],
+        );
+    });
+    assert!(e.contains("diffuse.exr: luminance/chroma"), "{e}");
     let e = refusal(|d| {
         std::fs::remove_file(d.join("roughness.png")).unwrap();
         exr(d, "roughness.exr", W, H, |x, _| [if x == 7 { 1.5 } else { 0.5 }; 3]);
