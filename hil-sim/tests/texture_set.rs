@@ -35,8 +35,11 @@ fn exr(dir: &Path, name: &str, w: u32, h: u32, f: impl Fn(u32, u32) -> [f32; 3])
     image::Rgb32FImage::from_fn(w, h, |x, y| image::Rgb(f(x, y))).save(dir.join(name)).unwrap();
 }
 
+/// A channel's value at pixel (x, y).
+type Values = fn(u32, u32) -> f32;
+
 /// An EXR of W × H px with the named f32 channels.
-fn exr_channels(dir: &Path, name: &str, channels: &[(&str, fn(u32, u32) -> f32)]) {
+fn exr_channels(dir: &Path, name: &str, channels: &[(&str, Values)]) {
     use exr::prelude::{AnyChannel, AnyChannels, FlatSamples, Image, SmallVec, WritableImage};
     let list = channels
         .iter()
@@ -141,7 +144,8 @@ fn grey_maps_load_however_they_are_stored() {
         classic(dir.path());
         TextureSet::load(dir.path()).unwrap()
     };
-    let variants: [(&str, fn(&Path)); 5] = [
+    type Write = fn(&Path);
+    let variants: [(&str, Write); 5] = [
         ("RGB PNG, R = G = B", |d| {
             image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_fn(W, H, |x, _| {
                 image::Rgb([(x * 8000) as u16; 3])
