@@ -72,9 +72,7 @@ pub fn merge(
                     if c == 0 || c == top {
                         return (0.0, 0.0);
                     }
-                    let e = c as f64 / gain;
-                    let var_code = gain * gain * (e + read2) + 1.0 / 12.0;
-                    let wgt = (max * t).powi(2) / var_code;
+                    let wgt = (max * t).powi(2) / code_variance(c as f64, gain, read2);
                     (wgt as f32, (wgt / t) as f32)
                 })
                 .collect();
@@ -134,6 +132,34 @@ pub fn merge(
     let mut merged = Frame { width: w, height: h, rgb: out };
     defects.patch(&mut merged);
     Ok((merged, stats))
+}
+
+/// The variance of ADC code `c` (codes²): shot noise of its electrons, read
+/// noise (`read2`, electrons²) and quantisation, at `gain` codes per
+/// electron.
+fn code_variance(c: f64, gain: f64, read2: f64) -> f64 {
+    let e = c.max(0.0) / gain;
+    gain * gain * (e + read2) + 1.0 / 12.0
+}
+
+/// The variance of a merged value as a rate, `rate` in full scale per
+/// second (a frame [`crate::build::scanread::ScanFrames::read`] returns),
+/// measured with `exposures_us`: the inverse of the merge's summed weights
+/// over the exposures that did not saturate at that rate (a black one
+/// counts with its read noise). `None`: every exposure saturated, or none
+/// given.
+pub fn rate_variance(rate: f64, exposures_us: &[u32], sensor: &SensorSpec) -> Option<f64> {
+    let max = sensor.max_code();
+    let (gain, read2) = (max / sensor.full_well_e, sensor.read_noise_e * sensor.read_noise_e);
+    let weight: f64 = exposures_us
+        .iter()
+        .map(|&t_us| t_us as f64 * 1e-6)
+        .filter_map(|t| {
+            let c = (rate * t * max).round();
+            (c < max).then(|| (max * t).powi(2) / code_variance(c, gain, read2))
+        })
+        .sum();
+    (weight > 0.0).then(|| 1.0 / weight)
 }
 
 /// How two exposures of a bracket agree: the rate (value per µs) the
@@ -353,6 +379,50 @@ mod tests {
                 assert!((got - want).abs() <= 1e-5 * want.abs() + 1e-9, "{c:?}: {got} vs {want}");
             }
         }
+    }
+
+    #[test]
+    fn merged_values_vary_as_rate_variance_says() {
+        // 20 000 values per rate drawn from the sensor's model (shot and
+        // read noise, quantised, clipped), merged: their variance as rates.
+        use rand::{Rng, SeedableRng};
+        let s = sensor();
+        let max = s.max_code();
+        let gain = max / s.full_well_e;
+        let exposures = [1_000u32, 8_000, 40_000];
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut gauss = move || {
+            let (a, b): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+        };
+        // Rates in full scale per second: every exposure measures the first;
+        // the 40 ms one saturates at the last.
+        for rate in [0.5f64, 5.0, 40.0] {
+            let n = 20_000;
+            let frames: Vec<Frame> = exposures
+                .iter()
+                .map(|&t_us| {
+                    let e = rate * t_us as f64 * 1e-6 * s.full_well_e;
+                    let sd = (e + s.read_noise_e.powi(2)).sqrt();
+                    let v: Vec<f32> = (0..n)
+                        .map(|_| ((e + sd * gauss()) * gain).round().clamp(0.0, max) / max)
+                        .flat_map(|v| [v as f32; 3])
+                        .collect();
+                    frame(&v)
+                })
+                .collect();
+            let inputs: Vec<(&Frame, u32)> = frames.iter().zip(exposures).collect();
+            let (m, _) = merge(&inputs, &s, 40_000, &DefectMap::default()).unwrap();
+            let rates: Vec<f64> = m.rgb.iter().step_by(3).map(|&v| v as f64 / 0.04).collect();
+            let mean = rates.iter().sum::<f64>() / n as f64;
+            let var = rates.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+            let want = rate_variance(rate, &exposures, &s).unwrap();
+            assert!((mean / rate - 1.0).abs() < 0.01, "rate {rate}: mean {mean}");
+            assert!((var / want - 1.0).abs() < 0.05, "rate {rate}: variance {var} against {want}");
+        }
+        // Every exposure saturated: no variance to give.
+        assert_eq!(rate_variance(1e4, &exposures, &s), None);
+        assert_eq!(rate_variance(1.0, &[], &s), None);
     }
 
     #[test]

@@ -846,6 +846,18 @@ impl ViewSampler {
         let q = self.homography.apply([0.5, 0.5]);
         frame_bicubic(f, q[0], q[1])
     }
+
+    /// How [`Self::region_sample`] scales the variance of independent frame
+    /// pixels at uv: Σ w² over its plain filter's taps there (1 at a pixel
+    /// centre, 0.41 midway between four).
+    pub fn region_noise_gain(&self, uv: [f64; 2]) -> f64 {
+        let p = self.homography.apply(uv);
+        let axis = |x: f64| {
+            let f = x - 0.5;
+            super::plane::catmull_rom(f - f.floor()).iter().map(|w| w * w).sum::<f64>()
+        };
+        axis(p[0]) * axis(p[1])
+    }
 }
 
 /// Frame pixels kept between a resampled position and the sample's edge
@@ -1026,6 +1038,34 @@ impl Calibration {
 mod tests {
     use super::*;
     use crate::camera::Frame;
+
+    /// The noise gain is the variance a region sample takes from frame
+    /// pixels of unit variance: 1 at a pixel centre, 0.640625² midway,
+    /// and over a frame of independent noise the mean square of the samples.
+    #[test]
+    fn region_noise_gain_is_the_filter_s_sum_of_squared_weights() {
+        use rand::{Rng, SeedableRng};
+        // uv → frame: 40 px across, rotated, off the pixel grid.
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        let h = Homography([40.0 * c, -40.0 * s, 30.2, 40.0 * s, 40.0 * c, 10.7, 0.0, 0.0, 1.0]);
+        let v = ViewSampler::new(h);
+        let inv = h.inverse().unwrap();
+        assert!((v.region_noise_gain(inv.apply([40.5, 30.5])) - 1.0).abs() < 1e-9);
+        assert!((v.region_noise_gain(inv.apply([41.0, 31.0])) - 0.640625f64.powi(2)).abs() < 1e-9);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let (w, hgt) = (96usize, 96usize);
+        let rgb = (0..w * hgt * 3).map(|_| (rng.random::<f32>() - 0.5) * 12f32.sqrt()).collect();
+        let f = Frame { width: w as u32, height: hgt as u32, rgb };
+        let (mut square, mut gain) = (0.0, 0.0);
+        let n = 4000;
+        for _ in 0..n {
+            let uv = [0.1 + 0.8 * rng.random::<f64>(), 0.1 + 0.8 * rng.random::<f64>()];
+            square += v.region_sample(&f, uv).iter().map(|x| x * x).sum::<f64>() / 3.0;
+            gain += v.region_noise_gain(uv);
+        }
+        let (square, gain) = (square / n as f64, gain / n as f64);
+        assert!((square / gain - 1.0).abs() < 0.05, "{square} against {gain}");
+    }
 
     /// A frame in which the sample (a rotated, non-pixel-aligned square)
     /// shows a smooth ramp and every pixel that reaches outside it shows a

@@ -15,6 +15,7 @@ use super::error::BuildError;
 use super::plane::cell_taps;
 use super::scanread::ScanFrames;
 use super::superres::{DetailLayer, Image, SharpenOptions, detail_layer, sharpen_light};
+use crate::hdr;
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -221,18 +222,35 @@ pub fn extract_regions(
             let f = scan.read_within(l, &windows)?;
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
-            // f · cos θi of frame value `s` at uv in view `vi`, or `None`
-            // where this beam leaves the sample unlit (below 2 % of its
-            // mean: nothing to divide by).
-            let value = |vi: usize, uv: [f64; 2], s: [f64; 3]| -> Option<[f32; 3]> {
+            // f · cos θi per frame unit at uv in view `vi`, or `None` where
+            // this beam leaves the sample unlit (below 2 % of its mean:
+            // nothing to divide by).
+            let per_unit = |vi: usize, uv: [f64; 2]| -> Option<[f64; 3]> {
                 let b = cal.colour.light(ci, uv);
                 if b < 0.02 {
                     return None;
                 }
                 let w = cal.colour.view(vi, uv).map(|a| a * b);
-                Some(std::array::from_fn(|k| {
-                    if w[k] > 0.0 { (s[k] / w[k] * scale) as f32 } else { 0.0 }
-                }))
+                Some(w.map(|w| if w > 0.0 { scale / w } else { 0.0 }))
+            };
+            let value = |vi: usize, uv: [f64; 2], s: [f64; 3]| -> Option<[f32; 3]> {
+                let c = per_unit(vi, uv)?;
+                Some(std::array::from_fn(|k| (s[k] * c[k]) as f32))
+            };
+            // The sensor's noise in view `vi`'s region image at uv where it
+            // holds `v`: the merged frame value's variance (the exposures
+            // that measured it), through the filter and the normalisation.
+            let exposures = scan.exposures_us(l)?;
+            let noise = |vi: usize, uv: [f64; 2], v: [f32; 3]| -> [f32; 3] {
+                let Some(c) = per_unit(vi, uv) else { return [0.0; 3] };
+                let filter = samplers[vi].region_noise_gain(uv);
+                std::array::from_fn(|k| {
+                    if c[k] <= 0.0 {
+                        return 0.0;
+                    }
+                    let var = hdr::rate_variance(v[k] as f64 / c[k], &exposures, &g.sensor);
+                    var.map_or(0.0, |var| (var * c[k] * c[k] * filter) as f32)
+                })
             };
             let mut images: Vec<Vec<[f32; 3]>> = samplers
                 .iter()
@@ -254,7 +272,7 @@ pub fn extract_regions(
             let detail = opts
                 .sharpen
                 .as_ref()
-                .and_then(|o| sharpen_light(&samplers, &value, &f, size, o, &mut images));
+                .and_then(|o| sharpen_light(&samplers, &value, &noise, &f, size, o, &mut images));
             progress.step();
             Ok((images, detail))
         })

@@ -112,6 +112,20 @@ impl ScanFrames {
         Ok(rec.exposure_us as f32 * 1e-6)
     }
 
+    /// The exposures merged into the frame lit by `light`, µs: the frame's
+    /// own bracket (auto exposure's extended ones), else the scan's, else
+    /// its one exposure.
+    pub fn exposures_us(&self, light: usize) -> Result<Vec<u32>, BuildError> {
+        let rec = self.record(light)?;
+        Ok(if !rec.bracket_us.is_empty() {
+            rec.bracket_us.clone()
+        } else if !self.manifest.settings.bracket_us.is_empty() {
+            self.manifest.settings.bracket_us.clone()
+        } else {
+            vec![rec.exposure_us]
+        })
+    }
+
     /// The frame lit by mirror `light`, values divided by its exposure (s).
     pub fn read(&self, light: usize) -> Result<Frame, BuildError> {
         self.read_within(light, &[[0, 0, usize::MAX, usize::MAX]])
