@@ -45,7 +45,8 @@ struct Manifest {
     sample_offset_mm: [f64; 2],
 }
 
-/// One map, linear values, row-major, `channels` per pixel.
+/// One map, row-major, `channels` per pixel: linear values once loaded
+/// ([`load_map`]), as stored when read ([`read_image`], [`read_exr`]).
 #[derive(Debug, Clone)]
 struct Map {
     width: usize,
@@ -98,17 +99,9 @@ fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.040_45 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
 }
 
-/// A map as stored: `channels` (1 or 3) values per pixel, row-major, alpha
-/// dropped; PNG values in [0, 1] still encoded.
-struct Stored {
-    width: usize,
-    height: usize,
-    channels: usize,
-    data: Vec<f32>,
-}
-
-/// Decode a PNG (or any format the `image` crate guesses) as stored.
-fn read_image(path: &Path) -> Result<Stored, TextureSetError> {
+/// Decode a PNG (or any format the `image` crate guesses) as stored: 1 or 3
+/// channels, alpha dropped, values in [0, 1] still encoded.
+fn read_image(path: &Path) -> Result<Map, TextureSetError> {
     use image::DynamicImage as D;
     let img = image::ImageReader::open(path)
         .map_err(|e| err(path, format!("cannot open: {e}")))?
@@ -129,13 +122,13 @@ fn read_image(path: &Path) -> Result<Stored, TextureSetError> {
         | D::ImageRgba32F(_) => (3, img.to_rgb32f().into_raw()),
         other => return Err(err(path, format!("unsupported pixel type {:?}", other.color()))),
     };
-    Ok(Stored { width, height, channels, data })
+    Ok(Map { width, height, channels, data })
 }
 
 /// Decode an OpenEXR file's first layer as stored: its `R`, `G` and `B`
 /// channels, else its `Y` (luminance) channel, else its one channel other
 /// than `A`. Any sample type; subsampled channels are refused.
-fn read_exr(path: &Path) -> Result<Stored, TextureSetError> {
+fn read_exr(path: &Path) -> Result<Map, TextureSetError> {
     use exr::prelude::{AnyChannel, FlatSamples};
     let image = exr::prelude::read_first_flat_layer_from_file(path)
         .map_err(|e| err(path, format!("cannot decode: {e}")))?;
@@ -173,13 +166,13 @@ fn read_exr(path: &Path) -> Result<Stored, TextureSetError> {
             data[i * channels + k] = v;
         }
     }
-    Ok(Stored { width, height, channels, data })
+    Ok(Map { width, height, channels, data })
 }
 
 /// Load `path` as linear values with the channel layout asked for.
 fn load_map(path: &Path, enc: Encoding, want: Channels) -> Result<Map, TextureSetError> {
     let is_exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
-    let Stored { width, height, channels: src_channels, data: raw } =
+    let Map { width, height, channels: src_channels, data: raw } =
         if is_exr { read_exr(path)? } else { read_image(path)? };
     if width == 0 || height == 0 {
         return Err(err(path, "empty image"));

@@ -665,7 +665,7 @@ pub fn sharpen_light(
         let own = own_view_image(r, &samplers[r.view], x, size);
         let image = &mut images[r.view];
         let (il, ol) = (local(image), local(&own));
-        let level: Image = (0..n)
+        let scale: Image = (0..n)
             .map(|t| {
                 std::array::from_fn(|k| {
                     if ol[t][k] > 0.0 {
@@ -677,7 +677,7 @@ pub fn sharpen_light(
             })
             .collect();
         let residual: Image = (0..n)
-            .map(|t| std::array::from_fn(|k| image[t][k] - level[t][k] * own[t][k]))
+            .map(|t| std::array::from_fn(|k| image[t][k] - scale[t][k] * own[t][k]))
             .collect();
         let keep = if opts.view_noise {
             residual_share(image, &residual, |t, v| noise(r.view, texel_uv(t, size), v), size)
@@ -686,7 +686,7 @@ pub fn sharpen_light(
         };
         for t in 0..n {
             for k in 0..3 {
-                let s = level[t][k];
+                let s = scale[t][k];
                 let noise = solved.explained[t][k] * (1.0 - keep[t][k]) * residual[t][k];
                 let v = &mut image[t][k];
                 *v = (*v - noise + solved.trust(t, k) * s * (x[t][k] - own[t][k])).max(0.0);
