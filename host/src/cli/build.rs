@@ -377,10 +377,18 @@ pub fn build_cmd(
     }
     let (m, r) = captured_pair_answers(&material, &regions, &data.texels);
     let (psnr, _, _) = material_psnr(&m, &r);
+    let palettes = if psnr.is_nan() || psnr == f64::NEG_INFINITY {
+        // No peak to score against (the metric's 99th percentile is 0).
+        "not scored, the region images being black almost everywhere".to_string()
+    } else if psnr == f64::INFINITY {
+        "identical to the region images".to_string()
+    } else {
+        format!("{psnr:.1} dB against the region images")
+    };
     println!(
         "{}: {} lights × {} views at {}² px, {} colours (up to {} lights per index image), {} \
          interpolation (half-vector shift {}{}{}), {:.1} MB, in {built:.1} s; palettes at the \
-         captured pairs: {psnr:.1} dB against the region images",
+         captured pairs: {palettes}",
         output.display(),
         regions.lights.len(),
         regions.views.len(),
@@ -395,6 +403,7 @@ pub fn build_cmd(
         material.metadata().half_vector_shift,
         if material.metadata().texel_model { ", texel model" } else { "" },
         match material.metadata() {
+            m if m.detail_components == 1 => ", detail layer with 1 light component".to_string(),
             m if m.detail_components > 0 =>
                 format!(", detail layer with {} light components", m.detail_components),
             m if m.detail => ", detail layer".to_string(),
