@@ -39,6 +39,10 @@ pub const DETAIL_COEFFICIENT_RANGE: f32 = 64.0;
 pub const METADATA_KEY: &str = "material";
 /// Most (mirror, weight) pairs one patent-table cell may hold.
 pub const MAX_CELL_PAIRS: usize = 64;
+/// The largest palette colour a file holds: float16's largest finite
+/// value. A brighter colour (a near-mirror's highlight, 2.6·10⁵ times a
+/// white target's radiance) is stored at it.
+pub const PALETTE_MAX: f32 = 65504.0;
 /// Tolerance on the length of a unit direction.
 const UNIT_TOLERANCE: f64 = 1e-4;
 
@@ -278,8 +282,14 @@ impl MaterialData {
         self.light_groups.iter().map(|&x| x as usize + 1).max().unwrap_or(0)
     }
 
-    /// The file's bytes. Fails only if the content is inconsistent (it is
-    /// checked exactly as the reader checks it).
+    /// How many palette values lie above [`PALETTE_MAX`] (stored at it).
+    pub fn palettes_beyond_float16(&self) -> usize {
+        self.palettes.iter().flatten().filter(|&&x| x > PALETTE_MAX).count()
+    }
+
+    /// The file's bytes: palette values above [`PALETTE_MAX`] at it. Fails
+    /// only if the content is inconsistent (it is checked exactly as the
+    /// reader checks it).
     pub fn to_bytes(&self) -> Result<Vec<u8>, MaterialError> {
         let (l, v) = (self.meta.lights.len(), self.meta.views.len());
         let (s, k, g) = (self.meta.resolution as usize, self.meta.colours as usize, self.groups());
@@ -297,7 +307,10 @@ impl MaterialData {
                     dtype: Dtype::F16,
                     shape: vec![l, v, k, 3],
                     data: u16_bytes(
-                        self.palettes.iter().flatten().map(|&x| half::f16::from_f32(x).to_bits()),
+                        self.palettes
+                            .iter()
+                            .flatten()
+                            .map(|&x| half::f16::from_f32(x.min(PALETTE_MAX)).to_bits()),
                     ),
                 },
             ),

@@ -884,3 +884,17 @@ fn bad_light_components_are_refused() {
     // Damage anywhere in a version-4 file: an error or a material, never a panic.
     damage_never_panics(&bytes, 13);
 }
+
+#[test]
+fn palette_colours_beyond_float16_are_stored_at_its_largest() {
+    // A near-mirror's highlight measured above float16's largest value: the
+    // file is written and read, the colour at 65 504, the rest exact.
+    let mut d = material(Interpolation::Default);
+    d.palettes[3] = [1.0e6, 7.0e4, 1.0];
+    assert_eq!(d.palettes_beyond_float16(), 2);
+    let back = MaterialData::from_bytes(&d.to_bytes().unwrap()).unwrap();
+    assert_eq!(back.palettes[3], [format::PALETTE_MAX, format::PALETTE_MAX, 1.0]);
+    let f16 = |x: f32| half::f16::from_f32(x).to_f32();
+    assert_eq!(back.palettes[4], d.palettes[4].map(f16));
+    assert_eq!(back.palettes_beyond_float16(), 0);
+}

@@ -360,6 +360,14 @@ pub fn build_cmd(
     });
     bar.finish();
     let (regions, data) = data.map_err(build_failure)?;
+    let beyond = data.palettes_beyond_float16();
+    if beyond > 0 {
+        eprintln!(
+            "warning: {beyond} palette values lie above float16's largest, {}: stored at it \
+             (a near-mirror's highlights; docs/material-format.md)",
+            scanner_shading::format::PALETTE_MAX
+        );
+    }
     let bytes = data.to_bytes().map_err(|e| Failure(4, anyhow!("material not written: {e}")))?;
     let material = scanner_shading::Material::from_bytes(&bytes)
         .map_err(|e| Failure(4, anyhow!("material not written: {e}")))?;
