@@ -249,7 +249,8 @@ mod tests {
             assert_eq!(p.palettes[0][i as usize], a[t]);
             assert_eq!(p.palettes[1][i as usize], b[t]);
         }
-        // A smooth HDR ramp over 3 decades: 64 colours
+        // A smooth HDR ramp over 3 decades in 64 colours (ε = 2 % of the
+        // mean: relative above, absolute below).
         let ramp: Vec<[f32; 3]> =
             (0..4096).map(|i| [10f32.powf(i as f32 / 4096.0 * 3.0 - 2.0); 3]).collect();
         let mean = ramp.iter().map(|p| p[0]).sum::<f32>() / 4096.0;
