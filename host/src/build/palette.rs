@@ -142,10 +142,12 @@ fn run<const D: usize>(images: &[&[[f32; 3]]], k: usize, seed: u64) -> GroupPale
     // random, each standing for its share of the rest.
     let m = n.min(16 * k);
     let mut order: Vec<usize> = (0..n).collect();
-    let heavy = if m < n { m / 4 } else { m };
-    if heavy < n {
-        order.select_nth_unstable_by(heavy, |&a, &b| weight[b].total_cmp(&weight[a]));
-    }
+    let heavy = if m < n {
+        order.select_nth_unstable_by(m / 4, |&a, &b| weight[b].total_cmp(&weight[a]));
+        m / 4
+    } else {
+        m
+    };
     for i in heavy..m {
         let j = rng.random_range(i..n);
         order.swap(i, j);

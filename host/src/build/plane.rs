@@ -79,6 +79,12 @@ impl Plane {
     }
 }
 
+/// uv of cell `t` (row-major) of an n × n grid over [0, 1]²: its centre.
+#[inline]
+pub fn cell_uv(t: usize, n: usize) -> [f64; 2] {
+    [((t % n) as f64 + 0.5) / n as f64, ((t / n) as f64 + 0.5) / n as f64]
+}
+
 /// Bilinear taps along one axis of `n` cells over [0, 1] (cell centres at
 /// (i + ½)/n, clamped at the ends): (first cell, second cell, weight of
 /// the second).

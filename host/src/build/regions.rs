@@ -12,7 +12,7 @@ use scanner_geometry::ScannerGeometry;
 
 use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
-use super::plane::cell_taps;
+use super::plane::{cell_taps, cell_uv};
 use super::scanread::ScanFrames;
 use super::superres::{DetailLayer, Image, SharpenOptions, detail_layer, sharpen_light};
 use crate::hdr;
@@ -79,8 +79,7 @@ impl RegionSet {
 
     /// uv of texel `t` (row-major, centre of the texel).
     pub fn texel_uv(&self, t: usize) -> [f64; 2] {
-        let s = self.size;
-        [((t % s) as f64 + 0.5) / s as f64, ((t / s) as f64 + 0.5) / s as f64]
+        cell_uv(t, self.size)
     }
 
     /// The detail layer's factors for light `li` at uv (its parts bilinear
@@ -258,10 +257,7 @@ pub fn extract_regions(
                 .map(|(vi, view)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
                     for (i, px) in img.iter_mut().enumerate() {
-                        let uv = [
-                            ((i % size) as f64 + 0.5) / size as f64,
-                            ((i / size) as f64 + 0.5) / size as f64,
-                        ];
+                        let uv = cell_uv(i, size);
                         if let Some(v) = value(vi, uv, view.region_sample(&f, uv)) {
                             *px = v;
                         }

@@ -70,6 +70,7 @@
 
 use crate::build::calibrate::ViewSampler;
 use crate::build::linalg::Homography;
+use crate::build::plane::cell_uv;
 use crate::camera::Frame;
 
 /// Settings of [`sharpen_light`].
@@ -168,7 +169,7 @@ fn own_view_image(r: &Rows, sampler: &ViewSampler, x: &[[f32; 3]], size: usize) 
     let origin = r.origin.map(|o| -(o as f64));
     let shifted = ViewSampler::new(sampler.homography().translated(origin));
     (0..size * size)
-        .map(|t| shifted.region_sample(&window, texel_uv(t, size)).map(|v| v as f32))
+        .map(|t| shifted.region_sample(&window, cell_uv(t, size)).map(|v| v as f32))
         .collect()
 }
 
@@ -680,7 +681,7 @@ pub fn sharpen_light(
             .map(|t| std::array::from_fn(|k| image[t][k] - scale[t][k] * own[t][k]))
             .collect();
         let keep = if opts.view_noise {
-            residual_share(image, &residual, |t, v| noise(r.view, texel_uv(t, size), v), size)
+            residual_share(image, &residual, |t, v| noise(r.view, cell_uv(t, size), v), size)
         } else {
             vec![[1.0; 3]; n]
         };
@@ -695,11 +696,6 @@ pub fn sharpen_light(
     }
     drop(rows);
     fine_detail(&fine_rows, size, opts, x, &mean, level)
-}
-
-/// uv of texel `t` of an S × S grid: its centre.
-fn texel_uv(t: usize, size: usize) -> [f64; 2] {
-    [((t % size) as f64 + 0.5) / size as f64, ((t / size) as f64 + 0.5) / size as f64]
 }
 
 /// Per texel and channel, the share of a view's `residual` that is not
