@@ -4,8 +4,11 @@
 //! as-built directions) — region images, palettised material with the
 //! default and with the patent's interpolation — the palettisation error
 //! alone, and both interpolations at random novel pairs (θ ≤ 60°).
+//! With `--bands`, a second table: both interpolations at novel pairs
+//! whose light, view or both lie beyond the outermost ring of mirrors
+//! (65°–88° from the normal), where a renderer's grazing queries fall.
 //!
-//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off] [--detail all-views|own-view] [--lights-per-index 2]`
+//! `cargo run --release -p tests --example material_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--no-patent] [--texel-model auto|on|off] [--detail all-views|own-view] [--lights-per-index 2] [--bands]`
 //! (scans in DIR are reused when complete; `builder_fidelity` shares them).
 
 use std::path::PathBuf;
@@ -14,7 +17,9 @@ use std::time::Instant;
 use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::calibrate::{CalibrateOptions, Silent};
-use host::build::material::{MaterialOptions, PATENT_DEFAULT, TexelModelChoice, build_material};
+use host::build::material::{
+    MaterialOptions, PATENT_DEFAULT, TexelModelChoice, build_material, shade,
+};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
 use scanner_shading::Material;
@@ -30,6 +35,7 @@ fn main() {
         tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
     let materials: Vec<&str> = list.split(',').collect();
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
+    let with_bands = std::env::args().any(|a| a == "--bands");
     let lights_per_index: usize = tests::arg("--lights-per-index", 2);
     let texel_model: TexelModelChoice = tests::arg("--texel-model", "auto".to_string())
         .parse()
@@ -68,6 +74,7 @@ fn main() {
          captured, default: worst 5 % of pairs' share of the error | PSNR of the other 95 % dB |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let mut band_rows = Vec::new();
     for &m in &materials {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
@@ -121,5 +128,38 @@ fn main() {
             default.metadata().detail_components,
             100.0 * share
         );
+        if with_bands {
+            let scores: Vec<String> = BANDS
+                .iter()
+                .enumerate()
+                .map(|(i, &(_, light, view))| {
+                    let pairs =
+                        tests::random_pairs_between(novel, light, view, seed + 1 + i as u64);
+                    let t = tests::truth_answers(&pairs, &sample);
+                    let [d, p] = [&default, &patent]
+                        .map(|mat| tests::pairs_psnr(&pairs, &t, &|_, q| shade(mat, q)).0);
+                    format!("{d:.2} / {p:.2}")
+                })
+                .collect();
+            band_rows.push(format!("| {m} | {} |", scores.join(" | ")));
+        }
+    }
+    if with_bands {
+        println!("\nnovel pairs by band, {novel} each (default / patent interpolation, dB)");
+        let names: Vec<&str> = BANDS.iter().map(|b| b.0).collect();
+        println!("| material | {} |", names.join(" | "));
+        println!("|---|{}", "---|".repeat(BANDS.len()));
+        for r in band_rows {
+            println!("{r}");
+        }
     }
 }
+
+/// The `--bands` table's columns: (name, light's band, view's band), degrees
+/// from the normal. The default scanner's outermost ring is at 65°.
+const BANDS: [(&str, [f64; 2], [f64; 2]); 4] = [
+    ("both ≤ 60°", [0.0, 60.0], [0.0, 60.0]),
+    ("light 65°–88°, view ≤ 60°", [65.0, 88.0], [0.0, 60.0]),
+    ("light ≤ 60°, view 65°–88°", [0.0, 60.0], [65.0, 88.0]),
+    ("both 65°–88°", [65.0, 88.0], [65.0, 88.0]),
+];

@@ -124,15 +124,27 @@ pub fn as_built_pairs(
 /// `n` random pairs of directions within `max_theta_deg` of the normal,
 /// uniform in solid angle, seeded.
 pub fn random_pairs(n: usize, max_theta_deg: f64, seed: u64) -> Vec<([f64; 3], [f64; 3])> {
+    random_pairs_between(n, [0.0, max_theta_deg], [0.0, max_theta_deg], seed)
+}
+
+/// `n` random pairs of directions, the light's between `light_deg[0]` and
+/// `light_deg[1]` from the normal and the view's within `view_deg`, each
+/// uniform in solid angle over its band, seeded.
+pub fn random_pairs_between(
+    n: usize,
+    light_deg: [f64; 2],
+    view_deg: [f64; 2],
+    seed: u64,
+) -> Vec<([f64; 3], [f64; 3])> {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let cos_max = max_theta_deg.to_radians().cos();
-    let mut dir = || {
-        let z = 1.0 - rng.random::<f64>() * (1.0 - cos_max);
+    let mut dir = |band: [f64; 2]| {
+        let [c0, c1] = band.map(|t: f64| t.to_radians().cos());
+        let z = c0 - rng.random::<f64>() * (c0 - c1);
         let p = rng.random::<f64>() * std::f64::consts::TAU;
         let r = (1.0 - z * z).max(0.0).sqrt();
         [r * p.cos(), r * p.sin(), z]
     };
-    (0..n).map(|_| (dir(), dir())).collect()
+    (0..n).map(|_| (dir(light_deg), dir(view_deg))).collect()
 }
 
 /// The ground truth of `sample` at every [`pair_queries`] of `pairs`.

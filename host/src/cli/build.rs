@@ -394,7 +394,7 @@ pub fn build_cmd(
         format!("{psnr:.1} dB against the region images")
     };
     println!(
-        "{}: {} lights × {} views at {}² px, {} colours (up to {} lights per index image), {} \
+        "{}: {} lights × {} views at {}² px, {} colour{} (up to {} light{} per index image), {} \
          interpolation (half-vector shift {}{}{}), {:.1} MB, in {built:.1} s; palettes at the \
          captured pairs: {palettes}",
         output.display(),
@@ -402,7 +402,9 @@ pub fn build_cmd(
         regions.views.len(),
         regions.size,
         opts.colours,
+        if opts.colours == 1 { "" } else { "s" },
         material.metadata().lights_per_index,
+        if material.metadata().lights_per_index == 1 { "" } else { "s" },
         match opts.interpolation {
             scanner_shading::Interpolation::Default => "default".to_string(),
             scanner_shading::Interpolation::Patent { columns, rows, points } =>
