@@ -5,7 +5,9 @@
 # - QEMU's Arm system emulator, which runs the firmware self-tests on a
 #   Cortex-M4, and strace, with which a test checks that every rename in a
 #   scan directory is followed by a directory fsync (Debian/Ubuntu:
-#   apt-get, as root or through sudo).
+#   apt-get, as root or through sudo);
+# - numpy and safetensors in a Python virtual environment, .venv/, for the
+#   test that reads material files in Python from their documentation.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if ! command -v rustup >/dev/null 2>&1; then
@@ -22,4 +24,20 @@ if [ "${#missing[@]}" -gt 0 ]; then
     [ "$(id -u)" -eq 0 ] || sudo="sudo"
     $sudo apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+# Python with numpy and safetensors in .venv/, for the test that shades a
+# material file from docs/material-format.md alone (host/tests/python.rs,
+# tests/python/). Python 3 and its venv module come from apt-get if missing.
+if ! python3 -c 'import venv, ensurepip' >/dev/null 2>&1; then
+    echo "installing python3 and python3-venv (the material file's Python reader test)"
+    sudo=""
+    [ "$(id -u)" -eq 0 ] || sudo="sudo"
+    $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq python3 python3-venv >/dev/null
+fi
+if ! .venv/bin/python -c 'import numpy, safetensors' >/dev/null 2>&1; then
+    echo "installing numpy and safetensors into .venv (tests/python/requirements.txt)"
+    python3 -m venv .venv
+    .venv/bin/python -m pip install -q --disable-pip-version-check -r tests/python/requirements.txt
 fi

@@ -270,8 +270,16 @@ impl Material {
         let m = &d.meta;
         let (nl, nv) = (m.lights.len(), m.views.len());
         let k = m.colours as usize;
+        // Normalised in f32 as a query's directions are, so that a query
+        // at a captured direction (the file's, in f64 or f32) has the same
+        // bits: the texel model then cancels exactly at a captured pair.
         let dirs = |l: &[format::Mirror]| -> Vec<[f32; 3]> {
-            l.iter().map(|x| x.direction.map(|c| c as f32)).collect()
+            l.iter()
+                .map(|x| {
+                    let d = x.direction.map(|c| c as f32);
+                    unit(d).unwrap_or(d)
+                })
+                .collect()
         };
         let (ld, vd) = (dirs(&m.lights), dirs(&m.views));
         let mut palettes = vec![[0.0f32; 3]; d.palettes.len()];

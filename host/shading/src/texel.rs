@@ -34,6 +34,12 @@ impl Default for TexelParams {
 /// `ρd · t[0] + F0 · t[1] + t[2]`. Zero where either direction is below the
 /// sample or the texel's horizon. Branch-free, so loops over many pairs
 /// vectorise.
+///
+/// Written for f32 near a narrow lobe's peak: GGX's denominator
+/// (n·h)² (α² − 1) + 1 is taken as sin²θh + α² cos²θh, with sin²θh from
+/// |n × h|² rather than 1 − (n·h)², and Λ as x / (2 (√(1 + x) + 1)) rather
+/// than (√(1 + x) − 1) / 2: the usual forms subtract numbers near 1 and,
+/// at α = 0.01, lose three of f32's seven digits there.
 #[inline(always)]
 pub fn terms(n: [f32; 3], a2: f32, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
     let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
@@ -41,12 +47,20 @@ pub fn terms(n: [f32; 3], a2: f32, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
     let valid = wi[2] > 0.0 && wo[2] > 0.0 && ci > 0.0 && co > 0.0;
     let (ci, co) = (ci.max(1e-6), co.max(1e-6));
     let hs = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
-    let inv = 1.0 / dot(hs, hs).max(1e-12).sqrt();
-    let ch = (dot(n, hs) * inv).max(0.0);
-    let t = ch * ch * (a2 - 1.0) + 1.0;
+    let inv2 = 1.0 / dot(hs, hs).max(1e-12);
+    let inv = inv2.sqrt();
+    let nh = dot(n, hs);
+    let ch = (nh * inv).max(0.0);
+    let x = [n[1] * hs[2] - n[2] * hs[1], n[2] * hs[0] - n[0] * hs[2], n[0] * hs[1] - n[1] * hs[0]];
+    // sin²θh; 1 where h is not in front of n (then the pair is not valid).
+    let sh = if nh > 0.0 { dot(x, x) * inv2 } else { 1.0 };
+    let t = sh + a2 * ch * ch;
     let d = a2 / (PI * t * t);
-    // Λ(c) = (√(1 + α² tan²) − 1) / 2, tan² = (1 − c²) / c².
-    let lambda = |c: f32| 0.5 * ((1.0 + a2 * ((1.0 - c * c).max(0.0) / (c * c))).sqrt() - 1.0);
+    // Λ(c) = (√(1 + α² tan²) − 1) / 2 = x / (2 (√(1 + x) + 1)), x = α² tan².
+    let lambda = |c: f32| {
+        let x = a2 * ((1.0 - c * c).max(0.0) / (c * c));
+        x / (2.0 * ((1.0 + x).sqrt() + 1.0))
+    };
     let g = 1.0 / (1.0 + lambda(ci) + lambda(co));
     let x = 1.0 - (dot(wi, hs) * inv).clamp(0.0, 1.0);
     let x2 = x * x;
