@@ -81,10 +81,6 @@ fn python_reads_the_material_file_from_the_spec() {
     let python = python();
     let script = root().join("tests/python/shade_from_spec.py");
     let dir = tempfile::tempdir().unwrap();
-    let dir = tempfile::TempDir::new_in("/tmp").unwrap();
-    let _kept = dir.path().to_path_buf();
-    let dir = Box::leak(Box::new(dir));
-    eprintln!("DIR {}", _kept.display());
     let patent = Interpolation::Patent { columns: 61, rows: 17, points: 200 };
     let materials = [
         // Version 4: texel model, detail layer, two light components, β = ½.
