@@ -37,9 +37,8 @@ impl Default for TexelParams {
 ///
 /// Written for f32 near a narrow lobe's peak: GGX's denominator
 /// (n·h)² (α² − 1) + 1 is taken as sin²θh + α² cos²θh, with sin²θh from
-/// |n × h|² rather than 1 − (n·h)², and Λ as x / (2 (√(1 + x) + 1)) rather
-/// than (√(1 + x) − 1) / 2: the usual forms subtract numbers near 1 and,
-/// at α = 0.01, lose three of f32's seven digits there.
+/// |n × h|² rather than 1 − (n·h)²: the usual form subtracts numbers near
+/// 1 and, at α = 0.01, loses three of f32's seven digits of D there.
 #[inline(always)]
 pub fn terms(n: [f32; 3], a2: f32, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
     let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
@@ -56,11 +55,9 @@ pub fn terms(n: [f32; 3], a2: f32, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
     let sh = if nh > 0.0 { dot(x, x) * inv2 } else { 1.0 };
     let t = sh + a2 * ch * ch;
     let d = a2 / (PI * t * t);
-    // Λ(c) = (√(1 + α² tan²) − 1) / 2 = x / (2 (√(1 + x) + 1)), x = α² tan².
-    let lambda = |c: f32| {
-        let x = a2 * ((1.0 - c * c).max(0.0) / (c * c));
-        x / (2.0 * ((1.0 + x).sqrt() + 1.0))
-    };
+    // Λ(c) = (√(1 + α² tan²) − 1) / 2: small where it cancels, so G = 1 / (1
+    // + Λi + Λo) keeps f32's precision all the same.
+    let lambda = |c: f32| 0.5 * ((1.0 + a2 * ((1.0 - c * c).max(0.0) / (c * c))).sqrt() - 1.0);
     let g = 1.0 / (1.0 + lambda(ci) + lambda(co));
     let x = 1.0 - (dot(wi, hs) * inv).clamp(0.0, 1.0);
     let x2 = x * x;

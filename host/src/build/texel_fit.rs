@@ -294,11 +294,18 @@ pub fn fit_texels(regions: &RegionSet, step: &(dyn Fn() + Sync)) -> Vec<TexelPar
 /// Region image (light `li`, view `vi`) carried by the fitted texel model
 /// from the directions each texel was seen under to the pair's central
 /// ones (`view_dirs`, the directions the material stores for the pair):
-/// y + M(l, v) − M(l, v(uv)), at least 0. The material then holds, per
-/// pair, one image at one pair of directions, as its shading assumes; the
-/// viewer ≈ 1.2 m away sees the sample's corners up to ≈ 0.6° off its
-/// centre's direction, which matters where the reflectance changes fast
-/// with direction (a grazing sheen, a highlight's flank).
+/// y + M(l, v) − M(l, v(uv)), at least 0 and at most the brightest value
+/// of the image (per channel). The material then holds, per pair, one
+/// image at one pair of directions, as its shading assumes; the viewer
+/// ≈ 1.2 m away sees the sample's corners up to ≈ 0.6° off its centre's
+/// direction, which matters where the reflectance changes fast with
+/// direction (a grazing sheen, a highlight's flank).
+///
+/// The bound: the carry moves a highlight across the sample, to the texels
+/// whose fitted normals put it at the central direction, but never makes
+/// it brighter than the pair measured it anywhere. Where a near-mirror's
+/// fitted lobe is a little narrower or brighter than the real one, the
+/// model's difference alone would.
 pub fn centred_image(
     regions: &RegionSet,
     texels: &[TexelParams],
@@ -306,15 +313,17 @@ pub fn centred_image(
     vi: usize,
 ) -> Vec<[f32; 3]> {
     let (wi, centre) = (unit32(regions.light_dirs[li]), unit32(regions.view_dirs[vi]));
-    regions
-        .image(li, vi)
+    let image = regions.image(li, vi);
+    let brightest: [f32; 3] =
+        std::array::from_fn(|c| image.iter().fold(0.0f32, |m, y| m.max(y[c])));
+    image
         .iter()
         .zip(texels)
         .enumerate()
         .map(|(t, (y, m))| {
             let seen = unit32(regions.view_dir_at(vi, regions.texel_uv(t)));
             let (a, b) = (reflected(m, wi, centre), reflected(m, wi, seen));
-            std::array::from_fn(|c| (y[c] + a[c] - b[c]).max(0.0))
+            std::array::from_fn(|c| (y[c] + a[c] - b[c]).clamp(0.0, brightest[c]))
         })
         .collect()
 }
@@ -432,14 +441,19 @@ mod tests {
         set
     }
 
-    #[test]
-    fn fits_each_texel_at_its_own_directions_and_centres_the_images() {
-        let truth = TexelParams {
+    /// A glossy metal-like texel facing the sample's normal.
+    fn glossy_texel() -> TexelParams {
+        TexelParams {
             diffuse: [0.1, 0.08, 0.05],
             specular: [0.9, 0.8, 0.6],
             alpha: 0.08,
             normal: [0.0, 0.0, 1.0],
-        };
+        }
+    }
+
+    #[test]
+    fn fits_each_texel_at_its_own_directions_and_centres_the_images() {
+        let truth = glossy_texel();
         let set = glossy_set(&truth);
         // A corner texel sees its viewers up to ≈ 0.8° off the centre's direction.
         let corner = set.view_dir_at(0, set.texel_uv(0));
@@ -470,5 +484,36 @@ mod tests {
         // the centred ones hold the centre's value.
         assert!(moved > 0.01, "raw images differ by {moved} only");
         assert!(worst < 1e-3, "centred images off by {worst}");
+    }
+
+    #[test]
+    fn the_carry_never_brightens_beyond_what_the_pair_measured() {
+        let truth = glossy_texel();
+        let set = glossy_set(&truth);
+        // A fitted lobe four times narrower than the sample's: carried by
+        // the model's difference alone, the images would gain highlights
+        // far brighter than any the pairs measured.
+        let narrow = vec![TexelParams { alpha: 0.02, ..truth }; 64];
+        let mut bounded = 0;
+        for li in 0..18 {
+            for vi in 0..18 {
+                let image = set.image(li, vi);
+                let wi = unit32(set.light_dirs[li]);
+                let centre = unit32(set.view_dirs[vi]);
+                let centred = centred_image(&set, &narrow, li, vi);
+                for c in 0..3 {
+                    let brightest = image.iter().fold(0.0f32, |m, y| m.max(y[c]));
+                    for (t, (y, z)) in image.iter().zip(&centred).enumerate() {
+                        let seen = unit32(set.view_dir_at(vi, set.texel_uv(t)));
+                        let free = y[c] + reflected(&narrow[t], wi, centre)[c]
+                            - reflected(&narrow[t], wi, seen)[c];
+                        assert!(z[c] <= brightest, "pair ({li}, {vi}) texel {t}: {z:?}");
+                        assert_eq!(z[c], free.clamp(0.0, brightest));
+                        bounded += usize::from(free > brightest);
+                    }
+                }
+            }
+        }
+        assert!(bounded > 0, "the bound never applied");
     }
 }
