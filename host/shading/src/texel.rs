@@ -50,9 +50,10 @@ pub fn terms(n: [f32; 3], a2: f32, wi: [f32; 3], wo: [f32; 3]) -> [f32; 3] {
     let inv = inv2.sqrt();
     let nh = dot(n, hs);
     let ch = (nh * inv).max(0.0);
-    let x = [n[1] * hs[2] - n[2] * hs[1], n[2] * hs[0] - n[0] * hs[2], n[0] * hs[1] - n[1] * hs[0]];
+    let nxh =
+        [n[1] * hs[2] - n[2] * hs[1], n[2] * hs[0] - n[0] * hs[2], n[0] * hs[1] - n[1] * hs[0]];
     // sin²θh; 1 where h is not in front of n (then the pair is not valid).
-    let sh = if nh > 0.0 { dot(x, x) * inv2 } else { 1.0 };
+    let sh = if nh > 0.0 { dot(nxh, nxh) * inv2 } else { 1.0 };
     let t = sh + a2 * ch * ch;
     let d = a2 / (PI * t * t);
     // Λ(c) = (√(1 + α² tan²) − 1) / 2: small where it cancels, so G = 1 / (1

@@ -1101,7 +1101,7 @@ mod tests {
         let n = 64;
         let (mut err_new, mut err_old, mut edge) = (0.0, 0.0, 0);
         for i in 0..n * n {
-            let uv = super::super::plane::cell_uv(i, n);
+            let uv = crate::build::plane::cell_uv(i, n);
             let truth = ramp(h.apply(uv));
             let got = sampler.region_sample(&f, uv)[0];
             assert!((got - truth).abs() < 0.06, "uv {uv:?}: {got} against {truth}");

@@ -394,17 +394,15 @@ pub fn build_cmd(
         format!("{psnr:.1} dB against the region images")
     };
     println!(
-        "{}: {} lights × {} views at {}² px, {} colour{} (up to {} light{} per index image), {} \
+        "{}: {} lights × {} views at {}² px, {} (up to {} per index image), {} \
          interpolation (half-vector shift {}{}{}), {:.1} MB, in {built:.1} s; palettes at the \
          captured pairs: {palettes}",
         output.display(),
         regions.lights.len(),
         regions.views.len(),
         regions.size,
-        opts.colours,
-        if opts.colours == 1 { "" } else { "s" },
-        material.metadata().lights_per_index,
-        if material.metadata().lights_per_index == 1 { "" } else { "s" },
+        count(opts.colours, "colour"),
+        count(material.metadata().lights_per_index as usize, "light"),
         match opts.interpolation {
             scanner_shading::Interpolation::Default => "default".to_string(),
             scanner_shading::Interpolation::Patent { columns, rows, points } =>
@@ -413,15 +411,21 @@ pub fn build_cmd(
         material.metadata().half_vector_shift,
         if material.metadata().texel_model { ", texel model" } else { "" },
         match material.metadata() {
-            m if m.detail_components == 1 => ", detail layer with 1 light component".to_string(),
-            m if m.detail_components > 0 =>
-                format!(", detail layer with {} light components", m.detail_components),
+            m if m.detail_components > 0 => format!(
+                ", detail layer with {}",
+                count(m.detail_components as usize, "light component")
+            ),
             m if m.detail => ", detail layer".to_string(),
             _ => String::new(),
         },
         bytes.len() as f64 / 1e6,
     );
     Ok(Built { material, regions })
+}
+
+/// "1 colour", "256 colours".
+fn count(n: usize, what: &str) -> String {
+    format!("{n} {what}{}", if n == 1 { "" } else { "s" })
 }
 
 /// `scanner shade`
