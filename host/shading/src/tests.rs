@@ -137,6 +137,34 @@ fn captured_pairs_are_returned_exactly() {
 }
 
 #[test]
+fn every_texel_reads_its_own_index_whatever_the_size() {
+    // Sizes that fill 8 × 8 tiles and sizes that leave a partial row and
+    // column of tiles; random index bytes, so that rows, columns, views
+    // and light groups all differ.
+    let (dirs, _) = ring();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for s in [1usize, 5, 8, 13, 20] {
+        let mut d = material(Interpolation::Default);
+        let groups = d.groups();
+        d.meta.resolution = s as u32;
+        d.indices = (0..dirs.len() * s * s * groups).map(|_| rng.random_range(0..8u8)).collect();
+        let m = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();
+        for (l, dl) in dirs.iter().enumerate() {
+            for (v, dv) in dirs.iter().enumerate() {
+                for t in 0..s * s {
+                    let (x, y) = (t % s, t / s);
+                    let uv = [(x as f32 + 0.5) / s as f32, (y as f32 + 0.5) / s as f32];
+                    let got = m.eval(uv, f32v(*dl), f32v(*dv));
+                    let i = d.indices[(v * s * s + t) * groups + l / 2];
+                    let want = d.palettes[(l * dirs.len() + v) * 8 + i as usize];
+                    assert!(close(got, want, 1e-3), "S {s} l {l} v {v} texel ({x}, {y})");
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn between_captured_directions_the_weights_are_barycentric_and_continuous() {
     let m = Material::from_bytes(&material(Interpolation::Default).to_bytes().unwrap()).unwrap();
     let (dirs, _) = ring();
