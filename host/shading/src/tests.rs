@@ -138,9 +138,10 @@ fn captured_pairs_are_returned_exactly() {
 
 #[test]
 fn every_texel_reads_its_own_index_whatever_the_size() {
-    // Sizes that fill 8 × 8 tiles and sizes that leave a partial row and
-    // column of tiles; random index bytes, so that rows, columns, views
-    // and light groups all differ.
+    // From one texel to sizes that are neither powers of two nor multiples
+    // of a cache line; random index bytes, so that rows, columns, views and
+    // light groups all differ (the other tests' images are alike along
+    // every column).
     let (dirs, _) = ring();
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     for s in [1usize, 5, 8, 13, 20] {
@@ -155,7 +156,7 @@ fn every_texel_reads_its_own_index_whatever_the_size() {
                     let (x, y) = (t % s, t / s);
                     let uv = [(x as f32 + 0.5) / s as f32, (y as f32 + 0.5) / s as f32];
                     let got = m.eval(uv, f32v(*dl), f32v(*dv));
-                    let i = d.indices[(v * s * s + t) * groups + l / 2];
+                    let i = d.indices[(v * s * s + t) * groups + d.light_groups[l] as usize];
                     let want = d.palettes[(l * dirs.len() + v) * 8 + i as usize];
                     assert!(close(got, want, 1e-3), "S {s} l {l} v {v} texel ({x}, {y})");
                 }
