@@ -448,25 +448,11 @@ fn verify_reports_missing_and_damaged_frames() {
     assert_eq!(run(&["verify", &o]).0, Some(0));
 }
 
-/// A texture set (docs/texture-set.md) in `dir`: flat 0.5 grey, F0 0.04.
-fn write_texture_set(dir: &std::path::Path) {
-    std::fs::create_dir_all(dir).unwrap();
-    std::fs::write(dir.join("material.toml"), "format = 1\nname = \"grey\"\nsize_mm = 30.0\n")
-        .unwrap();
-    let map = |name: &str, v: [f32; 3]| {
-        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dir.join(name)).unwrap();
-    };
-    map("diffuse.exr", [0.5; 3]);
-    map("specular.exr", [0.04; 3]);
-    map("roughness.exr", [0.6; 3]);
-    map("normal.exr", [0.5, 0.5, 1.0]);
-}
-
 #[test]
 fn a_texture_set_is_scanned_like_a_library_material_and_a_bad_one_exits_3() {
     let dir = tmp();
     let set = sub(dir.path(), "grey-set");
-    write_texture_set(&set);
+    uniform_set(&set, "grey", 30.0, [0.5; 3], 0.04, 0.6);
     let scan = |material: &str, out: &std::path::Path| {
         run(&[
             "scan",

@@ -10,28 +10,7 @@ use hil_sim::optics::{Exposure, OpticalSim};
 use scanner_geometry::AxisValues;
 
 fn glossy_set(dir: &std::path::Path) {
-    uniform_set(dir, "gloss", 40.0, [0.05; 3], 0.9, 0.1f32.sqrt());
-}
-
-/// A texture set of one flat, uniform material.
-fn uniform_set(
-    dir: &std::path::Path,
-    name: &str,
-    size_mm: f64,
-    diffuse: [f32; 3],
-    f0: f32,
-    roughness: f32,
-) {
-    std::fs::create_dir_all(dir).unwrap();
-    let toml = format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n");
-    std::fs::write(dir.join("material.toml"), toml).unwrap();
-    let map = |name: &str, v: [f32; 3]| {
-        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dir.join(name)).unwrap();
-    };
-    map("diffuse.exr", diffuse);
-    map("specular.exr", [f0; 3]);
-    map("roughness.exr", [roughness; 3]);
-    map("normal.exr", [0.5, 0.5, 1.0]);
+    common::uniform_set(dir, "gloss", 40.0, [0.05; 3], 0.9, 0.1f32.sqrt());
 }
 
 fn scan(set: &str, out: &std::path::Path, extra: &[&str]) -> (Option<i32>, String) {
@@ -150,17 +129,7 @@ fn auto_exposure_meters_the_sample_and_a_resume_keeps_its_choice() {
     let gloss = dir.path().join("gloss");
     glossy_set(&gloss);
     let dark = dir.path().join("dark");
-    std::fs::create_dir_all(&dark).unwrap();
-    std::fs::write(dark.join("material.toml"), "format = 1\nname = \"dark\"\nsize_mm = 40.0\n")
-        .unwrap();
-    for (name, v) in [
-        ("diffuse.exr", [0.03f32; 3]),
-        ("specular.exr", [0.02; 3]),
-        ("roughness.exr", [0.9; 3]),
-        ("normal.exr", [0.5, 0.5, 1.0]),
-    ] {
-        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dark.join(name)).unwrap();
-    }
+    common::uniform_set(&dark, "dark", 40.0, [0.03; 3], 0.02, 0.9);
     // The dark sample, HDR, stopped by an E-stop after metering (triggers
     // 1–4, the dark frame 5) and in the middle of mirror 1's bracket: the
     // resume takes the directory's bracket and is not metered again.
@@ -303,17 +272,7 @@ fn auto_hdr_extends_the_bracket_where_highlights_metering_missed_clip() {
 fn a_near_mirror_is_held_by_exposures_below_1_ms_with_the_light_dimmed() {
     let dir = common::tmp();
     let set = dir.path().join("mirror");
-    std::fs::create_dir_all(&set).unwrap();
-    std::fs::write(set.join("material.toml"), "format = 1\nname = \"mirror\"\nsize_mm = 40.0\n")
-        .unwrap();
-    for (name, v) in [
-        ("diffuse.exr", [0.0f32; 3]),
-        ("specular.exr", [0.95; 3]),
-        ("roughness.exr", [0.1; 3]),
-        ("normal.exr", [0.5, 0.5, 1.0]),
-    ] {
-        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(set.join(name)).unwrap();
-    }
+    common::uniform_set(&set, "mirror", 40.0, [0.0; 3], 0.95, 0.1);
     let set = set.display().to_string();
     // The device's shortest exposure at full light clips the highlights.
     let (code, err) = scan(&set, &dir.path().join("ms"), &["--exposures", "1000,5000,25000"]);
@@ -447,7 +406,7 @@ fn stuck_dead_and_hot_sensor_pixels_are_found_while_metering_and_replaced() {
     use host::defects::{DefectKind, PixelDefect};
     let dir = common::tmp();
     let set = dir.path().join("matte");
-    uniform_set(&set, "matte", 25.4, [0.4, 0.3, 0.2], 0.04, 0.9);
+    common::uniform_set(&set, "matte", 25.4, [0.4, 0.3, 0.2], 0.04, 0.9);
     let set = set.display().to_string();
     let g = scanner_geometry::ScannerGeometry::default_scanner().with_sensor_scaled(4);
     let at = |view: usize, uv: [f64; 2]| {

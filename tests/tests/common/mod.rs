@@ -128,3 +128,25 @@ pub fn tmp() -> tempfile::TempDir {
 pub fn sub(dir: &Path, name: &str) -> PathBuf {
     dir.join(name)
 }
+
+/// A texture set (docs/texture-set.md) of one flat, uniform material in
+/// `dir`: 4 × 4 maps of linear values, GGX α = `roughness`².
+pub fn uniform_set(
+    dir: &Path,
+    name: &str,
+    size_mm: f64,
+    diffuse: [f32; 3],
+    f0: f32,
+    roughness: f32,
+) {
+    std::fs::create_dir_all(dir).unwrap();
+    let toml = format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n");
+    std::fs::write(dir.join("material.toml"), toml).unwrap();
+    let map = |name: &str, v: [f32; 3]| {
+        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dir.join(name)).unwrap();
+    };
+    map("diffuse.exr", diffuse);
+    map("specular.exr", [f0; 3]);
+    map("roughness.exr", [roughness; 3]);
+    map("normal.exr", [0.5, 0.5, 1.0]);
+}
