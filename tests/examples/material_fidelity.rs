@@ -99,7 +99,7 @@ fn main() {
         } else {
             scanner_shading::Interpolation::Patent { columns: 1, rows: 1, points: 1 }
         };
-        let (patent, size_p, t_p, _) =
+        let (patent_material, size_p, t_p, _) =
             build(MaterialOptions { interpolation: patent_interp, ..Default::default() });
         let sample = Sample::small(lookup(m).unwrap());
         let captured = tests::as_built_pairs(&truth, &cal, &regions);
@@ -113,7 +113,7 @@ fn main() {
             ..
         } = tests::material_scores(
             &regions,
-            [&default, &patent],
+            [&default, &patent_material],
             [&texels, &[]],
             &sample,
             &captured,
@@ -121,10 +121,17 @@ fn main() {
         );
         let shift = default.metadata().half_vector_shift;
         let model = if default.metadata().texel_model { "yes" } else { "no" };
+        // With --no-patent the patent's columns are a 1 × 1-cell stand-in: not shown.
+        let patent = |x: f64, digits: usize| {
+            if with_patent { format!("{x:.digits$}") } else { "—".to_string() }
+        };
         println!(
-            "| {m} | {reg:.2} | {reg_d:.2} | {cap_d:.2} | {cap_p:.2} | {pal:.2} | {nov_d:.2} | {nov_p:.2} | {:.1} / {:.1} | {t_d:.1} / {t_p:.1} | {shift} | {model} | {} | {:.0} % | {without:.2} |",
+            "| {m} | {reg:.2} | {reg_d:.2} | {cap_d:.2} | {} | {pal:.2} | {nov_d:.2} | {} | {:.1} / {} | {t_d:.1} / {} | {shift} | {model} | {} | {:.0} % | {without:.2} |",
+            patent(cap_p, 2),
+            patent(nov_p, 2),
             size_d as f64 / 1e6,
-            size_p as f64 / 1e6,
+            patent(size_p as f64 / 1e6, 1),
+            patent(t_p, 1),
             default.metadata().detail_components,
             100.0 * share
         );
@@ -136,9 +143,9 @@ fn main() {
                     let pairs =
                         tests::random_pairs_between(novel, light, view, seed + 1 + i as u64);
                     let t = tests::truth_answers(&pairs, &sample);
-                    let [d, p] = [&default, &patent]
+                    let [d, p] = [&default, &patent_material]
                         .map(|mat| tests::pairs_psnr(&pairs, &t, &|_, q| shade(mat, q)).0);
-                    format!("{d:.2} / {p:.2}")
+                    format!("{d:.2} / {}", patent(p, 2))
                 })
                 .collect();
             band_rows.push(format!("| {m} | {} |", scores.join(" | ")));
