@@ -94,13 +94,12 @@ fn main() {
         };
         let (default, size_d, t_d, texels) =
             build(MaterialOptions { texel_model, lights_per_index, ..Default::default() });
-        let patent_interp = if with_patent {
-            PATENT_DEFAULT
-        } else {
-            scanner_shading::Interpolation::Patent { columns: 1, rows: 1, points: 1 }
-        };
-        let (patent_material, size_p, t_p, _) =
-            build(MaterialOptions { interpolation: patent_interp, ..Default::default() });
+        // The patent's material, unless --no-patent (then its columns say —,
+        // and the scores below take the default in its place).
+        let patent_built = with_patent.then(|| {
+            build(MaterialOptions { interpolation: PATENT_DEFAULT, ..Default::default() })
+        });
+        let patent_material = patent_built.as_ref().map_or(&default, |b| &b.0);
         let sample = Sample::small(lookup(m).unwrap());
         let captured = tests::as_built_pairs(&truth, &cal, &regions);
         let tests::MaterialScores {
@@ -113,7 +112,7 @@ fn main() {
             ..
         } = tests::material_scores(
             &regions,
-            [&default, &patent_material],
+            [&default, patent_material],
             [&texels, &[]],
             &sample,
             &captured,
@@ -121,10 +120,11 @@ fn main() {
         );
         let shift = default.metadata().half_vector_shift;
         let model = if default.metadata().texel_model { "yes" } else { "no" };
-        // With --no-patent the patent's columns are a 1 × 1-cell stand-in: not shown.
-        let patent = |x: f64, digits: usize| {
-            if with_patent { format!("{x:.digits$}") } else { "—".to_string() }
+        let patent = |x: f64, digits: usize| match patent_built {
+            Some(_) => format!("{x:.digits$}"),
+            None => "—".to_string(),
         };
+        let (size_p, t_p) = patent_built.as_ref().map_or((0, 0.0), |b| (b.1, b.2));
         println!(
             "| {m} | {reg:.2} | {reg_d:.2} | {cap_d:.2} | {} | {pal:.2} | {nov_d:.2} | {} | {:.1} / {} | {t_d:.1} / {} | {shift} | {model} | {} | {:.0} % | {without:.2} |",
             patent(cap_p, 2),
@@ -143,9 +143,11 @@ fn main() {
                     let pairs =
                         tests::random_pairs_between(novel, light, view, seed + 1 + i as u64);
                     let t = tests::truth_answers(&pairs, &sample);
-                    let [d, p] = [&default, &patent_material]
-                        .map(|mat| tests::pairs_psnr(&pairs, &t, &|_, q| shade(mat, q)).0);
-                    format!("{d:.2} / {}", patent(p, 2))
+                    let psnr = |mat| tests::pairs_psnr(&pairs, &t, &|_, q| shade(mat, q)).0;
+                    let p = patent_built
+                        .as_ref()
+                        .map_or("—".to_string(), |b| format!("{:.2}", psnr(&b.0)));
+                    format!("{:.2} / {p}", psnr(&default))
                 })
                 .collect();
             band_rows.push(format!("| {m} | {} |", scores.join(" | ")));

@@ -157,7 +157,8 @@ fn every_texel_reads_its_own_index_whatever_the_size() {
                     let uv = [(x as f32 + 0.5) / s as f32, (y as f32 + 0.5) / s as f32];
                     let got = m.eval(uv, f32v(*dl), f32v(*dv));
                     let i = d.indices[(v * s * s + t) * groups + d.light_groups[l] as usize];
-                    let want = d.palettes[(l * dirs.len() + v) * 8 + i as usize];
+                    let k = d.meta.colours as usize;
+                    let want = d.palettes[(l * dirs.len() + v) * k + i as usize];
                     assert!(close(got, want, 1e-3), "S {s} l {l} v {v} texel ({x}, {y})");
                 }
             }
