@@ -4,7 +4,9 @@
 //! scanner, S = 128, 256 colours, 2 lights per index image, random
 //! palettes and indices), default and patent interpolation, beside a
 //! baseline measured in the same run: `eval` at one captured pair for
-//! every query (one image and one palette instead of up to nine).
+//! every query (one image and one palette instead of up to nine). The
+//! `lookup` group times one direction lookup alone, of which a random
+//! `eval` makes four.
 
 use std::hint::black_box;
 
@@ -12,6 +14,8 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use host::build::material::PATENT_DEFAULT;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use scanner_shading::format::DirectionTables;
+use scanner_shading::locate::TriangleLocator;
 use scanner_shading::{Interpolation, Material, ShadeQuery};
 
 #[path = "support/synthetic.rs"]
@@ -161,9 +165,50 @@ fn shade(c: &mut Criterion) {
     group.finish();
 }
 
+/// One direction lookup alone (`TriangleLocator::weights`, the default
+/// interpolation's), over the default scanner's view triangulation: 2²⁰
+/// random directions over the hemisphere (beyond the outer ring too) and
+/// within 60° of the normal. A random `eval` makes four.
+fn lookup(c: &mut Criterion) {
+    let shape = synthetic::Shape { mirrors: 40, resolution: 1, colours: 1, lights_per_index: 2 };
+    let data = synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1);
+    let DirectionTables::Triangles { views, .. } = &data.tables else {
+        panic!("the default interpolation has triangles")
+    };
+    let dirs: Vec<[f32; 3]> =
+        data.meta.views.iter().map(|m| m.direction.map(|x| x as f32)).collect();
+    let locator = TriangleLocator::new(&dirs, views, "views").unwrap();
+    let mut group = c.benchmark_group("lookup");
+    for (name, max_theta) in [("hemisphere", 90f32), ("within 60°", 60.0)] {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let zmin = max_theta.to_radians().cos().max(1e-3);
+        let ds: Vec<[f32; 3]> = (0..1 << 20)
+            .map(|_| {
+                let z: f32 = zmin + (1.0 - zmin) * rng.random::<f32>();
+                let p = rng.random::<f32>() * std::f32::consts::TAU;
+                let r = (1.0 - z * z).sqrt();
+                [r * p.cos(), r * p.sin(), z]
+            })
+            .collect();
+        group.throughput(Throughput::Elements(ds.len() as u64));
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                let mut sum = 0f32;
+                let mut w = [(0u16, 0f32); 3];
+                for &d in &ds {
+                    locator.weights(d, &mut w);
+                    sum += w[0].1 + w[1].0 as f32;
+                }
+                black_box(sum)
+            })
+        });
+    }
+    group.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(20);
-    targets = shade
+    targets = shade, lookup
 }
 criterion_main!(benches);
