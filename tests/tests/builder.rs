@@ -155,11 +155,6 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(rms(&errs.light) < rms(&errs.light_nominal_source));
 }
 
-fn scanner(args: &[&str]) -> (Option<i32>, String) {
-    let out = common::scanner().args(args).output().unwrap();
-    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
-}
-
 #[test]
 fn bad_inputs_exit_3_and_write_nothing() {
     let (bin, mirrors, seed) = (8, 3, 2);
@@ -169,7 +164,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     take_scan("diffuse-white", seed, bin, mirrors, &dir.path().join("white"));
     take_scan("leather", seed, bin, mirrors, &dir.path().join("leather"));
     // At 512² the checker corners are too small: views are found by phase.
-    let (code, err) = scanner(&[
+    let (code, err) = common::run_err(&[
         "calibrate",
         "--checkerboard",
         &d("checker"),
@@ -182,7 +177,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     let (leather, cal) = (d("leather"), d("cal.json"));
     let regions_with = |out: &str, more: &[&str]| {
         let args = ["regions", "--scan", &leather, "--calibration", &cal, "-o", out];
-        scanner(&[&args[..], more].concat())
+        common::run_err(&[&args[..], more].concat())
     };
     let (code, err) = regions_with(&d("regions"), &[]);
     assert_eq!(code, Some(0), "{err}");
@@ -225,16 +220,30 @@ fn bad_inputs_exit_3_and_write_nothing() {
     // A material written over the scan's own manifest: refused, exit 4.
     let manifest = std::fs::read(dir.path().join("leather/manifest.json")).unwrap();
     let over = d("leather/manifest.json");
-    let (code, err) =
-        scanner(&["build", "--scan", &d("leather"), "--calibration", &d("cal.json"), "-o", &over]);
+    let (code, err) = common::run_err(&[
+        "build",
+        "--scan",
+        &d("leather"),
+        "--calibration",
+        &d("cal.json"),
+        "-o",
+        &over,
+    ]);
     assert_eq!(code, Some(4), "{err}");
     assert!(err.contains("would replace a file of the input"), "{err}");
     assert_eq!(std::fs::read(dir.path().join("leather/manifest.json")).unwrap(), manifest);
 
     // Each refusal exits 3 and leaves no output directory.
     let regions_refused = |scan: &str, cal: &str, out: &str| -> String {
-        let (code, err) =
-            scanner(&["regions", "--scan", &d(scan), "--calibration", &d(cal), "-o", &d(out)]);
+        let (code, err) = common::run_err(&[
+            "regions",
+            "--scan",
+            &d(scan),
+            "--calibration",
+            &d(cal),
+            "-o",
+            &d(out),
+        ]);
         assert_eq!(code, Some(3), "{err}");
         assert!(!dir.path().join(out).exists());
         err
@@ -275,7 +284,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     std::fs::write(d("v1.json"), text.replace("\"version\":2", "\"version\":1")).unwrap();
     let (v1, r5) = (d("v1.json"), d("r5"));
     let (code, err) =
-        scanner(&["regions", "--scan", &d("leather"), "--calibration", &v1, "-o", &r5]);
+        common::run_err(&["regions", "--scan", &d("leather"), "--calibration", &v1, "-o", &r5]);
     assert_eq!(code, Some(0), "{err}");
     std::fs::write(d("v3.json"), text.replace("\"version\":2", "\"version\":3")).unwrap();
     let err = regions_refused("leather", "v3.json", "r6");
@@ -337,7 +346,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
             args.extend(["--glossy".into(), d(glossy)]);
         }
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        let (code, err) = scanner(&args);
+        let (code, err) = common::run_err(&args);
         assert_eq!(code, Some(3), "{err}");
         assert!(!dir.path().join(out).exists());
         err
@@ -371,7 +380,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     let err = calibrate_refused("checker", "white", Some("metal"), "c9.json");
     assert!(err.contains("a highlight flank for 0 pairs"), "{err}");
     // The output may not replace an input or a device node.
-    let (code, err) = scanner(&[
+    let (code, err) = common::run_err(&[
         "calibrate",
         "--checkerboard",
         &d("checker"),

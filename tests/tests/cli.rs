@@ -13,15 +13,6 @@ use protocol::{
     DeviceError, FrameDecoder, MAX_FRAME_LEN, ProtocolVersion, Reply, Request, ToHost, encode_frame,
 };
 
-fn run(args: &[&str]) -> (Option<i32>, String, String) {
-    let out = scanner().args(args).output().unwrap();
-    (
-        out.status.code(),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
-
 #[test]
 fn bench_commands_drive_a_scanner_on_a_pty() {
     let dir = tmp();

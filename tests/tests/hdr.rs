@@ -31,8 +31,7 @@ fn scan(set: &str, out: &std::path::Path, extra: &[&str]) -> (Option<i32>, Strin
     let o = out.display().to_string();
     args.push(&o);
     args.extend_from_slice(extra);
-    let r = common::scanner().args(&args).output().unwrap();
-    (r.status.code(), String::from_utf8_lossy(&r.stderr).into_owned())
+    common::run_err(&args)
 }
 
 #[test]

@@ -13,15 +13,6 @@ use common::*;
 use hil_sim::FaultPlan;
 use host::scan::Manifest;
 
-fn run(args: &[&str]) -> (Option<i32>, String, String) {
-    let out = scanner().args(args).output().unwrap();
-    (
-        out.status.code(),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
-
 /// `scanner scan` on the in-process simulator (64² sensor) with `extra`.
 fn sim_scan(out: &Path, mirrors: usize, extra: &[&str]) -> (Option<i32>, String, String) {
     let o = out.display().to_string();

@@ -19,11 +19,6 @@ use host::build::{RegionOptions, extract_regions};
 use scanner_formats::queries::{Query, read_answers, write_queries};
 use scanner_shading::{Interpolation, Material};
 
-fn scanner(args: &[&str]) -> (Option<i32>, String) {
-    let out = common::scanner().args(args).output().unwrap();
-    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
-}
-
 fn sha256(path: &Path) -> String {
     use sha2::Digest;
     host::scan::hex(&sha2::Sha256::digest(std::fs::read(path).unwrap()))
@@ -38,7 +33,7 @@ fn a_built_material_shades_like_the_sample() {
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &p("checker"));
     tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &p("white"));
     tests::sim_scan("leather", seed, bin, mirrors, true, &p("leather"));
-    let (code, err) = scanner(&[
+    let (code, err) = common::run_err(&[
         "calibrate",
         "--checkerboard",
         &d("checker"),
@@ -52,7 +47,7 @@ fn a_built_material_shades_like_the_sample() {
     let build_cli = |scan: &str, out: &str, extra: &[&str]| {
         let (scan, out) = (d(scan), d(out));
         let args = ["build", "--scan", &scan, "--calibration", &d("cal.json"), "-o", &out];
-        scanner(&[&args[..], extra].concat())
+        common::run_err(&[&args[..], extra].concat())
     };
     let (code, err) = build_cli("leather", "leather.material", &[]);
     assert_eq!(code, Some(0), "{err}");
@@ -227,8 +222,14 @@ fn a_built_material_shades_like_the_sample() {
         })
         .collect();
     write_queries(&p("q.npy"), &queries).unwrap();
-    let (code, err) =
-        scanner(&["shade", &d("leather.material"), "--queries", &d("q.npy"), "-o", &d("a.npy")]);
+    let (code, err) = common::run_err(&[
+        "shade",
+        &d("leather.material"),
+        "--queries",
+        &d("q.npy"),
+        "-o",
+        &d("a.npy"),
+    ]);
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(read_answers(&p("a.npy")).unwrap(), host::build::material::shade(&m, &queries));
 
@@ -259,16 +260,19 @@ fn a_built_material_shades_like_the_sample() {
     assert!(!p("p0.material").exists());
 
     // A preview of the material file.
-    let (code, err) = scanner(&["preview", &d("leather.material"), "-o", &d("leather.png")]);
+    let (code, err) =
+        common::run_err(&["preview", &d("leather.material"), "-o", &d("leather.png")]);
     assert_eq!(code, Some(0), "{err}");
     let png = image::open(p("leather.png")).unwrap().to_rgb8();
     assert_eq!(png.dimensions(), (3 * 262 + 6, 262 + 6));
-    let (code, err) = scanner(&["preview", &d("leather.material"), "-o", &d("leather.exr")]);
+    let (code, err) =
+        common::run_err(&["preview", &d("leather.material"), "-o", &d("leather.exr")]);
     assert_eq!(code, Some(2), "{err}");
 
     // Bad input: exit 3, nothing written.
     let shade_refused = |material: &str, queries: &str, out: &str, code: i32| -> String {
-        let (c, err) = scanner(&["shade", &d(material), "--queries", &d(queries), "-o", &d(out)]);
+        let (c, err) =
+            common::run_err(&["shade", &d(material), "--queries", &d(queries), "-o", &d(out)]);
         assert_eq!(c, Some(code), "{err}");
         assert!(!p(out).exists(), "{out} written");
         err
@@ -277,7 +281,7 @@ fn a_built_material_shades_like_the_sample() {
     std::fs::write(p("cut.material"), &good[..good.len() / 2]).unwrap();
     let err = shade_refused("cut.material", "q.npy", "x1.npy", 3);
     assert!(err.contains("not a safetensors file"), "{err}");
-    let (c, err) = scanner(&["preview", &d("cut.material"), "-o", &d("cut.png")]);
+    let (c, err) = common::run_err(&["preview", &d("cut.material"), "-o", &d("cut.png")]);
     assert_eq!(c, Some(3), "{err}");
     assert!(!p("cut.png").exists());
     let mut flipped = good.clone();
@@ -295,7 +299,7 @@ fn a_built_material_shades_like_the_sample() {
     let err = shade_refused("leather.material", "nan.csv", "x4.csv", 3);
     assert!(err.contains("row 0"), "{err}");
     // The output may not be the material.
-    let (c, err) = scanner(&[
+    let (c, err) = common::run_err(&[
         "shade",
         &d("leather.material"),
         "--queries",

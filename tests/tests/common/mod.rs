@@ -39,6 +39,22 @@ pub fn scanner() -> Command {
     Command::new(env!("CARGO_BIN_EXE_scanner-e2e"))
 }
 
+/// `scanner ARGS` run to its end: (exit code, stdout, stderr).
+pub fn run(args: &[&str]) -> (Option<i32>, String, String) {
+    let out = scanner().args(args).output().unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// [`run`] without its stdout: (exit code, stderr).
+pub fn run_err(args: &[&str]) -> (Option<i32>, String) {
+    let (code, _, err) = run(args);
+    (code, err)
+}
+
 /// Arguments of a scan over `pty` with the folder camera.
 pub fn scan_args(pty: &str, frames: &Path, out: &Path, mirrors: usize) -> Vec<String> {
     [
