@@ -31,13 +31,18 @@ fn material(interpolation: Interpolation, half_vector_shift: f64) -> Material {
     Material::from_bytes(&data.to_bytes().unwrap()).unwrap()
 }
 
+/// The unit direction of height `z` and azimuth uniform in [0, 2π).
+fn at_height(rng: &mut ChaCha8Rng, z: f32) -> [f32; 3] {
+    let p = rng.random::<f32>() * std::f32::consts::TAU;
+    let r = (1.0 - z * z).sqrt();
+    [r * p.cos(), r * p.sin(), z]
+}
+
 fn queries() -> Vec<ShadeQuery> {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let dir = |rng: &mut ChaCha8Rng| {
         let z: f32 = rng.random::<f32>().max(1e-3);
-        let p = rng.random::<f32>() * std::f32::consts::TAU;
-        let r = (1.0 - z * z).sqrt();
-        [r * p.cos(), r * p.sin(), z]
+        at_height(rng, z)
     };
     (0..QUERIES)
         .map(|_| ShadeQuery {
@@ -185,9 +190,7 @@ fn lookup(c: &mut Criterion) {
         let ds: Vec<[f32; 3]> = (0..1 << 20)
             .map(|_| {
                 let z: f32 = zmin + (1.0 - zmin) * rng.random::<f32>();
-                let p = rng.random::<f32>() * std::f32::consts::TAU;
-                let r = (1.0 - z * z).sqrt();
-                [r * p.cos(), r * p.sin(), z]
+                at_height(&mut rng, z)
             })
             .collect();
         group.throughput(Throughput::Elements(ds.len() as u64));

@@ -556,9 +556,9 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
     // The command line says what it found and what it replaces.
     let d = |n: &str| dir.path().join("defects").join(n).display().to_string();
     let run = |args: &[&str]| {
-        let out = common::scanner().args(args).output().unwrap();
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        String::from_utf8_lossy(&out.stdout).into_owned()
+        let (code, said, err) = common::run(args);
+        assert_eq!(code, Some(0), "{err}");
+        said
     };
     let (cal_file, regions_dir) = (d("cal.json"), d("regions"));
     let said = run(&[
