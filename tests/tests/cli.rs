@@ -154,14 +154,11 @@ fn incompatible_firmware_exits_6_with_both_versions() {
 
 /// A 4-mirror 512² simulated scan into `out`, with `extra` options.
 fn sim_scan_with(out: &std::path::Path, extra: &[&str]) -> (Option<i32>, String, String) {
-    let out = out.display().to_string();
-    let mut args = vec!["scan", "--device", "sim", "--sim-bin", "8", "--sample-name", "x"];
-    args.extend(["--out", &out, "--mirrors", "4"]);
-    args.extend(extra);
-    run(&args)
+    sim_scan(8, 4, out, extra)
 }
 
-fn sim_scan(out: &std::path::Path, fault: &str) -> (Option<i32>, String, String) {
+/// [`sim_scan_with`] under the simulator's `fault`.
+fn scan_with_fault(out: &std::path::Path, fault: &str) -> (Option<i32>, String, String) {
     sim_scan_with(out, &["--sim-fault", fault, "--frame-timeout", "1"])
 }
 
@@ -170,7 +167,7 @@ fn an_emergency_stop_exits_7_and_keeps_the_frames_taken() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
     // Trigger 1 is the dark frame, 2 mirror 0's exposure.
-    let (code, _, err) = sim_scan(&out, "estop:on@trigger=3");
+    let (code, _, err) = scan_with_fault(&out, "estop:on@trigger=3");
     assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("emergency stop"), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();
@@ -181,7 +178,7 @@ fn an_emergency_stop_exits_7_and_keeps_the_frames_taken() {
 #[test]
 fn a_camera_that_never_delivers_exits_8() {
     let dir = tmp();
-    let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "ignore-trigger:100@trigger=0");
+    let (code, _, err) = scan_with_fault(&sub(dir.path(), "scan"), "ignore-trigger:100@trigger=0");
     assert_eq!(code, Some(8), "{err}");
     assert!(err.contains("camera timeout at mirror 0 after 3 attempts"), "{err}");
 }
@@ -191,7 +188,7 @@ fn a_dark_frame_the_camera_misses_is_said_and_taken_on_resuming() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
     // The camera misses the first trigger: the dark frame's.
-    let (code, _, err) = sim_scan(&out, "ignore-trigger:1@trigger=0");
+    let (code, _, err) = scan_with_fault(&out, "ignore-trigger:1@trigger=0");
     assert_eq!(code, Some(0), "{err}");
     assert!(err.contains("no dark frame (camera: no frame within 1s)"), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();
@@ -312,7 +309,7 @@ fn black_level_subtracts_what_the_camera_left_in() {
 #[test]
 fn a_bad_fault_spec_is_a_usage_error() {
     let dir = tmp();
-    let (code, _, err) = sim_scan(&sub(dir.path(), "scan"), "explode@trigger=1");
+    let (code, _, err) = scan_with_fault(&sub(dir.path(), "scan"), "explode@trigger=1");
     assert_eq!(code, Some(2), "{err}");
 }
 
@@ -386,12 +383,11 @@ fn the_settle_time_is_a_scan_option() {
     let dir = tmp();
     let o = sub(dir.path(), "scan").display().to_string();
     let scan = |settle: &str, resume: bool| {
-        let mut args = vec!["scan", "--device", "sim", "--sim-bin", "16", "--sample-name", "s"];
-        args.extend(["--out", &o, "--mirrors", "2", "--settle-ms", settle]);
+        let mut extra = vec!["--settle-ms", settle];
         if resume {
-            args.push("--resume");
+            extra.push("--resume");
         }
-        run(&args)
+        sim_scan(16, 2, std::path::Path::new(&o), &extra)
     };
     let (code, _, err) = scan("400", false);
     assert_eq!(code, Some(0), "{err}");
@@ -409,20 +405,7 @@ fn verify_reports_missing_and_damaged_frames() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
     let o = out.display().to_string();
-    let scan = [
-        "scan",
-        "--device",
-        "sim",
-        "--sim-bin",
-        "16",
-        "--sample-name",
-        "v",
-        "--out",
-        &o,
-        "--mirrors",
-        "3",
-    ];
-    let (code, _, err) = run(&scan);
+    let (code, _, err) = sim_scan(16, 3, &out, &[]);
     assert_eq!(code, Some(0), "{err}");
     let (code, out_text, _) = run(&["verify", &o]);
     assert_eq!(code, Some(0));
@@ -431,9 +414,7 @@ fn verify_reports_missing_and_damaged_frames() {
     let (code, out_text, _) = run(&["verify", &o]);
     assert_eq!(code, Some(3));
     assert!(out_text.contains("damaged: mirror 1"), "{out_text}");
-    let mut resume = scan.to_vec();
-    resume.push("--resume");
-    let (code, out_text, err) = run(&resume);
+    let (code, out_text, err) = sim_scan(16, 3, &out, &["--resume"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out_text.contains("1 frames taken, 2 kept"), "{out_text}");
     assert_eq!(run(&["verify", &o]).0, Some(0));

@@ -13,27 +13,6 @@ use common::*;
 use hil_sim::FaultPlan;
 use host::scan::Manifest;
 
-/// `scanner scan` on the in-process simulator (64² sensor) with `extra`.
-fn sim_scan(out: &Path, mirrors: usize, extra: &[&str]) -> (Option<i32>, String, String) {
-    let o = out.display().to_string();
-    let m = mirrors.to_string();
-    let mut args = vec![
-        "scan",
-        "--device",
-        "sim",
-        "--sim-bin",
-        "64",
-        "--sample-name",
-        "s",
-        "--out",
-        &o,
-        "--mirrors",
-        &m,
-    ];
-    args.extend_from_slice(extra);
-    run(&args)
-}
-
 /// Every file under `dir` and its bytes.
 fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
@@ -58,7 +37,7 @@ fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
 fn a_second_scan_in_a_directory_in_use_exits_3_and_touches_nothing() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
-    let (code, _, err) = sim_scan(&out, 3, &[]);
+    let (code, _, err) = sim_scan(64, 3, &out, &[]);
     assert_eq!(code, Some(0), "{err}");
     // Damage a frame so that a resume would write; then hold the scan's
     // lock as a running scan does (flock: another open file description).
@@ -67,7 +46,7 @@ fn a_second_scan_in_a_directory_in_use_exits_3_and_touches_nothing() {
     lock.lock().unwrap();
     let before = snapshot(&out);
     for extra in [&["--resume"][..], &[][..]] {
-        let (code, _, err) = sim_scan(&out, 3, extra);
+        let (code, _, err) = sim_scan(64, 3, &out, extra);
         assert_eq!(code, Some(3), "{extra:?}: {err}");
         assert!(err.contains("another scan is using"), "{err}");
         assert_eq!(snapshot(&out), before, "{extra:?}: nothing written");
@@ -77,12 +56,12 @@ fn a_second_scan_in_a_directory_in_use_exits_3_and_touches_nothing() {
     std::fs::create_dir_all(&fresh).unwrap();
     let lock2 = std::fs::File::create(fresh.join(".lock")).unwrap();
     lock2.lock().unwrap();
-    let (code, _, err) = sim_scan(&fresh, 2, &[]);
+    let (code, _, err) = sim_scan(64, 2, &fresh, &[]);
     assert_eq!(code, Some(3), "{err}");
     assert!(!fresh.join("manifest.json").exists());
     drop((lock, lock2));
     // Released: the resume repairs the frame.
-    let (code, _, err) = sim_scan(&out, 3, &["--resume"]);
+    let (code, _, err) = sim_scan(64, 3, &out, &["--resume"]);
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(run(&["verify", &out.display().to_string()]).0, Some(0));
 }
@@ -92,24 +71,10 @@ fn two_scans_started_together_do_not_both_write_the_directory() {
     // Two processes race for one directory: the lock lets exactly one scan.
     let dir = tmp();
     let out = sub(dir.path(), "scan");
-    let o = out.display().to_string();
-    let args = [
-        "scan",
-        "--device",
-        "sim",
-        "--sim-bin",
-        "16",
-        "--sample-name",
-        "s",
-        "--out",
-        &o,
-        "--mirrors",
-        "12",
-        "--check-every",
-        "1",
-    ];
-    let a = scanner().args(args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
-    let b = scanner().args(args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut args = sim_scan_args(16, 12, &out);
+    args.extend(["--check-every", "1"].map(String::from));
+    let a = scanner().args(&args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+    let b = scanner().args(&args).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
     let (a, b) = (a.wait_with_output().unwrap(), b.wait_with_output().unwrap());
     let codes = [a.status.code(), b.status.code()];
     let errs = [&a.stderr, &b.stderr].map(|e| String::from_utf8_lossy(e).into_owned());
@@ -118,7 +83,7 @@ fn two_scans_started_together_do_not_both_write_the_directory() {
     assert!(codes.contains(&Some(0)) && codes.contains(&Some(3)), "{codes:?} {errs:?}");
     let m = Manifest::load(&out).unwrap();
     assert!(m.complete && m.frames.len() == 12);
-    assert_eq!(run(&["verify", &o]).0, Some(0));
+    assert_eq!(run(&["verify", &out.display().to_string()]).0, Some(0));
 }
 
 // ----- 3. outputs never destroy what is at the path --------------------------------
@@ -259,22 +224,22 @@ fn a_non_empty_folder_without_a_manifest_is_refused_unless_forced() {
     std::fs::write(out.join("notes.txt"), b"keep me").unwrap();
     let before = snapshot(&out);
     for extra in [&[][..], &["--resume"][..]] {
-        let (code, _, err) = sim_scan(&out, 2, extra);
+        let (code, _, err) = sim_scan(64, 2, &out, extra);
         assert_eq!(code, Some(3), "{extra:?}: {err}");
         assert!(err.contains("is not empty") && err.contains("--force"), "{err}");
         assert_eq!(snapshot(&out), before, "nothing touched");
     }
-    let (code, _, err) = sim_scan(&out, 2, &["--force"]);
+    let (code, _, err) = sim_scan(64, 2, &out, &["--force"]);
     assert_eq!(code, Some(0), "{err}");
     assert_eq!(std::fs::read(out.join("notes.txt")).unwrap(), b"keep me");
     // An empty folder needs no --force.
     let empty = sub(dir.path(), "empty");
     std::fs::create_dir_all(&empty).unwrap();
-    assert_eq!(sim_scan(&empty, 1, &[]).0, Some(0));
+    assert_eq!(sim_scan(64, 1, &empty, &[]).0, Some(0));
     // A file where the directory should be.
     let file = dir.path().join("file");
     std::fs::write(&file, b"x").unwrap();
-    let (code, _, err) = sim_scan(&file, 1, &[]);
+    let (code, _, err) = sim_scan(64, 1, &file, &[]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("not a directory"), "{err}");
 }
@@ -286,7 +251,7 @@ fn a_damaged_manifest_is_recovered_from_the_previous_one() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
     let o = out.display().to_string();
-    let (code, _, err) = sim_scan(&out, 4, &[]);
+    let (code, _, err) = sim_scan(64, 4, &out, &[]);
     assert_eq!(code, Some(0), "{err}");
     let prev = Manifest::load(&out).unwrap();
     assert!(out.join("manifest.json.prev").is_file(), "rotated on every save");
@@ -296,13 +261,13 @@ fn a_damaged_manifest_is_recovered_from_the_previous_one() {
     let (code, _, err) = run(&["verify", &o]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("damaged") && err.contains("not UTF-8"), "{err}");
-    let (code, _, err) = sim_scan(&out, 4, &[]);
+    let (code, _, err) = sim_scan(64, 4, &out, &[]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("`--resume` recovers"), "{err}");
     assert_eq!(snapshot(&out), before);
     // --resume recovers from manifest.json.prev, re-verifying its frames;
     // the damaged file is kept aside.
-    let (code, text, err) = sim_scan(&out, 4, &["--resume"]);
+    let (code, text, err) = sim_scan(64, 4, &out, &["--resume"]);
     assert_eq!(code, Some(0), "{err}");
     assert!(err.contains("recovering from manifest.json.prev"), "{err}");
     assert!(text.contains("0 frames taken, 4 kept"), "{text}");
@@ -313,7 +278,7 @@ fn a_damaged_manifest_is_recovered_from_the_previous_one() {
     // Both gone or damaged: refused, still exit 3.
     std::fs::write(out.join("manifest.json"), b"[").unwrap();
     std::fs::write(out.join("manifest.json.prev"), b"[").unwrap();
-    let (code, _, err) = sim_scan(&out, 4, &["--resume"]);
+    let (code, _, err) = sim_scan(64, 4, &out, &["--resume"]);
     assert_eq!(code, Some(3), "{err}");
 }
 
@@ -322,16 +287,16 @@ fn resume_refuses_another_simulator_a_foreign_mirror_and_names_what_differs() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
     let o = out.display().to_string();
-    let (code, _, err) = sim_scan(&out, 3, &[]);
+    let (code, _, err) = sim_scan(64, 3, &out, &[]);
     assert_eq!(code, Some(0), "{err}");
     let m = Manifest::load(&out).unwrap();
     assert_eq!(m.settings.simulator.as_deref(), Some("simulated woven-fabric, seed 1, binning 64"));
     // Another simulator seed: another scanner.
-    let (code, _, err) = sim_scan(&out, 3, &["--resume", "--sim-seed", "2"]);
+    let (code, _, err) = sim_scan(64, 3, &out, &["--resume", "--sim-seed", "2"]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("scanner simulated woven-fabric, seed 1"), "{err}");
     // Another exposure: named, no Rust debug output.
-    let (code, _, err) = sim_scan(&out, 3, &["--resume", "--exposure-us", "20000"]);
+    let (code, _, err) = sim_scan(64, 3, &out, &["--resume", "--exposure-us", "20000"]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("exposure 50000 µs (the directory's) vs 20000 µs"), "{err}");
     assert!(!err.contains("ScanSettings") && !err.contains("Some("), "{err}");
@@ -347,7 +312,7 @@ fn resume_refuses_another_simulator_a_foreign_mirror_and_names_what_differs() {
     let (code, _, err) = run(&["verify", &o]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("mirror 57 in a scan of mirrors 0…2"), "{err}");
-    let (code, _, err) = sim_scan(&out, 3, &[]);
+    let (code, _, err) = sim_scan(64, 3, &out, &[]);
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("mirror 57"), "{err}");
 }
@@ -364,9 +329,7 @@ fn every_rename_into_the_scan_is_followed_by_a_directory_fsync() {
         .args(["-f", "-qq", "-e", "trace=openat,rename,renameat,renameat2,fsync,close", "-o"])
         .arg(&trace)
         .arg(env!("CARGO_BIN_EXE_scanner-e2e"))
-        .args(["scan", "--device", "sim", "--sim-bin", "64", "--sample-name", "s", "--out"])
-        .arg(&out)
-        .args(["--mirrors", "3"])
+        .args(sim_scan_args(64, 3, &out))
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .status()
@@ -438,7 +401,7 @@ fn bad_values_are_refused_before_anything_moves_or_is_written() {
         assert!(!out.exists(), "{extra:?}: nothing written");
     }
     // The corrected command then runs.
-    let (code, _, err) = sim_scan(&out, 1, &["--exposure-us", "20000"]);
+    let (code, _, err) = sim_scan(64, 1, &out, &["--exposure-us", "20000"]);
     assert_eq!(code, Some(0), "{err}");
     // verify: no scan at a missing or empty folder, or a file.
     let empty = sub(dir.path(), "empty");
@@ -457,12 +420,13 @@ fn device_errors_are_said_in_words_once() {
     let dir = tmp();
     // Homing that fails on a stuck switch: words, not HomingFailed(Track, SwitchStuck).
     let (code, _, err) =
-        sim_scan(&sub(dir.path(), "a"), 2, &["--sim-fault", "stuck:track:on@ms=0"]);
+        sim_scan(64, 2, &sub(dir.path(), "a"), &["--sim-fault", "stuck:track:on@ms=0"]);
     assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("failed on the track axis: its switch stayed pressed"), "{err}");
     assert!(!err.contains("HomingFailed") && !err.contains("SwitchStuck"), "{err}");
     // An emergency stop while homing says so.
-    let (code, _, err) = sim_scan(&sub(dir.path(), "b"), 2, &["--sim-fault", "estop:on@ms=300"]);
+    let (code, _, err) =
+        sim_scan(64, 2, &sub(dir.path(), "b"), &["--sim-fault", "estop:on@ms=300"]);
     assert_eq!(code, Some(7), "{err}");
     assert!(err.contains("emergency stop"), "{err}");
     // The error once.
@@ -470,21 +434,8 @@ fn device_errors_are_said_in_words_once() {
     assert_eq!(err.matches(last).count(), 1, "printed twice: {err}");
     // Logs to a pipe carry no colour codes.
     let out = scanner()
-        .args([
-            "scan",
-            "--device",
-            "sim",
-            "--sim-bin",
-            "64",
-            "--sample-name",
-            "s",
-            "--mirrors",
-            "2",
-            "--sim-fault",
-            "disconnect:1500@trigger=1",
-        ])
-        .arg("--out")
-        .arg(dir.path().join("c"))
+        .args(sim_scan_args(64, 2, &dir.path().join("c")))
+        .args(["--sim-fault", "disconnect:1500@trigger=1"])
         .output()
         .unwrap();
     let log = String::from_utf8_lossy(&out.stderr);
@@ -585,19 +536,8 @@ fn on_a_terminal_log_lines_and_notes_never_share_the_progress_bar_line() {
     let fd = unsafe { BorrowedFd::borrow_raw(slave.as_raw_fd()) }.try_clone_to_owned().unwrap();
     let dir = tmp();
     let mut child = scanner()
-        .args([
-            "scan",
-            "--device",
-            "sim",
-            "--sim-bin",
-            "16",
-            "--sample-name",
-            "s",
-            "--mirrors",
-            "12",
-        ])
-        .args(["--sim-fault", "disconnect:1500@trigger=4", "--check-every", "4", "--out"])
-        .arg(dir.path().join("scan"))
+        .args(sim_scan_args(16, 12, &dir.path().join("scan")))
+        .args(["--sim-fault", "disconnect:1500@trigger=4", "--check-every", "4"])
         .stdout(Stdio::null())
         .stderr(Stdio::from(fd))
         .spawn()

@@ -55,6 +55,32 @@ pub fn run_err(args: &[&str]) -> (Option<i32>, String) {
     (code, err)
 }
 
+/// Arguments of a scan on the in-process simulator (`--device sim`): a
+/// sensor binned by `bin` (4096 / `bin` px a side), `mirrors` mirrors,
+/// sample "s", into `out`.
+pub fn sim_scan_args(bin: u32, mirrors: usize, out: &Path) -> Vec<String> {
+    let (bin, mirrors) = (bin.to_string(), mirrors.to_string());
+    let out = out.display().to_string();
+    ["scan", "--device", "sim", "--sim-bin", &bin, "--sample-name", "s", "--out", &out]
+        .into_iter()
+        .chain(["--mirrors", &mirrors])
+        .map(str::to_string)
+        .collect()
+}
+
+/// [`sim_scan_args`] with `extra` options, run to its end: (exit code,
+/// stdout, stderr).
+pub fn sim_scan(
+    bin: u32,
+    mirrors: usize,
+    out: &Path,
+    extra: &[&str],
+) -> (Option<i32>, String, String) {
+    let args = sim_scan_args(bin, mirrors, out);
+    let args: Vec<&str> = args.iter().map(String::as_str).chain(extra.iter().copied()).collect();
+    run(&args)
+}
+
 /// Arguments of a scan over `pty` with the folder camera.
 pub fn scan_args(pty: &str, frames: &Path, out: &Path, mirrors: usize) -> Vec<String> {
     [
