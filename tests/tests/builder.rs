@@ -164,15 +164,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     take_scan("diffuse-white", seed, bin, mirrors, &dir.path().join("white"));
     take_scan("leather", seed, bin, mirrors, &dir.path().join("leather"));
     // At 512² the checker corners are too small: views are found by phase.
-    let (code, err) = common::run_err(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checker"),
-        "--white",
-        &d("white"),
-        "-o",
-        &d("cal.json"),
-    ]);
+    let (code, _, err) = common::calibrate(&d("checker"), &d("white"), &d("cal.json"), &[]);
     assert_eq!(code, Some(0), "{err}");
     let (leather, cal) = (d("leather"), d("cal.json"));
     let regions_with = |out: &str, more: &[&str]| {
@@ -340,13 +332,9 @@ fn bad_inputs_exit_3_and_write_nothing() {
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));
     rewrite_frames(&dir.path().join("dark"), |v| *v *= 0.001);
     let calibrate_refused = |checker: &str, white: &str, glossy: Option<&str>, out: &str| {
-        let mut args = vec!["calibrate".to_string(), "--checkerboard".into(), d(checker)];
-        args.extend(["--white".into(), d(white), "-o".into(), d(out)]);
-        if let Some(glossy) = glossy {
-            args.extend(["--glossy".into(), d(glossy)]);
-        }
-        let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        let (code, err) = common::run_err(&args);
+        let glossy = glossy.map(d);
+        let extra: Vec<&str> = glossy.iter().flat_map(|g| ["--glossy", g]).collect();
+        let (code, _, err) = common::calibrate(&d(checker), &d(white), &d(out), &extra);
         assert_eq!(code, Some(3), "{err}");
         assert!(!dir.path().join(out).exists());
         err
@@ -380,15 +368,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     let err = calibrate_refused("checker", "white", Some("metal"), "c9.json");
     assert!(err.contains("a highlight flank for 0 pairs"), "{err}");
     // The output may not replace an input or a device node.
-    let (code, err) = common::run_err(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checker"),
-        "--white",
-        &d("white"),
-        "-o",
-        "/dev/null",
-    ]);
+    let (code, _, err) = common::calibrate(&d("checker"), &d("white"), "/dev/null", &[]);
     assert_eq!(code, Some(4), "{err}");
 }
 
@@ -561,15 +541,9 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
         said
     };
     let (cal_file, regions_dir) = (d("cal.json"), d("regions"));
-    let said = run(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checkerboard"),
-        "--white",
-        &d("diffuse-white"),
-        "-o",
-        &cal_file,
-    ]);
+    let (code, said, err) =
+        common::calibrate(&d("checkerboard"), &d("diffuse-white"), &cal_file, &[]);
+    assert_eq!(code, Some(0), "{err}");
     let stuck = cal.defects.iter().filter(|d| d.kind == DefectKind::Stuck).count();
     let counts = format!("{stuck} stuck, 0 hot and {} dead pixels", cal.defects.len() - stuck);
     assert!(said.contains(&format!("sensor defects: {counts}, found in the white")), "{said}");

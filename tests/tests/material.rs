@@ -33,15 +33,7 @@ fn a_built_material_shades_like_the_sample() {
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &p("checker"));
     tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &p("white"));
     tests::sim_scan("leather", seed, bin, mirrors, true, &p("leather"));
-    let (code, err) = common::run_err(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checker"),
-        "--white",
-        &d("white"),
-        "-o",
-        &d("cal.json"),
-    ]);
+    let (code, _, err) = common::calibrate(&d("checker"), &d("white"), &d("cal.json"), &[]);
     assert_eq!(code, Some(0), "{err}");
     // `scanner build` of scan SCAN with the calibration into OUT.
     let build_cli = |scan: &str, out: &str, extra: &[&str]| {

@@ -81,6 +81,18 @@ pub fn sim_scan(
     run(&args)
 }
 
+/// `scanner calibrate --checkerboard CHECKER --white WHITE -o OUT` with
+/// `extra` options, run to its end: (exit code, stdout, stderr).
+pub fn calibrate(
+    checker: &str,
+    white: &str,
+    out: &str,
+    extra: &[&str],
+) -> (Option<i32>, String, String) {
+    let args = ["calibrate", "--checkerboard", checker, "--white", white, "-o", out];
+    run(&[&args[..], extra].concat())
+}
+
 /// Arguments of a scan over `pty` with the folder camera.
 pub fn scan_args(pty: &str, frames: &Path, out: &Path, mirrors: usize) -> Vec<String> {
     [
