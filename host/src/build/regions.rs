@@ -274,8 +274,12 @@ pub fn extract_regions(
         })
         .collect::<Result<_, BuildError>>()?;
     let (per_light, details): (Vec<_>, Vec<_>) = per_light.into_iter().unzip();
+    if opts.sharpen.is_some() {
+        progress.stage("detail layer", 1);
+    }
+    let detail = detail_layer(&details, 2 * size);
     Ok(RegionSet {
-        detail: detail_layer(&details, 2 * size),
+        detail,
         size,
         light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
         view_dirs: cal.views.iter().map(|v| v.direction).collect(),

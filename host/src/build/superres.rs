@@ -419,24 +419,33 @@ fn misfit(rows: &[&Rows], size: usize, x: &[[f32; 3]]) -> Vec<[f32; 3]> {
 /// edges clamped.
 fn blur(img: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
     const K: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
-    let pass = |src: &[[f32; 3]], along_x: bool| -> Vec<[f32; 3]> {
-        (0..size * size)
-            .map(|t| {
-                let (x, y) = (t % size, t / size);
-                let mut acc = [0.0f32; 3];
-                for (j, w) in K.iter().enumerate() {
-                    let o = (if along_x { x } else { y } as isize + j as isize - 2)
-                        .clamp(0, size as isize - 1) as usize;
-                    let v = if along_x { src[y * size + o] } else { src[o * size + x] };
-                    for k in 0..3 {
-                        acc[k] += w * v[k];
-                    }
-                }
-                acc
-            })
-            .collect()
+    // Tap j of position i (0 ≤ i < size), clamped at the edges.
+    let tap = |i: usize, j: usize| (i + j).saturating_sub(2).min(size - 1);
+    // The five taps' weighted sum, in the taps' order.
+    let sum = |v: [[f32; 3]; 5]| {
+        let mut acc = [0.0f32; 3];
+        for (w, v) in K.iter().zip(v) {
+            for k in 0..3 {
+                acc[k] += w * v[k];
+            }
+        }
+        acc
     };
-    pass(&pass(img, true), false)
+    let mut along_x = vec![[0.0f32; 3]; size * size];
+    for (src, dst) in img.chunks_exact(size).zip(along_x.chunks_exact_mut(size)) {
+        for (x, d) in dst.iter_mut().enumerate() {
+            *d = sum(std::array::from_fn(|j| src[tap(x, j)]));
+        }
+    }
+    // Along y row by row: the five source rows are contiguous.
+    let mut out = vec![[0.0f32; 3]; size * size];
+    for (y, dst) in out.chunks_exact_mut(size).enumerate() {
+        let rows: [&[[f32; 3]]; 5] = std::array::from_fn(|j| &along_x[tap(y, j) * size..][..size]);
+        for (x, d) in dst.iter_mut().enumerate() {
+            *d = sum(std::array::from_fn(|j| rows[j][x]));
+        }
+    }
+    out
 }
 
 /// Per texel and channel of an `size`² all-views image `x` solved as the

@@ -15,8 +15,12 @@ use crate::build::scanread::ScanFrames;
 use crate::build::superres::SharpenOptions;
 use crate::build::{BuildError, RegionOptions, calibrate, extract_regions};
 
-/// A progress bar per builder stage.
-pub struct StageBar(ProgressBar);
+/// A progress bar per builder stage, and how long each stage took.
+pub struct StageBar {
+    bar: ProgressBar,
+    /// Each stage's name and start, in order.
+    started: std::sync::Mutex<Vec<(String, Instant)>>,
+}
 
 impl StageBar {
     pub fn new() -> StageBar {
@@ -25,22 +29,37 @@ impl StageBar {
             ProgressStyle::with_template("{msg:>20} [{bar:30}] {pos}/{len}, {elapsed}")
                 .expect("valid template"),
         );
-        StageBar(bar)
+        StageBar { bar, started: Default::default() }
     }
 
-    pub fn finish(&self) {
-        self.0.finish_and_clear();
+    /// Clear the bar; the stages' wall times, e.g. "sample frames 35.2 s,
+    /// palettes 20.1 s" (each from its start to the next one's or to now).
+    pub fn finish(&self) -> String {
+        self.bar.finish_and_clear();
+        let started = self.started.lock().unwrap_or_else(|e| e.into_inner());
+        let now = Instant::now();
+        let ends = started.iter().skip(1).map(|s| s.1).chain([now]);
+        started
+            .iter()
+            .zip(ends)
+            .map(|((name, t0), t1)| format!("{name} {:.1} s", (t1 - *t0).as_secs_f64()))
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 }
 
 impl BuildProgress for StageBar {
     fn stage(&self, name: &str, total: usize) {
-        self.0.set_message(name.to_string());
-        self.0.set_length(total as u64);
-        self.0.set_position(0);
+        self.started
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push((name.to_string(), Instant::now()));
+        self.bar.set_message(name.to_string());
+        self.bar.set_length(total as u64);
+        self.bar.set_position(0);
     }
     fn step(&self) {
-        self.0.inc(1);
+        self.bar.inc(1);
     }
 }
 
@@ -102,7 +121,7 @@ pub fn calibrate_cmd(
     };
     let bar = StageBar::new();
     let cal = calibrate(&g, &checker, &white_scan, glossy_scan.as_ref(), &opts, &bar);
-    bar.finish();
+    let stages = bar.finish();
     let cal = cal.map_err(build_failure)?;
     cal.save(output).map_err(build_failure)?;
     let with_corners = cal.views.iter().filter(|v| v.corners_used > 0).count();
@@ -129,6 +148,7 @@ pub fn calibrate_cmd(
         cal.lens_distortion[0],
         output.display()
     );
+    println!("  time by stage: {stages}");
     // Far beyond its prior, the fitted k1 is pulled towards the file's.
     let k1 = (cal.lens_distortion[0], g.camera.distortion[0]);
     if (k1.0 - k1.1).abs() > 2.0 * opts.tolerances.lens_k1 {
@@ -240,7 +260,7 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     say_defects(&frames, &cal);
     let bar = StageBar::new();
     let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
-    bar.finish();
+    let stages = bar.finish();
     let regions = regions.map_err(build_failure)?;
     let extracted = started.elapsed().as_secs_f64();
     // Written into a fresh sibling directory, then swapped into place: no
@@ -259,6 +279,7 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
         started.elapsed().as_secs_f64() - extracted,
         output.display()
     );
+    println!("  time by stage: {stages}");
     Ok(regions)
 }
 
@@ -358,7 +379,7 @@ pub fn build_cmd(
         )
         .map(|d| (r, d))
     });
-    bar.finish();
+    let stages = bar.finish();
     let (regions, data) = data.map_err(build_failure)?;
     let beyond = data.palettes_beyond_float16();
     if beyond > 0 {
@@ -420,6 +441,7 @@ pub fn build_cmd(
         },
         bytes.len() as f64 / 1e6,
     );
+    println!("  time by stage: {stages}");
     Ok(Built { material, regions })
 }
 
