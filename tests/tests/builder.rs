@@ -547,6 +547,9 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
     let stuck = cal.defects.iter().filter(|d| d.kind == DefectKind::Stuck).count();
     let counts = format!("{stuck} stuck, 0 hot and {} dead pixels", cal.defects.len() - stuck);
     assert!(said.contains(&format!("sensor defects: {counts}, found in the white")), "{said}");
+    let calibration_stages =
+        ["sensor defects", "checkerboard frames", "locating views", "white frames"];
+    assert_eq!(stages(&said), calibration_stages, "{said}");
     let said =
         run(&["regions", "--scan", &d("leather"), "--calibration", &cal_file, "-o", &regions_dir]);
     // The sample scan's dark frame found the stuck ones itself.
@@ -560,6 +563,27 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
         )),
         "{said}"
     );
+    // Each command says how long its stages took, in order.
+    assert_eq!(stages(&said), ["sample frames", "detail layer"], "{said}");
+}
+
+/// The stage names of a command's `time by stage: NAME SECONDS s, …` line,
+/// each time checked to be a number of seconds.
+fn stages(said: &str) -> Vec<String> {
+    let line = said
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("time by stage: "))
+        .unwrap_or_else(|| panic!("no stage times in {said}"));
+    line.split(", ")
+        .map(|stage| {
+            let (name, secs) = stage
+                .strip_suffix(" s")
+                .and_then(|s| s.rsplit_once(' '))
+                .unwrap_or_else(|| panic!("`{stage}` in {line}"));
+            assert!(secs.parse::<f64>().is_ok_and(|t| t >= 0.0), "`{stage}` in {line}");
+            name.to_string()
+        })
+        .collect()
 }
 
 /// A camera lens with barrel distortion, which the geometry file does not
