@@ -981,6 +981,40 @@ pub fn light_components(details: &[Option<Image>], fine: usize) -> (Vec<Image>, 
 mod tests {
     use super::*;
 
+    /// The blur is (1 4 6 4 1)/16 along x, then along y, each tap clamped
+    /// to the image — bit for bit, at sizes from 1 to wider than the kernel.
+    #[test]
+    fn the_blur_is_the_clamped_binomial_kernel_along_each_axis() {
+        const K: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
+        for size in [1usize, 2, 3, 4, 7] {
+            let img: Image = (0..size * size)
+                .map(|t| std::array::from_fn(|k| ((t * 7 + k * 13) % 11) as f32 * 0.37 - 1.0))
+                .collect();
+            let clamp = |i: isize| i.clamp(0, size as isize - 1) as usize;
+            let pass = |src: &Image, along_x: bool| -> Image {
+                (0..size * size)
+                    .map(|t| {
+                        let (x, y) = ((t % size) as isize, (t / size) as isize);
+                        let mut acc = [0.0f32; 3];
+                        for (j, w) in K.iter().enumerate() {
+                            let o = j as isize - 2;
+                            let v = if along_x {
+                                src[y as usize * size + clamp(x + o)]
+                            } else {
+                                src[clamp(y + o) * size + x as usize]
+                            };
+                            for k in 0..3 {
+                                acc[k] += w * v[k];
+                            }
+                        }
+                        acc
+                    })
+                    .collect()
+            };
+            assert_eq!(blur(&img, size), pass(&pass(&img, true), false), "size {size}");
+        }
+    }
+
     /// A sample with detail at 12–13 cycles across: finer than the views'
     /// ≈ 20 px resolve, coarser than the 32² grid's Nyquist.
     fn pattern(uv: [f64; 2]) -> [f32; 3] {
