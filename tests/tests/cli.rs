@@ -381,17 +381,17 @@ fn a_bad_geometry_file_exits_3() {
 #[test]
 fn the_settle_time_is_a_scan_option() {
     let dir = tmp();
-    let o = sub(dir.path(), "scan").display().to_string();
+    let out = sub(dir.path(), "scan");
     let scan = |settle: &str, resume: bool| {
         let mut extra = vec!["--settle-ms", settle];
         if resume {
             extra.push("--resume");
         }
-        sim_scan(16, 2, std::path::Path::new(&o), &extra)
+        sim_scan(16, 2, &out, &extra)
     };
     let (code, _, err) = scan("400", false);
     assert_eq!(code, Some(0), "{err}");
-    let m = host::scan::Manifest::load(std::path::Path::new(&o)).unwrap();
+    let m = host::scan::Manifest::load(&out).unwrap();
     assert_eq!(m.settings.settle_ms, 400);
     let (code, _, err) = scan("150", true);
     assert_eq!(code, Some(3), "{err}");
