@@ -14,7 +14,9 @@ use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::ScanFrames;
-use super::superres::{DetailLayer, Image, SharpenOptions, detail_layer, sharpen_light};
+use super::superres::{
+    DetailLayer, Footprints, Image, SharpenOptions, detail_layer, sharpen_light,
+};
 use crate::hdr;
 
 /// Region images of one scan.
@@ -214,6 +216,15 @@ pub fn extract_regions(
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
+    // Which texels each view's pixels see is the same under every light.
+    let footprints = opts.sharpen.as_ref().map(|o| {
+        Footprints::new(
+            &samplers,
+            [g.camera.width as usize, g.camera.height as usize],
+            size,
+            o.points,
+        )
+    });
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
         .par_iter()
         .zip(&light_index)
@@ -265,10 +276,10 @@ pub fn extract_regions(
                     img
                 })
                 .collect();
-            let detail = opts
-                .sharpen
-                .as_ref()
-                .and_then(|o| sharpen_light(&samplers, &value, &noise, &f, size, o, &mut images));
+            let detail =
+                opts.sharpen.as_ref().zip(footprints.as_ref()).and_then(|(o, views)| {
+                    sharpen_light(views, &value, &noise, &f, o, &mut images)
+                });
             progress.step();
             Ok((images, detail))
         })

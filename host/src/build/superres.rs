@@ -184,78 +184,166 @@ pub type PixelValue<'a> = dyn Fn(usize, [f64; 2], [f64; 3]) -> Option<[f32; 3]> 
 /// value given, per channel, from the sensor's noise alone.
 pub type TexelNoise<'a> = dyn Fn(usize, [f64; 2], [f32; 3]) -> [f32; 3] + Sync + 'a;
 
-/// The rows of one view on each grid of `sizes` (S × S texels each):
-/// every frame pixel whose square lies on the sample.
-fn view_rows(
-    vi: usize,
-    sampler: &ViewSampler,
-    value: &PixelValue<'_>,
-    frame: &Frame,
-    sizes: &[usize],
+/// Every view's pixels on the sample and their rows of the forward model on
+/// the S × S and the 2S × 2S grids. They depend on the views' homographies
+/// alone, not on the light: made once per scan, each light's rows
+/// ([`light_rows`]) are these less the pixels it leaves unusable, with its
+/// frame's values.
+pub struct Footprints {
+    samplers: Vec<ViewSampler>,
+    size: usize,
     points: usize,
-) -> Vec<Rows> {
-    let mut all: Vec<Rows> = sizes
-        .iter()
-        .map(|_| Rows { view: vi, scale: 1.0, start: vec![0], ..Rows::default() })
-        .collect();
-    let h: &Homography = sampler.homography();
-    let Some(inv) = h.inverse() else {
-        return all;
-    };
-    let [x0, y0, x1, y1] = h.window(1.0);
-    let (x1, y1) = (x1.min(frame.width as usize), y1.min(frame.height as usize));
-    for rows in &mut all {
-        rows.origin = [x0, y0];
-        rows.extent = [x1.saturating_sub(x0), y1.saturating_sub(y0)];
+    views: Vec<ViewFootprint>,
+}
+
+impl std::fmt::Debug for Footprints {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let pixels: usize = self.views.iter().map(|v| v.centre.len()).sum();
+        f.debug_struct("Footprints")
+            .field("views", &self.views.len())
+            .field("pixels", &pixels)
+            .field("size", &self.size)
+            .field("points", &self.points)
+            .finish()
     }
-    let mut acc: Vec<(u32, f32)> = Vec::with_capacity(32);
-    let mut uvs: Vec<[f64; 2]> = Vec::with_capacity(points * points);
-    let share = 1.0 / (points * points) as f64;
-    for py in y0..y1 {
-        for px in x0..x1 {
-            if !sampler.pixel_on_sample([px as f64 + 0.5, py as f64 + 0.5]) {
-                continue;
+}
+
+/// One view's part of [`Footprints`].
+struct ViewFootprint {
+    /// Each pixel's index in the frame (`y · width + x`) and its centre's uv.
+    frame_pixel: Vec<usize>,
+    centre: Vec<[f64; 2]>,
+    /// Its rows on the S × S and on the 2S × 2S grid (no values).
+    grids: [Rows; 2],
+}
+
+impl Footprints {
+    /// The footprints of `samplers`' views in frames of `frame` (width,
+    /// height) px on an S × S grid (`size`) and its 2S one, each pixel's
+    /// square taken at `points` × `points` points.
+    pub fn new(
+        samplers: &[ViewSampler],
+        frame: [usize; 2],
+        size: usize,
+        points: usize,
+    ) -> Footprints {
+        use rayon::prelude::*;
+        let views = samplers
+            .par_iter()
+            .enumerate()
+            .map(|(vi, s)| ViewFootprint::new(vi, s, frame, &[size, 2 * size], points))
+            .collect();
+        Footprints { samplers: samplers.to_vec(), size, points, views }
+    }
+
+    /// The S of the grids.
+    pub fn size(&self) -> usize {
+        self.size
+    }
+}
+
+impl ViewFootprint {
+    /// The rows of view `vi` on each grid of `sizes` (S × S texels each):
+    /// every frame pixel whose square lies on the sample.
+    fn new(
+        vi: usize,
+        sampler: &ViewSampler,
+        [width, height]: [usize; 2],
+        sizes: &[usize],
+        points: usize,
+    ) -> ViewFootprint {
+        let mut grids: [Rows; 2] = std::array::from_fn(|_| Rows {
+            view: vi,
+            scale: 1.0,
+            start: vec![0],
+            ..Rows::default()
+        });
+        let (mut frame_pixel, mut centre) = (Vec::new(), Vec::new());
+        let h: &Homography = sampler.homography();
+        let Some(inv) = h.inverse() else {
+            return ViewFootprint { frame_pixel, centre, grids };
+        };
+        let [x0, y0, x1, y1] = h.window(1.0);
+        let (x1, y1) = (x1.min(width), y1.min(height));
+        for rows in &mut grids {
+            rows.origin = [x0, y0];
+            rows.extent = [x1.saturating_sub(x0), y1.saturating_sub(y0)];
+        }
+        let mut acc: Vec<(u32, f32)> = Vec::with_capacity(32);
+        let mut uvs: Vec<[f64; 2]> = Vec::with_capacity(points * points);
+        let share = 1.0 / (points * points) as f64;
+        for py in y0..y1 {
+            for px in x0..x1 {
+                if !sampler.pixel_on_sample([px as f64 + 0.5, py as f64 + 0.5]) {
+                    continue;
+                }
+                frame_pixel.push(py * width + px);
+                centre.push(inv.apply([px as f64 + 0.5, py as f64 + 0.5]));
+                uvs.clear();
+                for sy in 0..points {
+                    for sx in 0..points {
+                        uvs.push(inv.apply([
+                            px as f64 + (sx as f64 + 0.5) / points as f64,
+                            py as f64 + (sy as f64 + 0.5) / points as f64,
+                        ]));
+                    }
+                }
+                for (rows, &size) in grids.iter_mut().zip(sizes) {
+                    acc.clear();
+                    for &uv in &uvs {
+                        bilinear_taps(size, uv, |t, w| {
+                            let w = (w * share) as f32;
+                            match acc.iter_mut().find(|a| a.0 == t) {
+                                Some(a) => a.1 += w,
+                                None => acc.push((t, w)),
+                            }
+                        });
+                    }
+                    for &(t, w) in &acc {
+                        rows.texel.push(t);
+                        rows.weight.push(w);
+                    }
+                    rows.start.push(rows.texel.len() as u32);
+                    rows.pixel.push(((py - y0) * rows.extent[0] + (px - x0)) as u32);
+                }
             }
-            let i = (py * frame.width as usize + px) * 3;
-            let raw = std::array::from_fn(|k| frame.rgb[i + k] as f64);
-            let centre = inv.apply([px as f64 + 0.5, py as f64 + 0.5]);
-            let Some(value) = value(vi, centre, raw) else {
+        }
+        ViewFootprint { frame_pixel, centre, grids }
+    }
+
+    /// This view's rows on both grids under one light: the pixels whose
+    /// `value` (frame value → f · cos θi) is usable and finite, with it.
+    fn rows(&self, value: &PixelValue<'_>, frame: &Frame) -> [Rows; 2] {
+        let mut all: [Rows; 2] = std::array::from_fn(|g| {
+            let r = &self.grids[g];
+            Rows {
+                view: r.view,
+                origin: r.origin,
+                extent: r.extent,
+                scale: 1.0,
+                start: vec![0],
+                ..Rows::default()
+            }
+        });
+        for (i, (&p, &centre)) in self.frame_pixel.iter().zip(&self.centre).enumerate() {
+            let raw = std::array::from_fn(|k| frame.rgb[p * 3 + k] as f64);
+            let Some(value) = value(self.grids[0].view, centre, raw) else {
                 continue;
             };
             if !value.iter().all(|v| v.is_finite()) {
                 continue;
             }
-            uvs.clear();
-            for sy in 0..points {
-                for sx in 0..points {
-                    uvs.push(inv.apply([
-                        px as f64 + (sx as f64 + 0.5) / points as f64,
-                        py as f64 + (sy as f64 + 0.5) / points as f64,
-                    ]));
-                }
-            }
-            for (rows, &size) in all.iter_mut().zip(sizes) {
-                acc.clear();
-                for &uv in &uvs {
-                    bilinear_taps(size, uv, |t, w| {
-                        let w = (w * share) as f32;
-                        match acc.iter_mut().find(|a| a.0 == t) {
-                            Some(a) => a.1 += w,
-                            None => acc.push((t, w)),
-                        }
-                    });
-                }
-                for &(t, w) in &acc {
-                    rows.texel.push(t);
-                    rows.weight.push(w);
-                }
+            for (rows, grid) in all.iter_mut().zip(&self.grids) {
+                let (t, w) = grid.row(i);
+                rows.texel.extend_from_slice(t);
+                rows.weight.extend_from_slice(w);
                 rows.start.push(rows.texel.len() as u32);
-                rows.pixel.push(((py - y0) * rows.extent[0] + (px - x0)) as u32);
+                rows.pixel.push(grid.pixel[i]);
                 rows.value.push(value);
             }
         }
+        all
     }
-    all
 }
 
 /// The four bilinear taps of uv on an S × S grid of texel centres (clamped
@@ -543,21 +631,14 @@ fn double(img: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
         .collect()
 }
 
-/// The views' rows on an S × S grid and on its 2S × 2S one, each view
-/// counting alike (`None`: fewer than two views with usable pixels, nothing
-/// to check the detail by).
-fn light_rows(
-    samplers: &[ViewSampler],
-    value: &PixelValue<'_>,
-    frame: &Frame,
-    size: usize,
-    points: usize,
-) -> Option<[Vec<Rows>; 2]> {
+/// The views' rows on an S × S grid and on its 2S × 2S one under one light
+/// (its frame's values through `value`), each view counting alike (`None`:
+/// fewer than two views with usable pixels, nothing to check the detail
+/// by).
+fn light_rows(views: &Footprints, value: &PixelValue<'_>, frame: &Frame) -> Option<[Vec<Rows>; 2]> {
     let (mut coarse, mut fine) = (Vec::new(), Vec::new());
-    for (vi, v) in samplers.iter().enumerate() {
-        let [c, f]: [Rows; 2] = view_rows(vi, v, value, frame, &[size, 2 * size], points)
-            .try_into()
-            .unwrap_or_else(|_| unreachable!("one set of rows per grid"));
+    for v in &views.views {
+        let [c, f] = v.rows(value, frame);
         if c.len() > 0 {
             coarse.push(c);
             fine.push(f);
@@ -638,19 +719,20 @@ fn solve_halves(
 /// ([`fine_detail`]). `None`, images untouched: fewer than two views with
 /// usable pixels.
 pub fn sharpen_light(
-    samplers: &[ViewSampler],
+    views: &Footprints,
     value: &PixelValue<'_>,
     noise: &TexelNoise<'_>,
     frame: &Frame,
-    size: usize,
     opts: &SharpenOptions,
     images: &mut [Vec<[f32; 3]>],
 ) -> Option<Vec<[f32; 3]>> {
-    assert_eq!(samplers.len(), images.len(), "one region image per view");
+    assert_eq!(views.samplers.len(), images.len(), "one region image per view");
+    assert_eq!(views.points, opts.points, "footprints made with the options' points");
     if images.is_empty() {
         return None;
     }
-    let [rows, fine_rows] = light_rows(samplers, value, frame, size, opts.points)?;
+    let (samplers, size) = (&views.samplers, views.size);
+    let [rows, fine_rows] = light_rows(views, value, frame)?;
     let n = size * size;
     let mut mean = vec![[0.0f32; 3]; n];
     for img in images.iter() {
@@ -1108,19 +1190,24 @@ mod tests {
             .collect()
     }
 
+    /// The views' footprints on frames like `f`, at S.
+    fn footprints(samplers: &[ViewSampler], f: &Frame, opts: &SharpenOptions) -> Footprints {
+        Footprints::new(samplers, [f.width as usize, f.height as usize], S, opts.points)
+    }
+
     fn sharpened(
         samplers: &[ViewSampler],
         f: &Frame,
         mut images: Vec<Vec<[f32; 3]>>,
     ) -> Vec<Vec<[f32; 3]>> {
         let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
+        let opts = SharpenOptions::default();
         sharpen_light(
-            samplers,
+            &footprints(samplers, f, &opts),
             &identity,
             &NOISELESS,
             f,
-            S,
-            &SharpenOptions::default(),
+            &opts,
             &mut images,
         );
         images
@@ -1169,16 +1256,10 @@ mod tests {
         let f = frame(&hs, pattern, |_| 1.0);
         let mut images = own_view(&samplers, &f);
         let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
-        let log = sharpen_light(
-            &samplers,
-            &identity,
-            &NOISELESS,
-            &f,
-            S,
-            &SharpenOptions::default(),
-            &mut images,
-        )
-        .expect("a layer");
+        let opts = SharpenOptions::default();
+        let views = footprints(&samplers, &f, &opts);
+        let log =
+            sharpen_light(&views, &identity, &NOISELESS, &f, &opts, &mut images).expect("a layer");
         let layer = shared_detail(&[Some(log.clone()), Some(log)], 2 * S).expect("a layer");
         let fine = 2 * S;
         let (mut with, mut without, mut n) = (0.0, 0.0, 0usize);
@@ -1405,7 +1486,14 @@ mod tests {
         let run = |noise: &TexelNoise<'_>, view_noise: bool| {
             let mut images = own_view(&samplers, &f);
             let opts = SharpenOptions { view_noise, ..SharpenOptions::default() };
-            sharpen_light(&samplers, &identity, noise, &f, S, &opts, &mut images);
+            sharpen_light(
+                &footprints(&samplers, &f, &opts),
+                &identity,
+                noise,
+                &f,
+                &opts,
+                &mut images,
+            );
             images
         };
         let own = own_view(&samplers, &f);
@@ -1418,6 +1506,36 @@ mod tests {
             "5 % noise: own views {r_own:.4}, all views {r_all:.4}, residual shrunk {r_shrunk:.4} RMS: {db:.2} dB"
         );
         assert!(db >= 1.0, "{db:.2} dB");
+    }
+
+    #[test]
+    fn a_light_s_rows_are_its_usable_pixels_with_their_frame_values() {
+        // The footprints are made once; each light keeps the pixels its
+        // value function can use, each row reading its own frame pixel.
+        let (hs, samplers) = views();
+        let f = frame(&hs, pattern, |k| 1.0 + 0.1 * k as f32);
+        let opts = SharpenOptions::default();
+        let views = footprints(&samplers, &f, &opts);
+        let right_half =
+            |_: usize, uv: [f64; 2], s: [f64; 3]| (uv[0] >= 0.5).then(|| s.map(|v| v as f32));
+        let [coarse, fine] = light_rows(&views, &right_half, &f).expect("rows");
+        for (rows, v) in coarse.iter().zip(&views.views) {
+            let usable = v.centre.iter().filter(|c| c[0] >= 0.5).count();
+            assert!(usable > 0 && usable < v.centre.len(), "view {}: {usable}", rows.view);
+            assert_eq!(rows.len(), usable, "view {}", rows.view);
+        }
+        for rows in coarse.iter().chain(&fine) {
+            let [x0, y0] = rows.origin;
+            for i in 0..rows.len() {
+                let p = rows.pixel[i] as usize;
+                let (x, y) = (x0 + p % rows.extent[0], y0 + p / rows.extent[0]);
+                let at = (y * f.width as usize + x) * 3;
+                assert_eq!(rows.value[i], [f.rgb[at], f.rgb[at + 1], f.rgb[at + 2]]);
+                let (t, w) = rows.row(i);
+                assert!(!t.is_empty() && t.len() == w.len());
+                assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5, "a row's weights sum to 1");
+            }
+        }
     }
 
     #[test]
@@ -1440,13 +1558,13 @@ mod tests {
         let own = own_view(&samplers, &f);
         let unlit = |_: usize, _: [f64; 2], _: [f64; 3]| None;
         let mut images = own.clone();
+        let opts = SharpenOptions::default();
         sharpen_light(
-            &samplers,
+            &footprints(&samplers, &f, &opts),
             &unlit,
             &NOISELESS,
             &f,
-            S,
-            &SharpenOptions::default(),
+            &opts,
             &mut images,
         );
         assert_eq!(images, own);
