@@ -98,7 +98,8 @@ impl RegionSet {
         bilinear(self.size, self.image(li, vi), uv)
     }
 
-    /// Write every region as `l{LL}-v{VV}.exr` (half float) into `dir`, and
+    /// Write every region as `l{LL}-v{VV}.exr` (half float, uncompressed:
+    /// PIZ gains 11 % on these noisy values at ×6 the writing time) into `dir`, and
     /// the detail layer, if any: its shared factor as `detail.exr`, and with
     /// light components each light's whole factor as `detail-l{LL}.exr`
     /// (2S × 2S).
@@ -112,7 +113,7 @@ impl RegionSet {
                 height: self.size as u32,
                 rgb: self.images[i].iter().flatten().copied().collect(),
             };
-            let bytes = crate::exrio::encode_half(&frame).map_err(out)?;
+            let bytes = crate::exrio::encode_half_uncompressed(&frame).map_err(out)?;
             let path = dir.join(format!("l{:02}-v{:02}.exr", self.lights[li], self.views[vi]));
             crate::fsutil::write_atomic(&path, &bytes)
                 .map_err(|e| out(format!("{}: {e}", path.display())))
@@ -123,7 +124,7 @@ impl RegionSet {
         let f = 2 * self.size;
         let write = |name: String, rgb: Vec<f32>| -> Result<(), BuildError> {
             let frame = crate::camera::Frame { width: f as u32, height: f as u32, rgb };
-            let bytes = crate::exrio::encode_half(&frame).map_err(out)?;
+            let bytes = crate::exrio::encode_half_uncompressed(&frame).map_err(out)?;
             let path = dir.join(name);
             crate::fsutil::write_atomic(&path, &bytes)
                 .map_err(|e| out(format!("{}: {e}", path.display())))
