@@ -104,15 +104,52 @@ fn dist2<const D: usize>(a: &[f32; D], b: &[f32; D]) -> f32 {
     s
 }
 
-fn nearest<const D: usize>(p: &[f32; D], centres: &[[f32; D]]) -> (usize, f32) {
-    let mut best = (0, f32::INFINITY);
-    for (i, c) in centres.iter().enumerate() {
-        let d = dist2(p, c);
-        if d < best.1 {
-            best = (i, d);
+/// Centres laid out by dimension (`dims[i · K + c]` = centre c's i-th
+/// coordinate), so that the distances from a point to all of them are
+/// computed several centres at a time. Each distance is the same sum, in
+/// the same order, as [`dist2`]'s, and the nearest is the first at the
+/// least distance: the answers are those of a loop over the centres.
+struct Centres<const D: usize> {
+    k: usize,
+    dims: Vec<f32>,
+}
+
+impl<const D: usize> Centres<D> {
+    fn new(centres: &[[f32; D]]) -> Self {
+        let k = centres.len();
+        assert!(k <= 256, "at most 256 centres");
+        let dims = (0..D).flat_map(|i| centres.iter().map(move |c| c[i])).collect();
+        Centres { k, dims }
+    }
+
+    /// The nearest centre to `p` and its squared distance ((0, ∞) if none
+    /// is at a finite one).
+    fn nearest(&self, p: &[f32; D]) -> (usize, f32) {
+        let mut all = [0.0f32; 256];
+        let d = &mut all[..self.k];
+        for (i, row) in self.dims.chunks_exact(self.k.max(1)).enumerate() {
+            let x = p[i];
+            for (s, &c) in d.iter_mut().zip(row) {
+                let e = x - c;
+                *s += e * e;
+            }
+        }
+        // The least distance (min is exact: the lanes may go in any order),
+        // then its first centre.
+        let mut lanes = [f32::INFINITY; 8];
+        let chunks = d.chunks_exact(8);
+        let rest = chunks.remainder().iter().fold(f32::INFINITY, |a, &b| a.min(b));
+        for c in chunks {
+            for (l, &v) in lanes.iter_mut().zip(c) {
+                *l = l.min(v);
+            }
+        }
+        let least = lanes.iter().fold(rest, |a, &b| a.min(b));
+        match d.iter().position(|&v| v == least) {
+            Some(i) if least < f32::INFINITY => (i, least),
+            _ => (0, f32::INFINITY),
         }
     }
-    best
 }
 
 fn run<const D: usize>(images: &[&[[f32; 3]]], k: usize, seed: u64) -> GroupPalettes {
@@ -186,8 +223,9 @@ fn run<const D: usize>(images: &[&[[f32; 3]]], k: usize, seed: u64) -> GroupPale
     let mut assign = vec![usize::MAX; m];
     for _ in 0..12 {
         let mut changed = 0;
+        let layout = Centres::new(&centres);
         for ((p, _), a) in train.iter().zip(assign.iter_mut()) {
-            let (c, _) = nearest(p, &centres);
+            let (c, _) = layout.nearest(p);
             if c != *a {
                 *a = c;
                 changed += 1;
@@ -211,7 +249,8 @@ fn run<const D: usize>(images: &[&[[f32; 3]]], k: usize, seed: u64) -> GroupPale
         }
     }
     // Every texel to its nearest centre; palettes as linear means.
-    let indices: Vec<u8> = points.iter().map(|p| nearest(p, &centres).0 as u8).collect();
+    let layout = Centres::new(&centres);
+    let indices: Vec<u8> = points.iter().map(|p| layout.nearest(p).0 as u8).collect();
     let mut palettes = Vec::with_capacity(g);
     for img in images {
         let mut sum = vec![[0f64; 3]; 256];
@@ -240,6 +279,36 @@ fn run<const D: usize>(images: &[&[[f32; 3]]], k: usize, seed: u64) -> GroupPale
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_nearest_centre_is_the_first_at_the_least_distance() {
+        // Against a loop over the centres, with duplicate centres (ties)
+        // and counts that fill and do not fill the lanes.
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for k in [1usize, 5, 8, 13, 64, 256] {
+            let mut centres: Vec<[f32; 6]> =
+                (0..k).map(|_| std::array::from_fn(|_| rng.random_range(-2.0..2.0))).collect();
+            if k > 4 {
+                centres[k - 1] = centres[1];
+                centres[3] = centres[k / 2];
+            }
+            let layout = Centres::new(&centres);
+            for _ in 0..500 {
+                let p: [f32; 6] = match rng.random_range(0..4) {
+                    0 => centres[rng.random_range(0..k)],
+                    _ => std::array::from_fn(|_| rng.random_range(-3.0..3.0)),
+                };
+                let mut want = (0, f32::INFINITY);
+                for (i, c) in centres.iter().enumerate() {
+                    let d = dist2(&p, c);
+                    if d < want.1 {
+                        want = (i, d);
+                    }
+                }
+                assert_eq!(layout.nearest(&p), want, "K = {k}, {p:?}");
+            }
+        }
+    }
 
     #[test]
     fn few_colours_are_kept_exactly_and_many_approximated() {
