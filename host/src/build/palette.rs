@@ -134,22 +134,90 @@ impl<const D: usize> Centres<D> {
                 *s += e * e;
             }
         }
-        // The least distance (min is exact: the lanes may go in any order),
-        // then its first centre.
-        let mut lanes = [f32::INFINITY; 8];
-        let chunks = d.chunks_exact(8);
-        let rest = chunks.remainder().iter().fold(f32::INFINITY, |a, &b| a.min(b));
-        for c in chunks {
-            for (l, &v) in lanes.iter_mut().zip(c) {
-                *l = l.min(v);
+        first_least(d)
+    }
+}
+
+/// The index of the first least value of `d` (finite values; `(0, ∞)` if
+/// none is below ∞), and the value.
+#[inline]
+fn first_least(d: &[f32]) -> (usize, f32) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        first_least_sse2(d)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        first_least_lanes(d)
+    }
+}
+
+/// [`first_least`] in 8 lanes: each lane (values i ≡ lane mod 8) keeps the
+/// first at its least value, then the lanes' least, the first index on
+/// ties, then the values past the last 8.
+#[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+fn first_least_lanes(d: &[f32]) -> (usize, f32) {
+    let (mut best, mut at) = ([f32::INFINITY; 8], [0u32; 8]);
+    let chunks = d.chunks_exact(8);
+    let tail = chunks.remainder();
+    for (ci, c) in chunks.enumerate() {
+        for l in 0..8 {
+            if c[l] < best[l] {
+                best[l] = c[l];
+                at[l] = (ci * 8 + l) as u32;
             }
         }
-        let least = lanes.iter().fold(rest, |a, &b| a.min(b));
-        match d.iter().position(|&v| v == least) {
-            Some(i) if least < f32::INFINITY => (i, least),
-            _ => (0, f32::INFINITY),
+    }
+    lanes_then_tail(&best, &at, d.len(), tail)
+}
+
+fn lanes_then_tail(best: &[f32; 8], at: &[u32; 8], len: usize, tail: &[f32]) -> (usize, f32) {
+    let mut found = (0usize, f32::INFINITY);
+    for (&v, &i) in best.iter().zip(at) {
+        if v < found.1 || (v == found.1 && v < f32::INFINITY && (i as usize) < found.0) {
+            found = (i as usize, v);
         }
     }
+    let start = len - tail.len();
+    for (j, &v) in tail.iter().enumerate() {
+        if v < found.1 {
+            found = (start + j, v);
+        }
+    }
+    found
+}
+
+/// [`first_least_lanes`] with SSE2 (every x86-64 has it): the compiler
+/// does not vectorise the lanes' index selection by itself.
+#[cfg(target_arch = "x86_64")]
+fn first_least_sse2(d: &[f32]) -> (usize, f32) {
+    use std::arch::x86_64::*;
+    let chunks = d.chunks_exact(8);
+    let tail = chunks.remainder();
+    let (mut best, mut at) = ([f32::INFINITY; 8], [0u32; 8]);
+    // SAFETY: SSE2 is part of x86-64; every load and store is unaligned
+    // and within `c`, `best` and `at`.
+    unsafe {
+        let mut b = [_mm_set1_ps(f32::INFINITY); 2];
+        let mut i = [_mm_setzero_si128(); 2];
+        let mut index = [_mm_setr_epi32(0, 1, 2, 3), _mm_setr_epi32(4, 5, 6, 7)];
+        let eight = _mm_set1_epi32(8);
+        for c in chunks {
+            for h in 0..2 {
+                let v = _mm_loadu_ps(c.as_ptr().add(4 * h));
+                let m = _mm_cmplt_ps(v, b[h]);
+                b[h] = _mm_or_ps(_mm_and_ps(m, v), _mm_andnot_ps(m, b[h]));
+                let mi = _mm_castps_si128(m);
+                i[h] = _mm_or_si128(_mm_and_si128(mi, index[h]), _mm_andnot_si128(mi, i[h]));
+                index[h] = _mm_add_epi32(index[h], eight);
+            }
+        }
+        for h in 0..2 {
+            _mm_storeu_ps(best.as_mut_ptr().add(4 * h), b[h]);
+            _mm_storeu_si128(at.as_mut_ptr().add(4 * h).cast(), i[h]);
+        }
+    }
+    lanes_then_tail(&best, &at, d.len(), tail)
 }
 
 fn run<const D: usize>(images: &[&[[f32; 3]]], k: usize, seed: u64) -> GroupPalettes {
@@ -306,6 +374,11 @@ mod tests {
                     }
                 }
                 assert_eq!(layout.nearest(&p), want, "K = {k}, {p:?}");
+                let mut d = [0.0f32; 256];
+                for (c, x) in centres.iter().zip(d.iter_mut()) {
+                    *x = dist2(&p, c);
+                }
+                assert_eq!(first_least_lanes(&d[..k]), want, "K = {k}, {p:?}");
             }
         }
     }
