@@ -191,6 +191,8 @@ pub type TexelNoise<'a> = dyn Fn(usize, [f64; 2], [f32; 3]) -> [f32; 3] + Sync +
 /// frame's values.
 pub struct Footprints {
     samplers: Vec<ViewSampler>,
+    /// The frames' width and height, px.
+    frame: [usize; 2],
     size: usize,
     points: usize,
     views: Vec<ViewFootprint>,
@@ -233,12 +235,7 @@ impl Footprints {
             .enumerate()
             .map(|(vi, s)| ViewFootprint::new(vi, s, frame, &[size, 2 * size], points))
             .collect();
-        Footprints { samplers: samplers.to_vec(), size, points, views }
-    }
-
-    /// The S of the grids.
-    pub fn size(&self) -> usize {
-        self.size
+        Footprints { samplers: samplers.to_vec(), frame, size, points, views }
     }
 }
 
@@ -728,6 +725,8 @@ pub fn sharpen_light(
 ) -> Option<Vec<[f32; 3]>> {
     assert_eq!(views.samplers.len(), images.len(), "one region image per view");
     assert_eq!(views.points, opts.points, "footprints made with the options' points");
+    let dims = [frame.width as usize, frame.height as usize];
+    assert_eq!(views.frame, dims, "footprints made for frames of this size");
     if images.is_empty() {
         return None;
     }
