@@ -218,13 +218,9 @@ pub fn extract_regions(
     let windows = super::calibrate::view_windows(&cal.views);
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
     // Which texels each view's pixels see is the same under every light.
-    let footprints = opts.sharpen.as_ref().map(|o| {
-        Footprints::new(
-            &samplers,
-            [g.camera.width as usize, g.camera.height as usize],
-            size,
-            o.points,
-        )
+    let sharpen = opts.sharpen.as_ref().map(|o| {
+        let frame = [g.camera.width as usize, g.camera.height as usize];
+        (o, Footprints::new(&samplers, frame, size, o.points))
     });
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
         .par_iter()
@@ -277,10 +273,9 @@ pub fn extract_regions(
                     img
                 })
                 .collect();
-            let detail =
-                opts.sharpen.as_ref().zip(footprints.as_ref()).and_then(|(o, views)| {
-                    sharpen_light(views, &value, &noise, &f, o, &mut images)
-                });
+            let detail = sharpen
+                .as_ref()
+                .and_then(|(o, views)| sharpen_light(views, &value, &noise, &f, o, &mut images));
             progress.step();
             Ok((images, detail))
         })

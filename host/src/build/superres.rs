@@ -129,6 +129,12 @@ struct Rows {
 }
 
 impl Rows {
+    /// No rows yet, of view `view` in the frame window at `origin` of
+    /// `extent` px.
+    fn empty(view: usize, origin: [usize; 2], extent: [usize; 2]) -> Rows {
+        Rows { view, origin, extent, scale: 1.0, start: vec![0], ..Rows::default() }
+    }
+
     fn len(&self) -> usize {
         self.value.len()
     }
@@ -194,7 +200,6 @@ pub struct Footprints {
     /// The frames' width and height, px.
     frame: [usize; 2],
     size: usize,
-    points: usize,
     views: Vec<ViewFootprint>,
 }
 
@@ -205,7 +210,6 @@ impl std::fmt::Debug for Footprints {
             .field("views", &self.views.len())
             .field("pixels", &pixels)
             .field("size", &self.size)
-            .field("points", &self.points)
             .finish()
     }
 }
@@ -235,7 +239,7 @@ impl Footprints {
             .enumerate()
             .map(|(vi, s)| ViewFootprint::new(vi, s, frame, &[size, 2 * size], points))
             .collect();
-        Footprints { samplers: samplers.to_vec(), frame, size, points, views }
+        Footprints { samplers: samplers.to_vec(), frame, size, views }
     }
 }
 
@@ -249,23 +253,16 @@ impl ViewFootprint {
         sizes: &[usize],
         points: usize,
     ) -> ViewFootprint {
-        let mut grids: [Rows; 2] = std::array::from_fn(|_| Rows {
-            view: vi,
-            scale: 1.0,
-            start: vec![0],
-            ..Rows::default()
-        });
         let (mut frame_pixel, mut centre) = (Vec::new(), Vec::new());
         let h: &Homography = sampler.homography();
         let Some(inv) = h.inverse() else {
+            let grids = std::array::from_fn(|_| Rows::empty(vi, [0, 0], [0, 0]));
             return ViewFootprint { frame_pixel, centre, grids };
         };
         let [x0, y0, x1, y1] = h.window(1.0);
         let (x1, y1) = (x1.min(width), y1.min(height));
-        for rows in &mut grids {
-            rows.origin = [x0, y0];
-            rows.extent = [x1.saturating_sub(x0), y1.saturating_sub(y0)];
-        }
+        let extent = [x1.saturating_sub(x0), y1.saturating_sub(y0)];
+        let mut grids: [Rows; 2] = std::array::from_fn(|_| Rows::empty(vi, [x0, y0], extent));
         let mut acc: Vec<(u32, f32)> = Vec::with_capacity(32);
         let mut uvs: Vec<[f64; 2]> = Vec::with_capacity(points * points);
         let share = 1.0 / (points * points) as f64;
@@ -312,15 +309,7 @@ impl ViewFootprint {
     /// `value` (frame value → f · cos θi) is usable and finite, with it.
     fn rows(&self, value: &PixelValue<'_>, frame: &Frame) -> [Rows; 2] {
         let mut all: [Rows; 2] = std::array::from_fn(|g| {
-            let r = &self.grids[g];
-            Rows {
-                view: r.view,
-                origin: r.origin,
-                extent: r.extent,
-                scale: 1.0,
-                start: vec![0],
-                ..Rows::default()
-            }
+            Rows::empty(self.grids[g].view, self.grids[g].origin, self.grids[g].extent)
         });
         for (i, (&p, &centre)) in self.frame_pixel.iter().zip(&self.centre).enumerate() {
             let raw = std::array::from_fn(|k| frame.rgb[p * 3 + k] as f64);
@@ -724,7 +713,6 @@ pub fn sharpen_light(
     images: &mut [Vec<[f32; 3]>],
 ) -> Option<Vec<[f32; 3]>> {
     assert_eq!(views.samplers.len(), images.len(), "one region image per view");
-    assert_eq!(views.points, opts.points, "footprints made with the options' points");
     let dims = [frame.width as usize, frame.height as usize];
     assert_eq!(views.frame, dims, "footprints made for frames of this size");
     if images.is_empty() {
