@@ -31,6 +31,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::Frame;
 use crate::exposure::{Span, sample_spans};
+use crate::exrio::PixelRect;
 use scanner_geometry::ScannerGeometry;
 
 /// Fewest metering frames that can tell a defect from the sample.
@@ -78,6 +79,10 @@ pub struct PixelDefect {
 /// ([`DefectFinder::uniform_target`]): pixels within a square of this
 /// side.
 pub const MAX_CLUSTER_SIDE: u32 = 3;
+
+/// How far from a defect [`DefectMap::patch`] looks for working
+/// neighbours, pixels.
+pub const PATCH_RADIUS: usize = 2;
 
 /// A value (3 · pixel + channel) at the top code or 0 in every frame so far.
 #[derive(Debug, Clone, Copy)]
@@ -173,6 +178,26 @@ impl DefectFinder {
     /// so [`DefectFinder::new`] takes no more than pairs.
     pub fn uniform_target(geometry: &ScannerGeometry, width: u32, height: u32) -> DefectFinder {
         DefectFinder { clusters: true, ..DefectFinder::new(geometry, width, height) }
+    }
+
+    /// Whether the next frame's pixels within `rect` (`[x0, y0, x1, y1)`)
+    /// can still matter: after the first frame only the candidates and
+    /// their neighbours are looked at, so a caller may leave the rest of
+    /// the next frames undecoded (values there are never read).
+    pub fn examines(&self, rect: PixelRect) -> bool {
+        if self.frames == 0 {
+            return true;
+        }
+        let w = self.width as usize;
+        // Candidates are sorted by value, so by row then column.
+        let (y0, y1) = (rect[1].saturating_sub(1), rect[3].saturating_add(1));
+        let (x0, x1) = (rect[0].saturating_sub(1), rect[2].saturating_add(1));
+        let first = self.candidates.partition_point(|c| (c.value as usize / 3) / w < y0);
+        self.candidates[first..]
+            .iter()
+            .map(|c| c.value as usize / 3)
+            .take_while(|p| p / w < y1)
+            .any(|p| (x0..x1).contains(&(p % w)))
     }
 
     /// Take one more frame into account (values as stored: fractions of
@@ -549,7 +574,7 @@ impl DefectMap {
             }
             patched += 1;
             let mut value = [0.0f32; 3];
-            for r in 1..=2usize {
+            for r in 1..=PATCH_RADIUS {
                 let (mut sum, mut n) = ([0.0f32; 3], 0u32);
                 for ny in y.saturating_sub(r)..=(y + r).min(h - 1) {
                     for nx in x.saturating_sub(r)..=(x + r).min(w - 1) {
@@ -713,16 +738,45 @@ mod tests {
                 })
                 .collect::<Vec<_>>(),
         ];
-        let run = |mut finder: DefectFinder| {
+        // `blanked`: the pixels of every 2 × 2 block the finder does not
+        // examine are 0, as a reader that skips them leaves them.
+        let run = |mut finder: DefectFinder, blanked: bool| {
+            let mut examined = Vec::new();
             for k in 0..6 {
                 let mut f = frame(&g, 0.3 + 0.05 * k as f32, k);
+                // The 2 × 2 cluster's surroundings dark (not 0) in the
+                // first two frames: it is told from a black spot only by
+                // the later frames' neighbours.
+                if k < 2 {
+                    let (cx, cy) = clusters[1][0];
+                    for (x, y) in
+                        (cy - 1..cy + 3).flat_map(|y| (cx - 1..cx + 3).map(move |x| (x, y)))
+                    {
+                        let i = 3 * (y * w + x) as usize;
+                        f.rgb[i..i + 3].fill(4.0 / g.sensor.max_code() as f32);
+                    }
+                }
                 for (x, y) in clusters.iter().chain(&too_big).flatten() {
                     let i = 3 * (y * w + x) as usize;
                     f.rgb[i..i + 3].fill(0.0);
                 }
+                let mut blocks = 0;
+                for (bx, by) in
+                    (0..h as usize / 2).flat_map(|y| (0..w as usize / 2).map(move |x| (x, y)))
+                {
+                    let [x, y] = [2 * bx, 2 * by];
+                    if finder.examines([x, y, x + 2, y + 2]) {
+                        blocks += 1;
+                    } else if blanked {
+                        for row in y..y + 2 {
+                            f.rgb[3 * (row * w as usize + x)..][..6].fill(0.0);
+                        }
+                    }
+                }
+                examined.push(blocks as f64 / (w * h / 4) as f64);
                 finder.add(&f);
             }
-            finder.defects().unwrap()
+            (finder.defects().unwrap(), examined)
         };
         let mut want: Vec<PixelDefect> = clusters
             .iter()
@@ -730,11 +784,17 @@ mod tests {
             .map(|&(x, y)| PixelDefect { x, y, kind: DefectKind::Dead })
             .collect();
         want.sort_by_key(|d| (d.y, d.x));
-        assert_eq!(run(DefectFinder::uniform_target(&g, w, h)), want);
-        // On a sample a cluster is a black spot: none of it is taken, not
-        // even the ends of a row, whose one dead neighbour the pair rule
-        // allows.
-        assert_eq!(run(DefectFinder::new(&g, w, h)), vec![]);
+        for blanked in [false, true] {
+            let (found, examined) = run(DefectFinder::uniform_target(&g, w, h), blanked);
+            assert_eq!(found, want, "blanked: {blanked}");
+            // All of the first frame, then the candidates' surroundings.
+            assert_eq!(examined[0], 1.0);
+            assert!(examined[1..].iter().all(|&e| e < 0.01), "{examined:?}");
+            // On a sample a cluster is a black spot: none of it is taken,
+            // not even the ends of a row, whose one dead neighbour the pair
+            // rule allows.
+            assert_eq!(run(DefectFinder::new(&g, w, h), blanked).0, vec![]);
+        }
     }
 
     #[test]

@@ -251,26 +251,18 @@ pub fn luminance_sum(
         }
     };
     progress.stage("checkerboard frames", lights.len());
-    lights
-        .par_iter()
-        .try_fold(
-            || Plane::new(w, h),
-            |mut acc, &l| {
-                let f = scan.read_within(l, windows)?;
-                each_pixel(&mut |i| {
-                    acc.data[i] += (f.rgb[3 * i] + f.rgb[3 * i + 1] + f.rgb[3 * i + 2]) / 3.0;
-                });
-                progress.step();
-                Ok(acc)
-            },
-        )
-        .try_reduce(
-            || Plane::new(w, h),
-            |mut a, b| {
-                each_pixel(&mut |i| a.data[i] += b.data[i]);
-                Ok(a)
-            },
-        )
+    // In the lights' order, so the sums' rounding is the same on every run
+    // (a parallel fold's grouping follows the thread pool's work
+    // stealing); each frame's blocks are decoded in parallel.
+    let mut sum = Plane::new(w, h);
+    for &l in &lights {
+        let f = scan.read_within(l, windows)?;
+        each_pixel(&mut |i| {
+            sum.data[i] += (f.rgb[3 * i] + f.rgb[3 * i + 1] + f.rgb[3 * i + 2]) / 3.0;
+        });
+        progress.step();
+    }
+    Ok(sum)
 }
 
 /// The light direction (sample-local) of the beam at `axes`, reflected in
@@ -445,11 +437,19 @@ fn sensor_defects(
     let mut finder = DefectFinder::uniform_target(g, w, h);
     let lights = white.lights();
     progress.stage("sensor defects", lights.len());
-    // Two frames at a time (each a full frame in memory), in order.
-    for pair in lights.chunks(2) {
+    // The first frame alone, then two at a time (each a full frame in
+    // memory), in order. After the first only the blocks near the finder's
+    // candidates are decoded: all it and the patching of the scan's own
+    // defects read there.
+    let (first, rest) = lights.split_at(lights.len().min(1));
+    for pair in std::iter::once(first).chain(rest.chunks(2)) {
+        let r = crate::defects::PATCH_RADIUS;
+        let near = |b: PixelRect| {
+            finder.examines([b[0].saturating_sub(r), b[1].saturating_sub(r), b[2] + r, b[3] + r])
+        };
         let frames: Vec<(crate::camera::Frame, f32)> = pair
             .par_iter()
-            .map(|&l| Ok((white.read_within(l, windows)?, white.exposure_s(l)?)))
+            .map(|&l| Ok((white.read_within_where(l, windows, &near)?, white.exposure_s(l)?)))
             .collect::<Result<_, BuildError>>()?;
         for (f, t) in &frames {
             finder.add_scaled(f, *t);

@@ -134,10 +134,24 @@ impl ScanFrames {
     /// The same, decoding only the blocks of the file that meet one of
     /// `windows` (frame pixels `[x0, y0, x1, y1)`); other pixels are 0.
     pub fn read_within(&self, light: usize, windows: &[PixelRect]) -> Result<Frame, BuildError> {
+        self.read_within_where(light, windows, &|_| true)
+    }
+
+    /// [`ScanFrames::read_within`] decoding, of the blocks that meet
+    /// `windows`, only those `also` accepts (other pixels are 0). A value
+    /// is as `read_within` gives it where its block and those of the
+    /// pixels within [`crate::defects::PATCH_RADIUS`] were decoded.
+    pub fn read_within_where(
+        &self,
+        light: usize,
+        windows: &[PixelRect],
+        also: &(dyn Fn(PixelRect) -> bool + Sync),
+    ) -> Result<Frame, BuildError> {
         let rec = self.record(light)?;
         let path = self.dir.join(&rec.file);
         let t = self.exposure_s(light)?;
-        let wanted = |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block));
+        let wanted =
+            |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block)) && also(block);
         let mut f = crate::exrio::read_rgb_within(&path, &wanted, t)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
         if (f.width, f.height) != (rec.width, rec.height) {
