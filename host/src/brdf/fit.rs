@@ -341,13 +341,16 @@ impl Data<'_> {
         table[a] * (1.0 - w as f64) + table[a + 1] * w as f64
     }
 
-    /// Σ over samples of `f(j)` into per-bin sums, in parallel.
+    /// Σ over samples of `f(j)` into per-bin sums, chunks in parallel. The
+    /// chunks' sums are added in order, so the rounding is the same on
+    /// every run (a parallel reduction's grouping follows rayon's work
+    /// stealing).
     fn accumulate<const K: usize>(
         &self,
         f: impl Fn(usize, &mut [[f64; BINS]; K]) + Sync,
     ) -> [[f64; BINS]; K] {
         let n = self.s.len();
-        (0..n.div_ceil(CHUNK))
+        let chunks: Vec<[[f64; BINS]; K]> = (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|chunk| {
                 let mut acc = [[0.0; BINS]; K];
@@ -358,17 +361,16 @@ impl Data<'_> {
                 }
                 acc
             })
-            .reduce(
-                || [[0.0; BINS]; K],
-                |mut a, b| {
-                    for k in 0..K {
-                        for i in 0..BINS {
-                            a[k][i] += b[k][i];
-                        }
-                    }
-                    a
-                },
-            )
+            .collect();
+        let mut sum = [[0.0; BINS]; K];
+        for acc in &chunks {
+            for (s, a) in sum.iter_mut().zip(acc) {
+                for (s, a) in s.iter_mut().zip(a) {
+                    *s += a;
+                }
+            }
+        }
+        sum
     }
 
     /// Gi with Go fixed and Go with Gi fixed, averaged, smoothed.
