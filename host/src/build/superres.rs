@@ -495,28 +495,41 @@ fn blur(img: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
     const K: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
     // Tap j of position i (0 ≤ i < size), clamped at the edges.
     let tap = |i: usize, j: usize| (i + j).saturating_sub(2).min(size - 1);
-    // The five taps' weighted sum, in the taps' order.
-    let sum = |v: [[f32; 3]; 5]| {
-        let mut acc = [0.0f32; 3];
+    // The five taps' weighted sum, in the taps' order (value by value: the
+    // images are flat, a texel's three channels in turn).
+    let sum = |v: [f32; 5]| {
+        let mut acc = 0.0f32;
         for (w, v) in K.iter().zip(v) {
-            for k in 0..3 {
-                acc[k] += w * v[k];
-            }
+            acc += w * v;
         }
         acc
     };
+    let line = 3 * size;
     let mut along_x = vec![[0.0f32; 3]; size * size];
-    for (src, dst) in img.chunks_exact(size).zip(along_x.chunks_exact_mut(size)) {
-        for (x, d) in dst.iter_mut().enumerate() {
-            *d = sum(std::array::from_fn(|j| src[tap(x, j)]));
+    for (src, dst) in
+        img.as_flattened().chunks_exact(line).zip(along_x.as_flattened_mut().chunks_exact_mut(line))
+    {
+        let clamped = |i: usize| {
+            let (x, k) = (i / 3, i % 3);
+            sum(std::array::from_fn(|j| src[3 * tap(x, j) + k]))
+        };
+        // Within the row (x from 2 to size − 3) no tap is clamped: a loop
+        // the compiler vectorises.
+        let inner = if size >= 5 { 6..line - 6 } else { 0..0 };
+        for i in (0..inner.start).chain(inner.end.max(inner.start)..line) {
+            dst[i] = clamped(i);
+        }
+        for i in inner {
+            dst[i] = sum(std::array::from_fn(|j| src[i + 3 * j - 6]));
         }
     }
     // Along y row by row: the five source rows are contiguous.
     let mut out = vec![[0.0f32; 3]; size * size];
-    for (y, dst) in out.chunks_exact_mut(size).enumerate() {
-        let rows: [&[[f32; 3]]; 5] = std::array::from_fn(|j| &along_x[tap(y, j) * size..][..size]);
-        for (x, d) in dst.iter_mut().enumerate() {
-            *d = sum(std::array::from_fn(|j| rows[j][x]));
+    let flat = along_x.as_flattened();
+    for (y, dst) in out.as_flattened_mut().chunks_exact_mut(line).enumerate() {
+        let rows: [&[f32]; 5] = std::array::from_fn(|j| &flat[tap(y, j) * line..][..line]);
+        for (i, d) in dst.iter_mut().enumerate() {
+            *d = sum(std::array::from_fn(|j| rows[j][i]));
         }
     }
     out
