@@ -158,6 +158,33 @@ impl Rows {
         }
         y
     }
+
+    /// [`Rows::forward`] of rows `i` and `i + 1`, their sums interleaved
+    /// (each in its own taps' order, as `forward` adds them).
+    #[inline]
+    fn forward_pair(&self, i: usize, x: &[[f32; 3]]) -> [[f32; 3]; 2] {
+        let ((ta, wa), (tb, wb)) = (self.row(i), self.row(i + 1));
+        let (mut a, mut b) = ([0.0f32; 3], [0.0f32; 3]);
+        let both = ta.len().min(tb.len());
+        for j in 0..both {
+            let (va, vb) = (x[ta[j] as usize], x[tb[j] as usize]);
+            for k in 0..3 {
+                a[k] += wa[j] * va[k];
+                b[k] += wb[j] * vb[k];
+            }
+        }
+        for (&t, &w) in ta[both..].iter().zip(&wa[both..]) {
+            for k in 0..3 {
+                a[k] += w * x[t as usize][k];
+            }
+        }
+        for (&t, &w) in tb[both..].iter().zip(&wb[both..]) {
+            for k in 0..3 {
+                b[k] += w * x[t as usize][k];
+            }
+        }
+        [a, b]
+    }
 }
 
 /// What view `r` would make of a sample that is `x`: its pixels as the
@@ -349,15 +376,27 @@ fn bilinear_taps(size: usize, uv: [f64; 2], mut tap: impl FnMut(u32, f64)) {
 fn normal_apply(rows: &[&Rows], size: usize, lambda: f32, x: &[[f32; 3]], out: &mut [[f32; 3]]) {
     out.fill([0.0; 3]);
     for r in rows {
-        for i in 0..r.len() {
+        let mut scatter = |i: usize, y: [f32; 3]| {
             let (t, w) = r.row(i);
-            let y = r.forward(i, x).map(|v| v * r.scale);
+            let y = y.map(|v| v * r.scale);
             for (&t, &w) in t.iter().zip(w) {
                 let o = &mut out[t as usize];
                 for k in 0..3 {
                     o[k] += w * y[k];
                 }
             }
+        };
+        // Two rows' forward sums at a time: each is a chain of dependent
+        // additions, and two chains keep the core busy. Rows are scattered
+        // in order, so the sums are the same as row by row.
+        let pairs = r.len() / 2;
+        for i in (0..pairs).map(|p| 2 * p) {
+            let [a, b] = r.forward_pair(i, x);
+            scatter(i, a);
+            scatter(i + 1, b);
+        }
+        if r.len() % 2 == 1 {
+            scatter(r.len() - 1, r.forward(r.len() - 1, x));
         }
     }
     for yy in 0..size {
