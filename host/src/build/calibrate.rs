@@ -26,7 +26,7 @@ use super::glossy::{SourceOffsets, fit_offsets, highlights, with_offsets};
 use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
 use super::plane::{Plane, cell_taps};
-use super::scanread::{ScanFrames, frame_bicubic, frame_bicubic_masked, frame_bilinear};
+use super::scanread::{BicubicFilter, ScanFrames, frame_bilinear, frame_dims};
 use crate::defects::{DefectFinder, PixelDefect};
 use crate::exrio::PixelRect;
 
@@ -826,25 +826,33 @@ impl ViewSampler {
     /// [`REGION_EDGE_PX`] (then 2×, 4×: a corner of a rotated view) until
     /// they carry a quarter.
     pub fn region_sample(&self, f: &crate::camera::Frame, uv: [f64; 2]) -> [f64; 3] {
+        self.region_filter(frame_dims(f), uv).apply(f)
+    }
+
+    /// The filter [`Self::region_sample`] applies at `uv` to frames of
+    /// `dims` px: it depends on the view only, so a region builder finds
+    /// it once for all lights.
+    pub fn region_filter(&self, dims: [usize; 2], uv: [f64; 2]) -> BicubicFilter {
         let p = self.homography.apply(uv);
+        let all = |_: f64, _: f64| true;
         // Every tap lies within 2 px per axis of p, so within 4 · half along
         // any edge's normal: all of them usable, the plain filter.
         if self.depth(p) >= 2.0 * std::f64::consts::SQRT_2 + CLEAN_MARGIN_PX {
-            return frame_bicubic(f, p[0], p[1]);
+            return BicubicFilter::new(dims, p[0], p[1], all);
         }
         let clean = |x: f64, y: f64| self.pixel_on_sample([x, y]);
-        if let Some(s) = frame_bicubic_masked(f, p[0], p[1], clean, 0.5) {
-            return s;
+        if let Some(b) = BicubicFilter::masked(dims, p[0], p[1], clean, 0.5) {
+            return b;
         }
         for k in [1.0, 2.0, 4.0] {
             let q = self.inset_point(uv, k * REGION_EDGE_PX);
-            if let Some(s) = frame_bicubic_masked(f, q[0], q[1], clean, 0.25) {
-                return s;
+            if let Some(b) = BicubicFilter::masked(dims, q[0], q[1], clean, 0.25) {
+                return b;
             }
         }
         // A view of a few pixels: the plain filter at the centre.
         let q = self.homography.apply([0.5, 0.5]);
-        frame_bicubic(f, q[0], q[1])
+        BicubicFilter::new(dims, q[0], q[1], all)
     }
 
     /// How [`Self::region_sample`] scales the variance of independent frame
@@ -1037,6 +1045,7 @@ impl Calibration {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::build::scanread::frame_bicubic;
     use crate::camera::Frame;
 
     /// The noise gain is the variance a region sample takes from frame

@@ -13,7 +13,7 @@ use scanner_geometry::ScannerGeometry;
 use super::calibrate::{BuildProgress, Calibration};
 use super::error::BuildError;
 use super::plane::{cell_taps, cell_uv};
-use super::scanread::ScanFrames;
+use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
 use super::superres::{
     DetailLayer, Footprints, Image, SharpenOptions, detail_layer, sharpen_light,
 };
@@ -217,16 +217,30 @@ pub fn extract_regions(
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
-    // Which texels each view's pixels see is the same under every light.
-    let sharpen = opts.sharpen.as_ref().map(|o| {
-        let frame = [g.camera.width as usize, g.camera.height as usize];
-        (o, Footprints::new(&samplers, frame, size, o.points))
-    });
+    // Which pixels each texel is resampled from, and which texels each
+    // view's pixels see, are the same under every light.
+    let frame = [g.camera.width as usize, g.camera.height as usize];
+    let filters: Vec<Vec<BicubicFilter>> = samplers
+        .par_iter()
+        .map(|s| (0..size * size).map(|i| s.region_filter(frame, cell_uv(i, size))).collect())
+        .collect();
+    let sharpen =
+        opts.sharpen.as_ref().map(|o| (o, Footprints::new(&samplers, frame, size, o.points)));
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
         .par_iter()
         .zip(&light_index)
         .map(|(&l, &ci)| {
             let f = scan.read_within(l, &windows)?;
+            if frame_dims(&f) != frame {
+                return Err(BuildError::Input(format!(
+                    "{}: mirror {l}'s frame is {}×{} px, the calibration's camera {}×{}",
+                    scan.dir.display(),
+                    f.width,
+                    f.height,
+                    frame[0],
+                    frame[1]
+                )));
+            }
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
             // f · cos θi per frame unit at uv in view `vi`, or `None` where
@@ -259,14 +273,13 @@ pub fn extract_regions(
                     var.map_or(0.0, |var| (var * c[k] * c[k] * filter) as f32)
                 })
             };
-            let mut images: Vec<Vec<[f32; 3]>> = samplers
+            let mut images: Vec<Vec<[f32; 3]>> = filters
                 .iter()
                 .enumerate()
                 .map(|(vi, view)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
-                    for (i, px) in img.iter_mut().enumerate() {
-                        let uv = cell_uv(i, size);
-                        if let Some(v) = value(vi, uv, view.region_sample(&f, uv)) {
+                    for (i, (px, b)) in img.iter_mut().zip(view).enumerate() {
+                        if let Some(v) = value(vi, cell_uv(i, size), b.apply(&f)) {
                             *px = v;
                         }
                     }

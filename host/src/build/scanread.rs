@@ -200,51 +200,98 @@ pub fn frame_bilinear(f: &Frame, x: f64, y: f64) -> [f64; 3] {
 /// Catmull–Rom bicubic RGB sample of a frame at continuous (x, y).
 #[inline]
 pub fn frame_bicubic(f: &Frame, x: f64, y: f64) -> [f64; 3] {
-    bicubic_taps(f, x, y, |_, _| true).0
+    BicubicFilter::new(frame_dims(f), x, y, |_, _| true).apply(f)
 }
 
-/// [`frame_bicubic`] over only the taps whose pixel centres `usable`
-/// accepts, the weights renormalised over them; `None` when those carry
-/// less than `min_weight` of the filter (the rest would be extrapolation).
-#[inline]
-pub fn frame_bicubic_masked(
-    f: &Frame,
-    x: f64,
-    y: f64,
-    usable: impl Fn(f64, f64) -> bool,
-    min_weight: f64,
-) -> Option<[f64; 3]> {
-    let (s, w) = bicubic_taps(f, x, y, usable);
-    (w >= min_weight).then(|| s.map(|v| v / w))
+/// A frame's width and height, px.
+pub fn frame_dims(f: &Frame) -> [usize; 2] {
+    [f.width as usize, f.height as usize]
 }
 
-/// The Catmull–Rom sum over the usable taps (edges clamped) and the sum of
-/// their weights.
-#[inline(always)]
-fn bicubic_taps(f: &Frame, x: f64, y: f64, usable: impl Fn(f64, f64) -> bool) -> ([f64; 3], f64) {
-    let (w, h) = (f.width as isize, f.height as isize);
-    let (fx, fy) = (x - 0.5, y - 0.5);
-    let (x0, y0) = (fx.floor(), fy.floor());
-    let wx = super::plane::catmull_rom(fx - x0);
-    let wy = super::plane::catmull_rom(fy - y0);
-    let (x0, y0) = (x0 as isize, y0 as isize);
-    let (mut out, mut sum) = ([0.0; 3], 0.0);
-    for (j, wyj) in wy.iter().enumerate() {
-        let ty = y0 + j as isize - 1;
-        let yy = ty.clamp(0, h - 1);
-        for (i, wxi) in wx.iter().enumerate() {
-            let tx = x0 + i as isize - 1;
-            if !usable(tx as f64 + 0.5, ty as f64 + 0.5) {
-                continue;
+/// A Catmull–Rom filter at one position of frames of one size, its taps
+/// found once ([`frame_bicubic`]) and applied to
+/// any frame of that size: the region images sample every light's frame
+/// at the same positions.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BicubicFilter {
+    /// The frame's size, px.
+    dims: [usize; 2],
+    /// The top-left tap's pixel (edges clamped when applied).
+    corner: [isize; 2],
+    /// Weights along x and y.
+    wx: [f64; 4],
+    wy: [f64; 4],
+    /// Which of the 4 × 4 taps (bit 4 j + i) are used.
+    taps: u16,
+    /// The used taps' weight (renormalised over when masked).
+    norm: Option<f64>,
+}
+
+impl BicubicFilter {
+    /// The plain filter at (x, y) of `dims` frames, edges clamped.
+    pub fn new(dims: [usize; 2], x: f64, y: f64, usable: impl Fn(f64, f64) -> bool) -> Self {
+        let (fx, fy) = (x - 0.5, y - 0.5);
+        let (x0, y0) = (fx.floor(), fy.floor());
+        let wx = super::plane::catmull_rom(fx - x0);
+        let wy = super::plane::catmull_rom(fy - y0);
+        let (x0, y0) = (x0 as isize, y0 as isize);
+        let mut taps = 0u16;
+        for j in 0..4 {
+            for i in 0..4 {
+                let (tx, ty) = (x0 + i as isize - 1, y0 + j as isize - 1);
+                if usable(tx as f64 + 0.5, ty as f64 + 0.5) {
+                    taps |= 1 << (4 * j + i);
+                }
             }
-            let xx = tx.clamp(0, w - 1);
-            let k = 3 * (yy * w + xx) as usize;
-            let wgt = wyj * wxi;
-            out[0] += wgt * f.rgb[k] as f64;
-            out[1] += wgt * f.rgb[k + 1] as f64;
-            out[2] += wgt * f.rgb[k + 2] as f64;
-            sum += wgt;
+        }
+        BicubicFilter { dims, corner: [x0 - 1, y0 - 1], wx, wy, taps, norm: None }
+    }
+
+    /// The filter over only the taps whose pixel centres `usable` accepts,
+    /// the weights renormalised over them; `None` when those carry less
+    /// than `min_weight` of the filter (the rest would be extrapolation).
+    pub fn masked(
+        dims: [usize; 2],
+        x: f64,
+        y: f64,
+        usable: impl Fn(f64, f64) -> bool,
+        min_weight: f64,
+    ) -> Option<Self> {
+        let b = BicubicFilter::new(dims, x, y, usable);
+        let mut sum = 0.0;
+        for (j, wyj) in b.wy.iter().enumerate() {
+            for (i, wxi) in b.wx.iter().enumerate() {
+                if b.taps & (1 << (4 * j + i)) != 0 {
+                    sum += wyj * wxi;
+                }
+            }
+        }
+        (sum >= min_weight).then_some(BicubicFilter { norm: Some(sum), ..b })
+    }
+
+    /// The filter's sum over `f` (a frame of its size).
+    #[inline]
+    pub fn apply(&self, f: &Frame) -> [f64; 3] {
+        debug_assert_eq!(frame_dims(f), self.dims);
+        let (w, h) = (self.dims[0] as isize, self.dims[1] as isize);
+        let mut out = [0.0; 3];
+        for (j, wyj) in self.wy.iter().enumerate() {
+            let yy = (self.corner[1] + j as isize).clamp(0, h - 1);
+            for (i, wxi) in self.wx.iter().enumerate() {
+                if self.taps & (1 << (4 * j + i)) == 0 {
+                    continue;
+                }
+                let xx = (self.corner[0] + i as isize).clamp(0, w - 1);
+                let k = 3 * (yy * w + xx) as usize;
+                let wgt = wyj * wxi;
+                out[0] += wgt * f.rgb[k] as f64;
+                out[1] += wgt * f.rgb[k + 1] as f64;
+                out[2] += wgt * f.rgb[k + 2] as f64;
+            }
+        }
+        match self.norm {
+            Some(w) => out.map(|v| v / w),
+            None => out,
         }
     }
-    (out, sum)
 }

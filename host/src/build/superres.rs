@@ -71,6 +71,7 @@
 use crate::build::calibrate::ViewSampler;
 use crate::build::linalg::Homography;
 use crate::build::plane::cell_uv;
+use crate::build::scanread::BicubicFilter;
 use crate::camera::Frame;
 
 /// Settings of [`sharpen_light`].
@@ -189,21 +190,17 @@ impl Rows {
 
 /// What view `r` would make of a sample that is `x`: its pixels as the
 /// forward model reads them from `x`, resampled at the S × S texel centres
-/// the way the region images are ([`ViewSampler::region_sample`]): `x`
-/// blurred by this view's own pixels and filter.
-fn own_view_image(r: &Rows, sampler: &ViewSampler, x: &[[f32; 3]], size: usize) -> Vec<[f32; 3]> {
+/// the way the region images are ([`ViewSampler::region_sample`], its
+/// `filters` in the rows' window): `x` blurred by this view's own pixels
+/// and filter.
+fn own_view_image(r: &Rows, filters: &[BicubicFilter], x: &[[f32; 3]]) -> Vec<[f32; 3]> {
     let [w, h] = r.extent;
     let mut rgb = vec![0.0f32; w * h * 3];
     for i in 0..r.len() {
         rgb[r.pixel[i] as usize * 3..][..3].copy_from_slice(&r.forward(i, x));
     }
     let window = Frame { width: w as u32, height: h as u32, rgb };
-    // The view's sampler in the window's pixels.
-    let origin = r.origin.map(|o| -(o as f64));
-    let shifted = ViewSampler::new(sampler.homography().translated(origin));
-    (0..size * size)
-        .map(|t| shifted.region_sample(&window, cell_uv(t, size)).map(|v| v as f32))
-        .collect()
+    filters.iter().map(|b| b.apply(&window).map(|v| v as f32)).collect()
 }
 
 /// An S × S (or 2S × 2S) RGB image, row-major.
@@ -248,6 +245,9 @@ struct ViewFootprint {
     centre: Vec<[f64; 2]>,
     /// Its rows on the S × S and on the 2S × 2S grid (no values).
     grids: [Rows; 2],
+    /// The region images' filter at each S × S texel, in the rows' frame
+    /// window ([`own_view_image`]).
+    own: Vec<BicubicFilter>,
 }
 
 impl Footprints {
@@ -284,7 +284,7 @@ impl ViewFootprint {
         let h: &Homography = sampler.homography();
         let Some(inv) = h.inverse() else {
             let grids = std::array::from_fn(|_| Rows::empty(vi, [0, 0], [0, 0]));
-            return ViewFootprint { frame_pixel, centre, grids };
+            return ViewFootprint { frame_pixel, centre, grids, own: Vec::new() };
         };
         let [x0, y0, x1, y1] = h.window(1.0);
         let (x1, y1) = (x1.min(width), y1.min(height));
@@ -329,7 +329,12 @@ impl ViewFootprint {
                 }
             }
         }
-        ViewFootprint { frame_pixel, centre, grids }
+        // The view's sampler in the window's pixels.
+        let shifted = ViewSampler::new(h.translated([-(x0 as f64), -(y0 as f64)]));
+        let size = sizes[0];
+        let own =
+            (0..size * size).map(|t| shifted.region_filter(extent, cell_uv(t, size))).collect();
+        ViewFootprint { frame_pixel, centre, grids, own }
     }
 
     /// This view's rows on both grids under one light: the pixels whose
@@ -770,7 +775,7 @@ pub fn sharpen_light(
     if images.is_empty() {
         return None;
     }
-    let (samplers, size) = (&views.samplers, views.size);
+    let size = views.size;
     let [rows, fine_rows] = light_rows(views, value, frame)?;
     let n = size * size;
     let mut mean = vec![[0.0f32; 3]; n];
@@ -793,7 +798,7 @@ pub fn sharpen_light(
     // it sees it (its residual: what it alone sees, and its noise) it keeps
     // in the share that is not the sensor's noise.
     for r in &rows {
-        let own = own_view_image(r, &samplers[r.view], x, size);
+        let own = own_view_image(r, &views.views[r.view].own, x);
         let image = &mut images[r.view];
         let (il, ol) = (local(image), local(&own));
         let scale: Image = (0..n)
