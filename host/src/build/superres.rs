@@ -160,6 +160,21 @@ impl Rows {
         y
     }
 
+    /// `f(i, forward(i, x))` for every row `i` in order. Two rows' forward
+    /// sums are taken at a time: each is a chain of dependent additions,
+    /// and two chains keep the core busy.
+    #[inline]
+    fn for_each_forward(&self, x: &[[f32; 3]], f: &mut impl FnMut(usize, [f32; 3])) {
+        for i in (0..self.len() / 2).map(|p| 2 * p) {
+            let [a, b] = self.forward_pair(i, x);
+            f(i, a);
+            f(i + 1, b);
+        }
+        if self.len() % 2 == 1 {
+            f(self.len() - 1, self.forward(self.len() - 1, x));
+        }
+    }
+
     /// [`Rows::forward`] of rows `i` and `i + 1`, their sums interleaved
     /// (each in its own taps' order, as `forward` adds them).
     #[inline]
@@ -196,9 +211,9 @@ impl Rows {
 fn own_view_image(r: &Rows, filters: &[BicubicFilter], x: &[[f32; 3]]) -> Vec<[f32; 3]> {
     let [w, h] = r.extent;
     let mut rgb = vec![0.0f32; w * h * 3];
-    for i in 0..r.len() {
-        rgb[r.pixel[i] as usize * 3..][..3].copy_from_slice(&r.forward(i, x));
-    }
+    r.for_each_forward(x, &mut |i, y| {
+        rgb[r.pixel[i] as usize * 3..][..3].copy_from_slice(&y);
+    });
     let window = Frame { width: w as u32, height: h as u32, rgb };
     filters.iter().map(|b| b.apply(&window).map(|v| v as f32)).collect()
 }
@@ -391,18 +406,7 @@ fn normal_apply(rows: &[&Rows], size: usize, lambda: f32, x: &[[f32; 3]], out: &
                 }
             }
         };
-        // Two rows' forward sums at a time: each is a chain of dependent
-        // additions, and two chains keep the core busy. Rows are scattered
-        // in order, so the sums are the same as row by row.
-        let pairs = r.len() / 2;
-        for i in (0..pairs).map(|p| 2 * p) {
-            let [a, b] = r.forward_pair(i, x);
-            scatter(i, a);
-            scatter(i + 1, b);
-        }
-        if r.len() % 2 == 1 {
-            scatter(r.len() - 1, r.forward(r.len() - 1, x));
-        }
+        r.for_each_forward(x, &mut scatter);
     }
     for yy in 0..size {
         for xx in 0..size {
@@ -510,9 +514,8 @@ fn misfit(rows: &[&Rows], size: usize, x: &[[f32; 3]]) -> Vec<[f32; 3]> {
     let n = size * size;
     let (mut num, mut den) = (vec![[0.0f64; 3]; n], vec![[0.0f64; 3]; n]);
     for r in rows {
-        for i in 0..r.len() {
+        let mut scatter = |i: usize, y: [f32; 3]| {
             let (t, w) = r.row(i);
-            let y = r.forward(i, x);
             let b = r.value[i];
             for (&t, &w) in t.iter().zip(w) {
                 let w = (r.scale * w) as f64;
@@ -521,7 +524,8 @@ fn misfit(rows: &[&Rows], size: usize, x: &[[f32; 3]]) -> Vec<[f32; 3]> {
                     den[t as usize][k] += w * (b[k] as f64).powi(2);
                 }
             }
-        }
+        };
+        r.for_each_forward(x, &mut scatter);
     }
     num.iter()
         .zip(&den)
