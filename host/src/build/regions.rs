@@ -224,6 +224,20 @@ pub fn extract_regions(
         .par_iter()
         .map(|s| (0..size * size).map(|i| s.region_filter(frame, cell_uv(i, size))).collect())
         .collect();
+    // Per view and texel, the colour calibration's view response and the
+    // filter's noise gain.
+    let texel_view: Vec<Vec<([f64; 3], f64)>> = samplers
+        .iter()
+        .enumerate()
+        .map(|(vi, s)| {
+            (0..size * size)
+                .map(|i| {
+                    let uv = cell_uv(i, size);
+                    (cal.colour.view(vi, uv), s.region_noise_gain(uv))
+                })
+                .collect()
+        })
+        .collect();
     let sharpen =
         opts.sharpen.as_ref().map(|o| (o, Footprints::new(&samplers, frame, size, o.points)));
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
@@ -246,25 +260,34 @@ pub fn extract_regions(
             // f · cos θi per frame unit at uv in view `vi`, or `None` where
             // this beam leaves the sample unlit (below 2 % of its mean:
             // nothing to divide by).
-            let per_unit = |vi: usize, uv: [f64; 2]| -> Option<[f64; 3]> {
-                let b = cal.colour.light(ci, uv);
+            let unit = |b: f64, a: [f64; 3]| -> Option<[f64; 3]> {
                 if b < 0.02 {
                     return None;
                 }
-                let w = cal.colour.view(vi, uv).map(|a| a * b);
+                let w = a.map(|a| a * b);
                 Some(w.map(|w| if w > 0.0 { scale / w } else { 0.0 }))
             };
-            let value = |vi: usize, uv: [f64; 2], s: [f64; 3]| -> Option<[f32; 3]> {
-                let c = per_unit(vi, uv)?;
-                Some(std::array::from_fn(|k| (s[k] * c[k]) as f32))
+            let per_unit =
+                |vi: usize, uv: [f64; 2]| unit(cal.colour.light(ci, uv), cal.colour.view(vi, uv));
+            // The same at the texels, from the views' and this light's
+            // values there.
+            let texel_light: Vec<f64> =
+                (0..size * size).map(|i| cal.colour.light(ci, cell_uv(i, size))).collect();
+            let texel_unit = |vi: usize, t: usize| unit(texel_light[t], texel_view[vi][t].0);
+            let scaled = |s: [f64; 3], c: [f64; 3]| -> [f32; 3] {
+                std::array::from_fn(|k| (s[k] * c[k]) as f32)
             };
-            // The sensor's noise in view `vi`'s region image at uv where it
-            // holds `v`: the merged frame value's variance (the exposures
-            // that measured it), through the filter and the normalisation.
+            let value = |vi: usize, uv: [f64; 2], s: [f64; 3]| -> Option<[f32; 3]> {
+                Some(scaled(s, per_unit(vi, uv)?))
+            };
+            // The sensor's noise in view `vi`'s region image at texel `t`
+            // where it holds `v`: the merged frame value's variance (the
+            // exposures that measured it), through the filter and the
+            // normalisation.
             let exposures = scan.exposures_us(l)?;
-            let noise = |vi: usize, uv: [f64; 2], v: [f32; 3]| -> [f32; 3] {
-                let Some(c) = per_unit(vi, uv) else { return [0.0; 3] };
-                let filter = samplers[vi].region_noise_gain(uv);
+            let noise = |vi: usize, t: usize, v: [f32; 3]| -> [f32; 3] {
+                let Some(c) = texel_unit(vi, t) else { return [0.0; 3] };
+                let filter = texel_view[vi][t].1;
                 std::array::from_fn(|k| {
                     if c[k] <= 0.0 {
                         return 0.0;
@@ -279,8 +302,8 @@ pub fn extract_regions(
                 .map(|(vi, view)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
                     for (i, (px, b)) in img.iter_mut().zip(view).enumerate() {
-                        if let Some(v) = value(vi, cell_uv(i, size), b.apply(&f)) {
-                            *px = v;
+                        if let Some(c) = texel_unit(vi, i) {
+                            *px = scaled(b.apply(&f), c);
                         }
                     }
                     img

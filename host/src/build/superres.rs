@@ -163,7 +163,7 @@ impl Rows {
     /// `f(i, forward(i, x))` for every row `i` in order. Two rows' forward
     /// sums are taken at a time: each is a chain of dependent additions,
     /// and two chains keep the core busy.
-    #[inline]
+    #[inline(always)]
     fn for_each_forward(&self, x: &[[f32; 3]], f: &mut impl FnMut(usize, [f32; 3])) {
         for i in (0..self.len() / 2).map(|p| 2 * p) {
             let [a, b] = self.forward_pair(i, x);
@@ -177,7 +177,7 @@ impl Rows {
 
     /// [`Rows::forward`] of rows `i` and `i + 1`, their sums interleaved
     /// (each in its own taps' order, as `forward` adds them).
-    #[inline]
+    #[inline(always)]
     fn forward_pair(&self, i: usize, x: &[[f32; 3]]) -> [[f32; 3]; 2] {
         let ((ta, wa), (tb, wb)) = (self.row(i), self.row(i + 1));
         let (mut a, mut b) = ([0.0f32; 3], [0.0f32; 3]);
@@ -225,9 +225,10 @@ pub type Image = Vec<[f32; 3]>;
 /// usable there, e.g. unlit): the region images' own normalisation.
 pub type PixelValue<'a> = dyn Fn(usize, [f64; 2], [f64; 3]) -> Option<[f32; 3]> + Sync + 'a;
 
-/// The variance of view `vi`'s region image at uv where it holds the
-/// value given, per channel, from the sensor's noise alone.
-pub type TexelNoise<'a> = dyn Fn(usize, [f64; 2], [f32; 3]) -> [f32; 3] + Sync + 'a;
+/// The variance of view `vi`'s region image at texel `t` (row-major over
+/// the S × S grid) where it holds the value given, per channel, from the
+/// sensor's noise alone.
+pub type TexelNoise<'a> = dyn Fn(usize, usize, [f32; 3]) -> [f32; 3] + Sync + 'a;
 
 /// Every view's pixels on the sample and their rows of the forward model on
 /// the S × S and the 2S × 2S grids. They depend on the views' homographies
@@ -820,7 +821,7 @@ pub fn sharpen_light(
             .map(|t| std::array::from_fn(|k| image[t][k] - scale[t][k] * own[t][k]))
             .collect();
         let keep = if opts.view_noise {
-            residual_share(image, &residual, |t, v| noise(r.view, cell_uv(t, size), v), size)
+            residual_share(image, &residual, |t, v| noise(r.view, t, v), size)
         } else {
             vec![[1.0; 3]; n]
         };
@@ -1219,7 +1220,7 @@ mod tests {
     const S: usize = 32;
 
     /// No sensor noise: every view keeps its whole residual.
-    static NOISELESS: fn(usize, [f64; 2], [f32; 3]) -> [f32; 3] = |_, _, _| [0.0; 3];
+    static NOISELESS: fn(usize, usize, [f32; 3]) -> [f32; 3] = |_, _, _| [0.0; 3];
 
     /// Each view's own resampling at the texel centres (the region images
     /// without the other views).
@@ -1527,8 +1528,8 @@ mod tests {
             *v *= 1.0 + SIGMA * (rng.random::<f32>() - 0.5) * 12f32.sqrt();
         }
         let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
-        let noise = |vi: usize, uv: [f64; 2], v: [f32; 3]| {
-            let gain = samplers[vi].region_noise_gain(uv) as f32;
+        let noise = |vi: usize, t: usize, v: [f32; 3]| {
+            let gain = samplers[vi].region_noise_gain(cell_uv(t, S)) as f32;
             v.map(|v| (SIGMA * v).powi(2) * gain)
         };
         let run = |noise: &TexelNoise<'_>, view_noise: bool| {
