@@ -189,6 +189,7 @@ impl DefectFinder {
             return true;
         }
         let w = self.width as usize;
+        // A candidate reads its neighbours within 1 px ([`NEIGHBOURS`]).
         // Candidates are sorted by value, so by row then column.
         let (y0, y1) = (rect[1].saturating_sub(1), rect[3].saturating_add(1));
         let (x0, x1) = (rect[0].saturating_sub(1), rect[2].saturating_add(1));

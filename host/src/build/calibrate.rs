@@ -834,11 +834,10 @@ impl ViewSampler {
     /// it once for all lights.
     pub fn region_filter(&self, dims: [usize; 2], uv: [f64; 2]) -> BicubicFilter {
         let p = self.homography.apply(uv);
-        let all = |_: f64, _: f64| true;
         // Every tap lies within 2 px per axis of p, so within 4 · half along
         // any edge's normal: all of them usable, the plain filter.
         if self.depth(p) >= 2.0 * std::f64::consts::SQRT_2 + CLEAN_MARGIN_PX {
-            return BicubicFilter::new(dims, p[0], p[1], all);
+            return BicubicFilter::new(dims, p[0], p[1]);
         }
         let clean = |x: f64, y: f64| self.pixel_on_sample([x, y]);
         if let Some(b) = BicubicFilter::masked(dims, p[0], p[1], clean, 0.5) {
@@ -852,7 +851,7 @@ impl ViewSampler {
         }
         // A view of a few pixels: the plain filter at the centre.
         let q = self.homography.apply([0.5, 0.5]);
-        BicubicFilter::new(dims, q[0], q[1], all)
+        BicubicFilter::new(dims, q[0], q[1])
     }
 
     /// How [`Self::region_sample`] scales the variance of independent frame

@@ -217,23 +217,19 @@ pub fn extract_regions(
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
-    // Which pixels each texel is resampled from, and which texels each
-    // view's pixels see, are the same under every light.
+    // Per view and texel, what is the same under every light: the pixels
+    // it is resampled from (the filter), the colour calibration's view
+    // response and the filter's noise gain; and which texels each view's
+    // pixels see.
     let frame = [g.camera.width as usize, g.camera.height as usize];
-    let filters: Vec<Vec<BicubicFilter>> = samplers
+    let texel_view: Vec<Vec<(BicubicFilter, [f64; 3], f64)>> = samplers
         .par_iter()
-        .map(|s| (0..size * size).map(|i| s.region_filter(frame, cell_uv(i, size))).collect())
-        .collect();
-    // Per view and texel, the colour calibration's view response and the
-    // filter's noise gain.
-    let texel_view: Vec<Vec<([f64; 3], f64)>> = samplers
-        .iter()
         .enumerate()
         .map(|(vi, s)| {
             (0..size * size)
                 .map(|i| {
                     let uv = cell_uv(i, size);
-                    (cal.colour.view(vi, uv), s.region_noise_gain(uv))
+                    (s.region_filter(frame, uv), cal.colour.view(vi, uv), s.region_noise_gain(uv))
                 })
                 .collect()
         })
@@ -273,7 +269,7 @@ pub fn extract_regions(
             // values there.
             let texel_light: Vec<f64> =
                 (0..size * size).map(|i| cal.colour.light(ci, cell_uv(i, size))).collect();
-            let texel_unit = |vi: usize, t: usize| unit(texel_light[t], texel_view[vi][t].0);
+            let texel_unit = |vi: usize, t: usize| unit(texel_light[t], texel_view[vi][t].1);
             let scaled = |s: [f64; 3], c: [f64; 3]| -> [f32; 3] {
                 std::array::from_fn(|k| (s[k] * c[k]) as f32)
             };
@@ -287,7 +283,7 @@ pub fn extract_regions(
             let exposures = scan.exposures_us(l)?;
             let noise = |vi: usize, t: usize, v: [f32; 3]| -> [f32; 3] {
                 let Some(c) = texel_unit(vi, t) else { return [0.0; 3] };
-                let filter = texel_view[vi][t].1;
+                let filter = texel_view[vi][t].2;
                 std::array::from_fn(|k| {
                     if c[k] <= 0.0 {
                         return 0.0;
@@ -296,12 +292,12 @@ pub fn extract_regions(
                     var.map_or(0.0, |var| (var * c[k] * c[k] * filter) as f32)
                 })
             };
-            let mut images: Vec<Vec<[f32; 3]>> = filters
+            let mut images: Vec<Vec<[f32; 3]>> = texel_view
                 .iter()
                 .enumerate()
                 .map(|(vi, view)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
-                    for (i, (px, b)) in img.iter_mut().zip(view).enumerate() {
+                    for (i, (px, (b, ..))) in img.iter_mut().zip(view).enumerate() {
                         if let Some(c) = texel_unit(vi, i) {
                             *px = scaled(b.apply(&f), c);
                         }

@@ -200,7 +200,7 @@ pub fn frame_bilinear(f: &Frame, x: f64, y: f64) -> [f64; 3] {
 /// Catmull–Rom bicubic RGB sample of a frame at continuous (x, y).
 #[inline]
 pub fn frame_bicubic(f: &Frame, x: f64, y: f64) -> [f64; 3] {
-    BicubicFilter::new(frame_dims(f), x, y, |_, _| true).apply(f)
+    BicubicFilter::new(frame_dims(f), x, y).apply(f)
 }
 
 /// A frame's width and height, px.
@@ -209,9 +209,8 @@ pub fn frame_dims(f: &Frame) -> [usize; 2] {
 }
 
 /// A Catmull–Rom filter at one position of frames of one size, its taps
-/// found once ([`frame_bicubic`]) and applied to
-/// any frame of that size: the region images sample every light's frame
-/// at the same positions.
+/// found once ([`frame_bicubic`]) and applied to any frame of that size:
+/// the region images sample every light's frame at the same positions.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BicubicFilter {
     /// The frame's size, px.
@@ -229,7 +228,13 @@ pub struct BicubicFilter {
 
 impl BicubicFilter {
     /// The plain filter at (x, y) of `dims` frames, edges clamped.
-    pub fn new(dims: [usize; 2], x: f64, y: f64, usable: impl Fn(f64, f64) -> bool) -> Self {
+    pub fn new(dims: [usize; 2], x: f64, y: f64) -> Self {
+        BicubicFilter::over(dims, x, y, |_, _| true)
+    }
+
+    /// The filter's taps whose pixel centres `usable` accepts, not
+    /// renormalised.
+    fn over(dims: [usize; 2], x: f64, y: f64, usable: impl Fn(f64, f64) -> bool) -> Self {
         let (fx, fy) = (x - 0.5, y - 0.5);
         let (x0, y0) = (fx.floor(), fy.floor());
         let wx = super::plane::catmull_rom(fx - x0);
@@ -257,7 +262,7 @@ impl BicubicFilter {
         usable: impl Fn(f64, f64) -> bool,
         min_weight: f64,
     ) -> Option<Self> {
-        let b = BicubicFilter::new(dims, x, y, usable);
+        let b = BicubicFilter::over(dims, x, y, usable);
         let mut sum = 0.0;
         for (j, wyj) in b.wy.iter().enumerate() {
             for (i, wxi) in b.wx.iter().enumerate() {

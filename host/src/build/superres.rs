@@ -236,7 +236,6 @@ pub type TexelNoise<'a> = dyn Fn(usize, usize, [f32; 3]) -> [f32; 3] + Sync + 'a
 /// ([`light_rows`]) are these less the pixels it leaves unusable, with its
 /// frame's values.
 pub struct Footprints {
-    samplers: Vec<ViewSampler>,
     /// The frames' width and height, px.
     frame: [usize; 2],
     size: usize,
@@ -282,7 +281,7 @@ impl Footprints {
             .enumerate()
             .map(|(vi, s)| ViewFootprint::new(vi, s, frame, &[size, 2 * size], points))
             .collect();
-        Footprints { samplers: samplers.to_vec(), frame, size, views }
+        Footprints { frame, size, views }
     }
 }
 
@@ -774,7 +773,7 @@ pub fn sharpen_light(
     opts: &SharpenOptions,
     images: &mut [Vec<[f32; 3]>],
 ) -> Option<Vec<[f32; 3]>> {
-    assert_eq!(views.samplers.len(), images.len(), "one region image per view");
+    assert_eq!(views.views.len(), images.len(), "one region image per view");
     let dims = [frame.width as usize, frame.height as usize];
     assert_eq!(views.frame, dims, "footprints made for frames of this size");
     if images.is_empty() {
