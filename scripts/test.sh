@@ -20,6 +20,8 @@ cargo check -p host --lib --no-default-features --locked
 cargo check -p host --bin scanner --no-default-features --features cli --locked
 step "tests"
 cargo test --workspace --locked
+step "vendored exr's PIZ decoder (host/vendor/exr/PATCHES.md)"
+(cd host/vendor/exr && CARGO_TARGET_DIR=../../../target/vendor-exr cargo test --release --locked --lib compression::piz)
 step "no_std build of protocol for thumbv7em-none-eabihf"
 cargo build -p protocol --target thumbv7em-none-eabihf --release --locked
 cargo build -p protocol --target thumbv7em-none-eabihf --release --locked --features defmt
