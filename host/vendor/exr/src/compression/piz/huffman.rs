@@ -34,13 +34,13 @@ pub fn decompress(compressed: &[u8], expected_size: usize) -> Result<Vec<u16>> {
         return Err(Error::invalid(NOT_ENOUGH_DATA));
     }
 
-    let encoding_table =
-        read_encoding_table(&mut remaining_compressed, min_code_index, max_code_index)?;
+    let code_lengths =
+        read_code_lengths(&mut remaining_compressed, min_code_index, max_code_index)?;
     if bit_count > 8 * remaining_compressed.len() {
         return Err(Error::invalid(INVALID_BIT_COUNT));
     }
 
-    let decoding_table = build_decoding_table(&encoding_table, min_code_index, max_code_index)?;
+    let decoding_table = build_decoding_table(&code_lengths, min_code_index)?;
 
     let result = decode_with_tables(
         &decoding_table,
@@ -90,6 +90,7 @@ fn compress_with_frequencies(uncompressed: &[u16], mut frequencies: Vec<u64>) ->
 }
 
 const ENCODE_BITS: u64 = 16; // literal (value) bit length
+const MAX_CODE_LENGTH: usize = 58;
 
 const ENCODING_TABLE_SIZE: usize = ((1 << ENCODE_BITS) + 1) as usize;
 
@@ -299,58 +300,51 @@ fn decode_with_tables(
     Ok(output)
 }
 
-/// Build the decoding table from the (canonical) encoding table.
-fn build_decoding_table(
-    encoding_table: &[u64],
-    min_code_index: usize,
-    max_code_index: usize,
-) -> Result<DecodingTable> {
-    let mut primary = vec![0_u32; 1 << PRIMARY_BITS];
-    let mut long_lengths = vec![LongCodes::default(); 64];
-    let mut long_codes: Vec<(u32, u64, u32)> = Vec::new(); // length, code, symbol
+/// Build the decoding table from the symbols' code lengths, with the codes
+/// that `build_canonical_table` assigns to them.
+fn build_decoding_table(code_lengths: &[u8], min_code_index: usize) -> Result<DecodingTable> {
+    let mut count_per_length = [0_u64; MAX_CODE_LENGTH + 1];
+    for &length in code_lengths[min_code_index..].iter().filter(|&&length| length != 0) {
+        count_per_length[usize::from(length)] += 1;
+    }
+    let mut next_code = first_code_per_length(&count_per_length);
 
-    for (code_index, &encoded_code) in
-        encoding_table[..=max_code_index].iter().enumerate().skip(min_code_index)
-    {
-        let code_index = u32::try_from(code_index).unwrap();
-
-        let code = code(encoded_code);
-        let length = length(encoded_code);
-
-        if code >> length != 0 {
+    let mut long_lengths = vec![LongCodes::default(); MAX_CODE_LENGTH + 1];
+    let mut long_code_count = 0;
+    for (length, (&count, &first_code)) in count_per_length.iter().zip(&next_code).enumerate() {
+        // The codes of one length are consecutive: the last must fit too.
+        if count != 0 && (first_code + count - 1) >> length != 0 {
             return Err(Error::invalid(INVALID_TABLE_ENTRY));
         }
-
-        if length > u64::from(PRIMARY_BITS) {
-            long_codes.push((length as u32, code, code_index));
-        } else if length != 0 {
-            let short_code = (code_index << 8) | length as u32;
-
-            let start_index =
-                u64_to_usize(code << (u64::from(PRIMARY_BITS) - length), "huffman start index")?;
-            let count = u64_to_usize(1 << (u64::from(PRIMARY_BITS) - length), "huffman count")?;
-
-            primary[start_index..start_index + count].fill(short_code);
+        if length > PRIMARY_BITS as usize {
+            long_lengths[length] = LongCodes {
+                first_code,
+                count,
+                first_symbol: long_code_count,
+            };
+            long_code_count += u64_to_usize(count, "long code count")?;
         }
     }
 
-    // By length, then (as the canonical codes of one length are) by code and symbol.
-    long_codes.sort_unstable();
-    let mut long_symbols = Vec::with_capacity(long_codes.len());
-    for (index, &(length, code, symbol)) in long_codes.iter().enumerate() {
-        let codes = &mut long_lengths[length as usize];
-        if codes.count == 0 {
-            *codes = LongCodes {
-                first_code: code,
-                count: 0,
-                first_symbol: index,
-            };
+    let mut primary = vec![0_u32; 1 << PRIMARY_BITS];
+    let mut long_symbols = vec![0_u32; long_code_count];
+    for (symbol, &length) in code_lengths.iter().enumerate().skip(min_code_index) {
+        let length = usize::from(length);
+        if length == 0 {
+            continue;
         }
-        if code != codes.first_code + codes.count {
-            return Err(Error::invalid(INVALID_TABLE_ENTRY));
+        let symbol = u32::try_from(symbol)?;
+        let code = next_code[length];
+        next_code[length] += 1;
+
+        if length > PRIMARY_BITS as usize {
+            let codes = &long_lengths[length];
+            long_symbols[codes.first_symbol + (code - codes.first_code) as usize] = symbol;
+        } else {
+            let unused_bits = PRIMARY_BITS as usize - length;
+            let start = (code as usize) << unused_bits;
+            primary[start..start + (1 << unused_bits)].fill((symbol << 8) | length as u32);
         }
-        codes.count += 1;
-        long_symbols.push(symbol);
     }
 
     Ok(DecodingTable {
@@ -360,23 +354,21 @@ fn build_decoding_table(
     })
 }
 
-/// Run-length-decompresses all zero runs from the packed table to the encoding
-/// table
-fn read_encoding_table(
+/// Run-length-decompresses all zero runs from the packed table to the code
+/// length of every symbol up to `max_code_index` (those below `min_code_index`
+/// have none).
+fn read_code_lengths(
     packed: &mut impl Read,
     min_code_index: usize,
     max_code_index: usize,
-) -> Result<Vec<u64>> {
+) -> Result<Vec<u8>> {
     let mut code_bits = 0_u64;
     let mut code_bit_count = 0_u64;
 
-    // TODO push() into encoding table instead of index stuff?
-    // Only the symbols up to the largest have codes (the others' lengths are 0).
-    let mut encoding_table = vec![0_u64; max_code_index + 1];
+    let mut code_lengths = vec![0_u8; max_code_index + 1];
     let mut code_index = min_code_index;
     while code_index <= max_code_index {
         let code_len = read_bits(6, &mut code_bits, &mut code_bit_count, packed)?;
-        encoding_table[code_index] = code_len;
 
         if code_len == LONG_ZEROCODE_RUN {
             let zerun_bits = read_bits(8, &mut code_bits, &mut code_bit_count, packed)?;
@@ -386,10 +378,6 @@ fn read_encoding_table(
                 return Err(Error::invalid(TABLE_TOO_LONG));
             }
 
-            for value in &mut encoding_table[code_index..code_index + zerun] {
-                *value = 0;
-            }
-
             code_index += zerun;
         } else if code_len >= SHORT_ZEROCODE_RUN {
             let duplication_count = usize::try_from(code_len - SHORT_ZEROCODE_RUN + 2).unwrap();
@@ -397,18 +385,14 @@ fn read_encoding_table(
                 return Err(Error::invalid(TABLE_TOO_LONG));
             }
 
-            for value in &mut encoding_table[code_index..code_index + duplication_count] {
-                *value = 0;
-            }
-
             code_index += duplication_count;
         } else {
+            code_lengths[code_index] = code_len as u8; // < SHORT_ZEROCODE_RUN
             code_index += 1;
         }
     }
 
-    build_canonical_table(&mut encoding_table[min_code_index..])?;
-    Ok(encoding_table)
+    Ok(code_lengths)
 }
 
 // TODO Use BitStreamReader for all the bit reads?!
@@ -647,29 +631,14 @@ fn pack_encoding_table(
 ///      alone, the code table can be transmitted without sending the actual
 ///      code values
 ///    - see <http://www.compressconsult.com/huffman>/
-///    - symbols outside `code_table` must have length 0: they take no code.
 fn build_canonical_table(code_table: &mut [u64]) -> UnitResult {
-    let mut count_per_code = [0_u64; 59];
+    let mut count_per_code = [0_u64; MAX_CODE_LENGTH + 1];
 
-    // Symbols without a code (length 0) are skipped: their count is never used,
-    // and counting them would make one long chain of increments of the same entry.
-    for &code in code_table.iter().filter(|&&code| code != 0) {
-        *count_per_code
-            .get_mut(u64_to_usize(code, "table entry")?)
-            .ok_or_else(|| Error::invalid(INVALID_TABLE_ENTRY))? += 1;
+    for &code in code_table.iter() {
+        count_per_code[u64_to_usize(code, "table entry")?] += 1;
     }
 
-    // For each i from 58 through 1, compute the
-    // numerically lowest code with length i, and
-    // store that code in n[i].
-    {
-        let mut code = 0_u64; // TODO use foldr?
-        for count in &mut count_per_code.iter_mut().rev() {
-            let next_code = (code + *count) >> 1;
-            *count = code;
-            code = next_code;
-        }
-    }
+    let mut count_per_code = first_code_per_length(&count_per_code);
 
     // code[i] contains the length, l, of the
     // code for symbol i.  Assign the next available
@@ -685,6 +654,21 @@ fn build_canonical_table(code_table: &mut [u64]) -> UnitResult {
     }
 
     Ok(())
+}
+
+/// For each length from 58 through 1, the numerically lowest canonical code of
+/// that length, given how many symbols have each length (the count of length 0
+/// is not used).
+fn first_code_per_length(
+    count_per_length: &[u64; MAX_CODE_LENGTH + 1],
+) -> [u64; MAX_CODE_LENGTH + 1] {
+    let mut first_codes = [0_u64; MAX_CODE_LENGTH + 1];
+    let mut code = 0_u64;
+    for (first_code, &count) in first_codes.iter_mut().zip(count_per_length).rev() {
+        *first_code = code;
+        code = (code + count) >> 1;
+    }
+    first_codes
 }
 
 /// Compute Huffman codes (based on frq input) and store them in frq:
@@ -1046,8 +1030,8 @@ mod test {
         let mut rest = &compressed[20..];
         let min = u32::from_le_bytes(compressed[0..4].try_into().unwrap()) as usize;
         let max = u32::from_le_bytes(compressed[4..8].try_into().unwrap()) as usize;
-        let table = read_encoding_table(&mut rest, min, max).unwrap();
-        table.iter().map(|&code| length(code)).max().unwrap()
+        let lengths = read_code_lengths(&mut rest, min, max).unwrap();
+        u64::from(*lengths.iter().max().unwrap())
     }
 
     /// Codes far longer than the primary table's `PRIMARY_BITS`, up to the
