@@ -40,7 +40,7 @@ pub fn decompress(compressed: &[u8], expected_size: usize) -> Result<Vec<u16>> {
         return Err(Error::invalid(INVALID_BIT_COUNT));
     }
 
-    let decoding_table = build_decoding_table(&code_lengths, min_code_index)?;
+    let decoding_table = build_decoding_table(&code_lengths, min_code_index, max_code_index_32)?;
 
     let result = decode_with_tables(
         &decoding_table,
@@ -108,14 +108,24 @@ const PRIMARY_BITS: u32 = 12;
 /// their length: the codes are canonical (`build_canonical_table`), so the codes
 /// of one length are consecutive numbers, assigned in the order of their symbols.
 struct DecodingTable {
-    /// Per prefix: `symbol << 8 | length` of the short code it starts with, or 0.
-    primary: Vec<u32>,
+    /// Per prefix: the short code it starts with (`FIRST_*`, or 0), and the
+    /// short code that follows within the prefix (`BOTH_*`, or 0), when
+    /// neither is the run code and both symbols are `u16`s.
+    primary: Vec<u64>,
     /// Per code length: the lowest code of that length, how many codes have it,
     /// and where their symbols start in `long_symbols` (lengths ≤ `PRIMARY_BITS`
     /// are empty).
     long_lengths: Vec<LongCodes>,
     long_symbols: Vec<u32>,
 }
+
+/// The length of the first code in a `primary` entry, and its symbol.
+const FIRST_LENGTH: u64 = 0xFF;
+const FIRST_SYMBOL_SHIFT: u32 = 16;
+const SYMBOL_MASK: u64 = 0x1_FFFF;
+/// The length of the first two codes together, and the second's symbol.
+const BOTH_LENGTH_SHIFT: u32 = 8;
+const SECOND_SYMBOL_SHIFT: u32 = 33;
 
 #[derive(Clone, Copy, Default)]
 struct LongCodes {
@@ -264,9 +274,21 @@ fn decode_with_tables(
         }
         let entry = decoding_table.primary[bits.peek(PRIMARY_BITS) as usize];
 
+        // Two short codes at once (neither a run), where the stream has both.
+        let both_length = ((entry >> BOTH_LENGTH_SHIFT) & FIRST_LENGTH) as u32;
+        if both_length != 0 && both_length as usize <= bits.remaining {
+            if output.len() + 2 > expected_output_size {
+                return Err(Error::invalid(TOO_MUCH_DATA));
+            }
+            bits.consume(both_length)?;
+            output.push((entry >> FIRST_SYMBOL_SHIFT) as u16);
+            output.push((entry >> SECOND_SYMBOL_SHIFT) as u16);
+            continue;
+        }
+
         let symbol = if entry != 0 {
-            bits.consume(entry & 0xFF)?;
-            entry >> 8
+            bits.consume((entry & FIRST_LENGTH) as u32)?;
+            ((entry >> FIRST_SYMBOL_SHIFT) & SYMBOL_MASK) as u32
         } else {
             decoding_table.decode_long(&mut bits)?
         };
@@ -302,7 +324,11 @@ fn decode_with_tables(
 
 /// Build the decoding table from the symbols' code lengths, with the codes
 /// that `build_canonical_table` assigns to them.
-fn build_decoding_table(code_lengths: &[u8], min_code_index: usize) -> Result<DecodingTable> {
+fn build_decoding_table(
+    code_lengths: &[u8],
+    min_code_index: usize,
+    run_length_code: u32,
+) -> Result<DecodingTable> {
     let mut count_per_length = [0_u64; MAX_CODE_LENGTH + 1];
     for &length in code_lengths[min_code_index..].iter().filter(|&&length| length != 0) {
         count_per_length[usize::from(length)] += 1;
@@ -326,7 +352,8 @@ fn build_decoding_table(code_lengths: &[u8], min_code_index: usize) -> Result<De
         }
     }
 
-    let mut primary = vec![0_u32; 1 << PRIMARY_BITS];
+    // Per prefix, `symbol << 8 | length` of the short code it starts with.
+    let mut short_codes = vec![0_u32; 1 << PRIMARY_BITS];
     let mut long_symbols = vec![0_u32; long_code_count];
     for (symbol, &length) in code_lengths.iter().enumerate().skip(min_code_index) {
         let length = usize::from(length);
@@ -343,9 +370,34 @@ fn build_decoding_table(code_lengths: &[u8], min_code_index: usize) -> Result<De
         } else {
             let unused_bits = PRIMARY_BITS as usize - length;
             let start = (code as usize) << unused_bits;
-            primary[start..start + (1 << unused_bits)].fill((symbol << 8) | length as u32);
+            short_codes[start..start + (1 << unused_bits)].fill((symbol << 8) | length as u32);
         }
     }
+
+    let pairable = |symbol: u32| symbol != run_length_code && symbol <= u32::from(u16::MAX);
+    let primary = short_codes
+        .iter()
+        .enumerate()
+        .map(|(prefix, &first)| {
+            let (first_length, first_symbol) = (first & 0xFF, first >> 8);
+            let mut entry =
+                (u64::from(first_symbol) << FIRST_SYMBOL_SHIFT) | u64::from(first_length);
+            if first != 0 && first_length < PRIMARY_BITS && pairable(first_symbol) {
+                // The prefix's bits after the first code: the second code is
+                // known if it ends within them.
+                let second = short_codes[(prefix << first_length) & ((1 << PRIMARY_BITS) - 1)];
+                let (second_length, second_symbol) = (second & 0xFF, second >> 8);
+                if second != 0
+                    && first_length + second_length <= PRIMARY_BITS
+                    && pairable(second_symbol)
+                {
+                    entry |= (u64::from(first_length + second_length) << BOTH_LENGTH_SHIFT)
+                        | (u64::from(second_symbol) << SECOND_SYMBOL_SHIFT);
+                }
+            }
+            entry
+        })
+        .collect();
 
     Ok(DecodingTable {
         primary,
@@ -1085,6 +1137,23 @@ mod test {
                 assert!(longest_code(&compressed) > u64::from(PRIMARY_BITS));
             }
             assert_eq!(decompress(&compressed, raw.len()).unwrap(), raw, "spread {}", spread);
+        }
+    }
+
+    /// Few symbols (all codes short, the run code too, zeros a code) in
+    /// streams of every length: no code is taken from the last byte's
+    /// padding, and a run's count is never taken for a code.
+    #[test]
+    fn short_streams_of_few_symbols_round_trip() {
+        let mut random = rand::rngs::StdRng::from_seed(SEED);
+        for symbols in 1..5_u16 {
+            for length in 1..80 {
+                let raw: Vec<u16> = (0..length)
+                    .map(|_| if random.gen_bool(0.8) { random.gen_range(0..symbols) } else { 7 })
+                    .collect();
+                let compressed = compress(&raw).unwrap();
+                assert_eq!(decompress(&compressed, raw.len()).unwrap(), raw, "{:?}", raw);
+            }
         }
     }
 
