@@ -100,7 +100,7 @@ const SHORTEST_LONG_RUN: u64 = 2 + LONG_ZEROCODE_RUN - SHORT_ZEROCODE_RUN;
 const LONGEST_LONG_RUN: u64 = 255 + SHORTEST_LONG_RUN;
 
 /// How many bits of the stream the primary decoding table resolves at once.
-/// 2¹² four-byte entries stay in the first-level cache.
+/// 2¹² eight-byte entries (32 KB) stay in the first-level cache.
 const PRIMARY_BITS: u32 = 12;
 
 /// The decoding table. Codes of at most `PRIMARY_BITS` bits are resolved by one
