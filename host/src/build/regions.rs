@@ -176,6 +176,16 @@ impl Default for RegionOptions {
     }
 }
 
+/// What a view's region image takes from one texel under every light.
+struct TexelView {
+    /// The frame pixels the texel is resampled from.
+    filter: BicubicFilter,
+    /// The colour calibration's view response there.
+    response: [f64; 3],
+    /// The filter's noise gain.
+    noise_gain: f64,
+}
+
 /// Extract the calibrated region images of `scan`.
 pub fn extract_regions(
     g: &ScannerGeometry,
@@ -222,14 +232,18 @@ pub fn extract_regions(
     // response and the filter's noise gain; and which texels each view's
     // pixels see.
     let frame = [g.camera.width as usize, g.camera.height as usize];
-    let texel_view: Vec<Vec<(BicubicFilter, [f64; 3], f64)>> = samplers
+    let texel_view: Vec<Vec<TexelView>> = samplers
         .par_iter()
         .enumerate()
         .map(|(vi, s)| {
             (0..size * size)
                 .map(|i| {
                     let uv = cell_uv(i, size);
-                    (s.region_filter(frame, uv), cal.colour.view(vi, uv), s.region_noise_gain(uv))
+                    TexelView {
+                        filter: s.region_filter(frame, uv),
+                        response: cal.colour.view(vi, uv),
+                        noise_gain: s.region_noise_gain(uv),
+                    }
                 })
                 .collect()
         })
@@ -269,7 +283,7 @@ pub fn extract_regions(
             // values there.
             let texel_light: Vec<f64> =
                 (0..size * size).map(|i| cal.colour.light(ci, cell_uv(i, size))).collect();
-            let texel_unit = |vi: usize, t: usize| unit(texel_light[t], texel_view[vi][t].1);
+            let texel_unit = |vi: usize, t: usize| unit(texel_light[t], texel_view[vi][t].response);
             let scaled = |s: [f64; 3], c: [f64; 3]| -> [f32; 3] {
                 std::array::from_fn(|k| (s[k] * c[k]) as f32)
             };
@@ -283,7 +297,7 @@ pub fn extract_regions(
             let exposures = scan.exposures_us(l)?;
             let noise = |vi: usize, t: usize, v: [f32; 3]| -> [f32; 3] {
                 let Some(c) = texel_unit(vi, t) else { return [0.0; 3] };
-                let filter = texel_view[vi][t].2;
+                let filter = texel_view[vi][t].noise_gain;
                 std::array::from_fn(|k| {
                     if c[k] <= 0.0 {
                         return 0.0;
@@ -297,9 +311,9 @@ pub fn extract_regions(
                 .enumerate()
                 .map(|(vi, view)| {
                     let mut img = vec![[0.0f32; 3]; size * size];
-                    for (i, (px, (b, ..))) in img.iter_mut().zip(view).enumerate() {
+                    for (i, (px, texel)) in img.iter_mut().zip(view).enumerate() {
                         if let Some(c) = texel_unit(vi, i) {
-                            *px = scaled(b.apply(&f), c);
+                            *px = scaled(texel.filter.apply(&f), c);
                         }
                     }
                     img

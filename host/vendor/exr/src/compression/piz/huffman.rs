@@ -119,11 +119,12 @@ struct DecodingTable {
     long_symbols: Vec<u32>,
 }
 
-/// The length of the first code in a `primary` entry, and its symbol.
-const FIRST_LENGTH: u64 = 0xFF;
+/// A `primary` entry: the first code's length (the low byte) and symbol, the
+/// length of the first two codes together (the next byte) and the second's
+/// symbol.
+const LENGTH_MASK: u64 = 0xFF;
 const FIRST_SYMBOL_SHIFT: u32 = 16;
 const SYMBOL_MASK: u64 = 0x1_FFFF;
-/// The length of the first two codes together, and the second's symbol.
 const BOTH_LENGTH_SHIFT: u32 = 8;
 const SECOND_SYMBOL_SHIFT: u32 = 33;
 
@@ -256,7 +257,7 @@ impl<'a> BitReader<'a> {
     }
 }
 
-/// Decode (uncompress) the bit stream based on encoding & decoding tables:
+/// Decode (uncompress) the bit stream with the decoding table.
 fn decode_with_tables(
     decoding_table: &DecodingTable,
     input: &[u8],
@@ -275,7 +276,7 @@ fn decode_with_tables(
         let entry = decoding_table.primary[bits.peek(PRIMARY_BITS) as usize];
 
         // Two short codes at once (neither a run), where the stream has both.
-        let both_length = ((entry >> BOTH_LENGTH_SHIFT) & FIRST_LENGTH) as u32;
+        let both_length = ((entry >> BOTH_LENGTH_SHIFT) & LENGTH_MASK) as u32;
         if both_length != 0 && both_length as usize <= bits.remaining {
             if output.len() + 2 > expected_output_size {
                 return Err(Error::invalid(TOO_MUCH_DATA));
@@ -287,7 +288,7 @@ fn decode_with_tables(
         }
 
         let symbol = if entry != 0 {
-            bits.consume((entry & FIRST_LENGTH) as u32)?;
+            bits.consume((entry & LENGTH_MASK) as u32)?;
             ((entry >> FIRST_SYMBOL_SHIFT) & SYMBOL_MASK) as u32
         } else {
             decoding_table.decode_long(&mut bits)?
@@ -684,6 +685,8 @@ fn pack_encoding_table(
 ///      code values
 ///    - see <http://www.compressconsult.com/huffman>/
 fn build_canonical_table(code_table: &mut [u64]) -> UnitResult {
+    debug_assert_eq!(code_table.len(), ENCODING_TABLE_SIZE);
+
     let mut count_per_code = [0_u64; MAX_CODE_LENGTH + 1];
 
     for &code in code_table.iter() {
