@@ -594,12 +594,19 @@ impl CameraRays {
     }
 }
 
+/// log₂ of the width of [`DarkCodes::first`]'s buckets of uniform numbers.
+const DARK_BUCKET_BITS: u32 = 20;
+
 /// The ADC code distribution of a pixel that receives no light: read noise
 /// alone, quantised and clipped at 0. Dark pixels (most of a frame) draw
 /// their code from it with one uniform number instead of a Gaussian.
 struct DarkCodes {
     /// `cdf[k]` = P(code ≤ k) × 2³², the last entry 2³².
     cdf: Vec<u64>,
+    /// `first[b]`: the code drawn by u = b · 2²⁰, where the search for any
+    /// u of that 2²⁰-wide bucket may start (the code grows with u). Most
+    /// buckets hold one code, so the search ends at its first step.
+    first: Vec<u16>,
 }
 
 impl DarkCodes {
@@ -624,12 +631,20 @@ impl DarkCodes {
         if cdf.last() != Some(&(1 << 32)) {
             cdf.push(1 << 32);
         }
-        DarkCodes { cdf }
+        let first = (0..1u64 << (32 - DARK_BUCKET_BITS))
+            .map(|b| Self::search(&cdf, 0, b << DARK_BUCKET_BITS) as u16)
+            .collect();
+        DarkCodes { cdf, first }
     }
 
     fn sample(&self, u: u32) -> usize {
-        let u = u as u64;
-        self.cdf.iter().position(|&c| u < c).unwrap_or(self.cdf.len() - 1)
+        let from = self.first[(u >> DARK_BUCKET_BITS) as usize] as usize;
+        Self::search(&self.cdf, from, u as u64)
+    }
+
+    /// The first code k ≥ `from` with u < `cdf[k]`.
+    fn search(cdf: &[u64], from: usize, u: u64) -> usize {
+        cdf[from..].iter().position(|&c| u < c).map_or(cdf.len() - 1, |k| from + k)
     }
 }
 
@@ -686,5 +701,17 @@ mod tests {
         assert!(d.cdf.len() < 12);
         assert_eq!(d.sample(0), 0);
         assert_eq!(d.sample(u32::MAX), d.cdf.len() - 1);
+        // The buckets only say where to start: every u draws the code of the
+        // search from code 0, at each code's bounds and in between, for this
+        // read noise and for one of σ ≈ 50 DN (many codes per bucket).
+        for d in [d, DarkCodes::new(120.0, 4095.0 / 10_000.0, 4095.0)] {
+            let mut us: Vec<u32> = (0..100_000u64).map(|i| (i * 42_949 + 17) as u32).collect();
+            for &c in &d.cdf {
+                us.extend([c.saturating_sub(1), c].map(|u| u.min(u32::MAX as u64) as u32));
+            }
+            for u in us {
+                assert_eq!(d.sample(u), DarkCodes::search(&d.cdf, 0, u as u64), "u = {u}");
+            }
+        }
     }
 }

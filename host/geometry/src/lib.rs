@@ -140,8 +140,11 @@ pub fn radial_distort(k: [f64; 2], n: [f64; 2]) -> [f64; 2] {
 /// The inverse of [`radial_distort`] (Newton's method on the radius), for
 /// distortions that are monotonic over the image ([`ScannerGeometry::validate`]).
 pub fn radial_undistort(k: [f64; 2], d: [f64; 2]) -> [f64; 2] {
+    if k == [0.0; 2] {
+        return d;
+    }
     let rd = d[0].hypot(d[1]);
-    if k == [0.0; 2] || rd == 0.0 {
+    if rd == 0.0 {
         return d;
     }
     let mut r = rd;
