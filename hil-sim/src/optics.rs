@@ -603,10 +603,11 @@ const DARK_BUCKET_BITS: u32 = 20;
 struct DarkCodes {
     /// `cdf[k]` = P(code ≤ k) × 2³², the last entry 2³².
     cdf: Vec<u64>,
-    /// `first[b]`: the code drawn by u = b · 2²⁰, where the search for any
-    /// u of that 2²⁰-wide bucket may start (the code grows with u). Most
-    /// buckets hold one code, so the search ends at its first step.
-    first: Vec<u16>,
+    /// `first[b]`: the code drawn by the bucket's smallest u, b ·
+    /// 2^[`DARK_BUCKET_BITS`], where the search for any u of the bucket may
+    /// start (the code grows with u). Most buckets hold one code, so the
+    /// search ends at its first step.
+    first: Vec<u32>,
 }
 
 impl DarkCodes {
@@ -632,7 +633,7 @@ impl DarkCodes {
             cdf.push(1 << 32);
         }
         let first = (0..1u64 << (32 - DARK_BUCKET_BITS))
-            .map(|b| Self::search(&cdf, 0, b << DARK_BUCKET_BITS) as u16)
+            .map(|b| Self::search(&cdf, 0, b << DARK_BUCKET_BITS) as u32)
             .collect();
         DarkCodes { cdf, first }
     }
