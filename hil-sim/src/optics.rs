@@ -21,7 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use crate::geometry::{
     AsBuilt, AxisValues, Beam, Facet, ScannerGeometry, Tolerances, world_to_sample,
@@ -114,6 +114,10 @@ type ElectronCache = Arc<Mutex<Option<(AxisValues, Arc<ElectronRows>)>>>;
 /// Expected electrons per camera row (`None`: a row no light reaches).
 type ElectronRows = Vec<Option<Vec<[f32; 3]>>>;
 
+/// Per camera row, the runs of pixels [x0, x1), ascending and disjoint, that
+/// a frame renders.
+type PixelSpans = Vec<Vec<[u32; 2]>>;
+
 /// The optical simulator of one as-built scanner holding one sample.
 #[derive(Debug, Clone)]
 pub struct OpticalSim {
@@ -125,6 +129,11 @@ pub struct OpticalSim {
     seed: u64,
     /// Per mirror: image-space bounding box (x0, y0, x1, y1), clipped.
     boxes: Vec<Option<[u32; 4]>>,
+    /// The pixels of the boxes where some sub-pixel ray sees the sample
+    /// through a mirror: the only ones light can reach. Most of a box sees
+    /// the mirror but not the sample. They depend on the geometry alone, so
+    /// every frame shares them; found by the first lit frame.
+    sees_sample: Arc<OnceLock<PixelSpans>>,
     /// The mirrors, ready for tracing.
     facets: Vec<Facet>,
     /// The sensor's defective pixels (none unless asked for).
@@ -165,6 +174,7 @@ impl OpticalSim {
             sample,
             seed,
             boxes,
+            sees_sample: Default::default(),
             facets,
             cache: Default::default(),
             defects: Arc::new([]),
@@ -375,70 +385,119 @@ impl OpticalSim {
 
     /// Expected electrons per channel for every pixel (noise-free), or
     /// `None` rows that see nothing (all dark).
-    fn electrons(&self, exposure: &Exposure) -> Vec<Option<Vec<[f32; 3]>>> {
+    fn electrons(&self, exposure: &Exposure) -> ElectronRows {
+        let light = exposure.exposure_s * exposure.light.clamp(0.0, 1.0);
+        if light <= 0.0 {
+            return vec![None; self.geometry.camera.height as usize];
+        }
+        let spans = self.sees_sample.get_or_init(|| self.sample_spans());
+        self.electrons_over(exposure, spans)
+    }
+
+    /// The mirrors whose boxes cross camera row `y`, each with its box's x
+    /// range.
+    fn row_mirrors(&self, y: usize) -> Vec<(usize, [u32; 2])> {
+        let inside = |b: &[u32; 4]| (b[1] as usize..b[3] as usize).contains(&y);
+        self.boxes
+            .iter()
+            .enumerate()
+            .filter_map(|(l, b)| b.filter(inside).map(|b| (l, [b[0], b[2]])))
+            .collect()
+    }
+
+    /// The mirrors of `row` (from [`Self::row_mirrors`]) whose boxes hold
+    /// pixel `x`, into `here`: the candidates of its rays.
+    fn mirrors_at(row: &[(usize, [u32; 2])], x: usize, here: &mut Vec<usize>) {
+        here.clear();
+        here.extend(
+            row.iter()
+                .filter(|(_, r)| (r[0] as usize..r[1] as usize).contains(&x))
+                .map(|&(l, _)| l),
+        );
+    }
+
+    /// The image points of pixel (x, y)'s sub-pixel rays.
+    fn subpixels(x: usize, y: usize) -> impl Iterator<Item = (f64, f64)> {
+        let n = SUPERSAMPLE as f64;
+        (0..SUPERSAMPLE).flat_map(move |sy| {
+            (0..SUPERSAMPLE)
+                .map(move |sx| (x as f64 + (sx as f64 + 0.5) / n, y as f64 + (sy as f64 + 0.5) / n))
+        })
+    }
+
+    /// [`OpticalSim::sees_sample`]: every box pixel whose rays
+    /// [`Self::radiance_at`] would trace, and where one of them reaches the
+    /// sample.
+    fn sample_spans(&self) -> PixelSpans {
+        let cam = &self.geometry.camera;
+        let origin = DVec3::from(cam.position_mm);
+        let rays = CameraRays::new(cam);
+        (0..cam.height as usize)
+            .into_par_iter()
+            .map(|y| {
+                let mirrors = self.row_mirrors(y);
+                let mut spans: Vec<[u32; 2]> = Vec::new();
+                let mut here = Vec::with_capacity(mirrors.len());
+                for x in 0..cam.width as usize {
+                    Self::mirrors_at(&mirrors, x, &mut here);
+                    if here.is_empty()
+                        || !Self::subpixels(x, y).any(|(fx, fy)| {
+                            self.trace_ray(origin, rays.ray(fx, fy), Some(&here)).is_some()
+                        })
+                    {
+                        continue;
+                    }
+                    let x = x as u32;
+                    match spans.last_mut() {
+                        Some(span) if span[1] == x => span[1] = x + 1,
+                        _ => spans.push([x, x + 1]),
+                    }
+                }
+                spans
+            })
+            .collect()
+    }
+
+    /// [`Self::electrons`] over the pixels of `spans` (the others dark).
+    fn electrons_over(&self, exposure: &Exposure, spans: &PixelSpans) -> ElectronRows {
         let g = &self.geometry;
         let cam = &g.camera;
-        let (w, h) = (cam.width as usize, cam.height as usize);
+        let w = cam.width as usize;
         let beam = g.beam(exposure.axes);
         let lit = if exposure.light > 0.0 { self.lit_mirrors(&beam) } else { Vec::new() };
         let scale = exposure.exposure_s * exposure.light.clamp(0.0, 1.0) * g.sensor.sensitivity_e;
         let origin = DVec3::from(cam.position_mm);
         let rays = CameraRays::new(cam);
         let scene = Scene { rays: &rays, origin, beam, lit: &lit };
-        (0..h)
-            .into_par_iter()
-            .map(|y| {
-                if lit.is_empty() || scale <= 0.0 {
+        spans
+            .par_iter()
+            .enumerate()
+            .map(|(y, spans)| {
+                if lit.is_empty() || scale <= 0.0 || spans.is_empty() {
                     return None;
                 }
-                let candidates: Vec<usize> = self
-                    .boxes
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(l, b)| {
-                        b.filter(|b| (b[1] as usize..b[3] as usize).contains(&y)).map(|_| l)
-                    })
-                    .collect();
-                if candidates.is_empty() {
-                    return None;
-                }
-                let x_ranges: Vec<[u32; 2]> = candidates
-                    .iter()
-                    .map(|&l| self.boxes[l].map(|b| [b[0], b[2]]).unwrap())
-                    .collect();
+                let mirrors = self.row_mirrors(y);
                 let mut row = vec![[0.0f32; 3]; w];
-                let mut here: Vec<usize> = Vec::with_capacity(candidates.len());
+                let mut here: Vec<usize> = Vec::with_capacity(mirrors.len());
                 let mut any = false;
-                for (x, px) in row.iter_mut().enumerate() {
-                    here.clear();
-                    here.extend(
-                        candidates
-                            .iter()
-                            .zip(&x_ranges)
-                            .filter(|(_, r)| (r[0] as usize..r[1] as usize).contains(&x))
-                            .map(|(&l, _)| l),
-                    );
+                for x in spans.iter().flat_map(|&[x0, x1]| x0 as usize..x1 as usize) {
+                    Self::mirrors_at(&mirrors, x, &mut here);
                     if here.is_empty() {
                         continue;
                     }
                     let mut acc = [0.0; 3];
-                    let n = SUPERSAMPLE;
-                    for sy in 0..n {
-                        for sx in 0..n {
-                            let fx = x as f64 + (sx as f64 + 0.5) / n as f64;
-                            let fy = y as f64 + (sy as f64 + 0.5) / n as f64;
-                            let r = self.radiance_at(&scene, fx, fy, &here);
-                            for k in 0..3 {
-                                acc[k] += r[k];
-                            }
+                    for (fx, fy) in Self::subpixels(x, y) {
+                        let r = self.radiance_at(&scene, fx, fy, &here);
+                        for k in 0..3 {
+                            acc[k] += r[k];
                         }
                     }
-                    let cos = rays.ray(x as f64 + 0.5, y as f64 + 0.5).dot(rays.forward);
-                    let vig = cos.powf(g.sensor.vignetting_exponent);
-                    let k = scale * vig / (n * n) as f64;
                     if acc.iter().any(|&v| v > 0.0) {
+                        let cos = rays.ray(x as f64 + 0.5, y as f64 + 0.5).dot(rays.forward);
+                        let vig = cos.powf(g.sensor.vignetting_exponent);
+                        let k = scale * vig / (SUPERSAMPLE * SUPERSAMPLE) as f64;
                         any = true;
-                        *px = acc.map(|v| (v * k) as f32);
+                        row[x] = acc.map(|v| (v * k) as f32);
                     }
                 }
                 any.then_some(row)
@@ -691,6 +750,45 @@ fn sensor_readout(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Rendering only the pixels that see the sample gives the frames that
+    /// rendering every pixel gives, bit for bit: on a pinhole and on a
+    /// distorting lens, and after another sample takes the holder (the
+    /// pixels are the geometry's, shared with the new sample).
+    #[test]
+    fn pixels_that_cannot_see_the_sample_are_left_out_exactly() {
+        let nominal = ScannerGeometry::default_scanner().with_sensor_scaled(8);
+        let fabric = crate::materials::by_name("woven-fabric").unwrap();
+        let pinhole = OpticalSim::as_built(&nominal, Sample::small(fabric), 3);
+        let barrel = pinhole.clone().with_lens_distortion([-0.05, 0.0]);
+        let metal =
+            pinhole.with_sample(Sample::small(crate::materials::by_name("rough-metal").unwrap()));
+        let (w, h) = (nominal.camera.width, nominal.camera.height as usize);
+        let every_pixel: PixelSpans = vec![vec![[0, w]]; h];
+        for sim in [&pinhole, &barrel, &metal] {
+            for l in [0, 7, 22, 39] {
+                let axes = sim.geometry.mirror_axes(l).unwrap();
+                let exposure = Exposure { axes, exposure_s: 0.05, light: 1.0 };
+                let fast = sim.electrons(&exposure);
+                assert!(fast.iter().flatten().flatten().any(|e| e[0] > 0.0), "mirror {l}: dark");
+                assert_eq!(fast, sim.electrons_over(&exposure, &every_pixel), "mirror {l}");
+            }
+            // Most of the mirrors' boxes see no sample, and are left out.
+            let boxes: u64 =
+                sim.boxes.iter().flatten().map(|b| u64::from((b[2] - b[0]) * (b[3] - b[1]))).sum();
+            let seen: u64 = sim
+                .sees_sample
+                .get()
+                .unwrap()
+                .iter()
+                .flatten()
+                .map(|s| u64::from(s[1] - s[0]))
+                .sum();
+            assert!(seen > 0 && 2 * seen < boxes, "{seen} of {boxes} px");
+        }
+        assert!(Arc::ptr_eq(&pinhole.sees_sample, &metal.sees_sample));
+        assert!(!Arc::ptr_eq(&pinhole.sees_sample, &barrel.sees_sample));
+    }
 
     #[test]
     fn dark_codes_follow_the_quantised_read_noise() {
