@@ -42,6 +42,13 @@ pub struct Exposure {
     pub light: f64,
 }
 
+impl Exposure {
+    /// Exposure time × light duty (s): what the frame's electrons scale with.
+    fn dose(&self) -> f64 {
+        self.exposure_s * self.light.clamp(0.0, 1.0)
+    }
+}
+
 /// A linear float RGB image, row-major, interleaved.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
@@ -386,8 +393,7 @@ impl OpticalSim {
     /// Expected electrons per channel for every pixel (noise-free), or
     /// `None` rows that see nothing (all dark).
     fn electrons(&self, exposure: &Exposure) -> ElectronRows {
-        let light = exposure.exposure_s * exposure.light.clamp(0.0, 1.0);
-        if light <= 0.0 {
+        if exposure.dose() <= 0.0 {
             return vec![None; self.geometry.camera.height as usize];
         }
         let spans = self.sees_sample.get_or_init(|| self.sample_spans());
@@ -465,7 +471,7 @@ impl OpticalSim {
         let w = cam.width as usize;
         let beam = g.beam(exposure.axes);
         let lit = if exposure.light > 0.0 { self.lit_mirrors(&beam) } else { Vec::new() };
-        let scale = exposure.exposure_s * exposure.light.clamp(0.0, 1.0) * g.sensor.sensitivity_e;
+        let scale = exposure.dose() * g.sensor.sensitivity_e;
         let origin = DVec3::from(cam.position_mm);
         let rays = CameraRays::new(cam);
         let scene = Scene { rays: &rays, origin, beam, lit: &lit };
@@ -509,7 +515,7 @@ impl OpticalSim {
     /// the scene of the previous lit exposure at the same axis positions
     /// (electrons scale with exposure × duty).
     fn electrons_cached(&self, exposure: &Exposure) -> (Arc<ElectronRows>, f32) {
-        let scale = exposure.exposure_s * exposure.light.clamp(0.0, 1.0);
+        let scale = exposure.dose();
         if scale <= 0.0 {
             return (Arc::new(self.electrons(exposure)), 1.0);
         }
@@ -599,16 +605,11 @@ impl OpticalSim {
                 let row = (0..n)
                     .map(|x| {
                         let mut acc = [0.0; 3];
-                        for sy in 0..SUPERSAMPLE {
-                            for sx in 0..SUPERSAMPLE {
-                                let u =
-                                    (x as f64 + (sx as f64 + 0.5) / SUPERSAMPLE as f64) / n as f64;
-                                let v =
-                                    (y as f64 + (sy as f64 + 0.5) / SUPERSAMPLE as f64) / n as f64;
-                                let r = piece.reflected_radiance([u, v], dir, dir);
-                                for k in 0..3 {
-                                    acc[k] += r[k];
-                                }
+                        for (fx, fy) in Self::subpixels(x, y) {
+                            let r =
+                                piece.reflected_radiance([fx / n as f64, fy / n as f64], dir, dir);
+                            for k in 0..3 {
+                                acc[k] += r[k];
                             }
                         }
                         acc.map(|v| (v * scale / (SUPERSAMPLE * SUPERSAMPLE) as f64) as f32)
