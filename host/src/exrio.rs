@@ -14,19 +14,27 @@ pub const TILE: usize = 256;
 
 /// Encode `frame` as a half-float, PIZ-compressed RGB OpenEXR file in memory.
 pub fn encode_half(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
-    encode_half_with(frame, Compression::PIZ)
+    let mut out = Vec::new();
+    encode_half_into(frame, Compression::PIZ, &mut out)?;
+    Ok(out)
 }
 
 /// The same without compression: for short-lived files (an HDR bracket's
 /// single exposures), where encoding time matters more than size.
 pub fn encode_half_uncompressed(frame: &Frame) -> std::result::Result<Vec<u8>, String> {
-    encode_half_with(frame, Compression::Uncompressed)
+    let mut out = Vec::new();
+    encode_half_into(frame, Compression::Uncompressed, &mut out)?;
+    Ok(out)
 }
 
-fn encode_half_with(
+/// Encode `frame` as a half-float OpenEXR file (PIZ or uncompressed) into
+/// `out`, replacing its contents: a writer that stores frame after frame
+/// reuses one buffer's memory instead of faulting in a new one's pages.
+pub fn encode_half_into(
     frame: &Frame,
     compression: Compression,
-) -> std::result::Result<Vec<u8>, String> {
+    out: &mut Vec<u8>,
+) -> std::result::Result<(), String> {
     use exr::block::writer::ChunksWriter;
     use exr::block::{BlockIndex, UncompressedBlock};
     use exr::math::RoundingMode;
@@ -74,28 +82,42 @@ fn encode_half_with(
         .map(|(i, index)| {
             let (x0, y0) = (index.pixel_position.x(), index.pixel_position.y());
             let (bw, bh) = (index.pixel_size.x(), index.pixel_size.y());
-            let mut data = Vec::with_capacity(bw * bh * 3 * 2);
-            let (mut channel, mut halves) = (vec![0.0f32; bw], vec![f16::ZERO; bw]);
+            let mut data = vec![0u8; bw * bh * 3 * 2];
+            let mut halves = vec![f16::ZERO; 3 * bw];
+            let mut lines = data.chunks_exact_mut(2 * bw);
             for y in y0..y0 + bh {
-                let line = &rgb[3 * (y * w + x0)..3 * (y * w + x0 + bw)];
-                for &(_, c) in &ORDER {
-                    for (v, px) in channel.iter_mut().zip(line.chunks_exact(3)) {
-                        *v = px[c];
+                halves.convert_from_f32_slice(&rgb[3 * (y * w + x0)..3 * (y * w + x0 + bw)]);
+                for (&(_, c), line) in ORDER.iter().zip(&mut lines) {
+                    for (bytes, px) in line.chunks_exact_mut(2).zip(halves.chunks_exact(3)) {
+                        bytes.copy_from_slice(&px[c].to_ne_bytes());
                     }
-                    halves.convert_from_f32_slice(&channel);
-                    data.extend(halves.iter().flat_map(|v| v.to_ne_bytes()));
                 }
             }
             UncompressedBlock { index, data }.compress_to_chunk(&headers).map(|chunk| (i, chunk))
         })
         .collect::<exr::error::Result<Vec<_>>>()
         .map_err(|e| e.to_string())?;
-    let mut out = std::io::Cursor::new(Vec::new());
-    exr::block::write(&mut out, headers.clone(), true, |_, writer| {
+    // The whole file in one allocation: chunks, their offset table and the
+    // header (a generous bound), instead of a doubling `Vec`'s copies.
+    let payload: usize = chunks.iter().map(|(_, c)| chunk_bytes(c)).sum();
+    out.clear();
+    out.reserve(payload + 16 * chunks.len() + 4096);
+    exr::block::write(std::io::Cursor::new(out), headers.clone(), true, |_, writer| {
         chunks.into_iter().try_for_each(|(i, chunk)| writer.write_chunk(i, chunk))
     })
-    .map_err(|e| e.to_string())?;
-    Ok(out.into_inner())
+    .map_err(|e| e.to_string())
+}
+
+/// A chunk's size in the file, at most: its pixel bytes and 20 bytes of
+/// block header (the size only reserves memory).
+fn chunk_bytes(chunk: &exr::block::chunk::Chunk) -> usize {
+    use exr::block::chunk::CompressedBlock;
+    match &chunk.compressed_block {
+        CompressedBlock::ScanLine(b) => b.compressed_pixels_le.len() + 20,
+        CompressedBlock::Tile(b) => b.compressed_pixels_le.len() + 20,
+        CompressedBlock::DeepScanLine(b) => b.compressed_sample_data_le.len() + 20,
+        CompressedBlock::DeepTile(b) => b.compressed_sample_data_le.len() + 20,
+    }
 }
 
 /// The frame as stored: every value rounded to half float.
@@ -305,6 +327,20 @@ mod tests {
             assert!(read_rgb(&p).unwrap() == f);
             let raw = write(dir.path(), "r.exr", &encode_half_uncompressed(&f).unwrap());
             assert!(read_rgb(&raw).unwrap() == f);
+        }
+    }
+
+    /// A writer's buffer, reused from a larger file to smaller ones, holds
+    /// exactly each new file: no byte of the one before is left at its end.
+    #[test]
+    fn a_reused_buffer_holds_exactly_the_new_file() {
+        let mut buffer = Vec::new();
+        for (w, h) in [(1000, 700), (300, 200), (600, 520)] {
+            let f = frame(w, h);
+            encode_half_into(&f, Compression::Uncompressed, &mut buffer).unwrap();
+            assert!(buffer == encode_half_uncompressed(&f).unwrap(), "{w}×{h}, uncompressed");
+            encode_half_into(&f, Compression::PIZ, &mut buffer).unwrap();
+            assert!(buffer == encode_half(&f).unwrap(), "{w}×{h}, PIZ");
         }
     }
 

@@ -1326,6 +1326,7 @@ pub fn scan(
             std::sync::mpsc::channel::<Result<(Option<usize>, Duration), ScanError>>();
         let out = opts.out.as_path();
         let writer = scope.spawn(move || {
+            let mut buffer = Vec::new();
             for job in job_rx {
                 let t = Instant::now();
                 let job = match job {
@@ -1346,7 +1347,7 @@ pub fn scan(
                     }
                 };
                 let raw = job.raw;
-                let result = write_frame(out, job).and_then(|record| {
+                let result = write_frame(out, job, &mut buffer).and_then(|record| {
                     let mirror = record.mirror;
                     if raw {
                         manifest.exposures.retain(|f| f.file != record.file);
@@ -1914,15 +1915,24 @@ struct WriteJob {
     raw: bool,
 }
 
-/// Encode and store one frame atomically; complete its record.
-fn write_frame(dir: &Path, job: WriteJob) -> Result<FrameRecord, ScanError> {
+/// Encode and store one frame atomically; complete its record. `bytes` is
+/// the encoder's buffer, kept from frame to frame (its memory reused); the
+/// file's checksum is computed while it is written.
+fn write_frame(dir: &Path, job: WriteJob, bytes: &mut Vec<u8>) -> Result<FrameRecord, ScanError> {
     let WriteJob { frame, mut record, raw } = job;
-    let bytes =
-        if raw { exrio::encode_half_uncompressed(&frame) } else { exrio::encode_half(&frame) }
-            .map_err(|e| ScanError::Io(format!("{}: {e}", record.file)))?;
+    use exr::prelude::Compression;
+    let compression = if raw { Compression::Uncompressed } else { Compression::PIZ };
+    exrio::encode_half_into(&frame, compression, bytes)
+        .map_err(|e| ScanError::Io(format!("{}: {e}", record.file)))?;
     let path = dir.join(&record.file);
-    write_atomic(&path, &bytes).map_err(|e| io_error(&path, e))?;
-    record.sha256 = sha256_hex(&bytes);
+    let bytes = bytes.as_slice();
+    let (sha256, written) = std::thread::scope(|s| {
+        let sha256 = s.spawn(|| sha256_hex(bytes));
+        let written = write_atomic(&path, bytes);
+        (sha256.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)), written)
+    });
+    written.map_err(|e| io_error(&path, e))?;
+    record.sha256 = sha256;
     record.width = frame.width;
     record.height = frame.height;
     Ok(record)
