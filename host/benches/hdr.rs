@@ -5,7 +5,7 @@
 //! value no exposure measured: here ≈ 45 % of them (the dark three
 //! quarters' noise is the same in every exposure and reads 0 three times
 //! in five), more than a real dark frame's ≈ 29 % (0 two times in three,
-//! independently).
+//! independently). Also the check of every frame from the camera.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -61,5 +61,20 @@ fn merge(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, merge);
+/// The check every frame from the camera gets (size, unit, non-finite
+/// values) on a default-sensor frame: 4096² × 3 values, all in range.
+fn check(c: &mut Criterion) {
+    let camera = ScannerGeometry::default_scanner().camera;
+    let (w, h) = (camera.width, camera.height);
+    let rgb = (0..3 * w as usize * h as usize).map(|i| (i % 4096) as f32 / 4095.0).collect();
+    let frame = Frame { width: w, height: h, rgb };
+    let mut g = c.benchmark_group("frame check 4096²");
+    g.sample_size(20).measurement_time(Duration::from_secs(4));
+    g.bench_function("check_frame", |b| {
+        b.iter(|| host::camera::check_frame(black_box(&frame), w, h).unwrap())
+    });
+    g.finish();
+}
+
+criterion_group!(benches, merge, check);
 criterion_main!(benches);

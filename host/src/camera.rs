@@ -118,29 +118,29 @@ pub fn check_frame(frame: &Frame, width: u32, height: u32) -> Result<(), CameraE
     // Half float holds the top code's 1.0 exactly; allow a rounding's worth.
     const FULL_SCALE: f32 = 1.0 + 1e-3;
     use rayon::prelude::*;
-    // (values above full scale, not numbers, the largest above)
-    let (above, not_numbers, largest) = frame
+    // Counted without branches, so that the pass over a frame vectorises:
+    // values whose exponent is all ones (NaN, ±∞), and values above full
+    // scale (+∞ among them: said as not a number first).
+    const EXPONENT: u32 = 0x7f80_0000;
+    let (above, not_numbers) = frame
         .rgb
         .par_chunks(1 << 16)
         .map(|values| {
-            let (mut above, mut not_numbers, mut largest) = (0usize, 0usize, 0.0f32);
-            for &v in values {
-                if !v.is_finite() {
-                    not_numbers += 1;
-                } else if v > FULL_SCALE {
-                    above += 1;
-                    largest = largest.max(v);
-                }
-            }
-            (above, not_numbers, largest)
+            values.iter().fold((0usize, 0usize), |(above, not_numbers), &v| {
+                (
+                    above + usize::from(v > FULL_SCALE),
+                    not_numbers + usize::from(v.to_bits() & EXPONENT == EXPONENT),
+                )
+            })
         })
-        .reduce(|| (0, 0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2.max(b.2)));
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
     if not_numbers > 0 {
         return Err(CameraError::Unusable(format!(
             "{not_numbers} values are not numbers (NaN or infinite)"
         )));
     }
     if above > 0 {
+        let largest = frame.rgb.par_iter().copied().reduce(|| 0.0, f32::max);
         return Err(CameraError::Unusable(format!(
             "{above} values above full scale, up to {largest}: frames hold code / top code \
              (1.0 at the top code, docs/scan-format.md), not ADC codes or another unit"
@@ -394,7 +394,23 @@ mod tests {
         let mut nan = frame(4, 2, 0.5);
         nan.rgb[0] = f32::NAN;
         nan.rgb[1] = f32::INFINITY;
+        nan.rgb[2] = 4095.0;
         let e = check_frame(&nan, 4, 2).unwrap_err().to_string();
         assert!(e.contains("2 values are not numbers"), "{e}");
+        // Over several of the pass's chunks: every kind counted, the largest
+        // found wherever it is.
+        let mut big = frame(256, 256, 0.25);
+        let n = big.rgb.len();
+        for (i, v) in [(1, 2.0), (70_000, 9.5), (n - 1, 3.0), (131_072, 1.0 + 2e-3)] {
+            big.rgb[i] = v;
+        }
+        let e = check_frame(&big, 256, 256).unwrap_err().to_string();
+        assert!(e.contains("4 values above full scale, up to 9.5:"), "{e}");
+        for (i, v) in [(0, f32::NAN), (65_535, f32::NEG_INFINITY), (65_536, -f32::NAN)] {
+            big.rgb[i] = v;
+        }
+        big.rgb[n - 2] = f32::INFINITY;
+        let e = check_frame(&big, 256, 256).unwrap_err().to_string();
+        assert!(e.contains("4 values are not numbers"), "{e}");
     }
 }
