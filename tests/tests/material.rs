@@ -256,7 +256,16 @@ fn a_built_material_shades_like_the_sample() {
         common::run_err(&["preview", &d("leather.material"), "-o", &d("leather.png")]);
     assert_eq!(code, Some(0), "{err}");
     let png = image::open(p("leather.png")).unwrap().to_rgb8();
-    assert_eq!(png.dimensions(), (3 * 262 + 6, 262 + 6));
+    // Three 256² panels 6 px apart, under a line of title and a caption.
+    assert_eq!(png.dimensions(), (3 * 262 + 6, 23 + 20 + 256 + 6));
+    // The title and the captions are drawn (light text on the dark ground).
+    let lit = |y0: u32, y1: u32| {
+        (y0..y1)
+            .flat_map(|y| (0..png.width()).map(move |x| (x, y)))
+            .filter(|&(x, y)| png.get_pixel(x, y).0.iter().all(|&c| c > 150))
+            .count()
+    };
+    assert!(lit(0, 23) > 200 && lit(23, 43) > 100, "{} and {}", lit(0, 23), lit(23, 43));
     let (code, err) =
         common::run_err(&["preview", &d("leather.material"), "-o", &d("leather.exr")]);
     assert_eq!(code, Some(2), "{err}");

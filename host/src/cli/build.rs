@@ -9,6 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use scanner_geometry::ScannerGeometry;
 
 use super::Failure;
+use super::plot::{Caption, draw_captions};
 use crate::build::calibrate::{BuildProgress, CalibrateOptions, Calibration};
 use crate::build::locate::Checkerboard;
 use crate::build::scanread::ScanFrames;
@@ -296,18 +297,42 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
     let cols = pick(regions.views.len(), 10);
     let s = regions.size as u32;
     let gap = 4u32;
-    let (w, h) = (cols.len() as u32 * (s + gap) + gap, rows.len() as u32 * (s + gap) + gap);
+    // Bands for the labels: the views above their columns, the lights left
+    // of their rows.
+    const TOP: u32 = 22;
+    const LEFT: u32 = 64;
+    let (w, h) =
+        (LEFT + cols.len() as u32 * (s + gap) + gap, TOP + rows.len() as u32 * (s + gap) + gap);
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
+    let mut captions = Vec::new();
     for (r, &li) in rows.iter().enumerate() {
+        let y0 = TOP + gap + r as u32 * (s + gap);
+        captions.push(Caption {
+            text: format!("light {li}"),
+            at: (6, (y0 + s / 2) as i32),
+            centred: false,
+            size: 13.0,
+        });
         for (c, &vi) in cols.iter().enumerate() {
             let src = regions.image(li, vi);
-            let (x0, y0) = (gap + c as u32 * (s + gap), gap + r as u32 * (s + gap));
+            let x0 = LEFT + gap + c as u32 * (s + gap);
             for (i, px) in src.iter().enumerate() {
                 let (x, y) = (i as u32 % s, i as u32 / s);
                 img.put_pixel(x0 + x, y0 + y, image::Rgb(px.map(encode_srgb)));
             }
         }
     }
+    for (c, &vi) in cols.iter().enumerate() {
+        let x = LEFT + gap + c as u32 * (s + gap) + s / 2;
+        captions.push(Caption {
+            // Columns of small region images have room for the number only.
+            text: if s >= 64 { format!("view {vi}") } else { vi.to_string() },
+            at: (x as i32, (TOP / 2 + 2) as i32),
+            centred: true,
+            size: 13.0,
+        });
+    }
+    draw_captions(&mut img, &captions).map_err(|e| Failure(4, anyhow!(e)))?;
     let mut bytes = Vec::new();
     img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
@@ -498,17 +523,19 @@ pub fn angles(d: [f64; 3]) -> (f64, f64) {
     (d[2].clamp(-1.0, 1.0).acos().to_degrees(), d[1].atan2(d[0]).to_degrees().rem_euclid(360.0))
 }
 
+/// The angle between two unit directions, degrees.
+fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
 /// The view of the preview: the direction within 20°…45° of the normal
 /// farthest from every captured view, and its angle to the nearest.
 pub fn novel_view(views: &[[f64; 3]]) -> ([f64; 3], f64) {
-    let angle = |a: [f64; 3], b: [f64; 3]| {
-        (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0).acos().to_degrees()
-    };
     let mut best = ([0.0, 0.0, 1.0], -1.0);
     for t in (20..=45).step_by(1) {
         for p in (0..360).step_by(2) {
             let d = polar(t as f64, p as f64);
-            let near = views.iter().map(|&v| angle(d, v)).fold(f64::INFINITY, f64::min);
+            let near = views.iter().map(|&v| angle_deg(d, v)).fold(f64::INFINITY, f64::min);
             if near > best.1 {
                 best = (d, near);
             }
@@ -541,13 +568,55 @@ pub fn preview(
     use scanner_formats::queries::Query;
     const PX: u32 = 256;
     const GAP: u32 = 6;
+    // Bands for the labels: a line of title (two beside the ground truth),
+    // and a caption above each row of panels.
+    const LABEL: u32 = 20;
     let rows = if truth.is_some() { 2 } else { 1 };
-    let (w, h) = (PREVIEW_LIGHTS.len() as u32 * (PX + GAP) + GAP, rows * (PX + GAP) + GAP);
+    let title = 4 + 19 * rows;
+    let (w, h) =
+        (PREVIEW_LIGHTS.len() as u32 * (PX + GAP) + GAP, title + rows * (LABEL + PX + GAP));
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
+    let (theta, phi) = angles(view);
+    let nearest = material
+        .metadata()
+        .views
+        .iter()
+        .map(|v| angle_deg(view, v.direction))
+        .fold(f64::INFINITY, f64::min);
+    let mut captions = vec![Caption {
+        text: format!(
+            "Seen from θ {theta:.0}°, φ {phi:.0}° ({nearest:.1}° from the nearest captured view), \
+             under three lights"
+        ),
+        at: (GAP as i32, 12),
+        centred: false,
+        size: 14.0,
+    }];
+    if truth.is_some() {
+        captions.push(Caption {
+            text: "Top: the material file. Bottom: the simulator's ground truth (never read by \
+                   the builder)."
+                .into(),
+            at: (GAP as i32, 31),
+            centred: false,
+            size: 14.0,
+        });
+    }
     const SUB: u32 = PREVIEW_SUB;
     let n = PX * SUB;
     for (c, &(t, p)) in PREVIEW_LIGHTS.iter().enumerate() {
         let wi = polar(t, p);
+        for r in 0..rows {
+            captions.push(Caption {
+                text: format!("light θ {t:.0}°, φ {p:.0}°"),
+                at: (
+                    (GAP + c as u32 * (PX + GAP) + PX / 2) as i32,
+                    (title + r * (LABEL + PX + GAP) + LABEL / 2) as i32,
+                ),
+                centred: true,
+                size: 13.0,
+            });
+        }
         // Sub-point (sx, sy) of pixel (x, y) at query x·SUB + sx + n·(…).
         let queries: Vec<Query> = (0..n * n)
             .map(|i| {
@@ -560,7 +629,8 @@ pub fn preview(
             panels.push(t(&queries));
         }
         for (r, vals) in panels.iter().enumerate() {
-            let (x0, y0) = (GAP + c as u32 * (PX + GAP), GAP + r as u32 * (PX + GAP));
+            let y0 = title + r as u32 * (LABEL + PX + GAP) + LABEL;
+            let x0 = GAP + c as u32 * (PX + GAP);
             for (y, x) in (0..PX).flat_map(|y| (0..PX).map(move |x| (y, x))) {
                 let mut sum = [0.0f32; 3];
                 for (sy, sx) in (0..SUB).flat_map(|sy| (0..SUB).map(move |sx| (sy, sx))) {
@@ -572,6 +642,7 @@ pub fn preview(
             }
         }
     }
+    draw_captions(&mut img, &captions).map_err(|e| Failure(4, anyhow!(e)))?;
     let mut bytes = Vec::new();
     img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;

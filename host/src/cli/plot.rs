@@ -27,6 +27,34 @@ fn register_font() {
 #[error("cannot draw the plot: {0}")]
 pub struct PlotError(String);
 
+/// A line of text to draw onto a picture: its words, the centre of its
+/// left edge (`centred`: of the text itself) in px, and its height in px.
+pub struct Caption {
+    pub text: String,
+    pub at: (i32, i32),
+    pub centred: bool,
+    pub size: f64,
+}
+
+/// Draw `captions` in light grey (DejaVu Sans) onto `img`, over what is
+/// there.
+pub fn draw_captions(img: &mut image::RgbImage, captions: &[Caption]) -> Result<(), PlotError> {
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
+    register_font();
+    let (w, h) = img.dimensions();
+    let root = BitMapBackend::with_buffer(img.as_mut(), (w, h)).into_drawing_area();
+    for c in captions {
+        let h = if c.centred { HPos::Center } else { HPos::Left };
+        let style = ("sans-serif", c.size)
+            .into_font()
+            .color(&RGBColor(225, 225, 225))
+            .pos(Pos::new(h, VPos::Center));
+        root.draw(&Text::new(c.text.as_str(), c.at, style))
+            .map_err(|e| PlotError(e.to_string()))?;
+    }
+    root.present().map_err(|e| PlotError(e.to_string()))
+}
+
 /// Plot D (log scale, over θh), F (over θd) and G (over θ) for R, G, B into a
 /// PNG at `path` (written atomically).
 pub fn plot_factors(model: &NpfModel, path: &Path) -> Result<(), PlotError> {
