@@ -586,7 +586,8 @@ pub fn preview(
     let mut captions = vec![Caption {
         text: format!(
             "Seen from θ {theta:.0}°, φ {phi:.0}° ({nearest:.1}° from the nearest captured view), \
-             under three lights"
+             under {} lights",
+            PREVIEW_LIGHTS.len()
         ),
         at: (GAP as i32, 12),
         centred: false,

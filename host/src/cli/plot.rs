@@ -44,11 +44,11 @@ pub fn draw_captions(img: &mut image::RgbImage, captions: &[Caption]) -> Result<
     let (w, h) = img.dimensions();
     let root = BitMapBackend::with_buffer(img.as_mut(), (w, h)).into_drawing_area();
     for c in captions {
-        let h = if c.centred { HPos::Center } else { HPos::Left };
+        let anchor = if c.centred { HPos::Center } else { HPos::Left };
         let style = ("sans-serif", c.size)
             .into_font()
             .color(&RGBColor(225, 225, 225))
-            .pos(Pos::new(h, VPos::Center));
+            .pos(Pos::new(anchor, VPos::Center));
         root.draw(&Text::new(c.text.as_str(), c.at, style))
             .map_err(|e| PlotError(e.to_string()))?;
     }
