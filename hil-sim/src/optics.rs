@@ -474,12 +474,15 @@ impl OpticalSim {
         let scale = exposure.dose() * g.sensor.sensitivity_e;
         let origin = DVec3::from(cam.position_mm);
         let rays = CameraRays::new(cam);
+        if lit.is_empty() || scale <= 0.0 {
+            return vec![None; spans.len()];
+        }
         let scene = Scene { rays: &rays, origin, beam, lit: &lit };
         spans
             .par_iter()
             .enumerate()
             .map(|(y, spans)| {
-                if lit.is_empty() || scale <= 0.0 || spans.is_empty() {
+                if spans.is_empty() {
                     return None;
                 }
                 let mirrors = self.row_mirrors(y);

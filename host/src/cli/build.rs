@@ -558,10 +558,11 @@ pub const PREVIEW_LIGHTS: [(f64, f64); 3] = [(25.0, 60.0), (45.0, 200.0), (60.0,
 /// (columns), and under it the same from `truth` when given (the
 /// simulator's ground truth for a simulated sample). Each pixel is the
 /// mean of [`PREVIEW_SUB`]² points over it, so that neither row aliases a
-/// texture finer than the preview's pixels.
+/// texture finer than the preview's pixels. `view` comes with its angle to
+/// the nearest captured view, degrees ([`novel_view`]), for the title.
 pub fn preview(
     material: &scanner_shading::Material,
-    view: [f64; 3],
+    (view, nearest): ([f64; 3], f64),
     truth: Option<&Truth<'_>>,
     path: &Path,
 ) -> Result<(), Failure> {
@@ -577,12 +578,6 @@ pub fn preview(
         (PREVIEW_LIGHTS.len() as u32 * (PX + GAP) + GAP, title + rows * (LABEL + PX + GAP));
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([40, 40, 40]));
     let (theta, phi) = angles(view);
-    let nearest = material
-        .metadata()
-        .views
-        .iter()
-        .map(|v| angle_deg(view, v.direction))
-        .fold(f64::INFINITY, f64::min);
     let mut captions = vec![Caption {
         text: format!(
             "Seen from θ {theta:.0}°, φ {phi:.0}° ({nearest:.1}° from the nearest captured view), \
@@ -657,7 +652,7 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
     let m = open_material(material)?;
     let views: Vec<[f64; 3]> = m.metadata().views.iter().map(|v| v.direction).collect();
     let (view, off) = novel_view(&views);
-    preview(&m, view, None, output)?;
+    preview(&m, (view, off), None, output)?;
     let (theta, phi) = angles(view);
     println!(
         "{}: seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest captured view)",

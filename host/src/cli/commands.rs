@@ -1265,7 +1265,7 @@ pub fn demo(
     let truth = |q: &[scanner_formats::queries::Query]| hil_sim::truth::answer(&sample, q);
     let (view, off) = super::build::novel_view(&built.regions.view_dirs);
     let picture = out.join(format!("{name}-preview.png"));
-    super::build::preview(&built.material, view, Some(&truth), &picture)?;
+    super::build::preview(&built.material, (view, off), Some(&truth), &picture)?;
     let (theta, phi) = super::build::angles(view);
     println!(
         "demo: four scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
