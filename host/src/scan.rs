@@ -493,6 +493,24 @@ impl Manifest {
         if let Some(f) = m.frames.iter().chain(&m.exposures).find(|f| !safe_relative(&f.file)) {
             return Err(damaged(format!("frame file {:?} is outside frames/", f.file)));
         }
+        // One file per entry: two entries on one file would read one
+        // mirror's light as another's.
+        let mut files: Vec<&str> = m.frames.iter().chain(&m.exposures).map(|f| &*f.file).collect();
+        files.sort_unstable();
+        if let Some(w) = files.windows(2).find(|w| w[0] == w[1]) {
+            return Err(damaged(format!("frame file {:?} is listed twice", w[0])));
+        }
+        // Brackets are exposures, µs, ascending (docs/scan-format.md).
+        let brackets = std::iter::once((None, &m.settings.bracket_us))
+            .chain(m.frames.iter().map(|f| (Some(f.mirror), &f.bracket_us)));
+        for (mirror, b) in brackets {
+            if b.first() == Some(&0) || b.windows(2).any(|w| w[0] >= w[1]) {
+                let whose = mirror.map_or("the scan's".to_string(), |l| format!("mirror {l}'s"));
+                return Err(damaged(format!(
+                    "{whose} bracket {b:?} µs is not of ascending exposures above 0"
+                )));
+            }
+        }
         Ok(m)
     }
 

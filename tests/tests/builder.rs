@@ -308,6 +308,14 @@ fn bad_inputs_exit_3_and_write_nothing() {
     assert!(err.contains("view 1 puts the sample outside the 512×512 px frame"), "{err}");
     let err = edited("e7.json", &|c| c["views"][1]["homography"][6] = (-2.0).into());
     assert!(err.contains("view 1: its homography folds the sample over"), "{err}");
+    // A view collapsed to a point (a damaged number in the third row).
+    let err = edited("e12.json", &|c| c["views"][3]["homography"][6] = 1e300.into());
+    assert!(
+        err.contains("view 3 shows the sample over")
+            && err.contains("× its nominal area")
+            && err.contains("a damaged file, or not this scanner's"),
+        "{err}"
+    );
     let err = edited("e8.json", &|c| {
         for f in c["colour"]["light_field"].as_array_mut().unwrap() {
             f.as_array_mut().unwrap().iter_mut().for_each(|x| *x = 0.0.into());

@@ -317,6 +317,38 @@ fn resume_refuses_another_simulator_a_foreign_mirror_and_names_what_differs() {
     assert!(err.contains("mirror 57"), "{err}");
 }
 
+#[test]
+fn a_manifest_that_reads_one_file_twice_or_a_bracket_out_of_order_is_damaged() {
+    let dir = tmp();
+    let out = sub(dir.path(), "scan");
+    let o = out.display().to_string();
+    let (code, _, err) = sim_scan(64, 3, &out, &[]);
+    assert_eq!(code, Some(0), "{err}");
+    let text = std::fs::read_to_string(out.join("manifest.json")).unwrap();
+    let edited = |edit: &dyn Fn(&mut serde_json::Value)| -> String {
+        let mut m: serde_json::Value = serde_json::from_str(&text).unwrap();
+        edit(&mut m);
+        std::fs::write(out.join("manifest.json"), m.to_string()).unwrap();
+        let (code, _, err) = run(&["verify", &o]);
+        assert_eq!(code, Some(3), "{err}");
+        err
+    };
+    // Mirror 1's entry on mirror 2's file: mirror 2's light read as mirror 1's.
+    let err = edited(&|m| m["frames"][1]["file"] = m["frames"][2]["file"].clone());
+    assert!(err.contains("damaged: frame file \"frames/mirror-02.exr\" is listed twice"), "{err}");
+    let err = edited(&|m| m["settings"]["bracket_us"] = serde_json::json!([2000, 1000]));
+    assert!(
+        err.contains("damaged: the scan's bracket [2000, 1000] µs is not of ascending exposures"),
+        "{err}"
+    );
+    let err = edited(&|m| m["frames"][0]["bracket_us"] = serde_json::json!([0, 1000]));
+    assert!(err.contains("damaged: mirror 0's bracket [0, 1000] µs"), "{err}");
+    // As written, it reads.
+    std::fs::write(out.join("manifest.json"), &text).unwrap();
+    let (code, _, err) = run(&["verify", &o]);
+    assert_eq!(code, Some(0), "{err}");
+}
+
 // ----- 6. directory fsync after every rename ---------------------------------------
 
 #[test]

@@ -1003,6 +1003,14 @@ impl Calibration {
                 self.camera_px[0], self.camera_px[1], g.camera.width, g.camera.height
             )));
         }
+        let n = g.mirrors.len();
+        let labels = self.views.iter().map(|v| v.view).chain(self.lights.iter().map(|l| l.light));
+        if let Some(m) = labels.into_iter().find(|&m| m >= n) {
+            return Err(BuildError::Input(format!(
+                "the calibration names mirror {m}; the scanner has mirrors 0…{}",
+                n.saturating_sub(1)
+            )));
+        }
         let (w, h) = (g.camera.width as f64, g.camera.height as f64);
         for v in &self.views {
             let corners =
@@ -1013,14 +1021,34 @@ impl Calibration {
                     v.view, g.camera.width, g.camera.height
                 )));
             }
-        }
-        let n = g.mirrors.len();
-        let labels = self.views.iter().map(|v| v.view).chain(self.lights.iter().map(|l| l.light));
-        if let Some(m) = labels.into_iter().find(|&m| m >= n) {
-            return Err(BuildError::Input(format!(
-                "the calibration names mirror {m}; the scanner has mirrors 0…{}",
-                n.saturating_sub(1)
-            )));
+            // Where `calibrate` can have found the view: within the window
+            // it searches around the nominal view, at about the nominal
+            // size. A damaged file (a view collapsed to a point, or spread
+            // over the frame) would otherwise choose the region size and
+            // its memory.
+            let (Some(nominal), Some(window)) = (
+                super::locate::nominal_homography(g, v.view),
+                super::locate::search_window(g, v.view),
+            ) else {
+                return Err(BuildError::Input(format!(
+                    "mirror {}: the scanner's geometry does not show the sample through it",
+                    v.view
+                )));
+            };
+            let b = v.homography.bounds();
+            let inside = b[0] >= window[0] as f64
+                && b[1] >= window[1] as f64
+                && b[2] <= window[2] as f64
+                && b[3] <= window[3] as f64;
+            let ratio = v.homography.area() / nominal.area();
+            if !inside || !(0.5..=2.0).contains(&ratio) {
+                return Err(BuildError::Input(format!(
+                    "the calibration's view {} shows the sample over x {:.0}…{:.0}, y {:.0}…{:.0} px \
+                     at {ratio:.3} × its nominal area, where calibrating searches x {}…{}, \
+                     y {}…{} px at ½ to 2 ×: a damaged file, or not this scanner's",
+                    v.view, b[0], b[2], b[1], b[3], window[0], window[2], window[1], window[3]
+                )));
+            }
         }
         Ok(())
     }

@@ -242,6 +242,15 @@ impl Homography {
         ]
     }
 
+    /// The area of the unit square's image (shoelace over its corners;
+    /// positive for either orientation).
+    pub fn area(&self) -> f64 {
+        let p = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|c| self.apply(c));
+        let twice: f64 =
+            (0..4).map(|k| p[k][0] * p[(k + 1) % 4][1] - p[(k + 1) % 4][0] * p[k][1]).sum();
+        twice.abs() / 2.0
+    }
+
     /// The pixels within `pad` px of the unit square's image, as a frame
     /// window `[x0, y0, x1, y1)` (clamped at 0; the reader clips the rest).
     pub fn window(&self, pad: f64) -> crate::exrio::PixelRect {

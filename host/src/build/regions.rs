@@ -186,6 +186,44 @@ struct TexelView {
     noise_gain: f64,
 }
 
+/// The memory region images of side `size` take at least: every view's
+/// per-texel filters and the images themselves (f32 RGB per light, view and
+/// texel). Frames, the super-resolution's grids and the material come on
+/// top (docs/benchmarks.md: 1.1 GB at the default 128², 4096² frames).
+fn region_memory(size: usize, lights: usize, views: usize) -> u128 {
+    let per_texel = views * std::mem::size_of::<TexelView>() + lights * views * 12;
+    (size * size) as u128 * per_texel as u128
+}
+
+/// Refuse a region size whose images cannot fit in `available` bytes, rather
+/// than be killed when memory runs out.
+fn check_memory(
+    size: usize,
+    lights: usize,
+    views: usize,
+    available: Option<u64>,
+) -> Result<(), BuildError> {
+    let need = region_memory(size, lights, views);
+    match available {
+        Some(a) if need > a as u128 => Err(BuildError::Input(format!(
+            "region images of {size}² px for {lights} lights × {views} views need at least \
+             {:.1} GB; {:.1} GB of memory is available: choose a smaller --size",
+            need as f64 / 1e9,
+            a as f64 / 1e9
+        ))),
+        _ => Ok(()),
+    }
+}
+
+/// The memory the system can give this process without swapping, where it
+/// says (Linux: `MemAvailable` in /proc/meminfo); `None` elsewhere.
+fn available_memory() -> Option<u64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
+}
+
 /// Extract the calibrated region images of `scan`.
 pub fn extract_regions(
     g: &ScannerGeometry,
@@ -223,6 +261,7 @@ pub fn extract_regions(
             })
         })
         .collect::<Result<_, _>>()?;
+    check_memory(size, lights.len(), cal.views.len(), available_memory())?;
     let albedo = cal.colour.white_albedo;
     progress.stage("sample frames", lights.len());
     let windows = super::calibrate::view_windows(&cal.views);
@@ -346,6 +385,25 @@ pub fn extract_regions(
 
 #[cfg(test)]
 mod tests {
+    /// A region size the machine cannot hold is refused before anything is
+    /// allocated; the default size of the default scanner passes.
+    #[test]
+    fn a_region_size_beyond_memory_is_refused_up_front() {
+        let gb = 1_000_000_000u64;
+        // The default: 40 × 40 pairs at 128², ≈ 0.4 GB.
+        let need = region_memory(128, 40, 40);
+        assert!(need > 300_000_000 && need < 500_000_000, "{need}");
+        assert!(check_memory(128, 40, 40, Some(4 * gb)).is_ok());
+        assert!(check_memory(4096, 40, 40, None).is_ok());
+        let err = check_memory(4096, 40, 40, Some(24 * gb)).unwrap_err().to_string();
+        assert!(
+            err.contains("region images of 4096² px for 40 lights × 40 views need at least"),
+            "{err}"
+        );
+        assert!(err.contains("24.0 GB of memory is available: choose a smaller --size"), "{err}");
+        assert!(available_memory().is_none_or(|a| a > 0));
+    }
+
     use super::*;
 
     /// `scanner regions`' files: every image, the shared layer, and with

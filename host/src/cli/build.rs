@@ -74,8 +74,7 @@ pub fn geometry_for(path: Option<&Path>, scan: &Path) -> Result<ScannerGeometry,
     if let Some(p) = path {
         return ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)));
     }
-    let m = crate::scan::Manifest::load(scan)
-        .map_err(|e| Failure(3, anyhow!("no scan at {}: {e}", scan.display())))?;
+    let m = crate::scan::Manifest::load(scan).map_err(|e| Failure(3, anyhow!(e)))?;
     let base = ScannerGeometry::default_scanner();
     for bin in 1..=64 {
         let g = base.with_sensor_scaled(bin);
