@@ -197,12 +197,24 @@ impl ExposureRatio {
 
 /// Only one value in this many is compared (coprime with 3: every channel).
 const AGREEMENT_STRIDE: usize = 7;
-/// A value is compared where the shorter exposure's is at least this
-/// fraction of full scale (≥ 500 electrons on the default sensor: shot
-/// noise ≤ 4.5 %) and the longer's at most [`AGREEMENT_HIGH`].
+/// A value is compared where its level, judged from the longer exposure
+/// two pixels along ([`AGREEMENT_PROXY`]), puts the shorter exposure at
+/// least at this fraction of full scale (≥ 500 electrons on the default
+/// sensor: shot noise ≤ 4.5 %) and the longer at most at
+/// [`AGREEMENT_HIGH`].
 const AGREEMENT_LOW: f32 = 0.05;
 /// See [`AGREEMENT_LOW`]: clear of saturation.
 const AGREEMENT_HIGH: f32 = 0.9;
+/// The longer exposure's own value must be below this (not clipped).
+const AGREEMENT_CLIP: f32 = 0.95;
+/// The pixel whose longer exposure judges a value's level: two pixels
+/// along (the same channel), so that its noise is not the value's own
+/// (nor shared through a Bayer sensor's demosaicing). Judged by its own
+/// values, a level just below [`AGREEMENT_LOW`] (or just above
+/// [`AGREEMENT_HIGH`]) would let in only the values noise lifted over the
+/// threshold, and the ratio would carry that noise: 1.15 for a white
+/// sample seen through a grazing mirror, where the light is 1.
+const AGREEMENT_PROXY: usize = 6;
 /// Fewer values than this give no ratio.
 pub const AGREEMENT_MIN_VALUES: usize = 100;
 
@@ -217,13 +229,27 @@ pub fn exposure_ratios(frames: &[(&Frame, u32)]) -> Vec<Option<ExposureRatio>> {
         .map(|w| {
             let ((short, ts), (long, tl)) = (w[0], w[1]);
             let scale = *tl as f64 / *ts as f64;
-            let mut ratios: Vec<f32> = short
-                .rgb
-                .iter()
-                .zip(&long.rgb)
+            let (a, b) = (&short.rgb, &long.rgb);
+            let n = a.len().min(b.len());
+            if n <= AGREEMENT_PROXY {
+                return None;
+            }
+            let low = (AGREEMENT_LOW as f64 * scale) as f32;
+            let mut ratios: Vec<f32> = (0..n)
                 .step_by(AGREEMENT_STRIDE)
-                .filter(|&(&a, &b)| a >= AGREEMENT_LOW && b <= AGREEMENT_HIGH && b > 0.0)
-                .map(|(&a, &b)| (a as f64 / b as f64 * scale) as f32)
+                .filter(|&i| {
+                    let j = if i + AGREEMENT_PROXY < n {
+                        i + AGREEMENT_PROXY
+                    } else {
+                        i - AGREEMENT_PROXY
+                    };
+                    let level = b[j];
+                    (low..=AGREEMENT_HIGH).contains(&level)
+                        && a[i] > 0.0
+                        && b[i] > 0.0
+                        && b[i] < AGREEMENT_CLIP
+                })
+                .map(|i| (a[i] as f64 / b[i] as f64 * scale) as f32)
                 .collect();
             if ratios.len() < AGREEMENT_MIN_VALUES {
                 return None;
@@ -289,6 +315,42 @@ mod tests {
         // Too few values measured well by both: no ratio.
         let few = frame(&scene[..60]);
         assert_eq!(exposure_ratios(&[(&few, 1_000), (&few, 2_000)]), vec![None]);
+    }
+
+    /// Levels just outside the compared range, under the sensor's noise:
+    /// only the noise's tail crosses into it, and that must not move the
+    /// ratio (it did by +15 % at the low end when the values were judged
+    /// by their own exposures).
+    #[test]
+    fn levels_at_the_thresholds_do_not_bias_the_ratio() {
+        use rand::{Rng, SeedableRng};
+        let s = sensor();
+        let (max, gain) = (s.max_code(), s.max_code() / s.full_well_e);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut gauss = move || {
+            let (a, b): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+        };
+        let mut read = |level: f64| -> f32 {
+            let e = level * s.full_well_e;
+            let sd = (e + s.read_noise_e.powi(2)).sqrt();
+            (((e + sd * gauss()) * gain).round().clamp(0.0, max) / max) as f32
+        };
+        // The longer exposure 5×, its level a smooth ramp over the frame:
+        // just below the compared range (the shorter's 0.03…0.05, under
+        // AGREEMENT_LOW), just above it, and inside it.
+        for (lo, hi, inside) in [(0.15, 0.25, false), (0.9, 0.95, false), (0.3, 0.8, true)] {
+            let n = 600_000;
+            let level = |i: usize| lo + (hi - lo) * i as f64 / n as f64;
+            let long_v: Vec<f32> = (0..n).map(|i| read(level(i))).collect();
+            let short_v: Vec<f32> = (0..n).map(|i| read(level(i) / 5.0)).collect();
+            let r = exposure_ratios(&[(&frame(&short_v), 2_000), (&frame(&long_v), 10_000)]);
+            // What is compared has the ratio of 1, however few.
+            if let Some(r) = r[0] {
+                assert!((r.ratio - 1.0).abs() < 0.01, "{lo}…{hi}: {r:?}");
+            }
+            assert_eq!(r[0].is_some_and(|r| r.values > n / 20), inside, "{lo}…{hi}: {r:?}");
+        }
     }
 
     #[test]
