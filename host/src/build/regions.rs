@@ -385,6 +385,8 @@ pub fn extract_regions(
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// A region size the machine cannot hold is refused before anything is
     /// allocated; the default size of the default scanner passes.
     #[test]
@@ -403,8 +405,6 @@ mod tests {
         assert!(err.contains("24.0 GB of memory is available: choose a smaller --size"), "{err}");
         assert!(available_memory().is_none_or(|a| a > 0));
     }
-
-    use super::*;
 
     /// `scanner regions`' files: every image, the shared layer, and with
     /// light components each light's whole layer, named by its mirror.
