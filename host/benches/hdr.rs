@@ -5,7 +5,8 @@
 //! value no exposure measured: here ≈ 45 % of them (the dark three
 //! quarters' noise is the same in every exposure and reads 0 three times
 //! in five), more than a real dark frame's ≈ 29 % (0 two times in three,
-//! independently). Also the check of every frame from the camera.
+//! independently). Also the exposures' agreement (`exposure_ratios`) and
+//! the check of every frame from the camera.
 
 use std::hint::black_box;
 use std::time::Duration;
@@ -57,6 +58,13 @@ fn merge(c: &mut Criterion) {
     });
     g.bench_function("128 defects", |b| {
         b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 10_000, &map))
+    });
+    g.finish();
+    // The exposures' agreement the scan records with every merged mirror.
+    let mut g = c.benchmark_group("exposure agreement 2048², 3 exposures");
+    g.sample_size(20).measurement_time(Duration::from_secs(4));
+    g.bench_function("exposure_ratios", |b| {
+        b.iter(|| host::hdr::exposure_ratios(black_box(&inputs)))
     });
     g.finish();
 }
