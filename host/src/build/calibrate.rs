@@ -764,7 +764,7 @@ impl ViewSampler {
     pub fn new(h: Homography) -> ViewSampler {
         let j = h.jacobian([0.5, 0.5]);
         let px = [j[0][0].hypot(j[1][0]), j[0][1].hypot(j[1][1])];
-        let corners = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|q| h.apply(q));
+        let corners = h.corners();
         let centre = h.apply([0.5, 0.5]);
         let edges = std::array::from_fn(|k| {
             let (a, b) = (corners[k], corners[(k + 1) % 4]);
@@ -1013,8 +1013,7 @@ impl Calibration {
         }
         let (w, h) = (g.camera.width as f64, g.camera.height as f64);
         for v in &self.views {
-            let corners =
-                [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|c| v.homography.apply(c));
+            let corners = v.homography.corners();
             if corners.iter().any(|p| !(0.0..=w).contains(&p[0]) || !(0.0..=h).contains(&p[1])) {
                 return Err(BuildError::Input(format!(
                     "the calibration's view {} puts the sample outside the {}×{} px frame",

@@ -230,10 +230,16 @@ impl Homography {
         Homography::normalised(mul3(&mul3(&td_inv, &hn.0), &ts_m))
     }
 
+    /// The unit square's corners (0, 0), (1, 0), (1, 1), (0, 1) mapped: a
+    /// view's sample in the frame, px, in order around it.
+    pub fn corners(&self) -> [[f64; 2]; 4] {
+        [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|p| self.apply(p))
+    }
+
     /// Bounding box `[x0, y0, x1, y1]` of the unit square's image (a view's
     /// sample in the frame, px).
     pub fn bounds(&self) -> [f64; 4] {
-        let pts = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|p| self.apply(p));
+        let pts = self.corners();
         [
             pts.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min),
             pts.iter().map(|p| p[1]).fold(f64::INFINITY, f64::min),
@@ -245,7 +251,7 @@ impl Homography {
     /// The area of the unit square's image (shoelace over its corners;
     /// positive for either orientation).
     pub fn area(&self) -> f64 {
-        let p = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|c| self.apply(c));
+        let p = self.corners();
         let twice: f64 =
             (0..4).map(|k| p[k][0] * p[(k + 1) % 4][1] - p[(k + 1) % 4][0] * p[k][1]).sum();
         twice.abs() / 2.0

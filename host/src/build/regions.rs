@@ -147,8 +147,7 @@ pub fn default_size(cal: &Calibration) -> usize {
         .views
         .iter()
         .map(|v| {
-            let p =
-                [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|uv| v.homography.apply(uv));
+            let p = v.homography.corners();
             (0..4)
                 .map(|k| {
                     let (a, b) = (p[k], p[(k + 1) % 4]);
