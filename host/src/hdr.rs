@@ -1,16 +1,17 @@
 //! HDR merging of an exposure bracket into one linear frame, weighted by
 //! the sensor's noise model (docs/scan-format.md, "HDR").
 //!
-//! For each pixel and channel, every exposure k whose ADC code c_k is
-//! neither black (0: clipped at zero, biased) nor saturated (the top code:
-//! clipped at the full well) estimates the rate r_k = v_k / t_k. Its
-//! variance follows the sensor: electrons e = c / g (g = codes per
-//! electron), Var(c) = g² (e + σ_read²) + 1/12 (quantisation), so
-//! Var(r_k) = Var(c_k) / (max_code · t_k)². The merged rate is the
-//! inverse-variance weighted mean; the output is it times the reference
-//! exposure, in the frames' units (ADC code / max code). A pixel black in
-//! every exposure is 0; one saturated in every exposure keeps the shortest
-//! exposure's (clipped) value and is counted.
+//! For each pixel and channel, the exposures whose ADC code c_k is neither
+//! black (0: clipped at zero) nor saturated (the top code: clipped at the
+//! full well), and clear of both by 3σ where the same channel two pixels
+//! along says so, each estimate the rate r_k = v_k / t_k. Its variance
+//! follows the sensor: electrons e = c / g (g = codes per electron),
+//! Var(c) = g² (e + σ_read²) + 1/12 (quantisation), so Var(r_k) =
+//! Var(c_k) / (max_code · t_k)², with c_k the mean code two pixels along.
+//! The merged rate is the inverse-variance weighted mean; the output is it
+//! times the reference exposure, in the frames' units (ADC code / max
+//! code). A pixel black in every exposure is 0; one saturated in every
+//! exposure keeps the shortest exposure's (clipped) value and is counted.
 
 use scanner_geometry::SensorSpec;
 
@@ -111,7 +112,7 @@ fn along(values: &[f32], out: &mut [f32], both: impl Fn(f32, f32) -> f32) {
 /// Merge `frames` (each with its exposure in µs; all the same size) into
 /// one frame in units of the `reference_us` exposure. The pixels of
 /// `defects` are not counted in the stats and are replaced by their
-/// neighbours' mean ([`DefectMap::patch`]). At most 8 exposures.
+/// neighbours' mean ([`DefectMap::patch`]). At most 32 exposures.
 ///
 /// Per value, in three steps (docs/scan-format.md, "HDR"):
 /// 1. An exposure counts if its code is neither 0 nor the top and, unless
@@ -119,13 +120,13 @@ fn along(values: &[f32], out: &mut [f32], both: impl Fn(f32, f32) -> f32) {
 ///    ([`MERGE_PROXY`]) are [`CLEAR_SIGMAS`] of their noise below the top.
 ///    Whether an exposure counts thus never depends on the value's own
 ///    noise, nor on that of the exposures it is merged with.
-/// 2. With the rate r₀ of the longest exposure counted, an exposure whose
-///    predicted code r₀·t is not [`CLEAR_SIGMAS`] above 0 is dropped unless
-///    it is that longest one.
+/// 2. A counted exposure whose darker code two pixels along is not
+///    [`CLEAR_SIGMAS`] of its noise above 0 is dropped, unless none is
+///    left: then the longest counted is kept.
 /// 3. The merge is the mean of the kept ones' rates weighted by the inverse
-///    variance of their *predicted* codes r₀·t: a weight taken from a
-///    value's own noisy code favours the values noise moved down (−0.6 %
-///    at 0.006 of the longest exposure's full scale, session 42).
+///    variance of the mean of their codes two pixels along: a weight taken
+///    from a value's own noisy code favours the values noise moved down
+///    (−0.6 % at 0.006 of the longest exposure's full scale, session 42).
 pub fn merge(
     frames: &[(&Frame, u32)],
     sensor: &SensorSpec,
@@ -140,8 +141,8 @@ pub fn merge(
     if frames.iter().any(|&(_, t)| t == 0) || reference_us == 0 {
         return Err("an exposure of 0 µs".into());
     }
-    if frames.len() > 8 {
-        return Err(format!("{} exposures to merge; at most 8", frames.len()));
+    if frames.len() > 32 {
+        return Err(format!("{} exposures to merge; at most 32", frames.len()));
     }
     let noise = CodeNoise::new(sensor);
     let max = sensor.max_code() as f32;
@@ -171,7 +172,7 @@ pub fn merge(
                 (
                     vec![0.0f32; chunk],
                     [vec![0.0f32; chunk], vec![0.0f32; chunk]],
-                    [(); 3].map(|_| vec![0u8; chunk]),
+                    [(); 3].map(|_| vec![0u32; chunk]),
                 )
             },
             |(den, [dark, bright], [counted, kept, saturated]), (row, line)| {
@@ -189,7 +190,7 @@ pub fn merge(
                 saturated.fill(0);
                 for (bit, &(rgb, _, _)) in exposures.iter().enumerate() {
                     let values = &rgb[start..start + n];
-                    let bit = 1u8 << bit;
+                    let bit = 1u32 << bit;
                     along(values, dark, f32::min);
                     along(values, bright, f32::max);
                     for ((&v, (&dk, &br)), (c, (k, sat))) in values
@@ -208,14 +209,14 @@ pub fn merge(
                 // longest counted.
                 for (&c, k) in counted.iter().zip(kept.iter_mut()) {
                     let both = c & *k;
-                    *k = if both != 0 || c == 0 { both } else { 1 << (7 - c.leading_zeros()) };
+                    *k = if both != 0 || c == 0 { both } else { 1 << (31 - c.leading_zeros()) };
                 }
                 // Step 3: weights from the codes along (their mean).
                 line.fill(0.0);
                 den.fill(0.0);
                 for (bit, &(rgb, tm, over_t)) in exposures.iter().enumerate() {
                     let values = &rgb[start..start + n];
-                    let bit = 1u8 << bit;
+                    let bit = 1u32 << bit;
                     along(values, dark, |a, b| 0.5 * (a + b));
                     for ((o, d), ((&v, &level), &k)) in line
                         .iter_mut()
@@ -228,14 +229,14 @@ pub fn merge(
                         *d += wgt;
                     }
                 }
-                let every = (1u16 << exposures.len()) - 1;
+                let every = u32::MAX >> (32 - exposures.len());
                 let mut stats = MergeStats::default();
                 for (j, o) in line.iter_mut().enumerate() {
                     // Looked up only for the few values no exposure measured.
                     let counted = || usize::from(!defects.contains(first, (start + j) / 3));
                     *o = if den[j] > 0.0 {
                         *o / den[j] * to_reference
-                    } else if u16::from(saturated[j]) == every {
+                    } else if saturated[j] == every {
                         stats.clipped += counted();
                         let (rgb, t) = shortest;
                         (rgb[start + j] as f64 * reference_us as f64 / t as f64) as f32
@@ -699,6 +700,29 @@ mod tests {
                 sem * 100.0
             );
         }
+    }
+
+    /// Auto exposure may add shorter exposures down to the device's 20 µs
+    /// at a mirror: a bracket of more than 8 merges (one bit per exposure
+    /// of a 32-bit mask); more than 32 is refused.
+    #[test]
+    fn a_long_bracket_merges() {
+        let s = sensor();
+        let times: Vec<u32> = (0..12).map(|k| 20 << k).collect();
+        // 0.3 of full scale per ms: every exposure from 4 ms on saturates.
+        let frames: Vec<Frame> = times
+            .iter()
+            .map(|&t| {
+                let v = ((0.3 * t as f64 / 1000.0 * 4095.0).round().min(4095.0) / 4095.0) as f32;
+                frame(&[v; 15])
+            })
+            .collect();
+        let inputs: Vec<(&Frame, u32)> = frames.iter().zip(times.iter().copied()).collect();
+        let (m, stats) = merge(&inputs, &s, 40_960, &DefectMap::default()).unwrap();
+        assert_eq!(stats, MergeStats::default());
+        assert!(m.rgb.iter().all(|&v| (v / 12.288 - 1.0).abs() < 1e-3), "{:?}", m.rgb);
+        let many: Vec<(&Frame, u32)> = (0..33).map(|k| (&frames[0], 20 + k)).collect();
+        assert!(merge(&many, &s, 20, &DefectMap::default()).unwrap_err().contains("at most 32"));
     }
 
     #[test]
