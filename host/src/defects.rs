@@ -542,6 +542,17 @@ impl DefectMap {
         (frame.width, frame.height) == (self.width, self.height) && self.contains_pixel(index)
     }
 
+    /// The defects in row `y` of `frame` (none in a frame of another size
+    /// than the map's), by column.
+    pub fn row(&self, frame: &Frame, y: u32) -> &[PixelDefect] {
+        if (frame.width, frame.height) != (self.width, self.height) {
+            return &[];
+        }
+        let start = self.defects.partition_point(|d| d.y < y);
+        let end = self.defects.partition_point(|d| d.y <= y);
+        &self.defects[start..end]
+    }
+
     /// Whether pixel `index` (row-major) of a frame of the map's size is
     /// defective.
     #[inline]
