@@ -276,34 +276,55 @@ pub fn merge(
 
 /// The variance of a merged value as a rate, `rate` in full scale per
 /// second (a frame [`crate::build::scanread::ScanFrames::read`] returns),
-/// measured with `exposures_us`: the inverse of the merge's summed weights
-/// over the exposures it keeps at that rate ([`merge`]'s steps, with the
-/// rate itself for every level). `None`: every exposure saturated, or
-/// none given.
+/// measured with `exposures_us`: [`BracketNoise::rate_variance`].
 pub fn rate_variance(rate: f64, exposures_us: &[u32], sensor: &SensorSpec) -> Option<f64> {
-    let noise = CodeNoise::new(sensor);
-    let max = sensor.max_code();
-    let mut times: Vec<f64> = exposures_us.iter().map(|&t| t as f64 * 1e-6 * max).collect();
-    times.sort_by(f64::total_cmp);
-    // Step 1: clear of the top (the pixels along at the same rate).
-    let mut counted = Vec::new();
-    for tm in times {
-        let mu = (rate * tm) as f32;
-        if (mu.round() as f64) < max && (counted.is_empty() || mu < noise.clear_top) {
-            counted.push(tm);
+    BracketNoise::new(exposures_us, sensor).rate_variance(rate)
+}
+
+/// The noise of values merged from one bracket of exposures, for many
+/// rates ([`BracketNoise::rate_variance`] is called for every texel of
+/// every region image).
+#[derive(Debug, Clone)]
+pub struct BracketNoise {
+    noise: CodeNoise,
+    max: f64,
+    /// max · t per exposure, ascending.
+    codes: Vec<f64>,
+}
+
+impl BracketNoise {
+    /// The bracket `exposures_us` on `sensor`.
+    pub fn new(exposures_us: &[u32], sensor: &SensorSpec) -> BracketNoise {
+        let max = sensor.max_code();
+        let mut codes: Vec<f64> = exposures_us.iter().map(|&t| t as f64 * 1e-6 * max).collect();
+        codes.sort_by(f64::total_cmp);
+        BracketNoise { noise: CodeNoise::new(sensor), max, codes }
+    }
+
+    /// The inverse of the merge's summed weights over the exposures it
+    /// keeps at `rate` ([`merge`]'s steps, with the rate itself as every
+    /// level along). `None`: every exposure saturated, or none given.
+    pub fn rate_variance(&self, rate: f64) -> Option<f64> {
+        let noise = &self.noise;
+        let mu = |tm: f64| (rate * tm) as f32;
+        let weight = |tm: f64| tm * tm / noise.variance(mu(tm)) as f64;
+        // Step 1: the shortest unsaturated exposure, and the longer ones
+        // clear of the top.
+        let mut unsaturated =
+            self.codes.iter().copied().filter(|&tm| (rate * tm).round() < self.max);
+        let shortest = unsaturated.next()?;
+        let counted =
+            std::iter::once(shortest).chain(unsaturated.filter(|&tm| mu(tm) < noise.clear_top));
+        // Step 2: those clear of black, else the longest counted.
+        let (mut kept, mut longest) = (0.0, shortest);
+        for tm in counted {
+            longest = tm;
+            if mu(tm) > noise.clear_black {
+                kept += weight(tm);
+            }
         }
+        Some(1.0 / if kept > 0.0 { kept } else { weight(longest) })
     }
-    // Step 2: clear of black, else the longest counted.
-    let longest = *counted.last()?;
-    let mut kept: Vec<f64> =
-        counted.into_iter().filter(|&tm| (rate * tm) as f32 > noise.clear_black).collect();
-    if kept.is_empty() {
-        kept.push(longest);
-    }
-    // Step 3.
-    let weight: f64 =
-        kept.iter().map(|&tm| tm * tm / noise.variance((rate * tm) as f32) as f64).sum();
-    Some(1.0 / weight)
 }
 
 /// How two exposures of a bracket agree: the rate (value per µs) the

@@ -337,7 +337,7 @@ pub fn extract_regions(
             // where it holds `v`: the merged frame value's variance (the
             // exposures that measured it), through the filter and the
             // normalisation.
-            let exposures = scan.exposures_us(l)?;
+            let bracket = hdr::BracketNoise::new(&scan.exposures_us(l)?, &g.sensor);
             let noise = |vi: usize, t: usize, v: [f32; 3]| -> [f32; 3] {
                 let Some(c) = texel_unit(vi, t) else { return [0.0; 3] };
                 let filter = texel_view[vi][t].noise_gain;
@@ -345,7 +345,7 @@ pub fn extract_regions(
                     if c[k] <= 0.0 {
                         return 0.0;
                     }
-                    let var = hdr::rate_variance(v[k] as f64 / c[k], &exposures, &g.sensor);
+                    let var = bracket.rate_variance(v[k] as f64 / c[k]);
                     var.map_or(0.0, |var| (var * c[k] * c[k] * filter) as f32)
                 })
             };
