@@ -34,12 +34,14 @@ pub struct MergeStats {
 /// the longest exposure's full scale, session 42).
 pub const CLEAR_SIGMAS: f64 = 3.0;
 
-/// Whether an exposure is clear of its top code is judged from the pixels
-/// two along on either side (the same channel: 6 values), not from the
-/// value's own exposures: a choice that follows the value's own noise, or
-/// the noise of the shorter exposures it is merged with, biases the merge
-/// (+0.66 % at 0.94 of the longest exposure's full scale when predicted
-/// from the shorter ones, session 42).
+/// Whether an exposure is clear of its clips, and how much its code
+/// varies, is judged from the pixels two along on either side (the same
+/// channel: 6 values), not from the value's own exposures: a choice or a
+/// weight that follows the value's own noise, or the noise of the shorter
+/// exposures it is merged with, biases the merge (+0.66 % at 0.94 of the
+/// longest exposure's full scale when the clip is predicted from the
+/// shorter ones, session 42). Two pixels, so that a Bayer sensor's
+/// demosaicing shares none of the value's noise with them.
 const MERGE_PROXY: usize = 6;
 
 /// The sensor's noise in ADC codes: Var(c) = g·c + g²σ_read² + 1/12 for a
