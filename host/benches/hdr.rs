@@ -54,10 +54,10 @@ fn merge(c: &mut Criterion) {
     let mut g = c.benchmark_group("hdr merge 2048², 3 exposures");
     g.sample_size(10).measurement_time(Duration::from_secs(8));
     g.bench_function("no defects (baseline)", |b| {
-        b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 10_000, &DefectMap::default()))
+        b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 0, 10_000, &DefectMap::default()))
     });
     g.bench_function("128 defects", |b| {
-        b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 10_000, &map))
+        b.iter(|| host::hdr::merge(black_box(&inputs), &sensor, 0, 10_000, &map))
     });
     g.finish();
     // The exposures' agreement the scan records with every merged mirror.

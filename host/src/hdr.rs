@@ -58,9 +58,14 @@ struct CodeNoise {
 }
 
 impl CodeNoise {
-    fn new(sensor: &SensorSpec) -> CodeNoise {
-        let top = sensor.max_code();
-        let gain = top / sensor.full_well_e;
+    /// The noise of `sensor`'s codes after the camera subtracted
+    /// `black_codes` from every value (docs/scan-format.md,
+    /// `settings.black_level_codes`): a value then clips at the top code
+    /// minus the black level.
+    fn new(sensor: &SensorSpec, black_codes: u32) -> CodeNoise {
+        let max = sensor.max_code();
+        let top = (max - black_codes as f64).max(0.0);
+        let gain = max / sensor.full_well_e;
         let floor = gain * gain * sensor.read_noise_e * sensor.read_noise_e + 1.0 / 12.0;
         // (top − μ)² = z²(gμ + F), the root below the top; μ² = z²(gμ + F).
         let z2 = CLEAR_SIGMAS * CLEAR_SIGMAS;
@@ -126,8 +131,9 @@ fn along(values: &[f32], out: &mut [f32], broken: &[usize], both: impl Fn(f32, f
     }
 }
 
-/// Merge `frames` (each with its exposure in µs; all the same size) into
-/// one frame in units of the `reference_us` exposure. The pixels of
+/// Merge `frames` (each with its exposure in µs; all the same size, the
+/// camera's black level of `black_codes` subtracted) into one frame in
+/// units of the `reference_us` exposure. The pixels of
 /// `defects` are not counted in the stats and are replaced by their
 /// neighbours' mean ([`DefectMap::patch`]). At most 32 exposures.
 ///
@@ -147,6 +153,7 @@ fn along(values: &[f32], out: &mut [f32], broken: &[usize], both: impl Fn(f32, f
 pub fn merge(
     frames: &[(&Frame, u32)],
     sensor: &SensorSpec,
+    black_codes: u32,
     reference_us: u32,
     defects: &DefectMap,
 ) -> Result<(Frame, MergeStats), String> {
@@ -161,7 +168,7 @@ pub fn merge(
     if frames.len() > 32 {
         return Err(format!("{} exposures to merge; at most 32", frames.len()));
     }
-    let noise = CodeNoise::new(sensor);
+    let noise = CodeNoise::new(sensor, black_codes);
     let max = sensor.max_code() as f32;
     // Shortest first: values, t·max (a rate's code), 1/t.
     let mut order: Vec<(&[f32], u32)> =
@@ -279,8 +286,13 @@ pub fn merge(
 /// The variance of a merged value as a rate, `rate` in full scale per
 /// second (a frame [`crate::build::scanread::ScanFrames::read`] returns),
 /// measured with `exposures_us`: [`BracketNoise::rate_variance`].
-pub fn rate_variance(rate: f64, exposures_us: &[u32], sensor: &SensorSpec) -> Option<f64> {
-    BracketNoise::new(exposures_us, sensor).rate_variance(rate)
+pub fn rate_variance(
+    rate: f64,
+    exposures_us: &[u32],
+    sensor: &SensorSpec,
+    black_codes: u32,
+) -> Option<f64> {
+    BracketNoise::new(exposures_us, sensor, black_codes).rate_variance(rate)
 }
 
 /// The noise of values merged from one bracket of exposures, for many
@@ -289,18 +301,20 @@ pub fn rate_variance(rate: f64, exposures_us: &[u32], sensor: &SensorSpec) -> Op
 #[derive(Debug, Clone)]
 pub struct BracketNoise {
     noise: CodeNoise,
-    max: f64,
+    /// The top code less the black level: where a value saturates.
+    top: f64,
     /// max · t per exposure, ascending.
     codes: Vec<f64>,
 }
 
 impl BracketNoise {
-    /// The bracket `exposures_us` on `sensor`.
-    pub fn new(exposures_us: &[u32], sensor: &SensorSpec) -> BracketNoise {
+    /// The bracket `exposures_us` on `sensor`, `black_codes` subtracted.
+    pub fn new(exposures_us: &[u32], sensor: &SensorSpec, black_codes: u32) -> BracketNoise {
         let max = sensor.max_code();
         let mut codes: Vec<f64> = exposures_us.iter().map(|&t| t as f64 * 1e-6 * max).collect();
         codes.sort_by(f64::total_cmp);
-        BracketNoise { noise: CodeNoise::new(sensor), max, codes }
+        let top = (max - black_codes as f64).max(0.0);
+        BracketNoise { noise: CodeNoise::new(sensor, black_codes), top, codes }
     }
 
     /// The inverse of the merge's summed weights over the exposures it
@@ -313,7 +327,7 @@ impl BracketNoise {
         // Step 1: the shortest unsaturated exposure, and the longer ones
         // clear of the top.
         let mut unsaturated =
-            self.codes.iter().copied().filter(|&tm| (rate * tm).round() < self.max);
+            self.codes.iter().copied().filter(|&tm| (rate * tm).round() < self.top);
         let shortest = unsaturated.next()?;
         let counted =
             std::iter::once(shortest).chain(unsaturated.filter(|&tm| mu(tm) < noise.clear_top));
@@ -548,15 +562,21 @@ mod tests {
         let short = frame(&[0.5, 0.5, 0.5, 0.0, 0.0, 0.0]);
         let long = frame(&[1.0, 1.0, 1.0, 0.01, 0.01, 0.01]);
         let (m, stats) =
-            merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &DefectMap::default()).unwrap();
+            merge(&[(&short, 1_000), (&long, 10_000)], &s, 0, 10_000, &DefectMap::default())
+                .unwrap();
         assert!((m.rgb[0] - 5.0).abs() < 1e-5, "{}", m.rgb[0]);
         assert!((m.rgb[3] - 0.01).abs() < 1e-6, "{}", m.rgb[3]);
         assert_eq!(stats, MergeStats::default());
         // Saturated everywhere: counted, the shortest exposure scaled.
         let saturated = frame(&[1.0; 3]);
-        let (m, stats) =
-            merge(&[(&saturated, 1_000), (&saturated, 10_000)], &s, 10_000, &DefectMap::default())
-                .unwrap();
+        let (m, stats) = merge(
+            &[(&saturated, 1_000), (&saturated, 10_000)],
+            &s,
+            0,
+            10_000,
+            &DefectMap::default(),
+        )
+        .unwrap();
         assert_eq!(stats.clipped, 3);
         assert!((m.rgb[0] - 10.0).abs() < 1e-5);
         // A stuck pixel of the sensor (the middle one) is neither counted
@@ -565,7 +585,7 @@ mod tests {
         let long = frame(&[0.2, 0.2, 0.2, 1.0, 1.0, 1.0, 0.4, 0.4, 0.4]);
         use crate::defects::{DefectKind, PixelDefect};
         let map = DefectMap::new(&[PixelDefect { x: 1, y: 0, kind: DefectKind::Stuck }], 3, 1);
-        let (m, stats) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &map).unwrap();
+        let (m, stats) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 0, 10_000, &map).unwrap();
         assert_eq!(stats, MergeStats::default());
         assert!((m.rgb[3] - 0.3).abs() < 1e-3 && (m.rgb[0] - 0.2).abs() < 1e-3, "{:?}", m.rgb);
     }
@@ -592,7 +612,7 @@ mod tests {
             })
             .collect();
         let inputs: Vec<(&Frame, u32)> = frames.iter().zip(exposures).collect();
-        let (m, _) = merge(&inputs, &s, 20_000, &DefectMap::default()).unwrap();
+        let (m, _) = merge(&inputs, &s, 0, 20_000, &DefectMap::default()).unwrap();
         let (mut three, mut dropped_high, mut dropped_low) = (0, 0, 0);
         for (p, c) in codes.iter().enumerate() {
             let tm = |k: usize| max * exposures[k] as f64 * 1e-6;
@@ -652,6 +672,12 @@ mod tests {
     /// quantised, clipped at 0 and the top code), stored as half floats as
     /// a scan stores them; seeded.
     fn draws(rate: f64, exposures_us: &[u32], n: usize, seed: u64) -> Vec<Frame> {
+        draws_above(rate, exposures_us, n, seed, 0)
+    }
+
+    /// [`draws`] by a camera with a black level of `black` codes, which it
+    /// subtracts (the top code stays: saturated).
+    fn draws_above(rate: f64, exposures_us: &[u32], n: usize, seed: u64, black: u32) -> Vec<Frame> {
         use rand::{Rng, SeedableRng};
         let s = sensor();
         let max = s.max_code();
@@ -666,20 +692,23 @@ mod tests {
             .map(|&t_us| {
                 let e = rate * t_us as f64 * 1e-6 * s.full_well_e;
                 let sd = (e + s.read_noise_e.powi(2)).sqrt();
-                let v: Vec<f32> = (0..n)
-                    .map(|_| ((e + sd * gauss()) * gain).round().clamp(0.0, max) / max)
-                    .flat_map(|v| [half::f16::from_f64(v).to_f32(); 3])
+                let raw: Vec<f32> = (0..n)
+                    .map(|_| ((e + sd * gauss()) * gain + black as f64).round().clamp(0.0, max))
+                    .flat_map(|c| [(c / max) as f32; 3])
                     .collect();
-                frame(&v)
+                let mut f = frame(&raw);
+                crate::camera::subtract_black_level(&mut f, black as f32 / max as f32, max as f32);
+                f.rgb.iter_mut().for_each(|v| *v = half::f16::from_f32(*v).to_f32());
+                f
             })
             .collect()
     }
 
     /// The merged rates of `draws`, full scale per second.
-    fn merged_rates(frames: &[Frame], exposures_us: &[u32]) -> Vec<f64> {
+    fn merged_rates(frames: &[Frame], exposures_us: &[u32], black: u32) -> Vec<f64> {
         let longest = *exposures_us.iter().max().unwrap();
         let inputs: Vec<(&Frame, u32)> = frames.iter().zip(exposures_us.iter().copied()).collect();
-        let (m, _) = merge(&inputs, &sensor(), longest, &DefectMap::default()).unwrap();
+        let (m, _) = merge(&inputs, &sensor(), black, longest, &DefectMap::default()).unwrap();
         m.rgb.iter().step_by(3).map(|&v| v as f64 / (longest as f64 * 1e-6)).collect()
     }
 
@@ -691,16 +720,16 @@ mod tests {
         // the 40 ms one saturates at the last.
         for (i, rate) in [0.5f64, 5.0, 40.0].into_iter().enumerate() {
             let n = 20_000;
-            let rates = merged_rates(&draws(rate, &exposures, n, 3 + i as u64), &exposures);
+            let rates = merged_rates(&draws(rate, &exposures, n, 3 + i as u64), &exposures, 0);
             let mean = rates.iter().sum::<f64>() / n as f64;
             let var = rates.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-            let want = rate_variance(rate, &exposures, &s).unwrap();
+            let want = rate_variance(rate, &exposures, &s, 0).unwrap();
             assert!((mean / rate - 1.0).abs() < 0.01, "rate {rate}: mean {mean}");
             assert!((var / want - 1.0).abs() < 0.05, "rate {rate}: variance {var} against {want}");
         }
         // Every exposure saturated: no variance to give.
-        assert_eq!(rate_variance(1e4, &exposures, &s), None);
-        assert_eq!(rate_variance(1.0, &[], &s), None);
+        assert_eq!(rate_variance(1e4, &exposures, &s, 0), None);
+        assert_eq!(rate_variance(1.0, &[], &s, 0), None);
     }
 
     /// The merge's mean against the true rate, over levels from 0.005 of
@@ -726,16 +755,20 @@ mod tests {
             (0..=steps).map(move |i| lo * (hi / lo).powf(i as f64 / steps as f64))
         };
         let levels = sweep(0.005, 24.0, 80).chain(sweep(0.85, 1.05, 12)).chain(sweep(4.3, 5.3, 6));
-        for (i, level) in levels.enumerate() {
+        // A camera without a black level, and one that subtracts 200 codes
+        // (its values clip at 0.95 of full scale) around the clips.
+        let cameras = levels.map(|l| (l, 0)).chain(sweep(0.85, 1.05, 12).map(|l| (l, 200)));
+        for (i, (level, black)) in cameras.enumerate() {
             let rate = level / 0.025;
-            let rates = merged_rates(&draws(rate, &exposures, n, 100 + i as u64), &exposures);
+            let frames = draws_above(rate, &exposures, n, 100 + i as u64, black);
+            let rates = merged_rates(&frames, &exposures, black);
             let mean = rates.iter().sum::<f64>() / n as f64;
             let sd =
                 (rates.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt();
             let (bias, sem) = (mean / rate - 1.0, sd / (n as f64).sqrt() / rate);
             assert!(
                 bias.abs() < 5e-4 + 4.0 * sem,
-                "bias {:+.4} % (± {:.4} %) at {level:.4} of the longest's full scale",
+                "bias {:+.4} % (± {:.4} %) at {level:.4} of the longest's full scale, black {black}",
                 bias * 100.0,
                 sem * 100.0
             );
@@ -758,11 +791,11 @@ mod tests {
             })
             .collect();
         let inputs: Vec<(&Frame, u32)> = frames.iter().zip(times.iter().copied()).collect();
-        let (m, stats) = merge(&inputs, &s, 40_960, &DefectMap::default()).unwrap();
+        let (m, stats) = merge(&inputs, &s, 0, 40_960, &DefectMap::default()).unwrap();
         assert_eq!(stats, MergeStats::default());
         assert!(m.rgb.iter().all(|&v| (v / 12.288 - 1.0).abs() < 1e-3), "{:?}", m.rgb);
         let many: Vec<(&Frame, u32)> = (0..33).map(|k| (&frames[0], 20 + k)).collect();
-        assert!(merge(&many, &s, 20, &DefectMap::default()).unwrap_err().contains("at most 32"));
+        assert!(merge(&many, &s, 0, 20, &DefectMap::default()).unwrap_err().contains("at most 32"));
     }
 
     /// A stuck pixel is no guide to the level two pixels along: stuck at
@@ -780,13 +813,14 @@ mod tests {
         long[9..12].fill(1.0);
         let (short, long) = (frame(&short), frame(&long));
         let map = DefectMap::new(&[PixelDefect { x: 3, y: 0, kind: DefectKind::Stuck }], 7, 1);
-        let (m, _) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &map).unwrap();
+        let (m, _) = merge(&[(&short, 1_000), (&long, 10_000)], &s, 0, 10_000, &map).unwrap();
         for p in [0, 1, 2, 4, 5, 6] {
             assert!(m.rgb[3 * p] > 0.208, "pixel {p}: {:?}", &m.rgb[3 * p..3 * p + 3]);
         }
         // Unknown to the map, it does judge them.
         let (m, _) =
-            merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &DefectMap::default()).unwrap();
+            merge(&[(&short, 1_000), (&long, 10_000)], &s, 0, 10_000, &DefectMap::default())
+                .unwrap();
         assert!((m.rgb[3] - 0.2).abs() < 1e-4 && (m.rgb[15] - 0.2).abs() < 1e-4, "{:?}", m.rgb);
     }
 
@@ -796,7 +830,8 @@ mod tests {
         // 0.2 at 1 ms and 0.21 at 10 ms ×⅒: the merge sits near the long one.
         let (short, long) = (frame(&[0.02, 0.02, 0.02]), frame(&[0.21, 0.21, 0.21]));
         let (m, _) =
-            merge(&[(&short, 1_000), (&long, 10_000)], &s, 10_000, &DefectMap::default()).unwrap();
+            merge(&[(&short, 1_000), (&long, 10_000)], &s, 0, 10_000, &DefectMap::default())
+                .unwrap();
         assert!(m.rgb[0] > 0.208 && m.rgb[0] < 0.21, "{}", m.rgb[0]);
     }
 }

@@ -1334,6 +1334,9 @@ pub fn scan(
         geometry.camera.width,
         geometry.camera.height,
     );
+    // What the camera subtracts from every value (the merge's top is the
+    // top code less it).
+    let black = manifest.settings.black_level_codes;
     // Stored frames not verified before the device lost its homing (the
     // scan was interrupted, the device reset) cannot be verified now.
     let mut pending_check = (prepared.homed && !unverified.is_empty())
@@ -1599,7 +1602,8 @@ pub fn scan(
                 let reference = *bracket.iter().max().expect("a bracket");
                 let inputs: Vec<(&crate::camera::Frame, u32)> =
                     taken.iter().map(|(f, e, _)| (&**f, *e)).collect();
-                let merged = crate::hdr::merge(&inputs, &geometry.sensor, reference, &defects);
+                let merged =
+                    crate::hdr::merge(&inputs, &geometry.sensor, black, reference, &defects);
                 let (merged, stats) = match merged {
                     Ok(m) => m,
                     Err(e) => {

@@ -337,7 +337,8 @@ pub fn extract_regions(
             // where it holds `v`: the merged frame value's variance (the
             // exposures that measured it), through the filter and the
             // normalisation.
-            let bracket = hdr::BracketNoise::new(&scan.exposures_us(l)?, &g.sensor);
+            let black = scan.manifest.settings.black_level_codes;
+            let bracket = hdr::BracketNoise::new(&scan.exposures_us(l)?, &g.sensor, black);
             let noise = |vi: usize, t: usize, v: [f32; 3]| -> [f32; 3] {
                 let Some(c) = texel_unit(vi, t) else { return [0.0; 3] };
                 let filter = texel_view[vi][t].noise_gain;
