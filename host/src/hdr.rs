@@ -34,15 +34,18 @@ pub struct MergeStats {
 /// the longest exposure's full scale, session 42).
 pub const CLEAR_SIGMAS: f64 = 3.0;
 
-/// Whether an exposure is clear of its clips, and how much its code
-/// varies, is judged from the pixels two along on either side (the same
-/// channel: 6 values), not from the value's own exposures: a choice or a
-/// weight that follows the value's own noise, or the noise of the shorter
-/// exposures it is merged with, biases the merge (+0.66 % at 0.94 of the
-/// longest exposure's full scale when the clip is predicted from the
-/// shorter ones, session 42). Two pixels, so that a Bayer sensor's
-/// demosaicing shares none of the value's noise with them.
-const MERGE_PROXY: usize = 6;
+/// A value's level is judged from the pixels two along (the same channel:
+/// 6 values), not from its own noisy value: by the merge (whether an
+/// exposure is clear of its clips, how much its code varies) and by the
+/// exposures' agreement (which values to compare). A choice or a weight
+/// that follows the value's own noise biases the result: +0.66 % at 0.94
+/// of the longest exposure's full scale when the merge predicted the clip
+/// from the shorter exposures (session 42); a ratio of 1.15 for a white
+/// sample seen through a grazing mirror, where the light is 1, when the
+/// agreement judged the level by the value itself (session 41). Two
+/// pixels, so that a Bayer sensor's demosaicing shares none of the value's
+/// noise with them.
+const ALONG: usize = 6;
 
 /// The sensor's noise in ADC codes: Var(c) = g·c + g²σ_read² + 1/12 for a
 /// code (or a predicted mean code) c: shot noise of its c/g electrons,
@@ -51,6 +54,8 @@ const MERGE_PROXY: usize = 6;
 struct CodeNoise {
     gain: f32,
     floor: f32,
+    /// The top code less the black level: where a value saturates.
+    top: f32,
     /// The highest mean code [`CLEAR_SIGMAS`] of its noise below the top.
     clear_top: f32,
     /// The lowest mean code [`CLEAR_SIGMAS`] of its noise above 0.
@@ -75,6 +80,7 @@ impl CodeNoise {
         CodeNoise {
             gain: gain as f32,
             floor: floor as f32,
+            top: top as f32,
             clear_top: clear_top as f32,
             clear_black: clear_black as f32,
         }
@@ -94,7 +100,7 @@ pub fn adc_code(v: f32, max_code: f32, top: usize) -> usize {
     ((v * max_code + 0.5) as usize).min(top)
 }
 
-/// `out[j]` = `both(l, r)` of the values [`MERGE_PROXY`] before and after
+/// `out[j]` = `both(l, r)` of the values [`ALONG`] before and after
 /// value j in its row `values`, leaving out the pixels at the columns
 /// `broken` (the sensor's defects in the row: a stuck pixel is no guide to
 /// its neighbours' level); `both(x, x)` where there is one (a row's ends),
@@ -102,7 +108,7 @@ pub fn adc_code(v: f32, max_code: f32, top: usize) -> usize {
 #[inline(always)]
 fn along(values: &[f32], out: &mut [f32], broken: &[usize], both: impl Fn(f32, f32) -> f32) {
     let n = values.len();
-    const P: usize = MERGE_PROXY;
+    const P: usize = ALONG;
     let one = |j: usize| {
         let works = |i: usize| !broken.contains(&(i / 3));
         let l = j.checked_sub(P).filter(|&i| works(i)).map(|i| values[i]);
@@ -140,7 +146,7 @@ fn along(values: &[f32], out: &mut [f32], broken: &[usize], both: impl Fn(f32, f
 /// Per value, in three steps (docs/scan-format.md, "HDR"):
 /// 1. An exposure counts if its code is neither 0 nor the top and, unless
 ///    no shorter one counts, its codes two pixels along on either side
-///    ([`MERGE_PROXY`]) are [`CLEAR_SIGMAS`] of their noise below the top.
+///    ([`ALONG`]) are [`CLEAR_SIGMAS`] of their noise below the top.
 ///    Whether an exposure counts thus never depends on the value's own
 ///    noise, nor on that of the exposures it is merged with.
 /// 2. A counted exposure whose darker code two pixels along is not
@@ -204,8 +210,6 @@ pub fn merge(
                 let n = line.len();
                 let broken: Vec<usize> =
                     defects.row(first, row as u32).iter().map(|d| d.x as usize).collect();
-                let (lowest, highest, clear_top, clear_black) =
-                    (lowest, highest, clear_top, clear_black);
                 let (den, dark, bright) = (&mut den[..n], &mut dark[..n], &mut bright[..n]);
                 let (counted, kept, saturated) =
                     (&mut counted[..n], &mut kept[..n], &mut saturated[..n]);
@@ -283,26 +287,12 @@ pub fn merge(
     Ok((merged, stats))
 }
 
-/// The variance of a merged value as a rate, `rate` in full scale per
-/// second (a frame [`crate::build::scanread::ScanFrames::read`] returns),
-/// measured with `exposures_us`: [`BracketNoise::rate_variance`].
-pub fn rate_variance(
-    rate: f64,
-    exposures_us: &[u32],
-    sensor: &SensorSpec,
-    black_codes: u32,
-) -> Option<f64> {
-    BracketNoise::new(exposures_us, sensor, black_codes).rate_variance(rate)
-}
-
 /// The noise of values merged from one bracket of exposures, for many
 /// rates ([`BracketNoise::rate_variance`] is called for every texel of
 /// every region image).
 #[derive(Debug, Clone)]
 pub struct BracketNoise {
     noise: CodeNoise,
-    /// The top code less the black level: where a value saturates.
-    top: f64,
     /// max · t per exposure, ascending.
     codes: Vec<f64>,
 }
@@ -313,13 +303,15 @@ impl BracketNoise {
         let max = sensor.max_code();
         let mut codes: Vec<f64> = exposures_us.iter().map(|&t| t as f64 * 1e-6 * max).collect();
         codes.sort_by(f64::total_cmp);
-        let top = (max - black_codes as f64).max(0.0);
-        BracketNoise { noise: CodeNoise::new(sensor, black_codes), top, codes }
+        BracketNoise { noise: CodeNoise::new(sensor, black_codes), codes }
     }
 
-    /// The inverse of the merge's summed weights over the exposures it
-    /// keeps at `rate` ([`merge`]'s steps, with the rate itself as every
-    /// level along). `None`: every exposure saturated, or none given.
+    /// The variance of a merged value as a rate, `rate` in full scale per
+    /// second (a frame [`crate::build::scanread::ScanFrames::read`]
+    /// returns): the inverse of the merge's summed weights over the
+    /// exposures it keeps at `rate` ([`merge`]'s steps, with the rate
+    /// itself as every level along). `None`: every exposure saturated, or
+    /// none given.
     pub fn rate_variance(&self, rate: f64) -> Option<f64> {
         let noise = &self.noise;
         let mu = |tm: f64| (rate * tm) as f32;
@@ -327,7 +319,7 @@ impl BracketNoise {
         // Step 1: the shortest unsaturated exposure, and the longer ones
         // clear of the top.
         let mut unsaturated =
-            self.codes.iter().copied().filter(|&tm| (rate * tm).round() < self.top);
+            self.codes.iter().copied().filter(|&tm| (rate * tm).round() < noise.top as f64);
         let shortest = unsaturated.next()?;
         let counted =
             std::iter::once(shortest).chain(unsaturated.filter(|&tm| mu(tm) < noise.clear_top));
@@ -379,7 +371,7 @@ impl ExposureRatio {
 /// Only one value in this many is compared (coprime with 3: every channel).
 const AGREEMENT_STRIDE: usize = 7;
 /// A value is compared where its level, judged from the longer exposure
-/// two pixels along ([`AGREEMENT_PROXY`]), puts the shorter exposure at
+/// two pixels along ([`ALONG`]), puts the shorter exposure at
 /// least at this fraction of full scale (≥ 500 electrons on the default
 /// sensor: shot noise ≤ 4.5 %) and the longer at most at
 /// [`AGREEMENT_HIGH`].
@@ -388,14 +380,6 @@ const AGREEMENT_LOW: f32 = 0.05;
 const AGREEMENT_HIGH: f32 = 0.9;
 /// The longer exposure's own value must be below this (not clipped).
 const AGREEMENT_CLIP: f32 = 0.95;
-/// The pixel whose longer exposure judges a value's level: two pixels
-/// along (the same channel), so that its noise is not the value's own
-/// (nor shared through a Bayer sensor's demosaicing). Judged by its own
-/// values, a level just below [`AGREEMENT_LOW`] (or just above
-/// [`AGREEMENT_HIGH`]) would let in only the values noise lifted over the
-/// threshold, and the ratio would carry that noise: 1.15 for a white
-/// sample seen through a grazing mirror, where the light is 1.
-const AGREEMENT_PROXY: usize = 6;
 /// Fewer values than this give no ratio.
 pub const AGREEMENT_MIN_VALUES: usize = 100;
 
@@ -412,18 +396,14 @@ pub fn exposure_ratios(frames: &[(&Frame, u32)]) -> Vec<Option<ExposureRatio>> {
             let scale = *tl as f64 / *ts as f64;
             let (a, b) = (&short.rgb, &long.rgb);
             let n = a.len().min(b.len());
-            if n <= AGREEMENT_PROXY {
+            if n <= ALONG {
                 return None;
             }
             let low = (AGREEMENT_LOW as f64 * scale) as f32;
             let mut ratios: Vec<f32> = (0..n)
                 .step_by(AGREEMENT_STRIDE)
                 .filter(|&i| {
-                    let j = if i + AGREEMENT_PROXY < n {
-                        i + AGREEMENT_PROXY
-                    } else {
-                        i - AGREEMENT_PROXY
-                    };
+                    let j = if i + ALONG < n { i + ALONG } else { i - ALONG };
                     let level = b[j];
                     (low..=AGREEMENT_HIGH).contains(&level)
                         && a[i] > 0.0
@@ -723,13 +703,13 @@ mod tests {
             let rates = merged_rates(&draws(rate, &exposures, n, 3 + i as u64), &exposures, 0);
             let mean = rates.iter().sum::<f64>() / n as f64;
             let var = rates.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-            let want = rate_variance(rate, &exposures, &s, 0).unwrap();
+            let want = BracketNoise::new(&exposures, &s, 0).rate_variance(rate).unwrap();
             assert!((mean / rate - 1.0).abs() < 0.01, "rate {rate}: mean {mean}");
             assert!((var / want - 1.0).abs() < 0.05, "rate {rate}: variance {var} against {want}");
         }
         // Every exposure saturated: no variance to give.
-        assert_eq!(rate_variance(1e4, &exposures, &s, 0), None);
-        assert_eq!(rate_variance(1.0, &[], &s, 0), None);
+        assert_eq!(BracketNoise::new(&exposures, &s, 0).rate_variance(1e4), None);
+        assert_eq!(BracketNoise::new(&[], &s, 0).rate_variance(1.0), None);
     }
 
     /// The merge's mean against the true rate, over levels from 0.005 of
