@@ -158,15 +158,24 @@ pub fn read_rgb_within(
     wanted: &(dyn Fn(PixelRect) -> bool + Sync),
     unit: f32,
 ) -> std::result::Result<Frame, String> {
+    let file = scanner_formats::input::open(path).map_err(|e| e.to_string())?;
+    decode_rgb_within(std::io::BufReader::new(file), wanted, unit)
+}
+
+/// [`read_rgb_within`] from an OpenEXR file's bytes (a file read into
+/// memory: `std::io::Cursor`).
+pub fn decode_rgb_within(
+    source: impl std::io::Read + std::io::Seek,
+    wanted: &(dyn Fn(PixelRect) -> bool + Sync),
+    unit: f32,
+) -> std::result::Result<Frame, String> {
     use exr::block::UncompressedBlock;
     use exr::block::chunk::Chunk;
     use exr::block::reader::ChunksReader;
     use half::slice::HalfFloatSliceExt;
     use rayon::prelude::*;
 
-    let file = scanner_formats::input::open(path).map_err(|e| e.to_string())?;
-    let reader =
-        exr::block::read(std::io::BufReader::new(file), false).map_err(|e| e.to_string())?;
+    let reader = exr::block::read(source, false).map_err(|e| e.to_string())?;
     let (layer, w, h, line_bytes, rgb_channels) = {
         let headers = reader.headers();
         let has = |h: &exr::meta::header::Header, n: &str| {

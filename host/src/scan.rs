@@ -442,8 +442,7 @@ impl Manifest {
     pub fn load_hashed(dir: &Path) -> Result<(Manifest, String), ScanError> {
         let path = dir.join(MANIFEST_FILE);
         let parsed = Manifest::read_bytes(&path).and_then(|bytes| {
-            use sha2::Digest;
-            let sha = hex(&sha2::Sha256::digest(&bytes));
+            let sha = sha256_hex(&bytes);
             Ok((Manifest::parse(&path, bytes)?, sha))
         });
         parsed.map_err(|e| match e {
@@ -981,7 +980,8 @@ pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-fn sha256_hex(bytes: &[u8]) -> String {
+/// The SHA-256 of `bytes`, in lower-case hex (as manifests record it).
+pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
     hex(&Sha256::digest(bytes))
 }
 

@@ -261,6 +261,38 @@ fn bad_inputs_exit_3_and_write_nothing() {
     let err = regions_refused("small", "cal.json", "r2");
     assert!(err.contains("is 100×512 px, the camera has 512×512"), "{err}");
     assert!(!dir.path().join("r2").exists());
+    // Frames changed since the scan: two files swapped (each a good
+    // frame, of the right size, that decodes) and one with a byte flipped.
+    // The material's provenance names the manifest, so its checksums hold.
+    copy_dir(&dir.path().join("leather"), &dir.path().join("swapped"));
+    let frame = |n: usize| dir.path().join(format!("swapped/frames/mirror-{n:02}.exr"));
+    let (f0, f2) = (std::fs::read(frame(0)).unwrap(), std::fs::read(frame(2)).unwrap());
+    std::fs::write(frame(0), &f2).unwrap();
+    std::fs::write(frame(2), &f0).unwrap();
+    let err = regions_refused("swapped", "cal.json", "r8");
+    assert!(err.contains("mirror-0") && err.contains("not the frame the scan recorded"), "{err}");
+    assert!(err.contains(&format!("scanner verify {}", d("swapped"))), "{err}");
+    std::fs::write(frame(0), &f0).unwrap();
+    let mut flipped = f2.clone();
+    let at = flipped.len() - 100;
+    flipped[at] ^= 1;
+    std::fs::write(frame(2), &flipped).unwrap();
+    let err = regions_refused("swapped", "cal.json", "r9");
+    assert!(err.contains("mirror-02.exr: not the frame the scan recorded"), "{err}");
+    std::fs::write(frame(2), &f2).unwrap();
+    let args = ["regions", "--scan", &d("swapped"), "--calibration", &cal, "-o", &d("r10")];
+    assert_eq!(common::run_err(&args).0, Some(0), "restored");
+    // The calibration's scans are checked too.
+    copy_dir(&dir.path().join("white"), &dir.path().join("white-changed"));
+    let frame1 = dir.path().join("white-changed/frames/mirror-01.exr");
+    let mut bytes = std::fs::read(&frame1).unwrap();
+    let at = bytes.len() - 100;
+    bytes[at] ^= 1;
+    std::fs::write(&frame1, &bytes).unwrap();
+    let (code, _, err) = common::calibrate(&d("checker"), &d("white-changed"), &d("c10.json"), &[]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("mirror-01.exr: not the frame the scan recorded"), "{err}");
+    assert!(!dir.path().join("c10.json").exists());
     // A scan of another geometry than the calibration (another binning).
     take_scan("leather", seed, 16, mirrors, &dir.path().join("other"));
     let err = regions_refused("other", "cal.json", "r3");

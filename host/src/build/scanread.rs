@@ -3,6 +3,7 @@
 //! exposure.
 
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use scanner_geometry::ScannerGeometry;
 
@@ -24,6 +25,9 @@ pub struct ScanFrames {
     /// The sensor's defective pixels: those its metering found, and any
     /// added ([`ScanFrames::add_defects`]); replaced in every frame read.
     defects: DefectMap,
+    /// Lit mirrors whose frame file matched its checksum: each file is
+    /// checked the first time it is read.
+    checked: Arc<Mutex<Vec<usize>>>,
 }
 
 impl ScanFrames {
@@ -73,7 +77,8 @@ impl ScanFrames {
         }
         let found = manifest.settings.defects();
         let defects = DefectMap::new(&found, geometry.camera.width, geometry.camera.height);
-        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects })
+        let checked = Arc::default();
+        Ok(ScanFrames { dir: dir.to_path_buf(), manifest, manifest_sha256, defects, checked })
     }
 
     /// Replace `defects` too in the frames read from now on (the sensor's
@@ -152,8 +157,32 @@ impl ScanFrames {
         let t = self.exposure_s(light)?;
         let wanted =
             |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block)) && also(block);
-        let mut f = crate::exrio::read_rgb_within(&path, &wanted, t)
-            .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
+        let checked = self.checked.lock().unwrap_or_else(PoisonError::into_inner).contains(&light);
+        let decoded = if checked {
+            crate::exrio::read_rgb_within(&path, &wanted, t)
+        } else {
+            // The first read of this file: all of it, checked against the
+            // manifest (whose SHA-256 a material's provenance records)
+            // while its blocks decode from memory.
+            let bytes = scanner_formats::input::read(&path)
+                .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
+            let (sha256, decoded) = rayon::join(
+                || crate::scan::sha256_hex(&bytes),
+                || crate::exrio::decode_rgb_within(std::io::Cursor::new(&bytes[..]), &wanted, t),
+            );
+            if sha256 != rec.sha256 {
+                return Err(BuildError::Input(format!(
+                    "{}: not the frame the scan recorded: its SHA-256 differs from the \
+                     manifest's (changed or damaged since; `scanner verify {}` checks every \
+                     frame)",
+                    path.display(),
+                    self.dir.display()
+                )));
+            }
+            self.checked.lock().unwrap_or_else(PoisonError::into_inner).push(light);
+            decoded
+        };
+        let mut f = decoded.map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
         if (f.width, f.height) != (rec.width, rec.height) {
             return Err(BuildError::Input(format!(
                 "{}: {}×{} px, the manifest says {}×{}",
