@@ -1,7 +1,9 @@
 //! Seed inputs for the fuzz targets (`scripts/fuzz.sh`): small valid
 //! material files, one per interpolation, in `DIR/material`, and small
-//! query and answer files (`.npy` and `.csv`) in `DIR/queries`, so that the
-//! fuzzer starts from files that pass the container and header checks.
+//! query and answer files (`.npy` and `.csv`) in `DIR/queries`, and small
+//! OpenEXR frames (PIZ and uncompressed, scan lines and tiles) in
+//! `DIR/frame`, so that the fuzzer starts from files that pass the
+//! container and header checks.
 //!
 //! `cargo run -p host --example fuzz_seeds -- DIR`
 
@@ -67,4 +69,29 @@ fn main() {
         write_answers(&dir.join(name), &answers).unwrap();
     }
     println!("query and answer files in {}", dir.display());
+    let dir = root.join("frame");
+    std::fs::create_dir_all(&dir).unwrap();
+    // Smooth content with some noise, as a camera's: PIZ's Huffman and
+    // wavelet stages both have work to do.
+    let frame = |w: u32, h: u32| {
+        let rgb = (0..w * h * 3)
+            .map(|i| {
+                let (x, y) = ((i / 3) % w, (i / 3) / w);
+                0.1 + 0.002 * (x + y) as f32 + 0.01 * ((i * 2_654_435_761) % 97) as f32 / 97.0
+            })
+            .collect();
+        host::camera::Frame { width: w, height: h, rgb }
+    };
+    for (name, f) in [("lines-48x40", frame(48, 40)), ("tiles-520x300", frame(520, 300))] {
+        for (kind, bytes) in [
+            ("piz", host::exrio::encode_half(&f).unwrap()),
+            ("raw", host::exrio::encode_half_uncompressed(&f).unwrap()),
+        ] {
+            // Every seed is a frame the decoder reads back.
+            let p = dir.join(format!("{name}-{kind}.exr"));
+            std::fs::write(&p, &bytes).unwrap();
+            assert!(host::exrio::read_rgb(&p).unwrap() == host::exrio::quantise_half(f.clone()));
+            println!("{name}-{kind}: {} bytes", bytes.len());
+        }
+    }
 }
