@@ -26,7 +26,12 @@ pub fn decompress(compressed: &[u8], expected_size: usize) -> Result<Vec<u16>> {
     let _skipped = u32::read_le(&mut remaining_compressed)?; // what is this
 
     let max_code_index = usize::try_from(max_code_index_32)?;
-    if min_code_index >= ENCODING_TABLE_SIZE || max_code_index >= ENCODING_TABLE_SIZE {
+    // A table of no symbol (smallest above largest) no encoder writes: the
+    // code lengths are kept only up to the largest symbol.
+    if min_code_index >= ENCODING_TABLE_SIZE
+        || max_code_index >= ENCODING_TABLE_SIZE
+        || min_code_index > max_code_index
+    {
         return Err(Error::invalid(INVALID_TABLE_SIZE));
     }
 
@@ -1268,6 +1273,37 @@ mod test {
             }
             let _ = decompress(&altered, raw.len());
         }
+    }
+
+    /// Every one of the stream's five header numbers set to values around
+    /// and far from its own (the smallest symbol above the largest among
+    /// them): an error or a decoding, never a panic.
+    #[test]
+    fn altered_headers_are_errors_not_panics() {
+        let mut random = rand::rngs::StdRng::from_seed(SEED);
+        let raw: Vec<u16> =
+            (0..5_000).map(|_| 1000 + (-30.0 * random.gen::<f64>().ln()) as u16).collect();
+        let compressed = compress(&raw).unwrap();
+        let header =
+            |i: usize| u32::from_le_bytes(compressed[4 * i..4 * i + 4].try_into().unwrap());
+        let (min, max) = (header(0), header(1));
+        assert!(min < max, "{min} {max}");
+        for field in 0..5 {
+            let own = header(field);
+            let mut values = vec![0, 1, min, max, max + 1, 65_536, 65_537, u32::MAX];
+            let near = [own.wrapping_sub(1), own.wrapping_add(1), own / 2, own.wrapping_mul(2)];
+            values.extend(near);
+            values.extend((0..20).map(|_| random.gen_range(0..70_000)));
+            for value in values {
+                let mut altered = compressed.clone();
+                altered[4 * field..4 * field + 4].copy_from_slice(&value.to_le_bytes());
+                let _ = decompress(&altered, raw.len());
+            }
+        }
+        let mut swapped = compressed.clone();
+        swapped[0..4].copy_from_slice(&max.to_le_bytes());
+        swapped[4..8].copy_from_slice(&min.to_le_bytes());
+        assert!(decompress(&swapped, raw.len()).is_err());
     }
 
     const SEED: [u8; 32] = [
