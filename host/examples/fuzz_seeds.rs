@@ -71,22 +71,28 @@ fn main() {
     println!("query and answer files in {}", dir.display());
     let dir = root.join("frame");
     std::fs::create_dir_all(&dir).unwrap();
-    // Smooth content with some noise, as a camera's: PIZ's Huffman and
-    // wavelet stages both have work to do.
-    let frame = |w: u32, h: u32| {
+    // A ramp with some noise, as a camera's (PIZ's Huffman and wavelet
+    // stages both have work to do), or without: tiles (≥ 512 px a side)
+    // small enough for the fuzzer to mutate quickly.
+    let frame = |w: u32, h: u32, noise: f32| {
         let rgb = (0..w * h * 3)
             .map(|i| {
                 let (x, y) = ((i / 3) % w, (i / 3) / w);
-                0.1 + 0.002 * (x + y) as f32 + 0.01 * ((i * 2_654_435_761) % 97) as f32 / 97.0
+                let n = ((i as u64 * 2_654_435_761) % 97) as f32 / 97.0;
+                0.1 + 0.002 * (x + y) as f32 + noise * n
             })
             .collect();
         host::camera::Frame { width: w, height: h, rgb }
     };
-    for (name, f) in [("lines-48x40", frame(48, 40)), ("tiles-520x300", frame(520, 300))] {
+    let (lines, tiles) = (frame(48, 40, 0.01), frame(520, 300, 0.0));
+    for (name, f, compressions) in [("lines-48x40", lines, 2), ("tiles-520x300", tiles, 1)] {
         for (kind, bytes) in [
             ("piz", host::exrio::encode_half(&f).unwrap()),
             ("raw", host::exrio::encode_half_uncompressed(&f).unwrap()),
-        ] {
+        ]
+        .into_iter()
+        .take(compressions)
+        {
             // Every seed is a frame the decoder reads back.
             let p = dir.join(format!("{name}-{kind}.exr"));
             std::fs::write(&p, &bytes).unwrap();
