@@ -135,8 +135,12 @@ pub fn quantise_half(mut frame: Frame) -> Frame {
 
 /// Read the first RGB(A) layer of an OpenEXR file as linear float RGB.
 pub fn read_rgb(path: &Path) -> std::result::Result<Frame, String> {
-    read_rgb_within(path, &|_| true, 1.0)
+    read_rgb_within(path, &|_| true, 1.0, None)
 }
+
+/// The most pixels an image read here may have (16 384² px: 3 GiB of
+/// float RGB); larger ones are refused before any pixel memory is taken.
+pub const MAX_PIXELS: usize = 1 << 28;
 
 /// A pixel rectangle of a frame: `[x0, y0, x1, y1)`.
 pub type PixelRect = [usize; 4];
@@ -153,13 +157,16 @@ pub fn rects_overlap(a: PixelRect, b: PixelRect) -> bool {
 /// (the exr crate's own parallel reader builds a thread pool per file).
 /// Values are divided by `unit` as they are decoded (the pixels of blocks
 /// not read are never touched: the frame's memory there stays unmapped).
+/// An image of another size than `size` (`[width, height]`), when given,
+/// or of more than [`MAX_PIXELS`], is an error before its pixels are read.
 pub fn read_rgb_within(
     path: &Path,
     wanted: &(dyn Fn(PixelRect) -> bool + Sync),
     unit: f32,
+    size: Option<[usize; 2]>,
 ) -> std::result::Result<Frame, String> {
     let file = scanner_formats::input::open(path).map_err(|e| e.to_string())?;
-    decode_rgb_within(std::io::BufReader::new(file), wanted, unit)
+    decode_rgb_within(std::io::BufReader::new(file), wanted, unit, size)
 }
 
 /// [`read_rgb_within`] from an OpenEXR file's bytes (a file read into
@@ -168,6 +175,7 @@ pub fn decode_rgb_within(
     source: impl std::io::Read + std::io::Seek,
     wanted: &(dyn Fn(PixelRect) -> bool + Sync),
     unit: f32,
+    size: Option<[usize; 2]>,
 ) -> std::result::Result<Frame, String> {
     use exr::block::UncompressedBlock;
     use exr::block::chunk::Chunk;
@@ -204,7 +212,12 @@ pub fn decode_rgb_within(
         }
         (layer, h.layer_size.width(), h.layer_size.height(), line_bytes, rgb_channels)
     };
-    if w == 0 || h == 0 || w.checked_mul(h).is_none_or(|n| n > 1 << 30) {
+    if let Some([want_w, want_h]) = size
+        && [w, h] != [want_w, want_h]
+    {
+        return Err(format!("{w}×{h} px where {want_w}×{want_h} were expected"));
+    }
+    if w == 0 || h == 0 || w.checked_mul(h).is_none_or(|n| n > MAX_PIXELS) {
         return Err(format!("unsupported image size {w}×{h}"));
     }
     let chunks = reader
@@ -387,7 +400,7 @@ mod tests {
         let f = frame(1024, 768);
         let p = write(dir.path(), "f.exr", &encode_half(&f).unwrap());
         let window = [300, 260, 310, 270];
-        let part = read_rgb_within(&p, &|b| rects_overlap(b, window), 2.0).unwrap();
+        let part = read_rgb_within(&p, &|b| rects_overlap(b, window), 2.0, None).unwrap();
         // The tile holding the window ([256, 512) × [256, 512)) is there,
         // everything else is 0.
         for y in 0..768 {
@@ -417,5 +430,22 @@ mod tests {
             let _ = read_rgb(&p);
         }
         assert!(read_rgb(&dir.path().join("none.exr")).is_err());
+    }
+
+    #[test]
+    fn an_image_of_another_size_than_expected_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = frame(600, 520);
+        let p = write(dir.path(), "f.exr", &encode_half(&f).unwrap());
+        let all = |_| true;
+        assert!(read_rgb_within(&p, &all, 1.0, Some([600, 520])).unwrap() == f);
+        for other in [[520, 600], [600, 521], [0, 0]] {
+            let err = read_rgb_within(&p, &all, 1.0, Some(other)).unwrap_err();
+            let want = format!("600×520 px where {}×{} were expected", other[0], other[1]);
+            assert_eq!(err, want);
+        }
+        let bytes = std::fs::read(&p).unwrap();
+        let err = decode_rgb_within(std::io::Cursor::new(&bytes), &all, 1.0, Some([1, 1]));
+        assert!(err.is_err());
     }
 }

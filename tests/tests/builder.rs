@@ -282,6 +282,20 @@ fn bad_inputs_exit_3_and_write_nothing() {
     std::fs::write(frame(2), &f2).unwrap();
     let args = ["regions", "--scan", &d("swapped"), "--calibration", &cal, "-o", &d("r10")];
     assert_eq!(common::run_err(&args).0, Some(0), "restored");
+    // A frame file of another size than its manifest's, checksum and all
+    // (a capture program's mistake): refused before its pixels are read.
+    let small = host::camera::Frame { width: 256, height: 512, rgb: vec![0.5; 256 * 512 * 3] };
+    let bytes = host::exrio::encode_half(&small).unwrap();
+    std::fs::write(frame(1), &bytes).unwrap();
+    let mut m4 = host::scan::Manifest::load(&dir.path().join("swapped")).unwrap();
+    m4.frames.iter_mut().find(|f| f.mirror == 1).unwrap().sha256 = {
+        use sha2::Digest;
+        sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect()
+    };
+    let manifest_path = dir.path().join("swapped/manifest.json");
+    std::fs::write(&manifest_path, serde_json::to_string(&m4).unwrap()).unwrap();
+    let err = regions_refused("swapped", "cal.json", "r11");
+    assert!(err.contains("mirror-01.exr: 256×512 px where 512×512 were expected"), "{err}");
     // The calibration's scans are checked too.
     copy_dir(&dir.path().join("white"), &dir.path().join("white-changed"));
     let frame1 = dir.path().join("white-changed/frames/mirror-01.exr");

@@ -157,9 +157,12 @@ impl ScanFrames {
         let t = self.exposure_s(light)?;
         let wanted =
             |block: PixelRect| windows.iter().any(|w| rects_overlap(*w, block)) && also(block);
+        // The manifest's size (which `open` checked against the camera's):
+        // a file of another is refused before its pixels are read.
+        let size = Some([rec.width as usize, rec.height as usize]);
         let checked = self.checked.lock().unwrap_or_else(PoisonError::into_inner).contains(&light);
         let decoded = if checked {
-            crate::exrio::read_rgb_within(&path, &wanted, t)
+            crate::exrio::read_rgb_within(&path, &wanted, t, size)
         } else {
             // The first read of this file: all of it, checked against the
             // manifest (whose SHA-256 a material's provenance records)
@@ -168,7 +171,10 @@ impl ScanFrames {
                 .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
             let (sha256, decoded) = rayon::join(
                 || crate::scan::sha256_hex(&bytes),
-                || crate::exrio::decode_rgb_within(std::io::Cursor::new(&bytes[..]), &wanted, t),
+                || {
+                    let source = std::io::Cursor::new(&bytes[..]);
+                    crate::exrio::decode_rgb_within(source, &wanted, t, size)
+                },
             );
             if sha256 != rec.sha256 {
                 return Err(BuildError::Input(format!(
@@ -183,16 +189,6 @@ impl ScanFrames {
             decoded
         };
         let mut f = decoded.map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
-        if (f.width, f.height) != (rec.width, rec.height) {
-            return Err(BuildError::Input(format!(
-                "{}: {}×{} px, the manifest says {}×{}",
-                path.display(),
-                f.width,
-                f.height,
-                rec.width,
-                rec.height
-            )));
-        }
         // Within the windows only: the rest of the frame was not decoded.
         let inside = |x: usize, y: usize| {
             windows.iter().any(|w| (w[0]..w[2]).contains(&x) && (w[1]..w[3]).contains(&y))
