@@ -376,9 +376,11 @@ const AGREEMENT_STRIDE: usize = 7;
 /// sensor: shot noise ≤ 4.5 %) and the longer at most at
 /// [`AGREEMENT_HIGH`].
 const AGREEMENT_LOW: f32 = 0.05;
-/// See [`AGREEMENT_LOW`]: clear of saturation.
+/// See [`AGREEMENT_LOW`]: clear of saturation, a fraction of where values
+/// saturate (the top code less the camera's black level).
 const AGREEMENT_HIGH: f32 = 0.9;
-/// The longer exposure's own value must be below this (not clipped).
+/// The longer exposure's own value must be below this fraction of where
+/// values saturate (not clipped).
 const AGREEMENT_CLIP: f32 = 0.95;
 /// Fewer values than this give no ratio.
 pub const AGREEMENT_MIN_VALUES: usize = 100;
@@ -386,7 +388,15 @@ pub const AGREEMENT_MIN_VALUES: usize = 100;
 /// For each exposure of `frames` (each with its exposure in µs) but the
 /// longest, its [`ExposureRatio`] to the next longer one; `None` where
 /// fewer than [`AGREEMENT_MIN_VALUES`] values were measured well by both.
-pub fn exposure_ratios(frames: &[(&Frame, u32)]) -> Vec<Option<ExposureRatio>> {
+/// `sensor` and `black_codes` as for [`merge`]: values saturate at the top
+/// code less the black level.
+pub fn exposure_ratios(
+    frames: &[(&Frame, u32)],
+    sensor: &SensorSpec,
+    black_codes: u32,
+) -> Vec<Option<ExposureRatio>> {
+    let saturation = CodeNoise::new(sensor, black_codes).top / sensor.max_code() as f32;
+    let (high, clip) = (AGREEMENT_HIGH * saturation, AGREEMENT_CLIP * saturation);
     let mut order: Vec<&(&Frame, u32)> = frames.iter().collect();
     order.sort_by_key(|(_, t)| *t);
     order
@@ -405,10 +415,7 @@ pub fn exposure_ratios(frames: &[(&Frame, u32)]) -> Vec<Option<ExposureRatio>> {
                 .filter(|&i| {
                     let j = if i + ALONG < n { i + ALONG } else { i - ALONG };
                     let level = b[j];
-                    (low..=AGREEMENT_HIGH).contains(&level)
-                        && a[i] > 0.0
-                        && b[i] > 0.0
-                        && b[i] < AGREEMENT_CLIP
+                    (low..=high).contains(&level) && a[i] > 0.0 && b[i] > 0.0 && b[i] < clip
                 })
                 .map(|i| (a[i] as f64 / b[i] as f64 * scale) as f32)
                 .collect();
@@ -465,7 +472,7 @@ mod tests {
         let at =
             |t: f32, k: f32| frame(&scene.iter().map(|v| (v * t * k).min(1.0)).collect::<Vec<_>>());
         let (dim, mid, long) = (at(0.01, 0.8), at(0.1, 1.0), at(1.0, 1.0));
-        let r = exposure_ratios(&[(&long, 10_000), (&dim, 100), (&mid, 1_000)]);
+        let r = exposure_ratios(&[(&long, 10_000), (&dim, 100), (&mid, 1_000)], &sensor(), 0);
         assert_eq!(r.len(), 2);
         let r0 = r[0].unwrap();
         assert_eq!((r0.shorter_us, r0.longer_us), (100, 1_000));
@@ -475,7 +482,25 @@ mod tests {
         assert!((r1.ratio - 1.0).abs() < 1e-4, "{r1:?}");
         // Too few values measured well by both: no ratio.
         let few = frame(&scene[..60]);
-        assert_eq!(exposure_ratios(&[(&few, 1_000), (&few, 2_000)]), vec![None]);
+        assert_eq!(exposure_ratios(&[(&few, 1_000), (&few, 2_000)], &sensor(), 0), vec![None]);
+    }
+
+    /// A camera that subtracts a black level of b codes itself saturates at
+    /// the top code less b: those values are clipped, not measured, and
+    /// left out (with b = 410 of 4 095 they sit at 0.9 of full scale, below
+    /// the thresholds for a camera without one, and moved the ratio).
+    #[test]
+    fn exposure_ratios_leave_out_what_saturates_below_the_top_code() {
+        let s = sensor();
+        let black = 410;
+        let saturation = ((s.max_code() - black as f64) / s.max_code()) as f32;
+        let scene: Vec<f32> = (0..30_000).map(|i| 0.001 * 1.00035f32.powi(i)).collect();
+        let at = |t: f32| frame(&scene.iter().map(|v| (v * t).min(saturation)).collect::<Vec<_>>());
+        let (short, long) = (at(0.2), at(1.0));
+        let r = exposure_ratios(&[(&short, 2_000), (&long, 10_000)], &s, black)[0].unwrap();
+        assert!((r.ratio - 1.0).abs() < 1e-4 && r.values >= AGREEMENT_MIN_VALUES, "{r:?}");
+        let unaware = exposure_ratios(&[(&short, 2_000), (&long, 10_000)], &s, 0)[0].unwrap();
+        assert!(unaware.ratio > 1.05, "the clipped values count without it: {unaware:?}");
     }
 
     /// Levels just outside the compared range, under the sensor's noise:
@@ -505,7 +530,8 @@ mod tests {
             let level = |i: usize| lo + (hi - lo) * i as f64 / n as f64;
             let long_v: Vec<f32> = (0..n).map(|i| read(level(i))).collect();
             let short_v: Vec<f32> = (0..n).map(|i| read(level(i) / 5.0)).collect();
-            let r = exposure_ratios(&[(&frame(&short_v), 2_000), (&frame(&long_v), 10_000)]);
+            let pair = [(&frame(&short_v), 2_000), (&frame(&long_v), 10_000)];
+            let r = exposure_ratios(&pair, &s, 0);
             // What is compared has the ratio of 1, however few.
             if let Some(r) = r[0] {
                 assert!((r.ratio - 1.0).abs() < 0.01, "{lo}…{hi}: {r:?}");

@@ -1619,7 +1619,10 @@ pub fn scan(
                     ));
                 }
                 let ratios: Vec<crate::hdr::ExposureRatio> =
-                    crate::hdr::exposure_ratios(&inputs).into_iter().flatten().collect();
+                    crate::hdr::exposure_ratios(&inputs, &geometry.sensor, black)
+                        .into_iter()
+                        .flatten()
+                        .collect();
                 for r in &ratios {
                     if (r.ratio - 1.0).abs() > EXPOSURE_RATIO_TOLERANCE {
                         let duty = |us: u32| {
