@@ -64,7 +64,7 @@ fn merge(c: &mut Criterion) {
     let mut g = c.benchmark_group("exposure agreement 2048², 3 exposures");
     g.sample_size(20).measurement_time(Duration::from_secs(4));
     g.bench_function("exposure_ratios", |b| {
-        b.iter(|| host::hdr::exposure_ratios(black_box(&inputs)))
+        b.iter(|| host::hdr::exposure_ratios(black_box(&inputs), &sensor, 0))
     });
     g.finish();
 }
