@@ -2,8 +2,8 @@
 //! material files, one per interpolation, in `DIR/material`, and small
 //! query and answer files (`.npy` and `.csv`) in `DIR/queries`, and small
 //! OpenEXR frames (PIZ and uncompressed, scan lines and tiles) in
-//! `DIR/frame`, so that the fuzzer starts from files that pass the
-//! container and header checks.
+//! `DIR/frame` and `DIR/texture_map`, so that the fuzzer starts from files
+//! that pass the container and header checks.
 //!
 //! `cargo run -p host --example fuzz_seeds -- DIR`
 
@@ -69,8 +69,9 @@ fn main() {
         write_answers(&dir.join(name), &answers).unwrap();
     }
     println!("query and answer files in {}", dir.display());
-    let dir = root.join("frame");
+    let (dir, maps) = (root.join("frame"), root.join("texture_map"));
     std::fs::create_dir_all(&dir).unwrap();
+    std::fs::create_dir_all(&maps).unwrap();
     // A ramp with some noise, as a camera's (PIZ's Huffman and wavelet
     // stages both have work to do), or without: tiles (≥ 512 px a side)
     // small enough for the fuzzer to mutate quickly.
@@ -93,10 +94,12 @@ fn main() {
         .into_iter()
         .take(compressions)
         {
-            // Every seed is a frame the decoder reads back.
+            // Every seed is a frame the decoder reads back; the texture
+            // maps' reader starts from the same files.
             let p = dir.join(format!("{name}-{kind}.exr"));
             std::fs::write(&p, &bytes).unwrap();
             assert!(host::exrio::read_rgb(&p).unwrap() == host::exrio::quantise_half(f.clone()));
+            std::fs::write(maps.join(format!("{name}-{kind}.exr")), &bytes).unwrap();
             println!("{name}-{kind}: {} bytes", bytes.len());
         }
     }
