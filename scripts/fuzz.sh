@@ -11,9 +11,14 @@ cd "$(dirname "$0")/.."
 seconds=${1:-300}
 mkdir -p fuzz/corpus/decoder
 # Start from valid files, so the fuzzer gets past the container checks
-# (fuzz/corpus/material, fuzz/corpus/queries).
+# (fuzz/corpus/material, queries, frame and texture_map).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
 for target in material queries decoder frame texture_map; do
+    # The exr crate's flat-layer reader decodes on a thread pool of its own
+    # per file, whose jobs still hold blocks when the process exits: leak
+    # detection at exit would report those, so it is off for that target.
+    leaks=1
+    [ "$target" = texture_map ] && leaks=0
     (cd fuzz && cargo +nightly fuzz run --release "$target" "corpus/$target" -- \
-        -max_total_time="$seconds" -rss_limit_mb=4096 -max_len=1048576)
+        -max_total_time="$seconds" -rss_limit_mb=4096 -max_len=1048576 -detect_leaks=$leaks)
 done
