@@ -102,6 +102,15 @@ impl<'a> ScanCamera<'a> {
     }
 }
 
+/// What is wrong with a frame of `w`×`h` px for a camera of `[width,
+/// height]` px.
+pub fn wrong_size(w: usize, h: usize, [width, height]: [u32; 2]) -> String {
+    format!(
+        "a frame of {w}×{h} px; the geometry's camera has {width}×{height} px (set the \
+         camera's resolution and binning, or scan with its geometry)"
+    )
+}
+
 /// Why a frame is not one of the scan's: another size than the sensor's,
 /// or values beyond full scale (a capture program that writes ADC codes or
 /// another unit, not code / top code) or not numbers.
@@ -109,11 +118,8 @@ pub fn check_frame(frame: &Frame, width: u32, height: u32) -> Result<(), CameraE
     if (frame.width, frame.height) != (width, height)
         || frame.rgb.len() != width as usize * height as usize * 3
     {
-        return Err(CameraError::Unusable(format!(
-            "a frame of {}×{} px; the geometry's camera has {width}×{height} px (set the \
-             camera's resolution and binning, or scan with its geometry)",
-            frame.width, frame.height
-        )));
+        let (w, h) = (frame.width as usize, frame.height as usize);
+        return Err(CameraError::Unusable(wrong_size(w, h, [width, height])));
     }
     // Half float holds the top code's 1.0 exactly; allow a rounding's worth.
     const FULL_SCALE: f32 = 1.0 + 1e-3;
@@ -229,17 +235,21 @@ pub struct FolderCamera {
     seen: BTreeSet<String>,
     sensor: scanner_geometry::SensorSpec,
     codes: scanner_geometry::IntegerCodes,
+    /// The camera's frame size, `[width, height]` px.
+    size: [u32; 2],
     /// Poll period.
     pub poll: Duration,
 }
 
 impl FolderCamera {
-    /// Watch `dir` (it must exist) for frames of `sensor`, integer images
-    /// holding its codes as `codes` says.
+    /// Watch `dir` (it must exist) for frames of `size` (`[width, height]`
+    /// px) from `sensor`, integer images holding its codes as `codes` says;
+    /// a file of another size is refused from its header.
     pub fn new(
         dir: &Path,
         sensor: &scanner_geometry::SensorSpec,
         codes: scanner_geometry::IntegerCodes,
+        size: [u32; 2],
     ) -> Result<FolderCamera, CameraError> {
         if !dir.is_dir() {
             return Err(CameraError::Io(format!("{} is not a folder", dir.display())));
@@ -249,6 +259,7 @@ impl FolderCamera {
             seen: BTreeSet::new(),
             sensor: sensor.clone(),
             codes,
+            size,
             poll: Duration::from_millis(20),
         };
         c.seen = c.list()?;
@@ -303,7 +314,8 @@ impl Camera for FolderCamera {
             let names = self.list()?;
             if let Some(name) = names.difference(&self.seen).next().cloned() {
                 use crate::frame_file::{FrameFileError, read_frame_file};
-                match read_frame_file(&self.dir.join(&name), &self.sensor, self.codes) {
+                let path = self.dir.join(&name);
+                match read_frame_file(&path, &self.sensor, self.codes, Some(self.size)) {
                     Ok(f) => {
                         self.seen.insert(name);
                         return Ok(f);

@@ -49,26 +49,45 @@ fn format_of(name: &str) -> Option<ImageFormat> {
 }
 
 /// The frame in the file at `path`, in the frames' unit: integer images are
-/// read as `codes` says for `sensor`.
+/// read as `codes` says for `sensor`. An image of another size than `size`
+/// (`[width, height]`, the camera's), when given, is refused from its
+/// header, before its pixels are decoded.
 pub fn read_frame_file(
     path: &Path,
     sensor: &SensorSpec,
     codes: IntegerCodes,
+    size: Option<[u32; 2]>,
 ) -> Result<Frame, FrameFileError> {
     let name = path.display();
     let format =
         path.file_name().and_then(|n| n.to_str()).and_then(format_of).ok_or_else(|| {
             FrameFileError::Unusable(format!("{name}: not an .exr, .png or .tiff"))
         })?;
-    if format == ImageFormat::OpenExr {
-        return crate::exrio::read_rgb(path)
-            .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")));
-    }
     let bytes = scanner_formats::input::read(path)
         .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
+    let of_size = |[w, h]: [usize; 2]| match size {
+        Some(want) if [w, h] != want.map(|n| n as usize) => Err(FrameFileError::Unusable(format!(
+            "{name}: {}",
+            crate::camera::wrong_size(w, h, want)
+        ))),
+        _ => Ok(()),
+    };
+    if format == ImageFormat::OpenExr {
+        // Its size from the header first: a mismatch is final, where a
+        // file that does not decode may still be being written.
+        let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(&bytes), false)
+            .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
+        if let Some(header) = meta.headers.first() {
+            of_size([header.layer_size.width(), header.layer_size.height()])?;
+        }
+        return crate::exrio::decode_rgb_within(Cursor::new(&bytes), &|_| true, 1.0, None)
+            .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")));
+    }
     let decoder = ImageReader::with_format(Cursor::new(&bytes), format)
         .into_decoder()
         .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
+    let (w, h) = decoder.dimensions();
+    of_size([w as usize, h as usize])?;
     let original = decoder.original_color_type();
     if matches!(original, ExtendedColorType::Cmyk8 | ExtendedColorType::Cmyk16) {
         return Err(FrameFileError::Unusable(format!(
@@ -184,6 +203,33 @@ mod tests {
         DynamicImage::ImageRgb16(image::ImageBuffer::from_raw(40, 30, values).unwrap())
     }
 
+    /// A file of another size than the camera's is unusable (final, not
+    /// retried as a file still being written), from its header.
+    #[test]
+    fn a_frame_of_another_size_than_the_cameras_is_unusable() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = sensor(12);
+        let png = write(dir.path(), "f.png", rgb16(codes(40 * 30 * 3)));
+        let floats = Frame { width: 40, height: 30, rgb: vec![0.25; 40 * 30 * 3] };
+        let exr = dir.path().join("f.exr");
+        std::fs::write(&exr, crate::exrio::encode_half(&floats).unwrap()).unwrap();
+        for path in [&png, &exr] {
+            let read = |size| read_frame_file(path, &s, IntegerCodes::Native, size);
+            assert_eq!(read(Some([40, 30])).unwrap().rgb.len(), 40 * 30 * 3);
+            match read(Some([30, 40])) {
+                Err(FrameFileError::Unusable(m)) => assert!(
+                    m.ends_with(&format!(
+                        "f.{}: a frame of 40×30 px; the geometry's camera has 30×40 px (set the \
+                         camera's resolution and binning, or scan with its geometry)",
+                        path.extension().unwrap().to_str().unwrap()
+                    )),
+                    "{m}"
+                ),
+                other => panic!("{other:?}"),
+            }
+        }
+    }
+
     #[test]
     fn sixteen_bit_png_and_tiff_read_as_codes_over_the_top_code() {
         let dir = tempfile::tempdir().unwrap();
@@ -197,7 +243,7 @@ mod tests {
             ("shifted.TIF", c.iter().map(|v| v << 4).collect(), IntegerCodes::Shifted),
         ] {
             let path = write(dir.path(), name, rgb16(values));
-            let f = read_frame_file(&path, &s, convention).unwrap();
+            let f = read_frame_file(&path, &s, convention, None).unwrap();
             assert_eq!((f.width, f.height), (40, 30));
             assert!(f.rgb == expect, "{name}: the same floats as code / 4095");
         }
@@ -205,7 +251,7 @@ mod tests {
         let scaled: Vec<u16> =
             c.iter().map(|&v| (v as f64 * 65535.0 / 4095.0).round() as u16).collect();
         let path = write(dir.path(), "scaled.png", rgb16(scaled));
-        let f = read_frame_file(&path, &s, IntegerCodes::Scaled).unwrap();
+        let f = read_frame_file(&path, &s, IntegerCodes::Scaled, None).unwrap();
         let worst = f.rgb.iter().zip(&expect).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
         assert!(worst <= 0.5 / 65535.0 + 1e-7, "{worst}");
     }
@@ -220,7 +266,7 @@ mod tests {
             "grey.tiff",
             DynamicImage::ImageLuma16(image::ImageBuffer::from_raw(40, 30, grey.clone()).unwrap()),
         );
-        let f = read_frame_file(&path, &s, IntegerCodes::Native).unwrap();
+        let f = read_frame_file(&path, &s, IntegerCodes::Native, None).unwrap();
         for (i, &g) in grey.iter().enumerate() {
             let v = (g as f64 / 4095.0) as f32;
             assert_eq!(&f.rgb[3 * i..3 * i + 3], &[v, v, v]);
@@ -231,7 +277,7 @@ mod tests {
             "alpha.png",
             DynamicImage::ImageRgba16(image::ImageBuffer::from_raw(40, 30, rgba.clone()).unwrap()),
         );
-        let f = read_frame_file(&path, &s, IntegerCodes::Native).unwrap();
+        let f = read_frame_file(&path, &s, IntegerCodes::Native, None).unwrap();
         assert_eq!(f.rgb.len(), 40 * 30 * 3);
         assert_eq!(f.rgb[3 * 7 + 2], (rgba[4 * 7 + 2] as f64 / 4095.0) as f32);
         // Float TIFF: the values themselves.
@@ -243,7 +289,7 @@ mod tests {
                 image::ImageBuffer::from_raw(40, 30, floats.clone()).unwrap(),
             ),
         );
-        assert!(read_frame_file(&path, &s, IntegerCodes::Shifted).unwrap().rgb == floats);
+        assert!(read_frame_file(&path, &s, IntegerCodes::Shifted, None).unwrap().rgb == floats);
     }
 
     #[test]
@@ -251,7 +297,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let s = sensor(12);
         let c = codes(40 * 30 * 3);
-        let unusable = |path: &Path, codes| match read_frame_file(path, &s, codes) {
+        let unusable = |path: &Path, codes| match read_frame_file(path, &s, codes, None) {
             Err(FrameFileError::Unusable(m)) => m,
             other => panic!("{other:?}"),
         };
@@ -267,7 +313,7 @@ mod tests {
         // A few non-zero multiples of 16 are no evidence.
         let sparse: Vec<u16> = (0..3600).map(|i| if i % 8 == 0 { 16 } else { 0 }).collect();
         let sparse = write(dir.path(), "sparse.png", rgb16(sparse));
-        assert!(read_frame_file(&sparse, &s, IntegerCodes::Native).is_ok());
+        assert!(read_frame_file(&sparse, &s, IntegerCodes::Native, None).is_ok());
         // Native codes read as shifted.
         let native = write(dir.path(), "native.tiff", rgb16(c.clone()));
         let m = unusable(&native, IntegerCodes::Shifted);
@@ -289,7 +335,7 @@ mod tests {
         );
         let m = unusable(&eight, IntegerCodes::Native);
         assert!(m.contains("its 8-bit integers cannot hold the sensor's 12-bit codes"), "{m}");
-        let f = read_frame_file(&eight, &sensor(8), IntegerCodes::Native).unwrap();
+        let f = read_frame_file(&eight, &sensor(8), IntegerCodes::Native, None).unwrap();
         assert_eq!(f.rgb[0], (7.0f64 / 255.0) as f32);
     }
 
@@ -304,7 +350,7 @@ mod tests {
             std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
             assert!(
                 matches!(
-                    read_frame_file(&p, &s, IntegerCodes::Native),
+                    read_frame_file(&p, &s, IntegerCodes::Native, None),
                     Err(FrameFileError::Decode(_))
                 ),
                 "{name}"

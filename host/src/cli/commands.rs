@@ -972,15 +972,17 @@ impl ScanArgs {
 
 fn camera_for(
     args: &ScanArgs,
-    sensor: &scanner_geometry::SensorSpec,
+    geometry: &ScannerGeometry,
     rig: Option<&SimRig>,
 ) -> Result<Box<dyn Camera>, Failure> {
+    let (sensor, camera) = (&geometry.sensor, &geometry.camera);
     match (args.camera.as_deref(), rig) {
         (Some(spec), _) => {
             let dir = spec
                 .strip_prefix("folder:")
                 .ok_or_else(|| Failure(2, anyhow!("--camera must be folder:DIR, got {spec:?}")))?;
-            let camera = FolderCamera::new(Path::new(dir), sensor, args.camera_codes.into())
+            let size = [camera.width, camera.height];
+            let camera = FolderCamera::new(Path::new(dir), sensor, args.camera_codes.into(), size)
                 .map_err(|e| Failure(8, anyhow!(e)))?;
             Ok(Box::new(camera))
         }
@@ -1023,7 +1025,7 @@ pub fn run_scan(
             anyhow!("--black-level {codes}: at or above the sensor's top code {top}"),
         ));
     }
-    let mut camera = camera_for(scan_args, &geometry.sensor, opened.rig.as_ref())?;
+    let mut camera = camera_for(scan_args, &geometry, opened.rig.as_ref())?;
     let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
     opts.resume = scan_args.resume;
     opts.mirrors = scan_args.mirrors;
