@@ -169,6 +169,15 @@ pub fn read_rgb_within(
     decode_rgb_within(std::io::BufReader::new(file), wanted, unit, size)
 }
 
+/// The layer (header) the frame readers take: the first with R, G and B
+/// channels.
+pub fn rgb_layer(headers: &[exr::meta::header::Header]) -> Option<usize> {
+    let has = |h: &exr::meta::header::Header, n: &str| {
+        h.channels.find_index_of_channel(&Text::from(n)).is_some()
+    };
+    headers.iter().position(|h| ["R", "G", "B"].iter().all(|n| has(h, n)))
+}
+
 /// [`read_rgb_within`] from an OpenEXR file's bytes (a file read into
 /// memory: `std::io::Cursor`).
 pub fn decode_rgb_within(
@@ -186,13 +195,7 @@ pub fn decode_rgb_within(
     let reader = exr::block::read(source, false).map_err(|e| e.to_string())?;
     let (layer, w, h, line_bytes, rgb_channels) = {
         let headers = reader.headers();
-        let has = |h: &exr::meta::header::Header, n: &str| {
-            h.channels.find_index_of_channel(&Text::from(n)).is_some()
-        };
-        let layer = headers
-            .iter()
-            .position(|h| ["R", "G", "B"].iter().all(|n| has(h, n)))
-            .ok_or("no layer with R, G and B channels")?;
+        let layer = rgb_layer(headers).ok_or("no layer with R, G and B channels")?;
         let h = &headers[layer];
         if h.deep {
             return Err("deep data is not an image".into());

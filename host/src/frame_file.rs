@@ -77,7 +77,8 @@ pub fn read_frame_file(
         // file that does not decode may still be being written.
         let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(&bytes), false)
             .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
-        if let Some(header) = meta.headers.first() {
+        if let Some(layer) = crate::exrio::rgb_layer(&meta.headers) {
+            let header = &meta.headers[layer];
             of_size([header.layer_size.width(), header.layer_size.height()])?;
         }
         return crate::exrio::decode_rgb_within(Cursor::new(&bytes), &|_| true, 1.0, None)
