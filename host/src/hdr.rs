@@ -34,6 +34,10 @@ pub struct MergeStats {
 /// the longest exposure's full scale, session 42).
 pub const CLEAR_SIGMAS: f64 = 3.0;
 
+/// The most exposures one merge takes: one bit each in the masks of its
+/// steps (`u32`).
+pub const MAX_EXPOSURES: usize = u32::BITS as usize;
+
 /// A value's level is judged from the pixels two along (the same channel:
 /// 6 values), not from its own noisy value: by the merge (whether an
 /// exposure is clear of its clips, how much its code varies) and by the
@@ -141,7 +145,7 @@ fn along(values: &[f32], out: &mut [f32], broken: &[usize], both: impl Fn(f32, f
 /// camera's black level of `black_codes` subtracted) into one frame in
 /// units of the `reference_us` exposure. The pixels of
 /// `defects` are not counted in the stats and are replaced by their
-/// neighbours' mean ([`DefectMap::patch`]). At most 32 exposures.
+/// neighbours' mean ([`DefectMap::patch`]). At most [`MAX_EXPOSURES`].
 ///
 /// Per value, in three steps (docs/scan-format.md, "HDR"):
 /// 1. An exposure counts if its code is neither 0 nor the top and, unless
@@ -171,8 +175,8 @@ pub fn merge(
     if frames.iter().any(|&(_, t)| t == 0) || reference_us == 0 {
         return Err("an exposure of 0 µs".into());
     }
-    if frames.len() > 32 {
-        return Err(format!("{} exposures to merge; at most 32", frames.len()));
+    if frames.len() > MAX_EXPOSURES {
+        return Err(format!("{} exposures to merge; at most {MAX_EXPOSURES}", frames.len()));
     }
     let noise = CodeNoise::new(sensor, black_codes);
     let max = sensor.max_code() as f32;
@@ -239,7 +243,7 @@ pub fn merge(
                 // longest counted.
                 for (&c, k) in counted.iter().zip(kept.iter_mut()) {
                     let both = c & *k;
-                    *k = if both != 0 || c == 0 { both } else { 1 << (31 - c.leading_zeros()) };
+                    *k = if both != 0 || c == 0 { both } else { 1 << c.ilog2() };
                 }
                 // Step 3: weights from the codes along (their mean).
                 line.fill(0.0);
@@ -259,7 +263,7 @@ pub fn merge(
                         *d += wgt;
                     }
                 }
-                let every = u32::MAX >> (32 - exposures.len());
+                let every = u32::MAX >> (MAX_EXPOSURES - exposures.len());
                 let mut stats = MergeStats::default();
                 for (j, o) in line.iter_mut().enumerate() {
                     // Looked up only for the few values no exposure measured.
