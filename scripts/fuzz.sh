@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Fuzz the material reader, the query/answer file readers, the protocol
-# decoder, the OpenEXR frame decoder and the texture maps' OpenEXR reader
-# with cargo-fuzz.
+# decoder, the OpenEXR frame decoder, the texture maps' OpenEXR reader, the
+# scanner geometry file and the calibration file with cargo-fuzz.
 #   scripts/fuzz.sh [SECONDS per target, default 300]
 # Needs the nightly toolchain (rustup toolchain install nightly) and
 # cargo-fuzz (cargo install cargo-fuzz); libFuzzer is built with the system
@@ -11,14 +11,19 @@ cd "$(dirname "$0")/.."
 seconds=${1:-300}
 mkdir -p fuzz/corpus/decoder
 # Start from valid files, so the fuzzer gets past the container checks
-# (fuzz/corpus/material, queries, frame and texture_map).
+# (fuzz/corpus/material, queries, frame, texture_map, geometry and
+# calibration).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
-for target in material queries decoder frame texture_map; do
+for target in material queries decoder frame texture_map geometry calibration; do
     # The exr crate's flat-layer reader decodes on a thread pool of its own
     # per file, whose jobs still hold blocks when the process exits: leak
     # detection at exit would report those, so it is off for that target.
     leaks=1
     [ "$target" = texture_map ] && leaks=0
+    # The text files' numbers: NaN, infinities, the edges of the ranges.
+    dict=()
+    case "$target" in geometry | calibration) dict=(-dict=dicts/numbers.dict) ;; esac
     (cd fuzz && cargo +nightly fuzz run --release "$target" "corpus/$target" -- \
-        -max_total_time="$seconds" -rss_limit_mb=4096 -max_len=1048576 -detect_leaks=$leaks)
+        -max_total_time="$seconds" -rss_limit_mb=4096 -max_len=1048576 -detect_leaks=$leaks \
+        "${dict[@]}")
 done

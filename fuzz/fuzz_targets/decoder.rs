@@ -13,7 +13,8 @@ fn check<M: Message + PartialEq + core::fmt::Debug>(data: &[u8]) {
     for piece in bytes.chunks(chunk) {
         for frame in decoder.feed(piece).flatten() {
             let mut buf = [0u8; MAX_FRAME_LEN];
-            let n = encode_frame(frame.seq, &frame.msg, &mut buf).expect("accepted frame re-encodes");
+            let n =
+                encode_frame(frame.seq, &frame.msg, &mut buf).expect("accepted frame re-encodes");
             let again = decode_frame::<M>(&mut buf[..n - 1]).expect("re-encoded frame decodes");
             // Debug comparison: exact even for NaN payload floats.
             assert_eq!(format!("{:?}", again), format!("{:?}", frame));

@@ -2,7 +2,9 @@
 //! material files, one per interpolation, in `DIR/material`, and small
 //! query and answer files (`.npy` and `.csv`) in `DIR/queries`, and small
 //! OpenEXR frames (PIZ and uncompressed, scan lines and tiles) in
-//! `DIR/frame` and `DIR/texture_map`, so that the fuzzer starts from files
+//! `DIR/frame` and `DIR/texture_map`, the default scanner's geometry file
+//! in `DIR/geometry` and a calibration of it (the nominal views, a 2 × 2
+//! colour grid) in `DIR/calibration`, so that the fuzzer starts from files
 //! that pass the container and header checks.
 //!
 //! `cargo run -p host --example fuzz_seeds -- DIR`
@@ -102,5 +104,72 @@ fn main() {
             std::fs::write(maps.join(format!("{name}-{kind}.exr")), &bytes).unwrap();
             println!("{name}-{kind}: {} bytes", bytes.len());
         }
+    }
+    let dir = root.join("geometry");
+    std::fs::create_dir_all(&dir).unwrap();
+    let g = host::geometry::ScannerGeometry::default_scanner();
+    std::fs::write(dir.join("default.toml"), g.to_toml()).unwrap();
+    let dir = root.join("calibration");
+    std::fs::create_dir_all(&dir).unwrap();
+    let text = serde_json::to_string(&nominal_calibration(&g)).unwrap();
+    // Every seed is a calibration the builder accepts for that scanner.
+    let cal = host::build::Calibration::parse(&text).unwrap();
+    cal.check_geometry(&g).unwrap();
+    std::fs::write(dir.join("nominal.json"), &text).unwrap();
+    println!("geometry and calibration in {}", root.display());
+}
+
+/// A calibration of scanner `g` as built: the nominal views and light
+/// directions, a uniform white response on a 2 × 2 grid.
+fn nominal_calibration(g: &host::geometry::ScannerGeometry) -> host::build::Calibration {
+    use host::build::calibrate::{
+        CALIBRATION_FORMAT, CALIBRATION_VERSION, ColourCalibration, LightCalibration, ScanRef,
+        ViewCalibration,
+    };
+    let scan = |name: &str| ScanRef { sample_name: name.into(), manifest_sha256: "0".repeat(64) };
+    let n = g.mirrors.len();
+    let views = (0..n)
+        .map(|l| {
+            let h = host::build::locate::nominal_homography(g, l).unwrap();
+            let m = &g.mirrors[l];
+            ViewCalibration {
+                view: l,
+                homography: h,
+                homography_phase: h,
+                corners_used: 49,
+                corner_rms_px: 0.1,
+                direction: g.mirror_direction(l).unwrap().to_array(),
+                mirror_point_mm: m.center_mm,
+                mirror_normal: m.frame().0.to_array(),
+            }
+        })
+        .collect();
+    let lights = (0..n)
+        .map(|l| LightCalibration {
+            light: l,
+            direction: g.light_direction(l).unwrap().to_array(),
+            axes: g.mirror_axes(l).unwrap().to_array(),
+        })
+        .collect();
+    host::build::Calibration {
+        format: CALIBRATION_FORMAT.into(),
+        version: CALIBRATION_VERSION,
+        geometry_sha256: g.hash(),
+        camera_px: [g.camera.width, g.camera.height],
+        target: Default::default(),
+        checkerboard_scan: scan("checkerboard"),
+        white_scan: scan("diffuse-white"),
+        glossy_scan: None,
+        source_offsets: None,
+        views,
+        lights,
+        colour: ColourCalibration {
+            grid: 2,
+            white_albedo: 0.98,
+            view_response: vec![vec![2.5; 12]; n],
+            light_field: vec![vec![1.0; 4]; n],
+        },
+        defects: Vec::new(),
+        lens_distortion: [0.0; 2],
     }
 }

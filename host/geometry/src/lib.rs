@@ -582,6 +582,29 @@ pub fn sample_to_world(v: DVec3) -> DVec3 {
     world_to_sample(v)
 }
 
+/// The largest magnitude of any number in a geometry file: a scanner of
+/// up to a kilometre, in mm, with room for its squares in double precision.
+pub const MAX_MAGNITUDE: f64 = 1e9;
+
+/// The first number under `v` (a geometry file's TOML, `key` its dotted
+/// path) that is not finite or exceeds [`MAX_MAGNITUDE`], with its key.
+fn first_unusable_number(v: &toml::Value, key: String) -> Option<(String, f64)> {
+    let child = |k: &dyn std::fmt::Display| {
+        if key.is_empty() { k.to_string() } else { format!("{key}.{k}") }
+    };
+    match v {
+        toml::Value::Float(x) if !x.is_finite() || x.abs() > MAX_MAGNITUDE => Some((key, *x)),
+        toml::Value::Integer(i) if i.unsigned_abs() as f64 > MAX_MAGNITUDE => {
+            Some((key, *i as f64))
+        }
+        toml::Value::Table(t) => t.iter().find_map(|(k, x)| first_unusable_number(x, child(k))),
+        toml::Value::Array(a) => {
+            a.iter().enumerate().find_map(|(i, x)| first_unusable_number(x, format!("{key}[{i}]")))
+        }
+        _ => None,
+    }
+}
+
 /// Rings of the default layout: (polar angle from the sample normal, mirrors).
 pub const DEFAULT_RINGS: [(f64, usize); 4] =
     [(15.0, 4), (31.666_666_666_666_664, 9), (48.333_333_333_333_336, 12), (65.0, 15)];
@@ -682,6 +705,14 @@ impl ScannerGeometry {
         let bad = |m: String| Err(GeometryError::Invalid(m));
         if self.format != GEOMETRY_FORMAT {
             return bad(format!("format {} (this build reads {GEOMETRY_FORMAT})", self.format));
+        }
+        // TOML writes `nan` and `inf`; no key of the file means either, and
+        // beyond ±MAX_MAGNITUDE a product of two lengths is no longer finite
+        // in the kinematics and projections.
+        let value = toml::Value::try_from(self)
+            .map_err(|e| GeometryError::Invalid(format!("not serialisable: {e}")))?;
+        if let Some((key, x)) = first_unusable_number(&value, String::new()) {
+            return bad(format!("{key} = {x}: not a finite number within ±{MAX_MAGNITUDE:e}"));
         }
         let e = &self.ellipsoid;
         if !(e.focal_distance_mm > 0.0 && e.semi_major_mm * 2.0 > e.focal_distance_mm) {

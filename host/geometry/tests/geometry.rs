@@ -117,3 +117,79 @@ fn lens_distortion_round_trips_and_must_map_the_image_one_to_one() {
     let err = ScannerGeometry::from_toml(&g.to_toml()).unwrap_err().to_string();
     assert!(err.contains("does not map the image one to one"), "{err}");
 }
+
+/// Every float of a geometry file (its key as the error names it: dotted,
+/// arrays indexed) — the file's numbers are all floats but the camera's size,
+/// the sensor's bits and the format.
+fn float_keys(v: &toml::Value, key: &str, out: &mut Vec<String>) {
+    match v {
+        toml::Value::Float(_) => out.push(key.to_string()),
+        toml::Value::Table(t) => {
+            for (k, x) in t {
+                let child = if key.is_empty() { k.clone() } else { format!("{key}.{k}") };
+                float_keys(x, &child, out);
+            }
+        }
+        toml::Value::Array(a) => {
+            for (i, x) in a.iter().enumerate() {
+                float_keys(x, &format!("{key}[{i}]"), out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// The value at `key` (as [`float_keys`] writes it) under `v`.
+fn at<'a>(v: &'a mut toml::Value, key: &str) -> &'a mut toml::Value {
+    key.split('.').fold(v, |v, part| {
+        let (name, index) = match part.split_once('[') {
+            Some((n, i)) => (n, Some(i.trim_end_matches(']').parse::<usize>().unwrap())),
+            None => (part, None),
+        };
+        let v = &mut v.as_table_mut().unwrap()[name];
+        match index {
+            Some(i) => &mut v.as_array_mut().unwrap()[i],
+            None => v,
+        }
+    })
+}
+
+/// TOML writes `nan` and `inf`: no number of a geometry file may be either,
+/// nor so large that the kinematics' products overflow. Each is refused by
+/// its key, whichever number it is; the largest allowed keep the projections
+/// finite.
+#[test]
+fn every_number_must_be_finite_and_within_range() {
+    let base: toml::Value = toml::from_str(DEFAULT_GEOMETRY_TOML).unwrap();
+    let mut keys = Vec::new();
+    float_keys(&base, "", &mut keys);
+    assert!(keys.len() > 40 * 8, "{} keys", keys.len());
+    assert!(keys.contains(&"mirror[39].center_mm[2]".to_string()), "{keys:?}");
+    for key in &keys {
+        for x in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 2e9, -1e300] {
+            let mut v = base.clone();
+            *at(&mut v, key) = toml::Value::Float(x);
+            let err = ScannerGeometry::from_toml(&toml::to_string(&v).unwrap()).unwrap_err();
+            assert!(
+                matches!(err, GeometryError::Invalid(_))
+                    && err.to_string().contains(&format!("{key} = ")),
+                "{key} = {x}: {err}"
+            );
+        }
+    }
+    // At the limit, a camera or a mirror far away still projects finitely.
+    for key in ["camera.position_mm[0]", "camera.up[1]", "mirror[0].center_mm[2]"] {
+        for x in [scanner_geometry::MAX_MAGNITUDE, -scanner_geometry::MAX_MAGNITUDE] {
+            let mut v = base.clone();
+            *at(&mut v, key) = toml::Value::Float(x);
+            let Ok(g) = ScannerGeometry::from_toml(&toml::to_string(&v).unwrap()) else {
+                continue;
+            };
+            for l in 0..g.mirrors.len() {
+                if let Some(p) = g.view_point(l, [0.5, 0.5]) {
+                    assert!(p.iter().all(|c| c.is_finite()), "{key} = {x}: view {l} at {p:?}");
+                }
+            }
+        }
+    }
+}

@@ -884,18 +884,22 @@ impl Calibration {
     pub fn load(path: &std::path::Path) -> Result<Calibration, BuildError> {
         let text = scanner_formats::input::read_to_string(path)
             .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
-        let c: Calibration = serde_json::from_str(&text).map_err(|e| {
-            BuildError::Input(format!("{}: not a calibration file: {e}", path.display()))
-        })?;
+        Calibration::parse(&text).map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))
+    }
+
+    /// Parse and check a calibration file's text (what [`Calibration::load`]
+    /// reads): a calibration whose every number is usable, or why not.
+    /// [`Calibration::check_geometry`] then checks it against a scanner.
+    pub fn parse(text: &str) -> Result<Calibration, String> {
+        let c: Calibration =
+            serde_json::from_str(text).map_err(|e| format!("not a calibration file: {e}"))?;
         if c.format != CALIBRATION_FORMAT || !(1..=CALIBRATION_VERSION).contains(&c.version) {
-            return Err(BuildError::Input(format!(
-                "{}: {} version {} (this build reads {CALIBRATION_FORMAT} 1 to {CALIBRATION_VERSION})",
-                path.display(),
-                c.format,
-                c.version
-            )));
+            return Err(format!(
+                "{} version {} (this build reads {CALIBRATION_FORMAT} 1 to {CALIBRATION_VERSION})",
+                c.format, c.version
+            ));
         }
-        c.validate().map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
+        c.validate()?;
         Ok(c)
     }
 
