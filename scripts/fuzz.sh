@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Fuzz the material reader, the query/answer file readers, the protocol
 # decoder, the OpenEXR frame decoder, the texture maps' OpenEXR reader, the
-# scanner geometry file and the calibration file with cargo-fuzz.
+# scanner geometry file, the calibration file and the scan manifest with
+# cargo-fuzz.
 #   scripts/fuzz.sh [SECONDS per target, default 300]
 # Needs the nightly toolchain (rustup toolchain install nightly) and
 # cargo-fuzz (cargo install cargo-fuzz); libFuzzer is built with the system
@@ -11,10 +12,10 @@ cd "$(dirname "$0")/.."
 seconds=${1:-300}
 mkdir -p fuzz/corpus/decoder
 # Start from valid files, so the fuzzer gets past the container checks
-# (fuzz/corpus/material, queries, frame, texture_map, geometry and
-# calibration).
+# (fuzz/corpus/material, queries, frame, texture_map, geometry, calibration
+# and manifest).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
-for target in material queries decoder frame texture_map geometry calibration; do
+for target in material queries decoder frame texture_map geometry calibration manifest; do
     # The exr crate's flat-layer reader decodes on a thread pool of its own
     # per file, whose jobs still hold blocks when the process exits: leak
     # detection at exit would report those, so it is off for that target.
@@ -22,7 +23,7 @@ for target in material queries decoder frame texture_map geometry calibration; d
     [ "$target" = texture_map ] && leaks=0
     # The text files' numbers: NaN, infinities, the edges of the ranges.
     dict=()
-    case "$target" in geometry | calibration) dict=(-dict=dicts/numbers.dict) ;; esac
+    case "$target" in geometry | calibration | manifest) dict=(-dict=dicts/numbers.dict) ;; esac
     (cd fuzz && cargo +nightly fuzz run --release "$target" "corpus/$target" -- \
         -max_total_time="$seconds" -rss_limit_mb=4096 -max_len=1048576 -detect_leaks=$leaks \
         "${dict[@]}")

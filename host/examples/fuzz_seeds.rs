@@ -4,8 +4,10 @@
 //! OpenEXR frames (PIZ and uncompressed, scan lines and tiles) in
 //! `DIR/frame` and `DIR/texture_map`, the default scanner's geometry file
 //! in `DIR/geometry` and a calibration of it (the nominal views, a 2 × 2
-//! colour grid) in `DIR/calibration`, so that the fuzzer starts from files
-//! that pass the container and header checks.
+//! colour grid) in `DIR/calibration`, and the manifests of two small
+//! simulated scans (3 mirrors at one exposure, 2 with a bracket of three;
+//! the sensor binned 64×) in `DIR/manifest`, so that the fuzzer starts from
+//! files that pass the container and header checks.
 //!
 //! `cargo run -p host --example fuzz_seeds -- DIR`
 
@@ -117,6 +119,25 @@ fn main() {
     cal.check_geometry(&g).unwrap();
     std::fs::write(dir.join("nominal.json"), &text).unwrap();
     println!("geometry and calibration in {}", root.display());
+    let dir = root.join("manifest");
+    std::fs::create_dir_all(&dir).unwrap();
+    for (name, mirrors, bracket) in
+        [("fixed-3", 3, vec![]), ("bracket-2", 2, vec![2000, 10_000, 50_000])]
+    {
+        let scan = tempfile::tempdir().unwrap();
+        let mut opts = host::scan::ScanOptions::new(name, scan.path());
+        (opts.mirrors, opts.bracket_us) = (Some(mirrors), bracket);
+        let sim =
+            host::simulator::SimSetup { bin: 64, ..host::simulator::SimSetup::new("leather") };
+        let rig = sim.rig().unwrap();
+        let transport = Box::new(host::link::SimTransport(rig.clone()));
+        let mut dev = host::link::Device::connect(transport).unwrap();
+        let mut camera = host::camera::SimCamera(rig);
+        let g = sim.nominal().unwrap();
+        host::scan::scan(&mut dev, &mut camera, &g, &opts, &mut host::scan::Quiet).unwrap();
+        std::fs::copy(scan.path().join("manifest.json"), dir.join(format!("{name}.json"))).unwrap();
+    }
+    println!("scan manifests in {}", dir.display());
 }
 
 /// A calibration of scanner `g` as built: the nominal views and light

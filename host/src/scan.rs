@@ -482,6 +482,12 @@ impl Manifest {
             )));
         }
         let n = m.settings.mirror_count;
+        if !(1..=protocol::MAX_MIRRORS).contains(&n) {
+            return Err(damaged(format!(
+                "a scan of {n} mirrors (a device has 1…{})",
+                protocol::MAX_MIRRORS
+            )));
+        }
         if let Some(f) = m.frames.iter().chain(&m.exposures).find(|f| f.mirror >= n) {
             return Err(damaged(format!(
                 "it lists a frame of mirror {} in a scan of mirrors 0…{}",

@@ -343,6 +343,15 @@ fn a_manifest_that_reads_one_file_twice_or_a_bracket_out_of_order_is_damaged() {
     );
     let err = edited(&|m| m["frames"][0]["bracket_us"] = serde_json::json!([0, 1000]));
     assert!(err.contains("damaged: mirror 0's bracket [0, 1000] µs"), "{err}");
+    // A mirror count no device has: `verify` used to count through 10¹⁵
+    // missing mirrors (a hang, then out of memory).
+    for n in [1_000_000_000_000_000u64, 0] {
+        let err = edited(&|m| m["settings"]["mirror_count"] = n.into());
+        assert!(
+            err.contains(&format!("damaged: a scan of {n} mirrors (a device has 1…64)")),
+            "{err}"
+        );
+    }
     // As written, it reads.
     std::fs::write(out.join("manifest.json"), &text).unwrap();
     let (code, _, err) = run(&["verify", &o]);
