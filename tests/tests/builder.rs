@@ -381,6 +381,22 @@ fn bad_inputs_exit_3_and_write_nothing() {
         c["defects"] = serde_json::json!([{"x": 6, "y": 3, "kind": "warm"}])
     });
     assert!(err.contains("not a calibration file") && err.contains("warm"), "{err}");
+    // More views than any scanner has mirrors: refused before they are
+    // compared with each other pairwise.
+    let err = edited("e13.json", &|c| {
+        let views: Vec<serde_json::Value> = (0..65)
+            .map(|k| {
+                let mut v = c["views"][0].clone();
+                v["view"] = k.into();
+                v
+            })
+            .collect();
+        c["views"] = views.into();
+    });
+    assert!(
+        err.contains("65 views and ") && err.contains("lights (a scanner has at most 64 mirrors)"),
+        "{err}"
+    );
     // A white scan at the noise floor (1 ms exposure, light at 1 ‰ is not
     // possible through the CLI: scale the frames down instead).
     copy_dir(&dir.path().join("white"), &dir.path().join("dark"));

@@ -904,6 +904,14 @@ impl Calibration {
     }
 
     fn validate(&self) -> Result<(), String> {
+        let most = protocol::MAX_MIRRORS;
+        if self.views.len() > most || self.lights.len() > most {
+            return Err(format!(
+                "{} views and {} lights (a scanner has at most {most} mirrors)",
+                self.views.len(),
+                self.lights.len()
+            ));
+        }
         let g = self.colour.grid;
         if g == 0 || g > 1024 {
             return Err(format!("colour grid {g}"));
