@@ -5,27 +5,20 @@
 //! calibration they accept for the default scanner, before any frame (the
 //! region size, the frame windows, each view's resampling filters, the
 //! colour calibration's response, the viewers), must not panic and must be
-//! finite.
+//! finite. Mutated as JSON (`fuzz_support::structured`) as well as bytes.
 #![no_main]
 
-use std::sync::OnceLock;
-
+use fuzz_support::structured::Syntax;
 use host::build::Calibration;
 use host::build::calibrate::view_windows;
 use host::build::regions::default_size;
-use host::geometry::ScannerGeometry;
 use libfuzzer_sys::fuzz_target;
-
-fn geometry() -> &'static ScannerGeometry {
-    static G: OnceLock<ScannerGeometry> = OnceLock::new();
-    G.get_or_init(ScannerGeometry::default_scanner)
-}
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else { return };
     let Ok(cal) = Calibration::parse(text) else { return };
     let _ = cal.hash();
-    let g = geometry();
+    let g = fuzz_support::default_scanner(1);
     if cal.check_geometry(g).is_err() {
         return;
     }
@@ -53,3 +46,5 @@ fuzz_target!(|data: &[u8]| {
         }
     }
 });
+
+fuzz_support::structured_mutator!(Syntax::Json);

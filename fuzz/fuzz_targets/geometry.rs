@@ -4,9 +4,11 @@
 //! geometry it accepted, before any frame (the inverse kinematics, the
 //! device's mirror table, the sample's views in the frame, the windows
 //! calibration searches, the metering's spans), must not panic either and
-//! must be finite where it is given.
+//! must be finite where it is given. Mutated as TOML
+//! (`fuzz_support::structured`) as well as bytes.
 #![no_main]
 
+use fuzz_support::structured::Syntax;
 use host::build::locate::{nominal_homography, search_window};
 use host::geometry::ScannerGeometry;
 use libfuzzer_sys::fuzz_target;
@@ -55,3 +57,5 @@ fuzz_target!(|data: &[u8]| {
         }
     }
 });
+
+fuzz_support::structured_mutator!(Syntax::Toml);

@@ -4,19 +4,15 @@
 //! or a hang; a scan the builder opens names an exposure for every frame.
 //! The scanner is the default one with its sensor binned 64×, as the seeds'
 //! simulated scans (`fuzz_seeds`). No frame file exists: every one is missing.
+//! Mutated as JSON (`fuzz_support::structured`) as well as bytes.
 #![no_main]
 
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
+use fuzz_support::structured::Syntax;
 use host::build::scanread::ScanFrames;
-use host::geometry::ScannerGeometry;
 use libfuzzer_sys::fuzz_target;
-
-fn geometry() -> &'static ScannerGeometry {
-    static G: OnceLock<ScannerGeometry> = OnceLock::new();
-    G.get_or_init(|| ScannerGeometry::default_scanner().with_sensor_scaled(64))
-}
 
 /// A scan directory of this process's own.
 fn dir() -> &'static PathBuf {
@@ -34,10 +30,12 @@ fuzz_target!(|data: &[u8]| {
     if let Ok(v) = host::scan::verify(dir) {
         assert_eq!(v.intact, 0, "no frame file exists");
     }
-    let Ok(scan) = ScanFrames::open(dir, geometry()) else { return };
+    let Ok(scan) = ScanFrames::open(dir, fuzz_support::default_scanner(64)) else { return };
     for l in scan.lights() {
         let _ = scan.exposure_s(l);
         let exposures = scan.exposures_us(l).unwrap();
         assert!(!exposures.is_empty(), "mirror {l}");
     }
 });
+
+fuzz_support::structured_mutator!(Syntax::Json);
