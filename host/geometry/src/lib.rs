@@ -586,8 +586,22 @@ pub fn sample_to_world(v: DVec3) -> DVec3 {
 /// up to a kilometre, in mm, with room for its squares in double precision.
 pub const MAX_MAGNITUDE: f64 = 1e9;
 
-/// The first number under `v` (a geometry file's TOML, `key` its dotted
-/// path) that is not finite or exceeds [`MAX_MAGNITUDE`], with its key.
+/// Checks that every number of `value` (a scanner's geometry, or a
+/// calibration of it) is finite and within ±[`MAX_MAGNITUDE`], or names the
+/// first that is not by its key: `mirror[3].center_mm[1] = inf: not a
+/// finite number within ±1e9`.
+pub fn check_numbers(value: &impl Serialize) -> Result<(), String> {
+    let value = toml::Value::try_from(value).map_err(|e| format!("not serialisable: {e}"))?;
+    match first_unusable_number(&value, String::new()) {
+        Some((key, x)) => {
+            Err(format!("{key} = {x:e}: not a finite number within ±{MAX_MAGNITUDE:e}"))
+        }
+        None => Ok(()),
+    }
+}
+
+/// The first number under `v` (a TOML value, `key` its dotted path) that is
+/// not finite or exceeds [`MAX_MAGNITUDE`], with its key.
 fn first_unusable_number(v: &toml::Value, key: String) -> Option<(String, f64)> {
     let child = |k: &dyn std::fmt::Display| {
         if key.is_empty() { k.to_string() } else { format!("{key}.{k}") }
@@ -709,11 +723,7 @@ impl ScannerGeometry {
         // TOML writes `nan` and `inf`; no key of the file means either, and
         // beyond ±MAX_MAGNITUDE a product of two lengths is no longer finite
         // in the kinematics and projections.
-        let value = toml::Value::try_from(self)
-            .map_err(|e| GeometryError::Invalid(format!("not serialisable: {e}")))?;
-        if let Some((key, x)) = first_unusable_number(&value, String::new()) {
-            return bad(format!("{key} = {x}: not a finite number within ±{MAX_MAGNITUDE:e}"));
-        }
+        check_numbers(self).map_err(GeometryError::Invalid)?;
         let e = &self.ellipsoid;
         if !(e.focal_distance_mm > 0.0 && e.semi_major_mm * 2.0 > e.focal_distance_mm) {
             return bad("ellipsoid needs 0 < focal_distance < 2 × semi_major".into());

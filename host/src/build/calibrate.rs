@@ -926,6 +926,9 @@ impl Calibration {
         {
             return Err("colour field of the wrong size".into());
         }
+        // Finite, and within the geometry's ±1e9: a mirror point at 10³⁰⁸ mm
+        // put the view's virtual camera at infinity.
+        scanner_geometry::check_numbers(self)?;
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         let unit =
             |d: &[f64; 3]| finite(d) && (d.iter().map(|x| x * x).sum::<f64>() - 1.0).abs() < 1e-6;
