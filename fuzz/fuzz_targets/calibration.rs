@@ -8,7 +8,6 @@
 //! finite. Mutated as JSON (`fuzz_support::structured`) as well as bytes.
 #![no_main]
 
-use fuzz_support::structured::Syntax;
 use host::build::Calibration;
 use host::build::calibrate::view_windows;
 use host::build::regions::default_size;
@@ -47,4 +46,4 @@ fuzz_target!(|data: &[u8]| {
     }
 });
 
-fuzz_support::structured_mutator!(Syntax::Json);
+fuzz_support::structured_mutator!(fuzz_support::structured::json_file);

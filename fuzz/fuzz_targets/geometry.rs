@@ -8,15 +8,33 @@
 //! (`fuzz_support::structured`) as well as bytes.
 #![no_main]
 
-use fuzz_support::structured::Syntax;
 use host::build::locate::{nominal_homography, search_window};
+use host::geometry::MAX_MAGNITUDE;
 use host::geometry::ScannerGeometry;
 use libfuzzer_sys::fuzz_target;
+
+/// Asserts that every number under `v` (`key` its dotted path) is finite
+/// and within ±MAX_MAGNITUDE.
+fn assert_finite(v: &toml::Value, key: &str) {
+    match v {
+        toml::Value::Float(x) => assert!(x.abs() <= MAX_MAGNITUDE, "{key} = {x}"),
+        toml::Value::Integer(i) => assert!(i.unsigned_abs() as f64 <= MAX_MAGNITUDE, "{key} = {i}"),
+        toml::Value::Array(a) => a.iter().for_each(|x| assert_finite(x, key)),
+        toml::Value::Table(t) => {
+            t.iter().for_each(|(k, x)| assert_finite(x, &format!("{key}.{k}")))
+        }
+        _ => {}
+    }
+}
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else { return };
     let Ok(g) = ScannerGeometry::from_toml(text) else { return };
     let _ = g.hash();
+    // docs/scanner-geometry.md: every number of a geometry accepted is
+    // finite and within ±MAX_MAGNITUDE, its defaults included.
+    let written: toml::Value = toml::from_str(&g.to_toml()).unwrap();
+    assert_finite(&written, "");
     let configs = [
         firmware::config::disk_default(),
         firmware::config::track_default(),
@@ -58,4 +76,4 @@ fuzz_target!(|data: &[u8]| {
     }
 });
 
-fuzz_support::structured_mutator!(Syntax::Toml);
+fuzz_support::structured_mutator!(fuzz_support::structured::toml_file);

@@ -10,7 +10,6 @@
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
-use fuzz_support::structured::Syntax;
 use host::build::scanread::ScanFrames;
 use libfuzzer_sys::fuzz_target;
 
@@ -38,4 +37,4 @@ fuzz_target!(|data: &[u8]| {
     }
 });
 
-fuzz_support::structured_mutator!(Syntax::Json);
+fuzz_support::structured_mutator!(fuzz_support::structured::json_file);

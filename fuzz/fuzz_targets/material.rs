@@ -1,6 +1,8 @@
 //! Fuzz the material reader: arbitrary bytes must give a typed error or a
 //! material, never a panic; a material that opens answers every query
-//! with finite, non-negative values.
+//! with finite, non-negative values. Mutated as a safetensors file whose
+//! header and material metadata are JSON (`fuzz_support::structured`) as
+//! well as bytes.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -18,3 +20,5 @@ fuzz_target!(|data: &[u8]| {
         }
     }
 });
+
+fuzz_support::structured_mutator!(fuzz_support::structured::material_file);

@@ -26,17 +26,17 @@ pub fn bytes_only() -> bool {
     *B.get_or_init(|| std::env::var_os("FUZZ_BYTES_ONLY").is_some_and(|v| v == "1"))
 }
 
-/// libFuzzer's custom mutator for a target whose input is a `$syntax`
-/// document: [`structured::mutate`] three times in four, libFuzzer's own
-/// byte mutations otherwise, whenever the input does not parse, and always
-/// under `FUZZ_BYTES_ONLY=1`.
+/// libFuzzer's custom mutator for a target whose input is a document:
+/// `$mutate` (one of [`structured::json_file`], [`structured::toml_file`],
+/// [`structured::material_file`]) three times in four, libFuzzer's own byte
+/// mutations otherwise, whenever the input does not parse, and always under
+/// `FUZZ_BYTES_ONLY=1`.
 #[macro_export]
 macro_rules! structured_mutator {
-    ($syntax:expr) => {
+    ($mutate:path) => {
         libfuzzer_sys::fuzz_mutator!(|data: &mut [u8], size: usize, max_size: usize, seed: u32| {
             if !$crate::bytes_only() && seed % 4 != 0 {
-                if let Some(n) = $crate::structured::mutate(data, size, max_size, seed / 4, $syntax)
-                {
+                if let Some(n) = $mutate(data, size, max_size, seed / 4) {
                     return n;
                 }
             }

@@ -290,9 +290,9 @@ fn scalar(rng: &mut Rng) -> Node {
 }
 
 /// Changes one node of `doc`: by its kind most of the time, else replaces
-/// it with a scalar or a copy of another node. An array never grows past
-/// `max_len` elements.
-pub fn mutate_once(doc: &mut Node, rng: &mut Rng, max_len: usize) {
+/// it with a scalar or a copy of another node. An array's repeated element
+/// adds at most about `max_bytes` to the document.
+pub fn mutate_once(doc: &mut Node, rng: &mut Rng, max_bytes: usize) {
     let mut all = Vec::new();
     paths(doc, &mut Vec::new(), &mut all);
     let path = rng.pick(&all).clone();
@@ -342,9 +342,11 @@ pub fn mutate_once(doc: &mut Node, rng: &mut Rng, max_len: usize) {
                     // An element repeated: a frame listed twice, a mirror
                     // more than the scanner has.
                     _ => {
-                        let copies = [1, 2, 40, 64, 1000][rng.below(5)];
-                        let copies = copies.min(max_len.saturating_sub(a.len()));
                         let e = a[i].clone();
+                        let mut text = String::new();
+                        write_json(&e, &mut text);
+                        let copies = [1, 2, 40, 64, 1000][rng.below(5)];
+                        let copies = copies.min(max_bytes / (text.len() + 1));
                         a.splice(i..i, std::iter::repeat_n(e, copies));
                     }
                 }
@@ -381,15 +383,74 @@ pub fn mutate(
 ) -> Option<usize> {
     let mut rng = Rng::new(seed.into());
     let mut doc = parse(&data[..size], syntax)?;
-    for _ in 0..1 + rng.below(4) {
-        mutate_once(&mut doc, &mut rng, max_size / 4);
-    }
+    mutate_some(&mut doc, &mut rng, max_size);
     let out = write(&doc, syntax)?;
-    if out.len() > max_size {
+    put(data, max_size, &[&out])
+}
+
+/// [`mutate`] of a JSON document.
+pub fn json_file(data: &mut [u8], size: usize, max_size: usize, seed: u32) -> Option<usize> {
+    mutate(data, size, max_size, seed, Syntax::Json)
+}
+
+/// [`mutate`] of a TOML document.
+pub fn toml_file(data: &mut [u8], size: usize, max_size: usize, seed: u32) -> Option<usize> {
+    mutate(data, size, max_size, seed, Syntax::Toml)
+}
+
+/// Mutates a material file (docs/material-format.md): a safetensors file,
+/// whose JSON header describes the tensors and whose `__metadata__`
+/// entry `material` is a JSON document of its own (as a string). Two times
+/// in three that inner document is mutated, else the header (a tensor's
+/// dtype, shape or offsets); the tensor bytes are kept and the header's
+/// length written anew.
+pub fn material_file(data: &mut [u8], size: usize, max_size: usize, seed: u32) -> Option<usize> {
+    let mut rng = Rng::new(seed.into());
+    let bytes = &data[..size];
+    let n = usize::try_from(u64::from_le_bytes(bytes.get(..8)?.try_into().ok()?)).ok()?;
+    let mut header = parse(bytes.get(8..8usize.checked_add(n)?)?, Syntax::Json)?;
+    let tensors = bytes[8 + n..].to_vec();
+    let inner = member(member(&mut header, "__metadata__")?, "material")?;
+    match inner {
+        Node::Str(text) if rng.below(3) != 0 => {
+            let mut doc = parse(text.as_bytes(), Syntax::Json)?;
+            mutate_some(&mut doc, &mut rng, max_size);
+            *text = String::from_utf8(write(&doc, Syntax::Json)?).ok()?;
+        }
+        _ => mutate_some(&mut header, &mut rng, max_size),
+    }
+    let head = write(&header, Syntax::Json)?;
+    put(data, max_size, &[&(head.len() as u64).to_le_bytes(), &head, &tensors])
+}
+
+/// The member `key` of a map.
+fn member<'a>(node: &'a mut Node, key: &str) -> Option<&'a mut Node> {
+    match node {
+        Node::Map(m) => m.iter_mut().find(|(k, _)| k == key).map(|(_, n)| n),
+        _ => None,
+    }
+}
+
+/// One to four mutations; a repeated list adds at most about a quarter of
+/// `max_size` each.
+fn mutate_some(doc: &mut Node, rng: &mut Rng, max_size: usize) {
+    for _ in 0..1 + rng.below(4) {
+        mutate_once(doc, rng, max_size / 4);
+    }
+}
+
+/// Writes `parts` one after the other into `data`, if they fit `max_size`.
+fn put(data: &mut [u8], max_size: usize, parts: &[&[u8]]) -> Option<usize> {
+    let len: usize = parts.iter().map(|p| p.len()).sum();
+    if len > max_size {
         return None;
     }
-    data[..out.len()].copy_from_slice(&out);
-    Some(out.len())
+    let mut at = 0;
+    for p in parts {
+        data[at..at + p.len()].copy_from_slice(p);
+        at += p.len();
+    }
+    Some(len)
 }
 
 #[cfg(test)]
@@ -458,5 +519,45 @@ mod tests {
                 assert!(out.len() <= 200);
             }
         }
+    }
+    #[test]
+    fn a_material_keeps_its_container_and_its_tensors() {
+        // A safetensors file of one tensor whose metadata is a document.
+        let meta = r#"{"resolution": 4, "lights": [{"mirror": 0, "direction": [0.0, 0.0, 1.0]}]}"#;
+        let header = format!(
+            r#"{{"__metadata__": {{"material": {}}}, "indices": {{"dtype": "U8", "shape": [2], "data_offsets": [0, 2]}}}}"#,
+            serde_json::Value::String(meta.into())
+        );
+        let mut file = (header.len() as u64).to_le_bytes().to_vec();
+        file.extend_from_slice(header.as_bytes());
+        file.extend_from_slice(&[7, 9]);
+        let (mut inner_changed, mut header_changed) = (0, 0);
+        for seed in 0..2000u32 {
+            let mut data = file.clone();
+            data.resize(1 << 16, 0);
+            let n = material_file(&mut data, file.len(), 1 << 16, seed).unwrap();
+            let len = u64::from_le_bytes(data[..8].try_into().unwrap()) as usize;
+            assert_eq!(&data[8 + len..n], &[7, 9], "seed {seed}: the tensor bytes");
+            let head = std::str::from_utf8(&data[8..8 + len]).unwrap();
+            let Some(Node::Map(h)) = parse(head.as_bytes(), Syntax::Json) else {
+                // A header mutated into NaN, 1e999 or a scalar.
+                assert!(!head.starts_with('{') || head.contains("NaN") || head.contains("1e999"));
+                header_changed += 1;
+                continue;
+            };
+            let text = |h: &[(String, Node)]| match h.iter().find(|(k, _)| k == "__metadata__") {
+                Some((_, Node::Map(m))) => match m.iter().find(|(k, _)| k == "material") {
+                    Some((_, Node::Str(s))) => Some(s.clone()),
+                    _ => None,
+                },
+                _ => None,
+            };
+            match text(&h) {
+                Some(t) if t != meta => inner_changed += 1,
+                _ => header_changed += 1,
+            }
+        }
+        // Two in three mutate the material's own document.
+        assert!((1100..1550).contains(&inner_changed), "{inner_changed} {header_changed}");
     }
 }
