@@ -15,10 +15,10 @@ fuzz_target!(|data: &[u8]| {
     // accepts and only maps (the pixels of blocks not decoded are never
     // touched); bounded here so that libFuzzer's malloc limit does not call
     // that a crash.
-    if let Ok(meta) = exr::meta::MetaData::read_from_buffered(Cursor::new(data), false) {
-        if meta.headers.iter().any(|h| h.layer_size.area() > 1 << 22) {
-            return;
-        }
+    if let Ok(meta) = exr::meta::MetaData::read_from_buffered(Cursor::new(data), false)
+        && meta.headers.iter().any(|h| h.layer_size.area() > 1 << 22)
+    {
+        return;
     }
     for (wanted, unit) in [
         (&(|_| true) as &(dyn Fn([usize; 4]) -> bool + Sync), 1.0),

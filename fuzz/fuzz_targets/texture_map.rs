@@ -13,10 +13,10 @@ fuzz_target!(|data: &[u8]| {
     // As in the `frame` target: headers that claim more than 2²² px are
     // left out, so that libFuzzer's malloc limit does not call a large
     // (legal) image a crash.
-    if let Ok(meta) = exr::meta::MetaData::read_from_buffered(Cursor::new(data), false) {
-        if meta.headers.iter().any(|h| h.layer_size.area() > 1 << 22) {
-            return;
-        }
+    if let Ok(meta) = exr::meta::MetaData::read_from_buffered(Cursor::new(data), false)
+        && meta.headers.iter().any(|h| h.layer_size.area() > 1 << 22)
+    {
+        return;
     }
     let _ = read()
         .no_deep_data()
