@@ -28,15 +28,18 @@ pub fn bytes_only() -> bool {
 
 /// libFuzzer's custom mutator for a target whose input is a document:
 /// `$mutate` (one of [`structured::json_file`], [`structured::toml_file`],
-/// [`structured::material_file`]) three times in four, libFuzzer's own byte
-/// mutations otherwise, whenever the input does not parse, and always under
+/// [`structured::material_file`]) three times in four, of the input or, if
+/// it does not parse, of a document seen before ([`structured::with_pool`]);
+/// libFuzzer's own byte mutations otherwise, and always under
 /// `FUZZ_BYTES_ONLY=1`.
 #[macro_export]
 macro_rules! structured_mutator {
     ($mutate:path) => {
         libfuzzer_sys::fuzz_mutator!(|data: &mut [u8], size: usize, max_size: usize, seed: u32| {
             if !$crate::bytes_only() && seed % 4 != 0 {
-                if let Some(n) = $mutate(data, size, max_size, seed / 4) {
+                if let Some(n) =
+                    $crate::structured::with_pool($mutate, data, size, max_size, seed / 4)
+                {
                     return n;
                 }
             }
