@@ -1,5 +1,6 @@
-//! Structure-aware mutation of the text files users edit (the scanner
-//! geometry's TOML, the calibration's and the scan manifest's JSON).
+//! Structure-aware mutation of the files users edit or exchange (the
+//! scanner geometry's TOML, the calibration's and the scan manifest's JSON,
+//! a material file's safetensors header and metadata).
 //!
 //! libFuzzer's byte mutations rarely keep such a file parseable and almost
 //! never write what breaks a reader that parses it: a count of 10¹⁵, a
@@ -8,9 +9,9 @@
 //! to an edge of a range or a power of ten, an array's element repeated or
 //! dropped, a key removed or renamed, a subtree copied over another) and
 //! writes it again. A seeded generator makes every choice, so libFuzzer's
-//! seed reproduces the mutation. The targets fall back to libFuzzer's own
-//! mutator for an input that does not parse, or one time in four, so that
-//! syntax errors are still explored.
+//! seed and the input reproduce the mutation. An input that does not parse
+//! takes a document seen before ([`with_pool`]); one mutation in four is
+//! libFuzzer's own, so that syntax errors are still explored.
 
 /// The syntax of a document.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
