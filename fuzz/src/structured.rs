@@ -270,14 +270,6 @@ fn at<'a>(node: &'a mut Node, path: &[usize]) -> &'a mut Node {
     })
 }
 
-fn get<'a>(node: &'a Node, path: &[usize]) -> &'a Node {
-    path.iter().fold(node, |n, &i| match n {
-        Node::Arr(a) => &a[i],
-        Node::Map(m) => &m[i].1,
-        _ => unreachable!("a path only goes through arrays and maps"),
-    })
-}
-
 /// A scalar of any kind, at an edge.
 fn scalar(rng: &mut Rng) -> Node {
     match rng.below(6) {
@@ -297,7 +289,7 @@ pub fn mutate_once(doc: &mut Node, rng: &mut Rng, max_bytes: usize) {
     let mut all = Vec::new();
     paths(doc, &mut Vec::new(), &mut all);
     let path = rng.pick(&all).clone();
-    let donor = get(doc, rng.pick(&all)).clone();
+    let donor = at(doc, rng.pick(&all)).clone();
     let node = at(doc, &path);
     match rng.below(8) {
         0 => *node = scalar(rng),

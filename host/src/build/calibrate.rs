@@ -926,23 +926,19 @@ impl Calibration {
         {
             return Err("colour field of the wrong size".into());
         }
-        // Finite, and within the geometry's ±1e9: a mirror point at 10³⁰⁸ mm
-        // put the view's virtual camera at infinity.
+        // Every number finite, and within the geometry's ±1e9: a mirror point
+        // at 10³⁰⁸ mm put the view's virtual camera at infinity. The checks
+        // below take finiteness as given.
         scanner_geometry::check_numbers(self)?;
-        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
-        let unit =
-            |d: &[f64; 3]| finite(d) && (d.iter().map(|x| x * x).sum::<f64>() - 1.0).abs() < 1e-6;
+        let unit = |d: &[f64; 3]| (d.iter().map(|x| x * x).sum::<f64>() - 1.0).abs() < 1e-6;
         for (k, v) in self.views.iter().enumerate() {
-            if !finite(&v.homography.0) || !unit(&v.direction) || v.homography.inverse().is_none() {
+            if !unit(&v.direction) || v.homography.inverse().is_none() {
                 return Err(format!(
                     "view {}: bad homography or direction (not a finite unit vector)",
                     v.view
                 ));
             }
-            if !finite(&v.homography_phase.0)
-                || !finite(&v.mirror_point_mm)
-                || !unit(&v.mirror_normal)
-            {
+            if !unit(&v.mirror_normal) {
                 return Err(format!("view {}: bad phase homography or mirror plane", v.view));
             }
             if self.views[..k].iter().any(|o| o.view == v.view) {
@@ -950,7 +946,7 @@ impl Calibration {
             }
         }
         for (k, l) in self.lights.iter().enumerate() {
-            if !unit(&l.direction) || !finite(&l.axes) {
+            if !unit(&l.direction) {
                 return Err(format!(
                     "light {}: bad direction (not a finite unit vector) or axes",
                     l.light
@@ -961,7 +957,7 @@ impl Calibration {
             }
         }
         let fields = self.colour.view_response.iter().chain(&self.colour.light_field);
-        if fields.clone().flatten().any(|x| !(x.is_finite() && *x >= 0.0)) {
+        if fields.clone().flatten().any(|x| *x < 0.0) {
             return Err("colour field with a negative or non-finite value".into());
         }
         if fields.clone().any(|f| !f.iter().any(|&x| x > 0.0)) {
