@@ -242,6 +242,10 @@ fn measurement_files_round_trip_and_bad_files_are_refused() {
             format!("{header}\n0,0,1,0,0,1,0.1,0.1,0.1\n0,0,1,0,0,1,inf,0,0\n"),
             "line 3: r = inf is not finite",
         ),
+        (
+            format!("{header}\n0,0,1,0,0,1,0.1,0.1,0.1\n0,0,1,0,0,1,0.1,1e300,0\n"),
+            "line 3: g = 1e300 is beyond any BRDF (at most 1e8 sr⁻¹)",
+        ),
         (format!("{header}\n0,0,2,0,0,1,0.1,0.1,0.1\n"), "line 2: wi has length 2"),
         (format!("{header}\n0,0,1,0,0,1,0.1\n"), "line 2"),
         (format!("{header}\n"), "no measurement"),
@@ -289,6 +293,26 @@ fn merl_files_round_trip_and_bad_files_are_refused() {
     assert!(matches!(err, MerlError::NotFinite { channel: 0, index: 5, .. }), "{err}");
     assert!(err.to_string().contains("not finite"));
 
+    // A stored 1e300 is 6.7e296 sr⁻¹: beyond any BRDF (the fit's single
+    // precision and a rendered sphere would overflow), refused by the reader
+    // with the cell. 1.5e11 stored is 1e8 sr⁻¹ in R, the largest accepted.
+    for (stored, index, refused) in [(1e300, 7, true), (1.5e11, 9, false), (1.5e11 + 1e-3, 9, true)]
+    {
+        let mut huge = bytes.clone();
+        huge[12 + 8 * index..12 + 8 * (index + 1)].copy_from_slice(&f64::to_le_bytes(stored));
+        std::fs::write(&bad, &huge).unwrap();
+        match MerlTable::read(&bad) {
+            Err(err) if refused => {
+                assert!(matches!(err, MerlError::TooLarge { channel: 0, .. }), "{err}");
+                let text = err.to_string();
+                assert!(text.contains(&format!("value {index} of channel 0")), "{text}");
+                assert!(text.contains("beyond any BRDF (at most 1e8 sr⁻¹)"), "{text}");
+            }
+            Ok(table) if !refused => assert_eq!(table.get(0, index), 1e8),
+            other => panic!("{stored}: {other:?}"),
+        }
+    }
+
     assert!(matches!(MerlTable::read(&dir.path().join("missing")), Err(MerlError::Io { .. })));
 }
 
@@ -314,10 +338,38 @@ fn model_files_round_trip_and_bad_files_are_refused() {
         "{err}"
     );
 
-    let mut negative = json.clone();
-    negative["rho_d"][1] = serde_json::json!(-0.5);
-    std::fs::write(&path, serde_json::to_vec(&negative).unwrap()).unwrap();
-    assert!(matches!(NpfModel::load(&path), Err(ModelError::Invalid { .. })));
+    // Every number within its range: ρd and ρs within [0, 1e8] sr⁻¹, the
+    // tables within [0, 1] (normalised, as the fit writes them).
+    for (field, index, value, refused) in [
+        ("rho_d", 1, -0.5, true),
+        ("rho_s", 2, 1e300, true),
+        ("rho_s", 2, 1e8, false),
+        ("rho_d", 0, 1.0000001e8, true),
+        ("d", 100, 1.0000001, true),
+        ("f", 0, 1.0, false),
+        ("g", 269, 2.0, true),
+        ("g", 3, 0.0, false),
+    ] {
+        let mut changed = json.clone();
+        changed[field][index] = serde_json::json!(value);
+        let bytes = serde_json::to_vec(&changed).unwrap();
+        match NpfModel::from_json(&bytes, "m.json") {
+            Err(err) if refused => {
+                let text = err.to_string();
+                assert!(matches!(err, ModelError::Invalid { .. }), "{text}");
+                assert!(text.contains(&format!("`{field}` holds {value:e}")), "{text}");
+            }
+            Ok(m) if !refused => {
+                let got = match field {
+                    "rho_s" => m.channels[index].rho_s,
+                    "f" => m.channels[index / 90].f[index % 90],
+                    _ => m.channels[index / 90].g[index % 90],
+                };
+                assert_eq!(got, value, "{field}");
+            }
+            other => panic!("{field}[{index}] = {value}: {other:?}"),
+        }
+    }
 
     std::fs::write(&path, b"{ not json").unwrap();
     assert!(matches!(NpfModel::load(&path), Err(ModelError::Json { .. })));

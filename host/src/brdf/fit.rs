@@ -31,7 +31,7 @@ use super::coords::{
 use super::merl::MerlTable;
 use super::npf::{Channel, EPSILON, NaiveModel, NpfModel};
 use super::smith::smith_g;
-use super::{BINS, Vec3};
+use super::{BINS, MAX_VALUE, Vec3};
 
 /// How G is obtained.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -122,10 +122,6 @@ pub enum SampleError {
         max: f64,
     },
 }
-
-/// Largest BRDF value the fit accepts, sr⁻¹ (a mirror-like MERL material
-/// peaks near 10⁴).
-pub const MAX_VALUE: f64 = 1e8;
 
 /// Fitting samples in structure-of-arrays form.
 #[derive(Debug, Clone)]

@@ -13,8 +13,10 @@
 //! for a channel that was not measured. Columns may come in any order (they
 //! are matched by name); extra columns are ignored.
 
+use std::io::Read;
 use std::path::Path;
 
+use super::MAX_VALUE;
 use super::fit::Measurement;
 
 /// Why a measurement file could not be read.
@@ -49,15 +51,21 @@ pub enum MeasurementError {
 /// The columns, in the order [`write_csv`] writes them.
 pub const COLUMNS: [&str; 9] = ["wi_x", "wi_y", "wi_z", "wo_x", "wo_y", "wo_z", "r", "g", "b"];
 
-/// Read a measurement CSV. Every value must be a finite number and both
-/// directions unit vectors (±1e-4, to allow for printed precision; such
-/// vectors are renormalised); below-horizon rows are kept (the fit skips them).
+/// Read a measurement CSV. Every value must be a finite number, r, g and b
+/// at most [`MAX_VALUE`], and both directions unit vectors (±1e-4, to allow
+/// for printed precision; such vectors are renormalised); below-horizon rows
+/// are kept (the fit skips them).
 pub fn read_csv(path: &Path) -> Result<Vec<Measurement>, MeasurementError> {
     let name = path.display().to_string();
-    let malformed =
-        |line: u64, why: String| MeasurementError::Malformed { path: name.clone(), line, why };
     let file = scanner_formats::input::open(path)
         .map_err(|source| MeasurementError::Io { path: name.clone(), source })?;
+    parse_csv(file, &name)
+}
+
+/// [`read_csv`] of a reader; `name` names the file in errors.
+pub fn parse_csv(file: impl Read, name: &str) -> Result<Vec<Measurement>, MeasurementError> {
+    let malformed =
+        |line: u64, why: String| MeasurementError::Malformed { path: name.to_owned(), line, why };
     let mut reader =
         csv::ReaderBuilder::new().trim(csv::Trim::All).comment(Some(b'#')).from_reader(file);
     let header = reader.headers().map_err(|e| malformed(1, e.to_string()))?.clone();
@@ -83,6 +91,14 @@ pub fn read_csv(path: &Path) -> Result<Vec<Measurement>, MeasurementError> {
             if !x.is_finite() {
                 return Err(malformed(line, format!("{column} = {text} is not finite")));
             }
+            if k >= 6 && *x > MAX_VALUE {
+                return Err(malformed(
+                    line,
+                    format!(
+                        "{column} = {text} is beyond any BRDF (at most {MAX_VALUE:.0e} sr⁻¹): are the units right?"
+                    ),
+                ));
+            }
         }
         let unit = |d: [f64; 3], what: &str| {
             let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
@@ -102,7 +118,7 @@ pub fn read_csv(path: &Path) -> Result<Vec<Measurement>, MeasurementError> {
         });
     }
     if out.is_empty() {
-        return Err(MeasurementError::Empty { path: name });
+        return Err(MeasurementError::Empty { path: name.to_owned() });
     }
     Ok(out)
 }

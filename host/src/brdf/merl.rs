@@ -1,7 +1,8 @@
 //! MERL binary BRDF tables (spec/npf-brdf.md §5): a header of three
 //! little-endian i32 (90, 90, 180), then 3 × 1 458 000 little-endian f64,
 //! channel-major, scaled by 1/1500, 1.15/1500, 1.66/1500 for R, G, B; a
-//! negative value marks a missing sample.
+//! negative value marks a missing sample. Values must be finite and, once
+//! scaled, at most [`MAX_VALUE`] sr⁻¹.
 
 use std::io::Read;
 use std::path::Path;
@@ -10,7 +11,7 @@ use super::coords::{
     MERL_CELLS, N_PHI_D, N_THETA_D, N_THETA_H, from_directions, merl_index, phi_d_bin, theta_d_bin,
     theta_h_bin,
 };
-use super::{Brdf, Vec3};
+use super::{Brdf, MAX_VALUE, Vec3};
 
 /// Stored value × scale = BRDF value (sr⁻¹), per channel.
 pub const SCALE: [f64; 3] = [1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0];
@@ -55,6 +56,20 @@ pub enum MerlError {
         /// Cell index.
         index: usize,
         /// The value.
+        value: f64,
+    },
+    /// A value lies beyond [`MAX_VALUE`] once scaled.
+    #[error(
+        "{path}: value {index} of channel {channel} is {value:.3e} sr⁻¹, beyond any BRDF (at most {MAX_VALUE:.0e} sr⁻¹): are the units right?"
+    )]
+    TooLarge {
+        /// File.
+        path: String,
+        /// Channel 0..3.
+        channel: usize,
+        /// Cell index.
+        index: usize,
+        /// The value, scaled (sr⁻¹).
         value: f64,
     },
 }
@@ -142,7 +157,16 @@ impl MerlTable {
                     value: v,
                 });
             }
-            values.push(if v < 0.0 { v } else { v * SCALE[channel] });
+            let value = if v < 0.0 { v } else { v * SCALE[channel] };
+            if value > MAX_VALUE {
+                return Err(MerlError::TooLarge {
+                    path: name,
+                    channel,
+                    index: n % MERL_CELLS,
+                    value,
+                });
+            }
+            values.push(value);
         }
         Ok(MerlTable { values })
     }

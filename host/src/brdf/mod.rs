@@ -38,3 +38,9 @@ pub trait Brdf: Sync {
 
 /// Number of bins of every NPF factor table.
 pub const BINS: usize = 90;
+
+/// Largest BRDF value any reader or the fit accepts, sr⁻¹ (a mirror-like
+/// MERL material peaks near 10⁴): a MERL cell, a measurement, an NPF
+/// model's ρd and ρs. Beyond it the units are wrong, and the fit's single
+/// precision and a rendered sphere's radiance would overflow.
+pub const MAX_VALUE: f64 = 1e8;

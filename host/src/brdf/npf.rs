@@ -6,7 +6,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::coords::{from_directions, g_interp, phi_d_bin, theta_d_bin, theta_h_bin};
-use super::{BINS, Brdf, Vec3};
+use super::{BINS, Brdf, MAX_VALUE, Vec3};
 
 /// Smallest factor value (spec §2).
 pub const EPSILON: f64 = 1e-6;
@@ -149,28 +149,35 @@ impl NpfModel {
         let name = path.display().to_string();
         let bytes = scanner_formats::input::read(path)
             .map_err(|source| ModelError::Io { path: name.clone(), source })?;
-        let file: ModelFile = serde_json::from_slice(&bytes)
-            .map_err(|source| ModelError::Json { path: name.clone(), source })?;
-        let invalid = |why: String| ModelError::Invalid { path: name.clone(), why };
+        NpfModel::from_json(&bytes, &name)
+    }
+
+    /// A model from the bytes of a model file (docs/npf-format.md §2);
+    /// `name` names it in errors. ρd and ρs must lie within [0,
+    /// [`MAX_VALUE`]] and every table within [0, 1], as the fit writes them.
+    pub fn from_json(bytes: &[u8], name: &str) -> Result<NpfModel, ModelError> {
+        let file: ModelFile = serde_json::from_slice(bytes)
+            .map_err(|source| ModelError::Json { path: name.to_owned(), source })?;
+        let invalid = |why: String| ModelError::Invalid { path: name.to_owned(), why };
         if file.format != FORMAT || file.version != 1 {
             return Err(invalid(format!(
                 "format {:?} version {}, expected {FORMAT:?} 1",
                 file.format, file.version
             )));
         }
-        for (field, v, n) in [
-            ("rho_d", &file.rho_d, 3),
-            ("rho_s", &file.rho_s, 3),
-            ("d", &file.d, 3 * BINS),
-            ("f", &file.f, 3 * BINS),
-            ("g", &file.g, 3 * BINS),
+        for (field, v, n, max) in [
+            ("rho_d", &file.rho_d, 3, MAX_VALUE),
+            ("rho_s", &file.rho_s, 3, MAX_VALUE),
+            ("d", &file.d, 3 * BINS, 1.0),
+            ("f", &file.f, 3 * BINS, 1.0),
+            ("g", &file.g, 3 * BINS, 1.0),
         ] {
             if v.len() != n {
                 return Err(invalid(format!("`{field}` has {} numbers, expected {n}", v.len())));
             }
-            if let Some(bad) = v.iter().find(|x| !x.is_finite() || **x < 0.0) {
+            if let Some(bad) = v.iter().find(|x| !(0.0..=max).contains(*x)) {
                 return Err(invalid(format!(
-                    "`{field}` holds {bad}; values must be finite and ≥ 0"
+                    "`{field}` holds {bad:e}; its values must lie within [0, {max:e}]"
                 )));
             }
         }
