@@ -95,6 +95,30 @@ fn fit_from_scattered_measurements() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("line 3") && err.contains("r = \"x\""), "{err}");
     assert!(!out_model.exists());
+
+    // Five measurements of a glossy material (two-lobe GGX × 10⁵, seeded
+    // directions) leave the factors' peaks where no sample is: the model
+    // would predict 10⁹ sr⁻¹ there. Exit 3, said so, nothing written.
+    let sparse = dir.path().join("sparse.csv");
+    std::fs::write(
+        &sparse,
+        "wi_x,wi_y,wi_z,wo_x,wo_y,wo_z,r,g,b\n\
+         -0.6213933503123654,-0.6410605601614764,0.4504571704313607,0.409910324415312,-0.7712118961594076,0.4870377163628551,2180.7051917633157,1671.342109140192,1161.9790265170684\n\
+         -0.3306250258226184,-0.9305079385186675,0.15761366899330953,-0.8039404493093119,-0.08577338277458724,0.5884918697584071,2790.8029282679063,2154.964364565874,1519.1258008638408\n\
+         -0.4232602593388277,-0.5759725215377784,0.6993614282313844,-0.9224613269544814,-0.00029222330838346073,0.3860893871617239,2059.0921469267337,1578.382973339091,1097.673799751448\n\
+         -0.7684750670845961,-0.14279291586102807,0.6237437410100648,-0.24972715264106288,0.06866265551772337,0.9658787651517357,3523.6926643043594,2716.6465732640017,1909.6004822236428\n\
+         0.5410786334787583,-0.8404502448307083,0.029619222757560015,0.42090792766068036,-0.015625003668509038,0.9069687842989694,4293.7339408069,3426.5797093394362,2559.4254778719733\n",
+    )
+    .unwrap();
+    let out = scanner(&["fit", sparse.to_str().unwrap(), "-o", out_model.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(3));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("the fitted model is out of range (`rho_s` holds")
+            && err.contains("the measurements do not determine it"),
+        "{err}"
+    );
+    assert!(!out_model.exists());
 }
 
 #[test]

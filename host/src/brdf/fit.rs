@@ -521,9 +521,31 @@ impl Data<'_> {
     }
 }
 
-/// x_k = num_k / den_k where there are samples, else the old value.
+/// x_k = num_k / den_k where there are samples; a bin without samples
+/// takes the value interpolated linearly between the nearest bins with
+/// samples on either side, or the nearest one's beyond the last. (Keeping
+/// its old value instead would leave it on the scale of the tables before
+/// the update: with sparse measurements the sampled bins of D and F could
+/// then shrink towards ε while ρs grew to match, and the model predicted
+/// ρs — 10¹⁰ sr⁻¹ and more — wherever the unsampled bins meet.) With no
+/// sample at all, the old table.
 fn solve_bins(old: &[f64; BINS], num: &[f64; BINS], den: &[f64; BINS]) -> [f64; BINS] {
-    std::array::from_fn(|k| if den[k] > 0.0 { num[k] / den[k] } else { old[k] })
+    let sampled: Vec<usize> = (0..BINS).filter(|&k| den[k] > 0.0).collect();
+    let (Some(&first), Some(&last)) = (sampled.first(), sampled.last()) else {
+        return *old;
+    };
+    let x = |k: usize| num[k] / den[k];
+    let mut out = [0.0; BINS];
+    out[..first].fill(x(first));
+    out[last..].fill(x(last));
+    for pair in sampled.windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        for (k, slot) in out.iter_mut().enumerate().take(b).skip(a) {
+            let t = (k - a) as f64 / (b - a) as f64;
+            *slot = x(a) * (1.0 - t) + x(b) * t;
+        }
+    }
+    out
 }
 
 /// Normalise to max 1, clamp to [ε, 1]; returns the scale removed.

@@ -125,12 +125,23 @@ struct ModelFile {
 pub const FORMAT: &str = "npf-brdf";
 
 impl NpfModel {
-    /// Write the model file (atomically).
+    /// Write the model file (atomically); a model out of range
+    /// ([`NpfModel::check`]) is refused (`InvalidData`), as its reader would.
     pub fn save(&self, path: &Path) -> std::io::Result<()> {
+        self.check().map_err(|why| std::io::Error::new(std::io::ErrorKind::InvalidData, why))?;
+        crate::fsutil::write_atomic(path, &self.to_json())
+    }
+
+    /// The bytes of the model file (docs/npf-format.md §2).
+    pub fn to_json(&self) -> Vec<u8> {
+        serde_json::to_vec_pretty(&self.file()).expect("a model file serialises")
+    }
+
+    fn file(&self) -> ModelFile {
         let flat = |pick: fn(&Channel) -> &[f64; BINS]| {
             self.channels.iter().flat_map(|c| pick(c).iter().copied()).collect::<Vec<_>>()
         };
-        let file = ModelFile {
+        ModelFile {
             format: FORMAT.into(),
             version: 1,
             rho_d: self.channels.iter().map(|c| c.rho_d).collect(),
@@ -139,9 +150,14 @@ impl NpfModel {
             f: flat(|c| &c.f),
             g: flat(|c| &c.g),
             metadata: self.metadata.clone(),
-        };
-        let json = serde_json::to_vec_pretty(&file).map_err(std::io::Error::other)?;
-        crate::fsutil::write_atomic(path, &json)
+        }
+    }
+
+    /// Every number within its range (docs/npf-format.md §2): ρd and ρs
+    /// within [0, [`MAX_VALUE`]], every table within [0, 1]. Else which
+    /// field holds what.
+    pub fn check(&self) -> Result<(), String> {
+        self.file().check()
     }
 
     /// Read a model file.
@@ -153,34 +169,12 @@ impl NpfModel {
     }
 
     /// A model from the bytes of a model file (docs/npf-format.md §2);
-    /// `name` names it in errors. ρd and ρs must lie within [0,
-    /// [`MAX_VALUE`]] and every table within [0, 1], as the fit writes them.
+    /// `name` names it in errors. Its numbers must pass [`NpfModel::check`],
+    /// as the fit's do.
     pub fn from_json(bytes: &[u8], name: &str) -> Result<NpfModel, ModelError> {
         let file: ModelFile = serde_json::from_slice(bytes)
             .map_err(|source| ModelError::Json { path: name.to_owned(), source })?;
-        let invalid = |why: String| ModelError::Invalid { path: name.to_owned(), why };
-        if file.format != FORMAT || file.version != 1 {
-            return Err(invalid(format!(
-                "format {:?} version {}, expected {FORMAT:?} 1",
-                file.format, file.version
-            )));
-        }
-        for (field, v, n, max) in [
-            ("rho_d", &file.rho_d, 3, MAX_VALUE),
-            ("rho_s", &file.rho_s, 3, MAX_VALUE),
-            ("d", &file.d, 3 * BINS, 1.0),
-            ("f", &file.f, 3 * BINS, 1.0),
-            ("g", &file.g, 3 * BINS, 1.0),
-        ] {
-            if v.len() != n {
-                return Err(invalid(format!("`{field}` has {} numbers, expected {n}", v.len())));
-            }
-            if let Some(bad) = v.iter().find(|x| !(0.0..=max).contains(*x)) {
-                return Err(invalid(format!(
-                    "`{field}` holds {bad:e}; its values must lie within [0, {max:e}]"
-                )));
-            }
-        }
+        file.check().map_err(|why| ModelError::Invalid { path: name.to_owned(), why })?;
         let table = |v: &[f64], c: usize| -> [f64; BINS] {
             v[c * BINS..(c + 1) * BINS].try_into().unwrap()
         };
@@ -192,6 +186,35 @@ impl NpfModel {
             g: table(&file.g, c),
         });
         Ok(NpfModel { channels, metadata: file.metadata })
+    }
+}
+
+impl ModelFile {
+    /// Format, version, the arrays' lengths and every number's range.
+    fn check(&self) -> Result<(), String> {
+        if self.format != FORMAT || self.version != 1 {
+            return Err(format!(
+                "format {:?} version {}, expected {FORMAT:?} 1",
+                self.format, self.version
+            ));
+        }
+        for (field, v, n, max) in [
+            ("rho_d", &self.rho_d, 3, MAX_VALUE),
+            ("rho_s", &self.rho_s, 3, MAX_VALUE),
+            ("d", &self.d, 3 * BINS, 1.0),
+            ("f", &self.f, 3 * BINS, 1.0),
+            ("g", &self.g, 3 * BINS, 1.0),
+        ] {
+            if v.len() != n {
+                return Err(format!("`{field}` has {} numbers, expected {n}", v.len()));
+            }
+            if let Some(bad) = v.iter().find(|x| !(0.0..=max).contains(*x)) {
+                return Err(format!(
+                    "`{field}` holds {bad:e}; its values must lie within [0, {max:e}]"
+                ));
+            }
+        }
+        Ok(())
     }
 }
 

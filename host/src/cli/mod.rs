@@ -534,6 +534,13 @@ fn run(cli: Cli) -> Result<(), Failure> {
             };
             let (model, report) = fit(&samples, &opts, &progress);
             bar.finish_and_clear();
+            // The measurements leave the factors' peaks where no sample is:
+            // the model would predict beyond any BRDF there.
+            input(model.check().map_err(|why| {
+                anyhow::anyhow!(
+                    "the fitted model is out of range ({why}): the measurements do not determine it; measure more directions"
+                )
+            }))?;
             output(model.save(&out).with_context(|| format!("cannot write {}", out.display())))?;
             println!(
                 "fitted {} samples in {:.2} s ({:?} G, p = {p})",
