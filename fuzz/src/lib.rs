@@ -19,6 +19,20 @@ pub fn default_scanner(bin: u32) -> &'static ScannerGeometry {
     }
 }
 
+/// Direction pairs above the horizon (local frame, normal +z) that a BRDF
+/// target evaluates a model at: normal, oblique and grazing (cos θ = 0.001)
+/// light and view directions, in and out of the plane of incidence.
+pub fn direction_pairs() -> Vec<([f64; 3], [f64; 3])> {
+    let dirs: Vec<[f64; 3]> = [1.0, 0.9, 0.5, 0.1, 0.001]
+        .iter()
+        .flat_map(|&z: &f64| {
+            let s = (1.0 - z * z).sqrt();
+            [0.0, 1.3, 3.1].map(|p: f64| [s * p.cos(), s * p.sin(), z])
+        })
+        .collect();
+    dirs.iter().flat_map(|&wi| dirs.iter().map(move |&wo| (wi, wo))).collect()
+}
+
 /// Whether the environment asks for libFuzzer's byte mutations alone
 /// (`FUZZ_BYTES_ONLY=1`), to compare the structure-aware mutator with them.
 pub fn bytes_only() -> bool {

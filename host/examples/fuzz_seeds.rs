@@ -6,8 +6,10 @@
 //! in `DIR/geometry` and a calibration of it (the nominal views, a 2 × 2
 //! colour grid) in `DIR/calibration`, and the manifests of two small
 //! simulated scans (3 mirrors at one exposure, 2 with a bracket of three;
-//! the sensor binned 64×) in `DIR/manifest`, so that the fuzzer starts from
-//! files that pass the container and header checks.
+//! the sensor binned 64×) in `DIR/manifest`, scattered BRDF measurements
+//! in `DIR/measurements` and an NPF model fitted to them in
+//! `DIR/npf_model`, so that the fuzzer starts from files that pass the
+//! container and header checks.
 //!
 //! `cargo run -p host --example fuzz_seeds -- DIR`
 
@@ -138,6 +140,40 @@ fn main() {
         std::fs::copy(scan.path().join("manifest.json"), dir.join(format!("{name}.json"))).unwrap();
     }
     println!("scan manifests in {}", dir.display());
+    brdf_seeds(&root);
+}
+
+/// Scattered measurements of the two-lobe GGX mixture (one row missing a
+/// channel, one below the horizon) in `DIR/measurements`, and the NPF model
+/// a short fit of them gives in `DIR/npf_model`.
+fn brdf_seeds(root: &std::path::Path) {
+    use host::brdf::Brdf;
+    use host::brdf::fit::{FitOptions, Measurement, Samples, fit};
+    let b = host::brdf::analytic::two_lobe_ggx();
+    let mut measurements: Vec<Measurement> = (0..60)
+        .map(|k| {
+            let (t, p) = (k as f64 * 0.023, k as f64 * 0.71);
+            let wi = [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()];
+            let wo = [(1.2 - t).sin(), 0.0, (1.2 - t).cos()];
+            Measurement { wi, wo, rgb: b.eval(wi, wo) }
+        })
+        .collect();
+    measurements[3].rgb[1] = -1.0;
+    measurements[7].wo = [1.0, 0.0, 0.0];
+    let dir = root.join("measurements");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("two-lobe.csv");
+    host::brdf::measurements::write_csv(&path, &measurements).unwrap();
+    let samples = Samples::from_measurements(&measurements).unwrap();
+    let opts = FitOptions { max_iterations: 3, ..FitOptions::default() };
+    let (model, _) = fit(&samples, &opts, &|_, _, _| {});
+    let dir = root.join("npf_model");
+    std::fs::create_dir_all(&dir).unwrap();
+    let bytes = model.to_json();
+    // Every seed is a model the reader accepts.
+    host::brdf::npf::NpfModel::from_json(&bytes, "seed").unwrap();
+    std::fs::write(dir.join("two-lobe.json"), &bytes).unwrap();
+    println!("BRDF measurements and model in {}", root.display());
 }
 
 /// A calibration of scanner `g` as built: the nominal views and light
