@@ -257,8 +257,14 @@ impl TextureSet {
         if !(m.size_mm.is_finite() && m.size_mm > 0.0 && m.size_mm <= 10_000.0) {
             return Err(err(&manifest_path, format!("size_mm {} outside (0, 10000]", m.size_mm)));
         }
-        if !m.sample_offset_mm.iter().all(|v| v.is_finite()) {
-            return Err(err(&manifest_path, "sample_offset_mm must be finite"));
+        // Within ±1e9 mm, as every number of the scanner's files: beyond
+        // about 1e12 mm the sample's 25.4 mm would lose its precision.
+        if !m.sample_offset_mm.iter().all(|v| v.abs() <= 1e9) {
+            let [x, y] = m.sample_offset_mm;
+            return Err(err(
+                &manifest_path,
+                format!("sample_offset_mm [{x:e}, {y:e}] must be finite and within ±1e9 mm"),
+            ));
         }
         if m.name.trim().is_empty() {
             return Err(err(&manifest_path, "name is empty"));

@@ -252,6 +252,14 @@ fn bad_sets_are_refused_naming_the_file() {
         exr(d, "roughness.exr", W, H, |x, _| [if x == 7 { 1.5 } else { 0.5 }; 3]);
     });
     assert!(e.contains("roughness.exr: pixel (7, 0): roughness 1.5 outside [0, 1]"), "{e}");
+    let e = refusal(|d| toml(d, "sample_offset_mm = [2.0, 1e13]\n"));
+    assert!(
+        e.contains("material.toml")
+            && e.contains("sample_offset_mm [2e0, 1e13] must be finite and within ±1e9 mm"),
+        "{e}"
+    );
+    let e = refusal(|d| toml(d, "sample_offset_mm = [nan, 0.0]\n"));
+    assert!(e.contains("sample_offset_mm [NaN, 0e0] must be finite"), "{e}");
     let e = refusal(|d| toml(d, "colour = \"red\"\n"));
     assert!(e.contains("material.toml") && e.contains("unknown field `colour`"), "{e}");
     let e = refusal(|d| {
