@@ -207,6 +207,15 @@ fn scattered_measurements_fit_too() {
     assert!(err.to_string().contains("measurement 1"), "{err}");
     bad[1].wi = [f64::NAN, 0.0, 1.0];
     assert!(Samples::from_measurements(&bad).is_err());
+    // Values beyond any BRDF given through the API (the CSV reader refuses
+    // them by line): beyond single precision, and beyond 1e8 sr⁻¹ within it.
+    for (value, channel) in [(1e200, "R"), (2e8, "B")] {
+        let mut big = measurements[..3].to_vec();
+        big[2].rgb[if channel == "R" { 0 } else { 2 }] = value;
+        let err = Samples::from_measurements(&big).unwrap_err().to_string();
+        assert!(err.contains(&format!("channel {channel} has values up to")), "{err}");
+        assert!(err.contains("beyond any BRDF (at most 1e8 sr⁻¹)"), "{err}");
+    }
     assert!(Samples::from_measurements(&[]).is_err());
 }
 
