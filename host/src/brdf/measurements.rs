@@ -95,7 +95,7 @@ pub fn parse_csv(file: impl Read, name: &str) -> Result<Vec<Measurement>, Measur
                 return Err(malformed(
                     line,
                     format!(
-                        "{column} = {text} is beyond any BRDF (at most {MAX_VALUE:.0e} sr⁻¹): are the units right?"
+                        "{column} = {x:e} is beyond any BRDF (at most {MAX_VALUE:.0e} sr⁻¹): are the units right?"
                     ),
                 ));
             }
