@@ -21,6 +21,7 @@ fn table_of(b: &Analytic) -> MerlTable {
 
 fn fit_table(table: &MerlTable, opts: FitOptions) -> (NpfModel, FitReport) {
     let samples = Samples::from_merl(table).unwrap();
+    assert_eq!(samples.bins_without_samples(), [0, 0], "a dense table samples every bin");
     fit(&samples, &opts, &|_, _, _| {})
 }
 
@@ -256,6 +257,12 @@ fn sparse_measurements_fit_to_a_model_its_reader_accepts() {
     )
     .unwrap();
     let samples = Samples::from_measurements(&the_fuzzers).unwrap();
+    assert_eq!(samples.bins_without_samples(), [89, 88], "D's and F's bins without samples");
+    // Fitted exactly at once: an iteration that changes nothing stops the
+    // fit (it ran all 60 before).
+    let (_, report) = fit(&samples, &FitOptions::default(), &|_, _, _| {});
+    assert_eq!(report.objective[0], 0.0);
+    assert_eq!(report.iterations[0], 1);
     let shown = the_fuzzers.iter().map(|m| m.rgb[0] * m.wi[2] * m.wo[2]).fold(0.0, f64::max);
     for g in [GVariant::Smith, GVariant::Independent] {
         let opts = FitOptions { g, max_iterations: 2, ..FitOptions::default() };

@@ -16,8 +16,8 @@
 //!   b < 0, b = 0 and a = Σ w x ρ̂ / Σ w x².
 //!
 //! After each update a table is normalised to max 1 (its scale moves into ρs)
-//! and clamped to [1e-6, 1]. Iterations stop when the objective falls by less
-//! than `tolerance` (relative) or after `max_iterations`.
+//! and clamped to [1e-6, 1]. Iterations stop when the objective falls by at
+//! most `tolerance` (relative) or after `max_iterations`.
 
 use std::f64::consts::LN_2;
 use std::time::Instant;
@@ -64,7 +64,7 @@ pub struct FitOptions {
     pub weighting: Weighting,
     /// Iteration limit.
     pub max_iterations: usize,
-    /// Stop when the objective falls by less than this fraction.
+    /// Stop when the objective falls by this fraction or less.
     pub tolerance: f64,
 }
 
@@ -265,6 +265,18 @@ impl Samples {
             s.push(m.wi, m.wo, bins, 1.0, m.rgb);
         }
         s.checked()
+    }
+
+    /// How many of the 90 θh′ bins (D's) and of the 90 θd bins (F's) hold
+    /// no sample: the fit interpolates them from their neighbours.
+    pub fn bins_without_samples(&self) -> [usize; 2] {
+        [&self.th, &self.td].map(|bins| {
+            let mut seen = [false; BINS];
+            for &b in bins {
+                seen[b as usize] = true;
+            }
+            seen.iter().filter(|s| !**s).count()
+        })
     }
 
     /// Number of samples.
@@ -751,8 +763,10 @@ fn fit_channel(
         (m, e) = if e_new <= e_before_rho { (new, e_new) } else { (m, e_before_rho) };
         history.push(e);
         progress(data.c, it + 1, e);
-        // Converged, or fitted to rounding (an exactly representable BRDF).
-        if e_start - e < opts.tolerance * e_start || e < 1e-7 * history[0] {
+        // Converged (an iteration that changed nothing would repeat itself:
+        // a zero objective stops too), or fitted to rounding (an exactly
+        // representable BRDF).
+        if e_start - e <= opts.tolerance * e_start || e < 1e-7 * history[0] {
             break;
         }
     }

@@ -17,7 +17,7 @@ use std::process::ExitCode;
 use crate::brdf::fit::{FitOptions, GVariant, Samples, Weighting, fit};
 use crate::brdf::merl::MerlTable;
 use crate::brdf::npf::NpfModel;
-use crate::brdf::{Brdf, render};
+use crate::brdf::{BINS, Brdf, render};
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -548,6 +548,13 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 report.seconds,
                 g
             );
+            let [d, f] = samples.bins_without_samples();
+            if d + f > 0 {
+                println!(
+                    "  {d} of {BINS} θh bins (D) and {f} of {BINS} θd bins (F) hold no \
+                     measurement: interpolated from their neighbours"
+                );
+            }
             for c in 0..3 {
                 println!(
                     "  {}: objective {:.4e}, {} iterations, {} line searches",
