@@ -45,7 +45,12 @@ pub struct SimSetup {
     pub material: String,
     /// Seed of the as-built scanner, the board and the sensor noise.
     pub seed: u64,
-    /// Sensor binning (1 = the default 4096² sensor).
+    /// The scanner simulated, as its nominal geometry (a geometry file:
+    /// docs/scanner-geometry.md); `None` is the shipped default scanner.
+    /// The as-built scanner is it with the seed's manufacturing errors.
+    pub geometry: Option<ScannerGeometry>,
+    /// Sensor binning (1 = the geometry's own sensor; the default
+    /// scanner's is 4096²).
     pub bin: u32,
     /// Faults to inject.
     pub faults: FaultPlan,
@@ -75,6 +80,7 @@ impl SimSetup {
         SimSetup {
             material: material.into(),
             seed: 1,
+            geometry: None,
             bin: 1,
             faults: FaultPlan::none(),
             defects: Vec::new(),
@@ -93,6 +99,9 @@ impl SimSetup {
     pub fn describe(&self) -> String {
         let mut s =
             format!("simulated {}, seed {}, binning {}", self.material, self.seed, self.bin);
+        if let Some(g) = &self.geometry {
+            s += &format!(", geometry {}", g.hash());
+        }
         if !self.defects.is_empty() {
             s += &format!(", sensor defects {:?}", self.defects);
         }
@@ -108,12 +117,23 @@ impl SimSetup {
         s
     }
 
-    /// The nominal geometry of the simulated scanner (what the host gets).
+    /// The nominal geometry of the simulated scanner (what the host gets),
+    /// binned.
     pub fn nominal(&self) -> Result<ScannerGeometry, SimError> {
         if self.bin == 0 || self.bin > 64 {
             return Err(SimError::Usage(format!("sensor binning {} outside 1…64", self.bin)));
         }
-        Ok(ScannerGeometry::default_scanner().with_sensor_scaled(self.bin))
+        let g = match &self.geometry {
+            Some(g) => g.clone(),
+            None => ScannerGeometry::default_scanner(),
+        };
+        if g.camera.width < self.bin || g.camera.height < self.bin {
+            return Err(SimError::Usage(format!(
+                "sensor binning {} exceeds the {}×{} sensor",
+                self.bin, g.camera.width, g.camera.height
+            )));
+        }
+        Ok(g.with_sensor_scaled(self.bin))
     }
 
     fn optics(&self) -> Result<OpticalSim, SimError> {

@@ -36,7 +36,7 @@ fn main() {
     let materials: Vec<&str> = list.split(',').collect();
     let with_patent = !std::env::args().any(|a| a == "--no-patent");
     let with_bands = std::env::args().any(|a| a == "--bands");
-    let lights_per_index: usize = tests::arg("--lights-per-index", 2);
+    let lights_per_index: usize = tests::arg("--lights-per-index", 1);
     let texel_model: TexelModelChoice = tests::arg("--texel-model", "auto".to_string())
         .parse()
         .unwrap_or_else(|e| panic!("--texel-model: {e}"));

@@ -414,3 +414,17 @@ pub fn scan_dir(out: &Path, m: &str) -> PathBuf {
     let name = Path::new(m).file_name().map_or_else(|| m.into(), |n| n.to_owned());
     out.join(name)
 }
+
+/// A scanner other than the default, for tests that the pipeline holds
+/// for any scanner: 24 mirrors on three rings (18°, 38°, 58°; 5, 8 and 11
+/// mirrors) instead of 40 on four, and a 4:3 sensor of 3072 × 2304 px
+/// with a shorter lens than the default's 4096² at 5 600 px.
+pub fn other_scanner() -> ScannerGeometry {
+    let mut g = ScannerGeometry::generate_with_rings(&[(18.0, 5), (38.0, 8), (58.0, 11)]);
+    g.camera.width = 3072;
+    g.camera.height = 2304;
+    g.camera.focal_px = 4200.0;
+    g.camera.principal_px = [1536.0, 1152.0];
+    g.validate().expect("a valid scanner");
+    g
+}

@@ -50,6 +50,15 @@ pub enum GeometryError {
     /// A value out of its physical range (the message names the field).
     #[error("scanner geometry: {0}")]
     Invalid(String),
+    /// A geometry file that does not parse or validate.
+    #[error("{path}: {source}")]
+    File {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong with it ([`GeometryError::Parse`] or
+        /// [`GeometryError::Invalid`] and the others of validation).
+        source: Box<GeometryError>,
+    },
     /// The mirror index does not exist.
     #[error("no mirror {0} (the geometry has {1})")]
     NoMirror(usize, usize),
@@ -627,9 +636,16 @@ impl ScannerGeometry {
     /// The default scanner of spec/hardware.md, computed (the shipped file
     /// [`DEFAULT_GEOMETRY_TOML`] is this, written out).
     pub fn generate_default() -> ScannerGeometry {
+        Self::generate_with_rings(&DEFAULT_RINGS)
+    }
+
+    /// The default scanner with its mirrors on other rings: (polar angle
+    /// from the sample normal in degrees, mirrors), the odd rings
+    /// staggered by half a mirror, as the default's are.
+    pub fn generate_with_rings(rings: &[(f64, usize)]) -> ScannerGeometry {
         let ellipsoid = Ellipsoid { semi_major_mm: 600.0, focal_distance_mm: 800.0 };
         let mut mirrors = Vec::new();
-        for (k, &(theta, n)) in DEFAULT_RINGS.iter().enumerate() {
+        for (k, &(theta, n)) in rings.iter().enumerate() {
             let theta = theta.to_radians();
             for i in 0..n {
                 let stagger = if k % 2 == 1 { 0.5 } else { 0.0 };
@@ -697,6 +713,7 @@ impl ScannerGeometry {
         let text = scanner_formats::input::read_to_string(path)
             .map_err(|source| GeometryError::Io { path: path.to_path_buf(), source })?;
         Self::from_toml(&text)
+            .map_err(|e| GeometryError::File { path: path.to_path_buf(), source: Box::new(e) })
     }
 
     /// The file text.

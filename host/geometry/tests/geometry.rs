@@ -86,6 +86,16 @@ fn unreadable_files_are_typed_errors() {
     assert!(matches!(e, GeometryError::Io { .. }), "{e:?}");
     let e = ScannerGeometry::from_toml("format = 1").unwrap_err();
     assert!(matches!(e, GeometryError::Parse(_)), "{e:?}");
+    // A file's errors name it.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("mine.toml");
+    std::fs::write(&path, "format = 1").unwrap();
+    let e = ScannerGeometry::load(&path).unwrap_err();
+    assert!(
+        matches!(&e, GeometryError::File { source, .. } if matches!(**source, GeometryError::Parse(_))),
+        "{e:?}"
+    );
+    assert!(e.to_string().starts_with(&format!("{}: scanner geometry", path.display())), "{e}");
 }
 
 #[test]

@@ -59,10 +59,14 @@ pub struct ViewCalibration {
     pub homography: Homography,
     /// The Fourier-phase-aligned homography alone (the patent's method).
     pub homography_phase: Homography,
-    /// Inner corners in the corner fit (0: none, `homography` is the phase one).
+    /// Inner corners in the corner fit (0: none was found).
     pub corners_used: usize,
     /// RMS residual of the corner fit, px.
     pub corner_rms_px: f64,
+    /// Which estimate `homography` is. (Absent in files before it was
+    /// written: the corner fit if there was one, as then.)
+    #[serde(default)]
+    pub located_by: Option<LocatedBy>,
     /// Unit direction from the sample centre towards the viewer through
     /// this mirror, sample-local frame.
     pub direction: [f64; 3],
@@ -70,6 +74,17 @@ pub struct ViewCalibration {
     pub mirror_point_mm: [f64; 3],
     /// Unit normal, world, pointing at the foci.
     pub mirror_normal: [f64; 3],
+}
+
+/// How a view's homography was found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LocatedBy {
+    /// The fit to the checker's inner corners.
+    Corners,
+    /// The Fourier phase alignment (no corner fit, or one that explained
+    /// the checker's pixels worse).
+    Phase,
 }
 
 /// One light (mirror lit).
@@ -321,12 +336,8 @@ pub fn calibrate(
     drop(sum);
     // The camera and the mirror planes, adjusted to all views at once.
     let homographies: Vec<Homography> = fits.iter().map(RegionFit::best).collect();
-    let corner_sigma = fits
-        .iter()
-        .filter(|f| f.corners.is_some())
-        .map(|f| f.corner_rms_px)
-        .fold(0.0, f64::max)
-        .max(0.05);
+    let corner_sigma =
+        fits.iter().filter(|f| f.by_corners).map(|f| f.corner_rms_px).fold(0.0, f64::max).max(0.05);
     let tol = opts.tolerances;
     let adjusted = adjust(g, &views, &homographies, corner_sigma, &tol, None);
     let mut view_cal = view_calibrations(g, &fits, &adjusted);
@@ -483,6 +494,11 @@ fn view_calibrations(
                 homography_phase: fit.phase,
                 corners_used: fit.corners_used,
                 corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
+                located_by: Some(if fit.by_corners {
+                    LocatedBy::Corners
+                } else {
+                    LocatedBy::Phase
+                }),
                 direction: world_to_sample((virtual_camera - centre).normalize()).to_array(),
                 mirror_point_mm: point.to_array(),
                 mirror_normal: normal.to_array(),
@@ -891,8 +907,15 @@ impl Calibration {
     /// reads): a calibration whose every number is usable, or why not.
     /// [`Calibration::check_geometry`] then checks it against a scanner.
     pub fn parse(text: &str) -> Result<Calibration, String> {
-        let c: Calibration =
+        let mut c: Calibration =
             serde_json::from_str(text).map_err(|e| format!("not a calibration file: {e}"))?;
+        for v in &mut c.views {
+            v.located_by.get_or_insert(if v.corners_used > 0 {
+                LocatedBy::Corners
+            } else {
+                LocatedBy::Phase
+            });
+        }
         if c.format != CALIBRATION_FORMAT || !(1..=CALIBRATION_VERSION).contains(&c.version) {
             return Err(format!(
                 "{} version {} (this build reads {CALIBRATION_FORMAT} 1 to {CALIBRATION_VERSION})",

@@ -59,12 +59,18 @@ pub struct RegionFit {
     pub corners_used: usize,
     /// RMS residual of that fit, px.
     pub corner_rms_px: f64,
+    /// Whether the corner fit is the better estimate: it explains the
+    /// checker's pixels at least as well as the phase alignment does.
+    pub by_corners: bool,
 }
 
 impl RegionFit {
-    /// The best estimate: the corner homography when there is one.
+    /// The better estimate: the corner fit or the phase alignment.
     pub fn best(&self) -> Homography {
-        self.corners.unwrap_or(self.phase)
+        match self.corners {
+            Some(c) if self.by_corners => c,
+            _ => self.phase,
+        }
     }
 }
 
@@ -146,7 +152,13 @@ pub fn locate(
         Some((h, n, rms)) => (Some(h), n, rms),
         None => (None, 0, f64::NAN),
     };
-    Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px })
+    // The corner fit only if it explains the checker's pixels at least as
+    // well as the phase alignment: on squares of a few pixels the corners
+    // lose their precision first.
+    let by_corners = corners.is_some_and(|c| {
+        pattern_residuals(sum, &phase, [&phase, &c], target).is_none_or(|[p, c]| c <= p)
+    });
+    Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px, by_corners })
 }
 
 /// How far apart two homographies put the sample's corners: the largest
@@ -327,6 +339,90 @@ fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Ho
     Homography::fit(&src, &dst)
 }
 
+/// How well each of `candidates` explains the view's pixels: the sum of
+/// the squared residuals of the checkerboard it predicts, over the pixels
+/// `mask` puts well inside the sample (uv within [0.04, 0.96]²); `None`
+/// for a view of under 64 such pixels.
+///
+/// A pixel's prediction is the pattern blurred by a Gaussian of σ px (the
+/// lens) and the pixel's own square (σ² + 1/12 along each line), each
+/// square's edges at the distance the candidate puts them from the pixel
+/// centre; scaled and offset by levels linear in uv (the light and the
+/// vignetting vary across a view), fitted by least squares. σ is the one
+/// of a few that explains the first candidate best. A candidate off by a
+/// fraction of a pixel mispredicts the pixels along every edge.
+fn pattern_residuals<const N: usize>(
+    sum: &Plane,
+    mask: &Homography,
+    candidates: [&Homography; N],
+    target: &Checkerboard,
+) -> Option<[f64; N]> {
+    let inv_mask = mask.inverse()?;
+    let b = mask.bounds();
+    let mut pixels = Vec::new();
+    for y in b[1].floor() as isize..=b[3].ceil() as isize {
+        for x in b[0].floor() as isize..=b[2].ceil() as isize {
+            let uv = inv_mask.apply([x as f64 + 0.5, y as f64 + 0.5]);
+            if uv.iter().all(|c| (0.04..=0.96).contains(c)) {
+                pixels.push(([x as f64 + 0.5, y as f64 + 0.5], uv, sum.at(x, y) as f64));
+            }
+        }
+    }
+    if pixels.len() < 64 {
+        return None;
+    }
+    let n = target.squares as f64;
+    // The least-squares residual of `h` at blur σ, the design row of a
+    // pixel [1, u, v, p, p·u, p·v].
+    let residual = |h: &Homography, sigma: f64| -> Option<f64> {
+        let inv = h.inverse()?;
+        // erf(x / (√2 s)) as tanh: the edge's profile, s² = σ² + 1/12.
+        let a = (2.0 / std::f64::consts::PI).sqrt() * 1.1 / (sigma * sigma + 1.0 / 12.0).sqrt();
+        let rows: Vec<[f64; 6]> = pixels
+            .iter()
+            .map(|(q, uv, _)| {
+                let w = inv.apply(*q);
+                let j = inv.jacobian(*q); // d(u, v) / d(x, y)
+                // Distance (px) to the nearest line of constant u or v.
+                let dist = |c: f64, grad: [f64; 2]| {
+                    let t = c * n;
+                    (t - t.round()).abs() / n / grad[0].hypot(grad[1]).max(1e-12)
+                };
+                let p = target.pattern(w)
+                    * (a * dist(w[0], j[0])).tanh()
+                    * (a * dist(w[1], j[1])).tanh();
+                let (du, dv) = (uv[0] - 0.5, uv[1] - 0.5);
+                [1.0, du, dv, p, p * du, p * dv]
+            })
+            .collect();
+        let mut normal = super::linalg::Normal::new(6);
+        for (j, (_, _, v)) in rows.iter().zip(&pixels) {
+            normal.add(j, -v);
+        }
+        let c = normal.step(0.0)?;
+        Some(
+            rows.iter()
+                .zip(&pixels)
+                .map(|(j, (_, _, v))| {
+                    (j.iter().zip(&c).map(|(a, b)| a * b).sum::<f64>() - v).powi(2)
+                })
+                .sum(),
+        )
+    };
+    let mut blur = (f64::INFINITY, 0.0);
+    for sigma in [0.0, 0.15, 0.25, 0.4, 0.55, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0] {
+        let r = residual(candidates[0], sigma)?;
+        if r < blur.0 {
+            blur = (r, sigma);
+        }
+    }
+    let mut out = [0.0; N];
+    for (h, slot) in candidates.iter().zip(&mut out) {
+        *slot = residual(h, blur.1)?;
+    }
+    Some(out)
+}
+
 /// The inner corners located to sub-pixel precision (the gradient of the
 /// lightly blurred image is orthogonal to the offset from a saddle point,
 /// as in OpenCV's cornerSubPix), then a homography fitted to them with
@@ -354,7 +450,7 @@ fn corner_fit(
         let eu = [j[0][0] / n, j[1][0] / n];
         let ev = [j[0][1] / n, j[1][1] / n];
         let det = eu[0] * ev[1] - eu[1] * ev[0];
-        if det.abs() < 4.0 {
+        if det.abs() < std::env::var("MIN_DET").ok().and_then(|s| s.parse().ok()).unwrap_or(4.0) {
             continue; // squares under 2 × 2 px: no corner to find
         }
         let to_basis = |d: [f64; 2]| {

@@ -22,7 +22,8 @@ use scanner_shading::texel::TexelParams;
 pub struct MaterialOptions {
     /// Colours per palette, 1…256.
     pub colours: usize,
-    /// Lights sharing an index image, 1…4.
+    /// Lights sharing an index image, 1…4: the fewest; more share where
+    /// the file would exceed [`MaterialOptions::max_bytes`].
     pub lights_per_index: usize,
     /// Interpolation and its tables.
     pub interpolation: Interpolation,
@@ -71,7 +72,7 @@ impl Default for MaterialOptions {
     fn default() -> Self {
         MaterialOptions {
             colours: 256,
-            lights_per_index: 2,
+            lights_per_index: 1,
             interpolation: Interpolation::Default,
             seed: 1,
             texel_model: TexelModelChoice::Auto,

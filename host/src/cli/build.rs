@@ -68,27 +68,38 @@ fn build_failure(e: BuildError) -> Failure {
     Failure(e.exit_code(), anyhow!(e))
 }
 
-/// The nominal geometry a scan was taken with: `--geometry`, or the
-/// shipped default scaled to the scan's frame size (a binned sensor).
+/// The nominal geometry a scan was taken with: `--geometry` (or the
+/// shipped default without it), binned as the scan's sensor was (the
+/// simulator's `--sim-bin`). A `--geometry` the scan was not taken with
+/// under any binning is returned as given: the calibration and the scan
+/// then say which geometry differs.
 pub fn geometry_for(path: Option<&Path>, scan: &Path) -> Result<ScannerGeometry, Failure> {
-    if let Some(p) = path {
-        return ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)));
-    }
-    let m = crate::scan::Manifest::load(scan).map_err(|e| Failure(3, anyhow!(e)))?;
-    let base = ScannerGeometry::default_scanner();
+    let base = match path {
+        Some(p) => ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?,
+        None => ScannerGeometry::default_scanner(),
+    };
+    let m = match crate::scan::Manifest::load(scan) {
+        Ok(m) => m,
+        Err(_) if path.is_some() => return Ok(base),
+        Err(e) => return Err(Failure(3, anyhow!(e))),
+    };
     for bin in 1..=64 {
         let g = base.with_sensor_scaled(bin);
         if g.hash() == m.settings.geometry_sha256 {
             return Ok(g);
         }
     }
-    Err(Failure(
-        3,
-        anyhow!(
-            "{}: taken with a geometry other than the shipped default: pass it with --geometry",
-            scan.display()
-        ),
-    ))
+    match path {
+        Some(_) => Ok(base),
+        None => Err(Failure(
+            3,
+            anyhow!(
+                "{}: taken with a geometry other than the shipped default: pass it with \
+                 --geometry",
+                scan.display()
+            ),
+        )),
+    }
 }
 
 /// `scanner calibrate`
@@ -124,13 +135,30 @@ pub fn calibrate_cmd(
     let stages = bar.finish();
     let cal = cal.map_err(build_failure)?;
     cal.save(output).map_err(build_failure)?;
-    let with_corners = cal.views.iter().filter(|v| v.corners_used > 0).count();
-    let rms = cal
+    use crate::build::calibrate::LocatedBy;
+    let by_corners: Vec<_> =
+        cal.views.iter().filter(|v| v.located_by == Some(LocatedBy::Corners)).collect();
+    let rms = by_corners.iter().map(|v| v.corner_rms_px).fold(0.0, f64::max);
+    // Views whose corners were found but explained the checker worse.
+    let outdone = cal
         .views
         .iter()
-        .filter(|v| v.corners_used > 0)
-        .map(|v| v.corner_rms_px)
-        .fold(0.0, f64::max);
+        .filter(|v| v.corners_used > 0 && v.located_by == Some(LocatedBy::Phase))
+        .count();
+    let outdone = match outdone {
+        0 => String::new(),
+        n => format!(" ({n} of them explained better by it than by their corners)"),
+    };
+    let located = match by_corners.len() {
+        0 => format!("every view by Fourier phase{outdone}"),
+        n if n == cal.views.len() => {
+            format!("every view by its checker corners (largest fit residual {rms:.3} px)")
+        }
+        n => format!(
+            "{n} views by their checker corners (largest fit residual {rms:.3} px), the rest by \
+             Fourier phase{outdone}"
+        ),
+    };
     let lights = match &cal.source_offsets {
         Some(o) => format!(
             "source home offsets disk {:+.3}°, tilt {:+.3}° from {} highlights of {} lights",
@@ -139,9 +167,8 @@ pub fn calibrate_cmd(
         None => "nominal source home positions (no --glossy scan)".into(),
     };
     println!(
-        "calibrated {} views and {} lights in {:.1} s: {with_corners} views by their checker corners \
-         (largest fit residual {rms:.3} px), the rest by Fourier phase; {lights}; lens \
-         distortion k1 {:+.4} → {}",
+        "calibrated {} views and {} lights in {:.1} s: {located}; {lights}; lens distortion k1 \
+         {:+.4} → {}",
         cal.views.len(),
         cal.lights.len(),
         started.elapsed().as_secs_f64(),

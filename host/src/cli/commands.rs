@@ -56,6 +56,12 @@ pub struct DeviceArgs {
     /// Simulator: sensor binning (1 = 4096², 8 = 512²).
     #[arg(long, default_value_t = 1)]
     pub sim_bin: u32,
+    /// Simulator: the scanner to simulate, a geometry file
+    /// (docs/scanner-geometry.md; default: the shipped default scanner).
+    /// Pass the same file as `--geometry` to `calibrate`, `regions` and
+    /// `build`.
+    #[arg(long, value_name = "FILE")]
+    pub sim_geometry: Option<PathBuf>,
     /// Simulator: per-byte bit-flip probability on the link.
     #[arg(long, default_value_t = 0.0)]
     pub sim_corrupt: f64,
@@ -102,9 +108,14 @@ impl DeviceArgs {
         for f in &self.sim_faults {
             faults = faults.with(f.when, f.event);
         }
+        let geometry = match &self.sim_geometry {
+            Some(p) => Some(ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?),
+            None => None,
+        };
         Ok(SimSetup {
             material: self.sim_material.clone(),
             seed: self.sim_seed,
+            geometry,
             bin: self.sim_bin,
             faults,
             defects: self.sim_defects.clone(),
@@ -1157,10 +1168,32 @@ pub fn demo(
     bin: u32,
     mirrors: Option<usize>,
     seed: u64,
+    geometry: Option<&Path>,
 ) -> Result<(), Failure> {
-    // Refuse a bad material before scanning the calibration targets.
+    // Refuse a bad material or geometry before scanning the calibration
+    // targets.
     hil_sim::materials::lookup(material)
         .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
+    // Another scanner than the default: its geometry as binned, written
+    // beside the scans for calibrate and build (and the user).
+    let geometry_file = match geometry {
+        None => None,
+        Some(p) => {
+            let g = ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?;
+            let setup = crate::simulator::SimSetup {
+                bin,
+                geometry: Some(g),
+                ..crate::simulator::SimSetup::new(material)
+            };
+            let nominal = setup.nominal().map_err(sim_failure)?;
+            std::fs::create_dir_all(out)
+                .map_err(|e| Failure(4, anyhow!("{}: {e}", out.display())))?;
+            let file = out.join("geometry.toml");
+            crate::fsutil::write_atomic(&file, nominal.to_toml().as_bytes())
+                .map_err(|e| Failure(4, anyhow!("{}: {e}", file.display())))?;
+            Some(file)
+        }
+    };
     let started = std::time::Instant::now();
     // A texture-set directory is named after its folder.
     let name = Path::new(material)
@@ -1195,6 +1228,7 @@ pub fn demo(
             sim_driver_fault: None,
             sim_trigger_latency_us: 0,
             sim_lens_distortion: None,
+            sim_geometry: geometry.map(Path::to_path_buf),
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
@@ -1202,7 +1236,7 @@ pub fn demo(
             out: out.join(label),
             resume: true,
             force: false,
-            geometry: None,
+            geometry: geometry_file.clone(),
             camera: None,
             camera_codes: CameraCodes::Native,
             mirrors,
@@ -1225,7 +1259,7 @@ pub fn demo(
             &out.join("diffuse-white"),
             glossy,
             &calibration,
-            None,
+            geometry_file.as_deref(),
             crate::build::calibrate::DEFAULT_WHITE_ALBEDO,
             8,
         )
@@ -1247,7 +1281,7 @@ pub fn demo(
     let input = super::build::ScanInputs {
         scan: out.join(&name),
         calibration: calibration.clone(),
-        geometry: None,
+        geometry: geometry_file.clone(),
         size: None,
         detail: super::build::Detail::AllViews,
     };

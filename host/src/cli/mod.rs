@@ -55,6 +55,11 @@ enum Command {
         /// Seed of the simulated scanner.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Simulate this scanner, a geometry file (docs/scanner-geometry.md;
+        /// default: the shipped default scanner). Its binned geometry is
+        /// written to OUT/geometry.toml.
+        #[arg(long, value_name = "FILE")]
+        geometry: Option<PathBuf>,
     },
     /// Capture a scan into a scan directory.
     Scan {
@@ -114,8 +119,10 @@ enum Command {
         /// Colours per palette (1…256).
         #[arg(long, default_value_t = 256)]
         colours: usize,
-        /// Lights sharing one index image (1…4; each light keeps its own palette).
-        #[arg(long, default_value_t = 2)]
+        /// Lights sharing one index image, the fewest (1…4; each light keeps
+        /// its own palette); more share where the file would exceed
+        /// --max-size-mb (a 40 × 40 scan at 128² px: 2 or 3).
+        #[arg(long, default_value_t = 1)]
         lights_per_index: usize,
         /// Largest file, MB (10⁶ bytes; 0: no limit): where the file would be
         /// larger, more lights share an index image (up to 4).
@@ -422,8 +429,8 @@ fn load_samples(path: &Path) -> anyhow::Result<Samples> {
 
 fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
-        Command::Demo { out, material, bin, mirrors, seed } => {
-            commands::demo(&out, &material, bin, mirrors, seed)?
+        Command::Demo { out, material, bin, mirrors, seed, geometry } => {
+            commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref())?
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
