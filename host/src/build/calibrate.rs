@@ -336,8 +336,7 @@ pub fn calibrate(
     drop(sum);
     // The camera and the mirror planes, adjusted to all views at once.
     let homographies: Vec<Homography> = fits.iter().map(RegionFit::best).collect();
-    let corner_sigma =
-        fits.iter().filter(|f| f.by_corners).map(|f| f.corner_rms_px).fold(0.0, f64::max).max(0.05);
+    let corner_sigma = grid_sigma(&fits);
     let tol = opts.tolerances;
     let adjusted = adjust(g, &views, &homographies, corner_sigma, &tol, None);
     let mut view_cal = view_calibrations(g, &fits, &adjusted);
@@ -474,6 +473,25 @@ fn sensor_defects(
             Ok(white.defects().to_vec())
         }
     }
+}
+
+/// The standard error the bundle adjustment gives each of a homography's
+/// 5 × 5 grid points, px. A corner fit of n corners with RMS residual r
+/// places the sample to r·√(8 / 2n) (8 parameters from 2n coordinates);
+/// the 25 grid points carry only those 8 parameters' information, so each
+/// weighs as if its error were √(25/8) times that. The RMS over the views
+/// located by their corners (or, if none is, over every corner fit found);
+/// the phase alignment gives no estimate of its own and is taken as
+/// precise. At least 0.05 px.
+fn grid_sigma(fits: &[RegionFit]) -> f64 {
+    let variance = |f: &&RegionFit| f.corner_rms_px.powi(2) * 4.0 / f.corners_used as f64;
+    let fitted = || fits.iter().filter(|f| f.corners.is_some() && f.corners_used > 0);
+    let chosen: Vec<f64> = fitted().filter(|f| f.by_corners).map(|f| variance(&f)).collect();
+    let se = if chosen.is_empty() { fitted().map(|f| variance(&f)).collect() } else { chosen };
+    if se.is_empty() {
+        return 0.05;
+    }
+    ((se.iter().sum::<f64>() / se.len() as f64) * 25.0 / 8.0).sqrt().max(0.05)
 }
 
 /// Per located view, its calibration from the adjusted geometry.
