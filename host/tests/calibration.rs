@@ -24,6 +24,15 @@ fn checker_sum(sim: &OpticalSim, nominal: &ScannerGeometry, lights: &[usize]) ->
     sum
 }
 
+/// The as-built scanner of `seed` and its checkerboard frames' sum, lit
+/// through mirrors 0–3.
+fn as_built_checker(nominal: &ScannerGeometry, seed: u64) -> (ScannerGeometry, Plane) {
+    let checker = Sample::small(materials::by_name("checkerboard").unwrap());
+    let sim = OpticalSim::as_built(nominal, checker, seed);
+    let sum = checker_sum(&sim, nominal, &[0, 1, 2, 3]);
+    (sim.geometry().clone(), sum)
+}
+
 fn corner_errors(h: &Homography, truth: &ScannerGeometry, l: usize) -> Vec<f64> {
     [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]
         .iter()
@@ -44,13 +53,7 @@ fn regions_are_located_against_the_as_built_truth() {
     let nominal = ScannerGeometry::default_scanner();
     let target = Checkerboard::default();
     for seed in [1u64, 2, 3] {
-        let sim = OpticalSim::as_built(
-            &nominal,
-            Sample::small(materials::by_name("checkerboard").unwrap()),
-            seed,
-        );
-        let truth = sim.geometry().clone();
-        let sum = checker_sum(&sim, &nominal, &[0, 1, 2, 3]);
+        let (truth, sum) = as_built_checker(&nominal, seed);
         let (mut e_nom, mut e_phase, mut e_corner) = (Vec::new(), Vec::new(), Vec::new());
         let (mut e_fit, mut chose_phase) = (Vec::new(), 0);
         for l in 0..nominal.mirrors.len() {
@@ -93,13 +96,7 @@ fn on_a_coarse_sensor_the_better_of_the_two_estimates_is_taken() {
     let target = Checkerboard::default();
     let (mut e_fit, mut e_best, mut chose_phase) = (Vec::new(), Vec::new(), 0);
     for seed in [1u64, 2, 3] {
-        let sim = OpticalSim::as_built(
-            &nominal,
-            Sample::small(materials::by_name("checkerboard").unwrap()),
-            seed,
-        );
-        let truth = sim.geometry().clone();
-        let sum = checker_sum(&sim, &nominal, &[0, 1, 2, 3]);
+        let (truth, sum) = as_built_checker(&nominal, seed);
         for l in 0..nominal.mirrors.len() {
             let fit = locate(&nominal, l, &sum, &target).unwrap();
             if let Some(c) = fit.corners {
