@@ -450,7 +450,7 @@ fn corner_fit(
         let eu = [j[0][0] / n, j[1][0] / n];
         let ev = [j[0][1] / n, j[1][1] / n];
         let det = eu[0] * ev[1] - eu[1] * ev[0];
-        if det.abs() < std::env::var("MIN_DET").ok().and_then(|s| s.parse().ok()).unwrap_or(4.0) {
+        if det.abs() < 4.0 {
             continue; // squares under 2 × 2 px: no corner to find
         }
         let to_basis = |d: [f64; 2]| {
