@@ -128,6 +128,42 @@ fn the_simulator_serves_the_scanner_it_is_given() {
     assert_eq!(code, Some(0), "{err}");
     let g = tests::other_scanner().with_sensor_scaled(8);
     assert!(said.contains(&format!("24 entries written; geometry {}", g.hash())), "{said}");
+    // Scanned binned, calibrated with the file as it is: `calibrate` bins
+    // it as the scans were.
+    for target in ["checkerboard", "diffuse-white"] {
+        let out = dir.path().join(target).display().to_string();
+        let (code, _, err) = common::run(&[
+            "scan",
+            "--device",
+            "sim",
+            "--sim-geometry",
+            &f,
+            "--sim-bin",
+            "4",
+            "--sim-material",
+            target,
+            "--sample-name",
+            target,
+            "--out",
+            &out,
+        ]);
+        assert_eq!(code, Some(0), "{err}");
+    }
+    let d = |n: &str| dir.path().join(n).display().to_string();
+    let (code, _, err) = common::run(&[
+        "calibrate",
+        "--checkerboard",
+        &d("checkerboard"),
+        "--white",
+        &d("diffuse-white"),
+        "--geometry",
+        &f,
+        "-o",
+        &d("cal.json"),
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+    let cal = host::build::Calibration::load(&dir.path().join("cal.json")).unwrap();
+    assert_eq!(cal.geometry_sha256, tests::other_scanner().with_sensor_scaled(4).hash());
     // A bad file: exit 3, naming it.
     std::fs::write(&file, "format = 1\n[camera]\nwidth = \"wide\"\n").unwrap();
     let (code, _, err) = common::run(&["setup", "--device", "sim", "--sim-geometry", &f]);
