@@ -1149,7 +1149,14 @@ pub fn scan_cmd(args: &DeviceArgs, scan_args: &ScanArgs) -> Result<(), Failure> 
 
 /// `scanner demo` without the simulator: refused.
 #[cfg(not(feature = "sim"))]
-pub fn demo(_: &Path, _: &str, _: u32, _: Option<usize>, _: u64) -> Result<(), Failure> {
+pub fn demo(
+    _: &Path,
+    _: &str,
+    _: u32,
+    _: Option<usize>,
+    _: u64,
+    _: Option<&Path>,
+) -> Result<(), Failure> {
     Err(no_simulator())
 }
 
