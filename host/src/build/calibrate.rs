@@ -485,7 +485,7 @@ fn sensor_defects(
 /// precise. At least 0.05 px.
 fn grid_sigma(fits: &[RegionFit]) -> f64 {
     let variance = |f: &&RegionFit| f.corner_rms_px.powi(2) * 4.0 / f.corners_used as f64;
-    let fitted = || fits.iter().filter(|f| f.corners.is_some() && f.corners_used > 0);
+    let fitted = || fits.iter().filter(|f| f.corners.is_some());
     let chosen: Vec<f64> = fitted().filter(|f| f.by_corners).map(|f| variance(&f)).collect();
     let se = if chosen.is_empty() { fitted().map(|f| variance(&f)).collect() } else { chosen };
     if se.is_empty() {

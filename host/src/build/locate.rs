@@ -372,25 +372,36 @@ fn pattern_residuals<const N: usize>(
         return None;
     }
     let n = target.squares as f64;
-    // The least-squares residual of `h` at blur σ, the design row of a
-    // pixel [1, u, v, p, p·u, p·v].
-    let residual = |h: &Homography, sigma: f64| -> Option<f64> {
+    // Per candidate and pixel, once: the pattern's sign there and the
+    // distances (px) to the nearest lines of constant u and of constant v.
+    let edges = |h: &Homography| -> Option<Vec<[f64; 3]>> {
         let inv = h.inverse()?;
+        Some(
+            pixels
+                .iter()
+                .map(|(q, _, _)| {
+                    let w = inv.apply(*q);
+                    let j = inv.jacobian(*q); // d(u, v) / d(x, y)
+                    let dist = |c: f64, grad: [f64; 2]| {
+                        let t = c * n;
+                        (t - t.round()).abs() / n / grad[0].hypot(grad[1]).max(1e-12)
+                    };
+                    [target.pattern(w), dist(w[0], j[0]), dist(w[1], j[1])]
+                })
+                .collect(),
+        )
+    };
+    let edges: Vec<Vec<[f64; 3]>> = candidates.iter().map(|h| edges(h)).collect::<Option<_>>()?;
+    // The least-squares residual of candidate `k` at blur σ, the design row
+    // of a pixel [1, u, v, p, p·u, p·v].
+    let residual = |k: usize, sigma: f64| -> Option<f64> {
         // erf(x / (√2 s)) as tanh: the edge's profile, s² = σ² + 1/12.
         let a = (2.0 / std::f64::consts::PI).sqrt() * 1.1 / (sigma * sigma + 1.0 / 12.0).sqrt();
         let rows: Vec<[f64; 6]> = pixels
             .iter()
-            .map(|(q, uv, _)| {
-                let w = inv.apply(*q);
-                let j = inv.jacobian(*q); // d(u, v) / d(x, y)
-                // Distance (px) to the nearest line of constant u or v.
-                let dist = |c: f64, grad: [f64; 2]| {
-                    let t = c * n;
-                    (t - t.round()).abs() / n / grad[0].hypot(grad[1]).max(1e-12)
-                };
-                let p = target.pattern(w)
-                    * (a * dist(w[0], j[0])).tanh()
-                    * (a * dist(w[1], j[1])).tanh();
+            .zip(&edges[k])
+            .map(|((_, uv, _), e)| {
+                let p = e[0] * (a * e[1]).tanh() * (a * e[2]).tanh();
                 let (du, dv) = (uv[0] - 0.5, uv[1] - 0.5);
                 [1.0, du, dv, p, p * du, p * dv]
             })
@@ -411,14 +422,14 @@ fn pattern_residuals<const N: usize>(
     };
     let mut blur = (f64::INFINITY, 0.0);
     for sigma in [0.0, 0.15, 0.25, 0.4, 0.55, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0] {
-        let r = residual(candidates[0], sigma)?;
+        let r = residual(0, sigma)?;
         if r < blur.0 {
             blur = (r, sigma);
         }
     }
     let mut out = [0.0; N];
-    for (h, slot) in candidates.iter().zip(&mut out) {
-        *slot = residual(h, blur.1)?;
+    for (k, slot) in out.iter_mut().enumerate() {
+        *slot = residual(k, blur.1)?;
     }
     Some(out)
 }
