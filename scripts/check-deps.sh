@@ -2,7 +2,7 @@
 # Crate boundaries (docs/architecture.md): what a library may not pull in.
 # - the host library without its default features: no simulator, no CLI crates;
 # - the nominal geometry crate: nothing of the simulator, serial/USB or the CLI;
-# - the renderer-facing shading crate: no simulator, serial/USB, image decoding, CLI or builder crates.
+# - the renderer-facing shading crate and its C API: no simulator, serial/USB, image decoding, CLI or builder crates.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -26,3 +26,4 @@ forbid() { # package, cargo-tree flags, forbidden crates...
 forbid host "--no-default-features" hil-sim firmware clap indicatif tracing-subscriber anyhow plotters ctrlc
 forbid scanner-geometry "" hil-sim firmware clap indicatif serialport nusb exr image rand
 forbid scanner-shading "" hil-sim firmware clap indicatif tracing-subscriber anyhow serialport nusb exr image spade rayon
+forbid scanner-shading-c "" hil-sim firmware host clap indicatif tracing-subscriber anyhow serialport nusb exr image spade rayon

@@ -4,8 +4,9 @@
 #   thumbv7em-none-eabihf target (all read from rust-toolchain.toml);
 # - QEMU's Arm system emulator, which runs the firmware self-tests on a
 #   Cortex-M4, and strace, with which a test checks that every rename in a
-#   scan directory is followed by a directory fsync (Debian/Ubuntu:
-#   apt-get, as root or through sudo);
+#   scan directory is followed by a directory fsync, and a C compiler (the
+#   linker Rust needs; a test compiles the C API's example with it)
+#   (Debian/Ubuntu: apt-get, as root or through sudo);
 # - numpy and safetensors in a Python virtual environment, .venv/, for the
 #   test that reads material files in Python from their documentation.
 set -euo pipefail
@@ -18,8 +19,10 @@ rustup toolchain install >/dev/null
 missing=()
 command -v qemu-system-arm >/dev/null 2>&1 || missing+=(qemu-system-arm)
 command -v strace >/dev/null 2>&1 || missing+=(strace)
+# The C compiler Rust links with; a test also compiles the C API's example.
+command -v cc >/dev/null 2>&1 || missing+=(gcc)
 if [ "${#missing[@]}" -gt 0 ]; then
-    echo "installing ${missing[*]} (firmware Cortex-M4 tests; the fsync test)"
+    echo "installing ${missing[*]} (firmware Cortex-M4 tests; the fsync test; the C compiler)"
     sudo=""
     [ "$(id -u)" -eq 0 ] || sudo="sudo"
     $sudo apt-get update -qq

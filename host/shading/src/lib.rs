@@ -37,7 +37,10 @@ use format::DirectionTables;
 pub use format::{Interpolation, MaterialData, Metadata};
 use locate::{CellLocator, TriangleLocator};
 
-/// One shading request for [`Material::eval_batch`].
+/// One shading request for [`Material::eval_batch`]. Laid out as C's
+/// `struct { float uv[2]; float wi[3]; float wo[3]; }` (the C API's
+/// `ScannerShadeQuery`, scanner-shading-c).
+#[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ShadeQuery {
     /// Position in [0, 1]² over the material's extent (wraps outside).
