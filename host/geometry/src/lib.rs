@@ -23,6 +23,9 @@
 //! *as-built* copy (its `AsBuilt::perturbed`) that the host never sees, so
 //! the difference is what calibration has to recover.
 
+pub mod check;
+
+pub use check::{DesignCheck, DesignProblem, MirrorCheck};
 pub use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -644,22 +647,7 @@ impl ScannerGeometry {
     /// staggered by half a mirror, as the default's are.
     pub fn generate_with_rings(rings: &[(f64, usize)]) -> ScannerGeometry {
         let ellipsoid = Ellipsoid { semi_major_mm: 600.0, focal_distance_mm: 800.0 };
-        let mut mirrors = Vec::new();
-        for (k, &(theta, n)) in rings.iter().enumerate() {
-            let theta = theta.to_radians();
-            for i in 0..n {
-                let stagger = if k % 2 == 1 { 0.5 } else { 0.0 };
-                let phi = std::f64::consts::TAU * (i as f64 + stagger) / n as f64;
-                let w = DVec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), -theta.cos());
-                let c = ellipsoid.point_towards(w);
-                mirrors.push(MirrorSpec {
-                    center_mm: round3(c, 6),
-                    normal: round3(ellipsoid.inward_normal(c), 12),
-                    size_mm: 50.0,
-                    reflectance: 0.92,
-                });
-            }
-        }
+        let mirrors = ring_mirrors(&ellipsoid, rings, 50.0, 0.92);
         ScannerGeometry {
             format: GEOMETRY_FORMAT,
             camera: CameraSpec {
@@ -692,6 +680,19 @@ impl ScannerGeometry {
                 irradiance: 1.0,
             },
             mirrors,
+        }
+    }
+
+    /// This scanner with its mirrors replaced by rings of mirrors tangent
+    /// to its ellipsoid, as [`Self::generate_with_rings`] places them: the
+    /// camera, sensor, sample and source kept; each mirror of the size and
+    /// reflectance of this scanner's first (50 mm, 0.92 if it has none).
+    pub fn with_rings(&self, rings: &[(f64, usize)]) -> ScannerGeometry {
+        let (size, reflectance) =
+            self.mirrors.first().map_or((50.0, 0.92), |m| (m.size_mm, m.reflectance));
+        ScannerGeometry {
+            mirrors: ring_mirrors(&self.ellipsoid, rings, size, reflectance),
+            ..self.clone()
         }
     }
 
@@ -957,6 +958,35 @@ impl ScannerGeometry {
         g.sensor.full_well_e *= k * k;
         g
     }
+}
+
+/// Mirrors on rings about the sample normal, tangent to `ellipsoid`:
+/// (polar angle from the normal in degrees, mirrors) per ring, the odd
+/// rings staggered by half a mirror; the ellipsoid's points and normals
+/// rounded as the shipped file holds them.
+fn ring_mirrors(
+    ellipsoid: &Ellipsoid,
+    rings: &[(f64, usize)],
+    size_mm: f64,
+    reflectance: f64,
+) -> Vec<MirrorSpec> {
+    let mut mirrors = Vec::new();
+    for (k, &(theta, n)) in rings.iter().enumerate() {
+        let theta = theta.to_radians();
+        for i in 0..n {
+            let stagger = if k % 2 == 1 { 0.5 } else { 0.0 };
+            let phi = std::f64::consts::TAU * (i as f64 + stagger) / n as f64;
+            let w = DVec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), -theta.cos());
+            let c = ellipsoid.point_towards(w);
+            mirrors.push(MirrorSpec {
+                center_mm: round3(c, 6),
+                normal: round3(ellipsoid.inward_normal(c), 12),
+                size_mm,
+                reflectance,
+            });
+        }
+    }
+    mirrors
 }
 
 /// `v` rounded to `decimals` places (and without negative zeros), so the

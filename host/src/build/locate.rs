@@ -103,10 +103,10 @@ pub fn nominal_homography(g: &ScannerGeometry, l: usize) -> Option<Homography> {
 
 /// How far from its nominal place a view is searched: as far as
 /// manufacturing errors can move it, 60 px of the default 4096² sensor
-/// (scaled to this one), at least 6 px.
+/// (scaled to this one; the room `scanner geometry` asks of a design,
+/// [`ScannerGeometry::view_margin_px`]), at least 6 px.
 fn search_margin(g: &ScannerGeometry) -> isize {
-    let scale = g.camera.focal_px / 5600.0;
-    (60.0 * scale).max(6.0).round() as isize
+    g.view_margin_px().max(6.0).round() as isize
 }
 
 /// The frame pixels [`locate`] may look at for `view`: the nominal view

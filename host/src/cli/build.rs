@@ -102,6 +102,96 @@ pub fn geometry_for(path: Option<&Path>, scan: &Path) -> Result<ScannerGeometry,
     }
 }
 
+/// `scanner geometry`: check a design (`--geometry FILE`, the default
+/// scanner, or either with its mirrors on `rings`), print what each mirror
+/// does and what is wrong, and write it to `output` if it is sound.
+pub fn geometry_cmd(
+    path: Option<&Path>,
+    rings: &[(f64, usize)],
+    output: Option<&Path>,
+) -> Result<(), Failure> {
+    let base = match path {
+        Some(p) => ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?,
+        None => ScannerGeometry::default_scanner(),
+    };
+    let g = if rings.is_empty() { base } else { base.with_rings(rings) };
+    let name = match (path, rings.is_empty()) {
+        (Some(p), true) => p.display().to_string(),
+        (None, true) => "the default scanner".into(),
+        (Some(p), false) => format!("{} with mirrors on rings", p.display()),
+        (None, false) => "the default scanner with mirrors on rings".into(),
+    };
+    g.validate().map_err(|e| Failure(3, anyhow!("{name}: {e}")))?;
+    let check = g.check_design();
+    println!(
+        "{name}: {} mirrors, sensor {} × {} px, f = {:.0} px; geometry hash {}",
+        g.mirrors.len(),
+        g.camera.width,
+        g.camera.height,
+        g.camera.focal_px,
+        g.hash()
+    );
+    println!(
+        "mirror | view θ, φ (°) | light θ, φ (°) | disk (°), track (mm), tilt (°) | \
+         sample on the sensor: x, y (px) | px/mm | lit"
+    );
+    let angles = |d: scanner_geometry::DVec3| {
+        let phi = d.y.atan2(d.x).to_degrees().rem_euclid(360.0) + 0.0;
+        format!("{:5.1}, {:5.1}", d.z.clamp(-1.0, 1.0).acos().to_degrees(), phi)
+    };
+    for m in &check.mirrors {
+        let light = m.light.map_or_else(|| "—".into(), angles);
+        let axes = m.axes.map_or_else(
+            || "—".into(),
+            |a| format!("{:7.2}, {:6.2}, {:6.3}", a.disk_deg, a.track_mm, a.tilt_deg),
+        );
+        let place = m.corners_px.map_or_else(
+            || "—".into(),
+            |c| {
+                let (x, y) = (c.map(|p| p[0]), c.map(|p| p[1]));
+                let lo = |v: [f64; 4]| v.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = |v: [f64; 4]| v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                format!("{:.0}–{:.0}, {:.0}–{:.0}", lo(x), hi(x), lo(y), hi(y))
+            },
+        );
+        let res = m.px_per_mm.map_or_else(|| "—".into(), |r| format!("{r:.2}"));
+        let lit = m.lit.map_or_else(|| "—".into(), |l| format!("{:.0} %", 100.0 * l));
+        println!(
+            "{:6} | {} | {light} | {axes} | {place} | {res} | {lit}",
+            m.mirror,
+            angles(m.view)
+        );
+    }
+    if let Some((a, b, gap)) = check.closest_views {
+        println!(
+            "closest views: mirrors {a} and {b}, {gap:.0} px apart (each needs {:.0} px around it: \
+             a built scanner's view may lie that far from the design's)",
+            g.view_margin_px()
+        );
+    }
+    if !check.problems.is_empty() {
+        for p in &check.problems {
+            eprintln!("scanner: {p}");
+        }
+        return Err(Failure(
+            3,
+            anyhow!(
+                "{name}: {} problem{} found{}",
+                check.problems.len(),
+                if check.problems.len() == 1 { "" } else { "s" },
+                if output.is_some() { "; nothing written" } else { "" }
+            ),
+        ));
+    }
+    println!("no problem found");
+    if let Some(out) = output {
+        crate::fsutil::write_atomic(out, g.to_toml().as_bytes())
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", out.display())))?;
+        println!("→ {}", out.display());
+    }
+    Ok(())
+}
+
 /// `scanner calibrate`
 pub fn calibrate_cmd(
     checkerboard: &Path,

@@ -167,6 +167,27 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Check a scanner's design before building or scanning with it: per
+    /// mirror its view and light directions, the axis positions, where the
+    /// sample appears on the sensor and how many pixels it covers, and
+    /// whatever would make a scan fail — views off the sensor or too close
+    /// to each other, mirrors too small or in each other's way, light that
+    /// does not cover the sample. Exit 3 if anything would.
+    Geometry {
+        /// Geometry file (default: the shipped default scanner); with
+        /// --rings, the scanner whose mirrors they replace.
+        #[arg(long)]
+        geometry: Option<PathBuf>,
+        /// Mirrors on rings instead, tangent to the ellipsoid:
+        /// THETA:COUNT,… (polar angle from the sample normal in degrees,
+        /// mirrors on that ring; the odd rings staggered by half a
+        /// mirror, as the default's, 15:4,31.667:9,48.333:12,65:15).
+        #[arg(long, value_delimiter = ',', value_parser = parse_ring, value_name = "THETA:COUNT")]
+        rings: Vec<(f64, usize)>,
+        /// Write the geometry checked (.toml) here, if it is sound.
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+    },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
         #[command(flatten)]
@@ -359,6 +380,18 @@ enum Material {
 pub struct Failure(pub u8, pub anyhow::Error);
 
 /// `AXIS=active-high|active-low` → (axis, active high).
+/// `THETA:COUNT` → (polar angle in degrees, mirrors on the ring).
+fn parse_ring(s: &str) -> Result<(f64, usize), String> {
+    let bad = || format!("{s:?}: give THETA:COUNT, e.g. 31.7:9 (0 < THETA < 90, COUNT ≥ 1)");
+    let (theta, count) = s.split_once(':').ok_or_else(bad)?;
+    let theta: f64 = theta.trim().parse().map_err(|_| bad())?;
+    let count: usize = count.trim().parse().map_err(|_| bad())?;
+    if !(theta > 0.0 && theta < 90.0) || count == 0 || count > protocol::MAX_MIRRORS {
+        return Err(bad());
+    }
+    Ok((theta, count))
+}
+
 fn parse_home_sensor(s: &str) -> Result<(protocol::Axis, bool), String> {
     let (axis, polarity) = s
         .split_once('=')
@@ -433,6 +466,20 @@ fn run(cli: Cli) -> Result<(), Failure> {
             commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref())?
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
+        Command::Geometry { geometry, rings, output } => {
+            if let Some(out) = &output {
+                let inputs: Vec<&Path> = geometry.iter().map(PathBuf::as_path).collect();
+                crate::fsutil::check_output(out, &inputs)
+                    .map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
+                if !out.extension().is_some_and(|e| e.eq_ignore_ascii_case("toml")) {
+                    return Err(Failure(
+                        2,
+                        anyhow::anyhow!("{}: the output must be .toml", out.display()),
+                    ));
+                }
+            }
+            build::geometry_cmd(geometry.as_deref(), &rings, output.as_deref())?
+        }
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
         Command::Config { device, driver_fault, home_sensor } => {

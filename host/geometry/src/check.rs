@@ -1,0 +1,424 @@
+//! A scanner design checked before anything is built or scanned: what
+//! each mirror sees and lights, and what would make a scan of it fail or
+//! mislead (`scanner geometry`, docs/scanner-geometry.md "Checking a
+//! design").
+//!
+//! Every figure comes from the geometry's own kinematics and projections
+//! ([`ScannerGeometry::mirror_axes`], [`ScannerGeometry::beam`],
+//! [`ScannerGeometry::first_mirror`], [`crate::CameraSpec::project`]): the
+//! nominal design, with no manufacturing error. Calibration finds a view
+//! up to ≈ 60 px (of a 4096² sensor at f = 5 600 px) from where the design
+//! puts it, so a design needs that much room around each view.
+
+use crate::{AxisValues, DVec3, ScannerGeometry, world_to_sample};
+
+/// Room a view needs on every side, px at f = 5 600 px (scaled with the
+/// focal length): the calibration's search margin, within which a built
+/// scanner's view may lie from its nominal place.
+pub const VIEW_MARGIN_PX: f64 = 60.0;
+
+/// What one mirror does in the design.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MirrorCheck {
+    /// The mirror.
+    pub mirror: usize,
+    /// Unit direction from the sample's centre to the mirror's centre,
+    /// sample-local (the view direction).
+    pub view: DVec3,
+    /// The light direction (sample-local), if the beam can be aimed at it.
+    pub light: Option<DVec3>,
+    /// The inverse kinematics' axis positions, if any.
+    pub axes: Option<AxisValues>,
+    /// The sample's corners on the sensor through this mirror, px, if in
+    /// front of the camera.
+    pub corners_px: Option<[[f64; 2]; 4]>,
+    /// The view's resolution: the shortest distance between opposite
+    /// sides of the sample's image, px, over the sample's side, mm.
+    pub px_per_mm: Option<f64>,
+    /// The least relative irradiance this mirror's light puts on the
+    /// sample, over its corners, edge midpoints and centre (1: the beam's
+    /// full core everywhere; 0: some of the sample is unlit).
+    pub lit: Option<f64>,
+}
+
+/// A fault of a design.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DesignProblem {
+    /// The beam cannot be aimed at the mirror, or it meets another first.
+    #[error("mirror {mirror}: the light cannot reach it: {reason}")]
+    Unlit {
+        /// The mirror.
+        mirror: usize,
+        /// Why.
+        reason: String,
+    },
+    /// Part of the sample gets less than the beam's full core from this
+    /// mirror.
+    #[error(
+        "mirror {mirror}: lights part of the sample at {:.0} % of the beam's core \
+         (the mirror is too small, or another mirror shades it, or the beam is too narrow)",
+        100.0 * lit
+    )]
+    PartlyLit {
+        /// The mirror.
+        mirror: usize,
+        /// The least relative irradiance on the sample.
+        lit: f64,
+    },
+    /// The camera cannot see the whole sample in the mirror.
+    #[error("mirror {mirror}: the camera sees part of the sample {reason}")]
+    ViewCut {
+        /// The mirror.
+        mirror: usize,
+        /// How: past the mirror's edge, through another mirror.
+        reason: String,
+    },
+    /// The sample's image through the mirror, with its margin, leaves the
+    /// sensor.
+    #[error(
+        "mirror {mirror}: its view of the sample comes within {gap_px:.0} px of the sensor's \
+         edge (it needs {need_px:.0} px: a built scanner's view may lie that far from the design's)"
+    )]
+    OffSensor {
+        /// The mirror.
+        mirror: usize,
+        /// The least distance to the sensor's edge (negative: outside), px.
+        gap_px: f64,
+        /// The margin a view needs, px.
+        need_px: f64,
+    },
+    /// Two views lie too close on the sensor.
+    #[error(
+        "mirrors {a} and {b}: their views of the sample come within {gap_px:.0} px of each \
+         other{} (calibration needs {need_px:.0} px to tell them apart)",
+        if *gap_px <= 0.0 { ", overlapping" } else { "" }
+    )]
+    ViewsTooClose {
+        /// One mirror.
+        a: usize,
+        /// The other.
+        b: usize,
+        /// Their least distance, px (0: they overlap).
+        gap_px: f64,
+        /// The margin two views need between them, px.
+        need_px: f64,
+    },
+}
+
+/// A design's check: every mirror's figures and every problem found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DesignCheck {
+    /// Per mirror, in order.
+    pub mirrors: Vec<MirrorCheck>,
+    /// The two views closest to each other on the sensor and their
+    /// distance, px (None with fewer than two views on the sensor).
+    pub closest_views: Option<(usize, usize, f64)>,
+    /// What would make a scan fail or mislead; empty for a sound design.
+    pub problems: Vec<DesignProblem>,
+}
+
+/// Points of the sample (uv) at which lighting and sight are checked: the
+/// corners, the edge midpoints and the centre.
+const PROBES: [[f64; 2]; 9] = [
+    [0.0, 0.0],
+    [0.5, 0.0],
+    [1.0, 0.0],
+    [0.0, 0.5],
+    [0.5, 0.5],
+    [1.0, 0.5],
+    [0.0, 1.0],
+    [0.5, 1.0],
+    [1.0, 1.0],
+];
+
+impl ScannerGeometry {
+    /// The margin a view needs around it on this sensor, px.
+    pub fn view_margin_px(&self) -> f64 {
+        VIEW_MARGIN_PX * self.camera.focal_px / 5600.0
+    }
+
+    /// Check the design (see the module documentation).
+    pub fn check_design(&self) -> DesignCheck {
+        let mut problems = Vec::new();
+        let mirrors: Vec<MirrorCheck> =
+            (0..self.mirrors.len()).map(|l| self.check_mirror(l, &mut problems)).collect();
+        let need = self.view_margin_px();
+        let mut closest: Option<(usize, usize, f64)> = None;
+        for (i, a) in mirrors.iter().enumerate() {
+            for b in &mirrors[i + 1..] {
+                let (Some(pa), Some(pb)) = (a.corners_px, b.corners_px) else { continue };
+                let gap = quad_distance(&pa, &pb);
+                if closest.is_none_or(|c| gap < c.2) {
+                    closest = Some((a.mirror, b.mirror, gap));
+                }
+                if gap < need {
+                    problems.push(DesignProblem::ViewsTooClose {
+                        a: a.mirror,
+                        b: b.mirror,
+                        gap_px: gap,
+                        need_px: need,
+                    });
+                }
+            }
+        }
+        DesignCheck { mirrors, closest_views: closest, problems }
+    }
+
+    fn check_mirror(&self, l: usize, problems: &mut Vec<DesignProblem>) -> MirrorCheck {
+        let m = &self.mirrors[l];
+        let view = world_to_sample(m.center().normalize());
+        let mut out = MirrorCheck {
+            mirror: l,
+            view,
+            light: None,
+            axes: None,
+            corners_px: None,
+            px_per_mm: None,
+            lit: None,
+        };
+        // Light: aim the beam, then follow the light back from points of
+        // the sample to the mirror and to the beam.
+        match self.mirror_axes(l) {
+            Err(e) => problems.push(DesignProblem::Unlit { mirror: l, reason: e.to_string() }),
+            Ok(axes) => {
+                out.axes = Some(axes);
+                let beam = self.beam(axes);
+                match self.first_mirror(beam.origin, beam.dir) {
+                    Some((k, p)) if k == l => {
+                        out.light =
+                            Some(world_to_sample((p - self.sample_point([0.5, 0.5])).normalize()));
+                        let reflected = m.reflect_dir(beam.dir);
+                        let lit = PROBES
+                            .iter()
+                            .map(|&uv| {
+                                let s = self.sample_point(uv);
+                                match self.first_mirror(s, -reflected) {
+                                    Some((k, q)) if k == l => self.source.profile(beam.distance(q)),
+                                    _ => 0.0,
+                                }
+                            })
+                            .fold(1.0, f64::min);
+                        out.lit = Some(lit);
+                        if lit < 1.0 {
+                            problems.push(DesignProblem::PartlyLit { mirror: l, lit });
+                        }
+                    }
+                    Some((k, _)) => problems.push(DesignProblem::Unlit {
+                        mirror: l,
+                        reason: format!("the beam meets mirror {k} first"),
+                    }),
+                    None => problems.push(DesignProblem::Unlit {
+                        mirror: l,
+                        reason: "the beam misses it".into(),
+                    }),
+                }
+            }
+        }
+        // Sight: each probe's mirror image must be seen through this mirror
+        // and no other.
+        let camera = DVec3::from(self.camera.position_mm);
+        for &uv in &PROBES {
+            let image = m.reflect_point(self.sample_point(uv));
+            let reason = match self.first_mirror(camera, (image - camera).normalize()) {
+                Some((k, _)) if k == l => continue,
+                Some((k, _)) => format!("through mirror {k} (it stands in the way)"),
+                None => "past the mirror's edge (the mirror is too small or turned away)".into(),
+            };
+            problems.push(DesignProblem::ViewCut { mirror: l, reason });
+            break;
+        }
+        out.corners_px = self.sample_image_corners(l);
+        if let Some(c) = out.corners_px {
+            let side = |a: usize, b: usize, d: usize, e: usize| {
+                let mid = |p: [f64; 2], q: [f64; 2]| [(p[0] + q[0]) / 2.0, (p[1] + q[1]) / 2.0];
+                let (p, q) = (mid(c[a], c[b]), mid(c[d], c[e]));
+                (p[0] - q[0]).hypot(p[1] - q[1])
+            };
+            // Corners in order around the sample: sides 01 ∥ 32, 12 ∥ 03.
+            let across = side(0, 3, 1, 2).min(side(0, 1, 3, 2));
+            out.px_per_mm = Some(across / self.sample.size_mm);
+            let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+            let gap = c
+                .iter()
+                .map(|p| p[0].min(p[1]).min(w - p[0]).min(h - p[1]))
+                .fold(f64::INFINITY, f64::min);
+            let need = self.view_margin_px();
+            if gap < need {
+                problems.push(DesignProblem::OffSensor { mirror: l, gap_px: gap, need_px: need });
+            }
+        } else {
+            problems.push(DesignProblem::ViewCut { mirror: l, reason: "behind the camera".into() });
+        }
+        out
+    }
+}
+
+/// The least distance between two convex quadrilaterals (corners in order
+/// around each), 0 if they overlap.
+fn quad_distance(a: &[[f64; 2]; 4], b: &[[f64; 2]; 4]) -> f64 {
+    if a.iter().any(|p| inside(b, *p)) || b.iter().any(|p| inside(a, *p)) {
+        return 0.0;
+    }
+    let mut best = f64::INFINITY;
+    for i in 0..4 {
+        for j in 0..4 {
+            let d = segment_distance([a[i], a[(i + 1) % 4]], [b[j], b[(j + 1) % 4]]);
+            best = best.min(d);
+        }
+    }
+    best
+}
+
+/// Whether `p` lies inside the convex quadrilateral `q` (either winding).
+fn inside(q: &[[f64; 2]; 4], p: [f64; 2]) -> bool {
+    let cross = |i: usize| {
+        let (a, b) = (q[i], q[(i + 1) % 4]);
+        (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
+    };
+    let s: Vec<f64> = (0..4).map(cross).collect();
+    s.iter().all(|&x| x >= 0.0) || s.iter().all(|&x| x <= 0.0)
+}
+
+/// The least distance between two segments (0 if they cross).
+fn segment_distance(s: [[f64; 2]; 2], t: [[f64; 2]; 2]) -> f64 {
+    let orient = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| {
+        (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    };
+    let crosses = orient(s[0], s[1], t[0]) * orient(s[0], s[1], t[1]) < 0.0
+        && orient(t[0], t[1], s[0]) * orient(t[0], t[1], s[1]) < 0.0;
+    if crosses {
+        return 0.0;
+    }
+    let point_segment = |p: [f64; 2], a: [f64; 2], b: [f64; 2]| {
+        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+        let len2 = dx * dx + dy * dy;
+        let t = if len2 > 0.0 {
+            (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / len2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        (p[0] - a[0] - t * dx).hypot(p[1] - a[1] - t * dy)
+    };
+    point_segment(s[0], t[0], t[1])
+        .min(point_segment(s[1], t[0], t[1]))
+        .min(point_segment(t[0], s[0], s[1]))
+        .min(point_segment(t[1], s[0], s[1]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_distance_between_quadrilaterals() {
+        let sq = |x: f64, y: f64| [[x, y], [x + 1.0, y], [x + 1.0, y + 1.0], [x, y + 1.0]];
+        assert_eq!(quad_distance(&sq(0.0, 0.0), &sq(0.5, 0.5)), 0.0);
+        assert!((quad_distance(&sq(0.0, 0.0), &sq(3.0, 0.0)) - 2.0).abs() < 1e-12);
+        assert!((quad_distance(&sq(0.0, 0.0), &sq(4.0, 5.0)) - 5.0).abs() < 1e-12);
+        // One inside the other; a cross of two thin bars (no corner inside).
+        let big = [[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]];
+        assert_eq!(quad_distance(&big, &sq(0.0, 0.0)), 0.0);
+        let bar = [[-3.0, -0.1], [3.0, -0.1], [3.0, 0.1], [-3.0, 0.1]];
+        let other = [[-0.1, -3.0], [0.1, -3.0], [0.1, 3.0], [-0.1, 3.0]];
+        assert_eq!(quad_distance(&bar, &other), 0.0);
+    }
+
+    fn other_rings() -> ScannerGeometry {
+        ScannerGeometry::generate_with_rings(&[(18.0, 5), (38.0, 8), (58.0, 11)])
+    }
+
+    #[test]
+    fn the_default_scanner_and_another_are_sound() {
+        for g in [ScannerGeometry::default_scanner(), other_rings()] {
+            let c = g.check_design();
+            assert_eq!(c.problems, [], "{:?}", c.problems);
+            assert_eq!(c.mirrors.len(), g.mirrors.len());
+            for m in &c.mirrors {
+                assert_eq!(m.lit, Some(1.0), "mirror {}", m.mirror);
+                let light = m.light.expect("aimed");
+                assert!(light.angle_between(g.light_direction(m.mirror).unwrap()) < 1e-9);
+                assert!((m.view - g.mirror_direction(m.mirror).unwrap()).length() < 1e-12);
+                // The outer ring's foreshortened views resolve least.
+                assert!((2.0..5.0).contains(&m.px_per_mm.unwrap()), "{m:?}");
+            }
+            let (_, _, gap) = c.closest_views.unwrap();
+            assert!(gap > 200.0, "closest views {:?}", c.closest_views);
+        }
+        // The default's views: 2.10 px/mm across the outermost ring's most
+        // foreshortened view, 4.52 at the innermost.
+        let c = ScannerGeometry::default_scanner().check_design();
+        let res: Vec<f64> = c.mirrors.iter().map(|m| m.px_per_mm.unwrap()).collect();
+        let (lo, hi) = res.iter().fold((f64::MAX, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+        assert!((lo - 2.105).abs() < 0.01 && (hi - 4.520).abs() < 0.01, "{lo} {hi}");
+    }
+
+    #[test]
+    fn faults_of_a_design_are_named() {
+        let base = ScannerGeometry::default_scanner();
+        // A mirror too small: the camera sees past its edge and it lights
+        // only the middle of the sample.
+        let mut g = base.clone();
+        g.mirrors[7].size_mm = 12.0;
+        let c = g.check_design();
+        assert!(c.problems.iter().any(|p| matches!(p, DesignProblem::ViewCut { mirror: 7, .. })));
+        assert!(
+            c.problems
+                .iter()
+                .any(|p| matches!(p, DesignProblem::PartlyLit { mirror: 7, lit } if *lit < 1.0))
+        );
+        assert!(
+            c.problems.iter().all(|p| p.to_string().starts_with("mirror 7:")),
+            "{:?}",
+            c.problems
+        );
+        // A sensor too small for the outer ring.
+        let mut g = base.clone();
+        g.camera.width = 2800;
+        g.camera.principal_px[0] = 1400.0;
+        let c = g.check_design();
+        let off: Vec<usize> = c
+            .problems
+            .iter()
+            .filter_map(|p| match p {
+                DesignProblem::OffSensor { mirror, .. } => Some(*mirror),
+                _ => None,
+            })
+            .collect();
+        assert!(!off.is_empty() && off.iter().all(|&m| m >= 13), "{off:?}");
+        // A mirror turned by 4° about its vertical edge: the camera would
+        // see the sample beyond its edge, and its light misses the sample.
+        let mut g = base.clone();
+        let m = &mut g.mirrors[14];
+        let (n, _, v) = m.frame();
+        let turned = (n * 4f64.to_radians().cos() + v * 4f64.to_radians().sin()).normalize();
+        m.normal = turned.to_array();
+        let c = g.check_design();
+        assert!(c.problems.iter().any(|p| matches!(p, DesignProblem::ViewCut { mirror: 14, .. })));
+        assert!(c.problems.contains(&DesignProblem::PartlyLit { mirror: 14, lit: 0.0 }));
+        // A sample larger than the mirrors were laid out for: its views
+        // crowd each other (and the mirrors are too small for it).
+        let mut g = base.clone();
+        g.sample.size_mm = 80.0;
+        let c = g.check_design();
+        assert!(
+            c.problems.iter().any(|p| matches!(p, DesignProblem::ViewsTooClose { .. })),
+            "{:?}",
+            c.problems
+        );
+        assert!(c.closest_views.unwrap().2 < g.view_margin_px());
+        // A mirror in the beam's way: a copy of mirror 0 halfway along its
+        // light path shades it and blocks its view.
+        let mut g = base.clone();
+        let beam = g.beam(g.mirror_axes(0).unwrap());
+        let (_, hit) = g.first_mirror(beam.origin, beam.dir).unwrap();
+        let mut blocker = g.mirrors[0].clone();
+        blocker.center_mm = ((beam.origin + hit) / 2.0).to_array();
+        g.mirrors.push(blocker);
+        let c = g.check_design();
+        assert!(
+            c.problems.iter().any(|p| matches!(p, DesignProblem::Unlit { mirror: 0, reason } if reason.contains("mirror 40"))),
+            "{:?}",
+            c.problems
+        );
+    }
+}
