@@ -3,7 +3,8 @@
 //! error or a geometry, never a panic; and what the host computes from a
 //! geometry it accepted, before any frame (the inverse kinematics, the
 //! device's mirror table, the sample's views in the frame, the windows
-//! calibration searches, the metering's spans), must not panic either and
+//! calibration searches, the metering's spans, `scanner geometry`'s
+//! check of the design), must not panic either and
 //! must be finite where it is given. Mutated as TOML
 //! (`fuzz_support::structured`) as well as bytes.
 #![no_main]
@@ -65,6 +66,13 @@ fuzz_target!(|data: &[u8]| {
         if let Some(r) = search_window(&g, l) {
             assert!(r[0] <= r[2] && r[1] <= r[3], "view {l}: window {r:?}");
         }
+    }
+    // `scanner geometry`'s check of the design: a figure per mirror, every
+    // problem said.
+    let check = g.check_design();
+    assert_eq!(check.mirrors.len(), g.mirrors.len());
+    for p in &check.problems {
+        let _ = p.to_string();
     }
     let _ = host::exposure::sample_spans(&g, w, h);
     for (x, y) in [(0.0, 0.0), (w as f64 / 2.0, h as f64 / 2.0), (w as f64, h as f64)] {

@@ -53,7 +53,7 @@ pub enum DesignProblem {
         reason: String,
     },
     /// Part of the sample gets less than the beam's full core from this
-    /// mirror.
+    /// mirror (a problem where it gets no light at all, else a warning).
     #[error(
         "mirror {mirror}: lights part of the sample at {:.0} % of the beam's core \
          (the mirror is too small, or another mirror shades it, or the beam is too narrow)",
@@ -115,6 +115,10 @@ pub struct DesignCheck {
     pub closest_views: Option<(usize, usize, f64)>,
     /// What would make a scan fail or mislead; empty for a sound design.
     pub problems: Vec<DesignProblem>,
+    /// What a scan survives at some cost: part of the sample in the beam's
+    /// soft edge (the white target's scan calibrates the weaker light
+    /// out, at a lower signal there).
+    pub warnings: Vec<DesignProblem>,
 }
 
 /// Points of the sample (uv) at which lighting and sight are checked: the
@@ -139,9 +143,10 @@ impl ScannerGeometry {
 
     /// Check the design (see the module documentation).
     pub fn check_design(&self) -> DesignCheck {
-        let mut problems = Vec::new();
-        let mirrors: Vec<MirrorCheck> =
-            (0..self.mirrors.len()).map(|l| self.check_mirror(l, &mut problems)).collect();
+        let (mut problems, mut warnings) = (Vec::new(), Vec::new());
+        let mirrors: Vec<MirrorCheck> = (0..self.mirrors.len())
+            .map(|l| self.check_mirror(l, &mut problems, &mut warnings))
+            .collect();
         let need = self.view_margin_px();
         let mut closest: Option<(usize, usize, f64)> = None;
         for (i, a) in mirrors.iter().enumerate() {
@@ -161,10 +166,15 @@ impl ScannerGeometry {
                 }
             }
         }
-        DesignCheck { mirrors, closest_views: closest, problems }
+        DesignCheck { mirrors, closest_views: closest, problems, warnings }
     }
 
-    fn check_mirror(&self, l: usize, problems: &mut Vec<DesignProblem>) -> MirrorCheck {
+    fn check_mirror(
+        &self,
+        l: usize,
+        problems: &mut Vec<DesignProblem>,
+        warnings: &mut Vec<DesignProblem>,
+    ) -> MirrorCheck {
         let m = &self.mirrors[l];
         let view = world_to_sample(m.center().normalize());
         let mut out = MirrorCheck {
@@ -199,8 +209,12 @@ impl ScannerGeometry {
                             })
                             .fold(1.0, f64::min);
                         out.lit = Some(lit);
-                        if lit < 1.0 {
+                        // Unlit somewhere: no signal there. In the soft
+                        // edge: calibrated, at a cost.
+                        if lit <= 0.0 {
                             problems.push(DesignProblem::PartlyLit { mirror: l, lit });
+                        } else if lit < 1.0 {
+                            warnings.push(DesignProblem::PartlyLit { mirror: l, lit });
                         }
                     }
                     Some((k, _)) => problems.push(DesignProblem::Unlit {
@@ -332,6 +346,7 @@ mod tests {
         for g in [ScannerGeometry::default_scanner(), other_rings()] {
             let c = g.check_design();
             assert_eq!(c.problems, [], "{:?}", c.problems);
+            assert_eq!(c.warnings, []);
             assert_eq!(c.mirrors.len(), g.mirrors.len());
             for m in &c.mirrors {
                 assert_eq!(m.lit, Some(1.0), "mirror {}", m.mirror);
@@ -371,6 +386,16 @@ mod tests {
             "{:?}",
             c.problems
         );
+        // A narrower beam: the sample's corners in its soft edge, which
+        // the white target calibrates out (a warning, not a problem).
+        let mut g = base.clone();
+        g.source.beam_radius_mm = 20.0;
+        let c = g.check_design();
+        assert_eq!(c.problems, []);
+        assert!(!c.warnings.is_empty());
+        for w in &c.warnings {
+            assert!(matches!(w, DesignProblem::PartlyLit { lit, .. } if *lit > 0.0 && *lit < 1.0));
+        }
         // A sensor too small for the outer ring.
         let mut g = base.clone();
         g.camera.width = 2800;

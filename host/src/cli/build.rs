@@ -169,6 +169,9 @@ pub fn geometry_cmd(
             g.view_margin_px()
         );
     }
+    for w in &check.warnings {
+        eprintln!("scanner: warning: {w}");
+    }
     if !check.problems.is_empty() {
         for p in &check.problems {
             eprintln!("scanner: {p}");
