@@ -406,3 +406,39 @@ fn bad_geometry_files_are_refused_with_the_reason() {
         Err(hil_sim::geometry::GeometryError::NoMirror(40, 40))
     ));
 }
+
+/// `scanner geometry`'s design check (`ScannerGeometry::check_design`)
+/// against the optics: for beams of several widths, a mirror's beam lights
+/// another mirror whose light reaches the sample exactly where the check
+/// says so.
+#[test]
+fn the_design_check_finds_the_stray_light_the_optics_render() {
+    use hil_sim::geometry::DesignProblem;
+    let mut stray_found = 0;
+    for radius in [24.0, 45.0, 60.0, 80.0] {
+        let mut g = nominal();
+        g.source.beam_radius_mm = radius;
+        let s = OpticalSim::new(
+            g.clone(),
+            Sample::small(materials::by_name("diffuse-white").unwrap()),
+            SEED,
+        );
+        let check = g.check_design();
+        for l in 0..g.mirrors.len() {
+            let lit = s.mirrors_lighting_sample(g.mirror_axes(l).unwrap());
+            let others: Vec<usize> = lit.iter().copied().filter(|&k| k != l).collect();
+            let said = check
+                .problems
+                .iter()
+                .any(|p| matches!(p, DesignProblem::StrayLight { mirror, .. } if *mirror == l));
+            eprintln!("radius {radius}, mirror {l}: optics {lit:?}, check {said}");
+            assert_eq!(
+                said,
+                !others.is_empty(),
+                "radius {radius}, mirror {l}: the optics light {lit:?}"
+            );
+            stray_found += usize::from(said);
+        }
+    }
+    assert!(stray_found > 0, "the wider beams light neighbours");
+}

@@ -65,6 +65,18 @@ pub enum DesignProblem {
         /// The least relative irradiance on the sample.
         lit: f64,
     },
+    /// The beam aimed at one mirror also lights another whose light
+    /// reaches the sample: the sample lit from two directions at once.
+    #[error(
+        "mirror {mirror}: its beam also lights mirror {also}, whose light reaches the sample \
+         (two light directions at once: the mirrors are too close, or the beam too wide)"
+    )]
+    StrayLight {
+        /// The mirror aimed at.
+        mirror: usize,
+        /// The other mirror lit.
+        also: usize,
+    },
     /// The camera cannot see the whole sample in the mirror.
     #[error("mirror {mirror}: the camera sees part of the sample {reason}")]
     ViewCut {
@@ -121,19 +133,11 @@ pub struct DesignCheck {
     pub warnings: Vec<DesignProblem>,
 }
 
-/// Points of the sample (uv) at which lighting and sight are checked: the
-/// corners, the edge midpoints and the centre.
-const PROBES: [[f64; 2]; 9] = [
-    [0.0, 0.0],
-    [0.5, 0.0],
-    [1.0, 0.0],
-    [0.0, 0.5],
-    [0.5, 0.5],
-    [1.0, 0.5],
-    [0.0, 1.0],
-    [0.5, 1.0],
-    [1.0, 1.0],
-];
+/// Points of the sample (uv) at which lighting and sight are checked: a
+/// 5 × 5 grid from corner to corner (corners, edges and centre included).
+fn probes() -> impl Iterator<Item = [f64; 2]> {
+    (0..25).map(|k| [(k % 5) as f64 / 4.0, (k / 5) as f64 / 4.0])
+}
 
 impl ScannerGeometry {
     /// The margin a view needs around it on this sensor, px.
@@ -198,9 +202,8 @@ impl ScannerGeometry {
                         out.light =
                             Some(world_to_sample((p - self.sample_point([0.5, 0.5])).normalize()));
                         let reflected = m.reflect_dir(beam.dir);
-                        let lit = PROBES
-                            .iter()
-                            .map(|&uv| {
+                        let lit = probes()
+                            .map(|uv| {
                                 let s = self.sample_point(uv);
                                 match self.first_mirror(s, -reflected) {
                                     Some((k, q)) if k == l => self.source.profile(beam.distance(q)),
@@ -209,6 +212,9 @@ impl ScannerGeometry {
                             })
                             .fold(1.0, f64::min);
                         out.lit = Some(lit);
+                        if let Some(k) = self.stray_light(l, &beam) {
+                            problems.push(DesignProblem::StrayLight { mirror: l, also: k });
+                        }
                         // Unlit somewhere: no signal there. In the soft
                         // edge: calibrated, at a cost.
                         if lit <= 0.0 {
@@ -231,7 +237,7 @@ impl ScannerGeometry {
         // Sight: each probe's mirror image must be seen through this mirror
         // and no other.
         let camera = DVec3::from(self.camera.position_mm);
-        for &uv in &PROBES {
+        for uv in probes() {
             let image = m.reflect_point(self.sample_point(uv));
             let reason = match self.first_mirror(camera, (image - camera).normalize()) {
                 Some((k, _)) if k == l => continue,
@@ -264,6 +270,33 @@ impl ScannerGeometry {
             problems.push(DesignProblem::ViewCut { mirror: l, reason: "behind the camera".into() });
         }
         out
+    }
+}
+
+impl ScannerGeometry {
+    /// Another mirror than `l` that `beam` (aimed at `l`) lights and whose
+    /// light reaches the sample, if any: the light from two directions at
+    /// once.
+    fn stray_light(&self, l: usize, beam: &crate::Beam) -> Option<usize> {
+        let reach = self.source.beam_radius_mm;
+        (0..self.mirrors.len()).find(|&k| {
+            let m = &self.mirrors[k];
+            // Its front towards the beam, and the beam tube can overlap it.
+            let near = beam.dir.dot(DVec3::from(m.normal)) < 0.0
+                && beam.distance(m.center()) < reach + m.size_mm * std::f64::consts::FRAC_1_SQRT_2;
+            let d = m.reflect_dir(beam.dir);
+            k != l
+                && near
+                && d.z > 0.0
+                && probes().any(|uv| match self.first_mirror(self.sample_point(uv), -d) {
+                    Some((j, q)) => {
+                        j == k
+                            && (q - beam.origin).dot(beam.dir) > 0.0
+                            && self.source.profile(beam.distance(q)) > 0.0
+                    }
+                    None => false,
+                })
+        })
     }
 }
 
@@ -396,6 +429,15 @@ mod tests {
         for w in &c.warnings {
             assert!(matches!(w, DesignProblem::PartlyLit { lit, .. } if *lit > 0.0 && *lit < 1.0));
         }
+        // A beam wide enough to light the neighbours too.
+        let mut g = base.clone();
+        g.source.beam_radius_mm = 60.0;
+        let c = g.check_design();
+        assert!(
+            c.problems.iter().any(|p| matches!(p, DesignProblem::StrayLight { .. })),
+            "{:?}",
+            c.problems
+        );
         // A sensor too small for the outer ring.
         let mut g = base.clone();
         g.camera.width = 2800;
