@@ -172,7 +172,8 @@ enum Command {
     /// sample appears on the sensor and how many pixels it covers, and
     /// whatever would make a scan fail — views off the sensor or too close
     /// to each other, mirrors too small or in each other's way, light that
-    /// does not cover the sample. Exit 3 if anything would.
+    /// does not cover the sample or lights two mirrors at once. Exit 3 if
+    /// anything would.
     Geometry {
         /// Geometry file (default: the shipped default scanner); with
         /// --rings, the scanner whose mirrors they replace.
