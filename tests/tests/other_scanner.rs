@@ -164,6 +164,16 @@ fn the_simulator_serves_the_scanner_it_is_given() {
     assert_eq!(code, Some(0), "{err}");
     let cal = host::build::Calibration::load(&dir.path().join("cal.json")).unwrap();
     assert_eq!(cal.geometry_sha256, tests::other_scanner().with_sensor_scaled(4).hash());
+    // A design that cannot scan: the demo refuses it before scanning.
+    let mut crowded = tests::other_scanner();
+    crowded.mirrors[3].size_mm = 10.0;
+    std::fs::write(&file, crowded.to_toml()).unwrap();
+    let demo_out = dir.path().join("refused-demo");
+    let (code, _, err) =
+        common::run(&["demo", "--out", demo_out.to_str().unwrap(), "--geometry", &f]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("other.toml: mirror 3: ") && err.contains("scanner geometry"), "{err}");
+    assert!(!demo_out.exists(), "nothing scanned or written");
     // A bad file: exit 3, naming it.
     std::fs::write(&file, "format = 1\n[camera]\nwidth = \"wide\"\n").unwrap();
     let (code, _, err) = common::run(&["setup", "--device", "sim", "--sim-geometry", &f]);

@@ -1187,6 +1187,27 @@ pub fn demo(
         None => None,
         Some(p) => {
             let g = ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?;
+            // A design that cannot scan (`scanner geometry`'s check) is
+            // refused now, not after minutes of simulated scanning.
+            let problems = g.check_design().problems;
+            if let Some(first) = problems.first() {
+                return Err(Failure(
+                    3,
+                    anyhow!(
+                        "{}: {first}{}; `scanner geometry --geometry {}` lists what else",
+                        p.display(),
+                        match problems.len() {
+                            1 => String::new(),
+                            n => format!(
+                                " (and {} more problem{})",
+                                n - 1,
+                                if n > 2 { "s" } else { "" }
+                            ),
+                        },
+                        p.display()
+                    ),
+                ));
+            }
             let setup = crate::simulator::SimSetup {
                 bin,
                 geometry: Some(g),
