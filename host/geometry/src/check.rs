@@ -1,7 +1,9 @@
 //! A scanner design checked before anything is built or scanned: what
 //! each mirror sees and lights, and what would make a scan of it fail or
 //! mislead (`scanner geometry`, docs/scanner-geometry.md "Checking a
-//! design").
+//! design"): views off the sensor or crowding each other, mirrors too
+//! small or in each other's way, light that leaves part of the sample dark
+//! or reaches it from two mirrors at once.
 //!
 //! Every figure comes from the geometry's own kinematics and projections
 //! ([`ScannerGeometry::mirror_axes`], [`ScannerGeometry::beam`],
@@ -271,9 +273,7 @@ impl ScannerGeometry {
         }
         out
     }
-}
 
-impl ScannerGeometry {
     /// Another mirror than `l` that `beam` (aimed at `l`) lights and whose
     /// light reaches the sample, if any: the light from two directions at
     /// once.
