@@ -806,8 +806,18 @@ impl ScannerGeometry {
             if !(m.size_mm > 0.0 && (0.0..=1.0).contains(&m.reflectance)) {
                 return bad(format!("mirror {l}: size > 0, reflectance in [0, 1]"));
             }
-            if !DVec3::from(m.center_mm).is_finite() {
+            let c = DVec3::from(m.center_mm);
+            if !c.is_finite() {
                 return bad(format!("mirror {l}: centre must be finite"));
+            }
+            // It must face the sample (which looks down −z) from beyond the
+            // sample itself: its direction from the sample is then defined.
+            if !(c.z < 0.0 && c.length() >= self.sample.size_mm) {
+                return bad(format!(
+                    "mirror {l}: centre {:?} mm must lie below the sample (z < 0), at least the \
+                     sample's size ({} mm) from its centre",
+                    m.center_mm, self.sample.size_mm
+                ));
             }
         }
         Ok(())

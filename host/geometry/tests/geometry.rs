@@ -203,3 +203,17 @@ fn every_number_must_be_finite_and_within_range() {
         }
     }
 }
+
+/// A mirror at the sample, or behind it, has no direction from it: refused
+/// when the file is read, naming the mirror (the geometry fuzz target found
+/// a centre of 5e-324 mm giving NaN view and light directions).
+#[test]
+fn a_mirror_that_cannot_face_the_sample_is_refused() {
+    for centre in [[5e-324, 0.0, 0.0], [0.0, 0.0, -10.0], [60.0, 0.0, 150.0]] {
+        let mut g = ScannerGeometry::default_scanner();
+        g.mirrors[19].center_mm = centre;
+        let e = ScannerGeometry::from_toml(&g.to_toml()).unwrap_err();
+        assert!(matches!(e, GeometryError::Invalid(_)), "{centre:?}: {e:?}");
+        assert!(e.to_string().contains("mirror 19: centre"), "{e}");
+    }
+}
