@@ -105,4 +105,16 @@ fn a_faulty_design_exits_3_naming_the_mirror_and_writes_nothing() {
         assert_eq!(out.status.code(), Some(code), "{args:?}: {}", text(&out).1);
     }
     assert_eq!(ScannerGeometry::load(&small).unwrap(), g, "the input is untouched");
+
+    // A built scanner is what it is: `setup` (and `scan`) warn of its
+    // design's faults and go on.
+    let out = scanner(&["setup", "--device", "sim", "--geometry", p(&small)]);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}{stderr}");
+    assert!(
+        stderr.contains("warning: ") && stderr.contains("mirror 7: the camera sees"),
+        "{stderr}"
+    );
+    let out = scanner(&["setup", "--device", "sim"]);
+    assert!(out.status.success() && !text(&out).1.contains("warning"), "{}", text(&out).1);
 }

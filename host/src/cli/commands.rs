@@ -316,7 +316,22 @@ pub fn open(args: &DeviceArgs) -> Result<Opened, Failure> {
 
 fn load_geometry(path: Option<&Path>, opened: &Opened) -> Result<ScannerGeometry, Failure> {
     match path {
-        Some(p) => ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e))),
+        Some(p) => {
+            let g = ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?;
+            // The scanner is built: its design's faults are worth knowing
+            // before scanning with it, but they are warnings here.
+            let problems = g.check_design().problems;
+            for problem in &problems {
+                eprintln!("scanner: warning: {}: {problem}", p.display());
+            }
+            if !problems.is_empty() {
+                eprintln!(
+                    "scanner: warning: `scanner geometry --geometry {}` describes the design",
+                    p.display()
+                );
+            }
+            Ok(g)
+        }
         None => {
             Ok(opened.geometry_default.clone().unwrap_or_else(ScannerGeometry::default_scanner))
         }
