@@ -12,7 +12,7 @@
 //! up to ≈ 60 px (of a 4096² sensor at f = 5 600 px) from where the design
 //! puts it, so a design needs that much room around each view.
 
-use crate::{AxisValues, DVec3, ScannerGeometry, world_to_sample};
+use crate::{AxisValues, DVec3, ScannerGeometry};
 
 /// Room a view needs on every side, px at f = 5 600 px (scaled with the
 /// focal length): the calibration's search margin, within which a built
@@ -182,10 +182,9 @@ impl ScannerGeometry {
         warnings: &mut Vec<DesignProblem>,
     ) -> MirrorCheck {
         let m = &self.mirrors[l];
-        let view = world_to_sample(m.center().normalize());
         let mut out = MirrorCheck {
             mirror: l,
-            view,
+            view: self.mirror_direction(l).expect("a mirror of this geometry"),
             light: None,
             axes: None,
             corners_px: None,
@@ -200,9 +199,8 @@ impl ScannerGeometry {
                 out.axes = Some(axes);
                 let beam = self.beam(axes);
                 match self.first_mirror(beam.origin, beam.dir) {
-                    Some((k, p)) if k == l => {
-                        out.light =
-                            Some(world_to_sample((p - self.sample_point([0.5, 0.5])).normalize()));
+                    Some((k, _)) if k == l => {
+                        out.light = self.light_direction(l).ok();
                         let reflected = m.reflect_dir(beam.dir);
                         let lit = probes()
                             .map(|uv| {
@@ -279,15 +277,16 @@ impl ScannerGeometry {
     /// once.
     fn stray_light(&self, l: usize, beam: &crate::Beam) -> Option<usize> {
         let reach = self.source.beam_radius_mm;
-        (0..self.mirrors.len()).find(|&k| {
+        (0..self.mirrors.len()).filter(|&k| k != l).find(|&k| {
             let m = &self.mirrors[k];
             // Its front towards the beam, and the beam tube can overlap it.
             let near = beam.dir.dot(DVec3::from(m.normal)) < 0.0
                 && beam.distance(m.center()) < reach + m.size_mm * std::f64::consts::FRAC_1_SQRT_2;
+            if !near {
+                return false;
+            }
             let d = m.reflect_dir(beam.dir);
-            k != l
-                && near
-                && d.z > 0.0
+            d.z > 0.0
                 && probes().any(|uv| match self.first_mirror(self.sample_point(uv), -d) {
                     Some((j, q)) => {
                         j == k

@@ -767,7 +767,7 @@ pub fn preview(
 
 /// `scanner preview`
 pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
-    super::check_output(output, material, &["png"])?;
+    super::check_output(output, &[material], &["png"])?;
     let m = open_material(material)?;
     let views: Vec<[f64; 3]> = m.metadata().views.iter().map(|v| v.direction).collect();
     let (view, off) = novel_view(&views);

@@ -427,8 +427,8 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
 /// Before any work: the output may be written (not a device node, symlink,
 /// directory or the input: exit 4), then has one of the file types the
 /// command writes (exit 2).
-fn check_output(out: &Path, input: &Path, types: &[&str]) -> Result<(), Failure> {
-    crate::fsutil::check_output(out, &[input]).map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
+fn check_output(out: &Path, inputs: &[&Path], types: &[&str]) -> Result<(), Failure> {
+    crate::fsutil::check_output(out, inputs).map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
     let ext = out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
     if !types.is_empty() && !ext.as_deref().is_some_and(|e| types.contains(&e)) {
         return Err(Failure(
@@ -470,14 +470,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Geometry { geometry, rings, output } => {
             if let Some(out) = &output {
                 let inputs: Vec<&Path> = geometry.iter().map(PathBuf::as_path).collect();
-                crate::fsutil::check_output(out, &inputs)
-                    .map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
-                if !out.extension().is_some_and(|e| e.eq_ignore_ascii_case("toml")) {
-                    return Err(Failure(
-                        2,
-                        anyhow::anyhow!("{}: the output must be .toml", out.display()),
-                    ));
-                }
+                check_output(out, &inputs, &["toml"])?;
             }
             build::geometry_cmd(geometry.as_deref(), &rings, output.as_deref())?
         }
@@ -563,7 +556,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             if !(1.0..=2.0).contains(&p) {
                 return Err(Failure(2, anyhow::anyhow!("--p must be in [1, 2], got {p}")));
             }
-            check_output(&out, &path, &["json"])?;
+            check_output(&out, &[&path], &["json"])?;
             let samples = input(load_samples(&path))?;
             for c in samples.black_channels() {
                 eprintln!(
@@ -625,7 +618,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             if !(8..=4096).contains(&size) {
                 return Err(Failure(2, anyhow::anyhow!("--size must be in 8..=4096")));
             }
-            check_output(&out, &path, &["png", "exr"])?;
+            check_output(&out, &[&path], &["png", "exr"])?;
             let brdf =
                 input(load_brdf(&path).with_context(|| format!("cannot load {}", path.display())))?;
             let image = render::render_sphere(brdf.as_ref(), &render::Environment::builtin(), size);
@@ -650,7 +643,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             println!("{material:?} table written to {}", out.display());
         }
         Command::PlotNpf { input: path, output: out } => {
-            check_output(&out, &path, &["png"])?;
+            check_output(&out, &[&path], &["png"])?;
             let model = input(NpfModel::load(&path).map_err(anyhow::Error::from))?;
             output(plot::plot_factors(&model, &out).map_err(anyhow::Error::from))?;
             println!("factor plot written to {}", out.display());
