@@ -10,6 +10,7 @@
 
 pub mod calibrate;
 pub mod error;
+pub mod export;
 pub mod glossy;
 pub mod linalg;
 pub mod locate;

@@ -780,6 +780,49 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
     Ok(())
 }
 
+/// `scanner export`
+pub fn export_cmd(
+    material: &Path,
+    output: &Path,
+    format: crate::build::export::MapFormat,
+) -> Result<(), Failure> {
+    use crate::build::export::{is_texture_set_file, texture_set};
+    let check = || {
+        crate::fsutil::check_output_dir(output, is_texture_set_file)
+            .map_err(|e| Failure(4, anyhow!(e)))
+    };
+    check()?;
+    let bytes = scanner_formats::input::read(material)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let data = scanner_shading::format::MaterialData::from_bytes(&bytes)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let set = texture_set(&data)
+        .map_err(|e| Failure(e.exit_code(), anyhow!("{}: {e}", material.display())))?;
+    // Written into a fresh sibling directory, then swapped into place, as
+    // `scanner regions` does: never half a set, never two runs mixed.
+    let place = |e: std::io::Error| Failure(4, anyhow!("{}: {e}", output.display()));
+    let staging = crate::fsutil::staging_dir(output).map_err(place)?;
+    set.write(staging.path(), format).map_err(build_failure)?;
+    check()?;
+    crate::fsutil::replace_dir(staging, output).map_err(place)?;
+    println!(
+        "{}: texture set of {1}² texels over {2} mm ({3}: {4}) → {5}",
+        data.meta.name,
+        set.side,
+        set.size_mm,
+        format.extension(),
+        crate::build::export::MAPS.join(", "),
+        output.display()
+    );
+    if data.meta.detail_components > 0 {
+        println!(
+            "  the detail layer's {} light components vary with the light: left out",
+            data.meta.detail_components
+        );
+    }
+    Ok(())
+}
+
 /// A material file for a command, or exit 3 (its errors name the file).
 fn open_material(path: &Path) -> Result<scanner_shading::Material, Failure> {
     scanner_shading::Material::open(path).map_err(|e| Failure(3, anyhow!(e)))

@@ -167,6 +167,22 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Export a material's fitted texel model as a texture set
+    /// (docs/texture-set.md): diffuse albedo, F0, roughness and normal maps
+    /// for physically based renderers, which the simulator also scans. What
+    /// the model does not explain stays in the material file only.
+    Export {
+        /// Material file (built with a texel model).
+        material: PathBuf,
+        /// Output directory (created, or replaced if it holds only a
+        /// texture set's files).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Map files: `exr` (32-bit float, linear) or `png` (16-bit; diffuse
+        /// and specular sRGB-encoded).
+        #[arg(long, value_parser = ["exr", "png"], default_value = "exr")]
+        format: String,
+    },
     /// Check a scanner's design before building or scanning with it: per
     /// mirror its view and light directions, the axis positions, where the
     /// sample appears on the sensor and how many pixels it covers, and
@@ -540,6 +556,14 @@ fn run(cli: Cli) -> Result<(), Failure> {
             build::shade_cmd(&material, &queries, &output)?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
+        Command::Export { material, output, format } => {
+            let format = if format == "png" {
+                crate::build::export::MapFormat::Png
+            } else {
+                crate::build::export::MapFormat::Exr
+            };
+            build::export_cmd(&material, &output, format)?
+        }
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,
         Command::Inputs { device, watch } => commands::inputs(&device, watch)?,

@@ -1,0 +1,285 @@
+//! A material's fitted texel model as a texture set (docs/texture-set.md):
+//! diffuse albedo, F0, roughness and normal maps that any physically based
+//! renderer reads, and that the simulator scans like its own samples.
+//!
+//! The maps hold the texel model (docs/material-format.md, "Texel model")
+//! and, when the file has a detail layer, its shared factor: what is
+//! common to every light and view. The captured images' residuals — what
+//! the model does not explain (shadowing between threads, interreflection,
+//! anything not Lambert plus GGX) — stay in the material file.
+
+use std::path::Path;
+
+use scanner_shading::format::MaterialData;
+use scanner_shading::texel::{STORED, TexelParams};
+
+use super::BuildError;
+
+/// How the maps are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MapFormat {
+    /// OpenEXR, 32-bit float, linear: every map exactly as the file holds it.
+    Exr,
+    /// 16-bit PNG: diffuse and specular sRGB-encoded, roughness and normal
+    /// linear (the texture-set convention).
+    Png,
+}
+
+impl MapFormat {
+    /// The maps' file extension.
+    pub fn extension(self) -> &'static str {
+        match self {
+            MapFormat::Exr => "exr",
+            MapFormat::Png => "png",
+        }
+    }
+}
+
+/// The map names of a texture set, in the order they are written.
+pub const MAPS: [&str; 4] = ["diffuse", "specular", "roughness", "normal"];
+/// The texture set's description file.
+pub const DESCRIPTION: &str = "material.toml";
+
+/// A texture set in memory: `side` × `side` texels over a square of
+/// `size_mm`, row-major with row 0 at v = 0.
+#[derive(Debug, Clone)]
+pub struct TextureSet {
+    /// The material's name.
+    pub name: String,
+    /// Side of the square the maps cover, mm (the material's extent).
+    pub size_mm: f64,
+    /// Texels per side.
+    pub side: usize,
+    /// Diffuse albedo ρd per texel, linear RGB in [0, 1].
+    pub diffuse: Vec<[f32; 3]>,
+    /// F0 per texel, linear RGB in [0, 1].
+    pub specular: Vec<[f32; 3]>,
+    /// Roughness √α per texel, in [0, 1].
+    pub roughness: Vec<f32>,
+    /// Unit normal per texel, sample-local (x along +u, y along +v), z > 0.
+    pub normal: Vec<[f32; 3]>,
+}
+
+/// The texel model of `data` as a texture set. With a detail layer the maps
+/// have its resolution (2S), the model's parameters interpolated
+/// bilinearly as the shading does, and the layer's shared factor
+/// multiplies the diffuse albedo and F0 (each clamped to [0, 1]); a layer's
+/// light components depend on the light and are left out.
+///
+/// Refused (an input error) when the file holds no texel model or does not
+/// span a square.
+pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
+    let m = &data.meta;
+    if !m.texel_model || data.texels.is_empty() {
+        return Err(BuildError::Input(
+            "the material holds no texel model to export (it was built with `--texel-model off`, \
+             or `auto` found that the model did not explain the scan better than a diffuse fit; \
+             `scanner build --texel-model on` keeps one)"
+                .into(),
+        ));
+    }
+    let [w, h] = m.extent_mm;
+    if w != h {
+        return Err(BuildError::Input(format!(
+            "the material spans {w} × {h} mm: a texture set covers a square"
+        )));
+    }
+    let s = m.resolution as usize;
+    let stored: Vec<[f32; STORED]> = data.texels.iter().map(TexelParams::to_stored).collect();
+    let (side, params): (usize, Vec<TexelParams>) = if data.detail.is_empty() {
+        (s, data.texels.clone())
+    } else {
+        let f = 2 * s;
+        let params = (0..f * f)
+            .map(|i| {
+                let (x, y) = (i % f, i / f);
+                let uv = [(x as f32 + 0.5) / f as f32, (y as f32 + 0.5) / f as f32];
+                let v = bilinear(&stored, s, uv);
+                let mut p = TexelParams::from_stored(&v);
+                let d = data.detail[i];
+                let scale = |x: [f32; 3]| std::array::from_fn(|c| (x[c] * d[c]).clamp(0.0, 1.0));
+                p.diffuse = scale(p.diffuse);
+                p.specular = scale(p.specular);
+                p
+            })
+            .collect();
+        (f, params)
+    };
+    Ok(TextureSet {
+        name: m.name.clone(),
+        size_mm: w,
+        side,
+        diffuse: params.iter().map(|p| p.diffuse).collect(),
+        specular: params.iter().map(|p| p.specular).collect(),
+        roughness: params.iter().map(|p| p.alpha.sqrt().clamp(0.0, 1.0)).collect(),
+        normal: params.iter().map(|p| unit_normal(p.normal)).collect(),
+    })
+}
+
+/// The stored parameters of an `s` × `s` grid at `uv`, interpolated
+/// bilinearly between texel centres and clamped at the borders, as the
+/// shading interpolates them.
+fn bilinear(v: &[[f32; STORED]], s: usize, uv: [f32; 2]) -> [f32; STORED] {
+    let tap = |u: f32| {
+        let x = (u * s as f32 - 0.5).clamp(0.0, (s - 1) as f32);
+        let i = (x.floor() as usize).min(s - 1);
+        (i, (i + 1).min(s - 1), x - i as f32)
+    };
+    let (x0, x1, tx) = tap(uv[0]);
+    let (y0, y1, ty) = tap(uv[1]);
+    let at = |x: usize, y: usize| &v[y * s + x];
+    let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
+    let t = [at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1)];
+    std::array::from_fn(|k| w[0] * t[0][k] + w[1] * t[1][k] + w[2] * t[2][k] + w[3] * t[3][k])
+}
+
+/// A normal made unit (the stored x, y of an interpolated normal give a
+/// z that makes it unit already; this guards the rounding).
+fn unit_normal(n: [f32; 3]) -> [f32; 3] {
+    let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if l > 0.0 && n[2] > 0.0 { n.map(|c| c / l) } else { [0.0, 0.0, 1.0] }
+}
+
+/// sRGB encoding of a linear value in [0, 1].
+fn srgb(c: f32) -> f32 {
+    let c = c.clamp(0.0, 1.0);
+    if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
+}
+
+impl TextureSet {
+    /// The description file's text (format 1).
+    pub fn description(&self) -> String {
+        // `{:?}` writes a TOML basic string for any name: quotes,
+        // backslashes and control characters escaped.
+        let name = toml_string(&self.name);
+        format!(
+            "# Exported by scanner {}: the texel model of a scanned material.\n\
+             format = 1\nname = {name}\nsize_mm = {}\nsample_offset_mm = [0.0, 0.0]\n",
+            env!("CARGO_PKG_VERSION"),
+            self.size_mm
+        )
+    }
+
+    /// The maps' files in memory, (name, bytes), in [`MAPS`] order.
+    pub fn encode(&self, format: MapFormat) -> Result<Vec<(String, Vec<u8>)>, String> {
+        let grey: Vec<[f32; 3]> = self.roughness.iter().map(|&r| [r; 3]).collect();
+        // Normals as stored colours: c = (n + 1) / 2.
+        let normal: Vec<[f32; 3]> =
+            self.normal.iter().map(|n| n.map(|c| (c + 1.0) * 0.5)).collect();
+        let maps: [(&[[f32; 3]], bool); 4] =
+            [(&self.diffuse, true), (&self.specular, true), (&grey, false), (&normal, false)];
+        MAPS.iter()
+            .zip(maps)
+            .map(|(name, (px, colour))| {
+                let file = format!("{name}.{}", format.extension());
+                let bytes = match format {
+                    MapFormat::Exr => self.encode_exr(px),
+                    MapFormat::Png => self.encode_png(px, colour),
+                }
+                .map_err(|e| format!("{file}: {e}"))?;
+                Ok((file, bytes))
+            })
+            .collect()
+    }
+
+    fn encode_exr(&self, px: &[[f32; 3]]) -> Result<Vec<u8>, String> {
+        let n = self.side as u32;
+        let img = image::Rgb32FImage::from_raw(n, n, px.iter().flatten().copied().collect())
+            .ok_or("map of the wrong size")?;
+        let mut bytes = Vec::new();
+        image::DynamicImage::ImageRgb32F(img)
+            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::OpenExr)
+            .map_err(|e| e.to_string())?;
+        Ok(bytes)
+    }
+
+    fn encode_png(&self, px: &[[f32; 3]], colour: bool) -> Result<Vec<u8>, String> {
+        let n = self.side as u32;
+        let code = |v: f32| {
+            let e = if colour { srgb(v) } else { v.clamp(0.0, 1.0) };
+            (e * 65535.0).round() as u16
+        };
+        let img = image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(
+            n,
+            n,
+            px.iter().flatten().map(|&v| code(v)).collect::<Vec<u16>>(),
+        )
+        .ok_or("map of the wrong size")?;
+        let mut bytes = Vec::new();
+        img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .map_err(|e| e.to_string())?;
+        Ok(bytes)
+    }
+
+    /// Write the set into the directory `dir` (which must exist): each file
+    /// atomically.
+    pub fn write(&self, dir: &Path, format: MapFormat) -> Result<(), BuildError> {
+        let out = |name: &str, e: String| {
+            BuildError::Output(format!("{}: {e}", dir.join(name).display()))
+        };
+        for (name, bytes) in self.encode(format).map_err(|e| out("", e))? {
+            crate::fsutil::write_atomic(&dir.join(&name), &bytes)
+                .map_err(|e| out(&name, e.to_string()))?;
+        }
+        crate::fsutil::write_atomic(&dir.join(DESCRIPTION), self.description().as_bytes())
+            .map_err(|e| out(DESCRIPTION, e.to_string()))
+    }
+}
+
+/// A TOML basic string.
+fn toml_string(s: &str) -> String {
+    let mut out = String::from("\"");
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if c.is_control() => out.push_str(&format!("\\u{:04X}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+/// Whether `name` is a file a texture-set export writes.
+pub fn is_texture_set_file(name: &str) -> bool {
+    name == DESCRIPTION
+        || MAPS.iter().any(|m| {
+            [MapFormat::Exr, MapFormat::Png].iter().any(|f| {
+                name.strip_prefix(m).and_then(|r| r.strip_prefix('.')) == Some(f.extension())
+            })
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_toml_strings() {
+        for name in ["plain", "with \"quotes\"", "back\\slash", "tab\there", "ünïcödé"] {
+            let set = TextureSet {
+                name: name.into(),
+                size_mm: 25.4,
+                side: 1,
+                diffuse: vec![[0.5; 3]],
+                specular: vec![[0.04; 3]],
+                roughness: vec![0.5],
+                normal: vec![[0.0, 0.0, 1.0]],
+            };
+            let doc: toml::Table = set.description().parse().unwrap();
+            assert_eq!(doc["name"].as_str(), Some(name));
+            assert_eq!(doc["size_mm"].as_float(), Some(25.4));
+        }
+    }
+
+    #[test]
+    fn only_its_own_files_are_recognised() {
+        for ok in ["material.toml", "diffuse.exr", "normal.png", "roughness.exr", "specular.png"] {
+            assert!(is_texture_set_file(ok), "{ok}");
+        }
+        for no in ["diffuse.tif", "baseColor.png", "material.json", "diffuse.exr.tmp", "x.png"] {
+            assert!(!is_texture_set_file(no), "{no}");
+        }
+    }
+}

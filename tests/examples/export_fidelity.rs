@@ -1,0 +1,108 @@
+//! How much of a scanned material its exported texture set keeps
+//! (docs/benchmarks.md, "Texture-set export"): for each library material
+//! (HDR scans on the simulator), the material file and the texture set
+//! `scanner export` writes from it, both scored against `hil-sim truth`
+//! with the material PSNR at the captured pairs (as-built directions) and
+//! at random novel pairs (θ ≤ 60°). The texture set is scored through the
+//! simulator's own texture-set reader and texel model, as a renderer would
+//! shade it.
+//!
+//! `cargo run --release -p tests --example export_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--format exr|png]`
+//! (scans in DIR are reused when complete; `material_fidelity` shares them).
+
+use std::path::PathBuf;
+
+use hil_sim::materials::{Sample, lookup};
+use hil_sim::optics::OpticalSim;
+use host::build::calibrate::{CalibrateOptions, Silent};
+use host::build::export::{MapFormat, texture_set};
+use host::build::material::{MaterialOptions, build_material, shade};
+use host::build::scanread::ScanFrames;
+use host::build::{calibrate, extract_regions};
+use scanner_shading::Material;
+use scanner_shading::format::Provenance;
+
+fn main() {
+    let bin: u32 = tests::arg("--bin", 1);
+    let mirrors: usize = tests::arg("--mirrors", 40);
+    let seed: u64 = tests::arg("--seed", 1);
+    let novel: usize = tests::arg("--novel", 300);
+    let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
+    let list: String =
+        tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
+    let format = match tests::arg("--format", "exr".to_string()).as_str() {
+        "png" => MapFormat::Png,
+        _ => MapFormat::Exr,
+    };
+    let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
+    tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
+    let glossy = out.join("glossy-black");
+    tests::sim_scan_at(
+        "glossy-black",
+        seed,
+        bin,
+        mirrors,
+        tests::GLOSSY_EXPOSURE_US,
+        false,
+        &glossy,
+    );
+    for m in list.split(',') {
+        tests::sim_scan(m, seed, bin, mirrors, true, &tests::scan_dir(&out, m));
+    }
+    let open = |name: &str| ScanFrames::open(&out.join(name), &g).unwrap();
+    let (checker, white, glossy) =
+        (open("checkerboard"), open("diffuse-white"), open("glossy-black"));
+    let cal = calibrate(&g, &checker, &white, Some(&glossy), &CalibrateOptions::default(), &Silent)
+        .unwrap();
+    let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
+        .geometry()
+        .clone();
+    let pairs = tests::random_pairs(novel, 60.0, seed);
+    println!(
+        "sensor {0}², {mirrors} mirrors, seed {seed}; {novel} novel pairs θ ≤ 60°; maps as {1}",
+        4096 / bin,
+        format.extension()
+    );
+    println!(
+        "| material | material file, captured dB | texture set, captured dB | material file, novel dB | texture set, novel dB | maps |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for m in list.split(',') {
+        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
+        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
+        let provenance = Provenance {
+            scan_manifest_sha256: "-".into(),
+            geometry_sha256: g.hash(),
+            calibration_sha256: cal.hash(),
+            builder: "export_fidelity".into(),
+        };
+        let data =
+            build_material(&regions, m, 25.4, provenance, &MaterialOptions::default(), &Silent)
+                .unwrap();
+        let material = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+        let set = match texture_set(&data) {
+            Ok(set) => set,
+            Err(e) => {
+                println!("| {m} | — | {e} | — | — | — |");
+                continue;
+            }
+        };
+        let dir = out.join(format!("{}-export", m.replace('/', "_")));
+        std::fs::create_dir_all(&dir).unwrap();
+        set.write(&dir, format).unwrap();
+        let exported = Sample::small(lookup(dir.to_str().unwrap()).unwrap());
+        let sample = Sample::small(lookup(m).unwrap());
+        let score = |pairs: &[([f64; 3], [f64; 3])]| {
+            let t = tests::truth_answers(pairs, &sample);
+            let file = tests::pairs_psnr(pairs, &t, &|_, q| shade(&material, q)).0;
+            let maps = tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&exported, q)).0;
+            (file, maps)
+        };
+        let (cap_file, cap_maps) = score(&tests::as_built_pairs(&truth, &cal, &regions));
+        let (nov_file, nov_maps) = score(&pairs);
+        println!(
+            "| {m} | {cap_file:.2} | {cap_maps:.2} | {nov_file:.2} | {nov_maps:.2} | {0}² |",
+            set.side
+        );
+    }
+}
