@@ -7,7 +7,9 @@
 //! simulator's own texture-set reader and texel model, as a renderer would
 //! shade it.
 //!
-//! `cargo run --release -p tests --example export_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--format exr|png]`
+//! `cargo run --release -p tests --example export_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--format exr|png] [--without-detail]`
+//! (`--without-detail`: the set exported as if the file had no detail
+//! layer, the model alone at S × S, for comparison)
 //! (scans in DIR are reused when complete; `material_fidelity` shares them).
 
 use std::path::PathBuf;
@@ -34,6 +36,7 @@ fn main() {
         "png" => MapFormat::Png,
         _ => MapFormat::Exr,
     };
+    let without_detail = std::env::args().any(|a| a == "--without-detail");
     let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
     tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
     let glossy = out.join("glossy-black");
@@ -80,6 +83,10 @@ fn main() {
             build_material(&regions, m, 25.4, provenance, &MaterialOptions::default(), &Silent)
                 .unwrap();
         let material = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+        let mut data = data;
+        if without_detail {
+            data.detail.clear();
+        }
         let set = match texture_set(&data) {
             Ok(set) => set,
             Err(e) => {
@@ -87,7 +94,8 @@ fn main() {
                 continue;
             }
         };
-        let dir = out.join(format!("{}-export", m.replace('/', "_")));
+        let dir = out.join(format!("{}-export-{}", m.replace('/', "_"), format.extension()));
+        let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         set.write(&dir, format).unwrap();
         let exported = Sample::small(lookup(dir.to_str().unwrap()).unwrap());

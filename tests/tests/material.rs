@@ -19,6 +19,141 @@ use host::build::{RegionOptions, extract_regions};
 use scanner_formats::queries::{Query, read_answers, write_queries};
 use scanner_shading::{Interpolation, Material};
 
+/// `scanner export` of `DIR/leather.material` (built with a texel model and
+/// a detail layer) and of `DIR/plain.material` (without a model): the maps
+/// as the simulator reads them hold the file's model; the simulator's copy
+/// of the texel model shades them as the shading crate's does; scanned by
+/// the simulator's truth, the set scores within 1 dB of the material file
+/// (`file_db`: captured and novel pairs); bad inputs and outputs refused.
+fn exported_texture_sets(
+    dir: &Path,
+    file_db: [f64; 2],
+    sample: &Sample,
+    captured: &[([f64; 3], [f64; 3])],
+    novel: &[([f64; 3], [f64; 3])],
+) {
+    use host::build::export::texture_set;
+    use scanner_shading::format::MaterialData;
+    use scanner_shading::texel::{TexelParams, reflected};
+    let p = |n: &str| dir.join(n);
+    let d = |n: &str| p(n).display().to_string();
+    let data = MaterialData::from_bytes(&std::fs::read(p("leather.material")).unwrap()).unwrap();
+    let set = texture_set(&data).unwrap();
+    let s = data.meta.resolution as usize;
+    assert_eq!(set.side, 2 * s, "maps at the detail layer's resolution");
+    let pairs: Vec<([f32; 3], [f32; 3])> =
+        novel.iter().take(8).map(|(wi, wo)| (wi.map(|c| c as f32), wo.map(|c| c as f32))).collect();
+    for (format, tolerance) in [("exr", 1e-6), ("png", 2e-4)] {
+        let out = format!("set-{format}");
+        let (code, err) = common::run_err(&[
+            "export",
+            &d("leather.material"),
+            "-o",
+            &d(&out),
+            "--format",
+            format,
+        ]);
+        assert_eq!(code, Some(0), "{err}");
+        let read = Sample::small(lookup(&d(&out)).unwrap());
+        for i in (0..set.side * set.side).step_by(7) {
+            let (x, y) = (i % set.side, i / set.side);
+            let uv = [(x as f64 + 0.5) / set.side as f64, (y as f64 + 0.5) / set.side as f64];
+            let t = read.texel(uv);
+            let close = |a: f64, b: f32, what: &str| {
+                assert!(
+                    (a - b as f64).abs() <= tolerance,
+                    "{format} texel ({x}, {y}) {what}: {a} vs {b}"
+                );
+            };
+            for c in 0..3 {
+                close(t.diffuse[c], set.diffuse[i][c], "diffuse");
+                close(t.specular[c], set.specular[i][c], "F0");
+                close(t.normal[c], set.normal[i][c], "normal");
+            }
+            close(t.roughness.sqrt(), set.roughness[i], "roughness");
+            // No texel loses its lobe: the simulator's model has none where
+            // F0 is 0 in every channel (docs/texture-set.md).
+            assert!(t.specular.iter().any(|&f| f > 0.0), "texel ({x}, {y}) lost its lobe");
+            let params = TexelParams {
+                diffuse: t.diffuse.map(|v| v as f32),
+                specular: t.specular.map(|v| v as f32),
+                alpha: t.roughness as f32,
+                normal: t.normal.to_array().map(|v| v as f32),
+            };
+            for &(wi, wo) in &pairs {
+                let host = reflected(&params, wi, wo);
+                let sim = t.reflected(wi.map(f64::from).into(), wo.map(f64::from).into());
+                for c in 0..3 {
+                    let (a, b) = (host[c] as f64, sim[c]);
+                    assert!(
+                        (a - b).abs() <= 1e-4 * b.abs().max(0.1),
+                        "texel ({x}, {y}): {host:?} vs {sim:?}"
+                    );
+                }
+            }
+        }
+    }
+    // Scanned by the simulator's truth, the set keeps what the file has.
+    let exported = Sample::small(lookup(&d("set-exr")).unwrap());
+    let score = |pairs: &[([f64; 3], [f64; 3])]| {
+        let t = tests::truth_answers(pairs, sample);
+        tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&exported, q)).0
+    };
+    let set_db = [score(captured), score(novel)];
+    eprintln!(
+        "leather, 1024² sensor: the exported texture set {:.2} dB at the captured pairs, {:.2} dB at novel pairs (the material file {:.2}, {:.2})",
+        set_db[0], set_db[1], file_db[0], file_db[1]
+    );
+    for k in 0..2 {
+        assert!(
+            set_db[k] >= file_db[k] - 1.0,
+            "texture set {:.2} dB, file {:.2} dB",
+            set_db[k],
+            file_db[k]
+        );
+    }
+
+    // Refused: a material without a model (exit 3), a damaged file (3),
+    // an output that is not a texture set's directory (4); nothing written.
+    let refused = |material: &str, out: &str, code: i32| -> String {
+        let (c, err) = common::run_err(&["export", &d(material), "-o", &d(out)]);
+        assert_eq!(c, Some(code), "{err}");
+        err
+    };
+    let err = refused("plain.material", "plain-set", 3);
+    assert!(err.contains("plain.material") && err.contains("no texel model"), "{err}");
+    assert!(!p("plain-set").exists());
+    let good = std::fs::read(p("leather.material")).unwrap();
+    std::fs::write(p("half.material"), &good[..good.len() / 2]).unwrap();
+    refused("half.material", "half-set", 3);
+    assert!(!p("half-set").exists());
+    std::fs::create_dir(p("mine")).unwrap();
+    std::fs::write(p("mine/notes.txt"), "keep").unwrap();
+    refused("leather.material", "mine", 4);
+    assert_eq!(std::fs::read_to_string(p("mine/notes.txt")).unwrap(), "keep");
+    refused("leather.material", "leather.material", 4);
+    assert_eq!(std::fs::read(p("leather.material")).unwrap(), good);
+    // A set exported again is replaced whole: PNG maps over EXR ones.
+    let (code, err) = common::run_err(&[
+        "export",
+        &d("leather.material"),
+        "-o",
+        &d("set-exr"),
+        "--format",
+        "png",
+    ]);
+    assert_eq!(code, Some(0), "{err}");
+    let mut names: Vec<String> = std::fs::read_dir(p("set-exr"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["diffuse.png", "material.toml", "normal.png", "roughness.png", "specular.png"]
+    );
+}
+
 fn sha256(path: &Path) -> String {
     use sha2::Digest;
     host::scan::hex(&sha2::Sha256::digest(std::fs::read(path).unwrap()))
@@ -130,7 +265,7 @@ fn a_built_material_shades_like_the_sample() {
     // The texel model: kept by the leave-one-light-out choice, and no worse
     // at novel pairs than the same interpolation without it (the glossy
     // sample's gain is tested below).
-    let (plain, ..) =
+    let (plain, plain_bytes, _) =
         build_with(MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() });
     let with_without = tests::material_scores(
         &regions,
@@ -151,6 +286,8 @@ fn a_built_material_shades_like_the_sample() {
     assert!(meta.texel_model, "leather: the builder kept no texel model");
     assert!(!plain.metadata().texel_model);
     assert!(nov_m >= nov_plain - 0.1, "novel pairs: {nov_m} with the model, {nov_plain} without");
+    std::fs::write(p("plain.material"), &plain_bytes).unwrap();
+    exported_texture_sets(dir.path(), [cap_d, nov_d], &sample, &captured, &novel);
 
     // A glossy sample: the model carries the highlights between mirrors.
     tests::sim_scan("rough-metal", seed, bin, mirrors, true, &p("metal"));

@@ -110,10 +110,22 @@ pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
         size_mm: w,
         side,
         diffuse: params.iter().map(|p| p.diffuse).collect(),
-        specular: params.iter().map(|p| p.specular).collect(),
+        specular: params.iter().map(|p| keep_lobe(p.specular)).collect(),
         roughness: params.iter().map(|p| p.alpha.sqrt().clamp(0.0, 1.0)).collect(),
         normal: params.iter().map(|p| unit_normal(p.normal)).collect(),
     })
+}
+
+/// Smallest F0 written where a texel's F0 is 0 in every channel.
+pub const MIN_F0: f32 = 1e-5;
+
+/// F0 with its lobe kept: in a texture set, F0 = 0 in every channel means
+/// a purely Lambertian texel (docs/texture-set.md), while the material's
+/// texel model still has Schlick's Fresnel reflection at grazing angles
+/// there. [`MIN_F0`] (a 16-bit PNG keeps it) keeps that reflection and
+/// changes nothing else visibly.
+fn keep_lobe(f0: [f32; 3]) -> [f32; 3] {
+    if f0.iter().all(|&f| f <= 0.0) { [MIN_F0; 3] } else { f0 }
 }
 
 /// The stored parameters of an `s` × `s` grid at `uv`, interpolated
@@ -271,6 +283,27 @@ mod tests {
             assert_eq!(doc["name"].as_str(), Some(name));
             assert_eq!(doc["size_mm"].as_float(), Some(25.4));
         }
+    }
+
+    #[test]
+    fn a_lobe_with_no_f0_is_kept_through_a_png() {
+        assert_eq!(keep_lobe([0.0; 3]), [MIN_F0; 3]);
+        assert_eq!(keep_lobe([0.0, 0.2, 0.0]), [0.0, 0.2, 0.0]);
+        let set = TextureSet {
+            name: "x".into(),
+            size_mm: 1.0,
+            side: 1,
+            diffuse: vec![[0.5; 3]],
+            specular: vec![[MIN_F0; 3]],
+            roughness: vec![0.5],
+            normal: vec![[0.0, 0.0, 1.0]],
+        };
+        let maps = set.encode(MapFormat::Png).unwrap();
+        assert_eq!(maps[1].0, "specular.png");
+        let png = image::load_from_memory(&maps[1].1).unwrap().to_rgb16();
+        // Decoded as a texture set's sRGB map: above 0, within 10 % of MIN_F0.
+        let code = png.get_pixel(0, 0).0[0] as f32 / 65535.0;
+        assert!((code / 12.92 - MIN_F0).abs() < 0.1 * MIN_F0, "{code}");
     }
 
     #[test]
