@@ -85,27 +85,68 @@ fn library_dir() -> PathBuf {
     deps
 }
 
-/// `examples/shade.c` compiled into `dir`.
+/// `examples/shade.c` compiled into `dir`, linked with the shared library.
 fn compile(dir: &Path) -> PathBuf {
-    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
     let lib = library_dir();
     let exe = dir.join("shade");
+    let mut link = vec!["-L".into(), lib.display().to_string(), "-lscanner_shading_c".into()];
+    link.push(format!("-Wl,-rpath,{}", lib.display()));
+    cc(&exe, &link);
+    exe
+}
+
+/// `examples/shade.c` compiled into `dir`, linked with the static library
+/// and the native libraries Rust's standard library needs, as rustc
+/// lists them (`--print native-static-libs`).
+fn compile_static(dir: &Path) -> PathBuf {
+    let archive = library_dir().join("libscanner_shading_c.a");
+    assert!(archive.exists(), "{} is not built", archive.display());
+    let exe = dir.join("shade-static");
+    let mut link = vec![archive.display().to_string()];
+    link.extend(native_static_libs(dir));
+    cc(&exe, &link);
+    exe
+}
+
+/// What a static library of this toolchain must be linked with, from
+/// rustc itself: `-lgcc_s -lutil -lrt -lpthread -lm -ldl -lc` on Linux,
+/// the standard library's needs (this crate's dependencies add only libc
+/// and libm, which the list holds: docs/shading-c-api.md).
+fn native_static_libs(dir: &Path) -> Vec<String> {
+    let src = dir.join("empty.rs");
+    std::fs::write(&src, "").unwrap();
+    let rustc = std::env::var_os("RUSTC").unwrap_or_else(|| "rustc".into());
+    let out = Command::new(&rustc)
+        .args(["--crate-type", "staticlib", "--print", "native-static-libs", "-o"])
+        .arg(dir.join("libempty.a"))
+        .arg(&src)
+        .output()
+        .unwrap_or_else(|e| panic!("{rustc:?}: {e}"));
+    let note = String::from_utf8_lossy(&out.stderr);
+    let libs = note
+        .lines()
+        .find_map(|l| l.split_once("native-static-libs: "))
+        .unwrap_or_else(|| panic!("rustc printed no native-static-libs: {note}"))
+        .1;
+    libs.split_whitespace().map(String::from).collect()
+}
+
+/// The system's C compiler (`$CC`, else `cc`: the one Rust links with)
+/// on `examples/shade.c`, warnings as errors, with `link` after it.
+fn cc(exe: &Path, link: &[String]) {
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
     let cc = std::env::var_os("CC").unwrap_or_else(|| "cc".into());
     let out = Command::new(&cc)
         .args(["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic"])
         .arg(manifest.join("examples/shade.c"))
         .arg("-I")
         .arg(manifest.join("include"))
-        .arg("-L")
-        .arg(&lib)
-        .arg("-lscanner_shading_c")
-        .arg(format!("-Wl,-rpath,{}", lib.display()))
+        .args(link)
         .arg("-o")
-        .arg(&exe)
+        .arg(exe)
         .output()
         .unwrap_or_else(|e| panic!("{cc:?} (the C compiler Rust links with): {e}"));
     assert!(out.status.success(), "{cc:?}: {}", String::from_utf8_lossy(&out.stderr));
-    exe
 }
 
 /// Run the compiled program on `material` with `queries` on its input:
@@ -149,14 +190,34 @@ fn run(
 #[test]
 fn a_c_program_shades_every_kind_of_file_as_the_rust_api_does() {
     let dir = tempfile::tempdir().unwrap();
-    let exe = compile(dir.path());
+    shades_as_rust_does(&compile(dir.path()), dir.path());
+}
+
+#[test]
+fn linked_statically_it_shades_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let exe = compile_static(dir.path());
+    // Nothing of the shared library: the C runtime's libraries only.
+    #[cfg(target_os = "linux")]
+    {
+        let ldd = Command::new("ldd").arg(&exe).output().expect("ldd (glibc's libc-bin)");
+        let deps = String::from_utf8_lossy(&ldd.stdout);
+        assert!(ldd.status.success() && deps.contains("libc.so"), "ldd: {deps}");
+        assert!(!deps.contains("scanner_shading_c"), "{deps}");
+    }
+    shades_as_rust_does(&exe, dir.path());
+}
+
+/// The program `exe` answers every query on every kind of file exactly as
+/// `Material::eval` does, from the file and from memory.
+fn shades_as_rust_does(exe: &Path, dir: &Path) {
     for (name, data) in materials() {
-        let path = dir.path().join(format!("{name}.material"));
+        let path = dir.join(format!("{name}.material"));
         std::fs::write(&path, data.to_bytes().unwrap()).unwrap();
         let m = Material::open(&path).unwrap();
         let q = queries(&m);
         for from_memory in [false, true] {
-            let (code, stdout, stderr) = run(&exe, &path, from_memory, &q);
+            let (code, stdout, stderr) = run(exe, &path, from_memory, &q);
             assert_eq!(code, 0, "{name}: {stderr}");
             let mut lines = stdout.lines();
             let e = m.metadata().extent_mm;
