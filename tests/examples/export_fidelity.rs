@@ -15,12 +15,11 @@
 use std::path::PathBuf;
 
 use hil_sim::materials::{Sample, lookup};
-use hil_sim::optics::OpticalSim;
-use host::build::calibrate::{CalibrateOptions, Silent};
+use host::build::calibrate::Silent;
 use host::build::export::{MapFormat, texture_set};
 use host::build::material::{MaterialOptions, build_material, shade};
 use host::build::scanread::ScanFrames;
-use host::build::{calibrate, extract_regions};
+use host::build::extract_regions;
 use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 
@@ -37,29 +36,8 @@ fn main() {
         _ => MapFormat::Exr,
     };
     let without_detail = std::env::args().any(|a| a == "--without-detail");
-    let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
-    tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
-    let glossy = out.join("glossy-black");
-    tests::sim_scan_at(
-        "glossy-black",
-        seed,
-        bin,
-        mirrors,
-        tests::GLOSSY_EXPOSURE_US,
-        false,
-        &glossy,
-    );
-    for m in list.split(',') {
-        tests::sim_scan(m, seed, bin, mirrors, true, &tests::scan_dir(&out, m));
-    }
-    let open = |name: &str| ScanFrames::open(&out.join(name), &g).unwrap();
-    let (checker, white, glossy) =
-        (open("checkerboard"), open("diffuse-white"), open("glossy-black"));
-    let cal = calibrate(&g, &checker, &white, Some(&glossy), &CalibrateOptions::default(), &Silent)
-        .unwrap();
-    let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
-        .geometry()
-        .clone();
+    let materials: Vec<&str> = list.split(',').collect();
+    let (g, cal, truth) = tests::scanned_and_calibrated(&out, seed, bin, mirrors, &materials);
     let pairs = tests::random_pairs(novel, 60.0, seed);
     println!(
         "sensor {0}², {mirrors} mirrors, seed {seed}; {novel} novel pairs θ ≤ 60°; maps as {1}",
@@ -70,7 +48,7 @@ fn main() {
         "| material | material file, captured dB | texture set, captured dB | material file, novel dB | texture set, novel dB | maps |"
     );
     println!("|---|---|---|---|---|---|");
-    for m in list.split(',') {
+    for &m in &materials {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
         let provenance = Provenance {

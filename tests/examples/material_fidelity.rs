@@ -15,13 +15,12 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use hil_sim::materials::{Sample, lookup};
-use hil_sim::optics::OpticalSim;
-use host::build::calibrate::{CalibrateOptions, Silent};
+use host::build::calibrate::Silent;
 use host::build::material::{
     MaterialOptions, PATENT_DEFAULT, TexelModelChoice, build_material, shade,
 };
 use host::build::scanread::ScanFrames;
-use host::build::{calibrate, extract_regions};
+use host::build::extract_regions;
 use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 
@@ -40,29 +39,7 @@ fn main() {
     let texel_model: TexelModelChoice = tests::arg("--texel-model", "auto".to_string())
         .parse()
         .unwrap_or_else(|e| panic!("--texel-model: {e}"));
-    let g = tests::sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
-    tests::sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
-    let glossy = out.join("glossy-black");
-    tests::sim_scan_at(
-        "glossy-black",
-        seed,
-        bin,
-        mirrors,
-        tests::GLOSSY_EXPOSURE_US,
-        false,
-        &glossy,
-    );
-    for &m in &materials {
-        tests::sim_scan(m, seed, bin, mirrors, true, &tests::scan_dir(&out, m));
-    }
-    let checker = ScanFrames::open(&out.join("checkerboard"), &g).unwrap();
-    let white = ScanFrames::open(&out.join("diffuse-white"), &g).unwrap();
-    let glossy = ScanFrames::open(&out.join("glossy-black"), &g).unwrap();
-    let opts = CalibrateOptions::default();
-    let cal = calibrate(&g, &checker, &white, Some(&glossy), &opts, &Silent).unwrap();
-    let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
-        .geometry()
-        .clone();
+    let (g, cal, truth) = tests::scanned_and_calibrated(&out, seed, bin, mirrors, &materials);
     let pairs = tests::random_pairs(novel, 60.0, seed);
     println!(
         "sensor {0}², {mirrors} mirrors, seed {seed}; {novel} novel pairs θ ≤ 60°",

@@ -99,6 +99,38 @@ pub fn sim_scan_at(
     nominal
 }
 
+/// The examples' common start: the three targets scanned into `out` (the
+/// glossy one at [`GLOSSY_EXPOSURE_US`]) and each of `materials` with auto
+/// HDR (scans already complete are kept), then calibrated with the glossy
+/// target. Returns the nominal geometry, the calibration and the as-built
+/// geometry (the truth the simulator scanned with).
+pub fn scanned_and_calibrated(
+    out: &Path,
+    seed: u64,
+    bin: u32,
+    mirrors: usize,
+    materials: &[&str],
+) -> (ScannerGeometry, Calibration, ScannerGeometry) {
+    use host::build::calibrate::{CalibrateOptions, Silent, calibrate};
+    use host::build::scanread::ScanFrames;
+    let g = sim_scan("checkerboard", seed, bin, mirrors, false, &out.join("checkerboard"));
+    sim_scan("diffuse-white", seed, bin, mirrors, false, &out.join("diffuse-white"));
+    let glossy = out.join("glossy-black");
+    sim_scan_at("glossy-black", seed, bin, mirrors, GLOSSY_EXPOSURE_US, false, &glossy);
+    for &m in materials {
+        sim_scan(m, seed, bin, mirrors, true, &scan_dir(out, m));
+    }
+    let open = |name: &str| ScanFrames::open(&out.join(name), &g).unwrap();
+    let (checker, white, glossy) =
+        (open("checkerboard"), open("diffuse-white"), open("glossy-black"));
+    let opts = CalibrateOptions::default();
+    let cal = calibrate(&g, &checker, &white, Some(&glossy), &opts, &Silent).unwrap();
+    let target = hil_sim::materials::lookup("checkerboard").unwrap();
+    let truth =
+        hil_sim::optics::OpticalSim::as_built(&g, Sample::small(target), seed).geometry().clone();
+    (g, cal, truth)
+}
+
 /// The captured pairs as the as-built scanner `truth` took them, in the
 /// order of `regions` (light-major): (wi, wo), sample-local.
 pub fn as_built_pairs(

@@ -67,6 +67,10 @@ fn another_scanner_is_simulated_calibrated_and_built() {
     // 24 × 24 pairs fit the 16 MB: an index image of its own for each.
     assert_eq!(meta.lights_per_index, 1);
     assert!(out.join("leather-preview.png").is_file());
+    // The texel model's maps, a texture set the simulator reads.
+    assert!(meta.texel_model);
+    assert!(out.join("leather-maps/normal.png").is_file());
+    hil_sim::materials::lookup(out.join("leather-maps").to_str().unwrap()).unwrap();
 
     // Calibration against the as-built scanner.
     let sim = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed);

@@ -1345,6 +1345,12 @@ pub fn demo(
     let (view, off) = super::build::novel_view(&built.regions.view_dirs);
     let picture = out.join(format!("{name}-preview.png"));
     super::build::preview(&built.material, (view, off), Some(&truth), &picture)?;
+    // PBR maps of the material's texel model, for other renderers (PNG:
+    // what a person opens).
+    if built.material.metadata().texel_model {
+        let maps = out.join(format!("{name}-maps"));
+        super::build::export_cmd(&material_file, &maps, crate::build::export::MapFormat::Png)?;
+    }
     let (theta, phi) = super::build::angles(view);
     println!(
         "demo: four scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
