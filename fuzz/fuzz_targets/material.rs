@@ -1,6 +1,8 @@
 //! Fuzz the material reader: arbitrary bytes must give a typed error or a
 //! material, never a panic; a material that opens answers every query
-//! with finite, non-negative values. Mutated as a safetensors file whose
+//! with finite, non-negative values, and its export as a texture set
+//! (`scanner export`) is a set the format accepts, or a typed refusal.
+//! Mutated as a safetensors file whose
 //! header and material metadata are JSON (`fuzz_support::structured`) as
 //! well as bytes.
 #![no_main]
@@ -9,6 +11,21 @@ use libfuzzer_sys::fuzz_target;
 use scanner_shading::Material;
 
 fuzz_target!(|data: &[u8]| {
+    if let Ok(d) = scanner_shading::MaterialData::from_bytes(data) {
+        if let Ok(set) = host::build::export::texture_set(&d) {
+            let n = set.side * set.side;
+            assert!(set.diffuse.len() == n && set.specular.len() == n && set.normal.len() == n);
+            let unit = |x: f32| (0.0..=1.0).contains(&x);
+            for i in 0..n {
+                assert!(set.diffuse[i].iter().chain(&set.specular[i]).all(|&x| unit(x)));
+                assert!(set.specular[i].iter().any(|&x| x > 0.0), "a lobe lost");
+                assert!((0.03..=1.0).contains(&set.roughness[i]), "{}", set.roughness[i]);
+                let v = set.normal[i];
+                let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                assert!((len - 1.0).abs() < 1e-5 && v[2] >= 0.09, "{v:?}");
+            }
+        }
+    }
     if let Ok(m) = Material::from_bytes(data) {
         for (uv, wi, wo) in [
             ([0.5, 0.5], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]),
