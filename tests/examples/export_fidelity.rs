@@ -17,9 +17,9 @@ use std::path::PathBuf;
 use hil_sim::materials::{Sample, lookup};
 use host::build::calibrate::Silent;
 use host::build::export::{MapFormat, texture_set};
+use host::build::extract_regions;
 use host::build::material::{MaterialOptions, build_material, shade};
 use host::build::scanread::ScanFrames;
-use host::build::extract_regions;
 use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 

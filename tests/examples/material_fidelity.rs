@@ -16,11 +16,11 @@ use std::time::Instant;
 
 use hil_sim::materials::{Sample, lookup};
 use host::build::calibrate::Silent;
+use host::build::extract_regions;
 use host::build::material::{
     MaterialOptions, PATENT_DEFAULT, TexelModelChoice, build_material, shade,
 };
 use host::build::scanread::ScanFrames;
-use host::build::extract_regions;
 use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 

@@ -161,12 +161,12 @@ fn srgb(c: f32) -> f32 {
 impl TextureSet {
     /// The description file's text (format 1).
     pub fn description(&self) -> String {
-        // `{:?}` writes a TOML basic string for any name: quotes,
-        // backslashes and control characters escaped.
-        let name = toml_string(&self.name);
+        // A texture set needs a name; `{:?}` writes a float as TOML's
+        // (25.0, not 25, which TOML reads as an integer).
+        let name = toml_string(if self.name.trim().is_empty() { "scanned" } else { &self.name });
         format!(
             "# Exported by scanner {}: the texel model of a scanned material.\n\
-             format = 1\nname = {name}\nsize_mm = {}\nsample_offset_mm = [0.0, 0.0]\n",
+             format = 1\nname = {name}\nsize_mm = {:?}\nsample_offset_mm = [0.0, 0.0]\n",
             env!("CARGO_PKG_VERSION"),
             self.size_mm
         )
@@ -268,11 +268,18 @@ mod tests {
     use super::*;
 
     #[test]
-    fn names_are_toml_strings() {
-        for name in ["plain", "with \"quotes\"", "back\\slash", "tab\there", "ünïcödé"] {
+    fn the_description_is_toml_for_any_name_and_size() {
+        for (name, size) in [
+            ("plain", 25.4),
+            ("with \"quotes\"", 25.0),
+            ("back\\slash", 1e-3),
+            ("tab\there", 9999.5),
+            ("ünïcödé", 12.0),
+            ("  ", 25.4),
+        ] {
             let set = TextureSet {
                 name: name.into(),
-                size_mm: 25.4,
+                size_mm: size,
                 side: 1,
                 diffuse: vec![[0.5; 3]],
                 specular: vec![[0.04; 3]],
@@ -280,8 +287,9 @@ mod tests {
                 normal: vec![[0.0, 0.0, 1.0]],
             };
             let doc: toml::Table = set.description().parse().unwrap();
-            assert_eq!(doc["name"].as_str(), Some(name));
-            assert_eq!(doc["size_mm"].as_float(), Some(25.4));
+            let want = if name.trim().is_empty() { "scanned" } else { name };
+            assert_eq!(doc["name"].as_str(), Some(want));
+            assert_eq!(doc["size_mm"].as_float(), Some(size), "{}", set.description());
         }
     }
 

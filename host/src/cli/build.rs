@@ -794,8 +794,10 @@ pub fn export_cmd(
     check()?;
     let bytes = scanner_formats::input::read(material)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
-    let data = scanner_shading::format::MaterialData::from_bytes(&bytes)
-        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let damaged = |e| Failure(3, anyhow!("{}: {e}", material.display()));
+    let data = scanner_shading::format::MaterialData::from_bytes(&bytes).map_err(damaged)?;
+    // Only a file the shading opens: its direction tables checked too.
+    scanner_shading::Material::from_data(data.clone()).map_err(damaged)?;
     let set = texture_set(&data)
         .map_err(|e| Failure(e.exit_code(), anyhow!("{}: {e}", material.display())))?;
     // Written into a fresh sibling directory, then swapped into place, as
