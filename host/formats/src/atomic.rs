@@ -23,6 +23,17 @@ pub enum OutputError {
         /// What is there.
         what: &'static str,
     },
+    /// Something other than a directory is where an output directory goes.
+    #[error(
+        "{}: {what}; refusing to replace it (choose a new or empty directory)",
+        path.display()
+    )]
+    NotADirectory {
+        /// The output path.
+        path: PathBuf,
+        /// What is there.
+        what: &'static str,
+    },
     /// The output would replace one of an input directory's own records.
     #[error(
         "{}: would replace a file of the input {} (its manifest, lock or frames); choose \
@@ -178,7 +189,7 @@ pub fn check_output_dir(path: &Path, ours: impl Fn(&str) -> bool) -> Result<(), 
         Err(_) => return Ok(()), // nothing there (or unreachable: the write will say)
     };
     if let Some(what) = refusal(&meta.file_type(), true) {
-        return Err(OutputError::NotRegular { path: path.to_path_buf(), what });
+        return Err(OutputError::NotADirectory { path: path.to_path_buf(), what });
     }
     let foreign = |file: PathBuf| OutputError::Foreign { path: path.to_path_buf(), file };
     let entries = std::fs::read_dir(path).map_err(|_| foreign(path.to_path_buf()))?;
@@ -400,11 +411,11 @@ mod tests {
         {
             let link = root.path().join("link");
             std::os::unix::fs::symlink(&out, &link).unwrap();
-            assert!(matches!(check_output_dir(&link, exr), Err(OutputError::NotRegular { .. })));
+            assert!(matches!(check_output_dir(&link, exr), Err(OutputError::NotADirectory { .. })));
         }
         let file = root.path().join("f");
         std::fs::write(&file, "x").unwrap();
-        assert!(matches!(check_output_dir(&file, exr), Err(OutputError::NotRegular { .. })));
+        assert!(matches!(check_output_dir(&file, exr), Err(OutputError::NotADirectory { .. })));
         assert!(matches!(check_output_dir(Path::new("."), exr), Err(OutputError::Unnamed { .. })));
         assert!(matches!(check_output_dir(Path::new("/"), exr), Err(OutputError::Unnamed { .. })));
         // A dropped staging directory leaves nothing.
