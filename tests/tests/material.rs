@@ -1,9 +1,10 @@
 //! Material builder II end to end on the simulator: `scanner build` on an
 //! HDR scan → one material file; its fidelity against the ground truth at
 //! the captured and at novel pairs, default and patent interpolation;
-//! `scanner shade`; bad inputs refused with exit 3 and nothing written.
-//! The full-resolution table is `cargo run --release -p tests --example
-//! material_fidelity` (docs/benchmarks.md).
+//! `scanner shade`; `scanner export`'s texture sets; bad inputs refused
+//! with exit 3 and nothing written. The full-resolution tables are `cargo
+//! run --release -p tests --example material_fidelity` and `--example
+//! export_fidelity` (docs/benchmarks.md).
 
 mod common;
 
