@@ -31,10 +31,7 @@ fn main() {
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     let list: String =
         tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
-    let format = match tests::arg("--format", "exr".to_string()).as_str() {
-        "png" => MapFormat::Png,
-        _ => MapFormat::Exr,
-    };
+    let format: MapFormat = tests::arg("--format", MapFormat::Exr);
     let without_detail = std::env::args().any(|a| a == "--without-detail");
     let materials: Vec<&str> = list.split(',').collect();
     let (g, cal, truth) = tests::scanned_and_calibrated(&out, seed, bin, mirrors, &materials);

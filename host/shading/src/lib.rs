@@ -704,12 +704,22 @@ impl Footprint {
     /// n × n grid of texel centres.
     #[inline(always)]
     fn on(n: usize, uv: [f32; 2]) -> Footprint {
-        let (x0, x1, tx) = taps(n, uv[0] - uv[0].floor());
-        let (y0, y1, ty) = taps(n, uv[1] - uv[1].floor());
-        let texel = [y0 * n + x0, y0 * n + x1, y1 * n + x0, y1 * n + x1].map(|t| t as u32);
-        let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
+        let (texel, w) = bilinear_footprint(n, uv);
         Footprint { texel, w }
     }
+}
+
+/// How the shading interpolates every per-texel table (index images, texel
+/// model, detail layer): the four texels (`y · n + x`) around a finite uv
+/// (wrapped into [0, 1)) on an n × n grid of texel centres, clamped at the
+/// borders, and their bilinear weights.
+#[inline(always)]
+pub fn bilinear_footprint(n: usize, uv: [f32; 2]) -> ([u32; 4], [f32; 4]) {
+    let (x0, x1, tx) = taps(n, uv[0] - uv[0].floor());
+    let (y0, y1, ty) = taps(n, uv[1] - uv[1].floor());
+    let texel = [y0 * n + x0, y0 * n + x1, y1 * n + x0, y1 * n + x1].map(|t| t as u32);
+    let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
+    (texel, w)
 }
 
 /// A query between the stages of the default interpolation.

@@ -25,6 +25,17 @@ pub enum MapFormat {
     Png,
 }
 
+impl std::str::FromStr for MapFormat {
+    type Err = String;
+    fn from_str(s: &str) -> Result<MapFormat, String> {
+        match s {
+            "exr" => Ok(MapFormat::Exr),
+            "png" => Ok(MapFormat::Png),
+            _ => Err(format!("{s}: the maps are `exr` or `png`")),
+        }
+    }
+}
+
 impl MapFormat {
     /// The maps' file extension.
     pub fn extension(self) -> &'static str {
@@ -112,7 +123,16 @@ pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
         diffuse: params.iter().map(|p| p.diffuse).collect(),
         specular: params.iter().map(|p| keep_lobe(p.specular)).collect(),
         roughness: params.iter().map(|p| p.alpha.sqrt().clamp(0.0, 1.0)).collect(),
-        normal: params.iter().map(|p| unit_normal(p.normal)).collect(),
+        // The stored x, y give z (`TexelParams::from_stored`): unit but for
+        // rounding, which this takes out.
+        normal: params
+            .iter()
+            .map(|p| {
+                let n = p.normal;
+                let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+                n.map(|c| c / l)
+            })
+            .collect(),
     })
 }
 
@@ -128,28 +148,12 @@ fn keep_lobe(f0: [f32; 3]) -> [f32; 3] {
     if f0.iter().all(|&f| f <= 0.0) { [MIN_F0; 3] } else { f0 }
 }
 
-/// The stored parameters of an `s` × `s` grid at `uv`, interpolated
-/// bilinearly between texel centres and clamped at the borders, as the
+/// The stored parameters of an `s` × `s` grid at `uv`, interpolated as the
 /// shading interpolates them.
 fn bilinear(v: &[[f32; STORED]], s: usize, uv: [f32; 2]) -> [f32; STORED] {
-    let tap = |u: f32| {
-        let x = (u * s as f32 - 0.5).clamp(0.0, (s - 1) as f32);
-        let i = (x.floor() as usize).min(s - 1);
-        (i, (i + 1).min(s - 1), x - i as f32)
-    };
-    let (x0, x1, tx) = tap(uv[0]);
-    let (y0, y1, ty) = tap(uv[1]);
-    let at = |x: usize, y: usize| &v[y * s + x];
-    let w = [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty];
-    let t = [at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1)];
+    let (t, w) = scanner_shading::bilinear_footprint(s, uv);
+    let t = t.map(|i| &v[i as usize]);
     std::array::from_fn(|k| w[0] * t[0][k] + w[1] * t[1][k] + w[2] * t[2][k] + w[3] * t[3][k])
-}
-
-/// A normal made unit (the stored x, y of an interpolated normal give a
-/// z that makes it unit already; this guards the rounding).
-fn unit_normal(n: [f32; 3]) -> [f32; 3] {
-    let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-    if l > 0.0 && n[2] > 0.0 { n.map(|c| c / l) } else { [0.0, 0.0, 1.0] }
 }
 
 /// sRGB encoding of a linear value in [0, 1].
@@ -255,12 +259,11 @@ fn toml_string(s: &str) -> String {
 
 /// Whether `name` is a file a texture-set export writes.
 pub fn is_texture_set_file(name: &str) -> bool {
-    name == DESCRIPTION
-        || MAPS.iter().any(|m| {
-            [MapFormat::Exr, MapFormat::Png].iter().any(|f| {
-                name.strip_prefix(m).and_then(|r| r.strip_prefix('.')) == Some(f.extension())
-            })
-        })
+    let map = |(stem, ext): (&str, &str)| {
+        MAPS.contains(&stem)
+            && [MapFormat::Exr, MapFormat::Png].map(MapFormat::extension).contains(&ext)
+    };
+    name == DESCRIPTION || name.split_once('.').is_some_and(map)
 }
 
 #[cfg(test)]

@@ -796,10 +796,11 @@ pub fn export_cmd(
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
     let damaged = |e| Failure(3, anyhow!("{}: {e}", material.display()));
     let data = scanner_shading::format::MaterialData::from_bytes(&bytes).map_err(damaged)?;
-    // Only a file the shading opens: its direction tables checked too.
-    scanner_shading::Material::from_data(data.clone()).map_err(damaged)?;
     let set = texture_set(&data)
         .map_err(|e| Failure(e.exit_code(), anyhow!("{}: {e}", material.display())))?;
+    let (name, components) = (data.meta.name.clone(), data.meta.detail_components);
+    // Only a file the shading opens: its direction tables checked too.
+    scanner_shading::Material::from_data(data).map_err(damaged)?;
     // Written into a fresh sibling directory, then swapped into place, as
     // `scanner regions` does: never half a set, never two runs mixed.
     let place = |e: std::io::Error| Failure(4, anyhow!("{}: {e}", output.display()));
@@ -809,17 +810,16 @@ pub fn export_cmd(
     crate::fsutil::replace_dir(staging, output).map_err(place)?;
     println!(
         "{}: texture set of {1}² texels over {2} mm ({3}: {4}) → {5}",
-        data.meta.name,
+        name,
         set.side,
         set.size_mm,
         format.extension(),
         crate::build::export::MAPS.join(", "),
         output.display()
     );
-    if data.meta.detail_components > 0 {
+    if components > 0 {
         println!(
-            "  the detail layer's {} light components vary with the light: left out",
-            data.meta.detail_components
+            "  the detail layer's {components} light components vary with the light: left out"
         );
     }
     Ok(())

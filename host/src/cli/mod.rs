@@ -557,11 +557,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {
-            let format = if format == "png" {
-                crate::build::export::MapFormat::Png
-            } else {
-                crate::build::export::MapFormat::Exr
-            };
+            let format = format.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?;
             build::export_cmd(&material, &output, format)?
         }
         Command::Info { device } => commands::info(&device)?,
