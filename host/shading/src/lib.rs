@@ -24,9 +24,27 @@
 //! Below the horizon (wi.z ≤ 0 or wo.z ≤ 0) the answer is 0. uv ∈ [0, 1]²
 //! spans the material's extent (`Metadata::extent_mm`) and wraps outside
 //! it, so a renderer may tile the material.
+//!
+//! **Sampling.** [`Material::sample`] draws wi for a view wo with a density
+//! close to f · cos θi and returns it with `eval`'s answer and its density;
+//! [`Material::pdf`] gives that density for any wi, for multiple
+//! importance sampling ([`importance`] says how; call
+//! [`Material::prepare_importance`] before rendering).
+//!
+//! ```no_run
+//! # let m = scanner_shading::Material::open("m.material".as_ref())?;
+//! m.prepare_importance();
+//! let wo = [0.3, 0.0, 0.954];
+//! if let Some(s) = m.sample([0.5, 0.5], wo, 0.42, [0.1, 0.7]) {
+//!     let throughput = s.weight(); // f · cos θi / pdf
+//!     assert_eq!(s.pdf, m.pdf(s.wi, wo));
+//! }
+//! # Ok::<(), scanner_shading::MaterialError>(())
+//! ```
 
 pub mod error;
 pub mod format;
+pub mod importance;
 pub mod locate;
 pub mod texel;
 
@@ -35,6 +53,7 @@ use std::path::Path;
 pub use error::MaterialError;
 use format::DirectionTables;
 pub use format::{Interpolation, MaterialData, Metadata};
+pub use importance::BsdfSample;
 use locate::{CellLocator, TriangleLocator};
 
 /// One shading request for [`Material::eval_batch`]. Laid out as C's
@@ -71,7 +90,8 @@ enum Directions {
 }
 
 /// A scanned material, ready to shade. `Send + Sync`: share one between
-/// threads; no query allocates.
+/// threads; no query allocates (no sampling query either, once
+/// [`Material::prepare_importance`] has run).
 #[derive(Debug, Clone)]
 pub struct Material {
     meta: Metadata,
@@ -95,6 +115,8 @@ pub struct Material {
     components: usize,
     /// `[L][R]` each light's coefficients on them.
     detail_coefficients: Vec<f32>,
+    /// The views' tables of half vectors for [`Material::sample`].
+    importance: importance::Importance,
 }
 
 /// The detail layer's factor at a point (docs/material-format.md, "Detail
@@ -285,6 +307,7 @@ impl Material {
                 .collect()
         };
         let (ld, vd) = (dirs(&m.lights), dirs(&m.views));
+        let importance = importance::Importance::new(vd.clone());
         let mut palettes = vec![[0.0f32; 3]; d.palettes.len()];
         for li in 0..nl {
             let inv_cos = 1.0 / ld[li][2];
@@ -337,6 +360,7 @@ impl Material {
             },
             components: m.detail_components as usize,
             detail_coefficients: d.detail_coefficients,
+            importance,
             meta: d.meta,
         })
     }

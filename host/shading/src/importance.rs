@@ -1,0 +1,359 @@
+//! Importance sampling of a material: [`Material::sample`] draws a light
+//! direction wi for a view wo with a density close to the material's
+//! f · cos θi, and [`Material::pdf`] gives that density, for a renderer's
+//! path tracing and multiple importance sampling.
+//!
+//! **The distribution** (docs/material-format.md, "Importance sampling") is
+//! a mixture: with probability [`COSINE_SHARE`] a cosine-weighted direction,
+//! otherwise a half vector h drawn from a table of the view nearest wo,
+//! reflected: wi = 2 (wo · h) h − wo. Each captured view j has a
+//! piecewise-constant table of h over an N × N grid ([`GRID`]) on the square
+//! of Shirley and Chiu's concentric map (square → disk, equal-area; disk →
+//! hemisphere by z = √(1 − r²)); a cell's probability is the material's mean
+//! luminance of f · cos θi there, over sixteen uv points, times the
+//! Jacobian from the square to wi. A table in half vectors keeps a lobe in
+//! place when wo moves away from its view; the cosine share covers what the
+//! tables miss (another uv, a view between the captured ones), so the
+//! density is positive wherever cos θi is.
+//!
+//! Tables are built on first use, one view at a time (about 65 000 `eval`s
+//! each), or all at once by [`Material::prepare_importance`]; after that no
+//! query allocates.
+
+use std::f32::consts::{FRAC_PI_2, FRAC_PI_4, PI};
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use crate::{Material, ShadeQuery, unit, unit_above};
+
+/// Cells along each side of a view's table of half vectors.
+pub const GRID: usize = 64;
+/// The probability of a cosine-weighted direction rather than one from the
+/// view's table.
+pub const COSINE_SHARE: f32 = 0.1;
+/// The uv points a table averages over: a rank-1 lattice (generator 7) of
+/// 16 points; sub-point s of a cell reads the four points i ≡ s (mod 4).
+const UV_POINTS: usize = 16;
+
+/// A direction drawn by [`Material::sample`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BsdfSample {
+    /// Towards the light, sample-local, unit, above the horizon.
+    pub wi: [f32; 3],
+    /// f · cos θi at (uv, wi, wo): exactly [`Material::eval`]'s answer.
+    pub f_cos: [f32; 3],
+    /// The density of wi per unit solid angle: exactly
+    /// [`Material::pdf`]`(wi, wo)`, > 0.
+    pub pdf: f32,
+}
+
+impl BsdfSample {
+    /// The Monte Carlo weight f · cos θi / pdf.
+    pub fn weight(&self) -> [f32; 3] {
+        self.f_cos.map(|c| c / self.pdf)
+    }
+}
+
+/// Every view's table, each built on first use.
+#[derive(Clone)]
+pub(crate) struct Importance {
+    /// The captured views' unit directions (f32, as the shading has them).
+    views: Vec<[f32; 3]>,
+    tables: Box<[OnceLock<Table>]>,
+}
+
+impl std::fmt::Debug for Importance {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let built = self.tables.iter().filter(|t| t.get().is_some()).count();
+        f.debug_struct("Importance")
+            .field("views", &self.views.len())
+            .field("built", &built)
+            .finish()
+    }
+}
+
+impl Importance {
+    pub(crate) fn new(views: Vec<[f32; 3]>) -> Importance {
+        let tables = views.iter().map(|_| OnceLock::new()).collect();
+        Importance { views, tables }
+    }
+
+    /// The view nearest a unit direction.
+    #[inline]
+    fn nearest(&self, wo: [f32; 3]) -> usize {
+        let mut best = (0, f32::NEG_INFINITY);
+        for (j, v) in self.views.iter().enumerate() {
+            let d = v[0] * wo[0] + v[1] * wo[1] + v[2] * wo[2];
+            if d > best.1 {
+                best = (j, d);
+            }
+        }
+        best.0
+    }
+}
+
+/// One view's piecewise-constant distribution of half vectors: the
+/// cumulative probabilities of its cells (row-major, y · GRID + x), from 0
+/// to exactly 1; a cell's probability is the difference of its two bounds.
+#[derive(Debug, Clone)]
+struct Table {
+    cdf: Box<[f32]>,
+}
+
+impl Table {
+    /// The table from its cells' weights (≥ 0, finite); uniform if they
+    /// are all 0.
+    fn from_weights(w: &[f64]) -> Table {
+        let total: f64 = w.iter().sum();
+        let mut cdf = Vec::with_capacity(w.len() + 1);
+        cdf.push(0.0f32);
+        let mut run = 0.0f64;
+        for (i, &x) in w.iter().enumerate() {
+            run += if total > 0.0 { x / total } else { 1.0 / w.len() as f64 };
+            cdf.push(if i + 1 == w.len() { 1.0 } else { run.min(1.0) as f32 });
+        }
+        Table { cdf: cdf.into() }
+    }
+
+    #[inline]
+    fn probability(&self, cell: usize) -> f32 {
+        self.cdf[cell + 1] - self.cdf[cell]
+    }
+
+    /// The density of a unit half vector above the horizon per unit solid
+    /// angle: P(cell) · N² / (4 · π/4) on the disk, times cos θh onto the
+    /// hemisphere.
+    #[inline]
+    fn density(&self, h: [f32; 3]) -> f32 {
+        let [x, y] = disk_to_square([h[0], h[1]]);
+        let cell = |t: f32| ((t * GRID as f32) as usize).min(GRID - 1);
+        let p = self.probability(cell(y) * GRID + cell(x));
+        p * (GRID * GRID) as f32 * h[2] / PI
+    }
+
+    /// A half vector: the cell whose bounds hold `uc`, at `u` within it.
+    #[inline]
+    fn sample(&self, uc: f32, u: [f32; 2]) -> [f32; 3] {
+        // The first bound above uc closes the cell (never an empty one:
+        // its bounds are equal and uc would have to be both below and not).
+        let cell = (self.cdf.partition_point(|&c| c <= uc) - 1).min(GRID * GRID - 1);
+        let (cx, cy) = (cell % GRID, cell / GRID);
+        let p = [(cx as f32 + u[0]) / GRID as f32, (cy as f32 + u[1]) / GRID as f32];
+        hemisphere(square_to_disk(p))
+    }
+}
+
+/// Shirley and Chiu's concentric map from [0, 1]² onto the unit disk
+/// (equal-area up to the factor π/4).
+#[inline]
+pub fn square_to_disk(p: [f32; 2]) -> [f32; 2] {
+    let (a, b) = (2.0 * p[0] - 1.0, 2.0 * p[1] - 1.0);
+    if a == 0.0 && b == 0.0 {
+        return [0.0, 0.0];
+    }
+    let (r, phi) = if a.abs() > b.abs() {
+        (a, FRAC_PI_4 * (b / a))
+    } else {
+        (b, FRAC_PI_2 - FRAC_PI_4 * (a / b))
+    };
+    [r * phi.cos(), r * phi.sin()]
+}
+
+/// The inverse of [`square_to_disk`], for a point in the closed disk.
+#[inline]
+pub fn disk_to_square(d: [f32; 2]) -> [f32; 2] {
+    let r = (d[0] * d[0] + d[1] * d[1]).sqrt();
+    let mut phi = d[1].atan2(d[0]);
+    if phi < -FRAC_PI_4 {
+        phi += 2.0 * PI;
+    }
+    let k = 1.0 / FRAC_PI_4;
+    let (a, b) = if phi < FRAC_PI_4 {
+        (r, phi * r * k)
+    } else if phi < 3.0 * FRAC_PI_4 {
+        ((FRAC_PI_2 - phi) * r * k, r)
+    } else if phi < 5.0 * FRAC_PI_4 {
+        (-r, (phi - PI) * -r * k)
+    } else {
+        ((3.0 * FRAC_PI_2 - phi) * -r * k, -r)
+    };
+    [((a + 1.0) * 0.5).clamp(0.0, 1.0), ((b + 1.0) * 0.5).clamp(0.0, 1.0)]
+}
+
+/// A disk point lifted onto the upper hemisphere.
+#[inline]
+fn hemisphere(d: [f32; 2]) -> [f32; 3] {
+    [d[0], d[1], (1.0 - d[0] * d[0] - d[1] * d[1]).max(0.0).sqrt()]
+}
+
+#[inline]
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// wo mirrored about the unit vector h.
+#[inline]
+fn reflect(wo: [f32; 3], h: [f32; 3]) -> [f32; 3] {
+    let k = 2.0 * dot(wo, h);
+    std::array::from_fn(|i| k * h[i] - wo[i])
+}
+
+/// A uniform number in [0, 1) from a renderer's: NaN and below 0 give 0,
+/// 1 and above the largest float below 1.
+#[inline]
+fn unit_interval(x: f32) -> f32 {
+    if x >= 0.0 { x.min(1.0 - f32::EPSILON / 2.0) } else { 0.0 }
+}
+
+impl Material {
+    /// Draw a direction towards the light for the view `wo` at `uv`, with
+    /// uniform numbers `uc` (which part of the mixture, then which cell)
+    /// and `u` (where): see the module documentation. `None` if wo is not
+    /// a direction above the horizon, uv is not finite, or the draw falls
+    /// on or below the horizon (a renderer counts it as a zero sample).
+    /// Builds the table of wo's view on its first use.
+    pub fn sample(
+        &self,
+        uv: [f32; 2],
+        given: [f32; 3],
+        uc: f32,
+        u: [f32; 2],
+    ) -> Option<BsdfSample> {
+        let wo = unit(given)?;
+        if wo[2] <= 0.0 || !uv.iter().all(|x| x.is_finite()) {
+            return None;
+        }
+        let (uc, u) = (unit_interval(uc), u.map(unit_interval));
+        let table = self.importance_table(wo);
+        let wi = if uc < COSINE_SHARE {
+            hemisphere(square_to_disk(u))
+        } else {
+            let h = table.sample(unit_interval((uc - COSINE_SHARE) / (1.0 - COSINE_SHARE)), u);
+            unit(reflect(wo, h))?
+        };
+        if wi[2] <= 0.0 {
+            return None;
+        }
+        // Through the public calls, so that a renderer asking them about
+        // this wi and its own wo gets the same bits.
+        let pdf = self.pdf(wi, given);
+        (pdf > 0.0).then(|| BsdfSample { wi, f_cos: self.eval(uv, wi, given), pdf })
+    }
+
+    /// The density per unit solid angle with which [`Self::sample`] draws
+    /// wi for the view wo (it does not depend on uv); 0 if either is not a
+    /// direction above the horizon. Builds the table of wo's view on its
+    /// first use.
+    pub fn pdf(&self, wi: [f32; 3], wo: [f32; 3]) -> f32 {
+        match unit_above(wi, wo) {
+            Some((wi, wo)) => mixture_pdf(self.importance_table(wo), wi, wo),
+            None => 0.0,
+        }
+    }
+
+    /// Build every view's table now, on all cores, rather than on first
+    /// use — before rendering, so that no sample waits or allocates.
+    pub fn prepare_importance(&self) {
+        let n = self.importance.tables.len();
+        let next = AtomicUsize::new(0);
+        let threads = std::thread::available_parallelism().map_or(1, |t| t.get()).min(n);
+        std::thread::scope(|s| {
+            for _ in 0..threads {
+                s.spawn(|| {
+                    loop {
+                        let j = next.fetch_add(1, Ordering::Relaxed);
+                        if j >= n {
+                            break;
+                        }
+                        self.table_of_view(j);
+                    }
+                });
+            }
+        });
+    }
+
+    /// The table of the view nearest the unit direction wo.
+    #[inline]
+    fn importance_table(&self, wo: [f32; 3]) -> &Table {
+        self.table_of_view(self.importance.nearest(wo))
+    }
+
+    fn table_of_view(&self, j: usize) -> &Table {
+        self.importance.tables[j].get_or_init(|| self.build_table(self.importance.views[j]))
+    }
+
+    /// A view's table, the mean of sixteen uv points' own distributions
+    /// (each normalised, so that a dim or broad point weighs as much as a
+    /// bright narrow one): point k's weight of a cell is the luminance of
+    /// f · cos θi at wi = h reflected, at the cell's sub-point k mod 4 of
+    /// 2 × 2, times the Jacobian dωi / dsquare ∝ (wo · h) / cos θh.
+    fn build_table(&self, wo: [f32; 3]) -> Table {
+        let uv: [[f32; 2]; UV_POINTS] = std::array::from_fn(|i| {
+            let y = ((7 * i) % UV_POINTS) as f32;
+            [(i as f32 + 0.5) / UV_POINTS as f32, (y + 0.5) / UV_POINTS as f32]
+        });
+        let per_point = UV_POINTS / 4;
+        // `[cell][sub-point][its uv points]`.
+        let mut point = vec![0.0f32; GRID * GRID * UV_POINTS];
+        let mut queries = Vec::with_capacity(GRID * UV_POINTS);
+        let mut jacobian = Vec::with_capacity(GRID * 4);
+        let mut out = vec![[0.0f32; 3]; GRID * UV_POINTS];
+        // A row of cells at a time.
+        for cy in 0..GRID {
+            queries.clear();
+            jacobian.clear();
+            for cx in 0..GRID {
+                for s in 0..4 {
+                    let p = [
+                        (cx as f32 + 0.25 + 0.5 * (s % 2) as f32) / GRID as f32,
+                        (cy as f32 + 0.25 + 0.5 * (s / 2) as f32) / GRID as f32,
+                    ];
+                    let h = hemisphere(square_to_disk(p));
+                    let wi = reflect(wo, h);
+                    let ok = h[2] > 1e-6 && wi[2] > 0.0 && dot(wo, h) > 0.0;
+                    jacobian.push(if ok { dot(wo, h) / h[2] } else { 0.0 });
+                    // Below the horizon: straight up, weighted 0.
+                    let wi = if ok { wi } else { [0.0, 0.0, 1.0] };
+                    for k in (s..UV_POINTS).step_by(4) {
+                        queries.push(ShadeQuery { uv: uv[k], wi, wo });
+                    }
+                }
+            }
+            self.eval_batch(&queries, &mut out);
+            let row = &mut point[cy * GRID * UV_POINTS..][..GRID * UV_POINTS];
+            for (i, (w, rgb)) in row.iter_mut().zip(&out).enumerate() {
+                let lum = (rgb[0] + rgb[1] + rgb[2]) / 3.0 * jacobian[i / per_point];
+                *w = if lum.is_finite() { lum.max(0.0) } else { 0.0 };
+            }
+        }
+        let mut total = [0.0f64; UV_POINTS];
+        for cell in point.chunks(UV_POINTS) {
+            for (i, &w) in cell.iter().enumerate() {
+                total[(i % per_point) * 4 + i / per_point] += w as f64;
+            }
+        }
+        let weights: Vec<f64> = point
+            .chunks(UV_POINTS)
+            .map(|cell| {
+                let k = |i: usize| (i % per_point) * 4 + i / per_point;
+                cell.iter()
+                    .enumerate()
+                    .filter(|&(i, _)| total[k(i)] > 0.0)
+                    .map(|(i, &w)| w as f64 / total[k(i)])
+                    .sum()
+            })
+            .collect();
+        Table::from_weights(&weights)
+    }
+}
+
+/// The mixture's density of unit wi (above the horizon) for unit wo.
+#[inline]
+fn mixture_pdf(table: &Table, wi: [f32; 3], wo: [f32; 3]) -> f32 {
+    let cosine = wi[2] / PI;
+    let half = match unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]) {
+        Some(h) if h[2] > 0.0 => table.density(h) / (4.0 * dot(wo, h)),
+        _ => 0.0,
+    };
+    COSINE_SHARE * cosine + (1.0 - COSINE_SHARE) * half
+}
