@@ -4,17 +4,26 @@
 //! path tracing and multiple importance sampling.
 //!
 //! **The distribution** (docs/material-format.md, "Importance sampling") is
-//! a mixture: with probability [`COSINE_SHARE`] a cosine-weighted direction,
-//! otherwise a half vector h drawn from a table of the view nearest wo,
-//! reflected: wi = 2 (wo · h) h − wo. Each captured view j has a
-//! piecewise-constant table of h over an N × N grid ([`GRID`]) on the square
-//! of Shirley and Chiu's concentric map (square → disk, equal-area; disk →
-//! hemisphere by z = √(1 − r²)); a cell's probability is the material's mean
-//! luminance of f · cos θi there, over sixteen uv points, times the
-//! Jacobian from the square to wi. A table in half vectors keeps a lobe in
-//! place when wo moves away from its view; the cosine share covers what the
-//! tables miss (another uv, a view between the captured ones), so the
-//! density is positive wherever cos θi is.
+//! a mixture: with probability s a cosine-weighted direction, otherwise a
+//! half vector h drawn from a table of the view nearest wo, reflected:
+//! wi = 2 (wo · h) h − wo. Each captured view j has a piecewise-constant
+//! table of h over an N × N grid ([`GRID`]) on the square of Shirley and
+//! Chiu's concentric map (square → disk, equal-area; disk → hemisphere by
+//! z = √(1 − r²)). A table in half vectors keeps a lobe in place when wo
+//! moves away from its view.
+//!
+//! A table is the mean of sixteen uv points' own distributions, each
+//! normalised so that a dim or broad point counts as much as a bright,
+//! narrow one; point k's weight of a cell is the luminance of f · cos θi at
+//! one of the cell's 2 × 2 sub-points, times the Jacobian from the square
+//! to wi. The four sub-points are seen from four directions around view j,
+//! as far from it as halfway to its nearest neighbour, so that the table
+//! also covers the half vectors of the view directions that will use it.
+//! The cosine share s is the table's own: of [`SHARES`], the one under
+//! which the uv points' samples would vary least (the worst point's
+//! relative variance, each point left out of the table in turn). Cosine
+//! sampling covers what the table misses, so the density is positive
+//! wherever cos θi is.
 //!
 //! Tables are built on first use, one view at a time (about 65 000 `eval`s
 //! each), or all at once by [`Material::prepare_importance`]; after that no
@@ -28,9 +37,13 @@ use crate::{Material, ShadeQuery, unit, unit_above};
 
 /// Cells along each side of a view's table of half vectors.
 pub const GRID: usize = 64;
-/// The probability of a cosine-weighted direction rather than one from the
-/// view's table.
-pub const COSINE_SHARE: f32 = 0.1;
+/// The probabilities of a cosine-weighted direction rather than one from
+/// the view's table that a table may choose: the one whose samples vary
+/// least at its uv points, each left out of the table in turn.
+pub const SHARES: [f32; 8] = [0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0];
+/// The share of a table that cannot choose (fewer than two uv points see
+/// anything).
+const DEFAULT_SHARE: f32 = 0.2;
 /// The uv points a table averages over: a rank-1 lattice (generator 7) of
 /// 16 points; sub-point s of a cell reads the four points i ≡ s (mod 4).
 const UV_POINTS: usize = 16;
@@ -59,6 +72,9 @@ impl BsdfSample {
 pub(crate) struct Importance {
     /// The captured views' unit directions (f32, as the shading has them).
     views: Vec<[f32; 3]>,
+    /// Per view, the sine of half the angle to its nearest other view: how
+    /// far from it a view direction may be and still use its table.
+    reach: Vec<f32>,
     tables: Box<[OnceLock<Table>]>,
 }
 
@@ -75,7 +91,20 @@ impl std::fmt::Debug for Importance {
 impl Importance {
     pub(crate) fn new(views: Vec<[f32; 3]>) -> Importance {
         let tables = views.iter().map(|_| OnceLock::new()).collect();
-        Importance { views, tables }
+        let reach = views
+            .iter()
+            .enumerate()
+            .map(|(j, a)| {
+                let nearest = (views.iter().enumerate())
+                    .filter(|&(k, _)| k != j)
+                    .map(|(_, b)| dot(*a, *b))
+                    .fold(-1.0f32, f32::max);
+                // Half the angle: sin(θ/2) = √((1 − cos θ) / 2); a lone view
+                // reaches 30°.
+                if views.len() > 1 { ((1.0 - nearest) / 2.0).max(0.0).sqrt() } else { 0.5 }
+            })
+            .collect();
+        Importance { views, reach, tables }
     }
 
     /// The view nearest a unit direction.
@@ -98,12 +127,15 @@ impl Importance {
 #[derive(Debug, Clone)]
 struct Table {
     cdf: Box<[f32]>,
+    /// The probability of a cosine-weighted direction instead (one of
+    /// [`SHARES`]).
+    share: f32,
 }
 
 impl Table {
     /// The table from its cells' weights (≥ 0, finite); uniform if they
     /// are all 0.
-    fn from_weights(w: &[f64]) -> Table {
+    fn from_weights(w: &[f64], share: f32) -> Table {
         let total: f64 = w.iter().sum();
         let mut cdf = Vec::with_capacity(w.len() + 1);
         cdf.push(0.0f32);
@@ -112,7 +144,7 @@ impl Table {
             run += if total > 0.0 { x / total } else { 1.0 / w.len() as f64 };
             cdf.push(if i + 1 == w.len() { 1.0 } else { run.min(1.0) as f32 });
         }
-        Table { cdf: cdf.into() }
+        Table { cdf: cdf.into(), share }
     }
 
     #[inline]
@@ -225,10 +257,10 @@ impl Material {
         }
         let (uc, u) = (unit_interval(uc), u.map(unit_interval));
         let table = self.importance_table(wo);
-        let wi = if uc < COSINE_SHARE {
+        let wi = if uc < table.share {
             hemisphere(square_to_disk(u))
         } else {
-            let h = table.sample(unit_interval((uc - COSINE_SHARE) / (1.0 - COSINE_SHARE)), u);
+            let h = table.sample(unit_interval((uc - table.share) / (1.0 - table.share)), u);
             unit(reflect(wo, h))?
         };
         if wi[2] <= 0.0 {
@@ -279,15 +311,13 @@ impl Material {
     }
 
     fn table_of_view(&self, j: usize) -> &Table {
-        self.importance.tables[j].get_or_init(|| self.build_table(self.importance.views[j]))
+        let imp = &self.importance;
+        imp.tables[j].get_or_init(|| self.build_table(around(imp.views[j], imp.reach[j])))
     }
 
-    /// A view's table, the mean of sixteen uv points' own distributions
-    /// (each normalised, so that a dim or broad point weighs as much as a
-    /// bright narrow one): point k's weight of a cell is the luminance of
-    /// f · cos θi at wi = h reflected, at the cell's sub-point k mod 4 of
-    /// 2 × 2, times the Jacobian dωi / dsquare ∝ (wo · h) / cos θh.
-    fn build_table(&self, wo: [f32; 3]) -> Table {
+    /// A view's table from its four surrounding directions (see the
+    /// module documentation).
+    fn build_table(&self, views: [[f32; 3]; 4]) -> Table {
         let uv: [[f32; 2]; UV_POINTS] = std::array::from_fn(|i| {
             let y = ((7 * i) % UV_POINTS) as f32;
             [(i as f32 + 0.5) / UV_POINTS as f32, (y + 0.5) / UV_POINTS as f32]
@@ -297,13 +327,17 @@ impl Material {
         let mut point = vec![0.0f32; GRID * GRID * UV_POINTS];
         let mut queries = Vec::with_capacity(GRID * UV_POINTS);
         let mut jacobian = Vec::with_capacity(GRID * 4);
+        // Per cell, cosine sampling's density on the square (area 1): the
+        // mean of its sub-points' cos θi / π · dωi/dsquare, which is
+        // 4 cos θi (wo · h) / cos θh each.
+        let mut cosine = vec![0.0f64; GRID * GRID];
         let mut out = vec![[0.0f32; 3]; GRID * UV_POINTS];
         // A row of cells at a time.
         for cy in 0..GRID {
             queries.clear();
             jacobian.clear();
             for cx in 0..GRID {
-                for s in 0..4 {
+                for (s, &wo) in views.iter().enumerate() {
                     let p = [
                         (cx as f32 + 0.25 + 0.5 * (s % 2) as f32) / GRID as f32,
                         (cy as f32 + 0.25 + 0.5 * (s / 2) as f32) / GRID as f32,
@@ -312,6 +346,10 @@ impl Material {
                     let wi = reflect(wo, h);
                     let ok = h[2] > 1e-6 && wi[2] > 0.0 && dot(wo, h) > 0.0;
                     jacobian.push(if ok { dot(wo, h) / h[2] } else { 0.0 });
+                    if ok {
+                        // 4 × … / 4 sub-points.
+                        cosine[cy * GRID + cx] += (wi[2] * dot(wo, h) / h[2]) as f64;
+                    }
                     // Below the horizon: straight up, weighted 0.
                     let wi = if ok { wi } else { [0.0, 0.0, 1.0] };
                     for k in (s..UV_POINTS).step_by(4) {
@@ -326,34 +364,87 @@ impl Material {
                 *w = if lum.is_finite() { lum.max(0.0) } else { 0.0 };
             }
         }
-        let mut total = [0.0f64; UV_POINTS];
-        for cell in point.chunks(UV_POINTS) {
+        // Each point's distribution over the cells (`p[k][cell]`), of the
+        // points that see anything.
+        let k_of = |i: usize| (i % per_point) * 4 + i / per_point;
+        let mut p = vec![vec![0.0f64; GRID * GRID]; UV_POINTS];
+        for (c, cell) in point.chunks(UV_POINTS).enumerate() {
             for (i, &w) in cell.iter().enumerate() {
-                total[(i % per_point) * 4 + i / per_point] += w as f64;
+                p[k_of(i)][c] = w as f64;
             }
         }
-        let weights: Vec<f64> = point
-            .chunks(UV_POINTS)
-            .map(|cell| {
-                let k = |i: usize| (i % per_point) * 4 + i / per_point;
-                cell.iter()
-                    .enumerate()
-                    .filter(|&(i, _)| total[k(i)] > 0.0)
-                    .map(|(i, &w)| w as f64 / total[k(i)])
-                    .sum()
-            })
-            .collect();
-        Table::from_weights(&weights)
+        p.retain_mut(|pk| {
+            let total: f64 = pk.iter().sum();
+            pk.iter_mut().for_each(|x| *x /= total);
+            total > 0.0 && total.is_finite()
+        });
+        let n = p.len() as f64;
+        let weights: Vec<f64> =
+            (0..GRID * GRID).map(|c| p.iter().map(|pk| pk[c]).sum::<f64>() / n).collect();
+        let share = if p.len() < 2 { DEFAULT_SHARE } else { choose_share(&p, &weights, &cosine) };
+        Table::from_weights(&weights, share)
     }
+}
+
+/// Four view directions around unit `wo`, `reach` (a sine) from it at
+/// right angles to one another, kept above the horizon: a table built
+/// from them serves every view direction nearer `wo` than any other view.
+fn around(wo: [f32; 3], reach: f32) -> [[f32; 3]; 4] {
+    // A frame about wo.
+    let t = unit([-wo[1], wo[0], 0.0]).unwrap_or([1.0, 0.0, 0.0]);
+    let b = [wo[1] * t[2] - wo[2] * t[1], wo[2] * t[0] - wo[0] * t[2], wo[0] * t[1] - wo[1] * t[0]];
+    let c = (1.0 - reach * reach).max(0.0).sqrt();
+    std::array::from_fn(|s| {
+        let (x, y) = [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)][s];
+        let mut d: [f32; 3] = std::array::from_fn(|i| c * wo[i] + reach * (x * t[i] + y * b[i]));
+        d[2] = d[2].max(0.02);
+        unit(d).unwrap_or(wo)
+    })
+}
+
+/// The share of cosine sampling whose samples vary least at the uv points:
+/// point k's distribution `p[k]` drawn from the mixture of `cosine` (the
+/// density on the square) and the table of the others
+/// (`mean` without it) has a relative variance
+/// Σ_cells p_k² / (area · density) − 1; the share with the least mean.
+fn choose_share(p: &[Vec<f64>], mean: &[f64], cosine: &[f64]) -> f32 {
+    let n = p.len() as f64;
+    let area = 1.0 / mean.len() as f64;
+    let variance = |share: f64| -> f64 {
+        p.iter()
+            .map(|pk| {
+                let mut v = 0.0;
+                for c in 0..mean.len() {
+                    if pk[c] > 0.0 {
+                        let others = (n * mean[c] - pk[c]).max(0.0) / (n - 1.0);
+                        let q = share * cosine[c] + (1.0 - share) * others / area;
+                        v += if q > 0.0 { pk[c] * pk[c] / (area * q) } else { f64::INFINITY };
+                    }
+                }
+                v - 1.0
+            })
+            .fold(0.0f64, f64::max)
+    };
+    let mut best = (DEFAULT_SHARE, f64::INFINITY);
+    for s in SHARES {
+        let v = variance(s as f64);
+        if v < best.1 {
+            best = (s, v);
+        }
+    }
+    best.0
 }
 
 /// The mixture's density of unit wi (above the horizon) for unit wo.
 #[inline]
 fn mixture_pdf(table: &Table, wi: [f32; 3], wo: [f32; 3]) -> f32 {
     let cosine = wi[2] / PI;
+    if table.share >= 1.0 {
+        return cosine;
+    }
     let half = match unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]) {
         Some(h) if h[2] > 0.0 => table.density(h) / (4.0 * dot(wo, h)),
         _ => 0.0,
     };
-    COSINE_SHARE * cosine + (1.0 - COSINE_SHARE) * half
+    table.share * cosine + (1.0 - table.share) * half
 }

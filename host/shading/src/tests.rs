@@ -1185,24 +1185,24 @@ fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {
 }
 
 #[test]
-fn importance_sampling_is_unbiased_and_beats_cosine_sampling_where_the_lobe_is_narrow() {
+fn importance_sampling_is_unbiased_and_beats_cosine_sampling() {
     // ∫ f cos θi dωi at one uv and wo: by quadrature, by the material's
     // samples and by cosine-weighted ones, 20 000 each. The test material's
-    // lobe widens along u (α 0.1 at column 0 to 0.45 at column 7), and the
-    // tables average over uv: where the lobe is narrower than the mean the
-    // samples must beat cosine sampling; at the broadest they lose to it
-    // (5 to 10 times its variance: docs/material-format.md, "Importance
-    // sampling"), but stay unbiased.
+    // lobe widens along u (α 0.1 at column 0 to 0.45 at column 7) and the
+    // tables average over uv: where the lobe is narrow the samples beat
+    // cosine sampling by far, at the broadest they about match it (measured
+    // 0.14, 0.08, 0.003, 0.39, 1.35 of its variance). The views asked are
+    // not captured ones (but for the zenith).
     let m = Material::from_data(material_with_model()).unwrap();
     let lum = |c: [f32; 3]| (c[0] + c[1] + c[2]) as f64 / 3.0;
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     let oblique = unit_f32([0.5, 0.2, 0.8]);
     for (uv, wo, most) in [
-        ([0.1, 0.7], [0.0, 0.0, 1.0], Some(0.25f64)),
-        ([0.05, 0.3], oblique, Some(0.25)),
-        ([0.05, 0.3], unit_f32([-0.9, 0.3, 0.3]), Some(0.05)),
-        ([0.5, 0.3], oblique, None),
-        ([0.9, 0.3], oblique, None),
+        ([0.1, 0.7], [0.0, 0.0, 1.0], 0.3),
+        ([0.05, 0.3], oblique, 0.3),
+        ([0.05, 0.3], unit_f32([-0.9, 0.3, 0.3]), 0.05),
+        ([0.5, 0.3], oblique, 1.0),
+        ([0.9, 0.3], oblique, 3.0),
     ] {
         let truth: f64 = hemisphere_grid(64, 128, 4)
             .map(|(_, wi, dw)| lum(m.eval(uv, wi, wo)) * dw as f64)
@@ -1228,9 +1228,7 @@ fn importance_sampling_is_unbiased_and_beats_cosine_sampling_where_the_lobe_is_n
         let ratio = var / (c2 / nf - (c1 / nf).powi(2));
         let err = (mean - truth) / (var / nf).sqrt();
         assert!(err.abs() < 4.0, "{uv:?} {wo:?}: {mean} against {truth} ({err:.2} σ)");
-        if let Some(most) = most {
-            assert!(ratio < most, "{uv:?} {wo:?}: variance {ratio:.3} × cosine sampling's");
-        }
+        assert!(ratio < most, "{uv:?} {wo:?}: variance {ratio:.3} × cosine sampling's");
     }
 }
 
