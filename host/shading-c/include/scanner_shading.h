@@ -16,8 +16,9 @@
  * wo per unit irradiance arriving along wi at normal incidence. Like
  * Mitsuba's BSDF::eval, unlike pbrt's f(), which excludes the cosine.
  *
- * Threads: a handle is immutable once opened. Any number of threads may
- * call the eval, extent and metadata functions on one handle at once;
+ * Threads: a handle is immutable once opened (sampling tables are built
+ * once, safely). Any number of threads may call the eval, sample, pdf,
+ * extent and metadata functions on one handle at once;
  * scanner_material_free must come after all of them. No call allocates
  * per query, and none unwinds or aborts on bad input.
  */
@@ -85,6 +86,35 @@ ScannerRgb scanner_material_eval(const ScannerMaterial *m, ScannerShadeQuery que
  * count > 0 (nothing written). The arrays must not overlap. */
 int scanner_material_eval_batch(const ScannerMaterial *m, const ScannerShadeQuery *queries,
                                 size_t count, ScannerRgb *out);
+
+/* A direction drawn by scanner_material_sample: 28 bytes, the layout of
+ * scanner_shading::BsdfSample. */
+typedef struct ScannerBsdfSample {
+    float wi[3];    /* towards the light, unit, above the horizon */
+    float f_cos[3]; /* f * cos(theta_i) at (uv, wi, wo): scanner_material_eval's answer */
+    float pdf;      /* density of wi per unit solid angle: scanner_material_pdf's answer, > 0 */
+} ScannerBsdfSample;
+
+/* Importance sampling: draw a direction towards the light for the view wo
+ * (3 floats) at uv (2 floats) from uniform numbers uc and u[2] in [0, 1)
+ * (others are clamped into it), with a density close to f * cos(theta_i).
+ * Returns 1 with the draw in *out, or 0 with nothing written if there is
+ * none: wo not above the horizon, uv not finite, a draw below the horizon
+ * (count it as a zero sample), a NULL pointer. Throughput: f_cos / pdf.
+ * The tables of wo's view are built on first use (see below). */
+int scanner_material_sample(const ScannerMaterial *m, const float uv[2], const float wo[3],
+                            float uc, const float u[2], ScannerBsdfSample *out);
+
+/* The density per unit solid angle with which scanner_material_sample
+ * draws wi for the view wo (it does not depend on uv), for multiple
+ * importance sampling; 0 if either is not a direction above the horizon
+ * or a pointer is NULL. */
+float scanner_material_pdf(const ScannerMaterial *m, const float wi[3], const float wo[3]);
+
+/* Build every view's sampling table now, on all cores (well under a second
+ * for a scanned material), rather than on first use: call it before
+ * rendering and no sample waits or allocates. */
+void scanner_material_prepare_importance(const ScannerMaterial *m);
 
 /* The size of what uv in [0, 1]^2 spans, mm: out[0] along u, out[1] along
  * v. Zeros for a NULL handle. */

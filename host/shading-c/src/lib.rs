@@ -12,6 +12,10 @@
 //!   `scanner_material_eval_batch` many (the faster form: docs/benchmarks.md,
 //!   "Shading speed"). Neither allocates. The answer is f · cos θi, linear
 //!   RGB, in the sample's frame (docs/material-format.md, "Shading").
+//! - `scanner_material_sample` draws a light direction with a density close
+//!   to f · cos θi, `scanner_material_pdf` gives that density (for multiple
+//!   importance sampling); `scanner_material_prepare_importance` builds
+//!   their tables up front, after which neither allocates.
 //! - A handle is immutable once opened: any number of threads may shade
 //!   with one handle at once; only `scanner_material_free` must come after
 //!   every other call on it.
@@ -273,6 +277,101 @@ pub unsafe extern "C" fn scanner_material_eval_batch(
             o.fill([0.0; 3]);
             SCANNER_ERROR_INTERNAL
         }
+    }
+}
+
+/// A drawn direction (the header's `ScannerBsdfSample`,
+/// [`scanner_shading::BsdfSample`]).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ScannerBsdfSample {
+    /// Towards the light, unit, above the horizon.
+    pub wi: [f32; 3],
+    /// f · cos θi at (uv, wi, wo), as `scanner_material_eval` answers.
+    pub f_cos: [f32; 3],
+    /// wi's density per unit solid angle, as `scanner_material_pdf` answers.
+    pub pdf: f32,
+}
+
+const _: () = assert!(size_of::<ScannerBsdfSample>() == 28);
+
+/// `n` floats at `p`, or `None` for a null pointer.
+///
+/// # Safety
+/// `p` null or readable for `n` floats.
+unsafe fn floats<const N: usize>(p: *const f32) -> Option<[f32; N]> {
+    // SAFETY: null or readable for N floats, as the caller's contract says.
+    (!p.is_null()).then(|| unsafe { std::ptr::read_unaligned(p.cast::<[f32; N]>()) })
+}
+
+/// Draw a direction towards the light for the view `wo` at `uv` from
+/// uniform numbers `uc` and `u` ([`Material::sample`]). Returns 1 with the
+/// draw in `*out`, or 0 (nothing written) if there is none: wo not a
+/// direction above the horizon, uv not finite, a draw below the horizon,
+/// a null pointer or a fault.
+///
+/// # Safety
+/// `m` null or a live handle; `uv` and `u` null or readable for 2 floats,
+/// `wo` for 3; `out` null or writable.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn scanner_material_sample(
+    m: *const ScannerMaterial,
+    uv: *const f32,
+    wo: *const f32,
+    uc: f32,
+    u: *const f32,
+    out: *mut ScannerBsdfSample,
+) -> c_int {
+    // SAFETY: each pointer null or valid as the caller's contract says.
+    let (Some(m), Some(uv), Some(wo), Some(u)) =
+        (unsafe { (m.as_ref(), floats::<2>(uv), floats::<3>(wo), floats::<2>(u)) })
+    else {
+        return 0;
+    };
+    if out.is_null() {
+        return 0;
+    }
+    match catch_unwind(AssertUnwindSafe(|| m.0.sample(uv, wo, uc, u))) {
+        Ok(Some(s)) => {
+            // SAFETY: non-null and writable, as the caller's contract says.
+            unsafe { out.write(ScannerBsdfSample { wi: s.wi, f_cos: s.f_cos, pdf: s.pdf }) };
+            1
+        }
+        _ => 0,
+    }
+}
+
+/// The density per unit solid angle with which `scanner_material_sample`
+/// draws `wi` for the view `wo` ([`Material::pdf`]); 0 for a null pointer
+/// or a direction not above the horizon.
+///
+/// # Safety
+/// `m` null or a live handle; `wi` and `wo` null or readable for 3 floats.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn scanner_material_pdf(
+    m: *const ScannerMaterial,
+    wi: *const f32,
+    wo: *const f32,
+) -> f32 {
+    // SAFETY: each pointer null or valid as the caller's contract says.
+    let (Some(m), Some(wi), Some(wo)) = (unsafe { (m.as_ref(), floats::<3>(wi), floats::<3>(wo)) })
+    else {
+        return 0.0;
+    };
+    catch_unwind(AssertUnwindSafe(|| m.0.pdf(wi, wo))).unwrap_or(0.0)
+}
+
+/// Build the sampling tables of every view now, on all cores
+/// ([`Material::prepare_importance`]); otherwise each is built on its
+/// first use. Nothing for a null handle.
+///
+/// # Safety
+/// `m` null or a live handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn scanner_material_prepare_importance(m: *const ScannerMaterial) {
+    // SAFETY: null or a live handle, as the caller's contract says.
+    if let Some(m) = unsafe { m.as_ref() } {
+        let _ = catch_unwind(AssertUnwindSafe(|| m.0.prepare_importance()));
     }
 }
 

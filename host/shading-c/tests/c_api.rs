@@ -230,17 +230,28 @@ fn shades_as_rust_does(exe: &Path, dir: &Path) {
             let answers: Vec<Vec<f32>> =
                 lines.map(|l| l.split(' ').map(|x| x.parse::<f32>().unwrap()).collect()).collect();
             assert_eq!(answers.len(), q.len(), "{name}: one line per query");
-            let mut lit = 0;
+            let (mut lit, mut drawn_count) = (0, 0);
             for (k, (a, q)) in answers.iter().zip(&q).enumerate() {
                 let want = m.eval(q.uv, q.wi, q.wo);
                 let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&a[..3]), bits(&want), "{name}: query {k} {q:?}, eval");
-                assert_eq!(bits(&a[3..]), bits(&want), "{name}: query {k} {q:?}, batch");
+                assert_eq!(bits(&a[3..6]), bits(&want), "{name}: query {k} {q:?}, batch");
+                let pdf = m.pdf(q.wi, q.wo);
+                assert_eq!(a[6].to_bits(), pdf.to_bits(), "{name}: query {k} {q:?}, pdf");
+                let drawn = m.sample(q.uv, q.wo, q.uv[0], [q.uv[1], 0.5]);
+                assert_eq!(a[7] == 1.0, drawn.is_some(), "{name}: query {k} {q:?}, sample");
+                if let Some(s) = drawn {
+                    let c = [s.wi, s.f_cos].concat();
+                    assert_eq!(bits(&a[8..14]), bits(&c), "{name}: query {k} {q:?}, sample");
+                    assert_eq!(a[14].to_bits(), s.pdf.to_bits(), "{name}: query {k} {q:?}");
+                    drawn_count += 1;
+                }
                 lit += usize::from(want.iter().any(|&x| x > 0.0));
             }
             // Not a test of black answers only: all but the five special
             // queries' four black ones are lit.
             assert!(lit >= q.len() - 4, "{name}: {lit} of {} lit", q.len());
+            assert!(drawn_count > q.len() / 2, "{name}: {drawn_count} of {} drawn", q.len());
         }
     }
 }
@@ -324,8 +335,33 @@ fn null_pointers_and_short_buffers_are_refused_or_cut_safely() {
         assert_eq!(extent, [0.0; 2]);
         assert_eq!(scanner_material_metadata_json(std::ptr::null(), std::ptr::null_mut(), 0), 0);
         scanner_material_free(std::ptr::null_mut());
+        let (up, half) = ([0.0f32, 0.0, 1.0], [0.5f32; 2]);
+        let mut drawn = ScannerBsdfSample { pdf: 7.0, ..Default::default() };
+        let null_handle = scanner_material_sample(
+            std::ptr::null(),
+            half.as_ptr(),
+            up.as_ptr(),
+            0.5,
+            half.as_ptr(),
+            &mut drawn,
+        );
+        assert_eq!((null_handle, drawn.pdf), (0, 7.0));
+        assert_eq!(scanner_material_pdf(std::ptr::null(), up.as_ptr(), up.as_ptr()), 0.0);
+        scanner_material_prepare_importance(std::ptr::null());
 
         let m = open_bytes(&bytes);
+        // Null arrays or output: no draw, nothing written.
+        let (uv, wo, u) = (half.as_ptr(), up.as_ptr(), half.as_ptr());
+        let null = std::ptr::null::<f32>();
+        for (uv, wo, u) in [(null, wo, u), (uv, null, u), (uv, wo, null)] {
+            assert_eq!(scanner_material_sample(m, uv, wo, 0.5, u, &mut drawn), 0);
+        }
+        assert_eq!(drawn.pdf, 7.0);
+        assert_eq!(scanner_material_sample(m, uv, wo, 0.5, u, std::ptr::null_mut()), 0);
+        assert_eq!(scanner_material_pdf(m, null, wo), 0.0);
+        assert_eq!(scanner_material_pdf(m, wo, null), 0.0);
+        assert_eq!(scanner_material_sample(m, uv, wo, 0.5, u, &mut drawn), 1);
+        assert!(drawn.pdf > 0.0 && drawn.pdf == scanner_material_pdf(m, drawn.wi.as_ptr(), wo));
         assert_eq!(
             scanner_material_eval_batch(m, std::ptr::null(), 0, std::ptr::null_mut()),
             SCANNER_OK
@@ -354,12 +390,13 @@ fn threads_share_one_handle() {
     let rust = Material::from_bytes(&bytes).unwrap();
     let q = queries(&rust);
     let want: Vec<[f32; 3]> = q.iter().map(|q| rust.eval(q.uv, q.wi, q.wo)).collect();
+    let pdfs: Vec<f32> = q.iter().map(|q| rust.pdf(q.wi, q.wo)).collect();
     let m = open_bytes(&bytes);
     // Raw pointers are not Send: the handle crosses as an address.
     let handle = m as usize;
     std::thread::scope(|s| {
         for t in 0..4 {
-            let (q, want) = (&q, &want);
+            let (q, want, pdfs) = (&q, &want, &pdfs);
             s.spawn(move || {
                 let m = handle as *const ScannerMaterial;
                 for round in 0..20 {
@@ -376,6 +413,11 @@ fn threads_share_one_handle() {
                         );
                         let one = unsafe { scanner_material_eval(m, q[k]) };
                         assert_eq!(one.rgb.map(f32::to_bits), w.map(f32::to_bits));
+                        // The sampling tables, built on first use by
+                        // whichever thread comes first.
+                        let pdf =
+                            unsafe { scanner_material_pdf(m, q[k].wi.as_ptr(), q[k].wo.as_ptr()) };
+                        assert_eq!(pdf.to_bits(), pdfs[k].to_bits(), "thread {t} query {k}");
                     }
                 }
             });
