@@ -20,8 +20,8 @@
 //! as far from it as halfway to its nearest neighbour, so that the table
 //! also covers the half vectors of the view directions that will use it.
 //! The cosine share s is the table's own: of [`SHARES`], the one under
-//! which the uv points' samples would vary least (the worst point's
-//! relative variance, each point left out of the table in turn). Cosine
+//! which the uv points' samples would vary least (the sum of their
+//! variances, each point left out of the table in turn). Cosine
 //! sampling covers what the table misses, so the density is positive
 //! wherever cos θi is.
 //!
@@ -38,8 +38,8 @@ use crate::{Material, ShadeQuery, unit, unit_above};
 /// Cells along each side of a view's table of half vectors.
 pub const GRID: usize = 64;
 /// The probabilities of a cosine-weighted direction rather than one from
-/// the view's table that a table may choose: the one whose samples vary
-/// least at its uv points, each left out of the table in turn.
+/// the view's table that a table may choose from: the one under which its
+/// uv points' samples vary least, each left out of the table in turn.
 pub const SHARES: [f32; 8] = [0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0];
 /// The share of a table that cannot choose (fewer than two uv points see
 /// anything).
@@ -72,8 +72,8 @@ impl BsdfSample {
 pub(crate) struct Importance {
     /// The captured views' unit directions (f32, as the shading has them).
     views: Vec<[f32; 3]>,
-    /// Per view, the sine of half the angle to its nearest other view: how
-    /// far from it a view direction may be and still use its table.
+    /// Per view, the sine of how far from it the view directions that use
+    /// its table lie (about).
     reach: Vec<f32>,
     tables: Box<[OnceLock<Table>]>,
 }
@@ -91,17 +91,32 @@ impl std::fmt::Debug for Importance {
 impl Importance {
     pub(crate) fn new(views: Vec<[f32; 3]>) -> Importance {
         let tables = views.iter().map(|_| OnceLock::new()).collect();
-        let reach = views
-            .iter()
-            .enumerate()
-            .map(|(j, a)| {
-                let nearest = (views.iter().enumerate())
-                    .filter(|&(k, _)| k != j)
-                    .map(|(_, b)| dot(*a, *b))
-                    .fold(-1.0f32, f32::max);
-                // Half the angle: sin(θ/2) = √((1 − cos θ) / 2); a lone view
-                // reaches 30°.
-                if views.len() > 1 { ((1.0 - nearest) / 2.0).max(0.0).sqrt() } else { 0.5 }
+        // Each view's extent: the directions of a Fibonacci spiral over the
+        // hemisphere nearer it than any other view (its Voronoi region),
+        // as the radius of the disk with the same mean squared angle from
+        // it (√2 × the RMS), at most 45°.
+        let (mut sum, mut count) = (vec![0.0f64; views.len()], vec![0usize; views.len()]);
+        let n = 4096;
+        for i in 0..n {
+            let z = 1.0 - (i as f64 + 0.5) / n as f64;
+            let phi = i as f64 * std::f64::consts::PI * (3.0 - 5f64.sqrt());
+            let r = (1.0 - z * z).sqrt();
+            let d = [r * phi.cos(), r * phi.sin(), z].map(|x| x as f32);
+            let mut best = (0, f32::NEG_INFINITY);
+            for (j, v) in views.iter().enumerate() {
+                if dot(*v, d) > best.1 {
+                    best = (j, dot(*v, d));
+                }
+            }
+            if !views.is_empty() {
+                sum[best.0] += (best.1.clamp(-1.0, 1.0).acos() as f64).powi(2);
+                count[best.0] += 1;
+            }
+        }
+        let reach = (sum.iter().zip(&count))
+            .map(|(&s, &c)| {
+                let rms = if c > 0 { (s / c as f64).sqrt() } else { 0.0 };
+                ((2f64.sqrt() * rms).min(std::f64::consts::FRAC_PI_4).sin()) as f32
             })
             .collect();
         Importance { views, reach, tables }
@@ -373,15 +388,21 @@ impl Material {
                 p[k_of(i)][c] = w as f64;
             }
         }
+        let mut totals = Vec::with_capacity(UV_POINTS);
         p.retain_mut(|pk| {
             let total: f64 = pk.iter().sum();
             pk.iter_mut().for_each(|x| *x /= total);
-            total > 0.0 && total.is_finite()
+            let seen = total > 0.0 && total.is_finite();
+            if seen {
+                totals.push(total);
+            }
+            seen
         });
         let n = p.len() as f64;
         let weights: Vec<f64> =
             (0..GRID * GRID).map(|c| p.iter().map(|pk| pk[c]).sum::<f64>() / n).collect();
-        let share = if p.len() < 2 { DEFAULT_SHARE } else { choose_share(&p, &weights, &cosine) };
+        let share =
+            if p.len() < 2 { DEFAULT_SHARE } else { choose_share(&p, &totals, &weights, &cosine) };
         Table::from_weights(&weights, share)
     }
 }
@@ -403,16 +424,18 @@ fn around(wo: [f32; 3], reach: f32) -> [[f32; 3]; 4] {
 }
 
 /// The share of cosine sampling whose samples vary least at the uv points:
-/// point k's distribution `p[k]` drawn from the mixture of `cosine` (the
-/// density on the square) and the table of the others
-/// (`mean` without it) has a relative variance
-/// Σ_cells p_k² / (area · density) − 1; the share with the least mean.
-fn choose_share(p: &[Vec<f64>], mean: &[f64], cosine: &[f64]) -> f32 {
+/// drawn from the mixture of `cosine` (the density on the square) and the
+/// table of the other points (`mean` without it), point k — distribution
+/// `p[k]`, integral `totals[k]` — has a variance of
+/// totals[k]² (Σ_cells p_k² / (area · density) − 1); the share whose sum
+/// over the points (a render's squared error) is least.
+fn choose_share(p: &[Vec<f64>], totals: &[f64], mean: &[f64], cosine: &[f64]) -> f32 {
     let n = p.len() as f64;
     let area = 1.0 / mean.len() as f64;
     let variance = |share: f64| -> f64 {
         p.iter()
-            .map(|pk| {
+            .zip(totals)
+            .map(|(pk, t)| {
                 let mut v = 0.0;
                 for c in 0..mean.len() {
                     if pk[c] > 0.0 {
@@ -421,9 +444,9 @@ fn choose_share(p: &[Vec<f64>], mean: &[f64], cosine: &[f64]) -> f32 {
                         v += if q > 0.0 { pk[c] * pk[c] / (area * q) } else { f64::INFINITY };
                     }
                 }
-                v - 1.0
+                (v - 1.0) * t * t
             })
-            .fold(0.0f64, f64::max)
+            .sum::<f64>()
     };
     let mut best = (DEFAULT_SHARE, f64::INFINITY);
     for s in SHARES {
