@@ -10,7 +10,7 @@
 
 use std::hint::black_box;
 
-use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
 use host::build::material::PATENT_DEFAULT;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -209,9 +209,73 @@ fn lookup(c: &mut Criterion) {
     group.finish();
 }
 
+/// Importance sampling (docs/benchmarks.md, "Importance sampling") on the
+/// texel-model material of the `eval` group: `sample` and `pdf` per query
+/// beside `eval` per query on the same (uv, wo) in the same run (a draw
+/// makes one `eval` and one `pdf`), and building every view's table.
+fn sampling(c: &mut Criterion) {
+    let shape =
+        synthetic::Shape { mirrors: 40, resolution: 128, colours: 256, lights_per_index: 2 };
+    let data = synthetic::with_texel_model(
+        synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1),
+        5,
+    );
+    let m = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+    m.prepare_importance();
+    let q = queries();
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let numbers: Vec<[f32; 3]> = (0..q.len()).map(|_| rng.random()).collect();
+    let mut group = c.benchmark_group("sampling");
+    group.throughput(Throughput::Elements(q.len() as u64));
+    group.bench_function("baseline: eval per query", |b| {
+        b.iter(|| {
+            let mut sum = 0f32;
+            for q in &q {
+                sum += m.eval(q.uv, q.wi, q.wo)[0];
+            }
+            black_box(sum)
+        })
+    });
+    group.bench_function("sample", |b| {
+        b.iter(|| {
+            let mut sum = 0f32;
+            for (q, r) in q.iter().zip(&numbers) {
+                if let Some(s) = m.sample(q.uv, q.wo, r[0], [r[1], r[2]]) {
+                    sum += s.f_cos[0] / s.pdf;
+                }
+            }
+            black_box(sum)
+        })
+    });
+    group.bench_function("pdf", |b| {
+        b.iter(|| {
+            let mut sum = 0f32;
+            for q in &q {
+                sum += m.pdf(q.wi, q.wo);
+            }
+            black_box(sum)
+        })
+    });
+    group.finish();
+    let mut group = c.benchmark_group("sampling tables");
+    group.sample_size(10);
+    let bytes = data.to_bytes().unwrap();
+    group.bench_function("prepare_importance, 40 views", |b| {
+        b.iter_batched(
+            || Material::from_bytes(&bytes).unwrap(),
+            |fresh| {
+                fresh.prepare_importance();
+                black_box(fresh.pdf([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]))
+            },
+            BatchSize::LargeInput,
+        )
+    });
+    group.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(20);
-    targets = shade, lookup
+    targets = shade, lookup, sampling
 }
 criterion_main!(benches);

@@ -460,3 +460,66 @@ pub fn other_scanner() -> ScannerGeometry {
     g.validate().expect("a valid scanner");
     g
 }
+
+/// [`sampling_check`]'s answer: ∫ f cos θi dωi (luminance) at one uv and
+/// wo by quadrature and by the material's own samples, and the samples'
+/// variance against cosine-weighted sampling's.
+#[derive(Debug, Clone, Copy)]
+pub struct SamplingCheck {
+    /// By quadrature over a 256 × 512 (θ, φ) grid.
+    pub truth: f64,
+    /// The mean of `Material::sample`'s weights.
+    pub mean: f64,
+    /// (mean − truth) over the mean's standard error.
+    pub deviation: f64,
+    /// The weights' variance over cosine sampling's, same count.
+    pub variance_ratio: f64,
+}
+
+/// Estimate ∫ f cos θi dωi of `m` at (uv, wo) from `n` of its samples and
+/// from `n` cosine-weighted directions (seeded), against quadrature.
+pub fn sampling_check(
+    m: &scanner_shading::Material,
+    uv: [f32; 2],
+    wo: [f32; 3],
+    n: usize,
+    seed: u64,
+) -> SamplingCheck {
+    use std::f64::consts::{FRAC_PI_2, PI, TAU};
+    let lum = |c: [f32; 3]| c.iter().map(|&x| x as f64).sum::<f64>() / 3.0;
+    let (nt, np) = (256, 512);
+    let (dt, dp) = (FRAC_PI_2 / nt as f64, TAU / np as f64);
+    let truth: f64 = (0..nt)
+        .map(|a| {
+            let t = (a as f64 + 0.5) * dt;
+            let row: f64 = (0..np)
+                .map(|b| {
+                    let p = (b as f64 + 0.5) * dp;
+                    let wi = [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()].map(|x| x as f32);
+                    lum(m.eval(uv, wi, wo))
+                })
+                .sum();
+            row * t.sin() * dt * dp
+        })
+        .sum();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let (mut s, mut c) = ([0.0f64; 2], [0.0f64; 2]);
+    for _ in 0..n {
+        let x = m
+            .sample(uv, wo, rng.random(), [rng.random(), rng.random()])
+            .map_or(0.0, |x| lum(x.weight()));
+        s = [s[0] + x, s[1] + x * x];
+        let d = scanner_shading::importance::square_to_disk([rng.random(), rng.random()]);
+        let z = (1.0 - d[0] * d[0] - d[1] * d[1]).max(0.0).sqrt();
+        let y = if z > 0.0 { lum(m.eval(uv, [d[0], d[1], z], wo)) * PI / z as f64 } else { 0.0 };
+        c = [c[0] + y, c[1] + y * y];
+    }
+    let nf = n as f64;
+    let var = |m: [f64; 2]| m[1] / nf - (m[0] / nf).powi(2);
+    SamplingCheck {
+        truth,
+        mean: s[0] / nf,
+        deviation: (s[0] / nf - truth) / (var(s) / nf).sqrt(),
+        variance_ratio: var(s) / var(c),
+    }
+}

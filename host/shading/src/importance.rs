@@ -17,8 +17,9 @@
 //! narrow one; point k's weight of a cell is the luminance of f · cos θi at
 //! one of the cell's 2 × 2 sub-points, times the Jacobian from the square
 //! to wi. The four sub-points are seen from four directions around view j,
-//! as far from it as halfway to its nearest neighbour, so that the table
-//! also covers the half vectors of the view directions that will use it.
+//! at the radius of its Voronoi region (the view directions nearer it than
+//! any other view, which will use its table), so that the table covers
+//! their half vectors too.
 //! The cosine share s is the table's own: of [`SHARES`], the one under
 //! which the uv points' samples would vary least (the sum of their
 //! variances, each point left out of the table in turn). Cosine
@@ -102,15 +103,10 @@ impl Importance {
             let phi = i as f64 * std::f64::consts::PI * (3.0 - 5f64.sqrt());
             let r = (1.0 - z * z).sqrt();
             let d = [r * phi.cos(), r * phi.sin(), z].map(|x| x as f32);
-            let mut best = (0, f32::NEG_INFINITY);
-            for (j, v) in views.iter().enumerate() {
-                if dot(*v, d) > best.1 {
-                    best = (j, dot(*v, d));
-                }
-            }
+            let (j, cos) = nearest(&views, d);
             if !views.is_empty() {
-                sum[best.0] += (best.1.clamp(-1.0, 1.0).acos() as f64).powi(2);
-                count[best.0] += 1;
+                sum[j] += (cos.clamp(-1.0, 1.0).acos() as f64).powi(2);
+                count[j] += 1;
             }
         }
         let reach = (sum.iter().zip(&count))
@@ -121,19 +117,20 @@ impl Importance {
             .collect();
         Importance { views, reach, tables }
     }
+}
 
-    /// The view nearest a unit direction.
-    #[inline]
-    fn nearest(&self, wo: [f32; 3]) -> usize {
-        let mut best = (0, f32::NEG_INFINITY);
-        for (j, v) in self.views.iter().enumerate() {
-            let d = v[0] * wo[0] + v[1] * wo[1] + v[2] * wo[2];
-            if d > best.1 {
-                best = (j, d);
-            }
+/// The view nearest a unit direction d (the largest cosine) and that
+/// cosine; (0, −∞) without views.
+#[inline]
+fn nearest(views: &[[f32; 3]], d: [f32; 3]) -> (usize, f32) {
+    let mut best = (0, f32::NEG_INFINITY);
+    for (j, v) in views.iter().enumerate() {
+        let c = dot(*v, d);
+        if c > best.1 {
+            best = (j, c);
         }
-        best.0
     }
+    best
 }
 
 /// One view's piecewise-constant distribution of half vectors: the
@@ -168,8 +165,8 @@ impl Table {
     }
 
     /// The density of a unit half vector above the horizon per unit solid
-    /// angle: P(cell) · N² / (4 · π/4) on the disk, times cos θh onto the
-    /// hemisphere.
+    /// angle: P(cell) · N² on the square (area 1), over π on the disk
+    /// (area π), times cos θh onto the hemisphere.
     #[inline]
     fn density(&self, h: [f32; 3]) -> f32 {
         let [x, y] = disk_to_square([h[0], h[1]]);
@@ -322,7 +319,7 @@ impl Material {
     /// The table of the view nearest the unit direction wo.
     #[inline]
     fn importance_table(&self, wo: [f32; 3]) -> &Table {
-        self.table_of_view(self.importance.nearest(wo))
+        self.table_of_view(nearest(&self.importance.views, wo).0)
     }
 
     fn table_of_view(&self, j: usize) -> &Table {
