@@ -1,6 +1,7 @@
 //! Fuzz the material reader: arbitrary bytes must give a typed error or a
 //! material, never a panic; a material that opens answers every query
-//! with finite, non-negative values, and its export as a texture set
+//! with finite, non-negative values and draws directions with a positive
+//! density, and its export as a texture set
 //! (`scanner export`) is a set the format accepts, or a typed refusal.
 //! Mutated as a safetensors file whose
 //! header and material metadata are JSON (`fuzz_support::structured`) as
@@ -34,6 +35,16 @@ fuzz_target!(|data: &[u8]| {
         ] {
             let c = m.eval(uv, wi, wo);
             assert!(c.iter().all(|x| x.is_finite() && *x >= 0.0), "{c:?}");
+        }
+        // Importance sampling (one view's table): a draw is above the
+        // horizon with a positive finite density, which `pdf` repeats.
+        let wo = [0.3, -0.2, 0.9];
+        for (uc, u) in [(0.05, [0.3, 0.7]), (0.6, [0.5, 0.5]), (0.999, [0.99, 0.01])] {
+            if let Some(s) = m.sample([0.3, 0.8], wo, uc, u) {
+                assert!(s.wi[2] > 0.0 && s.pdf.is_finite() && s.pdf > 0.0, "{s:?}");
+                assert!(s.f_cos.iter().all(|x| x.is_finite() && *x >= 0.0), "{s:?}");
+                assert_eq!(s.pdf, m.pdf(s.wi, wo));
+            }
         }
     }
 });
