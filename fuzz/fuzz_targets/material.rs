@@ -43,7 +43,7 @@ fuzz_target!(|data: &[u8]| {
             if let Some(s) = m.sample([0.3, 0.8], wo, uc, u) {
                 assert!(s.wi[2] > 0.0 && s.pdf.is_finite() && s.pdf > 0.0, "{s:?}");
                 assert!(s.f_cos.iter().all(|x| x.is_finite() && *x >= 0.0), "{s:?}");
-                assert_eq!(s.pdf, m.pdf(s.wi, wo));
+                assert_eq!(s.pdf, m.pdf([0.3, 0.8], s.wi, wo));
             }
         }
     }

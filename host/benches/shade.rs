@@ -251,7 +251,7 @@ fn sampling(c: &mut Criterion) {
         b.iter(|| {
             let mut sum = 0f32;
             for q in &q {
-                sum += m.pdf(q.wi, q.wo);
+                sum += m.pdf(q.uv, q.wi, q.wo);
             }
             black_box(sum)
         })
@@ -265,7 +265,7 @@ fn sampling(c: &mut Criterion) {
             || Material::from_bytes(&bytes).unwrap(),
             |fresh| {
                 fresh.prepare_importance();
-                black_box(fresh.pdf([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]))
+                black_box(fresh.pdf([0.5; 2], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]))
             },
             BatchSize::LargeInput,
         )

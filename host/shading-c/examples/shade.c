@@ -10,7 +10,7 @@
  * The first output line gives the material's extent and metadata size;
  * then one line per query: the answer of scanner_material_eval, then that
  * of scanner_material_eval_batch (the same numbers), scanner_material_pdf
- * of its wi and wo, then 1 and a draw of scanner_material_sample for its
+ * of its uv, wi and wo, then 1 and a draw of scanner_material_sample for its
  * uv and wo (uc = u, u = (v, 0.5)): wi, f_cos, pdf; or 0 and zeros. Exit status 3 if the
  * material cannot be opened, with the library's message.
  * host/shading-c/tests/c_api.rs runs it.
@@ -117,7 +117,7 @@ int main(int argc, char **argv) {
         /* %.9g: every float printed exactly (9 significant digits). */
         printf("%.9g %.9g %.9g %.9g %.9g %.9g %.9g %d %.9g %.9g %.9g %.9g %.9g %.9g %.9g\n",
                one.rgb[0], one.rgb[1], one.rgb[2], batch[i].rgb[0], batch[i].rgb[1],
-               batch[i].rgb[2], scanner_material_pdf(m, qi->wi, qi->wo), drawn, s.wi[0],
+               batch[i].rgb[2], scanner_material_pdf(m, qi->uv, qi->wi, qi->wo), drawn, s.wi[0],
                s.wi[1], s.wi[2], s.f_cos[0], s.f_cos[1], s.f_cos[2], s.pdf);
     }
     free(batch);

@@ -106,10 +106,11 @@ int scanner_material_sample(const ScannerMaterial *m, const float uv[2], const f
                             float uc, const float u[2], ScannerBsdfSample *out);
 
 /* The density per unit solid angle with which scanner_material_sample
- * draws wi for the view wo (it does not depend on uv), for multiple
- * importance sampling; 0 if either is not a direction above the horizon
- * or a pointer is NULL. */
-float scanner_material_pdf(const ScannerMaterial *m, const float wi[3], const float wo[3]);
+ * draws wi for the view wo at uv, for multiple importance sampling; 0 if
+ * either is not a direction above the horizon, uv is not finite or a
+ * pointer is NULL. */
+float scanner_material_pdf(const ScannerMaterial *m, const float uv[2], const float wi[3],
+                           const float wo[3]);
 
 /* Build every view's sampling table now, on all cores (well under a second
  * for a scanned material), rather than on first use: call it before

@@ -342,23 +342,26 @@ pub unsafe extern "C" fn scanner_material_sample(
 }
 
 /// The density per unit solid angle with which `scanner_material_sample`
-/// draws `wi` for the view `wo` ([`Material::pdf`]); 0 for a null pointer
-/// or a direction not above the horizon.
+/// draws `wi` for the view `wo` at `uv` ([`Material::pdf`]); 0 for a null
+/// pointer, uv not finite or a direction not above the horizon.
 ///
 /// # Safety
-/// `m` null or a live handle; `wi` and `wo` null or readable for 3 floats.
+/// `m` null or a live handle; `uv` null or readable for 2 floats, `wi` and
+/// `wo` for 3.
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn scanner_material_pdf(
     m: *const ScannerMaterial,
+    uv: *const f32,
     wi: *const f32,
     wo: *const f32,
 ) -> f32 {
     // SAFETY: each pointer null or valid as the caller's contract says.
-    let (Some(m), Some(wi), Some(wo)) = (unsafe { (m.as_ref(), floats::<3>(wi), floats::<3>(wo)) })
+    let (Some(m), Some(uv), Some(wi), Some(wo)) =
+        (unsafe { (m.as_ref(), floats::<2>(uv), floats::<3>(wi), floats::<3>(wo)) })
     else {
         return 0.0;
     };
-    catch_unwind(AssertUnwindSafe(|| m.0.pdf(wi, wo))).unwrap_or(0.0)
+    catch_unwind(AssertUnwindSafe(|| m.0.pdf(uv, wi, wo))).unwrap_or(0.0)
 }
 
 /// Build the sampling tables of every view now, on all cores

@@ -236,7 +236,7 @@ fn shades_as_rust_does(exe: &Path, dir: &Path) {
                 let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&a[..3]), bits(&want), "{name}: query {k} {q:?}, eval");
                 assert_eq!(bits(&a[3..6]), bits(&want), "{name}: query {k} {q:?}, batch");
-                let pdf = m.pdf(q.wi, q.wo);
+                let pdf = m.pdf(q.uv, q.wi, q.wo);
                 assert_eq!(a[6].to_bits(), pdf.to_bits(), "{name}: query {k} {q:?}, pdf");
                 let drawn = m.sample(q.uv, q.wo, q.uv[0], [q.uv[1], 0.5]);
                 assert_eq!(a[7] == 1.0, drawn.is_some(), "{name}: query {k} {q:?}, sample");
@@ -346,7 +346,10 @@ fn null_pointers_and_short_buffers_are_refused_or_cut_safely() {
             &mut drawn,
         );
         assert_eq!((null_handle, drawn.pdf), (0, 7.0));
-        assert_eq!(scanner_material_pdf(std::ptr::null(), up.as_ptr(), up.as_ptr()), 0.0);
+        assert_eq!(
+            scanner_material_pdf(std::ptr::null(), half.as_ptr(), up.as_ptr(), up.as_ptr()),
+            0.0
+        );
         scanner_material_prepare_importance(std::ptr::null());
 
         let m = open_bytes(&bytes);
@@ -358,10 +361,11 @@ fn null_pointers_and_short_buffers_are_refused_or_cut_safely() {
         }
         assert_eq!(drawn.pdf, 7.0);
         assert_eq!(scanner_material_sample(m, uv, wo, 0.5, u, std::ptr::null_mut()), 0);
-        assert_eq!(scanner_material_pdf(m, null, wo), 0.0);
-        assert_eq!(scanner_material_pdf(m, wo, null), 0.0);
+        assert_eq!(scanner_material_pdf(m, uv, null, wo), 0.0);
+        assert_eq!(scanner_material_pdf(m, uv, wo, null), 0.0);
+        assert_eq!(scanner_material_pdf(m, null, wo, wo), 0.0);
         assert_eq!(scanner_material_sample(m, uv, wo, 0.5, u, &mut drawn), 1);
-        assert!(drawn.pdf > 0.0 && drawn.pdf == scanner_material_pdf(m, drawn.wi.as_ptr(), wo));
+        assert!(drawn.pdf > 0.0 && drawn.pdf == scanner_material_pdf(m, uv, drawn.wi.as_ptr(), wo));
         assert_eq!(
             scanner_material_eval_batch(m, std::ptr::null(), 0, std::ptr::null_mut()),
             SCANNER_OK
@@ -390,7 +394,7 @@ fn threads_share_one_handle() {
     let rust = Material::from_bytes(&bytes).unwrap();
     let q = queries(&rust);
     let want: Vec<[f32; 3]> = q.iter().map(|q| rust.eval(q.uv, q.wi, q.wo)).collect();
-    let pdfs: Vec<f32> = q.iter().map(|q| rust.pdf(q.wi, q.wo)).collect();
+    let pdfs: Vec<f32> = q.iter().map(|q| rust.pdf(q.uv, q.wi, q.wo)).collect();
     let m = open_bytes(&bytes);
     // Raw pointers are not Send: the handle crosses as an address.
     let handle = m as usize;
@@ -415,8 +419,14 @@ fn threads_share_one_handle() {
                         assert_eq!(one.rgb.map(f32::to_bits), w.map(f32::to_bits));
                         // The sampling tables, built on first use by
                         // whichever thread comes first.
-                        let pdf =
-                            unsafe { scanner_material_pdf(m, q[k].wi.as_ptr(), q[k].wo.as_ptr()) };
+                        let pdf = unsafe {
+                            scanner_material_pdf(
+                                m,
+                                q[k].uv.as_ptr(),
+                                q[k].wi.as_ptr(),
+                                q[k].wo.as_ptr(),
+                            )
+                        };
                         assert_eq!(pdf.to_bits(), pdfs[k].to_bits(), "thread {t} query {k}");
                     }
                 }

@@ -22,7 +22,8 @@
 //! their half vectors too.
 //! The cosine share s is the table's own: of [`SHARES`], the one under
 //! which the uv points' samples would vary least (the sum of their
-//! variances, each point left out of the table in turn). Cosine
+//! variances, each point left out of the table in turn); with a texel
+//! model, at least the texel's diffuse part of its albedo at uv. Cosine
 //! sampling covers what the table misses, so the density is positive
 //! wherever cos θi is.
 //!
@@ -299,10 +300,11 @@ impl Material {
         }
         let (uc, u) = (unit_interval(uc), u.map(unit_interval));
         let table = self.importance_table(wo);
-        let wi = if uc < table.share {
+        let share = self.share_at(table, uv);
+        let wi = if uc < share {
             hemisphere(square_to_disk(u))
         } else {
-            let h = table.sample(unit_interval((uc - table.share) / (1.0 - table.share)), u);
+            let h = table.sample(unit_interval((uc - share) / (1.0 - share)), u);
             unit(reflect(wo, h))?
         };
         if wi[2] <= 0.0 {
@@ -312,19 +314,42 @@ impl Material {
         // (normalised again), so that a renderer asking them gets the same
         // bits; wo's view is the same.
         let (wi_again, _) = unit_above(wi, given)?;
-        let pdf = mixture_pdf(table, wi_again, wo);
+        let pdf = mixture_pdf(table, share, wi_again, wo);
         (pdf > 0.0).then(|| BsdfSample { wi, f_cos: self.eval(uv, wi, given), pdf })
     }
 
     /// The density per unit solid angle with which [`Self::sample`] draws
-    /// wi for the view wo (it does not depend on uv); 0 if either is not a
-    /// direction above the horizon. Builds the table of wo's view on its
+    /// wi for the view wo at uv; 0 if either is not a direction above the
+    /// horizon or uv is not finite. Builds the table of wo's view on its
     /// first use.
-    pub fn pdf(&self, wi: [f32; 3], wo: [f32; 3]) -> f32 {
+    pub fn pdf(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3]) -> f32 {
         match unit_above(wi, wo) {
-            Some((wi, wo)) => mixture_pdf(self.importance_table(wo), wi, wo),
-            None => 0.0,
+            Some((wi, wo)) if uv.iter().all(|x| x.is_finite()) => {
+                let table = self.importance_table(wo);
+                mixture_pdf(table, self.share_at(table, uv), wi, wo)
+            }
+            _ => 0.0,
         }
+    }
+
+    /// The cosine share at uv: the table's, or with a texel model at least
+    /// the texel's diffuse part of its albedo, ρd / (ρd + F0) in luminance
+    /// (its parameters bilinear at uv), so that a dull texel among glossy
+    /// ones is not sampled as they are. uv finite.
+    #[inline]
+    fn share_at(&self, table: &Table, uv: [f32; 2]) -> f32 {
+        if self.texels.is_empty() {
+            return table.share;
+        }
+        let at = crate::Footprint::on(self.size, uv);
+        let tx = at.texel.map(|t| &self.texels[t as usize]);
+        let v: [f32; crate::texel::STORED] = std::array::from_fn(|i| {
+            at.w[0] * tx[0][i] + at.w[1] * tx[1][i] + at.w[2] * tx[2][i] + at.w[3] * tx[3][i]
+        });
+        let p = crate::texel::TexelParams::from_stored(&v);
+        let (d, f) = (p.diffuse.iter().sum::<f32>(), p.specular.iter().sum::<f32>());
+        let diffuse = if d + f > 0.0 { d / (d + f) } else { 0.0 };
+        if diffuse.is_finite() { table.share.max(diffuse.min(1.0)) } else { table.share }
     }
 
     /// Build every view's table now, on all cores, rather than on first
@@ -487,16 +512,17 @@ fn choose_share(p: &[Vec<f64>], totals: &[f64], mean: &[f64], cosine: &[f64]) ->
     best.0
 }
 
-/// The mixture's density of unit wi (above the horizon) for unit wo.
+/// The mixture's density of unit wi (above the horizon) for unit wo, with
+/// cosine share `share`.
 #[inline]
-fn mixture_pdf(table: &Table, wi: [f32; 3], wo: [f32; 3]) -> f32 {
+fn mixture_pdf(table: &Table, share: f32, wi: [f32; 3], wo: [f32; 3]) -> f32 {
     let cosine = wi[2] / PI;
-    if table.share >= 1.0 {
+    if share >= 1.0 {
         return cosine;
     }
     let half = match unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]) {
         Some(h) if h[2] > 0.0 => table.density(h) / (4.0 * dot(wo, h)),
         _ => 0.0,
     };
-    table.share * cosine + (1.0 - table.share) * half
+    share * cosine + (1.0 - share) * half
 }

@@ -37,7 +37,7 @@
 //! let wo = [0.3, 0.0, 0.954];
 //! if let Some(s) = m.sample([0.5, 0.5], wo, 0.42, [0.1, 0.7]) {
 //!     let throughput = s.weight(); // f · cos θi / pdf
-//!     assert_eq!(s.pdf, m.pdf(s.wi, wo));
+//!     assert_eq!(s.pdf, m.pdf([0.5, 0.5], s.wi, wo));
 //! }
 //! # Ok::<(), scanner_shading::MaterialError>(())
 //! ```
