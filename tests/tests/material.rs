@@ -345,7 +345,7 @@ fn a_built_material_shades_like_the_sample() {
     // Importance sampling on the scanned materials: unbiased at every
     // (uv, wo) asked, and against cosine sampling a geometric-mean variance
     // below it on the leather and far below on the glossy metal, with and
-    // without a texel model (measured 0.79, 0.029 and 0.042 at this 1024²
+    // without a texel model (measured 0.85, 0.028 and 0.042 at this 1024²
     // sensor; docs/benchmarks.md, "Importance sampling").
     for (name, mat, most) in [
         ("leather", &m, 1.0),
