@@ -333,20 +333,15 @@ impl Material {
     }
 
     /// The cosine share at uv: the table's, or with a texel model at least
-    /// the texel's diffuse part of its albedo, ρd / (ρd + F0) in luminance
-    /// (its parameters bilinear at uv), so that a dull texel among glossy
-    /// ones is not sampled as they are. uv finite.
+    /// the texel's diffuse part of its albedo, ρd / (ρd + F0) over the
+    /// channels' sums (its parameters bilinear at uv), so that a dull texel
+    /// among glossy ones is not sampled as they are. uv finite.
     #[inline]
     fn share_at(&self, table: &Table, uv: [f32; 2]) -> f32 {
         if self.texels.is_empty() {
             return table.share;
         }
-        let at = crate::Footprint::on(self.size, uv);
-        let tx = at.texel.map(|t| &self.texels[t as usize]);
-        let v: [f32; crate::texel::STORED] = std::array::from_fn(|i| {
-            at.w[0] * tx[0][i] + at.w[1] * tx[1][i] + at.w[2] * tx[2][i] + at.w[3] * tx[3][i]
-        });
-        let p = crate::texel::TexelParams::from_stored(&v);
+        let p = self.texel_at(&crate::Footprint::on(self.size, uv));
         let (d, f) = (p.diffuse.iter().sum::<f32>(), p.specular.iter().sum::<f32>());
         let diffuse = if d + f > 0.0 { d / (d + f) } else { 0.0 };
         if diffuse.is_finite() { table.share.max(diffuse.min(1.0)) } else { table.share }

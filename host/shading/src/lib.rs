@@ -523,6 +523,18 @@ impl Material {
         detail_factor(shared, log)
     }
 
+    /// The texel model at a footprint, its parameters interpolated
+    /// bilinearly (the file has a model).
+    #[inline(always)]
+    fn texel_at(&self, at: &Footprint) -> texel::TexelParams {
+        let tx = at.texel.map(|t| &self.texels[t as usize]);
+        let w = at.w;
+        let v: [f32; texel::STORED] = std::array::from_fn(|i| {
+            w[0] * tx[0][i] + w[1] * tx[1][i] + w[2] * tx[2][i] + w[3] * tx[3][i]
+        });
+        texel::TexelParams::from_stored(&v)
+    }
+
     /// Where (view, light)'s index bytes and palette start.
     #[inline(always)]
     fn pair(&self, view: u16, light: u16, w: f32) -> Pair {
@@ -657,13 +669,7 @@ impl Material {
         if self.texels.is_empty() {
             return std::array::from_fn(|c| acc[c] * s.dirs.wi[2] * d[c]);
         }
-        // The texel model at uv, its parameters interpolated bilinearly.
-        let tx = s.at.texel.map(|t| &self.texels[t as usize]);
-        let w = s.at.w;
-        let v: [f32; texel::STORED] = std::array::from_fn(|i| {
-            w[0] * tx[0][i] + w[1] * tx[1][i] + w[2] * tx[2][i] + w[3] * tx[3][i]
-        });
-        let p = texel::TexelParams::from_stored(&v);
+        let p = self.texel_at(&s.at);
         // M(wi, wo) + cos θi · Σ (f_k − M_k / cos θi(l_k)) w_k: the query's
         // directions in slot 0, each mixed pair's in the next, weighted by
         // w / cos θi(light); evaluated together.
