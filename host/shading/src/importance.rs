@@ -4,10 +4,9 @@
 //! path tracing and multiple importance sampling.
 //!
 //! **The distribution** (docs/material-format.md, "Importance sampling") is
-//! a mixture: with probability s a cosine-weighted direction; with a texel
-//! model, with probability l a half vector from the texel's GGX lobe
-//! (its visible normals); otherwise a half vector h drawn from a table of
-//! the view nearest wo; wi = 2 (wo · h) h − wo. Each captured view j has a piecewise-constant
+//! a mixture: with probability s a cosine-weighted direction, otherwise a
+//! half vector h drawn from a table of the view nearest wo, reflected:
+//! wi = 2 (wo · h) h − wo. Each captured view j has a piecewise-constant
 //! table of h over an N × N grid ([`GRID`]) on the square of Shirley and
 //! Chiu's concentric map (square → disk, equal-area; disk → hemisphere by
 //! z = √(1 − r²)). A table in half vectors keeps a lobe in place when wo
@@ -21,13 +20,12 @@
 //! at the radius of its Voronoi region (the view directions nearer it than
 //! any other view, which will use its table), so that the table covers
 //! their half vectors too.
-//! The cosine share s and the lobe's part of the rest are the table's
-//! own: of [`SHARES`] × [`LOBE_PARTS`], the pair under which the uv points'
-//! samples would vary least (the sum of their variances, each point left
-//! out of the table in turn, with its own texel's lobe); with a texel
-//! model s is at least the texel's diffuse part of its albedo at uv.
-//! Cosine sampling covers what the table and lobe miss, so the density is
-//! positive wherever cos θi is.
+//! The cosine share s is the table's own: of [`SHARES`], the one under
+//! which the uv points' samples would vary least (the sum of their
+//! variances, each point left out of the table in turn); with a texel
+//! model, at least the texel's diffuse part of its albedo at uv. Cosine
+//! sampling covers what the table misses, so the density is positive
+//! wherever cos θi is.
 //!
 //! Tables are built on first use, one view at a time (about 65 000 `eval`s
 //! each), or all at once by [`Material::prepare_importance`]; after that no
@@ -45,10 +43,6 @@ pub const GRID: usize = 64;
 /// the view's table that a table may choose from: the one under which its
 /// uv points' samples vary least, each left out of the table in turn.
 pub const SHARES: [f32; 8] = [0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0];
-/// The parts of what cosine sampling leaves that a texel's lobe may take
-/// from the table, chosen with the share: never more than the table keeps,
-/// which holds what the fitted model misses.
-pub const LOBE_PARTS: [f32; 3] = [0.0, 0.25, 0.5];
 /// The share of a table that cannot choose (fewer than two uv points see
 /// anything).
 const DEFAULT_SHARE: f32 = 0.2;
@@ -161,9 +155,6 @@ struct Table {
     /// The probability of a cosine-weighted direction instead (one of
     /// [`SHARES`]).
     share: f32,
-    /// With a texel model, the part of the rest that the texel's lobe takes
-    /// from the table (one of [`LOBE_PARTS`]).
-    lobe: f32,
 }
 
 /// The bounds 0, …, 1 of the cumulative sums of `w` (≥ 0, finite) in
@@ -191,12 +182,12 @@ fn find(bounds: &[f32], x: f32) -> (usize, f32) {
 impl Table {
     /// The table from its cells' weights (≥ 0, finite, row-major); uniform
     /// if they are all 0.
-    fn from_weights(w: &[f64], share: f32, lobe: f32) -> Table {
+    fn from_weights(w: &[f64], share: f32) -> Table {
         let mut cells = Vec::with_capacity(GRID * (GRID + 1));
         let sums: Vec<f64> = w.chunks(GRID).map(|row| cumulative(row, &mut cells)).collect();
         let mut rows = Vec::with_capacity(GRID + 1);
         cumulative(&sums, &mut rows);
-        Table { rows: rows.into(), cells: cells.into(), share, lobe }
+        Table { rows: rows.into(), cells: cells.into(), share }
     }
 
     #[inline]
@@ -309,14 +300,11 @@ impl Material {
         }
         let (uc, u) = (unit_interval(uc), u.map(unit_interval));
         let table = self.importance_table(wo);
-        let mix = self.mixture_at(table, uv, wo);
-        let wi = if uc < mix.cosine {
+        let share = self.share_at(table, uv);
+        let wi = if uc < share {
             hemisphere(square_to_disk(u))
-        } else if let Some(lobe) = mix.lobe.filter(|_| uc < mix.cosine + mix.lobe_share) {
-            unit(reflect(wo, lobe.sample(u)))?
         } else {
-            let first = mix.cosine + mix.lobe_share;
-            let h = table.sample(unit_interval((uc - first) / (1.0 - first)), u);
+            let h = table.sample(unit_interval((uc - share) / (1.0 - share)), u);
             unit(reflect(wo, h))?
         };
         if wi[2] <= 0.0 {
@@ -326,7 +314,7 @@ impl Material {
         // (normalised again), so that a renderer asking them gets the same
         // bits; wo's view is the same.
         let (wi_again, _) = unit_above(wi, given)?;
-        let pdf = mix.pdf(table, wi_again, wo);
+        let pdf = mixture_pdf(table, share, wi_again, wo);
         (pdf > 0.0).then(|| BsdfSample { wi, f_cos: self.eval(uv, wi, given), pdf })
     }
 
@@ -338,50 +326,25 @@ impl Material {
         match unit_above(wi, wo) {
             Some((wi, wo)) if uv.iter().all(|x| x.is_finite()) => {
                 let table = self.importance_table(wo);
-                self.mixture_at(table, uv, wo).pdf(table, wi, wo)
+                mixture_pdf(table, self.share_at(table, uv), wi, wo)
             }
             _ => 0.0,
         }
     }
 
-    /// The mixture at uv for unit wo. The cosine share is the table's, or
-    /// with a texel model at least the texel's diffuse part of its albedo,
-    /// ρd / (ρd + F0) over the channels' sums, so that a dull texel among
-    /// glossy ones is not sampled as they are; the texel's GGX lobe (its
-    /// parameters bilinear at uv) then takes the table's part of the rest,
-    /// if wo is above the texel's horizon (see [`texel_floor_and_lobe`]).
-    /// uv finite.
+    /// The cosine share at uv: the table's, or with a texel model at least
+    /// the texel's diffuse part of its albedo, ρd / (ρd + F0) over the
+    /// channels' sums (its parameters bilinear at uv), so that a dull texel
+    /// among glossy ones is not sampled as they are. uv finite.
     #[inline]
-    fn mixture_at(&self, table: &Table, uv: [f32; 2], wo: [f32; 3]) -> Mixture {
-        let only_table = Mixture { cosine: table.share, lobe_share: 0.0, lobe: None };
+    fn share_at(&self, table: &Table, uv: [f32; 2]) -> f32 {
         if self.texels.is_empty() {
-            return only_table;
-        }
-        let Some((floor, lobe)) = self.texel_floor_and_lobe(uv, wo) else {
-            return only_table;
-        };
-        let cosine = table.share.max(floor);
-        match lobe {
-            Some(lobe) if cosine < 1.0 && table.lobe > 0.0 => {
-                Mixture { cosine, lobe_share: table.lobe * (1.0 - cosine), lobe: Some(lobe) }
-            }
-            _ => Mixture { cosine, lobe_share: 0.0, lobe: None },
-        }
-    }
-
-    /// With a texel model, the least cosine share at uv — the texel's
-    /// diffuse part of its albedo, ρd / (ρd + F0) over the channels' sums
-    /// — and its GGX lobe for unit wo (`None` below the texel's horizon);
-    /// `None` without a model. uv finite.
-    #[inline]
-    fn texel_floor_and_lobe(&self, uv: [f32; 2], wo: [f32; 3]) -> Option<(f32, Option<Lobe>)> {
-        if self.texels.is_empty() {
-            return None;
+            return table.share;
         }
         let p = self.texel_at(&crate::Footprint::on(self.size, uv));
         let (d, f) = (p.diffuse.iter().sum::<f32>(), p.specular.iter().sum::<f32>());
         let diffuse = if d + f > 0.0 { d / (d + f) } else { 0.0 };
-        diffuse.is_finite().then(|| (diffuse.min(1.0), Lobe::new(p.normal, p.alpha, wo)))
+        if diffuse.is_finite() { table.share.max(diffuse.min(1.0)) } else { table.share }
     }
 
     /// Build every view's table now, on all cores, rather than on first
@@ -424,13 +387,8 @@ impl Material {
             [(i as f32 + 0.5) / UV_POINTS as f32, (y + 0.5) / UV_POINTS as f32]
         });
         let per_point = UV_POINTS / 4;
-        // Point k is seen from views[k mod 4]: its texel's floor and lobe.
-        let texel: [Option<(f32, Option<Lobe>)>; UV_POINTS] =
-            std::array::from_fn(|k| self.texel_floor_and_lobe(uv[k], views[k % 4]));
-        // `[cell][sub-point][its uv points]`: f · cos θi times dωi/dsquare,
-        // and the lobe's density on the square.
+        // `[cell][sub-point][its uv points]`.
         let mut point = vec![0.0f32; GRID * GRID * UV_POINTS];
-        let mut lobe = vec![0.0f32; GRID * GRID * UV_POINTS];
         let mut queries = Vec::with_capacity(GRID * UV_POINTS);
         let mut jacobian = Vec::with_capacity(GRID * 4);
         // Per cell, cosine sampling's density on the square (area 1): the
@@ -456,13 +414,6 @@ impl Material {
                         // 4 × … / 4 sub-points.
                         cosine[cy * GRID + cx] += (wi[2] * dot(wo, h) / h[2]) as f64;
                     }
-                    // dωh / dsquare = π / cos θh.
-                    let at = ((cy * GRID + cx) * 4 + s) * per_point;
-                    for (j, k) in (s..UV_POINTS).step_by(4).enumerate() {
-                        if let (true, Some((_, Some(l)))) = (ok, &texel[k]) {
-                            lobe[at + j] = l.density(h) * PI / h[2];
-                        }
-                    }
                     // Below the horizon: straight up, weighted 0.
                     let wi = if ok { wi } else { [0.0, 0.0, 1.0] };
                     for k in (s..UV_POINTS).step_by(4) {
@@ -486,34 +437,22 @@ impl Material {
                 p[k_of(i)][c] = w as f64;
             }
         }
-        let mut held = Vec::with_capacity(UV_POINTS);
-        for (k, mut pk) in p.into_iter().enumerate() {
+        let mut totals = Vec::with_capacity(UV_POINTS);
+        p.retain_mut(|pk| {
             let total: f64 = pk.iter().sum();
-            if total > 0.0 && total.is_finite() {
-                pk.iter_mut().for_each(|x| *x /= total);
-                let (floor, lobe) = match texel[k] {
-                    Some((floor, Some(_))) => {
-                        let s = k % 4;
-                        let j = k / 4;
-                        let l =
-                            (0..GRID * GRID).map(|c| lobe[(c * 4 + s) * per_point + j]).collect();
-                        (floor, l)
-                    }
-                    Some((floor, None)) => (floor, Vec::new()),
-                    None => (0.0, Vec::new()),
-                };
-                held.push(Held { p: pk, total, floor, lobe });
+            pk.iter_mut().for_each(|x| *x /= total);
+            let seen = total > 0.0 && total.is_finite();
+            if seen {
+                totals.push(total);
             }
-        }
-        let n = held.len() as f64;
+            seen
+        });
+        let n = p.len() as f64;
         let weights: Vec<f64> =
-            (0..GRID * GRID).map(|c| held.iter().map(|h| h.p[c]).sum::<f64>() / n).collect();
-        let (share, lobe) = if held.len() < 2 {
-            (DEFAULT_SHARE, 0.0)
-        } else {
-            choose_mixture(&held, &weights, &cosine)
-        };
-        Table::from_weights(&weights, share, lobe)
+            (0..GRID * GRID).map(|c| p.iter().map(|pk| pk[c]).sum::<f64>() / n).collect();
+        let share =
+            if p.len() < 2 { DEFAULT_SHARE } else { choose_share(&p, &totals, &weights, &cosine) };
+        Table::from_weights(&weights, share)
     }
 }
 
@@ -533,173 +472,52 @@ fn around(wo: [f32; 3], reach: f32) -> [[f32; 3]; 4] {
     })
 }
 
-/// A uv point of a table, for choosing its mixture: its distribution over
-/// the cells `p` (sum 1) and integral `total`, its texel's least cosine
-/// share, and its lobe's density on the square per cell (empty: none).
-struct Held {
-    p: Vec<f64>,
-    total: f64,
-    floor: f32,
-    lobe: Vec<f32>,
-}
-
-/// The cosine share and lobe part under which the uv points' samples vary
-/// least: drawn from the mixture — cosine share max(s, its floor), the
-/// lobe's part l of the rest, the table of the *other* points (`mean`
-/// without it) the remainder — point k has a variance of
-/// total² (Σ_cells p_k² / (area · density) − 1); the (s, l) whose sum over
-/// the points (a render's squared error) is least. `cosine` is cosine
-/// sampling's density on the square per cell.
-fn choose_mixture(held: &[Held], mean: &[f64], cosine: &[f64]) -> (f32, f32) {
-    let n = held.len() as f64;
+/// The share of cosine sampling whose samples vary least at the uv points:
+/// drawn from the mixture of `cosine` (the density on the square) and the
+/// table of the other points (`mean` without it), point k — distribution
+/// `p[k]`, integral `totals[k]` — has a variance of
+/// totals[k]² (Σ_cells p_k² / (area · density) − 1); the share whose sum
+/// over the points (a render's squared error) is least.
+fn choose_share(p: &[Vec<f64>], totals: &[f64], mean: &[f64], cosine: &[f64]) -> f32 {
+    let n = p.len() as f64;
     let area = 1.0 / mean.len() as f64;
-    let variance = |share: f32, part: f32| -> f64 {
-        held.iter()
-            .map(|k| {
-                let cos = share.max(k.floor) as f64;
-                let lobe =
-                    if k.lobe.is_empty() || cos >= 1.0 { 0.0 } else { part as f64 * (1.0 - cos) };
-                let table = 1.0 - cos - lobe;
+    let variance = |share: f64| -> f64 {
+        p.iter()
+            .zip(totals)
+            .map(|(pk, t)| {
                 let mut v = 0.0;
                 for c in 0..mean.len() {
-                    let pk = k.p[c];
-                    if pk > 0.0 {
-                        let others = (n * mean[c] - pk).max(0.0) / (n - 1.0);
-                        let l = if lobe > 0.0 { lobe * k.lobe[c] as f64 } else { 0.0 };
-                        let q = cos * cosine[c] + l + table * others / area;
-                        v += if q > 0.0 { pk * pk / (area * q) } else { f64::INFINITY };
+                    if pk[c] > 0.0 {
+                        let others = (n * mean[c] - pk[c]).max(0.0) / (n - 1.0);
+                        let q = share * cosine[c] + (1.0 - share) * others / area;
+                        v += if q > 0.0 { pk[c] * pk[c] / (area * q) } else { f64::INFINITY };
                     }
                 }
-                (v - 1.0) * k.total * k.total
+                (v - 1.0) * t * t
             })
             .sum::<f64>()
     };
-    let parts: &[f32] = if held.iter().any(|k| !k.lobe.is_empty()) { &LOBE_PARTS } else { &[0.0] };
-    let mut best = ((DEFAULT_SHARE, 0.0), f64::INFINITY);
+    let mut best = (DEFAULT_SHARE, f64::INFINITY);
     for s in SHARES {
-        for &l in parts {
-            let v = variance(s, l);
-            if v < best.1 {
-                best = ((s, l), v);
-            }
+        let v = variance(s as f64);
+        if v < best.1 {
+            best = (s, v);
         }
     }
     best.0
 }
 
-/// The parts of the mixture at one (uv, wo): the cosine share, the share
-/// of the texel's lobe (0 without one), and the table the rest.
-#[derive(Debug, Clone, Copy)]
-struct Mixture {
-    cosine: f32,
-    lobe_share: f32,
-    lobe: Option<Lobe>,
-}
-
-impl Mixture {
-    /// The density of unit wi (above the horizon) for unit wo.
-    #[inline]
-    fn pdf(&self, table: &Table, wi: [f32; 3], wo: [f32; 3]) -> f32 {
-        let mut p = self.cosine * wi[2] / PI;
-        let rest = 1.0 - self.cosine;
-        if rest <= 0.0 {
-            return p;
-        }
-        let Some(h) = unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]) else {
-            return p;
-        };
-        let to_wi = 1.0 / (4.0 * dot(wo, h));
-        if let Some(lobe) = &self.lobe {
-            p += self.lobe_share * lobe.density(h) * to_wi;
-        }
-        let table_share = rest - self.lobe_share;
-        if h[2] > 0.0 && table_share > 0.0 {
-            p += table_share * table.density(h) * to_wi;
-        }
-        p
+/// The mixture's density of unit wi (above the horizon) for unit wo, with
+/// cosine share `share`.
+#[inline]
+fn mixture_pdf(table: &Table, share: f32, wi: [f32; 3], wo: [f32; 3]) -> f32 {
+    let cosine = wi[2] / PI;
+    if share >= 1.0 {
+        return cosine;
     }
-}
-
-/// A texel's GGX lobe for one view: its normal's frame, α, and the view
-/// in that frame. Half vectors are drawn from its distribution of visible
-/// normals (Heitz 2018), whose density per solid angle of h is
-/// G1(wo) · max(0, wo · h) · D(h) / (wo · n).
-#[derive(Debug, Clone, Copy)]
-struct Lobe {
-    /// Tangent, bitangent, normal.
-    frame: [[f32; 3]; 3],
-    alpha: f32,
-    /// wo in the frame (z > 0).
-    wo: [f32; 3],
-    /// Smith's G1(wo) / (wo · n).
-    g1_over_cos: f32,
-}
-
-impl Lobe {
-    /// The lobe of unit normal n (z > 0) and α for unit wo, or `None` if wo
-    /// is not above the normal's horizon.
-    #[inline]
-    fn new(n: [f32; 3], alpha: f32, wo: [f32; 3]) -> Option<Lobe> {
-        // Duff et al.'s orthonormal basis (n.z > 0 here).
-        let a = -1.0 / (1.0 + n[2]);
-        let b = n[0] * n[1] * a;
-        let t = [1.0 + n[0] * n[0] * a, b, -n[0]];
-        let bt = [b, 1.0 + n[1] * n[1] * a, -n[1]];
-        let frame = [t, bt, n];
-        let local = frame.map(|e| dot(e, wo));
-        if !(local[2] > 1e-4 && alpha > 0.0) {
-            return None;
-        }
-        let a2 = alpha * alpha;
-        let root = (a2 * (local[0] * local[0] + local[1] * local[1]) + local[2] * local[2]).sqrt();
-        // G1 = 2 cos / (cos + root); over cos.
-        Some(Lobe { frame, alpha, wo: local, g1_over_cos: 2.0 / (local[2] + root) })
-    }
-
-    /// GGX's D of a unit half vector in the frame, as sin²θ + α² cos²θ.
-    #[inline]
-    fn d(&self, h: [f32; 3]) -> f32 {
-        let a2 = self.alpha * self.alpha;
-        let t = h[0] * h[0] + h[1] * h[1] + a2 * h[2] * h[2];
-        a2 / (PI * t * t)
-    }
-
-    /// The density per solid angle of a unit half vector (sample frame).
-    #[inline]
-    fn density(&self, h: [f32; 3]) -> f32 {
-        let local = self.frame.map(|e| dot(e, h));
-        let wo_h = dot(self.wo, local);
-        if local[2] <= 0.0 || wo_h <= 0.0 {
-            return 0.0;
-        }
-        self.g1_over_cos * wo_h * self.d(local)
-    }
-
-    /// A half vector (sample frame) from the visible normals, u ∈ [0, 1)².
-    #[inline]
-    fn sample(&self, u: [f32; 2]) -> [f32; 3] {
-        let (a, v) = (self.alpha, self.wo);
-        let vh = unit([a * v[0], a * v[1], v[2]]).unwrap_or([0.0, 0.0, 1.0]);
-        let len2 = vh[0] * vh[0] + vh[1] * vh[1];
-        let t1 = if len2 > 0.0 {
-            let inv = 1.0 / len2.sqrt();
-            [-vh[1] * inv, vh[0] * inv, 0.0]
-        } else {
-            [1.0, 0.0, 0.0]
-        };
-        let t2 = [
-            vh[1] * t1[2] - vh[2] * t1[1],
-            vh[2] * t1[0] - vh[0] * t1[2],
-            vh[0] * t1[1] - vh[1] * t1[0],
-        ];
-        let (r, phi) = (u[0].sqrt(), 2.0 * PI * u[1]);
-        let p1 = r * phi.cos();
-        let s = 0.5 * (1.0 + vh[2]);
-        let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * r * phi.sin();
-        let pz = (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt();
-        let nh: [f32; 3] = std::array::from_fn(|i| p1 * t1[i] + p2 * t2[i] + pz * vh[i]);
-        let ne = unit([a * nh[0], a * nh[1], nh[2].max(1e-6)]).unwrap_or([0.0, 0.0, 1.0]);
-        let [t, b, n] = self.frame;
-        std::array::from_fn(|i| ne[0] * t[i] + ne[1] * b[i] + ne[2] * n[i])
-    }
+    let half = match unit([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]) {
+        Some(h) if h[2] > 0.0 => table.density(h) / (4.0 * dot(wo, h)),
+        _ => 0.0,
+    };
+    share * cosine + (1.0 - share) * half
 }
