@@ -52,14 +52,12 @@ fn render(
                         None => continue,
                     }
                 } else {
-                    let d = scanner_shading::importance::square_to_disk(u);
-                    let z = (1.0 - d[0] * d[0] - d[1] * d[1]).max(0.0).sqrt();
-                    if z <= 0.0 {
+                    let wi = scanner_shading::importance::cosine_direction(u);
+                    if wi[2] <= 0.0 {
                         continue;
                     }
-                    let wi = [d[0], d[1], z];
                     let f = m.eval(uv, wi, wo);
-                    (wi, f.map(|c| c * std::f32::consts::PI / z))
+                    (wi, f.map(|c| c * std::f32::consts::PI / wi[2]))
                 };
                 let le = environment(wi, wo);
                 for k in 0..3 {

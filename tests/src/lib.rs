@@ -509,9 +509,8 @@ pub fn sampling_check(
             .sample(uv, wo, rng.random(), [rng.random(), rng.random()])
             .map_or(0.0, |x| lum(x.weight()));
         s = [s[0] + x, s[1] + x * x];
-        let d = scanner_shading::importance::square_to_disk([rng.random(), rng.random()]);
-        let z = (1.0 - d[0] * d[0] - d[1] * d[1]).max(0.0).sqrt();
-        let y = if z > 0.0 { lum(m.eval(uv, [d[0], d[1], z], wo)) * PI / z as f64 } else { 0.0 };
+        let wi = scanner_shading::importance::cosine_direction([rng.random(), rng.random()]);
+        let y = if wi[2] > 0.0 { lum(m.eval(uv, wi, wo)) * PI / wi[2] as f64 } else { 0.0 };
         c = [c[0] + y, c[1] + y * y];
     }
     let nf = n as f64;

@@ -58,7 +58,7 @@ pub struct BsdfSample {
     /// f · cos θi at (uv, wi, wo): exactly [`Material::eval`]'s answer.
     pub f_cos: [f32; 3],
     /// The density of wi per unit solid angle: exactly
-    /// [`Material::pdf`]`(wi, wo)`, > 0.
+    /// [`Material::pdf`]`(uv, wi, wo)`, > 0.
     pub pdf: f32,
 }
 
@@ -255,6 +255,14 @@ pub fn disk_to_square(d: [f32; 2]) -> [f32; 2] {
     [((a + 1.0) * 0.5).clamp(0.0, 1.0), ((b + 1.0) * 0.5).clamp(0.0, 1.0)]
 }
 
+/// The mixture's cosine-weighted direction (density cos θi / π) from
+/// u ∈ [0, 1)²: the concentric disk lifted onto the hemisphere. z is 0 only
+/// on the disk's rim.
+#[inline]
+pub fn cosine_direction(u: [f32; 2]) -> [f32; 3] {
+    hemisphere(square_to_disk(u))
+}
+
 /// A disk point lifted onto the upper hemisphere.
 #[inline]
 fn hemisphere(d: [f32; 2]) -> [f32; 3] {
@@ -302,7 +310,7 @@ impl Material {
         let table = self.importance_table(wo);
         let share = self.share_at(table, uv);
         let wi = if uc < share {
-            hemisphere(square_to_disk(u))
+            cosine_direction(u)
         } else {
             let h = table.sample(unit_interval((uc - share) / (1.0 - share)), u);
             unit(reflect(wo, h))?
@@ -440,9 +448,9 @@ impl Material {
         let mut totals = Vec::with_capacity(UV_POINTS);
         p.retain_mut(|pk| {
             let total: f64 = pk.iter().sum();
-            pk.iter_mut().for_each(|x| *x /= total);
             let seen = total > 0.0 && total.is_finite();
             if seen {
+                pk.iter_mut().for_each(|x| *x /= total);
                 totals.push(total);
             }
             seen

@@ -1219,8 +1219,7 @@ fn importance_sampling_is_unbiased_and_beats_cosine_sampling() {
                 .sample(uv, wo, rng.random(), [rng.random(), rng.random()])
                 .map_or(0.0, |s| lum(s.weight()));
             (s1, s2) = (s1 + x, s2 + x * x);
-            let d = importance::square_to_disk([rng.random(), rng.random()]);
-            let wi = [d[0], d[1], (1.0 - d[0] * d[0] - d[1] * d[1]).max(0.0).sqrt()];
+            let wi = importance::cosine_direction([rng.random(), rng.random()]);
             let y = if wi[2] > 0.0 {
                 lum(m.eval(uv, wi, wo)) * std::f64::consts::PI / wi[2] as f64
             } else {
