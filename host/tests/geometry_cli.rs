@@ -92,6 +92,21 @@ fn a_faulty_design_exits_3_naming_the_mirror_and_writes_nothing() {
     assert!(stderr.contains("overlapping"), "{stderr}");
     assert!(!out_file.exists());
 
+    // The fold mirror's zero turned by 40°: three rings' tilts lie beyond
+    // the default axes' −35°.
+    let mut turned = ScannerGeometry::default_scanner();
+    turned.source.tilt_zero_deg = 40.0;
+    let file = dir.path().join("turned.toml");
+    std::fs::write(&file, turned.to_toml()).unwrap();
+    let out = scanner(&["geometry", "--geometry", p(&file)]);
+    let (_, stderr) = text(&out);
+    assert_eq!(out.status.code(), Some(3));
+    assert!(
+        stderr.contains("mirror 0: tilt at -39.227° is outside its travel -35.00 … 35.00°"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("25 problems found"), "{stderr}");
+
     // Usage, input and output errors.
     for (args, code) in [
         (vec!["geometry", "--rings", "18:x"], 2),

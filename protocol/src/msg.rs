@@ -226,6 +226,84 @@ wire_type! {
     }
 }
 
+// The default axes (spec/hardware.md, "Axes"): what the firmware runs
+// until a configuration is saved, and the travel `scanner geometry`
+// checks a design against.
+
+/// DISK: 200 × 16 µsteps × 5:1 belt = 16 000 steps/rev; 90 °/s; 180 °/s².
+pub const fn disk_default() -> AxisConfig {
+    AxisConfig {
+        unit: Unit::Degree,
+        steps_per_unit: 16_000.0 / 360.0,
+        min_steps: 0,
+        max_steps: 15_999,
+        continuous: true,
+        steps_per_rev: 16_000,
+        v_max: 4_000,
+        a_max: 8_000,
+        homing: HomingConfig {
+            direction: Direction::Positive,
+            fast_speed: 1_000,
+            slow_speed: 100,
+            backoff_steps: 400,
+            max_travel_steps: 17_600,
+            timeout_ms: 30_000,
+            home_position: 0,
+        },
+    }
+}
+
+/// TRACK: 2 mm lead, 16 µsteps → 1 600 steps/mm; 0 … 200 mm; 40 mm/s; 200 mm/s².
+pub const fn track_default() -> AxisConfig {
+    AxisConfig {
+        unit: Unit::Millimetre,
+        steps_per_unit: 1_600.0,
+        min_steps: 0,
+        max_steps: 320_000,
+        continuous: false,
+        steps_per_rev: 0,
+        v_max: 64_000,
+        a_max: 320_000,
+        homing: HomingConfig {
+            direction: Direction::Negative,
+            fast_speed: 16_000,
+            slow_speed: 1_600,
+            backoff_steps: 3_200,
+            max_travel_steps: 336_000,
+            timeout_ms: 40_000,
+            home_position: 0,
+        },
+    }
+}
+
+/// TILT: 200 × 16 × 30:1 worm = 96 000 steps/rev; −35° … +35°; 20 °/s; 60 °/s².
+pub const fn tilt_default() -> AxisConfig {
+    AxisConfig {
+        unit: Unit::Degree,
+        steps_per_unit: 96_000.0 / 360.0,
+        min_steps: -9_333,
+        max_steps: 9_333,
+        continuous: false,
+        steps_per_rev: 0,
+        v_max: 5_333,
+        a_max: 16_000,
+        homing: HomingConfig {
+            direction: Direction::Negative,
+            fast_speed: 2_667,
+            slow_speed: 267,
+            backoff_steps: 533,
+            max_travel_steps: 20_000,
+            timeout_ms: 30_000,
+            home_position: -9_333,
+        },
+    }
+}
+
+/// The three defaults, indexed by axis.
+pub const fn default_axes() -> [AxisConfig; AXIS_COUNT] {
+    [disk_default(), track_default(), tilt_default()]
+}
+
 wire_type! {
     /// Position of every axis that aims the beam at one mirror, in steps.
     #[derive(Eq, Hash)]

@@ -463,3 +463,22 @@ fn a_texture_set_is_scanned_like_a_library_material_and_a_bad_one_exits_3() {
     let (code, _, err) = scan("velvet", &bad_out);
     assert_eq!(code, Some(2), "{err}");
 }
+
+/// Output into a closed pipe (`scanner geometry | head -1`) ends the
+/// program as it ends any Unix tool, by SIGPIPE, not with a panic.
+#[cfg(unix)]
+#[test]
+fn a_closed_pipe_ends_the_program_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let mut child =
+        scanner().arg("geometry").stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    // Closed before the program has started printing.
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    // SIGPIPE = 13; a program that printed everything before the pipe
+    // closed (a slow test machine) exits 0.
+    assert!(out.status.signal() == Some(13) || out.status.success(), "{:?}: {err}", out.status);
+}

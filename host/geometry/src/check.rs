@@ -79,6 +79,25 @@ pub enum DesignProblem {
         /// The other mirror lit.
         also: usize,
     },
+    /// The inverse kinematics put an axis outside its travel.
+    #[error(
+        "mirror {mirror}: {} at {value:.3}{unit} is outside its travel {min:.2} … {max:.2}{unit}",
+        axis.name()
+    )]
+    OutOfTravel {
+        /// The mirror.
+        mirror: usize,
+        /// The axis.
+        axis: protocol::Axis,
+        /// Its position, in its unit.
+        value: f64,
+        /// Its travel, in its unit.
+        min: f64,
+        /// Its travel, in its unit.
+        max: f64,
+        /// " mm" or "°".
+        unit: &'static str,
+    },
     /// The camera cannot see the whole sample in the mirror.
     #[error("mirror {mirror}: the camera sees part of the sample {reason}")]
     ViewCut {
@@ -135,6 +154,40 @@ pub struct DesignCheck {
     pub warnings: Vec<DesignProblem>,
 }
 
+/// The axes of `axes` outside their travel under `configs` (the one
+/// conversion, [`AxisValues::to_steps`]'s, so that a design passes here
+/// exactly when `scanner setup` can write its mirror table).
+fn travel_problems(
+    mirror: usize,
+    axes: AxisValues,
+    configs: &[protocol::AxisConfig; 3],
+) -> Vec<DesignProblem> {
+    let values = axes.to_array();
+    protocol::Axis::ALL
+        .into_iter()
+        .zip(values)
+        .zip(configs)
+        .filter_map(|((axis, value), c)| match crate::unit_to_steps(axis, value, c) {
+            Ok(_) => None,
+            Err(_) => {
+                let per = c.steps_per_unit as f64;
+                let unit = match c.unit {
+                    protocol::Unit::Degree => "°",
+                    protocol::Unit::Millimetre => " mm",
+                };
+                Some(DesignProblem::OutOfTravel {
+                    mirror,
+                    axis,
+                    value,
+                    min: c.min_steps as f64 / per,
+                    max: c.max_steps as f64 / per,
+                    unit,
+                })
+            }
+        })
+        .collect()
+}
+
 /// Points of the sample (uv) at which lighting and sight are checked: a
 /// 5 × 5 grid from corner to corner (corners, edges and centre included).
 fn probes() -> impl Iterator<Item = [f64; 2]> {
@@ -147,11 +200,17 @@ impl ScannerGeometry {
         VIEW_MARGIN_PX * self.camera.focal_px / 5600.0
     }
 
-    /// Check the design (see the module documentation).
+    /// Check the design (see the module documentation) on the default axes
+    /// of spec/hardware.md ([`protocol::default_axes`]).
     pub fn check_design(&self) -> DesignCheck {
+        self.check_design_on(&protocol::default_axes())
+    }
+
+    /// Check the design on a device's axes: `axes` gives their travel.
+    pub fn check_design_on(&self, axes: &[protocol::AxisConfig; 3]) -> DesignCheck {
         let (mut problems, mut warnings) = (Vec::new(), Vec::new());
         let mirrors: Vec<MirrorCheck> = (0..self.mirrors.len())
-            .map(|l| self.check_mirror(l, &mut problems, &mut warnings))
+            .map(|l| self.check_mirror(l, axes, &mut problems, &mut warnings))
             .collect();
         let need = self.view_margin_px();
         let mut closest: Option<(usize, usize, f64)> = None;
@@ -178,6 +237,7 @@ impl ScannerGeometry {
     fn check_mirror(
         &self,
         l: usize,
+        configs: &[protocol::AxisConfig; 3],
         problems: &mut Vec<DesignProblem>,
         warnings: &mut Vec<DesignProblem>,
     ) -> MirrorCheck {
@@ -197,6 +257,7 @@ impl ScannerGeometry {
             Err(e) => problems.push(DesignProblem::Unlit { mirror: l, reason: e.to_string() }),
             Ok(axes) => {
                 out.axes = Some(axes);
+                problems.extend(travel_problems(l, axes, configs));
                 let beam = self.beam(axes);
                 match self.first_mirror(beam.origin, beam.dir) {
                     Some((k, _)) if k == l => {
@@ -397,6 +458,52 @@ mod tests {
         let res: Vec<f64> = c.mirrors.iter().map(|m| m.px_per_mm.unwrap()).collect();
         let (lo, hi) = res.iter().fold((f64::MAX, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
         assert!((lo - 2.105).abs() < 0.01 && (hi - 4.520).abs() < 0.01, "{lo} {hi}");
+    }
+
+    #[test]
+    fn axes_outside_their_travel_are_named() {
+        let g = ScannerGeometry::default_scanner();
+        let out_of_travel = |c: &DesignCheck| -> Vec<(usize, protocol::Axis, f64, f64, f64)> {
+            c.problems
+                .iter()
+                .map(|p| match *p {
+                    DesignProblem::OutOfTravel { mirror, axis, value, min, max, .. } => {
+                        (mirror, axis, value, min, max)
+                    }
+                    ref other => panic!("{other}"),
+                })
+                .collect()
+        };
+        // A track of 20 mm: the working position, 30 mm, lies beyond it.
+        let mut axes = protocol::default_axes();
+        axes[1].max_steps = (20.0 * axes[1].steps_per_unit) as i32;
+        let c = g.check_design_on(&axes);
+        let found = out_of_travel(&c);
+        assert_eq!(found.len(), g.mirrors.len());
+        for (l, f) in found.iter().enumerate() {
+            assert_eq!((f.0, f.1), (l, protocol::Axis::Track));
+            assert!((f.2 - 30.0).abs() < 1e-9 && f.3 == 0.0 && (f.4 - 20.0).abs() < 1e-3, "{f:?}");
+        }
+        assert!(c.problems[0].to_string().contains("track at 30.000 mm is outside its travel"));
+        // A tilt of at most 3°: the two outer rings (4.3° and 6.4°) are
+        // beyond it, the two inner ones (0.8° and 2.5°) within.
+        let mut axes = protocol::default_axes();
+        axes[2].max_steps = (3.0 * axes[2].steps_per_unit) as i32;
+        let c = g.check_design_on(&axes);
+        let found: Vec<usize> = out_of_travel(&c)
+            .iter()
+            .inspect(|f| assert_eq!(f.1, protocol::Axis::Tilt))
+            .map(|f| f.0)
+            .collect();
+        let steep: Vec<usize> =
+            c.mirrors.iter().filter(|m| m.axes.unwrap().tilt_deg > 3.0).map(|m| m.mirror).collect();
+        assert_eq!(found, steep);
+        assert_eq!(steep.len(), 27);
+        // The disk turns without end: no angle is beyond it, and the
+        // default axes hold every mirror (the test above).
+        let mut axes = protocol::default_axes();
+        axes[0].max_steps = 10;
+        assert_eq!(g.check_design_on(&axes).problems, []);
     }
 
     #[test]

@@ -498,9 +498,11 @@ pub fn unit_to_steps(
     value: f64,
     config: &protocol::AxisConfig,
 ) -> Result<i32, StepsError> {
-    let mut steps = offset_to_steps(axis, value, config)? as i64;
+    let steps = offset_to_steps(axis, value, config)? as i64;
     if config.continuous && config.steps_per_rev > 0 {
-        steps = steps.rem_euclid(config.steps_per_rev as i64);
+        // No soft limits: every angle is within its revolution, as the
+        // device's own check says.
+        return Ok(steps.rem_euclid(config.steps_per_rev as i64) as i32);
     }
     if steps < config.min_steps as i64 || steps > config.max_steps as i64 {
         return Err(StepsError::OutOfRange {

@@ -131,6 +131,17 @@ pub fn geometry_cmd(
         g.camera.focal_px,
         g.hash()
     );
+    let [_, track, tilt] = protocol::default_axes();
+    let travel = |c: protocol::AxisConfig| {
+        let per = c.steps_per_unit as f64;
+        format!("{:.1} … {:.1}", c.min_steps as f64 / per, c.max_steps as f64 / per)
+    };
+    println!(
+        "axes: checked against the default travel (spec/hardware.md): track {} mm, tilt {}°; \
+         `scanner setup` checks the device's own",
+        travel(track),
+        travel(tilt)
+    );
     println!(
         "mirror | view θ, φ (°) | light θ, φ (°) | disk (°), track (mm), tilt (°) | \
          sample on the sensor: x, y (px) | px/mm | lit"

@@ -319,8 +319,15 @@ fn load_geometry(path: Option<&Path>, opened: &Opened) -> Result<ScannerGeometry
         Some(p) => {
             let g = ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?;
             // The scanner is built: its design's faults are worth knowing
-            // before scanning with it, but they are warnings here.
-            let problems = g.check_design().problems;
+            // before scanning with it, but they are warnings here. Its axes'
+            // travel is the device's, checked when the mirror table is
+            // written, not the default axes'.
+            let problems: Vec<_> = g
+                .check_design()
+                .problems
+                .into_iter()
+                .filter(|p| !matches!(p, scanner_geometry::DesignProblem::OutOfTravel { .. }))
+                .collect();
             for problem in &problems {
                 eprintln!("scanner: warning: {}: {problem}", p.display());
             }

@@ -700,6 +700,15 @@ impl std::io::Write for LogWriter {
 /// The `scanner` program.
 pub fn main() -> ExitCode {
     use std::io::IsTerminal;
+    // Rust ignores SIGPIPE, so that printing into a closed pipe (`scanner
+    // geometry | head`) panics. Restored, the program ends as Unix tools
+    // do. Only this program's main: the library never touches signals.
+    #[cfg(unix)]
+    // SAFETY: at the start of main, before any thread; SIG_DFL is a valid
+    // disposition for SIGPIPE.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     tracing_subscriber::fmt()
         // Colour codes only for a person at a terminal.
         .with_ansi(std::io::stderr().is_terminal())
