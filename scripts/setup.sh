@@ -8,7 +8,10 @@
 #   linker Rust needs; a test compiles the C API's example with it)
 #   (Debian/Ubuntu: apt-get, as root or through sudo);
 # - numpy and safetensors in a Python virtual environment, .venv/, for the
-#   test that reads material files in Python from their documentation.
+#   test that reads material files in Python from their documentation;
+# - Node.js and the Khronos glTF validator (tests/gltf/, pinned by its
+#   package-lock.json), for the test that validates `scanner export
+#   --format gltf`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if ! command -v rustup >/dev/null 2>&1; then
@@ -43,4 +46,18 @@ if ! .venv/bin/python -c 'import numpy, safetensors' >/dev/null 2>&1; then
     echo "installing numpy and safetensors into .venv (tests/python/requirements.txt)"
     python3 -m venv .venv
     .venv/bin/python -m pip install -q --disable-pip-version-check -r tests/python/requirements.txt
+fi
+
+# Node.js and the Khronos glTF validator in tests/gltf/node_modules, for the
+# test that validates an exported glTF asset (host/tests/gltf.rs).
+if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
+    echo "installing nodejs and npm (the glTF export's validator test)"
+    sudo=""
+    [ "$(id -u)" -eq 0 ] || sudo="sudo"
+    $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq nodejs npm >/dev/null
+fi
+if [ ! -f tests/gltf/node_modules/gltf-validator/package.json ]; then
+    echo "installing the Khronos glTF validator into tests/gltf (package-lock.json)"
+    (cd tests/gltf && npm ci --no-audit --no-fund --silent)
 fi

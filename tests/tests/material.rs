@@ -114,6 +114,96 @@ fn exported_texture_sets(
         );
     }
 
+    // The glTF asset. Its base colour and metallic-roughness maps, read
+    // by the simulator as a texture set in the glTF form (with the set's
+    // own normal map: the asset's is in glTF's tangent space), give the
+    // model's parameters as `metallic_form` converts them, to 8 bits; its
+    // normal map is the set's with y flipped (up the image); and scanned,
+    // that set scores within 1 dB of the file too.
+    {
+        use host::build::gltf::{gltf_normal, metallic_form, model_of};
+        let (code, err) = common::run_err(&[
+            "export",
+            &d("leather.material"),
+            "-o",
+            &d("gltf"),
+            "--format",
+            "gltf",
+        ]);
+        assert_eq!(code, Some(0), "{err}");
+        let doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(p("gltf/material.gltf")).unwrap()).unwrap();
+        assert_eq!(doc["asset"]["version"], "2.0");
+        let bin = std::fs::metadata(p("gltf/material.bin")).unwrap().len();
+        assert_eq!(doc["buffers"][0]["byteLength"].as_u64(), Some(bin));
+        std::fs::create_dir(p("gltf-form")).unwrap();
+        for (from, to) in [
+            ("gltf/baseColor.png", "gltf-form/baseColor.png"),
+            ("gltf/metallicRoughness.png", "gltf-form/metallicRoughness.png"),
+            ("set-png/normal.png", "gltf-form/normal.png"),
+            ("set-png/material.toml", "gltf-form/material.toml"),
+        ] {
+            std::fs::copy(p(from), p(to)).unwrap();
+        }
+        let read = Sample::small(lookup(&d("gltf-form")).unwrap());
+        let normals = image::open(p("gltf/normal.png")).unwrap().to_rgb8();
+        assert_eq!(normals.dimensions(), (set.side as u32, set.side as u32));
+        let mut metallic = 0usize;
+        for i in (0..set.side * set.side).step_by(7) {
+            let (x, y) = (i % set.side, i / set.side);
+            let uv = [(x as f64 + 0.5) / set.side as f64, (y as f64 + 0.5) / set.side as f64];
+            let t = read.texel(uv);
+            let (base, m) = metallic_form(set.diffuse[i], set.specular[i]);
+            metallic += usize::from(m > 0.0);
+            let (diffuse, f0) = model_of(base, m);
+            for c in 0..3 {
+                let (a, b) = (t.diffuse[c], diffuse[c] as f64);
+                assert!((a - b).abs() < 5e-3, "texel ({x}, {y}) diffuse: {a} vs {b}");
+                let (a, b) = (t.specular[c], f0[c] as f64);
+                assert!((a - b).abs() < 5e-3, "texel ({x}, {y}) F0: {a} vs {b}");
+            }
+            assert!((t.roughness.sqrt() - set.roughness[i] as f64).abs() < 3e-3);
+            let code = normals.get_pixel(x as u32, y as u32).0;
+            let g = gltf_normal(set.normal[i]);
+            for c in 0..3 {
+                let decoded = code[c] as f32 / 255.0 * 2.0 - 1.0;
+                assert!((decoded - g[c]).abs() < 5e-3, "texel ({x}, {y}) normal: {code:?}, {g:?}");
+            }
+        }
+        let texels = (set.side * set.side).div_ceil(7);
+        eprintln!("leather: {metallic} of {texels} texels checked have a metallic factor above 0");
+        let gltf_db = {
+            let score = |pairs: &[([f64; 3], [f64; 3])]| {
+                let t = tests::truth_answers(pairs, sample);
+                tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&read, q)).0
+            };
+            [score(captured), score(novel)]
+        };
+        eprintln!(
+            "leather, 1024² sensor: the glTF asset's maps {:.2} dB at the captured pairs, {:.2} dB at novel pairs",
+            gltf_db[0], gltf_db[1]
+        );
+        for k in 0..2 {
+            assert!(
+                gltf_db[k] >= file_db[k] - 1.0,
+                "glTF {:.2} dB, file {:.2} dB",
+                gltf_db[k],
+                file_db[k]
+            );
+        }
+        // Its directory is its own: a texture set's is not replaced by it.
+        let (code, err) = common::run_err(&[
+            "export",
+            &d("leather.material"),
+            "-o",
+            &d("set-png"),
+            "--format",
+            "gltf",
+        ]);
+        assert_eq!(code, Some(4), "{err}");
+        assert!(p("set-png/material.toml").is_file());
+    }
+
     // Refused: a material without a model (exit 3), a damaged file (3),
     // an output that is not a texture set's directory (4); nothing written.
     let refused = |material: &str, out: &str, code: i32| -> String {

@@ -157,7 +157,7 @@ fn bilinear(v: &[[f32; STORED]], s: usize, uv: [f32; 2]) -> [f32; STORED] {
 }
 
 /// sRGB encoding of a linear value in [0, 1].
-fn srgb(c: f32) -> f32 {
+pub(crate) fn srgb(c: f32) -> f32 {
     let c = c.clamp(0.0, 1.0);
     if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
 }

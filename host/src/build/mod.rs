@@ -12,6 +12,7 @@ pub mod calibrate;
 pub mod error;
 pub mod export;
 pub mod glossy;
+pub mod gltf;
 pub mod linalg;
 pub mod locate;
 pub mod material;

@@ -795,13 +795,16 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
 pub fn export_cmd(
     material: &Path,
     output: &Path,
-    format: crate::build::export::MapFormat,
+    format: Option<crate::build::export::MapFormat>,
 ) -> Result<(), Failure> {
     use crate::build::export::{is_texture_set_file, texture_set};
-    let check = || {
-        crate::fsutil::check_output_dir(output, is_texture_set_file)
-            .map_err(|e| Failure(4, anyhow!(e)))
+    use crate::build::gltf::{gltf_files, is_gltf_file};
+    let ours = |name: &str| match format {
+        Some(_) => is_texture_set_file(name),
+        None => is_gltf_file(name),
     };
+    let check =
+        || crate::fsutil::check_output_dir(output, ours).map_err(|e| Failure(4, anyhow!(e)));
     check()?;
     let bytes = scanner_formats::input::read(material)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
@@ -816,16 +819,31 @@ pub fn export_cmd(
     // `scanner regions` does: never half a set, never two runs mixed.
     let place = |e: std::io::Error| Failure(4, anyhow!("{}: {e}", output.display()));
     let staging = crate::fsutil::staging_dir(output).map_err(place)?;
-    set.write(staging.path(), format).map_err(build_failure)?;
+    let what = match format {
+        Some(format) => {
+            set.write(staging.path(), format).map_err(build_failure)?;
+            format!(
+                "texture set ({}: {})",
+                format.extension(),
+                crate::build::export::MAPS.join(", ")
+            )
+        }
+        None => {
+            let files = gltf_files(&set).map_err(|e| Failure(4, anyhow!("{e}")))?;
+            for (file, bytes) in &files {
+                crate::fsutil::write_atomic(&staging.path().join(file), bytes)
+                    .map_err(|e| Failure(4, anyhow!("{file}: {e}")))?;
+            }
+            "glTF 2.0 asset (material.gltf; baseColor, metallicRoughness, normal)".into()
+        }
+    };
     check()?;
     crate::fsutil::replace_dir(staging, output).map_err(place)?;
     println!(
-        "{}: texture set of {1}² texels over {2} mm ({3}: {4}) → {5}",
+        "{}: {what} of {1}² texels over {2} mm → {3}",
         name,
         set.side,
         set.size_mm,
-        format.extension(),
-        crate::build::export::MAPS.join(", "),
         output.display()
     );
     if components > 0 {

@@ -1353,10 +1353,12 @@ pub fn demo(
     let picture = out.join(format!("{name}-preview.png"));
     super::build::preview(&built.material, (view, off), Some(&truth), &picture)?;
     // PBR maps of the material's texel model, for other renderers (PNG:
-    // what a person opens).
+    // what a person opens), and the same as a glTF asset for any viewer.
     if built.material.metadata().texel_model {
         let maps = out.join(format!("{name}-maps"));
-        super::build::export_cmd(&material_file, &maps, crate::build::export::MapFormat::Png)?;
+        let png = Some(crate::build::export::MapFormat::Png);
+        super::build::export_cmd(&material_file, &maps, png)?;
+        super::build::export_cmd(&material_file, &out.join(format!("{name}-gltf")), None)?;
     }
     let (theta, phi) = super::build::angles(view);
     println!(

@@ -169,8 +169,9 @@ enum Command {
     },
     /// Export a material's fitted texel model as a texture set
     /// (docs/texture-set.md): diffuse albedo, F0, roughness and normal maps
-    /// for physically based renderers, which the simulator also scans. What
-    /// the model does not explain stays in the material file only.
+    /// for physically based renderers, which the simulator also scans; or
+    /// as a glTF 2.0 asset that any glTF viewer opens. What the model does
+    /// not explain stays in the material file only.
     Export {
         /// Material file (built with a texel model).
         material: PathBuf,
@@ -179,8 +180,10 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
         /// Map files: `exr` (32-bit float, linear) or `png` (16-bit; diffuse
-        /// and specular sRGB-encoded).
-        #[arg(long, value_parser = ["exr", "png"], default_value = "exr")]
+        /// and specular sRGB-encoded); or `gltf`: a glTF 2.0 asset
+        /// (material.gltf, its buffer and three 8-bit PNG maps: base colour,
+        /// metallic-roughness, normal).
+        #[arg(long, value_parser = ["exr", "png", "gltf"], default_value = "exr")]
         format: String,
     },
     /// Check a scanner's design before building or scanning with it: per
@@ -557,7 +560,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {
-            let format = format.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?;
+            let format = match format.as_str() {
+                "gltf" => None,
+                f => Some(f.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?),
+            };
             build::export_cmd(&material, &output, format)?
         }
         Command::Info { device } => commands::info(&device)?,
