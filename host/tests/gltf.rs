@@ -49,43 +49,70 @@ fn exported_assets_pass_the_khronos_validator() {
     for (name, data) in materials {
         let material = dir.path().join(format!("{name}.material"));
         std::fs::write(&material, data.to_bytes().unwrap()).unwrap();
-        let out_dir = dir.path().join(format!("{name}-gltf"));
-        let out = Command::new(env!("CARGO_BIN_EXE_scanner"))
+        let side = data.meta.resolution as u64 * if data.detail.is_empty() { 1 } else { 2 };
+        // The directory form and the one-file form.
+        for (format, out) in [
+            ("gltf", dir.path().join(format!("{name}-gltf"))),
+            ("glb", dir.path().join(format!("{name}.glb"))),
+        ] {
+            let what = format!("{name}, {format}");
+            let run = Command::new(env!("CARGO_BIN_EXE_scanner"))
+                .arg("export")
+                .arg(&material)
+                .arg("-o")
+                .arg(&out)
+                .args(["--format", format])
+                .output()
+                .unwrap();
+            assert!(run.status.success(), "{what}: {}", String::from_utf8_lossy(&run.stderr));
+            let asset = if format == "gltf" { out.join("material.gltf") } else { out };
+            let run = Command::new("node")
+                .arg(&script)
+                .arg(&asset)
+                .output()
+                .expect("node runs (scripts/setup.sh installs it)");
+            let report = String::from_utf8_lossy(&run.stdout);
+            assert!(
+                run.status.success(),
+                "{what}: {report}{}",
+                String::from_utf8_lossy(&run.stderr)
+            );
+            let report: serde_json::Value = serde_json::from_str(&report).unwrap();
+            let issues = &report["issues"];
+            // Not only no error: no warning, no note either. (Maps of a side
+            // that is not a power of two, from `scanner build --size`, get the
+            // validator's note IMAGE_NPOT_DIMENSIONS; glTF 2.0 allows them.)
+            for count in ["numErrors", "numWarnings", "numInfos"] {
+                assert_eq!(issues[count], 0, "{what}: {count}: {}", issues["messages"]);
+            }
+            // The validator read every map, at the set's size.
+            let images: Vec<&serde_json::Value> = report["info"]["resources"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|r| r["mimeType"] == "image/png")
+                .collect();
+            assert_eq!(images.len(), 3, "{what}");
+            for image in images {
+                assert_eq!(image["image"]["width"].as_u64(), Some(side), "{what}: {image}");
+                assert_eq!(image["image"]["height"].as_u64(), Some(side), "{what}: {image}");
+            }
+        }
+    }
+    // A .glb goes to a .glb (exit 2), never over its input (exit 4).
+    let material = dir.path().join("model.material");
+    let before = std::fs::read(&material).unwrap();
+    for (out, code) in [(dir.path().join("model.gltf"), 2), (material.clone(), 4)] {
+        let run = Command::new(env!("CARGO_BIN_EXE_scanner"))
             .arg("export")
             .arg(&material)
             .arg("-o")
-            .arg(&out_dir)
-            .args(["--format", "gltf"])
+            .arg(&out)
+            .args(["--format", "glb"])
             .output()
             .unwrap();
-        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
-        let out = Command::new("node")
-            .arg(&script)
-            .arg(out_dir.join("material.gltf"))
-            .output()
-            .expect("node runs (scripts/setup.sh installs it)");
-        let report = String::from_utf8_lossy(&out.stdout);
-        assert!(out.status.success(), "{name}: {report}{}", String::from_utf8_lossy(&out.stderr));
-        let report: serde_json::Value = serde_json::from_str(&report).unwrap();
-        let issues = &report["issues"];
-        // Not only no error: no warning, no note either. (Maps of a side
-        // that is not a power of two, from `scanner build --size`, get the
-        // validator's note IMAGE_NPOT_DIMENSIONS; glTF 2.0 allows them.)
-        for count in ["numErrors", "numWarnings", "numInfos"] {
-            assert_eq!(issues[count], 0, "{name}: {count}: {}", issues["messages"]);
-        }
-        // The validator read every map, at the set's size.
-        let side = data.meta.resolution as u64 * if data.detail.is_empty() { 1 } else { 2 };
-        let images: Vec<&serde_json::Value> = report["info"]["resources"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter(|r| r["mimeType"] == "image/png")
-            .collect();
-        assert_eq!(images.len(), 3, "{name}");
-        for image in images {
-            assert_eq!(image["image"]["width"].as_u64(), Some(side), "{name}: {image}");
-            assert_eq!(image["image"]["height"].as_u64(), Some(side), "{name}: {image}");
-        }
+        assert_eq!(run.status.code(), Some(code), "{}", String::from_utf8_lossy(&run.stderr));
     }
+    assert_eq!(std::fs::read(&material).unwrap(), before);
+    assert!(!dir.path().join("model.gltf").exists());
 }

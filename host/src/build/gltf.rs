@@ -76,6 +76,39 @@ pub fn gltf_normal(n: [f32; 3]) -> [f32; 3] {
 
 /// The asset's files, (name, bytes), in [`FILES`] order.
 pub fn gltf_files(set: &TextureSet) -> Result<Vec<(String, Vec<u8>)>, String> {
+    let maps = maps(set)?;
+    let (json, bin) = document(set, None);
+    let mut files = vec![(FILES[0].into(), json.into_bytes()), (FILES[1].into(), bin)];
+    files.extend(FILES[2..].iter().map(|f| f.to_string()).zip(maps));
+    Ok(files)
+}
+
+/// The asset as one binary glTF file (`.glb`): the document, the mesh and
+/// the three maps in one buffer.
+pub fn glb(set: &TextureSet) -> Result<Vec<u8>, String> {
+    let maps = maps(set)?;
+    let (json, bin) = document(set, Some(&maps));
+    // Chunks padded to 4 bytes: the JSON with spaces, the buffer with 0s.
+    let mut json = json.into_bytes();
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let mut bin = bin;
+    bin.resize(bin.len().next_multiple_of(4), 0);
+    let total = 12 + 8 + json.len() + 8 + bin.len();
+    let total = u32::try_from(total).map_err(|_| format!("{total} bytes: too large for a .glb"))?;
+    let mut out = Vec::with_capacity(total as usize);
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend(total.to_le_bytes());
+    for (kind, chunk) in [(b"JSON", &json), (b"BIN\0", &bin)] {
+        out.extend((chunk.len() as u32).to_le_bytes());
+        out.extend(kind);
+        out.extend(chunk.iter());
+    }
+    Ok(out)
+}
+
+/// The three maps as PNGs: base colour, metallic-roughness, normal.
+fn maps(set: &TextureSet) -> Result<[Vec<u8>; 3], String> {
     let texels = set.side * set.side;
     let mut base = Vec::with_capacity(texels);
     let mut metal_rough = Vec::with_capacity(texels);
@@ -87,16 +120,9 @@ pub fn gltf_files(set: &TextureSet) -> Result<Vec<(String, Vec<u8>)>, String> {
     }
     let normal: Vec<[f32; 3]> =
         set.normal.iter().map(|&n| gltf_normal(n).map(|c| (c + 1.0) * 0.5)).collect();
-    let (json, bin) = document(set);
     let png =
         |px: &[[f32; 3]], name: &str| png8(set.side as u32, px).map_err(|e| format!("{name}: {e}"));
-    Ok(vec![
-        (FILES[0].into(), json.into_bytes()),
-        (FILES[1].into(), bin),
-        (FILES[2].into(), png(&base, FILES[2])?),
-        (FILES[3].into(), png(&metal_rough, FILES[3])?),
-        (FILES[4].into(), png(&normal, FILES[4])?),
-    ])
+    Ok([png(&base, FILES[2])?, png(&metal_rough, FILES[3])?, png(&normal, FILES[4])?])
 }
 
 /// An 8-bit RGB PNG of values already encoded in [0, 1].
@@ -130,8 +156,9 @@ pub fn position(uv: [f32; 2], side_m: f32) -> [f32; 3] {
 pub const TANGENT: [f32; 4] = [1.0, 0.0, 0.0, -1.0];
 
 /// The JSON document and its binary buffer: four vertices (position,
-/// normal, tangent, uv) and two triangles.
-fn document(set: &TextureSet) -> (String, Vec<u8>) {
+/// normal, tangent, uv) and two triangles, then, with `embedded`, the
+/// maps (for a `.glb`; else the images are the files beside it).
+fn document(set: &TextureSet, embedded: Option<&[Vec<u8>; 3]>) -> (String, Vec<u8>) {
     let side_m = (set.size_mm / 1000.0) as f32;
     let corners = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
     let mut bin: Vec<u8> = Vec::new();
@@ -145,14 +172,37 @@ fn document(set: &TextureSet) -> (String, Vec<u8>) {
     for i in [0u16, 1, 2, 0, 2, 3] {
         bin.extend(i.to_le_bytes());
     }
-    let views: Vec<(usize, usize, u32)> = vec![
+    let mut views: Vec<serde_json::Value> = [
         (0, 48, ARRAY_BUFFER),
         (48, 48, ARRAY_BUFFER),
         (96, 64, ARRAY_BUFFER),
         (160, 32, ARRAY_BUFFER),
         (192, 12, ELEMENT_ARRAY_BUFFER),
-    ];
+    ]
+    .iter()
+    .map(|&(offset, len, target): &(usize, usize, u32)| {
+        json!({ "buffer": 0, "byteOffset": offset, "byteLength": len, "target": target })
+    })
+    .collect();
     assert_eq!(bin.len(), 204, "the layout above");
+    let images: Vec<serde_json::Value> = match embedded {
+        None => FILES[2..].iter().map(|f| json!({ "uri": f })).collect(),
+        Some(maps) => maps
+            .iter()
+            .map(|png| {
+                // Each image 4-byte aligned after the one before.
+                bin.resize(bin.len().next_multiple_of(4), 0);
+                views
+                    .push(json!({ "buffer": 0, "byteOffset": bin.len(), "byteLength": png.len() }));
+                bin.extend(png);
+                json!({ "bufferView": views.len() - 1, "mimeType": "image/png" })
+            })
+            .collect(),
+    };
+    let buffer = match embedded {
+        None => json!({ "uri": FILES[1], "byteLength": bin.len() }),
+        Some(_) => json!({ "byteLength": bin.len() }),
+    };
     let lo = |k: usize| positions.iter().map(|p| p[k]).fold(f32::INFINITY, f32::min);
     let hi = |k: usize| positions.iter().map(|p| p[k]).fold(f32::NEG_INFINITY, f32::max);
     let name = if set.name.trim().is_empty() { "scanned" } else { &set.name };
@@ -191,11 +241,9 @@ fn document(set: &TextureSet) -> (String, Vec<u8>) {
         "textures": [texture(0), texture(1), texture(2)],
         // Linear filtering with mipmaps; clamped: the tile is the sample.
         "samplers": [{ "magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071 }],
-        "images": [{ "uri": FILES[2] }, { "uri": FILES[3] }, { "uri": FILES[4] }],
-        "buffers": [{ "uri": FILES[1], "byteLength": bin.len() }],
-        "bufferViews": views.iter().map(|&(offset, len, target)| json!({
-            "buffer": 0, "byteOffset": offset, "byteLength": len, "target": target
-        })).collect::<Vec<_>>(),
+        "images": images,
+        "buffers": [buffer],
+        "bufferViews": views,
         "accessors": [
             { "bufferView": 0, "componentType": FLOAT, "count": 4, "type": "VEC3",
               "min": [lo(0), lo(1), lo(2)], "max": [hi(0), hi(1), hi(2)] },
@@ -309,5 +357,30 @@ mod tests {
             files[1].1[192..].chunks(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
         assert_eq!(idx, [0, 1, 2, 0, 2, 3]);
         assert!(is_gltf_file("material.gltf") && !is_gltf_file("material.toml"));
+
+        // The one-file form: header, JSON chunk, BIN chunk holding the mesh
+        // and the same three PNGs.
+        let bytes = glb(&set).unwrap();
+        assert_eq!(&bytes[..4], b"glTF");
+        let word = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        assert_eq!((word(4), word(8)), (2, bytes.len()));
+        let json_len = word(12);
+        assert_eq!(&bytes[16..20], b"JSON");
+        assert_eq!(json_len % 4, 0);
+        let doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + json_len]).unwrap();
+        let bin_at = 20 + json_len;
+        assert_eq!(&bytes[bin_at + 4..bin_at + 8], b"BIN\0");
+        let bin = &bytes[bin_at + 8..bin_at + 8 + word(bin_at)];
+        assert!(doc["buffers"][0].get("uri").is_none());
+        assert!(doc["buffers"][0]["byteLength"].as_u64().unwrap() as usize <= bin.len());
+        assert_eq!(&bin[..204], &files[1].1[..], "the same mesh");
+        for (i, image) in doc["images"].as_array().unwrap().iter().enumerate() {
+            let view = &doc["bufferViews"][image["bufferView"].as_u64().unwrap() as usize];
+            let at = view["byteOffset"].as_u64().unwrap() as usize;
+            assert_eq!(at % 4, 0);
+            let len = view["byteLength"].as_u64().unwrap() as usize;
+            assert_eq!(&bin[at..at + len], &files[2 + i].1[..], "{}", FILES[2 + i]);
+            assert_eq!(image["mimeType"], "image/png");
+        }
     }
 }

@@ -792,19 +792,40 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
 }
 
 /// `scanner export`
-pub fn export_cmd(
-    material: &Path,
-    output: &Path,
-    format: Option<crate::build::export::MapFormat>,
-) -> Result<(), Failure> {
+/// What `scanner export` writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExportFormat {
+    /// A texture set's directory, maps in this format.
+    Set(crate::build::export::MapFormat),
+    /// A glTF asset's directory (`material.gltf`, its buffer, its maps).
+    Gltf,
+    /// One binary glTF file.
+    Glb,
+}
+
+impl std::str::FromStr for ExportFormat {
+    type Err = String;
+    fn from_str(s: &str) -> Result<ExportFormat, String> {
+        match s {
+            "gltf" => Ok(ExportFormat::Gltf),
+            "glb" => Ok(ExportFormat::Glb),
+            maps => maps.parse().map(ExportFormat::Set),
+        }
+    }
+}
+
+/// `scanner export`
+pub fn export_cmd(material: &Path, output: &Path, format: ExportFormat) -> Result<(), Failure> {
     use crate::build::export::{is_texture_set_file, texture_set};
-    use crate::build::gltf::{gltf_files, is_gltf_file};
+    use crate::build::gltf::{glb, gltf_files, is_gltf_file};
     let ours = |name: &str| match format {
-        Some(_) => is_texture_set_file(name),
-        None => is_gltf_file(name),
+        ExportFormat::Set(_) => is_texture_set_file(name),
+        _ => is_gltf_file(name),
     };
-    let check =
-        || crate::fsutil::check_output_dir(output, ours).map_err(|e| Failure(4, anyhow!(e)));
+    let check = || match format {
+        ExportFormat::Glb => super::check_output(output, &[material], &["glb"]),
+        _ => crate::fsutil::check_output_dir(output, ours).map_err(|e| Failure(4, anyhow!(e))),
+    };
     check()?;
     let bytes = scanner_formats::input::read(material)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
@@ -815,30 +836,37 @@ pub fn export_cmd(
     let (name, components) = (data.meta.name.clone(), data.meta.detail_components);
     // Only a file the shading opens: its direction tables checked too.
     scanner_shading::Material::from_data(data).map_err(damaged)?;
-    // Written into a fresh sibling directory, then swapped into place, as
-    // `scanner regions` does: never half a set, never two runs mixed.
-    let place = |e: std::io::Error| Failure(4, anyhow!("{}: {e}", output.display()));
-    let staging = crate::fsutil::staging_dir(output).map_err(place)?;
     let what = match format {
-        Some(format) => {
-            set.write(staging.path(), format).map_err(build_failure)?;
-            format!(
-                "texture set ({}: {})",
-                format.extension(),
-                crate::build::export::MAPS.join(", ")
-            )
+        ExportFormat::Glb => {
+            let bytes = glb(&set).map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+            check()?;
+            crate::fsutil::write_atomic(output, &bytes)
+                .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+            "binary glTF 2.0 asset (mesh, base colour, metallic-roughness and normal maps)".into()
         }
-        None => {
-            let files = gltf_files(&set).map_err(|e| Failure(4, anyhow!("{e}")))?;
-            for (file, bytes) in &files {
-                crate::fsutil::write_atomic(&staging.path().join(file), bytes)
-                    .map_err(|e| Failure(4, anyhow!("{file}: {e}")))?;
-            }
-            "glTF 2.0 asset (material.gltf; baseColor, metallicRoughness, normal)".into()
+        // A directory: written into a fresh sibling, then swapped into
+        // place, as `scanner regions` does: never half a set, never two
+        // runs mixed.
+        ExportFormat::Set(_) | ExportFormat::Gltf => {
+            let place = |e: std::io::Error| Failure(4, anyhow!("{}: {e}", output.display()));
+            let staging = crate::fsutil::staging_dir(output).map_err(place)?;
+            let what = if let ExportFormat::Set(maps) = format {
+                set.write(staging.path(), maps).map_err(build_failure)?;
+                let names = crate::build::export::MAPS.join(", ");
+                format!("texture set ({}: {names})", maps.extension())
+            } else {
+                let files = gltf_files(&set).map_err(|e| Failure(4, anyhow!("{e}")))?;
+                for (file, bytes) in &files {
+                    crate::fsutil::write_atomic(&staging.path().join(file), bytes)
+                        .map_err(|e| Failure(4, anyhow!("{file}: {e}")))?;
+                }
+                "glTF 2.0 asset (material.gltf; baseColor, metallicRoughness, normal)".into()
+            };
+            check()?;
+            crate::fsutil::replace_dir(staging, output).map_err(place)?;
+            what
         }
     };
-    check()?;
-    crate::fsutil::replace_dir(staging, output).map_err(place)?;
     println!(
         "{}: {what} of {1}² texels over {2} mm → {3}",
         name,

@@ -1356,9 +1356,11 @@ pub fn demo(
     // what a person opens), and the same as a glTF asset for any viewer.
     if built.material.metadata().texel_model {
         let maps = out.join(format!("{name}-maps"));
-        let png = Some(crate::build::export::MapFormat::Png);
+        use super::build::ExportFormat;
+        let png = ExportFormat::Set(crate::build::export::MapFormat::Png);
         super::build::export_cmd(&material_file, &maps, png)?;
-        super::build::export_cmd(&material_file, &out.join(format!("{name}-gltf")), None)?;
+        let glb = out.join(format!("{name}.glb"));
+        super::build::export_cmd(&material_file, &glb, ExportFormat::Glb)?;
     }
     let (theta, phi) = super::build::angles(view);
     println!(

@@ -176,14 +176,16 @@ enum Command {
         /// Material file (built with a texel model).
         material: PathBuf,
         /// Output directory (created, or replaced if it holds only a
-        /// texture set's files).
+        /// texture set's or a glTF asset's files); with `--format glb`, the
+        /// output file (.glb).
         #[arg(short, long)]
         output: PathBuf,
         /// Map files: `exr` (32-bit float, linear) or `png` (16-bit; diffuse
         /// and specular sRGB-encoded); or `gltf`: a glTF 2.0 asset
         /// (material.gltf, its buffer and three 8-bit PNG maps: base colour,
-        /// metallic-roughness, normal).
-        #[arg(long, value_parser = ["exr", "png", "gltf"], default_value = "exr")]
+        /// metallic-roughness, normal); or `glb`: the same as one binary
+        /// glTF file (the output is then a .glb file).
+        #[arg(long, value_parser = ["exr", "png", "gltf", "glb"], default_value = "exr")]
         format: String,
     },
     /// Check a scanner's design before building or scanning with it: per
@@ -560,10 +562,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {
-            let format = match format.as_str() {
-                "gltf" => None,
-                f => Some(f.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?),
-            };
+            let format = format.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?;
             build::export_cmd(&material, &output, format)?
         }
         Command::Info { device } => commands::info(&device)?,
