@@ -5,7 +5,10 @@
 //! with the material PSNR at the captured pairs (as-built directions) and
 //! at random novel pairs (θ ≤ 60°). The texture set is scored through the
 //! simulator's own texture-set reader and texel model, as a renderer would
-//! shade it.
+//! shade it. So are the maps of the glTF asset (`--format gltf`): its
+//! base colour and metallic-roughness maps read back as a texture set in
+//! the glTF form, with the set's own normal map (the asset's is in glTF's
+//! tangent space).
 //!
 //! `cargo run --release -p tests --example export_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--format exr|png] [--without-detail]`
 //! (`--without-detail`: the set exported as if the file had no detail
@@ -18,6 +21,7 @@ use hil_sim::materials::{Sample, lookup};
 use host::build::calibrate::Silent;
 use host::build::export::{MapFormat, texture_set};
 use host::build::extract_regions;
+use host::build::gltf::gltf_files;
 use host::build::material::{MaterialOptions, build_material, shade};
 use host::build::scanread::ScanFrames;
 use scanner_shading::Material;
@@ -42,9 +46,9 @@ fn main() {
         format.extension()
     );
     println!(
-        "| material | material file, captured dB | texture set, captured dB | material file, novel dB | texture set, novel dB | maps |"
+        "| material | material file, captured dB | texture set, captured dB | glTF maps, captured dB | material file, novel dB | texture set, novel dB | glTF maps, novel dB | maps |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for &m in &materials {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
@@ -65,7 +69,7 @@ fn main() {
         let set = match texture_set(&data) {
             Ok(set) => set,
             Err(e) => {
-                println!("| {m} | — | {e} | — | — | — |");
+                println!("| {m} | — | {e} | — | — | — | — | — |");
                 continue;
             }
         };
@@ -74,17 +78,30 @@ fn main() {
         std::fs::create_dir_all(&dir).unwrap();
         set.write(&dir, format).unwrap();
         let exported = Sample::small(lookup(dir.to_str().unwrap()).unwrap());
+        // The glTF asset's maps as a texture set in the glTF form.
+        let gltf_dir = dir.join("gltf-form");
+        std::fs::create_dir_all(&gltf_dir).unwrap();
+        for (name, bytes) in gltf_files(&set).unwrap() {
+            if name == "baseColor.png" || name == "metallicRoughness.png" {
+                std::fs::write(gltf_dir.join(name), bytes).unwrap();
+            }
+        }
+        for name in ["material.toml".to_string(), format!("normal.{}", format.extension())] {
+            std::fs::copy(dir.join(&name), gltf_dir.join(&name)).unwrap();
+        }
+        let gltf = Sample::small(lookup(gltf_dir.to_str().unwrap()).unwrap());
         let sample = Sample::small(lookup(m).unwrap());
         let score = |pairs: &[([f64; 3], [f64; 3])]| {
             let t = tests::truth_answers(pairs, &sample);
             let file = tests::pairs_psnr(pairs, &t, &|_, q| shade(&material, q)).0;
             let maps = tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&exported, q)).0;
-            (file, maps)
+            let gltf = tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&gltf, q)).0;
+            (file, maps, gltf)
         };
-        let (cap_file, cap_maps) = score(&tests::as_built_pairs(&truth, &cal, &regions));
-        let (nov_file, nov_maps) = score(&pairs);
+        let (cap_file, cap_maps, cap_gltf) = score(&tests::as_built_pairs(&truth, &cal, &regions));
+        let (nov_file, nov_maps, nov_gltf) = score(&pairs);
         println!(
-            "| {m} | {cap_file:.2} | {cap_maps:.2} | {nov_file:.2} | {nov_maps:.2} | {0}² |",
+            "| {m} | {cap_file:.2} | {cap_maps:.2} | {cap_gltf:.2} | {nov_file:.2} | {nov_maps:.2} | {nov_gltf:.2} | {0}² |",
             set.side
         );
     }
