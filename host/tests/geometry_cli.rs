@@ -102,7 +102,10 @@ fn a_faulty_design_exits_3_naming_the_mirror_and_writes_nothing() {
     let (_, stderr) = text(&out);
     assert_eq!(out.status.code(), Some(3));
     assert!(
-        stderr.contains("mirror 0: tilt at -39.227° is outside its travel -35.00 … 35.00°"),
+        stderr.contains(
+            "mirror 0: tilt: -39.227° (-10461 steps) is outside its travel -35.00 … 35.00° \
+             (-9333 … 9333 steps)"
+        ),
         "{stderr}"
     );
     assert!(stderr.contains("25 problems found"), "{stderr}");

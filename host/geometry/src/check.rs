@@ -80,23 +80,12 @@ pub enum DesignProblem {
         also: usize,
     },
     /// The inverse kinematics put an axis outside its travel.
-    #[error(
-        "mirror {mirror}: {} at {value:.3}{unit} is outside its travel {min:.2} … {max:.2}{unit}",
-        axis.name()
-    )]
+    #[error("mirror {mirror}: {error}")]
     OutOfTravel {
         /// The mirror.
         mirror: usize,
-        /// The axis.
-        axis: protocol::Axis,
-        /// Its position, in its unit.
-        value: f64,
-        /// Its travel, in its unit.
-        min: f64,
-        /// Its travel, in its unit.
-        max: f64,
-        /// " mm" or "°".
-        unit: &'static str,
+        /// Which axis, where, and its travel.
+        error: crate::StepsError,
     },
     /// The camera cannot see the whole sample in the mirror.
     #[error("mirror {mirror}: the camera sees part of the sample {reason}")]
@@ -155,36 +144,19 @@ pub struct DesignCheck {
 }
 
 /// The axes of `axes` outside their travel under `configs` (the one
-/// conversion, [`AxisValues::to_steps`]'s, so that a design passes here
+/// conversion, [`crate::unit_to_steps`], so that a design passes here
 /// exactly when `scanner setup` can write its mirror table).
 fn travel_problems(
     mirror: usize,
     axes: AxisValues,
     configs: &[protocol::AxisConfig; 3],
 ) -> Vec<DesignProblem> {
-    let values = axes.to_array();
     protocol::Axis::ALL
         .into_iter()
-        .zip(values)
+        .zip(axes.to_array())
         .zip(configs)
-        .filter_map(|((axis, value), c)| match crate::unit_to_steps(axis, value, c) {
-            Ok(_) => None,
-            Err(_) => {
-                let per = c.steps_per_unit as f64;
-                let unit = match c.unit {
-                    protocol::Unit::Degree => "°",
-                    protocol::Unit::Millimetre => " mm",
-                };
-                Some(DesignProblem::OutOfTravel {
-                    mirror,
-                    axis,
-                    value,
-                    min: c.min_steps as f64 / per,
-                    max: c.max_steps as f64 / per,
-                    unit,
-                })
-            }
-        })
+        .filter_map(|((axis, value), c)| crate::unit_to_steps(axis, value, c).err())
+        .map(|error| DesignProblem::OutOfTravel { mirror, error })
         .collect()
 }
 
@@ -466,11 +438,12 @@ mod tests {
         let out_of_travel = |c: &DesignCheck| -> Vec<(usize, protocol::Axis, f64, f64, f64)> {
             c.problems
                 .iter()
-                .map(|p| match *p {
-                    DesignProblem::OutOfTravel { mirror, axis, value, min, max, .. } => {
-                        (mirror, axis, value, min, max)
-                    }
-                    ref other => panic!("{other}"),
+                .map(|p| match p {
+                    DesignProblem::OutOfTravel {
+                        mirror,
+                        error: crate::StepsError::OutOfRange { axis, value, min, max, per_unit, .. },
+                    } => (*mirror, *axis, *value, *min as f64 / per_unit, *max as f64 / per_unit),
+                    other => panic!("{other}"),
                 })
                 .collect()
         };
@@ -484,7 +457,11 @@ mod tests {
             assert_eq!((f.0, f.1), (l, protocol::Axis::Track));
             assert!((f.2 - 30.0).abs() < 1e-9 && f.3 == 0.0 && (f.4 - 20.0).abs() < 1e-3, "{f:?}");
         }
-        assert!(c.problems[0].to_string().contains("track at 30.000 mm is outside its travel"));
+        assert_eq!(
+            c.problems[0].to_string(),
+            "mirror 0: track: 30.000 mm (48000 steps) is outside its travel 0.00 … 20.00 mm \
+             (0 … 32000 steps)"
+        );
         // A tilt of at most 3°: the two outer rings (4.3° and 6.4°) are
         // beyond it, the two inner ones (0.8° and 2.5°) within.
         let mut axes = protocol::default_axes();

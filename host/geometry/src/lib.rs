@@ -475,7 +475,14 @@ pub enum StepsError {
         value: f64,
     },
     /// Outside the axis' travel.
-    #[error("{}: {value} ({steps} steps) is outside its travel {min} … {max} steps", axis.name())]
+    #[error(
+        "{}: {value:.3}{u} ({steps} steps) is outside its travel {:.2} … {:.2}{u} \
+         ({min} … {max} steps)",
+        axis.name(),
+        *min as f64 / per_unit,
+        *max as f64 / per_unit,
+        u = unit_suffix(*unit)
+    )]
     OutOfRange {
         /// The axis.
         axis: protocol::Axis,
@@ -487,7 +494,19 @@ pub enum StepsError {
         min: i32,
         /// Travel limits, steps.
         max: i32,
+        /// The axis' unit.
+        unit: protocol::Unit,
+        /// Its steps per unit.
+        per_unit: f64,
     },
+}
+
+/// How a value of `unit` is written after its number: "°", " mm".
+pub fn unit_suffix(unit: protocol::Unit) -> &'static str {
+    match unit {
+        protocol::Unit::Degree => "°",
+        protocol::Unit::Millimetre => " mm",
+    }
 }
 
 /// The one unit → step conversion: `value` (degrees or mm from home) of
@@ -511,6 +530,8 @@ pub fn unit_to_steps(
             steps,
             min: config.min_steps,
             max: config.max_steps,
+            unit: config.unit,
+            per_unit: config.steps_per_unit as f64,
         });
     }
     Ok(steps as i32)
