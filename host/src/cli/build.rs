@@ -791,7 +791,6 @@ pub fn preview_cmd(material: &Path, output: &Path) -> Result<(), Failure> {
     Ok(())
 }
 
-/// `scanner export`
 /// What `scanner export` writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ExportFormat {
