@@ -92,7 +92,7 @@ fn exported_assets_pass_the_khronos_validator() {
                 .iter()
                 .filter(|r| r["mimeType"] == "image/png")
                 .collect();
-            assert_eq!(images.len(), 3, "{what}");
+            assert_eq!(images.len(), 4, "{what}");
             for image in images {
                 assert_eq!(image["image"]["width"].as_u64(), Some(side), "{what}: {image}");
                 assert_eq!(image["image"]["height"].as_u64(), Some(side), "{what}: {image}");

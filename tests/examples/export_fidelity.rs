@@ -8,7 +8,9 @@
 //! shade it. So are the maps of the glTF asset (`--format gltf`): its
 //! base colour and metallic-roughness maps read back as a texture set in
 //! the glTF form, with the set's own normal map (the asset's is in glTF's
-//! tangent space).
+//! tangent space); and as a viewer with `KHR_materials_specular` reads
+//! it (diffuse and F0 from the decoded maps by the extension's formula,
+//! written as a texture set).
 //!
 //! `cargo run --release -p tests --example export_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--novel 300] [--out DIR] [--materials a,b] [--format exr|png] [--without-detail]`
 //! (`--without-detail`: the set exported as if the file had no detail
@@ -46,9 +48,9 @@ fn main() {
         format.extension()
     );
     println!(
-        "| material | material file, captured dB | texture set, captured dB | glTF maps, captured dB | material file, novel dB | texture set, novel dB | glTF maps, novel dB | maps |"
+        "| material | material file, captured dB | texture set, captured dB | glTF core, captured dB | glTF + KHR_materials_specular, captured dB | material file, novel dB | texture set, novel dB | glTF core, novel dB | glTF + specular, novel dB | maps |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
@@ -69,7 +71,7 @@ fn main() {
         let set = match texture_set(&data) {
             Ok(set) => set,
             Err(e) => {
-                println!("| {m} | — | {e} | — | — | — | — | — |");
+                println!("| {m} | — | {e} | — | — | — | — | — | — | — |");
                 continue;
             }
         };
@@ -90,19 +92,58 @@ fn main() {
             std::fs::copy(dir.join(&name), gltf_dir.join(&name)).unwrap();
         }
         let gltf = Sample::small(lookup(gltf_dir.to_str().unwrap()).unwrap());
+        // As a viewer with KHR_materials_specular reads it: the maps
+        // decoded, then diffuse and F0 as the extension gives them.
+        let ext_dir = dir.join("gltf-specular");
+        std::fs::create_dir_all(&ext_dir).unwrap();
+        with_specular(&set).write(&ext_dir, MapFormat::Exr).unwrap();
+        let gltf_ext = Sample::small(lookup(ext_dir.to_str().unwrap()).unwrap());
         let sample = Sample::small(lookup(m).unwrap());
         let score = |pairs: &[([f64; 3], [f64; 3])]| {
             let t = tests::truth_answers(pairs, &sample);
             let file = tests::pairs_psnr(pairs, &t, &|_, q| shade(&material, q)).0;
             let maps = tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&exported, q)).0;
             let gltf = tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&gltf, q)).0;
-            (file, maps, gltf)
+            let ext = tests::pairs_psnr(pairs, &t, &|_, q| hil_sim::truth::answer(&gltf_ext, q)).0;
+            (file, maps, gltf, ext)
         };
-        let (cap_file, cap_maps, cap_gltf) = score(&tests::as_built_pairs(&truth, &cal, &regions));
-        let (nov_file, nov_maps, nov_gltf) = score(&pairs);
+        let (cap_file, cap_maps, cap_gltf, cap_ext) =
+            score(&tests::as_built_pairs(&truth, &cal, &regions));
+        let (nov_file, nov_maps, nov_gltf, nov_ext) = score(&pairs);
         println!(
-            "| {m} | {cap_file:.2} | {cap_maps:.2} | {cap_gltf:.2} | {nov_file:.2} | {nov_maps:.2} | {nov_gltf:.2} | {0}² |",
+            "| {m} | {cap_file:.2} | {cap_maps:.2} | {cap_gltf:.2} | {cap_ext:.2} | {nov_file:.2} | {nov_maps:.2} | {nov_gltf:.2} | {nov_ext:.2} | {0}² |",
             set.side
         );
     }
+}
+
+/// The texture set a viewer with `KHR_materials_specular` makes of the glTF
+/// asset's maps (decoded from its PNGs), with `set`'s own normal map.
+fn with_specular(set: &host::build::export::TextureSet) -> host::build::export::TextureSet {
+    use host::build::gltf::{gltf_files, model_with_specular};
+    let files = gltf_files(set).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&files[0].1).unwrap();
+    let factor = doc["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"]
+        [0]
+    .as_f64()
+    .unwrap() as f32;
+    let decode = |name: &str| {
+        let bytes = &files.iter().find(|f| f.0 == name).unwrap().1;
+        image::load_from_memory(bytes).unwrap().to_rgb8()
+    };
+    let linear = |code: u8| {
+        let c = code as f32 / 255.0;
+        if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+    };
+    let (base, mr, spec) =
+        (decode("baseColor.png"), decode("metallicRoughness.png"), decode("specularColor.png"));
+    let mut out = set.clone();
+    for (i, ((b, r), s)) in base.pixels().zip(mr.pixels()).zip(spec.pixels()).enumerate() {
+        let m = r.0[2] as f32 / 255.0;
+        let (d, f) = model_with_specular(b.0.map(linear), m, s.0.map(|c| factor * linear(c)));
+        out.diffuse[i] = d;
+        out.specular[i] = f.map(|v| v.clamp(0.0, 1.0));
+        out.roughness[i] = r.0[1] as f32 / 255.0;
+    }
+    out
 }

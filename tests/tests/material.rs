@@ -121,7 +121,7 @@ fn exported_texture_sets(
     // normal map is the set's with y flipped (up the image); and scanned,
     // that set scores within 1 dB of the file too.
     {
-        use host::build::gltf::{gltf_normal, metallic_form, model_of};
+        use host::build::gltf::{gltf_normal, metallic_form, model_of, model_with_specular};
         let (code, err) = common::run_err(&[
             "export",
             &d("leather.material"),
@@ -147,6 +147,19 @@ fn exported_texture_sets(
         }
         let read = Sample::small(lookup(&d("gltf-form")).unwrap());
         let normals = image::open(p("gltf/normal.png")).unwrap().to_rgb8();
+        // KHR_materials_specular: its colour (factor × sRGB texture) gives a
+        // viewer that reads it the set's own F0, where the metal's share of
+        // it does not exceed F0 already.
+        let factor =
+            doc["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
+                .as_f64()
+                .unwrap() as f32;
+        let speculars = image::open(p("gltf/specularColor.png")).unwrap().to_rgb8();
+        let linear = |code: u8| {
+            let c = code as f32 / 255.0;
+            if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+        };
+        let (mut f0_err, mut f0_core_err) = (0.0f64, 0.0f64);
         assert_eq!(normals.dimensions(), (set.side as u32, set.side as u32));
         let mut metallic = 0usize;
         for i in (0..set.side * set.side).step_by(7) {
@@ -163,6 +176,18 @@ fn exported_texture_sets(
                 assert!((a - b).abs() < 5e-3, "texel ({x}, {y}) F0: {a} vs {b}");
             }
             assert!((t.roughness.sqrt() - set.roughness[i] as f64).abs() < 3e-3);
+            let colour = speculars.get_pixel(x as u32, y as u32).0.map(|c| factor * linear(c));
+            let (_, with) = model_with_specular(base, m, colour);
+            for c in 0..3 {
+                let want = set.specular[i][c].max(m * base[c]);
+                let tolerance = 2e-3 + 0.02 * want;
+                assert!(
+                    (with[c] - want).abs() < tolerance,
+                    "texel ({x}, {y}) F0: {with:?} vs {want}"
+                );
+                f0_err += ((with[c] - set.specular[i][c]) as f64).powi(2);
+                f0_core_err += ((f0[c] - set.specular[i][c]) as f64).powi(2);
+            }
             let code = normals.get_pixel(x as u32, y as u32).0;
             let g = gltf_normal(set.normal[i]);
             for c in 0..3 {
@@ -171,7 +196,13 @@ fn exported_texture_sets(
             }
         }
         let texels = (set.side * set.side).div_ceil(7);
-        eprintln!("leather: {metallic} of {texels} texels checked have a metallic factor above 0");
+        eprintln!(
+            "leather: {metallic} of {texels} texels checked have a metallic factor above 0; \
+             F0's RMS error {:.2e} with KHR_materials_specular, {:.2e} without",
+            (f0_err / (3 * texels) as f64).sqrt(),
+            (f0_core_err / (3 * texels) as f64).sqrt()
+        );
+        assert!(f0_err < f0_core_err / 4.0, "{f0_err} vs {f0_core_err}");
         let gltf_db = {
             let score = |pairs: &[([f64; 3], [f64; 3])]| {
                 let t = tests::truth_answers(pairs, sample);

@@ -7,17 +7,30 @@
 //! texel, the pair whose diffuse = base · (1 − m) and
 //! F0 = 0.04 · (1 − m) + base · m (the same relation by which the
 //! simulator reads a texture set in the glTF form) come closest to the
-//! model's. The normal map is re-expressed in glTF's tangent space, whose
-//! +Y points up the image (towards row 0), where a texture set's y points
-//! along +v (down the image).
+//! model's; `KHR_materials_specular`'s specular colour
+//! ([`specular_colour`]) then gives viewers that read it the model's F0,
+//! which glTF's core fixes at 0.04 for a dielectric. The normal map is
+//! re-expressed in glTF's tangent space, whose +Y points up the image
+//! (towards row 0), where a texture set's y points along +v (down the
+//! image).
 
 use serde_json::json;
 
 use super::export::{TextureSet, srgb};
 
 /// The files of an exported asset, in the order written.
-pub const FILES: [&str; 5] =
-    ["material.gltf", "material.bin", "baseColor.png", "metallicRoughness.png", "normal.png"];
+pub const FILES: [&str; 6] = [
+    "material.gltf",
+    "material.bin",
+    "baseColor.png",
+    "metallicRoughness.png",
+    "normal.png",
+    "specularColor.png",
+];
+
+/// The maps, in [`FILES`]' order from its third: base colour,
+/// metallic-roughness, normal, specular colour.
+const MAPS: usize = 4;
 
 /// Whether `name` is a file a glTF export writes.
 pub fn is_gltf_file(name: &str) -> bool {
@@ -68,6 +81,33 @@ pub fn model_of(base: [f32; 3], metallic: f32) -> ([f32; 3], [f32; 3]) {
     (base.map(|b| b * d), base.map(|b| DIELECTRIC_F0 * d + b * metallic))
 }
 
+/// The specular colour `KHR_materials_specular` needs so that a texel of
+/// `base` and `metallic` has the F0 `f0` after all: the dielectric F0 of
+/// that extension, min(0.04 · colour, 1), mixed with the base colour by
+/// the metallic factor as glTF mixes them, per channel; at least 0, so
+/// where the metal's share m · base alone exceeds F0 that share stays. (A
+/// metal, m = 1, takes its F0 from its base colour alone: 1.)
+pub fn specular_colour(base: [f32; 3], metallic: f32, f0: [f32; 3]) -> [f32; 3] {
+    let d = 1.0 - metallic;
+    if d <= 0.0 {
+        return [1.0; 3];
+    }
+    std::array::from_fn(|c| ((f0[c] - metallic * base[c]) / (DIELECTRIC_F0 * d)).max(0.0))
+}
+
+/// The model a viewer with `KHR_materials_specular` gives for `base`,
+/// `metallic` and the specular colour `colour` (factor × texture):
+/// (diffuse albedo, F0), with glTF's mix of the dielectric and metal F0.
+pub fn model_with_specular(
+    base: [f32; 3],
+    metallic: f32,
+    colour: [f32; 3],
+) -> ([f32; 3], [f32; 3]) {
+    let d = 1.0 - metallic;
+    let f0 = std::array::from_fn(|c| d * (DIELECTRIC_F0 * colour[c]).min(1.0) + metallic * base[c]);
+    (base.map(|b| b * d), f0)
+}
+
 /// A unit normal of the sample's frame (x along +u, y along +v) in glTF's
 /// tangent space (x along +u, y up the image: −v).
 pub fn gltf_normal(n: [f32; 3]) -> [f32; 3] {
@@ -76,18 +116,18 @@ pub fn gltf_normal(n: [f32; 3]) -> [f32; 3] {
 
 /// The asset's files, (name, bytes), in [`FILES`] order.
 pub fn gltf_files(set: &TextureSet) -> Result<Vec<(String, Vec<u8>)>, String> {
-    let maps = maps(set)?;
-    let (json, bin) = document(set, None);
+    let (maps, factor) = maps(set)?;
+    let (json, bin) = document(set, factor, None);
     let mut files = vec![(FILES[0].into(), json.into_bytes()), (FILES[1].into(), bin)];
     files.extend(FILES[2..].iter().map(|f| f.to_string()).zip(maps));
     Ok(files)
 }
 
 /// The asset as one binary glTF file (`.glb`): the document, the mesh and
-/// the three maps in one buffer.
+/// the four maps in one buffer.
 pub fn glb(set: &TextureSet) -> Result<Vec<u8>, String> {
-    let maps = maps(set)?;
-    let (json, bin) = document(set, Some(&maps));
+    let (maps, factor) = maps(set)?;
+    let (json, bin) = document(set, factor, Some(&maps));
     // Chunks padded to 4 bytes: the JSON with spaces, the buffer with 0s.
     let mut json = json.into_bytes();
     json.resize(json.len().next_multiple_of(4), b' ');
@@ -107,22 +147,35 @@ pub fn glb(set: &TextureSet) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-/// The three maps as PNGs: base colour, metallic-roughness, normal.
-fn maps(set: &TextureSet) -> Result<[Vec<u8>; 3], String> {
+/// The maps as PNGs (base colour, metallic-roughness, normal, specular
+/// colour) and the specular colour's factor: the texture holds the colour
+/// over it, sRGB-encoded as the extension asks.
+fn maps(set: &TextureSet) -> Result<([Vec<u8>; MAPS], f32), String> {
     let texels = set.side * set.side;
     let mut base = Vec::with_capacity(texels);
     let mut metal_rough = Vec::with_capacity(texels);
+    let mut specular = Vec::with_capacity(texels);
     for i in 0..texels {
         let (b, m) = metallic_form(set.diffuse[i], set.specular[i]);
         base.push(b.map(srgb));
         // R unused (occlusion elsewhere), G roughness, B metallic: linear.
         metal_rough.push([0.0, set.roughness[i], m]);
+        specular.push(specular_colour(b, m, set.specular[i]));
     }
+    let factor = specular.iter().flatten().fold(0.0f32, |a, &c| a.max(c));
+    let factor = if factor > 0.0 { factor } else { 1.0 };
+    let specular: Vec<[f32; 3]> = specular.iter().map(|c| c.map(|v| srgb(v / factor))).collect();
     let normal: Vec<[f32; 3]> =
         set.normal.iter().map(|&n| gltf_normal(n).map(|c| (c + 1.0) * 0.5)).collect();
     let png =
         |px: &[[f32; 3]], name: &str| png8(set.side as u32, px).map_err(|e| format!("{name}: {e}"));
-    Ok([png(&base, FILES[2])?, png(&metal_rough, FILES[3])?, png(&normal, FILES[4])?])
+    let maps = [
+        png(&base, FILES[2])?,
+        png(&metal_rough, FILES[3])?,
+        png(&normal, FILES[4])?,
+        png(&specular, FILES[5])?,
+    ];
+    Ok((maps, factor))
 }
 
 /// An 8-bit RGB PNG of values already encoded in [0, 1].
@@ -157,8 +210,13 @@ pub const TANGENT: [f32; 4] = [1.0, 0.0, 0.0, -1.0];
 
 /// The JSON document and its binary buffer: four vertices (position,
 /// normal, tangent, uv) and two triangles, then, with `embedded`, the
-/// maps (for a `.glb`; else the images are the files beside it).
-fn document(set: &TextureSet, embedded: Option<&[Vec<u8>; 3]>) -> (String, Vec<u8>) {
+/// maps (for a `.glb`; else the images are the files beside it);
+/// `specular_factor` is the specular colour's.
+fn document(
+    set: &TextureSet,
+    specular_factor: f32,
+    embedded: Option<&[Vec<u8>; MAPS]>,
+) -> (String, Vec<u8>) {
     let side_m = (set.size_mm / 1000.0) as f32;
     let corners = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
     let mut bin: Vec<u8> = Vec::new();
@@ -236,9 +294,18 @@ fn document(set: &TextureSet, embedded: Option<&[Vec<u8>; 3]>) -> (String, Vec<u
                 "metallicFactor": 1.0,
                 "roughnessFactor": 1.0
             },
-            "normalTexture": { "index": 2 }
+            "normalTexture": { "index": 2 },
+            // F0 where glTF's core fixes a dielectric's at 0.04; viewers
+            // without the extension show the core material.
+            "extensions": {
+                "KHR_materials_specular": {
+                    "specularColorFactor": [specular_factor, specular_factor, specular_factor],
+                    "specularColorTexture": { "index": 3 }
+                }
+            }
         }],
-        "textures": [texture(0), texture(1), texture(2)],
+        "extensionsUsed": ["KHR_materials_specular"],
+        "textures": [texture(0), texture(1), texture(2), texture(3)],
         // Linear filtering with mipmaps; clamped: the tile is the sample.
         "samplers": [{ "magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071 }],
         "images": images,
@@ -289,6 +356,34 @@ mod tests {
             }
             assert!(m > 0.0 && m < 1.0, "{m}");
         }
+    }
+
+    #[test]
+    fn the_specular_colour_restores_f0() {
+        for (d, f) in [
+            ([0.5, 0.3, 0.1], [0.05, 0.05, 0.05]),
+            ([0.3, 0.2, 0.1], [0.2; 3]),
+            ([0.05; 3], [0.5, 0.4, 0.2]),
+            ([0.6, 0.1, 0.1], [0.02, 0.03, 0.04]),
+        ] {
+            let (b, m) = metallic_form(d, f);
+            let colour = specular_colour(b, m, f);
+            let (dd, ff) = model_with_specular(b, m, colour);
+            assert_eq!(dd, model_of(b, m).0, "the diffuse is the core's");
+            // Exact but where the metal's share alone, m · base, exceeds F0
+            // (no specular colour takes light away): there, that share.
+            for c in 0..3 {
+                let want = f[c].max(m * b[c]);
+                assert!(
+                    (ff[c] - want).abs() < 1e-6,
+                    "{d:?} {f:?}: {ff:?} (m {m}, colour {colour:?})"
+                );
+            }
+        }
+        // F0 = 0.04 at m = 0: white, the extension's default.
+        assert_eq!(specular_colour([0.5; 3], 0.0, [0.04; 3]), [1.0; 3]);
+        // A bare metal takes its F0 from its base colour.
+        assert_eq!(specular_colour([0.9, 0.6, 0.3], 1.0, [0.9, 0.6, 0.3]), [1.0; 3]);
     }
 
     /// The normal a renderer reads from the glTF map, through the vertex
@@ -359,7 +454,7 @@ mod tests {
         assert!(is_gltf_file("material.gltf") && !is_gltf_file("material.toml"));
 
         // The one-file form: header, JSON chunk, BIN chunk holding the mesh
-        // and the same three PNGs.
+        // and the same four PNGs.
         let bytes = glb(&set).unwrap();
         assert_eq!(&bytes[..4], b"glTF");
         let word = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;

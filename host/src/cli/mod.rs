@@ -182,8 +182,9 @@ enum Command {
         output: PathBuf,
         /// Map files: `exr` (32-bit float, linear) or `png` (16-bit; diffuse
         /// and specular sRGB-encoded); or `gltf`: a glTF 2.0 asset
-        /// (material.gltf, its buffer and three 8-bit PNG maps: base colour,
-        /// metallic-roughness, normal); or `glb`: the same as one binary
+        /// (material.gltf, its buffer and four 8-bit PNG maps: base colour,
+        /// metallic-roughness, normal, KHR_materials_specular's specular
+        /// colour); or `glb`: the same as one binary
         /// glTF file (the output is then a .glb file).
         #[arg(long, value_parser = ["exr", "png", "gltf", "glb"], default_value = "exr")]
         format: String,
