@@ -841,7 +841,8 @@ pub fn export_cmd(material: &Path, output: &Path, format: ExportFormat) -> Resul
             check()?;
             crate::fsutil::write_atomic(output, &bytes)
                 .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
-            "binary glTF 2.0 asset (mesh, base colour, metallic-roughness and normal maps)".into()
+            "binary glTF 2.0 asset (mesh; base colour, metallic-roughness, normal, specular colour)"
+                .into()
         }
         // A directory: written into a fresh sibling, then swapped into
         // place, as `scanner regions` does: never half a set, never two
@@ -859,7 +860,7 @@ pub fn export_cmd(material: &Path, output: &Path, format: ExportFormat) -> Resul
                     crate::fsutil::write_atomic(&staging.path().join(file), bytes)
                         .map_err(|e| Failure(4, anyhow!("{file}: {e}")))?;
                 }
-                "glTF 2.0 asset (material.gltf; baseColor, metallicRoughness, normal)".into()
+                "glTF 2.0 asset (material.gltf; baseColor, metallicRoughness, normal, specularColor)".into()
             };
             check()?;
             crate::fsutil::replace_dir(staging, output).map_err(place)?;
