@@ -2,7 +2,8 @@
 //! material, never a panic; a material that opens answers every query
 //! with finite, non-negative values and draws directions with a positive
 //! density, and its export as a texture set
-//! (`scanner export`) is a set the format accepts, or a typed refusal.
+//! (`scanner export`) is a set the format accepts, or a typed refusal; the
+//! set converts to a consistent `.glb`.
 //! Mutated as a safetensors file whose
 //! header and material metadata are JSON (`fuzz_support::structured`) as
 //! well as bytes.
@@ -25,6 +26,13 @@ fuzz_target!(|data: &[u8]| {
                 let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
                 assert!((len - 1.0).abs() < 1e-5 && v[2] >= 0.09, "{v:?}");
             }
+            // … and as a glTF asset (`--format glb`): one file whose header
+            // and chunks agree with its length.
+            let glb = host::build::gltf::glb(&set).expect("any set converts");
+            let word = |at: usize| u32::from_le_bytes(glb[at..at + 4].try_into().unwrap()) as usize;
+            assert!(&glb[..4] == b"glTF" && word(8) == glb.len());
+            let json = word(12);
+            assert_eq!(20 + json + 8 + word(20 + json), glb.len());
         }
     }
     if let Ok(m) = Material::from_bytes(data) {
