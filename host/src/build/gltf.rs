@@ -404,6 +404,15 @@ mod tests {
         };
         // Not mirrored: the surface's outward normal is the vertex normal.
         assert_eq!(turn([0.0, 0.0, 1.0]), n_vertex);
+        // The triangles (0, 1, 2) and (0, 2, 3) of the corners uv (0, 0),
+        // (1, 0), (1, 1), (0, 1) turn counter-clockwise seen from the
+        // normal's side: their front faces face it.
+        let p = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]].map(|uv| position(uv, 1.0));
+        for [a, b, c] in [[0, 1, 2], [0, 2, 3]] {
+            let e1: [f32; 3] = std::array::from_fn(|k| p[b][k] - p[a][k]);
+            let e2: [f32; 3] = std::array::from_fn(|k| p[c][k] - p[a][k]);
+            assert!(cross(e1, e2)[1] > 0.0, "triangle {a} {b} {c}");
+        }
         // Up the image is −v.
         assert_eq!(b, turn([0.0, -1.0, 0.0]));
         for n in [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.3, 0.4, 0.866_025_4]] {
