@@ -95,7 +95,9 @@ enum Channels {
     Grey,
 }
 
-fn srgb_to_linear(c: f32) -> f32 {
+/// The sRGB decoding of a texture set's colour maps (an encoded value in
+/// [0, 1] to linear).
+pub fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.040_45 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
 }
 

@@ -131,10 +131,7 @@ fn with_specular(set: &host::build::export::TextureSet) -> host::build::export::
         let bytes = &files.iter().find(|f| f.0 == name).unwrap().1;
         image::load_from_memory(bytes).unwrap().to_rgb8()
     };
-    let linear = |code: u8| {
-        let c = code as f32 / 255.0;
-        if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
-    };
+    let linear = |code: u8| hil_sim::texture_set::srgb_to_linear(code as f32 / 255.0);
     let (base, mr, spec) =
         (decode("baseColor.png"), decode("metallicRoughness.png"), decode("specularColor.png"));
     let mut out = set.clone();

@@ -155,10 +155,7 @@ fn exported_texture_sets(
                 .as_f64()
                 .unwrap() as f32;
         let speculars = image::open(p("gltf/specularColor.png")).unwrap().to_rgb8();
-        let linear = |code: u8| {
-            let c = code as f32 / 255.0;
-            if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
-        };
+        let linear = |code: u8| hil_sim::texture_set::srgb_to_linear(code as f32 / 255.0);
         let (mut f0_err, mut f0_core_err) = (0.0f64, 0.0f64);
         assert_eq!(normals.dimensions(), (set.side as u32, set.side as u32));
         let mut metallic = 0usize;
