@@ -134,10 +134,11 @@ pub fn geometry_cmd(
     let [_, track, tilt] = protocol::default_axes();
     let travel = |c: protocol::AxisConfig| {
         let per = c.steps_per_unit as f64;
-        format!("{:.1} … {:.1}", c.min_steps as f64 / per, c.max_steps as f64 / per)
+        let unit = scanner_geometry::unit_suffix(c.unit);
+        format!("{:.1} … {:.1}{unit}", c.min_steps as f64 / per, c.max_steps as f64 / per)
     };
     println!(
-        "axes: checked against the default travel (spec/hardware.md): track {} mm, tilt {}°; \
+        "axes: checked against the default travel (spec/hardware.md): track {}, tilt {}; \
          `scanner setup` checks the device's own",
         travel(track),
         travel(tilt)
