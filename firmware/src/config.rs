@@ -5,36 +5,18 @@ use heapless::Vec;
 use protocol::{AXIS_COUNT, AxisConfig, BoardConfig, HomeSensors, MAX_MIRRORS, MirrorPosition};
 use serde::{Deserialize, Serialize};
 
-/// Slowest speed the step generator can time (its fixed-point interval
-/// limit is 2^40 ticks; this keeps a wide margin), steps/s.
-pub const MIN_SPEED: u32 = 10;
-/// Fastest step rate accepted per axis, steps/s.
-pub const MAX_SPEED: u32 = 100_000;
+// The speed range and the validity rule live in `protocol`, which the
+// host checks an axis configuration file with before sending it.
+pub use protocol::{MAX_AXIS_SPEED as MAX_SPEED, MIN_AXIS_SPEED as MIN_SPEED};
 
 // The spec's default axes live in `protocol`, which the host's design
 // check (`scanner geometry`) reads too: one copy of the travel limits.
 pub use protocol::{default_axes, disk_default, tilt_default, track_default};
 
-/// Whether `c` is a configuration the controller can execute.
+/// Whether `c` is a configuration the controller can execute
+/// ([`AxisConfig::problem`]).
 pub fn is_valid(c: &AxisConfig) -> bool {
-    let speed_ok = |v: u32| (MIN_SPEED..=MAX_SPEED).contains(&v);
-    let h = &c.homing;
-    c.steps_per_unit.is_finite()
-        && c.steps_per_unit > 0.0
-        && speed_ok(c.v_max)
-        && c.a_max >= MIN_SPEED
-        && speed_ok(h.fast_speed)
-        && speed_ok(h.slow_speed)
-        && h.fast_speed <= c.v_max
-        && h.slow_speed <= h.fast_speed
-        && h.backoff_steps > 0
-        && h.max_travel_steps > h.backoff_steps
-        && h.timeout_ms > 0
-        && if c.continuous {
-            c.steps_per_rev > 0 && c.steps_per_rev <= i32::MAX as u32
-        } else {
-            c.min_steps < c.max_steps
-        }
+    c.problem().is_none()
 }
 
 /// Format version of [`PersistedConfig`] (2 added the board options, 3

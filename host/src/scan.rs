@@ -719,6 +719,26 @@ pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
     Ok([out[0], out[1], out[2]])
 }
 
+/// Make the device's axis configurations `axes` (protocol axis order;
+/// `scanner axes --set`): the axes whose configuration differs are written
+/// (the device un-homes them), and the whole saved to flash when anything
+/// changed and the device has persistent storage. Returns the axes written.
+/// The mirror table's steps follow at the next [`setup`].
+pub fn set_axis_configs(dev: &mut Device, axes: &[AxisConfig; 3]) -> Result<Vec<Axis>, ScanError> {
+    let current = axis_configs(dev)?;
+    let changed: Vec<Axis> =
+        Axis::ALL.into_iter().filter(|a| current[a.index()] != axes[a.index()]).collect();
+    for &axis in &changed {
+        dev.command(Request::SetAxisConfig { axis, config: axes[axis.index()] })?;
+    }
+    if !changed.is_empty()
+        && dev.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG)
+    {
+        dev.command(Request::SaveConfig)?;
+    }
+    Ok(changed)
+}
+
 /// The mirror table of `geometry` for the device's axes (inverse kinematics).
 pub fn mirror_table(
     geometry: &ScannerGeometry,

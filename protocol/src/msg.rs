@@ -299,6 +299,104 @@ pub const fn tilt_default() -> AxisConfig {
     }
 }
 
+/// Slowest speed a controller's step generator times (its fixed-point
+/// interval limit is 2^40 ticks; this keeps a wide margin), steps/s; also
+/// the least acceleration, steps/s².
+pub const MIN_AXIS_SPEED: u32 = 10;
+/// Fastest step rate a controller accepts per axis, steps/s.
+pub const MAX_AXIS_SPEED: u32 = 100_000;
+
+/// Why a controller refuses an [`AxisConfig`] ([`AxisConfig::problem`]):
+/// `SetAxisConfig` answers `BadRequest` to any of these.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AxisConfigProblem {
+    /// `steps_per_unit` is not a finite positive number.
+    StepsPerUnit,
+    /// `v_max` is outside [`MIN_AXIS_SPEED`] … [`MAX_AXIS_SPEED`].
+    MaxSpeed,
+    /// `a_max` is below [`MIN_AXIS_SPEED`].
+    MaxAcceleration,
+    /// `homing.fast_speed` is outside the speed range or above `v_max`.
+    FastSpeed,
+    /// `homing.slow_speed` is outside the speed range or above `fast_speed`.
+    SlowSpeed,
+    /// `homing.backoff_steps` is 0.
+    Backoff,
+    /// `homing.max_travel_steps` is not beyond `backoff_steps`.
+    MaxTravel,
+    /// `homing.timeout_ms` is 0.
+    Timeout,
+    /// A continuous axis' `steps_per_rev` is 0 or beyond `i32::MAX`.
+    StepsPerRev,
+    /// A limited axis' `min_steps` is not below `max_steps`.
+    Limits,
+}
+
+impl core::fmt::Display for AxisConfigProblem {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        let (lo, hi) = (MIN_AXIS_SPEED, MAX_AXIS_SPEED);
+        match self {
+            Self::StepsPerUnit => write!(f, "steps_per_unit must be a finite number above 0"),
+            Self::MaxSpeed => write!(f, "v_max must be {lo} … {hi} steps/s"),
+            Self::MaxAcceleration => write!(f, "a_max must be at least {lo} steps/s²"),
+            Self::FastSpeed => {
+                write!(f, "homing.fast_speed must be {lo} … {hi} steps/s and at most v_max")
+            }
+            Self::SlowSpeed => write!(
+                f,
+                "homing.slow_speed must be {lo} … {hi} steps/s and at most homing.fast_speed"
+            ),
+            Self::Backoff => write!(f, "homing.backoff_steps must be above 0"),
+            Self::MaxTravel => {
+                write!(f, "homing.max_travel_steps must be above homing.backoff_steps")
+            }
+            Self::Timeout => write!(f, "homing.timeout_ms must be above 0"),
+            Self::StepsPerRev => {
+                write!(f, "a continuous axis' steps_per_rev must be 1 … {}", i32::MAX)
+            }
+            Self::Limits => write!(f, "min_steps must be below max_steps"),
+        }
+    }
+}
+
+impl AxisConfig {
+    /// The first reason a controller cannot execute this configuration,
+    /// if any (the one rule the firmware applies to `SetAxisConfig` and to
+    /// a saved configuration, and the host to a file before sending it).
+    pub fn problem(&self) -> Option<AxisConfigProblem> {
+        let speed_ok = |v: u32| (MIN_AXIS_SPEED..=MAX_AXIS_SPEED).contains(&v);
+        let h = &self.homing;
+        let problem = if !(self.steps_per_unit.is_finite() && self.steps_per_unit > 0.0) {
+            AxisConfigProblem::StepsPerUnit
+        } else if !speed_ok(self.v_max) {
+            AxisConfigProblem::MaxSpeed
+        } else if self.a_max < MIN_AXIS_SPEED {
+            AxisConfigProblem::MaxAcceleration
+        } else if !speed_ok(h.fast_speed) || h.fast_speed > self.v_max {
+            AxisConfigProblem::FastSpeed
+        } else if !speed_ok(h.slow_speed) || h.slow_speed > h.fast_speed {
+            AxisConfigProblem::SlowSpeed
+        } else if h.backoff_steps == 0 {
+            AxisConfigProblem::Backoff
+        } else if h.max_travel_steps <= h.backoff_steps {
+            AxisConfigProblem::MaxTravel
+        } else if h.timeout_ms == 0 {
+            AxisConfigProblem::Timeout
+        } else if self.continuous {
+            if self.steps_per_rev == 0 || self.steps_per_rev > i32::MAX as u32 {
+                AxisConfigProblem::StepsPerRev
+            } else {
+                return None;
+            }
+        } else if self.min_steps >= self.max_steps {
+            AxisConfigProblem::Limits
+        } else {
+            return None;
+        };
+        Some(problem)
+    }
+}
+
 /// The three defaults, indexed by axis.
 pub const fn default_axes() -> [AxisConfig; AXIS_COUNT] {
     [disk_default(), track_default(), tilt_default()]

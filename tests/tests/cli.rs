@@ -88,6 +88,76 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
 }
 
 #[test]
+fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
+    let dir = tmp();
+    let server = serve(&setup("leather", FaultPlan::none()), &sub(dir.path(), "camera"));
+    let pty = server.path().to_string();
+    let file = |name: &str| dir.path().join(name).display().to_string();
+    let load = |name: &str| scanner_geometry::load_axes(std::path::Path::new(&file(name)));
+    // The device's own, written to a file.
+    let (code, out, err) = run(&["axes", "--device", &pty, "-o", &file("device.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("tilt   266.66666 steps/°, -35.00 … 35.00°"), "{out}");
+    assert_eq!(load("device.toml").unwrap(), protocol::default_axes());
+    let (code, _, err) = run(&["geometry", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    // A tilt that stops at 1500 steps (5.63°): the default design's outer
+    // ring needs 6.404°.
+    let mut short = protocol::default_axes();
+    short[2].max_steps = 1500;
+    std::fs::write(file("short.toml"), scanner_geometry::axes_to_toml(&short)).unwrap();
+    let (code, _, err) = run(&["home", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("short.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("set tilt: saved to the device's flash; must be homed again"), "{out}");
+    let (_, out, _) = run(&["status", "--device", &pty]);
+    let homed = |axis: &str| out.lines().any(|l| l.starts_with(axis) && !l.contains("not homed"));
+    assert!(homed("disk") && homed("track") && !homed("tilt"), "{out}");
+    // Another process reads it back, and the design check uses it.
+    let (code, _, err) = run(&["axes", "--device", &pty, "-o", &file("back.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(load("back.toml").unwrap(), short);
+    let outer = "mirror 39: tilt: 6.404° (1708 steps) is outside its travel -35.00 … 5.63° \
+                 (-9333 … 1500 steps)";
+    for by in [["--device", &pty], ["--axes", &file("short.toml")]] {
+        let (code, out, err) = run(&["geometry", by[0], by[1]]);
+        assert_eq!(code, Some(3), "{err}");
+        assert!(err.contains(outer) && err.contains("15 problems found"), "{err}");
+        assert!(out.contains("axes: checked against the axes of"), "{out}");
+    }
+    // Writing the mirror table for these axes is refused, naming the mirror.
+    let (code, _, err) = run(&["setup", "--device", &pty]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("tilt: 6.404°"), "{err}");
+    // A file no controller accepts changes nothing.
+    let fast = std::fs::read_to_string(file("device.toml")).unwrap().replacen(
+        "v_max = 5333",
+        "v_max = 500000",
+        1,
+    );
+    std::fs::write(file("fast.toml"), fast).unwrap();
+    let (code, _, err) = run(&["axes", "--device", &pty, "--set", &file("fast.toml")]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("fast.toml: tilt: v_max must be 10 … 100000 steps/s"), "{err}");
+    let (code, _, err) =
+        run(&["axes", "--device", &pty, "--set", &file("device.toml"), "-o", &file("device.toml")]);
+    assert_eq!(code, Some(4), "{err}");
+    let (code, _, err) = run(&["axes", "--device", &pty, "-o", &file("back.txt")]);
+    assert_eq!(code, Some(2), "{err}");
+    assert_eq!(load("back.toml").unwrap(), short, "nothing changed");
+    // Back to the defaults; again, nothing to write.
+    let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("device.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("set tilt"), "{out}");
+    let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("device.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("the device's axes are already these"), "{out}");
+    let (code, _, err) = run(&["geometry", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+}
+
+#[test]
 fn devices_lists_without_hardware() {
     let (code, out, _) = run(&["devices"]);
     assert_eq!(code, Some(0));

@@ -23,8 +23,10 @@
 //! *as-built* copy (its `AsBuilt::perturbed`) that the host never sees, so
 //! the difference is what calibration has to recover.
 
+pub mod axes;
 pub mod check;
 
+pub use axes::{AxesError, axes_from_toml, axes_to_toml, check_axes, describe_axis, load_axes};
 pub use check::{DesignCheck, DesignProblem, MirrorCheck};
 pub use glam::DVec3;
 use serde::{Deserialize, Serialize};

@@ -109,6 +109,7 @@ pub fn geometry_cmd(
     path: Option<&Path>,
     rings: &[(f64, usize)],
     output: Option<&Path>,
+    axes: Option<([protocol::AxisConfig; 3], String)>,
 ) -> Result<(), Failure> {
     let base = match path {
         Some(p) => ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?,
@@ -122,7 +123,14 @@ pub fn geometry_cmd(
         (None, false) => "the default scanner with mirrors on rings".into(),
     };
     g.validate().map_err(|e| Failure(3, anyhow!("{name}: {e}")))?;
-    let check = g.check_design();
+    let (axes, travel_of) = axes.unwrap_or_else(|| {
+        (
+            protocol::default_axes(),
+            "the default travel (spec/hardware.md; `--axes` or `--device` for a built scanner's)"
+                .into(),
+        )
+    });
+    let check = g.check_design_on(&axes);
     println!(
         "{name}: {} mirrors, sensor {} × {} px, f = {:.0} px; geometry hash {}",
         g.mirrors.len(),
@@ -131,18 +139,13 @@ pub fn geometry_cmd(
         g.camera.focal_px,
         g.hash()
     );
-    let [_, track, tilt] = protocol::default_axes();
+    let [_, track, tilt] = axes;
     let travel = |c: protocol::AxisConfig| {
         let per = c.steps_per_unit as f64;
         let unit = scanner_geometry::unit_suffix(c.unit);
         format!("{:.1} … {:.1}{unit}", c.min_steps as f64 / per, c.max_steps as f64 / per)
     };
-    println!(
-        "axes: checked against the default travel (spec/hardware.md): track {}, tilt {}; \
-         `scanner setup` checks the device's own",
-        travel(track),
-        travel(tilt)
-    );
+    println!("axes: checked against {travel_of}: track {}, tilt {}", travel(track), travel(tilt));
     println!(
         "mirror | view θ, φ (°) | light θ, φ (°) | disk (°), track (mm), tilt (°) | \
          sample on the sensor: x, y (px) | px/mm | lit"

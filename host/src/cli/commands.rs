@@ -411,14 +411,7 @@ pub fn board_config(
     // Otherwise the device saves nothing while a fault is latched: change
     // nothing rather than a setting that would not survive a reset.
     if changes && persistent && !rescue && !faults.is_empty() {
-        return Err(Failure(
-            7,
-            anyhow!(
-                "{} latched: the device saves no settings until it is cleared (`scanner \
-                 clear`); nothing changed",
-                faults.names().collect::<Vec<_>>().join(", ")
-            ),
-        ));
+        return Err(saves_nothing_while(faults));
     }
     if let Some(high) = driver_fault_active_high {
         set_driver_fault_polarity(&mut o.device, high, faults, has_home_sensors)?;
@@ -470,6 +463,82 @@ pub fn board_config(
         if has_home_sensors { "" } else { " (fixed by this firmware)" }
     );
     Ok(())
+}
+
+/// A device with persistent storage saves nothing while `faults` are
+/// latched: the refusal to change a setting that would not survive a reset.
+fn saves_nothing_while(faults: FaultFlags) -> Failure {
+    Failure(
+        7,
+        anyhow!(
+            "{} latched: the device saves no settings until it is cleared (`scanner clear`); \
+             nothing changed",
+            faults.names().collect::<Vec<_>>().join(", ")
+        ),
+    )
+}
+
+/// `scanner axes`: print the device's axis configurations; with `set`, make
+/// them the file's first (saved to flash); with `output`, write them to a
+/// file (docs/axis-config.md).
+pub fn axes(args: &DeviceArgs, set: Option<&Path>, output: Option<&Path>) -> Result<(), Failure> {
+    let wanted = set
+        .map(|p| scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e))))
+        .transpose()?;
+    let mut o = open(args)?;
+    if let Some(wanted) = &wanted {
+        let current = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+        let persistent =
+            o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG);
+        let faults = o.device.status().map_err(link_failure)?.faults;
+        if current != *wanted && persistent && !faults.is_empty() {
+            return Err(saves_nothing_while(faults));
+        }
+        let changed = scan::set_axis_configs(&mut o.device, wanted).map_err(scan_failure)?;
+        if changed.is_empty() {
+            println!("the device's axes are already these");
+        } else {
+            let names: Vec<&str> = changed.iter().map(|a| a.name()).collect();
+            println!(
+                "set {}: {}; must be homed again (scanner home), and the mirror table's steps \
+                 follow at the next `scanner setup` or scan",
+                names.join(", "),
+                if persistent {
+                    "saved to the device's flash"
+                } else {
+                    "this device cannot save it: it lasts until the device resets"
+                }
+            );
+        }
+    }
+    let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+    for (axis, c) in Axis::ALL.iter().zip(&axes) {
+        println!("{:5}  {}", axis.name(), scanner_geometry::describe_axis(c));
+    }
+    if let Some(out) = output {
+        scanner_formats::atomic::write_atomic(
+            out,
+            scanner_geometry::axes_to_toml(&axes).as_bytes(),
+        )
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", out.display())))?;
+        println!("written to {}", out.display());
+    }
+    Ok(())
+}
+
+/// The axis configurations of the device named `device` (`scanner geometry
+/// --device`), the simulator's settings at their defaults.
+pub fn device_axes(device: &str) -> Result<[protocol::AxisConfig; 3], Failure> {
+    #[derive(clap::Parser)]
+    struct Named {
+        #[command(flatten)]
+        device: DeviceArgs,
+    }
+    let args = <Named as clap::Parser>::try_parse_from(["scanner", &format!("--device={device}")])
+        .map_err(|e| Failure(2, anyhow!("--device {device}: {e}")))?
+        .device;
+    let mut o = open(&args)?;
+    scan::axis_configs(&mut o.device).map_err(scan_failure)
 }
 
 /// `scanner inputs`

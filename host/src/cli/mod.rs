@@ -210,6 +210,16 @@ enum Command {
         /// Write the geometry checked (.toml) here, if it is sound.
         #[arg(short, long)]
         output: Option<PathBuf>,
+        /// Check the axes' travel against this axis configuration file
+        /// (docs/axis-config.md; `scanner axes -o` writes a device's)
+        /// instead of the spec's default axes.
+        #[arg(long, value_name = "FILE", conflicts_with = "device")]
+        axes: Option<PathBuf>,
+        /// Check the axes' travel against this connected device's axis
+        /// configuration (`sim`, a serial port, `usb:SERIAL`, a serial
+        /// number).
+        #[arg(long)]
+        device: Option<String>,
     },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
@@ -239,6 +249,20 @@ enum Command {
         /// axis whose polarity changes must be homed again.
         #[arg(long, value_delimiter = ',', value_parser = parse_home_sensor, value_name = "AXIS=POLARITY")]
         home_sensor: Vec<(protocol::Axis, bool)>,
+    },
+    /// Show or set the device's axis configurations — steps per unit,
+    /// travel, speeds, homing (docs/axis-config.md) — for a scanner built
+    /// with other drives than the spec's.
+    Axes {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        /// Make the device's axes this file's (checked first; saved to the
+        /// device's flash). Changed axes must be homed again.
+        #[arg(long, value_name = "FILE")]
+        set: Option<PathBuf>,
+        /// Write the device's axis configurations (.toml) here.
+        #[arg(short, long)]
+        output: Option<PathBuf>,
     },
     /// Clear the device's latched faults (a failed homing, a lost link, an
     /// emergency stop once released…).
@@ -489,12 +513,31 @@ fn run(cli: Cli) -> Result<(), Failure> {
             commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref())?
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
-        Command::Geometry { geometry, rings, output } => {
+        Command::Geometry { geometry, rings, output, axes, device } => {
             if let Some(out) = &output {
-                let inputs: Vec<&Path> = geometry.iter().map(PathBuf::as_path).collect();
+                let inputs: Vec<&Path> =
+                    geometry.iter().chain(&axes).map(PathBuf::as_path).collect();
                 check_output(out, &inputs, &["toml"])?;
             }
-            build::geometry_cmd(geometry.as_deref(), &rings, output.as_deref())?
+            let travel = match (&axes, &device) {
+                (Some(file), _) => Some((
+                    scanner_geometry::load_axes(file)
+                        .map_err(|e| Failure(3, anyhow::anyhow!(e)))?,
+                    format!("the axes of {}", file.display()),
+                )),
+                (None, Some(name)) => {
+                    Some((commands::device_axes(name)?, format!("the axes of device {name}")))
+                }
+                (None, None) => None,
+            };
+            build::geometry_cmd(geometry.as_deref(), &rings, output.as_deref(), travel)?
+        }
+        Command::Axes { device, set, output } => {
+            if let Some(out) = &output {
+                let inputs: Vec<&Path> = set.iter().map(PathBuf::as_path).collect();
+                check_output(out, &inputs, &["toml"])?;
+            }
+            commands::axes(&device, set.as_deref(), output.as_deref())?
         }
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
