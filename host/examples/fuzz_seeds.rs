@@ -3,7 +3,7 @@
 //! query and answer files (`.npy` and `.csv`) in `DIR/queries`, and small
 //! OpenEXR frames (PIZ and uncompressed, scan lines and tiles) in
 //! `DIR/frame` and `DIR/texture_map`, the default scanner's geometry file
-//! in `DIR/geometry` and a calibration of it (the nominal views, a 2 × 2
+//! in `DIR/geometry`, axis configuration files in `DIR/axes`, and a calibration of it (the nominal views, a 2 × 2
 //! colour grid) in `DIR/calibration`, and the manifests of two small
 //! simulated scans (3 mirrors at one exposure, 2 with a bracket of three;
 //! the sensor binned 64×) in `DIR/manifest`, scattered BRDF measurements
@@ -113,6 +113,17 @@ fn main() {
     std::fs::create_dir_all(&dir).unwrap();
     let g = host::geometry::ScannerGeometry::default_scanner();
     std::fs::write(dir.join("default.toml"), g.to_toml()).unwrap();
+    // Axis configuration files: the defaults, and a tilt too short for the
+    // default design's outer ring.
+    let dir = root.join("axes");
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut short = protocol::default_axes();
+    short[2].max_steps = 1_500;
+    for (name, axes) in [("default", protocol::default_axes()), ("short-tilt", short)] {
+        let text = host::geometry::axes_to_toml(&axes);
+        assert_eq!(host::geometry::axes_from_toml(&text).unwrap(), axes);
+        std::fs::write(dir.join(format!("{name}.toml")), text).unwrap();
+    }
     let dir = root.join("calibration");
     std::fs::create_dir_all(&dir).unwrap();
     let text = serde_json::to_string(&nominal_calibration(&g)).unwrap();
