@@ -11,12 +11,13 @@ use crate::optics::{Exposure, Frame, OpticalSim};
 use scanner_geometry::{IntegerCodes, SensorSpec};
 
 /// Physical axis values of motor positions (steps from the home/index
-/// switch edges; the geometry's zero offsets apply in its kinematics).
-pub fn axis_values(steps: [i64; 3]) -> AxisValues {
-    AxisValues::from_steps(steps, &default_axes())
+/// switch edges; the geometry's zero offsets apply in its kinematics) on a
+/// scanner built with the drives `axes` describes.
+pub fn axis_values(steps: [i64; 3], axes: &[protocol::AxisConfig; 3]) -> AxisValues {
+    AxisValues::from_steps(steps, axes)
 }
 
-/// The simulated mechanics' axis configurations (the firmware defaults).
+/// The default mechanics' axis configurations (the firmware defaults).
 pub fn default_axes() -> [protocol::AxisConfig; 3] {
     [config::disk_default(), config::track_default(), config::tilt_default()]
 }
@@ -27,7 +28,12 @@ pub fn default_axes() -> [protocol::AxisConfig; 3] {
 /// output ([`light_output`] of the duty `light` logged as (tick, ‰)
 /// changes) over that window, as a mean over it. With no latency and the
 /// light steady through the pulse, the light at the pulse's duty.
-pub fn exposure_of(record: &TriggerRecord, light: &[(u64, u16)], latency: u64) -> Option<Exposure> {
+pub fn exposure_of(
+    record: &TriggerRecord,
+    light: &[(u64, u16)],
+    latency: u64,
+    axes: &[protocol::AxisConfig; 3],
+) -> Option<Exposure> {
     let fall = record.fall?;
     if !record.honoured {
         return None;
@@ -52,7 +58,7 @@ pub fn exposure_of(record: &TriggerRecord, light: &[(u64, u16)], latency: u64) -
         (sum + output(duty) * (end - t) as f64) / (end - start) as f64
     };
     Some(Exposure {
-        axes: axis_values(record.positions),
+        axes: axis_values(record.positions, axes),
         exposure_s: (fall - record.rise) as f64 / TICK_HZ as f64,
         light: mean,
     })
@@ -78,13 +84,23 @@ pub struct SimCamera {
     next: usize,
     /// Trigger latency, ticks.
     latency: u64,
+    /// The drives the scanner is built with.
+    axes: [protocol::AxisConfig; 3],
 }
 
 impl SimCamera {
     /// A camera seeing through `optics`, exposing exactly while its trigger
     /// is high.
     pub fn new(optics: OpticalSim) -> SimCamera {
-        SimCamera { optics, next: 0, latency: 0 }
+        SimCamera { optics, next: 0, latency: 0, axes: default_axes() }
+    }
+
+    /// The same camera on a scanner built with the drives `axes` describes
+    /// (`SimConfig::axes`): its frames see the physical step positions
+    /// through them.
+    pub fn with_axes(mut self, axes: [protocol::AxisConfig; 3]) -> SimCamera {
+        self.axes = axes;
+        self
     }
 
     /// The same camera exposing `us` µs after each edge of its trigger
@@ -115,7 +131,7 @@ impl SimCamera {
             if record.fall.is_none_or(|fall| truth.now < fall + self.latency) {
                 break;
             }
-            if let Some(e) = exposure_of(record, &truth.light, self.latency) {
+            if let Some(e) = exposure_of(record, &truth.light, self.latency, &self.axes) {
                 out.push((self.next, e));
             }
             self.next += 1;

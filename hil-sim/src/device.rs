@@ -143,6 +143,12 @@ pub struct SimConfig {
     /// The camera's trigger latency, µs: it exposes for the pulse's length
     /// but this long after each of its edges ([`crate::camera::SimCamera::with_trigger_latency`]).
     pub trigger_latency_us: u32,
+    /// The drives the scanner is built with (steps per unit, travel, where
+    /// the switches sit: [`SimSwitch::built_for`]), which the camera's
+    /// frames follow too (`SimCamera::with_axes`). Other than the spec's
+    /// defaults, the board comes with them saved in its flash, as a
+    /// builder who ran `scanner axes --set` would ship it.
+    pub axes: [protocol::AxisConfig; AXIS_COUNT],
 }
 
 impl SimConfig {
@@ -155,6 +161,7 @@ impl SimConfig {
             home_active_high: [false; AXIS_COUNT],
             driver_fault_active_high: false,
             trigger_latency_us: 0,
+            axes: protocol::default_axes(),
         }
     }
 }
@@ -184,12 +191,21 @@ impl SimDevice {
     /// Power on a simulated scanner.
     pub fn new(config: SimConfig) -> SimDevice {
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-        // The mechanics are wherever they were left: anywhere in range.
-        let start = [
-            rng.random_range(0..16_000),
-            rng.random_range(3_200..320_000),
-            rng.random_range(-8_800..9_333),
-        ];
+        // The mechanics are wherever they were left: anywhere in range,
+        // off the home switch.
+        let start = config.axes.map(|c| {
+            let (lo, hi) = if c.continuous {
+                (0, c.steps_per_rev.max(1) as i64)
+            } else if c.homing.direction == protocol::Direction::Negative {
+                (c.homing.home_position as i64 + c.homing.backoff_steps as i64, c.max_steps as i64)
+            } else {
+                (
+                    c.min_steps as i64,
+                    c.homing.home_position as i64 - c.homing.backoff_steps as i64 + 1,
+                )
+            };
+            if lo < hi { rng.random_range(lo..hi) } else { lo }
+        });
         let motors = [0, 1, 2].map(|i| SimMotor::new(config.motors[i], start[i]));
         let hw = SimHw {
             now: 0,
@@ -199,7 +215,11 @@ impl SimDevice {
             drivers_enabled: false,
             light: 0,
             trigger: false,
-            saved: None,
+            saved: (config.axes != protocol::default_axes()).then(|| {
+                let factory = PersistedConfig { axes: config.axes, ..PersistedConfig::default() };
+                let mut buf = [0u8; firmware::config::PERSISTED_MAX_LEN];
+                factory.encode(&mut buf).expect("a configuration fits its blob").to_vec()
+            }),
             truth: Truth::default(),
             ignore_triggers: 0,
             light_edge_loss_ns: 0,
@@ -207,10 +227,10 @@ impl SimDevice {
         };
         let boot = Self::boot_info(&mut rng, ResetReason::PowerOn);
         let mut device = SimDevice {
-            controller: Controller::new(boot, None),
+            controller: Controller::new(boot, hw.saved.as_deref()),
             hw,
             motors,
-            switches: Axis::ALL.map(SimSwitch::default_for),
+            switches: Axis::ALL.map(|a| SimSwitch::built_for(a, &config.axes[a.index()])),
             home_active_high: config.home_active_high,
             driver_fault_active_high: config.driver_fault_active_high,
             estop: false,

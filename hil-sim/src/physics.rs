@@ -2,9 +2,10 @@
 //! hysteresis that can stick or chatter.
 //!
 //! Positions are physical micro-steps in the machine's own frame: each axis'
-//! switch sits where the default configuration's `home_position` says (TRACK
-//! at 0, TILT at −9 333, the DISK index flag at 0 mod 16 000), so after a
-//! correct homing the controller's counter equals the physical position.
+//! switch sits where the configuration the scanner is built with says its
+//! `home_position` is (by default TRACK at 0, TILT at −9 333, the DISK
+//! index flag at 0 mod 16 000), so after a correct homing the controller's
+//! counter equals the physical position.
 
 use firmware::hal::TICK_HZ;
 use protocol::Axis;
@@ -154,6 +155,11 @@ pub enum SwitchGeometry {
         /// Actuation edge, micro-steps.
         edge: i64,
     },
+    /// A limit switch actuated at positions ≥ `edge`.
+    Above {
+        /// Actuation edge, micro-steps.
+        edge: i64,
+    },
     /// A flag `width` wide starting at `edge`, repeating every `rev`.
     Index {
         /// Start of the flag.
@@ -196,12 +202,37 @@ impl SimSwitch {
 
     /// The default switch of `axis` (spec/hardware.md).
     pub fn default_for(axis: Axis) -> SimSwitch {
+        SimSwitch::built_for(axis, &protocol::default_axes()[axis.index()])
+    }
+
+    /// The switch of `axis` on a scanner built with the drive `config`
+    /// describes: its edge where homing in the configured direction meets
+    /// it at `home_position`; the default's flag width and hysteresis
+    /// (4.5° of the disk; 0.01 mm, 0.0375°, 0.09° of travel) in its steps.
+    pub fn built_for(axis: Axis, config: &protocol::AxisConfig) -> SimSwitch {
+        let default = protocol::default_axes()[axis.index()];
+        let scale = config.steps_per_unit as f64 / default.steps_per_unit as f64;
+        let hysteresis = |h: f64| ((h * scale).round() as i64).max(1);
+        let home = config.homing.home_position as i64;
+        let positive = config.homing.direction == protocol::Direction::Positive;
         match axis {
             Axis::Disk => {
-                SimSwitch::new(SwitchGeometry::Index { edge: 0, width: 200, rev: 16_000 }, 4)
+                let rev = config.steps_per_rev.max(1) as i64;
+                let width = ((200 * rev) as f64 / 16_000.0).round().max(1.0) as i64;
+                // Homing meets the flag's lower edge going up, its upper one
+                // going down.
+                let edge = if positive { home } else { home - width };
+                SimSwitch::new(SwitchGeometry::Index { edge, width, rev }, hysteresis(4.0))
             }
-            Axis::Track => SimSwitch::new(SwitchGeometry::Below { edge: 0 }, 16),
-            Axis::Tilt => SimSwitch::new(SwitchGeometry::Below { edge: -9_333 }, 10),
+            Axis::Track | Axis::Tilt => {
+                let h = if axis == Axis::Track { 16.0 } else { 10.0 };
+                let geometry = if positive {
+                    SwitchGeometry::Above { edge: home }
+                } else {
+                    SwitchGeometry::Below { edge: home }
+                };
+                SimSwitch::new(geometry, hysteresis(h))
+            }
         }
     }
 
@@ -211,6 +242,7 @@ impl SimSwitch {
         let h = if self.state { self.hysteresis } else { 0 };
         match self.geometry {
             SwitchGeometry::Below { edge } => position <= edge + h,
+            SwitchGeometry::Above { edge } => position >= edge - h,
             SwitchGeometry::Index { edge, width, rev } => {
                 let p = (position - edge + h).rem_euclid(rev);
                 p < width + 2 * h
@@ -232,5 +264,48 @@ impl SimSwitch {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_drives_place_the_spec_switches() {
+        let switch = |axis| {
+            let s = SimSwitch::default_for(axis);
+            (s.geometry, s.hysteresis)
+        };
+        assert_eq!(
+            switch(Axis::Disk),
+            (SwitchGeometry::Index { edge: 0, width: 200, rev: 16_000 }, 4)
+        );
+        assert_eq!(switch(Axis::Track), (SwitchGeometry::Below { edge: 0 }, 16));
+        assert_eq!(switch(Axis::Tilt), (SwitchGeometry::Below { edge: -9_333 }, 10));
+    }
+
+    #[test]
+    fn other_drives_place_their_switches_where_homing_meets_them() {
+        let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1);
+        // A tilt twice as fine, homed going up to +35°.
+        let mut tilt = protocol::default_axes()[2];
+        tilt.steps_per_unit *= 2.0;
+        tilt.homing.direction = protocol::Direction::Positive;
+        tilt.homing.home_position = 18_667;
+        let mut s = SimSwitch::built_for(Axis::Tilt, &tilt);
+        assert_eq!((s.geometry, s.hysteresis), (SwitchGeometry::Above { edge: 18_667 }, 20));
+        assert!(!s.sample(18_666, &mut rng) && s.sample(18_667, &mut rng));
+        // Released only 20 steps below the edge.
+        assert!(s.sample(18_648, &mut rng) && !s.sample(18_646, &mut rng));
+        // A disk of 32 000 steps a turn homed going down meets the flag's
+        // upper edge at its home position.
+        let mut disk = protocol::default_axes()[0];
+        disk.steps_per_unit *= 2.0;
+        disk.steps_per_rev = 32_000;
+        disk.homing.direction = protocol::Direction::Negative;
+        let mut s = SimSwitch::built_for(Axis::Disk, &disk);
+        assert_eq!(s.geometry, SwitchGeometry::Index { edge: -400, width: 400, rev: 32_000 });
+        assert!(!s.sample(1, &mut rng) && s.sample(31_999, &mut rng));
     }
 }

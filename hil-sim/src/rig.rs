@@ -35,7 +35,9 @@ impl SimRig {
     /// Power on a simulated scanner with `optics` behind its camera.
     pub fn new(config: SimConfig, optics: OpticalSim) -> SimRig {
         let inner = Inner {
-            camera: SimCamera::new(optics).with_trigger_latency(config.trigger_latency_us),
+            camera: SimCamera::new(optics)
+                .with_trigger_latency(config.trigger_latency_us)
+                .with_axes(config.axes),
             link: SimLink::new(SimDevice::new(config)),
             frames: VecDeque::new(),
         };

@@ -72,6 +72,10 @@ pub struct SimSetup {
     /// (`scanner_geometry::radial_distort`; the nominal geometry knows
     /// none: calibration measures it).
     pub lens_distortion: [f64; 2],
+    /// The drives the scanner is built with (`hil_sim::SimConfig::axes`;
+    /// docs/axis-config.md); other than the spec's, its board comes with
+    /// them saved.
+    pub axes: [protocol::AxisConfig; 3],
 }
 
 impl SimSetup {
@@ -89,6 +93,7 @@ impl SimSetup {
             driver_fault_active_high: false,
             trigger_latency_us: 0,
             lens_distortion: [0.0; 2],
+            axes: protocol::default_axes(),
         }
     }
 
@@ -113,6 +118,13 @@ impl SimSetup {
         }
         if self.trigger_latency_us > 0 {
             s += &format!(", camera trigger latency {} µs", self.trigger_latency_us);
+        }
+        for (axis, (c, d)) in
+            protocol::Axis::ALL.iter().zip(self.axes.iter().zip(protocol::default_axes()))
+        {
+            if *c != d {
+                s += &format!(", {} {}", axis.name(), scanner_geometry::describe_axis(c));
+            }
         }
         s
     }
@@ -162,18 +174,23 @@ impl SimSetup {
         Ok(sim)
     }
 
-    fn config(&self) -> SimConfig {
+    fn config(&self) -> Result<SimConfig, SimError> {
+        // Drives the host could not drive, or whose home switch the
+        // simulated mechanics cannot place, are refused.
+        scanner_geometry::check_axes(&self.axes)
+            .map_err(|e| SimError::Usage(format!("simulated axes: {e}")))?;
         let mut c = SimConfig::new(self.seed);
+        c.axes = self.axes;
         c.faults = self.faults.clone();
         c.home_active_high = self.home_active_high;
         c.driver_fault_active_high = self.driver_fault_active_high;
         c.trigger_latency_us = self.trigger_latency_us;
-        c
+        Ok(c)
     }
 
     /// Board and camera in this process (deterministic).
     pub fn rig(&self) -> Result<SimRig, SimError> {
-        Ok(SimRig::new(self.config(), self.optics()?))
+        Ok(SimRig::new(self.config()?, self.optics()?))
     }
 
     /// Serve the board on a pty (time running at `speed` × real time), the
@@ -185,9 +202,10 @@ impl SimSetup {
         files: hil_sim::camera::FrameFiles,
     ) -> Result<hil_sim::PtyServer, SimError> {
         let camera = hil_sim::camera::SimCamera::new(self.optics()?)
-            .with_trigger_latency(self.trigger_latency_us);
+            .with_trigger_latency(self.trigger_latency_us)
+            .with_axes(self.axes);
         hil_sim::PtyServer::start_with_camera(
-            hil_sim::SimDevice::new(self.config()),
+            hil_sim::SimDevice::new(self.config()?),
             speed,
             Some((camera, frames, files)),
         )

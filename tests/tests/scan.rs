@@ -168,6 +168,75 @@ fn faults_in_the_deterministic_simulator_do_not_change_the_frames() {
     }
 }
 
+/// Drives other than the spec's: a 4 mm lead screw (800 steps/mm), a disk
+/// of 32 000 steps a turn homed turning down, a 60:1 tilt worm homed at
+/// its top (+35°).
+fn other_drives() -> [protocol::AxisConfig; 3] {
+    let [mut disk, mut track, mut tilt] = protocol::default_axes();
+    disk.steps_per_unit = 32_000.0 / 360.0;
+    (disk.steps_per_rev, disk.max_steps) = (32_000, 31_999);
+    disk.homing.direction = protocol::Direction::Negative;
+    disk.homing.max_travel_steps = 35_200;
+    track.steps_per_unit = 800.0;
+    track.max_steps = 160_000;
+    track.homing.backoff_steps = 1_600;
+    tilt.steps_per_unit = 192_000.0 / 360.0;
+    (tilt.min_steps, tilt.max_steps) = (-18_667, 18_667);
+    tilt.homing.direction = protocol::Direction::Positive;
+    tilt.homing.home_position = 18_667;
+    (tilt.homing.backoff_steps, tilt.homing.max_travel_steps) = (1_066, 40_000);
+    let axes = [disk, track, tilt];
+    scanner_geometry::check_axes(&axes).unwrap();
+    axes
+}
+
+#[test]
+fn a_scanner_built_with_other_drives_takes_the_same_frames() {
+    let spec = setup("rough-metal");
+    let other = SimSetup { axes: other_drives(), ..setup("rough-metal") };
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let mut oa = ScanOptions::new("m", a.path());
+    oa.mirrors = Some(12);
+    let mut ob = ScanOptions::new("m", b.path());
+    ob.mirrors = Some(12);
+    run(&spec, &oa).unwrap();
+    run(&other, &ob).unwrap();
+    // The board came with its drives saved; the host read them, wrote the
+    // mirror table in their steps and recorded every frame's axes in units.
+    let rig = other.rig().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(rig))).unwrap();
+    assert_eq!(host::scan::axis_configs(&mut dev).unwrap(), other_drives());
+    let (ma, mb) = (Manifest::load(a.path()).unwrap(), Manifest::load(b.path()).unwrap());
+    let mut worst = 0.0f64;
+    for (fa, fb) in ma.frames.iter().zip(&mb.frames) {
+        // Each axis within a step of the coarser drive.
+        for (k, step) in [1.0 / 44.4, 1.0 / 800.0, 1.0 / 266.6].into_iter().enumerate() {
+            let d = (fa.axis_units[k] - fb.axis_units[k]).abs();
+            let d = if k == 0 { d.min(360.0 - d) } else { d };
+            assert!(
+                d <= step,
+                "mirror {}: {:?} against {:?}",
+                fa.mirror,
+                fa.axis_units,
+                fb.axis_units
+            );
+        }
+        // The frames alike but for where a step falls: mean absolute
+        // difference relative to the mean signal.
+        let fa = host::exrio::read_rgb(&a.path().join(&fa.file)).unwrap();
+        let fb = host::exrio::read_rgb(&b.path().join(&fb.file)).unwrap();
+        let (mut d, mut sum) = (0.0f64, 0.0f64);
+        for (x, y) in fa.rgb.iter().zip(&fb.rgb) {
+            d += (x - y).abs() as f64;
+            sum += x.abs() as f64;
+        }
+        worst = worst.max(d / sum);
+    }
+    eprintln!("largest mean relative difference: {worst:.4}");
+    assert!(worst < 0.01, "{worst}");
+}
+
 /// A host killed mid-move leaves the device moving; 500 ms of silence
 /// latch `link-timeout` and the device *decelerates* (status: faulted,
 /// still moving). The next scan clears the fault and must wait for the

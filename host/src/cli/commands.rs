@@ -96,6 +96,11 @@ pub struct DeviceArgs {
     /// geometry knows none: calibration measures K1).
     #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
     pub sim_lens_distortion: Option<[f64; 2]>,
+    /// Simulator: the drives the scanner is built with, an axis
+    /// configuration file (docs/axis-config.md; default: the spec's). Its
+    /// board comes with them saved.
+    #[arg(long, value_name = "FILE")]
+    pub sim_axes: Option<PathBuf>,
 }
 
 impl DeviceArgs {
@@ -124,6 +129,10 @@ impl DeviceArgs {
             driver_fault_active_high: self.sim_driver_fault.unwrap_or(false),
             trigger_latency_us: self.sim_trigger_latency_us,
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
+            axes: match &self.sim_axes {
+                Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
+                None => protocol::default_axes(),
+            },
         })
     }
 }
@@ -1348,6 +1357,7 @@ pub fn demo(
             sim_trigger_latency_us: 0,
             sim_lens_distortion: None,
             sim_geometry: geometry.map(Path::to_path_buf),
+            sim_axes: None,
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
