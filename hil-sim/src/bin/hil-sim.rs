@@ -1,7 +1,7 @@
 //! Serve the simulated scanner on a pseudo-terminal until stopped (Ctrl-C).
 //!
 //! ```text
-//! hil-sim [--seed N] [--speed X] [--corrupt P] [--drop P] [--fault SPEC]...
+//! hil-sim [--seed N] [--speed X] [--corrupt P] [--drop P] [--fault SPEC]... [--axes FILE]
 //! hil-sim render [--material NAME] [--mirrors N] [--bin K] [--out DIR]
 //! hil-sim direct [--material NAME] --out DIR
 //! hil-sim truth --material NAME|DIR --queries Q.npy|Q.csv -o OUT.npy|OUT.csv
@@ -44,6 +44,11 @@ struct Args {
     /// A fault, e.g. `reset@trigger=10` or `estop:on@ms=5000` (repeatable).
     #[arg(long = "fault")]
     faults: Vec<FaultSpec>,
+    /// The drives the scanner is built with, an axis configuration file
+    /// (docs/axis-config.md; default: the spec's); its board comes with
+    /// them saved.
+    #[arg(long, value_name = "FILE")]
+    axes: Option<std::path::PathBuf>,
     #[command(subcommand)]
     command: Option<Command>,
 }
@@ -215,6 +220,15 @@ fn main() -> std::process::ExitCode {
     }
     let mut config = SimConfig::new(args.seed);
     config.faults = plan;
+    if let Some(path) = &args.axes {
+        match scanner_geometry::load_axes(path) {
+            Ok(axes) => config.axes = axes,
+            Err(e) => {
+                eprintln!("hil-sim: {e}");
+                return std::process::ExitCode::from(3);
+            }
+        }
+    }
     let server = match PtyServer::start(SimDevice::new(config), args.speed) {
         Ok(s) => s,
         Err(e) => {
