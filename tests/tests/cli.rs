@@ -155,6 +155,17 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     assert!(out.contains("the device's axes are already these"), "{out}");
     let (code, _, err) = run(&["geometry", "--device", &pty]);
     assert_eq!(code, Some(0), "{err}");
+
+    // A device with a latched fault saves nothing: nothing is changed.
+    let estop = FaultPlan::none().at_ms(0, hil_sim::FaultEvent::EmergencyStop(true));
+    let stopped = serve(&setup("leather", estop), &sub(dir.path(), "camera2"));
+    let pty = stopped.path().to_string();
+    let (code, _, err) = run(&["axes", "--device", &pty, "--set", &file("short.toml")]);
+    assert_eq!(code, Some(7), "{err}");
+    assert!(err.contains("emergency stop latched") && err.contains("nothing changed"), "{err}");
+    let (code, _, err) = run(&["axes", "--device", &pty, "-o", &file("stopped.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(load("stopped.toml").unwrap(), protocol::default_axes());
 }
 
 #[test]
