@@ -178,7 +178,13 @@ pub fn describe_axis(c: &AxisConfig) -> String {
     let travel = if c.continuous {
         format!("continuous, {} steps/rev", c.steps_per_rev)
     } else {
-        format!("{:.2} … {:.2}{u}", c.min_steps as f64 / per, c.max_steps as f64 / per)
+        format!(
+            "{:.2} … {:.2}{u} ({} … {} steps)",
+            c.min_steps as f64 / per,
+            c.max_steps as f64 / per,
+            c.min_steps,
+            c.max_steps
+        )
     };
     let u = u.trim_start();
     format!(
@@ -222,9 +228,17 @@ mod tests {
     fn the_defaults_round_trip_bit_for_bit() {
         let text = defaults_text();
         assert_eq!(axes_from_toml(&text).unwrap(), protocol::default_axes());
-        assert!(text.contains("\n# 1600 steps/mm, 0.00 … 200.00 mm, v max 40.00 mm/s"), "{text}");
+        assert!(
+            text.contains(
+                "\n# 1600 steps/mm, 0.00 … 200.00 mm (0 … 320000 steps), v max 40.00 mm/s"
+            ),
+            "{text}"
+        );
         assert!(text.contains("\n# 44.444443 steps/°, continuous, 16000 steps/rev"), "{text}");
-        assert!(text.contains("\n# 266.66666 steps/°, -35.00 … 35.00°"), "{text}");
+        assert!(
+            text.contains("\n# 266.66666 steps/°, -35.00 … 35.00° (-9333 … 9333 steps)"),
+            "{text}"
+        );
     }
 
     #[test]

@@ -525,11 +525,8 @@ pub fn axes(args: &DeviceArgs, set: Option<&Path>, output: Option<&Path>) -> Res
         println!("{:5}  {}", axis.name(), scanner_geometry::describe_axis(c));
     }
     if let Some(out) = output {
-        scanner_formats::atomic::write_atomic(
-            out,
-            scanner_geometry::axes_to_toml(&axes).as_bytes(),
-        )
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", out.display())))?;
+        crate::fsutil::write_atomic(out, scanner_geometry::axes_to_toml(&axes).as_bytes())
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", out.display())))?;
         println!("written to {}", out.display());
     }
     Ok(())
@@ -684,17 +681,8 @@ pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
         i.boot_id, i.mirror_count, i.capabilities.0
     );
     let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
-    for (axis, c) in Axis::ALL.iter().zip(axes) {
-        println!(
-            "{:5}  {} steps/{:?}, {} … {} steps, v max {} steps/s, a max {} steps/s²",
-            axis.name(),
-            c.steps_per_unit,
-            c.unit,
-            c.min_steps,
-            c.max_steps,
-            c.v_max,
-            c.a_max
-        );
+    for (axis, c) in Axis::ALL.iter().zip(&axes) {
+        println!("{:5}  {}", axis.name(), scanner_geometry::describe_axis(c));
     }
     Ok(())
 }
