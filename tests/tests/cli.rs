@@ -159,6 +159,16 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     let (code, _, err) = run(&["geometry", "--device", &pty]);
     assert_eq!(code, Some(0), "{err}");
 
+    // Travel past the home switch is set, with a warning.
+    let mut beyond = protocol::default_axes();
+    beyond[1].min_steps = -1_600;
+    std::fs::write(file("beyond.toml"), scanner_geometry::axes_to_toml(&beyond)).unwrap();
+    let (code, _, err) = run(&["axes", "--device", "sim", "--set", &file("beyond.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains("warning: track: the travel reaches -1.00 mm (-1600 steps), below the home"),
+        "{err}"
+    );
     // A device with a latched fault saves nothing: nothing is changed.
     let estop = FaultPlan::none().at_ms(0, hil_sim::FaultEvent::EmergencyStop(true));
     let stopped = serve(&setup("leather", estop), &sub(dir.path(), "camera2"));

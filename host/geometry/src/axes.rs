@@ -130,6 +130,39 @@ pub fn check_axes(axes: &[AxisConfig; 3]) -> Result<(), AxesError> {
     Ok(())
 }
 
+/// What in `axes` (protocol axis order) a controller accepts but may not
+/// be meant: a limited axis whose soft limits reach past its home switch on
+/// the side homing approaches it from. With a flag sensor in mid-travel
+/// that is right; with a limit switch at the end of the travel the axis
+/// can be driven into its end stop. One line per axis.
+pub fn axes_warnings(axes: &[AxisConfig; 3]) -> Vec<String> {
+    Axis::ALL
+        .into_iter()
+        .zip(axes)
+        .filter(|(_, c)| !c.continuous)
+        .filter_map(|(axis, c)| {
+            let home = c.homing.home_position;
+            let (beyond, side, direction) = match c.homing.direction {
+                protocol::Direction::Negative => (c.min_steps < home, "below", "down"),
+                protocol::Direction::Positive => (c.max_steps > home, "above", "up"),
+            };
+            let limit = if side == "below" { c.min_steps } else { c.max_steps };
+            beyond.then(|| {
+                let per = c.steps_per_unit as f64;
+                let u = unit_suffix(c.unit);
+                format!(
+                    "{}: the travel reaches {:.2}{u} ({limit} steps), {side} the home switch at \
+                     {:.2}{u} ({home} steps) that homing meets going {direction}: right for a \
+                     flag sensor within the travel, not for a limit switch at its end",
+                    axis.name(),
+                    limit as f64 / per,
+                    home as f64 / per,
+                )
+            })
+        })
+        .collect()
+}
+
 /// The configurations of a file's text, checked ([`check_axes`]).
 pub fn axes_from_toml(text: &str) -> Result<[AxisConfig; 3], AxesError> {
     let value: toml::Table = text.parse()?;
@@ -247,6 +280,22 @@ mod tests {
         axes[1].steps_per_unit = 800.0;
         axes[1].max_steps = 120_000;
         assert_eq!(axes_from_toml(&axes_to_toml(&axes)).unwrap(), axes);
+    }
+
+    #[test]
+    fn travel_beyond_the_home_switch_is_warned_of() {
+        assert!(axes_warnings(&protocol::default_axes()).is_empty());
+        let mut axes = protocol::default_axes();
+        axes[1].min_steps = -1_600;
+        axes[2].homing.direction = protocol::Direction::Positive;
+        axes[2].homing.home_position = 0;
+        let w = axes_warnings(&axes);
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(w[0].starts_with(
+            "track: the travel reaches -1.00 mm (-1600 steps), below the home switch at 0.00 mm \
+             (0 steps) that homing meets going down"
+        ), "{w:?}");
+        assert!(w[1].starts_with("tilt: the travel reaches 35.00° (9333 steps), above"), "{w:?}");
     }
 
     #[test]

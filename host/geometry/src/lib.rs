@@ -26,7 +26,9 @@
 pub mod axes;
 pub mod check;
 
-pub use axes::{AxesError, axes_from_toml, axes_to_toml, check_axes, describe_axis, load_axes};
+pub use axes::{
+    AxesError, axes_from_toml, axes_to_toml, axes_warnings, check_axes, describe_axis, load_axes,
+};
 pub use check::{DesignCheck, DesignProblem, MirrorCheck};
 pub use glam::DVec3;
 use serde::{Deserialize, Serialize};

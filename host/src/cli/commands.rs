@@ -494,6 +494,9 @@ pub fn axes(args: &DeviceArgs, set: Option<&Path>, output: Option<&Path>) -> Res
     let wanted = set
         .map(|p| scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e))))
         .transpose()?;
+    for w in wanted.iter().flat_map(scanner_geometry::axes_warnings) {
+        eprintln!("scanner: warning: {w}");
+    }
     let mut o = open(args)?;
     if let Some(wanted) = &wanted {
         let current = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
