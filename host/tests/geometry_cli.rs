@@ -118,6 +118,10 @@ fn a_faulty_design_exits_3_naming_the_mirror_and_writes_nothing() {
         (vec!["geometry", "--rings", "18:5", "-o", "x.txt"], 2),
         (vec!["geometry", "--geometry", "/nonexistent/g.toml"], 3),
         (vec!["geometry", "--geometry", p(&small), "--rings", "18:5", "-o", p(&small)], 4),
+        (vec!["geometry", "--axes", "/nonexistent/axes.toml"], 3),
+        (vec!["geometry", "--axes", p(&small)], 3),
+        (vec!["geometry", "--axes", p(&small), "--device", "sim"], 2),
+        (vec!["geometry", "--device", "/dev/no-such-scanner"], 5),
     ] {
         let out = scanner(&args);
         assert_eq!(out.status.code(), Some(code), "{args:?}: {}", text(&out).1);
