@@ -2,7 +2,6 @@
 //! of the physical axis positions (not the commanded ones), the pulse's
 //! length as exposure and the light's duty.
 
-use firmware::config;
 use firmware::hal::{TICK_HZ, TICKS_PER_US};
 
 use crate::device::{TriggerRecord, Truth};
@@ -15,11 +14,6 @@ use scanner_geometry::{IntegerCodes, SensorSpec};
 /// scanner built with the drives `axes` describes.
 pub fn axis_values(steps: [i64; 3], axes: &[protocol::AxisConfig; 3]) -> AxisValues {
     AxisValues::from_steps(steps, axes)
-}
-
-/// The default mechanics' axis configurations (the firmware defaults).
-pub fn default_axes() -> [protocol::AxisConfig; 3] {
-    [config::disk_default(), config::track_default(), config::tilt_default()]
 }
 
 /// The exposure a finished, honoured trigger pulse made (None otherwise)
@@ -92,7 +86,7 @@ impl SimCamera {
     /// A camera seeing through `optics`, exposing exactly while its trigger
     /// is high.
     pub fn new(optics: OpticalSim) -> SimCamera {
-        SimCamera { optics, next: 0, latency: 0, axes: default_axes() }
+        SimCamera { optics, next: 0, latency: 0, axes: protocol::default_axes() }
     }
 
     /// The same camera on a scanner built with the drives `axes` describes

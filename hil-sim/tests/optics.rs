@@ -33,7 +33,7 @@ fn exposure(axes: AxisValues) -> Exposure {
 #[test]
 fn inverse_kinematics_puts_the_beam_through_each_mirror_onto_the_sample_centre() {
     let g = nominal();
-    let axes = hil_sim::camera::default_axes();
+    let axes = protocol::default_axes();
     for l in 0..g.mirrors.len() {
         let a = g.mirror_axes(l).unwrap();
         assert!((0.0..=200.0).contains(&a.track_mm) && a.tilt_deg.abs() <= 35.0, "{l}: {a:?}");
@@ -322,7 +322,7 @@ fn the_camera_renders_every_trigger_from_the_physical_axis_positions() {
     for (l, (index, frame)) in frames.iter().enumerate() {
         let record = &c.device(|d| d.truth().clone()).triggers[*index];
         let light = c.device(|d| d.truth().light.clone());
-        let e = exposure_of(record, &light, 0, &hil_sim::camera::default_axes()).unwrap();
+        let e = exposure_of(record, &light, 0, &protocol::default_axes()).unwrap();
         assert!((e.exposure_s - 0.05).abs() < 1e-3 && e.light == 1.0);
         assert_eq!(camera.optics().mirrors_lighting_sample(e.axes), vec![l]);
         assert!(frame_max(frame) > 0.03, "mirror {l} lit");
@@ -345,8 +345,7 @@ fn lost_steps_visibly_change_the_frame() {
                 .triggers
                 .iter()
                 .map(|r| {
-                    let e = exposure_of(r, &d.truth().light, 0, &hil_sim::camera::default_axes())
-                        .unwrap();
+                    let e = exposure_of(r, &d.truth().light, 0, &protocol::default_axes()).unwrap();
                     camera.optics().mirrors_lighting_sample(e.axes)
                 })
                 .collect()
