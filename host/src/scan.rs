@@ -720,12 +720,16 @@ pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
 }
 
 /// Make the device's axis configurations `axes` (protocol axis order;
-/// `scanner axes --set`): the axes whose configuration differs are written
-/// (the device un-homes them), and the whole saved to flash when anything
-/// changed and the device has persistent storage. Returns the axes written.
-/// The mirror table's steps follow at the next [`setup`].
-pub fn set_axis_configs(dev: &mut Device, axes: &[AxisConfig; 3]) -> Result<Vec<Axis>, ScanError> {
-    let current = axis_configs(dev)?;
+/// `scanner axes --set`), `current` being its own as [`axis_configs`] read
+/// them: the axes whose configuration differs are written (the device
+/// un-homes them), and the whole saved to flash when anything changed and
+/// the device has persistent storage. Returns the axes written. The mirror
+/// table's steps follow at the next [`setup`].
+pub fn set_axis_configs(
+    dev: &mut Device,
+    current: &[AxisConfig; 3],
+    axes: &[AxisConfig; 3],
+) -> Result<Vec<Axis>, ScanError> {
     let changed: Vec<Axis> =
         Axis::ALL.into_iter().filter(|a| current[a.index()] != axes[a.index()]).collect();
     for &axis in &changed {

@@ -382,13 +382,9 @@ impl AxisConfig {
             AxisConfigProblem::MaxTravel
         } else if h.timeout_ms == 0 {
             AxisConfigProblem::Timeout
-        } else if self.continuous {
-            if self.steps_per_rev == 0 || self.steps_per_rev > i32::MAX as u32 {
-                AxisConfigProblem::StepsPerRev
-            } else {
-                return None;
-            }
-        } else if self.min_steps >= self.max_steps {
+        } else if self.continuous && !(1..=i32::MAX as u32).contains(&self.steps_per_rev) {
+            AxisConfigProblem::StepsPerRev
+        } else if !self.continuous && self.min_steps >= self.max_steps {
             AxisConfigProblem::Limits
         } else {
             return None;

@@ -15,6 +15,35 @@ fn run(s: &SimSetup, opts: &ScanOptions) -> Result<ScanReport, ScanError> {
     scan(&mut dev, &mut SimCamera(rig), &s.nominal().unwrap(), opts, &mut Quiet)
 }
 
+/// Scans of `mirrors` mirrors on `first`, then on `second`, into two new
+/// directories; the second's report.
+fn scan_both(
+    first: &SimSetup,
+    second: &SimSetup,
+    mirrors: usize,
+) -> (tempfile::TempDir, tempfile::TempDir, ScanReport) {
+    let dirs = [tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap()];
+    let opts = |d: &tempfile::TempDir| ScanOptions {
+        mirrors: Some(mirrors),
+        ..ScanOptions::new("m", d.path())
+    };
+    run(first, &opts(&dirs[0])).unwrap();
+    let report = run(second, &opts(&dirs[1])).unwrap();
+    let [a, b] = dirs;
+    (a, b, report)
+}
+
+/// The mean absolute difference of `frame` from `reference`, relative to
+/// the reference's mean signal.
+fn relative_difference(frame: &[f32], reference: &[f32]) -> f64 {
+    let (mut d, mut sum) = (0.0f64, 0.0f64);
+    for (a, b) in frame.iter().zip(reference) {
+        d += (a - b).abs() as f64;
+        sum += b.abs() as f64;
+    }
+    d / sum.max(1e-12)
+}
+
 #[test]
 fn a_deterministic_scan_stores_every_frame_and_its_manifest() {
     let s = setup("leather");
@@ -57,15 +86,7 @@ fn a_deterministic_scan_stores_every_frame_and_its_manifest() {
     let renders: Vec<_> = m.frames.iter().map(expected).collect();
     for (l, f) in m.frames.iter().enumerate() {
         let frame = host::exrio::read_rgb(&dir.path().join(&f.file)).unwrap();
-        // Mean absolute difference relative to the mean signal.
-        let diff = |e: &hil_sim::optics::Frame| {
-            let (mut d, mut sum) = (0.0f64, 0.0f64);
-            for (a, b) in frame.rgb.iter().zip(&e.rgb) {
-                d += (a - b).abs() as f64;
-                sum += b.abs() as f64;
-            }
-            d / sum.max(1e-12)
-        };
+        let diff = |e: &hil_sim::optics::Frame| relative_difference(&frame.rgb, &e.rgb);
         let own = diff(&renders[l]);
         let neighbour = diff(&renders[(l + 1) % 40]).min(diff(&renders[(l + 39) % 40]));
         assert!(own < 0.03, "mirror {l}: {own:.3} from its own rendering");
@@ -149,14 +170,7 @@ fn faults_in_the_deterministic_simulator_do_not_change_the_frames() {
             .after_triggers(7, FaultEvent::IgnoreTriggers(1)),
         ..setup("rough-metal")
     };
-    let a = tempfile::tempdir().unwrap();
-    let b = tempfile::tempdir().unwrap();
-    let mut oa = ScanOptions::new("m", a.path());
-    oa.mirrors = Some(10);
-    let mut ob = ScanOptions::new("m", b.path());
-    ob.mirrors = Some(10);
-    run(&clean, &oa).unwrap();
-    let report = run(&faulty, &ob).unwrap();
+    let (a, b, report) = scan_both(&clean, &faulty, 10);
     assert_eq!(report.resets, 1);
     assert!(report.retakes >= 2, "{report:?}");
     for l in 0..10 {
@@ -194,14 +208,7 @@ fn other_drives() -> [protocol::AxisConfig; 3] {
 fn a_scanner_built_with_other_drives_takes_the_same_frames() {
     let spec = setup("rough-metal");
     let other = SimSetup { axes: other_drives(), ..setup("rough-metal") };
-    let a = tempfile::tempdir().unwrap();
-    let b = tempfile::tempdir().unwrap();
-    let mut oa = ScanOptions::new("m", a.path());
-    oa.mirrors = Some(12);
-    let mut ob = ScanOptions::new("m", b.path());
-    ob.mirrors = Some(12);
-    run(&spec, &oa).unwrap();
-    run(&other, &ob).unwrap();
+    let (a, b, _) = scan_both(&spec, &other, 12);
     // The board came with its drives saved; the host read them, wrote the
     // mirror table in their steps and recorded every frame's axes in units.
     let rig = other.rig().unwrap();
@@ -226,12 +233,7 @@ fn a_scanner_built_with_other_drives_takes_the_same_frames() {
         // difference relative to the mean signal.
         let fa = host::exrio::read_rgb(&a.path().join(&fa.file)).unwrap();
         let fb = host::exrio::read_rgb(&b.path().join(&fb.file)).unwrap();
-        let (mut d, mut sum) = (0.0f64, 0.0f64);
-        for (x, y) in fa.rgb.iter().zip(&fb.rgb) {
-            d += (x - y).abs() as f64;
-            sum += x.abs() as f64;
-        }
-        worst = worst.max(d / sum);
+        worst = worst.max(relative_difference(&fb.rgb, &fa.rgb));
     }
     eprintln!("largest mean relative difference: {worst:.4}");
     assert!(worst < 0.01, "{worst}");

@@ -142,11 +142,10 @@ pub fn axes_warnings(axes: &[AxisConfig; 3]) -> Vec<String> {
         .filter(|(_, c)| !c.continuous)
         .filter_map(|(axis, c)| {
             let home = c.homing.home_position;
-            let (beyond, side, direction) = match c.homing.direction {
-                protocol::Direction::Negative => (c.min_steps < home, "below", "down"),
-                protocol::Direction::Positive => (c.max_steps > home, "above", "up"),
+            let (limit, beyond, side, direction) = match c.homing.direction {
+                protocol::Direction::Negative => (c.min_steps, c.min_steps < home, "below", "down"),
+                protocol::Direction::Positive => (c.max_steps, c.max_steps > home, "above", "up"),
             };
-            let limit = if side == "below" { c.min_steps } else { c.max_steps };
             beyond.then(|| {
                 let per = c.steps_per_unit as f64;
                 let u = unit_suffix(c.unit);

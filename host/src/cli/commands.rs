@@ -506,7 +506,8 @@ pub fn axes(args: &DeviceArgs, set: Option<&Path>, output: Option<&Path>) -> Res
         if current != *wanted && persistent && !faults.is_empty() {
             return Err(saves_nothing_while(faults));
         }
-        let changed = scan::set_axis_configs(&mut o.device, wanted).map_err(scan_failure)?;
+        let changed =
+            scan::set_axis_configs(&mut o.device, &current, wanted).map_err(scan_failure)?;
         if changed.is_empty() {
             println!("the device's axes are already these");
         } else {
