@@ -719,28 +719,82 @@ pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
     Ok([out[0], out[1], out[2]])
 }
 
+/// What [`set_axis_configs`] did.
+#[derive(Debug, Clone, Default)]
+pub struct AxesSet {
+    /// The axes whose configuration was written (the device un-homed them).
+    pub changed: Vec<Axis>,
+    /// The device's mirror-table entries (set ones).
+    pub mirrors: usize,
+    /// Entries whose steps changed and were written: the same axis
+    /// positions in the new drives' steps.
+    pub mirrors_moved: usize,
+    /// Entries the new travel cannot reach, left unset (`MirrorNotSet`
+    /// for a `GoToMirror`): mirror and why.
+    pub unreachable: Vec<(usize, scanner_geometry::StepsError)>,
+    /// Saved to the device's flash.
+    pub saved: bool,
+}
+
 /// Make the device's axis configurations `axes` (protocol axis order;
 /// `scanner axes --set`), `current` being its own as [`axis_configs`] read
 /// them: the axes whose configuration differs are written (the device
 /// un-homes them), and the whole saved to flash when anything changed and
-/// the device has persistent storage. Returns the axes written. The mirror
-/// table's steps follow at the next [`setup`].
+/// the device has persistent storage.
+///
+/// The device's mirror table keeps its axis *positions*: an entry's steps
+/// under `current` are taken to degrees and mm and back to steps under
+/// `axes` (a step of the old drive at most from what `scanner setup` would
+/// write for the same design). Entries outside the new travel are left
+/// unset, so that no stored step count means another place than it did.
 pub fn set_axis_configs(
     dev: &mut Device,
     current: &[AxisConfig; 3],
     axes: &[AxisConfig; 3],
-) -> Result<Vec<Axis>, ScanError> {
+) -> Result<AxesSet, ScanError> {
     let changed: Vec<Axis> =
         Axis::ALL.into_iter().filter(|a| current[a.index()] != axes[a.index()]).collect();
+    if changed.is_empty() {
+        return Ok(AxesSet::default());
+    }
+    let count = dev.info().mirror_count;
+    let mut table = Vec::with_capacity(count as usize);
+    for mirror in 0..count {
+        match dev.request(Request::GetMirror { mirror })? {
+            Reply::Mirror { position, .. } => table.push(position),
+            reply => return Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
+        }
+    }
+    let mut carried = Vec::new();
+    let mut set = AxesSet { mirrors: table.iter().flatten().count(), ..AxesSet::default() };
+    for (l, position) in table.iter().enumerate() {
+        let Some(position) = position else { continue };
+        match AxisValues::from_steps(position.steps.map(i64::from), current).to_steps(axes) {
+            Ok(steps) => carried.push((l, steps != position.steps, MirrorPosition { steps })),
+            Err(e) => set.unreachable.push((l, e)),
+        }
+    }
     for &axis in &changed {
         dev.command(Request::SetAxisConfig { axis, config: axes[axis.index()] })?;
     }
-    if !changed.is_empty()
-        && dev.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG)
-    {
-        dev.command(Request::SaveConfig)?;
+    if !set.unreachable.is_empty() {
+        // The protocol unsets entries by shortening the table: every entry
+        // unset, then the reachable ones written again.
+        dev.command(Request::SetMirrorCount { count: 0 })?;
+        dev.command(Request::SetMirrorCount { count })?;
     }
-    Ok(changed)
+    for &(l, moved, position) in &carried {
+        if moved || !set.unreachable.is_empty() {
+            dev.command(Request::SetMirror { mirror: l as u8, position })?;
+        }
+        set.mirrors_moved += usize::from(moved);
+    }
+    if dev.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG) {
+        dev.command(Request::SaveConfig)?;
+        set.saved = true;
+    }
+    set.changed = changed;
+    Ok(set)
 }
 
 /// The mirror table of `geometry` for the device's axes (inverse kinematics).

@@ -109,11 +109,17 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     let mut short = protocol::default_axes();
     short[2].max_steps = 1500;
     std::fs::write(file("short.toml"), scanner_geometry::axes_to_toml(&short)).unwrap();
-    let (code, _, err) = run(&["home", "--device", &pty]);
-    assert_eq!(code, Some(0), "{err}");
+    for command in ["home", "setup"] {
+        let (code, _, err) = run(&[command, "--device", &pty]);
+        assert_eq!(code, Some(0), "{err}");
+    }
     let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("short.toml")]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("set tilt: saved to the device's flash; must be homed again"), "{out}");
+    // The mirror table keeps its positions; the outer ring's are unset.
+    assert!(out.contains("mirror table: 0 of 40 entries in the new steps"), "{out}");
+    assert!(err.contains("mirror 39: tilt: 6.405° (1708 steps) is outside"), "{err}");
+    assert!(err.contains("15 of 40 mirror-table entries lie outside the new travel"), "{err}");
     let (_, out, _) = run(&["status", "--device", &pty]);
     let homed = |axis: &str| out.lines().any(|l| l.starts_with(axis) && !l.contains("not homed"));
     assert!(homed("disk") && homed("track") && !homed("tilt"), "{out}");
@@ -153,6 +159,10 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("device.toml")]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("set tilt"), "{out}");
+    assert!(out.contains("mirror table: 0 of 25 entries"), "{out}");
+    let (code, out, err) = run(&["setup", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("15 entries written"), "{out}");
     let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("device.toml")]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("the device's axes are already these"), "{out}");

@@ -239,6 +239,78 @@ fn a_scanner_built_with_other_drives_takes_the_same_frames() {
     assert!(worst < 0.01, "{worst}");
 }
 
+/// The device's mirror table.
+fn device_table(dev: &mut Device) -> Vec<Option<protocol::MirrorPosition>> {
+    (0..dev.info().mirror_count)
+        .map(|mirror| match dev.request(protocol::Request::GetMirror { mirror }).unwrap() {
+            protocol::Reply::Mirror { position, .. } => position,
+            reply => panic!("{reply:?}"),
+        })
+        .collect()
+}
+
+/// New drives keep the mirror table's axis positions: each entry within a
+/// step of what `setup` writes for the design on them; entries the new
+/// travel cannot reach are unset, the others kept.
+#[test]
+fn new_drives_carry_the_mirror_table_to_their_steps() {
+    use host::scan::{axis_configs, set_axis_configs};
+    let s = setup("leather");
+    let geometry = s.nominal().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(s.rig().unwrap()))).unwrap();
+    let spec = axis_configs(&mut dev).unwrap();
+    host::scan::setup(&mut dev, &geometry).unwrap();
+    let before = device_table(&mut dev);
+    assert_eq!(before.len(), 40);
+
+    let other = other_drives();
+    let set = set_axis_configs(&mut dev, &spec, &other).unwrap();
+    assert_eq!(set.changed, protocol::Axis::ALL.to_vec());
+    assert_eq!((set.mirrors, set.unreachable.len()), (40, 0));
+    assert!(set.saved && set.mirrors_moved == 40, "{set:?}");
+    let exact = geometry.mirror_table(&other).unwrap();
+    for (l, (got, want)) in device_table(&mut dev).iter().zip(&exact).enumerate() {
+        let got = got.expect("set").steps;
+        // Within the old drive's half step, in the new drive's steps.
+        for (k, limit) in [1usize, 2, 1].into_iter().enumerate() {
+            let d = (got[k] - want.steps[k]).abs();
+            let d = if k == 0 { d.min(32_000 - d) } else { d };
+            assert!(d <= limit as i32, "mirror {l}: {got:?} against {:?}", want.steps);
+        }
+    }
+    // `setup` on the new drives has at most those steps left to write.
+    assert!(host::scan::setup(&mut dev, &geometry).unwrap().written < 40);
+
+    // Back: every entry where it was.
+    let set = set_axis_configs(&mut dev, &other, &spec).unwrap();
+    assert!(set.unreachable.is_empty(), "{set:?}");
+    host::scan::setup(&mut dev, &geometry).unwrap();
+    let before = device_table(&mut dev);
+    // A tilt that stops at 5.63°: the outer ring's 6.404° is out of it.
+    let mut short = spec;
+    short[2].max_steps = 1500;
+    let set = set_axis_configs(&mut dev, &spec, &short).unwrap();
+    assert_eq!((set.changed.clone(), set.mirrors_moved), (vec![protocol::Axis::Tilt], 0));
+    let unreachable: Vec<usize> = set.unreachable.iter().map(|(l, _)| *l).collect();
+    let now = device_table(&mut dev);
+    assert_eq!(now.len(), 40, "the count stays");
+    for (l, (now, was)) in now.iter().zip(&before).enumerate() {
+        let want = if unreachable.contains(&l) { None } else { *was };
+        assert_eq!(*now, want, "mirror {l}");
+    }
+    assert!(unreachable.contains(&39), "{unreachable:?}");
+    assert!(set.unreachable[0].1.to_string().contains("outside its travel"), "{set:?}");
+    // The device refuses to go to an unset entry.
+    let e = dev.request(protocol::Request::GoToMirror { mirror: 39 });
+    assert!(
+        matches!(
+            e,
+            Err(host::link::LinkError::Refused { error: protocol::DeviceError::MirrorNotSet, .. })
+        ),
+        "{e:?}"
+    );
+}
+
 /// A host killed mid-move leaves the device moving; 500 ms of silence
 /// latch `link-timeout` and the device *decelerates* (status: faulted,
 /// still moving). The next scan clears the fault and must wait for the

@@ -506,22 +506,39 @@ pub fn axes(args: &DeviceArgs, set: Option<&Path>, output: Option<&Path>) -> Res
         if current != *wanted && persistent && !faults.is_empty() {
             return Err(saves_nothing_while(faults));
         }
-        let changed =
-            scan::set_axis_configs(&mut o.device, &current, wanted).map_err(scan_failure)?;
-        if changed.is_empty() {
+        let set = scan::set_axis_configs(&mut o.device, &current, wanted).map_err(scan_failure)?;
+        if set.changed.is_empty() {
             println!("the device's axes are already these");
         } else {
-            let names: Vec<&str> = changed.iter().map(|a| a.name()).collect();
+            let names: Vec<&str> = set.changed.iter().map(|a| a.name()).collect();
             println!(
-                "set {}: {}; must be homed again (scanner home), and the mirror table's steps \
-                 follow at the next `scanner setup` or scan",
+                "set {}: {}; must be homed again (scanner home)",
                 names.join(", "),
-                if persistent {
+                if set.saved {
                     "saved to the device's flash"
                 } else {
                     "this device cannot save it: it lasts until the device resets"
                 }
             );
+            if set.mirrors > 0 {
+                println!(
+                    "mirror table: {} of {} entries in the new steps, the same axis positions \
+                     (`scanner setup` writes them exactly from the design)",
+                    set.mirrors_moved, set.mirrors
+                );
+            }
+            for (l, why) in &set.unreachable {
+                eprintln!("scanner: warning: mirror {l}: {why}: left unset");
+            }
+            if !set.unreachable.is_empty() {
+                eprintln!(
+                    "scanner: warning: {} of {} mirror-table entries lie outside the new \
+                     travel; `scanner setup` writes the table again once the design fits it \
+                     (`scanner geometry --device`)",
+                    set.unreachable.len(),
+                    set.mirrors
+                );
+            }
         }
     }
     let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
