@@ -168,6 +168,21 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     assert!(out.contains("the device's axes are already these"), "{out}");
     let (code, _, err) = run(&["geometry", "--device", &pty]);
     assert_eq!(code, Some(0), "{err}");
+    // A lead screw measured short: told 100 mm, it went 98.7 mm.
+    let (code, out, err) =
+        run(&["axes", "--device", &pty, "--correct", "track=100:98.7", "-o", &file("fixed.toml")]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("track: 1600 → 1621.074 steps/mm (told 100 mm, moved 98.7 mm)"), "{out}");
+    assert!(out.contains("set track: saved") && out.contains("of 40 entries in the new"), "{out}");
+    let mut fixed = protocol::default_axes();
+    let m = "track=100:98.7".parse().unwrap();
+    fixed[1] = scanner_geometry::correct_axis(&fixed[1], m).unwrap();
+    assert_eq!(load("fixed.toml").unwrap(), fixed);
+    let (code, _, err) = run(&["axes", "--device", &pty, "--correct", "track=100:-98.7"]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(err.contains("moved the other way"), "{err}");
+    let (code, _, err) = run(&["axes", "--device", &pty, "--set", &file("device.toml")]);
+    assert_eq!(code, Some(0), "{err}");
 
     // Travel past the home switch is set, with a warning.
     let mut beyond = protocol::default_axes();

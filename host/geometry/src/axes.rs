@@ -80,6 +80,22 @@ pub enum AxesError {
     /// The linear track cannot wrap.
     #[error("track: a linear axis cannot be continuous")]
     ContinuousTrack,
+    /// A measured move that cannot correct an axis ([`Measured`]).
+    #[error(
+        "{}: commanded {commanded}{u}, measured {measured}{u}: {why}",
+        axis.name(),
+        u = match axis { Axis::Track => " mm", Axis::Disk | Axis::Tilt => "°" }
+    )]
+    Measurement {
+        /// The axis.
+        axis: Axis,
+        /// The move the axis was told to make, in its unit.
+        commanded: f64,
+        /// The move measured on the machine, in its unit.
+        measured: f64,
+        /// What is wrong with them.
+        why: &'static str,
+    },
     /// A continuous rotary axis whose revolution is not 360° of its steps.
     #[error(
         "{}: steps_per_rev = {steps_per_rev} is not one turn at {per_unit} steps/° \
@@ -160,6 +176,99 @@ pub fn axes_warnings(axes: &[AxisConfig; 3]) -> Vec<String> {
             })
         })
         .collect()
+}
+
+/// A move an axis was told to make and the move measured on the machine
+/// (`scanner axes --correct AXIS=COMMANDED:MEASURED`), in the axis' unit:
+/// `track=100:98.7` — told to go 100 mm, it went 98.7 mm.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measured {
+    /// The axis.
+    pub axis: Axis,
+    /// The move it was told to make.
+    pub commanded: f64,
+    /// The move measured.
+    pub measured: f64,
+}
+
+impl std::str::FromStr for Measured {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Measured, String> {
+        let wrong = || format!("`{s}`: expected AXIS=COMMANDED:MEASURED, e.g. track=100:98.7");
+        let (name, moves) = s.split_once('=').ok_or_else(wrong)?;
+        let (commanded, measured) = moves.split_once(':').ok_or_else(wrong)?;
+        let axis = Axis::ALL
+            .into_iter()
+            .find(|a| a.name() == name.trim())
+            .ok_or_else(|| format!("`{name}`: no such axis (disk, track, tilt)"))?;
+        let number = |t: &str| t.trim().parse::<f64>().map_err(|_| wrong());
+        Ok(Measured { axis, commanded: number(commanded)?, measured: number(measured)? })
+    }
+}
+
+/// The largest factor [`correct_axis`] applies to an axis' steps per unit:
+/// beyond 4× (or ¼) a measurement is not a calibration but a wrong
+/// microstepping, gear or pitch, which is better read off the drive.
+pub const MAX_CORRECTION: f64 = 4.0;
+
+/// `config` corrected by a measured move: its steps per unit scaled by
+/// commanded / measured (the steps it took moved the axis `measured`, so
+/// that many steps make `measured`, not `commanded`). The positions keep
+/// their units — soft limits, home position, back-off and homing search
+/// are scaled with it, a continuous axis' revolution rounded to whole
+/// steps and its steps per unit made 1/360 of it — while speeds and
+/// accelerations keep their steps/s and steps/s², the rates the motor
+/// was measured running at. The result is checked as a whole
+/// ([`check_axes`] on the caller's side).
+pub fn correct_axis(config: &AxisConfig, m: Measured) -> Result<AxisConfig, AxesError> {
+    let refuse = |why| AxesError::Measurement {
+        axis: m.axis,
+        commanded: m.commanded,
+        measured: m.measured,
+        why,
+    };
+    if !(m.commanded.is_finite() && m.measured.is_finite())
+        || m.commanded == 0.0
+        || m.measured == 0.0
+    {
+        return Err(refuse("both must be finite and non-zero"));
+    }
+    let ratio = m.commanded / m.measured;
+    if ratio < 0.0 {
+        return Err(refuse("the axis moved the other way: swap one of its motor's coil pairs"));
+    }
+    if !(1.0 / MAX_CORRECTION..=MAX_CORRECTION).contains(&ratio) {
+        return Err(refuse(
+            "more than 4× off: check the driver's microstepping and the gear, belt or screw",
+        ));
+    }
+    let too_far = || refuse("the corrected travel does not fit in steps");
+    let position = |steps: i32| -> Result<i32, AxesError> {
+        let v = (steps as f64 * ratio).round();
+        (v.abs() <= i32::MAX as f64).then_some(v as i32).ok_or_else(too_far)
+    };
+    let distance = |steps: u32| -> Result<u32, AxesError> {
+        let v = (steps as f64 * ratio).round();
+        (v <= u32::MAX as f64).then_some(v as u32).ok_or_else(too_far)
+    };
+    let mut c = *config;
+    c.steps_per_unit = (config.steps_per_unit as f64 * ratio) as f32;
+    if config.continuous && config.steps_per_rev > 0 {
+        c.steps_per_rev = distance(config.steps_per_rev)?;
+        c.steps_per_unit = (c.steps_per_rev as f64 / 360.0) as f32;
+    }
+    c.min_steps = position(config.min_steps)?;
+    c.max_steps = if config.continuous && config.max_steps as i64 + 1 == config.steps_per_rev as i64
+    {
+        c.steps_per_rev as i32 - 1
+    } else {
+        position(config.max_steps)?
+    };
+    c.homing.home_position = position(config.homing.home_position)?;
+    c.homing.backoff_steps = distance(config.homing.backoff_steps)?;
+    c.homing.max_travel_steps = distance(config.homing.max_travel_steps)?;
+    Ok(c)
 }
 
 /// The configurations of a file's text, checked ([`check_axes`]).
@@ -363,5 +472,60 @@ mod tests {
         assert!(load_axes(&path).unwrap_err().to_string().contains("not an axis configuration"));
         let missing = dir.path().join("missing.toml");
         assert!(load_axes(&missing).unwrap_err().to_string().starts_with("cannot read"));
+    }
+
+    fn measured(text: &str) -> Measured {
+        text.parse().unwrap()
+    }
+
+    #[test]
+    fn a_measured_move_corrects_the_steps_and_keeps_the_positions_units() {
+        let [disk, track, tilt] = protocol::default_axes();
+        // Told 100 mm, went 98.7 mm: 1600 steps made 0.987 mm.
+        let m = measured("track=100:98.7");
+        assert_eq!((m.axis, m.commanded, m.measured), (Axis::Track, 100.0, 98.7));
+        let c = correct_axis(&track, m).unwrap();
+        let ratio = 100.0 / 98.7;
+        assert!((c.steps_per_unit as f64 - 1600.0 * ratio).abs() < 1e-3, "{c:?}");
+        // The travel, home position, back-off and search keep their mm.
+        let mm = |steps: i32, per: f32| steps as f64 / per as f64;
+        assert!((mm(c.max_steps, c.steps_per_unit) - mm(track.max_steps, 1600.0)).abs() < 1e-3);
+        assert_eq!(c.min_steps, (track.min_steps as f64 * ratio).round() as i32);
+        let h = (c.homing, track.homing);
+        assert_eq!(h.0.backoff_steps, (h.1.backoff_steps as f64 * ratio).round() as u32);
+        assert_eq!(h.0.max_travel_steps, (h.1.max_travel_steps as f64 * ratio).round() as u32);
+        // The motor's rates stay.
+        assert_eq!((c.v_max, c.a_max), (track.v_max, track.a_max));
+        assert_eq!((h.0.fast_speed, h.0.slow_speed), (h.1.fast_speed, h.1.slow_speed));
+        assert_eq!(h.0.timeout_ms, h.1.timeout_ms);
+        // Homed at −35°, the tilt's home position keeps its degrees.
+        let t = correct_axis(&tilt, measured(" tilt = 10 : 10.5 ")).unwrap();
+        assert_eq!(t.homing.home_position, (-9_333.0f64 * 10.0 / 10.5).round() as i32);
+        assert_eq!(t.min_steps, t.homing.home_position);
+        // The disk's revolution stays whole steps, its steps/° 1/360 of it.
+        let d = correct_axis(&disk, measured("disk=360:355")).unwrap();
+        assert_eq!(d.steps_per_rev, (16_000.0f64 * 360.0 / 355.0).round() as u32);
+        assert_eq!((d.min_steps, d.max_steps), (0, d.steps_per_rev as i32 - 1));
+        let axes = [d, c, t];
+        check_axes(&axes).unwrap();
+        // What a measurement cannot say.
+        let refused = |m: &str, config: &AxisConfig| {
+            correct_axis(config, measured(m)).unwrap_err().to_string()
+        };
+        assert_eq!(
+            refused("track=100:-100", &track),
+            "track: commanded 100 mm, measured -100 mm: the axis moved the other way: swap one \
+             of its motor's coil pairs"
+        );
+        assert!(refused("tilt=10:0", &tilt).ends_with("both must be finite and non-zero"));
+        assert!(refused("tilt=nan:10", &tilt).ends_with("both must be finite and non-zero"));
+        assert!(refused("disk=360:80", &disk).contains("more than 4× off"));
+        assert!(correct_axis(&disk, measured("disk=360:90")).is_ok(), "4× exactly");
+        let mut long = track;
+        long.max_steps = i32::MAX / 2;
+        assert!(refused("track=4:1", &long).ends_with("does not fit in steps"));
+        for bad in ["track", "track=100", "belt=1:2", "track=a:1", "track=1:2:3"] {
+            assert!(bad.parse::<Measured>().is_err(), "{bad}");
+        }
     }
 }

@@ -27,7 +27,8 @@ pub mod axes;
 pub mod check;
 
 pub use axes::{
-    AxesError, axes_from_toml, axes_to_toml, axes_warnings, check_axes, describe_axis, load_axes,
+    AxesError, Measured, axes_from_toml, axes_to_toml, axes_warnings, check_axes, correct_axis,
+    describe_axis, load_axes,
 };
 pub use check::{DesignCheck, DesignProblem, MirrorCheck};
 pub use glam::DVec3;

@@ -488,25 +488,65 @@ fn saves_nothing_while(faults: FaultFlags) -> Failure {
 }
 
 /// `scanner axes`: print the device's axis configurations; with `set`, make
-/// them the file's first (saved to flash); with `output`, write them to a
-/// file (docs/axis-config.md).
-pub fn axes(args: &DeviceArgs, set: Option<&Path>, output: Option<&Path>) -> Result<(), Failure> {
-    let wanted = set
+/// them the file's first (saved to flash), with `correct` corrected by
+/// measured moves (the device's own, or the file's); with `output`, write
+/// them to a file (docs/axis-config.md).
+pub fn axes(
+    args: &DeviceArgs,
+    set: Option<&Path>,
+    correct: &[scanner_geometry::Measured],
+    output: Option<&Path>,
+) -> Result<(), Failure> {
+    if let Some(twice) =
+        Axis::ALL.into_iter().find(|&a| correct.iter().filter(|m| m.axis == a).count() > 1)
+    {
+        return Err(Failure(2, anyhow!("--correct: {} given twice", twice.name())));
+    }
+    let file = set
         .map(|p| scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e))))
         .transpose()?;
-    for w in wanted.iter().flat_map(scanner_geometry::axes_warnings) {
-        eprintln!("scanner: warning: {w}");
-    }
     let mut o = open(args)?;
-    if let Some(wanted) = &wanted {
+    // What to make the device's axes: the file's, or the device's own or
+    // the file's corrected by measured moves.
+    let change = if file.is_some() || !correct.is_empty() {
         let current = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+        let mut wanted = file.unwrap_or(current);
+        for m in correct {
+            let was = wanted[m.axis.index()];
+            let now =
+                scanner_geometry::correct_axis(&was, *m).map_err(|e| Failure(3, anyhow!(e)))?;
+            wanted[m.axis.index()] = now;
+            let (u, units) = match was.unit {
+                protocol::Unit::Degree => ("°", "degrees"),
+                protocol::Unit::Millimetre => (" mm", "mm"),
+            };
+            println!(
+                "{}: {} → {} steps/{} (told {}{u}, moved {}{u}); travel, home position and \
+                 homing distances kept in {units}, speeds in steps/s",
+                m.axis.name(),
+                was.steps_per_unit,
+                now.steps_per_unit,
+                u.trim_start(),
+                m.commanded,
+                m.measured,
+            );
+        }
+        scanner_geometry::check_axes(&wanted).map_err(|e| Failure(3, anyhow!(e)))?;
+        for w in scanner_geometry::axes_warnings(&wanted) {
+            eprintln!("scanner: warning: {w}");
+        }
+        Some((current, wanted))
+    } else {
+        None
+    };
+    if let Some((current, wanted)) = change {
         let persistent =
             o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG);
         let faults = o.device.status().map_err(link_failure)?.faults;
-        if current != *wanted && persistent && !faults.is_empty() {
+        if current != wanted && persistent && !faults.is_empty() {
             return Err(saves_nothing_while(faults));
         }
-        let set = scan::set_axis_configs(&mut o.device, &current, wanted).map_err(scan_failure)?;
+        let set = scan::set_axis_configs(&mut o.device, &current, &wanted).map_err(scan_failure)?;
         if set.changed.is_empty() {
             println!("the device's axes are already these");
         } else {

@@ -260,6 +260,14 @@ enum Command {
         /// device's flash). Changed axes must be homed again.
         #[arg(long, value_name = "FILE")]
         set: Option<PathBuf>,
+        /// Correct an axis by a move measured on the machine: told to move
+        /// COMMANDED (°, mm), it moved MEASURED (`track=100:98.7`). Scales
+        /// its steps per unit by COMMANDED / MEASURED, keeping its travel,
+        /// home position and homing distances in units and its speeds in
+        /// steps/s; applied to the device's axes (or to --set's file), then
+        /// set and saved like --set. Repeatable, one per axis.
+        #[arg(long, value_name = "AXIS=COMMANDED:MEASURED")]
+        correct: Vec<scanner_geometry::Measured>,
         /// Write the device's axis configurations (.toml) here.
         #[arg(short, long)]
         output: Option<PathBuf>,
@@ -532,12 +540,12 @@ fn run(cli: Cli) -> Result<(), Failure> {
             };
             build::geometry_cmd(geometry.as_deref(), &rings, output.as_deref(), travel)?
         }
-        Command::Axes { device, set, output } => {
+        Command::Axes { device, set, correct, output } => {
             if let Some(out) = &output {
                 let inputs: Vec<&Path> = set.iter().map(PathBuf::as_path).collect();
                 check_output(out, &inputs, &["toml"])?;
             }
-            commands::axes(&device, set.as_deref(), output.as_deref())?
+            commands::axes(&device, set.as_deref(), &correct, output.as_deref())?
         }
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
