@@ -113,6 +113,12 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
         let (code, _, err) = run(&[command, "--device", &pty]);
         assert_eq!(code, Some(0), "{err}");
     }
+    // To a mirror's table entry (the outer ring's tilt is 6.404°).
+    let (code, out, err) = run(&["move", "--device", &pty, "--mirror", "39"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("tilt   6.405°  = [") && out.contains("mirror 39: done at ["), "{out}");
+    let (code, _, err) = run(&["move", "--device", &pty, "--mirror", "3", "--tilt", "1"]);
+    assert_eq!(code, Some(2), "{err}");
     let (code, out, err) = run(&["axes", "--device", &pty, "--set", &file("short.toml")]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("set tilt: saved to the device's flash; must be homed again"), "{out}");
@@ -120,6 +126,9 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     assert!(out.contains("mirror table: 0 of 40 entries in the new steps"), "{out}");
     assert!(err.contains("mirror 39: tilt: 6.405° (1708 steps) is outside"), "{err}");
     assert!(err.contains("15 of 40 mirror-table entries lie outside the new travel"), "{err}");
+    let (code, _, err) = run(&["move", "--device", &pty, "--mirror", "39"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("mirror 39 is not set in the device's mirror table (40 entries)"), "{err}");
     let (_, out, _) = run(&["status", "--device", &pty]);
     let homed = |axis: &str| out.lines().any(|l| l.starts_with(axis) && !l.contains("not homed"));
     assert!(homed("disk") && homed("track") && !homed("tilt"), "{out}");

@@ -854,6 +854,50 @@ pub fn move_axes(
     wait_motion(&mut o.device, "move")
 }
 
+/// `scanner move --mirror`: to mirror `mirror`'s entry of the device's
+/// mirror table.
+pub fn move_to_mirror(args: &DeviceArgs, mirror: u8) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let count = o.device.info().mirror_count;
+    let position = if mirror < count {
+        match o.device.request(Request::GetMirror { mirror }).map_err(link_failure)? {
+            protocol::Reply::Mirror { position, .. } => position,
+            reply => {
+                return Err(link_failure(LinkError::Unexpected { request: "GetMirror", reply }));
+            }
+        }
+    } else {
+        None
+    };
+    let Some(position) = position else {
+        return Err(Failure(
+            2,
+            anyhow!(
+                "mirror {mirror} is not set in the device's mirror table ({count} entries): \
+                 `scanner setup` writes it"
+            ),
+        ));
+    };
+    let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+    println!("{}", mirror_line(mirror as usize, &position, &axes));
+    o.device.clear_events();
+    o.device.command(Request::GoToMirror { mirror }).map_err(link_failure)?;
+    wait_motion(&mut o.device, &format!("mirror {mirror}"))
+}
+
+/// One mirror-table entry in units and steps.
+fn mirror_line(
+    mirror: usize,
+    position: &protocol::MirrorPosition,
+    axes: &[protocol::AxisConfig; 3],
+) -> String {
+    let v = AxisValues::from_steps(position.steps.map(i64::from), axes);
+    format!(
+        "mirror {mirror:2}: disk {:8.3}°  track {:7.3} mm  tilt {:7.3}°  = {:?} steps",
+        v.disk_deg, v.track_mm, v.tilt_deg, position.steps
+    )
+}
+
 /// `scanner light`
 pub fn light(args: &DeviceArgs, on: bool, duty: u16) -> Result<(), Failure> {
     if duty == 0 || duty > 1000 {
@@ -894,11 +938,7 @@ pub fn setup(args: &DeviceArgs, geometry: Option<&Path>) -> Result<(), Failure> 
     let g = load_geometry(geometry, &o)?;
     let setup = scan::setup(&mut o.device, &g).map_err(scan_failure)?;
     for (l, p) in setup.table.iter().enumerate() {
-        let v = AxisValues::from_steps(p.steps.map(i64::from), &setup.axes);
-        println!(
-            "mirror {l:2}: disk {:8.3}°  track {:7.3} mm  tilt {:7.3}°  = {:?} steps",
-            v.disk_deg, v.track_mm, v.tilt_deg, p.steps
-        );
+        println!("{}", mirror_line(l, p, &setup.axes));
     }
     println!("{} entries written; geometry {}", setup.written, g.hash());
     Ok(())

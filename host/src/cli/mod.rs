@@ -307,7 +307,8 @@ enum Command {
         #[arg(long, value_delimiter = ',', value_parser = parse_axis)]
         axes: Vec<protocol::Axis>,
     },
-    /// Move axes (degrees / mm, or steps with --steps).
+    /// Move axes (degrees / mm, or steps with --steps), or to a mirror's
+    /// table entry (--mirror).
     Move {
         #[command(flatten)]
         device: commands::DeviceArgs,
@@ -326,6 +327,11 @@ enum Command {
         /// Targets are in steps.
         #[arg(long)]
         steps: bool,
+        /// Go to this mirror's entry of the device's mirror table (where
+        /// the light lands on mirror N: with `scanner light on`, to check
+        /// the table against the machine).
+        #[arg(long, value_name = "N", conflicts_with_all = ["disk", "track", "tilt", "relative", "steps"])]
+        mirror: Option<u8>,
     },
     /// Switch the light on or off.
     Light {
@@ -621,7 +627,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Status { device } => commands::status(&device)?,
         Command::Inputs { device, watch } => commands::inputs(&device, watch)?,
         Command::Home { device, axes } => commands::home(&device, &axes)?,
-        Command::Move { device, disk, track, tilt, relative, steps } => {
+        Command::Move { device, mirror: Some(mirror), .. } => {
+            commands::move_to_mirror(&device, mirror)?
+        }
+        Command::Move { device, disk, track, tilt, relative, steps, mirror: None } => {
             commands::move_axes(&device, [disk, track, tilt], relative, steps)?
         }
         Command::Light { device, state, duty } => commands::light(&device, state == "on", duty)?,
