@@ -746,7 +746,8 @@ pub struct AxesSet {
 /// under `current` are taken to degrees and mm and back to steps under
 /// `axes` (a step of the old drive at most from what `scanner setup` would
 /// write for the same design). Entries outside the new travel are left
-/// unset, so that no stored step count means another place than it did.
+/// unset, so that no stored step count means another place than it did,
+/// even when the link is lost half-way.
 pub fn set_axis_configs(
     dev: &mut Device,
     current: &[AxisConfig; 3],
@@ -774,20 +775,23 @@ pub fn set_axis_configs(
             Err(e) => set.unreachable.push((l, e)),
         }
     }
+    // The table is emptied first and written again after the axes, so that
+    // at no moment (a link lost half-way included) does an entry hold steps
+    // of the other configuration: an interrupted change leaves entries
+    // unset, never wrong, and the flash the old, consistent pair.
+    if count > 0 {
+        dev.command(Request::SetMirrorCount { count: 0 })?;
+    }
     for &axis in &changed {
         dev.command(Request::SetAxisConfig { axis, config: axes[axis.index()] })?;
     }
-    if !set.unreachable.is_empty() {
-        // The protocol unsets entries by shortening the table: every entry
-        // unset, then the reachable ones written again.
-        dev.command(Request::SetMirrorCount { count: 0 })?;
-        dev.command(Request::SetMirrorCount { count })?;
-    }
     for &(l, moved, position) in &carried {
-        if moved || !set.unreachable.is_empty() {
-            dev.command(Request::SetMirror { mirror: l as u8, position })?;
-        }
+        dev.command(Request::SetMirror { mirror: l as u8, position })?;
         set.mirrors_moved += usize::from(moved);
+    }
+    if count > 0 {
+        // Unset entries (and the unreachable ones) up to the old count.
+        dev.command(Request::SetMirrorCount { count })?;
     }
     if dev.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG) {
         dev.command(Request::SaveConfig)?;

@@ -128,7 +128,10 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
     assert!(err.contains("15 of 40 mirror-table entries lie outside the new travel"), "{err}");
     let (code, _, err) = run(&["move", "--device", &pty, "--mirror", "39"]);
     assert_eq!(code, Some(2), "{err}");
-    assert!(err.contains("mirror 39 is not set in the device's mirror table (40 entries)"), "{err}");
+    assert!(
+        err.contains("mirror 39 is not set in the device's mirror table (40 entries)"),
+        "{err}"
+    );
     let (_, out, _) = run(&["status", "--device", &pty]);
     let homed = |axis: &str| out.lines().any(|l| l.starts_with(axis) && !l.contains("not homed"));
     assert!(homed("disk") && homed("track") && !homed("tilt"), "{out}");

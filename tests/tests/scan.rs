@@ -311,6 +311,87 @@ fn new_drives_carry_the_mirror_table_to_their_steps() {
     );
 }
 
+/// The simulator's link, cut for good after a number of writes.
+struct Cut {
+    inner: SimTransport,
+    writes_left: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+}
+
+impl host::link::Transport for Cut {
+    fn write_all(&mut self, bytes: &[u8]) -> Result<(), host::link::TransportError> {
+        use std::sync::atomic::Ordering;
+        let left = self.writes_left.load(Ordering::SeqCst);
+        if left == 0 {
+            return Err(host::link::TransportError::Disconnected("cut".into()));
+        }
+        self.writes_left.store(left - 1, Ordering::SeqCst);
+        self.inner.write_all(bytes)
+    }
+    fn read(
+        &mut self,
+        out: &mut Vec<u8>,
+        timeout: std::time::Duration,
+    ) -> Result<usize, host::link::TransportError> {
+        self.inner.read(out, timeout)
+    }
+    fn sleep(&mut self, d: std::time::Duration) {
+        self.inner.sleep(d)
+    }
+    fn now(&self) -> std::time::Duration {
+        self.inner.now()
+    }
+    fn reconnect(&mut self) -> Result<(), host::link::TransportError> {
+        Err(host::link::TransportError::Open("cut".into()))
+    }
+    fn describe(&self) -> String {
+        "a link that is cut".into()
+    }
+}
+
+/// A link lost anywhere in a change of drives leaves mirror-table entries
+/// unset, never in the steps of the other configuration.
+#[test]
+fn a_change_of_drives_cut_short_leaves_no_entry_in_the_other_steps() {
+    use host::scan::{axis_configs, set_axis_configs};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let s = setup("leather");
+    let geometry = s.nominal().unwrap();
+    let spec = protocol::default_axes();
+    let (old, new) =
+        (geometry.mirror_table(&spec).unwrap(), geometry.mirror_table(&other_drives()));
+    // Carried entries are within a step of the exact table (the test above).
+    let near = |a: &[i32; 3], b: &[i32; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 2);
+    let mut cuts = 0;
+    for budget in 0.. {
+        let rig = s.rig().unwrap();
+        let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+        host::scan::setup(&mut dev, &geometry).unwrap();
+        let writes_left = std::sync::Arc::new(AtomicUsize::new(usize::MAX));
+        let cut = Cut { inner: SimTransport(rig.clone()), writes_left: writes_left.clone() };
+        let mut dev = Device::connect(Box::new(cut)).unwrap();
+        writes_left.store(budget, Ordering::SeqCst);
+        let done = set_axis_configs(&mut dev, &spec, &other_drives()).is_ok();
+        drop(dev);
+        let mut dev = Device::connect(Box::new(SimTransport(rig))).unwrap();
+        let axes = axis_configs(&mut dev).unwrap();
+        for (l, entry) in device_table(&mut dev).iter().enumerate() {
+            let Some(p) = entry else { continue };
+            let right = if axes == spec {
+                p.steps == old[l].steps
+            } else {
+                axes == other_drives() && near(&p.steps, &new.as_ref().unwrap()[l].steps)
+            };
+            assert!(right, "cut after {budget} writes: mirror {l} at {:?} under {axes:?}", p.steps);
+        }
+        if done {
+            break;
+        }
+        cuts += 1;
+    }
+    // GetMirror × 40, the count, 3 axes, 40 entries, the count, the save.
+    assert!(cuts > 80, "{cuts}");
+}
+
 /// A host killed mid-move leaves the device moving; 500 ms of silence
 /// latch `link-timeout` and the device *decelerates* (status: faulted,
 /// still moving). The next scan clears the fault and must wait for the
