@@ -149,6 +149,12 @@ pub struct SimConfig {
     /// defaults, the board comes with them saved in its flash, as a
     /// builder who ran `scanner axes --set` would ship it.
     pub axes: [protocol::AxisConfig; AXIS_COUNT],
+    /// The axis configuration the board's flash holds when it is not the
+    /// drives it is built with (`None`: it holds `axes`): a board still to
+    /// be commissioned — `Some(protocol::default_axes())` is one freshly
+    /// flashed — or configured wrongly. The firmware moves by it; the
+    /// mechanics, the switches and the camera follow `axes`.
+    pub flash_axes: Option<[protocol::AxisConfig; AXIS_COUNT]>,
 }
 
 impl SimConfig {
@@ -162,6 +168,7 @@ impl SimConfig {
             driver_fault_active_high: false,
             trigger_latency_us: 0,
             axes: protocol::default_axes(),
+            flash_axes: None,
         }
     }
 }
@@ -173,6 +180,8 @@ pub struct SimDevice {
     hw: SimHw,
     motors: [SimMotor; AXIS_COUNT],
     switches: [SimSwitch; AXIS_COUNT],
+    /// The drives it is built with (`SimConfig::axes`).
+    built: [protocol::AxisConfig; AXIS_COUNT],
     home_active_high: [bool; AXIS_COUNT],
     driver_fault_active_high: bool,
     estop: bool,
@@ -215,11 +224,13 @@ impl SimDevice {
             drivers_enabled: false,
             light: 0,
             trigger: false,
-            saved: (config.axes != protocol::default_axes()).then(|| {
-                let factory = PersistedConfig { axes: config.axes, ..PersistedConfig::default() };
-                let mut buf = [0u8; firmware::config::PERSISTED_MAX_LEN];
-                factory.encode(&mut buf).expect("a configuration fits its blob").to_vec()
-            }),
+            saved: Some(config.flash_axes.unwrap_or(config.axes))
+                .filter(|axes| *axes != protocol::default_axes())
+                .map(|axes| {
+                    let factory = PersistedConfig { axes, ..PersistedConfig::default() };
+                    let mut buf = [0u8; firmware::config::PERSISTED_MAX_LEN];
+                    factory.encode(&mut buf).expect("a configuration fits its blob").to_vec()
+                }),
             truth: Truth::default(),
             ignore_triggers: 0,
             light_edge_loss_ns: 0,
@@ -231,6 +242,7 @@ impl SimDevice {
             hw,
             motors,
             switches: Axis::ALL.map(|a| SimSwitch::built_for(a, &config.axes[a.index()])),
+            built: config.axes,
             home_active_high: config.home_active_high,
             driver_fault_active_high: config.driver_fault_active_high,
             estop: false,
@@ -274,6 +286,13 @@ impl SimDevice {
     /// What physically happened (tests only).
     pub fn truth(&self) -> &Truth {
         &self.hw.truth
+    }
+
+    /// Where the axes physically are, in degrees and mm: what a ruler or a
+    /// protractor on the machine reads (tests, and `scanner sim`'s
+    /// stand-in for measuring a move).
+    pub fn physical_axes(&self) -> scanner_geometry::AxisValues {
+        crate::camera::axis_values(Axis::ALL.map(|a| self.physical_position(a)), &self.built)
     }
 
     /// Physical position of `axis` (tests only).

@@ -194,11 +194,44 @@ fn duration_ticks(d: Duration) -> u64 {
     (d.as_nanos() * TICK_HZ as u128 / 1_000_000_000) as u64
 }
 
+/// When the axes come to rest at a new place.
+struct RestWatch {
+    steps: [i64; 3],
+    since: u64,
+    reported: [i64; 3],
+}
+
+impl RestWatch {
+    /// Simulated time the axes must keep still to be at rest.
+    const STILL_TICKS: u64 = firmware::hal::TICK_HZ as u64 / 10;
+
+    fn new(device: &SimDevice) -> RestWatch {
+        let steps = protocol::Axis::ALL.map(|a| device.physical_position(a));
+        RestWatch { steps, since: device.now(), reported: steps }
+    }
+
+    /// The axes' physical place, once, when they have come to rest
+    /// somewhere other than where they were last reported.
+    fn stopped(&mut self, device: &SimDevice) -> Option<scanner_geometry::AxisValues> {
+        let steps = protocol::Axis::ALL.map(|a| device.physical_position(a));
+        if steps != self.steps {
+            (self.steps, self.since) = (steps, device.now());
+            return None;
+        }
+        let still = device.now().saturating_sub(self.since) >= Self::STILL_TICKS;
+        (still && steps != self.reported).then(|| {
+            self.reported = steps;
+            device.physical_axes()
+        })
+    }
+}
+
 /// The simulated device served on a pseudo-terminal, in real time.
 #[derive(Debug)]
 pub struct PtyServer {
     path: String,
     stop: Arc<AtomicBool>,
+    ruler: Arc<AtomicBool>,
     thread: Option<JoinHandle<SimDevice>>,
     renderer: Option<JoinHandle<()>>,
     _slave: TTYPort,
@@ -247,12 +280,24 @@ impl PtyServer {
         master.set_timeout(Duration::from_millis(1)).map_err(std::io::Error::other)?;
         let stop = Arc::new(AtomicBool::new(false));
         let stop_flag = Arc::clone(&stop);
+        let ruler = Arc::new(AtomicBool::new(false));
+        let ruler_on = Arc::clone(&ruler);
         let thread = std::thread::spawn(move || {
             let mut noise = device.link_noise();
             let started = Instant::now();
             let origin = device.now();
             let mut buf = [0u8; 4096];
+            let mut rest = RestWatch::new(&device);
             while !stop_flag.load(Ordering::Relaxed) {
+                if ruler_on.load(Ordering::Relaxed)
+                    && let Some(v) = rest.stopped(&device)
+                {
+                    eprintln!(
+                        "hil-sim: the axes stopped at disk {:.3}°, track {:.3} mm, tilt {:.3}° \
+                         (measured on the machine)",
+                        v.disk_deg, v.track_mm, v.tilt_deg
+                    );
+                }
                 let n = match master.read(&mut buf) {
                     Ok(n) => n,
                     Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
@@ -284,7 +329,14 @@ impl PtyServer {
             drop(camera); // ends the renderer once it has written every frame
             device
         });
-        Ok(PtyServer { path, stop, thread: Some(thread), renderer, _slave: slave })
+        Ok(PtyServer { path, stop, ruler, thread: Some(thread), renderer, _slave: slave })
+    }
+
+    /// From now on, print (stderr) where the axes physically stop after
+    /// each motion, in degrees and mm — the simulator's stand-in for
+    /// measuring a move on the machine (`scanner axes --correct`).
+    pub fn print_where_axes_stop(&self) {
+        self.ruler.store(true, Ordering::Relaxed);
     }
 
     /// Path of the pty to open, like `/dev/ttyACM0`.

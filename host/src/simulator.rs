@@ -76,6 +76,10 @@ pub struct SimSetup {
     /// docs/axis-config.md); other than the spec's, its board comes with
     /// them saved.
     pub axes: [protocol::AxisConfig; 3],
+    /// The axis configuration its board comes with when it is not `axes`
+    /// (`hil_sim::SimConfig::flash_axes`): a board still to be
+    /// commissioned (`scanner axes --correct`), or configured wrongly.
+    pub board_axes: Option<[protocol::AxisConfig; 3]>,
 }
 
 impl SimSetup {
@@ -94,6 +98,7 @@ impl SimSetup {
             trigger_latency_us: 0,
             lens_distortion: [0.0; 2],
             axes: protocol::default_axes(),
+            board_axes: None,
         }
     }
 
@@ -124,6 +129,11 @@ impl SimSetup {
         {
             if *c != d {
                 s += &format!(", {} {}", axis.name(), scanner_geometry::describe_axis(c));
+            }
+        }
+        if let Some(board) = &self.board_axes {
+            for (axis, c) in protocol::Axis::ALL.iter().zip(board) {
+                s += &format!(", board's {} {}", axis.name(), scanner_geometry::describe_axis(c));
             }
         }
         s
@@ -179,8 +189,13 @@ impl SimSetup {
         // simulated mechanics cannot place, are refused.
         scanner_geometry::check_axes(&self.axes)
             .map_err(|e| SimError::Usage(format!("simulated axes: {e}")))?;
+        if let Some(board) = &self.board_axes {
+            scanner_geometry::check_axes(board)
+                .map_err(|e| SimError::Usage(format!("the simulated board's axes: {e}")))?;
+        }
         let mut c = SimConfig::new(self.seed);
         c.axes = self.axes;
+        c.flash_axes = self.board_axes;
         c.faults = self.faults.clone();
         c.home_active_high = self.home_active_high;
         c.driver_fault_active_high = self.driver_fault_active_high;

@@ -482,6 +482,71 @@ fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
     assert_eq!(exr, 1, "one frame per trigger");
 }
 
+/// Commissioning practised on `scanner sim`: a board with the spec's axes
+/// on a scanner whose lead screw makes 1.3 % less; the simulator prints
+/// where the axes stop, as a ruler on the machine would read, and the
+/// measured move corrects the track.
+#[test]
+fn a_board_to_commission_is_measured_on_scanner_sim_and_corrected() {
+    use std::io::BufRead;
+    let dir = tmp();
+    let built = dir.path().join("built.toml");
+    let mut axes = protocol::default_axes();
+    let m = "track=100:98.7".parse().unwrap();
+    axes[1] = scanner_geometry::correct_axis(&axes[1], m).unwrap();
+    std::fs::write(&built, scanner_geometry::axes_to_toml(&axes)).unwrap();
+    let spec = dir.path().join("spec.toml");
+    std::fs::write(&spec, scanner_geometry::axes_to_toml(&protocol::default_axes())).unwrap();
+    let frames = sub(dir.path(), "frames");
+    let (built, spec) = (built.display().to_string(), spec.display().to_string());
+    let mut child = scanner()
+        .args(["sim", "--sim-bin", "8", "--speed", "4", "--frames", &frames.display().to_string()])
+        .args(["--sim-axes", &built, "--sim-board-axes", &spec])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let pty = line.trim().to_string();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    // The track's position where the axes next stop, as printed.
+    let ruler = || -> f64 {
+        loop {
+            let line = rx.recv_timeout(Duration::from_secs(60)).expect("the axes stop");
+            if let Some(rest) = line.split("track ").nth(1) {
+                return rest.split(' ').next().unwrap().parse().unwrap();
+            }
+        }
+    };
+    let mut ran = Vec::new();
+    for (args, expected) in [
+        (vec!["home", "--axes", "track"], 0.0),
+        (vec!["move", "--track", "100"], 98.7),
+        (vec!["axes", "--correct", "track=100:98.7"], f64::NAN),
+        (vec!["home", "--axes", "track"], 0.0),
+        (vec!["move", "--track", "100"], 100.0),
+    ] {
+        let mut all = args.clone();
+        all.extend(["--device", &pty]);
+        let (code, out, err) = run(&all);
+        let at = if expected.is_nan() { f64::NAN } else { ruler() };
+        ran.push((args, code, out, err, at, expected));
+    }
+    child.kill().unwrap();
+    let _ = child.wait();
+    for (args, code, out, err, at, expected) in ran {
+        assert_eq!(code, Some(0), "{args:?}: {out}{err}");
+        assert!(expected.is_nan() || (at - expected).abs() < 0.0015, "{args:?}: at {at} mm");
+    }
+}
+
 #[test]
 #[ignore = "needs a scanner on USB with its bulk interface: run with --ignored where one is connected"]
 fn usb_bulk_handshake_with_a_connected_scanner() {

@@ -392,6 +392,66 @@ fn a_change_of_drives_cut_short_leaves_no_entry_in_the_other_steps() {
     assert!(cuts > 80, "{cuts}");
 }
 
+/// Commissioning against the simulator's truth: a board still configured
+/// with the spec's drives, on a scanner built with others (a disk belt,
+/// a lead screw and a tilt worm each a few per cent off), moves too short
+/// or too far; each axis corrected by one measured move then moves as far
+/// as it is told, within a step.
+#[test]
+fn a_board_corrected_by_measured_moves_moves_as_far_as_it_is_told() {
+    use host::scan::{axis_configs, prepare, set_axis_configs, wait_idle};
+    use protocol::{Axis, MoveMode, Request};
+    use scanner_geometry::{Measured, correct_axis, offset_to_steps};
+    let spec = protocol::default_axes();
+    // Moves of these lengths go these lengths on the machine built.
+    let (told, went) = ([180.0, 100.0, 40.0], [177.5, 98.7, 42.0]);
+    let built: [protocol::AxisConfig; 3] = std::array::from_fn(|i| {
+        let m = Measured { axis: Axis::ALL[i], commanded: told[i], measured: went[i] };
+        correct_axis(&spec[i], m).unwrap()
+    });
+    let s = SimSetup { axes: built, board_axes: Some(spec), ..setup("leather") };
+    let geometry = s.nominal().unwrap();
+    let rig = s.rig().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    assert_eq!(axis_configs(&mut dev).unwrap(), spec, "the board is not commissioned yet");
+    // One relative move of `by` on `axis` from −10 (or 10°), as measured on
+    // the machine.
+    let measure = |dev: &mut Device, axis: Axis, by: f64| -> f64 {
+        let config = axis_configs(dev).unwrap()[axis.index()];
+        let mut go = |mode, value: f64| {
+            let mut targets = [None; 3];
+            targets[axis.index()] = Some(offset_to_steps(axis, value, &config).unwrap());
+            dev.command(Request::Move { mode, targets }).unwrap();
+            wait_idle(dev, std::time::Duration::from_secs(120)).unwrap();
+        };
+        go(MoveMode::Absolute, if axis == Axis::Tilt { -10.0 } else { 10.0 });
+        let at = || rig.with_device(|d| d.physical_axes()).to_array()[axis.index()];
+        let before = at();
+        go(MoveMode::Relative, by);
+        let moved = at() - before;
+        if axis == Axis::Disk { moved.rem_euclid(360.0) } else { moved }
+    };
+    prepare(&mut dev, &geometry, &mut Quiet).unwrap();
+    let mut corrected = spec;
+    for axis in Axis::ALL {
+        let i = axis.index();
+        let moved = measure(&mut dev, axis, told[i]);
+        assert!((moved - went[i]).abs() < 0.01, "{axis:?}: {moved}");
+        let m = Measured { axis, commanded: told[i], measured: moved };
+        corrected[i] = correct_axis(&spec[i], m).unwrap();
+    }
+    let set = set_axis_configs(&mut dev, &spec, &corrected).unwrap();
+    assert_eq!((set.changed.len(), set.mirrors_moved), (3, 40));
+    prepare(&mut dev, &geometry, &mut Quiet).unwrap();
+    for axis in Axis::ALL {
+        let i = axis.index();
+        let per = corrected[i].steps_per_unit as f64;
+        assert!((per / built[i].steps_per_unit as f64 - 1.0).abs() < 1e-4, "{axis:?}: {per}");
+        let moved = measure(&mut dev, axis, told[i]);
+        assert!((moved - told[i]).abs() <= 1.0 / per, "{axis:?}: told {}, moved {moved}", told[i]);
+    }
+}
+
 /// A host killed mid-move leaves the device moving; 500 ms of silence
 /// latch `link-timeout` and the device *decelerates* (status: faulted,
 /// still moving). The next scan clears the fault and must wait for the

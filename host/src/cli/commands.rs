@@ -98,9 +98,16 @@ pub struct DeviceArgs {
     pub sim_lens_distortion: Option<[f64; 2]>,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
-    /// board comes with them saved.
+    /// board comes with them saved (unless --sim-board-axes).
     #[arg(long, value_name = "FILE")]
     pub sim_axes: Option<PathBuf>,
+    /// Simulator: the axis configuration its board comes with when it is
+    /// not the drives it is built with (--sim-axes), an axis configuration
+    /// file: a board still to be commissioned (`scanner axes --correct`;
+    /// with this option `scanner sim` prints where the axes physically
+    /// stop after each motion, as a ruler on the machine would read).
+    #[arg(long, value_name = "FILE")]
+    pub sim_board_axes: Option<PathBuf>,
 }
 
 impl DeviceArgs {
@@ -133,6 +140,11 @@ impl DeviceArgs {
                 Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
                 None => protocol::default_axes(),
             },
+            board_axes: self
+                .sim_board_axes
+                .as_deref()
+                .map(|p| scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e))))
+                .transpose()?,
         })
     }
 }
@@ -1447,6 +1459,7 @@ pub fn demo(
             sim_lens_distortion: None,
             sim_geometry: geometry.map(Path::to_path_buf),
             sim_axes: None,
+            sim_board_axes: None,
         };
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
@@ -1594,6 +1607,10 @@ pub fn sim(
     };
     let setup = args.sim_setup()?;
     let server = setup.serve(speed, frames.to_path_buf(), files).map_err(sim_failure)?;
+    if setup.board_axes.is_some() {
+        // A board to commission: the moves are to be measured.
+        server.print_where_axes_stop();
+    }
     // The scanner's nominal geometry (binning included) for the host.
     let geometry_file = frames.join("geometry.toml");
     let nominal = setup.nominal().map_err(sim_failure)?;
