@@ -2,6 +2,7 @@
 //!
 //! ```text
 //! hil-sim [--seed N] [--speed X] [--corrupt P] [--drop P] [--fault SPEC]... [--axes FILE]
+//!         [--board-axes FILE]
 //! hil-sim render [--material NAME] [--mirrors N] [--bin K] [--out DIR]
 //! hil-sim direct [--material NAME] --out DIR
 //! hil-sim truth --material NAME|DIR --queries Q.npy|Q.csv -o OUT.npy|OUT.csv
@@ -49,6 +50,12 @@ struct Args {
     /// them saved.
     #[arg(long, value_name = "FILE")]
     axes: Option<std::path::PathBuf>,
+    /// The axis configuration the board comes with when it is not the
+    /// drives it is built with: a board still to be commissioned. Where the
+    /// axes physically stop is then printed after each motion (what a
+    /// ruler on the machine reads).
+    #[arg(long, value_name = "FILE")]
+    board_axes: Option<std::path::PathBuf>,
     #[command(subcommand)]
     command: Option<Command>,
 }
@@ -220,15 +227,18 @@ fn main() -> std::process::ExitCode {
     }
     let mut config = SimConfig::new(args.seed);
     config.faults = plan;
-    if let Some(path) = &args.axes {
+    let mut board = protocol::default_axes();
+    for (path, axes) in [(&args.axes, &mut config.axes), (&args.board_axes, &mut board)] {
+        let Some(path) = path else { continue };
         match scanner_geometry::load_axes(path) {
-            Ok(axes) => config.axes = axes,
+            Ok(a) => *axes = a,
             Err(e) => {
                 eprintln!("hil-sim: {e}");
                 return std::process::ExitCode::from(3);
             }
         }
     }
+    config.flash_axes = args.board_axes.is_some().then_some(board);
     let server = match PtyServer::start(SimDevice::new(config), args.speed) {
         Ok(s) => s,
         Err(e) => {
@@ -236,6 +246,9 @@ fn main() -> std::process::ExitCode {
             return std::process::ExitCode::from(1);
         }
     };
+    if args.board_axes.is_some() {
+        server.print_where_axes_stop();
+    }
     println!("{}", server.path());
     let _ = std::io::stdout().flush();
     eprintln!(
