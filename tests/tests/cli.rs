@@ -49,8 +49,8 @@ fn bench_commands_drive_a_scanner_on_a_pty() {
     assert_eq!(code, Some(2));
     // Moving before homing is refused by the device, with its reason.
     let (code, _, err) = run(&["move", "--device", &pty, "--disk", "90"]);
-    assert_ne!(code, Some(0));
-    assert!(err.contains("not homed"), "{err}");
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("disk not homed") && err.contains("`scanner home` first"), "{err}");
     let (code, out, err) = run(&["home", "--device", &pty]);
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("homing: done"), "{out}");

@@ -862,8 +862,34 @@ pub fn move_axes(
     }
     let mode = if relative { MoveMode::Relative } else { MoveMode::Absolute };
     o.device.clear_events();
-    o.device.command(Request::Move { mode, targets: out }).map_err(link_failure)?;
+    let moving = out.map(|t| t.is_some());
+    let result = o.device.command(Request::Move { mode, targets: out });
+    result.map_err(|e| move_failure(&mut o.device, e, moving))?;
     wait_motion(&mut o.device, "move")
+}
+
+/// A refused move: an axis not homed named, exit 2 (nothing moved, the
+/// command is early), else as any link failure.
+fn move_failure(dev: &mut Device, e: LinkError, axes: [bool; 3]) -> Failure {
+    if !matches!(e, LinkError::Refused { error: protocol::DeviceError::NotHomed, .. }) {
+        return link_failure(e);
+    }
+    let names: Vec<&str> = match dev.status() {
+        Ok(s) => Axis::ALL
+            .into_iter()
+            .filter(|a| axes[a.index()] && !s.axes[a.index()].homed)
+            .map(|a| a.name())
+            .collect(),
+        Err(_) => Vec::new(),
+    };
+    let which = if names.is_empty() { "an axis".to_string() } else { names.join(", ") };
+    Failure(
+        2,
+        anyhow!(
+            "the device refused the move: {which} not homed since it powered on or was \
+             reconfigured (`scanner home` first)"
+        ),
+    )
 }
 
 /// `scanner move --mirror`: to mirror `mirror`'s entry of the device's
@@ -893,7 +919,8 @@ pub fn move_to_mirror(args: &DeviceArgs, mirror: u8) -> Result<(), Failure> {
     let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
     println!("{}", mirror_line(mirror as usize, &position, &axes));
     o.device.clear_events();
-    o.device.command(Request::GoToMirror { mirror }).map_err(link_failure)?;
+    let result = o.device.command(Request::GoToMirror { mirror });
+    result.map_err(|e| move_failure(&mut o.device, e, [true; 3]))?;
     wait_motion(&mut o.device, &format!("mirror {mirror}"))
 }
 
