@@ -758,6 +758,15 @@ pub fn set_axis_configs(
     if changed.is_empty() {
         return Ok(AxesSet::default());
     }
+    // The device refuses a configuration while anything moves: refused here
+    // before the table is touched.
+    let status = dev.status()?;
+    if !matches!(status.state, DeviceState::Idle | DeviceState::Faulted)
+        || status.axes.iter().any(|a| a.moving)
+    {
+        let error = protocol::DeviceError::Busy;
+        return Err(LinkError::Refused { request: "SetAxisConfig", error }.into());
+    }
     let count = dev.info().mirror_count;
     let mut table = Vec::with_capacity(count as usize);
     for mirror in 0..count {

@@ -259,11 +259,20 @@ fn new_drives_carry_the_mirror_table_to_their_steps() {
     let geometry = s.nominal().unwrap();
     let mut dev = Device::connect(Box::new(SimTransport(s.rig().unwrap()))).unwrap();
     let spec = axis_configs(&mut dev).unwrap();
-    host::scan::setup(&mut dev, &geometry).unwrap();
+    host::scan::prepare(&mut dev, &geometry, &mut Quiet).unwrap();
     let before = device_table(&mut dev);
     assert_eq!(before.len(), 40);
 
+    // Not while an axis moves: refused before anything is touched.
+    let half_turn = [Some(8_000), None, None];
+    let go = protocol::Request::Move { mode: protocol::MoveMode::Relative, targets: half_turn };
+    dev.command(go).unwrap();
     let other = other_drives();
+    let e = set_axis_configs(&mut dev, &spec, &other).unwrap_err();
+    assert!(e.to_string().contains("busy"), "{e}");
+    assert_eq!((axis_configs(&mut dev).unwrap(), device_table(&mut dev)), (spec, before.clone()));
+    host::scan::wait_idle(&mut dev, std::time::Duration::from_secs(10)).unwrap();
+
     let set = set_axis_configs(&mut dev, &spec, &other).unwrap();
     assert_eq!(set.changed, protocol::Axis::ALL.to_vec());
     assert_eq!((set.mirrors, set.unreachable.len()), (40, 0));
