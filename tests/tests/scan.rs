@@ -451,6 +451,21 @@ fn a_board_corrected_by_measured_moves_moves_as_far_as_it_is_told() {
     }
     let set = set_axis_configs(&mut dev, &spec, &corrected).unwrap();
     assert_eq!((set.changed.len(), set.mirrors_moved), (3, 40));
+    // The table written for the wrong drives, carried over, now sends the
+    // axes where the design puts each mirror (within a step of each drive).
+    dev.command(Request::Home { axes: protocol::AxisSet::ALL }).unwrap();
+    wait_idle(&mut dev, std::time::Duration::from_secs(120)).unwrap();
+    for mirror in [0u8, 17, 39] {
+        dev.command(Request::GoToMirror { mirror }).unwrap();
+        wait_idle(&mut dev, std::time::Duration::from_secs(120)).unwrap();
+        let at = rig.with_device(|d| d.physical_axes()).to_array();
+        let want = geometry.mirror_axes(mirror as usize).unwrap().to_array();
+        for (k, c) in built.iter().enumerate() {
+            let d = (at[k] - want[k]).abs();
+            let d = if k == 0 { d.min(360.0 - d) } else { d };
+            assert!(d <= 1.5 / c.steps_per_unit as f64, "mirror {mirror}: {at:?} for {want:?}");
+        }
+    }
     prepare(&mut dev, &geometry, &mut Quiet).unwrap();
     for axis in Axis::ALL {
         let i = axis.index();
