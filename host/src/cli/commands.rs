@@ -579,8 +579,17 @@ pub fn axes(
                     set.mirrors_moved, set.mirrors
                 );
             }
+            // One line per reason (a ring's mirrors share theirs).
+            let mut reasons: Vec<(String, Vec<usize>)> = Vec::new();
             for (l, why) in &set.unreachable {
-                eprintln!("scanner: warning: mirror {l}: {why}: left unset");
+                let why = why.to_string();
+                match reasons.iter_mut().find(|(w, _)| *w == why) {
+                    Some((_, mirrors)) => mirrors.push(*l),
+                    None => reasons.push((why, vec![*l])),
+                }
+            }
+            for (why, mirrors) in &reasons {
+                eprintln!("scanner: warning: {}: {why}: left unset", scan::mirror_list(mirrors));
             }
             if !set.unreachable.is_empty() {
                 eprintln!(
