@@ -719,6 +719,17 @@ pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
     Ok([out[0], out[1], out[2]])
 }
 
+/// The device's mirror table as it holds it: an entry per mirror up to its
+/// count, `None` where unset.
+pub fn mirror_entries(dev: &mut Device) -> Result<Vec<Option<MirrorPosition>>, ScanError> {
+    (0..dev.info().mirror_count)
+        .map(|mirror| match dev.request(Request::GetMirror { mirror })? {
+            Reply::Mirror { position, .. } => Ok(position),
+            reply => Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
+        })
+        .collect()
+}
+
 /// What [`set_axis_configs`] did.
 #[derive(Debug, Clone, Default)]
 pub struct AxesSet {
@@ -768,13 +779,7 @@ pub fn set_axis_configs(
         return Err(LinkError::Refused { request: "SetAxisConfig", error }.into());
     }
     let count = dev.info().mirror_count;
-    let mut table = Vec::with_capacity(count as usize);
-    for mirror in 0..count {
-        match dev.request(Request::GetMirror { mirror })? {
-            Reply::Mirror { position, .. } => table.push(position),
-            reply => return Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
-        }
-    }
+    let table = mirror_entries(dev)?;
     let mut carried = Vec::new();
     let mut set = AxesSet { mirrors: table.iter().flatten().count(), ..AxesSet::default() };
     for (l, position) in table.iter().enumerate() {

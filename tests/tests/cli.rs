@@ -132,6 +132,9 @@ fn axis_configurations_are_set_saved_read_back_and_checked_on_a_pty() {
         err.contains("mirror 39 is not set in the device's mirror table (40 entries)"),
         "{err}"
     );
+    let (code, out, err) = run(&["info", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("mirrors 40 (mirrors 25–39 unset: `scanner setup` writes them)"), "{out}");
     let (_, out, _) = run(&["status", "--device", &pty]);
     let homed = |axis: &str| out.lines().any(|l| l.starts_with(axis) && !l.contains("not homed"));
     assert!(homed("disk") && homed("track") && !homed("tilt"), "{out}");

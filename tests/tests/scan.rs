@@ -241,12 +241,7 @@ fn a_scanner_built_with_other_drives_takes_the_same_frames() {
 
 /// The device's mirror table.
 fn device_table(dev: &mut Device) -> Vec<Option<protocol::MirrorPosition>> {
-    (0..dev.info().mirror_count)
-        .map(|mirror| match dev.request(protocol::Request::GetMirror { mirror }).unwrap() {
-            protocol::Reply::Mirror { position, .. } => position,
-            reply => panic!("{reply:?}"),
-        })
-        .collect()
+    host::scan::mirror_entries(dev).unwrap()
 }
 
 /// New drives keep the mirror table's axis positions: each entry within a

@@ -758,9 +758,18 @@ pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
     let i = *o.device.info();
     println!("device   {} on {}", scan::hex(&i.device_id), o.device.describe());
     println!("firmware {}  protocol {}  board {:#06x}", i.firmware, i.protocol, i.board);
+    let entries = scan::mirror_entries(&mut o.device).map_err(scan_failure)?;
+    let unset: Vec<usize> = (0..entries.len()).filter(|&l| entries[l].is_none()).collect();
     println!(
-        "boot id  {:08x}  mirrors {}  capabilities {:#06x}",
-        i.boot_id, i.mirror_count, i.capabilities.0
+        "boot id  {:08x}  mirrors {}{}  capabilities {:#06x}",
+        i.boot_id,
+        i.mirror_count,
+        if unset.is_empty() {
+            String::new()
+        } else {
+            format!(" ({} unset: `scanner setup` writes them)", scan::mirror_list(&unset))
+        },
+        i.capabilities.0
     );
     let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
     for (axis, c) in Axis::ALL.iter().zip(&axes) {
