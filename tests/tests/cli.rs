@@ -447,20 +447,31 @@ fn a_bad_fault_spec_is_a_usage_error() {
     assert_eq!(code, Some(2), "{err}");
 }
 
-#[test]
-fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
+/// `scanner sim` at 512² with `options`, its frames into `frames`, its
+/// standard error to `stderr`; the process and its pty.
+fn scanner_sim(
+    frames: &std::path::Path,
+    options: &[&str],
+    stderr: std::process::Stdio,
+) -> (std::process::Child, String) {
     use std::io::BufRead;
-    let dir = tmp();
-    let frames = sub(dir.path(), "frames");
     let mut child = scanner()
-        .args(["sim", "--sim-bin", "8", "--speed", "3", "--frames", &frames.display().to_string()])
+        .args(["sim", "--sim-bin", "8", "--frames", &frames.display().to_string()])
+        .args(options)
         .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
+        .stderr(stderr)
         .spawn()
         .unwrap();
     let mut line = String::new();
     std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let pty = line.trim().to_string();
+    (child, line.trim().to_string())
+}
+
+#[test]
+fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
+    let dir = tmp();
+    let frames = sub(dir.path(), "frames");
+    let (mut child, pty) = scanner_sim(&frames, &["--speed", "3"], std::process::Stdio::null());
     let (code, out, err) = run(&["info", "--device", &pty]);
     let geometry = hil_sim::geometry::ScannerGeometry::load(&frames.join("geometry.toml"));
     let (tcode, _, terr) = run(&["trigger", "--device", &pty]);
@@ -502,16 +513,8 @@ fn a_board_to_commission_is_measured_on_scanner_sim_and_corrected() {
     std::fs::write(&spec, scanner_geometry::axes_to_toml(&protocol::default_axes())).unwrap();
     let frames = sub(dir.path(), "frames");
     let (built, spec) = (built.display().to_string(), spec.display().to_string());
-    let mut child = scanner()
-        .args(["sim", "--sim-bin", "8", "--speed", "4", "--frames", &frames.display().to_string()])
-        .args(["--sim-axes", &built, "--sim-board-axes", &spec])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let pty = line.trim().to_string();
+    let options = ["--speed", "4", "--sim-axes", &built, "--sim-board-axes", &spec];
+    let (mut child, pty) = scanner_sim(&frames, &options, std::process::Stdio::piped());
     let (tx, rx) = std::sync::mpsc::channel();
     let stderr = child.stderr.take().unwrap();
     std::thread::spawn(move || {
