@@ -94,7 +94,7 @@ pub enum AxesError {
         /// The move measured on the machine, in its unit.
         measured: f64,
         /// What is wrong with them.
-        why: &'static str,
+        why: String,
     },
     /// A continuous rotary axis whose revolution is not 360° of its steps.
     #[error(
@@ -222,11 +222,11 @@ pub const MAX_CORRECTION: f64 = 4.0;
 /// was measured running at. The result is checked as a whole
 /// ([`check_axes`] on the caller's side).
 pub fn correct_axis(config: &AxisConfig, m: Measured) -> Result<AxisConfig, AxesError> {
-    let refuse = |why| AxesError::Measurement {
+    let refuse = |why: &str| AxesError::Measurement {
         axis: m.axis,
         commanded: m.commanded,
         measured: m.measured,
-        why,
+        why: why.to_string(),
     };
     if !(m.commanded.is_finite() && m.measured.is_finite())
         || m.commanded == 0.0
@@ -239,9 +239,10 @@ pub fn correct_axis(config: &AxisConfig, m: Measured) -> Result<AxisConfig, Axes
         return Err(refuse("the axis moved the other way: swap one of its motor's coil pairs"));
     }
     if !(1.0 / MAX_CORRECTION..=MAX_CORRECTION).contains(&ratio) {
-        return Err(refuse(
-            "more than 4× off: check the driver's microstepping and the gear, belt or screw",
-        ));
+        return Err(refuse(&format!(
+            "more than {MAX_CORRECTION}× off: check the driver's microstepping and the gear, \
+             belt or screw"
+        )));
     }
     let too_far = || refuse("the corrected travel does not fit in steps");
     let position = |steps: i32| -> Result<i32, AxesError> {
