@@ -140,3 +140,34 @@ fn a_faulty_design_exits_3_naming_the_mirror_and_writes_nothing() {
     let out = scanner(&["setup", "--device", "sim"]);
     assert!(out.status.success() && !text(&out).1.contains("warning"), "{}", text(&out).1);
 }
+
+#[test]
+fn the_simulator_checked_as_a_device_takes_its_drives_and_its_boards_axes() {
+    let dir = tempfile::tempdir().unwrap();
+    // A tilt that stops at 5.63°: the outer ring needs 6.404°.
+    let mut short = protocol::default_axes();
+    short[2].max_steps = 1500;
+    let file = dir.path().join("short.toml");
+    std::fs::write(&file, scanner_geometry::axes_to_toml(&short)).unwrap();
+    for option in ["--sim-axes", "--sim-board-axes"] {
+        let out = scanner(&["geometry", "--device", "sim", option, p(&file)]);
+        let (stdout, stderr) = text(&out);
+        assert_eq!(out.status.code(), Some(3), "{option}: {stdout}{stderr}");
+        assert!(stderr.contains("mirror 39: tilt: 6.404°"), "{option}: {stderr}");
+        assert!(stdout.contains("checked against the axes of device sim"), "{stdout}");
+    }
+    // Built with the short tilt, its board configured with the spec's.
+    let spec = dir.path().join("spec.toml");
+    std::fs::write(&spec, scanner_geometry::axes_to_toml(&protocol::default_axes())).unwrap();
+    let both = ["--sim-axes", p(&file), "--sim-board-axes", p(&spec)];
+    let out = scanner(&[&["geometry", "--device", "sim"][..], &both].concat());
+    assert!(out.status.success(), "{}", text(&out).1);
+    for (args, code) in [
+        (vec!["geometry", "--sim-axes", p(&file)], 2),
+        (vec!["geometry", "--device", "/dev/no-such-scanner", "--sim-axes", p(&file)], 2),
+        (vec!["geometry", "--device", "sim", "--sim-axes", "/nonexistent/axes.toml"], 3),
+    ] {
+        let out = scanner(&args);
+        assert_eq!(out.status.code(), Some(code), "{args:?}: {}", text(&out).1);
+    }
+}

@@ -615,14 +615,27 @@ pub fn axes(
 }
 
 /// The axis configurations of the device named `device` (`scanner geometry
-/// --device`), the simulator's settings at their defaults.
-pub fn device_axes(device: &str) -> Result<[protocol::AxisConfig; 3], Failure> {
+/// --device`); for the simulator, `sim` are its options that bear on them
+/// (option, file), the others at their defaults.
+pub fn device_axes(
+    device: &str,
+    sim: &[(&str, &Option<PathBuf>)],
+) -> Result<[protocol::AxisConfig; 3], Failure> {
     #[derive(clap::Parser)]
     struct Named {
         #[command(flatten)]
         device: DeviceArgs,
     }
-    let args = <Named as clap::Parser>::try_parse_from(["scanner", &format!("--device={device}")])
+    let mut argv = vec!["scanner".to_string(), format!("--device={device}")];
+    for (option, file) in sim {
+        if let Some(file) = file {
+            if device != "sim" {
+                return Err(Failure(2, anyhow!("{option} is for --device sim")));
+            }
+            argv.push(format!("{option}={}", file.display()));
+        }
+    }
+    let args = <Named as clap::Parser>::try_parse_from(argv)
         .map_err(|e| Failure(2, anyhow!("--device {device}: {e}")))?
         .device;
     let mut o = open(&args)?;

@@ -220,6 +220,14 @@ enum Command {
         /// number).
         #[arg(long)]
         device: Option<String>,
+        /// With `--device sim`: the drives the simulated scanner is built
+        /// with (as `--sim-axes` elsewhere).
+        #[arg(long, value_name = "FILE", requires = "device")]
+        sim_axes: Option<PathBuf>,
+        /// With `--device sim`: its board's axis configuration (as
+        /// `--sim-board-axes` elsewhere).
+        #[arg(long, value_name = "FILE", requires = "device")]
+        sim_board_axes: Option<PathBuf>,
     },
     /// Write the mirror table (from the geometry's inverse kinematics) to the device.
     Setup {
@@ -527,7 +535,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref())?
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
-        Command::Geometry { geometry, rings, output, axes, device } => {
+        Command::Geometry { geometry, rings, output, axes, device, sim_axes, sim_board_axes } => {
             if let Some(out) = &output {
                 let inputs: Vec<&Path> =
                     geometry.iter().chain(&axes).map(PathBuf::as_path).collect();
@@ -540,7 +548,9 @@ fn run(cli: Cli) -> Result<(), Failure> {
                     format!("the axes of {}", file.display()),
                 )),
                 (None, Some(name)) => {
-                    Some((commands::device_axes(name)?, format!("the axes of device {name}")))
+                    let sim = [("--sim-axes", &sim_axes), ("--sim-board-axes", &sim_board_axes)];
+                    let axes = commands::device_axes(name, &sim)?;
+                    Some((axes, format!("the axes of device {name}")))
                 }
                 (None, None) => None,
             };
