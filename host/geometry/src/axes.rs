@@ -82,8 +82,10 @@ pub enum AxesError {
     ContinuousTrack,
     /// A measured move that cannot correct an axis ([`Measured`]).
     #[error(
-        "{}: commanded {commanded}{u}, measured {measured}{u}: {why}",
+        "{}: commanded {}{u}, measured {}{u}: {why}",
         axis.name(),
+        crate::shown(*commanded),
+        crate::shown(*measured),
         u = match axis { Axis::Track => " mm", Axis::Disk | Axis::Tilt => "°" }
     )]
     Measurement {
@@ -520,6 +522,10 @@ mod tests {
         );
         assert!(refused("tilt=10:0", &tilt).ends_with("both must be finite and non-zero"));
         assert!(refused("tilt=nan:10", &tilt).ends_with("both must be finite and non-zero"));
+        assert!(refused("track=1e300:1", &track).starts_with("track: commanded 1e300 mm, m"));
+        assert!(refused("track=1:1e-300", &track).contains("measured 1e-300 mm"));
+        let far = crate::unit_to_steps(Axis::Track, -1e300, &track).unwrap_err();
+        assert_eq!(far.to_string(), "track: -1e300 is not a position");
         assert!(refused("disk=360:80", &disk).contains("more than 4× off"));
         assert!(correct_axis(&disk, measured("disk=360:90")).is_ok(), "4× exactly");
         let mut long = track;

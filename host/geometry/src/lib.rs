@@ -472,7 +472,7 @@ impl AxisValues {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StepsError {
     /// Not a finite number of a sane size.
-    #[error("{}: {value} is not a position", axis.name())]
+    #[error("{}: {} is not a position", axis.name(), shown(*value))]
     NotAPosition {
         /// The axis.
         axis: protocol::Axis,
@@ -504,6 +504,16 @@ pub enum StepsError {
         /// Its steps per unit.
         per_unit: f64,
     },
+}
+
+/// A number as a message shows it: as Rust writes it, but in scientific
+/// notation beyond ±10⁹ and below 10⁻⁶ (not three hundred digits of 1e300).
+pub fn shown(v: f64) -> String {
+    if v != 0.0 && v.is_finite() && !(1e-6..1e9).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        v.to_string()
+    }
 }
 
 /// How a value of `unit` is written after its number: "°", " mm".
