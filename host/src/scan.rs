@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use protocol::{
     Axis, AxisConfig, AxisSet, CaptureStep, DeviceState, Event, FaultFlags, MirrorPosition,
-    MotionOutcome, Reply, Request, TimedCaptureStep, TriggerFired,
+    MotionOutcome, MoveMode, Reply, Request, TimedCaptureStep, TriggerFired,
 };
 use scanner_geometry::{AxisValues, GeometryError, ScannerGeometry};
 use serde::{Deserialize, Serialize};
@@ -952,8 +952,91 @@ fn prepare_once(
 /// Home every axis and wait for the end; returns the events that came
 /// meanwhile (position checks of axes that were homed already).
 fn home_all(dev: &mut Device) -> Result<Vec<Event>, ScanError> {
+    home_axes(dev, AxisSet::ALL)
+}
+
+/// One cycle of [`homing_repeatability`]: where the axes went, and each
+/// homed axis' step count at its switch minus the switch's position.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HomingCycle {
+    /// The positions the axes were sent to before homing, steps.
+    pub went_to: [Option<i32>; 3],
+    /// Count minus switch per axis (disk, track, tilt), steps.
+    pub error_steps: [Option<i32>; 3],
+}
+
+/// A commissioning check of the axes in `axes` (`scanner home --repeat`):
+/// home those not homed yet, then `cycles` times send them far along their travel at
+/// their configured speed and acceleration (a limited axis 90 % of the
+/// way from its home switch to the other end, the disk half a turn and a
+/// seventh more each cycle) and home them again. Each homing of a homed
+/// axis measures its step count against its switch: a switch that repeats
+/// and a drive that keeps its steps give errors within
+/// [`protocol::POSITION_TOLERANCE_STEPS`]. An axis whose count is off when
+/// it passes its home edge on the way out is measured there (the firmware
+/// latches a lost-position fault and stops it; the fault is cleared so that
+/// every cycle runs). `cycle` is told each cycle's result.
+pub fn homing_repeatability(
+    dev: &mut Device,
+    axes: AxisSet,
+    cycles: usize,
+    cycle: &mut dyn FnMut(usize, &HomingCycle),
+) -> Result<Vec<HomingCycle>, ScanError> {
+    let configs = axis_configs(dev)?;
+    let status = dev.status()?;
+    let unhomed = axes.iter().filter(|a| !status.axes[a.index()].homed);
+    let unhomed = unhomed.fold(AxisSet::NONE, AxisSet::with);
+    if !unhomed.is_empty() {
+        home_axes(dev, unhomed)?;
+    }
+    let mut out = Vec::with_capacity(cycles);
+    for c in 0..cycles {
+        let went_to: [Option<i32>; 3] = std::array::from_fn(|i| {
+            let (axis, k) = (Axis::ALL[i], &configs[i]);
+            axes.contains(axis).then(|| {
+                if k.continuous && k.steps_per_rev > 0 {
+                    let rev = k.steps_per_rev as i64;
+                    (rev / 2 + c as i64 * rev / 7).rem_euclid(rev) as i32
+                } else {
+                    let (home, far) = match k.homing.direction {
+                        protocol::Direction::Negative => (k.homing.home_position, k.max_steps),
+                        protocol::Direction::Positive => (k.homing.home_position, k.min_steps),
+                    };
+                    (home as f64 + 0.9 * (far as f64 - home as f64)).round() as i32
+                }
+            })
+        });
+        dev.clear_events();
+        dev.command(Request::Move { mode: MoveMode::Absolute, targets: went_to })?;
+        let status = wait_idle(dev, Duration::from_secs(300))?;
+        // An axis that passes its home edge on the way out is checked
+        // there (the firmware reports only an error beyond the tolerance,
+        // latches the fault and stops): that error is the one measured.
+        let mut error_steps = [None; 3];
+        let checked = |events: Vec<Event>, errors: &mut [Option<i32>; 3]| {
+            for e in events {
+                if let Event::PositionChecked { axis, error_steps: error } = e {
+                    errors[axis.index()].get_or_insert(error);
+                }
+            }
+        };
+        checked(dev.take_events(), &mut error_steps);
+        if status.faults.contains(FaultFlags::POSITION_LOST) {
+            dev.command(Request::ClearFault)?;
+        }
+        checked(home_axes(dev, axes)?, &mut error_steps);
+        let result = HomingCycle { went_to, error_steps };
+        cycle(c, &result);
+        out.push(result);
+    }
+    Ok(out)
+}
+
+/// Home the axes of `axes` and wait for the end; returns the events that
+/// came meanwhile (position checks of axes that were homed already).
+fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
     dev.clear_events();
-    dev.command(Request::Home { axes: AxisSet::ALL })?;
+    dev.command(Request::Home { axes })?;
     let end = dev.now() + Duration::from_secs(90);
     let failed = |dev: &mut Device, outcome: Option<MotionOutcome>| {
         let faults = dev.status()?.faults;
@@ -975,7 +1058,10 @@ fn home_all(dev: &mut Device) -> Result<Vec<Event>, ScanError> {
                 // whether homing is over.
                 let status = dev.status()?;
                 if !matches!(status.state, DeviceState::Homing) {
-                    if status.axes.iter().all(|a| a.homed) && status.faults.is_empty() {
+                    let homed = Axis::ALL
+                        .into_iter()
+                        .all(|a| !axes.contains(a) || status.axes[a.index()].homed);
+                    if homed && status.faults.is_empty() {
                         return Ok(dev.take_events());
                     }
                     return failed(dev, None);

@@ -447,6 +447,28 @@ fn a_bad_fault_spec_is_a_usage_error() {
     assert_eq!(code, Some(2), "{err}");
 }
 
+/// `scanner home --repeat`: the spec's drives keep their steps; a track
+/// told to run beyond its motor's pull-out loses them (exit 7).
+#[test]
+fn repeated_homing_reports_drives_that_keep_or_lose_their_steps() {
+    let (code, out, err) = run(&["home", "--repeat", "2"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("homing 2: disk from 231.41°: +0 steps, track from 180.00 mm"), "{out}");
+    assert_eq!(out.matches("(tolerance ±32): keeps its steps").count(), 3, "{out}");
+    let dir = tmp();
+    let fast = dir.path().join("fast.toml");
+    let mut axes = protocol::default_axes();
+    axes[1].v_max = 100_000;
+    std::fs::write(&fast, scanner_geometry::axes_to_toml(&axes)).unwrap();
+    let fast = fast.display().to_string();
+    let (code, out, err) = run(&["home", "--repeat", "1", "--axes", "track", "--sim-axes", &fast]);
+    assert_eq!(code, Some(7), "{out}{err}");
+    assert!(out.contains("track  count at the switch") && out.contains("LOST STEPS"), "{out}");
+    assert!(err.contains("track lost steps") && err.contains("lower its v_max"), "{err}");
+    let (code, _, err) = run(&["home", "--repeat", "0"]);
+    assert_eq!(code, Some(2), "{err}");
+}
+
 /// `scanner sim` at 512² with `options`, its frames into `frames`, its
 /// standard error to `stderr`; the process and its pty.
 fn scanner_sim(

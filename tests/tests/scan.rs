@@ -471,6 +471,58 @@ fn a_board_corrected_by_measured_moves_moves_as_far_as_it_is_told() {
     }
 }
 
+/// `scanner home --repeat`'s check: the spec's drives keep their steps;
+/// steps lost on the way out are measured at the switch, as many as the
+/// simulator's motor lost; a speed beyond the motor's pull-out is found.
+#[test]
+fn repeated_homing_measures_the_steps_a_drive_loses() {
+    use host::scan::homing_repeatability;
+    use protocol::{Axis, AxisSet};
+    let s = setup("leather");
+    let rig = s.rig().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    let mut seen = Vec::new();
+    let cycles = homing_repeatability(&mut dev, AxisSet::ALL, 2, &mut |c, r| {
+        seen.push((c, r.clone()));
+    })
+    .unwrap();
+    assert_eq!(seen.len(), 2);
+    for c in &cycles {
+        for (k, e) in c.error_steps.iter().enumerate() {
+            let e = e.expect("measured");
+            assert!(e.abs() <= protocol::POSITION_TOLERANCE_STEPS, "axis {k}: {e}");
+        }
+        assert_eq!(c.went_to[1], Some(288_000), "the track 90 % of the way out");
+    }
+    // 400 track pulses lost on the next move out.
+    rig.with_device(|d| {
+        let when = hil_sim::FaultWhen::AtTick(d.now() + 1);
+        let event = hil_sim::FaultEvent::LoseSteps { axis: Axis::Track, steps: 400 };
+        d.schedule(hil_sim::FaultSpec { when, event });
+    });
+    let track = AxisSet::single(Axis::Track);
+    let lost = homing_repeatability(&mut dev, track, 1, &mut |_, _| {}).unwrap();
+    // Caught as the track leaves its switch, at speed: within the
+    // firmware's tolerance of the switch edge.
+    let error = lost[0].error_steps[1].unwrap();
+    assert!((error - 400).abs() <= protocol::POSITION_TOLERANCE_STEPS, "{error}");
+    assert_eq!(lost[0].error_steps[0], None, "the disk was not homed again");
+
+    // A track told to run beyond its motor's pull-out (80 000 steps/s):
+    // it stalls (out and back: the simulator counts 557 140 pulses lost)
+    // and the switch finds its count off — by less than it lost, since the
+    // homing's own return at full speed stalls too, but beyond tolerance.
+    let mut fast = protocol::default_axes();
+    fast[1].v_max = 100_000;
+    let s = SimSetup { axes: fast, ..setup("leather") };
+    let rig = s.rig().unwrap();
+    let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
+    let cycles = homing_repeatability(&mut dev, track, 1, &mut |_, _| {}).unwrap();
+    let error = cycles[0].error_steps[1].unwrap();
+    assert!(error.abs() > protocol::POSITION_TOLERANCE_STEPS, "{error}");
+    assert!(rig.with_device(|d| d.lost_steps(Axis::Track)) > 0);
+}
+
 /// A host killed mid-move leaves the device moving; 500 ms of silence
 /// latch `link-timeout` and the device *decelerates* (status: faulted,
 /// still moving). The next scan clears the fault and must wait for the

@@ -10,7 +10,7 @@ use crate::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
 use anyhow::anyhow;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use scanner_geometry::{AxisValues, ScannerGeometry};
+use scanner_geometry::{AxisValues, ScannerGeometry, unit_suffix};
 
 #[cfg(feature = "sim")]
 use crate::{camera::SimCamera, link::SimTransport, simulator::SimSetup};
@@ -847,16 +847,69 @@ fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
 }
 
 /// `scanner home`
-pub fn home(args: &DeviceArgs, axes: &[Axis]) -> Result<(), Failure> {
+pub fn home(args: &DeviceArgs, axes: &[Axis], repeat: Option<u32>) -> Result<(), Failure> {
     let mut o = open(args)?;
     let set = if axes.is_empty() {
         AxisSet::ALL
     } else {
         axes.iter().fold(AxisSet::NONE, |s, a| s.with(*a))
     };
-    o.device.clear_events();
-    o.device.command(Request::Home { axes: set }).map_err(link_failure)?;
-    wait_motion(&mut o.device, "homing")
+    let Some(cycles) = repeat else {
+        o.device.clear_events();
+        o.device.command(Request::Home { axes: set }).map_err(link_failure)?;
+        return wait_motion(&mut o.device, "homing");
+    };
+    let configs = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
+    let in_units = |i: usize, steps: i32| {
+        let c = &configs[i];
+        format!("{:.2}{}", steps as f64 / c.steps_per_unit as f64, unit_suffix(c.unit))
+    };
+    let mut print = |c: usize, cycle: &scan::HomingCycle| {
+        let parts: Vec<String> = Axis::ALL
+            .into_iter()
+            .filter_map(|a| {
+                let (to, e) = (cycle.went_to[a.index()]?, cycle.error_steps[a.index()]);
+                let e = e.map_or("not measured".into(), |e| format!("{e:+} steps"));
+                Some(format!("{} from {}: {e}", a.name(), in_units(a.index(), to)))
+            })
+            .collect();
+        println!("homing {}: {}", c + 1, parts.join(", "));
+    };
+    let cycles = scan::homing_repeatability(&mut o.device, set, cycles as usize, &mut print)
+        .map_err(scan_failure)?;
+    let tolerance = protocol::POSITION_TOLERANCE_STEPS;
+    let mut lost = Vec::new();
+    for axis in set.iter() {
+        let errors: Vec<i32> = cycles.iter().filter_map(|c| c.error_steps[axis.index()]).collect();
+        let (lo, hi) = (errors.iter().min().copied(), errors.iter().max().copied());
+        let (Some(lo), Some(hi)) = (lo, hi) else {
+            println!("{:5}  not measured", axis.name());
+            lost.push(axis.name());
+            continue;
+        };
+        let ok = errors.len() == cycles.len() && lo >= -tolerance && hi <= tolerance;
+        println!(
+            "{:5}  count at the switch {lo:+} … {hi:+} steps over {} homings (tolerance ±{tolerance}): {}",
+            axis.name(),
+            errors.len(),
+            if ok { "keeps its steps" } else { "LOST STEPS" }
+        );
+        if !ok {
+            lost.push(axis.name());
+        }
+    }
+    if lost.is_empty() {
+        return Ok(());
+    }
+    Err(Failure(
+        7,
+        anyhow!(
+            "{} lost steps (a motor that stalls can lose many more than its count at the \
+             switch shows): lower its v_max or a_max (`scanner axes`), or check the motor's \
+             current, its coupling and what it drives",
+            lost.join(", ")
+        ),
+    ))
 }
 
 /// `scanner move`

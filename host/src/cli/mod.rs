@@ -314,6 +314,12 @@ enum Command {
         /// Axes to home (disk, track, tilt).
         #[arg(long, value_delimiter = ',', value_parser = parse_axis)]
         axes: Vec<protocol::Axis>,
+        /// Then N times: send the axes far along their travel at their
+        /// configured speed and home them again, reporting each axis' step
+        /// count at its switch — a check that the drives keep their steps
+        /// and the switches repeat (exit 7 if steps were lost).
+        #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1000))]
+        repeat: Option<u32>,
     },
     /// Move axes (degrees / mm, or steps with --steps), or to a mirror's
     /// table entry (--mirror).
@@ -636,7 +642,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Info { device } => commands::info(&device)?,
         Command::Status { device } => commands::status(&device)?,
         Command::Inputs { device, watch } => commands::inputs(&device, watch)?,
-        Command::Home { device, axes } => commands::home(&device, &axes)?,
+        Command::Home { device, axes, repeat } => commands::home(&device, &axes, repeat)?,
         Command::Move { device, mirror: Some(mirror), .. } => {
             commands::move_to_mirror(&device, mirror)?
         }
