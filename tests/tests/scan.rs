@@ -509,9 +509,9 @@ fn repeated_homing_measures_the_steps_a_drive_loses() {
     assert_eq!(lost[0].error_steps[0], None, "the disk was not homed again");
 
     // A track told to run beyond its motor's pull-out (80 000 steps/s):
-    // it stalls (out and back: the simulator counts 557 140 pulses lost)
-    // and the switch finds its count off — by less than it lost, since the
-    // homing's own return at full speed stalls too, but beyond tolerance.
+    // it stalls on the way out (280 170 pulses lost) and on the homing's
+    // own return at full speed (276 970 the other way); the switch measures
+    // the net, 3 200 steps, beyond tolerance.
     let mut fast = protocol::default_axes();
     fast[1].v_max = 100_000;
     let s = SimSetup { axes: fast, ..setup("leather") };

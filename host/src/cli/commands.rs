@@ -904,9 +904,9 @@ pub fn home(args: &DeviceArgs, axes: &[Axis], repeat: Option<u32>) -> Result<(),
     Err(Failure(
         7,
         anyhow!(
-            "{} lost steps (a motor that stalls can lose many more than its count at the \
-             switch shows): lower its v_max or a_max (`scanner axes`), or check the motor's \
-             current, its coupling and what it drives",
+            "{} lost steps (the switch measures the net of what was lost both ways): lower \
+             its v_max or a_max (`scanner axes`), or check the motor's current, its coupling \
+             and what it drives",
             lost.join(", ")
         ),
     ))
