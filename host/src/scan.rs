@@ -722,12 +722,15 @@ pub fn axis_configs(dev: &mut Device) -> Result<[AxisConfig; 3], ScanError> {
 /// The device's mirror table as it holds it: an entry per mirror up to its
 /// count, `None` where unset.
 pub fn mirror_entries(dev: &mut Device) -> Result<Vec<Option<MirrorPosition>>, ScanError> {
-    (0..dev.info().mirror_count)
-        .map(|mirror| match dev.request(Request::GetMirror { mirror })? {
-            Reply::Mirror { position, .. } => Ok(position),
-            reply => Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
-        })
-        .collect()
+    (0..dev.info().mirror_count).map(|mirror| mirror_entry(dev, mirror)).collect()
+}
+
+/// The device's entry for `mirror` (`None`: unset, or beyond its count).
+pub fn mirror_entry(dev: &mut Device, mirror: u8) -> Result<Option<MirrorPosition>, ScanError> {
+    match dev.request(Request::GetMirror { mirror })? {
+        Reply::Mirror { position, .. } => Ok(position),
+        reply => Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
+    }
 }
 
 /// What [`set_axis_configs`] did.
@@ -842,11 +845,7 @@ pub fn setup(dev: &mut Device, geometry: &ScannerGeometry) -> Result<MirrorSetup
     let table = mirror_table(geometry, &axes)?;
     let mut written = 0;
     for (l, position) in table.iter().enumerate() {
-        let current = match dev.request(Request::GetMirror { mirror: l as u8 })? {
-            Reply::Mirror { position, .. } => position,
-            reply => return Err(LinkError::Unexpected { request: "GetMirror", reply }.into()),
-        };
-        if current != Some(*position) {
+        if mirror_entry(dev, l as u8)? != Some(*position) {
             dev.command(Request::SetMirror { mirror: l as u8, position: *position })?;
             written += 1;
         }

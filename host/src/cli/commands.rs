@@ -862,7 +862,7 @@ pub fn home(args: &DeviceArgs, axes: &[Axis], repeat: Option<u32>) -> Result<(),
     let configs = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
     let in_units = |i: usize, steps: i32| {
         let c = &configs[i];
-        format!("{:.2}{}", steps as f64 / c.steps_per_unit as f64, unit_suffix(c.unit))
+        format!("{:.2}{}", scanner_geometry::steps_to_unit(steps.into(), c), unit_suffix(c.unit))
     };
     let mut print = |c: usize, cycle: &scan::HomingCycle| {
         let parts: Vec<String> = Axis::ALL
@@ -982,12 +982,7 @@ pub fn move_to_mirror(args: &DeviceArgs, mirror: u8) -> Result<(), Failure> {
     let mut o = open(args)?;
     let count = o.device.info().mirror_count;
     let position = if mirror < count {
-        match o.device.request(Request::GetMirror { mirror }).map_err(link_failure)? {
-            protocol::Reply::Mirror { position, .. } => position,
-            reply => {
-                return Err(link_failure(LinkError::Unexpected { request: "GetMirror", reply }));
-            }
-        }
+        scan::mirror_entry(&mut o.device, mirror).map_err(scan_failure)?
     } else {
         None
     };
