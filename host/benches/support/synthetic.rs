@@ -71,6 +71,7 @@ pub fn synthetic(
             texel_model: false,
             detail: false,
             detail_components: 0,
+            enlargement: None,
         },
         palettes: (0..n * n * k).map(|_| [rng.random(), rng.random(), rng.random()]).collect(),
         indices: (0..n * s * s * n.div_ceil(g))
@@ -82,6 +83,7 @@ pub fn synthetic(
         detail: Vec::new(),
         detail_bases: Vec::new(),
         detail_coefficients: Vec::new(),
+        enlargement: Vec::new(),
     }
 }
 

@@ -26,9 +26,16 @@ pub const VERSION_TEXEL_MODEL: u32 = 2;
 /// (`Metadata::detail`), with or without a texel model.
 pub const VERSION_DETAIL: u32 = 3;
 /// The format version of a material whose detail layer has light
-/// components (`Metadata::detail_components` ≥ 1). This crate reads
-/// versions 1 to 4.
+/// components (`Metadata::detail_components` ≥ 1).
 pub const VERSION_LIGHT_DETAIL: u32 = 4;
+/// The format version of an enlarged material (`Metadata::enlargement`,
+/// Fig. 9): uv spans a large piece, each of whose texels names the texel of
+/// the scanned sample that looks most like it. Its other parts (texel
+/// model, detail layer, light components) are as their own keys say. This
+/// crate reads versions 1 to 5.
+pub const VERSION_ENLARGED: u32 = 5;
+/// Most columns or rows of an enlargement map.
+pub const MAX_ENLARGEMENT: u32 = 16384;
 /// The detail layer's range: every factor lies in [1 / it, it].
 pub const DETAIL_RANGE: f32 = 4.0;
 /// Most light components of a detail layer.
@@ -106,6 +113,22 @@ pub struct Provenance {
     pub builder: String,
 }
 
+/// Fig. 9's enlargement: the map from a large piece's texels to the scanned
+/// sample's (tensor `enlargement`, docs/material-format.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Enlargement {
+    /// Texels of the map along u.
+    pub columns: u32,
+    /// Texels of the map along v.
+    pub rows: u32,
+    /// How each texel was matched: `"colour"`, the patent's colour
+    /// signature (the 3 × 3 neighbourhood's RGB in every direct image).
+    pub signature: String,
+    /// The directions (sample-local, unit, towards the camera and the
+    /// light) of the direct images the signatures were taken from.
+    pub directions: Vec<[f64; 3]>,
+}
+
 /// The JSON document stored under [`METADATA_KEY`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -154,6 +177,10 @@ pub struct Metadata {
     /// `detail_bases` and `detail_coefficients`). Absent (0) before.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub detail_components: u32,
+    /// Version 5: uv spans a large piece (`extent_mm`) through an
+    /// enlargement map (tensor `enlargement`). Absent before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub enlargement: Option<Enlargement>,
 }
 
 fn is_zero(x: &u32) -> bool {
@@ -219,6 +246,11 @@ pub struct MaterialData {
     pub detail_bases: Vec<[f32; 3]>,
     /// `[L][R]`: each light's coefficients on the light components.
     pub detail_coefficients: Vec<f32>,
+    /// `[rows][columns]` (row along v, column along u) of the enlargement
+    /// map, when `meta.enlargement`: the (column s, row t) of the scanned
+    /// sample's S × S texel that the large piece's texel looks like; empty
+    /// otherwise.
+    pub enlargement: Vec<[u16; 2]>,
 }
 
 /// A tensor to serialise.
@@ -393,6 +425,23 @@ impl MaterialData {
                     dtype: Dtype::F32,
                     shape: vec![l, r],
                     data: self.detail_coefficients.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                },
+            ));
+        }
+        if let Some(e) = &self.meta.enlargement {
+            let (c, r) = (e.columns as usize, e.rows as usize);
+            if self.enlargement.len() != c * r {
+                return Err(MaterialError::Tensor(format!(
+                    "enlargement: {} texels for {c} × {r}",
+                    self.enlargement.len()
+                )));
+            }
+            tensors.push((
+                "enlargement".to_string(),
+                Tensor {
+                    dtype: Dtype::U16,
+                    shape: vec![r, c, 2],
+                    data: u16_bytes(self.enlargement.iter().flatten().copied()),
                 },
             ));
         }
@@ -658,6 +707,25 @@ impl MaterialData {
         } else {
             (Vec::new(), Vec::new())
         };
+        let enlargement = if let Some(e) = &meta.enlargement {
+            expected.push("enlargement".into());
+            let (c, r) = (e.columns as usize, e.rows as usize);
+            let map: Vec<[u16; 2]> = tensor(&st, "enlargement", Dtype::U16, &[r, c, 2])?
+                .chunks_exact(4)
+                .map(|b| [u16::from_le_bytes([b[0], b[1]]), u16::from_le_bytes([b[2], b[3]])])
+                .collect();
+            if let Some(i) = map.iter().position(|p| p.iter().any(|&x| x as usize >= s)) {
+                return Err(MaterialError::Value(format!(
+                    "enlargement: texel ({}, {}) names {:?}, outside the {s} × {s} texels",
+                    i % c,
+                    i / c,
+                    map[i]
+                )));
+            }
+            map
+        } else {
+            Vec::new()
+        };
         if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == n)) {
             return Err(MaterialError::Tensor(format!(
                 "unexpected tensor `{extra}` for {:?} interpolation",
@@ -674,6 +742,7 @@ impl MaterialData {
             detail,
             detail_bases,
             detail_coefficients,
+            enlargement,
         })
     }
 }
@@ -705,13 +774,23 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
     if m.format != FORMAT {
         return bad(format!("format is {:?}, not {FORMAT:?}", m.format));
     }
-    if !(VERSION..=VERSION_LIGHT_DETAIL).contains(&m.version) {
+    if !(VERSION..=VERSION_ENLARGED).contains(&m.version) {
         return bad(format!(
-            "version {} (this reader reads versions {VERSION}…{VERSION_LIGHT_DETAIL})",
+            "version {} (this reader reads versions {VERSION}…{VERSION_ENLARGED})",
             m.version
         ));
     }
-    if m.detail != (m.version >= VERSION_DETAIL) {
+    if m.enlargement.is_some() != (m.version == VERSION_ENLARGED) {
+        return bad(format!(
+            "version {} with{} an enlargement: an enlargement is version {VERSION_ENLARGED}'s, \
+             and only its",
+            m.version,
+            if m.enlargement.is_some() { "" } else { "out" }
+        ));
+    }
+    // Versions 1–4 say by their number what they hold; version 5 by its keys.
+    let laddered = m.version < VERSION_ENLARGED;
+    if laddered && m.detail != (m.version >= VERSION_DETAIL) {
         return bad(format!(
             "version {} with{} a detail layer: a detail layer is versions {VERSION_DETAIL} and \
              {VERSION_LIGHT_DETAIL}'s, and only theirs",
@@ -719,18 +798,44 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
             if m.detail { "" } else { "out" }
         ));
     }
-    if (m.detail_components > 0) != (m.version == VERSION_LIGHT_DETAIL) {
+    if laddered && (m.detail_components > 0) != (m.version == VERSION_LIGHT_DETAIL) {
         return bad(format!(
             "version {} with {} light components: light components are version \
              {VERSION_LIGHT_DETAIL}'s, and only its (at least one)",
             m.version, m.detail_components
         ));
     }
+    if m.detail_components > 0 && !m.detail {
+        return bad(format!("{} light components without a detail layer", m.detail_components));
+    }
     if m.detail_components > MAX_DETAIL_COMPONENTS {
         return bad(format!(
             "detail_components {} outside 0…{MAX_DETAIL_COMPONENTS}",
             m.detail_components
         ));
+    }
+    if let Some(e) = &m.enlargement {
+        let span = 1..=MAX_ENLARGEMENT;
+        if !(span.contains(&e.columns) && span.contains(&e.rows)) {
+            return bad(format!(
+                "enlargement of {} × {} texels: columns and rows must be in 1…{MAX_ENLARGEMENT}",
+                e.columns, e.rows
+            ));
+        }
+        if e.signature != "colour" {
+            return bad(format!(
+                "enlargement signature {:?}: this reader knows \"colour\"",
+                e.signature
+            ));
+        }
+        if e.directions.is_empty()
+            || e.directions.iter().any(|d| {
+                let len = d.iter().map(|x| x * x).sum::<f64>().sqrt();
+                !((len - 1.0).abs() < UNIT_TOLERANCE && d[2] > 0.0)
+            })
+        {
+            return bad("enlargement directions: need unit vectors above the sample".into());
+        }
     }
     if m.version < VERSION_DETAIL && m.texel_model != (m.version == VERSION_TEXEL_MODEL) {
         return bad(format!(

@@ -349,7 +349,7 @@ impl Material {
         if self.texels.is_empty() {
             return table.share;
         }
-        let p = self.texel_at(&crate::Footprint::on(self.size, uv));
+        let p = self.texel_at(&crate::Footprint::on(self.size, self.scanned_uv(uv)));
         let (d, f) = (p.diffuse.iter().sum::<f32>(), p.specular.iter().sum::<f32>());
         let diffuse = if d + f > 0.0 { d / (d + f) } else { 0.0 };
         if diffuse.is_finite() { table.share.max(diffuse.min(1.0)) } else { table.share }

@@ -117,6 +117,54 @@ pub struct Material {
     detail_coefficients: Vec<f32>,
     /// The views' tables of half vectors for [`Material::sample`].
     importance: importance::Importance,
+    /// Fig. 9's enlargement map (version 5), or none.
+    enlargement: Option<UvMap>,
+}
+
+/// An enlargement map ready to look up (docs/material-format.md,
+/// "Enlargement").
+#[derive(Debug, Clone)]
+struct UvMap {
+    columns: usize,
+    rows: usize,
+    /// `[rows][columns]`: the scanned sample's texel (s, t).
+    texels: Vec<[u16; 2]>,
+    /// One map texel in the scanned sample's texels, along u and v.
+    scale: [f32; 2],
+}
+
+impl UvMap {
+    fn new(meta: &Metadata, texels: Vec<[u16; 2]>) -> Option<UvMap> {
+        let e = meta.enlargement.as_ref()?;
+        let sample_texel = meta.sample_size_mm / meta.resolution as f64;
+        let (columns, rows) = (e.columns as usize, e.rows as usize);
+        let scale = [
+            (meta.extent_mm[0] / columns as f64 / sample_texel) as f32,
+            (meta.extent_mm[1] / rows as f64 / sample_texel) as f32,
+        ];
+        Some(UvMap { columns, rows, texels, scale })
+    }
+
+    /// The scanned sample's uv for a finite uv over the large piece
+    /// (wrapped into [0, 1)): its map texel's match, moved by the uv's
+    /// offset from that texel's centre, within the sample.
+    #[inline(always)]
+    fn scanned(&self, uv: [f32; 2], size: usize) -> [f32; 2] {
+        let at = |u: f32, n: usize| {
+            let x = (u - u.floor()) * n as f32;
+            let i = (x as usize).min(n - 1);
+            (i, x - i as f32 - 0.5)
+        };
+        let (c, dx) = at(uv[0], self.columns);
+        let (r, dy) = at(uv[1], self.rows);
+        let [s, t] = self.texels[r * self.columns + c];
+        let n = size as f32;
+        let below_one = 1.0 - f32::EPSILON;
+        [
+            ((s as f32 + 0.5 + dx * self.scale[0]) / n).clamp(0.0, below_one),
+            ((t as f32 + 0.5 + dy * self.scale[1]) / n).clamp(0.0, below_one),
+        ]
+    }
 }
 
 /// The detail layer's factor at a point (docs/material-format.md, "Detail
@@ -361,8 +409,20 @@ impl Material {
             components: m.detail_components as usize,
             detail_coefficients: d.detail_coefficients,
             importance,
+            enlargement: UvMap::new(&d.meta, d.enlargement),
             meta: d.meta,
         })
+    }
+
+    /// Where on the scanned sample `uv` is shaded, as uv over the sample:
+    /// `uv` itself (wrapped into [0, 1)) or, for an enlarged material, its
+    /// match through the enlargement map. Not finite: unchanged.
+    #[inline(always)]
+    pub fn scanned_uv(&self, uv: [f32; 2]) -> [f32; 2] {
+        match &self.enlargement {
+            Some(m) if uv[0].is_finite() && uv[1].is_finite() => m.scanned(uv, self.size),
+            _ => uv,
+        }
     }
 
     /// The file's metadata.
@@ -381,6 +441,7 @@ impl Material {
                 self.finish(&s)
             }
             Directions::Cells { views, lights } => {
+                let uv = self.scanned_uv(uv);
                 let Some((wi, wo, at)) = self.footprint(uv, wi, wo) else {
                     return [0.0; 3];
                 };
@@ -598,6 +659,7 @@ impl Material {
     /// before it had the same).
     #[inline(always)]
     fn stage(&self, uv: [f32; 2], wi: [f32; 3], wo: [f32; 3], s: &mut Staged, reuse: bool) {
+        let uv = self.scanned_uv(uv);
         let Some(at) = self.texels_at(uv) else {
             s.dirs.pairs = 0;
             s.dirs.key = None;

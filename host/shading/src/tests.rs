@@ -99,6 +99,7 @@ fn material(interpolation: Interpolation) -> MaterialData {
             texel_model: false,
             detail: false,
             detail_components: 0,
+            enlargement: None,
         },
         palettes,
         indices,
@@ -108,6 +109,7 @@ fn material(interpolation: Interpolation) -> MaterialData {
         detail: Vec::new(),
         detail_bases: Vec::new(),
         detail_coefficients: Vec::new(),
+        enlargement: Vec::new(),
     }
 }
 
@@ -1254,4 +1256,149 @@ fn sampling_refuses_what_is_not_a_view() {
             }
         }
     }
+}
+
+/// `d` enlarged (version 5) to a `columns` × `rows` piece of `extent_mm`
+/// whose texel (c, r) names the sample's texel ((3c + r) mod S, (c + 2r)
+/// mod S).
+fn enlarged(mut d: MaterialData, columns: u32, rows: u32, extent_mm: [f64; 2]) -> MaterialData {
+    let s = d.meta.resolution;
+    d.meta.version = format::VERSION_ENLARGED;
+    d.meta.extent_mm = extent_mm;
+    d.meta.enlargement = Some(format::Enlargement {
+        columns,
+        rows,
+        signature: "colour".into(),
+        directions: vec![[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]],
+    });
+    d.enlargement = (0..rows * columns)
+        .map(|i| {
+            let (c, r) = (i % columns, i / columns);
+            [((3 * c + r) % s) as u16, ((c + 2 * r) % s) as u16]
+        })
+        .collect();
+    d
+}
+
+#[test]
+fn an_enlarged_material_shades_each_texel_of_the_piece_as_its_match() {
+    let mut rng = ChaCha8Rng::seed_from_u64(51);
+    let s = 8.0f64;
+    for (base, name) in [
+        (material(Interpolation::Default), "default"),
+        (material_with_model(), "texel model"),
+        (with_detail(material(Interpolation::Default)), "detail layer"),
+        (with_light_detail(material_with_model()), "light components"),
+        (material(Interpolation::Patent { columns: 24, rows: 6, points: 10 }), "patent"),
+    ] {
+        // 21 × 14 texels over 2.5 × 2 sample widths: a map texel is 0.952
+        // and 1.143 of the sample's texels along u and v.
+        let extent = [2.5 * 25.4, 2.0 * 25.4];
+        let (cols, rows) = (21u32, 14u32);
+        let big = enlarged(base.clone(), cols, rows, extent);
+        let map = big.enlargement.clone();
+        let plain = Material::from_bytes(&base.to_bytes().unwrap()).unwrap();
+        let m = Material::from_bytes(&big.to_bytes().unwrap()).unwrap();
+        assert_eq!(m.metadata().extent_mm, extent);
+        let scale = [extent[0] / cols as f64 / (25.4 / s), extent[1] / rows as f64 / (25.4 / s)];
+        for _ in 0..300 {
+            let uv = [rng.random_range(-1.0..2.0f32), rng.random_range(-1.0..2.0f32)];
+            let (wi, wo) = (random_dir(&mut rng, 60.0), random_dir(&mut rng, 60.0));
+            // Independently, in f64: the map texel, the offset from its
+            // centre, the match's texel centre moved by it.
+            let wrap = |u: f32| u as f64 - (u as f64).floor();
+            let (x, y) = (wrap(uv[0]) * cols as f64, wrap(uv[1]) * rows as f64);
+            let (c, r) = (x.floor() as usize, y.floor() as usize);
+            let [ms, mt] = map[r * cols as usize + c];
+            let want_uv = [
+                ((ms as f64 + 0.5 + (x - c as f64 - 0.5) * scale[0]) / s).clamp(0.0, 0.999_999),
+                ((mt as f64 + 0.5 + (y - r as f64 - 0.5) * scale[1]) / s).clamp(0.0, 0.999_999),
+            ];
+            let got_uv = m.scanned_uv(uv);
+            for k in 0..2 {
+                assert!((got_uv[k] as f64 - want_uv[k]).abs() < 1e-5, "{name}: {uv:?}");
+            }
+            let (a, b) = (m.eval(uv, wi, wo), plain.eval(got_uv, wi, wo));
+            assert_eq!(a, b, "{name}: {uv:?}");
+        }
+        // At a map texel's centre the answer is the match's texel's own.
+        let at = m.scanned_uv([(4.0 + 0.5) / cols as f32, (9.0 + 0.5) / rows as f32]);
+        let [ms, mt] = map[9 * cols as usize + 4];
+        assert!((at[0] - (ms as f32 + 0.5) / 8.0).abs() < 1e-6, "{name}");
+        assert!((at[1] - (mt as f32 + 0.5) / 8.0).abs() < 1e-6, "{name}");
+        assert!(batch_as_eval(&m, &random_queries(&mut rng, 500)) > 0, "{name}");
+        // A uv that is not finite is black, as it is without a map.
+        assert_eq!(m.eval([f32::NAN, 0.5], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]), [0.0; 3]);
+        // Sampling goes through the map too: its draws are `eval`'s.
+        m.prepare_importance();
+        for _ in 0..50 {
+            let uv = [rng.random_range(0.0..1.0f32), rng.random_range(0.0..1.0f32)];
+            let wo = random_dir(&mut rng, 60.0);
+            let u = [rng.random_range(0.0..1.0f32), rng.random_range(0.0..1.0f32)];
+            if let Some(d) = m.sample(uv, wo, rng.random_range(0.0..1.0f32), u) {
+                assert_eq!(d.f_cos, m.eval(uv, d.wi, wo), "{name}");
+                assert_eq!(d.pdf, m.pdf(uv, d.wi, wo), "{name}");
+            }
+        }
+    }
+}
+
+#[test]
+fn bad_enlargements_are_refused() {
+    let e = |d: MaterialData| match d.to_bytes() {
+        Ok(_) => "accepted".to_string(),
+        Err(e) => e.to_string(),
+    };
+    let good = || enlarged(material(Interpolation::Default), 5, 3, [40.0, 24.0]);
+    assert_eq!(e(good()), "accepted");
+    let mut d = good();
+    d.enlargement[7] = [2, 8];
+    let msg = e(d);
+    assert!(
+        msg.contains("enlargement: texel (2, 1) names [2, 8], outside the 8 × 8 texels"),
+        "{msg}"
+    );
+    let mut d = good();
+    d.enlargement.pop();
+    assert!(e(d).contains("enlargement: 14 texels for 5 × 3"));
+    let mut d = good();
+    d.meta.version = format::VERSION_LIGHT_DETAIL;
+    assert!(e(d).contains("version 4 with an enlargement"));
+    let mut d = material(Interpolation::Default);
+    d.meta.version = format::VERSION_ENLARGED;
+    assert!(e(d).contains("version 5 without an enlargement"));
+    for (cols, rows) in [(0, 3), (5, 0), (16385, 1)] {
+        let mut d = good();
+        let m = d.meta.enlargement.as_mut().unwrap();
+        (m.columns, m.rows) = (cols, rows);
+        d.enlargement = vec![[0, 0]; (cols * rows) as usize];
+        let msg = e(d);
+        assert!(msg.contains("columns and rows must be in 1…16384"), "{msg}");
+    }
+    let mut d = good();
+    d.meta.enlargement.as_mut().unwrap().signature = "height".into();
+    assert!(e(d).contains("enlargement signature \"height\""));
+    for dirs in [vec![], vec![[0.0, 0.0, 2.0]], vec![[0.6, 0.0, -0.8]]] {
+        let mut d = good();
+        d.meta.enlargement.as_mut().unwrap().directions = dirs;
+        assert!(e(d).contains("enlargement directions"));
+    }
+    // A map the metadata does not announce is an unexpected tensor; one it
+    // announces but the file lacks is missing.
+    let bytes = good().to_bytes().unwrap();
+    let stripped = with_metadata(&bytes, |json| {
+        let start = json.find(",\"enlargement\"").unwrap();
+        let end = start + json[start..].find("]]}").unwrap() + 3;
+        format!("{}{}", &json[..start], &json[end..]).replace("\"version\":5", "\"version\":1")
+    });
+    let msg = Material::from_bytes(&stripped).unwrap_err().to_string();
+    assert!(msg.contains("unexpected tensor `enlargement`"), "{msg}");
+    // Version 5 says by its keys what it holds: a detail layer's light
+    // components still need the layer.
+    let one = with_metadata(&bytes, |json| {
+        json.replace("\"version\":5", "\"version\":5,\"detail_components\":1")
+    });
+    let msg = Material::from_bytes(&one).unwrap_err().to_string();
+    assert!(msg.contains("1 light components without a detail layer"), "{msg}");
+    damage_never_panics(&bytes, 17);
 }

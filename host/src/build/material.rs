@@ -536,6 +536,7 @@ pub fn build_material(
             texel_model,
             detail: with_detail,
             detail_components: components as u32,
+            enlargement: None,
         },
         palettes,
         indices,
@@ -545,6 +546,7 @@ pub fn build_material(
         detail,
         detail_bases,
         detail_coefficients,
+        enlargement: Vec::new(),
     })
 }
 
