@@ -19,6 +19,8 @@
 //! - [`camera`]: the simulated camera, rendering at each trigger pulse from
 //!   the simulated axes' physical positions.
 //! - [`rig`]: board and camera in one deterministic process ([`SimRig`]).
+//! - [`direct`]: Fig. 9's direct images of a large piece, as a set the host
+//!   reads (docs/direct-images.md).
 //! - [`defects`]: the sensor's stuck and dead pixels, when asked for.
 //! - [`texture_set`]: user-defined samples from image maps
 //!   (docs/texture-set.md); [`materials::lookup`] takes a library name or a
@@ -29,6 +31,7 @@
 pub mod camera;
 pub mod defects;
 pub mod device;
+pub mod direct;
 pub mod faults;
 pub mod geometry;
 pub mod link;

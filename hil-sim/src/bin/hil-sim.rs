@@ -86,15 +86,22 @@ enum Command {
         /// Sample material (a library name or a texture-set directory).
         #[arg(long, default_value = "woven-fabric")]
         material: String,
-        /// Output folder: `direct-K-mirror-LL.exr`.
+        /// Output folder: `direct-K-mirror-LL.exr` and `direct.toml`
+        /// (docs/direct-images.md).
         #[arg(long)]
         out: std::path::PathBuf,
     },
-    /// Ground truth f · cos θi of the small sample for shading queries.
+    /// Ground truth f · cos θi of the small sample (or the large piece) for
+    /// shading queries.
     Truth {
         /// Sample material: a library name or a texture-set directory.
         #[arg(long)]
         material: String,
+        /// Which piece uv spans: `small` (the 25.4 mm sample the scanner
+        /// scans) or `large` (the piece of the direct images, to score an
+        /// enlarged material).
+        #[arg(long, value_enum, default_value = "small")]
+        piece: Piece,
         /// Query file (.npy N × 8 or .csv u,v,wi_x,…,wo_z).
         #[arg(long)]
         queries: std::path::PathBuf,
@@ -102,6 +109,13 @@ enum Command {
         #[arg(short, long)]
         output: std::path::PathBuf,
     },
+}
+
+/// The piece `hil-sim truth` answers for.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Piece {
+    Small,
+    Large,
 }
 
 /// A failure with its exit code.
@@ -123,12 +137,21 @@ impl From<String> for Fail {
     }
 }
 
-fn truth(material: &str, queries: &std::path::Path, output: &std::path::Path) -> Result<(), Fail> {
+fn truth(
+    material: &str,
+    piece: Piece,
+    queries: &std::path::Path,
+    output: &std::path::Path,
+) -> Result<(), Fail> {
     use scanner_formats::queries as q;
     // Check the output before any work.
     q::check_extension(output).map_err(|e| Fail(2, e.to_string()))?;
     scanner_formats::check_output(output, &[queries]).map_err(|e| Fail(4, e.to_string()))?;
-    let sample = Sample::small(materials::lookup(material)?);
+    let m = materials::lookup(material)?;
+    let sample = match piece {
+        Piece::Small => Sample::small(m),
+        Piece::Large => Sample::large(m),
+    };
     let rows = q::read_queries(queries).map_err(|e| Fail(3, e.to_string()))?;
     let answers = hil_sim::truth::answer(&sample, &rows);
     q::write_answers(output, &answers).map_err(|e| Fail(4, e.to_string()))?;
@@ -140,18 +163,12 @@ fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), Fail> 
     let m = materials::lookup(material)?;
     let nominal = ScannerGeometry::default_scanner();
     let sim = OpticalSim::as_built(&nominal, Sample::small(m.clone()), seed);
-    std::fs::create_dir_all(out).map_err(|e| Fail(4, format!("{}: {e}", out.display())))?;
-    let mut dirs: Vec<(usize, hil_sim::geometry::DVec3)> = (0..nominal.mirrors.len())
-        .filter_map(|l| nominal.mirror_direction(l).map(|d| (l, d)))
-        .collect();
-    dirs.sort_by(|a, b| b.1.z.total_cmp(&a.1.z));
-    let px_per_mm = nominal.camera.focal_px / (2.0 * nominal.ellipsoid.semi_major_mm);
-    for (k, &(l, d)) in dirs.iter().take(4).enumerate() {
-        let frame = sim.direct_image(&Sample::large(m.clone()), d, px_per_mm, 0.05);
-        let path = out.join(format!("direct-{k}-mirror-{l:02}.exr"));
-        hil_sim::camera::write_frame_exr(&frame, &path).map_err(|e| Fail(4, e.to_string()))?;
-        eprintln!("{}: {}×{} px", path.display(), frame.width, frame.height);
+    let scale = hil_sim::direct::mirror_view_scale(&nominal);
+    let manifest = hil_sim::direct::write_set(&sim, m, 4, scale, out).map_err(|e| Fail(4, e))?;
+    for im in &manifest.image {
+        eprintln!("{}: exposure {} s", out.join(&im.file).display(), im.exposure_s);
     }
+    eprintln!("{}", out.join(scanner_formats::direct::MANIFEST).display());
     Ok(())
 }
 
@@ -199,8 +216,8 @@ fn main() -> std::process::ExitCode {
         Some(Command::Render { material, mirrors, bin, out }) => {
             Some(("render", render(args.seed, material, *mirrors, *bin, out.as_deref())))
         }
-        Some(Command::Truth { material, queries, output }) => {
-            Some(("truth", truth(material, queries, output)))
+        Some(Command::Truth { material, piece, queries, output }) => {
+            Some(("truth", truth(material, *piece, queries, output)))
         }
         None => None,
     };
