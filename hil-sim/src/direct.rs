@@ -6,17 +6,21 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, MANIFEST};
+use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, MANIFEST, WhiteImage};
 
 use crate::geometry::{DVec3, ScannerGeometry};
-use crate::materials::{Material, Sample};
+use crate::materials::{DiffuseWhite, Material, Sample};
 use crate::optics::OpticalSim;
 
-/// The first exposure of a direct image, s; shorter ones follow while any
-/// pixel clips.
-pub const FIRST_EXPOSURE_S: f64 = 0.05;
-/// Each shorter exposure is this fraction of the one before.
-const BRACKET_STEP: f64 = 0.25;
+/// The metering exposure of a direct image, s.
+pub const METERING_EXPOSURE_S: f64 = 0.05;
+/// Where auto exposure puts the image's 99.9th percentile, of full scale.
+const METERED_LEVEL: f64 = 0.7;
+/// The exposures auto exposure may choose, s.
+const EXPOSURE_RANGE_S: [f64; 2] = [1e-3, 2.0];
+/// Each shorter exposure, while any pixel clips, is this fraction of the
+/// one before.
+const BRACKET_STEP: f64 = 0.5;
 /// Most exposures tried for one image.
 const MAX_BRACKETS: usize = 12;
 
@@ -35,10 +39,40 @@ pub fn mirror_view_scale(g: &ScannerGeometry) -> f64 {
     g.camera.focal_px / (2.0 * g.ellipsoid.semi_major_mm)
 }
 
+/// `piece`'s direct image from `d`, exposed as a photographer would:
+/// metered so that its 99.9th percentile lies at 70 % of full scale, then
+/// shortened while any pixel clips; with its exposure.
+fn exposed(
+    sim: &OpticalSim,
+    piece: &Sample,
+    d: DVec3,
+    px_per_mm: f64,
+) -> (crate::optics::Frame, f64) {
+    let metering = sim.direct_image(piece, d, px_per_mm, METERING_EXPOSURE_S);
+    let mut values = metering.rgb;
+    let at = ((values.len() - 1) as f64 * 0.999) as usize;
+    let level = *values.select_nth_unstable_by(at, f32::total_cmp).1 as f64;
+    let mut exposure_s = if level > 0.0 {
+        (METERING_EXPOSURE_S * METERED_LEVEL / level.min(1.0))
+            .clamp(EXPOSURE_RANGE_S[0], EXPOSURE_RANGE_S[1])
+    } else {
+        EXPOSURE_RANGE_S[1]
+    };
+    let mut frame = sim.direct_image(piece, d, px_per_mm, exposure_s);
+    for _ in 1..MAX_BRACKETS {
+        if frame.rgb.iter().all(|&v| v < 1.0) {
+            break;
+        }
+        exposure_s *= BRACKET_STEP;
+        frame = sim.direct_image(piece, d, px_per_mm, exposure_s);
+    }
+    (frame, exposure_s)
+}
+
 /// Render and write the direct images of `material`'s large piece from
 /// the `count` mirror directions nearest the axis, at `px_per_mm`, into
-/// `out` (created), with their manifest. Each image takes the first
-/// exposure at which no pixel clips. The images and manifest are written
+/// `out` (created), with a direct image of the diffuse-white target from
+/// the first direction as their white reference, and their manifest. The images and manifest are written
 /// atomically, the manifest last.
 pub fn write_set(
     sim: &OpticalSim,
@@ -51,16 +85,9 @@ pub fn write_set(
     let piece = Sample::large(material);
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let mut image = Vec::new();
-    for (k, (l, d)) in nearest_axis_mirrors(g, count).into_iter().enumerate() {
-        let mut exposure_s = FIRST_EXPOSURE_S;
-        let mut frame = sim.direct_image(&piece, d, px_per_mm, exposure_s);
-        for _ in 1..MAX_BRACKETS {
-            if frame.rgb.iter().all(|&v| v < 1.0) {
-                break;
-            }
-            exposure_s *= BRACKET_STEP;
-            frame = sim.direct_image(&piece, d, px_per_mm, exposure_s);
-        }
+    let mirrors = nearest_axis_mirrors(g, count);
+    for (k, &(l, d)) in mirrors.iter().enumerate() {
+        let (frame, exposure_s) = exposed(sim, &piece, d, px_per_mm);
         let file = format!("direct-{k}-mirror-{l:02}.exr");
         crate::camera::write_frame_exr(&frame, &out.join(&file)).map_err(|e| e.to_string())?;
         image.push(DirectImage {
@@ -70,7 +97,17 @@ pub fn write_set(
             mirror: Some(l as u32),
         });
     }
-    let manifest = DirectManifest { format: FORMAT, size_mm: [piece.size_mm; 2], image };
+    // The white reference, from the first image's direction.
+    let target = DiffuseWhite::default();
+    let white_piece = Sample { size_mm: piece.size_mm, ..Sample::large(Arc::new(target.clone())) };
+    let white = mirrors.first().map(|&(_, d)| -> Result<WhiteImage, String> {
+        let (frame, exposure_s) = exposed(sim, &white_piece, d, px_per_mm);
+        let file = "white.exr".to_string();
+        crate::camera::write_frame_exr(&frame, &out.join(&file)).map_err(|e| e.to_string())?;
+        Ok(WhiteImage { file, direction: d.to_array(), exposure_s, albedo: target.albedo })
+    });
+    let white = white.transpose()?;
+    let manifest = DirectManifest { format: FORMAT, size_mm: [piece.size_mm; 2], image, white };
     let path = out.join(MANIFEST);
     scanner_formats::write_atomic(&path, manifest.to_toml().as_bytes())
         .map_err(|e| format!("{}: {e}", path.display()))?;

@@ -522,3 +522,54 @@ pub fn sampling_check(
         variance_ratio: var(s) / var(c),
     }
 }
+
+/// Material PSNRs over a large piece (docs/benchmarks.md, "Enlargement").
+#[derive(Debug, Clone, Copy)]
+pub struct EnlargementScores {
+    /// The enlarged material against the large piece's truth.
+    pub enlarged: f64,
+    /// The sample's material tiled over the piece (uv scaled by the piece's
+    /// side over the sample's and wrapped): what a renderer shows without
+    /// an enlargement.
+    pub tiled: f64,
+    /// The enlarged material over the window of the piece the small sample
+    /// is cut from, against the truth there (uv over the window).
+    pub window_enlarged: f64,
+    /// The sample's own material over the same window: the scan's ceiling.
+    pub window_sample: f64,
+}
+
+/// Score `enlarged` (uv over the large piece of `material`) and `small`
+/// (uv over its small sample) against the ground truth at `pairs`.
+pub fn enlargement_scores(
+    enlarged: &scanner_shading::Material,
+    small: &scanner_shading::Material,
+    material: std::sync::Arc<dyn hil_sim::materials::Material>,
+    pairs: &[([f64; 3], [f64; 3])],
+) -> EnlargementScores {
+    use host::build::material::shade;
+    let large = Sample::large(material.clone());
+    let sample = Sample::small(material);
+    let ratio = large.size_mm / sample.size_mm;
+    let t_large = truth_answers(pairs, &large);
+    let enlarged_db = pairs_psnr(pairs, &t_large, &|_, q| shade(enlarged, q)).0;
+    let tiled_db = pairs_psnr(pairs, &t_large, &|_, q| {
+        let q: Vec<Query> = q.iter().map(|x| Query { uv: x.uv.map(|u| u * ratio), ..*x }).collect();
+        shade(small, &q)
+    })
+    .0;
+    // The window: uv over the small sample, moved onto the piece.
+    let to_piece = |x: &Query| {
+        let uv = [0, 1].map(|k| {
+            (sample.offset_mm[k] - large.offset_mm[k] + x.uv[k] * sample.size_mm) / large.size_mm
+        });
+        Query { uv, ..*x }
+    };
+    let t_small = truth_answers(pairs, &sample);
+    let window_enlarged = pairs_psnr(pairs, &t_small, &|_, q| {
+        shade(enlarged, &q.iter().map(to_piece).collect::<Vec<_>>())
+    })
+    .0;
+    let window_sample = pairs_psnr(pairs, &t_small, &|_, q| shade(small, q)).0;
+    EnlargementScores { enlarged: enlarged_db, tiled: tiled_db, window_enlarged, window_sample }
+}

@@ -30,6 +30,26 @@ pub struct DirectManifest {
     pub size_mm: [f64; 2],
     /// The images, one per direction.
     pub image: Vec<DirectImage>,
+    /// A direct image of a diffuse white target of known albedo, taken
+    /// with the same light: it puts the images on an absolute scale.
+    /// Without it the scale is estimated from the images themselves.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub white: Option<WhiteImage>,
+}
+
+/// The white reference of a set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WhiteImage {
+    /// Its file in the directory: a linear RGB EXR of the target (its
+    /// central half, along each side, is used).
+    pub file: String,
+    /// The direction it was taken from (as [`DirectImage::direction`]).
+    pub direction: [f64; 3],
+    /// Its exposure, s.
+    pub exposure_s: f64,
+    /// The target's albedo (its certificate's), in (0, 1].
+    pub albedo: f64,
 }
 
 /// One direct image.
@@ -97,33 +117,37 @@ impl DirectManifest {
         if self.image.is_empty() || self.image.len() > MAX_IMAGES {
             return Err(format!("{} images: need 1…{MAX_IMAGES}", self.image.len()));
         }
-        for (i, im) in self.image.iter().enumerate() {
-            let name = Path::new(&im.file);
+        let white = self.white.as_ref().map(|w| (w.file.as_str(), w.direction, w.exposure_s));
+        let all = self.image.iter().map(|im| (im.file.as_str(), im.direction, im.exposure_s));
+        let mut seen: Vec<&str> = Vec::new();
+        for (i, (file, d, exposure_s)) in all.chain(white).enumerate() {
+            let what = if i < self.image.len() { format!("image {i}") } else { "white".into() };
+            let name = Path::new(file);
             let plain = name.components().count() == 1
                 && matches!(name.components().next(), Some(std::path::Component::Normal(_)));
             if !plain {
-                return Err(format!(
-                    "image {i}: file {:?} is not a name in the directory",
-                    im.file
-                ));
+                return Err(format!("{what}: file {file:?} is not a name in the directory"));
             }
-            if self.image[..i].iter().any(|o| o.file == im.file) {
-                return Err(format!("image {i}: file {:?} is listed twice", im.file));
+            if seen.contains(&file) {
+                return Err(format!("{what}: file {file:?} is listed twice"));
             }
-            let d = im.direction;
+            seen.push(file);
             let len = d.iter().map(|x| x * x).sum::<f64>().sqrt();
             if !((len - 1.0).abs() <= UNIT_TOLERANCE && d[2] > 0.0) {
                 return Err(format!(
-                    "image {i} ({}): direction {d:?} is not a unit vector above the piece",
-                    im.file
+                    "{what} ({file}): direction {d:?} is not a unit vector above the piece"
                 ));
             }
-            if !(im.exposure_s.is_finite() && im.exposure_s > 0.0) {
+            if !(exposure_s.is_finite() && exposure_s > 0.0) {
                 return Err(format!(
-                    "image {i} ({}): exposure_s {} is not a positive time",
-                    im.file, im.exposure_s
+                    "{what} ({file}): exposure_s {exposure_s} is not a positive time"
                 ));
             }
+        }
+        if let Some(w) = &self.white
+            && !(w.albedo > 0.0 && w.albedo <= 1.0)
+        {
+            return Err(format!("white ({}): albedo {} outside (0, 1]", w.file, w.albedo));
         }
         Ok(())
     }
@@ -151,6 +175,12 @@ mod tests {
                     mirror: None,
                 },
             ],
+            white: Some(WhiteImage {
+                file: "w.exr".into(),
+                direction: [0.0, 0.0, 1.0],
+                exposure_s: 0.01,
+                albedo: 0.98,
+            }),
         }
     }
 
@@ -173,11 +203,19 @@ mod tests {
             (Box::new(|m| m.image[0].direction = [0.6, 0.0, -0.8]), "not a unit vector"),
             (Box::new(|m| m.image[1].exposure_s = 0.0), "exposure_s 0 is not"),
             (Box::new(|m| m.image[1].exposure_s = f64::INFINITY), "exposure_s inf"),
+            (Box::new(|m| m.white.as_mut().unwrap().file = "a.exr".into()), "white: file"),
+            (Box::new(|m| m.white.as_mut().unwrap().albedo = 1.5), "albedo 1.5 outside (0, 1]"),
+            (Box::new(|m| m.white.as_mut().unwrap().albedo = f64::NAN), "albedo NaN"),
+            (Box::new(|m| m.white.as_mut().unwrap().exposure_s = -1.0), "white (w.exr): exposure"),
+            (
+                Box::new(|m| m.white.as_mut().unwrap().direction[2] = 0.0),
+                "white (w.exr): direction",
+            ),
         ];
         for (edit, want) in cases {
             let mut m = good();
             edit(&mut m);
-            let e = m.check().unwrap_err();
+            let e = m.check().expect_err(want);
             assert!(e.contains(want), "{e} (wanted {want})");
         }
         let unknown = format!("{}\ncolour = 1\n", good().to_toml());

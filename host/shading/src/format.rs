@@ -34,6 +34,9 @@ pub const VERSION_LIGHT_DETAIL: u32 = 4;
 /// model, detail layer, light components) are as their own keys say. This
 /// crate reads versions 1 to 5.
 pub const VERSION_ENLARGED: u32 = 5;
+/// An enlargement map's unit: the scanned sample's side over it. A map
+/// value m is the sample's u (or v) (m + ½) / 65 536.
+pub const ENLARGEMENT_UNITS: u32 = 65536;
 /// Most columns or rows of an enlargement map.
 pub const MAX_ENLARGEMENT: u32 = 16384;
 /// The detail layer's range: every factor lies in [1 / it, it].
@@ -127,6 +130,9 @@ pub struct Enlargement {
     /// The directions (sample-local, unit, towards the camera and the
     /// light) of the direct images the signatures were taken from.
     pub directions: Vec<[f64; 3]>,
+    /// SHA-256 of the direct images' manifest (docs/direct-images.md).
+    #[serde(default)]
+    pub direct_sha256: String,
 }
 
 /// The JSON document stored under [`METADATA_KEY`].
@@ -247,9 +253,9 @@ pub struct MaterialData {
     /// `[L][R]`: each light's coefficients on the light components.
     pub detail_coefficients: Vec<f32>,
     /// `[rows][columns]` (row along v, column along u) of the enlargement
-    /// map, when `meta.enlargement`: the (column s, row t) of the scanned
-    /// sample's S × S texel that the large piece's texel looks like; empty
-    /// otherwise.
+    /// map, when `meta.enlargement`: where on the scanned sample the large
+    /// piece's texel centre looks alike, (u, v) each as (m + ½) / 65 536
+    /// ([`ENLARGEMENT_UNITS`]); empty otherwise.
     pub enlargement: Vec<[u16; 2]>,
 }
 
@@ -714,14 +720,6 @@ impl MaterialData {
                 .chunks_exact(4)
                 .map(|b| [u16::from_le_bytes([b[0], b[1]]), u16::from_le_bytes([b[2], b[3]])])
                 .collect();
-            if let Some(i) = map.iter().position(|p| p.iter().any(|&x| x as usize >= s)) {
-                return Err(MaterialError::Value(format!(
-                    "enlargement: texel ({}, {}) names {:?}, outside the {s} × {s} texels",
-                    i % c,
-                    i / c,
-                    map[i]
-                )));
-            }
             map
         } else {
             Vec::new()

@@ -127,29 +127,30 @@ pub struct Material {
 struct UvMap {
     columns: usize,
     rows: usize,
-    /// `[rows][columns]`: the scanned sample's texel (s, t).
-    texels: Vec<[u16; 2]>,
-    /// One map texel in the scanned sample's texels, along u and v.
+    /// `[rows][columns]`: the scanned sample's uv at the texel's centre.
+    centres: Vec<[f32; 2]>,
+    /// One map texel's side in the scanned sample's uv, along u and v.
     scale: [f32; 2],
 }
 
 impl UvMap {
-    fn new(meta: &Metadata, texels: Vec<[u16; 2]>) -> Option<UvMap> {
+    fn new(meta: &Metadata, map: &[[u16; 2]]) -> Option<UvMap> {
         let e = meta.enlargement.as_ref()?;
-        let sample_texel = meta.sample_size_mm / meta.resolution as f64;
         let (columns, rows) = (e.columns as usize, e.rows as usize);
+        let units = format::ENLARGEMENT_UNITS as f32;
         let scale = [
-            (meta.extent_mm[0] / columns as f64 / sample_texel) as f32,
-            (meta.extent_mm[1] / rows as f64 / sample_texel) as f32,
+            (meta.extent_mm[0] / columns as f64 / meta.sample_size_mm) as f32,
+            (meta.extent_mm[1] / rows as f64 / meta.sample_size_mm) as f32,
         ];
-        Some(UvMap { columns, rows, texels, scale })
+        let centres = map.iter().map(|m| m.map(|x| (x as f32 + 0.5) / units)).collect();
+        Some(UvMap { columns, rows, centres, scale })
     }
 
     /// The scanned sample's uv for a finite uv over the large piece
     /// (wrapped into [0, 1)): its map texel's match, moved by the uv's
     /// offset from that texel's centre, within the sample.
     #[inline(always)]
-    fn scanned(&self, uv: [f32; 2], size: usize) -> [f32; 2] {
+    fn scanned(&self, uv: [f32; 2]) -> [f32; 2] {
         let at = |u: f32, n: usize| {
             let x = (u - u.floor()) * n as f32;
             let i = (x as usize).min(n - 1);
@@ -157,12 +158,11 @@ impl UvMap {
         };
         let (c, dx) = at(uv[0], self.columns);
         let (r, dy) = at(uv[1], self.rows);
-        let [s, t] = self.texels[r * self.columns + c];
-        let n = size as f32;
+        let m = self.centres[r * self.columns + c];
         let below_one = 1.0 - f32::EPSILON;
         [
-            ((s as f32 + 0.5 + dx * self.scale[0]) / n).clamp(0.0, below_one),
-            ((t as f32 + 0.5 + dy * self.scale[1]) / n).clamp(0.0, below_one),
+            (m[0] + dx * self.scale[0]).clamp(0.0, below_one),
+            (m[1] + dy * self.scale[1]).clamp(0.0, below_one),
         ]
     }
 }
@@ -409,7 +409,7 @@ impl Material {
             components: m.detail_components as usize,
             detail_coefficients: d.detail_coefficients,
             importance,
-            enlargement: UvMap::new(&d.meta, d.enlargement),
+            enlargement: UvMap::new(&d.meta, &d.enlargement),
             meta: d.meta,
         })
     }
@@ -420,7 +420,7 @@ impl Material {
     #[inline(always)]
     pub fn scanned_uv(&self, uv: [f32; 2]) -> [f32; 2] {
         match &self.enlargement {
-            Some(m) if uv[0].is_finite() && uv[1].is_finite() => m.scanned(uv, self.size),
+            Some(m) if uv[0].is_finite() && uv[1].is_finite() => m.scanned(uv),
             _ => uv,
         }
     }

@@ -1259,10 +1259,9 @@ fn sampling_refuses_what_is_not_a_view() {
 }
 
 /// `d` enlarged (version 5) to a `columns` × `rows` piece of `extent_mm`
-/// whose texel (c, r) names the sample's texel ((3c + r) mod S, (c + 2r)
-/// mod S).
+/// whose texel (c, r) is matched at the sample's fixed-point uv
+/// ((7919 (3c + r)) mod 2¹⁶, (104 729 (c + 2r)) mod 2¹⁶).
 fn enlarged(mut d: MaterialData, columns: u32, rows: u32, extent_mm: [f64; 2]) -> MaterialData {
-    let s = d.meta.resolution;
     d.meta.version = format::VERSION_ENLARGED;
     d.meta.extent_mm = extent_mm;
     d.meta.enlargement = Some(format::Enlargement {
@@ -1270,11 +1269,12 @@ fn enlarged(mut d: MaterialData, columns: u32, rows: u32, extent_mm: [f64; 2]) -
         rows,
         signature: "colour".into(),
         directions: vec![[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]],
+        direct_sha256: "3".repeat(64),
     });
     d.enlargement = (0..rows * columns)
         .map(|i| {
             let (c, r) = (i % columns, i / columns);
-            [((3 * c + r) % s) as u16, ((c + 2 * r) % s) as u16]
+            [(7919 * (3 * c + r) % 65536) as u16, (104_729 * (c + 2 * r) % 65536) as u16]
         })
         .collect();
     d
@@ -1283,7 +1283,6 @@ fn enlarged(mut d: MaterialData, columns: u32, rows: u32, extent_mm: [f64; 2]) -
 #[test]
 fn an_enlarged_material_shades_each_texel_of_the_piece_as_its_match() {
     let mut rng = ChaCha8Rng::seed_from_u64(51);
-    let s = 8.0f64;
     for (base, name) in [
         (material(Interpolation::Default), "default"),
         (material_with_model(), "texel model"),
@@ -1291,8 +1290,8 @@ fn an_enlarged_material_shades_each_texel_of_the_piece_as_its_match() {
         (with_light_detail(material_with_model()), "light components"),
         (material(Interpolation::Patent { columns: 24, rows: 6, points: 10 }), "patent"),
     ] {
-        // 21 × 14 texels over 2.5 × 2 sample widths: a map texel is 0.952
-        // and 1.143 of the sample's texels along u and v.
+        // 21 × 14 texels over 2.5 × 2 sample widths: a map texel is 0.119
+        // and 0.143 of the sample's side along u and v.
         let extent = [2.5 * 25.4, 2.0 * 25.4];
         let (cols, rows) = (21u32, 14u32);
         let big = enlarged(base.clone(), cols, rows, extent);
@@ -1300,19 +1299,21 @@ fn an_enlarged_material_shades_each_texel_of_the_piece_as_its_match() {
         let plain = Material::from_bytes(&base.to_bytes().unwrap()).unwrap();
         let m = Material::from_bytes(&big.to_bytes().unwrap()).unwrap();
         assert_eq!(m.metadata().extent_mm, extent);
-        let scale = [extent[0] / cols as f64 / (25.4 / s), extent[1] / rows as f64 / (25.4 / s)];
+        let scale = [extent[0] / cols as f64 / 25.4, extent[1] / rows as f64 / 25.4];
         for _ in 0..300 {
             let uv = [rng.random_range(-1.0..2.0f32), rng.random_range(-1.0..2.0f32)];
             let (wi, wo) = (random_dir(&mut rng, 60.0), random_dir(&mut rng, 60.0));
             // Independently, in f64: the map texel, the offset from its
-            // centre, the match's texel centre moved by it.
+            // centre, the match moved by it.
             let wrap = |u: f32| u as f64 - (u as f64).floor();
             let (x, y) = (wrap(uv[0]) * cols as f64, wrap(uv[1]) * rows as f64);
             let (c, r) = (x.floor() as usize, y.floor() as usize);
             let [ms, mt] = map[r * cols as usize + c];
             let want_uv = [
-                ((ms as f64 + 0.5 + (x - c as f64 - 0.5) * scale[0]) / s).clamp(0.0, 0.999_999),
-                ((mt as f64 + 0.5 + (y - r as f64 - 0.5) * scale[1]) / s).clamp(0.0, 0.999_999),
+                ((ms as f64 + 0.5) / 65536.0 + (x - c as f64 - 0.5) * scale[0])
+                    .clamp(0.0, 0.999_999),
+                ((mt as f64 + 0.5) / 65536.0 + (y - r as f64 - 0.5) * scale[1])
+                    .clamp(0.0, 0.999_999),
             ];
             let got_uv = m.scanned_uv(uv);
             for k in 0..2 {
@@ -1321,11 +1322,11 @@ fn an_enlarged_material_shades_each_texel_of_the_piece_as_its_match() {
             let (a, b) = (m.eval(uv, wi, wo), plain.eval(got_uv, wi, wo));
             assert_eq!(a, b, "{name}: {uv:?}");
         }
-        // At a map texel's centre the answer is the match's texel's own.
+        // At a map texel's centre: its match.
         let at = m.scanned_uv([(4.0 + 0.5) / cols as f32, (9.0 + 0.5) / rows as f32]);
         let [ms, mt] = map[9 * cols as usize + 4];
-        assert!((at[0] - (ms as f32 + 0.5) / 8.0).abs() < 1e-6, "{name}");
-        assert!((at[1] - (mt as f32 + 0.5) / 8.0).abs() < 1e-6, "{name}");
+        assert!((at[0] - (ms as f32 + 0.5) / 65536.0).abs() < 1e-6, "{name}");
+        assert!((at[1] - (mt as f32 + 0.5) / 65536.0).abs() < 1e-6, "{name}");
         assert!(batch_as_eval(&m, &random_queries(&mut rng, 500)) > 0, "{name}");
         // A uv that is not finite is black, as it is without a map.
         assert_eq!(m.eval([f32::NAN, 0.5], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]), [0.0; 3]);
@@ -1351,13 +1352,10 @@ fn bad_enlargements_are_refused() {
     };
     let good = || enlarged(material(Interpolation::Default), 5, 3, [40.0, 24.0]);
     assert_eq!(e(good()), "accepted");
+    // Every 16-bit value is a place on the sample.
     let mut d = good();
-    d.enlargement[7] = [2, 8];
-    let msg = e(d);
-    assert!(
-        msg.contains("enlargement: texel (2, 1) names [2, 8], outside the 8 × 8 texels"),
-        "{msg}"
-    );
+    d.enlargement[7] = [0, u16::MAX];
+    assert_eq!(e(d), "accepted");
     let mut d = good();
     d.enlargement.pop();
     assert!(e(d).contains("enlargement: 14 texels for 5 × 3"));
@@ -1388,7 +1386,8 @@ fn bad_enlargements_are_refused() {
     let bytes = good().to_bytes().unwrap();
     let stripped = with_metadata(&bytes, |json| {
         let start = json.find(",\"enlargement\"").unwrap();
-        let end = start + json[start..].find("]]}").unwrap() + 3;
+        let sha = start + json[start..].find("direct_sha256").unwrap();
+        let end = sha + json[sha..].find("\"}").unwrap() + 2;
         format!("{}{}", &json[..start], &json[end..]).replace("\"version\":5", "\"version\":1")
     });
     let msg = Material::from_bytes(&stripped).unwrap_err().to_string();

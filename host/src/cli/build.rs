@@ -637,6 +637,55 @@ pub fn shade_cmd(material: &Path, queries: &Path, output: &Path) -> Result<(), F
     Ok(())
 }
 
+/// `scanner enlarge`
+pub fn enlarge_cmd(
+    material: &Path,
+    direct: &Path,
+    output: &Path,
+    opts: &crate::build::enlarge::EnlargeOptions,
+) -> Result<(), Failure> {
+    use crate::build::enlarge::{enlarge, read_direct_set};
+    let manifest = direct.join(scanner_formats::direct::MANIFEST);
+    crate::fsutil::check_output(output, &[material, &manifest])
+        .map_err(|e| Failure(4, anyhow!(e)))?;
+    let started = Instant::now();
+    let bytes = scanner_formats::input::read(material)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let data = scanner_shading::MaterialData::from_bytes(&bytes)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
+    let set = read_direct_set(direct).map_err(build_failure)?;
+    if let Some(im) = set.manifest.image.iter().find(|im| output == direct.join(&im.file)) {
+        return Err(Failure(4, anyhow!("{}: the output would replace a direct image", im.file)));
+    }
+    let (enlarged, report) = enlarge(&data, &set, opts).map_err(build_failure)?;
+    let bytes =
+        enlarged.to_bytes().map_err(|e| Failure(4, anyhow!("material not written: {e}")))?;
+    crate::fsutil::write_atomic(output, &bytes)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+    let s = data.meta.resolution as usize;
+    println!(
+        "{}: {} × {} texels over {} × {} mm from {}, each matched to one of the sample's {}² \
+         ({} used); signature distance median {:.3}, 90th percentile {:.3}; direct images' \
+         gain {:.3e} {:.3e} {:.3e}; {:.1} MB in {:.1} s",
+        output.display(),
+        report.columns,
+        report.rows,
+        set.manifest.size_mm[0],
+        set.manifest.size_mm[1],
+        count(set.images.len(), "direct image"),
+        s,
+        report.texels_used,
+        report.distance[0],
+        report.distance[1],
+        report.gain[0],
+        report.gain[1],
+        report.gain[2],
+        bytes.len() as f64 / 1e6,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
 /// The encoding of previews and contact sheets: π·value (a white target's
 /// albedo), Reinhard, sRGB.
 fn encode_srgb(v: f32) -> u8 {

@@ -157,6 +157,30 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Enlarge a material scanned on a small sample to a large piece of the
+    /// same material seen in direct images (Fig. 9, docs/direct-images.md):
+    /// each texel of the piece is matched to the sample's texel whose
+    /// colours around it look most alike in every direct image. The output
+    /// material's uv spans the piece.
+    Enlarge {
+        /// Material file of the sample (from `scanner build`).
+        material: PathBuf,
+        /// Directory of direct images with their `direct.toml`
+        /// (`hil-sim direct` writes one).
+        #[arg(long)]
+        direct: PathBuf,
+        /// Output material file.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// The signature's neighbourhood: (2 R + 1)² texels (1: the
+        /// patent's 3 × 3; 0…4).
+        #[arg(long, default_value_t = crate::build::enlarge::EnlargeOptions::DEFAULT.radius)]
+        radius: usize,
+        /// Candidate points per texel of the sample along u and v (1…4): a
+        /// texel of the piece may match a point between the sample's texels.
+        #[arg(long, default_value_t = crate::build::enlarge::EnlargeOptions::DEFAULT.subtexel)]
+        subtexel: usize,
+    },
     /// A preview PNG of a material: the sample's extent under three light
     /// directions, seen from the direction farthest from every captured view
     /// (20°…45° from the normal).
@@ -633,6 +657,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Shade { material, queries, output } => {
             build::shade_cmd(&material, &queries, &output)?
+        }
+        Command::Enlarge { material, direct, output, radius, subtexel } => {
+            let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel };
+            build::enlarge_cmd(&material, &direct, &output, &opts)?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {

@@ -1,0 +1,578 @@
+//! Fig. 9: a material scanned on a small sample, enlarged to a large piece
+//! of the same material seen in direct images (docs/direct-images.md).
+//!
+//! Every texel of the large piece is matched to the scanned sample's texel
+//! whose **colour signature** is nearest (squared Euclidean distance): the
+//! RGB of its 3 × 3 neighbourhood in every direct image, against the same
+//! neighbourhood of the material shaded at the images' directions (light
+//! and view both along an image's direction, as the direct images are
+//! taken). The map is stored in the material (format version 5), and the
+//! shading looks every uv of the piece up through it.
+//!
+//! - Both sides are compared at the material's texel pitch: the direct
+//!   images are averaged over each map texel's area, the material over
+//!   2 × 2 points of each of its texels.
+//! - One gain per channel puts the direct images on the material's scale
+//!   (their mean over all images against the material's at the same
+//!   directions): direct images need no absolute calibration, but a piece
+//!   brighter on average than the sample is matched as if it were not.
+//! - Signatures compare logarithms (each value plus 2 % of its image's
+//!   mean), so that a highlight's texels do not outweigh the rest.
+//! - The nearest signature is found exactly among a k-d tree's
+//!   [`CANDIDATES`] nearest in the signatures' first [`PCA_DIMS`]
+//!   principal components ([`kiddo`]'s immutable tree), then compared in
+//!   full.
+
+use std::num::NonZero;
+use std::path::Path;
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
+use scanner_formats::direct::DirectManifest;
+use scanner_shading::Material;
+use scanner_shading::format::{
+    ENLARGEMENT_UNITS, Enlargement, MAX_ENLARGEMENT, MaterialData, VERSION_ENLARGED,
+};
+
+use super::BuildError;
+use crate::camera::Frame;
+
+/// Principal components the k-d tree searches in.
+pub const PCA_DIMS: usize = 12;
+/// Nearest candidates in the principal components compared in full.
+pub const CANDIDATES: usize = 16;
+/// The map's fixed-point units of the sample's side.
+const MAP_UNITS: f64 = ENLARGEMENT_UNITS as f64;
+/// Rounds of the gain from the matches, at most.
+const GAIN_ROUNDS: usize = 6;
+/// A gain's change (log) below which it has settled.
+const GAIN_SETTLED: f64 = 0.002;
+/// The log signature's floor: this fraction of each image's mean.
+const LOG_FLOOR: f64 = 0.02;
+
+/// How texels are matched.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EnlargeOptions {
+    /// The signature's neighbourhood: (2 radius + 1)² texels (1: the
+    /// patent's 3 × 3).
+    pub radius: usize,
+    /// Candidate points per texel of the sample along u and v (1…4): a
+    /// piece's texel may match a point between the sample's texels.
+    pub subtexel: usize,
+}
+
+impl EnlargeOptions {
+    /// The defaults (docs/benchmarks.md, "Enlargement", measures them).
+    pub const DEFAULT: EnlargeOptions = EnlargeOptions { radius: 1, subtexel: 2 };
+}
+
+impl Default for EnlargeOptions {
+    fn default() -> Self {
+        EnlargeOptions::DEFAULT
+    }
+}
+
+/// A set of direct images, read and checked.
+#[derive(Debug, Clone)]
+pub struct DirectSet {
+    /// Its manifest.
+    pub manifest: DirectManifest,
+    /// The images in the manifest's order, all of one size, values finite
+    /// and ≥ 0.
+    pub images: Vec<Frame>,
+    /// The white reference's image, when the manifest names one.
+    pub white: Option<Frame>,
+    /// SHA-256 of `direct.toml`.
+    pub sha256: String,
+}
+
+/// Read the direct images in `dir` (docs/direct-images.md).
+pub fn read_direct_set(dir: &Path) -> Result<DirectSet, BuildError> {
+    let manifest = DirectManifest::read(dir).map_err(|e| BuildError::Input(e.to_string()))?;
+    let manifest_path = dir.join(scanner_formats::direct::MANIFEST);
+    let text = scanner_formats::input::read(&manifest_path)
+        .map_err(|e| BuildError::Input(format!("{}: {e}", manifest_path.display())))?;
+    let sha256 = crate::scan::sha256_hex(&text);
+    let read = |file: &str| -> Result<Frame, BuildError> {
+        let path = dir.join(file);
+        let frame = crate::exrio::read_rgb(&path).map_err(BuildError::Input)?;
+        if let Some(i) = frame.rgb.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+            let p = i / 3;
+            return Err(BuildError::Input(format!(
+                "{}: pixel ({}, {}) holds {}, not a radiance ≥ 0",
+                path.display(),
+                p % frame.width as usize,
+                p / frame.width as usize,
+                frame.rgb[i]
+            )));
+        }
+        Ok(frame)
+    };
+    let white = manifest.white.as_ref().map(|w| read(&w.file)).transpose()?;
+    let mut images: Vec<Frame> = Vec::new();
+    for im in &manifest.image {
+        let path = dir.join(&im.file);
+        let frame = read(&im.file)?;
+        if let Some(first) = images.first()
+            && (frame.width, frame.height) != (first.width, first.height)
+        {
+            return Err(BuildError::Input(format!(
+                "{}: {} × {} px, but {} is {} × {} px: the images of a set cover the piece \
+                 alike",
+                path.display(),
+                frame.width,
+                frame.height,
+                manifest.image[0].file,
+                first.width,
+                first.height
+            )));
+        }
+        images.push(frame);
+    }
+    Ok(DirectSet { manifest, images, white, sha256 })
+}
+
+/// How the enlargement went.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EnlargeReport {
+    /// The map's texels along u and v.
+    pub columns: u32,
+    /// See `columns`.
+    pub rows: u32,
+    /// The gain per channel that put the direct images on the material's
+    /// scale: from the white reference, or without one first the ratio of
+    /// their means, then the median ratio of the texels' matches to them
+    /// until it settles.
+    pub gain: [f64; 3],
+    /// The matches' signature distance, RMS per signature value (a log
+    /// ratio: 0.1 ≈ 10 %), median and 90th percentile.
+    pub distance: [f64; 2],
+    /// Distinct points of the sample the map uses.
+    pub texels_used: usize,
+}
+
+/// `data` (a material of the small sample) enlarged to the piece of the
+/// direct images `set`.
+pub fn enlarge(
+    data: &MaterialData,
+    set: &DirectSet,
+    opts: &EnlargeOptions,
+) -> Result<(MaterialData, EnlargeReport), BuildError> {
+    if data.meta.enlargement.is_some() {
+        return Err(BuildError::Input(
+            "the material is enlarged already: enlarge the material of the sample".into(),
+        ));
+    }
+    let material = Material::from_data(data.clone())
+        .map_err(|e| BuildError::Input(format!("the material: {e}")))?;
+    let s = data.meta.resolution as usize;
+    let pitch = data.meta.sample_size_mm / s as f64;
+    let size_mm = set.manifest.size_mm;
+    let texels = |mm: f64| (mm / pitch).round().max(1.0);
+    let (columns, rows) = (texels(size_mm[0]), texels(size_mm[1]));
+    if columns > MAX_ENLARGEMENT as f64 || rows > MAX_ENLARGEMENT as f64 {
+        return Err(BuildError::Input(format!(
+            "a piece of {} × {} mm is {columns} × {rows} texels of the material's {pitch:.3} mm: \
+             at most {MAX_ENLARGEMENT} a side",
+            size_mm[0], size_mm[1]
+        )));
+    }
+    let (columns, rows) = (columns as usize, rows as usize);
+    let directions: Vec<[f64; 3]> = set
+        .manifest
+        .image
+        .iter()
+        .map(|im| {
+            let d = im.direction;
+            let len = d.iter().map(|x| x * x).sum::<f64>().sqrt();
+            d.map(|x| x / len)
+        })
+        .collect();
+
+    // The piece at the map's pitch, on one scale (÷ exposure).
+    let piece: Vec<Vec<[f64; 3]>> = set
+        .images
+        .iter()
+        .zip(&set.manifest.image)
+        .map(|(f, im)| {
+            area_resample(f, columns, rows)
+                .into_iter()
+                .map(|v| v.map(|x| x / im.exposure_s))
+                .collect()
+        })
+        .collect();
+    // The sample: the material at each image's direction, averaged over a
+    // texel's area (4 × 4 points) around each point of a grid `sub` times
+    // finer than its texels, so that a match may lie between texels.
+    let sub = opts.subtexel;
+    let fine = sub * s;
+    let sample: Vec<Vec<[f64; 3]>> = directions
+        .iter()
+        .map(|d| {
+            let d = d.map(|x| x as f32);
+            (0..fine * fine)
+                .into_par_iter()
+                .map(|i| {
+                    let centre =
+                        [(i % fine) as f32 + 0.5, (i / fine) as f32 + 0.5].map(|c| c / sub as f32);
+                    let mut acc = [0.0f64; 3];
+                    for a in 0..4 {
+                        for b in 0..4 {
+                            let off = |k: usize| (k as f32 + 0.5) / 4.0 - 0.5;
+                            let uv =
+                                [(centre[0] + off(a)) / s as f32, (centre[1] + off(b)) / s as f32]
+                                    .map(|u| u.clamp(0.0, 1.0 - f32::EPSILON));
+                            let v = material.eval(uv, d, d);
+                            for c in 0..3 {
+                                acc[c] += v[c] as f64 / 16.0;
+                            }
+                        }
+                    }
+                    acc
+                })
+                .collect()
+        })
+        .collect();
+
+    let mean = |imgs: &[Vec<[f64; 3]>], k: usize, c: usize| {
+        imgs[k].iter().map(|v| v[c]).sum::<f64>() / imgs[k].len() as f64
+    };
+    let n_img = directions.len();
+    // The gain that puts the piece on the material's scale: absolute from
+    // the white reference (its radiance albedo/π · cos θ), else the ratio
+    // of the means, refined from the matches below.
+    let white_gain = match (&set.white, &set.manifest.white) {
+        (Some(frame), Some(w)) => Some(white_scale(frame, w)?),
+        _ => None,
+    };
+    let mut gain = [0.0; 3];
+    for (c, g) in gain.iter_mut().enumerate() {
+        let (a, b): (f64, f64) = (0..n_img)
+            .map(|k| (mean(&sample, k, c), mean(&piece, k, c)))
+            .fold((0.0, 0.0), |s, x| (s.0 + x.0, s.1 + x.1));
+        if !(a > 0.0 && b > 0.0) {
+            return Err(BuildError::Input(format!(
+                "channel {c} is black in {}: nothing to match by",
+                if b > 0.0 {
+                    "the material at the images' directions"
+                } else {
+                    "the direct images"
+                }
+            )));
+        }
+        *g = white_gain.map_or(a / b, |w| w[c]);
+    }
+    // Log values, each over a floor of its image's mean.
+    let floor: Vec<[f64; 3]> =
+        (0..n_img).map(|k| std::array::from_fn(|c| LOG_FLOOR * mean(&sample, k, c))).collect();
+    let logs = |imgs: &[Vec<[f64; 3]>], scale: [f64; 3]| -> Vec<Vec<[f32; 3]>> {
+        imgs.iter()
+            .enumerate()
+            .map(|(k, img)| {
+                img.iter()
+                    .map(|v| {
+                        std::array::from_fn(|c| {
+                            ((v[c] * scale[c]).max(0.0) + floor[k][c].max(1e-30)).ln() as f32
+                        })
+                    })
+                    .collect()
+            })
+            .collect()
+    };
+    let sample_log = logs(&sample, [1.0; 3]);
+    let r = opts.radius;
+    let sample_grid = Grid { logs: &sample_log, w: fine, h: fine, radius: r, step: sub };
+    let dims = sample_grid.dims();
+    let n = fine * fine;
+    let mut sample_sig = vec![0.0f32; n * dims];
+    sample_sig
+        .par_chunks_mut(dims)
+        .enumerate()
+        .for_each(|(i, sig)| sample_grid.signature(i % fine, i / fine, sig));
+
+    // Principal components of the sample's signatures.
+    let mut centre = vec![0.0f64; dims];
+    for sig in sample_sig.chunks_exact(dims) {
+        for (m, &x) in centre.iter_mut().zip(sig) {
+            *m += x as f64 / n as f64;
+        }
+    }
+    let cov = sample_sig
+        .par_chunks(dims * 256)
+        .map(|block| {
+            let mut c = vec![0.0f64; dims * dims];
+            let mut d = vec![0.0f64; dims];
+            for sig in block.chunks_exact(dims) {
+                for (di, (&x, m)) in d.iter_mut().zip(sig.iter().zip(&centre)) {
+                    *di = x as f64 - m;
+                }
+                for i in 0..dims {
+                    let di = d[i];
+                    for j in i..dims {
+                        c[i * dims + j] += di * d[j];
+                    }
+                }
+            }
+            c
+        })
+        .reduce(
+            || vec![0.0; dims * dims],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x += y;
+                }
+                a
+            },
+        );
+    let mut sym = cov;
+    for i in 0..dims {
+        for j in 0..i {
+            sym[i * dims + j] = sym[j * dims + i];
+        }
+    }
+    let (_, vectors) = super::linalg::symmetric_eigen(dims, &sym);
+    let axes: Vec<Vec<f32>> =
+        vectors.into_iter().take(PCA_DIMS).map(|v| v.iter().map(|&x| x as f32).collect()).collect();
+    let centre32: Vec<f32> = centre.iter().map(|&x| x as f32).collect();
+    let project = |sig: &[f32]| -> [f32; PCA_DIMS] {
+        std::array::from_fn(|p| {
+            axes.get(p).map_or(0.0, |a| {
+                sig.iter().zip(&centre32).zip(a).map(|((x, m), w)| (x - m) * w).sum()
+            })
+        })
+    };
+    let points: Vec<[f32; PCA_DIMS]> = sample_sig.par_chunks(dims).map(project).collect();
+    let tree: ImmutableKdTree<f32, PCA_DIMS> = ImmutableKdTree::new_from_slice(&points);
+    let want = NonZero::new(CANDIDATES.min(n)).expect("a material has texels");
+    let distance = |i: usize, sig: &[f32]| -> f32 {
+        sample_sig[i * dims..][..dims].iter().zip(sig).map(|(a, b)| (a - b) * (a - b)).sum()
+    };
+    let nearest = |grid: &Grid<'_>| -> Vec<(usize, f32)> {
+        (0..columns * rows)
+            .into_par_iter()
+            .map_init(
+                || vec![0.0f32; dims],
+                |sig, p| {
+                    grid.signature(p % columns, p / columns, sig);
+                    let q = project(sig);
+                    let mut best = (0usize, f32::INFINITY);
+                    for nn in tree.nearest_n::<SquaredEuclidean>(&q, want) {
+                        let i = nn.item as usize;
+                        let d = distance(i, sig);
+                        if d < best.1 || (d == best.1 && i < best.0) {
+                            best = (i, d);
+                        }
+                    }
+                    best
+                },
+            )
+            .collect()
+    };
+    // The gain again from the matches: the median log ratio of each
+    // texel's match to it, until it settles. The means' gain is off where
+    // the piece is brighter or darker on average than the sample, and its
+    // matches then all lean one way.
+    let mut piece_log = logs(&piece, gain);
+    let mut matches = nearest(&Grid { logs: &piece_log, w: columns, h: rows, radius: r, step: 1 });
+    for _ in 0..if white_gain.is_some() { 0 } else { GAIN_ROUNDS } {
+        let mut change = [0.0f64; 3];
+        for (c, ch) in change.iter_mut().enumerate() {
+            let mut ratios: Vec<f32> = matches
+                .iter()
+                .enumerate()
+                .map(|(p, &(i, _))| {
+                    (0..n_img).map(|k| sample_log[k][i][c] - piece_log[k][p][c]).sum::<f32>()
+                        / n_img as f32
+                })
+                .collect();
+            let mid = ratios.len() / 2;
+            *ch = *ratios.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
+        }
+        if change.iter().all(|x| x.abs() < GAIN_SETTLED) {
+            break;
+        }
+        for (g, ch) in gain.iter_mut().zip(change) {
+            *g *= ch.exp();
+        }
+        piece_log = logs(&piece, gain);
+        matches = nearest(&Grid { logs: &piece_log, w: columns, h: rows, radius: r, step: 1 });
+    }
+    // Each match as the sample's uv in 16-bit fixed point.
+    let fixed = |k: usize| {
+        let uv = (k as f64 + 0.5) / fine as f64;
+        (uv * MAP_UNITS - 0.5).round().clamp(0.0, MAP_UNITS - 1.0) as u16
+    };
+    let matches: Vec<([u16; 2], f32)> =
+        matches.into_iter().map(|(i, d)| ([fixed(i % fine), fixed(i / fine)], d)).collect();
+
+    let mut dist: Vec<f64> =
+        matches.iter().map(|m| (m.1.max(0.0) as f64 / dims as f64).sqrt()).collect();
+    dist.sort_by(f64::total_cmp);
+    let pct = |p: f64| dist[((dist.len() - 1) as f64 * p).round() as usize];
+    let mut used: Vec<[u16; 2]> = matches.iter().map(|m| m.0).collect();
+    used.sort_unstable();
+    used.dedup();
+    let report = EnlargeReport {
+        columns: columns as u32,
+        rows: rows as u32,
+        gain,
+        distance: [pct(0.5), pct(0.9)],
+        texels_used: used.len(),
+    };
+    let mut out = data.clone();
+    out.meta.version = VERSION_ENLARGED;
+    out.meta.extent_mm = size_mm;
+    out.meta.enlargement = Some(Enlargement {
+        columns: columns as u32,
+        rows: rows as u32,
+        signature: "colour".into(),
+        directions,
+        direct_sha256: set.sha256.clone(),
+    });
+    out.enlargement = matches.into_iter().map(|m| m.0).collect();
+    Ok((out, report))
+}
+
+/// Log images on a `w × h` grid whose points' signatures are their
+/// (2 radius + 1)² neighbourhoods `step` points apart (clamped at the
+/// border).
+struct Grid<'a> {
+    logs: &'a [Vec<[f32; 3]>],
+    w: usize,
+    h: usize,
+    radius: usize,
+    step: usize,
+}
+
+impl Grid<'_> {
+    /// Values in a signature.
+    fn dims(&self) -> usize {
+        let side = 2 * self.radius + 1;
+        3 * side * side * self.logs.len()
+    }
+
+    /// Texel (x, y)'s signature into `out` ([`Grid::dims`] values):
+    /// `[image][dy][dx][channel]`.
+    fn signature(&self, x: usize, y: usize, out: &mut [f32]) {
+        let (r, step) = (self.radius as isize, self.step as isize);
+        let mut k = 0;
+        for img in self.logs {
+            for dy in -r..=r {
+                let yy = (y as isize + dy * step).clamp(0, self.h as isize - 1) as usize;
+                for dx in -r..=r {
+                    let xx = (x as isize + dx * step).clamp(0, self.w as isize - 1) as usize;
+                    out[k..k + 3].copy_from_slice(&img[yy * self.w + xx]);
+                    k += 3;
+                }
+            }
+        }
+    }
+}
+
+/// The factor that takes a direct image's values ÷ its exposure to
+/// f · cos θi: the white reference's radiance over its central half's mean.
+fn white_scale(
+    frame: &Frame,
+    w: &scanner_formats::direct::WhiteImage,
+) -> Result<[f64; 3], BuildError> {
+    let (fw, fh) = (frame.width as usize, frame.height as usize);
+    let (x0, x1, y0, y1) = (fw / 4, (3 * fw).div_ceil(4), fh / 4, (3 * fh).div_ceil(4));
+    let mut sum = [0.0f64; 3];
+    for y in y0..y1 {
+        for x in x0..x1 {
+            for (c, s) in sum.iter_mut().enumerate() {
+                *s += frame.rgb[3 * (y * fw + x) + c] as f64;
+            }
+        }
+    }
+    let n = ((x1 - x0) * (y1 - y0)).max(1) as f64;
+    let cos = w.direction[2] / w.direction.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let radiance = w.albedo / std::f64::consts::PI * cos;
+    let mut out = [0.0; 3];
+    for c in 0..3 {
+        let level = sum[c] / n / w.exposure_s;
+        if !(level > 0.0) {
+            return Err(BuildError::Input(format!(
+                "{}: channel {c} is black: not a white reference",
+                w.file
+            )));
+        }
+        out[c] = radiance / level;
+    }
+    Ok(out)
+}
+
+/// `frame` averaged over each cell of a `w × h` grid laid over it (each
+/// pixel weighted by the share of its area inside the cell).
+pub fn area_resample(frame: &Frame, w: usize, h: usize) -> Vec<[f64; 3]> {
+    let (fw, fh) = (frame.width as usize, frame.height as usize);
+    let xs = area_weights(fw, w);
+    let ys = area_weights(fh, h);
+    (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let mut acc = [0.0f64; 3];
+            let mut total = 0.0;
+            for &(py, wy) in &ys[y] {
+                for &(px, wx) in &xs[x] {
+                    let wgt = wx * wy;
+                    let p = 3 * (py * fw + px);
+                    for c in 0..3 {
+                        acc[c] += wgt * frame.rgb[p + c] as f64;
+                    }
+                    total += wgt;
+                }
+            }
+            acc.map(|v| v / total)
+        })
+        .collect()
+}
+
+/// For each of `n_out` equal cells over `n_in` pixels: the pixels it
+/// overlaps and how much of each (in pixels).
+fn area_weights(n_in: usize, n_out: usize) -> Vec<Vec<(usize, f64)>> {
+    let step = n_in as f64 / n_out as f64;
+    (0..n_out)
+        .map(|o| {
+            let (a, b) = (o as f64 * step, (o + 1) as f64 * step);
+            let first = a.floor() as usize;
+            let last = (b.ceil() as usize).min(n_in);
+            (first..last)
+                .filter_map(|p| {
+                    let cover = (b.min(p as f64 + 1.0) - a.max(p as f64)).max(0.0);
+                    (cover > 1e-12).then_some((p, cover))
+                })
+                .collect()
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn area_resampling_keeps_the_mean_at_any_ratio() {
+        let (w, h) = (37u32, 23u32);
+        let rgb: Vec<f32> = (0..w * h * 3).map(|i| ((i * 7919) % 101) as f32 / 100.0).collect();
+        let f = Frame { width: w, height: h, rgb };
+        let mean_in: f64 = f.rgb.iter().map(|&v| v as f64).sum::<f64>() / f.rgb.len() as f64;
+        for (ow, oh) in [(37, 23), (10, 7), (5, 23), (74, 46), (13, 51)] {
+            let out = area_resample(&f, ow, oh);
+            let mean_out: f64 = out.iter().flatten().sum::<f64>() / (out.len() * 3) as f64;
+            assert!((mean_out - mean_in).abs() < 1e-9, "{ow} × {oh}: {mean_out} vs {mean_in}");
+        }
+        // At the same size every pixel is itself.
+        let same = area_resample(&f, 37, 23);
+        for (i, v) in same.iter().enumerate() {
+            for c in 0..3 {
+                assert!((v[c] - f.rgb[3 * i + c] as f64).abs() < 1e-6);
+            }
+        }
+        // Halving averages 2 × 2 blocks.
+        let g = Frame { width: 4, height: 2, rgb: (0..24).map(|i| i as f32).collect() };
+        let half = area_resample(&g, 2, 1);
+        assert_eq!(half[0], [(0.0 + 3.0 + 12.0 + 15.0) / 4.0, 8.5, 9.5]);
+    }
+}

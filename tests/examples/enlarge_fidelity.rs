@@ -1,0 +1,82 @@
+//! The enlargement's fidelity table (docs/benchmarks.md, "Enlargement"):
+//! the targets and each library material scanned on the simulator (HDR),
+//! calibrated, built; the direct images of each material's large piece
+//! rendered from the four mirror directions nearest the axis; the material
+//! enlarged to the piece; then material PSNR against the large piece's
+//! ground truth, beside the sample's material tiled over it, and over the
+//! window the sample is cut from, beside the sample's own material.
+//!
+//! `cargo run --release -p tests --example enlarge_fidelity -- [--bin 4] [--seed 1] [--out DIR] [--pairs 48] [--materials a,b]`
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use hil_sim::materials::{Sample, lookup};
+use hil_sim::optics::OpticalSim;
+use host::build::calibrate::Silent;
+use host::build::enlarge::{EnlargeOptions, enlarge, read_direct_set};
+use host::build::extract_regions;
+use host::build::material::{MaterialOptions, build_material};
+use host::build::scanread::ScanFrames;
+use scanner_shading::Material;
+
+fn main() {
+    let bin: u32 = tests::arg("--bin", 4);
+    let seed: u64 = tests::arg("--seed", 1);
+    let n_pairs: usize = tests::arg("--pairs", 48);
+    let out: PathBuf = tests::arg("--out", PathBuf::from("target/enlarge-fidelity"));
+    let list: String =
+        tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
+    let materials: Vec<&str> = list.split(',').collect();
+    let (g, cal, _) = tests::scanned_and_calibrated(&out, seed, bin, 40, &materials);
+    let pairs = tests::random_pairs(n_pairs, 60.0, seed);
+    println!(
+        "| material | S | map | enlarge | signature distance (median / 90th) | enlarged | tiled | \
+         window: enlarged | window: the sample's material |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for m in materials {
+        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
+        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
+        let prov = scanner_shading::format::Provenance {
+            scan_manifest_sha256: String::new(),
+            geometry_sha256: g.hash(),
+            calibration_sha256: String::new(),
+            builder: "enlarge_fidelity".into(),
+        };
+        let data =
+            build_material(&regions, m, 25.4, prov, &MaterialOptions::default(), &Silent).unwrap();
+        let small = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+        let truth = lookup(m).unwrap();
+        let sim = OpticalSim::as_built(&g, Sample::small(truth.clone()), seed);
+        let dir = out.join(format!(
+            "direct-{}",
+            tests::scan_dir(&out, m).file_name().unwrap().to_string_lossy()
+        ));
+        let scale = hil_sim::direct::mirror_view_scale(&g);
+        hil_sim::direct::write_set(&sim, truth.clone(), 4, scale, &dir).unwrap();
+        let set = read_direct_set(&dir).unwrap();
+        let t = Instant::now();
+        let opts = EnlargeOptions {
+            radius: tests::arg("--radius", EnlargeOptions::default().radius),
+            subtexel: tests::arg("--subtexel", EnlargeOptions::default().subtexel),
+        };
+        let (big, report) = enlarge(&data, &set, &opts).unwrap();
+        let secs = t.elapsed().as_secs_f64();
+        let big = Material::from_bytes(&big.to_bytes().unwrap()).unwrap();
+        let s = tests::enlargement_scores(&big, &small, truth, &pairs);
+        println!(
+            "| {m} | {} | {} × {} | {secs:.2} s | {:.3} / {:.3} | **{:.2} dB** | {:.2} dB | {:.2} dB | \
+             {:.2} dB |",
+            data.meta.resolution,
+            report.columns,
+            report.rows,
+            report.distance[0],
+            report.distance[1],
+            s.enlarged,
+            s.tiled,
+            s.window_enlarged,
+            s.window_sample
+        );
+    }
+}
