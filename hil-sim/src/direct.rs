@@ -99,7 +99,7 @@ pub fn write_set(
     }
     // The white reference, from the first image's direction.
     let target = DiffuseWhite::default();
-    let white_piece = Sample { size_mm: piece.size_mm, ..Sample::large(Arc::new(target.clone())) };
+    let white_piece = Sample { size_mm: piece.size_mm, ..Sample::large(Arc::new(target)) };
     let white = mirrors.first().map(|&(_, d)| -> Result<WhiteImage, String> {
         let (frame, exposure_s) = exposed(sim, &white_piece, d, px_per_mm);
         let file = "white.exr".to_string();

@@ -95,7 +95,8 @@ pub fn read_direct_set(dir: &Path) -> Result<DirectSet, BuildError> {
     let sha256 = crate::scan::sha256_hex(&text);
     let read = |file: &str| -> Result<Frame, BuildError> {
         let path = dir.join(file);
-        let frame = crate::exrio::read_rgb(&path).map_err(BuildError::Input)?;
+        let frame = crate::exrio::read_rgb(&path)
+            .map_err(|e| BuildError::Input(format!("{}: {e}", path.display())))?;
         if let Some(i) = frame.rgb.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
             let p = i / 3;
             return Err(BuildError::Input(format!(
@@ -163,7 +164,10 @@ pub fn enlarge(
             "the material is enlarged already: enlarge the material of the sample".into(),
         ));
     }
-    let material = Material::from_data(data.clone())
+    // Shaded as its file stores it (float16 palettes), as renderers will.
+    let material = data
+        .to_bytes()
+        .and_then(|b| Material::from_bytes(&b))
         .map_err(|e| BuildError::Input(format!("the material: {e}")))?;
     let s = data.meta.resolution as usize;
     let pitch = data.meta.sample_size_mm / s as f64;
@@ -491,7 +495,7 @@ fn white_scale(
     let mut out = [0.0; 3];
     for c in 0..3 {
         let level = sum[c] / n / w.exposure_s;
-        if !(level > 0.0) {
+        if level.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return Err(BuildError::Input(format!(
                 "{}: channel {c} is black: not a white reference",
                 w.file
@@ -518,8 +522,8 @@ pub fn area_resample(frame: &Frame, w: usize, h: usize) -> Vec<[f64; 3]> {
                 for &(px, wx) in &xs[x] {
                     let wgt = wx * wy;
                     let p = 3 * (py * fw + px);
-                    for c in 0..3 {
-                        acc[c] += wgt * frame.rgb[p + c] as f64;
+                    for (a, &v) in acc.iter_mut().zip(&frame.rgb[p..p + 3]) {
+                        *a += wgt * v as f64;
                     }
                     total += wgt;
                 }
