@@ -190,7 +190,8 @@ mod tests {
         let back: DirectManifest = toml::from_str(&m.to_toml()).unwrap();
         assert_eq!(back, m);
         assert_eq!(m.check(), Ok(()));
-        let cases: Vec<(Box<dyn Fn(&mut DirectManifest)>, &str)> = vec![
+        type Edit = Box<dyn Fn(&mut DirectManifest)>;
+        let cases: Vec<(Edit, &str)> = vec![
             (Box::new(|m| m.format = 2), "format 2"),
             (Box::new(|m| m.size_mm[1] = f64::NAN), "size_mm [80.0, NaN]"),
             (Box::new(|m| m.size_mm[0] = 0.0), "outside (0, 10000]"),

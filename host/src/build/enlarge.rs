@@ -569,9 +569,9 @@ mod tests {
         }
         // At the same size every pixel is itself.
         let same = area_resample(&f, 37, 23);
-        for (i, v) in same.iter().enumerate() {
-            for c in 0..3 {
-                assert!((v[c] - f.rgb[3 * i + c] as f64).abs() < 1e-6);
+        for (v, px) in same.iter().zip(f.rgb.chunks_exact(3)) {
+            for (a, &b) in v.iter().zip(px) {
+                assert!((a - b as f64).abs() < 1e-6);
             }
         }
         // Halving averages 2 × 2 blocks.
