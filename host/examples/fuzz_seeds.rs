@@ -18,7 +18,7 @@ mod synthetic;
 
 use scanner_formats::queries::{Query, write_answers, write_queries};
 use scanner_shading::Interpolation;
-use synthetic::{Shape, synthetic, with_detail, with_texel_model};
+use synthetic::{Shape, synthetic, with_detail, with_enlargement, with_texel_model};
 
 fn main() {
     let root = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: fuzz_seeds DIR"));
@@ -50,6 +50,19 @@ fn main() {
         (
             "light-detail-6",
             with_detail(synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 12), 2, 13),
+        ),
+        (
+            "enlarged-6",
+            with_enlargement(
+                with_texel_model(
+                    synthetic(&shape(6, 4, 4, 2), Interpolation::Default, 0.5, 14),
+                    15,
+                ),
+                5,
+                3,
+                [40.0, 24.0],
+                16,
+            ),
         ),
     ] {
         let bytes = m.to_bytes().unwrap();

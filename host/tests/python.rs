@@ -13,7 +13,7 @@ use scanner_shading::{Interpolation, MaterialData};
 #[path = "../benches/support/synthetic.rs"]
 mod synthetic;
 
-use synthetic::{Shape, synthetic, with_detail, with_texel_model};
+use synthetic::{Shape, synthetic, with_detail, with_enlargement, with_texel_model};
 
 /// The repository's root.
 fn root() -> PathBuf {
@@ -98,6 +98,25 @@ fn python_reads_the_material_file_from_the_spec() {
         ("plain", synthetic(&shape(4, 4, 1), Interpolation::Default, 0.0, 6)),
         // The patent's cell tables, with a detail layer of one component.
         ("patent", with_detail(synthetic(&shape(4, 8, 2), patent, 0.0, 7), 1, 8)),
+        // Version 5: enlarged to a piece of 3 × 2 samples' widths, 17 × 9
+        // texels, over a texel model and a detail layer.
+        (
+            "enlarged",
+            with_enlargement(
+                with_detail(
+                    with_texel_model(
+                        synthetic(&shape(8, 8, 2), Interpolation::Default, 0.5, 11),
+                        12,
+                    ),
+                    1,
+                    13,
+                ),
+                17,
+                9,
+                [76.2, 50.8],
+                14,
+            ),
+        ),
     ];
     for (k, (name, data)) in materials.iter().enumerate() {
         let material = dir.path().join(format!("{name}.material"));

@@ -145,6 +145,12 @@ def main(material, queries, answers):
     texels = t["texel_model"].astype(np.float64) if meta.get("texel_model") else None
     detail = t["detail"].astype(np.float64) if meta.get("detail") else None
     r = meta.get("detail_components", 0) or 0
+    enl = meta.get("enlargement")
+    if enl:
+        emap = t["enlargement"].astype(np.float64)
+        ecols, erows = enl["columns"], enl["rows"]
+        texel_mm = (meta["extent_mm"][0] / ecols, meta["extent_mm"][1] / erows)
+        escale = [x / meta["sample_size_mm"] for x in texel_mm]
     if r:
         bases = t["detail_bases"].astype(np.float64)
         coef = t["detail_coefficients"].astype(np.float64)
@@ -163,6 +169,13 @@ def main(material, queries, answers):
     out = np.zeros((len(q), 3), dtype=np.float32)
     for k, row in enumerate(q):
         u, w = row[0] - np.floor(row[0]), row[1] - np.floor(row[1])
+        if enl:
+            # Step 0: the piece's uv to the scanned sample's.
+            x, y = u * ecols, w * erows
+            c, rr = min(int(x), ecols - 1), min(int(y), erows - 1)
+            top = 1 - 2.0**-23
+            u = min(max((emap[rr, c, 0] + 0.5) / 65536 + (x - c - 0.5) * escale[0], 0.0), top)
+            w = min(max((emap[rr, c, 1] + 0.5) / 65536 + (y - rr - 0.5) * escale[1], 0.0), top)
         wi, wo = unit(row[2:5]), unit(row[5:8])
         if wi[2] <= 0 or wo[2] <= 0:
             continue

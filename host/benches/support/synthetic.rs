@@ -111,6 +111,30 @@ pub fn with_detail(mut data: MaterialData, components: usize, seed: u64) -> Mate
     data
 }
 
+/// `data` enlarged (version 5) to a `columns` × `rows` piece of
+/// `extent_mm`, each texel matched at a random place on the sample.
+#[allow(dead_code)] // not every includer enlarges
+pub fn with_enlargement(
+    mut data: MaterialData,
+    columns: u32,
+    rows: u32,
+    extent_mm: [f64; 2],
+    seed: u64,
+) -> MaterialData {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    data.meta.version = scanner_shading::format::VERSION_ENLARGED;
+    data.meta.extent_mm = extent_mm;
+    data.meta.enlargement = Some(scanner_shading::format::Enlargement {
+        columns,
+        rows,
+        signature: "colour".into(),
+        directions: vec![[0.0, 0.0, 1.0]],
+        direct_sha256: String::new(),
+    });
+    data.enlargement = (0..columns * rows).map(|_| [rng.random(), rng.random()]).collect();
+    data
+}
+
 /// `data` with a random texel model (version 2): albedos and F0 in
 /// [0, 1], α in [0.05, 0.5], normals within 20° of the sample's.
 pub fn with_texel_model(mut data: MaterialData, seed: u64) -> MaterialData {
