@@ -64,6 +64,17 @@ pub struct EnlargeOptions {
 impl EnlargeOptions {
     /// The defaults (docs/benchmarks.md, "Enlargement", measures them).
     pub const DEFAULT: EnlargeOptions = EnlargeOptions { radius: 1, subtexel: 2 };
+
+    /// The options in range: radius 0…3, subtexel 1…4.
+    pub fn check(&self) -> Result<(), String> {
+        if self.radius > 3 {
+            return Err(format!("--radius {}: 0…3", self.radius));
+        }
+        if !(1..=4).contains(&self.subtexel) {
+            return Err(format!("--subtexel {}: 1…4", self.subtexel));
+        }
+        Ok(())
+    }
 }
 
 impl Default for EnlargeOptions {
@@ -159,6 +170,7 @@ pub fn enlarge(
     set: &DirectSet,
     opts: &EnlargeOptions,
 ) -> Result<(MaterialData, EnlargeReport), BuildError> {
+    opts.check().map_err(BuildError::Input)?;
     if data.meta.enlargement.is_some() {
         return Err(BuildError::Input(
             "the material is enlarged already: enlarge the material of the sample".into(),

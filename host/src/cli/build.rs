@@ -645,6 +645,7 @@ pub fn enlarge_cmd(
     opts: &crate::build::enlarge::EnlargeOptions,
 ) -> Result<(), Failure> {
     use crate::build::enlarge::{enlarge, read_direct_set};
+    opts.check().map_err(|e| Failure(2, anyhow!(e)))?;
     let manifest = direct.join(scanner_formats::direct::MANIFEST);
     crate::fsutil::check_output(output, &[material, &manifest])
         .map_err(|e| Failure(4, anyhow!(e)))?;

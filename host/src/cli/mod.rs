@@ -173,7 +173,7 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
         /// The signature's neighbourhood: (2 R + 1)² texels (1: the
-        /// patent's 3 × 3; 0…4).
+        /// patent's 3 × 3; 0…3).
         #[arg(long, default_value_t = crate::build::enlarge::EnlargeOptions::DEFAULT.radius)]
         radius: usize,
         /// Candidate points per texel of the sample along u and v (1…4): a
