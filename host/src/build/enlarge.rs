@@ -160,7 +160,7 @@ pub struct EnlargeReport {
     /// ratio: 0.1 ≈ 10 %), median and 90th percentile.
     pub distance: [f64; 2],
     /// Distinct points of the sample the map uses.
-    pub texels_used: usize,
+    pub points_used: usize,
 }
 
 /// `data` (a material of the small sample) enlarged to the piece of the
@@ -433,7 +433,7 @@ pub fn enlarge(
         rows: rows as u32,
         gain,
         distance: [pct(0.5), pct(0.9)],
-        texels_used: used.len(),
+        points_used: used.len(),
     };
     let mut out = data.clone();
     out.meta.version = VERSION_ENLARGED;

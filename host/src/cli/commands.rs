@@ -1649,12 +1649,47 @@ pub fn demo(
         let glb = out.join(format!("{name}.glb"));
         super::build::export_cmd(&material_file, &glb, ExportFormat::Glb)?;
     }
+    // Fig. 9: the material widened to the large piece the sample was cut
+    // from, through direct images the simulator takes as a camera would.
+    let large = out.join(format!("{name}-large.material"));
+    let large_picture = out.join(format!("{name}-large-preview.png"));
+    {
+        let m = hil_sim::materials::lookup(material)
+            .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
+        let setup = crate::simulator::SimSetup {
+            bin,
+            seed,
+            geometry: match &geometry_file {
+                Some(p) => Some(ScannerGeometry::load(p).map_err(|e| Failure(3, anyhow!(e)))?),
+                None => None,
+            },
+            ..crate::simulator::SimSetup::new(material)
+        };
+        let nominal = setup.nominal().map_err(sim_failure)?;
+        let sim = hil_sim::optics::OpticalSim::as_built(
+            &nominal,
+            hil_sim::materials::Sample::small(m.clone()),
+            seed,
+        );
+        let direct = out.join(format!("{name}-direct"));
+        let scale = hil_sim::direct::mirror_view_scale(&nominal);
+        hil_sim::direct::write_set(&sim, m.clone(), 4, scale, &direct)
+            .map_err(|e| Failure(4, anyhow!(e)))?;
+        let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
+        super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
+        let enlarged = scanner_shading::Material::open(&large).map_err(|e| Failure(4, anyhow!(e)))?;
+        let piece = hil_sim::materials::Sample::large(m);
+        let truth = |q: &[scanner_formats::queries::Query]| hil_sim::truth::answer(&piece, q);
+        super::build::preview(&enlarged, (view, off), Some(&truth), &large_picture)?;
+    }
     let (theta, phi) = super::build::angles(view);
     println!(
         "demo: four scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
          look at {}: the material over the sample (top) and the simulator's ground truth \
          (bottom), seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest mirror), lit from \
-         (θ, φ) = {}",
+         (θ, φ) = {};\n\
+         and at {}: the material enlarged to the large piece the sample was cut from \
+         (its direct images in {name}-direct), over the same truth",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
         picture.display(),
@@ -1663,6 +1698,7 @@ pub fn demo(
             .map(|(t, p)| format!("({t:.0}°, {p:.0}°)"))
             .collect::<Vec<_>>()
             .join(", "),
+        large_picture.display(),
     );
     Ok(())
 }
