@@ -219,7 +219,8 @@ pub fn enlarge(
         .collect();
     // The sample: the material at each image's direction, averaged over a
     // texel's area (4 × 4 points) around each point of a grid `sub` times
-    // finer than its texels, so that a match may lie between texels.
+    // finer than its texels (its texel centres and the points between), so
+    // that a match may lie between texels.
     let sub = opts.subtexel;
     let fine = sub * s;
     let sample: Vec<Vec<[f64; 3]>> = directions
@@ -229,8 +230,9 @@ pub fn enlarge(
             (0..fine * fine)
                 .into_par_iter()
                 .map(|i| {
+                    // In texels: the texel centres and `sub − 1` points after each.
                     let centre =
-                        [(i % fine) as f32 + 0.5, (i / fine) as f32 + 0.5].map(|c| c / sub as f32);
+                        [(i % fine) as f32, (i / fine) as f32].map(|c| c / sub as f32 + 0.5);
                     let mut acc = [0.0f64; 3];
                     for a in 0..4 {
                         for b in 0..4 {
@@ -415,7 +417,7 @@ pub fn enlarge(
     }
     // Each match as the sample's uv in 16-bit fixed point.
     let fixed = |k: usize| {
-        let uv = (k as f64 + 0.5) / fine as f64;
+        let uv = (k as f64 / sub as f64 + 0.5) / s as f64;
         (uv * MAP_UNITS - 0.5).round().clamp(0.0, MAP_UNITS - 1.0) as u16
     };
     let matches: Vec<([u16; 2], f32)> =

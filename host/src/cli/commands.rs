@@ -1677,7 +1677,8 @@ pub fn demo(
             .map_err(|e| Failure(4, anyhow!(e)))?;
         let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
         super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
-        let enlarged = scanner_shading::Material::open(&large).map_err(|e| Failure(4, anyhow!(e)))?;
+        let enlarged =
+            scanner_shading::Material::open(&large).map_err(|e| Failure(4, anyhow!(e)))?;
         let piece = hil_sim::materials::Sample::large(m);
         let truth = |q: &[scanner_formats::queries::Query]| hil_sim::truth::answer(&piece, q);
         super::build::preview(&enlarged, (view, off), Some(&truth), &large_picture)?;

@@ -1,0 +1,167 @@
+//! `host::build::enlarge` on synthetic materials and direct images made from
+//! them: a piece that is the sample tiled is mapped back onto the sample
+//! texel for texel; a featureless sample matches without trouble.
+
+#[path = "../benches/support/synthetic.rs"]
+#[allow(dead_code)] // this test needs only `synthetic`
+mod synthetic;
+
+use host::build::enlarge::{DirectSet, EnlargeOptions, enlarge};
+use host::camera::Frame;
+use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, WhiteImage};
+use scanner_shading::{Interpolation, Material, MaterialData};
+use synthetic::{Shape, synthetic};
+
+/// Direct images of a piece made of `tiles` × `tiles` copies of `data`'s
+/// sample, shaded by the material itself from the first four mirror
+/// directions at `px` pixels per sample texel, with a white reference
+/// that makes the scale exactly 1.
+fn tiled_set(data: &MaterialData, tiles: usize, px: usize) -> DirectSet {
+    let m = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+    let s = data.meta.resolution as usize;
+    let n = tiles * s * px;
+    let dirs: Vec<[f64; 3]> = data.meta.views[..4].iter().map(|v| v.direction).collect();
+    let exposure_s = 0.25;
+    let images = dirs
+        .iter()
+        .map(|d| {
+            let d32 = d.map(|x| x as f32);
+            let mut rgb = Vec::with_capacity(n * n * 3);
+            for y in 0..n {
+                for x in 0..n {
+                    // The pixel's centre on the sample, in sample texels.
+                    let at = |p: usize| ((p % (s * px)) as f32 + 0.5) / px as f32 / s as f32;
+                    let v = m.eval([at(x), at(y)], d32, d32);
+                    rgb.extend(v.map(|c| c * exposure_s as f32));
+                }
+            }
+            Frame { width: n as u32, height: n as u32, rgb }
+        })
+        .collect();
+    let albedo = 0.9;
+    let cos = dirs[0][2];
+    let level = (albedo / std::f64::consts::PI * cos * exposure_s) as f32;
+    let white = Frame { width: 8, height: 8, rgb: vec![level; 8 * 8 * 3] };
+    let side = tiles as f64 * data.meta.sample_size_mm;
+    let manifest = DirectManifest {
+        format: FORMAT,
+        size_mm: [side, side],
+        image: dirs
+            .iter()
+            .enumerate()
+            .map(|(k, &direction)| DirectImage {
+                file: format!("d{k}.exr"),
+                direction,
+                exposure_s,
+                mirror: None,
+            })
+            .collect(),
+        white: Some(WhiteImage { file: "w.exr".into(), direction: dirs[0], exposure_s, albedo }),
+    };
+    DirectSet { manifest, images, white: Some(white), sha256: "0".repeat(64) }
+}
+
+fn shape(resolution: usize) -> Shape {
+    Shape { mirrors: 12, resolution, colours: 64, lights_per_index: 1 }
+}
+
+#[test]
+fn a_piece_tiled_from_the_sample_maps_back_onto_it() {
+    let data = synthetic(&shape(12), Interpolation::Default, 0.0, 3);
+    let s = 12usize;
+    for subtexel in [1, 2] {
+        let set = tiled_set(&data, 3, 4);
+        let opts = EnlargeOptions { subtexel, ..EnlargeOptions::DEFAULT };
+        let (big, report) = enlarge(&data, &set, &opts).unwrap();
+        assert_eq!((report.columns, report.rows), (36, 36));
+        for g in report.gain {
+            assert!((g - 1.0).abs() < 1e-6, "{g}: the white reference's scale");
+        }
+        let e = big.meta.enlargement.as_ref().unwrap();
+        assert_eq!((e.columns, e.rows, e.directions.len()), (36, 36, 4));
+        assert!(big.meta.extent_mm.iter().all(|x| (x - 76.2).abs() < 1e-9));
+        // Every texel whose 3 × 3 neighbourhood lies within one tile (the
+        // clamped borders and the seams differ) matches its own place.
+        let mut wrong = Vec::new();
+        for r in 0..36 {
+            for c in 0..36 {
+                let (x, y) = (c % s, r % s);
+                if x == 0 || y == 0 || x == s - 1 || y == s - 1 {
+                    continue;
+                }
+                let m = big.enlargement[r * 36 + c];
+                let want = [x, y].map(|k| (k as f64 + 0.5) / s as f64);
+                let got = m.map(|v| (v as f64 + 0.5) / 65536.0);
+                if (0..2).any(|k| (got[k] - want[k]).abs() > 1e-4) {
+                    wrong.push(((c, r), got, want));
+                }
+            }
+        }
+        assert!(
+            wrong.is_empty(),
+            "subtexel {subtexel}: {} wrong: {:?}",
+            wrong.len(),
+            &wrong[..wrong.len().min(5)]
+        );
+        assert!(report.distance[0] < 1e-3, "{:?}", report.distance);
+        // And the enlarged material shades each texel centre of the piece
+        // as the sample's material shades its match.
+        let (small, large) = (
+            Material::from_bytes(&data.to_bytes().unwrap()).unwrap(),
+            Material::from_bytes(&big.to_bytes().unwrap()).unwrap(),
+        );
+        let (wi, wo) = ([0.2, 0.1, 0.97], [-0.3, 0.2, 0.93]);
+        for (c, r) in [(13usize, 14usize), (30, 5), (7, 26)] {
+            let uv = [(c as f32 + 0.5) / 36.0, (r as f32 + 0.5) / 36.0];
+            let on_sample = [(c % s) as f32 + 0.5, (r % s) as f32 + 0.5].map(|k| k / s as f32);
+            let (a, b) = (large.eval(uv, wi, wo), small.eval(on_sample, wi, wo));
+            for k in 0..3 {
+                assert!((a[k] - b[k]).abs() <= 1e-4 * b[k].abs().max(1e-2), "{a:?} {b:?}");
+            }
+        }
+    }
+}
+
+#[test]
+fn without_a_white_reference_the_scale_comes_from_the_images() {
+    let data = synthetic(&shape(16), Interpolation::Default, 0.0, 5);
+    let mut set = tiled_set(&data, 3, 2);
+    // A camera of its own scale: 3.7 × brighter, no white reference.
+    for im in &mut set.images {
+        im.rgb.iter_mut().for_each(|v| *v *= 3.7);
+    }
+    (set.white, set.manifest.white) = (None, None);
+    let (_, report) = enlarge(&data, &set, &EnlargeOptions::DEFAULT).unwrap();
+    for g in report.gain {
+        assert!((g * 3.7 - 1.0).abs() < 0.02, "{g}");
+    }
+}
+
+#[test]
+fn a_featureless_sample_and_bad_sets_are_handled() {
+    // Every palette colour alike: all candidate signatures are equal.
+    let mut data = synthetic(&shape(8), Interpolation::Default, 0.0, 7);
+    for p in &mut data.palettes {
+        *p = [0.1, 0.1, 0.1];
+    }
+    let set = tiled_set(&data, 2, 1);
+    let (big, report) = enlarge(&data, &set, &EnlargeOptions::DEFAULT).unwrap();
+    assert_eq!(big.enlargement.len(), 16 * 16);
+    assert!(report.distance[1] < 1e-3);
+    // Enlarging again is refused; so are options out of range and a black
+    // white reference or black images.
+    let err = |d: &MaterialData, set: &DirectSet, o: EnlargeOptions| {
+        enlarge(d, set, &o).unwrap_err().to_string()
+    };
+    assert!(err(&big, &set, EnlargeOptions::DEFAULT).contains("enlarged already"));
+    let o = EnlargeOptions { radius: 4, ..EnlargeOptions::DEFAULT };
+    assert!(err(&data, &set, o).contains("--radius 4"));
+    let o = EnlargeOptions { subtexel: 0, ..EnlargeOptions::DEFAULT };
+    assert!(err(&data, &set, o).contains("--subtexel 0"));
+    let mut black = set.clone();
+    black.white.as_mut().unwrap().rgb.iter_mut().for_each(|v| *v = 0.0);
+    assert!(err(&data, &black, EnlargeOptions::DEFAULT).contains("not a white reference"));
+    let mut dark = set.clone();
+    dark.images.iter_mut().for_each(|im| im.rgb.iter_mut().for_each(|v| *v = 0.0));
+    assert!(err(&data, &dark, EnlargeOptions::DEFAULT).contains("is black"));
+}
