@@ -3,7 +3,7 @@
 //! texel for texel; a featureless sample matches without trouble.
 
 #[path = "../benches/support/synthetic.rs"]
-#[allow(dead_code)] // this test needs only `synthetic`
+#[allow(dead_code)] // not every helper is used here
 mod synthetic;
 
 use host::build::enlarge::{DirectSet, EnlargeOptions, enlarge};
@@ -164,4 +164,33 @@ fn a_featureless_sample_and_bad_sets_are_handled() {
     let mut dark = set.clone();
     dark.images.iter_mut().for_each(|im| im.rgb.iter_mut().for_each(|v| *v = 0.0));
     assert!(err(&data, &dark, EnlargeOptions::DEFAULT).contains("is black"));
+}
+
+#[test]
+fn an_enlarged_material_exports_maps_of_its_whole_piece() {
+    let data =
+        synthetic::with_texel_model(synthetic(&shape(12), Interpolation::Default, 0.0, 9), 10);
+    let set = tiled_set(&data, 3, 4);
+    let (big, _) = enlarge(&data, &set, &EnlargeOptions::DEFAULT).unwrap();
+    let small = host::build::export::texture_set(&data).unwrap();
+    let large = host::build::export::texture_set(&big).unwrap();
+    assert_eq!((small.side, large.side), (12, 36));
+    assert!((small.size_mm - 25.4).abs() < 1e-9 && (large.size_mm - 76.2).abs() < 1e-9);
+    // Each texel of the piece (away from the tiles' seams) is its match's,
+    // but for the map's 16-bit rounding (10⁻⁴ of a texel).
+    for (c, r) in [(13usize, 14usize), (30, 5), (7, 26), (22, 22)] {
+        let (i, j) = (r * 36 + c, (r % 12) * 12 + c % 12);
+        for k in 0..3 {
+            assert!(
+                (large.diffuse[i][k] - small.diffuse[j][k]).abs() < 5e-4,
+                "({c}, {r}): {:?} {:?}, map {:?}",
+                large.diffuse[i],
+                small.diffuse[j],
+                big.enlargement[i].map(|v| (v as f64 + 0.5) / 65536.0 * 12.0)
+            );
+            assert!((large.specular[i][k] - small.specular[j][k]).abs() < 5e-4, "({c}, {r})");
+            assert!((large.normal[i][k] - small.normal[j][k]).abs() < 5e-4, "({c}, {r})");
+        }
+        assert!((large.roughness[i] - small.roughness[j]).abs() < 5e-4, "({c}, {r})");
+    }
 }

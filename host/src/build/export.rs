@@ -75,7 +75,10 @@ pub struct TextureSet {
 /// have its resolution (2S), the model's parameters interpolated
 /// bilinearly as the shading does, and the layer's shared factor
 /// multiplies the diffuse albedo and F0 (each clamped to [0, 1]); a layer's
-/// light components depend on the light and are left out.
+/// light components depend on the light and are left out. An enlarged
+/// material's maps cover its whole piece, one texel per texel of its map
+/// (two with a detail layer), each the model at the place on the sample
+/// the shading looks it up.
 ///
 /// Refused (an input error) when the file holds no texel model or does not
 /// span a square.
@@ -97,7 +100,39 @@ pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
     }
     let s = m.resolution as usize;
     let stored: Vec<[f32; STORED]> = data.texels.iter().map(TexelParams::to_stored).collect();
-    let (side, params): (usize, Vec<TexelParams>) = if data.detail.is_empty() {
+    let scale_by = |mut p: TexelParams, d: [f32; 3]| {
+        let scale = |x: [f32; 3]| std::array::from_fn(|c| (x[c] * d[c]).clamp(0.0, 1.0));
+        p.diffuse = scale(p.diffuse);
+        p.specular = scale(p.specular);
+        p
+    };
+    let (side, params): (usize, Vec<TexelParams>) = if let Some(e) = &m.enlargement {
+        // An enlarged material: the piece's map texels (twice as fine with
+        // a detail layer), each the model where the shading looks it up.
+        let material = scanner_shading::Material::from_data(data.clone())
+            .map_err(|e| BuildError::Input(e.to_string()))?;
+        let f = if data.detail.is_empty() { 1 } else { 2 };
+        let side = f * e.columns.max(e.rows) as usize;
+        let detail: Vec<[f32; 3]> = data.detail.clone();
+        let params = (0..side * side)
+            .map(|i| {
+                let (x, y) = (i % side, i / side);
+                let uv = [(x as f32 + 0.5) / side as f32, (y as f32 + 0.5) / side as f32];
+                let at = material.scanned_uv(uv);
+                let p = TexelParams::from_stored(&bilinear(&stored, s, at));
+                if detail.is_empty() {
+                    p
+                } else {
+                    let (t, w) = scanner_shading::bilinear_footprint(2 * s, at);
+                    let d = std::array::from_fn(|c| {
+                        (0..4).map(|k| w[k] * detail[t[k] as usize][c]).sum::<f32>()
+                    });
+                    scale_by(p, d)
+                }
+            })
+            .collect();
+        (side, params)
+    } else if data.detail.is_empty() {
         (s, data.texels.clone())
     } else {
         let f = 2 * s;
@@ -106,12 +141,7 @@ pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
                 let (x, y) = (i % f, i / f);
                 let uv = [(x as f32 + 0.5) / f as f32, (y as f32 + 0.5) / f as f32];
                 let v = bilinear(&stored, s, uv);
-                let mut p = TexelParams::from_stored(&v);
-                let d = data.detail[i];
-                let scale = |x: [f32; 3]| std::array::from_fn(|c| (x[c] * d[c]).clamp(0.0, 1.0));
-                p.diffuse = scale(p.diffuse);
-                p.specular = scale(p.specular);
-                p
+                scale_by(TexelParams::from_stored(&v), data.detail[i])
             })
             .collect();
         (f, params)
