@@ -70,22 +70,24 @@ fn exposed(
 }
 
 /// Render and write the direct images of `material`'s large piece from
-/// the `count` mirror directions nearest the axis, at `px_per_mm`, into
+/// the `count` mirror directions of the scanner's `design` (its nominal
+/// geometry: where a photographer would set the camera) nearest the axis,
+/// at `px_per_mm`, into
 /// `out` (created), with a direct image of the diffuse-white target from
 /// the first direction as their white reference, and their manifest. The images and manifest are written
 /// atomically, the manifest last.
 pub fn write_set(
     sim: &OpticalSim,
+    design: &ScannerGeometry,
     material: Arc<dyn Material>,
     count: usize,
     px_per_mm: f64,
     out: &Path,
 ) -> Result<DirectManifest, String> {
-    let g = sim.geometry();
     let piece = Sample::large(material);
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let mut image = Vec::new();
-    let mirrors = nearest_axis_mirrors(g, count);
+    let mirrors = nearest_axis_mirrors(design, count);
     for (k, &(l, d)) in mirrors.iter().enumerate() {
         let (frame, exposure_s) = exposed(sim, &piece, d, px_per_mm);
         let file = format!("direct-{k}-mirror-{l:02}.exr");

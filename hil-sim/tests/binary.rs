@@ -92,9 +92,44 @@ fn render_and_direct_write_their_frames() {
             "direct-0-mirror-00.exr",
             "direct-1-mirror-01.exr",
             "direct-2-mirror-02.exr",
-            "direct-3-mirror-03.exr"
+            "direct-3-mirror-03.exr",
+            "direct.toml",
+            "white.exr"
         ]
     );
+    let manifest = scanner_formats::direct::DirectManifest::read(&direct).unwrap();
+    assert_eq!(manifest.size_mm, [80.0, 80.0]);
+    let mirrors: Vec<Option<u32>> = manifest.image.iter().map(|i| i.mirror).collect();
+    assert_eq!(mirrors, [Some(0), Some(1), Some(2), Some(3)]);
+    let white = manifest.white.as_ref().unwrap();
+    assert_eq!((white.file.as_str(), white.albedo), ("white.exr", 0.98));
+    // The truth of the large piece: uv across the 80 mm piece. Its point
+    // (27.3 + 12.7, 31.9 + 12.7) mm is the small sample's centre.
+    let queries = dir.path().join("q.csv");
+    let at = |u: f64, v: f64| format!("{u},{v},0.3,0.1,0.95,-0.2,0.1,0.97\n");
+    std::fs::write(
+        &queries,
+        format!("u,v,wi_x,wi_y,wi_z,wo_x,wo_y,wo_z\n{}{}", at(0.5, 0.5), at(0.5, 0.5575)),
+    )
+    .unwrap();
+    let truth = |piece: &str| {
+        let out = dir.path().join(format!("{piece}.csv"));
+        let o = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+            .args(["truth", "--material", "painted-wood", "--piece", piece, "--queries"])
+            .arg(&queries)
+            .arg("-o")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{o:?}");
+        scanner_formats::queries::read_answers(&out).unwrap()
+    };
+    let (small, large) = (truth("small"), truth("large"));
+    assert_ne!(small[0], large[0]);
+    for c in 0..3 {
+        let (a, b) = (small[0][c], large[1][c]);
+        assert!((a - b).abs() <= 1e-5 * a.abs(), "the sample's centre on the piece: {a} {b}");
+    }
     let bad = Command::new(env!("CARGO_BIN_EXE_hil-sim"))
         .args(["render", "--material", "cheese"])
         .output()

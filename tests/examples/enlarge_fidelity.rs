@@ -54,7 +54,7 @@ fn main() {
             tests::scan_dir(&out, m).file_name().unwrap().to_string_lossy()
         ));
         let scale = hil_sim::direct::mirror_view_scale(&g);
-        hil_sim::direct::write_set(&sim, truth.clone(), 4, scale, &dir).unwrap();
+        hil_sim::direct::write_set(&sim, &g, truth.clone(), 4, scale, &dir).unwrap();
         let set = read_direct_set(&dir).unwrap();
         let t = Instant::now();
         let opts = EnlargeOptions {

@@ -47,7 +47,8 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
         let sim = OpticalSim::as_built(&g, Sample::small(truth.clone()), seed);
         let direct = p(&format!("direct-{m}"));
         let scale = hil_sim::direct::mirror_view_scale(&g);
-        let manifest = hil_sim::direct::write_set(&sim, truth.clone(), 4, scale, &direct).unwrap();
+        let manifest =
+            hil_sim::direct::write_set(&sim, &g, truth.clone(), 4, scale, &direct).unwrap();
         assert_eq!(manifest, DirectManifest::read(&direct).unwrap());
         assert!(manifest.white.is_some());
 

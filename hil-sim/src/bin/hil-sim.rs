@@ -164,7 +164,8 @@ fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), Fail> 
     let nominal = ScannerGeometry::default_scanner();
     let sim = OpticalSim::as_built(&nominal, Sample::small(m.clone()), seed);
     let scale = hil_sim::direct::mirror_view_scale(&nominal);
-    let manifest = hil_sim::direct::write_set(&sim, m, 4, scale, out).map_err(|e| Fail(4, e))?;
+    let manifest =
+        hil_sim::direct::write_set(&sim, &nominal, m, 4, scale, out).map_err(|e| Fail(4, e))?;
     for im in &manifest.image {
         eprintln!("{}: exposure {} s", out.join(&im.file).display(), im.exposure_s);
     }

@@ -1673,7 +1673,7 @@ pub fn demo(
         );
         let direct = out.join(format!("{name}-direct"));
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
-        hil_sim::direct::write_set(&sim, m.clone(), 4, scale, &direct)
+        hil_sim::direct::write_set(&sim, &nominal, m.clone(), 4, scale, &direct)
             .map_err(|e| Failure(4, anyhow!(e)))?;
         let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
         super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
