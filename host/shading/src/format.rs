@@ -141,8 +141,8 @@ pub struct Enlargement {
 pub struct Metadata {
     /// Always [`FORMAT`].
     pub format: String,
-    /// [`VERSION`], [`VERSION_TEXEL_MODEL`], [`VERSION_DETAIL`] or
-    /// [`VERSION_LIGHT_DETAIL`].
+    /// [`VERSION`], [`VERSION_TEXEL_MODEL`], [`VERSION_DETAIL`],
+    /// [`VERSION_LIGHT_DETAIL`] or [`VERSION_ENLARGED`].
     pub version: u32,
     /// The sample's name.
     pub name: String,

@@ -1,21 +1,23 @@
 //! Fig. 9: a material scanned on a small sample, enlarged to a large piece
 //! of the same material seen in direct images (docs/direct-images.md).
 //!
-//! Every texel of the large piece is matched to the scanned sample's texel
-//! whose **colour signature** is nearest (squared Euclidean distance): the
-//! RGB of its 3 × 3 neighbourhood in every direct image, against the same
-//! neighbourhood of the material shaded at the images' directions (light
-//! and view both along an image's direction, as the direct images are
-//! taken). The map is stored in the material (format version 5), and the
-//! shading looks every uv of the piece up through it.
+//! Every texel of the large piece is matched to the place on the scanned
+//! sample whose **colour signature** is nearest (squared Euclidean
+//! distance): the RGB of its 3 × 3 neighbourhood in every direct image,
+//! against the same neighbourhood of the material shaded at the images'
+//! directions (light and view both along an image's direction, as the
+//! direct images are taken). The map is stored in the material (format
+//! version 5), and the shading looks every uv of the piece up through it.
 //!
 //! - Both sides are compared at the material's texel pitch: the direct
-//!   images are averaged over each map texel's area, the material over
-//!   2 × 2 points of each of its texels.
-//! - One gain per channel puts the direct images on the material's scale
-//!   (their mean over all images against the material's at the same
-//!   directions): direct images need no absolute calibration, but a piece
-//!   brighter on average than the sample is matched as if it were not.
+//!   images are averaged over each map texel's area, the material over a
+//!   texel's area (4 × 4 points) around each candidate point. Candidates
+//!   lie at the sample's texel centres and `subtexel − 1` points between,
+//!   since the piece's texel grid falls anywhere on the sample's.
+//! - The scale: a white reference photographed like the piece gives it
+//!   absolutely; without one, the ratio of the means, then the median ratio
+//!   of the matches, until it settles (docs/direct-images.md says why the
+//!   reference matters).
 //! - Signatures compare logarithms (each value plus 2 % of its image's
 //!   mean), so that a highlight's texels do not outweigh the rest.
 //! - The nearest signature is found exactly among a k-d tree's
