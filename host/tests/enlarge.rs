@@ -193,4 +193,10 @@ fn an_enlarged_material_exports_maps_of_its_whole_piece() {
         }
         assert!((large.roughness[i] - small.roughness[j]).abs() < 5e-4, "({c}, {r})");
     }
+    // A map that is not square over its square piece has no square maps.
+    let mut oblong = big.clone();
+    let e = oblong.meta.enlargement.as_mut().unwrap();
+    (e.columns, e.rows) = (72, 18);
+    let err = host::build::export::texture_set(&oblong).unwrap_err().to_string();
+    assert!(err.contains("72 × 18 texels over a square"), "{err}");
 }

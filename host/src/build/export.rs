@@ -112,7 +112,22 @@ pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
         let material = scanner_shading::Material::from_data(data.clone())
             .map_err(|e| BuildError::Input(e.to_string()))?;
         let f = if data.detail.is_empty() { 1 } else { 2 };
-        let side = f * e.columns.max(e.rows) as usize;
+        if e.columns != e.rows {
+            return Err(BuildError::Input(format!(
+                "the material's map is {} × {} texels over a square: a texture set's maps are \
+                 square",
+                e.columns, e.rows
+            )));
+        }
+        let side = f * e.columns as usize;
+        if side > MAX_SIDE {
+            return Err(BuildError::Input(format!(
+                "maps of {side}² texels (the map's {} a side{}): a texture set has at most \
+                 {MAX_SIDE} a side",
+                e.columns,
+                if f == 2 { ", twice for the detail layer" } else { "" }
+            )));
+        }
         let detail: Vec<[f32; 3]> = data.detail.clone();
         let params = (0..side * side)
             .map(|i| {
@@ -165,6 +180,10 @@ pub fn texture_set(data: &MaterialData) -> Result<TextureSet, BuildError> {
             .collect(),
     })
 }
+
+/// The largest side of an exported map, texels (a material's detail layer
+/// at its largest resolution, 2 × 8192).
+pub const MAX_SIDE: usize = 16384;
 
 /// Smallest F0 written where a texel's F0 is 0 in every channel.
 pub const MIN_F0: f32 = 1e-5;
