@@ -415,8 +415,9 @@ impl Material {
     }
 
     /// Where on the scanned sample `uv` is shaded, as uv over the sample:
-    /// `uv` itself (wrapped into [0, 1)) or, for an enlarged material, its
-    /// match through the enlargement map. Not finite: unchanged.
+    /// `uv` itself (the lookups wrap it) or, for an enlarged material, its
+    /// match through the enlargement map, within [0, 1). Not finite:
+    /// unchanged (black).
     #[inline(always)]
     pub fn scanned_uv(&self, uv: [f32; 2]) -> [f32; 2] {
         match &self.enlargement {
