@@ -118,9 +118,14 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
     let (code, err) = enlarge_cli(&small, &p("nowhere"), &d("x.material"));
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("direct.toml"), "{err}");
-    // The output may not replace an input.
-    let (code, err) = enlarge_cli(&small, &direct, &small);
-    assert_eq!(code, Some(4), "{err}");
+    // The output may not replace an input: the material, the manifest, an
+    // image.
+    let white = std::fs::read(direct.join("white.exr")).unwrap();
+    for out in [small.clone(), d("direct-leather/direct.toml"), d("direct-leather/white.exr")] {
+        let (code, err) = enlarge_cli(&small, &direct, &out);
+        assert_eq!(code, Some(4), "{out}: {err}");
+    }
+    assert_eq!(std::fs::read(direct.join("white.exr")).unwrap(), white);
     let text = std::fs::read_to_string(direct.join("direct.toml")).unwrap();
     for (edit, want) in [
         (text.replace("albedo = 0.98", "albedo = 2.0"), "albedo 2 outside (0, 1]"),

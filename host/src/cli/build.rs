@@ -646,18 +646,21 @@ pub fn enlarge_cmd(
 ) -> Result<(), Failure> {
     use crate::build::enlarge::{enlarge, read_direct_set};
     opts.check().map_err(|e| Failure(2, anyhow!(e)))?;
-    let manifest = direct.join(scanner_formats::direct::MANIFEST);
-    crate::fsutil::check_output(output, &[material, &manifest])
-        .map_err(|e| Failure(4, anyhow!(e)))?;
+    // Every input, the manifest's images too, before any work: the output
+    // may replace none of them.
+    let manifest = scanner_formats::direct::DirectManifest::read(direct)
+        .map_err(|e| Failure(3, anyhow!(e)))?;
+    let mut inputs = vec![material.to_path_buf(), direct.join(scanner_formats::direct::MANIFEST)];
+    inputs.extend(manifest.image.iter().map(|im| direct.join(&im.file)));
+    inputs.extend(manifest.white.iter().map(|w| direct.join(&w.file)));
+    let inputs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    crate::fsutil::check_output(output, &inputs).map_err(|e| Failure(4, anyhow!(e)))?;
     let started = Instant::now();
     let bytes = scanner_formats::input::read(material)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
     let data = scanner_shading::MaterialData::from_bytes(&bytes)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", material.display())))?;
     let set = read_direct_set(direct).map_err(build_failure)?;
-    if let Some(im) = set.manifest.image.iter().find(|im| output == direct.join(&im.file)) {
-        return Err(Failure(4, anyhow!("{}: the output would replace a direct image", im.file)));
-    }
     let (enlarged, report) = enlarge(&data, &set, opts).map_err(build_failure)?;
     let bytes =
         enlarged.to_bytes().map_err(|e| Failure(4, anyhow!("material not written: {e}")))?;
