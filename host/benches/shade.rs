@@ -78,6 +78,26 @@ fn shade(c: &mut Criterion) {
             black_box(&out);
         })
     });
+    // The same material enlarged to a piece of 403² texels (80 mm, the
+    // library's large piece at S = 128), each matched at random: one map
+    // lookup more per query, and the sample's texels read in a scattered
+    // order.
+    group.bench_function("default interpolation, enlarged (403² map)", |b| {
+        let shape =
+            synthetic::Shape { mirrors: 40, resolution: 128, colours: 256, lights_per_index: 2 };
+        let data = synthetic::with_enlargement(
+            synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1),
+            403,
+            403,
+            [80.0, 80.0],
+            6,
+        );
+        let enlarged = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+        b.iter(|| {
+            enlarged.eval_batch(&q, &mut out);
+            black_box(&out);
+        })
+    });
     // The same queries through `eval` one at a time: what the blocks buy.
     group.bench_function("default interpolation, eval per query", |b| {
         b.iter(|| {
