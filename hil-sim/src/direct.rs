@@ -72,10 +72,10 @@ fn exposed(
 /// Render and write the direct images of `material`'s large piece from
 /// the `count` mirror directions of the scanner's `design` (its nominal
 /// geometry: where a photographer would set the camera) nearest the axis,
-/// at `px_per_mm`, into
-/// `out` (created), with a direct image of the diffuse-white target from
-/// the first direction as their white reference, and their manifest. The images and manifest are written
-/// atomically, the manifest last.
+/// at `px_per_mm`, into `out` (created), with a direct image of the
+/// diffuse-white target from the first direction as their white
+/// reference, and their manifest. Every file is written atomically, the
+/// manifest last.
 pub fn write_set(
     sim: &OpticalSim,
     design: &ScannerGeometry,
