@@ -11,13 +11,8 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use hil_sim::materials::{Sample, lookup};
-use hil_sim::optics::OpticalSim;
-use host::build::calibrate::Silent;
+use hil_sim::materials::lookup;
 use host::build::enlarge::{EnlargeOptions, enlarge, read_direct_set};
-use host::build::extract_regions;
-use host::build::material::{MaterialOptions, build_material};
-use host::build::scanread::ScanFrames;
 use scanner_shading::Material;
 
 fn main() {
@@ -36,25 +31,14 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|");
     for m in materials {
-        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
-        let prov = scanner_shading::format::Provenance {
-            scan_manifest_sha256: String::new(),
-            geometry_sha256: g.hash(),
-            calibration_sha256: String::new(),
-            builder: "enlarge_fidelity".into(),
-        };
-        let data =
-            build_material(&regions, m, 25.4, prov, &MaterialOptions::default(), &Silent).unwrap();
-        let small = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
-        let truth = lookup(m).unwrap();
-        let sim = OpticalSim::as_built(&g, Sample::small(truth.clone()), seed);
         let dir = out.join(format!(
             "direct-{}",
             tests::scan_dir(&out, m).file_name().unwrap().to_string_lossy()
         ));
-        let scale = hil_sim::direct::mirror_view_scale(&g);
-        hil_sim::direct::write_set(&sim, &g, truth.clone(), 4, scale, &dir).unwrap();
+        let (data, _) =
+            tests::built_and_photographed(&out, &g, &cal, seed, m, &tests::region_options(), &dir);
+        let small = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+        let truth = lookup(m).unwrap();
         let set = read_direct_set(&dir).unwrap();
         let t = Instant::now();
         let opts = EnlargeOptions {

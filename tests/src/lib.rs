@@ -573,3 +573,36 @@ pub fn enlargement_scores(
     let window_sample = pairs_psnr(pairs, &t_small, &|_, q| shade(small, q)).0;
     EnlargementScores { enlarged: enlarged_db, tiled: tiled_db, window_enlarged, window_sample }
 }
+
+/// Where the enlargement's test and example start: material `m` built
+/// from its scan under `out` (region options `regions`, the builder's
+/// defaults), and the direct images of its large piece written to `direct`
+/// from the design `g`'s four mirror directions nearest the normal, with a
+/// white reference (as `hil-sim direct` writes them).
+pub fn built_and_photographed(
+    out: &Path,
+    g: &ScannerGeometry,
+    cal: &Calibration,
+    seed: u64,
+    m: &str,
+    regions: &RegionOptions,
+    direct: &Path,
+) -> (scanner_shading::MaterialData, scanner_formats::direct::DirectManifest) {
+    use host::build::calibrate::Silent;
+    use host::build::material::{MaterialOptions, build_material};
+    let scan = host::build::scanread::ScanFrames::open(&scan_dir(out, m), g).unwrap();
+    let regions = host::build::extract_regions(g, cal, &scan, regions, &Silent).unwrap();
+    let prov = scanner_shading::format::Provenance {
+        scan_manifest_sha256: String::new(),
+        geometry_sha256: g.hash(),
+        calibration_sha256: String::new(),
+        builder: "tests".into(),
+    };
+    let data =
+        build_material(&regions, m, 25.4, prov, &MaterialOptions::default(), &Silent).unwrap();
+    let truth = hil_sim::materials::lookup(m).unwrap();
+    let sim = hil_sim::optics::OpticalSim::as_built(g, Sample::small(truth.clone()), seed);
+    let scale = hil_sim::direct::mirror_view_scale(g);
+    let manifest = hil_sim::direct::write_set(&sim, g, truth, 4, scale, direct).unwrap();
+    (data, manifest)
+}

@@ -6,13 +6,8 @@ mod common;
 
 use std::path::Path;
 
-use hil_sim::materials::{Sample, lookup};
-use hil_sim::optics::OpticalSim;
-use host::build::calibrate::Silent;
+use hil_sim::materials::lookup;
 use host::build::enlarge::{EnlargeOptions, enlarge, read_direct_set};
-use host::build::extract_regions;
-use host::build::material::{MaterialOptions, build_material};
-use host::build::scanread::ScanFrames;
 use scanner_formats::direct::DirectManifest;
 use scanner_shading::{Material, MaterialData};
 
@@ -31,24 +26,19 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
     let (g, cal, _) = tests::scanned_and_calibrated(dir.path(), seed, bin, 40, &materials);
     let pairs = tests::random_pairs(32, 60.0, seed);
     for m in materials {
-        let scan = ScanFrames::open(&tests::scan_dir(dir.path(), m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, &Default::default(), &Silent).unwrap();
-        let prov = scanner_shading::format::Provenance {
-            scan_manifest_sha256: String::new(),
-            geometry_sha256: g.hash(),
-            calibration_sha256: String::new(),
-            builder: "test".into(),
-        };
-        let data =
-            build_material(&regions, m, 25.4, prov, &MaterialOptions::default(), &Silent).unwrap();
+        let direct = p(&format!("direct-{m}"));
+        let (data, manifest) = tests::built_and_photographed(
+            dir.path(),
+            &g,
+            &cal,
+            seed,
+            m,
+            &Default::default(),
+            &direct,
+        );
         let small_path = p(&format!("{m}.material"));
         std::fs::write(&small_path, data.to_bytes().unwrap()).unwrap();
         let truth = lookup(m).unwrap();
-        let sim = OpticalSim::as_built(&g, Sample::small(truth.clone()), seed);
-        let direct = p(&format!("direct-{m}"));
-        let scale = hil_sim::direct::mirror_view_scale(&g);
-        let manifest =
-            hil_sim::direct::write_set(&sim, &g, truth.clone(), 4, scale, &direct).unwrap();
         assert_eq!(manifest, DirectManifest::read(&direct).unwrap());
         assert!(manifest.white.is_some());
 

@@ -92,13 +92,20 @@ pub enum DirectError {
 impl DirectManifest {
     /// Read and check `DIR/direct.toml`.
     pub fn read(dir: &Path) -> Result<DirectManifest, DirectError> {
+        Ok(DirectManifest::read_with_bytes(dir)?.0)
+    }
+
+    /// [`DirectManifest::read`], with the bytes it was read from (to hash
+    /// what was parsed, not a second read).
+    pub fn read_with_bytes(dir: &Path) -> Result<(DirectManifest, Vec<u8>), DirectError> {
         let path = dir.join(MANIFEST);
-        let text = crate::input::read_to_string(&path)
+        let bytes = crate::input::read(&path)
             .map_err(|source| DirectError::Io { path: path.clone(), source })?;
         let invalid = |message: String| DirectError::Invalid { path: path.clone(), message };
-        let m: DirectManifest = toml::from_str(&text).map_err(|e| invalid(e.to_string()))?;
+        let text = std::str::from_utf8(&bytes).map_err(|_| invalid("not UTF-8 text".into()))?;
+        let m: DirectManifest = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
         m.check().map_err(invalid)?;
-        Ok(m)
+        Ok((m, bytes))
     }
 
     /// The manifest's text.

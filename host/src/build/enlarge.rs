@@ -101,11 +101,9 @@ pub struct DirectSet {
 
 /// Read the direct images in `dir` (docs/direct-images.md).
 pub fn read_direct_set(dir: &Path) -> Result<DirectSet, BuildError> {
-    let manifest = DirectManifest::read(dir).map_err(|e| BuildError::Input(e.to_string()))?;
-    let manifest_path = dir.join(scanner_formats::direct::MANIFEST);
-    let text = scanner_formats::input::read(&manifest_path)
-        .map_err(|e| BuildError::Input(format!("{}: {e}", manifest_path.display())))?;
-    let sha256 = crate::scan::sha256_hex(&text);
+    let (manifest, bytes) =
+        DirectManifest::read_with_bytes(dir).map_err(|e| BuildError::Input(e.to_string()))?;
+    let sha256 = crate::scan::sha256_hex(&bytes);
     let read = |file: &str| -> Result<Frame, BuildError> {
         let path = dir.join(file);
         let frame = crate::exrio::read_rgb(&path)
@@ -254,9 +252,13 @@ pub fn enlarge(
         })
         .collect();
 
-    let mean = |imgs: &[Vec<[f64; 3]>], k: usize, c: usize| {
-        imgs[k].iter().map(|v| v[c]).sum::<f64>() / imgs[k].len() as f64
+    let means = |imgs: &[Vec<[f64; 3]>]| -> Vec<[f64; 3]> {
+        let mean = |img: &Vec<[f64; 3]>, c: usize| {
+            img.iter().map(|v| v[c]).sum::<f64>() / img.len() as f64
+        };
+        imgs.iter().map(|img| std::array::from_fn(|c| mean(img, c))).collect()
     };
+    let (sample_mean, piece_mean) = (means(&sample), means(&piece));
     let n_img = directions.len();
     // The gain that puts the piece on the material's scale: absolute from
     // the white reference (its radiance albedo/π · cos θ), else the ratio
@@ -267,9 +269,8 @@ pub fn enlarge(
     };
     let mut gain = [0.0; 3];
     for (c, g) in gain.iter_mut().enumerate() {
-        let (a, b): (f64, f64) = (0..n_img)
-            .map(|k| (mean(&sample, k, c), mean(&piece, k, c)))
-            .fold((0.0, 0.0), |s, x| (s.0 + x.0, s.1 + x.1));
+        let a: f64 = sample_mean.iter().map(|m| m[c]).sum();
+        let b: f64 = piece_mean.iter().map(|m| m[c]).sum();
         if !(a > 0.0 && b > 0.0) {
             return Err(BuildError::Input(format!(
                 "channel {c} is black in {}: nothing to match by",
@@ -283,8 +284,7 @@ pub fn enlarge(
         *g = white_gain.map_or(a / b, |w| w[c]);
     }
     // Log values, each over a floor of its image's mean.
-    let floor: Vec<[f64; 3]> =
-        (0..n_img).map(|k| std::array::from_fn(|c| LOG_FLOOR * mean(&sample, k, c))).collect();
+    let floor: Vec<[f64; 3]> = sample_mean.iter().map(|m| m.map(|x| LOG_FLOOR * x)).collect();
     let logs = |imgs: &[Vec<[f64; 3]>], scale: [f64; 3]| -> Vec<Vec<[f32; 3]>> {
         imgs.iter()
             .enumerate()
