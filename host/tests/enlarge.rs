@@ -6,7 +6,7 @@
 #[allow(dead_code)] // not every helper is used here
 mod synthetic;
 
-use host::build::enlarge::{DirectSet, EnlargeOptions, enlarge};
+use host::build::enlarge::{DirectSet, EnlargeOptions, Signature, enlarge};
 use host::camera::Frame;
 use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, WhiteImage};
 use scanner_shading::{Interpolation, Material, MaterialData};
@@ -74,7 +74,7 @@ fn a_piece_tiled_from_the_sample_maps_back_onto_it() {
         let opts = EnlargeOptions { subtexel, ..EnlargeOptions::DEFAULT };
         let (big, report) = enlarge(&data, &set, &opts).unwrap();
         assert_eq!((report.columns, report.rows), (36, 36));
-        for g in report.gain {
+        for g in report.gain.unwrap() {
             assert!((g - 1.0).abs() < 1e-6, "{g}: the white reference's scale");
         }
         let e = big.meta.enlargement.as_ref().unwrap();
@@ -132,9 +132,53 @@ fn without_a_white_reference_the_scale_comes_from_the_images() {
     }
     (set.white, set.manifest.white) = (None, None);
     let (_, report) = enlarge(&data, &set, &EnlargeOptions::DEFAULT).unwrap();
-    for g in report.gain {
+    for g in report.gain.unwrap() {
         assert!((g * 3.7 - 1.0).abs() < 0.02, "{g}");
     }
+}
+
+#[test]
+fn the_height_signature_maps_a_tiled_piece_back_at_any_scale() {
+    let data = synthetic(&shape(16), Interpolation::Default, 0.0, 11);
+    let s = 16usize;
+    let mut set = tiled_set(&data, 3, 2);
+    // Another camera's scale and no white reference: heights do not mind.
+    for im in &mut set.images {
+        im.rgb.iter_mut().for_each(|v| *v *= 3.7);
+    }
+    (set.white, set.manifest.white) = (None, None);
+    for radius in [1, 2] {
+        let opts =
+            EnlargeOptions { radius, signature: Signature::Height, ..EnlargeOptions::DEFAULT };
+        let (big, report) = enlarge(&data, &set, &opts).unwrap();
+        assert_eq!(report.gain, None);
+        assert_eq!(big.meta.enlargement.as_ref().unwrap().signature, "height");
+        // The piece's heights are integrated over the piece and the
+        // sample's over the sample, so texels near a tile's border see
+        // other surroundings; those 2 texels or more inside a tile match
+        // their own place.
+        let (mut inside, mut own) = (0, 0);
+        for r in 0..3 * s {
+            for c in 0..3 * s {
+                let (x, y) = (c % s, r % s);
+                if [x, y].iter().any(|&k| k < 2 || k + 2 >= s) {
+                    continue;
+                }
+                inside += 1;
+                let want = [x, y].map(|k| (k as f64 + 0.5) / s as f64);
+                let got = big.enlargement[r * 3 * s + c].map(|v| (v as f64 + 0.5) / 65536.0);
+                own += usize::from((0..2).all(|k| (got[k] - want[k]).abs() < 1e-4));
+            }
+        }
+        let share = own as f64 / inside as f64;
+        assert!(share > 0.9, "radius {radius}: {own} of {inside} texels matched their place");
+    }
+    // Photometric stereo needs three directions not in one plane.
+    set.images.truncate(2);
+    set.manifest.image.truncate(2);
+    let opts = EnlargeOptions { signature: Signature::Height, ..EnlargeOptions::DEFAULT };
+    let err = enlarge(&data, &set, &opts).unwrap_err().to_string();
+    assert!(err.contains("not in one plane"), "{err}");
 }
 
 #[test]

@@ -44,6 +44,7 @@ fn main() {
         let opts = EnlargeOptions {
             radius: tests::arg("--radius", EnlargeOptions::default().radius),
             subtexel: tests::arg("--subtexel", EnlargeOptions::default().subtexel),
+            signature: tests::arg("--signature", "colour".to_string()).parse().unwrap(),
         };
         let (big, report) = enlarge(&data, &set, &opts).unwrap();
         let secs = t.elapsed().as_secs_f64();

@@ -87,6 +87,32 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
         let u = tests::enlargement_scores(&unref, &small, lookup(m).unwrap(), &pairs);
         eprintln!("{m} without a white reference: {u:?}, gain {:?}", report.gain);
         assert!(u.enlarged >= s.tiled + 3.0, "{m}: {u:?}");
+
+        // The patent's other signature: heights from photometric stereo,
+        // on a 5 × 5 neighbourhood (docs/benchmarks.md, "Enlargement":
+        // below the colour signature on every library material).
+        let by_height = p(&format!("{m}-80mm-height.material"));
+        let (code, out, err) = common::run(&[
+            "enlarge",
+            &small_path.display().to_string(),
+            "--direct",
+            &direct.display().to_string(),
+            "-o",
+            &by_height.display().to_string(),
+            "--signature",
+            "height",
+            "--radius",
+            "2",
+        ]);
+        assert_eq!(code, Some(0), "{err}");
+        assert!(out.contains("by height") && out.contains("heights need no scale"), "{out}");
+        let h = Material::open(&by_height).unwrap();
+        assert_eq!(h.metadata().enlargement.as_ref().unwrap().signature, "height");
+        let hs = tests::enlargement_scores(&h, &small, lookup(m).unwrap(), &pairs);
+        eprintln!("{m} by height: {hs:?}");
+        // Measured +0.1 (leather) and +2.7 dB (rough-metal) over tiling; a
+        // map of misplaced texels falls far below it (the weave's: −5 dB).
+        assert!(hs.enlarged >= s.tiled - 0.5, "{m}: {hs:?}");
     }
 
     // Bad input: a clear error, exit 3, nothing written.
@@ -105,6 +131,17 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
     let (code, err) = enlarge_cli(&d("leather-80mm.material"), &direct, &d("x.material"));
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("enlarged already"), "{err}");
+    let (code, err) = common::run_err(&[
+        "enlarge",
+        &small,
+        "--direct",
+        &direct.display().to_string(),
+        "-o",
+        &d("x.material"),
+        "--signature",
+        "hue",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
     let (code, err) = enlarge_cli(&small, &p("nowhere"), &d("x.material"));
     assert_eq!(code, Some(3), "{err}");
     assert!(err.contains("direct.toml"), "{err}");

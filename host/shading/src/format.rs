@@ -116,6 +116,9 @@ pub struct Provenance {
     pub builder: String,
 }
 
+/// The signatures an enlargement's texels may have been matched by.
+pub const SIGNATURES: [&str; 2] = ["colour", "height"];
+
 /// Fig. 9's enlargement: the map from a large piece's texels to the scanned
 /// sample's (tensor `enlargement`, docs/material-format.md).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -124,8 +127,10 @@ pub struct Enlargement {
     pub columns: u32,
     /// Texels of the map along v.
     pub rows: u32,
-    /// How each texel was matched: `"colour"`, the patent's colour
-    /// signature (the 3 × 3 neighbourhood's RGB in every direct image).
+    /// How each texel was matched ([`SIGNATURES`]): `"colour"`, the
+    /// patent's colour signature (the 3 × 3 neighbourhood's RGB in every
+    /// direct image), or `"height"`, its height signature (the 3 × 3
+    /// neighbourhood's heights from photometric stereo).
     pub signature: String,
     /// The directions (sample-local, unit, towards the camera and the
     /// light) of the direct images the signatures were taken from.
@@ -820,9 +825,9 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
                 e.columns, e.rows
             ));
         }
-        if e.signature != "colour" {
+        if !SIGNATURES.contains(&e.signature.as_str()) {
             return bad(format!(
-                "enlargement signature {:?}: this reader knows \"colour\"",
+                "enlargement signature {:?}: this reader knows \"colour\" and \"height\"",
                 e.signature
             ));
         }

@@ -1373,9 +1373,16 @@ fn bad_enlargements_are_refused() {
         let msg = e(d);
         assert!(msg.contains("columns and rows must be in 1…16384"), "{msg}");
     }
+    for name in ["hue", "Colour", ""] {
+        let mut d = good();
+        d.meta.enlargement.as_mut().unwrap().signature = name.into();
+        assert!(e(d).contains(&format!("enlargement signature {name:?}")), "{name}");
+    }
+    // Both of the patent's signatures read alike.
     let mut d = good();
     d.meta.enlargement.as_mut().unwrap().signature = "height".into();
-    assert!(e(d).contains("enlargement signature \"height\""));
+    let m = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();
+    assert_eq!(m.metadata().enlargement.as_ref().unwrap().signature, "height");
     for dirs in [vec![], vec![[0.0, 0.0, 2.0]], vec![[0.6, 0.0, -0.8]]] {
         let mut d = good();
         d.meta.enlargement.as_mut().unwrap().directions = dirs;

@@ -61,11 +61,50 @@ pub struct EnlargeOptions {
     /// Candidate points per texel of the sample along u and v (1…4): a
     /// piece's texel may match a point between the sample's texels.
     pub subtexel: usize,
+    /// What the signature holds.
+    pub signature: Signature,
+}
+
+/// What a texel's signature holds (the patent's two).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Signature {
+    /// The colour signature: the neighbourhood's RGB (as logarithms) in
+    /// every direct image.
+    Colour,
+    /// The height signature: the neighbourhood's heights, relative to the
+    /// texel's own, from photometric stereo over the direct images
+    /// (Lambert: brightness ∝ n · l). It does not depend on the images'
+    /// scale, so it needs no white reference.
+    Height,
+}
+
+impl Signature {
+    /// Its name in the material file (`enlargement.signature`) and on the
+    /// command line.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Signature::Colour => "colour",
+            Signature::Height => "height",
+        }
+    }
+}
+
+impl std::str::FromStr for Signature {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Signature, String> {
+        match s {
+            "colour" => Ok(Signature::Colour),
+            "height" => Ok(Signature::Height),
+            _ => Err(format!("signature {s:?}: colour or height")),
+        }
+    }
 }
 
 impl EnlargeOptions {
     /// The defaults (docs/benchmarks.md, "Enlargement", measures them).
-    pub const DEFAULT: EnlargeOptions = EnlargeOptions { radius: 1, subtexel: 2 };
+    pub const DEFAULT: EnlargeOptions =
+        EnlargeOptions { radius: 1, subtexel: 2, signature: Signature::Colour };
 
     /// The options in range: radius 0…3, subtexel 1…4.
     pub fn check(&self) -> Result<(), String> {
@@ -152,10 +191,11 @@ pub struct EnlargeReport {
     /// See `columns`.
     pub rows: u32,
     /// The gain per channel that put the direct images on the material's
-    /// scale: from the white reference, or without one first the ratio of
-    /// their means, then the median ratio of the texels' matches to them
-    /// until it settles.
-    pub gain: [f64; 3],
+    /// scale (the colour signature): from the white reference, or without
+    /// one first the ratio of their means, then the median ratio of the
+    /// texels' matches to them until it settles. The height signature
+    /// needs none.
+    pub gain: Option<[f64; 3]>,
     /// The matches' signature distance, RMS per signature value (a log
     /// ratio: 0.1 ≈ 10 %), median and 90th percentile.
     pub distance: [f64; 2],
@@ -252,14 +292,66 @@ pub fn enlarge(
         })
         .collect();
 
-    let means = |imgs: &[Vec<[f64; 3]>]| -> Vec<[f64; 3]> {
-        let mean = |img: &Vec<[f64; 3]>, c: usize| {
-            img.iter().map(|v| v[c]).sum::<f64>() / img.len() as f64
-        };
-        imgs.iter().map(|img| std::array::from_fn(|c| mean(img, c))).collect()
+    let (matches, gain, dims) = match opts.signature {
+        Signature::Colour => colour_matches(&sample, &piece, set, opts, [columns, rows, fine])?,
+        Signature::Height => {
+            let (matches, dims) =
+                height_matches(&sample, &piece, &directions, opts, pitch, [columns, rows, fine])?;
+            (matches, None, dims)
+        }
     };
-    let (sample_mean, piece_mean) = (means(&sample), means(&piece));
-    let n_img = directions.len();
+    // Each match as the sample's uv in 16-bit fixed point.
+    let fixed = |k: usize| {
+        let uv = (k as f64 / sub as f64 + 0.5) / s as f64;
+        (uv * MAP_UNITS - 0.5).round().clamp(0.0, MAP_UNITS - 1.0) as u16
+    };
+    let matches: Vec<([u16; 2], f32)> =
+        matches.into_iter().map(|(i, d)| ([fixed(i % fine), fixed(i / fine)], d)).collect();
+
+    let mut dist: Vec<f64> =
+        matches.iter().map(|m| (m.1.max(0.0) as f64 / dims as f64).sqrt()).collect();
+    dist.sort_by(f64::total_cmp);
+    let pct = |p: f64| dist[((dist.len() - 1) as f64 * p).round() as usize];
+    let mut used: Vec<[u16; 2]> = matches.iter().map(|m| m.0).collect();
+    used.sort_unstable();
+    used.dedup();
+    let report = EnlargeReport {
+        columns: columns as u32,
+        rows: rows as u32,
+        gain,
+        distance: [pct(0.5), pct(0.9)],
+        points_used: used.len(),
+    };
+    let mut out = data.clone();
+    out.meta.version = VERSION_ENLARGED;
+    out.meta.extent_mm = size_mm;
+    out.meta.enlargement = Some(Enlargement {
+        columns: columns as u32,
+        rows: rows as u32,
+        signature: opts.signature.name().into(),
+        directions,
+        direct_sha256: set.sha256.clone(),
+    });
+    out.enlargement = matches.into_iter().map(|m| m.0).collect();
+    Ok((out, report))
+}
+
+/// The piece's and the sample's sizes: the map's columns and rows, and the
+/// sample's candidate grid's side.
+type Sizes = [usize; 3];
+
+/// Matches by the colour signature, with the gain that put the piece on the
+/// material's scale, and the signature's length.
+#[allow(clippy::type_complexity)]
+fn colour_matches(
+    sample: &[Vec<[f64; 3]>],
+    piece: &[Vec<[f64; 3]>],
+    set: &DirectSet,
+    opts: &EnlargeOptions,
+    [columns, rows, fine]: Sizes,
+) -> Result<(Vec<(usize, f32)>, Option<[f64; 3]>, usize), BuildError> {
+    let (sample_mean, piece_mean) = (means(sample), means(piece));
+    let n_img = sample.len();
     // The gain that puts the piece on the material's scale: absolute from
     // the white reference (its radiance albedo/π · cos θ), else the ratio
     // of the means, refined from the matches below.
@@ -299,101 +391,24 @@ pub fn enlarge(
             })
             .collect()
     };
-    let sample_log = logs(&sample, [1.0; 3]);
+    let sample_log = logs(sample, [1.0; 3]);
     let r = opts.radius;
-    let sample_grid = Grid { logs: &sample_log, w: fine, h: fine, radius: r, step: sub };
-    let dims = sample_grid.dims();
-    let n = fine * fine;
-    let mut sample_sig = vec![0.0f32; n * dims];
-    sample_sig
-        .par_chunks_mut(dims)
-        .enumerate()
-        .for_each(|(i, sig)| sample_grid.signature(i % fine, i / fine, sig));
-
-    // Principal components of the sample's signatures.
-    let mut centre = vec![0.0f64; dims];
-    for sig in sample_sig.chunks_exact(dims) {
-        for (m, &x) in centre.iter_mut().zip(sig) {
-            *m += x as f64 / n as f64;
-        }
-    }
-    let cov = sample_sig
-        .par_chunks(dims * 256)
-        .map(|block| {
-            let mut c = vec![0.0f64; dims * dims];
-            let mut d = vec![0.0f64; dims];
-            for sig in block.chunks_exact(dims) {
-                for (di, (&x, m)) in d.iter_mut().zip(sig.iter().zip(&centre)) {
-                    *di = x as f64 - m;
-                }
-                for i in 0..dims {
-                    let di = d[i];
-                    for j in i..dims {
-                        c[i * dims + j] += di * d[j];
-                    }
-                }
-            }
-            c
-        })
-        .reduce(
-            || vec![0.0; dims * dims],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    let mut sym = cov;
-    for i in 0..dims {
-        for j in 0..i {
-            sym[i * dims + j] = sym[j * dims + i];
-        }
-    }
-    let (_, vectors) = super::linalg::symmetric_eigen(dims, &sym);
-    let axes: Vec<Vec<f32>> =
-        vectors.into_iter().take(PCA_DIMS).map(|v| v.iter().map(|&x| x as f32).collect()).collect();
-    let centre32: Vec<f32> = centre.iter().map(|&x| x as f32).collect();
-    let project = |sig: &[f32]| -> [f32; PCA_DIMS] {
-        std::array::from_fn(|p| {
-            axes.get(p).map_or(0.0, |a| {
-                sig.iter().zip(&centre32).zip(a).map(|((x, m), w)| (x - m) * w).sum()
-            })
-        })
-    };
-    let points: Vec<[f32; PCA_DIMS]> = sample_sig.par_chunks(dims).map(project).collect();
-    let tree: ImmutableKdTree<f32, PCA_DIMS> = ImmutableKdTree::new_from_slice(&points);
-    let want = NonZero::new(CANDIDATES.min(n)).expect("a material has texels");
-    let distance = |i: usize, sig: &[f32]| -> f32 {
-        sample_sig[i * dims..][..dims].iter().zip(sig).map(|(a, b)| (a - b) * (a - b)).sum()
-    };
-    let nearest = |grid: &Grid<'_>| -> Vec<(usize, f32)> {
-        (0..columns * rows)
-            .into_par_iter()
-            .map_init(
-                || vec![0.0f32; dims],
-                |sig, p| {
-                    grid.signature(p % columns, p / columns, sig);
-                    let q = project(sig);
-                    let mut best = (0usize, f32::INFINITY);
-                    for nn in tree.nearest_n::<SquaredEuclidean>(&q, want) {
-                        let i = nn.item as usize;
-                        let d = distance(i, sig);
-                        if d < best.1 || (d == best.1 && i < best.0) {
-                            best = (i, d);
-                        }
-                    }
-                    best
-                },
-            )
-            .collect()
-    };
+    let index = Index::new(&Colours {
+        logs: &sample_log,
+        w: fine,
+        h: fine,
+        radius: r,
+        step: opts.subtexel,
+    });
     // The gain again from the matches: the median log ratio of each
     // texel's match to it, until it settles. The means' gain is off where
     // the piece is brighter or darker on average than the sample, and its
     // matches then all lean one way.
-    let mut piece_log = logs(&piece, gain);
-    let mut matches = nearest(&Grid { logs: &piece_log, w: columns, h: rows, radius: r, step: 1 });
+    let mut piece_log = logs(piece, gain);
+    let match_piece = |logs: &[Vec<[f32; 3]>]| {
+        index.nearest(&Colours { logs, w: columns, h: rows, radius: r, step: 1 })
+    };
+    let mut matches = match_piece(&piece_log);
     for _ in 0..if white_gain.is_some() { 0 } else { GAIN_ROUNDS } {
         let mut change = [0.0f64; 3];
         for (c, ch) in change.iter_mut().enumerate() {
@@ -414,49 +429,53 @@ pub fn enlarge(
         for (g, ch) in gain.iter_mut().zip(change) {
             *g *= ch.exp();
         }
-        piece_log = logs(&piece, gain);
-        matches = nearest(&Grid { logs: &piece_log, w: columns, h: rows, radius: r, step: 1 });
+        piece_log = logs(piece, gain);
+        matches = match_piece(&piece_log);
     }
-    // Each match as the sample's uv in 16-bit fixed point.
-    let fixed = |k: usize| {
-        let uv = (k as f64 / sub as f64 + 0.5) / s as f64;
-        (uv * MAP_UNITS - 0.5).round().clamp(0.0, MAP_UNITS - 1.0) as u16
-    };
-    let matches: Vec<([u16; 2], f32)> =
-        matches.into_iter().map(|(i, d)| ([fixed(i % fine), fixed(i / fine)], d)).collect();
-
-    let mut dist: Vec<f64> =
-        matches.iter().map(|m| (m.1.max(0.0) as f64 / dims as f64).sqrt()).collect();
-    dist.sort_by(f64::total_cmp);
-    let pct = |p: f64| dist[((dist.len() - 1) as f64 * p).round() as usize];
-    let mut used: Vec<[u16; 2]> = matches.iter().map(|m| m.0).collect();
-    used.sort_unstable();
-    used.dedup();
-    let report = EnlargeReport {
-        columns: columns as u32,
-        rows: rows as u32,
-        gain,
-        distance: [pct(0.5), pct(0.9)],
-        points_used: used.len(),
-    };
-    let mut out = data.clone();
-    out.meta.version = VERSION_ENLARGED;
-    out.meta.extent_mm = size_mm;
-    out.meta.enlargement = Some(Enlargement {
-        columns: columns as u32,
-        rows: rows as u32,
-        signature: "colour".into(),
-        directions,
-        direct_sha256: set.sha256.clone(),
-    });
-    out.enlargement = matches.into_iter().map(|m| m.0).collect();
-    Ok((out, report))
+    Ok((matches, Some(gain), index.dims))
 }
 
-/// Log images on a `w × h` grid whose points' signatures are their
-/// (2 radius + 1)² neighbourhoods `step` points apart (clamped at the
-/// border).
-struct Grid<'a> {
+/// Matches by the height signature, and the signature's length.
+fn height_matches(
+    sample: &[Vec<[f64; 3]>],
+    piece: &[Vec<[f64; 3]>],
+    directions: &[[f64; 3]],
+    opts: &EnlargeOptions,
+    pitch: f64,
+    [columns, rows, fine]: Sizes,
+) -> Result<(Vec<(usize, f32)>, usize), BuildError> {
+    let stereo = Stereo::new(directions)?;
+    let sub = opts.subtexel;
+    let sample_h = stereo.heights(sample, fine, fine, pitch / sub as f64);
+    let piece_h = stereo.heights(piece, columns, rows, pitch);
+    let r = opts.radius;
+    let index = Index::new(&Heights { h: &sample_h, w: fine, radius: r, step: sub, pitch });
+    let matches = index.nearest(&Heights { h: &piece_h, w: columns, radius: r, step: 1, pitch });
+    Ok((matches, index.dims))
+}
+
+/// Each image's mean per channel.
+fn means(imgs: &[Vec<[f64; 3]>]) -> Vec<[f64; 3]> {
+    let mean = |img: &Vec<[f64; 3]>, c: usize| {
+        img.iter().map(|v| v[c]).sum::<f64>() / img.len().max(1) as f64
+    };
+    imgs.iter().map(|img| std::array::from_fn(|c| mean(img, c))).collect()
+}
+
+/// A grid of texels with a signature each.
+trait Signatures: Sync {
+    /// The grid's width and height.
+    fn size(&self) -> [usize; 2];
+    /// Values in a signature.
+    fn dims(&self) -> usize;
+    /// Texel (x, y)'s signature into `out` ([`Signatures::dims`] values).
+    fn signature(&self, x: usize, y: usize, out: &mut [f32]);
+}
+
+/// The colour signature: log images on a `w × h` grid whose points'
+/// signatures are their (2 radius + 1)² neighbourhoods `step` points apart
+/// (clamped at the border).
+struct Colours<'a> {
     logs: &'a [Vec<[f32; 3]>],
     w: usize,
     h: usize,
@@ -464,14 +483,16 @@ struct Grid<'a> {
     step: usize,
 }
 
-impl Grid<'_> {
-    /// Values in a signature.
+impl Signatures for Colours<'_> {
+    fn size(&self) -> [usize; 2] {
+        [self.w, self.h]
+    }
+
     fn dims(&self) -> usize {
         let side = 2 * self.radius + 1;
         3 * side * side * self.logs.len()
     }
 
-    /// Texel (x, y)'s signature into `out` ([`Grid::dims`] values):
     /// `[image][dy][dx][channel]`.
     fn signature(&self, x: usize, y: usize, out: &mut [f32]) {
         let (r, step) = (self.radius as isize, self.step as isize);
@@ -486,6 +507,318 @@ impl Grid<'_> {
                 }
             }
         }
+    }
+}
+
+/// The height signature: a height map's (2 radius + 1)² − 1 neighbours
+/// `step` points apart (clamped at the border), each relative to the
+/// point's own height and over the distance `pitch` of one step × `step`,
+/// i.e. in units of the texel pitch.
+struct Heights<'a> {
+    h: &'a [f32],
+    w: usize,
+    radius: usize,
+    step: usize,
+    pitch: f64,
+}
+
+impl Signatures for Heights<'_> {
+    fn size(&self) -> [usize; 2] {
+        [self.w, self.h.len() / self.w]
+    }
+
+    fn dims(&self) -> usize {
+        let side = 2 * self.radius + 1;
+        side * side - 1
+    }
+
+    /// `[dy][dx]` without the centre.
+    fn signature(&self, x: usize, y: usize, out: &mut [f32]) {
+        let (r, step) = (self.radius as isize, self.step as isize);
+        let rows = (self.h.len() / self.w) as isize;
+        let at = |x: usize, y: usize| self.h[y * self.w + x];
+        let own = at(x, y);
+        let unit = 1.0 / self.pitch as f32;
+        let mut k = 0;
+        for dy in -r..=r {
+            let yy = (y as isize + dy * step).clamp(0, rows - 1) as usize;
+            for dx in -r..=r {
+                if (dx, dy) == (0, 0) {
+                    continue;
+                }
+                let xx = (x as isize + dx * step).clamp(0, self.w as isize - 1) as usize;
+                out[k] = (at(xx, yy) - own) * unit;
+                k += 1;
+            }
+        }
+    }
+}
+
+/// The sample's signatures, and a k-d tree over their first [`PCA_DIMS`]
+/// principal components.
+struct Index {
+    sig: Vec<f32>,
+    dims: usize,
+    centre: Vec<f32>,
+    axes: Vec<Vec<f32>>,
+    tree: ImmutableKdTree<f32, PCA_DIMS>,
+}
+
+impl Index {
+    fn new(grid: &impl Signatures) -> Index {
+        let [w, h] = grid.size();
+        let dims = grid.dims();
+        let n = w * h;
+        let mut sig = vec![0.0f32; n * dims];
+        sig.par_chunks_mut(dims).enumerate().for_each(|(i, s)| grid.signature(i % w, i / w, s));
+        let mut centre = vec![0.0f64; dims];
+        for s in sig.chunks_exact(dims) {
+            for (m, &x) in centre.iter_mut().zip(s) {
+                *m += x as f64 / n as f64;
+            }
+        }
+        let cov = sig
+            .par_chunks(dims * 256)
+            .map(|block| {
+                let mut c = vec![0.0f64; dims * dims];
+                let mut d = vec![0.0f64; dims];
+                for s in block.chunks_exact(dims) {
+                    for (di, (&x, m)) in d.iter_mut().zip(s.iter().zip(&centre)) {
+                        *di = x as f64 - m;
+                    }
+                    for i in 0..dims {
+                        let di = d[i];
+                        for j in i..dims {
+                            c[i * dims + j] += di * d[j];
+                        }
+                    }
+                }
+                c
+            })
+            .reduce(
+                || vec![0.0; dims * dims],
+                |mut a, b| {
+                    for (x, y) in a.iter_mut().zip(b) {
+                        *x += y;
+                    }
+                    a
+                },
+            );
+        let mut sym = cov;
+        for i in 0..dims {
+            for j in 0..i {
+                sym[i * dims + j] = sym[j * dims + i];
+            }
+        }
+        let (_, vectors) = super::linalg::symmetric_eigen(dims, &sym);
+        let axes: Vec<Vec<f32>> = vectors
+            .into_iter()
+            .take(PCA_DIMS)
+            .map(|v| v.iter().map(|&x| x as f32).collect())
+            .collect();
+        let mut index = Index {
+            sig,
+            dims,
+            centre: centre.iter().map(|&x| x as f32).collect(),
+            axes,
+            tree: ImmutableKdTree::new_from_slice(&[]),
+        };
+        let points: Vec<[f32; PCA_DIMS]> =
+            index.sig.par_chunks(dims).map(|s| index.project(s)).collect();
+        index.tree = ImmutableKdTree::new_from_slice(&points);
+        index
+    }
+
+    /// A signature's first [`PCA_DIMS`] principal components (0 beyond the
+    /// signature's length).
+    fn project(&self, sig: &[f32]) -> [f32; PCA_DIMS] {
+        std::array::from_fn(|p| {
+            self.axes.get(p).map_or(0.0, |a| {
+                sig.iter().zip(&self.centre).zip(a).map(|((x, m), w)| (x - m) * w).sum()
+            })
+        })
+    }
+
+    /// For every texel of `grid`, the sample's point whose signature is
+    /// nearest, and the squared distance: exact among the tree's
+    /// [`CANDIDATES`] nearest in the principal components (ties to the
+    /// lower index).
+    fn nearest(&self, grid: &impl Signatures) -> Vec<(usize, f32)> {
+        let [w, h] = grid.size();
+        let dims = self.dims;
+        let want =
+            NonZero::new(CANDIDATES.min(self.sig.len() / dims)).expect("a material has texels");
+        (0..w * h)
+            .into_par_iter()
+            .map_init(
+                || vec![0.0f32; dims],
+                |sig, p| {
+                    grid.signature(p % w, p / w, sig);
+                    let q = self.project(sig);
+                    let mut best = (0usize, f32::INFINITY);
+                    for nn in self.tree.nearest_n::<SquaredEuclidean>(&q, want) {
+                        let i = nn.item as usize;
+                        let d: f32 = self.sig[i * dims..][..dims]
+                            .iter()
+                            .zip(sig.iter())
+                            .map(|(a, b)| (a - b) * (a - b))
+                            .sum();
+                        if d < best.1 || (d == best.1 && i < best.0) {
+                            best = (i, d);
+                        }
+                    }
+                    best
+                },
+            )
+            .collect()
+    }
+}
+
+/// Photometric stereo over a set of directions (each image lit and seen
+/// along one): the least-squares solution of `L g = I`, g = albedo · n,
+/// brightness ∝ n · l (Lambert).
+struct Stereo {
+    /// (Lᵀ L)⁻¹ Lᵀ, 3 × images, row-major.
+    solve: Vec<[f64; 3]>,
+}
+
+/// Iterations of the height integration, at least (4 × the grid's width +
+/// height, if more).
+const HEIGHT_ITERATIONS: usize = 1000;
+/// The integration's residual, relative to its start, at which it stops.
+const HEIGHT_RESIDUAL: f64 = 1e-6;
+/// Steepest slope a normal may give (80° from the surface normal): a
+/// texel's normal comes from brightness at ≤ 80°, and a steeper one is
+/// noise.
+const MAX_SLOPE: f64 = 5.67;
+
+impl Stereo {
+    fn new(directions: &[[f64; 3]]) -> Result<Stereo, BuildError> {
+        let mut ata = [0.0f64; 9];
+        for d in directions {
+            for i in 0..3 {
+                for j in 0..3 {
+                    ata[3 * i + j] += d[i] * d[j];
+                }
+            }
+        }
+        // Three directions not in one plane give a well-posed system; the
+        // smallest eigenvalue says how well.
+        let (values, vectors) = super::linalg::symmetric_eigen(3, &ata);
+        let smallest = values.iter().copied().fold(f64::INFINITY, f64::min);
+        if directions.len() < 3 || smallest.is_nan() || smallest <= 1e-3 * directions.len() as f64 {
+            return Err(BuildError::Input(format!(
+                "the height signature needs photometric stereo: at least 3 direct images whose \
+                 directions are not in one plane (these {} span {:.1e} in their narrowest \
+                 direction)",
+                directions.len(),
+                smallest.max(0.0)
+            )));
+        }
+        let inv: [f64; 9] = std::array::from_fn(|ij| {
+            let (i, j) = (ij / 3, ij % 3);
+            values.iter().zip(&vectors).map(|(l, v)| v[i] * v[j] / l).sum()
+        });
+        let solve = directions
+            .iter()
+            .map(|d| std::array::from_fn(|i| (0..3).map(|j| inv[3 * i + j] * d[j]).sum()))
+            .collect();
+        Ok(Stereo { solve })
+    }
+
+    /// The height map (mm, up to a constant) of a `w × h` grid `pitch` mm
+    /// apart seen in `images` (one per direction): slopes from the
+    /// normals, then the heights the patent's iteration converges to —
+    /// from zero, each point's height made the mean over its neighbours of
+    /// their height less the rise the slopes predict, until nothing
+    /// changes: the least-squares fit of the heights' differences to the
+    /// slopes. Conjugate gradients reach it in far fewer steps than that
+    /// iteration (which, stopped early, leaves the heights of one place
+    /// depending on how far it lies from the border).
+    fn heights(&self, images: &[Vec<[f64; 3]>], w: usize, h: usize, pitch: f64) -> Vec<f32> {
+        let slopes: Vec<[f64; 2]> = (0..w * h)
+            .into_par_iter()
+            .map(|p| {
+                let mut g = [0.0f64; 3];
+                for (img, m) in images.iter().zip(&self.solve) {
+                    let i = img[p].iter().sum::<f64>() / 3.0;
+                    for c in 0..3 {
+                        g[c] += m[c] * i;
+                    }
+                }
+                if g[2] > 0.0 {
+                    [-g[0] / g[2], -g[1] / g[2]].map(|s| s.clamp(-MAX_SLOPE, MAX_SLOPE) * pitch)
+                } else {
+                    [0.0; 2]
+                }
+            })
+            .collect();
+        // Each point's equation: its height is the mean over its neighbours
+        // of their height less the rise to them (the mean of the two
+        // points' slopes along the step) — A h = b, A the grid's Laplacian.
+        let neighbours = |p: usize| {
+            let (x, y) = (p % w, p / w);
+            [
+                (x > 0).then(|| (p - 1, 0, -1.0)),
+                (x + 1 < w).then(|| (p + 1, 0, 1.0)),
+                (y > 0).then(|| (p - w, 1, -1.0)),
+                (y + 1 < h).then(|| (p + w, 1, 1.0)),
+            ]
+            .into_iter()
+            .flatten()
+        };
+        let b: Vec<f64> = (0..w * h)
+            .into_par_iter()
+            .map(|p| {
+                neighbours(p)
+                    .map(|(q, axis, sign)| -sign * 0.5 * (slopes[p][axis] + slopes[q][axis]))
+                    .sum()
+            })
+            .collect();
+        let laplacian = |v: &[f64], out: &mut [f64]| {
+            out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, o) in row.iter_mut().enumerate() {
+                    let p = y * w + x;
+                    *o = neighbours(p).map(|(q, _, _)| v[p] - v[q]).sum();
+                }
+            })
+        };
+        // Dot products summed by rows, in order: the same answer on any
+        // number of threads.
+        let dot = |a: &[f64], b: &[f64]| -> f64 {
+            let rows: Vec<f64> = a
+                .par_chunks(w)
+                .zip(b.par_chunks(w))
+                .map(|(a, b)| a.iter().zip(b).map(|(x, y)| x * y).sum())
+                .collect();
+            rows.iter().sum()
+        };
+        // Conjugate gradients from zero (A is symmetric and positive
+        // semi-definite; b sums to zero, so the system is consistent).
+        let mut height = vec![0.0f64; w * h];
+        let mut r = b.clone();
+        let mut d = r.clone();
+        let mut ad = vec![0.0f64; w * h];
+        let mut rr = dot(&r, &r);
+        let goal = HEIGHT_RESIDUAL * HEIGHT_RESIDUAL * rr;
+        for _ in 0..HEIGHT_ITERATIONS.max(4 * (w + h)) {
+            if rr <= goal || rr == 0.0 {
+                break;
+            }
+            laplacian(&d, &mut ad);
+            let dad = dot(&d, &ad);
+            if dad.is_nan() || dad <= 0.0 {
+                break;
+            }
+            let alpha = rr / dad;
+            height.par_iter_mut().zip(&d).for_each(|(x, di)| *x += alpha * di);
+            r.par_iter_mut().zip(&ad).for_each(|(x, a)| *x -= alpha * a);
+            let next = dot(&r, &r);
+            let beta = next / rr;
+            rr = next;
+            d.par_iter_mut().zip(&r).for_each(|(x, ri)| *x = ri + beta * *x);
+        }
+        height.into_iter().map(|v| v as f32).collect()
     }
 }
 
@@ -594,5 +927,103 @@ mod tests {
         let g = Frame { width: 4, height: 2, rgb: (0..24).map(|i| i as f32).collect() };
         let half = area_resample(&g, 2, 1);
         assert_eq!(half[0], [(0.0 + 3.0 + 12.0 + 15.0) / 4.0, 8.5, 9.5]);
+    }
+
+    /// The four mirror directions nearest the axis of the default scanner:
+    /// 15° from the normal, a quarter turn apart.
+    fn ring() -> Vec<[f64; 3]> {
+        let t = 15f64.to_radians();
+        (0..4)
+            .map(|k| {
+                let a = k as f64 * std::f64::consts::FRAC_PI_2 + 0.3;
+                [t.sin() * a.cos(), t.sin() * a.sin(), t.cos()]
+            })
+            .collect()
+    }
+
+    /// Images of a Lambertian surface of height `z(x, y)` (mm, x and y in
+    /// mm) and albedo `rho(x, y)` over a `w × h` grid `pitch` mm apart, lit
+    /// along `dirs`.
+    fn lambert(
+        dirs: &[[f64; 3]],
+        w: usize,
+        h: usize,
+        pitch: f64,
+        z: &dyn Fn(f64, f64) -> f64,
+        rho: &dyn Fn(f64, f64) -> f64,
+    ) -> Vec<Vec<[f64; 3]>> {
+        dirs.iter()
+            .map(|d| {
+                (0..w * h)
+                    .map(|p| {
+                        let (x, y) = ((p % w) as f64 * pitch, (p / w) as f64 * pitch);
+                        let e = 1e-5;
+                        let gx = (z(x + e, y) - z(x - e, y)) / (2.0 * e);
+                        let gy = (z(x, y + e) - z(x, y - e)) / (2.0 * e);
+                        let len = (gx * gx + gy * gy + 1.0).sqrt();
+                        let cos = (-gx * d[0] - gy * d[1] + d[2]) / len;
+                        [rho(x, y) * cos.max(0.0); 3]
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn photometric_stereo_and_integration_recover_a_height_field() {
+        let dirs = ring();
+        let stereo = Stereo::new(&dirs).unwrap();
+        let (w, h, pitch) = (96usize, 80usize, 0.2);
+        // Bumps of 1–4 mm and an albedo that varies on its own.
+        let z = |x: f64, y: f64| {
+            0.05 * (x * 2.1).sin() * (y * 1.3).cos() + 0.03 * (x * 0.7 + y * 1.9).sin()
+        };
+        let rho = |x: f64, y: f64| 0.3 + 0.2 * (x * 5.0 + y * 3.0).sin().abs();
+        let images = lambert(&dirs, w, h, pitch, &z, &rho);
+        let heights = stereo.heights(&images, w, h, pitch);
+        // Neighbour differences (the signature's values) against the
+        // truth's, over the interior.
+        let (mut err, mut norm) = (0.0f64, 0.0f64);
+        for y in 1..h - 1 {
+            for x in 1..w - 1 {
+                let p = y * w + x;
+                let (px, py) = (x as f64 * pitch, y as f64 * pitch);
+                for (q, dx, dy) in [(p + 1, pitch, 0.0), (p + w, 0.0, pitch)] {
+                    let want = z(px + dx, py + dy) - z(px, py);
+                    let got = (heights[q] - heights[p]) as f64;
+                    err += (got - want).powi(2);
+                    norm += want * want;
+                }
+            }
+        }
+        let rel = (err / norm).sqrt();
+        assert!(rel < 0.02, "relative RMS error of the neighbour differences {rel}");
+        // The albedo and the scale do not enter: ten times brighter, the
+        // same heights.
+        let brighter: Vec<Vec<[f64; 3]>> =
+            images.iter().map(|im| im.iter().map(|v| v.map(|c| 10.0 * c)).collect()).collect();
+        let again = stereo.heights(&brighter, w, h, pitch);
+        for (a, b) in heights.iter().zip(&again) {
+            assert!((a - b).abs() < 1e-4, "{a} {b}");
+        }
+    }
+
+    #[test]
+    fn heights_need_three_directions_not_in_one_plane() {
+        let t = 15f64.to_radians();
+        let plane: Vec<[f64; 3]> =
+            [-1.0, 0.0, 1.0].iter().map(|&k| [k * t.sin(), 0.0, (k * t).cos()]).collect();
+        let plane: Vec<[f64; 3]> = plane
+            .iter()
+            .map(|d| {
+                let l = (d[0] * d[0] + d[2] * d[2]).sqrt();
+                [d[0] / l, 0.0, d[2] / l]
+            })
+            .collect();
+        for dirs in [plane, ring()[..2].to_vec()] {
+            let Err(BuildError::Input(e)) = Stereo::new(&dirs) else { panic!("{dirs:?}") };
+            assert!(e.contains("not in one plane"), "{e}");
+        }
+        assert!(Stereo::new(&ring()[..3]).is_ok());
     }
 }

@@ -667,28 +667,35 @@ pub fn enlarge_cmd(
     crate::fsutil::write_atomic(output, &bytes)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
     let s = data.meta.resolution as usize;
+    let scale = match report.gain {
+        Some(g) => format!(
+            "scale {:.3e} {:.3e} {:.3e} ({})",
+            g[0],
+            g[1],
+            g[2],
+            if set.white.is_some() {
+                "from the white reference"
+            } else {
+                "no white reference: from the matches"
+            }
+        ),
+        None => "heights need no scale".into(),
+    };
     println!(
-        "{}: {} × {} texels over {} × {} mm from {}, each matched to a place on the sample \
-         ({} distinct of {}² candidates); signature distance median {:.3}, 90th percentile \
-         {:.3}; scale {:.3e} {:.3e} {:.3e} ({}); {:.1} MB in {:.1} s",
+        "{}: {} × {} texels over {} × {} mm from {}, each matched to a place on the sample by \
+         {} ({} distinct of {}² candidates); signature distance median {:.3}, 90th percentile \
+         {:.3}; {scale}; {:.1} MB in {:.1} s",
         output.display(),
         report.columns,
         report.rows,
         set.manifest.size_mm[0],
         set.manifest.size_mm[1],
         count(set.images.len(), "direct image"),
+        opts.signature.name(),
         report.points_used,
         s * opts.subtexel,
         report.distance[0],
         report.distance[1],
-        report.gain[0],
-        report.gain[1],
-        report.gain[2],
-        if set.white.is_some() {
-            "from the white reference"
-        } else {
-            "no white reference: from the matches"
-        },
         bytes.len() as f64 / 1e6,
         started.elapsed().as_secs_f64()
     );

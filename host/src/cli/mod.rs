@@ -180,6 +180,13 @@ enum Command {
         /// texel of the piece may match a point between the sample's texels.
         #[arg(long, default_value_t = crate::build::enlarge::EnlargeOptions::DEFAULT.subtexel)]
         subtexel: usize,
+        /// What a texel's signature holds: `colour`, its neighbourhood's
+        /// RGB in every direct image; `height`, its neighbourhood's heights
+        /// from photometric stereo over them (≥ 3 images whose directions
+        /// are not in one plane; needs no white reference).
+        #[arg(long, value_parser = ["colour", "height"],
+              default_value = crate::build::enlarge::EnlargeOptions::DEFAULT.signature.name())]
+        signature: String,
     },
     /// A preview PNG of a material: the sample's extent under three light
     /// directions, seen from the direction farthest from every captured view
@@ -658,8 +665,9 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Shade { material, queries, output } => {
             build::shade_cmd(&material, &queries, &output)?
         }
-        Command::Enlarge { material, direct, output, radius, subtexel } => {
-            let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel };
+        Command::Enlarge { material, direct, output, radius, subtexel, signature } => {
+            let signature = signature.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?;
+            let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel, signature };
             build::enlarge_cmd(&material, &direct, &output, &opts)?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
