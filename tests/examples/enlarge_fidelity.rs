@@ -27,9 +27,9 @@ fn main() {
     let pairs = tests::random_pairs(n_pairs, 60.0, seed);
     println!(
         "| material | S | map | enlarge | signature distance (median / 90th) | enlarged | tiled | \
-         window: enlarged | window: the sample's material |"
+         window: enlarged | window: the sample's material | own place |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for m in materials {
         let dir = out.join(format!(
             "direct-{}",
@@ -49,10 +49,11 @@ fn main() {
         let (big, report) = enlarge(&data, &set, &opts).unwrap();
         let secs = t.elapsed().as_secs_f64();
         let big = Material::from_bytes(&big.to_bytes().unwrap()).unwrap();
+        let own = own_place(&big, truth.clone());
         let s = tests::enlargement_scores(&big, &small, truth, &pairs);
         println!(
             "| {m} | {} | {} × {} | {secs:.2} s | {:.3} / {:.3} | **{:.2} dB** | {:.2} dB | {:.2} dB | \
-             {:.2} dB |",
+             {:.2} dB | {:.1} % |",
             data.meta.resolution,
             report.columns,
             report.rows,
@@ -61,7 +62,37 @@ fn main() {
             s.enlarged,
             s.tiled,
             s.window_enlarged,
-            s.window_sample
+            s.window_sample,
+            100.0 * own
         );
     }
+}
+
+/// The share of the map's texels within the window the small sample is cut
+/// from (but its outermost 2 %) matched within a texel of their own place
+/// on the sample.
+fn own_place(big: &Material, truth: std::sync::Arc<dyn hil_sim::materials::Material>) -> f64 {
+    use hil_sim::materials::Sample;
+    let (small, large) = (Sample::small(truth.clone()), Sample::large(truth));
+    let meta = big.metadata();
+    let e = meta.enlargement.as_ref().expect("an enlarged material");
+    let (cols, rows) = (e.columns as usize, e.rows as usize);
+    let texel = 1.0 / meta.resolution as f64;
+    let (mut inside, mut own) = (0usize, 0usize);
+    for r in 0..rows {
+        for c in 0..cols {
+            let piece = [(c as f64 + 0.5) / cols as f64, (r as f64 + 0.5) / rows as f64];
+            let uv = [0, 1].map(|k| {
+                (large.offset_mm[k] + piece[k] * large.size_mm - small.offset_mm[k])
+                    / small.size_mm
+            });
+            if uv.iter().any(|u| !(0.02..0.98).contains(u)) {
+                continue;
+            }
+            inside += 1;
+            let at = big.scanned_uv(piece.map(|u| u as f32));
+            own += usize::from((0..2).all(|k| (at[k] as f64 - uv[k]).abs() <= texel));
+        }
+    }
+    own as f64 / inside.max(1) as f64
 }
