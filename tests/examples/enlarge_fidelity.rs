@@ -83,8 +83,7 @@ fn own_place(big: &Material, truth: std::sync::Arc<dyn hil_sim::materials::Mater
         for c in 0..cols {
             let piece = [(c as f64 + 0.5) / cols as f64, (r as f64 + 0.5) / rows as f64];
             let uv = [0, 1].map(|k| {
-                (large.offset_mm[k] + piece[k] * large.size_mm - small.offset_mm[k])
-                    / small.size_mm
+                (large.offset_mm[k] + piece[k] * large.size_mm - small.offset_mm[k]) / small.size_mm
             });
             if uv.iter().any(|u| !(0.02..0.98).contains(u)) {
                 continue;

@@ -19,6 +19,7 @@ pub mod locate;
 pub mod material;
 pub mod palette;
 pub mod plane;
+pub mod rectify;
 pub mod regions;
 pub mod scanread;
 pub mod superres;

@@ -702,6 +702,38 @@ pub fn enlarge_cmd(
     Ok(())
 }
 
+/// `scanner rectify`
+pub fn rectify_cmd(
+    photo: &Path,
+    opts: &crate::build::rectify::RectifyOptions,
+    output: &Path,
+) -> Result<(), Failure> {
+    let frame = crate::exrio::read_rgb(photo)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    // Options that do not fit this photograph: exit 2, as for any option.
+    opts.check(frame.width, frame.height).map_err(|e| Failure(2, anyhow!(e)))?;
+    let (out, report) = crate::build::rectify::rectify(&frame, opts)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    let bytes = crate::exrio::encode_half(&out)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+    crate::fsutil::write_atomic(output, &bytes)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
+    println!(
+        "{}: {} × {} px over {} × {} mm at {:.2} px/mm (the photograph: {:.2}–{:.2} px/mm on the \
+         piece; {}² points a pixel)",
+        output.display(),
+        out.width,
+        out.height,
+        opts.size_mm[0],
+        opts.size_mm[1],
+        report.px_per_mm,
+        report.photo_px_per_mm[0],
+        report.photo_px_per_mm[1],
+        report.supersampling
+    );
+    Ok(())
+}
+
 /// The encoding of previews and contact sheets: π·value (a white target's
 /// albedo), Reinhard, sRGB.
 fn encode_srgb(v: f32) -> u8 {

@@ -188,6 +188,29 @@ enum Command {
               default_value = crate::build::enlarge::EnlargeOptions::DEFAULT.signature.name())]
         signature: String,
     },
+    /// Rectify a photograph of a flat piece, taken in perspective, onto the
+    /// piece: a direct image for `scanner enlarge` (docs/direct-images.md).
+    /// Mark the piece's four corners in the photograph.
+    Rectify {
+        /// The photograph: linear OpenEXR (RGB), lens distortion removed.
+        photo: PathBuf,
+        /// The piece's corners in the photograph, px (pixel (c, r) spans
+        /// [c, c + 1) × [r, r + 1)): X0,Y0,X1,Y1,X2,Y2,X3,Y3 for the
+        /// piece's (0, 0), (1, 0), (1, 1), (0, 1) — u along the output's
+        /// columns, v down its rows.
+        #[arg(long, value_delimiter = ',', allow_hyphen_values = true, required = true)]
+        corners: Vec<f64>,
+        /// The piece's width and height, mm: W,H (one number: a square).
+        #[arg(long, value_delimiter = ',', required = true)]
+        size_mm: Vec<f64>,
+        /// Output pixels per mm [default: the photograph's own, where it
+        /// resolves the piece least].
+        #[arg(long)]
+        px_per_mm: Option<f64>,
+        /// Output picture (.exr: linear, half float).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// A preview PNG of a material: the sample's extent under three light
     /// directions, seen from the direction farthest from every captured view
     /// (20°…45° from the normal).
@@ -529,6 +552,28 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
     r.map_err(|e| Failure(4, e))
 }
 
+/// `scanner rectify`'s options from its arguments (exit 2: their count).
+fn rectify_options(
+    corners: &[f64],
+    size_mm: &[f64],
+    px_per_mm: Option<f64>,
+) -> Result<crate::build::rectify::RectifyOptions, Failure> {
+    let bad = |m: String| Failure(2, anyhow::anyhow!(m));
+    let corners: [f64; 8] = corners
+        .try_into()
+        .map_err(|_| bad(format!("--corners: 8 numbers (X0,Y0,…,X3,Y3), not {}", corners.len())))?;
+    let size_mm = match *size_mm {
+        [side] => [side, side],
+        [w, h] => [w, h],
+        _ => return Err(bad(format!("--size-mm: W,H or one side, not {} numbers", size_mm.len()))),
+    };
+    Ok(crate::build::rectify::RectifyOptions {
+        corners: std::array::from_fn(|k| [corners[2 * k], corners[2 * k + 1]]),
+        size_mm,
+        px_per_mm,
+    })
+}
+
 /// Before any work: the output may be written (not a device node, symlink,
 /// directory or the input: exit 4), then has one of the file types the
 /// command writes (exit 2).
@@ -669,6 +714,11 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let signature = signature.parse().map_err(|e| Failure(2, anyhow::anyhow!("{e}")))?;
             let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel, signature };
             build::enlarge_cmd(&material, &direct, &output, &opts)?
+        }
+        Command::Rectify { photo, corners, size_mm, px_per_mm, output } => {
+            check_output(&output, &[&photo], &["exr"])?;
+            let opts = rectify_options(&corners, &size_mm, px_per_mm)?;
+            build::rectify_cmd(&photo, &opts, &output)?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {

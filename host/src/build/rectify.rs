@@ -1,0 +1,181 @@
+//! A photograph of a flat piece, taken in perspective, rectified onto the
+//! piece: the direct images `scanner enlarge` reads are pictures of the
+//! piece over its own coordinates (docs/direct-images.md, "Rectifying
+//! photographs").
+//!
+//! The piece is a plane, so a pinhole camera sees it through a homography:
+//! the four corners the user marks in the photograph fix it. Each output
+//! pixel averages the photograph over its footprint on the piece — k × k
+//! points spread over the pixel, k from the photograph's pixels per output
+//! pixel there, each read by the region images' edge-aware Catmull–Rom
+//! filter ([`ViewSampler::region_sample`]), so that nothing outside the
+//! marked quadrilateral (the holder, the table) mixes into the piece's
+//! border.
+
+use rayon::prelude::*;
+
+use super::BuildError;
+use super::calibrate::ViewSampler;
+use super::linalg::Homography;
+use crate::camera::Frame;
+
+/// The largest output side, px (as for exported maps).
+pub const MAX_SIDE: usize = super::export::MAX_SIDE;
+/// Points per output pixel along each axis, at most.
+pub const MAX_SUPERSAMPLING: usize = 8;
+/// The largest piece side, mm.
+pub const MAX_SIZE_MM: f64 = 10_000.0;
+
+/// What to rectify.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RectifyOptions {
+    /// The piece's corners in the photograph, px (pixel (c, r) spans
+    /// [c, c + 1) × [r, r + 1)), in the order of the piece's (u, v) = (0, 0),
+    /// (1, 0), (1, 1), (0, 1): u along the output's columns, v down its rows.
+    pub corners: [[f64; 2]; 4],
+    /// The piece's width (along u) and height (along v), mm.
+    pub size_mm: [f64; 2],
+    /// Output pixels per mm; `None`: the photograph's own density where it
+    /// resolves the piece least.
+    pub px_per_mm: Option<f64>,
+}
+
+/// What [`rectify`] made.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RectifyReport {
+    /// Output pixels per mm.
+    pub px_per_mm: f64,
+    /// The photograph's pixels per mm on the piece, least and most (along
+    /// the piece's axes, at its corners and centre).
+    pub photo_px_per_mm: [f64; 2],
+    /// Points averaged per output pixel along each axis.
+    pub supersampling: usize,
+}
+
+impl RectifyOptions {
+    /// The options in range for a photograph of `width × height` px, and
+    /// the homography from the piece's uv to the photograph's pixels.
+    pub fn check(&self, width: u32, height: u32) -> Result<Homography, String> {
+        let [w, h] = self.size_mm;
+        if !(w.is_finite() && h.is_finite() && w > 0.0 && h > 0.0)
+            || w > MAX_SIZE_MM
+            || h > MAX_SIZE_MM
+        {
+            return Err(format!("--size-mm {w},{h}: each in (0, {MAX_SIZE_MM}] mm"));
+        }
+        if let Some(d) = self.px_per_mm
+            && !(d.is_finite() && d > 0.0)
+        {
+            return Err(format!("--px-per-mm {d}: a density > 0"));
+        }
+        for (k, c) in self.corners.iter().enumerate() {
+            let inside = c.iter().all(|v| v.is_finite())
+                && (0.0..=width as f64).contains(&c[0])
+                && (0.0..=height as f64).contains(&c[1]);
+            if !inside {
+                return Err(format!(
+                    "corner {k} at ({}, {}) px lies outside the {width} × {height} px photograph",
+                    c[0], c[1]
+                ));
+            }
+        }
+        // A convex quadrilateral, its corners in order around it (either
+        // way round), of some size.
+        let cross: Vec<f64> = (0..4)
+            .map(|k| {
+                let [a, b, c] = [0, 1, 2].map(|i| self.corners[(k + i) % 4]);
+                (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])
+            })
+            .collect();
+        let area = 0.5
+            * (0..4)
+                .map(|k| {
+                    let (a, b) = (self.corners[k], self.corners[(k + 1) % 4]);
+                    a[0] * b[1] - b[0] * a[1]
+                })
+                .sum::<f64>()
+                .abs();
+        if !(cross.iter().all(|&c| c > 0.0) || cross.iter().all(|&c| c < 0.0)) || area < 16.0 {
+            return Err(format!(
+                "corners {:?}: not a convex quadrilateral of ≥ 16 px² with its corners in order \
+                 around it ((0, 0), (1, 0), (1, 1), (0, 1) of the piece)",
+                self.corners
+            ));
+        }
+        let square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+        Homography::fit(&square, &self.corners)
+            .ok_or_else(|| format!("corners {:?}: no homography fits them", self.corners))
+    }
+}
+
+/// `photo` rectified onto the piece: W × H px, W = width · density and
+/// H = height · density (rounded, ≥ 1), pixel (c, r) covering the piece's
+/// point ((c + ½)/W · width, (r + ½)/H · height) mm.
+pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyReport), BuildError> {
+    let h = opts.check(photo.width, photo.height).map_err(BuildError::Input)?;
+    let n = photo.width as usize * photo.height as usize * 3;
+    if photo.rgb.len() != n {
+        return Err(BuildError::Input(format!(
+            "the photograph holds {} values, not {n}",
+            photo.rgb.len()
+        )));
+    }
+    if let Some(i) = photo.rgb.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+        let p = i / 3;
+        return Err(BuildError::Input(format!(
+            "pixel ({}, {}) of the photograph holds {}, not a radiance ≥ 0",
+            p % photo.width as usize,
+            p / photo.width as usize,
+            photo.rgb[i]
+        )));
+    }
+    // The photograph's px per mm along u and v at the corners and centre.
+    let [wmm, hmm] = opts.size_mm;
+    let densities: Vec<[f64; 2]> = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5]]
+        .iter()
+        .map(|&p| {
+            let j = h.jacobian(p);
+            [j[0][0].hypot(j[1][0]) / wmm, j[0][1].hypot(j[1][1]) / hmm]
+        })
+        .collect();
+    let least = densities.iter().flatten().copied().fold(f64::INFINITY, f64::min);
+    let most = densities.iter().flatten().copied().fold(0.0, f64::max);
+    let px_per_mm = opts.px_per_mm.unwrap_or(least);
+    let side = |mm: f64| (mm * px_per_mm).round().max(1.0);
+    let (w, ht) = (side(wmm), side(hmm));
+    if w > MAX_SIDE as f64 || ht > MAX_SIDE as f64 {
+        return Err(BuildError::Input(format!(
+            "{wmm} × {hmm} mm at {px_per_mm:.3} px/mm is {w} × {ht} px: at most {MAX_SIDE} a side \
+             (lower --px-per-mm)"
+        )));
+    }
+    let (w, ht) = (w as usize, ht as usize);
+    // Enough points that every photograph pixel under an output pixel
+    // counts: the most photograph px per output px, rounded up.
+    let k = ((most / px_per_mm).ceil() as usize).clamp(1, MAX_SUPERSAMPLING);
+    let sampler = ViewSampler::new(h);
+    let mut rgb = vec![0.0f32; w * ht * 3];
+    rgb.par_chunks_mut(w * 3).enumerate().for_each(|(r, row)| {
+        for (c, px) in row.chunks_exact_mut(3).enumerate() {
+            let mut acc = [0.0f64; 3];
+            for a in 0..k {
+                for b in 0..k {
+                    let uv = [
+                        (c as f64 + (a as f64 + 0.5) / k as f64) / w as f64,
+                        (r as f64 + (b as f64 + 0.5) / k as f64) / ht as f64,
+                    ];
+                    let v = sampler.region_sample(photo, uv);
+                    for i in 0..3 {
+                        acc[i] += v[i];
+                    }
+                }
+            }
+            // Catmull–Rom overshoots at sharp edges: radiance stays ≥ 0.
+            for i in 0..3 {
+                px[i] = (acc[i] / (k * k) as f64).max(0.0) as f32;
+            }
+        }
+    });
+    let report = RectifyReport { px_per_mm, photo_px_per_mm: [least, most], supersampling: k };
+    Ok((Frame { width: w as u32, height: ht as u32, rgb }, report))
+}
