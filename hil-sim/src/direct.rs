@@ -10,7 +10,7 @@ use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, MANIFEST, Whi
 
 use crate::geometry::{DVec3, ScannerGeometry};
 use crate::materials::{DiffuseWhite, Material, Sample};
-use crate::optics::OpticalSim;
+use crate::optics::{OpticalSim, PhotoCamera};
 
 /// The metering exposure of a direct image, s.
 pub const METERING_EXPOSURE_S: f64 = 0.05;
@@ -39,16 +39,11 @@ pub fn mirror_view_scale(g: &ScannerGeometry) -> f64 {
     g.camera.focal_px / (2.0 * g.ellipsoid.semi_major_mm)
 }
 
-/// `piece`'s direct image from `d`, exposed as a photographer would:
-/// metered so that its 99.9th percentile lies at 70 % of full scale, then
-/// shortened while any pixel clips; with its exposure.
-fn exposed(
-    sim: &OpticalSim,
-    piece: &Sample,
-    d: DVec3,
-    px_per_mm: f64,
-) -> (crate::optics::Frame, f64) {
-    let metering = sim.direct_image(piece, d, px_per_mm, METERING_EXPOSURE_S);
+/// An image `render(exposure_s)`, exposed as a photographer would: metered
+/// so that its 99.9th percentile lies at 70 % of full scale, then shortened
+/// while any pixel clips; with its exposure.
+fn exposed(render: impl Fn(f64) -> crate::optics::Frame) -> (crate::optics::Frame, f64) {
+    let metering = render(METERING_EXPOSURE_S);
     let mut values = metering.rgb;
     let at = ((values.len() - 1) as f64 * 0.999) as usize;
     let level = *values.select_nth_unstable_by(at, f32::total_cmp).1 as f64;
@@ -58,13 +53,13 @@ fn exposed(
     } else {
         EXPOSURE_RANGE_S[1]
     };
-    let mut frame = sim.direct_image(piece, d, px_per_mm, exposure_s);
+    let mut frame = render(exposure_s);
     for _ in 1..MAX_BRACKETS {
         if frame.rgb.iter().all(|&v| v < 1.0) {
             break;
         }
         exposure_s *= BRACKET_STEP;
-        frame = sim.direct_image(piece, d, px_per_mm, exposure_s);
+        frame = render(exposure_s);
     }
     (frame, exposure_s)
 }
@@ -89,7 +84,7 @@ pub fn write_set(
     let mut image = Vec::new();
     let mirrors = nearest_axis_mirrors(design, count);
     for (k, &(l, d)) in mirrors.iter().enumerate() {
-        let (frame, exposure_s) = exposed(sim, &piece, d, px_per_mm);
+        let (frame, exposure_s) = exposed(|e| sim.direct_image(&piece, d, px_per_mm, e));
         let file = format!("direct-{k}-mirror-{l:02}.exr");
         crate::camera::write_frame_exr(&frame, &out.join(&file)).map_err(|e| e.to_string())?;
         image.push(DirectImage {
@@ -103,7 +98,7 @@ pub fn write_set(
     let target = DiffuseWhite::default();
     let white_piece = Sample { size_mm: piece.size_mm, ..Sample::large(Arc::new(target)) };
     let white = mirrors.first().map(|&(_, d)| -> Result<WhiteImage, String> {
-        let (frame, exposure_s) = exposed(sim, &white_piece, d, px_per_mm);
+        let (frame, exposure_s) = exposed(|e| sim.direct_image(&white_piece, d, px_per_mm, e));
         let file = "white.exr".to_string();
         crate::camera::write_frame_exr(&frame, &out.join(&file)).map_err(|e| e.to_string())?;
         Ok(WhiteImage { file, direction: d.to_array(), exposure_s, albedo: target.albedo })
@@ -114,4 +109,111 @@ pub fn write_set(
     scanner_formats::write_atomic(&path, manifest.to_toml().as_bytes())
         .map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(manifest)
+}
+
+/// The description of a set of photographs ([`write_photographs`]):
+/// `photographs.toml`.
+pub const PHOTOGRAPHS: &str = "photographs.toml";
+
+/// One photograph of a set, as `photographs.toml` lists it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Photograph {
+    /// The linear EXR, in the set's directory.
+    pub file: String,
+    /// The direction it was taken and lit from (sample-local, unit).
+    pub direction: [f64; 3],
+    /// Its exposure, s.
+    pub exposure_s: f64,
+    /// The mirror whose view it copies.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mirror: Option<u32>,
+    /// The piece's corners at uv (0, 0), (1, 0), (1, 1), (0, 1) in it, px:
+    /// what `scanner rectify --corners` takes.
+    pub corners: [[f64; 2]; 4],
+}
+
+/// A set of photographs of a large piece and its white target, taken in
+/// perspective as a real camera would take them for direct images.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Photographs {
+    /// The piece's side, mm.
+    pub size_mm: f64,
+    /// The camera's distance from the piece's centre, mm.
+    pub distance_mm: f64,
+    /// The photographs of the piece.
+    pub photo: Vec<Photograph>,
+    /// The white target's photograph, from the first direction.
+    pub white: Photograph,
+    /// The white target's albedo.
+    pub white_albedo: f64,
+}
+
+/// The photographs' camera distance from the piece's centre by default, mm:
+/// a long lens, so that the view direction varies by only ±1.1° over an
+/// 80 mm piece (docs/direct-images.md measures what nearer costs).
+pub const PHOTO_DISTANCE_MM: f64 = 2000.0;
+/// How much finer the photographs resolve the piece, at its centre, than
+/// the direct images they are for.
+pub const PHOTO_OVERSAMPLING: f64 = 1.5;
+
+/// Render and write photographs of `material`'s large piece, as
+/// [`write_set`] does its direct images but through a pinhole camera at
+/// `distance_mm` from the piece's centre along each direction, framed so
+/// that the piece seen face on would fill 80 % of a square frame that
+/// resolves it at [`PHOTO_OVERSAMPLING`] × `px_per_mm` at its centre (the
+/// direct images' density: a camera somewhat sharper than the images it
+/// makes), on a matte black holder; and
+/// `photographs.toml` with each one's exposure and the piece's corners in
+/// it. These are not direct images yet: `scanner rectify` makes them so.
+pub fn write_photographs(
+    sim: &OpticalSim,
+    design: &ScannerGeometry,
+    material: Arc<dyn Material>,
+    count: usize,
+    px_per_mm: f64,
+    distance_mm: f64,
+    out: &Path,
+) -> Result<Photographs, String> {
+    if !(distance_mm.is_finite() && distance_mm > 0.0) {
+        return Err(format!("camera distance {distance_mm} mm: must be > 0"));
+    }
+    let piece = Sample::large(material);
+    let fill = 0.8;
+    let side_px =
+        (PHOTO_OVERSAMPLING * px_per_mm * piece.size_mm / fill).ceil().clamp(16.0, 16384.0) as u32;
+    let camera = |d: DVec3| PhotoCamera::framing(d, distance_mm, side_px, piece.size_mm, fill);
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    let shoot = |piece: &Sample, d: DVec3, file: String, mirror| -> Result<Photograph, String> {
+        let cam = camera(d);
+        let (frame, exposure_s) = exposed(|e| sim.photograph(piece, &cam, e));
+        crate::camera::write_frame_exr(&frame, &out.join(&file)).map_err(|e| e.to_string())?;
+        let corners = cam.corners(piece.size_mm);
+        Ok(Photograph { file, direction: d.to_array(), exposure_s, mirror, corners })
+    };
+    let mirrors = nearest_axis_mirrors(design, count);
+    let Some(&(_, first)) = mirrors.first() else {
+        return Err("no mirror sees the sample".into());
+    };
+    let photo = mirrors
+        .iter()
+        .enumerate()
+        .map(|(k, &(l, d))| {
+            shoot(&piece, d, format!("photo-{k}-mirror-{l:02}.exr"), Some(l as u32))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let target = DiffuseWhite::default();
+    let white_piece = Sample { size_mm: piece.size_mm, ..Sample::large(Arc::new(target)) };
+    let white = shoot(&white_piece, first, "white.exr".into(), None)?;
+    let set = Photographs {
+        size_mm: piece.size_mm,
+        distance_mm,
+        photo,
+        white,
+        white_albedo: target.albedo,
+    };
+    let text = toml::to_string(&set).map_err(|e| e.to_string())?;
+    let path = out.join(PHOTOGRAPHS);
+    scanner_formats::write_atomic(&path, text.as_bytes())
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(set)
 }

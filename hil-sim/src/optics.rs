@@ -586,6 +586,55 @@ impl OpticalSim {
         frame
     }
 
+    /// A photograph of `piece` by the pinhole `camera`, lit by a collimated
+    /// beam along the camera's direction with the source's irradiance,
+    /// through this scanner's sensor without vignetting: what a real
+    /// camera set up for a direct image takes before it is rectified. The
+    /// view direction varies over the piece (towards the camera's centre
+    /// from every point); around the piece lies a matte black holder
+    /// (albedo [`HOLDER_ALBEDO`]).
+    pub fn photograph(&self, piece: &Sample, camera: &PhotoCamera, exposure_s: f64) -> Frame {
+        let n = camera.side_px as usize;
+        let light = camera.direction.normalize();
+        let e0 = self.geometry.source.irradiance;
+        let scale = exposure_s * self.geometry.sensor.sensitivity_e * e0;
+        let centre = camera.basis().0;
+        let holder = HOLDER_ALBEDO / std::f64::consts::PI * light.z.max(0.0);
+        let electrons = (0..n)
+            .into_par_iter()
+            .map(|y| {
+                let row = (0..n)
+                    .map(|x| {
+                        let mut acc = [0.0; 3];
+                        for (fx, fy) in Self::subpixels(x, y) {
+                            let p = camera.on_plane([fx, fy]);
+                            let uv =
+                                p.map(|p| [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5]);
+                            let r = match (p, uv) {
+                                (Some(p), Some(uv))
+                                    if uv.iter().all(|u| (0.0..1.0).contains(u)) =>
+                                {
+                                    piece.reflected_radiance(uv, (centre - p).normalize(), light)
+                                }
+                                _ => [holder; 3],
+                            };
+                            for k in 0..3 {
+                                acc[k] += r[k];
+                            }
+                        }
+                        acc.map(|v| (v * scale / (SUPERSAMPLE * SUPERSAMPLE) as f64) as f32)
+                    })
+                    .collect();
+                Some(row)
+            })
+            .collect();
+        let mut h = self.seed ^ 0x9407_0C4A;
+        for v in [light.x, light.y, light.z, camera.distance_mm, camera.focal_px, exposure_s] {
+            h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
+        }
+        sensor_readout(&self.geometry.sensor, n as u32, &electrons, 1.0, h)
+    }
+
     /// The Fig. 9 direct image: `piece` seen straight along `dir`
     /// (sample-local, towards the viewer) and lit from the same direction
     /// with the source's irradiance, rectified onto the piece's uv
@@ -626,6 +675,83 @@ impl OpticalSim {
             h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
         }
         sensor_readout(&self.geometry.sensor, n as u32, &electrons, 1.0, h)
+    }
+}
+
+/// The albedo of the matte black holder around a photographed piece.
+pub const HOLDER_ALBEDO: f64 = 0.04;
+
+/// A pinhole camera photographing a piece from `distance_mm` along
+/// `direction` (sample-local, from the piece's centre; the light comes from
+/// it too), aimed at the piece's centre, its rows turned so that the
+/// piece's u axis runs along them: a square sensor of `side_px` pixels and
+/// a focal length of `focal_px` pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotoCamera {
+    /// Direction from the piece's centre to the camera (unit).
+    pub direction: DVec3,
+    /// Distance from the piece's centre, mm.
+    pub distance_mm: f64,
+    /// The sensor's side, px.
+    pub side_px: u32,
+    /// Focal length, px.
+    pub focal_px: f64,
+}
+
+impl PhotoCamera {
+    /// The camera at `distance_mm` along `direction` whose `side_px` frame
+    /// a piece of `size_mm` seen face on would fill to `fill` (0…1).
+    pub fn framing(
+        direction: DVec3,
+        distance_mm: f64,
+        side_px: u32,
+        size_mm: f64,
+        fill: f64,
+    ) -> PhotoCamera {
+        let focal_px = fill * side_px as f64 * distance_mm / size_mm;
+        PhotoCamera { direction: direction.normalize(), distance_mm, side_px, focal_px }
+    }
+
+    /// The camera's centre (mm, from the piece's centre) and its right,
+    /// down and forward axes: right along the piece's u as far as it can,
+    /// down = forward × right (a real camera: no mirror image, so the
+    /// piece's v runs up the photograph when seen from above).
+    fn basis(&self) -> (DVec3, DVec3, DVec3, DVec3) {
+        let forward = -self.direction.normalize();
+        let u = DVec3::new(1.0, 0.0, 0.0);
+        let right = (u - forward * u.dot(forward)).normalize();
+        let down = forward.cross(right);
+        (self.direction.normalize() * self.distance_mm, right, down, forward)
+    }
+
+    /// Where the point `p` (mm, sample-local, from the piece's centre) lies
+    /// in the photograph, px (pixel (c, r) spans [c, c + 1) × [r, r + 1)).
+    pub fn project(&self, p: DVec3) -> [f64; 2] {
+        let (centre, right, down, forward) = self.basis();
+        let q = p - centre;
+        let z = q.dot(forward);
+        let half = self.side_px as f64 / 2.0;
+        [half + self.focal_px * q.dot(right) / z, half + self.focal_px * q.dot(down) / z]
+    }
+
+    /// Where the ray through the photograph's point `px` meets the piece's
+    /// plane (z = 0; mm, sample-local, from the piece's centre), if in
+    /// front of the camera.
+    pub fn on_plane(&self, px: [f64; 2]) -> Option<DVec3> {
+        let (centre, right, down, forward) = self.basis();
+        let half = self.side_px as f64 / 2.0;
+        let ray = forward
+            + right * ((px[0] - half) / self.focal_px)
+            + down * ((px[1] - half) / self.focal_px);
+        let t = -centre.z / ray.z;
+        (t > 0.0 && t.is_finite()).then(|| centre + ray * t)
+    }
+
+    /// The corners of a piece of `size_mm` at uv (0, 0), (1, 0), (1, 1),
+    /// (0, 1) in the photograph, px: what `scanner rectify --corners` takes.
+    pub fn corners(&self, size_mm: f64) -> [[f64; 2]; 4] {
+        [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]
+            .map(|[u, v]| self.project(DVec3::new((u - 0.5) * size_mm, (v - 0.5) * size_mm, 0.0)))
     }
 }
 

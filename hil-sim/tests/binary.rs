@@ -103,6 +103,26 @@ fn render_and_direct_write_their_frames() {
     assert_eq!(mirrors, [Some(0), Some(1), Some(2), Some(3)]);
     let white = manifest.white.as_ref().unwrap();
     assert_eq!((white.file.as_str(), white.albedo), ("white.exr", 0.98));
+    // Photographs in perspective instead: the set's description, read back.
+    let photos = dir.path().join("photos");
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_hil-sim"))
+            .args(args)
+            .stderr(Stdio::null())
+            .status()
+            .unwrap()
+    };
+    let p = photos.to_str().unwrap();
+    let args = ["direct", "--material", "leather", "--out", p, "--photographs"];
+    assert!(run(&args).success());
+    let text = std::fs::read_to_string(photos.join(hil_sim::direct::PHOTOGRAPHS)).unwrap();
+    let set: hil_sim::direct::Photographs = toml::from_str(&text).unwrap();
+    assert_eq!((set.size_mm, set.distance_mm, set.photo.len()), (80.0, 2000.0, 4));
+    for ph in set.photo.iter().chain([&set.white]) {
+        assert!(photos.join(&ph.file).exists(), "{}", ph.file);
+        assert!(ph.corners.iter().flatten().all(|v| v.is_finite() && *v > 0.0), "{ph:?}");
+    }
+    assert_eq!(run(&["direct", "--out", p, "--photographs", "5"]).code(), Some(2));
     // The truth of the large piece: uv across the 80 mm piece. Its point
     // (27.3 + 12.7, 31.9 + 12.7) mm is the small sample's centre.
     let queries = dir.path().join("q.csv");

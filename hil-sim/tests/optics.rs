@@ -299,6 +299,36 @@ fn direct_images_of_the_large_piece_from_the_four_mirrors_nearest_the_axis() {
     assert!(images[0] != images[1] && images[0] != images[2]);
 }
 
+#[test]
+fn photographs_in_perspective_see_the_piece_where_its_corners_project() {
+    use hil_sim::optics::{HOLDER_ALBEDO, PhotoCamera};
+    let g = nominal();
+    let s = sim(8, "diffuse-white", SEED);
+    let d = g.mirror_direction(0).unwrap();
+    let cam = PhotoCamera::framing(d, 300.0, 160, 80.0, 0.8);
+    // A point and its pixel, both ways.
+    for p in [DVec3::new(0.0, 0.0, 0.0), DVec3::new(31.0, -12.5, 0.0), DVec3::new(-40.0, 40.0, 0.0)]
+    {
+        let back = cam.on_plane(cam.project(p)).unwrap();
+        assert!((back - p).length() < 1e-9, "{p:?} → {back:?}");
+    }
+    let corners = cam.corners(80.0);
+    // Seen from above, u runs along the rows and v up the photograph (a
+    // camera makes no mirror image).
+    assert!(corners[1][0] > corners[0][0] + 100.0, "{corners:?}");
+    assert!(corners[3][1] < corners[0][1] - 100.0, "{corners:?}");
+    // The white piece inside its corners, the black holder outside.
+    let white = Sample::large(materials::by_name("diffuse-white").unwrap());
+    let photo = s.photograph(&white, &cam, 0.1);
+    let at = |px: [f64; 2]| photo.rgb[3 * (px[1] as usize * 160 + px[0] as usize)];
+    let centre = at(cam.project(DVec3::ZERO));
+    let outside = at(cam.project(DVec3::new(44.0, 0.0, 0.0)));
+    assert!(centre > 0.1, "{centre}");
+    let ratio = (outside / centre) as f64;
+    let want = HOLDER_ALBEDO / 0.98;
+    assert!((ratio - want).abs() < 0.3 * want, "holder / white {ratio} against {want}");
+}
+
 fn frame_max(f: &Frame) -> f32 {
     f.rgb.iter().fold(0.0f32, |m, &v| m.max(v))
 }

@@ -90,6 +90,14 @@ enum Command {
         /// (docs/direct-images.md).
         #[arg(long)]
         out: std::path::PathBuf,
+        /// Take photographs in perspective instead, as a real camera at
+        /// this distance (mm; 2000 without a value) from the piece's centre
+        /// would: `photo-K-mirror-LL.exr`, `white.exr` and
+        /// `photographs.toml` with the piece's corners in each, for
+        /// `scanner rectify`.
+        #[arg(long, value_name = "DISTANCE_MM", num_args = 0..=1,
+              default_missing_value = "2000")] // hil_sim::direct::PHOTO_DISTANCE_MM
+        photographs: Option<f64>,
     },
     /// Ground truth f · cos θi of the small sample (or the large piece) for
     /// shading queries.
@@ -159,11 +167,34 @@ fn truth(
     Ok(())
 }
 
-fn direct(seed: u64, material: &str, out: &std::path::Path) -> Result<(), Fail> {
+fn direct(
+    seed: u64,
+    material: &str,
+    out: &std::path::Path,
+    photographs: Option<f64>,
+) -> Result<(), Fail> {
     let m = materials::lookup(material)?;
     let nominal = ScannerGeometry::default_scanner();
     let sim = OpticalSim::as_built(&nominal, Sample::small(m.clone()), seed);
     let scale = hil_sim::direct::mirror_view_scale(&nominal);
+    if let Some(distance) = photographs {
+        if !(distance.is_finite() && (100.0..=10_000.0).contains(&distance)) {
+            return Err(Fail(2, format!("--photographs {distance}: a distance in 100…10 000 mm")));
+        }
+        let set = hil_sim::direct::write_photographs(&sim, &nominal, m, 4, scale, distance, out)
+            .map_err(|e| Fail(4, e))?;
+        for ph in set.photo.iter().chain([&set.white]) {
+            let c: Vec<String> = ph.corners.iter().flatten().map(|v| format!("{v:.2}")).collect();
+            eprintln!(
+                "{}: exposure {} s, corners {}",
+                out.join(&ph.file).display(),
+                ph.exposure_s,
+                c.join(",")
+            );
+        }
+        eprintln!("{}", out.join(hil_sim::direct::PHOTOGRAPHS).display());
+        return Ok(());
+    }
     let manifest =
         hil_sim::direct::write_set(&sim, &nominal, m, 4, scale, out).map_err(|e| Fail(4, e))?;
     for im in &manifest.image {
@@ -211,8 +242,8 @@ fn render(
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     let done = match &args.command {
-        Some(Command::Direct { material, out }) => {
-            Some(("direct", direct(args.seed, material, out)))
+        Some(Command::Direct { material, out, photographs }) => {
+            Some(("direct", direct(args.seed, material, out, *photographs)))
         }
         Some(Command::Render { material, mirrors, bin, out }) => {
             Some(("render", render(args.seed, material, *mirrors, *bin, out.as_deref())))

@@ -1671,10 +1671,55 @@ pub fn demo(
             hil_sim::materials::Sample::small(m.clone()),
             seed,
         );
+        // Photographed in perspective as a camera with a long lens would,
+        // then rectified by the piece's corners into direct images.
+        let photos = out.join(format!("{name}-photographs"));
         let direct = out.join(format!("{name}-direct"));
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
-        hil_sim::direct::write_set(&sim, &nominal, m.clone(), 4, scale, &direct)
-            .map_err(|e| Failure(4, anyhow!(e)))?;
+        let distance = hil_sim::direct::PHOTO_DISTANCE_MM;
+        let shots = hil_sim::direct::write_photographs(
+            &sim,
+            &nominal,
+            m.clone(),
+            4,
+            scale,
+            distance,
+            &photos,
+        )
+        .map_err(|e| Failure(4, anyhow!(e)))?;
+        std::fs::create_dir_all(&direct)
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
+        for ph in shots.photo.iter().chain([&shots.white]) {
+            let opts = crate::build::rectify::RectifyOptions {
+                corners: ph.corners,
+                size_mm: [shots.size_mm; 2],
+                px_per_mm: Some(scale),
+            };
+            super::build::rectify_cmd(&photos.join(&ph.file), &opts, &direct.join(&ph.file))?;
+        }
+        use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, MANIFEST, WhiteImage};
+        let manifest = DirectManifest {
+            format: FORMAT,
+            size_mm: [shots.size_mm; 2],
+            image: shots
+                .photo
+                .iter()
+                .map(|ph| DirectImage {
+                    file: ph.file.clone(),
+                    direction: ph.direction,
+                    exposure_s: ph.exposure_s,
+                    mirror: ph.mirror,
+                })
+                .collect(),
+            white: Some(WhiteImage {
+                file: shots.white.file.clone(),
+                direction: shots.white.direction,
+                exposure_s: shots.white.exposure_s,
+                albedo: shots.white_albedo,
+            }),
+        };
+        crate::fsutil::write_atomic(&direct.join(MANIFEST), manifest.to_toml().as_bytes())
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
         let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
         super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
         let enlarged =
@@ -1690,7 +1735,8 @@ pub fn demo(
          (bottom), seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest mirror), lit from \
          (θ, φ) = {};\n\
          and at {}: the material enlarged to the large piece the sample was cut from \
-         (its direct images in {name}-direct), over the same truth",
+         (photographed in perspective in {name}-photographs, rectified into the direct images \
+         of {name}-direct), over the same truth",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
         picture.display(),
