@@ -92,6 +92,7 @@ pub fn write_set(
             direction: d.to_array(),
             exposure_s,
             mirror: Some(l as u32),
+            camera_distance_mm: None,
         });
     }
     // The white reference, from the first image's direction.
@@ -149,9 +150,9 @@ pub struct Photographs {
 }
 
 /// The photographs' camera distance from the piece's centre by default, mm:
-/// a long lens, so that the view direction varies by only ±1.1° over an
-/// 80 mm piece (docs/direct-images.md measures what nearer costs).
-pub const PHOTO_DISTANCE_MM: f64 = 2000.0;
+/// a tripod's, the view direction varying by ±5.7° over an 80 mm piece
+/// (docs/direct-images.md measures what it costs).
+pub const PHOTO_DISTANCE_MM: f64 = 400.0;
 /// How much finer the photographs resolve the piece, at its centre, than
 /// the direct images they are for.
 pub const PHOTO_OVERSAMPLING: f64 = 1.5;

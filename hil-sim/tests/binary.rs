@@ -117,7 +117,7 @@ fn render_and_direct_write_their_frames() {
     assert!(run(&args).success());
     let text = std::fs::read_to_string(photos.join(hil_sim::direct::PHOTOGRAPHS)).unwrap();
     let set: hil_sim::direct::Photographs = toml::from_str(&text).unwrap();
-    assert_eq!((set.size_mm, set.distance_mm, set.photo.len()), (80.0, 2000.0, 4));
+    assert_eq!((set.size_mm, set.distance_mm, set.photo.len()), (80.0, 400.0, 4));
     for ph in set.photo.iter().chain([&set.white]) {
         assert!(photos.join(&ph.file).exists(), "{}", ph.file);
         assert!(ph.corners.iter().flatten().all(|v| v.is_finite() && *v > 0.0), "{ph:?}");

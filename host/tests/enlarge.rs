@@ -54,6 +54,7 @@ fn tiled_set(data: &MaterialData, tiles: usize, px: usize) -> DirectSet {
                 direction,
                 exposure_s,
                 mirror: None,
+                camera_distance_mm: None,
             })
             .collect(),
         white: Some(WhiteImage { file: "w.exr".into(), direction: dirs[0], exposure_s, albedo }),

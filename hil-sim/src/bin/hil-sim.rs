@@ -91,12 +91,12 @@ enum Command {
         #[arg(long)]
         out: std::path::PathBuf,
         /// Take photographs in perspective instead, as a real camera at
-        /// this distance (mm; 2000 without a value) from the piece's centre
+        /// this distance (mm; 400 without a value) from the piece's centre
         /// would: `photo-K-mirror-LL.exr`, `white.exr` and
         /// `photographs.toml` with the piece's corners in each, for
         /// `scanner rectify`.
         #[arg(long, value_name = "DISTANCE_MM", num_args = 0..=1,
-              default_missing_value = "2000")] // hil_sim::direct::PHOTO_DISTANCE_MM
+              default_missing_value = "400")] // hil_sim::direct::PHOTO_DISTANCE_MM
         photographs: Option<f64>,
     },
     /// Ground truth f · cos θi of the small sample (or the large piece) for

@@ -16,6 +16,8 @@ pub const FORMAT: u32 = 1;
 pub const MAX_IMAGES: usize = 16;
 /// The largest side of a piece, mm.
 pub const MAX_SIZE_MM: f64 = 10_000.0;
+/// The farthest camera distance, mm.
+pub const MAX_DISTANCE_MM: f64 = 1e6;
 /// Tolerance on the length of a unit direction.
 const UNIT_TOLERANCE: f64 = 1e-3;
 
@@ -66,6 +68,12 @@ pub struct DirectImage {
     /// The scanner mirror whose view of the sample it copies, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mirror: Option<u32>,
+    /// For a photograph taken in perspective and rectified: the camera's
+    /// distance from the piece's centre along `direction`, mm. Each point
+    /// of the piece was then seen from its own direction, towards the
+    /// camera. Absent: a camera infinitely far away.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_distance_mm: Option<f64>,
 }
 
 /// A manifest that cannot be read or is not valid.
@@ -151,6 +159,18 @@ impl DirectManifest {
                 ));
             }
         }
+        for (i, im) in self.image.iter().enumerate() {
+            if let Some(d) = im.camera_distance_mm {
+                let half = 0.5 * self.size_mm[0].hypot(self.size_mm[1]);
+                if !(d.is_finite() && d > half && d <= MAX_DISTANCE_MM) {
+                    return Err(format!(
+                        "image {i} ({}): camera_distance_mm {d} outside ({half:.1}, \
+                         {MAX_DISTANCE_MM}] (beyond the piece's corners)",
+                        im.file
+                    ));
+                }
+            }
+        }
         if let Some(w) = &self.white
             && !(w.albedo > 0.0 && w.albedo <= 1.0)
         {
@@ -174,12 +194,14 @@ mod tests {
                     direction: [0.0, 0.0, 1.0],
                     exposure_s: 0.05,
                     mirror: Some(3),
+                    camera_distance_mm: Some(400.0),
                 },
                 DirectImage {
                     file: "b.exr".into(),
                     direction: [0.6, 0.0, 0.8],
                     exposure_s: 0.02,
                     mirror: None,
+                    camera_distance_mm: None,
                 },
             ],
             white: Some(WhiteImage {
@@ -211,6 +233,9 @@ mod tests {
             (Box::new(|m| m.image[0].direction = [0.6, 0.0, -0.8]), "not a unit vector"),
             (Box::new(|m| m.image[1].exposure_s = 0.0), "exposure_s 0 is not"),
             (Box::new(|m| m.image[1].exposure_s = f64::INFINITY), "exposure_s inf"),
+            (Box::new(|m| m.image[0].camera_distance_mm = Some(50.0)), "camera_distance_mm 50"),
+            (Box::new(|m| m.image[1].camera_distance_mm = Some(f64::NAN)), "image 1 (b.exr)"),
+            (Box::new(|m| m.image[1].camera_distance_mm = Some(2e6)), "(50.0, 1000000]"),
             (Box::new(|m| m.white.as_mut().unwrap().file = "a.exr".into()), "white: file"),
             (Box::new(|m| m.white.as_mut().unwrap().albedo = 1.5), "albedo 1.5 outside (0, 1]"),
             (Box::new(|m| m.white.as_mut().unwrap().albedo = f64::NAN), "albedo NaN"),

@@ -257,6 +257,20 @@ pub fn enlarge(
                 .collect()
         })
         .collect();
+    // Photographs from a camera at a finite distance saw each point of the
+    // piece from its own direction: each is put back at its image's.
+    let piece: Vec<Vec<[f64; 3]>> = piece
+        .into_iter()
+        .zip(&set.manifest.image)
+        .zip(&directions)
+        .map(|((img, im), &d)| match im.camera_distance_mm {
+            None => img,
+            Some(distance) => {
+                let f = view_correction(&material, d, distance, size_mm, columns, rows);
+                img.into_iter().zip(f).map(|(v, f)| std::array::from_fn(|c| v[c] * f[c])).collect()
+            }
+        })
+        .collect();
     // The sample: the material at each image's direction, averaged over a
     // texel's area (4 × 4 points) around each point of a grid `sub` times
     // finer than its texels (its texel centres and the points between), so
@@ -452,6 +466,77 @@ fn height_matches(
     let index = Index::new(&Heights { h: &sample_h, w: fine, radius: r, step: sub, pitch });
     let matches = index.nearest(&Heights { h: &piece_h, w: columns, radius: r, step: 1, pitch });
     Ok((matches, index.dims))
+}
+
+/// Grid points along each side of the piece at which [`view_correction`]
+/// is evaluated (bilinear between).
+const CORRECTION_GRID: usize = 17;
+/// Points along each side of the sample its mean appearance is taken over.
+const CORRECTION_POINTS: usize = 16;
+/// The largest correction either way: beyond it the material's mean at
+/// one of the two directions is too dark to divide by.
+const MAX_CORRECTION: f64 = 8.0;
+
+/// For a photograph taken from `distance` mm along `d` from the piece's
+/// centre, per texel of the `columns × rows` map: the factor that takes the
+/// piece's brightness there from the direction it was seen from (towards
+/// the camera) to `d` — the material's mean over the sample with light
+/// and view along `d` over its mean with light along `d` and view towards
+/// the camera from that point. First order: it follows how the material
+/// changes with the view on average, not texel by texel.
+fn view_correction(
+    material: &Material,
+    d: [f64; 3],
+    distance: f64,
+    size_mm: [f64; 2],
+    columns: usize,
+    rows: usize,
+) -> Vec<[f64; 3]> {
+    let n = CORRECTION_POINTS;
+    let mean = |v: [f64; 3]| -> [f64; 3] {
+        let (l, v) = (d.map(|x| x as f32), v.map(|x| x as f32));
+        let mut acc = [0.0f64; 3];
+        for i in 0..n * n {
+            let uv = [(i % n) as f32, (i / n) as f32].map(|k| (k + 0.5) / n as f32);
+            let f = material.eval(uv, l, v);
+            for c in 0..3 {
+                acc[c] += f[c] as f64 / (n * n) as f64;
+            }
+        }
+        acc
+    };
+    let along_d = mean(d);
+    let g = CORRECTION_GRID;
+    let grid: Vec<[f64; 3]> = (0..g * g)
+        .into_par_iter()
+        .map(|i| {
+            let at = |k: usize, side: f64| (k as f64 / (g - 1) as f64 - 0.5) * side;
+            let p = [at(i % g, size_mm[0]), at(i / g, size_mm[1]), 0.0];
+            let to_camera: [f64; 3] = std::array::from_fn(|k| d[k] * distance - p[k]);
+            let len = to_camera.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let seen = mean(to_camera.map(|x| x / len));
+            std::array::from_fn(|c| {
+                if seen[c] > 0.0 && along_d[c] > 0.0 {
+                    (along_d[c] / seen[c]).clamp(1.0 / MAX_CORRECTION, MAX_CORRECTION)
+                } else {
+                    1.0
+                }
+            })
+        })
+        .collect();
+    (0..columns * rows)
+        .map(|p| {
+            let x = ((p % columns) as f64 + 0.5) / columns as f64 * (g - 1) as f64;
+            let y = ((p / columns) as f64 + 0.5) / rows as f64 * (g - 1) as f64;
+            let (x0, y0) = ((x as usize).min(g - 2), (y as usize).min(g - 2));
+            let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+            let at = |x: usize, y: usize| grid[y * g + x];
+            std::array::from_fn(|c| {
+                (1.0 - fy) * ((1.0 - fx) * at(x0, y0)[c] + fx * at(x0 + 1, y0)[c])
+                    + fy * ((1.0 - fx) * at(x0, y0 + 1)[c] + fx * at(x0 + 1, y0 + 1)[c])
+            })
+        })
+        .collect()
 }
 
 /// Each image's mean per channel.

@@ -1671,8 +1671,8 @@ pub fn demo(
             hil_sim::materials::Sample::small(m.clone()),
             seed,
         );
-        // Photographed in perspective as a camera with a long lens would,
-        // then rectified by the piece's corners into direct images.
+        // Photographed in perspective as a camera on a tripod would, then
+        // rectified by the piece's corners into direct images.
         let photos = out.join(format!("{name}-photographs"));
         let direct = out.join(format!("{name}-direct"));
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
@@ -1709,6 +1709,7 @@ pub fn demo(
                     direction: ph.direction,
                     exposure_s: ph.exposure_s,
                     mirror: ph.mirror,
+                    camera_distance_mm: Some(shots.distance_mm),
                 })
                 .collect(),
             white: Some(WhiteImage {
