@@ -157,6 +157,35 @@ pub const PHOTO_DISTANCE_MM: f64 = 400.0;
 /// the direct images they are for.
 pub const PHOTO_OVERSAMPLING: f64 = 1.5;
 
+impl Photographs {
+    /// The manifest of the direct images these photographs make once each
+    /// is rectified under its own file name (docs/direct-images.md), with
+    /// the camera's distance.
+    pub fn manifest(&self) -> DirectManifest {
+        DirectManifest {
+            format: FORMAT,
+            size_mm: [self.size_mm; 2],
+            image: self
+                .photo
+                .iter()
+                .map(|ph| DirectImage {
+                    file: ph.file.clone(),
+                    direction: ph.direction,
+                    exposure_s: ph.exposure_s,
+                    mirror: ph.mirror,
+                    camera_distance_mm: Some(self.distance_mm),
+                })
+                .collect(),
+            white: Some(WhiteImage {
+                file: self.white.file.clone(),
+                direction: self.white.direction,
+                exposure_s: self.white.exposure_s,
+                albedo: self.white_albedo,
+            }),
+        }
+    }
+}
+
 /// Render and write photographs of `material`'s large piece, as
 /// [`write_set`] does its direct images but through a pinhole camera at
 /// `distance_mm` from the piece's centre along each direction, framed so

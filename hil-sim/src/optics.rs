@@ -594,45 +594,20 @@ impl OpticalSim {
     /// from every point); around the piece lies a matte black holder
     /// (albedo [`HOLDER_ALBEDO`]).
     pub fn photograph(&self, piece: &Sample, camera: &PhotoCamera, exposure_s: f64) -> Frame {
-        let n = camera.side_px as usize;
         let light = camera.direction.normalize();
-        let e0 = self.geometry.source.irradiance;
-        let scale = exposure_s * self.geometry.sensor.sensitivity_e * e0;
         let centre = camera.basis().0;
         let holder = HOLDER_ALBEDO / std::f64::consts::PI * light.z.max(0.0);
-        let electrons = (0..n)
-            .into_par_iter()
-            .map(|y| {
-                let row = (0..n)
-                    .map(|x| {
-                        let mut acc = [0.0; 3];
-                        for (fx, fy) in Self::subpixels(x, y) {
-                            let p = camera.on_plane([fx, fy]);
-                            let uv =
-                                p.map(|p| [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5]);
-                            let r = match (p, uv) {
-                                (Some(p), Some(uv))
-                                    if uv.iter().all(|u| (0.0..1.0).contains(u)) =>
-                                {
-                                    piece.reflected_radiance(uv, (centre - p).normalize(), light)
-                                }
-                                _ => [holder; 3],
-                            };
-                            for k in 0..3 {
-                                acc[k] += r[k];
-                            }
-                        }
-                        acc.map(|v| (v * scale / (SUPERSAMPLE * SUPERSAMPLE) as f64) as f32)
-                    })
-                    .collect();
-                Some(row)
-            })
-            .collect();
-        let mut h = self.seed ^ 0x9407_0C4A;
-        for v in [light.x, light.y, light.z, camera.distance_mm, camera.focal_px, exposure_s] {
-            h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
-        }
-        sensor_readout(&self.geometry.sensor, n as u32, &electrons, 1.0, h)
+        let keys = [light.x, light.y, light.z, camera.distance_mm, camera.focal_px];
+        self.square_image(camera.side_px as usize, exposure_s, 0x9407_0C4A, &keys, |fx, fy| {
+            let p = camera.on_plane([fx, fy]);
+            let uv = p.map(|p| [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5]);
+            match (p, uv) {
+                (Some(p), Some(uv)) if uv.iter().all(|u| (0.0..1.0).contains(u)) => {
+                    piece.reflected_radiance(uv, (centre - p).normalize(), light)
+                }
+                _ => [holder; 3],
+            }
+        })
     }
 
     /// The Fig. 9 direct image: `piece` seen straight along `dir`
@@ -649,6 +624,24 @@ impl OpticalSim {
     ) -> Frame {
         let n = (piece.size_mm * px_per_mm).round().max(1.0) as usize;
         let dir = dir.normalize();
+        let keys = [dir.x, dir.y, dir.z, px_per_mm];
+        self.square_image(n, exposure_s, 0xD1EC7, &keys, |fx, fy| {
+            piece.reflected_radiance([fx / n as f64, fy / n as f64], dir, dir)
+        })
+    }
+
+    /// An `n × n` image lit with the source's irradiance and exposed for
+    /// `exposure_s` through this scanner's sensor without vignetting: each
+    /// pixel the mean radiance `radiance(x, y)` at its subpixels (px), its
+    /// noise seeded by the simulator's seed, `salt` and `keys`.
+    fn square_image(
+        &self,
+        n: usize,
+        exposure_s: f64,
+        salt: u64,
+        keys: &[f64],
+        radiance: impl Fn(f64, f64) -> [f64; 3] + Sync,
+    ) -> Frame {
         let e0 = self.geometry.source.irradiance;
         let scale = exposure_s * self.geometry.sensor.sensitivity_e * e0;
         let electrons = (0..n)
@@ -658,8 +651,7 @@ impl OpticalSim {
                     .map(|x| {
                         let mut acc = [0.0; 3];
                         for (fx, fy) in Self::subpixels(x, y) {
-                            let r =
-                                piece.reflected_radiance([fx / n as f64, fy / n as f64], dir, dir);
+                            let r = radiance(fx, fy);
                             for k in 0..3 {
                                 acc[k] += r[k];
                             }
@@ -670,8 +662,8 @@ impl OpticalSim {
                 Some(row)
             })
             .collect();
-        let mut h = self.seed ^ 0xD1EC7;
-        for v in [dir.x, dir.y, dir.z, px_per_mm, exposure_s] {
+        let mut h = self.seed ^ salt;
+        for &v in keys.iter().chain([&exposure_s]) {
             h = (h ^ v.to_bits()).wrapping_mul(0x9E37_79B9_7F4A_7C15).rotate_left(27);
         }
         sensor_readout(&self.geometry.sensor, n as u32, &electrons, 1.0, h)

@@ -359,7 +359,6 @@ fn rectified_photographs(
     out: &Path,
 ) -> std::path::PathBuf {
     use hil_sim::direct::{mirror_view_scale, write_photographs};
-    use scanner_formats::direct::{DirectImage, FORMAT, WhiteImage};
     let truth = lookup(m).unwrap();
     let sim = hil_sim::optics::OpticalSim::as_built(
         g,
@@ -387,27 +386,7 @@ fn rectified_photographs(
         ]);
         assert_eq!(code, Some(0), "{err}");
     }
-    let manifest = DirectManifest {
-        format: FORMAT,
-        size_mm: [shots.size_mm; 2],
-        image: shots
-            .photo
-            .iter()
-            .map(|ph| DirectImage {
-                file: ph.file.clone(),
-                direction: ph.direction,
-                exposure_s: ph.exposure_s,
-                mirror: ph.mirror,
-                camera_distance_mm: Some(distance),
-            })
-            .collect(),
-        white: Some(WhiteImage {
-            file: shots.white.file.clone(),
-            direction: shots.white.direction,
-            exposure_s: shots.white.exposure_s,
-            albedo: shots.white_albedo,
-        }),
-    };
+    let manifest = shots.manifest();
     std::fs::write(set.join("direct.toml"), manifest.to_toml()).unwrap();
     set
 }

@@ -1697,30 +1697,12 @@ pub fn demo(
             };
             super::build::rectify_cmd(&photos.join(&ph.file), &opts, &direct.join(&ph.file))?;
         }
-        use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, MANIFEST, WhiteImage};
-        let manifest = DirectManifest {
-            format: FORMAT,
-            size_mm: [shots.size_mm; 2],
-            image: shots
-                .photo
-                .iter()
-                .map(|ph| DirectImage {
-                    file: ph.file.clone(),
-                    direction: ph.direction,
-                    exposure_s: ph.exposure_s,
-                    mirror: ph.mirror,
-                    camera_distance_mm: Some(shots.distance_mm),
-                })
-                .collect(),
-            white: Some(WhiteImage {
-                file: shots.white.file.clone(),
-                direction: shots.white.direction,
-                exposure_s: shots.white.exposure_s,
-                albedo: shots.white_albedo,
-            }),
-        };
-        crate::fsutil::write_atomic(&direct.join(MANIFEST), manifest.to_toml().as_bytes())
-            .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
+        let manifest = shots.manifest();
+        crate::fsutil::write_atomic(
+            &direct.join(scanner_formats::direct::MANIFEST),
+            manifest.to_toml().as_bytes(),
+        )
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
         let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
         super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
         let enlarged =
