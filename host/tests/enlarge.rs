@@ -174,6 +174,10 @@ fn the_height_signature_maps_a_tiled_piece_back_at_any_scale() {
         let share = own as f64 / inside as f64;
         assert!(share > 0.9, "radius {radius}: {own} of {inside} texels matched their place");
     }
+    let opts =
+        EnlargeOptions { radius: 0, signature: Signature::Height, ..EnlargeOptions::DEFAULT };
+    let err = enlarge(&data, &set, &opts).unwrap_err().to_string();
+    assert!(err.contains("--radius 0 leaves the height signature empty"), "{err}");
     // Photometric stereo needs three directions not in one plane.
     set.images.truncate(2);
     set.manifest.image.truncate(2);

@@ -106,13 +106,16 @@ impl EnlargeOptions {
     pub const DEFAULT: EnlargeOptions =
         EnlargeOptions { radius: 1, subtexel: 2, signature: Signature::Colour };
 
-    /// The options in range: radius 0…3, subtexel 1…4.
+    /// The options in range: radius 0…3 (1…3 for heights), subtexel 1…4.
     pub fn check(&self) -> Result<(), String> {
         if self.radius > 3 {
             return Err(format!("--radius {}: 0…3", self.radius));
         }
         if !(1..=4).contains(&self.subtexel) {
             return Err(format!("--subtexel {}: 1…4", self.subtexel));
+        }
+        if self.signature == Signature::Height && self.radius == 0 {
+            return Err("--radius 0 leaves the height signature empty: 1…3".into());
         }
         Ok(())
     }
