@@ -24,6 +24,13 @@
 //!   [`CANDIDATES`] nearest in the signatures' first [`PCA_DIMS`]
 //!   principal components ([`kiddo`]'s immutable tree), then compared in
 //!   full.
+//! - The patent's other signature, [`Signature::Height`]: the
+//!   neighbourhood's heights relative to the texel's, from photometric
+//!   stereo over the images and integrated to convergence
+//!   (`Stereo::heights`); no scale needed.
+//! - Photographs taken in perspective and rectified (`camera_distance_mm`
+//!   in the manifest) are first put back at their image's direction by the
+//!   material's mean appearance (`view_correction`).
 
 use std::num::NonZero;
 use std::path::Path;
