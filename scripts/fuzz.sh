@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Fuzz the material reader, the query/answer file readers, the protocol
 # decoder, the OpenEXR frame decoder, the texture maps' OpenEXR reader, the
-# scanner geometry file, the axis configuration file, the calibration file, the scan manifest, the NPF
+# scanner geometry file, the axis configuration file, the calibration file, the scan manifest, the
+# direct images' manifest, the NPF
 # model file and the BRDF measurement CSV (read and fitted) with cargo-fuzz.
 #   scripts/fuzz.sh [SECONDS per target, default 300]
 # Needs the nightly toolchain (rustup toolchain install nightly) and
@@ -13,10 +14,10 @@ seconds=${1:-300}
 mkdir -p fuzz/corpus/decoder
 # Start from valid files, so the fuzzer gets past the container checks
 # (fuzz/corpus/material, queries, frame, texture_map, geometry, axes, calibration,
-# manifest, measurements and npf_model).
+# manifest, direct, measurements and npf_model).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
 for target in material queries decoder frame texture_map geometry axes calibration manifest \
-    npf_model measurements; do
+    direct npf_model measurements; do
     # The exr crate's flat-layer reader decodes on a thread pool of its own
     # per file, whose jobs still hold blocks when the process exits: leak
     # detection at exit would report those, so it is off for that target.
@@ -28,7 +29,7 @@ for target in material queries decoder frame texture_map geometry axes calibrati
     # a count-driven hang is a timeout of 10 s.
     extra=(-max_len=1048576)
     case "$target" in
-    geometry | axes | calibration | manifest | npf_model | measurements)
+    geometry | axes | calibration | manifest | direct | npf_model | measurements)
         extra=(-max_len=262144 -timeout=10 -dict=dicts/numbers.dict)
         ;;
     esac

@@ -6,7 +6,8 @@
 //! in `DIR/geometry`, axis configuration files in `DIR/axes`, and a calibration of it (the nominal views, a 2 × 2
 //! colour grid) in `DIR/calibration`, and the manifests of two small
 //! simulated scans (3 mirrors at one exposure, 2 with a bracket of three;
-//! the sensor binned 64×) in `DIR/manifest`, scattered BRDF measurements
+//! the sensor binned 64×) in `DIR/manifest`, two direct-image manifests in
+//! `DIR/direct`, scattered BRDF measurements
 //! in `DIR/measurements` and an NPF model fitted to them in
 //! `DIR/npf_model`, so that the fuzzer starts from files that pass the
 //! container and header checks.
@@ -164,6 +165,50 @@ fn main() {
         std::fs::copy(scan.path().join("manifest.json"), dir.join(format!("{name}.json"))).unwrap();
     }
     println!("scan manifests in {}", dir.display());
+    // Direct-image manifests: the simulator's photographs' (a white
+    // reference, the camera's distance) and a bare one.
+    let dir = root.join("direct");
+    std::fs::create_dir_all(&dir).unwrap();
+    use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, WhiteImage};
+    let image = |k: usize, distance| DirectImage {
+        file: format!("image-{k}.exr"),
+        direction: [
+            0.25 * (k as f64 - 1.5),
+            0.1,
+            1.0 - 0.5 * 0.0625 * (k as f64 - 1.5).powi(2) - 0.005,
+        ],
+        exposure_s: 0.02,
+        mirror: Some(k as u32),
+        camera_distance_mm: distance,
+    };
+    let unit = |mut im: DirectImage| {
+        let len = im.direction.iter().map(|x| x * x).sum::<f64>().sqrt();
+        im.direction = im.direction.map(|x| x / len);
+        im
+    };
+    let photographed = DirectManifest {
+        format: FORMAT,
+        size_mm: [80.0, 80.0],
+        image: (0..4).map(|k| unit(image(k, Some(400.0)))).collect(),
+        white: Some(WhiteImage {
+            file: "white.exr".into(),
+            direction: [0.0, 0.0, 1.0],
+            exposure_s: 0.01,
+            albedo: 0.98,
+        }),
+    };
+    let bare = DirectManifest {
+        format: FORMAT,
+        size_mm: [30.0, 12.5],
+        image: (0..3).map(|k| unit(image(k, None))).collect(),
+        white: None,
+    };
+    for (name, m) in [("photographed", photographed), ("bare", bare)] {
+        let text = m.to_toml();
+        assert_eq!(DirectManifest::parse(text.as_bytes()), Ok(m));
+        std::fs::write(dir.join(format!("{name}.toml")), text).unwrap();
+    }
+    println!("direct-image manifests in {}", dir.display());
     brdf_seeds(&root);
 }
 

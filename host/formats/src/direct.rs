@@ -109,11 +109,17 @@ impl DirectManifest {
         let path = dir.join(MANIFEST);
         let bytes = crate::input::read(&path)
             .map_err(|source| DirectError::Io { path: path.clone(), source })?;
-        let invalid = |message: String| DirectError::Invalid { path: path.clone(), message };
-        let text = std::str::from_utf8(&bytes).map_err(|_| invalid("not UTF-8 text".into()))?;
-        let m: DirectManifest = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
-        m.check().map_err(invalid)?;
+        let m = DirectManifest::parse(&bytes)
+            .map_err(|message| DirectError::Invalid { path: path.clone(), message })?;
         Ok((m, bytes))
+    }
+
+    /// Parse and check a manifest's bytes.
+    pub fn parse(bytes: &[u8]) -> Result<DirectManifest, String> {
+        let text = std::str::from_utf8(bytes).map_err(|_| "not UTF-8 text".to_string())?;
+        let m: DirectManifest = toml::from_str(text).map_err(|e| e.to_string())?;
+        m.check()?;
+        Ok(m)
     }
 
     /// The manifest's text.
