@@ -654,9 +654,26 @@ impl Signatures for Heights<'_> {
 struct Index {
     sig: Vec<f32>,
     dims: usize,
+    components: Components,
+    tree: ImmutableKdTree<f32, PCA_DIMS>,
+}
+
+/// The signatures' mean and first [`PCA_DIMS`] principal axes.
+struct Components {
     centre: Vec<f32>,
     axes: Vec<Vec<f32>>,
-    tree: ImmutableKdTree<f32, PCA_DIMS>,
+}
+
+impl Components {
+    /// A signature's first [`PCA_DIMS`] principal components (0 beyond the
+    /// signature's length).
+    fn project(&self, sig: &[f32]) -> [f32; PCA_DIMS] {
+        std::array::from_fn(|p| {
+            self.axes.get(p).map_or(0.0, |a| {
+                sig.iter().zip(&self.centre).zip(a).map(|((x, m), w)| (x - m) * w).sum()
+            })
+        })
+    }
 }
 
 impl Index {
@@ -711,27 +728,11 @@ impl Index {
             .take(PCA_DIMS)
             .map(|v| v.iter().map(|&x| x as f32).collect())
             .collect();
-        let mut index = Index {
-            sig,
-            dims,
-            centre: centre.iter().map(|&x| x as f32).collect(),
-            axes,
-            tree: ImmutableKdTree::new_from_slice(&[]),
-        };
+        let components = Components { centre: centre.iter().map(|&x| x as f32).collect(), axes };
         let points: Vec<[f32; PCA_DIMS]> =
-            index.sig.par_chunks(dims).map(|s| index.project(s)).collect();
-        index.tree = ImmutableKdTree::new_from_slice(&points);
-        index
-    }
-
-    /// A signature's first [`PCA_DIMS`] principal components (0 beyond the
-    /// signature's length).
-    fn project(&self, sig: &[f32]) -> [f32; PCA_DIMS] {
-        std::array::from_fn(|p| {
-            self.axes.get(p).map_or(0.0, |a| {
-                sig.iter().zip(&self.centre).zip(a).map(|((x, m), w)| (x - m) * w).sum()
-            })
-        })
+            sig.par_chunks(dims).map(|s| components.project(s)).collect();
+        let tree = ImmutableKdTree::new_from_slice(&points);
+        Index { sig, dims, components, tree }
     }
 
     /// For every texel of `grid`, the sample's point whose signature is
@@ -749,7 +750,7 @@ impl Index {
                 || vec![0.0f32; dims],
                 |sig, p| {
                     grid.signature(p % w, p / w, sig);
-                    let q = self.project(sig);
+                    let q = self.components.project(sig);
                     let mut best = (0usize, f32::INFINITY);
                     for nn in self.tree.nearest_n::<SquaredEuclidean>(&q, want) {
                         let i = nn.item as usize;
