@@ -1,6 +1,7 @@
 //! `host::build::rectify`: a photograph taken in perspective of a piece
 //! whose pattern is known analytically, rectified back onto the piece.
 
+use host::build::corners::{Origin, find_corners};
 use host::build::linalg::Homography;
 use host::build::rectify::{RectifyOptions, rectify};
 use host::camera::Frame;
@@ -22,6 +23,18 @@ const SIZE_MM: [f64; 2] = [40.0, 24.0];
 /// photograph px), each pixel the mean of 6 × 6 points; the holder around
 /// the piece is far brighter than it.
 fn photograph(w: u32, ht: u32, h_uv: &Homography) -> Frame {
+    photograph_on(w, ht, h_uv, HOLDER as f64, |p| p)
+}
+
+/// The same on a holder of radiance `holder`, through a lens that shows at
+/// px `q` what a pinhole shows at `lens(q)`.
+fn photograph_on(
+    w: u32,
+    ht: u32,
+    h_uv: &Homography,
+    holder: f64,
+    lens: impl Fn([f64; 2]) -> [f64; 2],
+) -> Frame {
     let inv = h_uv.inverse().unwrap();
     let mut rgb = Vec::with_capacity((w * ht * 3) as usize);
     for y in 0..ht {
@@ -30,11 +43,11 @@ fn photograph(w: u32, ht: u32, h_uv: &Homography) -> Frame {
             for a in 0..6 {
                 for b in 0..6 {
                     let p = [x as f64 + (a as f64 + 0.5) / 6.0, y as f64 + (b as f64 + 0.5) / 6.0];
-                    let uv = inv.apply(p);
+                    let uv = inv.apply(lens(p));
                     let v = if uv.iter().all(|u| (0.0..1.0).contains(u)) {
                         pattern(uv[0] * SIZE_MM[0], uv[1] * SIZE_MM[1])
                     } else {
-                        [HOLDER as f64; 3]
+                        [holder; 3]
                     };
                     for c in 0..3 {
                         acc[c] += v[c] / 36.0;
@@ -143,4 +156,109 @@ fn bad_corners_and_sizes_are_refused() {
     let mut nan = photo.clone();
     nan.rgb[3 * (10 * 64 + 7) + 1] = f32::NAN;
     assert!(rectify(&nan, &ok).unwrap_err().to_string().contains("pixel (7, 10)"));
+}
+
+/// A piece lying face up, u to the right and v up the photograph (a camera
+/// does not mirror it): its corners uv (0, 0), (1, 0), (1, 1), (0, 1).
+const FACE_UP: [[f64; 2]; 4] = [[130.0, 385.0], [515.0, 420.0], [560.0, 95.0], [100.0, 60.0]];
+const DARK: f64 = 0.01;
+
+fn face_up(corners: &[[f64; 2]; 4]) -> Homography {
+    Homography::fit(&[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], corners).unwrap()
+}
+
+#[test]
+fn the_corners_of_a_piece_on_a_dark_background_are_found() {
+    let photo = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
+    let found = find_corners(&photo, Origin::BottomLeft).unwrap();
+    let err = |c: &[[f64; 2]; 4], want: &[[f64; 2]; 4]| {
+        (0..4).map(|k| (c[k][0] - want[k][0]).hypot(c[k][1] - want[k][1])).fold(0.0, f64::max)
+    };
+    // Measured: 0.026 px at worst (the photograph's pixels are means of
+    // 6 × 6 points, so an edge is known to 1/12 px).
+    let e = err(&found.corners, &FACE_UP);
+    eprintln!("{found:?}: {e:.3} px at worst");
+    assert!(e <= 0.1, "{found:?}: {e:.3} px");
+    assert!(found.edge_rms_px < 0.2 && found.edge_points > 1000, "{found:?}");
+    assert!(found.contrast > 10.0, "{found:?}");
+    // The piece turned: uv (0, 0) elsewhere, the order still
+    // counter-clockwise as seen.
+    for (k, origin) in [Origin::BottomLeft, Origin::TopLeft, Origin::TopRight, Origin::BottomRight]
+        .iter()
+        .enumerate()
+    {
+        let turned: [[f64; 2]; 4] = std::array::from_fn(|i| FACE_UP[(i + 4 - k) % 4]);
+        let photo = photograph_on(640, 480, &face_up(&turned), DARK, |p| p);
+        let found = find_corners(&photo, *origin).unwrap();
+        assert!(err(&found.corners, &turned) <= 0.1, "{origin:?}: {found:?}");
+    }
+
+    // Rectified by the corners found, as by the true ones.
+    let opts = RectifyOptions { corners: FACE_UP, size_mm: SIZE_MM, px_per_mm: Some(4.0) };
+    let (want, _) = rectify(&photo_face_up(), &opts).unwrap();
+    let (got, _) =
+        rectify(&photo_face_up(), &RectifyOptions { corners: found.corners, ..opts }).unwrap();
+    let se: f64 = want.rgb.iter().zip(&got.rgb).map(|(a, b)| (*a as f64 - *b as f64).powi(2)).sum();
+    let psnr = 10.0 * (1.0 / (se / want.rgb.len() as f64)).log10();
+    eprintln!("rectified by the corners found against the true ones: {psnr:.2} dB");
+    assert!(psnr >= 50.0, "{psnr:.2} dB");
+}
+
+fn photo_face_up() -> Frame {
+    photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p)
+}
+
+#[test]
+fn photographs_without_a_clear_piece_are_refused() {
+    let find = |photo: &Frame| find_corners(photo, Origin::BottomLeft).unwrap_err().to_string();
+    let h = face_up(&FACE_UP);
+    // Nothing in it.
+    let uniform = Frame { width: 64, height: 48, rgb: vec![0.3; 64 * 48 * 3] };
+    assert!(find(&uniform).contains("uniform"), "{}", find(&uniform));
+    // Cut by the photograph's edge.
+    let cut = photograph_on(480, 480, &h, DARK, |p| p);
+    assert!(find(&cut).contains("reaches the photograph's edge"), "{}", find(&cut));
+    // A plain piece on a background nearly as bright.
+    let grey = {
+        let inv = h.inverse().unwrap();
+        let mut f = Frame { width: 640, height: 480, rgb: vec![0.0; 640 * 480 * 3] };
+        for (i, px) in f.rgb.chunks_exact_mut(3).enumerate() {
+            let (x, y) = ((i % 640) as f64, (i / 640) as f64);
+            let mut v = 0.0;
+            for a in 0..4 {
+                for b in 0..4 {
+                    let uv = inv.apply([x + (a as f64 + 0.5) / 4.0, y + (b as f64 + 0.5) / 4.0]);
+                    let on = uv.iter().all(|u| (0.0..1.0).contains(u));
+                    v += if on { 0.5 } else { 0.3 } / 16.0;
+                }
+            }
+            px.fill(v);
+        }
+        f
+    };
+    assert!(find(&grey).contains("stands out"), "{}", find(&grey));
+    // A disc is not a quadrilateral.
+    let disc = {
+        let mut f = Frame { width: 200, height: 200, rgb: vec![DARK as f32; 200 * 200 * 3] };
+        for y in 0..200 {
+            for x in 0..200 {
+                if (x as f64 - 100.0).hypot(y as f64 - 100.0) < 70.0 {
+                    f.rgb[3 * (y * 200 + x)..][..3].fill(0.6);
+                }
+            }
+        }
+        f
+    };
+    assert!(find(&disc).contains("not a quadrilateral"), "{}", find(&disc));
+    // A square turned by 45°: which corner is uv (0, 0)?
+    let diamond = [[320.0, 420.0], [480.0, 260.0], [320.0, 100.0], [160.0, 260.0]];
+    let turned = photograph_on(640, 480, &face_up(&diamond), DARK, |p| p);
+    assert!(find(&turned).contains("about 45°"), "{}", find(&turned));
+    // Barrel distortion bows the sides by ≈ 4 px: refused, not fitted.
+    let barrel = photograph_on(640, 480, &h, DARK, |q| {
+        let (x, y) = (q[0] - 320.0, q[1] - 240.0);
+        let k = 1.0 + 2.6e-7 * (x * x + y * y);
+        [320.0 + k * x, 240.0 + k * y]
+    });
+    assert!(find(&barrel).contains("not straight"), "{}", find(&barrel));
 }

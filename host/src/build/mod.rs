@@ -9,6 +9,7 @@
 //!   file (Fig. 6 steps 4–5, Fig. 11A).
 
 pub mod calibrate;
+pub mod corners;
 pub mod enlarge;
 pub mod error;
 pub mod export;

@@ -40,6 +40,15 @@ pub struct RectifyOptions {
     pub px_per_mm: Option<f64>,
 }
 
+/// The piece's corners in a photograph: marked, or found in it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Corners {
+    /// As [`RectifyOptions::corners`].
+    Marked([[f64; 2]; 4]),
+    /// Found by [`super::corners::find_corners`], uv (0, 0) there.
+    Auto(super::corners::Origin),
+}
+
 /// What [`rectify`] made.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RectifyReport {
@@ -108,15 +117,15 @@ impl RectifyOptions {
     }
 }
 
-/// `photo` rectified onto the piece: W × H px, W = width · density and
-/// H = height · density (rounded, ≥ 1), pixel (c, r) covering the piece's
-/// point ((c + ½)/W · width, (r + ½)/H · height) mm.
-pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyReport), BuildError> {
-    let h = opts.check(photo.width, photo.height).map_err(BuildError::Input)?;
+/// A photograph's values: as many as its pixels' channels, each a radiance
+/// ≥ 0.
+pub fn check_photo(photo: &Frame) -> Result<(), BuildError> {
     let n = photo.width as usize * photo.height as usize * 3;
-    if photo.rgb.len() != n {
+    if photo.rgb.len() != n || photo.width == 0 || photo.height == 0 {
         return Err(BuildError::Input(format!(
-            "the photograph holds {} values, not {n}",
+            "the {} × {} px photograph holds {} values, not {n}",
+            photo.width,
+            photo.height,
             photo.rgb.len()
         )));
     }
@@ -129,6 +138,15 @@ pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyRe
             photo.rgb[i]
         )));
     }
+    Ok(())
+}
+
+/// `photo` rectified onto the piece: W × H px, W = width · density and
+/// H = height · density (rounded, ≥ 1), pixel (c, r) covering the piece's
+/// point ((c + ½)/W · width, (r + ½)/H · height) mm.
+pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyReport), BuildError> {
+    let h = opts.check(photo.width, photo.height).map_err(BuildError::Input)?;
+    check_photo(photo)?;
     // The photograph's px per mm along u and v at the corners and centre.
     let [wmm, hmm] = opts.size_mm;
     let densities: Vec<[f64; 2]> = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5]]

@@ -705,15 +705,46 @@ pub fn enlarge_cmd(
 /// `scanner rectify`
 pub fn rectify_cmd(
     photo: &Path,
-    opts: &crate::build::rectify::RectifyOptions,
+    corners: crate::build::rectify::Corners,
+    size_mm: [f64; 2],
+    px_per_mm: Option<f64>,
     output: &Path,
 ) -> Result<(), Failure> {
+    use crate::build::rectify::{Corners, RectifyOptions, rectify};
     let frame = crate::exrio::read_rgb(photo)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    let corners = match corners {
+        Corners::Marked(c) => c,
+        Corners::Auto(origin) => {
+            let found = crate::build::corners::find_corners(&frame, origin)
+                .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+            let c = found.corners;
+            println!(
+                "{}: the piece's corners at ({:.2}, {:.2}), ({:.2}, {:.2}), ({:.2}, {:.2}), \
+                 ({:.2}, {:.2}) px (its sides straight within {:.2} px RMS over {} edge points, \
+                 bowed ≤ {:.2} px; × {:.1} the background)",
+                photo.display(),
+                c[0][0],
+                c[0][1],
+                c[1][0],
+                c[1][1],
+                c[2][0],
+                c[2][1],
+                c[3][0],
+                c[3][1],
+                found.edge_rms_px,
+                found.edge_points,
+                found.bow_px,
+                found.contrast
+            );
+            c
+        }
+    };
+    let opts = RectifyOptions { corners, size_mm, px_per_mm };
     // Options that do not fit this photograph: exit 2, as for any option.
     opts.check(frame.width, frame.height).map_err(|e| Failure(2, anyhow!(e)))?;
-    let (out, report) = crate::build::rectify::rectify(&frame, opts)
-        .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    let (out, report) =
+        rectify(&frame, &opts).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     let bytes = crate::exrio::encode_half(&out)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
     crate::fsutil::write_atomic(output, &bytes)
@@ -724,8 +755,8 @@ pub fn rectify_cmd(
         output.display(),
         out.width,
         out.height,
-        opts.size_mm[0],
-        opts.size_mm[1],
+        size_mm[0],
+        size_mm[1],
         report.px_per_mm,
         report.photo_px_per_mm[0],
         report.photo_px_per_mm[1],

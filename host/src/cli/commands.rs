@@ -1690,12 +1690,13 @@ pub fn demo(
         std::fs::create_dir_all(&direct)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
         for ph in shots.photo.iter().chain([&shots.white]) {
-            let opts = crate::build::rectify::RectifyOptions {
-                corners: ph.corners,
-                size_mm: [shots.size_mm; 2],
-                px_per_mm: Some(scale),
-            };
-            super::build::rectify_cmd(&photos.join(&ph.file), &opts, &direct.join(&ph.file))?;
+            super::build::rectify_cmd(
+                &photos.join(&ph.file),
+                crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
+                [shots.size_mm; 2],
+                Some(scale),
+                &direct.join(&ph.file),
+            )?;
         }
         let manifest = shots.manifest();
         crate::fsutil::write_atomic(

@@ -197,9 +197,16 @@ enum Command {
         /// The piece's corners in the photograph, px (pixel (c, r) spans
         /// [c, c + 1) × [r, r + 1)): X0,Y0,X1,Y1,X2,Y2,X3,Y3 for the
         /// piece's (0, 0), (1, 0), (1, 1), (0, 1) — u along the output's
-        /// columns, v down its rows.
+        /// columns, v down its rows. Or `auto`: found in the photograph,
+        /// the piece lying on a darker plain background (see --origin).
         #[arg(long, value_delimiter = ',', allow_hyphen_values = true, required = true)]
-        corners: Vec<f64>,
+        corners: Vec<String>,
+        /// With `--corners auto`: where in the photograph the piece's
+        /// (0, 0) corner lies; (1, 0), (1, 1), (0, 1) follow
+        /// counter-clockwise as the photograph is seen [default:
+        /// bottom-left: the piece face up, u to the right, v up].
+        #[arg(long, value_parser = ["bottom-left", "bottom-right", "top-right", "top-left"])]
+        origin: Option<String>,
         /// The piece's width and height, mm: W,H (one number: a square).
         #[arg(long, value_delimiter = ',', required = true)]
         size_mm: Vec<f64>,
@@ -552,26 +559,46 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
     r.map_err(|e| Failure(4, e))
 }
 
-/// `scanner rectify`'s options from its arguments (exit 2: their count).
+/// `scanner rectify`'s corners and size from its arguments (exit 2: their
+/// count, a number that is not one, `--origin` with marked corners).
 fn rectify_options(
-    corners: &[f64],
+    corners: &[String],
+    origin: Option<&str>,
     size_mm: &[f64],
-    px_per_mm: Option<f64>,
-) -> Result<crate::build::rectify::RectifyOptions, Failure> {
+) -> Result<(crate::build::rectify::Corners, [f64; 2]), Failure> {
+    use crate::build::corners::Origin;
+    use crate::build::rectify::Corners;
     let bad = |m: String| Failure(2, anyhow::anyhow!(m));
-    let corners: [f64; 8] = corners
-        .try_into()
-        .map_err(|_| bad(format!("--corners: 8 numbers (X0,Y0,…,X3,Y3), not {}", corners.len())))?;
+    let corners = if let [auto] = corners
+        && auto == "auto"
+    {
+        let origin = origin.map_or(Some(Origin::BottomLeft), Origin::from_name);
+        Corners::Auto(origin.ok_or_else(|| bad(format!("--origin {origin:?}")))?)
+    } else {
+        if origin.is_some() {
+            return Err(bad(
+                "--origin goes with --corners auto: marked corners say their order".into()
+            ));
+        }
+        let numbers = corners
+            .iter()
+            .map(|c| {
+                c.trim()
+                    .parse::<f64>()
+                    .map_err(|_| bad(format!("--corners: {c:?} is not a number")))
+            })
+            .collect::<Result<Vec<f64>, Failure>>()?;
+        let n: [f64; 8] = numbers.as_slice().try_into().map_err(|_| {
+            bad(format!("--corners: auto, or 8 numbers (X0,Y0,…,X3,Y3), not {}", numbers.len()))
+        })?;
+        Corners::Marked(std::array::from_fn(|k| [n[2 * k], n[2 * k + 1]]))
+    };
     let size_mm = match *size_mm {
         [side] => [side, side],
         [w, h] => [w, h],
         _ => return Err(bad(format!("--size-mm: W,H or one side, not {} numbers", size_mm.len()))),
     };
-    Ok(crate::build::rectify::RectifyOptions {
-        corners: std::array::from_fn(|k| [corners[2 * k], corners[2 * k + 1]]),
-        size_mm,
-        px_per_mm,
-    })
+    Ok((corners, size_mm))
 }
 
 /// Before any work: the output may be written (not a device node, symlink,
@@ -715,10 +742,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel, signature };
             build::enlarge_cmd(&material, &direct, &output, &opts)?
         }
-        Command::Rectify { photo, corners, size_mm, px_per_mm, output } => {
+        Command::Rectify { photo, corners, origin, size_mm, px_per_mm, output } => {
             check_output(&output, &[&photo], &["exr"])?;
-            let opts = rectify_options(&corners, &size_mm, px_per_mm)?;
-            build::rectify_cmd(&photo, &opts, &output)?
+            let (corners, size_mm) = rectify_options(&corners, origin.as_deref(), &size_mm)?;
+            build::rectify_cmd(&photo, corners, size_mm, px_per_mm, &output)?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {

@@ -1,0 +1,581 @@
+//! Finding a flat piece's four corners in a photograph of it lying on a
+//! darker, plain background (`scanner rectify --corners auto`;
+//! docs/direct-images.md, "Finding the corners").
+//!
+//! 1. The photograph's luminance (the channels' mean, as calibration uses),
+//!    lightly blurred, is split into piece and background by Otsu's
+//!    threshold on its logarithm: radiance spans decades, and a textured
+//!    piece's dark gaps sit between the two levels.
+//! 2. The largest 8-connected bright component is the piece; it must not
+//!    reach the photograph's edge. Its convex hull gives the quadrilateral
+//!    of largest area with corners on the hull: the piece's outline to a
+//!    pixel or two.
+//! 3. Each side is then found to a fraction of a pixel: across it, every
+//!    pixel along its length, the unblurred luminance's crossing of the
+//!    level halfway between the piece just inside and the background just
+//!    outside; a line fitted to the crossings (total least squares, points
+//!    beyond three robust deviations dropped, refitted). Twice, the second
+//!    time from the first's corners. The corners are where adjacent lines
+//!    meet.
+//!
+//! A pinhole photograph shows the piece's straight sides straight: lens
+//! distortion must be removed first (sides that are not straight are
+//! refused by their residual).
+
+use super::BuildError;
+use super::plane::Plane;
+use crate::camera::Frame;
+
+/// Where, in the photograph, the piece's corner uv (0, 0) lies; the others
+/// follow counter-clockwise as one sees the photograph (a camera shows the
+/// piece's face without mirroring it): (1, 0), (1, 1), (0, 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Origin {
+    /// The piece face up, u to the right and v up the photograph (the
+    /// simulator's photographs).
+    BottomLeft,
+    /// Turned a quarter: u up, v to the left.
+    BottomRight,
+    /// Turned a half: u to the left, v down.
+    TopRight,
+    /// Turned three quarters: u down, v to the right.
+    TopLeft,
+}
+
+impl Origin {
+    /// Every origin, by its command-line name.
+    pub const ALL: [(&'static str, Origin); 4] = [
+        ("bottom-left", Origin::BottomLeft),
+        ("bottom-right", Origin::BottomRight),
+        ("top-right", Origin::TopRight),
+        ("top-left", Origin::TopLeft),
+    ];
+
+    /// By its command-line name.
+    pub fn from_name(name: &str) -> Option<Origin> {
+        Self::ALL.iter().find(|(n, _)| *n == name).map(|&(_, o)| o)
+    }
+
+    /// How far `p` (px) lies towards this corner of the photograph, along
+    /// its diagonal (larger: nearer).
+    fn towards(self, p: [f64; 2]) -> f64 {
+        match self {
+            Origin::BottomLeft => p[1] - p[0],
+            Origin::BottomRight => p[0] + p[1],
+            Origin::TopRight => p[0] - p[1],
+            Origin::TopLeft => -p[0] - p[1],
+        }
+    }
+}
+
+/// What [`find_corners`] found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FoundCorners {
+    /// The piece's corners uv (0, 0), (1, 0), (1, 1), (0, 1), px (pixel
+    /// (c, r) spans [c, c + 1) × [r, r + 1)): what
+    /// [`super::rectify::RectifyOptions::corners`] takes.
+    pub corners: [[f64; 2]; 4],
+    /// The piece's median luminance over the background's, just inside and
+    /// outside its outline.
+    pub contrast: f64,
+    /// RMS distance of the sides' kept edge points from their lines, px.
+    pub edge_rms_px: f64,
+    /// The most a side bows: its middle third's median distance from its
+    /// line against its outer thirds', px.
+    pub bow_px: f64,
+    /// Edge points the four lines were fitted to.
+    pub edge_points: usize,
+}
+
+/// The least contrast between piece and background.
+pub const MIN_CONTRAST: f64 = 2.0;
+/// The largest RMS distance of a side's edge points from its line, px.
+pub const MAX_EDGE_RMS_PX: f64 = 0.75;
+/// The most a side may bow ([`FoundCorners::bow_px`]), px.
+pub const MAX_BOW_PX: f64 = 0.5;
+/// The smallest side, px.
+pub const MIN_SIDE_PX: f64 = 16.0;
+/// The least share of the quadrilateral the piece's component covers (and
+/// its reciprocal the most).
+const MIN_FILL: f64 = 0.85;
+/// Blur of the luminance before thresholding, px.
+const MASK_SIGMA_PX: f64 = 1.0;
+/// Half the span of an edge profile, px, in the first and second pass.
+const PROFILE_HALF_PX: [f64; 2] = [4.0, 2.5];
+/// Steps along an edge profile, px.
+const PROFILE_STEP_PX: f64 = 0.25;
+/// The least piece-over-background ratio across one edge profile for its
+/// crossing to count.
+const MIN_LOCAL_CONTRAST: f64 = 1.5;
+
+/// The piece's corners in `photo` (linear RGB, the piece brighter than a
+/// plain background around it), its uv (0, 0) at `origin`.
+pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, BuildError> {
+    super::rectify::check_photo(photo)?;
+    let bad = |m: String| Err(BuildError::Input(format!("finding the piece's corners: {m}")));
+    let (w, h) = (photo.width as usize, photo.height as usize);
+    let mut lum = Plane::new(w, h);
+    for (l, px) in lum.data.iter_mut().zip(photo.rgb.chunks_exact(3)) {
+        *l = (px[0] + px[1] + px[2]) / 3.0;
+    }
+    let Some(mask) = bright(&lum.blurred(MASK_SIGMA_PX)) else {
+        return bad("the photograph is uniform".into());
+    };
+    let Some(piece) = largest_component(&mask, w, h) else {
+        return bad("nothing stands out of the background".into());
+    };
+    if piece.touches_edge {
+        return bad("the bright region reaches the photograph's edge: the piece must lie whole \
+                    in the photograph, on a darker background"
+            .into());
+    }
+    let hull = convex_hull(&piece.outline);
+    let Some(mut quad) = largest_quadrilateral(&hull) else {
+        return bad("the bright region has no area".into());
+    };
+    let area = shoelace(&quad).abs();
+    let fill = piece.pixels as f64 / area.max(1.0);
+    if !(MIN_FILL..=1.0 / MIN_FILL).contains(&fill) {
+        return bad(format!(
+            "the brightest region is not a quadrilateral: its area is {:.0} % of the largest \
+             one inside its outline ({:.0}–{:.0} %)",
+            100.0 * fill,
+            100.0 * MIN_FILL,
+            100.0 / MIN_FILL
+        ));
+    }
+    let mut fit = Fit::default();
+    for half in PROFILE_HALF_PX {
+        (quad, fit) = refine(&lum, &quad, half)
+            .map_err(|m| BuildError::Input(format!("finding the piece's corners: {m}")))?;
+    }
+    for k in 0..4 {
+        let side = dist(quad[k], quad[(k + 1) % 4]);
+        if side < MIN_SIDE_PX {
+            return bad(format!("a side of {side:.1} px: at least {MIN_SIDE_PX} px"));
+        }
+    }
+    if fit.rms > MAX_EDGE_RMS_PX || fit.bow > MAX_BOW_PX {
+        return bad(format!(
+            "the sides are not straight: their edge points lie {:.2} px RMS from lines (at most \
+             {MAX_EDGE_RMS_PX}), a side's middle {:.2} px off the line through its ends (at \
+             most {MAX_BOW_PX}); remove the lens's distortion first, or mark the corners",
+            fit.rms, fit.bow
+        ));
+    }
+    let contrast = contrast(&lum, &quad);
+    if contrast.is_nan() || contrast < MIN_CONTRAST {
+        return bad(format!(
+            "the piece stands out of its background by only × {contrast:.2} (at least × \
+             {MIN_CONTRAST}): lay it on a darker, plain background, or mark the corners"
+        ));
+    }
+    let corners = ordered(quad, origin)?;
+    Ok(FoundCorners {
+        corners,
+        contrast,
+        edge_rms_px: fit.rms,
+        bow_px: fit.bow,
+        edge_points: fit.points,
+    })
+}
+
+/// Pixels above Otsu's threshold on the logarithm of `lum`; `None` if it
+/// is uniform.
+fn bright(lum: &Plane) -> Option<Vec<bool>> {
+    let top = lum.data.iter().copied().fold(0.0f32, f32::max) as f64;
+    if top <= 0.0 {
+        return None;
+    }
+    let floor = top * 1e-6;
+    let log = |v: f32| (v as f64).max(floor).ln();
+    let (lo, hi) = (floor.ln(), top.ln());
+    let low = lum.data.iter().map(|&v| log(v)).fold(hi, f64::min);
+    if hi - low < 1e-9 {
+        return None;
+    }
+    const BINS: usize = 256;
+    let bin = |x: f64| (((x - lo) / (hi - lo) * BINS as f64) as usize).min(BINS - 1);
+    let mut hist = [0u64; BINS];
+    for &v in &lum.data {
+        hist[bin(log(v))] += 1;
+    }
+    // Otsu: the split maximising the between-class variance.
+    let total: u64 = hist.iter().sum();
+    let sum: f64 = hist.iter().enumerate().map(|(i, &c)| i as f64 * c as f64).sum();
+    let (mut n0, mut s0, mut best, mut split) = (0u64, 0.0, -1.0, 0);
+    for (i, &c) in hist.iter().enumerate().take(BINS - 1) {
+        n0 += c;
+        s0 += i as f64 * c as f64;
+        let n1 = total - n0;
+        if n0 == 0 || n1 == 0 {
+            continue;
+        }
+        let (m0, m1) = (s0 / n0 as f64, (sum - s0) / n1 as f64);
+        let between = n0 as f64 * n1 as f64 * (m0 - m1) * (m0 - m1);
+        if between > best {
+            (best, split) = (between, i);
+        }
+    }
+    (best > 0.0).then(|| lum.data.iter().map(|&v| bin(log(v)) > split).collect())
+}
+
+/// The largest 8-connected component of a mask.
+struct Component {
+    /// Its pixels.
+    pixels: usize,
+    /// Whether it has a pixel on the image's border.
+    touches_edge: bool,
+    /// Its outline's extreme points: each row's leftmost and rightmost
+    /// pixels' outer corners, px.
+    outline: Vec<[f64; 2]>,
+}
+
+fn largest_component(mask: &[bool], w: usize, h: usize) -> Option<Component> {
+    let mut label = vec![u32::MAX; w * h];
+    let mut stack = Vec::new();
+    let mut best: Option<(u32, usize)> = None;
+    let mut next = 0u32;
+    for start in 0..w * h {
+        if !mask[start] || label[start] != u32::MAX {
+            continue;
+        }
+        let mut size = 0usize;
+        label[start] = next;
+        stack.push(start);
+        while let Some(i) = stack.pop() {
+            size += 1;
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    let (nx, ny) = (x + dx, y + dy);
+                    if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                        continue;
+                    }
+                    let j = ny as usize * w + nx as usize;
+                    if mask[j] && label[j] == u32::MAX {
+                        label[j] = next;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        if best.is_none_or(|(_, s)| size > s) {
+            best = Some((next, size));
+        }
+        next += 1;
+    }
+    let (id, pixels) = best?;
+    let mut outline = Vec::new();
+    let mut touches_edge = false;
+    for y in 0..h {
+        let row = &label[y * w..(y + 1) * w];
+        let (Some(a), Some(b)) =
+            (row.iter().position(|&l| l == id), row.iter().rposition(|&l| l == id))
+        else {
+            continue;
+        };
+        touches_edge |= a == 0 || b == w - 1 || y == 0 || y == h - 1;
+        let (a, b, y) = (a as f64, b as f64 + 1.0, y as f64);
+        outline.extend([[a, y], [a, y + 1.0], [b, y], [b, y + 1.0]]);
+    }
+    Some(Component { pixels, touches_edge, outline })
+}
+
+fn cross(o: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+    (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+}
+
+fn dist(a: [f64; 2], b: [f64; 2]) -> f64 {
+    (a[0] - b[0]).hypot(a[1] - b[1])
+}
+
+/// The signed area (positive: counter-clockwise in x-right, y-up
+/// axes, so clockwise as the photograph is seen).
+fn shoelace(p: &[[f64; 2]]) -> f64 {
+    let n = p.len();
+    0.5 * (0..n).map(|k| cross([0.0, 0.0], p[k], p[(k + 1) % n])).sum::<f64>()
+}
+
+/// Andrew's monotone chain: the hull's vertices in order, no three on a
+/// line.
+fn convex_hull(points: &[[f64; 2]]) -> Vec<[f64; 2]> {
+    let mut p = points.to_vec();
+    p.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+    p.dedup();
+    if p.len() < 3 {
+        return p;
+    }
+    let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * p.len());
+    for pass in 0..2 {
+        let start = hull.len();
+        let iter: Box<dyn Iterator<Item = &[f64; 2]>> =
+            if pass == 0 { Box::new(p.iter()) } else { Box::new(p.iter().rev()) };
+        for &q in iter {
+            while hull.len() >= start + 2
+                && cross(hull[hull.len() - 2], hull[hull.len() - 1], q) <= 0.0
+            {
+                hull.pop();
+            }
+            hull.push(q);
+        }
+        hull.pop();
+    }
+    hull
+}
+
+/// The quadrilateral of largest area with its corners among a convex
+/// polygon's vertices, in the polygon's order: for each first corner, the
+/// opposite one swept round while the two others follow it (each
+/// triangle's area is unimodal along a convex polygon), O(n²).
+fn largest_quadrilateral(hull: &[[f64; 2]]) -> Option<[[f64; 2]; 4]> {
+    let n = hull.len();
+    if n < 4 {
+        return None;
+    }
+    let at = |i: usize| hull[i % n];
+    let tri = |a: usize, b: usize, c: usize| cross(at(a), at(b), at(c)).abs();
+    let mut best = (0.0, [0usize; 4]);
+    for i in 0..n {
+        let mut j = i + 1;
+        let mut l = i + 3;
+        for k in i + 2..i + n - 1 {
+            while j + 1 < k && tri(i, j + 1, k) >= tri(i, j, k) {
+                j += 1;
+            }
+            l = l.max(k + 1);
+            while l + 1 < i + n && tri(i, k, l + 1) >= tri(i, k, l) {
+                l += 1;
+            }
+            let area = tri(i, j, k) + tri(i, k, l);
+            if area > best.0 {
+                best = (area, [i, j, k, l]);
+            }
+        }
+    }
+    (best.0 > 0.0).then(|| best.1.map(at))
+}
+
+/// The quadrilateral's sides refound from the luminance across them
+/// (profiles `half` px either side): the corners where the fitted lines
+/// meet, and how well the lines fit.
+fn refine(lum: &Plane, quad: &[[f64; 2]; 4], half: f64) -> Result<([[f64; 2]; 4], Fit), String> {
+    // Outward normals: the quadrilateral's orientation decides the side.
+    let turn = shoelace(quad).signum();
+    let mut lines: [Line; 4] = [([0.0; 2], [0.0; 2]); 4];
+    let (mut ss, mut fit) = (0.0, Fit::default());
+    for k in 0..4 {
+        let (a, b) = (quad[k], quad[(k + 1) % 4]);
+        let len = dist(a, b);
+        let t = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
+        let n = [turn * t[1], -turn * t[0]];
+        let steps = (half / PROFILE_STEP_PX).round() as isize;
+        let margin = 2.0 * half + 1.0;
+        let mut points = Vec::new();
+        let mut s = margin;
+        while s <= len - margin {
+            let p = [a[0] + s * t[0], a[1] + s * t[1]];
+            if let Some(e) = crossing(lum, p, n, steps) {
+                points.push([p[0] + e * n[0], p[1] + e * n[1]]);
+            }
+            s += 1.0;
+        }
+        let Some((line, side)) = fit_line(&points) else {
+            return Err(format!(
+                "side {k} ({:.1}, {:.1})–({:.1}, {:.1}) px: no clear edge along it",
+                a[0], a[1], b[0], b[1]
+            ));
+        };
+        lines[k] = line;
+        ss += side.rms * side.rms * side.points as f64;
+        fit.points += side.points;
+        fit.bow = fit.bow.max(side.bow);
+    }
+    let mut out = [[0.0; 2]; 4];
+    for k in 0..4 {
+        // Corner k joins side k − 1 and side k.
+        let Some(p) = meet(lines[(k + 3) % 4], lines[k]) else {
+            return Err(format!("sides {} and {k} are parallel", (k + 3) % 4));
+        };
+        if dist(p, quad[k]) > 2.0 * half {
+            return Err(format!(
+                "corner {k} moved {:.1} px from the outline's ({:.1}, {:.1}) px: its sides are \
+                 not clear",
+                dist(p, quad[k]),
+                quad[k][0],
+                quad[k][1]
+            ));
+        }
+        out[k] = p;
+    }
+    fit.rms = (ss / fit.points.max(1) as f64).sqrt();
+    Ok((out, fit))
+}
+
+/// Where, along the outward normal `n` from `p` (px), the luminance falls
+/// through the level halfway between the piece just inside and the
+/// background just outside: the crossing nearest `p`, by linear
+/// interpolation between profile steps.
+fn crossing(lum: &Plane, p: [f64; 2], n: [f64; 2], steps: isize) -> Option<f64> {
+    let at = |k: isize| {
+        let s = k as f64 * PROFILE_STEP_PX;
+        lum.bilinear(p[0] + s * n[0], p[1] + s * n[1])
+    };
+    let profile: Vec<f64> = (-steps..=steps).map(at).collect();
+    let quarter = (steps / 2).max(1) as usize;
+    let inside = median(&profile[..quarter + 1]);
+    let outside = median(&profile[profile.len() - quarter - 1..]);
+    if !(inside >= MIN_LOCAL_CONTRAST * outside && inside > 0.0) {
+        return None;
+    }
+    let level = 0.5 * (inside + outside);
+    let mut best: Option<f64> = None;
+    for i in 0..profile.len() - 1 {
+        let (v0, v1) = (profile[i], profile[i + 1]);
+        if v0 >= level && v1 < level {
+            let s = (i as f64 + (v0 - level) / (v0 - v1) - steps as f64) * PROFILE_STEP_PX;
+            if best.is_none_or(|b| s > b) {
+                best = Some(s);
+            }
+        }
+    }
+    best
+}
+
+/// A line (a point on it, its unit direction) fitted to `points` by total
+/// least squares, refitted without the points beyond three robust
+/// deviations (at least 0.1 px): the line and how well it fits the kept
+/// points (`points` in order along the line). `None` for fewer than 8.
+fn fit_line(points: &[[f64; 2]]) -> Option<(Line, Fit)> {
+    let mut kept: Vec<[f64; 2]> = points.to_vec();
+    let mut line = None;
+    for _ in 0..4 {
+        if kept.len() < 8 {
+            return None;
+        }
+        let m = kept.len() as f64;
+        let c = [
+            kept.iter().map(|p| p[0]).sum::<f64>() / m,
+            kept.iter().map(|p| p[1]).sum::<f64>() / m,
+        ];
+        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+        for p in &kept {
+            let (x, y) = (p[0] - c[0], p[1] - c[1]);
+            sxx += x * x;
+            sxy += x * y;
+            syy += y * y;
+        }
+        // The direction of largest spread.
+        let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+        let d = [angle.cos(), angle.sin()];
+        let signed = |p: &[f64; 2]| (p[0] - c[0]) * d[1] - (p[1] - c[1]) * d[0];
+        let off = |p: &[f64; 2]| signed(p).abs();
+        let mut devs: Vec<f64> = kept.iter().map(off).collect();
+        let rms = (devs.iter().map(|e| e * e).sum::<f64>() / m).sqrt();
+        let third = kept.len() / 3;
+        let (mut middle, mut outer): (Vec<f64>, Vec<f64>) = (Vec::new(), Vec::new());
+        for (i, p) in kept.iter().enumerate() {
+            if (third..kept.len() - third).contains(&i) { &mut middle } else { &mut outer }
+                .push(signed(p));
+        }
+        let bow = (median(&middle) - median(&outer)).abs();
+        line = Some(((c, d), Fit { rms, bow, points: kept.len() }));
+        devs.sort_by(f64::total_cmp);
+        let cut = (3.0 * 1.4826 * devs[devs.len() / 2]).max(0.1);
+        let before = kept.len();
+        kept.retain(|p| off(p) <= cut);
+        if kept.len() == before {
+            break;
+        }
+    }
+    line
+}
+
+/// A line: a point on it and its unit direction, px.
+type Line = ([f64; 2], [f64; 2]);
+
+/// How well lines fit edge points.
+#[derive(Debug, Clone, Copy, Default)]
+struct Fit {
+    /// RMS distance, px.
+    rms: f64,
+    /// The most a line's points bow away from it, px.
+    bow: f64,
+    /// Points kept.
+    points: usize,
+}
+
+/// The median of `v` (NaN if empty).
+fn median(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Where two lines meet; `None` if nearly parallel.
+fn meet(a: Line, b: Line) -> Option<[f64; 2]> {
+    let ((p, d), (q, e)) = (a, b);
+    let den = d[0] * e[1] - d[1] * e[0];
+    if den.abs() < 1e-3 {
+        return None;
+    }
+    let t = ((q[0] - p[0]) * e[1] - (q[1] - p[1]) * e[0]) / den;
+    Some([p[0] + t * d[0], p[1] + t * d[1]])
+}
+
+/// The median luminance within 2–6 px inside the outline over the median
+/// within 2–6 px outside it.
+fn contrast(lum: &Plane, quad: &[[f64; 2]; 4]) -> f64 {
+    let turn = shoelace(quad).signum();
+    let (mut inside, mut outside) = (Vec::new(), Vec::new());
+    for k in 0..4 {
+        let (a, b) = (quad[k], quad[(k + 1) % 4]);
+        let len = dist(a, b);
+        let t = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
+        let n = [turn * t[1], -turn * t[0]];
+        let mut s = 8.0;
+        while s <= len - 8.0 {
+            for o in [2.0, 4.0, 6.0] {
+                let p =
+                    |o: f64| lum.bilinear(a[0] + s * t[0] + o * n[0], a[1] + s * t[1] + o * n[1]);
+                inside.push(p(-o));
+                outside.push(p(o));
+            }
+            s += 2.0;
+        }
+    }
+    let (i, o) = (median(&inside), median(&outside));
+    if o > 0.0 {
+        i / o
+    } else if i > 0.0 {
+        f64::INFINITY
+    } else {
+        f64::NAN
+    }
+}
+
+/// The corners counter-clockwise as the photograph is seen, from the one
+/// nearest `origin`'s corner of the photograph; an error if two are about
+/// as near (the piece turned by about 45°).
+fn ordered(quad: [[f64; 2]; 4], origin: Origin) -> Result<[[f64; 2]; 4], BuildError> {
+    let mut q = quad;
+    // Counter-clockwise as seen (y down): negative signed area in (x, y).
+    if shoelace(&q) > 0.0 {
+        q.reverse();
+    }
+    let mut by: Vec<(f64, usize)> = (0..4).map(|k| (origin.towards(q[k]), k)).collect();
+    by.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let side = (0..4).map(|k| dist(q[k], q[(k + 1) % 4])).sum::<f64>() / 4.0;
+    if by[0].0 - by[1].0 < 0.2 * side {
+        return Err(BuildError::Input(format!(
+            "finding the piece's corners: two corners, ({:.1}, {:.1}) and ({:.1}, {:.1}) px, are \
+             about as near the photograph's corner where uv (0, 0) should be (the piece is \
+             turned by about 45°): turn the piece, or mark the corners",
+            q[by[0].1][0], q[by[0].1][1], q[by[1].1][0], q[by[1].1][1]
+        )));
+    }
+    Ok(std::array::from_fn(|k| q[(by[0].1 + k) % 4]))
+}
