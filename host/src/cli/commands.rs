@@ -1672,7 +1672,8 @@ pub fn demo(
             seed,
         );
         // Photographed in perspective as a camera on a tripod would, then
-        // rectified by the piece's corners into direct images.
+        // rectified into direct images by the piece's corners, found in each
+        // photograph (the simulator's own corners are not read).
         let photos = out.join(format!("{name}-photographs"));
         let direct = out.join(format!("{name}-direct"));
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
