@@ -158,8 +158,9 @@ pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, Build
     if fit.rms > MAX_EDGE_RMS_PX || fit.bow > MAX_BOW_PX {
         return bad(format!(
             "the sides are not straight: their edge points lie {:.2} px RMS from lines (at most \
-             {MAX_EDGE_RMS_PX}), a side's middle {:.2} px off the line through its ends (at \
-             most {MAX_BOW_PX}); remove the lens's distortion first, or mark the corners",
+             {MAX_EDGE_RMS_PX}), a side bows by {:.2} px (its middle third against its outer \
+             thirds; at most {MAX_BOW_PX}); remove the lens's distortion first, or mark the \
+             corners",
             fit.rms, fit.bow
         ));
     }
