@@ -264,3 +264,54 @@ fn photographs_without_a_clear_piece_are_refused() {
     });
     assert!(find(&barrel).contains("not straight"), "{}", find(&barrel));
 }
+
+/// Whatever a photograph holds, finding the corners answers or refuses; it
+/// never panics: noise, speckles, blocks, stripes, a single pixel or row,
+/// zeros and huge values, seeded.
+#[test]
+fn finding_corners_never_panics() {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(57);
+    let (mut found, mut refused) = (0, 0);
+    for case in 0..400 {
+        let (w, h) = (rng.random_range(1..120u32), rng.random_range(1..120u32));
+        let n = (w * h) as usize;
+        let mut rgb = vec![0.0f32; n * 3];
+        match case % 4 {
+            0 => rgb.iter_mut().for_each(|v| *v = rng.random_range(0.0..1.0)),
+            1 => {
+                for _ in 0..rng.random_range(0..20) {
+                    let i = rng.random_range(0..n);
+                    rgb[3 * i..][..3].fill(rng.random_range(0.0..1e30));
+                }
+            }
+            2 => {
+                // Mostly with background round it.
+                let (x0, y0) =
+                    (rng.random_range(0..w.div_ceil(3)), rng.random_range(0..h.div_ceil(3)));
+                let (x1, y1) = (rng.random_range(x0..=w), rng.random_range(y0..=h));
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let speck = rng.random_bool(0.02);
+                        rgb[3 * (y * w + x) as usize..][..3].fill(if speck { 0.0 } else { 1.0 });
+                    }
+                }
+            }
+            _ => {
+                let period = rng.random_range(1..6);
+                for (i, px) in rgb.chunks_exact_mut(3).enumerate() {
+                    px.fill(((i as u32 % w) / period % 2) as f32);
+                }
+            }
+        }
+        let photo = Frame { width: w, height: h, rgb };
+        let origin = Origin::ALL[case % 4].1;
+        match find_corners(&photo, origin) {
+            Ok(_) => found += 1,
+            Err(_) => refused += 1,
+        }
+    }
+    // Measured: 9 found (blocks with background round them), 391 refused.
+    eprintln!("{found} found, {refused} refused");
+    assert!(found > 0 && refused > 0);
+}
