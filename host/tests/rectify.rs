@@ -1,7 +1,7 @@
 //! `host::build::rectify`: a photograph taken in perspective of a piece
 //! whose pattern is known analytically, rectified back onto the piece.
 
-use host::build::corners::{Origin, find_corners};
+use host::build::corners::{Origin, Polarity, find_corners};
 use host::build::linalg::Homography;
 use host::build::rectify::{RectifyOptions, rectify};
 use host::camera::Frame;
@@ -192,6 +192,15 @@ fn the_corners_of_a_piece_on_a_dark_background_are_found() {
         let found = find_corners(&photo, *origin).unwrap();
         assert!(err(&found.corners, &turned) <= 0.1, "{origin:?}: {found:?}");
     }
+
+    // A dark piece on a white table: found the same way.
+    let dark = photograph_on(640, 480, &face_up(&FACE_UP), 50.0, |p| p);
+    let found_dark = find_corners(&dark, Origin::BottomLeft).unwrap();
+    let e = err(&found_dark.corners, &FACE_UP);
+    eprintln!("{found_dark:?}: {e:.3} px at worst");
+    assert_eq!(found_dark.polarity, Polarity::Darker);
+    assert!(e <= 0.1 && found_dark.contrast > 10.0, "{found_dark:?}: {e:.3} px");
+    assert_eq!(found.polarity, Polarity::Brighter);
 
     // Rectified by the corners found, as by the true ones.
     let opts = RectifyOptions { corners: FACE_UP, size_mm: SIZE_MM, px_per_mm: Some(4.0) };

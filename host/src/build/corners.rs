@@ -1,26 +1,27 @@
 //! Finding a flat piece's four corners in a photograph of it lying on a
-//! darker, plain background (`scanner rectify --corners auto`;
-//! docs/direct-images.md, "Finding the corners").
+//! plain background darker or lighter than all of it (`scanner rectify
+//! --corners auto`; docs/direct-images.md, "Finding the corners").
 //!
 //! 1. The photograph's luminance (the channels' mean, as calibration uses),
-//!    lightly blurred, is split into piece and background by Otsu's
-//!    threshold on its logarithm: radiance spans decades, and a textured
-//!    piece's dark gaps sit between the two levels.
-//! 2. The largest 8-connected bright component is the piece; it must not
-//!    reach the photograph's edge. Its convex hull gives the quadrilateral
-//!    of largest area with corners on the hull: the piece's outline to a
-//!    pixel or two.
+//!    lightly blurred, is split into two levels by Otsu's threshold on its
+//!    logarithm: radiance spans decades, and a textured piece's dark gaps
+//!    sit between the two levels.
+//! 2. The largest 8-connected bright component is the piece (if that
+//!    fails, the largest dark one: a dark piece on a white table); it must
+//!    not reach the photograph's edge. Its convex hull gives the
+//!    quadrilateral of largest area with corners on the hull: the piece's
+//!    outline to a pixel or two.
 //! 3. Each side is then found to a fraction of a pixel: across it, every
-//!    pixel along its length, the unblurred luminance's crossing of the
-//!    level halfway between the piece just inside and the background just
-//!    outside; a line fitted to the crossings (total least squares, points
-//!    beyond three robust deviations dropped, refitted). Twice, the second
-//!    time from the first's corners. The corners are where adjacent lines
-//!    meet.
+//!    pixel along its length, the unblurred luminance's outermost crossing
+//!    of the level halfway between the piece just inside and the
+//!    background just outside; a line fitted to the crossings (total least
+//!    squares, points beyond three robust deviations dropped, refitted).
+//!    Twice, the second time from the first's corners. The corners are
+//!    where adjacent lines meet.
 //!
 //! A pinhole photograph shows the piece's straight sides straight: lens
 //! distortion must be removed first (sides that are not straight are
-//! refused by their residual).
+//! refused by their residual and their bow).
 
 use super::BuildError;
 use super::plane::Plane;
@@ -75,8 +76,10 @@ pub struct FoundCorners {
     /// (c, r) spans [c, c + 1) × [r, r + 1)): what
     /// [`super::rectify::RectifyOptions::corners`] takes.
     pub corners: [[f64; 2]; 4],
-    /// The piece's median luminance over the background's, just inside and
-    /// outside its outline.
+    /// Whether the piece is brighter or darker than its background.
+    pub polarity: Polarity,
+    /// How many times the piece's median luminance stands out of the
+    /// background's, just inside and outside its outline (≥ 1).
     pub contrast: f64,
     /// RMS distance of the sides' kept edge points from their lines, px.
     pub edge_rms_px: f64,
@@ -108,37 +111,86 @@ const PROFILE_STEP_PX: f64 = 0.25;
 /// crossing to count.
 const MIN_LOCAL_CONTRAST: f64 = 1.5;
 
-/// The piece's corners in `photo` (linear RGB, the piece brighter than a
-/// plain background around it), its uv (0, 0) at `origin`.
+/// Which way the piece differs from its background.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Polarity {
+    /// The piece brighter than its background (a dark holder).
+    Brighter,
+    /// The piece darker than its background (a white table).
+    Darker,
+}
+
+impl Polarity {
+    /// How many times the piece stands out of the background.
+    fn ratio(self, piece: f64, background: f64) -> f64 {
+        match self {
+            Polarity::Brighter => piece / background,
+            Polarity::Darker => background / piece,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Polarity::Brighter => "bright",
+            Polarity::Darker => "dark",
+        }
+    }
+}
+
+/// The piece's corners in `photo` (linear RGB, the piece brighter or
+/// darker than a plain background all round it), its uv (0, 0) at
+/// `origin`. A bright piece is looked for first, then a dark one.
 pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, BuildError> {
     super::rectify::check_photo(photo)?;
-    let bad = |m: String| Err(BuildError::Input(format!("finding the piece's corners: {m}")));
     let (w, h) = (photo.width as usize, photo.height as usize);
     let mut lum = Plane::new(w, h);
     for (l, px) in lum.data.iter_mut().zip(photo.rgb.chunks_exact(3)) {
         *l = (px[0] + px[1] + px[2]) / 3.0;
     }
-    let Some(mask) = bright(&lum.blurred(MASK_SIGMA_PX)) else {
-        return bad("the photograph is uniform".into());
+    let fail = |m: String| BuildError::Input(format!("finding the piece's corners: {m}"));
+    let Some(above) = bright(&lum.blurred(MASK_SIGMA_PX)) else {
+        return Err(fail("the photograph is uniform".into()));
     };
-    let Some(piece) = largest_component(&mask, w, h) else {
-        return bad("nothing stands out of the background".into());
+    let bright = find_in(&lum, &above, Polarity::Brighter, origin);
+    let Err(as_bright) = bright else {
+        return bright.map_err(fail);
+    };
+    let below: Vec<bool> = above.iter().map(|a| !a).collect();
+    find_in(&lum, &below, Polarity::Darker, origin).map_err(|as_dark| {
+        fail(format!(
+            "as a piece brighter than its background: {as_bright}; as a piece darker than its \
+             background: {as_dark}"
+        ))
+    })
+}
+
+/// [`find_corners`] for a piece of `polarity` on the pixels of `mask`.
+fn find_in(
+    lum: &Plane,
+    mask: &[bool],
+    polarity: Polarity,
+    origin: Origin,
+) -> Result<FoundCorners, String> {
+    let region = polarity.name();
+    let Some(piece) = largest_component(mask, lum.width, lum.height) else {
+        return Err(format!("no {region} region"));
     };
     if piece.touches_edge {
-        return bad("the bright region reaches the photograph's edge: the piece must lie whole \
-                    in the photograph, on a darker background"
-            .into());
+        return Err(format!(
+            "the {region} region reaches the photograph's edge (the piece must lie whole in the \
+             photograph, with background all round it)"
+        ));
     }
     let hull = convex_hull(&piece.outline);
     let Some(mut quad) = largest_quadrilateral(&hull) else {
-        return bad("the bright region has no area".into());
+        return Err(format!("the {region} region has no area"));
     };
     let area = shoelace(&quad).abs();
     let fill = piece.pixels as f64 / area.max(1.0);
     if !(MIN_FILL..=1.0 / MIN_FILL).contains(&fill) {
-        return bad(format!(
-            "the brightest region is not a quadrilateral: its area is {:.0} % of the largest \
-             one inside its outline ({:.0}–{:.0} %)",
+        return Err(format!(
+            "the {region} region is not a quadrilateral: its area is {:.0} % of the largest one \
+             inside its outline ({:.0}–{:.0} %)",
             100.0 * fill,
             100.0 * MIN_FILL,
             100.0 / MIN_FILL
@@ -146,17 +198,16 @@ pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, Build
     }
     let mut fit = Fit::default();
     for half in PROFILE_HALF_PX {
-        (quad, fit) = refine(&lum, &quad, half)
-            .map_err(|m| BuildError::Input(format!("finding the piece's corners: {m}")))?;
+        (quad, fit) = refine(lum, &quad, half, polarity)?;
     }
     for k in 0..4 {
         let side = dist(quad[k], quad[(k + 1) % 4]);
         if side < MIN_SIDE_PX {
-            return bad(format!("a side of {side:.1} px: at least {MIN_SIDE_PX} px"));
+            return Err(format!("a side of {side:.1} px: at least {MIN_SIDE_PX} px"));
         }
     }
     if fit.rms > MAX_EDGE_RMS_PX || fit.bow > MAX_BOW_PX {
-        return bad(format!(
+        return Err(format!(
             "the sides are not straight: their edge points lie {:.2} px RMS from lines (at most \
              {MAX_EDGE_RMS_PX}), a side bows by {:.2} px (its middle third against its outer \
              thirds; at most {MAX_BOW_PX}); remove the lens's distortion first, or mark the \
@@ -164,16 +215,18 @@ pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, Build
             fit.rms, fit.bow
         ));
     }
-    let contrast = contrast(&lum, &quad);
+    let contrast = contrast(lum, &quad, polarity);
     if contrast.is_nan() || contrast < MIN_CONTRAST {
-        return bad(format!(
+        return Err(format!(
             "the piece stands out of its background by only × {contrast:.2} (at least × \
-             {MIN_CONTRAST}): lay it on a darker, plain background, or mark the corners"
+             {MIN_CONTRAST}): lay it on a plain background of another brightness, or mark the \
+             corners"
         ));
     }
     let corners = ordered(quad, origin)?;
     Ok(FoundCorners {
         corners,
+        polarity,
         contrast,
         edge_rms_px: fit.rms,
         bow_px: fit.bow,
@@ -360,7 +413,12 @@ fn largest_quadrilateral(hull: &[[f64; 2]]) -> Option<[[f64; 2]; 4]> {
 /// The quadrilateral's sides refound from the luminance across them
 /// (profiles `half` px either side): the corners where the fitted lines
 /// meet, and how well the lines fit.
-fn refine(lum: &Plane, quad: &[[f64; 2]; 4], half: f64) -> Result<([[f64; 2]; 4], Fit), String> {
+fn refine(
+    lum: &Plane,
+    quad: &[[f64; 2]; 4],
+    half: f64,
+    polarity: Polarity,
+) -> Result<([[f64; 2]; 4], Fit), String> {
     // Outward normals: the quadrilateral's orientation decides the side.
     let turn = shoelace(quad).signum();
     let mut lines: [Line; 4] = [([0.0; 2], [0.0; 2]); 4];
@@ -376,7 +434,7 @@ fn refine(lum: &Plane, quad: &[[f64; 2]; 4], half: f64) -> Result<([[f64; 2]; 4]
         let mut s = margin;
         while s <= len - margin {
             let p = [a[0] + s * t[0], a[1] + s * t[1]];
-            if let Some(e) = crossing(lum, p, n, steps) {
+            if let Some(e) = crossing(lum, p, n, steps, polarity) {
                 points.push([p[0] + e * n[0], p[1] + e * n[1]]);
             }
             s += 1.0;
@@ -413,11 +471,17 @@ fn refine(lum: &Plane, quad: &[[f64; 2]; 4], half: f64) -> Result<([[f64; 2]; 4]
     Ok((out, fit))
 }
 
-/// Where, along the outward normal `n` from `p` (px), the luminance falls
-/// through the level halfway between the piece just inside and the
-/// background just outside: the crossing nearest `p`, by linear
-/// interpolation between profile steps.
-fn crossing(lum: &Plane, p: [f64; 2], n: [f64; 2], steps: isize) -> Option<f64> {
+/// Where, along the outward normal `n` from `p` (px), the luminance passes
+/// the level halfway between the piece just inside and the background just
+/// outside: the outermost such crossing, by linear interpolation between
+/// profile steps.
+fn crossing(
+    lum: &Plane,
+    p: [f64; 2],
+    n: [f64; 2],
+    steps: isize,
+    polarity: Polarity,
+) -> Option<f64> {
     let at = |k: isize| {
         let s = k as f64 * PROFILE_STEP_PX;
         lum.bilinear(p[0] + s * n[0], p[1] + s * n[1])
@@ -426,14 +490,20 @@ fn crossing(lum: &Plane, p: [f64; 2], n: [f64; 2], steps: isize) -> Option<f64> 
     let quarter = (steps / 2).max(1) as usize;
     let inside = median(&profile[..quarter + 1]);
     let outside = median(&profile[profile.len() - quarter - 1..]);
-    if !(inside >= MIN_LOCAL_CONTRAST * outside && inside > 0.0) {
+    let ratio = polarity.ratio(inside, outside);
+    if ratio.is_nan() || ratio < MIN_LOCAL_CONTRAST {
         return None;
     }
     let level = 0.5 * (inside + outside);
     let mut best: Option<f64> = None;
     for i in 0..profile.len() - 1 {
         let (v0, v1) = (profile[i], profile[i + 1]);
-        if v0 >= level && v1 < level {
+        // From the piece's side of the level to the background's.
+        let across = match polarity {
+            Polarity::Brighter => v0 >= level && v1 < level,
+            Polarity::Darker => v0 < level && v1 >= level,
+        };
+        if across {
             let s = (i as f64 + (v0 - level) / (v0 - v1) - steps as f64) * PROFILE_STEP_PX;
             if best.is_none_or(|b| s > b) {
                 best = Some(s);
@@ -527,9 +597,9 @@ fn meet(a: Line, b: Line) -> Option<[f64; 2]> {
     Some([p[0] + t * d[0], p[1] + t * d[1]])
 }
 
-/// The median luminance within 2–6 px inside the outline over the median
-/// within 2–6 px outside it.
-fn contrast(lum: &Plane, quad: &[[f64; 2]; 4]) -> f64 {
+/// How many times the median luminance within 2–6 px inside the outline
+/// stands out of the median within 2–6 px outside it.
+fn contrast(lum: &Plane, quad: &[[f64; 2]; 4], polarity: Polarity) -> f64 {
     let turn = shoelace(quad).signum();
     let (mut inside, mut outside) = (Vec::new(), Vec::new());
     for k in 0..4 {
@@ -548,20 +618,13 @@ fn contrast(lum: &Plane, quad: &[[f64; 2]; 4]) -> f64 {
             s += 2.0;
         }
     }
-    let (i, o) = (median(&inside), median(&outside));
-    if o > 0.0 {
-        i / o
-    } else if i > 0.0 {
-        f64::INFINITY
-    } else {
-        f64::NAN
-    }
+    polarity.ratio(median(&inside), median(&outside))
 }
 
 /// The corners counter-clockwise as the photograph is seen, from the one
 /// nearest `origin`'s corner of the photograph; an error if two are about
 /// as near (the piece turned by about 45°).
-fn ordered(quad: [[f64; 2]; 4], origin: Origin) -> Result<[[f64; 2]; 4], BuildError> {
+fn ordered(quad: [[f64; 2]; 4], origin: Origin) -> Result<[[f64; 2]; 4], String> {
     let mut q = quad;
     // Counter-clockwise as seen (y down): negative signed area in (x, y).
     if shoelace(&q) > 0.0 {
@@ -571,12 +634,12 @@ fn ordered(quad: [[f64; 2]; 4], origin: Origin) -> Result<[[f64; 2]; 4], BuildEr
     by.sort_by(|a, b| b.0.total_cmp(&a.0));
     let side = (0..4).map(|k| dist(q[k], q[(k + 1) % 4])).sum::<f64>() / 4.0;
     if by[0].0 - by[1].0 < 0.2 * side {
-        return Err(BuildError::Input(format!(
-            "finding the piece's corners: two corners, ({:.1}, {:.1}) and ({:.1}, {:.1}) px, are \
-             about as near the photograph's corner where uv (0, 0) should be (the piece is \
-             turned by about 45°): turn the piece, or mark the corners",
+        return Err(format!(
+            "two corners, ({:.1}, {:.1}) and ({:.1}, {:.1}) px, are about as near the \
+             photograph's corner where uv (0, 0) should be (the piece is turned by about 45°): \
+             turn the piece, or mark the corners",
             q[by[0].1][0], q[by[0].1][1], q[by[1].1][0], q[by[1].1][1]
-        )));
+        ));
     }
     Ok(std::array::from_fn(|k| q[(by[0].1 + k) % 4]))
 }

@@ -722,7 +722,7 @@ pub fn rectify_cmd(
             println!(
                 "{}: the piece's corners at ({:.2}, {:.2}), ({:.2}, {:.2}), ({:.2}, {:.2}), \
                  ({:.2}, {:.2}) px (its sides straight within {:.2} px RMS over {} edge points, \
-                 bowed ≤ {:.2} px; × {:.1} the background)",
+                 bowed ≤ {:.2} px; {} than the background × {:.1})",
                 photo.display(),
                 c[0][0],
                 c[0][1],
@@ -735,6 +735,10 @@ pub fn rectify_cmd(
                 found.edge_rms_px,
                 found.edge_points,
                 found.bow_px,
+                match found.polarity {
+                    crate::build::corners::Polarity::Brighter => "brighter",
+                    crate::build::corners::Polarity::Darker => "darker",
+                },
                 found.contrast
             );
             c

@@ -198,7 +198,8 @@ enum Command {
         /// [c, c + 1) × [r, r + 1)): X0,Y0,X1,Y1,X2,Y2,X3,Y3 for the
         /// piece's (0, 0), (1, 0), (1, 1), (0, 1) — u along the output's
         /// columns, v down its rows. Or `auto`: found in the photograph,
-        /// the piece lying on a darker plain background (see --origin).
+        /// the piece lying on a plain background darker or lighter than
+        /// all of it (see --origin).
         #[arg(long, value_delimiter = ',', allow_hyphen_values = true, required = true)]
         corners: Vec<String>,
         /// With `--corners auto`: where in the photograph the piece's
