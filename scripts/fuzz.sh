@@ -2,7 +2,7 @@
 # Fuzz the material reader, the query/answer file readers, the protocol
 # decoder, the OpenEXR frame decoder, the texture maps' OpenEXR reader, the
 # scanner geometry file, the axis configuration file, the calibration file, the scan manifest, the
-# direct images' manifest, the NPF
+# direct images' manifest, finding a piece's corners in a photograph, the NPF
 # model file and the BRDF measurement CSV (read and fitted) with cargo-fuzz.
 #   scripts/fuzz.sh [SECONDS per target, default 300]
 # Needs the nightly toolchain (rustup toolchain install nightly) and
@@ -14,10 +14,10 @@ seconds=${1:-300}
 mkdir -p fuzz/corpus/decoder
 # Start from valid files, so the fuzzer gets past the container checks
 # (fuzz/corpus/material, queries, frame, texture_map, geometry, axes, calibration,
-# manifest, direct, measurements and npf_model).
+# manifest, direct, corners, measurements and npf_model).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
 for target in material queries decoder frame texture_map geometry axes calibration manifest \
-    direct npf_model measurements; do
+    direct corners npf_model measurements; do
     # The exr crate's flat-layer reader decodes on a thread pool of its own
     # per file, whose jobs still hold blocks when the process exits: leak
     # detection at exit would report those, so it is off for that target.

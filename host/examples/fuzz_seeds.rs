@@ -7,7 +7,8 @@
 //! colour grid) in `DIR/calibration`, and the manifests of two small
 //! simulated scans (3 mirrors at one exposure, 2 with a bracket of three;
 //! the sensor binned 64×) in `DIR/manifest`, two direct-image manifests in
-//! `DIR/direct`, scattered BRDF measurements
+//! `DIR/direct`, pictures of a piece on a background in `DIR/corners`,
+//! scattered BRDF measurements
 //! in `DIR/measurements` and an NPF model fitted to them in
 //! `DIR/npf_model`, so that the fuzzer starts from files that pass the
 //! container and header checks.
@@ -209,7 +210,40 @@ fn main() {
         std::fs::write(dir.join(format!("{name}.toml")), text).unwrap();
     }
     println!("direct-image manifests in {}", dir.display());
+    corner_seeds(&root);
     brdf_seeds(&root);
+}
+
+/// Pictures for the `corners` target (its input: width − 1, height − 1,
+/// origin, then a byte per pixel on its log scale): a textured piece in
+/// perspective on a dark background, the same dark on a light one, and a
+/// piece turned by 45°.
+fn corner_seeds(root: &std::path::Path) {
+    let dir = root.join("corners");
+    std::fs::create_dir_all(&dir).unwrap();
+    let (w, h) = (80usize, 64usize);
+    let quads: [(&str, [[f64; 2]; 4], u8, u8); 3] = [
+        ("bright", [[12.0, 55.0], [70.0, 58.0], [66.0, 8.0], [15.0, 10.0]], 176, 40),
+        ("dark", [[12.0, 55.0], [70.0, 58.0], [66.0, 8.0], [15.0, 10.0]], 60, 200),
+        ("turned", [[40.0, 60.0], [68.0, 32.0], [40.0, 4.0], [12.0, 32.0]], 176, 40),
+    ];
+    for (name, q, piece, background) in quads {
+        let inside = |x: f64, y: f64| {
+            (0..4).all(|k| {
+                let (a, b) = (q[k], q[(k + 1) % 4]);
+                (b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0]) <= 0.0
+            })
+        };
+        let mut bytes = vec![(w - 1) as u8, (h - 1) as u8, 0];
+        for y in 0..h {
+            for x in 0..w {
+                let on = inside(x as f64 + 0.5, y as f64 + 0.5);
+                bytes.push(if on { piece + ((x * 7 + y * 3) % 16) as u8 } else { background });
+            }
+        }
+        std::fs::write(dir.join(format!("{name}.bin")), bytes).unwrap();
+    }
+    println!("pictures in {}", dir.display());
 }
 
 /// Scattered measurements of the two-lobe GGX mixture (one row missing a

@@ -260,6 +260,25 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
     ]);
     assert_eq!(got, Some(2), "{err}");
     assert!(err.contains("--origin goes with --corners auto"), "{err}");
+    // The outline picture: a PNG, not the photograph.
+    for (show, code, want) in
+        [("r.exr", 2, "must be .png"), ("photos/photo-0.exr", 4, "photo-0.exr")]
+    {
+        let (got, err) = common::run_err(&[
+            "rectify",
+            &photo,
+            "--corners",
+            square,
+            "--size-mm",
+            "80",
+            "-o",
+            &d("r.exr"),
+            "--show",
+            &d(show),
+        ]);
+        assert_eq!(got, Some(code), "{show}: {err}");
+        assert!(err.contains(want), "{show}: {err}");
+    }
     assert!(!p("r.exr").exists() && !p("r.png").exists());
     assert!(host::exrio::read_rgb(Path::new(&photo)).is_ok());
     // A material the reader refuses.
@@ -405,8 +424,11 @@ fn rectified_photographs(
             .fold(0.0, f64::max);
         eprintln!("{m}, {}: corners found within {worst:.3} px", ph.file);
         assert!(worst <= 0.35, "{m}, {}: {found:?} against {:?}", ph.file, ph.corners);
+        let show = photos.join(format!("{}-corners.png", ph.file));
         let (code, err) = common::run_err(&[
             "rectify",
+            "--show",
+            &show.display().to_string(),
             &photos.join(&ph.file).display().to_string(),
             "--corners",
             "auto",
@@ -418,6 +440,13 @@ fn rectified_photographs(
             &set.join(&ph.file).display().to_string(),
         ]);
         assert_eq!(code, Some(0), "{err}");
+        // The photograph with the outline drawn: its size, red on the
+        // found (1, 0) corner.
+        let png = image::open(&show).unwrap().to_rgb8();
+        assert_eq!(png.dimensions(), (frame.width, frame.height));
+        let [x, y] = found.corners[1].map(|v| v.round() as u32 - 5);
+        let red = |p: &image::Rgb<u8>| p[0] > 200 && p[1] < 100 && p[2] < 100;
+        assert!((0..3).any(|d| red(png.get_pixel(x + d, y + 5))), "{}", show.display());
     }
     let manifest = shots.manifest();
     std::fs::write(set.join("direct.toml"), manifest.to_toml()).unwrap();

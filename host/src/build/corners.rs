@@ -215,6 +215,14 @@ fn find_in(
             fit.rms, fit.bow
         ));
     }
+    let (w, h) = (lum.width as f64, lum.height as f64);
+    if let Some(c) = quad.iter().find(|c| !((0.0..=w).contains(&c[0]) && (0.0..=h).contains(&c[1])))
+    {
+        return Err(format!(
+            "a corner, where two sides meet, lies outside the photograph at ({:.1}, {:.1}) px",
+            c[0], c[1]
+        ));
+    }
     let contrast = contrast(lum, &quad, polarity);
     if contrast.is_nan() || contrast < MIN_CONTRAST {
         return Err(format!(

@@ -709,6 +709,7 @@ pub fn rectify_cmd(
     size_mm: [f64; 2],
     px_per_mm: Option<f64>,
     output: &Path,
+    show: Option<&Path>,
 ) -> Result<(), Failure> {
     use crate::build::rectify::{Corners, RectifyOptions, rectify};
     let frame = crate::exrio::read_rgb(photo)
@@ -747,6 +748,10 @@ pub fn rectify_cmd(
     let opts = RectifyOptions { corners, size_mm, px_per_mm };
     // Options that do not fit this photograph: exit 2, as for any option.
     opts.check(frame.width, frame.height).map_err(|e| Failure(2, anyhow!(e)))?;
+    if let Some(show) = show {
+        outline_picture(&frame, corners, show)?;
+        println!("{}: the photograph with the piece's outline", show.display());
+    }
     let (out, report) =
         rectify(&frame, &opts).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     let bytes = crate::exrio::encode_half(&out)
@@ -767,6 +772,50 @@ pub fn rectify_cmd(
         report.supersampling
     );
     Ok(())
+}
+
+/// The largest side of [`outline_picture`]'s PNG, px.
+const OUTLINE_MAX_SIDE: u32 = 1600;
+
+/// A PNG of `photo` with the piece's outline through `corners` drawn on
+/// it: reduced by a whole factor to at most [`OUTLINE_MAX_SIDE`] a side,
+/// its 99th percentile of luminance shown near white, sRGB.
+fn outline_picture(
+    photo: &crate::camera::Frame,
+    corners: [[f64; 2]; 4],
+    path: &Path,
+) -> Result<(), Failure> {
+    let k = photo.width.max(photo.height).div_ceil(OUTLINE_MAX_SIDE).max(1);
+    let (w, h) = (photo.width.div_ceil(k), photo.height.div_ceil(k));
+    let mut lum: Vec<f32> = photo.rgb.chunks_exact(3).map(|p| (p[0] + p[1] + p[2]) / 3.0).collect();
+    let top = {
+        let i = (lum.len() - 1) * 99 / 100;
+        *lum.select_nth_unstable_by(i, f32::total_cmp).1
+    };
+    let scale = if top > 0.0 { 0.9 / top } else { 1.0 };
+    let mut img = image::RgbImage::new(w, h);
+    for (x, y, px) in img.enumerate_pixels_mut() {
+        let (mut sum, mut n) = ([0.0f32; 3], 0.0f32);
+        for yy in y * k..((y + 1) * k).min(photo.height) {
+            for xx in x * k..((x + 1) * k).min(photo.width) {
+                let i = 3 * (yy * photo.width + xx) as usize;
+                (0..3).for_each(|c| sum[c] += photo.rgb[i + c]);
+                n += 1.0;
+            }
+        }
+        *px = image::Rgb(sum.map(|s| {
+            let t = (s / n * scale).clamp(0.0, 1.0);
+            let c = if t <= 0.003_130_8 { 12.92 * t } else { 1.055 * t.powf(1.0 / 2.4) - 0.055 };
+            (c * 255.0).round() as u8
+        }));
+    }
+    let shown = corners.map(|c| [c[0] / k as f64, c[1] / k as f64]);
+    super::plot::draw_outline(&mut img, shown).map_err(|e| Failure(4, anyhow!(e)))?;
+    let mut bytes = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    crate::fsutil::write_atomic(path, &bytes)
+        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
 }
 
 /// The encoding of previews and contact sheets: π·value (a white target's

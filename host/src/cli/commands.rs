@@ -1690,13 +1690,15 @@ pub fn demo(
         .map_err(|e| Failure(4, anyhow!(e)))?;
         std::fs::create_dir_all(&direct)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
-        for ph in shots.photo.iter().chain([&shots.white]) {
+        let outline = photos.join("photo-0-corners.png");
+        for (k, ph) in shots.photo.iter().chain([&shots.white]).enumerate() {
             super::build::rectify_cmd(
                 &photos.join(&ph.file),
                 crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
                 [shots.size_mm; 2],
                 Some(scale),
                 &direct.join(&ph.file),
+                (k == 0).then_some(outline.as_path()),
             )?;
         }
         let manifest = shots.manifest();
@@ -1721,7 +1723,8 @@ pub fn demo(
          (θ, φ) = {};\n\
          and at {}: the material enlarged to the large piece the sample was cut from \
          (photographed in perspective in {name}-photographs, rectified into the direct images \
-         of {name}-direct), over the same truth",
+         of {name}-direct by the corners found in each: {name}-photographs/photo-0-corners.png), \
+         over the same truth",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
         picture.display(),

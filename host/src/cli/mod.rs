@@ -218,6 +218,10 @@ enum Command {
         /// Output picture (.exr: linear, half float).
         #[arg(short, long)]
         output: PathBuf,
+        /// Also write the photograph with the piece's outline and corners
+        /// drawn on it (.png), to check them.
+        #[arg(long)]
+        show: Option<PathBuf>,
     },
     /// A preview PNG of a material: the sample's extent under three light
     /// directions, seen from the direction farthest from every captured view
@@ -743,10 +747,13 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel, signature };
             build::enlarge_cmd(&material, &direct, &output, &opts)?
         }
-        Command::Rectify { photo, corners, origin, size_mm, px_per_mm, output } => {
+        Command::Rectify { photo, corners, origin, size_mm, px_per_mm, output, show } => {
             check_output(&output, &[&photo], &["exr"])?;
+            if let Some(show) = &show {
+                check_output(show, &[&photo, &output], &["png"])?;
+            }
             let (corners, size_mm) = rectify_options(&corners, origin.as_deref(), &size_mm)?;
-            build::rectify_cmd(&photo, corners, size_mm, px_per_mm, &output)?
+            build::rectify_cmd(&photo, corners, size_mm, px_per_mm, &output, show.as_deref())?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {

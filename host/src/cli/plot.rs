@@ -55,6 +55,51 @@ pub fn draw_captions(img: &mut image::RgbImage, captions: &[Caption]) -> Result<
     root.present().map_err(|e| PlotError(e.to_string()))
 }
 
+/// Draw a piece's outline onto `img`: the quadrilateral through `corners`
+/// (px of `img`) in red, each corner marked and labelled with its uv, and
+/// an arrow along u from (0, 0).
+pub fn draw_outline(img: &mut image::RgbImage, corners: [[f64; 2]; 4]) -> Result<(), PlotError> {
+    register_font();
+    let (w, h) = img.dimensions();
+    let root = BitMapBackend::with_buffer(img.as_mut(), (w, h)).into_drawing_area();
+    let at = |p: [f64; 2]| (p[0].round() as i32, p[1].round() as i32);
+    let red = RGBColor(255, 40, 40);
+    let mut outline: Vec<(i32, i32)> = corners.iter().map(|&c| at(c)).collect();
+    outline.push(outline[0]);
+    let e = |e: DrawingAreaErrorKind<_>| PlotError(e.to_string());
+    root.draw(&PathElement::new(outline, red.stroke_width(2))).map_err(e)?;
+    let centre = [
+        0.25 * corners.iter().map(|c| c[0]).sum::<f64>(),
+        0.25 * corners.iter().map(|c| c[1]).sum::<f64>(),
+    ];
+    for (c, label) in corners.iter().zip(["(0, 0)", "(1, 0)", "(1, 1)", "(0, 1)"]) {
+        let colour = if label == "(0, 0)" { RGBColor(40, 220, 40) } else { red };
+        root.draw(&Circle::new(at(*c), 5, colour.stroke_width(2))).map_err(e)?;
+        // The label inside the piece, off its corner.
+        let (dx, dy) = (centre[0] - c[0], centre[1] - c[1]);
+        let len = dx.hypot(dy).max(1.0);
+        let p = at([c[0] + 28.0 * dx / len, c[1] + 28.0 * dy / len]);
+        let style = ("sans-serif", 15.0).into_font().color(&colour).pos(
+            plotters::style::text_anchor::Pos::new(
+                plotters::style::text_anchor::HPos::Center,
+                plotters::style::text_anchor::VPos::Center,
+            ),
+        );
+        root.draw(&Text::new(label, p, style)).map_err(e)?;
+    }
+    // u: a third of the way from (0, 0) towards (1, 0), inside the piece.
+    let [a, b] = [corners[0], corners[1]];
+    let inward = [centre[0] - a[0], centre[1] - a[1]];
+    let len = inward[0].hypot(inward[1]).max(1.0);
+    let start = [a[0] + 50.0 * inward[0] / len, a[1] + 50.0 * inward[1] / len];
+    let end = [start[0] + (b[0] - a[0]) / 3.0, start[1] + (b[1] - a[1]) / 3.0];
+    root.draw(&PathElement::new(vec![at(start), at(end)], RGBColor(40, 220, 40).stroke_width(2)))
+        .map_err(e)?;
+    let style = ("sans-serif", 15.0).into_font().color(&RGBColor(40, 220, 40));
+    root.draw(&Text::new("u", at([end[0] + 4.0, end[1] - 16.0]), style)).map_err(e)?;
+    root.present().map_err(|e| PlotError(e.to_string()))
+}
+
 /// Plot D (log scale, over θh), F (over θd) and G (over θ) for R, G, B into a
 /// PNG at `path` (written atomically).
 pub fn plot_factors(model: &NpfModel, path: &Path) -> Result<(), PlotError> {
