@@ -748,12 +748,12 @@ pub fn rectify_cmd(
     let opts = RectifyOptions { corners, size_mm, px_per_mm };
     // Options that do not fit this photograph: exit 2, as for any option.
     opts.check(frame.width, frame.height).map_err(|e| Failure(2, anyhow!(e)))?;
+    let (out, report) =
+        rectify(&frame, &opts).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     if let Some(show) = show {
         outline_picture(&frame, corners, show)?;
         println!("{}: the photograph with the piece's outline", show.display());
     }
-    let (out, report) =
-        rectify(&frame, &opts).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     let bytes = crate::exrio::encode_half(&out)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
     crate::fsutil::write_atomic(output, &bytes)
@@ -803,11 +803,7 @@ fn outline_picture(
                 n += 1.0;
             }
         }
-        *px = image::Rgb(sum.map(|s| {
-            let t = (s / n * scale).clamp(0.0, 1.0);
-            let c = if t <= 0.003_130_8 { 12.92 * t } else { 1.055 * t.powf(1.0 / 2.4) - 0.055 };
-            (c * 255.0).round() as u8
-        }));
+        *px = image::Rgb(sum.map(|s| srgb8(s / n * scale)));
     }
     let shown = corners.map(|c| [c[0] / k as f64, c[1] / k as f64]);
     super::plot::draw_outline(&mut img, shown).map_err(|e| Failure(4, anyhow!(e)))?;
@@ -822,9 +818,12 @@ fn outline_picture(
 /// albedo), Reinhard, sRGB.
 fn encode_srgb(v: f32) -> u8 {
     let x = (v * std::f32::consts::PI).max(0.0);
-    let t = x / (1.0 + x);
-    let c = if t <= 0.003_130_8 { 12.92 * t } else { 1.055 * t.powf(1.0 / 2.4) - 0.055 };
-    (c * 255.0).round().clamp(0.0, 255.0) as u8
+    srgb8(x / (1.0 + x))
+}
+
+/// A linear value in [0, 1] (clamped) encoded as an 8-bit sRGB value.
+fn srgb8(t: f32) -> u8 {
+    (crate::build::export::srgb(t) * 255.0).round() as u8
 }
 
 /// A direction from polar and azimuth angles, degrees.
