@@ -59,44 +59,50 @@ pub fn draw_captions(img: &mut image::RgbImage, captions: &[Caption]) -> Result<
 /// (px of `img`) in red, each corner marked and labelled with its uv, and
 /// an arrow along u from (0, 0).
 pub fn draw_outline(img: &mut image::RgbImage, corners: [[f64; 2]; 4]) -> Result<(), PlotError> {
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
     register_font();
     let (w, h) = img.dimensions();
     let root = BitMapBackend::with_buffer(img.as_mut(), (w, h)).into_drawing_area();
     let at = |p: [f64; 2]| (p[0].round() as i32, p[1].round() as i32);
-    let red = RGBColor(255, 40, 40);
+    let (red, green) = (RGBColor(255, 40, 40), RGBColor(40, 220, 40));
+    let e = |e: DrawingAreaErrorKind<_>| PlotError(e.to_string());
+    // A label centred at `p` on a dark box, legible over any texture.
+    let label = |text: &str, p: (i32, i32), colour: RGBColor| -> Result<(), PlotError> {
+        let style = ("sans-serif", 18.0)
+            .into_font()
+            .color(&colour)
+            .pos(Pos::new(HPos::Center, VPos::Center));
+        let (tw, th) = root.estimate_text_size(text, &style).map_err(e)?;
+        let (hw, hh) = (tw as i32 / 2 + 4, th as i32 / 2 + 2);
+        let back =
+            Rectangle::new([(p.0 - hw, p.1 - hh), (p.0 + hw, p.1 + hh)], BLACK.mix(0.8).filled());
+        root.draw(&back).map_err(e)?;
+        root.draw(&Text::new(text.to_string(), p, style)).map_err(e)
+    };
     let mut outline: Vec<(i32, i32)> = corners.iter().map(|&c| at(c)).collect();
     outline.push(outline[0]);
-    let e = |e: DrawingAreaErrorKind<_>| PlotError(e.to_string());
     root.draw(&PathElement::new(outline, red.stroke_width(2))).map_err(e)?;
     let centre = [
         0.25 * corners.iter().map(|c| c[0]).sum::<f64>(),
         0.25 * corners.iter().map(|c| c[1]).sum::<f64>(),
     ];
-    for (c, label) in corners.iter().zip(["(0, 0)", "(1, 0)", "(1, 1)", "(0, 1)"]) {
-        let colour = if label == "(0, 0)" { RGBColor(40, 220, 40) } else { red };
-        root.draw(&Circle::new(at(*c), 5, colour.stroke_width(2))).map_err(e)?;
-        // The label inside the piece, off its corner.
+    let inwards = |c: [f64; 2], by: f64| {
         let (dx, dy) = (centre[0] - c[0], centre[1] - c[1]);
         let len = dx.hypot(dy).max(1.0);
-        let p = at([c[0] + 28.0 * dx / len, c[1] + 28.0 * dy / len]);
-        let style = ("sans-serif", 15.0).into_font().color(&colour).pos(
-            plotters::style::text_anchor::Pos::new(
-                plotters::style::text_anchor::HPos::Center,
-                plotters::style::text_anchor::VPos::Center,
-            ),
-        );
-        root.draw(&Text::new(label, p, style)).map_err(e)?;
+        [c[0] + by * dx / len, c[1] + by * dy / len]
+    };
+    for (k, (c, text)) in corners.iter().zip(["(0, 0)", "(1, 0)", "(1, 1)", "(0, 1)"]).enumerate() {
+        let colour = if k == 0 { green } else { red };
+        root.draw(&Circle::new(at(*c), 5, colour.stroke_width(2))).map_err(e)?;
+        // Inside the piece, off its corner.
+        label(text, at(inwards(*c, 30.0)), colour)?;
     }
     // u: a third of the way from (0, 0) towards (1, 0), inside the piece.
     let [a, b] = [corners[0], corners[1]];
-    let inward = [centre[0] - a[0], centre[1] - a[1]];
-    let len = inward[0].hypot(inward[1]).max(1.0);
-    let start = [a[0] + 50.0 * inward[0] / len, a[1] + 50.0 * inward[1] / len];
+    let start = inwards(a, 55.0);
     let end = [start[0] + (b[0] - a[0]) / 3.0, start[1] + (b[1] - a[1]) / 3.0];
-    root.draw(&PathElement::new(vec![at(start), at(end)], RGBColor(40, 220, 40).stroke_width(2)))
-        .map_err(e)?;
-    let style = ("sans-serif", 15.0).into_font().color(&RGBColor(40, 220, 40));
-    root.draw(&Text::new("u", at([end[0] + 4.0, end[1] - 16.0]), style)).map_err(e)?;
+    root.draw(&PathElement::new(vec![at(start), at(end)], green.stroke_width(3))).map_err(e)?;
+    label("u", at(end), green)?;
     root.present().map_err(|e| PlotError(e.to_string()))
 }
 
