@@ -142,12 +142,12 @@ impl Polarity {
 /// `origin`. A bright piece is looked for first, then a dark one.
 pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, BuildError> {
     super::rectify::check_photo(photo)?;
-    let (w, h) = (photo.width as usize, photo.height as usize);
-    let mut lum = Plane::new(w, h);
-    for (l, px) in lum.data.iter_mut().zip(photo.rgb.chunks_exact(3)) {
-        *l = (px[0] + px[1] + px[2]) / 3.0;
-    }
-    let fail = |m: String| BuildError::Input(format!("finding the piece's corners: {m}"));
+    let lum = luminance(photo);
+    let fail = |m: String| {
+        BuildError::Input(format!(
+            "finding the piece's corners: {m} (or mark them: --corners X0,Y0,…,X3,Y3)"
+        ))
+    };
     let Some(above) = bright(&lum.blurred(MASK_SIGMA_PX)) else {
         return Err(fail("the photograph is uniform".into()));
     };
@@ -182,7 +182,7 @@ fn find_in(
         ));
     }
     let hull = convex_hull(&piece.outline);
-    let Some(mut quad) = largest_quadrilateral(&hull) else {
+    let Some(quad) = largest_quadrilateral(&hull) else {
         return Err(format!("the {region} region has no area"));
     };
     let area = shoelace(&quad).abs();
@@ -196,8 +196,66 @@ fn find_in(
             100.0 / MIN_FILL
         ));
     }
+    let (corners, contrast, fit) = settle(lum, quad, polarity, &PROFILE_HALF_PX)?;
+    let corners = ordered(corners, origin)?;
+    Ok(FoundCorners {
+        corners,
+        polarity,
+        contrast,
+        edge_rms_px: fit.rms,
+        bow_px: fit.bow,
+        edge_points: fit.points,
+    })
+}
+
+/// Hand-marked corners (in any order around the piece, kept) moved onto
+/// the piece's edges as [`find_corners`] fits them: each side refound from
+/// profiles 6, 4 and then 2.5 px either side of it, so marks within a few
+/// pixels of the true corners do. Whether the piece is brighter or darker
+/// than its background is read across the marked outline.
+pub fn refine_corners(photo: &Frame, marked: [[f64; 2]; 4]) -> Result<FoundCorners, BuildError> {
+    super::rectify::check_photo(photo)?;
+    super::rectify::check_corners(&marked, photo.width, photo.height)
+        .map_err(|m| BuildError::Input(format!("refining the marked corners: {m}")))?;
+    let lum = luminance(photo);
+    let polarity = if contrast(&lum, &marked, Polarity::Brighter) >= 1.0 {
+        Polarity::Brighter
+    } else {
+        Polarity::Darker
+    };
+    let (corners, contrast, fit) = settle(&lum, marked, polarity, &[6.0, 4.0, 2.5])
+        .map_err(|m| BuildError::Input(format!("refining the marked corners: {m}")))?;
+    Ok(FoundCorners {
+        corners,
+        polarity,
+        contrast,
+        edge_rms_px: fit.rms,
+        bow_px: fit.bow,
+        edge_points: fit.points,
+    })
+}
+
+/// The photograph's luminance: the mean of its channels.
+fn luminance(photo: &Frame) -> Plane {
+    let mut lum = Plane::new(photo.width as usize, photo.height as usize);
+    for (l, px) in lum.data.iter_mut().zip(photo.rgb.chunks_exact(3)) {
+        *l = (px[0] + px[1] + px[2]) / 3.0;
+    }
+    lum
+}
+
+/// A quadrilateral near the piece's outline refitted to its sides (passes
+/// of profiles `halves` px either side), then checked: sides of some
+/// length, straight, corners within the photograph, the piece standing
+/// out. The corners, the contrast and the lines' fit.
+fn settle(
+    lum: &Plane,
+    mut quad: [[f64; 2]; 4],
+    polarity: Polarity,
+    halves: &[f64],
+) -> Result<([[f64; 2]; 4], f64, Fit), String> {
     let mut fit = Fit::default();
-    for half in PROFILE_HALF_PX {
+    for &half in halves {
         (quad, fit) = refine(lum, &quad, half, polarity)?;
     }
     for k in 0..4 {
@@ -210,8 +268,7 @@ fn find_in(
         return Err(format!(
             "the sides are not straight: their edge points lie {:.2} px RMS from lines (at most \
              {MAX_EDGE_RMS_PX}), a side bows by {:.2} px (its middle third against its outer \
-             thirds; at most {MAX_BOW_PX}); remove the lens's distortion first, or mark the \
-             corners",
+             thirds; at most {MAX_BOW_PX}); remove the lens's distortion first",
             fit.rms, fit.bow
         ));
     }
@@ -227,19 +284,10 @@ fn find_in(
     if contrast.is_nan() || contrast < MIN_CONTRAST {
         return Err(format!(
             "the piece stands out of its background by only × {contrast:.2} (at least × \
-             {MIN_CONTRAST}): lay it on a plain background of another brightness, or mark the \
-             corners"
+             {MIN_CONTRAST}): lay it on a plain background of another brightness"
         ));
     }
-    let corners = ordered(quad, origin)?;
-    Ok(FoundCorners {
-        corners,
-        polarity,
-        contrast,
-        edge_rms_px: fit.rms,
-        bow_px: fit.bow,
-        edge_points: fit.points,
-    })
+    Ok((quad, contrast, fit))
 }
 
 /// Pixels above Otsu's threshold on the logarithm of `lum`; `None` if it
@@ -645,7 +693,7 @@ fn ordered(quad: [[f64; 2]; 4], origin: Origin) -> Result<[[f64; 2]; 4], String>
         return Err(format!(
             "two corners, ({:.1}, {:.1}) and ({:.1}, {:.1}) px, are about as near the \
              photograph's corner where uv (0, 0) should be (the piece is turned by about 45°): \
-             turn the piece, or mark the corners",
+             turn the piece",
             q[by[0].1][0], q[by[0].1][1], q[by[1].1][0], q[by[1].1][1]
         ));
     }

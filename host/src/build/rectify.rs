@@ -45,6 +45,9 @@ pub struct RectifyOptions {
 pub enum Corners {
     /// As [`RectifyOptions::corners`].
     Marked([[f64; 2]; 4]),
+    /// Marked, then moved onto the piece's edges by
+    /// [`super::corners::refine_corners`].
+    Refined([[f64; 2]; 4]),
     /// Found by [`super::corners::find_corners`], uv (0, 0) there.
     Auto(super::corners::Origin),
 }
@@ -77,44 +80,51 @@ impl RectifyOptions {
         {
             return Err(format!("--px-per-mm {d}: a density > 0"));
         }
-        for (k, c) in self.corners.iter().enumerate() {
-            let inside = c.iter().all(|v| v.is_finite())
-                && (0.0..=width as f64).contains(&c[0])
-                && (0.0..=height as f64).contains(&c[1]);
-            if !inside {
-                return Err(format!(
-                    "corner {k} at ({}, {}) px lies outside the {width} × {height} px photograph",
-                    c[0], c[1]
-                ));
-            }
-        }
-        // A convex quadrilateral, its corners in order around it (either
-        // way round), of some size.
-        let cross: Vec<f64> = (0..4)
-            .map(|k| {
-                let [a, b, c] = [0, 1, 2].map(|i| self.corners[(k + i) % 4]);
-                (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])
-            })
-            .collect();
-        let area = 0.5
-            * (0..4)
-                .map(|k| {
-                    let (a, b) = (self.corners[k], self.corners[(k + 1) % 4]);
-                    a[0] * b[1] - b[0] * a[1]
-                })
-                .sum::<f64>()
-                .abs();
-        if !(cross.iter().all(|&c| c > 0.0) || cross.iter().all(|&c| c < 0.0)) || area < 16.0 {
-            return Err(format!(
-                "corners {:?}: not a convex quadrilateral of ≥ 16 px² with its corners in order \
-                 around it ((0, 0), (1, 0), (1, 1), (0, 1) of the piece)",
-                self.corners
-            ));
-        }
+        check_corners(&self.corners, width, height)?;
         let square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
         Homography::fit(&square, &self.corners)
             .ok_or_else(|| format!("corners {:?}: no homography fits them", self.corners))
     }
+}
+
+/// Corners within a `width × height` px photograph that make a convex
+/// quadrilateral of ≥ 16 px², in order around it (either way round).
+pub fn check_corners(corners: &[[f64; 2]; 4], width: u32, height: u32) -> Result<(), String> {
+    for (k, c) in corners.iter().enumerate() {
+        let inside = c.iter().all(|v| v.is_finite())
+            && (0.0..=width as f64).contains(&c[0])
+            && (0.0..=height as f64).contains(&c[1]);
+        if !inside {
+            return Err(format!(
+                "corner {k} at ({}, {}) px lies outside the {width} × {height} px photograph",
+                c[0], c[1]
+            ));
+        }
+    }
+    // A convex quadrilateral, its corners in order around it (either
+    // way round), of some size.
+    let cross: Vec<f64> = (0..4)
+        .map(|k| {
+            let [a, b, c] = [0, 1, 2].map(|i| corners[(k + i) % 4]);
+            (b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])
+        })
+        .collect();
+    let area = 0.5
+        * (0..4)
+            .map(|k| {
+                let (a, b) = (corners[k], corners[(k + 1) % 4]);
+                a[0] * b[1] - b[0] * a[1]
+            })
+            .sum::<f64>()
+            .abs();
+    if !(cross.iter().all(|&c| c > 0.0) || cross.iter().all(|&c| c < 0.0)) || area < 16.0 {
+        return Err(format!(
+            "corners {:?}: not a convex quadrilateral of ≥ 16 px² with its corners in order \
+             around it ((0, 0), (1, 0), (1, 1), (0, 1) of the piece)",
+            corners
+        ));
+    }
+    Ok(())
 }
 
 /// A photograph's values: as many as its pixels' channels, each a radiance

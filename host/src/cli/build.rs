@@ -716,10 +716,27 @@ pub fn rectify_cmd(
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     let corners = match corners {
         Corners::Marked(c) => c,
-        Corners::Auto(origin) => {
-            let found = crate::build::corners::find_corners(&frame, origin)
-                .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+        Corners::Auto(_) | Corners::Refined(_) => {
+            let found = match corners {
+                Corners::Auto(origin) => crate::build::corners::find_corners(&frame, origin),
+                Corners::Refined(marked) => {
+                    // Marks that do not fit the photograph: exit 2.
+                    crate::build::rectify::check_corners(&marked, frame.width, frame.height)
+                        .map_err(|e| Failure(2, anyhow!(e)))?;
+                    crate::build::corners::refine_corners(&frame, marked)
+                }
+                Corners::Marked(_) => unreachable!("matched above"),
+            }
+            .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
             let c = found.corners;
+            if let Corners::Refined(marked) = corners {
+                let moved = (0..4).map(|k| (c[k][0] - marked[k][0]).hypot(c[k][1] - marked[k][1]));
+                println!(
+                    "{}: the marked corners moved {} px onto the piece's edges",
+                    photo.display(),
+                    moved.map(|d| format!("{d:.2}")).collect::<Vec<_>>().join(", ")
+                );
+            }
             println!(
                 "{}: the piece's corners at ({:.2}, {:.2}), ({:.2}, {:.2}), ({:.2}, {:.2}), \
                  ({:.2}, {:.2}) px (its sides straight within {:.2} px RMS over {} edge points, \

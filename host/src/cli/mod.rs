@@ -208,6 +208,10 @@ enum Command {
         /// bottom-left: the piece face up, u to the right, v up].
         #[arg(long, value_parser = ["bottom-left", "bottom-right", "top-right", "top-left"])]
         origin: Option<String>,
+        /// With marked corners: move them onto the piece's edges, fitted
+        /// as `--corners auto` fits them (marks within a few px).
+        #[arg(long)]
+        refine: bool,
         /// The piece's width and height, mm: W,H (one number: a square).
         #[arg(long, value_delimiter = ',', required = true)]
         size_mm: Vec<f64>,
@@ -565,10 +569,12 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
 }
 
 /// `scanner rectify`'s corners and size from its arguments (exit 2: their
-/// count, a number that is not one, `--origin` with marked corners).
+/// count, a number that is not one, `--origin` with marked corners,
+/// `--refine` with `auto`).
 fn rectify_options(
     corners: &[String],
     origin: Option<&str>,
+    refine: bool,
     size_mm: &[f64],
 ) -> Result<(crate::build::rectify::Corners, [f64; 2]), Failure> {
     use crate::build::corners::Origin;
@@ -577,6 +583,9 @@ fn rectify_options(
     let corners = if let [auto] = corners
         && auto == "auto"
     {
+        if refine {
+            return Err(bad("--refine goes with marked corners: found ones are refined".into()));
+        }
         let origin = origin.map_or(Some(Origin::BottomLeft), Origin::from_name);
         Corners::Auto(origin.ok_or_else(|| bad(format!("--origin {origin:?}")))?)
     } else {
@@ -596,7 +605,8 @@ fn rectify_options(
         let n: [f64; 8] = numbers.as_slice().try_into().map_err(|_| {
             bad(format!("--corners: auto, or 8 numbers (X0,Y0,…,X3,Y3), not {}", numbers.len()))
         })?;
-        Corners::Marked(std::array::from_fn(|k| [n[2 * k], n[2 * k + 1]]))
+        let marked = std::array::from_fn(|k| [n[2 * k], n[2 * k + 1]]);
+        if refine { Corners::Refined(marked) } else { Corners::Marked(marked) }
     };
     let size_mm = match *size_mm {
         [side] => [side, side],
@@ -747,12 +757,13 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel, signature };
             build::enlarge_cmd(&material, &direct, &output, &opts)?
         }
-        Command::Rectify { photo, corners, origin, size_mm, px_per_mm, output, show } => {
+        Command::Rectify { photo, corners, origin, refine, size_mm, px_per_mm, output, show } => {
             check_output(&output, &[&photo], &["exr"])?;
             if let Some(show) = &show {
                 check_output(show, &[&photo, &output], &["png"])?;
             }
-            let (corners, size_mm) = rectify_options(&corners, origin.as_deref(), &size_mm)?;
+            let (corners, size_mm) =
+                rectify_options(&corners, origin.as_deref(), refine, &size_mm)?;
             build::rectify_cmd(&photo, corners, size_mm, px_per_mm, &output, show.as_deref())?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
