@@ -1,12 +1,12 @@
 //! Fuzz finding a piece's corners in a photograph
 //! (`host::build::corners::find_corners`, `scanner rectify --corners
-//! auto`): any picture gives a typed error or corners that `rectify`
-//! accepts, never a panic. The input: width and height (1–96 px), then one
+//! auto`, and `refine_corners` for `--refine`): any picture gives a typed
+//! error or corners that `rectify` accepts, never a panic. The input: width and height (1–96 px), then one
 //! byte per pixel, on a log scale over 2⁻⁸…2⁸ (0: black), repeated to fill
 //! the picture; the origin from the third byte.
 #![no_main]
 
-use host::build::corners::{Origin, find_corners};
+use host::build::corners::{Origin, find_corners, refine_corners};
 use host::build::rectify::{RectifyOptions, rectify};
 use host::camera::Frame;
 use libfuzzer_sys::fuzz_target;
@@ -23,7 +23,11 @@ fuzz_target!(|data: &[u8]| {
         .collect();
     let photo = Frame { width: w, height: h, rgb };
     let origin = Origin::ALL[*o as usize % 4].1;
-    if let Ok(found) = find_corners(&photo, origin) {
+    // Found, and refined from marks around the picture's middle half.
+    let (x0, y0, x1, y1) = (w as f64 / 4.0, h as f64 / 4.0, 3.0 * w as f64 / 4.0, 3.0 * h as f64 / 4.0);
+    let marked = [[x0, y1], [x1, y1], [x1, y0], [x0, y0]];
+    for found in [find_corners(&photo, origin), refine_corners(&photo, marked)] {
+        let Ok(found) = found else { continue };
         assert!(found.contrast >= 2.0 && found.edge_rms_px <= 0.75, "{found:?}");
         let opts = RectifyOptions { corners: found.corners, size_mm: [10.0, 10.0], px_per_mm: None };
         assert!(opts.check(w, h).is_ok(), "{found:?}: {:?}", opts.check(w, h));
