@@ -196,16 +196,8 @@ fn find_in(
             100.0 / MIN_FILL
         ));
     }
-    let (corners, contrast, fit) = settle(lum, quad, polarity, &PROFILE_HALF_PX)?;
-    let corners = ordered(corners, origin)?;
-    Ok(FoundCorners {
-        corners,
-        polarity,
-        contrast,
-        edge_rms_px: fit.rms,
-        bow_px: fit.bow,
-        edge_points: fit.points,
-    })
+    let found = settle(lum, quad, polarity, &PROFILE_HALF_PX)?;
+    Ok(FoundCorners { corners: ordered(found.corners, origin)?, ..found })
 }
 
 /// Hand-marked corners (in any order around the piece, kept) moved onto
@@ -223,16 +215,8 @@ pub fn refine_corners(photo: &Frame, marked: [[f64; 2]; 4]) -> Result<FoundCorne
     } else {
         Polarity::Darker
     };
-    let (corners, contrast, fit) = settle(&lum, marked, polarity, &[6.0, 4.0, 2.5])
-        .map_err(|m| BuildError::Input(format!("refining the marked corners: {m}")))?;
-    Ok(FoundCorners {
-        corners,
-        polarity,
-        contrast,
-        edge_rms_px: fit.rms,
-        bow_px: fit.bow,
-        edge_points: fit.points,
-    })
+    settle(&lum, marked, polarity, &[6.0, 4.0, 2.5])
+        .map_err(|m| BuildError::Input(format!("refining the marked corners: {m}")))
 }
 
 /// The photograph's luminance: the mean of its channels.
@@ -247,13 +231,13 @@ fn luminance(photo: &Frame) -> Plane {
 /// A quadrilateral near the piece's outline refitted to its sides (passes
 /// of profiles `halves` px either side), then checked: sides of some
 /// length, straight, corners within the photograph, the piece standing
-/// out. The corners, the contrast and the lines' fit.
+/// out.
 fn settle(
     lum: &Plane,
     mut quad: [[f64; 2]; 4],
     polarity: Polarity,
     halves: &[f64],
-) -> Result<([[f64; 2]; 4], f64, Fit), String> {
+) -> Result<FoundCorners, String> {
     let mut fit = Fit::default();
     for &half in halves {
         (quad, fit) = refine(lum, &quad, half, polarity)?;
@@ -287,7 +271,14 @@ fn settle(
              {MIN_CONTRAST}): lay it on a plain background of another brightness"
         ));
     }
-    Ok((quad, contrast, fit))
+    Ok(FoundCorners {
+        corners: quad,
+        polarity,
+        contrast,
+        edge_rms_px: fit.rms,
+        bow_px: fit.bow,
+        edge_points: fit.points,
+    })
 }
 
 /// Pixels above Otsu's threshold on the logarithm of `lum`; `None` if it
