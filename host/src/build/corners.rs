@@ -207,16 +207,15 @@ fn find_in(
 /// than its background is read across the marked outline.
 pub fn refine_corners(photo: &Frame, marked: [[f64; 2]; 4]) -> Result<FoundCorners, BuildError> {
     super::rectify::check_photo(photo)?;
-    super::rectify::check_corners(&marked, photo.width, photo.height)
-        .map_err(|m| BuildError::Input(format!("refining the marked corners: {m}")))?;
+    let fail = |m: String| BuildError::Input(format!("refining the marked corners: {m}"));
+    super::rectify::check_corners(&marked, photo.width, photo.height).map_err(fail)?;
     let lum = luminance(photo);
     let polarity = if contrast(&lum, &marked, Polarity::Brighter) >= 1.0 {
         Polarity::Brighter
     } else {
         Polarity::Darker
     };
-    settle(&lum, marked, polarity, &[6.0, 4.0, 2.5])
-        .map_err(|m| BuildError::Input(format!("refining the marked corners: {m}")))
+    settle(&lum, marked, polarity, &[6.0, 4.0, 2.5]).map_err(fail)
 }
 
 /// The photograph's luminance: the mean of its channels.
@@ -398,6 +397,28 @@ fn shoelace(p: &[[f64; 2]]) -> f64 {
     0.5 * (0..n).map(|k| cross([0.0, 0.0], p[k], p[(k + 1) % n])).sum::<f64>()
 }
 
+/// A side of a quadrilateral: from corner `a` to the next, `b`, `len` px
+/// long along the unit `t`, its outward unit normal `n`.
+struct Side {
+    a: [f64; 2],
+    b: [f64; 2],
+    len: f64,
+    t: [f64; 2],
+    n: [f64; 2],
+}
+
+/// The quadrilateral's sides, side k from corner k to corner k + 1; which
+/// way is out follows from its orientation.
+fn sides(quad: &[[f64; 2]; 4]) -> [Side; 4] {
+    let turn = shoelace(quad).signum();
+    std::array::from_fn(|k| {
+        let (a, b) = (quad[k], quad[(k + 1) % 4]);
+        let len = dist(a, b);
+        let t = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
+        Side { a, b, len, t, n: [turn * t[1], -turn * t[0]] }
+    })
+}
+
 /// Andrew's monotone chain: the hull's vertices in order, no three on a
 /// line.
 fn convex_hull(points: &[[f64; 2]]) -> Vec<[f64; 2]> {
@@ -407,12 +428,12 @@ fn convex_hull(points: &[[f64; 2]]) -> Vec<[f64; 2]> {
     if p.len() < 3 {
         return p;
     }
+    // The lower chain left to right, then the upper right to left; each
+    // chain's last point is the next one's first.
     let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * p.len());
-    for pass in 0..2 {
+    let mut chain = |points: &mut dyn Iterator<Item = &[f64; 2]>| {
         let start = hull.len();
-        let iter: Box<dyn Iterator<Item = &[f64; 2]>> =
-            if pass == 0 { Box::new(p.iter()) } else { Box::new(p.iter().rev()) };
-        for &q in iter {
+        for &q in points {
             while hull.len() >= start + 2
                 && cross(hull[hull.len() - 2], hull[hull.len() - 1], q) <= 0.0
             {
@@ -421,7 +442,9 @@ fn convex_hull(points: &[[f64; 2]]) -> Vec<[f64; 2]> {
             hull.push(q);
         }
         hull.pop();
-    }
+    };
+    chain(&mut p.iter());
+    chain(&mut p.iter().rev());
     hull
 }
 
@@ -466,15 +489,9 @@ fn refine(
     half: f64,
     polarity: Polarity,
 ) -> Result<([[f64; 2]; 4], Fit), String> {
-    // Outward normals: the quadrilateral's orientation decides the side.
-    let turn = shoelace(quad).signum();
     let mut lines: [Line; 4] = [([0.0; 2], [0.0; 2]); 4];
     let (mut ss, mut fit) = (0.0, Fit::default());
-    for k in 0..4 {
-        let (a, b) = (quad[k], quad[(k + 1) % 4]);
-        let len = dist(a, b);
-        let t = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
-        let n = [turn * t[1], -turn * t[0]];
+    for (k, Side { a, b, len, t, n }) in sides(quad).into_iter().enumerate() {
         let steps = (half / PROFILE_STEP_PX).round() as isize;
         let margin = 2.0 * half + 1.0;
         let mut points = Vec::new();
@@ -647,13 +664,8 @@ fn meet(a: Line, b: Line) -> Option<[f64; 2]> {
 /// How many times the median luminance within 2–6 px inside the outline
 /// stands out of the median within 2–6 px outside it.
 fn contrast(lum: &Plane, quad: &[[f64; 2]; 4], polarity: Polarity) -> f64 {
-    let turn = shoelace(quad).signum();
     let (mut inside, mut outside) = (Vec::new(), Vec::new());
-    for k in 0..4 {
-        let (a, b) = (quad[k], quad[(k + 1) % 4]);
-        let len = dist(a, b);
-        let t = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
-        let n = [turn * t[1], -turn * t[0]];
+    for Side { a, len, t, n, .. } in sides(quad) {
         let mut s = 8.0;
         while s <= len - 8.0 {
             for o in [2.0, 4.0, 6.0] {

@@ -52,6 +52,22 @@ pub enum Corners {
     Auto(super::corners::Origin),
 }
 
+impl Corners {
+    /// The corners in `photo`: as marked, or found or refined there (with
+    /// what [`super::corners`] found).
+    pub fn locate(
+        self,
+        photo: &Frame,
+    ) -> Result<([[f64; 2]; 4], Option<super::corners::FoundCorners>), BuildError> {
+        let found = match self {
+            Corners::Marked(c) => return Ok((c, None)),
+            Corners::Auto(origin) => super::corners::find_corners(photo, origin)?,
+            Corners::Refined(marked) => super::corners::refine_corners(photo, marked)?,
+        };
+        Ok((found.corners, Some(found)))
+    }
+}
+
 /// What [`rectify`] made.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RectifyReport {

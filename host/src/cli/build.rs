@@ -714,61 +714,48 @@ pub fn rectify_cmd(
     use crate::build::rectify::{Corners, RectifyOptions, rectify};
     let frame = crate::exrio::read_rgb(photo)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
-    let corners = match corners {
-        Corners::Marked(c) => c,
-        Corners::Auto(_) | Corners::Refined(_) => {
-            let found = match corners {
-                Corners::Auto(origin) => crate::build::corners::find_corners(&frame, origin),
-                Corners::Refined(marked) => {
-                    // Marks that do not fit the photograph: exit 2.
-                    crate::build::rectify::check_corners(&marked, frame.width, frame.height)
-                        .map_err(|e| Failure(2, anyhow!(e)))?;
-                    crate::build::corners::refine_corners(&frame, marked)
-                }
-                Corners::Marked(_) => unreachable!("matched above"),
-            }
-            .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
-            let c = found.corners;
-            if let Corners::Refined(marked) = corners {
-                let moved = (0..4).map(|k| (c[k][0] - marked[k][0]).hypot(c[k][1] - marked[k][1]));
-                println!(
-                    "{}: the marked corners moved {} px onto the piece's edges",
-                    photo.display(),
-                    moved.map(|d| format!("{d:.2}")).collect::<Vec<_>>().join(", ")
-                );
-            }
-            println!(
-                "{}: the piece's corners at ({:.2}, {:.2}), ({:.2}, {:.2}), ({:.2}, {:.2}), \
-                 ({:.2}, {:.2}) px (its sides straight within {:.2} px RMS over {} edge points, \
-                 bowed ≤ {:.2} px; {} than the background × {:.1})",
-                photo.display(),
-                c[0][0],
-                c[0][1],
-                c[1][0],
-                c[1][1],
-                c[2][0],
-                c[2][1],
-                c[3][0],
-                c[3][1],
-                found.edge_rms_px,
-                found.edge_points,
-                found.bow_px,
-                match found.polarity {
-                    crate::build::corners::Polarity::Brighter => "brighter",
-                    crate::build::corners::Polarity::Darker => "darker",
-                },
-                found.contrast
-            );
-            c
-        }
-    };
-    let opts = RectifyOptions { corners, size_mm, px_per_mm };
+    if let Corners::Refined(marked) = corners {
+        // Marks that do not fit the photograph: exit 2, as for any option.
+        crate::build::rectify::check_corners(&marked, frame.width, frame.height)
+            .map_err(|e| Failure(2, anyhow!(e)))?;
+    }
+    let (located, found) =
+        corners.locate(&frame).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    if let Corners::Refined(marked) = corners {
+        let moved: Vec<String> = (0..4)
+            .map(|k| {
+                format!("{:.2}", (located[k][0] - marked[k][0]).hypot(located[k][1] - marked[k][1]))
+            })
+            .collect();
+        println!(
+            "{}: the marked corners moved {} px onto the piece's edges",
+            photo.display(),
+            moved.join(", ")
+        );
+    }
+    if let Some(found) = found {
+        let polarity = match found.polarity {
+            crate::build::corners::Polarity::Brighter => "brighter",
+            crate::build::corners::Polarity::Darker => "darker",
+        };
+        println!(
+            "{}: the piece's corners at {} px (its sides straight within {:.2} px RMS over {} \
+             edge points, bowed ≤ {:.2} px; {polarity} than the background × {:.1})",
+            photo.display(),
+            found.corners.map(|p| format!("({:.2}, {:.2})", p[0], p[1])).join(", "),
+            found.edge_rms_px,
+            found.edge_points,
+            found.bow_px,
+            found.contrast
+        );
+    }
+    let opts = RectifyOptions { corners: located, size_mm, px_per_mm };
     // Options that do not fit this photograph: exit 2, as for any option.
     opts.check(frame.width, frame.height).map_err(|e| Failure(2, anyhow!(e)))?;
     let (out, report) =
         rectify(&frame, &opts).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     if let Some(show) = show {
-        outline_picture(&frame, corners, show)?;
+        outline_picture(&frame, located, show)?;
         println!("{}: the photograph with the piece's outline", show.display());
     }
     let bytes = crate::exrio::encode_half(&out)
