@@ -206,7 +206,8 @@ enum Command {
         /// (0, 0) corner lies; (1, 0), (1, 1), (0, 1) follow
         /// counter-clockwise as the photograph is seen [default:
         /// bottom-left: the piece face up, u to the right, v up].
-        #[arg(long, value_parser = ["bottom-left", "bottom-right", "top-right", "top-left"])]
+        #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(
+            crate::build::corners::Origin::ALL.map(|(name, _)| name)))]
         origin: Option<String>,
         /// With marked corners: move them onto the piece's edges, fitted
         /// as `--corners auto` fits them (marks within a few px).
