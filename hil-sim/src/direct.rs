@@ -141,6 +141,11 @@ pub struct Photographs {
     pub size_mm: f64,
     /// The camera's distance from the piece's centre, mm.
     pub distance_mm: f64,
+    /// The camera lens' radial distortion k1, k2 about each photograph's
+    /// centre, the radius in half-diagonals of the photograph (absent: a
+    /// pinhole). Ground truth: `scanner rectify --lens auto` estimates it.
+    #[serde(default, skip_serializing_if = "is_pinhole")]
+    pub distortion: [f64; 2],
     /// The photographs of the piece.
     pub photo: Vec<Photograph>,
     /// The white target's photograph, from the first direction.
@@ -153,6 +158,46 @@ pub struct Photographs {
 /// a tripod's, the view direction varying by ±5.7° over an 80 mm piece
 /// (docs/direct-images.md measures what it costs).
 pub const PHOTO_DISTANCE_MM: f64 = 400.0;
+/// How a set of photographs is taken.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotoSetup {
+    /// The camera's distance from the piece's centre, mm.
+    pub distance_mm: f64,
+    /// Its lens' radial distortion ([`Photographs::distortion`]).
+    pub distortion: [f64; 2],
+}
+
+impl PhotoSetup {
+    /// A pinhole camera at `distance_mm`.
+    pub fn pinhole(distance_mm: f64) -> PhotoSetup {
+        PhotoSetup { distance_mm, distortion: [0.0; 2] }
+    }
+
+    /// The setup in range: a distance > 0, a distortion that maps the
+    /// photograph one to one (its radius growing out to 1.5 × the corner's).
+    pub fn check(&self) -> Result<(), String> {
+        let d = self.distance_mm;
+        if !(d.is_finite() && d > 0.0) {
+            return Err(format!("camera distance {d} mm: must be > 0"));
+        }
+        let [k1, k2] = self.distortion;
+        let one_to_one = k1.is_finite()
+            && k2.is_finite()
+            && (0..=150)
+                .all(|i| scanner_geometry::radial_slope(self.distortion, i as f64 / 100.0) > 0.05);
+        if !one_to_one {
+            return Err(format!(
+                "lens distortion [{k1}, {k2}] does not map the photograph one to one"
+            ));
+        }
+        Ok(())
+    }
+}
+
+fn is_pinhole(k: &[f64; 2]) -> bool {
+    *k == [0.0; 2]
+}
+
 /// How much finer the photographs resolve the piece, at its centre, than
 /// the direct images they are for.
 pub const PHOTO_OVERSAMPLING: f64 = 1.5;
@@ -187,8 +232,9 @@ impl Photographs {
 }
 
 /// Render and write photographs of `material`'s large piece, as
-/// [`write_set`] does its direct images but through a pinhole camera at
-/// `distance_mm` from the piece's centre along each direction, framed so
+/// [`write_set`] does its direct images but through a camera at
+/// `setup.distance_mm` from the piece's centre along each direction, with
+/// `setup.distortion`'s lens, framed so
 /// that the piece seen face on would fill 80 % of a square frame that
 /// resolves it at [`PHOTO_OVERSAMPLING`] × `px_per_mm` at its centre (the
 /// direct images' density: a camera somewhat sharper than the images it
@@ -201,17 +247,19 @@ pub fn write_photographs(
     material: Arc<dyn Material>,
     count: usize,
     px_per_mm: f64,
-    distance_mm: f64,
+    setup: PhotoSetup,
     out: &Path,
 ) -> Result<Photographs, String> {
-    if !(distance_mm.is_finite() && distance_mm > 0.0) {
-        return Err(format!("camera distance {distance_mm} mm: must be > 0"));
-    }
+    setup.check()?;
+    let PhotoSetup { distance_mm, distortion } = setup;
     let piece = Sample::large(material);
     let fill = 0.8;
     let side_px =
         (PHOTO_OVERSAMPLING * px_per_mm * piece.size_mm / fill).ceil().clamp(16.0, 16384.0) as u32;
-    let camera = |d: DVec3| PhotoCamera::framing(d, distance_mm, side_px, piece.size_mm, fill);
+    let camera = |d: DVec3| PhotoCamera {
+        distortion,
+        ..PhotoCamera::framing(d, distance_mm, side_px, piece.size_mm, fill)
+    };
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let shoot = |piece: &Sample, d: DVec3, file: String, mirror| -> Result<Photograph, String> {
         let cam = camera(d);
@@ -237,6 +285,7 @@ pub fn write_photographs(
     let set = Photographs {
         size_mm: piece.size_mm,
         distance_mm,
+        distortion,
         photo,
         white,
         white_albedo: target.albedo,

@@ -597,7 +597,10 @@ impl OpticalSim {
         let light = camera.direction.normalize();
         let centre = camera.basis().0;
         let holder = HOLDER_ALBEDO / std::f64::consts::PI * light.z.max(0.0);
-        let keys = [light.x, light.y, light.z, camera.distance_mm, camera.focal_px];
+        let mut keys = vec![light.x, light.y, light.z, camera.distance_mm, camera.focal_px];
+        if camera.distortion != [0.0; 2] {
+            keys.extend(camera.distortion);
+        }
         self.square_image(camera.side_px as usize, exposure_s, 0x9407_0C4A, &keys, |fx, fy| {
             let p = camera.on_plane([fx, fy]);
             let uv = p.map(|p| [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5]);
@@ -677,7 +680,8 @@ pub const HOLDER_ALBEDO: f64 = 0.04;
 /// `direction` (sample-local, from the piece's centre; the light comes from
 /// it too), aimed at the piece's centre, its rows turned so that the
 /// piece's u axis runs along them: a square sensor of `side_px` pixels and
-/// a focal length of `focal_px` pixels.
+/// a focal length of `focal_px` pixels, its lens with radial distortion
+/// `distortion` about the photograph's centre.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PhotoCamera {
     /// Direction from the piece's centre to the camera (unit).
@@ -688,6 +692,10 @@ pub struct PhotoCamera {
     pub side_px: u32,
     /// Focal length, px.
     pub focal_px: f64,
+    /// The lens' radial distortion k1, k2 about the photograph's centre,
+    /// the radius in half-diagonals of the photograph
+    /// ([`scanner_geometry::radial_distort`]; 0: a pinhole).
+    pub distortion: [f64; 2],
 }
 
 impl PhotoCamera {
@@ -701,7 +709,20 @@ impl PhotoCamera {
         fill: f64,
     ) -> PhotoCamera {
         let focal_px = fill * side_px as f64 * distance_mm / size_mm;
-        PhotoCamera { direction: direction.normalize(), distance_mm, side_px, focal_px }
+        PhotoCamera {
+            direction: direction.normalize(),
+            distance_mm,
+            side_px,
+            focal_px,
+            distortion: [0.0; 2],
+        }
+    }
+
+    /// The photograph's centre, px, and half its diagonal: the lens'
+    /// distortion's centre and unit of radius.
+    fn lens_frame(&self) -> ([f64; 2], f64) {
+        let half = self.side_px as f64 / 2.0;
+        ([half, half], half * std::f64::consts::SQRT_2)
     }
 
     /// The camera's centre (mm, from the piece's centre) and its right,
@@ -722,8 +743,11 @@ impl PhotoCamera {
         let (centre, right, down, forward) = self.basis();
         let q = p - centre;
         let z = q.dot(forward);
-        let half = self.side_px as f64 / 2.0;
-        [half + self.focal_px * q.dot(right) / z, half + self.focal_px * q.dot(down) / z]
+        let (c, radius) = self.lens_frame();
+        let n =
+            [self.focal_px * q.dot(right) / z / radius, self.focal_px * q.dot(down) / z / radius];
+        let d = scanner_geometry::radial_distort(self.distortion, n);
+        [c[0] + radius * d[0], c[1] + radius * d[1]]
     }
 
     /// Where the ray through the photograph's point `px` meets the piece's
@@ -731,10 +755,13 @@ impl PhotoCamera {
     /// front of the camera.
     pub fn on_plane(&self, px: [f64; 2]) -> Option<DVec3> {
         let (centre, right, down, forward) = self.basis();
-        let half = self.side_px as f64 / 2.0;
-        let ray = forward
-            + right * ((px[0] - half) / self.focal_px)
-            + down * ((px[1] - half) / self.focal_px);
+        let (c, radius) = self.lens_frame();
+        let n = scanner_geometry::radial_undistort(
+            self.distortion,
+            [(px[0] - c[0]) / radius, (px[1] - c[1]) / radius],
+        );
+        let k = radius / self.focal_px;
+        let ray = forward + right * (n[0] * k) + down * (n[1] * k);
         let t = -centre.z / ray.z;
         (t > 0.0 && t.is_finite()).then(|| centre + ray * t)
     }

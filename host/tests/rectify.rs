@@ -2,9 +2,13 @@
 //! whose pattern is known analytically, rectified back onto the piece.
 
 use host::build::corners::{Origin, Polarity, find_corners, refine_corners};
+use host::build::lens::{FrameMap, Lens, LensChoice, LensMap};
 use host::build::linalg::Homography;
 use host::build::rectify::{RectifyOptions, rectify};
 use host::camera::Frame;
+
+/// A pinhole camera's photographs.
+const PINHOLE: LensChoice = LensChoice::Known(Lens::PINHOLE);
 
 /// The piece's radiance at (x, y) mm: waves of 1.6–7 mm periods, in
 /// [0.05, 0.95].
@@ -67,7 +71,12 @@ fn a_perspective_photograph_is_rectified_onto_the_piece() {
     let square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
     let h = Homography::fit(&square, &CORNERS).unwrap();
     let photo = photograph(640, 480, &h);
-    let opts = RectifyOptions { corners: CORNERS, size_mm: SIZE_MM, px_per_mm: Some(4.0) };
+    let opts = RectifyOptions {
+        corners: CORNERS,
+        size_mm: SIZE_MM,
+        px_per_mm: Some(4.0),
+        lens: Lens::PINHOLE,
+    };
     let (out, report) = rectify(&photo, &opts).unwrap();
     assert_eq!((out.width, out.height), (160, 96));
     assert!(report.supersampling >= 3, "{report:?}");
@@ -130,6 +139,7 @@ fn bad_corners_and_sizes_are_refused() {
         corners: [[4.0, 4.0], [60.0, 6.0], [58.0, 44.0], [3.0, 40.0]],
         size_mm: [10.0, 8.0],
         px_per_mm: None,
+        lens: Lens::PINHOLE,
     };
     assert!(rectify(&photo, &ok).is_ok());
     let err = |o: RectifyOptions| rectify(&photo, &o).unwrap_err().to_string();
@@ -170,7 +180,7 @@ fn face_up(corners: &[[f64; 2]; 4]) -> Homography {
 #[test]
 fn the_corners_of_a_piece_on_a_dark_background_are_found() {
     let photo = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
-    let found = find_corners(&photo, Origin::BottomLeft).unwrap();
+    let found = find_corners(&photo, Origin::BottomLeft, PINHOLE).unwrap();
     let err = |c: &[[f64; 2]; 4], want: &[[f64; 2]; 4]| {
         (0..4).map(|k| (c[k][0] - want[k][0]).hypot(c[k][1] - want[k][1])).fold(0.0, f64::max)
     };
@@ -189,13 +199,13 @@ fn the_corners_of_a_piece_on_a_dark_background_are_found() {
     {
         let turned: [[f64; 2]; 4] = std::array::from_fn(|i| FACE_UP[(i + 4 - k) % 4]);
         let photo = photograph_on(640, 480, &face_up(&turned), DARK, |p| p);
-        let found = find_corners(&photo, *origin).unwrap();
+        let found = find_corners(&photo, *origin, PINHOLE).unwrap();
         assert!(err(&found.corners, &turned) <= 0.1, "{origin:?}: {found:?}");
     }
 
     // A dark piece on a white table: found the same way.
     let dark = photograph_on(640, 480, &face_up(&FACE_UP), 50.0, |p| p);
-    let found_dark = find_corners(&dark, Origin::BottomLeft).unwrap();
+    let found_dark = find_corners(&dark, Origin::BottomLeft, PINHOLE).unwrap();
     let e = err(&found_dark.corners, &FACE_UP);
     eprintln!("{found_dark:?}: {e:.3} px at worst");
     assert_eq!(found_dark.polarity, Polarity::Darker);
@@ -203,7 +213,12 @@ fn the_corners_of_a_piece_on_a_dark_background_are_found() {
     assert_eq!(found.polarity, Polarity::Brighter);
 
     // Rectified by the corners found, as by the true ones.
-    let opts = RectifyOptions { corners: FACE_UP, size_mm: SIZE_MM, px_per_mm: Some(4.0) };
+    let opts = RectifyOptions {
+        corners: FACE_UP,
+        size_mm: SIZE_MM,
+        px_per_mm: Some(4.0),
+        lens: Lens::PINHOLE,
+    };
     let (want, _) = rectify(&photo_face_up(), &opts).unwrap();
     let (got, _) =
         rectify(&photo_face_up(), &RectifyOptions { corners: found.corners, ..opts }).unwrap();
@@ -219,7 +234,8 @@ fn photo_face_up() -> Frame {
 
 #[test]
 fn photographs_without_a_clear_piece_are_refused() {
-    let find = |photo: &Frame| find_corners(photo, Origin::BottomLeft).unwrap_err().to_string();
+    let find =
+        |photo: &Frame| find_corners(photo, Origin::BottomLeft, PINHOLE).unwrap_err().to_string();
     let h = face_up(&FACE_UP);
     // Nothing in it.
     let uniform = Frame { width: 64, height: 48, rgb: vec![0.3; 64 * 48 * 3] };
@@ -315,7 +331,7 @@ fn finding_corners_never_panics() {
         }
         let photo = Frame { width: w, height: h, rgb };
         let origin = Origin::ALL[case % 4].1;
-        match find_corners(&photo, origin) {
+        match find_corners(&photo, origin, PINHOLE) {
             Ok(_) => found += 1,
             Err(_) => refused += 1,
         }
@@ -358,7 +374,7 @@ fn the_corners_are_found_through_falloff_shadow_and_noise() {
             *v = ((*v as f64 * shade * falloff) + noise).max(0.0) as f32;
         }
     }
-    let found = find_corners(&photo, Origin::BottomLeft).unwrap();
+    let found = find_corners(&photo, Origin::BottomLeft, PINHOLE).unwrap();
     let worst = (0..4)
         .map(|k| (found.corners[k][0] - corners[k][0]).hypot(found.corners[k][1] - corners[k][1]))
         .fold(0.0, f64::max);
@@ -382,7 +398,7 @@ fn marked_corners_are_refined_onto_the_edges() {
             let (r, a) = (rng.random_range(2.0..4.0), rng.random_range(0.0..std::f64::consts::TAU));
             [x + r * a.cos(), y + r * a.sin()]
         });
-        let got = refine_corners(&photo, marked).unwrap();
+        let got = refine_corners(&photo, marked, PINHOLE).unwrap();
         let worst = (0..4)
             .map(|k| (got.corners[k][0] - CORNERS[k][0]).hypot(got.corners[k][1] - CORNERS[k][1]))
             .fold(0.0, f64::max);
@@ -395,9 +411,147 @@ fn marked_corners_are_refined_onto_the_edges() {
     // Marks nowhere near an edge, or not a quadrilateral: refused.
     let photo = photograph_on(640, 480, &face_up(&CORNERS), DARK, |p| p);
     let inner = [[200.0, 150.0], [400.0, 160.0], [390.0, 300.0], [210.0, 290.0]];
-    let err = refine_corners(&photo, inner).unwrap_err().to_string();
+    let err = refine_corners(&photo, inner, PINHOLE).unwrap_err().to_string();
     assert!(err.contains("refining the marked corners"), "{err}");
     let crossed = [CORNERS[0], CORNERS[2], CORNERS[1], CORNERS[3]];
-    let err = refine_corners(&photo, crossed).unwrap_err().to_string();
+    let err = refine_corners(&photo, crossed, PINHOLE).unwrap_err().to_string();
     assert!(err.contains("not a convex quadrilateral"), "{err}");
+}
+
+/// A photograph through a lens with radial distortion `k` (half-diagonal
+/// scale) of the piece whose pinhole corners are `pinhole`: the photograph
+/// and the corners as it shows them.
+fn through_lens(k: [f64; 2], pinhole: &[[f64; 2]; 4]) -> (Frame, [[f64; 2]; 4], LensMap) {
+    let map = LensMap::new(Lens { k, focal_px: None }, 640, 480).unwrap();
+    let photo = photograph_on(640, 480, &face_up(pinhole), DARK, |q| map.from_frame(q));
+    (photo, pinhole.map(|p| map.to_frame(p)), map)
+}
+
+fn worst_px(a: &[[f64; 2]; 4], b: &[[f64; 2]; 4]) -> f64 {
+    (0..4).map(|k| (a[k][0] - b[k][0]).hypot(a[k][1] - b[k][1])).fold(0.0, f64::max)
+}
+
+/// PSNR (peak 1) of a rectification of the piece at 4 px/mm against the
+/// pattern's mean over each output pixel (8 × 8 points), border pixels
+/// left out.
+fn psnr_against_pattern(out: &Frame) -> f64 {
+    let (w, h) = (out.width as usize, out.height as usize);
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for r in 1..h - 1 {
+        for c in 1..w - 1 {
+            let mut want = [0.0f64; 3];
+            for a in 0..8 {
+                for b in 0..8 {
+                    let v = pattern(
+                        (c as f64 + (a as f64 + 0.5) / 8.0) * 0.25,
+                        (r as f64 + (b as f64 + 0.5) / 8.0) * 0.25,
+                    );
+                    for k in 0..3 {
+                        want[k] += v[k] / 64.0;
+                    }
+                }
+            }
+            for k in 0..3 {
+                se += (out.rgb[3 * (r * w + c) + k] as f64 - want[k]).powi(2);
+                n += 1;
+            }
+        }
+    }
+    10.0 * (1.0 / (se / n as f64)).log10()
+}
+
+/// Through a lens with barrel or pincushion distortion the piece's sides
+/// bow: `--lens auto` estimates k1 from them (the plumb-line method on the
+/// piece's own sides), finds the corners where the photograph shows them,
+/// and the rectification through the lens matches the pattern as a
+/// pinhole photograph's does; ignoring the lens costs.
+#[test]
+fn a_lens_is_estimated_from_the_pieces_sides_and_rectified_through() {
+    let opts =
+        |corners, lens| RectifyOptions { corners, size_mm: SIZE_MM, px_per_mm: Some(4.0), lens };
+    let pinhole = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
+    let (straight, _) = rectify(&pinhole, &opts(FACE_UP, Lens::PINHOLE)).unwrap();
+    let base = psnr_against_pattern(&straight);
+    for k1 in [-0.06, -0.02, 0.04] {
+        let (photo, corners, _) = through_lens([k1, 0.0], &FACE_UP);
+        // Straight lines refused without the lens (but for the mildest).
+        let plain = find_corners(&photo, Origin::BottomLeft, PINHOLE);
+        if k1 != -0.02 {
+            let e = plain.unwrap_err().to_string();
+            assert!(e.contains("not straight"), "k1 {k1}: {e}");
+        }
+        let found = find_corners(&photo, Origin::BottomLeft, LensChoice::Estimate).unwrap();
+        let e = worst_px(&found.corners, &corners);
+        let known = LensChoice::Known(Lens { k: [k1, 0.0], focal_px: None });
+        let given = find_corners(&photo, Origin::BottomLeft, known).unwrap();
+        let g = worst_px(&given.corners, &corners);
+        let (got, _) = rectify(&photo, &opts(found.corners, found.lens)).unwrap();
+        let psnr = psnr_against_pattern(&got);
+        // The true corners, the lens ignored.
+        let (ignored, _) = rectify(&photo, &opts(corners, Lens::PINHOLE)).unwrap();
+        let without = psnr_against_pattern(&ignored);
+        eprintln!(
+            "k1 {k1}: estimated {:.5}, corners within {e:.3} px ({g:.3} px with the lens \
+             given); rectified {psnr:.2} dB, the lens ignored {without:.2} dB, a pinhole's \
+             {base:.2} dB",
+            found.lens.k[0]
+        );
+        assert!((found.lens.k[0] - k1).abs() < 1e-3, "k1 {k1}: {found:?}");
+        assert!(e <= 0.1 && g <= 0.1, "k1 {k1}: {e:.3} / {g:.3} px");
+        assert!(found.bow_px < 0.2, "k1 {k1}: {found:?}");
+        assert!(psnr >= base - 3.0, "k1 {k1}: {psnr:.2} against {base:.2} dB");
+        assert!(without < psnr - 10.0, "k1 {k1}: {without:.2} against {psnr:.2} dB");
+        // Marks a few px off, refined through an estimated lens.
+        let marked = corners.map(|[x, y]| [x + 2.5, y - 2.0]);
+        let refined = refine_corners(&photo, marked, LensChoice::Estimate).unwrap();
+        let r = worst_px(&refined.corners, &corners);
+        assert!(r <= 0.1 && (refined.lens.k[0] - k1).abs() < 1e-3, "k1 {k1}: {refined:?}");
+    }
+    // The pinhole photograph's lens comes out as none.
+    let found = find_corners(&pinhole, Origin::BottomLeft, LensChoice::Estimate).unwrap();
+    assert!(found.lens.k[0].abs() < 1e-3, "{found:?}");
+    assert!(worst_px(&found.corners, &FACE_UP) <= 0.1, "{found:?}");
+}
+
+/// A lens of another form than the model's (the pinhole point a cubic of
+/// the photograph's radius: barrel distortion of 3.6 px at the corners
+/// where the model's own inverse is not a polynomial): estimated to the
+/// model's nearest, the corners within a tenth of a pixel.
+#[test]
+fn a_lens_of_another_form_is_estimated_near_enough() {
+    let photo = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |q| {
+        let (x, y) = (q[0] - 320.0, q[1] - 240.0);
+        let k = 1.0 + 2.6e-7 * (x * x + y * y);
+        [320.0 + k * x, 240.0 + k * y]
+    });
+    // Where the photograph shows the pinhole corners: the inverse, by
+    // bisection along the radius.
+    let shown = FACE_UP.map(|p| {
+        let (x, y) = (p[0] - 320.0, p[1] - 240.0);
+        let r = x.hypot(y);
+        let (mut lo, mut hi) = (0.0, r);
+        for _ in 0..100 {
+            let mid = 0.5 * (lo + hi);
+            if mid * (1.0 + 2.6e-7 * mid * mid) < r { lo = mid } else { hi = mid }
+        }
+        [320.0 + x * lo / r, 240.0 + y * lo / r]
+    });
+    let found = find_corners(&photo, Origin::BottomLeft, LensChoice::Estimate).unwrap();
+    let e = worst_px(&found.corners, &shown);
+    eprintln!("estimated k1 {:.5}; corners within {e:.3} px", found.lens.k[0]);
+    assert!(e <= 0.1, "{found:?} against {shown:?}: {e:.3} px");
+}
+
+/// `--lens` values that fold the photograph are refused.
+#[test]
+fn a_lens_that_folds_the_photograph_is_refused_by_rectify() {
+    let photo = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
+    let opts = RectifyOptions {
+        corners: FACE_UP,
+        size_mm: SIZE_MM,
+        px_per_mm: Some(4.0),
+        lens: Lens { k: [-0.5, 0.0], focal_px: None },
+    };
+    let err = rectify(&photo, &opts).unwrap_err().to_string();
+    assert!(err.contains("one to one"), "{err}");
 }

@@ -415,6 +415,7 @@ fn rectified_photographs(
 ) -> std::path::PathBuf {
     use hil_sim::direct::{mirror_view_scale, write_photographs};
     use host::build::corners::{Origin, find_corners};
+    use host::build::lens::{Lens, LensChoice};
     let truth = lookup(m).unwrap();
     let sim = hil_sim::optics::OpticalSim::as_built(
         g,
@@ -423,12 +424,14 @@ fn rectified_photographs(
     );
     let scale = mirror_view_scale(g);
     let photos = out.join("photographs");
-    let shots = write_photographs(&sim, g, truth, 4, scale, distance, &photos).unwrap();
+    let setup = hil_sim::direct::PhotoSetup::pinhole(distance);
+    let shots = write_photographs(&sim, g, truth, 4, scale, setup, &photos).unwrap();
     let set = out.join("direct");
     std::fs::create_dir_all(&set).unwrap();
     for ph in shots.photo.iter().chain([&shots.white]) {
         let frame = host::exrio::read_rgb(&photos.join(&ph.file)).unwrap();
-        let found = find_corners(&frame, Origin::BottomLeft).unwrap();
+        let found =
+            find_corners(&frame, Origin::BottomLeft, LensChoice::Known(Lens::PINHOLE)).unwrap();
         let worst = (0..4)
             .map(|k| {
                 let (a, b) = (found.corners[k], ph.corners[k]);

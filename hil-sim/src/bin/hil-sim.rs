@@ -98,6 +98,11 @@ enum Command {
         #[arg(long, value_name = "DISTANCE_MM", num_args = 0..=1,
               default_missing_value = "400")] // hil_sim::direct::PHOTO_DISTANCE_MM
         photographs: Option<f64>,
+        /// With --photographs: the camera lens' radial distortion K1[,K2]
+        /// about the photograph's centre, the radius in half-diagonals
+        /// (K1 < 0: barrel) [default: none, a pinhole].
+        #[arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "photographs")]
+        lens: Vec<f64>,
     },
     /// Ground truth f · cos θi of the small sample (or the large piece) for
     /// shading queries.
@@ -172,6 +177,7 @@ fn direct(
     material: &str,
     out: &std::path::Path,
     photographs: Option<f64>,
+    lens: &[f64],
 ) -> Result<(), Fail> {
     let m = materials::lookup(material)?;
     let nominal = ScannerGeometry::default_scanner();
@@ -181,7 +187,15 @@ fn direct(
         if !(distance.is_finite() && (100.0..=10_000.0).contains(&distance)) {
             return Err(Fail(2, format!("--photographs {distance}: a distance in 100…10 000 mm")));
         }
-        let set = hil_sim::direct::write_photographs(&sim, &nominal, m, 4, scale, distance, out)
+        let distortion = match *lens {
+            [] => [0.0; 2],
+            [k1] => [k1, 0.0],
+            [k1, k2] => [k1, k2],
+            _ => return Err(Fail(2, format!("--lens: K1[,K2], not {} numbers", lens.len()))),
+        };
+        let setup = hil_sim::direct::PhotoSetup { distance_mm: distance, distortion };
+        setup.check().map_err(|e| Fail(2, format!("--lens: {e}")))?;
+        let set = hil_sim::direct::write_photographs(&sim, &nominal, m, 4, scale, setup, out)
             .map_err(|e| Fail(4, e))?;
         for ph in set.photo.iter().chain([&set.white]) {
             let c: Vec<String> = ph.corners.iter().flatten().map(|v| format!("{v:.2}")).collect();
@@ -242,8 +256,8 @@ fn render(
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     let done = match &args.command {
-        Some(Command::Direct { material, out, photographs }) => {
-            Some(("direct", direct(args.seed, material, out, *photographs)))
+        Some(Command::Direct { material, out, photographs, lens }) => {
+            Some(("direct", direct(args.seed, material, out, *photographs, lens)))
         }
         Some(Command::Render { material, mirrors, bin, out }) => {
             Some(("render", render(args.seed, material, *mirrors, *bin, out.as_deref())))

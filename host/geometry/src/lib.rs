@@ -168,13 +168,20 @@ pub fn radial_undistort(k: [f64; 2], d: [f64; 2]) -> [f64; 2] {
     for _ in 0..30 {
         let r2 = r * r;
         let f = r * (1.0 + r2 * (k[0] + k[1] * r2)) - rd;
-        let step = f / (1.0 + r2 * (3.0 * k[0] + 5.0 * k[1] * r2));
+        let step = f / radial_slope(k, r);
         r -= step;
         if step.abs() < 1e-15 {
             break;
         }
     }
     [d[0] * r / rd, d[1] * r / rd]
+}
+
+/// How fast [`radial_distort`]'s radius grows with the undistorted one at
+/// radius `r`: d r_d / d r = 1 + 3 k1 r² + 5 k2 r⁴ (one to one while > 0).
+pub fn radial_slope(k: [f64; 2], r: f64) -> f64 {
+    let r2 = r * r;
+    1.0 + r2 * (3.0 * k[0] + 5.0 * k[1] * r2)
 }
 
 impl CameraSpec {
@@ -802,10 +809,8 @@ impl ScannerGeometry {
             .map(|(x, y)| (x - c.principal_px[0]).hypot(y - c.principal_px[1]) / c.focal_px)
             .fold(0.0, f64::max);
         let [k1, k2] = c.distortion;
-        let monotonic = (0..=100).all(|i| {
-            let r2 = (1.5 * corner * i as f64 / 100.0).powi(2);
-            1.0 + r2 * (3.0 * k1 + 5.0 * k2 * r2) > 0.05
-        });
+        let monotonic =
+            (0..=100).all(|i| radial_slope(c.distortion, 1.5 * corner * i as f64 / 100.0) > 0.05);
         if !(k1.is_finite() && k2.is_finite() && monotonic) {
             return bad(format!(
                 "camera distortion [{k1}, {k2}] does not map the image one to one"

@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 use super::bundle::{Adjusted, AssemblyTolerances, Highlights, adjust};
 use super::error::BuildError;
 use super::glossy::{SourceOffsets, fit_offsets, highlights, with_offsets};
+use super::lens::{FrameMap, Pinhole};
 use super::linalg::Homography;
 use super::locate::{Checkerboard, RegionFit, locate};
 use super::plane::{Plane, cell_taps};
@@ -867,24 +868,41 @@ impl ViewSampler {
     /// `dims` px: it depends on the view only, so a region builder finds
     /// it once for all lights.
     pub fn region_filter(&self, dims: [usize; 2], uv: [f64; 2]) -> BicubicFilter {
+        self.region_filter_through(&Pinhole, dims, uv)
+    }
+
+    /// [`Self::region_filter`] for a frame that shows the homography's
+    /// pinhole image through `lens` (a photograph's lens distortion): the
+    /// homography's edges are straight in the pinhole image, and a frame
+    /// pixel is on the sample if its centre, taken back through the lens,
+    /// lies [`CLEAN_MARGIN_PX`] inside them.
+    #[inline]
+    pub fn region_filter_through(
+        &self,
+        lens: &impl FrameMap,
+        dims: [usize; 2],
+        uv: [f64; 2],
+    ) -> BicubicFilter {
         let p = self.homography.apply(uv);
-        // Every tap lies within 2 px per axis of p, so within 4 · half along
-        // any edge's normal: all of them usable, the plain filter.
-        if self.depth(p) >= 2.0 * std::f64::consts::SQRT_2 + CLEAN_MARGIN_PX {
-            return BicubicFilter::new(dims, p[0], p[1]);
+        let q = lens.to_frame(p);
+        // Every tap lies within 2 frame px per axis of q, so within
+        // 4 · half · stretch along any edge's normal: all of them usable,
+        // the plain filter.
+        if self.depth(p) >= 2.0 * std::f64::consts::SQRT_2 * lens.stretch() + CLEAN_MARGIN_PX {
+            return BicubicFilter::new(dims, q[0], q[1]);
         }
-        let clean = |x: f64, y: f64| self.pixel_on_sample([x, y]);
-        if let Some(b) = BicubicFilter::masked(dims, p[0], p[1], clean, 0.5) {
+        let clean = |x: f64, y: f64| self.pixel_on_sample(lens.from_frame([x, y]));
+        if let Some(b) = BicubicFilter::masked(dims, q[0], q[1], clean, 0.5) {
             return b;
         }
         for k in [1.0, 2.0, 4.0] {
-            let q = self.inset_point(uv, k * REGION_EDGE_PX);
+            let q = lens.to_frame(self.inset_point(uv, k * REGION_EDGE_PX));
             if let Some(b) = BicubicFilter::masked(dims, q[0], q[1], clean, 0.25) {
                 return b;
             }
         }
         // A view of a few pixels: the plain filter at the centre.
-        let q = self.homography.apply([0.5, 0.5]);
+        let q = lens.to_frame(self.homography.apply([0.5, 0.5]));
         BicubicFilter::new(dims, q[0], q[1])
     }
 

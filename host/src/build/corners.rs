@@ -19,11 +19,17 @@
 //!    Twice, the second time from the first's corners. The corners are
 //!    where adjacent lines meet.
 //!
-//! A pinhole photograph shows the piece's straight sides straight: lens
-//! distortion must be removed first (sides that are not straight are
-//! refused by their residual and their bow).
+//! A pinhole photograph shows the piece's straight sides straight. With a
+//! lens given ([`super::lens`]), the profiles are read through it: the
+//! sides are lines of the pinhole image, curves of the photograph. With
+//! the lens to be estimated, its k1 is the one that makes the sides'
+//! edge points straightest (the plumb-line method, on the piece's own
+//! four sides), and the sides are fitted again through it, three times.
+//! Sides that are still not straight are refused by their residual and
+//! their bow.
 
 use super::BuildError;
+use super::lens::{FrameMap, Lens, LensChoice, LensMap};
 use super::plane::Plane;
 use crate::camera::Frame;
 
@@ -88,6 +94,8 @@ pub struct FoundCorners {
     pub bow_px: f64,
     /// Edge points the four lines were fitted to.
     pub edge_points: usize,
+    /// The lens the sides are straight through: as given, or estimated.
+    pub lens: Lens,
 }
 
 /// The least contrast between piece and background.
@@ -139,8 +147,13 @@ impl Polarity {
 
 /// The piece's corners in `photo` (linear RGB, the piece brighter or
 /// darker than a plain background all round it), its uv (0, 0) at
-/// `origin`. A bright piece is looked for first, then a dark one.
-pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, BuildError> {
+/// `origin`, its sides straight through `lens`. A bright piece is looked
+/// for first, then a dark one.
+pub fn find_corners(
+    photo: &Frame,
+    origin: Origin,
+    lens: LensChoice,
+) -> Result<FoundCorners, BuildError> {
     super::rectify::check_photo(photo)?;
     let lum = luminance(photo);
     let fail = |m: String| {
@@ -151,12 +164,12 @@ pub fn find_corners(photo: &Frame, origin: Origin) -> Result<FoundCorners, Build
     let Some(above) = bright(&lum.blurred(MASK_SIGMA_PX)) else {
         return Err(fail("the photograph is uniform".into()));
     };
-    let bright = find_in(&lum, &above, Polarity::Brighter, origin);
+    let bright = find_in(&lum, &above, Polarity::Brighter, origin, lens);
     let Err(as_bright) = bright else {
         return bright.map_err(fail);
     };
     let below: Vec<bool> = above.iter().map(|a| !a).collect();
-    find_in(&lum, &below, Polarity::Darker, origin).map_err(|as_dark| {
+    find_in(&lum, &below, Polarity::Darker, origin, lens).map_err(|as_dark| {
         fail(format!(
             "as a piece brighter than its background: {as_bright}; as a piece darker than its \
              background: {as_dark}"
@@ -170,6 +183,7 @@ fn find_in(
     mask: &[bool],
     polarity: Polarity,
     origin: Origin,
+    lens: LensChoice,
 ) -> Result<FoundCorners, String> {
     let region = polarity.name();
     let Some(piece) = largest_component(mask, lum.width, lum.height) else {
@@ -196,7 +210,7 @@ fn find_in(
             100.0 / MIN_FILL
         ));
     }
-    let found = settle(lum, quad, polarity, &PROFILE_HALF_PX)?;
+    let found = through(lum, quad, polarity, lens, &PROFILE_HALF_PX)?;
     Ok(FoundCorners { corners: ordered(found.corners, origin)?, ..found })
 }
 
@@ -205,17 +219,128 @@ fn find_in(
 /// profiles 6, 4 and then 2.5 px either side of it, so marks within a few
 /// pixels of the true corners do. Whether the piece is brighter or darker
 /// than its background is read across the marked outline.
-pub fn refine_corners(photo: &Frame, marked: [[f64; 2]; 4]) -> Result<FoundCorners, BuildError> {
+pub fn refine_corners(
+    photo: &Frame,
+    marked: [[f64; 2]; 4],
+    lens: LensChoice,
+) -> Result<FoundCorners, BuildError> {
     super::rectify::check_photo(photo)?;
     let fail = |m: String| BuildError::Input(format!("refining the marked corners: {m}"));
     super::rectify::check_corners(&marked, photo.width, photo.height).map_err(fail)?;
     let lum = luminance(photo);
-    let polarity = if contrast(&lum, &marked, Polarity::Brighter) >= 1.0 {
+    let seen = Seen::new(&lum, Lens::PINHOLE).map_err(fail)?;
+    let polarity = if contrast(&seen, &marked, Polarity::Brighter) >= 1.0 {
         Polarity::Brighter
     } else {
         Polarity::Darker
     };
-    settle(&lum, marked, polarity, &[6.0, 4.0, 2.5]).map_err(fail)
+    through(&lum, marked, polarity, lens, &[6.0, 4.0, 2.5]).map_err(fail)
+}
+
+/// A photograph's luminance as its pinhole image: read through a lens.
+struct Seen<'a> {
+    lum: &'a Plane,
+    lens: LensMap,
+}
+
+impl<'a> Seen<'a> {
+    fn new(lum: &'a Plane, lens: Lens) -> Result<Seen<'a>, String> {
+        Ok(Seen { lum, lens: LensMap::new(lens, lum.width as u32, lum.height as u32)? })
+    }
+
+    /// The luminance at the pinhole image's point `p`, px.
+    fn at(&self, p: [f64; 2]) -> f64 {
+        let q = self.lens.to_frame(p);
+        self.lum.bilinear(q[0], q[1])
+    }
+}
+
+/// Rounds of estimating the lens and refitting the sides through it.
+const LENS_ROUNDS: usize = 3;
+/// The k1 searched when the lens is estimated (half-diagonal scale).
+const LENS_K1_RANGE: f64 = 0.6;
+
+/// [`settle`] through the lens `choice`, from a quadrilateral `quad` of
+/// the photograph's px near the piece's outline: the corners in the
+/// photograph's px.
+fn through(
+    lum: &Plane,
+    quad: [[f64; 2]; 4],
+    polarity: Polarity,
+    choice: LensChoice,
+    halves: &[f64],
+) -> Result<FoundCorners, String> {
+    let lens = match choice {
+        LensChoice::Known(lens) => lens,
+        LensChoice::Estimate => {
+            let mut lens = Lens::PINHOLE;
+            for _ in 0..LENS_ROUNDS {
+                let seen = Seen::new(lum, lens)?;
+                let mut pinhole = quad.map(|c| seen.lens.from_frame(c));
+                let mut sides = Vec::new();
+                for half in [6.0, 4.0] {
+                    (pinhole, _, sides) = refine(&seen, &pinhole, half, polarity)?;
+                }
+                let edges: Vec<Vec<[f64; 2]>> = sides
+                    .iter()
+                    .map(|pts| pts.iter().map(|&p| seen.lens.to_frame(p)).collect())
+                    .collect();
+                lens = estimate_lens(&edges, lum.width as u32, lum.height as u32);
+            }
+            lens
+        }
+    };
+    let seen = Seen::new(lum, lens)?;
+    let found = settle(&seen, quad.map(|c| seen.lens.from_frame(c)), polarity, halves)?;
+    Ok(FoundCorners { corners: found.corners.map(|c| seen.lens.to_frame(c)), ..found })
+}
+
+/// The k1 (k2 = 0, half-diagonal scale) that makes each side's edge points
+/// (photograph px) straightest: the least sum of squared distances from
+/// their total-least-squares lines in the pinhole image, each distance in
+/// the photograph's px (divided by the lens' local stretch there, so that
+/// shrinking the image does not pass for straightening it). A grid over
+/// ±[`LENS_K1_RANGE`], then a golden-section search around its best.
+fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> Lens {
+    let cost = |k1: f64| -> f64 {
+        let lens = Lens { k: [k1, 0.0], focal_px: None };
+        let Ok(map) = LensMap::new(lens, width, height) else {
+            return f64::INFINITY;
+        };
+        let mut total = 0.0;
+        for side in edges {
+            let pts: Vec<[f64; 2]> = side.iter().map(|&q| map.from_frame(q)).collect();
+            let Some(((c, d), _)) = tls(&pts) else {
+                return f64::INFINITY;
+            };
+            for p in &pts {
+                let j = map.jacobian(*p);
+                let det = (j[0][0] * j[1][1] - j[0][1] * j[1][0]).abs().sqrt();
+                let off = ((p[0] - c[0]) * d[1] - (p[1] - c[1]) * d[0]) * det;
+                total += off * off;
+            }
+        }
+        total
+    };
+    const GRID: usize = 48;
+    let at = |i: usize| LENS_K1_RANGE * (2.0 * i as f64 / GRID as f64 - 1.0);
+    let best = (0..=GRID).min_by(|&a, &b| cost(at(a)).total_cmp(&cost(at(b)))).unwrap_or(GRID / 2);
+    let (mut a, mut b) = (at(best.saturating_sub(1)), at((best + 1).min(GRID)));
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut x1, mut x2) = (b - g * (b - a), a + g * (b - a));
+    let (mut f1, mut f2) = (cost(x1), cost(x2));
+    while b - a > 1e-7 {
+        if f1 <= f2 {
+            (b, x2, f2) = (x2, x1, f1);
+            x1 = b - g * (b - a);
+            f1 = cost(x1);
+        } else {
+            (a, x1, f1) = (x1, x2, f2);
+            x2 = a + g * (b - a);
+            f2 = cost(x2);
+        }
+    }
+    Lens { k: [0.5 * (a + b), 0.0], focal_px: None }
 }
 
 /// The photograph's luminance: the mean of its channels.
@@ -232,14 +357,14 @@ fn luminance(photo: &Frame) -> Plane {
 /// length, straight, corners within the photograph, the piece standing
 /// out.
 fn settle(
-    lum: &Plane,
+    seen: &Seen<'_>,
     mut quad: [[f64; 2]; 4],
     polarity: Polarity,
     halves: &[f64],
 ) -> Result<FoundCorners, String> {
     let mut fit = Fit::default();
     for &half in halves {
-        (quad, fit) = refine(lum, &quad, half, polarity)?;
+        (quad, fit, _) = refine(seen, &quad, half, polarity)?;
     }
     for k in 0..4 {
         let side = dist(quad[k], quad[(k + 1) % 4]);
@@ -255,15 +380,18 @@ fn settle(
             fit.rms, fit.bow
         ));
     }
-    let (w, h) = (lum.width as f64, lum.height as f64);
-    if let Some(c) = quad.iter().find(|c| !((0.0..=w).contains(&c[0]) && (0.0..=h).contains(&c[1])))
-    {
+    let (w, h) = (seen.lum.width as f64, seen.lum.height as f64);
+    let in_photo = |c: &[f64; 2]| {
+        let q = seen.lens.to_frame(*c);
+        (0.0..=w).contains(&q[0]) && (0.0..=h).contains(&q[1])
+    };
+    if let Some(c) = quad.iter().find(|c| !in_photo(c)).map(|c| seen.lens.to_frame(*c)) {
         return Err(format!(
             "a corner, where two sides meet, lies outside the photograph at ({:.1}, {:.1}) px",
             c[0], c[1]
         ));
     }
-    let contrast = contrast(lum, &quad, polarity);
+    let contrast = contrast(seen, &quad, polarity);
     if contrast.is_nan() || contrast < MIN_CONTRAST {
         return Err(format!(
             "the piece stands out of its background by only × {contrast:.2} (at least × \
@@ -277,6 +405,7 @@ fn settle(
         edge_rms_px: fit.rms,
         bow_px: fit.bow,
         edge_points: fit.points,
+        lens: seen.lens.lens(),
     })
 }
 
@@ -482,15 +611,16 @@ fn largest_quadrilateral(hull: &[[f64; 2]]) -> Option<[[f64; 2]; 4]> {
 
 /// The quadrilateral's sides refound from the luminance across them
 /// (profiles `half` px either side): the corners where the fitted lines
-/// meet, and how well the lines fit.
+/// meet, how well the lines fit, and each side's kept edge points.
 fn refine(
-    lum: &Plane,
+    seen: &Seen<'_>,
     quad: &[[f64; 2]; 4],
     half: f64,
     polarity: Polarity,
-) -> Result<([[f64; 2]; 4], Fit), String> {
+) -> Result<([[f64; 2]; 4], Fit, Vec<Vec<[f64; 2]>>), String> {
     let mut lines: [Line; 4] = [([0.0; 2], [0.0; 2]); 4];
     let (mut ss, mut fit) = (0.0, Fit::default());
+    let mut kept = Vec::with_capacity(4);
     for (k, Side { a, b, len, t, n }) in sides(quad).into_iter().enumerate() {
         let steps = (half / PROFILE_STEP_PX).round() as isize;
         let margin = 2.0 * half + 1.0;
@@ -498,18 +628,19 @@ fn refine(
         let mut s = margin;
         while s <= len - margin {
             let p = [a[0] + s * t[0], a[1] + s * t[1]];
-            if let Some(e) = crossing(lum, p, n, steps, polarity) {
+            if let Some(e) = crossing(seen, p, n, steps, polarity) {
                 points.push([p[0] + e * n[0], p[1] + e * n[1]]);
             }
             s += 1.0;
         }
-        let Some((line, side)) = fit_line(&points) else {
+        let Some((line, side, on_line)) = fit_line(&points) else {
             return Err(format!(
                 "side {k} ({:.1}, {:.1})–({:.1}, {:.1}) px: no clear edge along it",
                 a[0], a[1], b[0], b[1]
             ));
         };
         lines[k] = line;
+        kept.push(on_line);
         ss += side.rms * side.rms * side.points as f64;
         fit.points += side.points;
         fit.bow = fit.bow.max(side.bow);
@@ -532,7 +663,7 @@ fn refine(
         out[k] = p;
     }
     fit.rms = (ss / fit.points.max(1) as f64).sqrt();
-    Ok((out, fit))
+    Ok((out, fit, kept))
 }
 
 /// Where, along the outward normal `n` from `p` (px), the luminance passes
@@ -540,7 +671,7 @@ fn refine(
 /// outside: the outermost such crossing, by linear interpolation between
 /// profile steps.
 fn crossing(
-    lum: &Plane,
+    seen: &Seen<'_>,
     p: [f64; 2],
     n: [f64; 2],
     steps: isize,
@@ -548,7 +679,7 @@ fn crossing(
 ) -> Option<f64> {
     let at = |k: isize| {
         let s = k as f64 * PROFILE_STEP_PX;
-        lum.bilinear(p[0] + s * n[0], p[1] + s * n[1])
+        seen.at([p[0] + s * n[0], p[1] + s * n[1]])
     };
     let profile: Vec<f64> = (-steps..=steps).map(at).collect();
     let quarter = (steps / 2).max(1) as usize;
@@ -580,29 +711,16 @@ fn crossing(
 /// A line (a point on it, its unit direction) fitted to `points` by total
 /// least squares, refitted without the points beyond three robust
 /// deviations (at least 0.1 px): the line and how well it fits the kept
-/// points (`points` in order along the line). `None` for fewer than 8.
-fn fit_line(points: &[[f64; 2]]) -> Option<(Line, Fit)> {
+/// points (`points` in order along the line), and those points. `None`
+/// for fewer than 8.
+fn fit_line(points: &[[f64; 2]]) -> Option<(Line, Fit, Vec<[f64; 2]>)> {
     let mut kept: Vec<[f64; 2]> = points.to_vec();
     let mut line = None;
     for _ in 0..4 {
         if kept.len() < 8 {
             return None;
         }
-        let m = kept.len() as f64;
-        let c = [
-            kept.iter().map(|p| p[0]).sum::<f64>() / m,
-            kept.iter().map(|p| p[1]).sum::<f64>() / m,
-        ];
-        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
-        for p in &kept {
-            let (x, y) = (p[0] - c[0], p[1] - c[1]);
-            sxx += x * x;
-            sxy += x * y;
-            syy += y * y;
-        }
-        // The direction of largest spread.
-        let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-        let d = [angle.cos(), angle.sin()];
+        let ((c, d), m) = tls(&kept)?;
         let signed = |p: &[f64; 2]| (p[0] - c[0]) * d[1] - (p[1] - c[1]) * d[0];
         let off = |p: &[f64; 2]| signed(p).abs();
         let mut devs: Vec<f64> = kept.iter().map(off).collect();
@@ -623,7 +741,29 @@ fn fit_line(points: &[[f64; 2]]) -> Option<(Line, Fit)> {
             break;
         }
     }
-    line
+    line.map(|(l, f)| (l, f, kept))
+}
+
+/// The total-least-squares line through `points` (their centroid, the
+/// direction of largest spread), and how many; `None` if empty.
+fn tls(points: &[[f64; 2]]) -> Option<(Line, f64)> {
+    if points.is_empty() {
+        return None;
+    }
+    let m = points.len() as f64;
+    let c = [
+        points.iter().map(|p| p[0]).sum::<f64>() / m,
+        points.iter().map(|p| p[1]).sum::<f64>() / m,
+    ];
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for p in points {
+        let (x, y) = (p[0] - c[0], p[1] - c[1]);
+        sxx += x * x;
+        sxy += x * y;
+        syy += y * y;
+    }
+    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    Some(((c, [angle.cos(), angle.sin()]), m))
 }
 
 /// A line: a point on it and its unit direction, px.
@@ -663,14 +803,13 @@ fn meet(a: Line, b: Line) -> Option<[f64; 2]> {
 
 /// How many times the median luminance within 2–6 px inside the outline
 /// stands out of the median within 2–6 px outside it.
-fn contrast(lum: &Plane, quad: &[[f64; 2]; 4], polarity: Polarity) -> f64 {
+fn contrast(seen: &Seen<'_>, quad: &[[f64; 2]; 4], polarity: Polarity) -> f64 {
     let (mut inside, mut outside) = (Vec::new(), Vec::new());
     for Side { a, len, t, n, .. } in sides(quad) {
         let mut s = 8.0;
         while s <= len - 8.0 {
             for o in [2.0, 4.0, 6.0] {
-                let p =
-                    |o: f64| lum.bilinear(a[0] + s * t[0] + o * n[0], a[1] + s * t[1] + o * n[1]);
+                let p = |o: f64| seen.at([a[0] + s * t[0] + o * n[0], a[1] + s * t[1] + o * n[1]]);
                 inside.push(p(-o));
                 outside.push(p(o));
             }

@@ -15,6 +15,7 @@ pub mod error;
 pub mod export;
 pub mod glossy;
 pub mod gltf;
+pub mod lens;
 pub mod linalg;
 pub mod locate;
 pub mod material;

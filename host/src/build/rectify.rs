@@ -4,7 +4,10 @@
 //! photographs").
 //!
 //! The piece is a plane, so a pinhole camera sees it through a homography:
-//! the four corners the user marks in the photograph fix it. Each output
+//! the four corners the user marks in the photograph fix it. A real lens
+//! bends that pinhole image ([`super::lens`]): with the lens given, the
+//! homography maps onto the pinhole image and the lens onto the
+//! photograph. Each output
 //! pixel averages the photograph over its footprint on the piece — k × k
 //! points spread over the pixel, k from the photograph's pixels per output
 //! pixel there, each read by the region images' edge-aware Catmull–Rom
@@ -16,6 +19,7 @@ use rayon::prelude::*;
 
 use super::BuildError;
 use super::calibrate::ViewSampler;
+use super::lens::{FrameMap, Lens, LensChoice, LensMap};
 use super::linalg::Homography;
 use crate::camera::Frame;
 
@@ -38,6 +42,8 @@ pub struct RectifyOptions {
     /// Output pixels per mm; `None`: the photograph's own density where it
     /// resolves the piece least.
     pub px_per_mm: Option<f64>,
+    /// The camera lens' distortion ([`Lens::PINHOLE`]: none).
+    pub lens: Lens,
 }
 
 /// The piece's corners in a photograph: marked, or found in it.
@@ -53,18 +59,27 @@ pub enum Corners {
 }
 
 impl Corners {
-    /// The corners in `photo`: as marked, or found or refined there (with
-    /// what [`super::corners`] found).
+    /// The corners in `photo` and its lens: as marked, or found or refined
+    /// there (with what [`super::corners`] found). Only found or refined
+    /// corners estimate the lens.
     pub fn locate(
         self,
         photo: &Frame,
-    ) -> Result<([[f64; 2]; 4], Option<super::corners::FoundCorners>), BuildError> {
-        let found = match self {
-            Corners::Marked(c) => return Ok((c, None)),
-            Corners::Auto(origin) => super::corners::find_corners(photo, origin)?,
-            Corners::Refined(marked) => super::corners::refine_corners(photo, marked)?,
+        lens: LensChoice,
+    ) -> Result<([[f64; 2]; 4], Lens, Option<super::corners::FoundCorners>), BuildError> {
+        let found = match (self, lens) {
+            (Corners::Marked(c), LensChoice::Known(lens)) => return Ok((c, lens, None)),
+            (Corners::Marked(_), LensChoice::Estimate) => {
+                return Err(BuildError::Input(
+                    "the lens is estimated from the piece's sides: its corners found or refined, \
+                     not only marked"
+                        .into(),
+                ));
+            }
+            (Corners::Auto(origin), _) => super::corners::find_corners(photo, origin, lens)?,
+            (Corners::Refined(marked), _) => super::corners::refine_corners(photo, marked, lens)?,
         };
-        Ok((found.corners, Some(found)))
+        Ok((found.corners, found.lens, Some(found)))
     }
 }
 
@@ -81,9 +96,10 @@ pub struct RectifyReport {
 }
 
 impl RectifyOptions {
-    /// The options in range for a photograph of `width × height` px, and
-    /// the homography from the piece's uv to the photograph's pixels.
-    pub fn check(&self, width: u32, height: u32) -> Result<Homography, String> {
+    /// The options in range for a photograph of `width × height` px, the
+    /// homography from the piece's uv to the pinhole image's pixels and
+    /// the lens from those to the photograph's.
+    pub fn check(&self, width: u32, height: u32) -> Result<(Homography, LensMap), String> {
         let [w, h] = self.size_mm;
         if !(w.is_finite() && h.is_finite() && w > 0.0 && h > 0.0)
             || w > MAX_SIZE_MM
@@ -97,9 +113,12 @@ impl RectifyOptions {
             return Err(format!("--px-per-mm {d}: a density > 0"));
         }
         check_corners(&self.corners, width, height)?;
+        let lens = LensMap::new(self.lens, width, height)?;
+        let pinhole = self.corners.map(|c| lens.from_frame(c));
         let square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
-        Homography::fit(&square, &self.corners)
-            .ok_or_else(|| format!("corners {:?}: no homography fits them", self.corners))
+        let h = Homography::fit(&square, &pinhole)
+            .ok_or_else(|| format!("corners {:?}: no homography fits them", self.corners))?;
+        Ok((h, lens))
     }
 }
 
@@ -171,14 +190,14 @@ pub fn check_photo(photo: &Frame) -> Result<(), BuildError> {
 /// H = height · density (rounded, ≥ 1), pixel (c, r) covering the piece's
 /// point ((c + ½)/W · width, (r + ½)/H · height) mm.
 pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyReport), BuildError> {
-    let h = opts.check(photo.width, photo.height).map_err(BuildError::Input)?;
+    let (h, lens) = opts.check(photo.width, photo.height).map_err(BuildError::Input)?;
     check_photo(photo)?;
     // The photograph's px per mm along u and v at the corners and centre.
     let [wmm, hmm] = opts.size_mm;
     let densities: Vec<[f64; 2]> = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5]]
         .iter()
         .map(|&p| {
-            let j = h.jacobian(p);
+            let j = mul(lens.jacobian(h.apply(p)), h.jacobian(p));
             [j[0][0].hypot(j[1][0]) / wmm, j[0][1].hypot(j[1][1]) / hmm]
         })
         .collect();
@@ -198,6 +217,7 @@ pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyRe
     // counts: the most photograph px per output px, rounded up.
     let k = ((most / px_per_mm).ceil() as usize).clamp(1, MAX_SUPERSAMPLING);
     let sampler = ViewSampler::new(h);
+    let dims = [photo.width as usize, photo.height as usize];
     let mut rgb = vec![0.0f32; w * ht * 3];
     rgb.par_chunks_mut(w * 3).enumerate().for_each(|(r, row)| {
         for (c, px) in row.chunks_exact_mut(3).enumerate() {
@@ -208,7 +228,11 @@ pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyRe
                         (c as f64 + (a as f64 + 0.5) / k as f64) / w as f64,
                         (r as f64 + (b as f64 + 0.5) / k as f64) / ht as f64,
                     ];
-                    let v = sampler.region_sample(photo, uv);
+                    let v = if opts.lens.is_pinhole() {
+                        sampler.region_sample(photo, uv)
+                    } else {
+                        sampler.region_filter_through(&lens, dims, uv).apply(photo)
+                    };
                     for i in 0..3 {
                         acc[i] += v[i];
                     }
@@ -222,4 +246,9 @@ pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyRe
     });
     let report = RectifyReport { px_per_mm, photo_px_per_mm: [least, most], supersampling: k };
     Ok((Frame { width: w as u32, height: ht as u32, rgb }, report))
+}
+
+/// The 2 × 2 product a · b.
+fn mul(a: [[f64; 2]; 2], b: [[f64; 2]; 2]) -> [[f64; 2]; 2] {
+    std::array::from_fn(|r| std::array::from_fn(|c| a[r][0] * b[0][c] + a[r][1] * b[1][c]))
 }

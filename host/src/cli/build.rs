@@ -702,16 +702,26 @@ pub fn enlarge_cmd(
     Ok(())
 }
 
+/// What `scanner rectify` writes.
+pub struct RectifyOutputs<'a> {
+    /// The rectified picture (.exr).
+    pub picture: &'a Path,
+    /// The photograph with the outline (.png), if asked for.
+    pub show: Option<&'a Path>,
+}
+
 /// `scanner rectify`
 pub fn rectify_cmd(
     photo: &Path,
     corners: crate::build::rectify::Corners,
+    lens: crate::build::lens::LensChoice,
     size_mm: [f64; 2],
     px_per_mm: Option<f64>,
-    output: &Path,
-    show: Option<&Path>,
+    out: RectifyOutputs<'_>,
 ) -> Result<(), Failure> {
+    use crate::build::lens::LensChoice;
     use crate::build::rectify::{Corners, RectifyOptions, rectify};
+    let RectifyOutputs { picture: output, show } = out;
     let frame = crate::exrio::read_rgb(photo)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     if let Corners::Refined(marked) = corners {
@@ -719,8 +729,18 @@ pub fn rectify_cmd(
         crate::build::rectify::check_corners(&marked, frame.width, frame.height)
             .map_err(|e| Failure(2, anyhow!(e)))?;
     }
-    let (located, found) =
-        corners.locate(&frame).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    let (located, lens_used, found) = corners
+        .locate(&frame, lens)
+        .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
+    if lens == LensChoice::Estimate {
+        println!(
+            "{}: the lens estimated from the piece's sides: k1 {:.5} (k2 0; the radius in \
+             half-diagonals of the photograph, --lens {:.5})",
+            photo.display(),
+            lens_used.k[0],
+            lens_used.k[0]
+        );
+    }
     if let Corners::Refined(marked) = corners {
         let moved: Vec<String> = (0..4)
             .map(|k| {
@@ -749,13 +769,13 @@ pub fn rectify_cmd(
             found.contrast
         );
     }
-    let opts = RectifyOptions { corners: located, size_mm, px_per_mm };
+    let opts = RectifyOptions { corners: located, size_mm, px_per_mm, lens: lens_used };
     // Options that do not fit this photograph: exit 2, as for any option.
     opts.check(frame.width, frame.height).map_err(|e| Failure(2, anyhow!(e)))?;
     let (out, report) =
         rectify(&frame, &opts).map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     if let Some(show) = show {
-        outline_picture(&frame, located, show)?;
+        outline_picture(&frame, located, lens_used, show)?;
         println!("{}: the photograph with the piece's outline", show.display());
     }
     let bytes = crate::exrio::encode_half(&out)
@@ -787,8 +807,10 @@ const OUTLINE_MAX_SIDE: u32 = 1600;
 fn outline_picture(
     photo: &crate::camera::Frame,
     corners: [[f64; 2]; 4],
+    lens: crate::build::lens::Lens,
     path: &Path,
 ) -> Result<(), Failure> {
+    use crate::build::lens::{FrameMap, LensMap};
     let k = photo.width.max(photo.height).div_ceil(OUTLINE_MAX_SIDE).max(1);
     let (w, h) = (photo.width.div_ceil(k), photo.height.div_ceil(k));
     let mut lum: Vec<f32> = photo.rgb.chunks_exact(3).map(|p| (p[0] + p[1] + p[2]) / 3.0).collect();
@@ -809,8 +831,20 @@ fn outline_picture(
         }
         *px = image::Rgb(sum.map(|s| srgb8(s / n * scale)));
     }
+    let lens = LensMap::new(lens, photo.width, photo.height).map_err(|e| Failure(2, anyhow!(e)))?;
+    let pinhole = corners.map(|c| lens.from_frame(c));
+    // Each side straight in the pinhole image, through the lens.
+    const STEPS: usize = 32;
+    let outline: Vec<[f64; 2]> = (0..4 * STEPS)
+        .map(|i| {
+            let (a, b, t) = (pinhole[i / STEPS], pinhole[(i / STEPS + 1) % 4], i % STEPS);
+            let t = t as f64 / STEPS as f64;
+            let q = lens.to_frame([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
+            [q[0] / k as f64, q[1] / k as f64]
+        })
+        .collect();
     let shown = corners.map(|c| [c[0] / k as f64, c[1] / k as f64]);
-    super::plot::draw_outline(&mut img, shown).map_err(|e| Failure(4, anyhow!(e)))?;
+    super::plot::draw_outline(&mut img, shown, &outline).map_err(|e| Failure(4, anyhow!(e)))?;
     let mut bytes = Vec::new();
     img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;

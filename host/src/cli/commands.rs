@@ -1472,6 +1472,12 @@ pub fn demo(
 #[cfg(feature = "sim")]
 const GLOSSY_EXPOSURE_US: u32 = 2_000;
 
+/// The lens of the demo's camera for direct images: 2 % barrel distortion
+/// at the photographs' corners (k1 with the radius in half-diagonals), as
+/// a stock lens has; `scanner rectify --lens auto` estimates it.
+#[cfg(feature = "sim")]
+const DEMO_LENS_K1: f64 = -0.02;
+
 /// `scanner demo`: a complete simulated session — the three calibration
 /// targets and a material sample, then calibration and region images —
 /// into `out`.
@@ -1677,17 +1683,13 @@ pub fn demo(
         let photos = out.join(format!("{name}-photographs"));
         let direct = out.join(format!("{name}-direct"));
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
-        let distance = hil_sim::direct::PHOTO_DISTANCE_MM;
-        let shots = hil_sim::direct::write_photographs(
-            &sim,
-            &nominal,
-            m.clone(),
-            4,
-            scale,
-            distance,
-            &photos,
-        )
-        .map_err(|e| Failure(4, anyhow!(e)))?;
+        let setup = hil_sim::direct::PhotoSetup {
+            distance_mm: hil_sim::direct::PHOTO_DISTANCE_MM,
+            distortion: [DEMO_LENS_K1, 0.0],
+        };
+        let shots =
+            hil_sim::direct::write_photographs(&sim, &nominal, m.clone(), 4, scale, setup, &photos)
+                .map_err(|e| Failure(4, anyhow!(e)))?;
         std::fs::create_dir_all(&direct)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
         let outline = photos.join("photo-0-corners.png");
@@ -1695,10 +1697,13 @@ pub fn demo(
             super::build::rectify_cmd(
                 &photos.join(&ph.file),
                 crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
+                crate::build::lens::LensChoice::Estimate,
                 [shots.size_mm; 2],
                 Some(scale),
-                &direct.join(&ph.file),
-                (k == 0).then_some(outline.as_path()),
+                super::build::RectifyOutputs {
+                    picture: &direct.join(&ph.file),
+                    show: (k == 0).then_some(outline.as_path()),
+                },
             )?;
         }
         let manifest = shots.manifest();

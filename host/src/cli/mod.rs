@@ -192,7 +192,7 @@ enum Command {
     /// piece: a direct image for `scanner enlarge` (docs/direct-images.md).
     /// Mark the piece's four corners in the photograph.
     Rectify {
-        /// The photograph: linear OpenEXR (RGB), lens distortion removed.
+        /// The photograph: linear OpenEXR (RGB).
         photo: PathBuf,
         /// The piece's corners in the photograph, px (pixel (c, r) spans
         /// [c, c + 1) × [r, r + 1)): X0,Y0,X1,Y1,X2,Y2,X3,Y3 for the
@@ -213,6 +213,14 @@ enum Command {
         /// as `--corners auto` fits them (marks within a few px).
         #[arg(long)]
         refine: bool,
+        /// The lens' radial distortion, about the photograph's centre:
+        /// K1[,K2[,FOCAL_PX]] (Brown–Conrady, OpenCV's k1, k2 when
+        /// FOCAL_PX is the calibration's focal length; without it the
+        /// radius is in half-diagonals of the photograph), or `auto`: k1
+        /// estimated from the piece's own straight sides (with found or
+        /// refined corners) [default: none, a pinhole].
+        #[arg(long, allow_hyphen_values = true)]
+        lens: Option<String>,
         /// The piece's width and height, mm: W,H (one number: a square).
         #[arg(long, value_delimiter = ',', required = true)]
         size_mm: Vec<f64>,
@@ -569,16 +577,19 @@ fn output<T>(r: anyhow::Result<T>) -> Result<T, Failure> {
     r.map_err(|e| Failure(4, e))
 }
 
-/// `scanner rectify`'s corners and size from its arguments (exit 2: their
-/// count, a number that is not one, `--origin` with marked corners,
-/// `--refine` with `auto`).
+/// `scanner rectify`'s corners, lens and size from its arguments (exit 2:
+/// their count, a number that is not one, `--origin` with marked corners,
+/// `--refine` with `auto`, `--lens auto` with marked corners, a lens out
+/// of range).
 fn rectify_options(
     corners: &[String],
     origin: Option<&str>,
     refine: bool,
+    lens: Option<&str>,
     size_mm: &[f64],
-) -> Result<(crate::build::rectify::Corners, [f64; 2]), Failure> {
+) -> Result<(crate::build::rectify::Corners, crate::build::lens::LensChoice, [f64; 2]), Failure> {
     use crate::build::corners::Origin;
+    use crate::build::lens::{Lens, LensChoice};
     use crate::build::rectify::Corners;
     let bad = |m: String| Failure(2, anyhow::anyhow!(m));
     let corners = if let [auto] = corners
@@ -609,12 +620,24 @@ fn rectify_options(
         let marked = std::array::from_fn(|k| [n[2 * k], n[2 * k + 1]]);
         if refine { Corners::Refined(marked) } else { Corners::Marked(marked) }
     };
+    let lens = match lens {
+        None => LensChoice::Known(Lens::PINHOLE),
+        Some("auto") => {
+            if let Corners::Marked(_) = corners {
+                return Err(bad("--lens auto estimates the lens from the piece's sides: with \
+                                --corners auto or --refine"
+                    .into()));
+            }
+            LensChoice::Estimate
+        }
+        Some(text) => LensChoice::Known(Lens::parse(text).map_err(bad)?),
+    };
     let size_mm = match *size_mm {
         [side] => [side, side],
         [w, h] => [w, h],
         _ => return Err(bad(format!("--size-mm: W,H or one side, not {} numbers", size_mm.len()))),
     };
-    Ok((corners, size_mm))
+    Ok((corners, lens, size_mm))
 }
 
 /// Before any work: the output may be written (not a device node, symlink,
@@ -758,14 +781,25 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let opts = crate::build::enlarge::EnlargeOptions { radius, subtexel, signature };
             build::enlarge_cmd(&material, &direct, &output, &opts)?
         }
-        Command::Rectify { photo, corners, origin, refine, size_mm, px_per_mm, output, show } => {
+        Command::Rectify {
+            photo,
+            corners,
+            origin,
+            refine,
+            lens,
+            size_mm,
+            px_per_mm,
+            output,
+            show,
+        } => {
             check_output(&output, &[&photo], &["exr"])?;
             if let Some(show) = &show {
                 check_output(show, &[&photo, &output], &["png"])?;
             }
-            let (corners, size_mm) =
-                rectify_options(&corners, origin.as_deref(), refine, &size_mm)?;
-            build::rectify_cmd(&photo, corners, size_mm, px_per_mm, &output, show.as_deref())?
+            let (corners, lens, size_mm) =
+                rectify_options(&corners, origin.as_deref(), refine, lens.as_deref(), &size_mm)?;
+            let out = build::RectifyOutputs { picture: &output, show: show.as_deref() };
+            build::rectify_cmd(&photo, corners, lens, size_mm, px_per_mm, out)?
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {

@@ -55,10 +55,15 @@ pub fn draw_captions(img: &mut image::RgbImage, captions: &[Caption]) -> Result<
     root.present().map_err(|e| PlotError(e.to_string()))
 }
 
-/// Draw a piece's outline onto `img`: the quadrilateral through `corners`
-/// (px of `img`) in red, each corner marked and labelled with its uv, and
-/// an arrow along u from (0, 0).
-pub fn draw_outline(img: &mut image::RgbImage, corners: [[f64; 2]; 4]) -> Result<(), PlotError> {
+/// Draw a piece's outline onto `img`: the closed path `outline` through
+/// its `corners` (px of `img`; straight sides, or curved by a lens) in red,
+/// each corner marked and labelled with its uv, and an arrow along u from
+/// (0, 0).
+pub fn draw_outline(
+    img: &mut image::RgbImage,
+    corners: [[f64; 2]; 4],
+    outline: &[[f64; 2]],
+) -> Result<(), PlotError> {
     use plotters::style::text_anchor::{HPos, Pos, VPos};
     register_font();
     let (w, h) = img.dimensions();
@@ -79,8 +84,8 @@ pub fn draw_outline(img: &mut image::RgbImage, corners: [[f64; 2]; 4]) -> Result
         root.draw(&back).map_err(e)?;
         root.draw(&Text::new(text.to_string(), p, style)).map_err(e)
     };
-    let mut outline: Vec<(i32, i32)> = corners.iter().map(|&c| at(c)).collect();
-    outline.push(outline[0]);
+    let mut outline: Vec<(i32, i32)> = outline.iter().map(|&c| at(c)).collect();
+    outline.extend(outline.first().copied());
     root.draw(&PathElement::new(outline, red.stroke_width(2))).map_err(e)?;
     let centre = [
         0.25 * corners.iter().map(|c| c[0]).sum::<f64>(),
