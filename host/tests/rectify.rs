@@ -423,8 +423,8 @@ fn marked_corners_are_refined_onto_the_edges() {
 /// and the corners as it shows them.
 fn through_lens(k: [f64; 2], pinhole: &[[f64; 2]; 4]) -> (Frame, [[f64; 2]; 4], LensMap) {
     let map = LensMap::new(Lens { k, focal_px: None }, 640, 480).unwrap();
-    let photo = photograph_on(640, 480, &face_up(pinhole), DARK, |q| map.from_frame(q));
-    (photo, pinhole.map(|p| map.to_frame(p)), map)
+    let photo = photograph_on(640, 480, &face_up(pinhole), DARK, |q| map.in_pinhole(q));
+    (photo, pinhole.map(|p| map.in_frame(p)), map)
 }
 
 fn worst_px(a: &[[f64; 2]; 4], b: &[[f64; 2]; 4]) -> f64 {
@@ -451,8 +451,8 @@ fn psnr_against_pattern(out: &Frame) -> f64 {
                     }
                 }
             }
-            for k in 0..3 {
-                se += (out.rgb[3 * (r * w + c) + k] as f64 - want[k]).powi(2);
+            for (got, want) in out.rgb[3 * (r * w + c)..][..3].iter().zip(want) {
+                se += (*got as f64 - want).powi(2);
                 n += 1;
             }
         }

@@ -884,25 +884,25 @@ impl ViewSampler {
         uv: [f64; 2],
     ) -> BicubicFilter {
         let p = self.homography.apply(uv);
-        let q = lens.to_frame(p);
+        let q = lens.in_frame(p);
         // Every tap lies within 2 frame px per axis of q, so within
         // 4 · half · stretch along any edge's normal: all of them usable,
         // the plain filter.
         if self.depth(p) >= 2.0 * std::f64::consts::SQRT_2 * lens.stretch() + CLEAN_MARGIN_PX {
             return BicubicFilter::new(dims, q[0], q[1]);
         }
-        let clean = |x: f64, y: f64| self.pixel_on_sample(lens.from_frame([x, y]));
+        let clean = |x: f64, y: f64| self.pixel_on_sample(lens.in_pinhole([x, y]));
         if let Some(b) = BicubicFilter::masked(dims, q[0], q[1], clean, 0.5) {
             return b;
         }
         for k in [1.0, 2.0, 4.0] {
-            let q = lens.to_frame(self.inset_point(uv, k * REGION_EDGE_PX));
+            let q = lens.in_frame(self.inset_point(uv, k * REGION_EDGE_PX));
             if let Some(b) = BicubicFilter::masked(dims, q[0], q[1], clean, 0.25) {
                 return b;
             }
         }
         // A view of a few pixels: the plain filter at the centre.
-        let q = lens.to_frame(self.homography.apply([0.5, 0.5]));
+        let q = lens.in_frame(self.homography.apply([0.5, 0.5]));
         BicubicFilter::new(dims, q[0], q[1])
     }
 

@@ -250,7 +250,7 @@ impl<'a> Seen<'a> {
 
     /// The luminance at the pinhole image's point `p`, px.
     fn at(&self, p: [f64; 2]) -> f64 {
-        let q = self.lens.to_frame(p);
+        let q = self.lens.in_frame(p);
         self.lum.bilinear(q[0], q[1])
     }
 }
@@ -276,14 +276,14 @@ fn through(
             let mut lens = Lens::PINHOLE;
             for _ in 0..LENS_ROUNDS {
                 let seen = Seen::new(lum, lens)?;
-                let mut pinhole = quad.map(|c| seen.lens.from_frame(c));
+                let mut pinhole = quad.map(|c| seen.lens.in_pinhole(c));
                 let mut sides = Vec::new();
                 for half in [6.0, 4.0] {
                     (pinhole, _, sides) = refine(&seen, &pinhole, half, polarity)?;
                 }
                 let edges: Vec<Vec<[f64; 2]>> = sides
                     .iter()
-                    .map(|pts| pts.iter().map(|&p| seen.lens.to_frame(p)).collect())
+                    .map(|pts| pts.iter().map(|&p| seen.lens.in_frame(p)).collect())
                     .collect();
                 lens = estimate_lens(&edges, lum.width as u32, lum.height as u32);
             }
@@ -291,8 +291,8 @@ fn through(
         }
     };
     let seen = Seen::new(lum, lens)?;
-    let found = settle(&seen, quad.map(|c| seen.lens.from_frame(c)), polarity, halves)?;
-    Ok(FoundCorners { corners: found.corners.map(|c| seen.lens.to_frame(c)), ..found })
+    let found = settle(&seen, quad.map(|c| seen.lens.in_pinhole(c)), polarity, halves)?;
+    Ok(FoundCorners { corners: found.corners.map(|c| seen.lens.in_frame(c)), ..found })
 }
 
 /// The k1 (k2 = 0, half-diagonal scale) that makes each side's edge points
@@ -309,7 +309,7 @@ fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> Lens {
         };
         let mut total = 0.0;
         for side in edges {
-            let pts: Vec<[f64; 2]> = side.iter().map(|&q| map.from_frame(q)).collect();
+            let pts: Vec<[f64; 2]> = side.iter().map(|&q| map.in_pinhole(q)).collect();
             let Some(((c, d), _)) = tls(&pts) else {
                 return f64::INFINITY;
             };
@@ -382,10 +382,10 @@ fn settle(
     }
     let (w, h) = (seen.lum.width as f64, seen.lum.height as f64);
     let in_photo = |c: &[f64; 2]| {
-        let q = seen.lens.to_frame(*c);
+        let q = seen.lens.in_frame(*c);
         (0.0..=w).contains(&q[0]) && (0.0..=h).contains(&q[1])
     };
-    if let Some(c) = quad.iter().find(|c| !in_photo(c)).map(|c| seen.lens.to_frame(*c)) {
+    if let Some(c) = quad.iter().find(|c| !in_photo(c)).map(|c| seen.lens.in_frame(*c)) {
         return Err(format!(
             "a corner, where two sides meet, lies outside the photograph at ({:.1}, {:.1}) px",
             c[0], c[1]
@@ -617,7 +617,7 @@ fn refine(
     quad: &[[f64; 2]; 4],
     half: f64,
     polarity: Polarity,
-) -> Result<([[f64; 2]; 4], Fit, Vec<Vec<[f64; 2]>>), String> {
+) -> Result<Refit, String> {
     let mut lines: [Line; 4] = [([0.0; 2], [0.0; 2]); 4];
     let (mut ss, mut fit) = (0.0, Fit::default());
     let mut kept = Vec::with_capacity(4);
@@ -765,6 +765,10 @@ fn tls(points: &[[f64; 2]]) -> Option<(Line, f64)> {
     let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
     Some(((c, [angle.cos(), angle.sin()]), m))
 }
+
+/// What [`refine`] gives: the corners, how well the sides fit, and each
+/// side's kept edge points.
+type Refit = ([[f64; 2]; 4], Fit, Vec<Vec<[f64; 2]>>);
 
 /// A line: a point on it and its unit direction, px.
 type Line = ([f64; 2], [f64; 2]);

@@ -81,9 +81,9 @@ pub enum LensChoice {
 /// has its lens ([`LensMap`]).
 pub trait FrameMap: Sync {
     /// The frame point, px, of the pinhole point `p`.
-    fn to_frame(&self, p: [f64; 2]) -> [f64; 2];
+    fn in_frame(&self, p: [f64; 2]) -> [f64; 2];
     /// The pinhole point of the frame point `q`, px.
-    fn from_frame(&self, q: [f64; 2]) -> [f64; 2];
+    fn in_pinhole(&self, q: [f64; 2]) -> [f64; 2];
     /// The most pinhole px that one frame px spans, in any direction.
     fn stretch(&self) -> f64;
 }
@@ -94,11 +94,11 @@ pub struct Pinhole;
 
 impl FrameMap for Pinhole {
     #[inline(always)]
-    fn to_frame(&self, p: [f64; 2]) -> [f64; 2] {
+    fn in_frame(&self, p: [f64; 2]) -> [f64; 2] {
         p
     }
     #[inline(always)]
-    fn from_frame(&self, q: [f64; 2]) -> [f64; 2] {
+    fn in_pinhole(&self, q: [f64; 2]) -> [f64; 2] {
         q
     }
     #[inline(always)]
@@ -180,13 +180,13 @@ impl LensMap {
 }
 
 impl FrameMap for LensMap {
-    fn to_frame(&self, p: [f64; 2]) -> [f64; 2] {
+    fn in_frame(&self, p: [f64; 2]) -> [f64; 2] {
         if self.lens.is_pinhole() {
             return p;
         }
         self.denormalised(radial_distort(self.lens.k, self.normalised(p)))
     }
-    fn from_frame(&self, q: [f64; 2]) -> [f64; 2] {
+    fn in_pinhole(&self, q: [f64; 2]) -> [f64; 2] {
         if self.lens.is_pinhole() {
             return q;
         }
@@ -219,14 +219,14 @@ mod tests {
         let map = LensMap::new(Lens { k: [-0.12, 0.03], focal_px: None }, 600, 400).unwrap();
         assert!(map.stretch() > 1.0);
         for p in [[10.0, 20.0], [300.0, 200.0], [590.0, 390.0], [450.5, 33.25]] {
-            let q = map.to_frame(p);
-            let back = map.from_frame(q);
+            let q = map.in_frame(p);
+            let back = map.in_pinhole(q);
             assert!((back[0] - p[0]).abs() < 1e-9 && (back[1] - p[1]).abs() < 1e-9, "{p:?}");
             let j = map.jacobian(p);
             let e = 1e-5;
             for (i, d) in [[e, 0.0], [0.0, e]].iter().enumerate() {
-                let a = map.to_frame([p[0] + d[0], p[1] + d[1]]);
-                let b = map.to_frame([p[0] - d[0], p[1] - d[1]]);
+                let a = map.in_frame([p[0] + d[0], p[1] + d[1]]);
+                let b = map.in_frame([p[0] - d[0], p[1] - d[1]]);
                 for r in 0..2 {
                     let num = (a[r] - b[r]) / (2.0 * e);
                     assert!((num - j[r][i]).abs() < 1e-6, "{p:?}: {num} against {}", j[r][i]);
@@ -234,8 +234,8 @@ mod tests {
             }
         }
         // The centre stays; barrel distortion pulls the corners in.
-        assert_eq!(map.to_frame([300.0, 200.0]), [300.0, 200.0]);
-        assert!(map.to_frame([0.0, 0.0])[0] > 0.0);
+        assert_eq!(map.in_frame([300.0, 200.0]), [300.0, 200.0]);
+        assert!(map.in_frame([0.0, 0.0])[0] > 0.0);
     }
 
     #[test]

@@ -58,17 +58,26 @@ pub enum Corners {
     Auto(super::corners::Origin),
 }
 
+/// The corners in a photograph and its lens ([`Corners::locate`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Located {
+    /// As [`RectifyOptions::corners`].
+    pub corners: [[f64; 2]; 4],
+    /// As [`RectifyOptions::lens`].
+    pub lens: Lens,
+    /// What [`super::corners`] found, if it looked.
+    pub found: Option<super::corners::FoundCorners>,
+}
+
 impl Corners {
     /// The corners in `photo` and its lens: as marked, or found or refined
     /// there (with what [`super::corners`] found). Only found or refined
     /// corners estimate the lens.
-    pub fn locate(
-        self,
-        photo: &Frame,
-        lens: LensChoice,
-    ) -> Result<([[f64; 2]; 4], Lens, Option<super::corners::FoundCorners>), BuildError> {
+    pub fn locate(self, photo: &Frame, lens: LensChoice) -> Result<Located, BuildError> {
         let found = match (self, lens) {
-            (Corners::Marked(c), LensChoice::Known(lens)) => return Ok((c, lens, None)),
+            (Corners::Marked(corners), LensChoice::Known(lens)) => {
+                return Ok(Located { corners, lens, found: None });
+            }
             (Corners::Marked(_), LensChoice::Estimate) => {
                 return Err(BuildError::Input(
                     "the lens is estimated from the piece's sides: its corners found or refined, \
@@ -79,7 +88,7 @@ impl Corners {
             (Corners::Auto(origin), _) => super::corners::find_corners(photo, origin, lens)?,
             (Corners::Refined(marked), _) => super::corners::refine_corners(photo, marked, lens)?,
         };
-        Ok((found.corners, found.lens, Some(found)))
+        Ok(Located { corners: found.corners, lens: found.lens, found: Some(found) })
     }
 }
 
@@ -114,7 +123,7 @@ impl RectifyOptions {
         }
         check_corners(&self.corners, width, height)?;
         let lens = LensMap::new(self.lens, width, height)?;
-        let pinhole = self.corners.map(|c| lens.from_frame(c));
+        let pinhole = self.corners.map(|c| lens.in_pinhole(c));
         let square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
         let h = Homography::fit(&square, &pinhole)
             .ok_or_else(|| format!("corners {:?}: no homography fits them", self.corners))?;

@@ -729,7 +729,7 @@ pub fn rectify_cmd(
         crate::build::rectify::check_corners(&marked, frame.width, frame.height)
             .map_err(|e| Failure(2, anyhow!(e)))?;
     }
-    let (located, lens_used, found) = corners
+    let crate::build::rectify::Located { corners: located, lens: lens_used, found } = corners
         .locate(&frame, lens)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     if lens == LensChoice::Estimate {
@@ -832,14 +832,14 @@ fn outline_picture(
         *px = image::Rgb(sum.map(|s| srgb8(s / n * scale)));
     }
     let lens = LensMap::new(lens, photo.width, photo.height).map_err(|e| Failure(2, anyhow!(e)))?;
-    let pinhole = corners.map(|c| lens.from_frame(c));
+    let pinhole = corners.map(|c| lens.in_pinhole(c));
     // Each side straight in the pinhole image, through the lens.
     const STEPS: usize = 32;
     let outline: Vec<[f64; 2]> = (0..4 * STEPS)
         .map(|i| {
             let (a, b, t) = (pinhole[i / STEPS], pinhole[(i / STEPS + 1) % 4], i % STEPS);
             let t = t as f64 / STEPS as f64;
-            let q = lens.to_frame([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
+            let q = lens.in_frame([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
             [q[0] / k as f64, q[1] / k as f64]
         })
         .collect();
