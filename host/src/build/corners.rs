@@ -96,6 +96,9 @@ pub struct FoundCorners {
     pub edge_points: usize,
     /// The lens the sides are straight through: as given, or estimated.
     pub lens: Lens,
+    /// The estimated lens' k1's standard error, from how well the sides'
+    /// edge points fix it (`None`: the lens was given).
+    pub lens_k1_sigma: Option<f64>,
 }
 
 /// The least contrast between piece and background.
@@ -270,10 +273,10 @@ fn through(
     choice: LensChoice,
     halves: &[f64],
 ) -> Result<FoundCorners, String> {
-    let lens = match choice {
-        LensChoice::Known(lens) => lens,
+    let (lens, sigma) = match choice {
+        LensChoice::Known(lens) => (lens, None),
         LensChoice::Estimate => {
-            let mut lens = Lens::PINHOLE;
+            let (mut lens, mut sigma) = (Lens::PINHOLE, f64::INFINITY);
             for _ in 0..LENS_ROUNDS {
                 let seen = Seen::new(lum, lens)?;
                 let mut pinhole = quad.map(|c| seen.lens.in_pinhole(c));
@@ -285,14 +288,18 @@ fn through(
                     .iter()
                     .map(|pts| pts.iter().map(|&p| seen.lens.in_frame(p)).collect())
                     .collect();
-                lens = estimate_lens(&edges, lum.width as u32, lum.height as u32);
+                (lens, sigma) = estimate_lens(&edges, lum.width as u32, lum.height as u32);
             }
-            lens
+            (lens, Some(sigma))
         }
     };
     let seen = Seen::new(lum, lens)?;
     let found = settle(&seen, quad.map(|c| seen.lens.in_pinhole(c)), polarity, halves)?;
-    Ok(FoundCorners { corners: found.corners.map(|c| seen.lens.in_frame(c)), ..found })
+    Ok(FoundCorners {
+        corners: found.corners.map(|c| seen.lens.in_frame(c)),
+        lens_k1_sigma: sigma,
+        ..found
+    })
 }
 
 /// The k1 (k2 = 0, half-diagonal scale) that makes each side's edge points
@@ -301,7 +308,10 @@ fn through(
 /// the photograph's px (divided by the lens' local stretch there, so that
 /// shrinking the image does not pass for straightening it). A grid over
 /// ±[`LENS_K1_RANGE`], then a golden-section search around its best.
-fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> Lens {
+///
+/// With it, k1's standard error: σ² / (½ cost''), σ² the cost at the best
+/// over the points less the parameters (two a line, and k1).
+fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> (Lens, f64) {
     let cost = |k1: f64| -> f64 {
         let lens = Lens { k: [k1, 0.0], focal_px: None };
         let Ok(map) = LensMap::new(lens, width, height) else {
@@ -340,7 +350,12 @@ fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> Lens {
             f2 = cost(x2);
         }
     }
-    Lens { k: [0.5 * (a + b), 0.0], focal_px: None }
+    let k1 = 0.5 * (a + b);
+    let h = 1e-3;
+    let (c0, curvature) = (cost(k1), (cost(k1 + h) - 2.0 * cost(k1) + cost(k1 - h)) / (h * h));
+    let dof = edges.iter().map(Vec::len).sum::<usize>().saturating_sub(9).max(1);
+    let sigma = (c0 / dof as f64 / (0.5 * curvature)).sqrt();
+    (Lens { k: [k1, 0.0], focal_px: None }, if sigma.is_finite() { sigma } else { f64::INFINITY })
 }
 
 /// The photograph's luminance: the mean of its channels.
@@ -406,6 +421,7 @@ fn settle(
         bow_px: fit.bow,
         edge_points: fit.points,
         lens: seen.lens.lens(),
+        lens_k1_sigma: None,
     })
 }
 

@@ -733,9 +733,10 @@ pub fn rectify_cmd(
         .locate(&frame, lens)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
     if lens == LensChoice::Estimate {
+        let sigma = found.and_then(|f| f.lens_k1_sigma).unwrap_or(f64::INFINITY);
         println!(
-            "{}: the lens estimated from the piece's sides: k1 {:.5} (k2 0; the radius in \
-             half-diagonals of the photograph, --lens {:.5})",
+            "{}: the lens estimated from the piece's sides: k1 {:.5} ± {sigma:.5} (k2 0; the \
+             radius in half-diagonals of the photograph: --lens {:.5})",
             photo.display(),
             lens_used.k[0],
             lens_used.k[0]
