@@ -729,6 +729,11 @@ pub fn rectify_cmd(
         crate::build::rectify::check_corners(&marked, frame.width, frame.height)
             .map_err(|e| Failure(2, anyhow!(e)))?;
     }
+    if let LensChoice::Known(lens) = lens {
+        // A lens that folds this photograph: exit 2 too.
+        crate::build::lens::LensMap::new(lens, frame.width, frame.height)
+            .map_err(|e| Failure(2, anyhow!("--lens: {e}")))?;
+    }
     let crate::build::rectify::Located { corners: located, lens: lens_used, found } = corners
         .locate(&frame, lens)
         .map_err(|e| Failure(3, anyhow!("{}: {e}", photo.display())))?;
