@@ -20,6 +20,24 @@ fn pattern(x: f64, y: f64) -> [f64; 3] {
         .map(|v| v.clamp(0.05, 0.95))
 }
 
+/// The pattern's mean over pixel (c, r) of a rectification at 4 px/mm
+/// (8 × 8 points).
+fn pattern_mean(c: usize, r: usize) -> [f64; 3] {
+    let mut want = [0.0f64; 3];
+    for a in 0..8 {
+        for b in 0..8 {
+            let v = pattern(
+                (c as f64 + (a as f64 + 0.5) / 8.0) * 0.25,
+                (r as f64 + (b as f64 + 0.5) / 8.0) * 0.25,
+            );
+            for k in 0..3 {
+                want[k] += v[k] / 64.0;
+            }
+        }
+    }
+    want
+}
+
 const HOLDER: f32 = 10.0;
 const SIZE_MM: [f64; 2] = [40.0, 24.0];
 
@@ -84,18 +102,7 @@ fn a_perspective_photograph_is_rectified_onto_the_piece() {
     let (mut se, mut n, mut worst_edge) = (0.0f64, 0usize, 0.0f32);
     for r in 0..96usize {
         for c in 0..160usize {
-            let mut want = [0.0f64; 3];
-            for a in 0..8 {
-                for b in 0..8 {
-                    let v = pattern(
-                        (c as f64 + (a as f64 + 0.5) / 8.0) * 0.25,
-                        (r as f64 + (b as f64 + 0.5) / 8.0) * 0.25,
-                    );
-                    for k in 0..3 {
-                        want[k] += v[k] / 64.0;
-                    }
-                }
-            }
+            let want = pattern_mean(c, r);
             let got = &out.rgb[3 * (r * 160 + c)..][..3];
             let border = r == 0 || c == 0 || r == 95 || c == 159;
             for k in 0..3 {
@@ -432,25 +439,13 @@ fn worst_px(a: &[[f64; 2]; 4], b: &[[f64; 2]; 4]) -> f64 {
 }
 
 /// PSNR (peak 1) of a rectification of the piece at 4 px/mm against the
-/// pattern's mean over each output pixel (8 × 8 points), border pixels
-/// left out.
+/// pattern's mean over each output pixel, border pixels left out.
 fn psnr_against_pattern(out: &Frame) -> f64 {
     let (w, h) = (out.width as usize, out.height as usize);
     let (mut se, mut n) = (0.0f64, 0usize);
     for r in 1..h - 1 {
         for c in 1..w - 1 {
-            let mut want = [0.0f64; 3];
-            for a in 0..8 {
-                for b in 0..8 {
-                    let v = pattern(
-                        (c as f64 + (a as f64 + 0.5) / 8.0) * 0.25,
-                        (r as f64 + (b as f64 + 0.5) / 8.0) * 0.25,
-                    );
-                    for k in 0..3 {
-                        want[k] += v[k] / 64.0;
-                    }
-                }
-            }
+            let want = pattern_mean(c, r);
             for (got, want) in out.rgb[3 * (r * w + c)..][..3].iter().zip(want) {
                 se += (*got as f64 - want).powi(2);
                 n += 1;
