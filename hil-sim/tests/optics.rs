@@ -299,6 +299,33 @@ fn direct_images_of_the_large_piece_from_the_four_mirrors_nearest_the_axis() {
     assert!(images[0] != images[1] && images[0] != images[2]);
 }
 
+/// A lens with barrel distortion pulls the piece's corners in towards the
+/// photograph's centre by k1 · (r / half-diagonal)² of their radius, and
+/// a pixel still goes back to its point on the piece.
+#[test]
+fn a_photograph_through_a_lens_shows_the_corners_pulled_in() {
+    use hil_sim::direct::PhotoSetup;
+    use hil_sim::optics::PhotoCamera;
+    let d = nominal().mirror_direction(0).unwrap();
+    let pinhole = PhotoCamera::framing(d, 300.0, 160, 80.0, 0.8);
+    let lens = PhotoCamera { distortion: [-0.05, 0.0], ..pinhole };
+    for p in [DVec3::new(0.0, 0.0, 0.0), DVec3::new(31.0, -12.5, 0.0), DVec3::new(-40.0, 40.0, 0.0)]
+    {
+        let back = lens.on_plane(lens.project(p)).unwrap();
+        assert!((back - p).length() < 1e-9, "{p:?} → {back:?}");
+    }
+    let half_diagonal = 80.0 * std::f64::consts::SQRT_2;
+    for (a, b) in pinhole.corners(80.0).iter().zip(lens.corners(80.0)) {
+        let (ra, rb) = ((a[0] - 80.0).hypot(a[1] - 80.0), (b[0] - 80.0).hypot(b[1] - 80.0));
+        let want = ra * (1.0 - 0.05 * (ra / half_diagonal).powi(2));
+        assert!((rb - want).abs() < 1e-9, "{a:?} → {b:?}: {rb} against {want}");
+    }
+    // A lens that folds the photograph is refused.
+    let fold = PhotoSetup { distance_mm: 400.0, distortion: [-0.4, 0.0] };
+    assert!(fold.check().unwrap_err().contains("one to one"));
+    assert!(PhotoSetup { distortion: [-0.05, 0.0], ..fold }.check().is_ok());
+}
+
 #[test]
 fn photographs_in_perspective_see_the_piece_where_its_corners_project() {
     use hil_sim::optics::{HOLDER_ALBEDO, PhotoCamera};
