@@ -234,14 +234,23 @@ fn corner_seeds(root: &std::path::Path) {
                 (b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0]) <= 0.0
             })
         };
-        let mut bytes = vec![(w - 1) as u8, (h - 1) as u8, 0];
-        for y in 0..h {
-            for x in 0..w {
-                let on = inside(x as f64 + 0.5, y as f64 + 0.5);
-                bytes.push(if on { piece + ((x * 7 + y * 3) % 16) as u8 } else { background });
+        // Through a pinhole, and through a lens of 6 % barrel distortion
+        // (the pinhole point at q · (1 + 0.06 (r / half-diagonal)²)) with
+        // the lens to be estimated (bit 2 of the third byte).
+        for (lens, k1, flags) in [("", 0.0, 0u8), ("-barrel", 0.06, 4u8)] {
+            let (cx, cy, r2) = (w as f64 / 2.0, h as f64 / 2.0, ((w * w + h * h) / 4) as f64);
+            let mut bytes = vec![(w - 1) as u8, (h - 1) as u8, flags];
+            for y in 0..h {
+                for x in 0..w {
+                    let (dx, dy) = (x as f64 + 0.5 - cx, y as f64 + 0.5 - cy);
+                    let s = 1.0 + k1 * (dx * dx + dy * dy) / r2;
+                    let on = inside(cx + s * dx, cy + s * dy);
+                    let v = if on { piece + ((x * 7 + y * 3) % 16) as u8 } else { background };
+                    bytes.push(v);
+                }
             }
+            std::fs::write(dir.join(format!("{name}{lens}.bin")), bytes).unwrap();
         }
-        std::fs::write(dir.join(format!("{name}.bin")), bytes).unwrap();
     }
     println!("pictures in {}", dir.display());
 }
