@@ -1727,8 +1727,9 @@ pub fn demo(
          (bottom), seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest mirror), lit from \
          (θ, φ) = {};\n\
          and at {}: the material enlarged to the large piece the sample was cut from \
-         (photographed in perspective in {name}-photographs, rectified into the direct images \
-         of {name}-direct by the corners found in each: {name}-photographs/photo-0-corners.png), \
+         (photographed in perspective through a lens in {name}-photographs, rectified into the \
+         direct images of {name}-direct by the corners and the lens' distortion found in each: \
+         {name}-photographs/photo-0-corners.png), \
          over the same truth",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
