@@ -11,7 +11,7 @@
 //! pixel averages the photograph over its footprint on the piece — k × k
 //! points spread over the pixel, k from the photograph's pixels per output
 //! pixel there, each read by the region images' edge-aware Catmull–Rom
-//! filter ([`ViewSampler::region_sample`]), so that nothing outside the
+//! filter ([`ViewSampler::region_filter_through`], through the lens), so that nothing outside the
 //! marked quadrilateral (the holder, the table) mixes into the piece's
 //! border.
 
@@ -237,11 +237,7 @@ pub fn rectify(photo: &Frame, opts: &RectifyOptions) -> Result<(Frame, RectifyRe
                         (c as f64 + (a as f64 + 0.5) / k as f64) / w as f64,
                         (r as f64 + (b as f64 + 0.5) / k as f64) / ht as f64,
                     ];
-                    let v = if opts.lens.is_pinhole() {
-                        sampler.region_sample(photo, uv)
-                    } else {
-                        sampler.region_filter_through(&lens, dims, uv).apply(photo)
-                    };
+                    let v = sampler.region_filter_through(&lens, dims, uv).apply(photo);
                     for i in 0..3 {
                         acc[i] += v[i];
                     }
