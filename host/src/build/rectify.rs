@@ -7,11 +7,11 @@
 //! the four corners the user marks in the photograph fix it. A real lens
 //! bends that pinhole image ([`super::lens`]): with the lens given, the
 //! homography maps onto the pinhole image and the lens onto the
-//! photograph. Each output
-//! pixel averages the photograph over its footprint on the piece — k × k
-//! points spread over the pixel, k from the photograph's pixels per output
-//! pixel there, each read by the region images' edge-aware Catmull–Rom
-//! filter ([`ViewSampler::region_filter_through`], through the lens), so that nothing outside the
+//! photograph. Each output pixel averages the photograph over its
+//! footprint on the piece — k × k points spread over the pixel, k from the
+//! photograph's pixels per output pixel there, each read by the region
+//! images' edge-aware Catmull–Rom filter through the lens
+//! ([`ViewSampler::region_filter_through`]), so that nothing outside the
 //! marked quadrilateral (the holder, the table) mixes into the piece's
 //! border.
 
