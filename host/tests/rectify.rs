@@ -495,7 +495,7 @@ fn a_lens_is_estimated_from_the_pieces_sides_and_rectified_through() {
         // Its standard error says about how far off it is.
         let sigma = found.lens_k1_sigma.unwrap();
         eprintln!("k1 {k1}: σ {sigma:.5}");
-        assert!(sigma > 0.0 && sigma < 1e-3 && (found.lens.k[0] - k1).abs() < 5.0 * sigma);
+        assert!(sigma > 0.0 && sigma < 1e-3 && (found.lens.k[0] - k1).abs() < 3.0 * sigma);
         assert_eq!(given.lens_k1_sigma, None);
         assert!(e <= 0.1 && g <= 0.1, "k1 {k1}: {e:.3} / {g:.3} px");
         assert!(found.bow_px < 0.2, "k1 {k1}: {found:?}");

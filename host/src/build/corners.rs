@@ -262,6 +262,8 @@ impl<'a> Seen<'a> {
 const LENS_ROUNDS: usize = 3;
 /// The k1 searched when the lens is estimated (half-diagonal scale).
 const LENS_K1_RANGE: f64 = 0.6;
+/// Edge points in a row per block of k1's standard error.
+const LENS_BLOCK: usize = 32;
 
 /// [`settle`] through the lens `choice`, from a quadrilateral `quad` of
 /// the photograph's px near the piece's outline: the corners in the
@@ -309,28 +311,33 @@ fn through(
 /// shrinking the image does not pass for straightening it). A grid over
 /// ±[`LENS_K1_RANGE`], then a golden-section search around its best.
 ///
-/// With it, k1's standard error: σ² / (½ cost''), σ² the cost at the best
-/// over the points less the parameters (two a line, and k1).
+/// With it, k1's standard error, from blocks of [`LENS_BLOCK`] edge points
+/// in a row along a side (a texture's edge wanders over several points,
+/// so single points are not independent, blocks nearly are): each block's
+/// share g_b of the cost's slope at the best k1 moves the best by about
+/// g_b / cost'' when the block is left out, and the variance is
+/// B / (B − 1) · Σ (g_b / cost'')² over the B blocks (the jackknife, to
+/// first order).
 fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> (Lens, f64) {
-    let cost = |k1: f64| -> f64 {
+    // Each side's distances from its line, in order along it.
+    let residuals = |k1: f64| -> Option<Vec<Vec<f64>>> {
         let lens = Lens { k: [k1, 0.0], focal_px: None };
-        let Ok(map) = LensMap::new(lens, width, height) else {
-            return f64::INFINITY;
-        };
-        let mut total = 0.0;
+        let map = LensMap::new(lens, width, height).ok()?;
+        let mut out = Vec::with_capacity(edges.len());
         for side in edges {
             let pts: Vec<[f64; 2]> = side.iter().map(|&q| map.in_pinhole(q)).collect();
-            let Some(((c, d), _)) = tls(&pts) else {
-                return f64::INFINITY;
-            };
-            for p in &pts {
+            let ((c, d), _) = tls(&pts)?;
+            let off = |p: &[f64; 2]| {
                 let j = map.jacobian(*p);
                 let det = (j[0][0] * j[1][1] - j[0][1] * j[1][0]).abs().sqrt();
-                let off = ((p[0] - c[0]) * d[1] - (p[1] - c[1]) * d[0]) * det;
-                total += off * off;
-            }
+                ((p[0] - c[0]) * d[1] - (p[1] - c[1]) * d[0]) * det
+            };
+            out.push(pts.iter().map(off).collect());
         }
-        total
+        Some(out)
+    };
+    let cost = |k1: f64| -> f64 {
+        residuals(k1).map_or(f64::INFINITY, |r| r.iter().flatten().map(|e| e * e).sum())
     };
     const GRID: usize = 48;
     let at = |i: usize| LENS_K1_RANGE * (2.0 * i as f64 / GRID as f64 - 1.0);
@@ -352,9 +359,25 @@ fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> (Lens, f64
     }
     let k1 = 0.5 * (a + b);
     let h = 1e-3;
-    let (c0, curvature) = (cost(k1), (cost(k1 + h) - 2.0 * cost(k1) + cost(k1 - h)) / (h * h));
-    let dof = edges.iter().map(Vec::len).sum::<usize>().saturating_sub(9).max(1);
-    let sigma = (c0 / dof as f64 / (0.5 * curvature)).sqrt();
+    let curvature = (cost(k1 + h) - 2.0 * cost(k1) + cost(k1 - h)) / (h * h);
+    let sigma = match (residuals(k1 + h), residuals(k1 - h)) {
+        (Some(up), Some(down)) => {
+            let slopes: Vec<f64> = up
+                .iter()
+                .zip(&down)
+                .flat_map(|(u, d)| {
+                    let (u, d) = (u.chunks(LENS_BLOCK), d.chunks(LENS_BLOCK));
+                    u.zip(d).map(|(u, d)| {
+                        u.iter().zip(d).map(|(u, d)| (u * u - d * d) / (2.0 * h)).sum::<f64>()
+                    })
+                })
+                .collect();
+            let blocks = slopes.len() as f64;
+            let spread = slopes.iter().map(|g| (g / curvature).powi(2)).sum::<f64>();
+            (blocks / (blocks - 1.0) * spread).sqrt()
+        }
+        _ => f64::INFINITY,
+    };
     (Lens { k: [k1, 0.0], focal_px: None }, if sigma.is_finite() { sigma } else { f64::INFINITY })
 }
 
