@@ -123,6 +123,25 @@ fn render_and_direct_write_their_frames() {
         assert!(ph.corners.iter().flatten().all(|v| v.is_finite() && *v > 0.0), "{ph:?}");
     }
     assert_eq!(run(&["direct", "--out", p, "--photographs", "5"]).code(), Some(2));
+    // Through a lens: its distortion in the description; a lens that folds
+    // the photograph, too many numbers, or a lens without photographs
+    // refused.
+    let bent = dir.path().join("bent");
+    let b = bent.to_str().unwrap();
+    let args = ["direct", "--material", "leather", "--out", b, "--photographs", "--lens", "-0.02"];
+    assert!(run(&args).success());
+    let text = std::fs::read_to_string(bent.join(hil_sim::direct::PHOTOGRAPHS)).unwrap();
+    let bent_set: hil_sim::direct::Photographs = toml::from_str(&text).unwrap();
+    assert_eq!(bent_set.distortion, [-0.02, 0.0]);
+    assert_eq!(set.distortion, [0.0, 0.0]);
+    // The corners pulled in towards the photograph's centre.
+    let (a, c) = (set.photo[0].corners[0], bent_set.photo[0].corners[0]);
+    assert!(a[0] < c[0] && a[1] > c[1], "{a:?} against {c:?}");
+    for bad in [&["--lens", "-0.6"][..], &["--lens", "0.1,0,0"]] {
+        let args = [&["direct", "--out", b, "--photographs"][..], bad].concat();
+        assert_eq!(run(&args).code(), Some(2), "{bad:?}");
+    }
+    assert_eq!(run(&["direct", "--out", b, "--lens", "-0.02"]).code(), Some(2));
     // The truth of the large piece: uv across the 80 mm piece. Its point
     // (27.3 + 12.7, 31.9 + 12.7) mm is the small sample's centre.
     let queries = dir.path().join("q.csv");
