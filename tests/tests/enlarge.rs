@@ -258,59 +258,31 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
         assert_eq!(got, Some(code), "{want}: {err}");
         assert!(err.contains(want), "{want}: {err}");
     }
-    let (got, err) = common::run_err(&[
-        "rectify",
-        &photo,
-        "--corners",
-        square,
-        "--origin",
-        "top-left",
-        "--size-mm",
-        "80",
-        "-o",
-        &d("r.exr"),
-    ]);
-    assert_eq!(got, Some(2), "{err}");
-    assert!(err.contains("--origin goes with --corners auto"), "{err}");
-    let (got, err) = common::run_err(&[
-        "rectify",
-        &photo,
-        "--corners",
-        "auto",
-        "--refine",
-        "--size-mm",
-        "80",
-        "-o",
-        &d("r.exr"),
-    ]);
-    assert_eq!(got, Some(2), "{err}");
-    assert!(err.contains("--refine goes with marked corners"), "{err}");
-    // The lens: estimated only from found or refined corners; numbers in
-    // range that map the photograph one to one.
-    for (corners, lens, want) in [
-        (square, "auto", "--lens auto estimates the lens from the piece's sides"),
-        (square, "0.1,x", "auto, or K1[,K2[,FOCAL_PX]]"),
-        (square, "0.1,0,0,0", "1 to 3 numbers"),
-        (square, "12", "within ±10"),
-        (square, "0.1,0,0.5", "a focal length ≥ 1 px"),
-        (square, "-0.6", "does not map the"),
-        ("auto", "-0.6", "does not map the"),
+    // Options that go together or not: --origin and --lens auto need found
+    // corners, --refine marked ones; the lens' numbers in range that map
+    // the photograph one to one. Exit 2, nothing written.
+    for (corners, extra, want) in [
+        (square, &["--origin", "top-left"][..], "--origin goes with --corners auto"),
+        ("auto", &["--refine"], "--refine goes with marked corners"),
+        (square, &["--lens", "auto"], "--lens auto estimates the lens from the piece's sides"),
+        (square, &["--lens", "0.1,x"], "auto, or K1[,K2[,FOCAL_PX]]"),
+        (square, &["--lens", "0.1,0,0,0"], "1 to 3 numbers"),
+        (square, &["--lens", "12"], "within ±10"),
+        (square, &["--lens", "0.1,0,0.5"], "a focal length ≥ 1 px"),
+        (square, &["--lens", "-0.6"], "does not map the"),
+        ("auto", &["--lens", "-0.6"], "does not map the"),
     ] {
-        let (got, err) = common::run_err(&[
-            "rectify",
-            &photo,
-            "--corners",
-            corners,
-            "--lens",
-            lens,
-            "--size-mm",
-            "80",
-            "-o",
-            &d("r.exr"),
-        ]);
-        assert_eq!(got, Some(2), "{lens}: {err}");
-        assert!(err.contains(want), "{lens}: {err}");
-        assert!(!Path::new(&d("r.exr")).exists());
+        let out = d("r.exr");
+        let args = [
+            &["rectify", &photo, "--corners", corners][..],
+            extra,
+            &["--size-mm", "80", "-o", &out],
+        ]
+        .concat();
+        let (got, err) = common::run_err(&args);
+        assert_eq!(got, Some(2), "{extra:?}: {err}");
+        assert!(err.contains(want), "{extra:?}: {err}");
+        assert!(!Path::new(&out).exists());
     }
     // The outline picture: a PNG, not the photograph.
     for (show, code, want) in
@@ -473,6 +445,9 @@ fn rectified_photographs(
     };
     let set = out.join("direct");
     std::fs::create_dir_all(&set).unwrap();
+    // What every `scanner rectify` below is given besides the corners.
+    let (size, density) = (shots.size_mm.to_string(), scale.to_string());
+    let shared = ["--lens", lens_arg, "--size-mm", &size, "--px-per-mm", &density];
     for ph in shots.photo.iter().chain([&shots.white]) {
         let frame = host::exrio::read_rgb(&photos.join(&ph.file)).unwrap();
         let found = find_corners(&frame, Origin::BottomLeft, lens).unwrap();
@@ -496,22 +471,12 @@ fn rectified_photographs(
         eprintln!("{m}, {}: corners found within {worst:.3} px", ph.file);
         assert!(worst <= 0.35, "{m}, {}: {found:?} against {:?}", ph.file, ph.corners);
         let show = photos.join(format!("{}-corners.png", ph.file));
-        let (code, err) = common::run_err(&[
-            "rectify",
-            "--show",
-            &show.display().to_string(),
-            &photos.join(&ph.file).display().to_string(),
-            "--corners",
-            "auto",
-            "--lens",
-            lens_arg,
-            "--size-mm",
-            &shots.size_mm.to_string(),
-            "--px-per-mm",
-            &scale.to_string(),
-            "-o",
-            &set.join(&ph.file).display().to_string(),
-        ]);
+        let (show_arg, photo) =
+            (show.display().to_string(), photos.join(&ph.file).display().to_string());
+        let target = set.join(&ph.file).display().to_string();
+        let args =
+            [&["rectify", "--show", &show_arg, &photo, "--corners", "auto"][..], &shared].concat();
+        let (code, err) = common::run_err(&[&args[..], &["-o", &target]].concat());
         assert_eq!(code, Some(0), "{err}");
         // The photograph with the outline drawn: its size, red on the
         // found (1, 0) corner.
@@ -531,21 +496,10 @@ fn rectified_photographs(
                 .map(|v| v.to_string())
                 .collect();
             let refined = out.join("refined.exr");
-            let (code, stdout, err) = common::run(&[
-                "rectify",
-                &photos.join(&ph.file).display().to_string(),
-                "--corners",
-                &marked.join(","),
-                "--refine",
-                "--lens",
-                lens_arg,
-                "--size-mm",
-                &shots.size_mm.to_string(),
-                "--px-per-mm",
-                &scale.to_string(),
-                "-o",
-                &refined.display().to_string(),
-            ]);
+            let (marked, refined_arg) = (marked.join(","), refined.display().to_string());
+            let args =
+                [&["rectify", &photo, "--corners", &marked, "--refine"][..], &shared].concat();
+            let (code, stdout, err) = common::run(&[&args[..], &["-o", &refined_arg]].concat());
             assert_eq!(code, Some(0), "{err}");
             assert!(stdout.contains("the marked corners moved"), "{stdout}");
             let a = host::exrio::read_rgb(&refined).unwrap();
