@@ -592,7 +592,11 @@ impl OpticalSim {
     /// camera set up for a direct image takes before it is rectified. The
     /// view direction varies over the piece (towards the camera's centre
     /// from every point); around the piece lies a matte black holder
-    /// (albedo [`HOLDER_ALBEDO`]).
+    /// (albedo [`HOLDER_ALBEDO`]). A pixel on the piece's outline holds
+    /// the piece and the holder in the shares of its square each covers
+    /// (its footprint on the piece's plane clipped to the piece), as a
+    /// sensor integrating over the pixel would, and the piece's mean over
+    /// its subpixels that land on it.
     pub fn photograph(&self, piece: &Sample, camera: &PhotoCamera, exposure_s: f64) -> Frame {
         let light = camera.direction.normalize();
         let centre = camera.basis().0;
@@ -601,15 +605,65 @@ impl OpticalSim {
         if camera.distortion != [0.0; 2] {
             keys.extend(camera.distortion);
         }
-        self.square_image(camera.side_px as usize, exposure_s, 0x9407_0C4A, &keys, |fx, fy| {
-            let p = camera.on_plane([fx, fy]);
-            let uv = p.map(|p| [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5]);
-            match (p, uv) {
-                (Some(p), Some(uv)) if uv.iter().all(|u| (0.0..1.0).contains(u)) => {
-                    piece.reflected_radiance(uv, (centre - p).normalize(), light)
+        let n = camera.side_px as usize;
+        let half = 0.5 * piece.size_mm;
+        // Where every pixel's corner lies on the piece's plane, mm.
+        let grid: Vec<Option<[f64; 2]>> = (0..(n + 1) * (n + 1))
+            .into_par_iter()
+            .map(|i| {
+                camera.on_plane([(i % (n + 1)) as f64, (i / (n + 1)) as f64]).map(|p| [p.x, p.y])
+            })
+            .collect();
+        let on_piece = |fx: f64, fy: f64| {
+            let p = camera.on_plane([fx, fy])?;
+            let uv = [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5];
+            uv.iter().all(|u| (0.0..1.0).contains(u)).then_some((p, uv))
+        };
+        self.square_image(n, exposure_s, 0x9407_0C4A, &keys, |x, y| {
+            let corner = |dx: usize, dy: usize| grid[(y + dy) * (n + 1) + x + dx];
+            let footprint = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)];
+            // The share of the pixel's footprint on the piece: a real
+            // sensor integrates over the pixel, so the outline's position
+            // within it is not rounded to the subpixels.
+            let share = match footprint {
+                [Some(a), Some(b), Some(c), Some(d)] => square_share(&[a, b, c, d], half),
+                _ => None,
+            };
+            let (mut acc, mut on) = ([0.0; 3], 0usize);
+            for (fx, fy) in Self::subpixels(x, y) {
+                if let Some((p, uv)) = on_piece(fx, fy) {
+                    let r = piece.reflected_radiance(uv, (centre - p).normalize(), light);
+                    for k in 0..3 {
+                        acc[k] += r[k];
+                    }
+                    on += 1;
                 }
-                _ => [holder; 3],
             }
+            let all = SUPERSAMPLE * SUPERSAMPLE;
+            let share = share.unwrap_or(on as f64 / all as f64);
+            if share <= 0.0 {
+                return [holder; 3];
+            }
+            if on == 0 {
+                // A sliver of the piece between the subpixels: seen at the
+                // pixel's centre, clamped onto the piece.
+                let Some(p) = camera.on_plane([x as f64 + 0.5, y as f64 + 0.5]) else {
+                    return [holder; 3];
+                };
+                let inside = |v: f64| (v / piece.size_mm + 0.5).clamp(0.0, 1.0 - 1e-9);
+                let q = DVec3::new(
+                    (inside(p.x) - 0.5) * piece.size_mm,
+                    (inside(p.y) - 0.5) * piece.size_mm,
+                    0.0,
+                );
+                acc = piece.reflected_radiance(
+                    [inside(p.x), inside(p.y)],
+                    (centre - q).normalize(),
+                    light,
+                );
+                on = 1;
+            }
+            acc.map(|v| share * v / on as f64 + (1.0 - share) * holder)
         })
     }
 
@@ -628,40 +682,36 @@ impl OpticalSim {
         let n = (piece.size_mm * px_per_mm).round().max(1.0) as usize;
         let dir = dir.normalize();
         let keys = [dir.x, dir.y, dir.z, px_per_mm];
-        self.square_image(n, exposure_s, 0xD1EC7, &keys, |fx, fy| {
-            piece.reflected_radiance([fx / n as f64, fy / n as f64], dir, dir)
+        self.square_image(n, exposure_s, 0xD1EC7, &keys, |x, y| {
+            let mut acc = [0.0; 3];
+            for (fx, fy) in Self::subpixels(x, y) {
+                let r = piece.reflected_radiance([fx / n as f64, fy / n as f64], dir, dir);
+                for k in 0..3 {
+                    acc[k] += r[k];
+                }
+            }
+            acc.map(|v| v / (SUPERSAMPLE * SUPERSAMPLE) as f64)
         })
     }
 
     /// An `n × n` image lit with the source's irradiance and exposed for
     /// `exposure_s` through this scanner's sensor without vignetting: each
-    /// pixel the mean radiance `radiance(x, y)` at its subpixels (px), its
-    /// noise seeded by the simulator's seed, `salt` and `keys`.
+    /// pixel (x, y) the mean radiance `pixel(x, y)` over it, its noise
+    /// seeded by the simulator's seed, `salt` and `keys`.
     fn square_image(
         &self,
         n: usize,
         exposure_s: f64,
         salt: u64,
         keys: &[f64],
-        radiance: impl Fn(f64, f64) -> [f64; 3] + Sync,
+        pixel: impl Fn(usize, usize) -> [f64; 3] + Sync,
     ) -> Frame {
         let e0 = self.geometry.source.irradiance;
         let scale = exposure_s * self.geometry.sensor.sensitivity_e * e0;
         let electrons = (0..n)
             .into_par_iter()
             .map(|y| {
-                let row = (0..n)
-                    .map(|x| {
-                        let mut acc = [0.0; 3];
-                        for (fx, fy) in Self::subpixels(x, y) {
-                            let r = radiance(fx, fy);
-                            for k in 0..3 {
-                                acc[k] += r[k];
-                            }
-                        }
-                        acc.map(|v| (v * scale / (SUPERSAMPLE * SUPERSAMPLE) as f64) as f32)
-                    })
-                    .collect();
+                let row = (0..n).map(|x| pixel(x, y).map(|v| (v * scale) as f32)).collect();
                 Some(row)
             })
             .collect();
@@ -671,6 +721,51 @@ impl OpticalSim {
         }
         sensor_readout(&self.geometry.sensor, n as u32, &electrons, 1.0, h)
     }
+}
+
+/// The share of the quadrilateral `quad` (mm on the piece's plane, in
+/// order around it) that lies on the square [−`half`, `half`]²: its area
+/// clipped to the square (Sutherland–Hodgman) over its own. `None` for a
+/// degenerate quadrilateral.
+fn square_share(quad: &[[f64; 2]; 4], half: f64) -> Option<f64> {
+    let area = |p: &[[f64; 2]]| {
+        0.5 * (0..p.len())
+            .map(|i| {
+                let (a, b) = (p[i], p[(i + 1) % p.len()]);
+                a[0] * b[1] - a[1] * b[0]
+            })
+            .sum::<f64>()
+            .abs()
+    };
+    let whole = area(quad);
+    if whole.is_nan() || whole <= 0.0 {
+        return None;
+    }
+    let inside = |p: &[f64; 2]| p.iter().all(|v| v.abs() <= half);
+    if quad.iter().all(inside) {
+        return Some(1.0);
+    }
+    let mut poly: Vec<[f64; 2]> = quad.to_vec();
+    // The square's four half-planes: coordinate `axis` times `sign` ≤ half.
+    for (axis, sign) in [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)] {
+        let keep = |p: &[f64; 2]| sign * p[axis] <= half;
+        let mut next = Vec::with_capacity(poly.len() + 1);
+        for i in 0..poly.len() {
+            let (a, b) = (poly[i], poly[(i + 1) % poly.len()]);
+            if keep(&a) {
+                next.push(a);
+            }
+            if keep(&a) != keep(&b) {
+                let t = (half - sign * a[axis]) / (sign * (b[axis] - a[axis]));
+                next.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
+            }
+        }
+        poly = next;
+        if poly.is_empty() {
+            return Some(0.0);
+        }
+    }
+    Some((area(&poly) / whole).clamp(0.0, 1.0))
 }
 
 /// The albedo of the matte black holder around a photographed piece.

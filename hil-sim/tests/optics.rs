@@ -356,6 +356,42 @@ fn photographs_in_perspective_see_the_piece_where_its_corners_project() {
     assert!((ratio - want).abs() < 0.3 * want, "holder / white {ratio} against {want}");
 }
 
+/// A photograph's pixels integrate over their area, as a sensor's do: a
+/// pixel on the piece's outline holds the piece and the holder in the
+/// shares its square covers, so the outline's position within the pixel
+/// is not rounded to the subpixels (2 × 2 points put a side anywhere
+/// within a quarter pixel, which bent the sides found from them).
+#[test]
+fn a_photograph_places_the_pieces_sides_within_its_pixels() {
+    use hil_sim::optics::PhotoCamera;
+    let s = sim(8, "diffuse-white", SEED);
+    let d = nominal().mirror_direction(0).unwrap();
+    let cam = PhotoCamera::framing(d, 300.0, 160, 80.0, 0.8);
+    let white = Sample::large(materials::by_name("diffuse-white").unwrap());
+    let photo = s.photograph(&white, &cam, 0.1);
+    let at = |c: usize, r: usize| photo.rgb[3 * (r * 160 + c) + 1] as f64;
+    let [c0, c1, c2, c3] = cam.corners(80.0);
+    let (top, bottom) = (c3[1].max(c2[1]).ceil() as usize + 3, c0[1].min(c1[1]) as usize - 3);
+    let mut worst: f64 = 0.0;
+    for r in (top..bottom).step_by(7) {
+        // The sides at the row's middle: a pinhole keeps them straight.
+        let y = r as f64 + 0.5;
+        let x_at = |a: [f64; 2], b: [f64; 2]| a[0] + (b[0] - a[0]) * (y - a[1]) / (b[1] - a[1]);
+        let (left, right) = (x_at(c0, c3), x_at(c1, c2));
+        let mid = ((left + right) / 2.0) as usize;
+        let piece = (mid - 10..mid + 10).map(|c| at(c, r)).sum::<f64>() / 20.0;
+        let holder = (0..4).map(|c| at(c, r)).sum::<f64>() / 4.0;
+        // Where the piece's share of the pixels across each side puts it.
+        let share = |c: usize| (at(c, r) - holder) / (piece - holder);
+        let (l0, r0) = (left as usize - 4, right as usize - 4);
+        let found_left = l0 as f64 + 9.0 - (l0..l0 + 9).map(share).sum::<f64>();
+        let found_right = r0 as f64 + (r0..r0 + 9).map(share).sum::<f64>();
+        worst = worst.max((found_left - left).abs()).max((found_right - right).abs());
+    }
+    eprintln!("the sides within {worst:.4} px of where they project");
+    assert!(worst < 0.05, "{worst:.4} px");
+}
+
 fn frame_max(f: &Frame) -> f32 {
     f.rgb.iter().fold(0.0f32, |m, &v| m.max(v))
 }

@@ -1,0 +1,82 @@
+//! How well `scanner rectify --lens auto` estimates a lens from a piece's
+//! own sides (docs/benchmarks.md, "Enlargement", "The lens from the
+//! piece's sides"): the simulator photographs each material's large piece
+//! and the white card through a lens of known k1 at several sizes, and
+//! `find_corners` estimates k1 and the corners from each photograph. Per
+//! photograph the estimate, its standard error, the error in standard
+//! errors and the worst corner against the simulator's; per material and
+//! size the RMS and the largest of those.
+//!
+//! `cargo run --release -p tests --example lens_fidelity -- [--k1 -0.02] [--bins 5,4,3,2,1] [--seed 1] [--out DIR] [--materials a,b]`
+
+use std::path::PathBuf;
+
+use hil_sim::direct::{PHOTO_DISTANCE_MM, PhotoSetup, mirror_view_scale, write_photographs};
+use hil_sim::geometry::ScannerGeometry;
+use host::build::corners::{Origin, find_corners};
+use host::build::lens::LensChoice;
+
+fn main() {
+    let k1: f64 = tests::arg("--k1", -0.02);
+    let seed: u64 = tests::arg("--seed", 1);
+    let bins: String = tests::arg("--bins", "5,4,3,2,1".to_string());
+    let out: PathBuf = tests::arg("--out", PathBuf::from("target/lens-fidelity"));
+    let list: String =
+        tests::arg("--materials", "woven-fabric,leather,painted-wood,rough-metal".to_string());
+    println!("| photograph | size | material | k1 | ± σ | error | in σ | worst corner |");
+    println!("|---|---|---|---|---|---|---|---|");
+    let mut summary = Vec::new();
+    for bin in bins.split(',').map(|b| b.parse::<u32>().expect("--bins: numbers")) {
+        let g = ScannerGeometry::default_scanner().with_sensor_scaled(bin);
+        let scale = mirror_view_scale(&g);
+        for m in list.split(',') {
+            let truth = hil_sim::materials::lookup(m).unwrap();
+            let small = hil_sim::materials::Sample::small(truth.clone());
+            let sim = hil_sim::optics::OpticalSim::as_built(&g, small, seed);
+            let dir = out.join(format!("{m}-bin{bin}"));
+            let setup = PhotoSetup { distance_mm: PHOTO_DISTANCE_MM, distortion: [k1, 0.0] };
+            let shots = write_photographs(&sim, &g, truth, 4, scale, setup, &dir).unwrap();
+            let (mut zs, mut worst, mut side) = (Vec::new(), 0.0f64, 0);
+            for ph in shots.photo.iter().chain([&shots.white]) {
+                let frame = host::exrio::read_rgb(&dir.join(&ph.file)).unwrap();
+                side = frame.width;
+                let size = format!("{side} px");
+                match find_corners(&frame, Origin::BottomLeft, LensChoice::Estimate) {
+                    Ok(f) => {
+                        let sigma = f.lens_k1_sigma.unwrap_or(f64::NAN);
+                        let e = f.lens.k[0] - k1;
+                        let corner = (0..4)
+                            .map(|k| {
+                                let (a, b) = (f.corners[k], ph.corners[k]);
+                                (a[0] - b[0]).hypot(a[1] - b[1])
+                            })
+                            .fold(0.0, f64::max);
+                        println!(
+                            "| {} | {size} | {m} | {:.5} | {sigma:.5} | {e:+.5} | {:+.2} | {corner:.3} px |",
+                            ph.file,
+                            f.lens.k[0],
+                            e / sigma
+                        );
+                        if ph.file != shots.white.file {
+                            zs.push(e / sigma);
+                            worst = worst.max(corner);
+                        }
+                    }
+                    Err(e) => println!("| {} | {size} | {m} | failed: {e} | | | | |", ph.file),
+                }
+            }
+            let rms = (zs.iter().map(|z| z * z).sum::<f64>() / zs.len().max(1) as f64).sqrt();
+            let most = zs.iter().fold(0.0f64, |a, z| a.max(z.abs()));
+            summary.push(format!(
+                "| {m} | {side} px | {}/4 | {rms:.2} | {most:.2} | {worst:.3} px |",
+                zs.len()
+            ));
+        }
+    }
+    println!("\nThe pieces' photographs (the white card left out), k1 = {k1}:\n");
+    println!("| material | size | estimated | RMS of error / σ | largest | worst corner |");
+    println!("|---|---|---|---|---|---|");
+    for line in summary {
+        println!("{line}");
+    }
+}
