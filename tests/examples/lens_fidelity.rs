@@ -7,17 +7,25 @@
 //! errors and the worst corner against the simulator's; per material and
 //! size the RMS and the largest of those.
 //!
-//! `cargo run --release -p tests --example lens_fidelity -- [--k1 -0.02] [--bins 5,4,3,2,1] [--seed 1] [--out DIR] [--materials a,b]`
+//! With `--lens given`, the corners are found through the true lens
+//! instead (no estimate: the σ columns stay empty).
+//!
+//! `cargo run --release -p tests --example lens_fidelity -- [--k1 -0.02] [--lens auto|given] [--bins 5,4,3,2,1] [--seed 1] [--out DIR] [--materials a,b]`
 
 use std::path::PathBuf;
 
 use hil_sim::direct::{PHOTO_DISTANCE_MM, PhotoSetup, mirror_view_scale, write_photographs};
 use hil_sim::geometry::ScannerGeometry;
 use host::build::corners::{Origin, find_corners};
-use host::build::lens::LensChoice;
+use host::build::lens::{Lens, LensChoice};
 
 fn main() {
     let k1: f64 = tests::arg("--k1", -0.02);
+    let choice = match tests::arg("--lens", "auto".to_string()).as_str() {
+        "auto" => LensChoice::Estimate,
+        "given" => LensChoice::Known(Lens { k: [k1, 0.0], focal_px: None }),
+        other => panic!("--lens {other}: auto or given"),
+    };
     let seed: u64 = tests::arg("--seed", 1);
     let bins: String = tests::arg("--bins", "5,4,3,2,1".to_string());
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/lens-fidelity"));
@@ -41,9 +49,8 @@ fn main() {
                 let frame = host::exrio::read_rgb(&dir.join(&ph.file)).unwrap();
                 side = frame.width;
                 let size = format!("{side} px");
-                match find_corners(&frame, Origin::BottomLeft, LensChoice::Estimate) {
+                match find_corners(&frame, Origin::BottomLeft, choice) {
                     Ok(f) => {
-                        let sigma = f.lens_k1_sigma.unwrap_or(f64::NAN);
                         let e = f.lens.k[0] - k1;
                         let corner = (0..4)
                             .map(|k| {
@@ -51,14 +58,18 @@ fn main() {
                                 (a[0] - b[0]).hypot(a[1] - b[1])
                             })
                             .fold(0.0, f64::max);
+                        let (sigma, z) = match f.lens_k1_sigma {
+                            Some(s) => (format!("{s:.5}"), format!("{:+.2}", e / s)),
+                            None => ("—".into(), "—".into()),
+                        };
                         println!(
-                            "| {} | {size} | {m} | {:.5} | {sigma:.5} | {e:+.5} | {:+.2} | {corner:.3} px |",
-                            ph.file,
-                            f.lens.k[0],
-                            e / sigma
+                            "| {} | {size} | {m} | {:.5} | {sigma} | {e:+.5} | {z} | {corner:.3} px |",
+                            ph.file, f.lens.k[0],
                         );
                         if ph.file != shots.white.file {
-                            zs.push(e / sigma);
+                            if let Some(s) = f.lens_k1_sigma {
+                                zs.push(e / s);
+                            }
                             worst = worst.max(corner);
                         }
                     }
@@ -68,8 +79,9 @@ fn main() {
             let rms = (zs.iter().map(|z| z * z).sum::<f64>() / zs.len().max(1) as f64).sqrt();
             let most = zs.iter().fold(0.0f64, |a, z| a.max(z.abs()));
             summary.push(format!(
-                "| {m} | {side} px | {}/4 | {rms:.2} | {most:.2} | {worst:.3} px |",
-                zs.len()
+                "| {m} | {side} px | {}/{} | {rms:.2} | {most:.2} | {worst:.3} px |",
+                zs.len(),
+                shots.photo.len()
             ));
         }
     }

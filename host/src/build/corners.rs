@@ -121,6 +121,14 @@ const PROFILE_STEP_PX: f64 = 0.25;
 /// Half the window about a level's crossing over which an edge is placed
 /// by its area, px: a pixel-integrated edge, interpolated, spans ±1.5 px.
 const EDGE_WINDOW_PX: f64 = 1.5;
+/// Steps of the profile just inside that window that must be flat for the
+/// area to place the edge (2 px)…
+const EDGE_FLAT_STEPS: usize = 8;
+/// …within this share of the edge's contrast…
+const EDGE_FLAT: f64 = 0.05;
+/// …at this share of a pass's profiles, or else every edge is placed by
+/// its level's crossing.
+const EDGE_FLAT_SHARE: f64 = 0.9;
 /// The least piece-over-background ratio across one edge profile for its
 /// crossing to count.
 const MIN_LOCAL_CONTRAST: f64 = 1.5;
@@ -674,18 +682,35 @@ fn refine(
     let mut lines: [Line; 4] = [([0.0; 2], [0.0; 2]); 4];
     let (mut ss, mut fit) = (0.0, Fit::default());
     let mut kept = Vec::with_capacity(4);
-    for (k, Side { a, b, len, t, n }) in sides(quad).into_iter().enumerate() {
-        let steps = (half / PROFILE_STEP_PX).round() as isize;
-        let margin = 2.0 * half + 1.0;
-        let mut points = Vec::new();
-        let mut s = margin;
-        while s <= len - margin {
-            let p = [a[0] + s * t[0], a[1] + s * t[1]];
-            if let Some(e) = crossing(seen, p, n, steps, polarity) {
-                points.push([p[0] + e * n[0], p[1] + e * n[1]]);
+    // Every side's profiles first, then one way of placing them all.
+    let profiles: Vec<(Side, Vec<Profile>)> = sides(quad)
+        .into_iter()
+        .map(|side| {
+            let steps = (half / PROFILE_STEP_PX).round() as isize;
+            let margin = 2.0 * half + 1.0;
+            let mut found = Vec::new();
+            let mut s = margin;
+            while s <= side.len - margin {
+                let p = [side.a[0] + s * side.t[0], side.a[1] + s * side.t[1]];
+                if let Some(c) = crossing(seen, p, side.n, steps, polarity) {
+                    found.push((p, c));
+                }
+                s += 1.0;
             }
-            s += 1.0;
-        }
+            (side, found)
+        })
+        .collect();
+    let all = profiles.iter().map(|(_, f)| f.len()).sum::<usize>();
+    let flat = profiles.iter().flat_map(|(_, f)| f).filter(|(_, c)| c.area.is_some()).count();
+    let by_area = all > 0 && flat as f64 >= EDGE_FLAT_SHARE * all as f64;
+    for (k, (Side { a, b, n, .. }, found)) in profiles.into_iter().enumerate() {
+        let points: Vec<[f64; 2]> = found
+            .iter()
+            .map(|(p, c)| {
+                let e = if by_area { c.area.unwrap_or(c.level) } else { c.level };
+                [p[0] + e * n[0], p[1] + e * n[1]]
+            })
+            .collect();
         let Some((line, side, on_line)) = fit_line(&points) else {
             return Err(format!(
                 "side {k} ({:.1}, {:.1})–({:.1}, {:.1}) px: no clear edge along it",
@@ -719,6 +744,19 @@ fn refine(
     Ok((out, fit, kept))
 }
 
+/// An edge profile: where it starts (px) and its crossing.
+type Profile = ([f64; 2], Crossing);
+
+/// Where an edge profile passes from the piece to the background, px
+/// along its outward normal ([`crossing`]).
+struct Crossing {
+    /// Where the luminance passes the level halfway between the two.
+    level: f64,
+    /// Where the piece's share of the profile puts the edge, if the piece
+    /// is flat up to it.
+    area: Option<f64>,
+}
+
 /// Where, along the outward normal `n` from `p` (px), the luminance passes
 /// the level halfway between the piece just inside and the background just
 /// outside: the outermost such crossing, by linear interpolation between
@@ -729,7 +767,7 @@ fn crossing(
     n: [f64; 2],
     steps: isize,
     polarity: Polarity,
-) -> Option<f64> {
+) -> Option<Crossing> {
     let at = |k: isize| {
         let s = k as f64 * PROFILE_STEP_PX;
         seen.at([p[0] + s * n[0], p[1] + s * n[1]])
@@ -759,30 +797,34 @@ fn crossing(
         }
     }
     let s0 = best?;
-    // The edge by its area: the piece's share of the profile over a window
-    // about the crossing (the level's crossing of a pixel-integrated edge,
-    // interpolated linearly, is off by up to 0.08 px with the edge's phase
-    // in the pixels, which slowly bowing sides turn into a bow of their own).
-    let (lo, m) = (s0 - EDGE_WINDOW_PX, (2.0 * EDGE_WINDOW_PX / PROFILE_STEP_PX).round() as usize);
+    // Where the piece is flat up to its edge, the edge by its area too:
+    // the piece's share of the profile over a window about the crossing.
     let v = |s: f64| seen.at([p[0] + s * n[0], p[1] + s * n[1]]);
-    // The piece's own level carried into the window: a line fitted to the
-    // profile over the 2 px just inside it (a slow gradient of the
-    // piece's pattern would otherwise pass for edge).
-    let (mut sx, mut sy, mut sxx, mut sxy, mut k) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for j in 0..=8 {
-        let x = -(j as f64) * PROFILE_STEP_PX;
-        let y = v(lo + x);
-        (sx, sy, sxx, sxy, k) = (sx + x, sy + y, sxx + x * x, sxy + x * y, k + 1.0);
+    let lo = s0 - EDGE_WINDOW_PX;
+    let near: Vec<f64> =
+        (0..=EDGE_FLAT_STEPS).map(|j| v(lo - j as f64 * PROFILE_STEP_PX)).collect();
+    let (low, high) = near.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+    if high - low > EDGE_FLAT * (inside - outside).abs() {
+        return Some(Crossing { level: s0, area: None });
     }
+    // The piece's level carried into the window: a line fitted to the
+    // profile just inside it (light falling off across the piece).
+    let (mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0);
+    for (j, y) in near.iter().enumerate() {
+        let x = -(j as f64) * PROFILE_STEP_PX;
+        (sx, sy, sxx, sxy) = (sx + x, sy + y, sxx + x * x, sxy + x * y);
+    }
+    let k = near.len() as f64;
     let slope = (k * sxy - sx * sy) / (k * sxx - sx * sx);
     let level0 = (sy - slope * sx) / k;
+    let m = (2.0 * EDGE_WINDOW_PX / PROFILE_STEP_PX).round() as usize;
     let share = |j: usize| {
         let x = j as f64 * PROFILE_STEP_PX;
         (v(lo + x) - outside) / (level0 + slope * x - outside)
     };
-    let area = PROFILE_STEP_PX * (0.5 * (share(0) + share(m)) + (1..m).map(share).sum::<f64>());
-    let edge = lo + area;
-    Some(if (edge - s0).abs() <= 1.0 { edge } else { s0 })
+    let area =
+        lo + PROFILE_STEP_PX * (0.5 * (share(0) + share(m)) + (1..m).map(share).sum::<f64>());
+    Some(Crossing { level: s0, area: ((area - s0).abs() <= 1.0).then_some(area) })
 }
 
 /// A line (a point on it, its unit direction) fitted to `points` by total

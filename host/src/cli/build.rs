@@ -710,7 +710,7 @@ pub struct RectifyOutputs<'a> {
     pub show: Option<&'a Path>,
 }
 
-/// `scanner rectify`
+/// `scanner rectify`: the lens it rectified through (given or estimated).
 pub fn rectify_cmd(
     photo: &Path,
     corners: crate::build::rectify::Corners,
@@ -718,7 +718,7 @@ pub fn rectify_cmd(
     size_mm: [f64; 2],
     px_per_mm: Option<f64>,
     out: RectifyOutputs<'_>,
-) -> Result<(), Failure> {
+) -> Result<crate::build::lens::Lens, Failure> {
     use crate::build::lens::LensChoice;
     use crate::build::rectify::{Corners, RectifyOptions, rectify};
     let RectifyOutputs { picture: output, show } = out;
@@ -801,7 +801,7 @@ pub fn rectify_cmd(
         report.photo_px_per_mm[1],
         report.supersampling
     );
-    Ok(())
+    Ok(lens_used)
 }
 
 /// The largest side of [`outline_picture`]'s PNG, px.

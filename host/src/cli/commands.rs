@@ -1693,18 +1693,23 @@ pub fn demo(
         std::fs::create_dir_all(&direct)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
         let outline = photos.join("photo-0-corners.png");
-        for (k, ph) in shots.photo.iter().chain([&shots.white]).enumerate() {
-            super::build::rectify_cmd(
+        // The lens from the white card's clean sides first (a textured
+        // piece's own edges shift with its texture: docs/direct-images.md,
+        // "Lens distortion"), then every photograph of the piece through it.
+        let mut lens = crate::build::lens::LensChoice::Estimate;
+        for ph in [&shots.white].into_iter().chain(&shots.photo) {
+            let used = super::build::rectify_cmd(
                 &photos.join(&ph.file),
                 crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
-                crate::build::lens::LensChoice::Estimate,
+                lens,
                 [shots.size_mm; 2],
                 Some(scale),
                 super::build::RectifyOutputs {
                     picture: &direct.join(&ph.file),
-                    show: (k == 0).then_some(outline.as_path()),
+                    show: (ph.file == shots.photo[0].file).then_some(outline.as_path()),
                 },
             )?;
+            lens = crate::build::lens::LensChoice::Known(used);
         }
         let manifest = shots.manifest();
         crate::fsutil::write_atomic(
@@ -1728,8 +1733,8 @@ pub fn demo(
          (θ, φ) = {};\n\
          and at {}: the material enlarged to the large piece the sample was cut from \
          (photographed in perspective through a lens in {name}-photographs, rectified into the \
-         direct images of {name}-direct by the corners and the lens' distortion found in each: \
-         {name}-photographs/photo-0-corners.png), \
+         direct images of {name}-direct by the corners found in each and the lens' distortion \
+         found on the white card: {name}-photographs/photo-0-corners.png), \
          over the same truth",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),

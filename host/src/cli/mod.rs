@@ -799,7 +799,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let (corners, lens, size_mm) =
                 rectify_options(&corners, origin.as_deref(), refine, lens.as_deref(), &size_mm)?;
             let out = build::RectifyOutputs { picture: &output, show: show.as_deref() };
-            build::rectify_cmd(&photo, corners, lens, size_mm, px_per_mm, out)?
+            build::rectify_cmd(&photo, corners, lens, size_mm, px_per_mm, out)?;
         }
         Command::Preview { material, output } => build::preview_cmd(&material, &output)?,
         Command::Export { material, output, format } => {
