@@ -181,11 +181,8 @@ impl PhotoSetup {
             return Err(format!("camera distance {d} mm: must be > 0"));
         }
         let [k1, k2] = self.distortion;
-        let one_to_one = k1.is_finite()
-            && k2.is_finite()
-            && (0..=150)
-                .all(|i| scanner_geometry::radial_slope(self.distortion, i as f64 / 100.0) > 0.05);
-        if !one_to_one {
+        // Out to beyond the photograph's corners (radius 1).
+        if !scanner_geometry::radial_one_to_one(self.distortion, 1.5) {
             return Err(format!(
                 "lens distortion [{k1}, {k2}] does not map the photograph one to one"
             ));

@@ -184,6 +184,14 @@ pub fn radial_slope(k: [f64; 2], r: f64) -> f64 {
     1.0 + r2 * (3.0 * k[0] + 5.0 * k[1] * r2)
 }
 
+/// Whether [`radial_distort`] with `k` maps radii 0…`r_max` one to one:
+/// k finite, and [`radial_slope`] clear of 0 (> 0.05) at 101 radii over
+/// that span.
+pub fn radial_one_to_one(k: [f64; 2], r_max: f64) -> bool {
+    k.iter().all(|v| v.is_finite())
+        && (0..=100).all(|i| radial_slope(k, r_max * i as f64 / 100.0) > 0.05)
+}
+
 impl CameraSpec {
     /// (right, down, forward) unit vectors of the image.
     pub fn basis(&self) -> (DVec3, DVec3, DVec3) {
@@ -809,9 +817,7 @@ impl ScannerGeometry {
             .map(|(x, y)| (x - c.principal_px[0]).hypot(y - c.principal_px[1]) / c.focal_px)
             .fold(0.0, f64::max);
         let [k1, k2] = c.distortion;
-        let monotonic =
-            (0..=100).all(|i| radial_slope(c.distortion, 1.5 * corner * i as f64 / 100.0) > 0.05);
-        if !(k1.is_finite() && k2.is_finite() && monotonic) {
+        if !radial_one_to_one(c.distortion, 1.5 * corner) {
             return bad(format!(
                 "camera distortion [{k1}, {k2}] does not map the image one to one"
             ));
