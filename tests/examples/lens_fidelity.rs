@@ -23,7 +23,7 @@ fn main() {
     let k1: f64 = tests::arg("--k1", -0.02);
     let choice = match tests::arg("--lens", "auto".to_string()).as_str() {
         "auto" => LensChoice::Estimate,
-        "given" => LensChoice::Known(Lens { k: [k1, 0.0], focal_px: None }),
+        "given" => LensChoice::Known(Lens::radial([k1, 0.0])),
         other => panic!("--lens {other}: auto or given"),
     };
     let seed: u64 = tests::arg("--seed", 1);

@@ -335,7 +335,7 @@ fn through(
 fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> (Lens, f64) {
     // Each side's distances from its line, in order along it.
     let residuals = |k1: f64| -> Option<Vec<Vec<f64>>> {
-        let lens = Lens { k: [k1, 0.0], focal_px: None };
+        let lens = Lens::radial([k1, 0.0]);
         let map = LensMap::new(lens, width, height).ok()?;
         let mut out = Vec::with_capacity(edges.len());
         for side in edges {
@@ -400,7 +400,7 @@ fn estimate_lens(edges: &[Vec<[f64; 2]>], width: u32, height: u32) -> (Lens, f64
         }
         _ => f64::INFINITY,
     };
-    (Lens { k: [k1, 0.0], focal_px: None }, if sigma.is_finite() { sigma } else { f64::INFINITY })
+    (Lens::radial([k1, 0.0]), if sigma.is_finite() { sigma } else { f64::INFINITY })
 }
 
 /// The photograph's luminance: the mean of its channels.

@@ -8,10 +8,11 @@
 //!
 //! q = c + S · n · (1 + k1 |n|² + k2 |n|⁴),  n = (p − c) / S,
 //!
-//! c the photograph's centre, S the focal length in px when the
-//! coefficients are a calibration's (OpenCV's), else half the photograph's
-//! diagonal (the scale `--lens auto` estimates k1 in). k1 < 0 is barrel
-//! distortion, k1 > 0 pincushion.
+//! c the principal point (a calibration's, or the photograph's centre), S
+//! the focal length in px when the coefficients are a calibration's
+//! (OpenCV's), else half the photograph's diagonal (the scale `--lens
+//! auto` estimates k1 in). k1 < 0 is barrel distortion, k1 > 0
+//! pincushion.
 
 use scanner_geometry::{radial_distort, radial_slope, radial_undistort};
 
@@ -24,31 +25,41 @@ pub struct Lens {
     /// The focal length, px, that normalises the radius (OpenCV's
     /// coefficients); `None`: half the photograph's diagonal.
     pub focal_px: Option<f64>,
+    /// The principal point, the distortion's centre, px (OpenCV's cx, cy);
+    /// `None`: the photograph's centre.
+    pub centre_px: Option<[f64; 2]>,
 }
 
 impl Lens {
     /// No distortion.
-    pub const PINHOLE: Lens = Lens { k: [0.0; 2], focal_px: None };
+    pub const PINHOLE: Lens = Lens::radial([0.0; 2]);
+
+    /// k1, k2 about the photograph's centre, the radius in half-diagonals.
+    pub const fn radial(k: [f64; 2]) -> Lens {
+        Lens { k, focal_px: None, centre_px: None }
+    }
 
     /// Whether it leaves every point where it is.
     pub fn is_pinhole(&self) -> bool {
         self.k == [0.0; 2]
     }
 
-    /// `K1[,K2[,FOCAL_PX]]`, as `--lens` takes it.
+    /// `K1[,K2[,FOCAL_PX[,CX,CY]]]`, as `--lens` takes it.
     pub fn parse(text: &str) -> Result<Lens, String> {
+        let form = "auto, or K1[,K2[,FOCAL_PX[,CX,CY]]]";
         let v: Vec<f64> = text
             .split(',')
             .map(|s| s.trim().parse::<f64>())
             .collect::<Result<_, _>>()
-            .map_err(|_| format!("--lens {text}: auto, or K1[,K2[,FOCAL_PX]] (numbers)"))?;
+            .map_err(|_| format!("--lens {text}: {form} (numbers)"))?;
         let lens = match v[..] {
-            [k1] => Lens { k: [k1, 0.0], focal_px: None },
-            [k1, k2] => Lens { k: [k1, k2], focal_px: None },
-            [k1, k2, f] => Lens { k: [k1, k2], focal_px: Some(f) },
-            _ => {
-                return Err(format!("--lens {text}: auto, or K1[,K2[,FOCAL_PX]] (1 to 3 numbers)"));
+            [k1] => Lens::radial([k1, 0.0]),
+            [k1, k2] => Lens::radial([k1, k2]),
+            [k1, k2, f] => Lens { focal_px: Some(f), ..Lens::radial([k1, k2]) },
+            [k1, k2, f, cx, cy] => {
+                Lens { focal_px: Some(f), centre_px: Some([cx, cy]), ..Lens::radial([k1, k2]) }
             }
+            _ => return Err(format!("--lens {text}: {form} (1, 2, 3 or 5 numbers)")),
         };
         if !lens.k.iter().all(|k| k.is_finite() && k.abs() <= MAX_K) {
             return Err(format!("--lens {text}: k1 and k2 within ±{MAX_K}"));
@@ -57,6 +68,11 @@ impl Lens {
             && !(f.is_finite() && f >= 1.0)
         {
             return Err(format!("--lens {text}: a focal length ≥ 1 px"));
+        }
+        if let Some(c) = lens.centre_px
+            && !c.iter().all(|v| v.is_finite())
+        {
+            return Err(format!("--lens {text}: a principal point of two numbers, px"));
         }
         Ok(lens)
     }
@@ -117,14 +133,26 @@ pub struct LensMap {
 }
 
 impl LensMap {
-    /// `lens` on a `width × height` px photograph: it must map the
-    /// photograph one to one (its radius growing with the pinhole's out to
-    /// the photograph's corners).
+    /// `lens` on a `width × height` px photograph: its principal point
+    /// must lie in the photograph, and it must map the photograph one to
+    /// one (its radius growing with the pinhole's out to the photograph's
+    /// farthest corner).
     pub fn new(lens: Lens, width: u32, height: u32) -> Result<LensMap, String> {
         let (w, h) = (width as f64, height as f64);
         let half_diagonal = 0.5 * w.hypot(h);
         let scale = lens.focal_px.unwrap_or(half_diagonal);
-        let corner = half_diagonal / scale;
+        let centre = lens.centre_px.unwrap_or([0.5 * w, 0.5 * h]);
+        if !((0.0..=w).contains(&centre[0]) && (0.0..=h).contains(&centre[1])) {
+            return Err(format!(
+                "the principal point ({}, {}) px lies outside the {width} × {height} px photograph",
+                centre[0], centre[1]
+            ));
+        }
+        let corner = [0.0, w]
+            .iter()
+            .flat_map(|&x| [0.0, h].map(|y| (x - centre[0]).hypot(y - centre[1])))
+            .fold(0.0, f64::max)
+            / scale;
         let k = lens.k;
         // Out along the pinhole's radius until the photograph's corner:
         // the slope stays clear of 0, and the most a frame px stretches.
@@ -150,7 +178,7 @@ impl LensMap {
             }
             r += step;
         }
-        Ok(LensMap { lens, centre: [0.5 * w, 0.5 * h], scale, stretch })
+        Ok(LensMap { lens, centre, scale, stretch })
     }
 
     /// The lens.
@@ -203,20 +231,38 @@ mod tests {
 
     #[test]
     fn parse_takes_one_to_three_numbers_in_range() {
-        assert_eq!(Lens::parse("-0.1").unwrap(), Lens { k: [-0.1, 0.0], focal_px: None });
-        assert_eq!(Lens::parse("-0.1, 0.02").unwrap(), Lens { k: [-0.1, 0.02], focal_px: None });
+        assert_eq!(Lens::parse("-0.1").unwrap(), Lens::radial([-0.1, 0.0]));
+        assert_eq!(Lens::parse("-0.1, 0.02").unwrap(), Lens::radial([-0.1, 0.02]));
         assert_eq!(
             Lens::parse("-0.1,0.02,3000").unwrap(),
-            Lens { k: [-0.1, 0.02], focal_px: Some(3000.0) }
+            Lens { focal_px: Some(3000.0), ..Lens::radial([-0.1, 0.02]) }
         );
-        for bad in ["", "x", "1,2,3,4", "nan", "11", "0.1,0.1,0", "0.1,0,inf"] {
+        assert_eq!(
+            Lens::parse("-0.1,0.02,3000,2012.5,1490").unwrap(),
+            Lens {
+                focal_px: Some(3000.0),
+                centre_px: Some([2012.5, 1490.0]),
+                ..Lens::radial([-0.1, 0.02])
+            }
+        );
+        for bad in [
+            "",
+            "x",
+            "1,2,3,4",
+            "1,2,3,4,5,6",
+            "nan",
+            "11",
+            "0.1,0.1,0",
+            "0.1,0,inf",
+            "0,0,9,1,nan",
+        ] {
             assert!(Lens::parse(bad).is_err(), "{bad}");
         }
     }
 
     #[test]
     fn the_map_goes_there_and_back_and_its_jacobian_is_the_derivative() {
-        let map = LensMap::new(Lens { k: [-0.12, 0.03], focal_px: None }, 600, 400).unwrap();
+        let map = LensMap::new(Lens::radial([-0.12, 0.03]), 600, 400).unwrap();
         assert!(map.stretch() > 1.0);
         for p in [[10.0, 20.0], [300.0, 200.0], [590.0, 390.0], [450.5, 33.25]] {
             let q = map.in_frame(p);
@@ -239,10 +285,32 @@ mod tests {
     }
 
     #[test]
+    fn a_principal_point_off_the_centre_stays_and_must_lie_in_the_photograph() {
+        let lens = Lens { centre_px: Some([150.0, 320.0]), ..Lens::radial([-0.05, 0.0]) };
+        let map = LensMap::new(lens, 600, 400).unwrap();
+        assert_eq!(map.in_frame([150.0, 320.0]), [150.0, 320.0]);
+        // The farthest corner from it pulled in along its radius.
+        let q = map.in_frame([600.0, 0.0]);
+        let (a, b) = ((600.0f64 - 150.0).hypot(320.0), (q[0] - 150.0).hypot(q[1] - 320.0));
+        assert!(b < a && ((q[1] - 320.0) / (q[0] - 150.0) + 320.0 / 450.0).abs() < 1e-9);
+        let outside = Lens { centre_px: Some([-1.0, 200.0]), ..Lens::radial([-0.2, 0.0]) };
+        assert!(LensMap::new(outside, 600, 400).unwrap_err().contains("principal point"));
+        // Measured to its farthest corner: a lens mild enough about the
+        // centre folds the photograph about a corner.
+        let k = Lens::radial([-0.1, 0.0]);
+        assert!(LensMap::new(k, 600, 400).is_ok());
+        let corner = Lens { centre_px: Some([0.0, 0.0]), ..k };
+        assert!(LensMap::new(corner, 600, 400).unwrap_err().contains("one to one"));
+    }
+
+    #[test]
     fn a_lens_that_folds_the_photograph_is_refused() {
-        let err = LensMap::new(Lens { k: [-0.5, 0.0], focal_px: None }, 600, 400).unwrap_err();
+        let err = LensMap::new(Lens::radial([-0.5, 0.0]), 600, 400).unwrap_err();
         assert!(err.contains("one to one"), "{err}");
         // The same coefficients on a long focal length's scale are mild.
-        assert!(LensMap::new(Lens { k: [-0.5, 0.0], focal_px: Some(2000.0) }, 600, 400).is_ok());
+        assert!(
+            LensMap::new(Lens { focal_px: Some(2000.0), ..Lens::radial([-0.5, 0.0]) }, 600, 400)
+                .is_ok()
+        );
     }
 }

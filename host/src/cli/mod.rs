@@ -213,12 +213,13 @@ enum Command {
         /// as `--corners auto` fits them (marks within a few px).
         #[arg(long)]
         refine: bool,
-        /// The lens' radial distortion, about the photograph's centre:
-        /// K1[,K2[,FOCAL_PX]] (Brown–Conrady, OpenCV's k1, k2 when
-        /// FOCAL_PX is the calibration's focal length; without it the
-        /// radius is in half-diagonals of the photograph), or `auto`: k1
-        /// estimated from the piece's own straight sides (with found or
-        /// refined corners) [default: none, a pinhole].
+        /// The lens' radial distortion: K1[,K2[,FOCAL_PX[,CX,CY]]]
+        /// (Brown–Conrady, OpenCV's k1, k2 when FOCAL_PX is the
+        /// calibration's focal length, about its principal point CX, CY,
+        /// px; without them the radius is in half-diagonals of the
+        /// photograph, about its centre), or `auto`: k1 estimated from the
+        /// piece's own straight sides (with found or refined corners; a
+        /// plain card's sides give it best) [default: none, a pinhole].
         #[arg(long, allow_hyphen_values = true)]
         lens: Option<String>,
         /// The piece's width and height, mm: W,H (one number: a square).
