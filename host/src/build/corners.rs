@@ -744,7 +744,7 @@ fn refine(
     Ok((out, fit, kept))
 }
 
-/// An edge profile: where it starts (px) and its crossing.
+/// An edge profile: the point of the side it crosses (px) and its crossing.
 type Profile = ([f64; 2], Crossing);
 
 /// Where an edge profile passes from the piece to the background, px
