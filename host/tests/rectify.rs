@@ -455,6 +455,19 @@ fn psnr_against_pattern(out: &Frame) -> f64 {
     10.0 * (1.0 / (se / n as f64)).log10()
 }
 
+/// The options rectifying the piece at 4 px/mm by `corners` through
+/// `lens`.
+fn at_4(corners: [[f64; 2]; 4], lens: Lens) -> RectifyOptions {
+    RectifyOptions { corners, size_mm: SIZE_MM, px_per_mm: Some(4.0), lens }
+}
+
+/// [`psnr_against_pattern`] of a pinhole's photograph of the piece,
+/// rectified by its true corners.
+fn pinhole_psnr() -> f64 {
+    let pinhole = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
+    psnr_against_pattern(&rectify(&pinhole, &at_4(FACE_UP, Lens::PINHOLE)).unwrap().0)
+}
+
 /// Through a lens with barrel or pincushion distortion the piece's sides
 /// bow: `--lens auto` estimates k1 from them (the plumb-line method on the
 /// piece's own sides), finds the corners where the photograph shows them,
@@ -462,11 +475,7 @@ fn psnr_against_pattern(out: &Frame) -> f64 {
 /// pinhole photograph's does; ignoring the lens costs.
 #[test]
 fn a_lens_is_estimated_from_the_pieces_sides_and_rectified_through() {
-    let opts =
-        |corners, lens| RectifyOptions { corners, size_mm: SIZE_MM, px_per_mm: Some(4.0), lens };
-    let pinhole = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
-    let (straight, _) = rectify(&pinhole, &opts(FACE_UP, Lens::PINHOLE)).unwrap();
-    let base = psnr_against_pattern(&straight);
+    let base = pinhole_psnr();
     for k1 in [-0.06, -0.02, 0.04] {
         let (photo, corners, _) = through_lens([k1, 0.0], &FACE_UP);
         // Straight lines refused without the lens (but for the mildest).
@@ -480,10 +489,10 @@ fn a_lens_is_estimated_from_the_pieces_sides_and_rectified_through() {
         let known = LensChoice::Known(Lens::radial([k1, 0.0]));
         let given = find_corners(&photo, Origin::BottomLeft, known).unwrap();
         let g = worst_px(&given.corners, &corners);
-        let (got, _) = rectify(&photo, &opts(found.corners, found.lens)).unwrap();
+        let (got, _) = rectify(&photo, &at_4(found.corners, found.lens)).unwrap();
         let psnr = psnr_against_pattern(&got);
         // The true corners, the lens ignored.
-        let (ignored, _) = rectify(&photo, &opts(corners, Lens::PINHOLE)).unwrap();
+        let (ignored, _) = rectify(&photo, &at_4(corners, Lens::PINHOLE)).unwrap();
         let without = psnr_against_pattern(&ignored);
         eprintln!(
             "k1 {k1}: estimated {:.5}, corners within {e:.3} px ({g:.3} px with the lens \
@@ -508,6 +517,7 @@ fn a_lens_is_estimated_from_the_pieces_sides_and_rectified_through() {
         assert!(r <= 0.1 && (refined.lens.k[0] - k1).abs() < 1e-3, "k1 {k1}: {refined:?}");
     }
     // The pinhole photograph's lens comes out as none.
+    let pinhole = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
     let found = find_corners(&pinhole, Origin::BottomLeft, LensChoice::Estimate).unwrap();
     assert!(found.lens.k[0].abs() < 1e-3, "{found:?}");
     assert!(worst_px(&found.corners, &FACE_UP) <= 0.1, "{found:?}");
@@ -519,11 +529,7 @@ fn a_lens_is_estimated_from_the_pieces_sides_and_rectified_through() {
 /// it does not.
 #[test]
 fn a_principal_point_off_the_centre_is_rectified_through() {
-    let opts =
-        |corners, lens| RectifyOptions { corners, size_mm: SIZE_MM, px_per_mm: Some(4.0), lens };
-    let pinhole = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
-    let (straight, _) = rectify(&pinhole, &opts(FACE_UP, Lens::PINHOLE)).unwrap();
-    let base = psnr_against_pattern(&straight);
+    let base = pinhole_psnr();
     let lens = Lens {
         focal_px: Some(700.0),
         centre_px: Some([290.0, 262.0]),
@@ -534,10 +540,10 @@ fn a_principal_point_off_the_centre_is_rectified_through() {
     let corners = FACE_UP.map(|p| map.in_frame(p));
     let found = find_corners(&photo, Origin::BottomLeft, LensChoice::Known(lens)).unwrap();
     let worst = worst_px(&found.corners, &corners);
-    let (got, _) = rectify(&photo, &opts(found.corners, lens)).unwrap();
+    let (got, _) = rectify(&photo, &at_4(found.corners, lens)).unwrap();
     let psnr = psnr_against_pattern(&got);
     let centred = Lens { centre_px: None, ..lens };
-    let (off, _) = rectify(&photo, &opts(corners, centred)).unwrap();
+    let (off, _) = rectify(&photo, &at_4(corners, centred)).unwrap();
     let about_centre = psnr_against_pattern(&off);
     eprintln!(
         "corners within {worst:.3} px; rectified {psnr:.2} dB (a pinhole's {base:.2} dB), the \
