@@ -607,20 +607,16 @@ impl OpticalSim {
         }
         let n = camera.side_px as usize;
         let half = 0.5 * piece.size_mm;
-        // Where every pixel's corner lies on the piece's plane, mm.
-        let grid: Vec<Option<[f64; 2]>> = (0..(n + 1) * (n + 1))
-            .into_par_iter()
-            .map(|i| {
-                camera.on_plane([(i % (n + 1)) as f64, (i / (n + 1)) as f64]).map(|p| [p.x, p.y])
-            })
-            .collect();
         let on_piece = |fx: f64, fy: f64| {
             let p = camera.on_plane([fx, fy])?;
             let uv = [p.x / piece.size_mm + 0.5, p.y / piece.size_mm + 0.5];
             uv.iter().all(|u| (0.0..1.0).contains(u)).then_some((p, uv))
         };
         self.square_image(n, exposure_s, 0x9407_0C4A, &keys, |x, y| {
-            let corner = |dx: usize, dy: usize| grid[(y + dy) * (n + 1) + x + dx];
+            // Where the pixel's corners lie on the piece's plane, mm.
+            let corner = |dx: usize, dy: usize| {
+                camera.on_plane([(x + dx) as f64, (y + dy) as f64]).map(|p| [p.x, p.y])
+            };
             let footprint = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)];
             // The share of the pixel's footprint on the piece: a real
             // sensor integrates over the pixel, so the outline's position
