@@ -768,11 +768,9 @@ fn crossing(
     steps: isize,
     polarity: Polarity,
 ) -> Option<Crossing> {
-    let at = |k: isize| {
-        let s = k as f64 * PROFILE_STEP_PX;
-        seen.at([p[0] + s * n[0], p[1] + s * n[1]])
-    };
-    let profile: Vec<f64> = (-steps..=steps).map(at).collect();
+    // The luminance `s` px along the normal.
+    let v = |s: f64| seen.at([p[0] + s * n[0], p[1] + s * n[1]]);
+    let profile: Vec<f64> = (-steps..=steps).map(|k| v(k as f64 * PROFILE_STEP_PX)).collect();
     let quarter = (steps / 2).max(1) as usize;
     let inside = median(&profile[..quarter + 1]);
     let outside = median(&profile[profile.len() - quarter - 1..]);
@@ -799,7 +797,6 @@ fn crossing(
     let s0 = best?;
     // Where the piece is flat up to its edge, the edge by its area too:
     // the piece's share of the profile over a window about the crossing.
-    let v = |s: f64| seen.at([p[0] + s * n[0], p[1] + s * n[1]]);
     let lo = s0 - EDGE_WINDOW_PX;
     let near: Vec<f64> =
         (0..=EDGE_FLAT_STEPS).map(|j| v(lo - j as f64 * PROFILE_STEP_PX)).collect();
