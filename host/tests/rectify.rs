@@ -188,12 +188,9 @@ fn face_up(corners: &[[f64; 2]; 4]) -> Homography {
 fn the_corners_of_a_piece_on_a_dark_background_are_found() {
     let photo = photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p);
     let found = find_corners(&photo, Origin::BottomLeft, PINHOLE).unwrap();
-    let err = |c: &[[f64; 2]; 4], want: &[[f64; 2]; 4]| {
-        (0..4).map(|k| (c[k][0] - want[k][0]).hypot(c[k][1] - want[k][1])).fold(0.0, f64::max)
-    };
     // Measured: 0.026 px at worst (the photograph's pixels are means of
     // 6 × 6 points, so an edge is known to 1/12 px).
-    let e = err(&found.corners, &FACE_UP);
+    let e = worst_px(&found.corners, &FACE_UP);
     eprintln!("{found:?}: {e:.3} px at worst");
     assert!(e <= 0.1, "{found:?}: {e:.3} px");
     assert!(found.edge_rms_px < 0.2 && found.edge_points > 1000, "{found:?}");
@@ -207,13 +204,13 @@ fn the_corners_of_a_piece_on_a_dark_background_are_found() {
         let turned: [[f64; 2]; 4] = std::array::from_fn(|i| FACE_UP[(i + 4 - k) % 4]);
         let photo = photograph_on(640, 480, &face_up(&turned), DARK, |p| p);
         let found = find_corners(&photo, *origin, PINHOLE).unwrap();
-        assert!(err(&found.corners, &turned) <= 0.1, "{origin:?}: {found:?}");
+        assert!(worst_px(&found.corners, &turned) <= 0.1, "{origin:?}: {found:?}");
     }
 
     // A dark piece on a white table: found the same way.
     let dark = photograph_on(640, 480, &face_up(&FACE_UP), 50.0, |p| p);
     let found_dark = find_corners(&dark, Origin::BottomLeft, PINHOLE).unwrap();
-    let e = err(&found_dark.corners, &FACE_UP);
+    let e = worst_px(&found_dark.corners, &FACE_UP);
     eprintln!("{found_dark:?}: {e:.3} px at worst");
     assert_eq!(found_dark.polarity, Polarity::Darker);
     assert!(e <= 0.1 && found_dark.contrast > 10.0, "{found_dark:?}: {e:.3} px");
@@ -237,6 +234,39 @@ fn the_corners_of_a_piece_on_a_dark_background_are_found() {
 
 fn photo_face_up() -> Frame {
     photograph_on(640, 480, &face_up(&FACE_UP), DARK, |p| p)
+}
+
+#[test]
+fn larger_regions_that_are_not_the_piece_are_passed_over() {
+    // A small piece on the left; to its right a bright disc larger than
+    // it and a bright card cut by the photograph's edge, larger still.
+    let piece = [[60.0, 300.0], [220.0, 310.0], [230.0, 160.0], [70.0, 150.0]];
+    let mut photo = photograph_on(800, 480, &face_up(&piece), DARK, |p| p);
+    let paint = |photo: &mut Frame, on: &dyn Fn(f64, f64) -> bool| {
+        for (i, px) in photo.rgb.chunks_exact_mut(3).enumerate() {
+            if on((i % 800) as f64 + 0.5, (i / 800) as f64 + 0.5) {
+                px.fill(0.6);
+            }
+        }
+    };
+    paint(&mut photo, &|x, y| (x - 450.0).hypot(y - 240.0) < 110.0);
+    paint(&mut photo, &|x, _| x > 640.0);
+    let found = find_corners(&photo, Origin::BottomLeft, PINHOLE).unwrap();
+    eprintln!("{found:?}: {:.3} px at worst", worst_px(&found.corners, &piece));
+    assert_eq!((found.polarity, found.passed_over), (Polarity::Brighter, 2), "{found:?}");
+    assert!(worst_px(&found.corners, &piece) <= 0.1, "{found:?}");
+
+    // Without the piece: refused, naming the largest region and why.
+    let mut empty = photograph_on(800, 480, &face_up(&piece), DARK, |_| [-1e3, -1e3]);
+    paint(&mut empty, &|x, y| (x - 450.0).hypot(y - 240.0) < 110.0);
+    paint(&mut empty, &|x, _| x > 640.0);
+    let why = find_corners(&empty, Origin::BottomLeft, PINHOLE).unwrap_err().to_string();
+    assert!(
+        why.contains("the largest bright region reaches the photograph's edge")
+            && why
+                .contains("no smaller one (of 1) lies whole in the photograph as a quadrilateral"),
+        "{why}"
+    );
 }
 
 #[test]

@@ -6,11 +6,12 @@
 //!    lightly blurred, is split into two levels by Otsu's threshold on its
 //!    logarithm: radiance spans decades, and a textured piece's dark gaps
 //!    sit between the two levels.
-//! 2. The largest 8-connected bright component is the piece (if that
-//!    fails, the largest dark one: a dark piece on a white table); it must
-//!    not reach the photograph's edge. Its convex hull gives the
-//!    quadrilateral of largest area with corners on the hull: the piece's
-//!    outline to a pixel or two.
+//! 2. The largest 8-connected bright component that lies whole in the
+//!    photograph and is a quadrilateral is the piece (if that fails, the
+//!    largest such dark one: a dark piece on a white table); larger ones
+//!    that reach the photograph's edge or are of another shape are passed
+//!    over. Its convex hull gives the quadrilateral of largest area with
+//!    corners on the hull: the piece's outline to a pixel or two.
 //! 3. Each side is then found to a fraction of a pixel: across it, every
 //!    pixel along its length, the unblurred luminance's outermost crossing
 //!    of the level halfway between the piece just inside and the
@@ -99,6 +100,10 @@ pub struct FoundCorners {
     /// The estimated lens' k1's standard error, from how well the sides'
     /// edge points fix it (`None`: the lens was given).
     pub lens_k1_sigma: Option<f64>,
+    /// Larger regions of the piece's brightness passed over: they reach
+    /// the photograph's edge or are not quadrilaterals (0 with marked
+    /// corners).
+    pub passed_over: usize,
 }
 
 /// The least contrast between piece and background.
@@ -109,6 +114,9 @@ pub const MAX_EDGE_RMS_PX: f64 = 0.75;
 pub const MAX_BOW_PX: f64 = 0.5;
 /// The smallest side, px.
 pub const MIN_SIDE_PX: f64 = 16.0;
+/// The fewest pixels of a region that may be the piece (a square of the
+/// smallest side).
+const MIN_REGION_PX: usize = (MIN_SIDE_PX * MIN_SIDE_PX) as usize;
 /// The least share of the quadrilateral the piece's component covers (and
 /// its reciprocal the most).
 const MIN_FILL: f64 = 0.85;
@@ -191,7 +199,10 @@ pub fn find_corners(
     })
 }
 
-/// [`find_corners`] for a piece of `polarity` on the pixels of `mask`.
+/// [`find_corners`] for a piece of `polarity` on the pixels of `mask`:
+/// its regions tried largest first, passing over those that reach the
+/// photograph's edge or are not quadrilaterals; the first that is both
+/// is the piece, found or refused.
 fn find_in(
     lum: &Plane,
     mask: &[bool],
@@ -200,32 +211,55 @@ fn find_in(
     lens: LensChoice,
 ) -> Result<FoundCorners, String> {
     let region = polarity.name();
-    let Some(piece) = largest_component(mask, lum.width, lum.height) else {
-        return Err(format!("no {region} region"));
-    };
+    let regions = components(mask, lum.width, lum.height, MIN_REGION_PX);
+    let mut passed: Option<String> = None;
+    for (passed_over, piece) in regions.iter().enumerate() {
+        let quad = match outline(piece) {
+            Ok(quad) => quad,
+            Err(why) => {
+                passed.get_or_insert(why);
+                continue;
+            }
+        };
+        let found = through(lum, quad, polarity, lens, &PROFILE_HALF_PX)?;
+        return Ok(FoundCorners { corners: ordered(found.corners, origin)?, passed_over, ..found });
+    }
+    Err(match passed {
+        None => format!("no {region} region of {MIN_REGION_PX} px or more"),
+        Some(why) if regions.len() == 1 => format!("the {region} region {why}"),
+        Some(why) => format!(
+            "the largest {region} region {why}, and no smaller one (of {}) lies whole in the \
+             photograph as a quadrilateral",
+            regions.len() - 1
+        ),
+    })
+}
+
+/// A region's quadrilateral, or why it is not the piece: it reaches the
+/// photograph's edge, or its area is not that of the largest quadrilateral
+/// inside its outline.
+fn outline(piece: &Component) -> Result<[[f64; 2]; 4], String> {
     if piece.touches_edge {
-        return Err(format!(
-            "the {region} region reaches the photograph's edge (the piece must lie whole in the \
-             photograph, with background all round it)"
-        ));
+        return Err("reaches the photograph's edge (the piece must lie whole in the \
+                    photograph, with background all round it)"
+            .into());
     }
     let hull = convex_hull(&piece.outline);
     let Some(quad) = largest_quadrilateral(&hull) else {
-        return Err(format!("the {region} region has no area"));
+        return Err("has no area".into());
     };
     let area = shoelace(&quad).abs();
     let fill = piece.pixels as f64 / area.max(1.0);
     if !(MIN_FILL..=1.0 / MIN_FILL).contains(&fill) {
         return Err(format!(
-            "the {region} region is not a quadrilateral: its area is {:.0} % of the largest one \
-             inside its outline ({:.0}–{:.0} %)",
+            "is not a quadrilateral: its area is {:.0} % of the largest one inside its outline \
+             ({:.0}–{:.0} %)",
             100.0 * fill,
             100.0 * MIN_FILL,
             100.0 / MIN_FILL
         ));
     }
-    let found = through(lum, quad, polarity, lens, &PROFILE_HALF_PX)?;
-    Ok(FoundCorners { corners: ordered(found.corners, origin)?, ..found })
+    Ok(quad)
 }
 
 /// Hand-marked corners (in any order around the piece, kept) moved onto
@@ -467,6 +501,7 @@ fn settle(
         edge_points: fit.points,
         lens: seen.lens.lens(),
         lens_k1_sigma: None,
+        passed_over: 0,
     })
 }
 
@@ -510,7 +545,7 @@ fn bright(lum: &Plane) -> Option<Vec<bool>> {
     (best > 0.0).then(|| lum.data.iter().map(|&v| bin(log(v)) > split).collect())
 }
 
-/// The largest 8-connected component of a mask.
+/// An 8-connected component of a mask.
 struct Component {
     /// Its pixels.
     pixels: usize,
@@ -521,55 +556,59 @@ struct Component {
     outline: Vec<[f64; 2]>,
 }
 
-fn largest_component(mask: &[bool], w: usize, h: usize) -> Option<Component> {
+/// A mask's 8-connected components of at least `min_pixels`, largest
+/// first (ties: the first met in row order).
+fn components(mask: &[bool], w: usize, h: usize, min_pixels: usize) -> Vec<Component> {
     let mut label = vec![u32::MAX; w * h];
     let mut stack = Vec::new();
-    let mut best: Option<(u32, usize)> = None;
-    let mut next = 0u32;
+    // Each labelled component's size and bounding box (x0, y0, x1, y1).
+    let mut found: Vec<(usize, [usize; 4])> = Vec::new();
     for start in 0..w * h {
         if !mask[start] || label[start] != u32::MAX {
             continue;
         }
-        let mut size = 0usize;
-        label[start] = next;
+        let id = found.len() as u32;
+        let (mut size, mut bbox) = (0usize, [start % w, start / w, start % w, start / w]);
+        label[start] = id;
         stack.push(start);
         while let Some(i) = stack.pop() {
             size += 1;
-            let (x, y) = ((i % w) as isize, (i / w) as isize);
-            for dy in -1..=1 {
-                for dx in -1..=1 {
-                    let (nx, ny) = (x + dx, y + dy);
-                    if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
-                        continue;
-                    }
-                    let j = ny as usize * w + nx as usize;
+            let (x, y) = (i % w, i / w);
+            bbox = [bbox[0].min(x), bbox[1].min(y), bbox[2].max(x), bbox[3].max(y)];
+            for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                    let j = ny * w + nx;
                     if mask[j] && label[j] == u32::MAX {
-                        label[j] = next;
+                        label[j] = id;
                         stack.push(j);
                     }
                 }
             }
         }
-        if best.is_none_or(|(_, s)| size > s) {
-            best = Some((next, size));
-        }
-        next += 1;
+        found.push((size, bbox));
     }
-    let (id, pixels) = best?;
-    let mut outline = Vec::new();
-    let mut touches_edge = false;
-    for y in 0..h {
-        let row = &label[y * w..(y + 1) * w];
-        let (Some(a), Some(b)) =
-            (row.iter().position(|&l| l == id), row.iter().rposition(|&l| l == id))
-        else {
-            continue;
-        };
-        touches_edge |= a == 0 || b == w - 1 || y == 0 || y == h - 1;
-        let (a, b, y) = (a as f64, b as f64 + 1.0, y as f64);
-        outline.extend([[a, y], [a, y + 1.0], [b, y], [b, y + 1.0]]);
-    }
-    Some(Component { pixels, touches_edge, outline })
+    let mut order: Vec<usize> = (0..found.len()).filter(|&i| found[i].0 >= min_pixels).collect();
+    order.sort_by_key(|&i| std::cmp::Reverse(found[i].0));
+    order
+        .into_iter()
+        .map(|i| {
+            let (pixels, [x0, y0, x1, y1]) = found[i];
+            let mut outline = Vec::new();
+            for y in y0..=y1 {
+                let row = &label[y * w + x0..=y * w + x1];
+                let (Some(a), Some(b)) = (
+                    row.iter().position(|&l| l == i as u32),
+                    row.iter().rposition(|&l| l == i as u32),
+                ) else {
+                    continue;
+                };
+                let (a, b, y) = ((x0 + a) as f64, (x0 + b) as f64 + 1.0, y as f64);
+                outline.extend([[a, y], [a, y + 1.0], [b, y], [b, y + 1.0]]);
+            }
+            let touches_edge = x0 == 0 || y0 == 0 || x1 == w - 1 || y1 == h - 1;
+            Component { pixels, touches_edge, outline }
+        })
+        .collect()
 }
 
 fn cross(o: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {

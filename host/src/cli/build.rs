@@ -760,9 +760,9 @@ pub fn rectify_cmd(
         );
     }
     if let Some(found) = found {
-        let polarity = match found.polarity {
-            crate::build::corners::Polarity::Brighter => "brighter",
-            crate::build::corners::Polarity::Darker => "darker",
+        let (polarity, region) = match found.polarity {
+            crate::build::corners::Polarity::Brighter => ("brighter", "bright"),
+            crate::build::corners::Polarity::Darker => ("darker", "dark"),
         };
         println!(
             "{}: the piece's corners at {} px (its sides straight within {:.2} px RMS over {} \
@@ -774,6 +774,16 @@ pub fn rectify_cmd(
             found.bow_px,
             found.contrast
         );
+        if found.passed_over > 0 {
+            println!(
+                "{}: {} larger {} region{} passed over (reaching the photograph's edge or not a \
+                 quadrilateral): check the outline (--show)",
+                photo.display(),
+                found.passed_over,
+                region,
+                if found.passed_over == 1 { "" } else { "s" }
+            );
+        }
     }
     let opts = RectifyOptions { corners: located, size_mm, px_per_mm, lens: lens_used };
     // Options that do not fit this photograph: exit 2, as for any option.
