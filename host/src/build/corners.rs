@@ -211,10 +211,10 @@ fn find_in(
     lens: LensChoice,
 ) -> Result<FoundCorners, String> {
     let region = polarity.name();
-    let regions = components(mask, lum.width, lum.height, MIN_REGION_PX);
+    let (count, regions) = components(mask, lum.width, lum.height, MIN_REGION_PX);
     let mut passed: Option<String> = None;
-    for (passed_over, piece) in regions.iter().enumerate() {
-        let quad = match outline(piece) {
+    for (passed_over, piece) in regions.enumerate() {
+        let quad = match outline(&piece) {
             Ok(quad) => quad,
             Err(why) => {
                 passed.get_or_insert(why);
@@ -226,11 +226,11 @@ fn find_in(
     }
     Err(match passed {
         None => format!("no {region} region of {MIN_REGION_PX} px or more"),
-        Some(why) if regions.len() == 1 => format!("the {region} region {why}"),
+        Some(why) if count == 1 => format!("the {region} region {why}"),
         Some(why) => format!(
             "the largest {region} region {why}, and no smaller one (of {}) lies whole in the \
              photograph as a quadrilateral",
-            regions.len() - 1
+            count - 1
         ),
     })
 }
@@ -556,9 +556,15 @@ struct Component {
     outline: Vec<[f64; 2]>,
 }
 
-/// A mask's 8-connected components of at least `min_pixels`, largest
-/// first (ties: the first met in row order).
-fn components(mask: &[bool], w: usize, h: usize, min_pixels: usize) -> Vec<Component> {
+/// A mask's 8-connected components of at least `min_pixels`: how many, and
+/// each, largest first (ties: the first met in row order), its outline
+/// traced only when the iterator reaches it.
+fn components(
+    mask: &[bool],
+    w: usize,
+    h: usize,
+    min_pixels: usize,
+) -> (usize, impl Iterator<Item = Component>) {
     let mut label = vec![u32::MAX; w * h];
     let mut stack = Vec::new();
     // Each labelled component's size and bounding box (x0, y0, x1, y1).
@@ -589,26 +595,24 @@ fn components(mask: &[bool], w: usize, h: usize, min_pixels: usize) -> Vec<Compo
     }
     let mut order: Vec<usize> = (0..found.len()).filter(|&i| found[i].0 >= min_pixels).collect();
     order.sort_by_key(|&i| std::cmp::Reverse(found[i].0));
-    order
-        .into_iter()
-        .map(|i| {
-            let (pixels, [x0, y0, x1, y1]) = found[i];
-            let mut outline = Vec::new();
-            for y in y0..=y1 {
-                let row = &label[y * w + x0..=y * w + x1];
-                let (Some(a), Some(b)) = (
-                    row.iter().position(|&l| l == i as u32),
-                    row.iter().rposition(|&l| l == i as u32),
-                ) else {
-                    continue;
-                };
-                let (a, b, y) = ((x0 + a) as f64, (x0 + b) as f64 + 1.0, y as f64);
-                outline.extend([[a, y], [a, y + 1.0], [b, y], [b, y + 1.0]]);
-            }
-            let touches_edge = x0 == 0 || y0 == 0 || x1 == w - 1 || y1 == h - 1;
-            Component { pixels, touches_edge, outline }
-        })
-        .collect()
+    let count = order.len();
+    let each = order.into_iter().map(move |i| {
+        let (pixels, [x0, y0, x1, y1]) = found[i];
+        let mut outline = Vec::new();
+        for y in y0..=y1 {
+            let row = &label[y * w + x0..=y * w + x1];
+            let (Some(a), Some(b)) =
+                (row.iter().position(|&l| l == i as u32), row.iter().rposition(|&l| l == i as u32))
+            else {
+                continue;
+            };
+            let (a, b, y) = ((x0 + a) as f64, (x0 + b) as f64 + 1.0, y as f64);
+            outline.extend([[a, y], [a, y + 1.0], [b, y], [b, y + 1.0]]);
+        }
+        let touches_edge = x0 == 0 || y0 == 0 || x1 == w - 1 || y1 == h - 1;
+        Component { pixels, touches_edge, outline }
+    });
+    (count, each)
 }
 
 fn cross(o: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
