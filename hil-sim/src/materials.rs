@@ -94,16 +94,6 @@ pub trait Material: Send + Sync + std::fmt::Debug {
     fn sample_offset_mm(&self) -> [f64; 2] {
         SMALL_OFFSET_MM
     }
-    /// Whether the pattern is flat areas meeting at sharp edges that
-    /// calibration locates to hundredths of a pixel (a printed target).
-    /// The scan frames of such a sample integrate every pixel an edge
-    /// crosses with [`crate::optics::EDGE_SUPERSAMPLE`]² rays, as a sensor
-    /// integrates over the pixel, instead of rounding where the edge lies
-    /// within it to the 2 × 2 rays; a texture with sharp features
-    /// everywhere (a weave's gaps) would pay ×3–8 a frame for that.
-    fn sharp_edges(&self) -> bool {
-        false
-    }
 }
 
 /// A physical piece of a material: a `size_mm` square window of it, cut at
@@ -236,9 +226,6 @@ impl Material for Checkerboard {
         let j = ((p[1] - o[1]) / pitch).floor() as i64;
         let a = if (i + j).rem_euclid(2) == 0 { self.white } else { self.black };
         flat([a; 3], [0.0; 3], 1.0)
-    }
-    fn sharp_edges(&self) -> bool {
-        true
     }
 }
 
