@@ -601,8 +601,10 @@ impl OpticalSim {
                         continue;
                     }
                     Self::mirrors_at(&mirrors, x, &mut here);
-                    if !here.is_empty() {
-                        out.push((x, pixel(x, y, EDGE_SUPERSAMPLE, &here).0));
+                    let e = pixel(x, y, EDGE_SUPERSAMPLE, &here).0;
+                    // A row no light reaches stays one (`None`).
+                    if e != rows[y].as_ref().map_or([0.0; 3], |r| r[x]) {
+                        out.push((x, e));
                     }
                 }
                 out
