@@ -159,7 +159,8 @@ impl Polarity {
         }
     }
 
-    fn name(self) -> &'static str {
+    /// Its regions' name: `bright` or `dark`.
+    pub fn name(self) -> &'static str {
         match self {
             Polarity::Brighter => "bright",
             Polarity::Darker => "dark",

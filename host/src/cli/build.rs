@@ -760,9 +760,9 @@ pub fn rectify_cmd(
         );
     }
     if let Some(found) = found {
-        let (polarity, region) = match found.polarity {
-            crate::build::corners::Polarity::Brighter => ("brighter", "bright"),
-            crate::build::corners::Polarity::Darker => ("darker", "dark"),
+        let polarity = match found.polarity {
+            crate::build::corners::Polarity::Brighter => "brighter",
+            crate::build::corners::Polarity::Darker => "darker",
         };
         println!(
             "{}: the piece's corners at {} px (its sides straight within {:.2} px RMS over {} \
@@ -780,7 +780,7 @@ pub fn rectify_cmd(
                  quadrilateral): check the outline (--show)",
                 photo.display(),
                 found.passed_over,
-                region,
+                found.polarity.name(),
                 if found.passed_over == 1 { "" } else { "s" }
             );
         }
