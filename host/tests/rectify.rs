@@ -412,9 +412,7 @@ fn the_corners_are_found_through_falloff_shadow_and_noise() {
         }
     }
     let found = find_corners(&photo, Origin::BottomLeft, PINHOLE).unwrap();
-    let worst = (0..4)
-        .map(|k| (found.corners[k][0] - corners[k][0]).hypot(found.corners[k][1] - corners[k][1]))
-        .fold(0.0, f64::max);
+    let worst = worst_px(&found.corners, &corners);
     // Measured: 0.12 px at worst.
     eprintln!("{found:?}: {worst:.3} px at worst");
     assert!(worst <= 0.25, "{found:?} against {corners:?}: {worst:.3} px");
@@ -436,9 +434,7 @@ fn marked_corners_are_refined_onto_the_edges() {
             [x + r * a.cos(), y + r * a.sin()]
         });
         let got = refine_corners(&photo, marked, PINHOLE).unwrap();
-        let worst = (0..4)
-            .map(|k| (got.corners[k][0] - CORNERS[k][0]).hypot(got.corners[k][1] - CORNERS[k][1]))
-            .fold(0.0, f64::max);
+        let worst = worst_px(&got.corners, &CORNERS);
         // Measured: 0.03 px at worst on either.
         eprintln!("holder {holder}: {got:?}: {worst:.3} px at worst");
         assert!(worst <= 0.1, "holder {holder}: {got:?}: {worst:.3} px");
