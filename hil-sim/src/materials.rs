@@ -312,12 +312,16 @@ fn value_noise(p: [f64; 2], cells: [i64; 2], seed: u64) -> f64 {
     let y = p[1] / TILE_MM * cells[1] as f64;
     let (xi, yi) = (x.floor(), y.floor());
     let (fx, fy) = (fade(x - xi), fade(y - yi));
-    let (xi, yi) = (xi as i64, yi as i64);
-    let v = |dx: i64, dy: i64| {
-        unit(hash((xi + dx).rem_euclid(cells[0]), (yi + dy).rem_euclid(cells[1]), seed))
+    // The cell and the next one, wrapped periodically (one division each).
+    let wrap = |i: f64, n: i64| {
+        let i = (i as i64).rem_euclid(n);
+        [i, if i + 1 == n { 0 } else { i + 1 }]
     };
-    let a = v(0, 0) + (v(1, 0) - v(0, 0)) * fx;
-    let b = v(0, 1) + (v(1, 1) - v(0, 1)) * fx;
+    let (xs, ys) = (wrap(xi, cells[0]), wrap(yi, cells[1]));
+    let v = |dx: usize, dy: usize| unit(hash(xs[dx], ys[dy], seed));
+    let (v00, v10, v01, v11) = (v(0, 0), v(1, 0), v(0, 1), v(1, 1));
+    let a = v00 + (v10 - v00) * fx;
+    let b = v01 + (v11 - v01) * fx;
     a + (b - a) * fy
 }
 
@@ -340,11 +344,17 @@ fn worley(p: [f64; 2], cells: i64, seed: u64) -> (f64, u64) {
     let x = p[0] / TILE_MM * cells as f64;
     let y = p[1] / TILE_MM * cells as f64;
     let (xi, yi) = (x.floor() as i64, y.floor() as i64);
+    // The cells before, at and after, wrapped periodically (one division).
+    let wrap = |i: i64| {
+        let r = i.rem_euclid(cells);
+        [if r == 0 { cells - 1 } else { r - 1 }, r, if r + 1 == cells { 0 } else { r + 1 }]
+    };
+    let (xs, ys) = (wrap(xi), wrap(yi));
     let mut best = (f64::INFINITY, 0);
     for dy in -1..=1 {
         for dx in -1..=1 {
             let (cx, cy) = (xi + dx, yi + dy);
-            let h = hash(cx.rem_euclid(cells), cy.rem_euclid(cells), seed);
+            let h = hash(xs[(dx + 1) as usize], ys[(dy + 1) as usize], seed);
             let fx = cx as f64 + unit(h);
             let fy = cy as f64 + unit(h.rotate_left(29));
             let d = ((fx - x).powi(2) + (fy - y).powi(2)).sqrt();

@@ -289,42 +289,45 @@ impl OpticalSim {
     pub fn light_paths(&self, axes: AxisValues, p: DVec3) -> Vec<LightPath> {
         let beam = self.geometry.beam(axes);
         let lit = self.lit_mirrors(&beam);
-        self.light_paths_with(&beam, &lit, p)
+        self.light_paths_with(&beam, &lit, p).collect()
     }
 
-    fn light_paths_with(&self, beam: &Beam, lit: &[LitMirror], p: DVec3) -> Vec<LightPath> {
-        let mut out = Vec::new();
-        for lm in lit {
+    /// The beam paths reaching `p`, lazily: a camera ray's radiance asks for
+    /// them once per ray, and most rays meet one.
+    fn light_paths_with<'a>(
+        &'a self,
+        beam: &'a Beam,
+        lit: &'a [LitMirror],
+        p: DVec3,
+    ) -> impl Iterator<Item = LightPath> + 'a {
+        lit.iter().filter_map(move |lm| {
             let m = &self.facets[lm.mirror];
             // Light arrives travelling along lm.dir; trace back to the mirror.
             if lm.dir.z <= 0.0 {
-                continue; // reflected downwards: never reaches the sample's face
+                return None; // reflected downwards: never reaches the sample's face
             }
-            let Some((_, q)) = m.intersect(p, -lm.dir) else { continue };
+            let (_, q) = m.intersect(p, -lm.dir)?;
             // Only mirrors the beam tube overlaps can shadow this one's light.
             let back = -beam.dir;
             if (q - beam.origin).dot(beam.dir) <= 0.0 {
-                continue;
+                return None;
             }
             let shadowed = lit.iter().any(|other| {
                 other.mirror != lm.mirror
                     && self.facets[other.mirror].intersect(q + back * 1e-6, back).is_some()
             });
             if shadowed {
-                continue;
+                return None;
             }
             let e = self.geometry.source.irradiance
                 * self.geometry.mirrors[lm.mirror].reflectance
                 * self.geometry.source.profile(beam.distance(q));
-            if e > 0.0 {
-                out.push(LightPath {
-                    mirror: lm.mirror,
-                    light: world_to_sample(-lm.dir),
-                    irradiance: e,
-                });
-            }
-        }
-        out
+            (e > 0.0).then(|| LightPath {
+                mirror: lm.mirror,
+                light: world_to_sample(-lm.dir),
+                irradiance: e,
+            })
+        })
     }
 
     /// What the camera ray through image point (x, y) sees of the sample.
@@ -391,8 +394,11 @@ impl OpticalSim {
             return [0.0; 3];
         };
         let mut out = [0.0; 3];
+        // The texel once, when some path lights the point.
+        let mut texel = None;
         for path in self.light_paths_with(&scene.beam, scene.lit, hit.point) {
-            let r = self.sample.reflected_radiance(hit.uv, hit.view, path.light);
+            let t = texel.get_or_insert_with(|| self.sample.texel(hit.uv));
+            let r = t.reflected(path.light, hit.view);
             for k in 0..3 {
                 out[k] += r[k] * path.irradiance * hit.transmission;
             }
