@@ -552,6 +552,61 @@ mod tests {
         }
     }
 
+    /// The noises wrap their lattice once an axis; the same values as
+    /// wrapping every cell they read, at points in the tile's last and
+    /// first cells, on both sides of its edges and far away.
+    #[test]
+    fn noises_wrap_their_cells_as_each_cell_wrapped_alone() {
+        let value_ref = |p: [f64; 2], cells: [i64; 2], seed: u64| {
+            let x = p[0] / TILE_MM * cells[0] as f64;
+            let y = p[1] / TILE_MM * cells[1] as f64;
+            let (xi, yi) = (x.floor(), y.floor());
+            let (fx, fy) = (fade(x - xi), fade(y - yi));
+            let (xi, yi) = (xi as i64, yi as i64);
+            let v = |dx: i64, dy: i64| {
+                unit(hash((xi + dx).rem_euclid(cells[0]), (yi + dy).rem_euclid(cells[1]), seed))
+            };
+            let a = v(0, 0) + (v(1, 0) - v(0, 0)) * fx;
+            let b = v(0, 1) + (v(1, 1) - v(0, 1)) * fx;
+            a + (b - a) * fy
+        };
+        let worley_ref = |p: [f64; 2], cells: i64, seed: u64| {
+            let x = p[0] / TILE_MM * cells as f64;
+            let y = p[1] / TILE_MM * cells as f64;
+            let (xi, yi) = (x.floor() as i64, y.floor() as i64);
+            let mut best = (f64::INFINITY, 0);
+            for (dx, dy) in (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (dx, dy))) {
+                let (cx, cy) = (xi + dx, yi + dy);
+                let h = hash(cx.rem_euclid(cells), cy.rem_euclid(cells), seed);
+                let fx = cx as f64 + unit(h);
+                let fy = cy as f64 + unit(h.rotate_left(29));
+                let d = ((fx - x).powi(2) + (fy - y).powi(2)).sqrt();
+                if d < best.0 {
+                    best = (d, h);
+                }
+            }
+            best
+        };
+        let coords =
+            [-160.3, -80.0, -79.99, -0.01, 0.0, 0.3, 39.7, 79.5, 79.99, 80.0, 80.2, 1e4 + 0.7];
+        for &x in &coords {
+            for &y in &coords {
+                let p = [x, y];
+                for cells in [[1, 1], [4, 4], [20, 80], [110, 3]] {
+                    assert_eq!(
+                        value_noise(p, cells, 5).to_bits(),
+                        value_ref(p, cells, 5).to_bits()
+                    );
+                }
+                for cells in [1, 2, 110] {
+                    let (d, h) = worley(p, cells, 21);
+                    let (dr, hr) = worley_ref(p, cells, 21);
+                    assert_eq!((d.to_bits(), h), (dr.to_bits(), hr), "{p:?} {cells}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn white_is_lambertian_and_energy_conserving() {
         let w = DiffuseWhite::default().texel([0.0, 0.0]);
