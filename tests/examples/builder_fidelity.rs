@@ -29,6 +29,10 @@ use scanner_formats::queries::Query;
 use scanner_geometry::{DVec3, world_to_sample};
 
 fn main() {
+    tests::check_region_args(
+        &["--bin", "--materials", "--mirrors", "--out", "--seed"],
+        &["--targets-only"],
+    );
     let bin: u32 = tests::arg("--bin", 1);
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);

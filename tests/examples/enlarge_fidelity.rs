@@ -16,6 +16,19 @@ use host::build::enlarge::{EnlargeOptions, enlarge, read_direct_set};
 use scanner_shading::Material;
 
 fn main() {
+    tests::check_region_args(
+        &[
+            "--bin",
+            "--materials",
+            "--out",
+            "--pairs",
+            "--radius",
+            "--seed",
+            "--signature",
+            "--subtexel",
+        ],
+        &[],
+    );
     let bin: u32 = tests::arg("--bin", 4);
     let seed: u64 = tests::arg("--seed", 1);
     let n_pairs: usize = tests::arg("--pairs", 48);

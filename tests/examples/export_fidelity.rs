@@ -30,6 +30,10 @@ use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 
 fn main() {
+    tests::check_region_args(
+        &["--bin", "--format", "--materials", "--mirrors", "--novel", "--out", "--seed"],
+        &["--without-detail"],
+    );
     let bin: u32 = tests::arg("--bin", 1);
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);

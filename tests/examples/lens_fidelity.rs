@@ -20,6 +20,7 @@ use host::build::corners::{Origin, find_corners};
 use host::build::lens::{Lens, LensChoice};
 
 fn main() {
+    tests::check_args(&["--bins", "--k1", "--lens", "--materials", "--out", "--seed"], &[]);
     let k1: f64 = tests::arg("--k1", -0.02);
     let choice = match tests::arg("--lens", "auto".to_string()).as_str() {
         "auto" => LensChoice::Estimate,

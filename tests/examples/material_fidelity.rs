@@ -25,6 +25,19 @@ use scanner_shading::Material;
 use scanner_shading::format::Provenance;
 
 fn main() {
+    tests::check_region_args(
+        &[
+            "--bin",
+            "--lights-per-index",
+            "--materials",
+            "--mirrors",
+            "--novel",
+            "--out",
+            "--seed",
+            "--texel-model",
+        ],
+        &["--bands", "--no-patent"],
+    );
     let bin: u32 = tests::arg("--bin", 1);
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);

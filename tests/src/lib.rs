@@ -17,14 +17,57 @@ use scanner_formats::queries::Query;
 use scanner_geometry::{AxisValues, DVec3, ScannerGeometry, world_to_sample};
 
 /// The value after `--name` on the command line, or `default` (the
-/// examples' options).
+/// examples' options). A value that does not parse ends the example with
+/// status 2, naming it, rather than running with the default.
 pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
     let args: Vec<String> = std::env::args().collect();
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
+    let Some(i) = args.iter().position(|a| a == name) else {
+        return default;
+    };
+    let Some(v) = args.get(i + 1) else {
+        usage_error(&format!("{name} needs a value"));
+    };
+    v.parse().unwrap_or_else(|_| usage_error(&format!("{name} {v:?}: not a valid value")))
+}
+
+/// The options [`region_options`] reads.
+const REGION_OPTIONS: [&str; 2] = ["--size", "--detail"];
+
+/// [`check_args`] for an example that also reads [`region_options`].
+pub fn check_region_args(values: &[&str], flags: &[&str]) {
+    check_args(&[values, &REGION_OPTIONS].concat(), flags);
+}
+
+/// Checks an example's command line before it starts a long run: every
+/// argument is one of `values` followed by its value, or one of `flags`.
+/// Anything else (a mistyped option) ends it with status 2, naming the
+/// argument; `--help` prints the options.
+pub fn check_args(values: &[&str], flags: &[&str]) {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let options = format!("options: {} (each with a value); {}", values.join(" "), flags.join(" "));
+    let mut i = 0;
+    while i < args.len() {
+        let a = args[i].as_str();
+        if a == "--help" || a == "-h" {
+            println!("{options}");
+            std::process::exit(0);
+        } else if values.contains(&a) {
+            if i + 1 == args.len() {
+                usage_error(&format!("{a} needs a value"));
+            }
+            i += 2;
+        } else if flags.contains(&a) {
+            i += 1;
+        } else {
+            usage_error(&format!("unknown argument {a:?}; {options}"));
+        }
+    }
+}
+
+/// Ends an example whose command line is wrong: the message, status 2.
+fn usage_error(message: &str) -> ! {
+    eprintln!("error: {message}");
+    std::process::exit(2);
 }
 
 /// The examples' region options: `--detail all-views|own-view` (default
