@@ -44,24 +44,41 @@ pub fn check_region_args(values: &[&str], flags: &[&str]) {
 /// argument; `--help` prints the options.
 pub fn check_args(values: &[&str], flags: &[&str]) {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    match args_problem(&args, values, flags) {
+        Ok(None) => {}
+        Ok(Some(options)) => {
+            println!("{options}");
+            std::process::exit(0);
+        }
+        Err(message) => usage_error(&message),
+    }
+}
+
+/// [`check_args`] on `args`: `Ok(None)` when they are right,
+/// `Ok(Some(options))` when they ask for help, the problem otherwise.
+fn args_problem(
+    args: &[String],
+    values: &[&str],
+    flags: &[&str],
+) -> Result<Option<String>, String> {
     let options = format!("options: {} (each with a value); {}", values.join(" "), flags.join(" "));
     let mut i = 0;
     while i < args.len() {
         let a = args[i].as_str();
         if a == "--help" || a == "-h" {
-            println!("{options}");
-            std::process::exit(0);
+            return Ok(Some(options));
         } else if values.contains(&a) {
             if i + 1 == args.len() {
-                usage_error(&format!("{a} needs a value"));
+                return Err(format!("{a} needs a value"));
             }
             i += 2;
         } else if flags.contains(&a) {
             i += 1;
         } else {
-            usage_error(&format!("unknown argument {a:?}; {options}"));
+            return Err(format!("unknown argument {a:?}; {options}"));
         }
     }
+    Ok(None)
 }
 
 /// Ends an example whose command line is wrong: the message, status 2.
@@ -648,4 +665,25 @@ pub fn built_and_photographed(
     let scale = hil_sim::direct::mirror_view_scale(g);
     let manifest = hil_sim::direct::write_set(&sim, g, truth, 4, scale, direct).unwrap();
     (data, manifest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::args_problem;
+
+    #[test]
+    fn an_example_refuses_what_it_does_not_read() {
+        let check = |args: &[&str]| {
+            let args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+            args_problem(&args, &["--seed", "--out"], &["--no-patent"])
+        };
+        assert_eq!(check(&[]), Ok(None));
+        assert_eq!(check(&["--seed", "2", "--no-patent", "--out", "--x"]), Ok(None));
+        assert!(check(&["--no-patent", "--help"]).unwrap().unwrap().contains("--seed --out"));
+        let unknown = check(&["--seed", "2", "--no-patnet"]).unwrap_err();
+        assert!(unknown.starts_with("unknown argument \"--no-patnet\""), "{unknown}");
+        assert_eq!(check(&["--out", "d", "--seed"]), Err("--seed needs a value".into()));
+        // A flag given a value: the value is an unknown argument.
+        assert!(check(&["--no-patent", "yes"]).unwrap_err().contains("\"yes\""));
+    }
 }
