@@ -625,8 +625,9 @@ impl OpticalSim {
     fn electrons_in(&self, scene: &Scene<'_>, spans: &PixelSpans) -> ElectronRows {
         let w = self.geometry.camera.width as usize;
         // Every pixel by its BASE_RAYS, which of them disagree, and their
-        // radiances (per row, a pixel of `spans` after another; none a
-        // pixel no mirror's box holds) for a pixel sampled again.
+        // radiances for a pixel sampled again (per row, the pixels of
+        // `spans` in order; zeros for one no mirror's box holds, whose
+        // rays meet nothing).
         let based: Vec<_> = spans
             .par_iter()
             .enumerate()
