@@ -556,9 +556,8 @@ impl OpticalSim {
         y: usize,
         here: &[usize],
     ) -> BaseRadiances {
-        let mut points = Self::base_points(x, y);
-        std::array::from_fn(|_| {
-            let (fx, fy) = points.next().expect("one point a base ray");
+        BASE_RAYS.map(|at| {
+            let (fx, fy) = Self::lattice_point(x, y, EDGE_SUPERSAMPLE, at);
             self.radiance_at(scene, fx, fy, here)
         })
     }
