@@ -711,6 +711,8 @@ struct Solved {
     explained: Image,
     /// The share of its detail both halves agree on, in [0, 1].
     agreed: Image,
+    /// How fully the views' pixels cover each texel ([`coverage`]).
+    coverage: Vec<f32>,
 }
 
 impl Solved {
@@ -718,6 +720,32 @@ impl Solved {
     fn trust(&self, t: usize, k: usize) -> f32 {
         self.explained[t][k] * self.agreed[t][k]
     }
+}
+
+/// Per texel of a `size`² grid, how fully the views' pixels cover it: the
+/// sum over views of ω_v times the weights of the view's pixels on it,
+/// over the median texel's, at most 1.
+///
+/// Only pixels wholly on the sample are rows, so within a pixel or two of
+/// the sample's edge fewer of them cover a texel (on the default scanner
+/// at 2S, 2 %, 24 %, 59 %, 84 % and 93 % of the median in the outermost
+/// five texels). There X is mostly the smoothness term's extrapolation,
+/// which both halves share: their agreement does not tell it from the
+/// sample ([`fine_detail`]).
+fn coverage(rows: &[&Rows], size: usize) -> Vec<f32> {
+    let mut cov = vec![0.0f32; size * size];
+    for r in rows {
+        for i in 0..r.len() {
+            let (t, w) = r.row(i);
+            for (&t, &w) in t.iter().zip(w) {
+                cov[t as usize] += w * r.scale;
+            }
+        }
+    }
+    let mut sorted = cov.clone();
+    sorted.sort_unstable_by(f32::total_cmp);
+    let typical = sorted[sorted.len() / 2];
+    cov.iter().map(|&c| if typical > 0.0 { (c / typical).min(1.0) } else { 0.0 }).collect()
 }
 
 /// X solved from two interleaved halves of the views (`rows`) on a
@@ -757,7 +785,7 @@ fn solve_halves(
         .iter()
         .map(|e| e.map(|e| ((MISFIT_NONE - e) / (MISFIT_NONE - MISFIT_FULL)).clamp(0.0, 1.0)))
         .collect();
-    Some(Solved { x, explained, agreed: gain })
+    Some(Solved { x, explained, agreed: gain, coverage: coverage(&all, size) })
 }
 
 /// Give the region images of one light (`images[view]`, S × S) the detail
@@ -834,7 +862,7 @@ pub fn sharpen_light(
         }
     }
     drop(rows);
-    fine_detail(&fine_rows, size, opts, x, &mean, level)
+    fine_detail(&fine_rows, size, opts, &solved, &mean, level)
 }
 
 /// Per texel and channel, the share of a view's `residual` that is not
@@ -866,7 +894,8 @@ fn residual_share(
 /// the 2S × 2S grid (from X at S), and per texel and channel
 /// t · ln((X / X_S) · (⟨X_S⟩ / ⟨X⟩)), X_S the S × S solution looked up
 /// bilinearly on the 2S grid, ⟨·⟩ local means (σ ≈ 5.6 texels of 2S), t the
-/// trust on that grid (the rows of [`light_rows`]' 2S grid). The S × S
+/// trust on that grid (the rows of [`light_rows`]' 2S grid), within the
+/// sample's edge no stronger than around it ([`edge_limited`]). The S × S
 /// images do not take X at 2S: there each view's pixels alias its finest
 /// patterns into their levels, so the views' different levels (a sheen)
 /// bend it.
@@ -874,11 +903,15 @@ fn fine_detail(
     rows: &[Rows],
     size: usize,
     opts: &SharpenOptions,
-    x: &[[f32; 3]],
+    coarse: &Solved,
     mean: &[[f32; 3]],
     level: [f32; 3],
 ) -> Option<Vec<[f32; 3]>> {
-    let fine = 2 * size;
+    let (fine, x) = (2 * size, &coarse.x);
+    // Both grids' coverage: where the pixels leave X_S undetermined, the
+    // ratio below is not the sample's either.
+    let coarse_coverage =
+        double(&coarse.coverage.iter().map(|&c| [c; 3]).collect::<Vec<_>>(), size);
     // From X at S, half the iterations do (the woven fabric scored the same
     // within 0.01 dB with all of them).
     let fine_opts = SharpenOptions { iterations: opts.iterations.div_ceil(2), ..*opts };
@@ -890,20 +923,56 @@ fn fine_detail(
     let coarse = double(x, size);
     let local = |img: &[[f32; 3]]| local_mean(img, fine, true, LOCAL_PASSES);
     let (fl, cl) = (local(xf), local(&coarse));
-    Some(
-        (0..fine * fine)
-            .map(|t| {
-                std::array::from_fn(|k| {
-                    let (f, c) = (xf[t][k] * cl[t][k], coarse[t][k] * fl[t][k]);
-                    if f > level[k] && c > level[k] {
-                        solved.trust(t, k) * (f / c).clamp(1.0 / MAX_RATIO, MAX_RATIO).ln()
-                    } else {
-                        0.0
-                    }
-                })
+    let detail: Image = (0..fine * fine)
+        .map(|t| {
+            std::array::from_fn(|k| {
+                let (f, c) = (xf[t][k] * cl[t][k], coarse[t][k] * fl[t][k]);
+                if f > level[k] && c > level[k] {
+                    solved.trust(t, k) * (f / c).clamp(1.0 / MAX_RATIO, MAX_RATIO).ln()
+                } else {
+                    0.0
+                }
             })
-            .collect(),
-    )
+        })
+        .collect();
+    let weight: Vec<f32> =
+        (0..fine * fine).map(|t| (coarse_coverage[t][0] * solved.coverage[t]).powi(4)).collect();
+    Some(edge_limited(&detail, &weight, fine))
+}
+
+/// Log detail on the 2S grid (`fine`²) kept at the texels the pixels
+/// cover (`weight` 1) and, where they do not (weight 0: the sample's edge),
+/// no stronger than around it: scaled by w + (1 − w) · min(1, √(P_w / P)),
+/// P the detail's local power (σ ≈ 1.4 texels of S) and P_w its local
+/// power at the covered texels (σ ≈ 2.8 texels of S, weighted by w).
+///
+/// A sample whose detail is strong everywhere (a weave) keeps it to its
+/// edge; one whose detail is faint (fine bumps on a near-black rubber)
+/// loses the edge's extrapolation, which its detail layer's light
+/// components had been fitted to (docs/benchmarks.md, "The sample's edges",
+/// session 63). w is the two grids' coverage to the fourth power (its
+/// square measured 0.2 dB less on that rubber; the weave the same).
+fn edge_limited(detail: &[[f32; 3]], weight: &[f32], fine: usize) -> Image {
+    let power: Image = detail.iter().map(|d| d.map(|d| d * d)).collect();
+    let here = local_mean(&power, fine, true, GAIN_PASSES);
+    let covered = local_mean(
+        &power.iter().zip(weight).map(|(p, &w)| p.map(|p| w * p)).collect::<Vec<_>>(),
+        fine,
+        true,
+        LOCAL_PASSES,
+    );
+    let norm =
+        local_mean(&weight.iter().map(|&w| [w; 3]).collect::<Vec<_>>(), fine, true, LOCAL_PASSES);
+    (0..fine * fine)
+        .map(|t| {
+            std::array::from_fn(|k| {
+                let around = if norm[t][k] > 0.0 { covered[t][k] / norm[t][k] } else { 0.0 };
+                let limit = if here[t][k] > around { (around / here[t][k]).sqrt() } else { 1.0 };
+                let w = weight[t];
+                detail[t][k] * (w + (1.0 - w) * limit)
+            })
+        })
+        .collect()
 }
 
 /// The detail layer shared by every pair, from the lights' log detail
@@ -1331,6 +1400,72 @@ mod tests {
         let db = 20.0 * (without / with).log10();
         println!("at the 2S grid: images {without:.4}, × the layer {with:.4} RMS: {db:.2} dB");
         assert!(db >= 0.5, "{db:.2} dB");
+    }
+
+    /// Only pixels wholly on the sample are rows: the texels at its edge
+    /// are covered by fewer of them, the inner ones alike, on both grids.
+    #[test]
+    fn the_sample_s_edge_is_covered_by_fewer_pixels() {
+        let (hs, samplers) = views();
+        let f = frame(&hs, pattern, |_| 1.0);
+        let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
+        let views = footprints(&samplers, &f, &SharpenOptions::default());
+        let [coarse, fine] = light_rows(&views, &identity, &f).expect("rows");
+        for (rows, size) in [(coarse, S), (fine, 2 * S)] {
+            let rows: Vec<&Rows> = rows.iter().collect();
+            let c = coverage(&rows, size);
+            let ring = |t: usize| {
+                let (x, y) = (t % size, t / size);
+                x.min(y).min(size - 1 - x).min(size - 1 - y)
+            };
+            let at = |r: usize| (0..size * size).filter(move |&t| ring(t) == r).map(|t| c[t]);
+            let edge = at(0).fold(0.0f32, f32::max);
+            let inner = (size / 8..size / 2).flat_map(at).fold(1.0f32, f32::min);
+            println!("{size}²: coverage at the edge ≤ {edge:.3}, inside ≥ {inner:.3}");
+            assert!(c.iter().all(|c| (0.0..=1.0).contains(c)));
+            assert!(edge < 0.6 && inner > 0.8, "{edge} {inner}");
+        }
+    }
+
+    /// Where the pixels cover the texels the detail is kept as it is;
+    /// where they do not, it is kept as strong as the covered texels around
+    /// it hold, no stronger: a weave's detail to the edge, not a faint
+    /// sample's extrapolated edge.
+    #[test]
+    fn the_edge_s_detail_is_no_stronger_than_around_it() {
+        let fine = 32;
+        let edge = |t: usize| {
+            let (x, y) = (t % fine, t / fine);
+            x.min(y).min(fine - 1 - x).min(fine - 1 - y) < 3
+        };
+        let weight: Vec<f32> = (0..fine * fine).map(|t| if edge(t) { 0.0 } else { 1.0 }).collect();
+        // A checkerboard of ±a inside, ±b at the edge.
+        let detail = |a: f32, b: f32| -> Image {
+            (0..fine * fine)
+                .map(|t| {
+                    let s = if (t % fine + t / fine) % 2 == 0 { 1.0 } else { -1.0 };
+                    [s * if edge(t) { b } else { a }; 3]
+                })
+                .collect()
+        };
+        let rms = |img: &Image, at_edge: bool| {
+            let v: Vec<f32> =
+                (0..fine * fine).filter(|&t| edge(t) == at_edge).map(|t| img[t][0]).collect();
+            (v.iter().map(|x| x * x).sum::<f32>() / v.len() as f32).sqrt()
+        };
+        // Faint inside, strong at the edge: the edge's brought down to
+        // about the inside's.
+        let faint = edge_limited(&detail(0.01, 0.1), &weight, fine);
+        let (e, i) = (rms(&faint, true), rms(&faint, false));
+        println!("faint sample: edge {e:.4}, inside {i:.4}");
+        assert!((i - 0.01).abs() < 1e-6 && e < 0.02, "{e} {i}");
+        // As strong at the edge as inside: kept.
+        let weave = detail(0.1, 0.1);
+        let kept = edge_limited(&weave, &weight, fine);
+        assert!(kept.iter().zip(&weave).all(|(a, b)| (a[0] - b[0]).abs() < 0.1 * b[0].abs()));
+        // Fully covered: nothing changes.
+        let all = edge_limited(&detail(0.01, 0.1), &vec![1.0; fine * fine], fine);
+        assert_eq!(all, detail(0.01, 0.1));
     }
 
     #[test]
