@@ -31,7 +31,9 @@ pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
 }
 
 /// The options [`region_options`] reads.
-const REGION_OPTIONS: [&str; 2] = ["--size", "--detail"];
+const SIZE: &str = "--size";
+const DETAIL: &str = "--detail";
+const REGION_OPTIONS: [&str; 2] = [SIZE, DETAIL];
 
 /// [`check_args`] for an example that also reads [`region_options`].
 pub fn check_region_args(values: &[&str], flags: &[&str]) {
@@ -90,8 +92,8 @@ fn usage_error(message: &str) -> ! {
 /// The examples' region options: `--detail all-views|own-view` (default
 /// all-views) and `--size S` (default 0: the builder's choice).
 pub fn region_options() -> RegionOptions {
-    let size: usize = arg("--size", 0);
-    let sharpen = match arg("--detail", "all-views".to_string()).as_str() {
+    let size: usize = arg(SIZE, 0);
+    let sharpen = match arg(DETAIL, "all-views".to_string()).as_str() {
         "all-views" => Some(SharpenOptions::default()),
         "own-view" => None,
         other => panic!("--detail {other}: all-views or own-view"),
