@@ -35,9 +35,11 @@ const SIZE: &str = "--size";
 const DETAIL: &str = "--detail";
 const REGION_OPTIONS: [&str; 2] = [SIZE, DETAIL];
 
-/// [`check_args`] for an example that also reads [`region_options`].
+/// [`check_args`] for an example that also reads [`region_options`]; their
+/// values are checked here too, before the run starts.
 pub fn check_region_args(values: &[&str], flags: &[&str]) {
     check_args(&[values, &REGION_OPTIONS].concat(), flags);
+    region_options();
 }
 
 /// Checks an example's command line before it starts a long run: every
@@ -96,7 +98,7 @@ pub fn region_options() -> RegionOptions {
     let sharpen = match arg(DETAIL, "all-views".to_string()).as_str() {
         "all-views" => Some(SharpenOptions::default()),
         "own-view" => None,
-        other => panic!("--detail {other}: all-views or own-view"),
+        other => usage_error(&format!("{DETAIL} {other:?}: all-views or own-view")),
     };
     RegionOptions { size: (size > 0).then_some(size), sharpen }
 }
