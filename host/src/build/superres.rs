@@ -12,10 +12,12 @@
 //! For each light the builder solves for one S × S image X that, seen
 //! through every view's pixels, best explains them all:
 //!
-//!   min Σ_views ω_v Σ_pixels (mean of X over the pixel's square − pixel)²
+//!   min Σ_views ω_v Σ_pixels (mean of X over the pixel's square − pixel / G_v)²
 //!       + λ ‖∇X‖²,
 //!
-//! each pixel's square mapped onto the sample by its view's homography
+//! G_v the view's level against the views' mean image ([`view_gain`]: X is
+//! one image up to each view's level), each pixel's square mapped onto the
+//! sample by its view's homography
 //! (4 × 4 points, X looked up bilinearly like the material does), only
 //! pixels whose squares lie wholly on the sample, each normalised by the
 //! colour calibration like the region images are. ω_v makes every view
