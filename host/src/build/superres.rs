@@ -890,11 +890,7 @@ fn view_gain(image: &[[f32; 3]], mean: &[[f32; 3]]) -> [f32; 3] {
     std::array::from_fn(|k| {
         let sum = |img: &[[f32; 3]]| img.iter().map(|v| v[k] as f64).sum::<f64>();
         let (a, b) = (sum(image), sum(mean));
-        if a > 0.0 && b > 0.0 {
-            ((a / b) as f32).clamp(1.0 / MAX_RATIO, MAX_RATIO)
-        } else {
-            1.0
-        }
+        if a > 0.0 && b > 0.0 { ((a / b) as f32).clamp(1.0 / MAX_RATIO, MAX_RATIO) } else { 1.0 }
     })
 }
 
