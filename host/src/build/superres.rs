@@ -819,17 +819,16 @@ pub fn sharpen_light(
             }
         }
     }
+    let mean_total = channel_totals(&mean);
     // X is one image up to each view's level: the views' pixels are taken
     // over their view's gain against the mean image.
-    let gains: Vec<[f32; 3]> = images.iter().map(|img| view_gain(img, &mean)).collect();
+    let gains: Vec<[f32; 3]> = images.iter().map(|img| view_gain(img, mean_total)).collect();
     let levelled = |vi: usize, uv: [f64; 2], raw: [f64; 3]| -> Option<[f32; 3]> {
         let v = value(vi, uv, raw)?;
         Some(std::array::from_fn(|k| v[k] / gains[vi][k]))
     };
     let [rows, fine_rows] = light_rows(views, &levelled, frame)?;
-    let level: [f32; 3] = std::array::from_fn(|k| {
-        (mean.iter().map(|m| m[k] as f64).sum::<f64>() / n as f64) as f32 * 1e-3
-    });
+    let level: [f32; 3] = mean_total.map(|t| (t / n as f64) as f32 * 1e-3);
     let solved = solve_halves(&rows, size, opts, &mean, &mean, false, level)?;
     let x = &solved.x;
     let local = |img: &[[f32; 3]]| (0..LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, size));
@@ -874,9 +873,15 @@ pub fn sharpen_light(
     fine_detail(&fine_rows, size, opts, &solved, &mean, level)
 }
 
-/// A view's overall level against the views' mean image, per channel:
-/// Σ image / Σ mean over the texels, clamped to [1 / [`MAX_RATIO`],
-/// [`MAX_RATIO`]] (1 where either sum is not positive).
+/// Each channel's sum over an image's texels.
+fn channel_totals(img: &[[f32; 3]]) -> [f64; 3] {
+    std::array::from_fn(|k| img.iter().map(|v| v[k] as f64).sum())
+}
+
+/// A view's overall level against the views' mean image (whose
+/// [`channel_totals`] are `mean_total`), per channel: Σ image / Σ mean over
+/// the texels, clamped to [1 / [`MAX_RATIO`], [`MAX_RATIO`]] (1 where
+/// either sum is not positive).
 ///
 /// The views see a sample at different levels — a dark glossy one's
 /// sheen, the colour calibration's residual per view — and near the
@@ -886,10 +891,10 @@ pub fn sharpen_light(
 /// on a dark rubber 6 % below the mean image in the outermost texels,
 /// 14 % on a smooth red plastic, a ramp that the views' images then took
 /// as detail (docs/benchmarks.md, "The views' levels", session 64).
-fn view_gain(image: &[[f32; 3]], mean: &[[f32; 3]]) -> [f32; 3] {
+fn view_gain(image: &[[f32; 3]], mean_total: [f64; 3]) -> [f32; 3] {
+    let total = channel_totals(image);
     std::array::from_fn(|k| {
-        let sum = |img: &[[f32; 3]]| img.iter().map(|v| v[k] as f64).sum::<f64>();
-        let (a, b) = (sum(image), sum(mean));
+        let (a, b) = (total[k], mean_total[k]);
         if a > 0.0 && b > 0.0 { ((a / b) as f32).clamp(1.0 / MAX_RATIO, MAX_RATIO) } else { 1.0 }
     })
 }
