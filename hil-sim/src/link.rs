@@ -194,6 +194,49 @@ fn duration_ticks(d: Duration) -> u64 {
     (d.as_nanos() * TICK_HZ as u128 / 1_000_000_000) as u64
 }
 
+/// Simulated time of a [`PtyServer`]: `speed` × wall time, except that a
+/// stretch of wall time the server's thread did not run (the machine busy
+/// elsewhere) is not simulated in one step.
+///
+/// A real device's firmware runs all the time and sees each byte when it
+/// arrives. The server's thread, descheduled for 200 ms, would find on waking
+/// the host's keep-alive pings of that time in the pty and, had it caught up
+/// with wall time first, hand them to a device that had already counted
+/// 600 simulated ms of silence — a link timeout the hardware would not
+/// have. So one step advances at most a tenth of the device's link timeout;
+/// the rest of the stretch is dropped (the device seems to pause), and
+/// simulated time runs on at `speed` from there.
+#[derive(Debug, Clone, Copy)]
+struct PtyClock {
+    origin: u64,
+    speed: f64,
+    /// Simulated ticks dropped so far.
+    dropped: u64,
+}
+
+impl PtyClock {
+    /// The most simulated time one step advances.
+    const MAX_STEP: u64 = firmware::controller::LINK_TIMEOUT_MS * TICKS_PER_MS / 10;
+
+    fn new(origin: u64, speed: f64) -> PtyClock {
+        PtyClock { origin, speed, dropped: 0 }
+    }
+
+    /// Where the device should be after `elapsed` wall time since the start,
+    /// being at `now`.
+    fn target(&mut self, now: u64, elapsed: Duration) -> u64 {
+        let wall = (self.origin + duration_ticks(elapsed.mul_f64(self.speed)))
+            .saturating_sub(self.dropped);
+        let cap = now + Self::MAX_STEP;
+        if wall > cap {
+            self.dropped += wall - cap;
+            cap
+        } else {
+            wall.max(now)
+        }
+    }
+}
+
 /// When the axes come to rest at a new place.
 struct RestWatch {
     steps: [i64; 3],
@@ -239,8 +282,9 @@ pub struct PtyServer {
 
 impl PtyServer {
     /// Serve `device` on a new pty, simulated time running at `speed` × wall
-    /// time (1.0 = real time; keep ≤ 2 so the host's 200 ms keep-alive stays
-    /// inside the device's 500 ms link timeout).
+    /// time (1.0 = real time; keep ≤ 3 so the host's 100 ms keep-alive stays
+    /// inside the device's 500 ms link timeout). A stretch the serving
+    /// thread could not run is not simulated at once (see `PtyClock`).
     pub fn start(device: SimDevice, speed: f64) -> std::io::Result<PtyServer> {
         Self::start_with_camera(device, speed, None)
     }
@@ -285,7 +329,7 @@ impl PtyServer {
         let thread = std::thread::spawn(move || {
             let mut noise = device.link_noise();
             let started = Instant::now();
-            let origin = device.now();
+            let mut clock = PtyClock::new(device.now(), speed);
             let mut buf = [0u8; 4096];
             let mut rest = RestWatch::new(&device);
             while !stop_flag.load(Ordering::Relaxed) {
@@ -308,8 +352,7 @@ impl PtyServer {
                         0
                     }
                 };
-                let target = origin + duration_ticks(started.elapsed().mul_f64(speed));
-                device.advance_to(target.max(device.now()));
+                device.advance_to(clock.target(device.now(), started.elapsed()));
                 if let Some((cam, tx)) = &mut camera {
                     for job in cam.take_exposures(device.truth()) {
                         let _ = tx.send(job);
@@ -364,5 +407,41 @@ impl Drop for PtyServer {
         if let Some(r) = self.renderer.take() {
             let _ = r.join();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: u64 = TICKS_PER_MS;
+
+    #[test]
+    fn the_pty_clock_runs_at_its_speed_while_the_server_keeps_up() {
+        let mut clock = PtyClock::new(1_000, 3.0);
+        let mut now = 1_000;
+        for ms in 1..=2_000u64 {
+            now = clock.target(now, Duration::from_millis(ms));
+            assert_eq!(now, 1_000 + 3 * ms * MS);
+        }
+    }
+
+    #[test]
+    fn a_stretch_the_server_did_not_run_is_not_simulated_in_one_step() {
+        let mut clock = PtyClock::new(0, 3.0);
+        let mut now = clock.target(0, Duration::from_millis(10));
+        assert_eq!(now, 30 * MS);
+        // The thread sleeps 200 ms of wall time (600 simulated ms, more than
+        // the device's 500 ms link timeout): one step advances 50 ms.
+        now = clock.target(now, Duration::from_millis(210));
+        assert_eq!(now, 80 * MS);
+        assert!(now - 30 * MS < firmware::controller::LINK_TIMEOUT_MS * MS);
+        // From there on, speed × wall time again; the rest is dropped.
+        now = clock.target(now, Duration::from_millis(211));
+        assert_eq!(now, 83 * MS);
+        now = clock.target(now, Duration::from_millis(221));
+        assert_eq!(now, 113 * MS);
+        // Simulated time never runs backwards.
+        assert_eq!(clock.target(now, Duration::from_millis(221)), 113 * MS);
     }
 }
