@@ -467,11 +467,7 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
         });
     }
     draw_captions(&mut img, &captions).map_err(|e| Failure(4, anyhow!(e)))?;
-    let mut bytes = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
-    crate::fsutil::write_atomic(path, &bytes)
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
+    write_png(path, &img)
 }
 
 /// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more)
@@ -861,11 +857,7 @@ fn outline_picture(
         .collect();
     let shown = corners.map(|c| [c[0] / k as f64, c[1] / k as f64]);
     super::plot::draw_outline(&mut img, shown, &outline).map_err(|e| Failure(4, anyhow!(e)))?;
-    let mut bytes = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
-    crate::fsutil::write_atomic(path, &bytes)
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
+    write_png(path, &img)
 }
 
 /// The encoding of previews and contact sheets: π·value (a white target's
@@ -1007,11 +999,7 @@ pub fn preview(
         }
     }
     draw_captions(&mut img, &captions).map_err(|e| Failure(4, anyhow!(e)))?;
-    let mut bytes = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
-    crate::fsutil::write_atomic(path, &bytes)
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))
+    write_png(path, &img)
 }
 
 /// `scanner preview`
@@ -1123,6 +1111,15 @@ pub fn export_cmd(material: &Path, output: &Path, format: ExportFormat) -> Resul
 /// A material file for a command, or exit 3 (its errors name the file).
 fn open_material(path: &Path) -> Result<scanner_shading::Material, Failure> {
     scanner_shading::Material::open(path).map_err(|e| Failure(3, anyhow!(e)))
+}
+
+/// `img` as a PNG file at `path`, written atomically (exit 4 if not).
+fn write_png(path: &Path, img: &image::RgbImage) -> Result<(), Failure> {
+    let failed = |e: &dyn std::fmt::Display| Failure(4, anyhow!("{}: {e}", path.display()));
+    let mut bytes = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+        .map_err(|e| failed(&e))?;
+    crate::fsutil::write_atomic(path, &bytes).map_err(|e| failed(&e))
 }
 
 #[cfg(test)]
