@@ -518,6 +518,45 @@ fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
     assert_eq!(exr, 1, "one frame per trigger");
 }
 
+/// A simulator process the machine does not schedule for a while (here:
+/// stopped by SIGSTOP for 0.5 s, 1.5 s of simulated time at speed 3, three
+/// times the device's link timeout) pauses the device: the host's pings of
+/// that time reach it when it runs again, and homing goes on. Before, the
+/// device caught up with wall time first and stopped on a link timeout the
+/// hardware would not have (`homing: Stopped`, exit 7).
+#[test]
+fn a_simulator_not_scheduled_for_a_while_pauses_instead_of_losing_the_link() {
+    let dir = tmp();
+    let frames = sub(dir.path(), "frames");
+    let (mut sim, pty) = scanner_sim(&frames, &["--speed", "3"], std::process::Stdio::null());
+    let signal = |name: &str| {
+        let ok = std::process::Command::new("kill")
+            .args([name, &sim.id().to_string()])
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "kill {name}");
+    };
+    let mut home = scanner()
+        .args(["home", "--device", &pty])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(600));
+    assert!(home.try_wait().unwrap().is_none(), "homing ended before the simulator stopped");
+    signal("-STOP");
+    std::thread::sleep(Duration::from_millis(500));
+    signal("-CONT");
+    let out = home.wait_with_output().unwrap();
+    sim.kill().unwrap();
+    let _ = sim.wait();
+    let (stdout, stderr) =
+        (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0), "{stdout}{stderr}");
+    assert!(stdout.contains("homing: done"), "{stdout}");
+}
+
 /// Commissioning practised on `scanner sim`: a board with the spec's axes
 /// on a scanner whose lead screw makes 1.3 % less; the simulator prints
 /// where the axes stop, as a ruler on the machine would read, and the
