@@ -107,19 +107,30 @@ fn shade(c: &mut Criterion) {
             black_box(&out);
         })
     });
-    group.bench_function("default interpolation with a texel model", |b| {
-        let shape =
-            synthetic::Shape { mirrors: 40, resolution: 128, colours: 256, lights_per_index: 2 };
-        let data = synthetic::with_texel_model(
-            synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1),
-            5,
-        );
-        let modelled = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
-        b.iter(|| {
-            modelled.eval_batch(&q, &mut out);
-            black_box(&out);
-        })
-    });
+    // With a texel model the builder writes β = 0 (since session 65); the
+    // β = ½ row is what files of earlier builders hold.
+    for (name, shift) in [
+        ("default interpolation with a texel model", 0.0),
+        ("default interpolation with a texel model, β = ½", 0.5),
+    ] {
+        group.bench_function(name, |b| {
+            let shape = synthetic::Shape {
+                mirrors: 40,
+                resolution: 128,
+                colours: 256,
+                lights_per_index: 2,
+            };
+            let data = synthetic::with_texel_model(
+                synthetic::synthetic(&shape, Interpolation::Default, shift, 1),
+                5,
+            );
+            let modelled = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
+            b.iter(|| {
+                modelled.eval_batch(&q, &mut out);
+                black_box(&out);
+            })
+        });
+    }
     for (name, components) in [
         ("default interpolation with a texel model and a detail layer", 0),
         ("default interpolation with a texel model and a detail layer with 2 light components", 2),
@@ -133,7 +144,7 @@ fn shade(c: &mut Criterion) {
             };
             let data = synthetic::with_detail(
                 synthetic::with_texel_model(
-                    synthetic::synthetic(&shape, Interpolation::Default, 0.5, 1),
+                    synthetic::synthetic(&shape, Interpolation::Default, 0.0, 1),
                     5,
                 ),
                 components,
