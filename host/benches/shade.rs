@@ -109,9 +109,15 @@ fn shade(c: &mut Criterion) {
     });
     // With a texel model the builder writes β = 0 (since session 65); the
     // β = ½ row is what files of earlier builders hold.
-    for (name, shift) in [
-        ("default interpolation with a texel model", 0.0),
-        ("default interpolation with a texel model, β = ½", 0.5),
+    for (name, shift, detail) in [
+        ("default interpolation with a texel model", 0.0, None),
+        ("default interpolation with a texel model, β = ½", 0.5, None),
+        ("default interpolation with a texel model and a detail layer", 0.0, Some(0)),
+        (
+            "default interpolation with a texel model and a detail layer with 2 light components",
+            0.0,
+            Some(2),
+        ),
     ] {
         group.bench_function(name, |b| {
             let shape = synthetic::Shape {
@@ -120,39 +126,16 @@ fn shade(c: &mut Criterion) {
                 colours: 256,
                 lights_per_index: 2,
             };
-            let data = synthetic::with_texel_model(
+            let mut data = synthetic::with_texel_model(
                 synthetic::synthetic(&shape, Interpolation::Default, shift, 1),
                 5,
             );
+            if let Some(components) = detail {
+                data = synthetic::with_detail(data, components, 6);
+            }
             let modelled = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
             b.iter(|| {
                 modelled.eval_batch(&q, &mut out);
-                black_box(&out);
-            })
-        });
-    }
-    for (name, components) in [
-        ("default interpolation with a texel model and a detail layer", 0),
-        ("default interpolation with a texel model and a detail layer with 2 light components", 2),
-    ] {
-        group.bench_function(name, |b| {
-            let shape = synthetic::Shape {
-                mirrors: 40,
-                resolution: 128,
-                colours: 256,
-                lights_per_index: 2,
-            };
-            let data = synthetic::with_detail(
-                synthetic::with_texel_model(
-                    synthetic::synthetic(&shape, Interpolation::Default, 0.0, 1),
-                    5,
-                ),
-                components,
-                6,
-            );
-            let detailed = Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
-            b.iter(|| {
-                detailed.eval_batch(&q, &mut out);
                 black_box(&out);
             })
         });
