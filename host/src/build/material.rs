@@ -266,7 +266,9 @@ pub const SHIFTS: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
 /// mean squared error against the captured values, for each of
 /// [`SHIFTS`] — `[shift][0]` without a texel model, `[shift][1]` with one
 /// (fitted without the held light, residuals interpolated) when
-/// `with_model`. The model is fitted, subtracted and added back at each
+/// `with_model`, at β = 0 only: the builder writes β = 0 with a model, so
+/// the model is judged at the β it will be shaded with (infinite at the
+/// other shifts). The model is fitted, subtracted and added back at each
 /// texel's own directions ([`texel_fit::texel_views`]), so the prediction is
 /// of the value the texel was captured with.
 pub fn shift_errors(
@@ -319,6 +321,8 @@ pub fn shift_errors(
             SHIFTS
                 .iter()
                 .map(|&shift| {
+                    // The model only at β = 0, the β it is written with.
+                    let models: &[TexelParams] = if shift == 0.0 { &models } else { &[] };
                     let mut err = [0.0; 2];
                     for (v, &wo) in vd.iter().enumerate() {
                         let mut pred = vec![[[0f64; 3]; 2]; texels.len()];
@@ -356,6 +360,9 @@ pub fn shift_errors(
                             }
                         }
                     }
+                    if models.is_empty() {
+                        err[1] = f64::INFINITY;
+                    }
                     err.map(|e| e / (nv * texels.len() * 3) as f64)
                 })
                 .collect()
@@ -363,13 +370,7 @@ pub fn shift_errors(
         .collect();
     Ok((0..SHIFTS.len())
         .map(|k| {
-            std::array::from_fn(|m| {
-                if m == 1 && !with_model {
-                    f64::INFINITY
-                } else {
-                    per_light.iter().map(|e| e[k][m]).sum::<f64>() / nl as f64
-                }
-            })
+            std::array::from_fn(|m| per_light.iter().map(|e| e[k][m]).sum::<f64>() / nl as f64)
         })
         .collect())
 }
@@ -441,8 +442,8 @@ pub fn build_material(
                 // a held-out light, a whole light spacing from the others,
                 // prefers ½ or ¾ (docs/benchmarks.md, "The half-vector
                 // shift's choice"). β = 0 lets a query's lights share one
-                // view lookup.
-                half_vector_shift = if texel_model { 0.0 } else { SHIFTS[best.0] };
+                // view lookup, so the model is only scored at β = 0.
+                half_vector_shift = SHIFTS[best.0];
                 progress.step();
             }
             DirectionTables::Triangles { views, lights }
@@ -589,7 +590,9 @@ mod tests {
     use scanner_geometry::ScannerGeometry;
     use scanner_shading::locate::{TriangleLocator, Weights3};
 
-    use super::{MaterialOptions, TexelModelChoice, build_material, triangulate};
+    use super::{
+        MaterialOptions, SHIFTS, TexelModelChoice, build_material, shift_errors, triangulate,
+    };
     use crate::build::RegionSet;
     use crate::build::calibrate::Silent;
     use crate::build::superres::DetailLayer;
@@ -598,18 +601,20 @@ mod tests {
     /// ([R][2S][2S], [L][R]) and come back out of the shading: at a captured
     /// pair and a 2S texel centre, the material answers its region image
     /// times its own light's factor.
-    #[test]
-    fn the_built_file_shades_each_light_with_its_own_detail() {
-        let (n, s) = (9usize, 8usize);
-        let f = 2 * s;
+    /// `n` directions on three rings (10°, 25°, 40°) as both lights and
+    /// views, S × S texels, `image(light, view, texel)` each pair's values.
+    fn ring_regions(
+        n: usize,
+        s: usize,
+        image: impl Fn(usize, usize, usize) -> [f32; 3],
+    ) -> RegionSet {
         let dirs: Vec<[f64; 3]> = (0..n)
             .map(|k| {
                 let (th, ph) = ((10.0 + 15.0 * (k % 3) as f64).to_radians(), 0.9 * k as f64);
                 [th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()]
             })
             .collect();
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let regions = RegionSet {
+        RegionSet {
             size: s,
             lights: (0..n).collect(),
             views: (0..n).collect(),
@@ -617,38 +622,48 @@ mod tests {
             view_dirs: dirs.clone(),
             viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1200.0)).collect(),
             sample_mm: 25.4,
-            // Few colours per image, so that 256-colour palettes hold them.
             images: (0..n * n)
-                .map(|p| {
-                    let cos = dirs[p / n][2] as f32;
-                    (0..s * s)
-                        .map(|t| [0.1 + 0.02 * (t % 5) as f32, 0.2, 0.05 * p as f32 + 0.01])
-                        .map(|c| c.map(|x| x * cos))
-                        .collect()
-                })
+                .map(|p| (0..s * s).map(|t| image(p / n, p % n, t)).collect())
                 .collect(),
-            detail: Some(DetailLayer {
-                shared: (0..f * f).map(|_| [rng.random_range(0.7..1.4); 3]).collect(),
-                bases: (0..2)
-                    .map(|_| {
-                        (0..f * f)
-                            .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)))
-                            .collect()
-                    })
-                    .collect(),
-                coefficients: (0..n)
-                    .map(|l| vec![0.1 * l as f32 - 0.4, 0.3 - 0.05 * l as f32])
-                    .collect(),
-            }),
-        };
-        let opts = MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() };
-        let prov = scanner_shading::format::Provenance {
+            detail: None,
+        }
+    }
+
+    fn provenance() -> scanner_shading::format::Provenance {
+        scanner_shading::format::Provenance {
             scan_manifest_sha256: String::new(),
             geometry_sha256: String::new(),
             calibration_sha256: String::new(),
             builder: "test".into(),
-        };
-        let data = build_material(&regions, "test", 25.4, prov, &opts, &Silent).unwrap();
+        }
+    }
+
+    #[test]
+    fn the_built_file_shades_each_light_with_its_own_detail() {
+        let (n, s) = (9usize, 8usize);
+        let f = 2 * s;
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        // Few colours per image, so that 256-colour palettes hold them.
+        let mut regions = ring_regions(n, s, |l, v, t| {
+            let cos = (10.0 + 15.0 * (l % 3) as f32).to_radians().cos();
+            [0.1 + 0.02 * (t % 5) as f32, 0.2, 0.05 * (l * n + v) as f32 + 0.01].map(|x| x * cos)
+        });
+        let dirs = regions.light_dirs.clone();
+        regions.detail = Some(DetailLayer {
+            shared: (0..f * f).map(|_| [rng.random_range(0.7..1.4); 3]).collect(),
+            bases: (0..2)
+                .map(|_| {
+                    (0..f * f)
+                        .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)))
+                        .collect()
+                })
+                .collect(),
+            coefficients: (0..n)
+                .map(|l| vec![0.1 * l as f32 - 0.4, 0.3 - 0.05 * l as f32])
+                .collect(),
+        });
+        let opts = MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() };
+        let data = build_material(&regions, "test", 25.4, provenance(), &opts, &Silent).unwrap();
         assert_eq!(data.meta.version, scanner_shading::format::VERSION_LIGHT_DETAIL);
         assert_eq!(data.meta.detail_components, 2);
         let m = scanner_shading::Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
@@ -667,6 +682,45 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The builder writes β = 0 with a texel model, so the leave-one-light-out
+    /// test judges the model at β = 0 alone: a model is kept only if it
+    /// predicts held-out lights better at β = 0 than the best β without one.
+    #[test]
+    fn a_texel_model_is_judged_at_the_shift_it_is_written_with() {
+        use scanner_shading::texel::{TexelParams, reflected};
+        let (n, s) = (9usize, 8usize);
+        let unit = |d: [f64; 3]| d.map(|x| x as f32);
+        let dirs = ring_regions(n, s, |_, _, _| [0.0; 3]).light_dirs;
+        // A glossy dielectric whose normal and roughness vary over the texels.
+        let texel = |t: usize| TexelParams {
+            diffuse: [0.2, 0.15, 0.1],
+            specular: [0.04; 3],
+            alpha: 0.2 + 0.02 * (t % 7) as f32,
+            normal: {
+                let (x, y) = (0.05 * ((t % 5) as f32 - 2.0), 0.04 * ((t / 8 % 3) as f32 - 1.0));
+                [x, y, (1.0 - x * x - y * y).sqrt()]
+            },
+        };
+        let glossy =
+            ring_regions(n, s, |l, v, t| reflected(&texel(t), unit(dirs[l]), unit(dirs[v])));
+        let tris = triangulate(&glossy.view_dirs, "view directions").unwrap();
+        let with = shift_errors(&glossy, &tris, true).unwrap();
+        let without = shift_errors(&glossy, &tris, false).unwrap();
+        assert_eq!(with.len(), SHIFTS.len());
+        assert!(with[0][1].is_finite(), "{with:?}");
+        for (k, (w, o)) in with.iter().zip(&without).enumerate() {
+            assert_eq!(w[0], o[0], "shift {k}: the model-free errors depend on the model");
+            assert!(o[1].is_infinite());
+            assert!(k == 0 || w[1].is_infinite(), "shift {k}: the model judged at β ≠ 0");
+        }
+        let best_without = without.iter().map(|e| e[0]).fold(f64::INFINITY, f64::min);
+        assert!(with[0][1] < best_without, "{with:?}");
+        let opts = MaterialOptions { texel_model: TexelModelChoice::Auto, ..Default::default() };
+        let data = build_material(&glossy, "glossy", 25.4, provenance(), &opts, &Silent).unwrap();
+        assert!(data.meta.texel_model);
+        assert_eq!(data.meta.half_vector_shift, 0.0);
     }
 
     /// The locator's fast path and coarse grid against its exhaustive
