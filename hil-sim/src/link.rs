@@ -283,7 +283,8 @@ pub struct PtyServer {
 impl PtyServer {
     /// Serve `device` on a new pty, simulated time running at `speed` × wall
     /// time (1.0 = real time; keep ≤ 4, `scanner sim`'s limit, so the host's
-    /// 100 ms keep-alive stays inside the device's 500 ms link timeout). A stretch the serving
+    /// keep-alive, 50 ms after each answer, stays well inside the device's
+    /// 500 ms link timeout). A stretch the serving
     /// thread could not run is not simulated at once (see `PtyClock`).
     pub fn start(device: SimDevice, speed: f64) -> std::io::Result<PtyServer> {
         Self::start_with_camera(device, speed, None)

@@ -33,7 +33,9 @@ struct Args {
     /// Seed of every random choice (positions at power-on, boot ids, faults).
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Simulated time per wall-clock time (keep ≤ 2: the host's keep-alive).
+    /// Simulated time per wall-clock time (keep ≤ 4, as `scanner sim` does:
+    /// the host's keep-alive, 50 ms after each answer, must stay inside the
+    /// device's 500 ms link timeout).
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
     /// Per-byte probability of a flipped bit on the link.

@@ -13,8 +13,10 @@ pub fn setup(material: &str, faults: FaultPlan) -> SimSetup {
     SimSetup { bin: 8, seed: 5, faults, ..SimSetup::new(material) }
 }
 
-/// Simulated time per wall time on the pty: fast, yet the host's 100 ms
-/// keep-alive stays inside the device's 500 ms link timeout.
+/// Simulated time per wall time on the pty: fast, yet the host's keep-alive
+/// (50 ms after each answer: 150 simulated ms and a round trip) stays well
+/// inside the device's 500 ms link timeout, with ≈ 100 ms of wall time to
+/// spare for a host process not scheduled.
 pub const SPEED: f64 = 3.0;
 
 /// Serve `setup` on a pty; frames (OpenEXR) and the nominal geometry go to
