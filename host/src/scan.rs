@@ -1036,7 +1036,6 @@ pub fn homing_repeatability(
 fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
     dev.clear_events();
     dev.command(Request::Home { axes })?;
-    let end = dev.now() + Duration::from_secs(90);
     let failed = |dev: &mut Device, outcome: Option<MotionOutcome>| {
         let faults = dev.status()?.faults;
         let by =
@@ -1044,31 +1043,69 @@ fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
         let what = outcome.map_or("failed".to_string(), |o| o.to_string());
         Err(ScanError::DeviceFault(format!("homing {what}{by}")))
     };
-    while dev.now() < end {
-        match dev
-            .wait_event(Duration::from_millis(500), |e| matches!(e, Event::MotionDone { .. }))?
-        {
-            Some(Event::MotionDone { outcome: MotionOutcome::Completed, .. }) => {
+    match wait_motion_end(dev, Duration::from_secs(90))? {
+        Some(MotionEnd::Reported { outcome: MotionOutcome::Completed, .. }) => {
+            Ok(dev.take_events())
+        }
+        Some(MotionEnd::Reported { outcome, .. }) => failed(dev, Some(outcome)),
+        Some(MotionEnd::Unreported(status)) => {
+            let homed =
+                Axis::ALL.into_iter().all(|a| !axes.contains(a) || status.axes[a.index()].homed);
+            if homed && status.faults.is_empty() {
                 return Ok(dev.take_events());
             }
-            Some(Event::MotionDone { outcome, .. }) => return failed(dev, Some(outcome)),
-            _ => {
-                // Events can be lost on a noisy link: the status says
-                // whether homing is over.
-                let status = dev.status()?;
-                if !matches!(status.state, DeviceState::Homing) {
-                    let homed = Axis::ALL
-                        .into_iter()
-                        .all(|a| !axes.contains(a) || status.axes[a.index()].homed);
-                    if homed && status.faults.is_empty() {
-                        return Ok(dev.take_events());
-                    }
-                    return failed(dev, None);
-                }
-            }
+            failed(dev, None)
         }
+        None => Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
     }
-    Err(ScanError::DeviceFault("homing did not finish in 90 s".into()))
+}
+
+/// How a commanded motion (homing, a move) ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MotionEnd {
+    /// As its `MotionDone` event says.
+    Reported {
+        /// The axes that were moving.
+        axes: AxisSet,
+        /// How it ended.
+        outcome: MotionOutcome,
+        /// The axes' step counts then.
+        positions: [i32; 3],
+    },
+    /// Its event was lost on the link: the device's status once it was
+    /// neither homing nor moving any more. No latched fault means it
+    /// completed (a motion ends otherwise only on a fault or on `Stop`).
+    Unreported(protocol::Status),
+}
+
+/// Wait up to `max` for the end of the motion just commanded: its
+/// `MotionDone` event, or — a noisy link can lose that event — after each
+/// half second without it, the status of a device that is neither homing
+/// nor moving any more. `None` if the motion is still going at `max`.
+pub fn wait_motion_end(dev: &mut Device, max: Duration) -> Result<Option<MotionEnd>, LinkError> {
+    let done = |e: &Event| matches!(e, Event::MotionDone { .. });
+    let reported = |e| match e {
+        Event::MotionDone { axes, outcome, positions } => {
+            MotionEnd::Reported { axes, outcome, positions }
+        }
+        other => unreachable!("only MotionDone is waited for, not {other:?}"),
+    };
+    let end = dev.now() + max;
+    while dev.now() < end {
+        if let Some(e) = dev.wait_event(Duration::from_millis(500).min(end - dev.now()), done)? {
+            return Ok(Some(reported(e)));
+        }
+        let status = dev.status()?;
+        if matches!(status.state, DeviceState::Homing | DeviceState::Moving) {
+            continue;
+        }
+        // The event may have come with the status' reply after all.
+        return Ok(Some(match dev.wait_event(Duration::ZERO, done)? {
+            Some(e) => reported(e),
+            None => MotionEnd::Unreported(status),
+        }));
+    }
+    Ok(None)
 }
 
 /// Check every axis' step count against its switch by homing it (the

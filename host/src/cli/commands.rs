@@ -815,21 +815,41 @@ pub fn status(args: &DeviceArgs) -> Result<(), Failure> {
     Ok(())
 }
 
+/// Wait for the end of the motion just commanded ([`scan::wait_motion_end`]:
+/// its event, or the status should the link have lost the event).
 fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
-    match dev
-        .wait_event(Duration::from_secs(120), |e| matches!(e, Event::MotionDone { .. }))
-        .map_err(link_failure)?
-    {
-        Some(Event::MotionDone {
-            outcome: protocol::MotionOutcome::Completed, positions, ..
-        }) => {
+    match scan::wait_motion_end(dev, Duration::from_secs(120)).map_err(link_failure)? {
+        Some(scan::MotionEnd::Reported { outcome, positions, .. }) => {
+            motion_outcome(what, outcome, positions)
+        }
+        Some(scan::MotionEnd::Unreported(s)) if s.faults.is_empty() => {
+            let positions = s.axes.map(|a| a.position_steps);
+            println!("{what}: done at {positions:?} steps (its report was lost on the link)");
+            Ok(())
+        }
+        Some(scan::MotionEnd::Unreported(s)) => {
+            let faults: Vec<&str> = s.faults.names().collect();
+            Err(Failure(
+                7,
+                anyhow!("{what}: stopped ({}; its report was lost on the link)", faults.join(", ")),
+            ))
+        }
+        None => Err(Failure(7, anyhow!("{what}: no end of motion within 120 s"))),
+    }
+}
+
+/// What a `MotionDone` event says of the motion: exit 7 unless completed.
+fn motion_outcome(
+    what: &str,
+    outcome: protocol::MotionOutcome,
+    positions: [i32; 3],
+) -> Result<(), Failure> {
+    match outcome {
+        protocol::MotionOutcome::Completed => {
             println!("{what}: done at {positions:?} steps");
             Ok(())
         }
-        Some(Event::MotionDone {
-            outcome: protocol::MotionOutcome::HomingFailed(axis, why),
-            ..
-        }) => {
+        protocol::MotionOutcome::HomingFailed(axis, why) => {
             use protocol::HomingFailure;
             let hint = match why {
                 HomingFailure::SwitchStuck | HomingFailure::SwitchNotFound => format!(
@@ -841,8 +861,7 @@ fn wait_motion(dev: &mut Device, what: &str) -> Result<(), Failure> {
             };
             Err(Failure(7, anyhow!("{what}: {} failed: {why}{hint}", axis.name())))
         }
-        Some(Event::MotionDone { outcome, .. }) => Err(Failure(7, anyhow!("{what}: {outcome:?}"))),
-        _ => Err(Failure(7, anyhow!("{what}: no end of motion within 120 s"))),
+        outcome => Err(Failure(7, anyhow!("{what}: {outcome:?}"))),
     }
 }
 
