@@ -559,18 +559,22 @@ fn a_simulator_not_scheduled_for_a_while_pauses_instead_of_losing_the_link() {
 
 /// A noisy link loses a motion's `MotionDone` event now and then: `scanner
 /// home` asks the status and ends with the device, where it waited 120 s
-/// and failed (exit 7) though homing had completed. In-process simulator,
-/// 1 % of the bytes corrupted: three of the eight seeds of 1–40 whose
-/// event is lost (deterministic: simulated time).
+/// and failed (exit 7) though homing had completed. In-process simulator
+/// (deterministic: simulated time), 1 % of the bytes corrupted, seeds
+/// 1–40: every one homes, and some lose the event (11 of 40 when this was
+/// written; which ones moves with the link's timing).
 #[test]
 fn a_lost_end_of_motion_event_is_recovered_from_the_status() {
-    for seed in ["4", "7", "10"] {
+    let mut recovered = 0;
+    for seed in 1..=40 {
+        let seed = seed.to_string();
         let (code, out, err) =
-            run(&["home", "--device", "sim", "--sim-corrupt", "0.01", "--sim-seed", seed]);
+            run(&["home", "--device", "sim", "--sim-corrupt", "0.01", "--sim-seed", &seed]);
         assert_eq!(code, Some(0), "seed {seed}: {out}{err}");
         assert!(out.contains("homing: done at"), "seed {seed}: {out}");
-        assert!(out.contains("its report was lost on the link"), "seed {seed}: {out}");
+        recovered += usize::from(out.contains("its report was lost on the link"));
     }
+    assert!(recovered >= 2, "{recovered} of 40 seeds lost the event");
 }
 
 /// Commissioning practised on `scanner sim`: a board with the spec's axes
