@@ -1036,8 +1036,7 @@ pub fn homing_repeatability(
 fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
     dev.clear_events();
     dev.command(Request::Home { axes })?;
-    let failed = |dev: &mut Device, outcome: Option<MotionOutcome>| {
-        let faults = dev.status()?.faults;
+    let failed = |outcome: Option<MotionOutcome>, faults: FaultFlags| {
         let by =
             if faults.is_empty() { String::new() } else { format!(" ({})", fault_list(faults)) };
         let what = outcome.map_or("failed".to_string(), |o| o.to_string());
@@ -1047,14 +1046,14 @@ fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
         Some(MotionEnd::Reported { outcome: MotionOutcome::Completed, .. }) => {
             Ok(dev.take_events())
         }
-        Some(MotionEnd::Reported { outcome, .. }) => failed(dev, Some(outcome)),
+        Some(MotionEnd::Reported { outcome, .. }) => failed(Some(outcome), dev.status()?.faults),
         Some(MotionEnd::Unreported(status)) => {
             let homed =
                 Axis::ALL.into_iter().all(|a| !axes.contains(a) || status.axes[a.index()].homed);
             if homed && status.faults.is_empty() {
                 return Ok(dev.take_events());
             }
-            failed(dev, None)
+            failed(None, status.faults)
         }
         None => Err(ScanError::DeviceFault("homing did not finish in 90 s".into())),
     }

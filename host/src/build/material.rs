@@ -597,16 +597,13 @@ mod tests {
     use crate::build::calibrate::Silent;
     use crate::build::superres::DetailLayer;
 
-    /// The detail layer's light components go into the file in its layout
-    /// ([R][2S][2S], [L][R]) and come back out of the shading: at a captured
-    /// pair and a 2S texel centre, the material answers its region image
-    /// times its own light's factor.
     /// `n` directions on three rings (10°, 25°, 40°) as both lights and
-    /// views, S × S texels, `image(light, view, texel)` each pair's values.
+    /// views, S × S texels, `image(dirs, light, view, texel)` each pair's
+    /// values.
     fn ring_regions(
         n: usize,
         s: usize,
-        image: impl Fn(usize, usize, usize) -> [f32; 3],
+        image: impl Fn(&[[f64; 3]], usize, usize, usize) -> [f32; 3],
     ) -> RegionSet {
         let dirs: Vec<[f64; 3]> = (0..n)
             .map(|k| {
@@ -623,7 +620,7 @@ mod tests {
             viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1200.0)).collect(),
             sample_mm: 25.4,
             images: (0..n * n)
-                .map(|p| (0..s * s).map(|t| image(p / n, p % n, t)).collect())
+                .map(|p| (0..s * s).map(|t| image(&dirs, p / n, p % n, t)).collect())
                 .collect(),
             detail: None,
         }
@@ -638,14 +635,18 @@ mod tests {
         }
     }
 
+    /// The detail layer's light components go into the file in its layout
+    /// ([R][2S][2S], [L][R]) and come back out of the shading: at a captured
+    /// pair and a 2S texel centre, the material answers its region image
+    /// times its own light's factor.
     #[test]
     fn the_built_file_shades_each_light_with_its_own_detail() {
         let (n, s) = (9usize, 8usize);
         let f = 2 * s;
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         // Few colours per image, so that 256-colour palettes hold them.
-        let mut regions = ring_regions(n, s, |l, v, t| {
-            let cos = (10.0 + 15.0 * (l % 3) as f32).to_radians().cos();
+        let mut regions = ring_regions(n, s, |dirs, l, v, t| {
+            let cos = dirs[l][2] as f32;
             [0.1 + 0.02 * (t % 5) as f32, 0.2, 0.05 * (l * n + v) as f32 + 0.01].map(|x| x * cos)
         });
         let dirs = regions.light_dirs.clone();
@@ -692,7 +693,6 @@ mod tests {
         use scanner_shading::texel::{TexelParams, reflected};
         let (n, s) = (9usize, 8usize);
         let unit = |d: [f64; 3]| d.map(|x| x as f32);
-        let dirs = ring_regions(n, s, |_, _, _| [0.0; 3]).light_dirs;
         // A glossy dielectric whose normal and roughness vary over the texels.
         let texel = |t: usize| TexelParams {
             diffuse: [0.2, 0.15, 0.1],
@@ -704,7 +704,7 @@ mod tests {
             },
         };
         let glossy =
-            ring_regions(n, s, |l, v, t| reflected(&texel(t), unit(dirs[l]), unit(dirs[v])));
+            ring_regions(n, s, |dirs, l, v, t| reflected(&texel(t), unit(dirs[l]), unit(dirs[v])));
         let tris = triangulate(&glossy.view_dirs, "view directions").unwrap();
         let with = shift_errors(&glossy, &tris, true).unwrap();
         let without = shift_errors(&glossy, &tris, false).unwrap();
