@@ -30,10 +30,10 @@ use heapless::Deque;
 use protocol::{
     AXIS_COUNT, Axis, AxisSet, AxisStatus, Capabilities, DeviceError, DeviceInfo, DeviceState,
     Direction, Event, FULL_DUTY_PERMILLE, FaultFlags, FirmwareVersion, Frame, FrameDecoder,
-    HomingFailure, InputState, LightState, LogLevel, LogText, MAX_EXPOSURE_US, MAX_FRAME_LEN,
-    MAX_LIGHT_MARGIN_US, MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode,
-    PROTOCOL_VERSION, Reply, Request, ResetReason, Status, TimedCaptureStep, ToHost, TriggerFired,
-    encode_frame,
+    HomingFailure, InputState, LightState, LogLevel, LogText, MAX_EXPOSURE_US,
+    MAX_FLUSHED_FRAME_LEN, MAX_LIGHT_MARGIN_US, MAX_MIRRORS, MIN_EXPOSURE_US, MirrorPosition,
+    MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply, Request, ResetReason, Status,
+    TimedCaptureStep, ToHost, TriggerFired, encode_flushed_frame,
 };
 
 use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid};
@@ -1332,9 +1332,11 @@ fn check_exposure(exposure_us: u32) -> Result<(), DeviceError> {
     }
 }
 
+/// Hand one frame to `tx`, after a delimiter (docs/protocol.md §2): a frame
+/// whose delimiter line noise hid costs only itself, not the one after it.
 fn send(tx: &mut impl FnMut(&[u8]), seq: u8, msg: &ToHost) {
-    let mut buf = [0u8; MAX_FRAME_LEN];
-    if let Ok(n) = encode_frame(seq, msg, &mut buf) {
+    let mut buf = [0u8; MAX_FLUSHED_FRAME_LEN];
+    if let Ok(n) = encode_flushed_frame(seq, msg, &mut buf) {
         tx(&buf[..n]);
     }
 }

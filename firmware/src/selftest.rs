@@ -1344,5 +1344,22 @@ pub fn link_bytes_corruption_and_duplicates() -> TestResult {
     };
     ensure!(text.as_str() == "hello", "log text");
     ensure!(frames.next().is_none(), "nothing else queued");
+    // Every device frame starts with a delimiter: noise that hides the end
+    // of one event costs that event, not the next one too.
+    out.clear();
+    rig.ctrl.log(LogLevel::Warn, "first");
+    rig.ctrl.log(LogLevel::Warn, "second");
+    rig.ctrl.drain_events(&mut |b: &[u8]| {
+        let _ = out.extend_from_slice(b);
+    });
+    ensure!(out.first() == Some(&0), "a device frame starts with a delimiter");
+    let end = 1 + out[1..].iter().position(|&b| b == 0).ok_or("the first frame's end")?;
+    out[end] = 0x42;
+    let mut frames = decoder.feed(&out);
+    ensure!(matches!(frames.next(), Some(Err(_))), "the first event is lost");
+    let Some(Ok(f)) = frames.next() else { return Err("the second event arrives") };
+    let ToHost::Event(Event::Log { text, .. }) = f.msg else { return Err("a log event") };
+    ensure!(text.as_str() == "second", "the second event's text");
+    ensure!(frames.next().is_none(), "nothing else");
     Ok(())
 }

@@ -14,6 +14,8 @@
 //! Endpoints: IN — EP0, the CDC notification, CDC bulk, vendor bulk; OUT —
 //! EP0, CDC bulk, vendor bulk: within the F411 OTG_FS's 4 IN and 4 OUT.
 
+use embassy_sync::blocking_mutex::raw::RawMutex;
+use embassy_sync::pipe::Pipe;
 use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
 use embassy_usb::driver::Driver;
 use embassy_usb::msos::{self, windows_version};
@@ -110,4 +112,27 @@ pub fn build<'d, D: Driver<'d>>(
         (alt.endpoint_bulk_out(None, MAX_PACKET), alt.endpoint_bulk_in(None, MAX_PACKET))
     };
     UsbParts { device: builder.build(), cdc, vendor_out, vendor_in }
+}
+
+/// Queue `bytes` (one flushed frame) for the host whole, or not at all: the
+/// board's replies and events wait in a `Pipe` that the USB task drains in
+/// packets. `Pipe::try_write` copies only up to the end of its ring, so a
+/// single call would cut a frame that crosses it — once every ring length of
+/// output, the frame's tail and with it the next frame would be lost.
+/// Returns whether the frame was queued; one that does not fit is dropped
+/// (the host recovers replies by retransmitting, events from the status).
+pub fn queue_whole<M: RawMutex, const N: usize>(pipe: &Pipe<M, N>, bytes: &[u8]) -> bool {
+    if pipe.free_capacity() < bytes.len() {
+        return false;
+    }
+    let mut rest = bytes;
+    while !rest.is_empty() {
+        match pipe.try_write(rest) {
+            Ok(n) => rest = &rest[n..],
+            // Only another writer filling it in between could do this: the
+            // frame's head is out, and the next frame's delimiter ends it.
+            Err(_) => return false,
+        }
+    }
+    true
 }

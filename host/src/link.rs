@@ -9,8 +9,8 @@ use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use protocol::{
-    DeviceError, DeviceInfo, Event, FrameDecoder, MAX_FRAME_LEN, PROTOCOL_VERSION, Reply, Request,
-    Status, ToHost, encode_frame,
+    DeviceError, DeviceInfo, Event, FrameDecoder, MAX_FLUSHED_FRAME_LEN, PROTOCOL_VERSION, Reply,
+    Request, Status, ToHost, encode_flushed_frame,
 };
 
 /// Why a transport operation failed.
@@ -550,12 +550,9 @@ impl Device {
     fn exchange(&mut self, request: Request) -> Result<Reply, LinkError> {
         self.seq = self.seq.wrapping_add(1);
         let seq = self.seq;
-        // A delimiter first (docs/protocol.md allows it): should line noise
-        // have hidden the delimiter of the frame before, the device ends that
-        // frame here and this one arrives whole, instead of both being lost.
-        let mut frame = [0u8; MAX_FRAME_LEN + 1];
-        let n = 1 + encode_frame(seq, &request, &mut frame[1..])
-            .expect("every request fits MAX_FRAME_LEN");
+        let mut frame = [0u8; MAX_FLUSHED_FRAME_LEN];
+        let n = encode_flushed_frame(seq, &request, &mut frame)
+            .expect("every request fits MAX_FLUSHED_FRAME_LEN");
         let retransmit_after = match request {
             Request::Ping { .. } => self.timings.ping_retransmit_after,
             _ => self.timings.retransmit_after,
@@ -754,8 +751,8 @@ mod tests {
                     Request::Ping { token } => Reply::Pong { token },
                     _ => Reply::Ack,
                 };
-                let mut buf = [0u8; MAX_FRAME_LEN];
-                let n = encode_frame(frame.seq, &ToHost::Reply(reply), &mut buf).unwrap();
+                let mut buf = [0u8; MAX_FLUSHED_FRAME_LEN];
+                let n = encode_flushed_frame(frame.seq, &ToHost::Reply(reply), &mut buf).unwrap();
                 self.replies.push_back((arrived + self.round_trip / 2, buf[..n].to_vec()));
             }
             Ok(())

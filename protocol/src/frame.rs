@@ -116,6 +116,24 @@ pub fn encode_frame<M: Message>(seq: u8, msg: &M, out: &mut [u8]) -> Result<usiz
     Ok(n + 1)
 }
 
+/// Longest [`encode_flushed_frame`] output: a frame and the delimiter before it.
+pub const MAX_FLUSHED_FRAME_LEN: usize = MAX_FRAME_LEN + 1;
+
+/// Encode like [`encode_frame`], after a `0x00` (docs/protocol.md §2): should
+/// line noise have hidden the delimiter of the frame before, the receiver ends
+/// that frame here and this one arrives whole, instead of both being lost.
+/// Both ends send every frame this way. `out` of [`MAX_FLUSHED_FRAME_LEN`]
+/// bytes always suffices.
+pub fn encode_flushed_frame<M: Message>(
+    seq: u8,
+    msg: &M,
+    out: &mut [u8],
+) -> Result<usize, FrameError> {
+    let (first, rest) = out.split_first_mut().ok_or(FrameError::BufferTooSmall)?;
+    *first = 0;
+    Ok(1 + encode_frame(seq, msg, rest)?)
+}
+
 /// Decode one frame body **in place**: `buf` holds the COBS bytes between two
 /// delimiters (without them).
 pub fn decode_frame<M: Message>(buf: &mut [u8]) -> Result<Frame<M>, FrameError> {

@@ -33,8 +33,8 @@ pub mod frame;
 pub mod msg;
 
 pub use frame::{
-    CRC, Feed, Frame, FrameDecoder, FrameError, MAX_FRAME_LEN, Message, decode_frame, encode_frame,
-    max_frame_len,
+    CRC, Feed, Frame, FrameDecoder, FrameError, MAX_FLUSHED_FRAME_LEN, MAX_FRAME_LEN, Message,
+    decode_frame, encode_flushed_frame, encode_frame, max_frame_len,
 };
 pub use msg::*;
 

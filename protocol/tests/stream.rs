@@ -208,6 +208,38 @@ fn overlong_input_is_dropped_and_decoder_resyncs() {
 }
 
 #[test]
+fn a_flushed_frame_survives_the_loss_of_the_delimiter_before_it() {
+    let status = || Request::GetStatus;
+    let mut flushed = [0u8; MAX_FLUSHED_FRAME_LEN];
+    let n = encode_flushed_frame(5, &status(), &mut flushed).unwrap();
+    assert_eq!(flushed[0], 0);
+    assert_eq!(&flushed[1..n], encode(5, &status()).as_slice());
+    let mut scratch = [0u8; MAX_FLUSHED_FRAME_LEN];
+    let short = encode_flushed_frame(5, &status(), &mut scratch[..n - 1]);
+    assert_eq!(short, Err(FrameError::BufferTooSmall));
+    assert_eq!(encode_flushed_frame(5, &status(), &mut []), Err(FrameError::BufferTooSmall));
+    // The longest request fits.
+    let worst = Request::Move { mode: MoveMode::Absolute, targets: [Some(i32::MIN); 3] };
+    assert!(encode_flushed_frame(1, &worst, &mut scratch).unwrap() <= MAX_FLUSHED_FRAME_LEN);
+    // Noise turns the delimiter of the frame before into a data byte: that
+    // frame is lost, the flushed one after it is not; without its leading
+    // `0x00` it would be lost too.
+    let mut before = encode(4, &Request::Ping { token: 1 });
+    *before.last_mut().unwrap() = 0x42;
+    let mut stream = before.clone();
+    stream.extend_from_slice(&flushed[..n]);
+    let frames: Vec<_> = FrameDecoder::<Request>::new().feed(&stream).collect();
+    assert_eq!(frames.len(), 2);
+    assert!(frames[0].is_err());
+    assert_eq!(frames[1], Ok(Frame { seq: 5, msg: status() }));
+    let mut bare = before;
+    bare.extend_from_slice(&flushed[1..n]);
+    let frames: Vec<_> = FrameDecoder::<Request>::new().feed(&bare).collect();
+    assert_eq!(frames.len(), 1);
+    assert!(frames[0].is_err());
+}
+
+#[test]
 fn each_rejection_is_typed() {
     let good = encode(3, &Request::Ping { token: 7 });
     let body = &good[..good.len() - 1];

@@ -99,10 +99,11 @@ static HOST_SPOKE: AtomicBool = AtomicBool::new(false);
 const TX_TIMEOUT: Duration = Duration::from_millis(200);
 
 fn send(frame: &[u8]) {
-    // Whole frames only: a frame that does not fit is dropped (the host
-    // recovers replies by retransmitting, events by status / GetLastTrigger).
-    if TX.free_capacity() >= frame.len() {
-        let _ = TX.try_write(frame);
+    // Whole frames only, across the ring's end too; one that does not fit
+    // is dropped (the host recovers replies by retransmitting, events by
+    // status / GetLastTrigger).
+    if !firmware::usb::queue_whole(&TX, frame) {
+        warn!("{} bytes for the host dropped: the queue is full", frame.len());
     }
 }
 
