@@ -46,6 +46,95 @@ fn wall_now() -> Duration {
     START.get_or_init(Instant::now).elapsed()
 }
 
+/// Where the scanners' locks live: one file per USB serial number, shared
+/// by every user of the machine (the folder is sticky and world-writable).
+fn lock_dir() -> std::path::PathBuf {
+    std::env::temp_dir().join("scanner-locks")
+}
+
+/// One program at a time on a scanner. Its CDC-ACM tty and its USB bulk
+/// interface reach the same controller: two programs on the two would each
+/// command the machine and read each other's replies (the board answers on
+/// the interface it last heard). A tty is opened exclusively already (its
+/// `flock`, by serialport) and a USB interface is claimed exclusively; this
+/// lock, on a file named by the USB serial number, spans both. Held while
+/// the returned file is open (the process's end releases it, whatever way it
+/// ends). A lock that cannot be taken for want of a place to keep it is
+/// skipped with a warning: that must not stop a scanner from being used.
+fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
+    let dir = lock_dir();
+    let name: String = serial
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' })
+        .collect();
+    let path = dir.join(format!("usb-{name}.lock"));
+    let created = std::fs::create_dir(&dir).is_ok();
+    #[cfg(unix)]
+    if created {
+        use std::os::unix::fs::PermissionsExt;
+        let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o1777));
+    }
+    #[cfg(not(unix))]
+    let _ = created;
+    // Another user's file may be read-only to us: a lock needs no writing.
+    let file = std::fs::File::options()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .or_else(|_| std::fs::File::open(&path));
+    let file = match file {
+        Ok(f) => f,
+        Err(e) => {
+            tracing::warn!("{}: {e}; scanner {serial} used without a lock", path.display());
+            return Ok(None);
+        }
+    };
+    match file.try_lock() {
+        Ok(()) => {
+            // Who holds it, for the message of the next one that asks.
+            let _ = file.set_len(0);
+            let args: Vec<String> = std::env::args().collect();
+            let _ = (&file)
+                .write_all(format!("{} {}\n", std::process::id(), args.join(" ")).as_bytes());
+            Ok(Some(file))
+        }
+        Err(std::fs::TryLockError::WouldBlock) => {
+            let holder = std::fs::read_to_string(&path).unwrap_or_default();
+            let holder = match holder.trim().split_once(' ') {
+                Some((pid, command)) => format!(" (process {pid}: {command})"),
+                None => String::new(),
+            };
+            Err(TransportError::Open(format!(
+                "scanner {serial}: in use by another program{holder}; one program at a \
+                 time talks to a scanner, on either of its interfaces"
+            )))
+        }
+        Err(std::fs::TryLockError::Error(e)) => {
+            tracing::warn!("{}: {e}; scanner {serial} used without a lock", path.display());
+            Ok(None)
+        }
+    }
+}
+
+/// A serial port's open error, in words where it is the port being in use.
+fn serial_open_error(path: &str, e: serialport::Error) -> TransportError {
+    let busy = match e.kind {
+        // serialport's exclusive `flock` on the tty.
+        serialport::ErrorKind::NoDevice => e.description.contains("lock"),
+        serialport::ErrorKind::Io(_) => {
+            e.description.contains("busy") || e.description.contains("EBUSY")
+        }
+        _ => false,
+    };
+    if busy {
+        TransportError::Open(format!("{path}: in use by another program ({e})"))
+    } else {
+        TransportError::Open(format!("{path}: {e}"))
+    }
+}
+
 /// A serial port: the CDC-ACM interface of the board, a UART, or the
 /// simulator's pty. A USB port is remembered by its serial number too: when
 /// the board re-enumerates under another name (`ttyACM0` → `ttyACM1`) after
@@ -54,6 +143,9 @@ pub struct SerialTransport {
     path: String,
     serial: Option<String>,
     port: Option<Box<dyn serialport::SerialPort>>,
+    /// The scanner's lock when the port is a scanner's USB tty
+    /// ([`lock_scanner`]).
+    _lock: Option<std::fs::File>,
 }
 
 impl std::fmt::Debug for SerialTransport {
@@ -81,7 +173,11 @@ impl SerialTransport {
             .into_iter()
             .find(|p| p.path == path)
             .and_then(|p| p.serial);
-        let mut t = SerialTransport { path: path.to_string(), serial, port: None };
+        let lock = match &serial {
+            Some(serial) => lock_scanner(serial)?,
+            None => None,
+        };
+        let mut t = SerialTransport { path: path.to_string(), serial, port: None, _lock: lock };
         t.reconnect().map_err(|e| {
             // A device node that is no terminal (/dev/null, /dev/zero).
             use std::io::IsTerminal;
@@ -162,7 +258,7 @@ impl Transport for SerialTransport {
         let port = serialport::new(&self.path, 115_200)
             .timeout(Duration::from_millis(10))
             .open()
-            .map_err(|e| TransportError::Open(format!("{}: {e}", self.path)))?;
+            .map_err(|e| serial_open_error(&self.path, e))?;
         self.port = Some(port);
         Ok(())
     }
@@ -175,6 +271,8 @@ impl Transport for SerialTransport {
 /// The board's vendor-class bulk interface over USB (nusb, no libusb).
 pub struct UsbTransport {
     serial: String,
+    /// The scanner's lock ([`lock_scanner`]).
+    _lock: Option<std::fs::File>,
     io: Option<(
         nusb::io::EndpointWrite<nusb::transfer::Bulk>,
         nusb::io::EndpointRead<nusb::transfer::Bulk>,
@@ -190,7 +288,8 @@ impl std::fmt::Debug for UsbTransport {
 impl UsbTransport {
     /// Open the scanner with USB serial number `serial`.
     pub fn open(serial: &str) -> Result<UsbTransport, TransportError> {
-        let mut t = UsbTransport { serial: serial.to_string(), io: None };
+        let lock = lock_scanner(serial)?;
+        let mut t = UsbTransport { serial: serial.to_string(), _lock: lock, io: None };
         t.reconnect()?;
         Ok(t)
     }
@@ -696,6 +795,32 @@ mod tests {
     use std::sync::{Arc, Mutex};
 
     use super::*;
+
+    #[test]
+    fn one_program_at_a_time_on_a_scanner() {
+        // A serial number of this test's own: other tests and programs
+        // keep theirs.
+        let serial = format!("TEST/{}:one-program", std::process::id());
+        let first = lock_scanner(&serial).unwrap();
+        assert!(first.is_some(), "the lock is taken");
+        // Another open of the file, as another program's would be.
+        let Err(TransportError::Open(why)) = lock_scanner(&serial) else {
+            panic!("a second lock on the same scanner is refused")
+        };
+        let pid = std::process::id();
+        assert!(why.contains("in use by another program (process"), "{why}");
+        assert!(why.contains(&format!("process {pid}:")), "names the holder: {why}");
+        drop(first);
+        assert!(lock_scanner(&serial).unwrap().is_some(), "taken again once released");
+        let other = format!("TEST/{}:another", std::process::id());
+        let _held = lock_scanner(&serial).unwrap();
+        assert!(lock_scanner(&other).unwrap().is_some(), "another scanner is not locked");
+        let name = lock_dir().join(format!("usb-TEST_{pid}_one-program.lock"));
+        assert!(name.is_file(), "the file is named by the serial number, made safe");
+        drop(_held);
+        let _ = std::fs::remove_file(name);
+        let _ = std::fs::remove_file(lock_dir().join(format!("usb-TEST_{pid}_another.lock")));
+    }
 
     /// A device on a simulated clock that answers every request after a
     /// round trip of `round_trip` (`Hello` with its info, `Ping` with its

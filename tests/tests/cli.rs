@@ -489,6 +489,33 @@ fn scanner_sim(
     (child, line.trim().to_string())
 }
 
+/// A second program on a scanner's port is refused with the reason, and
+/// once the first has ended it is served.
+#[test]
+fn a_port_in_use_by_another_program_is_said_so() {
+    use std::io::BufRead;
+    let dir = tmp();
+    let server = serve(&setup("leather", FaultPlan::none()), &sub(dir.path(), "camera"));
+    let pty = server.path().to_string();
+    let mut holder = scanner()
+        .args(["inputs", "--device", &pty, "--watch", "600"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Connected once it prints the inputs.
+    let mut lines = std::io::BufReader::new(holder.stdout.take().unwrap()).lines();
+    assert!(lines.any(|l| l.is_ok_and(|l| l.starts_with("watching"))), "the first program runs");
+    let (code, _, err) = run(&["status", "--device", &pty]);
+    holder.kill().unwrap();
+    let _ = holder.wait();
+    assert_eq!(code, Some(5), "{err}");
+    assert!(err.contains(&format!("{pty}: in use by another program")), "{err}");
+    let (code, out, err) = run(&["status", "--device", &pty]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("not homed"), "{out}");
+}
+
 #[test]
 fn scanner_sim_serves_a_scanner_on_a_pty_with_its_geometry() {
     let dir = tmp();
