@@ -63,11 +63,7 @@ fn lock_dir() -> std::path::PathBuf {
 /// skipped with a warning: that must not stop a scanner from being used.
 fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
     let dir = lock_dir();
-    let name: String = serial
-        .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' })
-        .collect();
-    let path = dir.join(format!("usb-{name}.lock"));
+    let path = lock_path(serial);
     let created = std::fs::create_dir(&dir).is_ok();
     #[cfg(unix)]
     if created {
@@ -91,7 +87,16 @@ fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
             return Ok(None);
         }
     };
-    match file.try_lock() {
+    // A listing's brief shared lock (`scanner_in_use`) is waited out.
+    let mut attempt = file.try_lock();
+    for _ in 0..5 {
+        if !matches!(attempt, Err(std::fs::TryLockError::WouldBlock)) {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+        attempt = file.try_lock();
+    }
+    match attempt {
         Ok(()) => {
             // Who holds it, for the message of the next one that asks.
             let _ = file.set_len(0);
@@ -101,11 +106,7 @@ fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
             Ok(Some(file))
         }
         Err(std::fs::TryLockError::WouldBlock) => {
-            let holder = std::fs::read_to_string(&path).unwrap_or_default();
-            let holder = match holder.trim().split_once(' ') {
-                Some((pid, command)) => format!(" (process {pid}: {command})"),
-                None => String::new(),
-            };
+            let holder = lock_holder(&path).map(|h| format!(" ({h})")).unwrap_or_default();
             Err(TransportError::Open(format!(
                 "scanner {serial}: in use by another program{holder}; one program at a \
                  time talks to a scanner, on either of its interfaces"
@@ -115,6 +116,37 @@ fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
             tracing::warn!("{}: {e}; scanner {serial} used without a lock", path.display());
             Ok(None)
         }
+    }
+}
+
+/// The lock file of the scanner with USB serial number `serial`.
+fn lock_path(serial: &str) -> std::path::PathBuf {
+    let name: String = serial
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' })
+        .collect();
+    lock_dir().join(format!("usb-{name}.lock"))
+}
+
+/// "process PID: COMMAND" of the lock's holder, as it wrote it.
+fn lock_holder(path: &std::path::Path) -> Option<String> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let (pid, command) = text.trim().split_once(' ')?;
+    Some(format!("process {pid}: {command}"))
+}
+
+/// Who has the scanner with USB serial number `serial` ("process PID:
+/// COMMAND"), if another `scanner` has it; `None` if it is free (or its
+/// lock cannot be read). For listings: it takes no lock.
+pub fn scanner_in_use(serial: &str) -> Option<String> {
+    let path = lock_path(serial);
+    let file = std::fs::File::open(&path).ok()?;
+    match file.try_lock_shared() {
+        Ok(()) => None,
+        Err(std::fs::TryLockError::WouldBlock) => {
+            Some(lock_holder(&path).unwrap_or_else(|| "another program".into()))
+        }
+        Err(std::fs::TryLockError::Error(_)) => None,
     }
 }
 
@@ -810,7 +842,11 @@ mod tests {
         let pid = std::process::id();
         assert!(why.contains("in use by another program (process"), "{why}");
         assert!(why.contains(&format!("process {pid}:")), "names the holder: {why}");
+        let listed = scanner_in_use(&serial).expect("a listing sees it in use");
+        assert!(listed.starts_with(&format!("process {pid}: ")), "{listed}");
+        assert!(lock_scanner(&serial).is_err(), "a listing took no lock of its own");
         drop(first);
+        assert_eq!(scanner_in_use(&serial), None, "free once released");
         assert!(lock_scanner(&serial).unwrap().is_some(), "taken again once released");
         let other = format!("TEST/{}:another", std::process::id());
         let _held = lock_scanner(&serial).unwrap();

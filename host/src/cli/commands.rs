@@ -376,10 +376,12 @@ pub fn devices() -> Result<(), Failure> {
         ),
         Ok(list) => {
             for p in list {
+                let in_use = p.serial.as_deref().and_then(crate::link::scanner_in_use);
                 println!(
-                    "serial  {}  serial number {}",
+                    "serial  {}  serial number {}{}",
                     p.path,
-                    p.serial.as_deref().unwrap_or("?")
+                    p.serial.as_deref().unwrap_or("?"),
+                    in_use.map(|h| format!("  (in use by {h})")).unwrap_or_default()
                 );
             }
         }
@@ -394,7 +396,10 @@ pub fn devices() -> Result<(), Failure> {
                 } else {
                     "no bulk interface"
                 };
-                println!("usb     {}  serial number {}  ({bulk})", d.location, d.serial);
+                let in_use = crate::link::scanner_in_use(&d.serial)
+                    .map(|h| format!(", in use by {h}"))
+                    .unwrap_or_default();
+                println!("usb     {}  serial number {}  ({bulk}{in_use})", d.location, d.serial);
             }
         }
         Err(e) => println!("usb: cannot list devices ({e})"),
