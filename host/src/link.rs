@@ -72,15 +72,7 @@ fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
     }
     #[cfg(not(unix))]
     let _ = created;
-    // Another user's file may be read-only to us: a lock needs no writing.
-    let file = std::fs::File::options()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(&path)
-        .or_else(|_| std::fs::File::open(&path));
-    let file = match file {
+    let file = match scanner_formats::input::open_lock_file(&path) {
         Ok(f) => f,
         Err(e) => {
             tracing::warn!("{}: {e}; scanner {serial} used without a lock", path.display());
@@ -130,7 +122,7 @@ fn lock_path(serial: &str) -> std::path::PathBuf {
 
 /// "process PID: COMMAND" of the lock's holder, as it wrote it.
 fn lock_holder(path: &std::path::Path) -> Option<String> {
-    let text = std::fs::read_to_string(path).ok()?;
+    let text = scanner_formats::input::read_to_string(path).ok()?;
     let (pid, command) = text.trim().split_once(' ')?;
     Some(format!("process {pid}: {command}"))
 }
@@ -140,7 +132,11 @@ fn lock_holder(path: &std::path::Path) -> Option<String> {
 /// lock cannot be read). For listings: it takes no lock.
 pub fn scanner_in_use(serial: &str) -> Option<String> {
     let path = lock_path(serial);
-    let file = std::fs::File::open(&path).ok()?;
+    // A listing makes no file.
+    if !std::fs::symlink_metadata(&path).is_ok_and(|m| m.is_file()) {
+        return None;
+    }
+    let file = scanner_formats::input::open_lock_file(&path).ok()?;
     match file.try_lock_shared() {
         Ok(()) => None,
         Err(std::fs::TryLockError::WouldBlock) => {

@@ -1228,12 +1228,8 @@ fn open_directory(
     std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
     // One writer per scan directory, for the whole scan.
     let lock_path = dir.join(LOCK_FILE);
-    let lock = std::fs::File::options()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&lock_path)
-        .map_err(|e| io_error(&lock_path, e))?;
+    let lock =
+        scanner_formats::input::open_lock_file(&lock_path).map_err(|e| io_error(&lock_path, e))?;
     match lock.try_lock() {
         Ok(()) => {}
         Err(std::fs::TryLockError::WouldBlock) => {

@@ -32,6 +32,43 @@ pub fn open(path: &Path) -> std::io::Result<std::fs::File> {
     Ok(file)
 }
 
+/// Open (creating it if need be) the lock file at `path`, to hold a lock
+/// on: read and write where it may be written, else read only (another
+/// user's lock in a shared folder; a lock needs no writing). A symbolic
+/// link there is not followed (no file is made or truncated where it
+/// points) and anything but a regular file is refused: lock files live in
+/// folders others may write to.
+pub fn open_lock_file(path: &Path) -> std::io::Result<std::fs::File> {
+    let options = |write: bool| {
+        let mut options = std::fs::OpenOptions::new();
+        options.read(true);
+        if write {
+            options.write(true).create(true).truncate(false);
+        }
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::unix::fs::OpenOptionsExt;
+            let flags = rustix::fs::OFlags::NOFOLLOW | rustix::fs::OFlags::NONBLOCK;
+            options.custom_flags(flags.bits() as i32);
+        }
+        options
+    };
+    // Said in words here; refused by the open's O_NOFOLLOW on Linux should
+    // a link be put there in between.
+    if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
+        return Err(Error::new(ErrorKind::InvalidInput, "a symbolic link, not a regular file"));
+    }
+    let file = options(true).open(path).or_else(|e| match e.kind() {
+        ErrorKind::PermissionDenied | ErrorKind::ReadOnlyFilesystem => options(false).open(path),
+        _ => Err(e),
+    })?;
+    let meta = file.metadata()?;
+    if !meta.is_file() {
+        return Err(Error::new(ErrorKind::InvalidInput, not_regular(&meta.file_type())));
+    }
+    Ok(file)
+}
+
 /// The bytes of the regular file at `path` (see [`open`]).
 pub fn read(path: &Path) -> std::io::Result<Vec<u8>> {
     let mut file = open(path)?;
@@ -68,6 +105,35 @@ fn not_regular(ft: &std::fs::FileType) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_lock_file_is_made_opened_again_and_never_followed_through_a_link() {
+        let dir = tempfile::tempdir().unwrap();
+        let lock = dir.path().join("x.lock");
+        let file = open_lock_file(&lock).unwrap();
+        assert!(lock.is_file());
+        drop(file);
+        std::fs::write(&lock, "12 scanner scan").unwrap();
+        let _again = open_lock_file(&lock).unwrap();
+        assert_eq!(std::fs::read_to_string(&lock).unwrap(), "12 scanner scan", "not truncated");
+        #[cfg(unix)]
+        {
+            let precious = dir.path().join("precious.txt");
+            std::fs::write(&precious, "keep").unwrap();
+            let link = dir.path().join("link.lock");
+            std::os::unix::fs::symlink(&precious, &link).unwrap();
+            let e = open_lock_file(&link).unwrap_err();
+            assert!(e.to_string().contains("symbolic link"), "{e}");
+            let dangling = dir.path().join("dangling.lock");
+            let target = dir.path().join("made-by-the-link");
+            std::os::unix::fs::symlink(&target, &dangling).unwrap();
+            assert!(open_lock_file(&dangling).is_err());
+            assert!(!target.exists(), "no file made where a link points");
+            assert_eq!(std::fs::read_to_string(&precious).unwrap(), "keep");
+            let e = open_lock_file(dir.path()).unwrap_err();
+            assert!(e.to_string().contains("directory"), "{e}");
+        }
+    }
 
     #[test]
     fn a_regular_file_and_a_link_to_one_are_read() {
