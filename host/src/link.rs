@@ -64,14 +64,13 @@ fn lock_dir() -> std::path::PathBuf {
 fn lock_scanner(serial: &str) -> Result<Option<std::fs::File>, TransportError> {
     let dir = lock_dir();
     let path = lock_path(serial);
-    let created = std::fs::create_dir(&dir).is_ok();
-    #[cfg(unix)]
-    if created {
-        use std::os::unix::fs::PermissionsExt;
-        let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o1777));
+    if std::fs::create_dir(&dir).is_ok() {
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o1777));
+        }
     }
-    #[cfg(not(unix))]
-    let _ = created;
     let file = match scanner_formats::input::open_lock_file(&path) {
         Ok(f) => f,
         Err(e) => {
@@ -151,9 +150,8 @@ fn serial_open_error(path: &str, e: serialport::Error) -> TransportError {
     let busy = match e.kind {
         // serialport's exclusive `flock` on the tty.
         serialport::ErrorKind::NoDevice => e.description.contains("lock"),
-        serialport::ErrorKind::Io(_) => {
-            e.description.contains("busy") || e.description.contains("EBUSY")
-        }
+        // TIOCEXCL's EBUSY, "Device or resource busy".
+        serialport::ErrorKind::Io(_) => e.description.contains("busy"),
         _ => false,
     };
     if busy {
