@@ -17,7 +17,12 @@
 //!   gentle waviness (slopes ±0.04, 8 and 4 mm), on 64² maps: highlights
 //!   ≈ 2 500× a white target, beyond the device's shortest exposure;
 //! - `brushed`: a brushed metal (F0 0.6, roughness 0.25–0.35) with grooves
-//!   of 0.25 mm across y (slopes ±0.3), on 256² maps over 4 mm.
+//!   of 0.25 mm across y (slopes ±0.3), on 256² maps over 4 mm;
+//! - `glint-stripes`: a matte colour gradient under a faint (F0 0.003)
+//!   specular layer whose roughness runs in stripes from 0.1 to 0.5 (GGX
+//!   α 0.01–0.25) over bumps of 5 mm (slopes ±0.1), on 1024² maps over
+//!   100 mm: where the stripes are smooth, glints sharper than the
+//!   captured directions' spacing.
 //!
 //! `cargo run --release -p tests --example unseen_samples -- DIR`, then
 //! `cargo run --release -p tests --example material_fidelity -- --materials DIR/red-plastic,…`.
@@ -166,6 +171,16 @@ fn main() {
             specular: [0.6; 3],
             roughness: 0.3 + 0.05 * (0.7 * px + 0.01 * py).sin(),
             slope: (0.0, 0.3 * (2.0 * PI * 4.0 * y + 0.3 * (0.05 * px).sin()).sin()),
+        }
+    });
+    write_set::<1024>(&dir, "glint-stripes", 100.0, false, |x, y| {
+        let band = 0.25 * (2.0 * PI * (3.0 * x + 2.0 * y) / 100.0).sin();
+        Texel {
+            colour: [0.22 + 0.6 * band * 0.9, 0.22 + 0.6 * band * 0.55, 0.22 + 0.6 * band * 0.2]
+                .map(|c: f64| c.max(0.01)),
+            specular: [0.003; 3],
+            roughness: 0.3 + 0.2 * (2.0 * PI * 7.0 * x / 100.0).sin(),
+            slope: (-0.1 * (2.0 * PI * x / 5.0).cos(), -0.1 * (2.0 * PI * y / 5.0).sin()),
         }
     });
 }
