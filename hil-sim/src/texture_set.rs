@@ -330,12 +330,20 @@ impl TextureSet {
                 2.0 * c[2] as f64 - 1.0,
             );
             if !(n.length() > 1e-3 && n.z > 0.0) {
+                let why = if n.length() > 1e-3 {
+                    "a normal must point out of the surface (z > 0)"
+                } else {
+                    "no direction (2c − 1 is a zero vector)"
+                };
                 return Err(err(
                     &normal_path,
                     format!(
-                        "pixel ({}, {}) decodes to {n:?}: a normal must point out of the surface (z > 0)",
+                        "pixel ({}, {}) decodes to ({:.4}, {:.4}, {:.4}): {why}",
                         i % normal.width,
-                        i / normal.width
+                        i / normal.width,
+                        n.x,
+                        n.y,
+                        n.z
                     ),
                 ));
             }

@@ -268,7 +268,16 @@ fn bad_sets_are_refused_naming_the_file() {
     });
     assert!(e.contains("format 2"), "{e}");
     let e = refusal(|d| rgb8(d, "normal.png", |_, _| [128, 128, 0]));
-    assert!(e.contains("normal.png: pixel (0, 0)") && e.contains("z > 0"), "{e}");
+    assert!(
+        e.contains("normal.png: pixel (0, 0) decodes to (0.0039, 0.0039, -1.0000)")
+            && e.contains("z > 0"),
+        "{e}"
+    );
+    let e = refusal(|d| {
+        std::fs::remove_file(d.join("normal.png")).unwrap();
+        exr(d, "normal.exr", W, H, |x, _| if x == 3 { [0.5; 3] } else { [0.5, 0.5, 1.0] })
+    });
+    assert!(e.contains("normal.exr: pixel (3, 0)") && e.contains("no direction"), "{e}");
     let e = refusal(|d| rgb8(d, "baseColor.png", |_, _| [1, 1, 1]));
     assert!(e.contains("keep one form"), "{e}");
     let e = refusal(|d| exr(d, "normal.exr", W, H, |_, _| [0.5, 0.5, 1.0]));
