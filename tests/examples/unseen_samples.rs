@@ -1,7 +1,7 @@
 //! Writes eight texture sets (docs/texture-set.md) unlike the library
 //! materials and unlike each other, for checking that the builder
-//! generalises (docs/benchmarks.md, "Five more samples outside the library" and what follows it). Nothing
-//! in the builder was tuned to them.
+//! generalises (docs/benchmarks.md, "Five more samples outside the
+//! library" and what follows it). Nothing in the builder was tuned to them.
 //!
 //! - `red-plastic`: a glossy dielectric (F0 0.04, roughness 0.25–0.32)
 //!   with an orange-peel bump (slopes ±0.03, 2 mm);
