@@ -25,7 +25,6 @@ use host::build::fidelity::{material_psnr, pair_queries};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
 use host::simulator::SimSetup;
-use scanner_formats::queries::Query;
 use scanner_geometry::{DVec3, world_to_sample};
 
 fn main() {
@@ -170,29 +169,7 @@ fn main() {
                     q.wo = world_to_sample((c - truth.sample_point(q.uv)).normalize()).to_array();
                 }
                 per_point.extend(hil_sim::truth::answer(&sample, &q));
-                let n = 12;
-                let fine: Vec<Query> = (0..32 * 32)
-                    .flat_map(|c| {
-                        let (i, k) = (c % 32, c / 32);
-                        (0..n * n).map(move |s| Query {
-                            uv: [
-                                (i as f64 + ((s % n) as f64 + 0.5) / n as f64) / 32.0,
-                                (k as f64 + ((s / n) as f64 + 0.5) / n as f64) / 32.0,
-                            ],
-                            wi,
-                            wo,
-                        })
-                    })
-                    .collect();
-                for cell in hil_sim::truth::answer(&sample, &fine).chunks(n * n) {
-                    let mut m = [0.0f32; 3];
-                    for x in cell {
-                        for k in 0..3 {
-                            m[k] += x[k] / (n * n) as f32;
-                        }
-                    }
-                    dense.extend(std::iter::repeat_n(m, 9));
-                }
+                dense.extend(tests::dense_cell_answers(&sample, wi, wo, 12));
             }
             // Against the whole set's peak, so that one pair's figures compare.
             let db = |a: &[[f32; 3]], b: &[[f32; 3]]| {

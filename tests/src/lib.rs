@@ -251,6 +251,39 @@ pub fn truth_answers(pairs: &[([f64; 3], [f64; 3])], sample: &Sample) -> Vec<[f3
         .collect()
 }
 
+/// A perfect area-integrating estimate of `sample` at one pair: each
+/// metric cell's mean over `n` × `n` points, repeated for the cell's
+/// [`pair_queries`] (the metric's point-sampling limit scores it against
+/// [`truth_answers`]).
+pub fn dense_cell_answers(sample: &Sample, wi: [f64; 3], wo: [f64; 3], n: usize) -> Vec<[f32; 3]> {
+    let fine: Vec<Query> = (0..CELLS * CELLS)
+        .flat_map(|c| {
+            let (i, k) = (c % CELLS, c / CELLS);
+            (0..n * n).map(move |s| Query {
+                uv: [
+                    (i as f64 + ((s % n) as f64 + 0.5) / n as f64) / CELLS as f64,
+                    (k as f64 + ((s / n) as f64 + 0.5) / n as f64) / CELLS as f64,
+                ],
+                wi,
+                wo,
+            })
+        })
+        .collect();
+    let per_cell = pair_queries(wi, wo).len() / (CELLS * CELLS);
+    hil_sim::truth::answer(sample, &fine)
+        .chunks(n * n)
+        .flat_map(|cell| {
+            let mut m = [0.0f32; 3];
+            for x in cell {
+                for k in 0..3 {
+                    m[k] += x[k] / (n * n) as f32;
+                }
+            }
+            std::iter::repeat_n(m, per_cell)
+        })
+        .collect()
+}
+
 /// Answers to one pair's queries, given the pair's index.
 pub type Estimate<'a> = dyn Fn(usize, &[Query]) -> Vec<[f32; 3]> + Sync + 'a;
 

@@ -458,7 +458,7 @@ pub fn build_material(
         }
     };
     let texels = if texel_model {
-        progress.stage("texel model", s);
+        progress.stage("texel model", 2 * s);
         texel_fit::fit_texels(regions, &|| progress.step())
     } else {
         Vec::new()
