@@ -542,37 +542,7 @@ mod tests {
     /// A region set of a glossy texel model seen by viewers 1.2 m away:
     /// every texel's values at its own directions.
     fn glossy_set(truth: &TexelParams) -> RegionSet {
-        let ring = |k: usize| {
-            let (th, ph) = (
-                (15.0 + 20.0 * (k / 6) as f64).to_radians(),
-                (60.0 * (k % 6) as f64 + 7.0 * (k / 6) as f64).to_radians(),
-            );
-            [th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()]
-        };
-        let dirs: Vec<[f64; 3]> = (0..18).map(ring).collect();
-        let mut set = RegionSet {
-            size: 8,
-            lights: (0..18).collect(),
-            views: (0..18).collect(),
-            light_dirs: dirs.clone(),
-            view_dirs: dirs.clone(),
-            viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1200.0)).collect(),
-            sample_mm: 25.4,
-            images: Vec::new(),
-            detail: None,
-        };
-        set.images = (0..18 * 18)
-            .map(|p| {
-                let wi = unit32(set.light_dirs[p / 18]);
-                (0..64)
-                    .map(|t| {
-                        let wo = unit32(set.view_dir_at(p % 18, set.texel_uv(t)));
-                        reflected(truth, wi, wo)
-                    })
-                    .collect()
-            })
-            .collect();
-        set
+        set_of(8, &|_| *truth, 0.0)
     }
 
     /// A glossy metal-like texel facing the sample's normal.
