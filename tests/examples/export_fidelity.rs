@@ -22,12 +22,9 @@ use std::path::PathBuf;
 use hil_sim::materials::{Sample, lookup};
 use host::build::calibrate::Silent;
 use host::build::export::{MapFormat, texture_set};
-use host::build::extract_regions;
 use host::build::gltf::gltf_files;
 use host::build::material::{MaterialOptions, build_material, shade};
-use host::build::scanread::ScanFrames;
 use scanner_shading::Material;
-use scanner_shading::format::Provenance;
 
 fn main() {
     tests::check_region_args(
@@ -56,14 +53,8 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for &m in &materials {
-        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
-        let provenance = Provenance {
-            scan_manifest_sha256: "-".into(),
-            geometry_sha256: g.hash(),
-            calibration_sha256: cal.hash(),
-            builder: "export_fidelity".into(),
-        };
+        let regions = tests::scanned_regions(&out, &g, &cal, m);
+        let provenance = tests::example_provenance(&g, &cal, "export_fidelity");
         let data =
             build_material(&regions, m, 25.4, provenance, &MaterialOptions::default(), &Silent)
                 .unwrap();

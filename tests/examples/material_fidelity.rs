@@ -16,13 +16,10 @@ use std::time::Instant;
 
 use hil_sim::materials::{Sample, lookup};
 use host::build::calibrate::Silent;
-use host::build::extract_regions;
 use host::build::material::{
     MaterialOptions, PATENT_DEFAULT, TexelModelChoice, build_material, shade,
 };
-use host::build::scanread::ScanFrames;
 use scanner_shading::Material;
-use scanner_shading::format::Provenance;
 
 fn main() {
     tests::check_region_args(
@@ -66,14 +63,8 @@ fn main() {
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let mut band_rows = Vec::new();
     for &m in &materials {
-        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
-        let provenance = Provenance {
-            scan_manifest_sha256: "-".into(),
-            geometry_sha256: g.hash(),
-            calibration_sha256: cal.hash(),
-            builder: "material_fidelity".into(),
-        };
+        let regions = tests::scanned_regions(&out, &g, &cal, m);
+        let provenance = tests::example_provenance(&g, &cal, "material_fidelity");
         let build = |opts: MaterialOptions| {
             let t = Instant::now();
             let data =

@@ -14,11 +14,8 @@ use std::path::PathBuf;
 
 use hil_sim::materials::{Sample, lookup};
 use host::build::calibrate::Silent;
-use host::build::extract_regions;
 use host::build::material::{MaterialOptions, build_material, shade};
-use host::build::scanread::ScanFrames;
 use scanner_shading::Material;
-use scanner_shading::format::Provenance;
 
 fn main() {
     tests::check_region_args(&["--materials", "--novel", "--out", "--seed"], &[]);
@@ -43,14 +40,8 @@ fn main() {
             e.db(e.mse.iter().sum::<f64>() / e.mse.len() as f64),
             share * 100.0
         );
-        let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
-        let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
-        let provenance = Provenance {
-            scan_manifest_sha256: "-".into(),
-            geometry_sha256: g.hash(),
-            calibration_sha256: cal.hash(),
-            builder: "novel_limit".into(),
-        };
+        let regions = tests::scanned_regions(&out, &g, &cal, m);
+        let provenance = tests::example_provenance(&g, &cal, "novel_limit");
         let data =
             build_material(&regions, m, 25.4, provenance, &MaterialOptions::default(), &Silent)
                 .unwrap();

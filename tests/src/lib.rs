@@ -251,6 +251,28 @@ pub fn truth_answers(pairs: &[([f64; 3], [f64; 3])], sample: &Sample) -> Vec<[f3
         .collect()
 }
 
+/// The region images of material `m`'s scan under `out` ([`scan_dir`]),
+/// with the examples' [`region_options`].
+pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &str) -> RegionSet {
+    let scan = host::build::scanread::ScanFrames::open(&scan_dir(out, m), g).unwrap();
+    host::build::extract_regions(g, cal, &scan, &region_options(), &host::build::calibrate::Silent)
+        .unwrap()
+}
+
+/// The provenance an example writes into the materials it builds.
+pub fn example_provenance(
+    g: &ScannerGeometry,
+    cal: &Calibration,
+    builder: &str,
+) -> scanner_shading::format::Provenance {
+    scanner_shading::format::Provenance {
+        scan_manifest_sha256: "-".into(),
+        geometry_sha256: g.hash(),
+        calibration_sha256: cal.hash(),
+        builder: builder.into(),
+    }
+}
+
 /// A perfect area-integrating estimate of `sample` at one pair: each
 /// metric cell's mean over `n` × `n` points, repeated for the cell's
 /// [`pair_queries`] (the metric's point-sampling limit scores it against
