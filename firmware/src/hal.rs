@@ -106,6 +106,17 @@ pub fn boot_id(device_id: &[u8; 12], flash_boots: u32, ram_boots: u32) -> u32 {
     protocol::CRC.checksum(&bytes)
 }
 
+/// Bytes of replies and events the board holds for the host: frames are
+/// queued whole or dropped whole when they do not fit (the host recovers
+/// replies by retransmitting, events from the status).
+pub const USB_TX_QUEUE: usize = 1024;
+/// Largest USB packet the board sends (full-speed bulk).
+pub const USB_TX_PACKET: usize = 64;
+/// How long a packet may wait for the host to read it before it is dropped
+/// (ms): a host that stopped reading, or switched interfaces, must not stall
+/// the board's output.
+pub const USB_TX_TIMEOUT_MS: u64 = 200;
+
 /// Where the board sends a packet for the host: `(vendor bulk, CDC-ACM)`.
 /// Until the host has spoken on either interface (the `Boot` event, events
 /// after a reset) everything goes to both, so a host on either sees it;

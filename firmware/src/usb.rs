@@ -26,7 +26,7 @@ use protocol::{USB_PID, USB_VID, USB_WINUSB_GUID};
 /// device does not use otherwise; the BOS descriptor tells it to Windows).
 pub const MSOS_VENDOR_CODE: u8 = 0x01;
 /// Largest packet of every bulk endpoint and of EP0 (full speed).
-pub const MAX_PACKET: u16 = 64;
+pub const MAX_PACKET: u16 = crate::hal::USB_TX_PACKET as u16;
 /// The vendor interface's number (after CDC-ACM's two).
 pub const VENDOR_INTERFACE: u8 = 2;
 

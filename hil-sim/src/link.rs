@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use firmware::hal::{TICK_HZ, TICKS_PER_MS};
+use firmware::hal::{TICK_HZ, TICKS_PER_MS, USB_TX_PACKET, USB_TX_QUEUE, USB_TX_TIMEOUT_MS};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serialport::{SerialPort, TTYPort};
@@ -89,6 +89,90 @@ impl LinkNoise {
             }
             None => true,
         }
+    }
+}
+
+/// The board's way out to the host (`firmware/board`): replies and events
+/// queue as whole frames in [`USB_TX_QUEUE`] bytes (a frame that does not
+/// fit is dropped whole), and leave in packets of [`USB_TX_PACKET`] bytes,
+/// each of which waits at most [`USB_TX_TIMEOUT_MS`] for the host to take
+/// it and is then dropped. The pty stands for the host's USB driver and its
+/// tty buffer: while the host reads, nothing waits here; a host that stops
+/// reading loses output as it would on the board, not at once.
+#[derive(Debug, Default)]
+pub struct UsbTx {
+    queue: VecDeque<u8>,
+    /// The rest of the packet being sent (bytes as the link delivers them).
+    packet: Vec<u8>,
+    /// Device time when that packet began to wait, ticks.
+    waiting_since: u64,
+    /// Frames dropped whole because the queue was full.
+    pub frames_dropped: u64,
+    /// Bytes of packets dropped after waiting too long (they cut frames: the
+    /// host's decoder drops the cut frame at the next delimiter).
+    pub packet_bytes_dropped: u64,
+}
+
+impl UsbTx {
+    /// Queue the device's `output` (whole frames, each ending in the
+    /// delimiter 0), each frame whole or not at all; `mangle` is what the
+    /// wire does to its bytes.
+    pub fn queue(&mut self, output: &[u8], mut mangle: impl FnMut(&[u8]) -> Vec<u8>) {
+        for frame in output.split_inclusive(|&b| b == 0) {
+            if USB_TX_QUEUE - self.queue.len() >= frame.len() {
+                self.queue.extend(mangle(frame));
+            } else {
+                self.frames_dropped += 1;
+            }
+        }
+    }
+
+    /// Hand packets to `write` (which takes what the host side has room for:
+    /// `Ok(n)`, or an error when it has none now) until it takes no more or
+    /// nothing is queued; at device time `now` (ticks), drop a packet that
+    /// has waited [`USB_TX_TIMEOUT_MS`]. With `connected` false nothing is
+    /// written (a packet still times out). Returns the bytes dropped now.
+    pub fn pump(
+        &mut self,
+        now: u64,
+        connected: bool,
+        mut write: impl FnMut(&[u8]) -> std::io::Result<usize>,
+    ) -> usize {
+        loop {
+            if self.packet.is_empty() {
+                let n = self.queue.len().min(USB_TX_PACKET);
+                if n == 0 {
+                    return 0;
+                }
+                self.packet.extend(self.queue.drain(..n));
+                self.waiting_since = now;
+            }
+            if !connected {
+                break;
+            }
+            match write(&self.packet) {
+                Ok(n) if n > 0 => {
+                    self.packet.drain(..n.min(self.packet.len()));
+                }
+                _ => break,
+            }
+        }
+        if now.saturating_sub(self.waiting_since) >= USB_TX_TIMEOUT_MS * TICKS_PER_MS {
+            let n = self.packet.len();
+            self.packet_bytes_dropped += n as u64;
+            self.packet.clear();
+            // The next packet begins its wait at once, as on the board.
+            let next = self.queue.len().min(USB_TX_PACKET);
+            self.packet.extend(self.queue.drain(..next));
+            self.waiting_since = now;
+            return n;
+        }
+        0
+    }
+
+    /// Bytes waiting (queued and the packet's rest).
+    pub fn pending(&self) -> usize {
+        self.queue.len() + self.packet.len()
     }
 }
 
@@ -333,6 +417,8 @@ impl PtyServer {
             let mut clock = PtyClock::new(device.now(), speed);
             let mut buf = [0u8; 4096];
             let mut rest = RestWatch::new(&device);
+            let mut tx = UsbTx::default();
+            let mut stall_told = false;
             while !stop_flag.load(Ordering::Relaxed) {
                 if ruler_on.load(Ordering::Relaxed)
                     && let Some(v) = rest.stopped(&device)
@@ -366,9 +452,19 @@ impl PtyServer {
                     device.receive(&bytes);
                 }
                 let out = device.take_output();
-                if !out.is_empty() && up {
-                    let _ = master.write_all(&noise.mangle(&out));
+                if up {
+                    tx.queue(&out, |b| noise.mangle(b));
                 }
+                let dropped = tx.pump(device.now(), up, |p| master.write(p));
+                // Once a stall: a host that never reads would fill stderr.
+                if dropped > 0 && !stall_told {
+                    eprintln!(
+                        "hil-sim: output not read by the host within {USB_TX_TIMEOUT_MS} ms is \
+                         dropped, as on the board ({dropped} bytes so far)"
+                    );
+                    stall_told = true;
+                }
+                stall_told &= tx.pending() > 0;
             }
             drop(camera); // ends the renderer once it has written every frame
             device
@@ -416,6 +512,71 @@ mod tests {
     use super::*;
 
     const MS: u64 = TICKS_PER_MS;
+
+    /// `n` frames of `len` bytes (the last one the delimiter), frame k's
+    /// bytes all k + 1.
+    fn frames(n: usize, len: usize) -> Vec<u8> {
+        (0..n).flat_map(|k| std::iter::repeat_n(k as u8 + 1, len - 1).chain([0])).collect()
+    }
+
+    #[test]
+    fn a_host_that_reads_late_or_a_little_at_a_time_gets_every_frame_whole() {
+        let mut tx = UsbTx::default();
+        let out = frames(40, 25); // 1000 bytes: within the queue
+        tx.queue(&out, |b| b.to_vec());
+        let mut got = Vec::new();
+        // The host takes nothing for 150 ms (less than the packet's wait) …
+        for ms in 0..150 {
+            let busy = || Err(std::io::ErrorKind::TimedOut.into());
+            assert_eq!(tx.pump(ms * MS, true, |_| busy()), 0);
+        }
+        // … then at most 10 bytes a call.
+        let mut ms = 150;
+        while tx.pending() > 0 {
+            tx.pump(ms * MS, true, |p| {
+                let n = p.len().min(10);
+                got.extend_from_slice(&p[..n]);
+                Ok(n)
+            });
+            ms += 1;
+        }
+        assert_eq!(got, out);
+        assert_eq!((tx.frames_dropped, tx.packet_bytes_dropped), (0, 0));
+    }
+
+    #[test]
+    fn a_host_that_stops_reading_loses_whole_frames_then_a_packet_each_wait() {
+        let mut tx = UsbTx::default();
+        // 100 frames of 20 bytes: 51 fit the 1024 bytes, 49 are dropped whole.
+        tx.queue(&frames(100, 20), |b| b.to_vec());
+        assert_eq!(tx.frames_dropped, 49);
+        assert_eq!(tx.pending(), 51 * 20);
+        let busy = |_: &[u8]| Err(std::io::ErrorKind::TimedOut.into());
+        // The first packet waits 200 ms, then goes; the next one waits anew.
+        assert_eq!(tx.pump(0, true, busy), 0);
+        assert_eq!(tx.pump((USB_TX_TIMEOUT_MS - 1) * MS, true, busy), 0);
+        assert_eq!(tx.pump(USB_TX_TIMEOUT_MS * MS, true, busy), USB_TX_PACKET);
+        assert_eq!(tx.pump((2 * USB_TX_TIMEOUT_MS - 1) * MS, true, busy), 0);
+        assert_eq!(tx.pump(2 * USB_TX_TIMEOUT_MS * MS, true, busy), USB_TX_PACKET);
+        assert_eq!(tx.pending(), 51 * 20 - 2 * USB_TX_PACKET);
+        // Disconnected: nothing is written, and packets still time out.
+        let mut wrote = false;
+        tx.pump(3 * USB_TX_TIMEOUT_MS * MS, false, |p| {
+            wrote = true;
+            Ok(p.len())
+        });
+        assert!(!wrote);
+        assert_eq!(tx.packet_bytes_dropped, 3 * USB_TX_PACKET as u64);
+        // Room again for a frame once the host reads.
+        let mut got = Vec::new();
+        tx.pump(3 * USB_TX_TIMEOUT_MS * MS, true, |p| {
+            got.extend_from_slice(p);
+            Ok(p.len())
+        });
+        assert_eq!(got.len(), 51 * 20 - 3 * USB_TX_PACKET);
+        tx.queue(&frames(1, 30), |b| b.to_vec());
+        assert_eq!(tx.pending(), 30);
+    }
 
     #[test]
     fn the_pty_clock_runs_at_its_speed_while_the_server_keeps_up() {

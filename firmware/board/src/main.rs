@@ -84,7 +84,7 @@ impl firmware::timer::StepPins for StepLines<'_> {
 }
 
 /// Frames for the host, written by whoever holds the machine, read by USB.
-static TX: Pipe<CriticalSectionRawMutex, 1024> = Pipe::new();
+static TX: Pipe<CriticalSectionRawMutex, { firmware::hal::USB_TX_QUEUE }> = Pipe::new();
 
 /// Whether the host last spoke on the vendor-class bulk interface (else on
 /// the CDC-ACM one): replies and events go where the host is listening.
@@ -96,7 +96,7 @@ static HOST_SPOKE: AtomicBool = AtomicBool::new(false);
 /// How long a packet may wait for the host to read it before it is dropped
 /// (the host retransmits; a host that switched interfaces must not stall
 /// the other one).
-const TX_TIMEOUT: Duration = Duration::from_millis(200);
+const TX_TIMEOUT: Duration = Duration::from_millis(firmware::hal::USB_TX_TIMEOUT_MS);
 
 fn send(frame: &[u8]) {
     // Whole frames only, across the ring's end too; one that does not fit
@@ -424,7 +424,7 @@ async fn usb_task(
         }
     };
     let tx = async {
-        let mut buf = [0u8; 64];
+        let mut buf = [0u8; firmware::hal::USB_TX_PACKET];
         loop {
             let n = TX.read(&mut buf).await;
             // Nothing follows: a full-size last packet must be closed by a
