@@ -56,7 +56,7 @@ fn a_frame_that_does_not_fit_is_dropped_whole() {
 /// packet at a time at an uneven pace: each arrives, in order.
 #[test]
 fn every_frame_arrives_through_many_turns_of_the_ring() {
-    let pipe = Pipe::<CriticalSectionRawMutex, 1024>::new();
+    let pipe = Pipe::<CriticalSectionRawMutex, { firmware::hal::USB_TX_QUEUE }>::new();
     let text = "0123456789abcdefghijklmnopqrstuvwxyz0123456789ABCDEFGHIJKLMNOP";
     let mut sent = Vec::new();
     let mut wire = Vec::new();
