@@ -5,7 +5,12 @@
 //! same pairs, and its six worst pairs dissected: each pair's share of the
 //! error, its half vector's and directions' angles, the limit's share of
 //! its error, and its three worst cells (material, truth, the 12 × 12 mean
-//! and the texel model under the cell's centre).
+//! and the texel model under the cell's centre). And where on the sample
+//! the error lies: by ring of metric cells from the sample's edge (novel
+//! and captured pairs), by side, and texel by texel from the edge at every
+//! 8th captured pair (region images and material against the truth at the
+//! texels' centres; the outermost texels also as their inward neighbours
+//! and extrapolated).
 //!
 //! `cargo run --release -p tests --example novel_limit -- [--materials a,b] [--out DIR] [--seed 1] [--novel 300]`
 //! (scans kept in `--out` as material_fidelity keeps them: that example's
@@ -25,7 +30,7 @@ fn main() {
     let pairs = tests::random_pairs(novel, 60.0, seed);
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     let materials: Vec<&str> = list.split(',').collect();
-    let (g, cal, _truth) = tests::scanned_and_calibrated(&out, seed, 1, 40, &materials);
+    let (g, cal, truth) = tests::scanned_and_calibrated(&out, seed, 1, 40, &materials);
     for &m in &materials {
         let sample = Sample::small(lookup(m).unwrap());
         let three = tests::truth_answers(&pairs, &sample);
@@ -52,6 +57,120 @@ fn main() {
         let total: f64 = em.mse.iter().sum();
         println!("{m}: material {:.2} dB, peak {:.4}", em.db(total / em.mse.len() as f64), em.peak);
         let per = three.len() / pairs.len();
+        let (rm, rd) = (rings(&answers, &three, per), rings(&dense, &three, per));
+        println!(
+            "  novel pairs' error by ring of cells from the edge (material / limit): {}",
+            ring_shares(&rm, &rd)
+        );
+        let inner = |sum: &[f64; 16]| {
+            // Without the outermost ring: 30 × 30 cells a pair are left.
+            em.db((sum.iter().sum::<f64>() - sum[0]) / (em.mse.len() * 3 * 900) as f64)
+        };
+        println!(
+            "  without the outermost ring: material {:.2} dB, limit {:.2} dB",
+            inner(&rm),
+            inner(&rd)
+        );
+        // The same at the captured pairs: region images and material.
+        let captured = tests::as_built_pairs(&truth, &cal, &regions);
+        let t_cap = tests::truth_answers(&captured, &sample);
+        let a_reg = tests::region_answers(&captured, &regions);
+        let a_mat = tests::pairs_answers(&captured, &|_, q| shade(&mat, q));
+        let (rr, rc) = (rings(&a_reg, &t_cap, per), rings(&a_mat, &t_cap, per));
+        println!(
+            "  captured pairs' error by ring (region images / material): {}",
+            ring_shares(&rr, &rc)
+        );
+        // Texel by texel at every 8th captured pair: the squared error of
+        // texels d texels from the edge over that of the inner texels.
+        let size = regions.size;
+        let mut by_d = vec![[0f64; 8]; size / 2];
+        for (p, &(wi, wo)) in captured.iter().enumerate().step_by(8) {
+            let q: Vec<scanner_formats::queries::Query> = (0..size * size)
+                .map(|t| scanner_formats::queries::Query {
+                    uv: [
+                        ((t % size) as f64 + 0.5) / size as f64,
+                        ((t / size) as f64 + 0.5) / size as f64,
+                    ],
+                    wi,
+                    wo,
+                })
+                .collect();
+            let tr = hil_sim::truth::answer(&sample, &q);
+            let re = tests::region_pair_answers(&regions, p, &q);
+            let ma = shade(&mat, &q);
+            for t in 0..size * size {
+                let (x, y) = (t % size, t / size);
+                let d = x.min(y).min(size - 1 - x).min(size - 1 - y);
+                let e =
+                    |a: &[f32; 3]| (0..3).map(|j| (a[j] - tr[t][j]).powi(2) as f64).sum::<f64>();
+                by_d[d][0] += e(&re[t]);
+                by_d[d][1] += e(&ma[t]);
+                by_d[d][2] += 1.0;
+                let sum = |a: &[f32; 3]| (a[0] + a[1] + a[2]) as f64;
+                by_d[d][3] += sum(&re[t]);
+                by_d[d][4] += sum(&ma[t]);
+                by_d[d][5] += sum(&tr[t]);
+                // The outermost texels as their inward neighbours (copy) and
+                // as the line through the next two (extrapolated).
+                let step = |c: usize| (c == 0) as isize - (c == size - 1) as isize;
+                let (dx, dy) = (step(x), step(y));
+                let at = |k: isize| {
+                    let (u, v) = ((x as isize + k * dx) as usize, (y as isize + k * dy) as usize);
+                    re[v * size + u]
+                };
+                let (a1, a2) = (at(1), at(2));
+                let ex: [f32; 3] = std::array::from_fn(|j| (2.0 * a1[j] - a2[j]).max(0.0));
+                by_d[d][6] += e(&a1);
+                by_d[d][7] += e(&ex);
+            }
+        }
+        let inner = |k: usize| {
+            let (e, n) = by_d[8..].iter().fold((0.0, 0.0), |a, b| (a.0 + b[k], a.1 + b[2]));
+            e / n
+        };
+        println!(
+            "  captured pairs, texels d from the edge, squared error over the inner texels' (d ≥ 8), region images / material: {}",
+            (0..8)
+                .map(|d| format!(
+                    "{d}: {:.1} / {:.1}",
+                    by_d[d][0] / by_d[d][2] / inner(0),
+                    by_d[d][1] / by_d[d][2] / inner(1)
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        println!(
+            "  region images' outermost texels as their inward neighbours' {:.1}, extrapolated {:.1} (same unit)",
+            by_d[0][6] / by_d[0][2] / inner(0),
+            by_d[0][7] / by_d[0][2] / inner(0)
+        );
+        println!(
+            "  their mean over the truth's, region images / material: {}",
+            (0..8)
+                .map(|d| format!(
+                    "{d}: {:.3} / {:.3}",
+                    by_d[d][3] / by_d[d][5],
+                    by_d[d][4] / by_d[d][5]
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        for (name, est, t) in [
+            ("novel, material", &answers, &three),
+            ("captured, region images", &a_reg, &t_cap),
+            ("captured, material", &a_mat, &t_cap),
+        ] {
+            let e = sides(est, t, per);
+            let total: f64 = e.iter().sum();
+            println!(
+                "  {name}: outermost column at u 0 / u 1, row at v 0 / v 1: {:.0} / {:.0} / {:.0} / {:.0} % of the error",
+                100.0 * e[0] / total,
+                100.0 * e[1] / total,
+                100.0 * e[2] / total,
+                100.0 * e[3] / total
+            );
+        }
         for &p in em.worst_first().iter().take(6) {
             let (wi, wo) = pairs[p];
             let h = [wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]];
@@ -92,4 +211,53 @@ fn main() {
             }
         }
     }
+}
+
+/// Squared error of `est` against `truth` (answers to [`tests::pair_queries`],
+/// `per` a pair) summed by ring of metric cells: ring r holds the cells r
+/// cells from the sample's edge (of 32 × 32: 124, 116, 108 … cells).
+fn rings(est: &[[f32; 3]], truth: &[[f32; 3]], per: usize) -> [f64; 16] {
+    let mut sum = [0f64; 16];
+    for (e, t) in est.chunks(per).zip(truth.chunks(per)) {
+        let (ce, ct) = (host::build::fidelity::cell_means(e), host::build::fidelity::cell_means(t));
+        for (c, (a, b)) in ce.iter().zip(&ct).enumerate() {
+            let (i, k) = (c % 32, c / 32);
+            sum[i.min(k).min(31 - i).min(31 - k)] +=
+                (0..3).map(|j| (a[j] - b[j]).powi(2)).sum::<f64>();
+        }
+    }
+    sum
+}
+
+/// The outermost four rings' shares of two errors, "a / b %" each (the
+/// rings hold 12, 11, 11 and 10 % of the cells).
+fn ring_shares(a: &[f64; 16], b: &[f64; 16]) -> String {
+    let (ta, tb): (f64, f64) = (a.iter().sum(), b.iter().sum());
+    (0..4)
+        .map(|r| format!("{:.0} / {:.0} %", 100.0 * a[r] / ta, 100.0 * b[r] / tb))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Squared error summed over the outermost column at u 0, at u 1, the
+/// outermost row at v 0, at v 1, and the rest (corners count twice).
+fn sides(est: &[[f32; 3]], truth: &[[f32; 3]], per: usize) -> [f64; 5] {
+    let mut sum = [0f64; 5];
+    for (e, t) in est.chunks(per).zip(truth.chunks(per)) {
+        let (ce, ct) = (host::build::fidelity::cell_means(e), host::build::fidelity::cell_means(t));
+        for (c, (a, b)) in ce.iter().zip(&ct).enumerate() {
+            let (i, k) = (c % 32, c / 32);
+            let err = (0..3).map(|j| (a[j] - b[j]).powi(2)).sum::<f64>();
+            let on = [i == 0, i == 31, k == 0, k == 31];
+            for (s, &o) in sum.iter_mut().zip(&on) {
+                if o {
+                    *s += err;
+                }
+            }
+            if !on.iter().any(|&o| o) {
+                sum[4] += err;
+            }
+        }
+    }
+    sum
 }
