@@ -213,19 +213,28 @@ fn main() {
     }
 }
 
-/// Squared error of `est` against `truth` (answers to [`tests::pair_queries`],
-/// `per` a pair) summed by ring of metric cells: ring r holds the cells r
-/// cells from the sample's edge (of 32 × 32: 124, 116, 108 … cells).
-fn rings(est: &[[f32; 3]], truth: &[[f32; 3]], per: usize) -> [f64; 16] {
-    let mut sum = [0f64; 16];
+/// Each metric cell's squared error of `est` against `truth` (answers to
+/// [`tests::pair_queries`], `per` a pair), over all pairs: `visit(i, k,
+/// error)` for the cell in column i, row k of 32 × 32.
+fn cell_errors(
+    est: &[[f32; 3]],
+    truth: &[[f32; 3]],
+    per: usize,
+    mut visit: impl FnMut(usize, usize, f64),
+) {
     for (e, t) in est.chunks(per).zip(truth.chunks(per)) {
         let (ce, ct) = (host::build::fidelity::cell_means(e), host::build::fidelity::cell_means(t));
         for (c, (a, b)) in ce.iter().zip(&ct).enumerate() {
-            let (i, k) = (c % 32, c / 32);
-            sum[i.min(k).min(31 - i).min(31 - k)] +=
-                (0..3).map(|j| (a[j] - b[j]).powi(2)).sum::<f64>();
+            visit(c % 32, c / 32, (0..3).map(|j| (a[j] - b[j]).powi(2)).sum::<f64>());
         }
     }
+}
+
+/// [`cell_errors`] summed by ring of cells: ring r holds the cells r cells
+/// from the sample's edge (of 32 × 32: 124, 116, 108 … cells).
+fn rings(est: &[[f32; 3]], truth: &[[f32; 3]], per: usize) -> [f64; 16] {
+    let mut sum = [0f64; 16];
+    cell_errors(est, truth, per, |i, k, e| sum[i.min(k).min(31 - i).min(31 - k)] += e);
     sum
 }
 
@@ -239,25 +248,20 @@ fn ring_shares(a: &[f64; 16], b: &[f64; 16]) -> String {
         .join(", ")
 }
 
-/// Squared error summed over the outermost column at u 0, at u 1, the
+/// [`cell_errors`] summed over the outermost column at u 0, at u 1, the
 /// outermost row at v 0, at v 1, and the rest (corners count twice).
 fn sides(est: &[[f32; 3]], truth: &[[f32; 3]], per: usize) -> [f64; 5] {
     let mut sum = [0f64; 5];
-    for (e, t) in est.chunks(per).zip(truth.chunks(per)) {
-        let (ce, ct) = (host::build::fidelity::cell_means(e), host::build::fidelity::cell_means(t));
-        for (c, (a, b)) in ce.iter().zip(&ct).enumerate() {
-            let (i, k) = (c % 32, c / 32);
-            let err = (0..3).map(|j| (a[j] - b[j]).powi(2)).sum::<f64>();
-            let on = [i == 0, i == 31, k == 0, k == 31];
-            for (s, &o) in sum.iter_mut().zip(&on) {
-                if o {
-                    *s += err;
-                }
-            }
-            if !on.iter().any(|&o| o) {
-                sum[4] += err;
+    cell_errors(est, truth, per, |i, k, e| {
+        let on = [i == 0, i == 31, k == 0, k == 31];
+        for (s, &o) in sum.iter_mut().zip(&on) {
+            if o {
+                *s += e;
             }
         }
-    }
+        if !on.iter().any(|&o| o) {
+            sum[4] += e;
+        }
+    });
     sum
 }
