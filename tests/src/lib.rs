@@ -100,7 +100,7 @@ pub fn region_options() -> RegionOptions {
         "own-view" => None,
         other => usage_error(&format!("{DETAIL} {other:?}: all-views or own-view")),
     };
-    RegionOptions { size: (size > 0).then_some(size), sharpen }
+    RegionOptions { size: (size > 0).then_some(size), sharpen, ..RegionOptions::default() }
 }
 
 /// Scan `material` on the simulator into `out` (HDR if asked), unless a

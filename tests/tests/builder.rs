@@ -196,6 +196,22 @@ fn bad_inputs_exit_3_and_write_nothing() {
         })
         .count();
     assert!(differ > 100, "{differ} of 120 images differ");
+    // `--edge-pixels inside`: the pixels the calibrated edge crosses are
+    // left out, so the images' outermost texels (in every image) differ.
+    let inside = ["--detail", "own-view", "--edge-pixels", "inside"];
+    assert_eq!(regions_with(&d("regions-inside"), &inside).0, Some(0));
+    let differ = std::fs::read_dir(d("regions-own"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .filter(|n| {
+            std::fs::read(dir.path().join("regions-own").join(n)).unwrap()
+                != std::fs::read(dir.path().join("regions-inside").join(n)).unwrap()
+        })
+        .count();
+    assert!(differ > 100, "{differ} of 120 images differ");
+    let (code, err) = regions_with(&d("regions-bad"), &["--edge-pixels", "outside"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(!dir.path().join("regions-bad").exists());
     let (code, err) = with_detail("sharpest", &d("regions-bad"));
     assert_eq!(code, Some(2), "{err}");
     assert!(!dir.path().join("regions-bad").exists());

@@ -167,12 +167,33 @@ pub struct RegionOptions {
     /// Give every light's images the detail all views hold together
     /// ([`super::superres`]); `None`: each view's own resampling alone.
     pub sharpen: Option<SharpenOptions>,
+    /// Which frame pixels at the sample's edge the region images read.
+    pub edge: EdgePixels,
 }
 
 impl Default for RegionOptions {
     fn default() -> Self {
-        RegionOptions { size: None, sharpen: Some(SharpenOptions::default()) }
+        RegionOptions {
+            size: None,
+            sharpen: Some(SharpenOptions::default()),
+            edge: EdgePixels::Straddling,
+        }
     }
+}
+
+/// Which frame pixels at the sample's edge the region images read
+/// (docs/calibration-format.md, "Region images").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum EdgePixels {
+    /// Also the pixels that straddle the calibrated edge, each for its
+    /// part on the sample, beside the holder's radiance measured next to
+    /// it ([`super::calibrate::ViewSampler::region_filter_straddling`]).
+    #[default]
+    Straddling,
+    /// Only the pixels whose squares lie [`super::calibrate::CLEAN_MARGIN_PX`]
+    /// inside the calibrated edge ([`super::calibrate::ViewSampler::region_filter`]): for a
+    /// sample placed or cut otherwise than the calibration's target.
+    Inside,
 }
 
 /// What a view's region image takes from one texel under every light.
@@ -189,8 +210,8 @@ struct TexelView {
 /// per-texel filters and the images themselves (f32 RGB per light, view and
 /// texel), × 1.4 for the working copies beside them, and each thread's
 /// frame of `frame_px` pixels (f32 RGB). Measured on the demo's 4096²
-/// scan: 1.15 GB peak at the default 128² (this gives 0.98 GB), 2.90 GB
-/// at 256² (2.71 GB).
+/// scan: 1.15 GB peak at the default 128² (this gives 1.00 GB), 2.90 GB
+/// at 256² (2.78 GB).
 fn region_memory(
     size: usize,
     lights: usize,
@@ -282,15 +303,25 @@ pub fn extract_regions(
             (0..size * size)
                 .map(|i| {
                     let uv = cell_uv(i, size);
+                    let filter = match opts.edge {
+                        EdgePixels::Straddling => s.region_filter_straddling(frame, uv),
+                        EdgePixels::Inside => s.region_filter(frame, uv),
+                    };
                     TexelView {
-                        filter: s.region_filter(frame, uv),
+                        filter,
                         response: cal.colour.view(vi, uv),
-                        noise_gain: s.region_noise_gain(uv),
+                        noise_gain: filter.noise_gain(),
                     }
                 })
                 .collect()
         })
         .collect();
+    // Per view, the pixels beside the sample whose median is the holder's
+    // radiance the straddling pixels are read without.
+    let bands: Vec<Vec<u32>> = match opts.edge {
+        EdgePixels::Straddling => samplers.par_iter().map(|s| s.holder_band(frame)).collect(),
+        EdgePixels::Inside => vec![Vec::new(); samplers.len()],
+    };
     let sharpen =
         opts.sharpen.as_ref().map(|o| (o, Footprints::new(&samplers, frame, size, o.points)));
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
@@ -354,10 +385,11 @@ pub fn extract_regions(
                 .iter()
                 .enumerate()
                 .map(|(vi, view)| {
+                    let holder = super::calibrate::holder_radiance(&f, &bands[vi]);
                     let mut img = vec![[0.0f32; 3]; size * size];
                     for (i, (px, texel)) in img.iter_mut().zip(view).enumerate() {
                         if let Some(c) = texel_unit(vi, i) {
-                            *px = scaled(texel.filter.apply(&f), c);
+                            *px = scaled(texel.filter.apply_beside(&f, holder), c);
                         }
                     }
                     img
@@ -407,7 +439,7 @@ mod tests {
         assert!(check_memory(region_memory(128, 40, 40, px, 2), 128, Some(4 * gb)).is_ok());
         assert!(check_memory(need, 4096, None).is_ok());
         let err = check_memory(need, 4096, Some(24 * gb)).unwrap_err().to_string();
-        assert!(err.contains("region images of 4096² px need ≈ 594"), "{err}");
+        assert!(err.contains("region images of 4096² px need ≈ 609"), "{err}");
         assert!(err.contains("24.0 GB of memory is available: choose a smaller --size"), "{err}");
         assert!(available_memory().is_none_or(|a| a > 0));
     }

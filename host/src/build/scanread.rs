@@ -249,6 +249,11 @@ pub struct BicubicFilter {
     taps: u16,
     /// The used taps' weight (renormalised over when masked).
     norm: Option<f64>,
+    /// Per tap (4 j + i), the share of its pixel's square on the sample
+    /// where the filter reads pixels that straddle the sample's edge
+    /// ([`BicubicFilter::straddling`]); `None`: every used pixel is read as
+    /// it is. In 64ths of the square (what 8 × 8 points of it tell; 64: all).
+    shares: Option<[u8; 16]>,
 }
 
 impl BicubicFilter {
@@ -274,7 +279,20 @@ impl BicubicFilter {
                 }
             }
         }
-        BicubicFilter { dims, corner: [x0 - 1, y0 - 1], wx, wy, taps, norm: None }
+        BicubicFilter { dims, corner: [x0 - 1, y0 - 1], wx, wy, taps, norm: None, shares: None }
+    }
+
+    /// The used taps' weight.
+    fn used_weight(&self) -> f64 {
+        let mut sum = 0.0;
+        for (j, wyj) in self.wy.iter().enumerate() {
+            for (i, wxi) in self.wx.iter().enumerate() {
+                if self.taps & (1 << (4 * j + i)) != 0 {
+                    sum += wyj * wxi;
+                }
+            }
+        }
+        sum
     }
 
     /// The filter over only the taps whose pixel centres `usable` accepts,
@@ -288,20 +306,77 @@ impl BicubicFilter {
         min_weight: f64,
     ) -> Option<Self> {
         let b = BicubicFilter::over(dims, x, y, usable);
-        let mut sum = 0.0;
-        for (j, wyj) in b.wy.iter().enumerate() {
-            for (i, wxi) in b.wx.iter().enumerate() {
-                if b.taps & (1 << (4 * j + i)) != 0 {
-                    sum += wyj * wxi;
-                }
-            }
-        }
+        let sum = b.used_weight();
         (sum >= min_weight).then_some(BicubicFilter { norm: Some(sum), ..b })
     }
 
-    /// The filter's sum over `f` (a frame of its size).
+    /// The filter over the pixels of which at least `min_share` of the
+    /// square lies on the sample (`share` of a pixel centre), each read as
+    /// the sample's part of it: a pixel holding the sample in share s and
+    /// the holder (radiance H) in the rest reads (value − (1 − s) H) / s
+    /// ([`BicubicFilter::apply_beside`]). The weights are renormalised
+    /// over those pixels; `None` when they carry less than `min_weight`.
+    pub fn straddling(
+        dims: [usize; 2],
+        x: f64,
+        y: f64,
+        share: impl Fn(f64, f64) -> f64,
+        min_share: f64,
+        min_weight: f64,
+    ) -> Option<Self> {
+        let mut b = BicubicFilter::new(dims, x, y);
+        let mut shares = [0u8; 16];
+        for (t, s) in shares.iter_mut().enumerate() {
+            let (px, py) = (b.corner[0] + (t % 4) as isize, b.corner[1] + (t / 4) as isize);
+            let v = share(px as f64 + 0.5, py as f64 + 0.5);
+            if v >= min_share {
+                *s = (v.min(1.0) * 64.0).round() as u8;
+            } else {
+                b.taps &= !(1 << t);
+            }
+        }
+        let sum = b.used_weight();
+        b.norm = Some(sum);
+        b.shares = Some(shares);
+        (sum >= min_weight).then_some(b)
+    }
+
+    /// How the filter scales the variance of independent frame pixels:
+    /// Σ (w / s)² over its used taps (w renormalised, s the share a
+    /// straddling pixel is divided by).
+    pub fn noise_gain(&self) -> f64 {
+        let norm = self.norm.unwrap_or(1.0);
+        let mut sum = 0.0;
+        for (j, wyj) in self.wy.iter().enumerate() {
+            for (i, wxi) in self.wx.iter().enumerate() {
+                let t = 4 * j + i;
+                if self.taps & (1 << t) != 0 {
+                    let s = self.shares.map_or(1.0, |s| s[t] as f64 / 64.0);
+                    sum += (wyj * wxi / norm / s).powi(2);
+                }
+            }
+        }
+        sum
+    }
+
+    /// Whether the filter reads pixels that straddle the sample's edge
+    /// (and so needs the holder's radiance, [`BicubicFilter::apply_beside`]).
+    pub fn straddles(&self) -> bool {
+        self.shares.is_some()
+    }
+
+    /// The filter's sum over `f` (a frame of its size); a filter over
+    /// pixels that straddle the sample's edge takes the holder as black.
     #[inline]
     pub fn apply(&self, f: &Frame) -> [f64; 3] {
+        self.apply_beside(f, [0.0; 3])
+    }
+
+    /// The filter's sum over `f` (a frame of its size), the pixels that
+    /// straddle the sample's edge read without the share of `holder` (the
+    /// radiance of what surrounds the sample there) they hold.
+    #[inline]
+    pub fn apply_beside(&self, f: &Frame, holder: [f64; 3]) -> [f64; 3] {
         debug_assert_eq!(frame_dims(f), self.dims);
         let (w, h) = (self.dims[0] as isize, self.dims[1] as isize);
         let mut out = [0.0; 3];
@@ -314,9 +389,19 @@ impl BicubicFilter {
                 let xx = (self.corner[0] + i as isize).clamp(0, w - 1);
                 let k = 3 * (yy * w + xx) as usize;
                 let wgt = wyj * wxi;
-                out[0] += wgt * f.rgb[k] as f64;
-                out[1] += wgt * f.rgb[k + 1] as f64;
-                out[2] += wgt * f.rgb[k + 2] as f64;
+                match self.shares {
+                    Some(s) if s[4 * j + i] < 64 => {
+                        let s = s[4 * j + i] as f64 / 64.0;
+                        for c in 0..3 {
+                            out[c] += wgt * (f.rgb[k + c] as f64 - (1.0 - s) * holder[c]) / s;
+                        }
+                    }
+                    _ => {
+                        out[0] += wgt * f.rgb[k] as f64;
+                        out[1] += wgt * f.rgb[k + 1] as f64;
+                        out[2] += wgt * f.rgb[k + 2] as f64;
+                    }
+                }
             }
         }
         match self.norm {

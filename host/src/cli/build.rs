@@ -12,6 +12,7 @@ use super::Failure;
 use super::plot::{Caption, draw_captions};
 use crate::build::calibrate::{BuildProgress, CalibrateOptions, Calibration};
 use crate::build::locate::Checkerboard;
+use crate::build::regions::EdgePixels;
 use crate::build::scanread::ScanFrames;
 use crate::build::superres::SharpenOptions;
 use crate::build::{BuildError, RegionOptions, calibrate, extract_regions};
@@ -344,6 +345,22 @@ pub struct ScanInputs {
     /// `own-view` resamples each view's pixels alone.
     #[arg(long, value_enum, default_value_t = Detail::AllViews)]
     pub detail: Detail,
+    /// Which frame pixels at the sample's edge the region images read:
+    /// `straddling` also reads the pixels the calibrated edge crosses, each
+    /// for its part on the sample beside the holder; `inside` only those
+    /// wholly inside (a sample placed or cut otherwise than the
+    /// calibration's checkerboard).
+    #[arg(long, value_enum, default_value_t = EdgeArg::Straddling)]
+    pub edge_pixels: EdgeArg,
+}
+
+/// `--edge-pixels` of `scanner regions` and `scanner build`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum EdgeArg {
+    /// Also the pixels the calibrated edge crosses.
+    Straddling,
+    /// Only the pixels wholly inside the calibrated edge.
+    Inside,
 }
 
 /// `--detail` of `scanner regions` and `scanner build`.
@@ -371,6 +388,10 @@ impl ScanInputs {
         RegionOptions {
             size: self.size,
             sharpen: (self.detail == Detail::AllViews).then(SharpenOptions::default),
+            edge: match self.edge_pixels {
+                EdgeArg::Straddling => EdgePixels::Straddling,
+                EdgeArg::Inside => EdgePixels::Inside,
+            },
         }
     }
 
