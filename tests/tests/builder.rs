@@ -196,10 +196,10 @@ fn bad_inputs_exit_3_and_write_nothing() {
         })
         .count();
     assert!(differ > 100, "{differ} of 120 images differ");
-    // `--edge-pixels inside`: the pixels the calibrated edge crosses are
-    // left out, so the images' outermost texels (in every image) differ.
-    let inside = ["--detail", "own-view", "--edge-pixels", "inside"];
-    assert_eq!(regions_with(&d("regions-inside"), &inside).0, Some(0));
+    // `--edge-pixels straddling`: the pixels the calibrated edge crosses
+    // are read too, so the images' outermost texels (in every image) differ.
+    let straddling = ["--detail", "own-view", "--edge-pixels", "straddling"];
+    assert_eq!(regions_with(&d("regions-inside"), &straddling).0, Some(0));
     let differ = std::fs::read_dir(d("regions-own"))
         .unwrap()
         .map(|e| e.unwrap().file_name())

@@ -176,7 +176,7 @@ impl Default for RegionOptions {
         RegionOptions {
             size: None,
             sharpen: Some(SharpenOptions::default()),
-            edge: EdgePixels::Straddling,
+            edge: EdgePixels::Inside,
         }
     }
 }
@@ -188,11 +188,12 @@ pub enum EdgePixels {
     /// Also the pixels that straddle the calibrated edge, each for its
     /// part on the sample, beside the holder's radiance measured next to
     /// it ([`super::calibrate::ViewSampler::region_filter_straddling`]).
-    #[default]
+    /// Not the default: it costs the enlargement from photographs 0.7 dB
+    /// (docs/benchmarks.md, session 72).
     Straddling,
     /// Only the pixels whose squares lie [`super::calibrate::CLEAN_MARGIN_PX`]
-    /// inside the calibrated edge ([`super::calibrate::ViewSampler::region_filter`]): for a
-    /// sample placed or cut otherwise than the calibration's target.
+    /// inside the calibrated edge ([`super::calibrate::ViewSampler::region_filter`]).
+    #[default]
     Inside,
 }
 

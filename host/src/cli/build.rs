@@ -346,11 +346,11 @@ pub struct ScanInputs {
     #[arg(long, value_enum, default_value_t = Detail::AllViews)]
     pub detail: Detail,
     /// Which frame pixels at the sample's edge the region images read:
-    /// `straddling` also reads the pixels the calibrated edge crosses, each
-    /// for its part on the sample beside the holder; `inside` only those
-    /// wholly inside (a sample placed or cut otherwise than the
-    /// calibration's checkerboard).
-    #[arg(long, value_enum, default_value_t = EdgeArg::Straddling)]
+    /// `inside` (the default) only those wholly inside the calibrated edge;
+    /// `straddling` also the pixels the edge crosses, each for its part on
+    /// the sample beside the holder (needs the sample's edge where the
+    /// checkerboard's was, to ≈ 0.1 px).
+    #[arg(long, value_enum, default_value_t = EdgeArg::Inside)]
     pub edge_pixels: EdgeArg,
 }
 
