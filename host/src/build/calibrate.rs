@@ -931,13 +931,9 @@ impl ViewSampler {
         if d >= 0.0 {
             return 1.0;
         }
-        if d < -2.0 {
-            // Beyond every point of the square (its corners lie within
-            // √2 · ½ px of its centre along any edge's normal).
-            let centre = self.point_depth(p);
-            if centre < -1.0 {
-                return 0.0;
-            }
+        // Every point of the square lies within √2 · ½ px of its centre.
+        if self.point_depth(p) < -std::f64::consts::FRAC_1_SQRT_2 {
+            return 0.0;
         }
         let mut on = 0;
         for j in 0..8 {
@@ -952,8 +948,8 @@ impl ViewSampler {
     }
 
     /// The frame pixels (index y · width + x in frames of `dims`) that show
-    /// what surrounds the sample beside it: their squares 1 to 3 px outside
-    /// its calibrated edges. Their median is the holder's radiance that
+    /// what surrounds the sample beside it: their centres 1.5 to 3.5 px
+    /// outside its calibrated edges. Their median is the holder's radiance that
     /// [`Self::region_filter_straddling`]'s filters take out of the pixels
     /// straddling the edge ([`holder_radiance`]).
     pub fn holder_band(&self, dims: [usize; 2]) -> Vec<u32> {
