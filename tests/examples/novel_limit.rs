@@ -10,9 +10,11 @@
 //! and captured pairs), by side, and texel by texel from the edge at every
 //! 8th captured pair (region images and material against the truth at the
 //! texels' centres; the outermost texels also as their inward neighbours
-//! and extrapolated).
+//! and extrapolated). First, where the calibration put the sample's edges
+//! in every view against the as-built truth (views located by their
+//! corners and by the phase alignment apart).
 //!
-//! `cargo run --release -p tests --example novel_limit -- [--materials a,b] [--out DIR] [--seed 1] [--novel 300]`
+//! `cargo run --release -p tests --example novel_limit -- [--materials a,b] [--out DIR] [--seed 1] [--bin 1] [--novel 300]`
 //! (scans kept in `--out` as material_fidelity keeps them: that example's
 //! `--out` reuses them).
 use std::path::PathBuf;
@@ -23,14 +25,16 @@ use host::build::material::{MaterialOptions, build_material, shade};
 use scanner_shading::Material;
 
 fn main() {
-    tests::check_region_args(&["--materials", "--novel", "--out", "--seed"], &[]);
+    tests::check_region_args(&["--bin", "--materials", "--novel", "--out", "--seed"], &[]);
     let seed: u64 = tests::arg("--seed", 1);
+    let bin: u32 = tests::arg("--bin", 1);
     let novel: usize = tests::arg("--novel", 300);
     let list: String = tests::arg("--materials", "leather".to_string());
     let pairs = tests::random_pairs(novel, 60.0, seed);
     let out: PathBuf = tests::arg("--out", PathBuf::from("target/builder-fidelity"));
     let materials: Vec<&str> = list.split(',').collect();
-    let (g, cal, truth) = tests::scanned_and_calibrated(&out, seed, 1, 40, &materials);
+    let (g, cal, truth) = tests::scanned_and_calibrated(&out, seed, bin, 40, &materials);
+    edge_errors(&truth, &cal);
     for &m in &materials {
         let sample = Sample::small(lookup(m).unwrap());
         let three = tests::truth_answers(&pairs, &sample);
@@ -264,4 +268,54 @@ fn sides(est: &[[f32; 3]], truth: &[[f32; 3]], per: usize) -> [f64; 5] {
         }
     });
     sum
+}
+
+/// Where the calibrated edges lie against the as-built truth: per side of
+/// the sample (v 0, u 1, v 1, u 0), the true edge's distance inside the
+/// calibrated one (frame px, at 9 points along each side of every view),
+/// as the mean over the views and their RMS; for the views located by
+/// their corners and by the phase alignment apart.
+fn edge_errors(truth: &scanner_geometry::ScannerGeometry, cal: &host::build::Calibration) {
+    use host::build::calibrate::LocatedBy;
+    let ends = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+    for by in [LocatedBy::Corners, LocatedBy::Phase] {
+        let mut per_side = [(); 4].map(|_| Vec::new());
+        for v in cal.views.iter().filter(|v| v.located_by == Some(by)) {
+            let h = &v.homography;
+            let centre = h.apply([0.5, 0.5]);
+            for (k, side) in per_side.iter_mut().enumerate() {
+                let (a, b) = (ends[k], ends[(k + 1) % 4]);
+                let (pa, pb) = (h.apply(a), h.apply(b));
+                let d = [pb[0] - pa[0], pb[1] - pa[1]];
+                let len = d[0].hypot(d[1]);
+                let mut n = [-d[1] / len, d[0] / len];
+                if n[0] * (centre[0] - pa[0]) + n[1] * (centre[1] - pa[1]) < 0.0 {
+                    n = [-n[0], -n[1]];
+                }
+                let inside: Vec<f64> = (1..10)
+                    .filter_map(|i| {
+                        let t = i as f64 / 10.0;
+                        let uv = [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])];
+                        let p = truth.view_point(v.view, uv)?;
+                        Some(n[0] * (p[0] - pa[0]) + n[1] * (p[1] - pa[1]))
+                    })
+                    .collect();
+                side.push(inside.iter().sum::<f64>() / inside.len().max(1) as f64);
+            }
+        }
+        if per_side[0].is_empty() {
+            continue;
+        }
+        let stats = |e: &[f64]| {
+            let mean = e.iter().sum::<f64>() / e.len() as f64;
+            let rms = (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt();
+            format!("{mean:+.3} / {rms:.3}")
+        };
+        println!(
+            "the true edges inside the calibrated ones, {} views located by {by:?}, px (mean / RMS), \
+             sides v 0, u 1, v 1, u 0: {}",
+            per_side[0].len(),
+            per_side.iter().map(|e| stats(e)).collect::<Vec<_>>().join(", ")
+        );
+    }
 }

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use hil_sim::materials::Sample;
 use host::build::Calibration;
 use host::build::fidelity::{CELLS, cell_means, material_psnr, pair_queries};
+use host::build::regions::EdgePixels;
 use host::build::superres::SharpenOptions;
 use host::build::{RegionOptions, RegionSet};
 use host::camera::SimCamera;
@@ -33,7 +34,8 @@ pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
 /// The options [`region_options`] reads.
 const SIZE: &str = "--size";
 const DETAIL: &str = "--detail";
-const REGION_OPTIONS: [&str; 2] = [SIZE, DETAIL];
+const EDGE: &str = "--edge-pixels";
+const REGION_OPTIONS: [&str; 3] = [SIZE, DETAIL, EDGE];
 
 /// [`check_args`] for an example that also reads [`region_options`]; their
 /// values are checked here too, before the run starts.
@@ -100,7 +102,12 @@ pub fn region_options() -> RegionOptions {
         "own-view" => None,
         other => usage_error(&format!("{DETAIL} {other:?}: all-views or own-view")),
     };
-    RegionOptions { size: (size > 0).then_some(size), sharpen, ..RegionOptions::default() }
+    let edge = match arg(EDGE, "inside".to_string()).as_str() {
+        "inside" => EdgePixels::Inside,
+        "straddling" => EdgePixels::Straddling,
+        other => usage_error(&format!("{EDGE} {other:?}: inside or straddling")),
+    };
+    RegionOptions { size: (size > 0).then_some(size), sharpen, edge }
 }
 
 /// Scan `material` on the simulator into `out` (HDR if asked), unless a

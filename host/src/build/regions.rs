@@ -188,8 +188,9 @@ pub enum EdgePixels {
     /// Also the pixels that straddle the calibrated edge, each for its
     /// part on the sample, beside the holder's radiance measured next to
     /// it ([`super::calibrate::ViewSampler::region_filter_straddling`]).
-    /// Not the default: it costs the enlargement from photographs 0.7 dB
-    /// (docs/benchmarks.md, session 72).
+    /// Not the default: it needs the edge to ≈ 0.01 px, and the views the
+    /// phase alignment locates lie ≈ 0.05 px out (leather at 1024²: −1.6
+    /// dB; docs/benchmarks.md, sessions 72 and 73).
     Straddling,
     /// Only the pixels whose squares lie [`super::calibrate::CLEAN_MARGIN_PX`]
     /// inside the calibrated edge ([`super::calibrate::ViewSampler::region_filter`]).
