@@ -56,8 +56,7 @@ pub struct ViewCalibration {
     /// Mirror index.
     pub view: usize,
     /// Sample uv → frame pixel (row-major 3 × 3, h33 = 1): the inner-corner
-    /// fit, or the phase alignment refined on the checker's pixels where
-    /// it explains them better or too few corners were found.
+    /// fit, or the phase alignment where too few corners were found.
     pub homography: Homography,
     /// The Fourier-phase-aligned homography alone (the patent's method).
     pub homography_phase: Homography,
@@ -511,7 +510,7 @@ fn view_calibrations(
             ViewCalibration {
                 view: fit.view,
                 homography: fit.best(),
-                homography_phase: fit.aligned,
+                homography_phase: fit.phase,
                 corners_used: fit.corners_used,
                 corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
                 located_by: Some(if fit.by_corners {

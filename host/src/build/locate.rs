@@ -52,10 +52,6 @@ pub struct RegionFit {
     /// From the nominal geometry alone.
     pub nominal: Homography,
     /// After silhouette alignment and Fourier phase refinement.
-    pub aligned: Homography,
-    /// [`Self::aligned`], refined on the checker's pixels where the
-    /// corners do not place the view ([`Self::by_corners`] false); else
-    /// the same.
     pub phase: Homography,
     /// Fitted to the inner corners (None if too few were found).
     pub corners: Option<Homography>,
@@ -159,29 +155,10 @@ pub fn locate(
     // The corner fit only if it explains the checker's pixels at least as
     // well as the phase alignment: on squares of a few pixels the corners
     // lose their precision first.
-    let pixels = CheckerPixels::new(sum, &phase, target);
     let by_corners = corners.is_some_and(|c| {
-        pixels
-            .as_ref()
-            .and_then(|px| px.residuals(&phase, [&phase, &c]))
-            .is_none_or(|[p, c]| c <= p)
+        pattern_residuals(sum, &phase, [&phase, &c], target).is_none_or(|[p, c]| c <= p)
     });
-    // A view the corners do not place: the phase alignment refined on the
-    // checker's pixels (it alone puts the outline ≈ 0.05 px out).
-    let aligned = phase;
-    if !by_corners && let Some(refined) = pixels.as_ref().and_then(|px| px.refine(&phase)) {
-        phase = refined;
-    }
-    Ok(RegionFit {
-        view,
-        nominal,
-        aligned,
-        phase,
-        corners,
-        corners_used,
-        corner_rms_px,
-        by_corners,
-    })
+    Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px, by_corners })
 }
 
 /// How far apart two homographies put the sample's corners: the largest
@@ -362,51 +339,45 @@ fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Ho
     Homography::fit(&src, &dst)
 }
 
-/// The blurs (σ, px) a view's checker pixels are tried with.
-const BLURS: [f64; 11] = [0.0, 0.15, 0.25, 0.4, 0.55, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0];
-
-/// A view's pixels well inside the sample (uv within [0.04, 0.96]² by the
-/// homography that chose them), with the model of the checkerboard they
-/// show.
+/// How well each of `candidates` explains the view's pixels: the sum of
+/// the squared residuals of the checkerboard it predicts, over the pixels
+/// `mask` puts well inside the sample (uv within [0.04, 0.96]²); `None`
+/// for a view of under 64 such pixels.
 ///
 /// A pixel's prediction is the pattern blurred by a Gaussian of σ px (the
 /// lens) and the pixel's own square (σ² + 1/12 along each line), each
-/// square's edges at the distance a candidate homography puts them from
-/// the pixel centre; scaled and offset by levels linear in uv (the light
-/// and the vignetting vary across a view), fitted by least squares. A
-/// candidate off by a fraction of a pixel mispredicts the pixels along
-/// every edge.
-struct CheckerPixels {
-    /// Centre (frame px), uv by the choosing homography, value.
-    pixels: Vec<([f64; 2], [f64; 2], f64)>,
-    target: Checkerboard,
-}
-
-impl CheckerPixels {
-    /// The pixels of `sum` that `mask` puts well inside the sample; `None`
-    /// for under 64.
-    fn new(sum: &Plane, mask: &Homography, target: &Checkerboard) -> Option<CheckerPixels> {
-        let inv_mask = mask.inverse()?;
-        let b = mask.bounds();
-        let mut pixels = Vec::new();
-        for y in b[1].floor() as isize..=b[3].ceil() as isize {
-            for x in b[0].floor() as isize..=b[2].ceil() as isize {
-                let uv = inv_mask.apply([x as f64 + 0.5, y as f64 + 0.5]);
-                if uv.iter().all(|c| (0.04..=0.96).contains(c)) {
-                    pixels.push(([x as f64 + 0.5, y as f64 + 0.5], uv, sum.at(x, y) as f64));
-                }
+/// square's edges at the distance the candidate puts them from the pixel
+/// centre; scaled and offset by levels linear in uv (the light and the
+/// vignetting vary across a view), fitted by least squares. σ is the one
+/// of a few that explains the first candidate best. A candidate off by a
+/// fraction of a pixel mispredicts the pixels along every edge.
+fn pattern_residuals<const N: usize>(
+    sum: &Plane,
+    mask: &Homography,
+    candidates: [&Homography; N],
+    target: &Checkerboard,
+) -> Option<[f64; N]> {
+    let inv_mask = mask.inverse()?;
+    let b = mask.bounds();
+    let mut pixels = Vec::new();
+    for y in b[1].floor() as isize..=b[3].ceil() as isize {
+        for x in b[0].floor() as isize..=b[2].ceil() as isize {
+            let uv = inv_mask.apply([x as f64 + 0.5, y as f64 + 0.5]);
+            if uv.iter().all(|c| (0.04..=0.96).contains(c)) {
+                pixels.push(([x as f64 + 0.5, y as f64 + 0.5], uv, sum.at(x, y) as f64));
             }
         }
-        (pixels.len() >= 64).then_some(CheckerPixels { pixels, target: *target })
     }
-
-    /// Per pixel, by candidate `h`: the pattern's sign there and the
-    /// distances (px) to the nearest lines of constant u and of constant v.
-    fn edges(&self, h: &Homography) -> Option<Vec<[f64; 3]>> {
+    if pixels.len() < 64 {
+        return None;
+    }
+    let n = target.squares as f64;
+    // Per candidate and pixel, once: the pattern's sign there and the
+    // distances (px) to the nearest lines of constant u and of constant v.
+    let edges = |h: &Homography| -> Option<Vec<[f64; 3]>> {
         let inv = h.inverse()?;
-        let n = self.target.squares as f64;
         Some(
-            self.pixels
+            pixels
                 .iter()
                 .map(|(q, _, _)| {
                     let w = inv.apply(*q);
@@ -415,108 +386,53 @@ impl CheckerPixels {
                         let t = c * n;
                         (t - t.round()).abs() / n / grad[0].hypot(grad[1]).max(1e-12)
                     };
-                    [self.target.pattern(w), dist(w[0], j[0]), dist(w[1], j[1])]
+                    [target.pattern(w), dist(w[0], j[0]), dist(w[1], j[1])]
                 })
                 .collect(),
         )
-    }
-
-    /// The least-squares residual of a candidate's [`Self::edges`] at blur
-    /// σ, the design row of a pixel [1, u, v, p, p·u, p·v].
-    fn residual(&self, edges: &[[f64; 3]], sigma: f64) -> Option<f64> {
+    };
+    let edges: Vec<Vec<[f64; 3]>> = candidates.iter().map(|h| edges(h)).collect::<Option<_>>()?;
+    // The least-squares residual of candidate `k` at blur σ, the design row
+    // of a pixel [1, u, v, p, p·u, p·v].
+    let residual = |k: usize, sigma: f64| -> Option<f64> {
         // erf(x / (√2 s)) as tanh: the edge's profile, s² = σ² + 1/12.
         let a = (2.0 / std::f64::consts::PI).sqrt() * 1.1 / (sigma * sigma + 1.0 / 12.0).sqrt();
-        let row = |(_, uv, _): &([f64; 2], [f64; 2], f64), e: &[f64; 3]| -> [f64; 6] {
-            let p = e[0] * (a * e[1]).tanh() * (a * e[2]).tanh();
-            let (du, dv) = (uv[0] - 0.5, uv[1] - 0.5);
-            [1.0, du, dv, p, p * du, p * dv]
-        };
+        let rows: Vec<[f64; 6]> = pixels
+            .iter()
+            .zip(&edges[k])
+            .map(|((_, uv, _), e)| {
+                let p = e[0] * (a * e[1]).tanh() * (a * e[2]).tanh();
+                let (du, dv) = (uv[0] - 0.5, uv[1] - 0.5);
+                [1.0, du, dv, p, p * du, p * dv]
+            })
+            .collect();
         let mut normal = super::linalg::Normal::new(6);
-        for (px, e) in self.pixels.iter().zip(edges) {
-            normal.add(&row(px, e), -px.2);
+        for (j, (_, _, v)) in rows.iter().zip(&pixels) {
+            normal.add(j, -v);
         }
         let c = normal.step(0.0)?;
         Some(
-            self.pixels
-                .iter()
-                .zip(edges)
-                .map(|(px, e)| {
-                    (row(px, e).iter().zip(&c).map(|(a, b)| a * b).sum::<f64>() - px.2).powi(2)
+            rows.iter()
+                .zip(&pixels)
+                .map(|(j, (_, _, v))| {
+                    (j.iter().zip(&c).map(|(a, b)| a * b).sum::<f64>() - v).powi(2)
                 })
                 .sum(),
         )
-    }
-
-    /// How well each of `candidates` explains the pixels: the sum of the
-    /// squared residuals of the checkerboard it predicts
-    /// ([`Self::residual`]) at the blur that explains `first` best.
-    fn residuals<const N: usize>(
-        &self,
-        first: &Homography,
-        candidates: [&Homography; N],
-    ) -> Option<[f64; N]> {
-        let sigma = self.blur(first)?;
-        let mut out = [0.0; N];
-        for (slot, h) in out.iter_mut().zip(candidates) {
-            *slot = self.residual(&self.edges(h)?, sigma)?;
+    };
+    let mut blur = (f64::INFINITY, 0.0);
+    for sigma in [0.0, 0.15, 0.25, 0.4, 0.55, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0] {
+        let r = residual(0, sigma)?;
+        if r < blur.0 {
+            blur = (r, sigma);
         }
-        Some(out)
     }
-
-    /// The blur of [`BLURS`] that explains candidate `h` best.
-    fn blur(&self, h: &Homography) -> Option<f64> {
-        let edges = self.edges(h)?;
-        let mut best = (f64::INFINITY, 0.0);
-        for sigma in BLURS {
-            let r = self.residual(&edges, sigma)?;
-            if r < best.0 {
-                best = (r, sigma);
-            }
-        }
-        Some(best.1)
+    let mut out = [0.0; N];
+    for (k, slot) in out.iter_mut().enumerate() {
+        *slot = residual(k, blur.1)?;
     }
-
-    /// `start` refined to explain the pixels best: the four corners of the
-    /// sample it puts in the frame moved one coordinate at a time (steps
-    /// of 0.1 px halved down to [`REFINE_STEP_PX`]), the blur chosen
-    /// again after each pass, two passes. The phase alignment's estimate
-    /// of a view is biased (its outline ≈ 0.05 px outside the sample's on
-    /// the simulator: docs/benchmarks.md, session 73); this fit is not.
-    fn refine(&self, start: &Homography) -> Option<Homography> {
-        let unit = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
-        let at = |c: &[[f64; 2]; 4]| Homography::fit(&unit, c);
-        let mut corners = start.corners();
-        for _ in 0..2 {
-            let sigma = self.blur(&at(&corners)?)?;
-            let cost = |c: &[[f64; 2]; 4]| {
-                at(c).and_then(|h| self.residual(&self.edges(&h)?, sigma)).unwrap_or(f64::INFINITY)
-            };
-            let mut best = cost(&corners);
-            let mut step = 0.1;
-            while step >= REFINE_STEP_PX {
-                let mut moved = false;
-                for k in 0..8 {
-                    for sign in [1.0, -1.0] {
-                        let mut c = corners;
-                        c[k / 2][k % 2] += sign * step;
-                        let r = cost(&c);
-                        if r < best {
-                            (best, corners, moved) = (r, c, true);
-                            break;
-                        }
-                    }
-                }
-                if !moved {
-                    step /= 2.0;
-                }
-            }
-        }
-        at(&corners)
-    }
+    Some(out)
 }
-
-/// The finest step of [`CheckerPixels::refine`], px.
-const REFINE_STEP_PX: f64 = 0.002;
 
 /// The inner corners located to sub-pixel precision (the gradient of the
 /// lightly blurred image is orthogonal to the offset from a saddle point,
