@@ -281,23 +281,14 @@ fn edge_errors(truth: &scanner_geometry::ScannerGeometry, cal: &host::build::Cal
     for by in [LocatedBy::Corners, LocatedBy::Phase] {
         let mut per_side = [(); 4].map(|_| Vec::new());
         for v in cal.views.iter().filter(|v| v.located_by == Some(by)) {
-            let h = &v.homography;
-            let centre = h.apply([0.5, 0.5]);
+            let sampler = v.sampler();
             for (k, side) in per_side.iter_mut().enumerate() {
                 let (a, b) = (ends[k], ends[(k + 1) % 4]);
-                let (pa, pb) = (h.apply(a), h.apply(b));
-                let d = [pb[0] - pa[0], pb[1] - pa[1]];
-                let len = d[0].hypot(d[1]);
-                let mut n = [-d[1] / len, d[0] / len];
-                if n[0] * (centre[0] - pa[0]) + n[1] * (centre[1] - pa[1]) < 0.0 {
-                    n = [-n[0], -n[1]];
-                }
                 let inside: Vec<f64> = (1..10)
                     .filter_map(|i| {
                         let t = i as f64 / 10.0;
                         let uv = [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])];
-                        let p = truth.view_point(v.view, uv)?;
-                        Some(n[0] * (p[0] - pa[0]) + n[1] * (p[1] - pa[1]))
+                        Some(sampler.edge_depth(k, truth.view_point(v.view, uv)?))
                     })
                     .collect();
                 side.push(inside.iter().sum::<f64>() / inside.len().max(1) as f64);

@@ -199,13 +199,13 @@ fn bad_inputs_exit_3_and_write_nothing() {
     // `--edge-pixels straddling`: the pixels the calibrated edge crosses
     // are read too, so the images' outermost texels (in every image) differ.
     let straddling = ["--detail", "own-view", "--edge-pixels", "straddling"];
-    assert_eq!(regions_with(&d("regions-inside"), &straddling).0, Some(0));
+    assert_eq!(regions_with(&d("regions-straddling"), &straddling).0, Some(0));
     let differ = std::fs::read_dir(d("regions-own"))
         .unwrap()
         .map(|e| e.unwrap().file_name())
         .filter(|n| {
             std::fs::read(dir.path().join("regions-own").join(n)).unwrap()
-                != std::fs::read(dir.path().join("regions-inside").join(n)).unwrap()
+                != std::fs::read(dir.path().join("regions-straddling").join(n)).unwrap()
         })
         .count();
     assert!(differ > 100, "{differ} of 120 images differ");

@@ -977,7 +977,16 @@ impl ViewSampler {
     /// (px; negative: outside).
     #[inline]
     fn point_depth(&self, p: [f64; 2]) -> f64 {
-        self.edges.iter().map(|e| e.n[0] * p[0] + e.n[1] * p[1] - e.c).fold(f64::INFINITY, f64::min)
+        (0..4).map(|side| self.edge_depth(side, p)).fold(f64::INFINITY, f64::min)
+    }
+
+    /// How far frame point `p` lies inside one calibrated edge of the
+    /// sample (px; negative: outside): `side` 0…3 the edges at v 0, u 1,
+    /// v 1 and u 0.
+    #[inline]
+    pub fn edge_depth(&self, side: usize, p: [f64; 2]) -> f64 {
+        let e = &self.edges[side];
+        e.n[0] * p[0] + e.n[1] * p[1] - e.c
     }
 
     /// How [`Self::region_sample`] scales the variance of independent frame

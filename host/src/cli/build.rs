@@ -349,7 +349,7 @@ pub struct ScanInputs {
     /// `inside` (the default) only those wholly inside the calibrated edge;
     /// `straddling` also the pixels the edge crosses, each for its part on
     /// the sample beside the holder (needs the sample's edge where the
-    /// checkerboard's was, to ≈ 0.1 px).
+    /// calibration puts it, to ≈ 0.01 px on a textured sample).
     #[arg(long, value_enum, default_value_t = EdgeArg::Inside)]
     pub edge_pixels: EdgeArg,
 }
