@@ -20,7 +20,7 @@ use std::time::Instant;
 
 use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
-use host::build::calibrate::{CalibrateOptions, Silent};
+use host::build::calibrate::{CalibrateOptions, LocatedBy, Silent};
 use host::build::fidelity::{material_psnr, pair_queries};
 use host::build::scanread::ScanFrames;
 use host::build::{calibrate, extract_regions};
@@ -96,12 +96,15 @@ fn main() {
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     println!("sensor {0}², {mirrors} mirrors, seed {seed}", 4096 / bin);
     println!(
-        "corners RMS: corner homography {:.3} px, phase {:.3} px, nominal {:.2} px; views by corners: {}/{}",
+        "corners RMS: the better of the corner fit and the phase alignment {:.3} px (the phase \
+         alignment's at {} of {} views; a corner fit at {}), the phase alignment alone {:.3} px, \
+         nominal {:.2} px",
         rms(&corner),
+        cal.views.iter().filter(|v| v.located_by == Some(LocatedBy::Phase)).count(),
+        cal.views.len(),
+        cal.views.iter().filter(|v| v.corners_used > 0).count(),
         rms(&corner_phase),
         rms(&corner_nominal),
-        cal.views.iter().filter(|v| v.corners_used > 0).count(),
-        cal.views.len()
     );
     println!(
         "view directions: RMS {:.3}° max {:.3}° (nominal RMS {:.3}° max {:.3}°)",
