@@ -281,26 +281,27 @@ const PHASE_WINDOWS: usize = 5;
 /// refitted to the shifted window centres.
 ///
 /// Each window is two squares wide (a whole period of the fundamental)
-/// and stays half a square inside the sample's edge: windows reaching
-/// the edge (3 × 3 of half the sample, until session 74) read the pattern
-/// darkened by the holder beside it, on one side only, which moved the
-/// phase and put the outline ≈ 0.05 px outside the sample on every side;
-/// the 5 × 5 smaller windows spread over more of the sample than 3 × 3
-/// half-sample ones would inside that margin, which a lens' distortion
-/// (a homography only approximates it) needs. Each sample is divided by the window's level,
-/// a plane in uv fitted to it (the checker is orthogonal to a plane over
-/// whole periods): a pattern under a sloped level has its phase moved by
-/// the slope, opposite ways on opposite sides of a view.
+/// and stays half a square inside the sample's edge: a window reaching
+/// the edge reads the pattern darkened by the holder beside it, on one
+/// side only, which moves its phase and put the outline ≈ 0.05 px outside
+/// the sample on every side (docs/benchmarks.md, session 74). The
+/// windows' centres spread over 0.19–0.81 of the sample, which the
+/// homography needs to follow a lens' distortion. Each sample is divided
+/// by the window's level, a plane in uv fitted to it (the checker is
+/// orthogonal to a plane over whole periods): a pattern under a sloped
+/// level has its phase moved by the slope, opposite ways on opposite
+/// sides of a view.
 fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Homography> {
     let n = target.squares as f64;
     let f = n / 2.0; // cycles per unit uv
     let grid = 24 * target.squares as usize; // rectification samples per side
     let inset = 0.5 / n; // half a square
-    let mut src = Vec::new();
-    let mut dst = Vec::new();
     let width = 2.0 / n; // two squares: one period along u and along v
+    let half = (width * grid as f64 / 2.0).round() as usize; // samples a half-window
     let first = inset + width / 2.0;
     let step = (1.0 - 2.0 * first) / (PHASE_WINDOWS - 1) as f64;
+    let mut src = Vec::new();
+    let mut dst = Vec::new();
     for wj in 0..PHASE_WINDOWS {
         for wi in 0..PHASE_WINDOWS {
             let c = [first + step * wi as f64, first + step * wj as f64];
@@ -308,7 +309,6 @@ fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Ho
             let mut model = [[0.0f64; 2]; 2];
             let mut mean = 0.0;
             let mut count = 0.0;
-            let half = (width * grid as f64 / 2.0).round() as usize;
             let samples: Vec<([f64; 2], f64)> = (0..2 * half)
                 .flat_map(|b| (0..2 * half).map(move |a| (a, b)))
                 .map(|(a, b)| {
