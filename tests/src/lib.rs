@@ -102,10 +102,11 @@ pub fn region_options() -> RegionOptions {
         "own-view" => None,
         other => usage_error(&format!("{DETAIL} {other:?}: all-views or own-view")),
     };
-    let edge = match arg(EDGE, "inside".to_string()).as_str() {
+    let edge = match arg(EDGE, "precise".to_string()).as_str() {
         "inside" => EdgePixels::Inside,
         "straddling" => EdgePixels::Straddling,
-        other => usage_error(&format!("{EDGE} {other:?}: inside or straddling")),
+        "precise" => EdgePixels::Precise,
+        other => usage_error(&format!("{EDGE} {other:?}: precise, inside or straddling")),
     };
     RegionOptions { size: (size > 0).then_some(size), sharpen, edge }
 }

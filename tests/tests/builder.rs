@@ -197,18 +197,31 @@ fn bad_inputs_exit_3_and_write_nothing() {
         .count();
     assert!(differ > 100, "{differ} of 120 images differ");
     // `--edge-pixels straddling`: the pixels the calibrated edge crosses
-    // are read too, so the images' outermost texels (in every image) differ.
-    let straddling = ["--detail", "own-view", "--edge-pixels", "straddling"];
-    assert_eq!(regions_with(&d("regions-straddling"), &straddling).0, Some(0));
-    let differ = std::fs::read_dir(d("regions-own"))
-        .unwrap()
-        .map(|e| e.unwrap().file_name())
-        .filter(|n| {
-            std::fs::read(dir.path().join("regions-own").join(n)).unwrap()
-                != std::fs::read(dir.path().join("regions-straddling").join(n)).unwrap()
-        })
-        .count();
+    // are read too, so the images' outermost texels (in every image) differ
+    // from `inside`'s. The default, `precise`, reads each view as one of
+    // the two: straddling where the calibration's phase residual is at most
+    // 0.01 px.
+    for edge in ["inside", "straddling"] {
+        let args = ["--detail", "own-view", "--edge-pixels", edge];
+        assert_eq!(regions_with(&d(&format!("regions-{edge}")), &args).0, Some(0));
+    }
+    let same = |a: &str, b: &str, n: &std::ffi::OsStr| {
+        std::fs::read(dir.path().join(a).join(n)).unwrap()
+            == std::fs::read(dir.path().join(b).join(n)).unwrap()
+    };
+    let names: Vec<_> =
+        std::fs::read_dir(d("regions-own")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let differ = names.iter().filter(|n| !same("regions-inside", "regions-straddling", n)).count();
     assert!(differ > 100, "{differ} of 120 images differ");
+    let calibration = host::build::Calibration::load(Path::new(&cal)).unwrap();
+    let precise: Vec<usize> =
+        calibration.views.iter().filter(|v| v.edge_precise()).map(|v| v.view).collect();
+    for n in &names {
+        let view: usize = n.to_str().unwrap()[5..7].parse().unwrap();
+        let like = if precise.contains(&view) { "regions-straddling" } else { "regions-inside" };
+        assert!(same("regions-own", like, n), "{n:?} is not read as {like} (precise: {precise:?})");
+    }
+    eprintln!("views read straddling by default at 512²: {precise:?}");
     let (code, err) = regions_with(&d("regions-bad"), &["--edge-pixels", "outside"]);
     assert_eq!(code, Some(2), "{err}");
     assert!(!dir.path().join("regions-bad").exists());

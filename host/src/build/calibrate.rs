@@ -68,6 +68,12 @@ pub struct ViewCalibration {
     /// written: the corner fit if there was one, as then.)
     #[serde(default)]
     pub located_by: Option<LocatedBy>,
+    /// RMS residual of the phase alignment's windows about its homography,
+    /// px: ranks the views by how precisely their edges are placed
+    /// ([`Self::edge_precise`]). (Absent in files before session 76, and
+    /// where the alignment did not run: the edges not known to be precise.)
+    #[serde(default)]
+    pub phase_rms_px: Option<f64>,
     /// Unit direction from the sample centre towards the viewer through
     /// this mirror, sample-local frame.
     pub direction: [f64; 3],
@@ -482,8 +488,9 @@ fn sensor_defects(
 /// the 25 grid points carry only those 8 parameters' information, so each
 /// weighs as if its error were √(25/8) times that. The RMS over the views
 /// located by their corners (or, if none is, over every corner fit found);
-/// the phase alignment gives no estimate of its own and is taken as
-/// precise. At least 0.05 px.
+/// the phase alignment's residual ranks its views
+/// ([`ViewCalibration::phase_rms_px`]) but is no standard error, and its
+/// views are taken as precise. At least 0.05 px.
 fn grid_sigma(fits: &[RegionFit]) -> f64 {
     let variance = |f: &&RegionFit| f.corner_rms_px.powi(2) * 4.0 / f.corners_used as f64;
     let fitted = || fits.iter().filter(|f| f.corners.is_some());
@@ -513,6 +520,7 @@ fn view_calibrations(
                 homography_phase: fit.phase,
                 corners_used: fit.corners_used,
                 corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
+                phase_rms_px: fit.phase_rms_px.is_finite().then_some(fit.phase_rms_px),
                 located_by: Some(if fit.by_corners {
                     LocatedBy::Corners
                 } else {
@@ -744,6 +752,14 @@ pub fn view_windows(views: &[ViewCalibration]) -> Vec<PixelRect> {
 }
 
 impl ViewCalibration {
+    /// Whether the view's edges are placed precisely enough for the region
+    /// images to read the pixels that straddle them
+    /// ([`super::regions::EdgePixels::Precise`]): its phase alignment's
+    /// residual at most [`EDGE_PRECISE_PX`].
+    pub fn edge_precise(&self) -> bool {
+        self.phase_rms_px.is_some_and(|r| r <= EDGE_PRECISE_PX)
+    }
+
     /// Where to read the frame for sample position `uv`: positions closer
     /// to the sample's edge than [`EDGE_PX`] frame pixels are moved in to
     /// that distance, so no resampling filter mixes in the holder around
@@ -1002,6 +1018,17 @@ impl ViewSampler {
     }
 }
 
+/// The largest phase-alignment residual ([`ViewCalibration::phase_rms_px`])
+/// at which a view's straddling pixels are read
+/// ([`ViewCalibration::edge_precise`]), px. A calibrated edge δ px off
+/// moves a straddling pixel's reading by δ / share of the contrast between
+/// sample and holder, ≈ 0.6 % of level per 0.01 px on a textured sample:
+/// the straddling reading gains on the outermost texels only where the
+/// edges are known to ≈ 0.01 px (docs/benchmarks.md, sessions 73 and 76).
+/// The residual is of the size of the edges' true error (0.55–0.85 × its
+/// RMS) and ranks the views by it.
+pub const EDGE_PRECISE_PX: f64 = 0.01;
+
 /// The least share of a pixel's square on the sample for the region
 /// images to read the sample's part of it beside the holder
 /// ([`ViewSampler::region_filter_straddling`]): a calibrated edge δ px off
@@ -1105,6 +1132,9 @@ impl Calibration {
                     "view {}: bad homography or direction (not a finite unit vector)",
                     v.view
                 ));
+            }
+            if v.phase_rms_px.is_some_and(|r| r < 0.0) {
+                return Err(format!("view {}: negative phase residual", v.view));
             }
             if !unit(&v.mirror_normal) {
                 return Err(format!("view {}: bad phase homography or mirror plane", v.view));

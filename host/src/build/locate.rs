@@ -53,6 +53,11 @@ pub struct RegionFit {
     pub nominal: Homography,
     /// After silhouette alignment and Fourier phase refinement.
     pub phase: Homography,
+    /// RMS distance of the phase alignment's window centres from the
+    /// homography fitted to them, px (NaN if the alignment did not run):
+    /// how far the view departs from one homography locally, which ranks
+    /// the views' edge errors ([`PhaseStep::rms_px`]).
+    pub phase_rms_px: f64,
     /// Fitted to the inner corners (None if too few were found).
     pub corners: Option<Homography>,
     /// Inner corners used by the fit.
@@ -129,10 +134,11 @@ pub fn locate(
     let margin = search_margin(g);
     let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
     let mut phase = shifted;
+    let mut phase_rms_px = f64::NAN;
     for _ in 0..6 {
-        let Some(next) = phase_refine(sum, &phase, target) else { break };
-        let moved = outline_distance(&phase, &next);
-        phase = next;
+        let Some(step) = phase_refine(sum, &phase, target) else { break };
+        let moved = outline_distance(&phase, &step.homography);
+        (phase, phase_rms_px) = (step.homography, step.rms_px);
         if moved < 0.01 {
             break;
         }
@@ -158,7 +164,16 @@ pub fn locate(
     let by_corners = corners.is_some_and(|c| {
         pattern_residuals(sum, &phase, [&phase, &c], target).is_none_or(|[p, c]| c <= p)
     });
-    Ok(RegionFit { view, nominal, phase, corners, corners_used, corner_rms_px, by_corners })
+    Ok(RegionFit {
+        view,
+        nominal,
+        phase,
+        phase_rms_px,
+        corners,
+        corners_used,
+        corner_rms_px,
+        by_corners,
+    })
 }
 
 /// How far apart two homographies put the sample's corners: the largest
@@ -291,7 +306,7 @@ const PHASE_WINDOWS: usize = 5;
 /// orthogonal to a plane over whole periods): a pattern under a sloped
 /// level has its phase moved by the slope, opposite ways on opposite
 /// sides of a view.
-fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Homography> {
+fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<PhaseStep> {
     let n = target.squares as f64;
     let f = n / 2.0; // cycles per unit uv
     let grid = 24 * target.squares as usize; // rectification samples per side
@@ -365,7 +380,32 @@ fn phase_refine(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Ho
             dst.push(h.apply(c));
         }
     }
-    Homography::fit(&src, &dst)
+    let homography = Homography::fit(&src, &dst)?;
+    let squares: f64 = src
+        .iter()
+        .zip(&dst)
+        .map(|(s, d)| {
+            let p = homography.apply(*s);
+            (p[0] - d[0]).powi(2) + (p[1] - d[1]).powi(2)
+        })
+        .sum();
+    // 2 coordinates a window, 8 parameters fitted.
+    let rms_px = (squares / (2 * src.len() - 8) as f64).sqrt();
+    Some(PhaseStep { homography, rms_px })
+}
+
+/// One step of the phase alignment ([`phase_refine`]).
+struct PhaseStep {
+    /// The homography fitted to the shifted window centres.
+    homography: Homography,
+    /// The centres' RMS distance from it, px: what one homography cannot
+    /// follow (noise, a lens' or the pattern's local departures). Not the
+    /// homography's standard error (that formula, r·√(8/2n), comes out 3–5
+    /// × below the edges' true errors: the departures are systematic);
+    /// the residual itself ranks the views' edge errors (Pearson 0.81 at
+    /// 4096², 0.66 at 1024²) and is of their size (docs/benchmarks.md,
+    /// session 76).
+    rms_px: f64,
 }
 
 /// How well each of `candidates` explains the view's pixels: the sum of
@@ -646,7 +686,7 @@ mod tests {
                 start[5] -= 0.2;
                 let mut phase = Homography(start);
                 for _ in 0..12 {
-                    phase = phase_refine(&sum, &phase, &target).unwrap();
+                    phase = phase_refine(&sum, &phase, &target).unwrap().homography;
                 }
                 // How far out each side's midpoint lies, px.
                 let c = truth.apply([0.5, 0.5]);

@@ -176,7 +176,7 @@ impl Default for RegionOptions {
         RegionOptions {
             size: None,
             sharpen: Some(SharpenOptions::default()),
-            edge: EdgePixels::Inside,
+            edge: EdgePixels::default(),
         }
     }
 }
@@ -188,14 +188,30 @@ pub enum EdgePixels {
     /// Also the pixels that straddle the calibrated edge, each for its
     /// part on the sample, beside the holder's radiance measured next to
     /// it ([`super::calibrate::ViewSampler::region_filter_straddling`]).
-    /// Not the default: it needs the edge to ≈ 0.01 px, and the views the
-    /// phase alignment locates lie ≈ 0.05 px out (leather at 1024²: −1.6
-    /// dB; docs/benchmarks.md, sessions 72 and 73).
+    /// In every view: it needs the edge to ≈ 0.01 px, and a view placed
+    /// less precisely reads a textured sample's outermost texels off
+    /// (leather at 1024²: −0.64 dB; docs/benchmarks.md, sessions 72, 73
+    /// and 76).
     Straddling,
     /// Only the pixels whose squares lie [`super::calibrate::CLEAN_MARGIN_PX`]
     /// inside the calibrated edge ([`super::calibrate::ViewSampler::region_filter`]).
-    #[default]
     Inside,
+    /// [`Self::Straddling`] in the views whose edges the calibration
+    /// places precisely ([`super::calibrate::ViewCalibration::edge_precise`]),
+    /// [`Self::Inside`] in the others.
+    #[default]
+    Precise,
+}
+
+impl EdgePixels {
+    /// Whether the region images read `view`'s straddling pixels.
+    pub fn straddles(self, view: &super::calibrate::ViewCalibration) -> bool {
+        match self {
+            EdgePixels::Straddling => true,
+            EdgePixels::Inside => false,
+            EdgePixels::Precise => view.edge_precise(),
+        }
+    }
 }
 
 /// What a view's region image takes from one texel under every light.
@@ -298,6 +314,7 @@ pub fn extract_regions(
     // response and the filter's noise gain; and which texels each view's
     // pixels see.
     let frame = [g.camera.width as usize, g.camera.height as usize];
+    let straddles: Vec<bool> = cal.views.iter().map(|v| opts.edge.straddles(v)).collect();
     let texel_view: Vec<Vec<TexelView>> = samplers
         .par_iter()
         .enumerate()
@@ -305,9 +322,10 @@ pub fn extract_regions(
             (0..size * size)
                 .map(|i| {
                     let uv = cell_uv(i, size);
-                    let filter = match opts.edge {
-                        EdgePixels::Straddling => s.region_filter_straddling(frame, uv),
-                        EdgePixels::Inside => s.region_filter(frame, uv),
+                    let filter = if straddles[vi] {
+                        s.region_filter_straddling(frame, uv)
+                    } else {
+                        s.region_filter(frame, uv)
                     };
                     TexelView {
                         filter,
@@ -320,10 +338,11 @@ pub fn extract_regions(
         .collect();
     // Per view, the pixels beside the sample whose median is the holder's
     // radiance the straddling pixels are read without.
-    let bands: Vec<Vec<u32>> = match opts.edge {
-        EdgePixels::Straddling => samplers.par_iter().map(|s| s.holder_band(frame)).collect(),
-        EdgePixels::Inside => vec![Vec::new(); samplers.len()],
-    };
+    let bands: Vec<Vec<u32>> = samplers
+        .par_iter()
+        .zip(&straddles)
+        .map(|(s, &on)| if on { s.holder_band(frame) } else { Vec::new() })
+        .collect();
     let sharpen =
         opts.sharpen.as_ref().map(|o| (o, Footprints::new(&samplers, frame, size, o.points)));
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights

@@ -346,11 +346,13 @@ pub struct ScanInputs {
     #[arg(long, value_enum, default_value_t = Detail::AllViews)]
     pub detail: Detail,
     /// Which frame pixels at the sample's edge the region images read:
-    /// `inside` (the default) only those wholly inside the calibrated edge;
-    /// `straddling` also the pixels the edge crosses, each for its part on
-    /// the sample beside the holder (needs the sample's edge where the
-    /// calibration puts it, to ≈ 0.01 px on a textured sample).
-    #[arg(long, value_enum, default_value_t = EdgeArg::Inside)]
+    /// `inside` only those wholly inside the calibrated edge; `straddling`
+    /// also the pixels the edge crosses, each for its part on the sample
+    /// beside the holder (needs the sample's edge where the calibration
+    /// puts it, to ≈ 0.01 px on a textured sample); `precise` (the
+    /// default) straddling in the views whose edges the calibration places
+    /// that precisely, inside in the others.
+    #[arg(long, value_enum, default_value_t = EdgeArg::Precise)]
     pub edge_pixels: EdgeArg,
 }
 
@@ -361,6 +363,8 @@ pub enum EdgeArg {
     Straddling,
     /// Only the pixels wholly inside the calibrated edge.
     Inside,
+    /// Straddling in the views whose edges are placed to ≈ 0.01 px.
+    Precise,
 }
 
 /// `--detail` of `scanner regions` and `scanner build`.
@@ -391,6 +395,7 @@ impl ScanInputs {
             edge: match self.edge_pixels {
                 EdgeArg::Straddling => EdgePixels::Straddling,
                 EdgeArg::Inside => EdgePixels::Inside,
+                EdgeArg::Precise => EdgePixels::Precise,
             },
         }
     }

@@ -1651,7 +1651,7 @@ pub fn demo(
         geometry: geometry_file.clone(),
         size: None,
         detail: super::build::Detail::AllViews,
-        edge_pixels: super::build::EdgeArg::Inside,
+        edge_pixels: super::build::EdgeArg::Precise,
     };
     let built = super::build::build_cmd(
         &input,

@@ -22,6 +22,8 @@ impl Example {
     }
 }
 
+/// The track's configuration as literals, not `track_default()`: the golden
+/// bytes pin the encoding and must not move when a firmware default does.
 pub fn default_axis_config() -> AxisConfig {
     AxisConfig {
         unit: Unit::Millimetre,
