@@ -268,6 +268,12 @@ pub fn calibrate_cmd(
              Fourier phase{outdone}"
         ),
     };
+    // The views whose straddling pixels `regions` and `build` read by default.
+    let precise = cal.views.iter().filter(|v| v.edge_precise()).count();
+    let located = format!(
+        "{located}; {precise} views' edges placed to {} px (read to the sample's edge)",
+        crate::build::calibrate::EDGE_PRECISE_PX
+    );
     let lights = match &cal.source_offsets {
         Some(o) => format!(
             "source home offsets disk {:+.3}°, tilt {:+.3}° from {} highlights of {} lights",
