@@ -843,6 +843,11 @@ impl ViewSampler {
         self.depth(p) >= CLEAN_MARGIN_PX
     }
 
+    /// Whether frame point `p` lies on the sample, by the calibrated edges.
+    pub fn point_on_sample(&self, p: [f64; 2]) -> bool {
+        self.point_depth(p) >= 0.0
+    }
+
     /// See [`ViewCalibration::frame_point`].
     #[inline]
     pub fn frame_point(&self, uv: [f64; 2]) -> [f64; 2] {

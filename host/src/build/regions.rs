@@ -343,8 +343,10 @@ pub fn extract_regions(
         .zip(&straddles)
         .map(|(s, &on)| if on { s.holder_band(frame) } else { Vec::new() })
         .collect();
-    let sharpen =
-        opts.sharpen.as_ref().map(|o| (o, Footprints::new(&samplers, frame, size, o.points)));
+    let sharpen = opts
+        .sharpen
+        .as_ref()
+        .map(|o| (o, Footprints::new(&samplers, &straddles, frame, size, o.points)));
     let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
         .par_iter()
         .zip(&light_index)
