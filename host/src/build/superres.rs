@@ -142,6 +142,35 @@ impl Rows {
         self.value.len()
     }
 
+    /// Appends the row of window pixel `pixel` whose square the forward
+    /// model samples at `uvs` (each point weighing `share`) on a `size`²
+    /// grid: the points' bilinear taps summed per texel (`acc` the scratch).
+    fn push_row(
+        &mut self,
+        pixel: u32,
+        size: usize,
+        uvs: &[[f64; 2]],
+        share: f64,
+        acc: &mut Vec<(u32, f32)>,
+    ) {
+        acc.clear();
+        for &uv in uvs {
+            bilinear_taps(size, uv, |t, w| {
+                let w = (w * share) as f32;
+                match acc.iter_mut().find(|a| a.0 == t) {
+                    Some(a) => a.1 += w,
+                    None => acc.push((t, w)),
+                }
+            });
+        }
+        for &(t, w) in acc.iter() {
+            self.texel.push(t);
+            self.weight.push(w);
+        }
+        self.start.push(self.texel.len() as u32);
+        self.pixel.push(pixel);
+    }
+
     fn row(&self, i: usize) -> (&[u32], &[f32]) {
         let (a, b) = (self.start[i] as usize, self.start[i + 1] as usize);
         (&self.texel[a..b], &self.weight[a..b])
@@ -328,67 +357,36 @@ impl ViewFootprint {
         let mut uvs: Vec<[f64; 2]> = Vec::with_capacity(points * points);
         let share = 1.0 / (points * points) as f64;
         let mut edge = Rows::empty(vi, [x0, y0], extent);
+        // The frame points a pixel's square is sampled at, row by row.
+        let square = |px: usize, py: usize| {
+            (0..points * points).map(move |k| {
+                [
+                    px as f64 + ((k % points) as f64 + 0.5) / points as f64,
+                    py as f64 + ((k / points) as f64 + 0.5) / points as f64,
+                ]
+            })
+        };
         for py in y0..y1 {
             for px in x0..x1 {
-                if !sampler.pixel_on_sample([px as f64 + 0.5, py as f64 + 0.5]) {
-                    if straddling && sampler.share([px as f64 + 0.5, py as f64 + 0.5]) > 0.0 {
-                        acc.clear();
-                        for sy in 0..points {
-                            for sx in 0..points {
-                                let p = [
-                                    px as f64 + (sx as f64 + 0.5) / points as f64,
-                                    py as f64 + (sy as f64 + 0.5) / points as f64,
-                                ];
-                                if !sampler.point_on_sample(p) {
-                                    continue;
-                                }
-                                bilinear_taps(sizes[0], inv.apply(p), |t, w| {
-                                    let w = (w * share) as f32;
-                                    match acc.iter_mut().find(|a| a.0 == t) {
-                                        Some(a) => a.1 += w,
-                                        None => acc.push((t, w)),
-                                    }
-                                });
-                            }
-                        }
-                        for &(t, w) in &acc {
-                            edge.texel.push(t);
-                            edge.weight.push(w);
-                        }
-                        edge.start.push(edge.texel.len() as u32);
-                        edge.pixel.push(((py - y0) * extent[0] + (px - x0)) as u32);
-                        edge.value.push([0.0; 3]);
+                let pixel = ((py - y0) * extent[0] + (px - x0)) as u32;
+                let p = [px as f64 + 0.5, py as f64 + 0.5];
+                if sampler.pixel_on_sample(p) {
+                    frame_pixel.push(py * width + px);
+                    centre.push(inv.apply(p));
+                    uvs.clear();
+                    uvs.extend(square(px, py).map(|q| inv.apply(q)));
+                    for (rows, &size) in grids.iter_mut().zip(sizes) {
+                        rows.push_row(pixel, size, &uvs, share, &mut acc);
                     }
-                    continue;
-                }
-                frame_pixel.push(py * width + px);
-                centre.push(inv.apply([px as f64 + 0.5, py as f64 + 0.5]));
-                uvs.clear();
-                for sy in 0..points {
-                    for sx in 0..points {
-                        uvs.push(inv.apply([
-                            px as f64 + (sx as f64 + 0.5) / points as f64,
-                            py as f64 + (sy as f64 + 0.5) / points as f64,
-                        ]));
-                    }
-                }
-                for (rows, &size) in grids.iter_mut().zip(sizes) {
-                    acc.clear();
-                    for &uv in &uvs {
-                        bilinear_taps(size, uv, |t, w| {
-                            let w = (w * share) as f32;
-                            match acc.iter_mut().find(|a| a.0 == t) {
-                                Some(a) => a.1 += w,
-                                None => acc.push((t, w)),
-                            }
-                        });
-                    }
-                    for &(t, w) in &acc {
-                        rows.texel.push(t);
-                        rows.weight.push(w);
-                    }
-                    rows.start.push(rows.texel.len() as u32);
-                    rows.pixel.push(((py - y0) * rows.extent[0] + (px - x0)) as u32);
+                } else if straddling && sampler.share(p) > 0.0 {
+                    uvs.clear();
+                    uvs.extend(
+                        square(px, py)
+                            .filter(|&q| sampler.point_on_sample(q))
+                            .map(|q| inv.apply(q)),
+                    );
+                    edge.push_row(pixel, sizes[0], &uvs, share, &mut acc);
+                    edge.value.push([0.0; 3]);
                 }
             }
         }
