@@ -74,6 +74,13 @@ pub struct ViewCalibration {
     /// where the alignment did not run: the edges not known to be precise.)
     #[serde(default)]
     pub phase_rms_px: Option<f64>,
+    /// Where the diffuse-white target's frames put the sample's edges, px
+    /// inside the homography's outline: per side (v 0, u 1, v 1, u 0) at
+    /// its first and its last corner ([`super::edges`]). `None` where they
+    /// could not be measured (and in files before session 77): the
+    /// homography's outline.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub edge_offsets_px: Option<[[f64; 2]; 4]>,
     /// Unit direction from the sample centre towards the viewer through
     /// this mirror, sample-local frame.
     pub direction: [f64; 3],
@@ -355,7 +362,8 @@ pub fn calibrate(
             checker.lights()
         )));
     }
-    let colour = colour_calibration(g, white, &view_cal, &lights, opts.white_albedo, progress)?;
+    let (colour, edges) =
+        colour_calibration(g, white, &view_cal, &lights, opts.white_albedo, progress)?;
     // The source's home offsets, from the glossy target's highlights,
     // adjusted together with the camera and the mirror planes.
     let source_offsets = match glossy {
@@ -397,6 +405,10 @@ pub fn calibrate(
         Some(o) => with_offsets(g, o.disk_deg, o.tilt_deg),
         None => g.clone(),
     };
+    // The sample's edges as the white target's frames show them.
+    for (v, e) in view_cal.iter_mut().zip(&edges) {
+        v.edge_offsets_px = *e;
+    }
     let mut light_cal = Vec::new();
     for &l in &lights {
         let v = view_cal.iter().find(|v| v.view == l).ok_or_else(|| {
@@ -521,6 +533,7 @@ fn view_calibrations(
                 corners_used: fit.corners_used,
                 corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
                 phase_rms_px: fit.phase_rms_px.is_finite().then_some(fit.phase_rms_px),
+                edge_offsets_px: None,
                 located_by: Some(if fit.by_corners {
                     LocatedBy::Corners
                 } else {
@@ -572,20 +585,28 @@ fn colour_calibration(
     lights: &[usize],
     albedo: f64,
     progress: &dyn BuildProgress,
-) -> Result<ColourCalibration, BuildError> {
+) -> Result<(ColourCalibration, Vec<Option<super::edges::EdgeFit>>), BuildError> {
     let grid = COLOUR_GRID;
     progress.stage("white frames", lights.len());
-    // w[li][vi][cell] = mean frame value per second.
+    // w[li][vi][cell] = mean frame value per second; and the sums the
+    // views' edges are measured from.
     let windows = view_windows(views);
-    let w: Vec<Vec<Vec<[f64; 3]>>> = lights
+    let samplers: Vec<ViewSampler> = views.iter().map(|v| v.sampler()).collect();
+    let dims = [g.camera.width as usize, g.camera.height as usize];
+    let bands = super::edges::EdgeBands::new(&samplers, dims);
+    let (w, sums): (Vec<Vec<Vec<[f64; 3]>>>, Vec<_>) = lights
         .par_iter()
         .map(|&l| {
             let f = white.read_within(l, &windows)?;
             let cells = cell_means(&f, views, grid);
+            let sums = bands.sums(&f);
             progress.step();
-            Ok(cells)
+            Ok((cells, sums))
         })
-        .collect::<Result<_, BuildError>>()?;
+        .collect::<Result<Vec<_>, BuildError>>()?
+        .into_iter()
+        .unzip();
+    let edges = bands.fit(&sums.iter().fold(bands.zero(), |a, s| a.plus(s)));
     // The noise floor: the median cell must stand 10× above the read noise.
     let exposure_s = white.manifest.settings.exposure_us as f64 * 1e-6;
     let read_codes = g.sensor.read_noise_e * g.sensor.max_code() / g.sensor.full_well_e;
@@ -660,12 +681,13 @@ fn colour_calibration(
             residual * 100.0
         );
     }
-    Ok(ColourCalibration {
+    let colour = ColourCalibration {
         grid,
         white_albedo: albedo,
         view_response: a.iter().map(|v| v.iter().flatten().map(|&x| x as f32).collect()).collect(),
         light_field: b.iter().map(|l| l.iter().map(|&x| x as f32).collect()).collect(),
-    })
+    };
+    Ok((colour, edges))
 }
 
 /// The median over cells, lights, views and channels of |w − a·b| / w:
@@ -754,10 +776,11 @@ pub fn view_windows(views: &[ViewCalibration]) -> Vec<PixelRect> {
 impl ViewCalibration {
     /// Whether the view's edges are placed precisely enough for the region
     /// images to read the pixels that straddle them
-    /// ([`super::regions::EdgePixels::Precise`]): its phase alignment's
+    /// ([`super::regions::EdgePixels::Precise`]): measured on the white
+    /// target's frames ([`super::edges`]), or else its phase alignment's
     /// residual at most [`EDGE_PRECISE_PX`].
     pub fn edge_precise(&self) -> bool {
-        self.phase_rms_px.is_some_and(|r| r <= EDGE_PRECISE_PX)
+        self.edge_offsets_px.is_some() || self.phase_rms_px.is_some_and(|r| r <= EDGE_PRECISE_PX)
     }
 
     /// Where to read the frame for sample position `uv`: positions closer
@@ -770,7 +793,7 @@ impl ViewCalibration {
 
     /// [`Self::frame_point`] and the region resampling, set up once for many points.
     pub fn sampler(&self) -> ViewSampler {
-        ViewSampler::new(self.homography)
+        ViewSampler::with_edge_offsets(self.homography, self.edge_offsets_px.as_ref())
     }
 
     /// `camera` (world, mm) mirrored in the calibrated mirror plane.
@@ -801,6 +824,57 @@ struct FrameEdge {
     half: f64,
 }
 
+/// A convex polygon of at most 8 vertices: a pixel square clipped by up
+/// to four half-planes (each clip adds at most one vertex).
+#[derive(Clone, Copy)]
+struct Polygon {
+    v: [[f64; 2]; 8],
+    len: usize,
+}
+
+impl Polygon {
+    /// The unit pixel square centred at `p`.
+    fn square(p: [f64; 2]) -> Polygon {
+        let mut v = [[0.0; 2]; 8];
+        v[..4].copy_from_slice(&[
+            [p[0] - 0.5, p[1] - 0.5],
+            [p[0] + 0.5, p[1] - 0.5],
+            [p[0] + 0.5, p[1] + 0.5],
+            [p[0] - 0.5, p[1] + 0.5],
+        ]);
+        Polygon { v, len: 4 }
+    }
+
+    /// The part where the affine function `f` is ≥ 0 (Sutherland–Hodgman).
+    fn clip(&self, f: impl Fn([f64; 2]) -> f64) -> Polygon {
+        let mut out = Polygon { v: [[0.0; 2]; 8], len: 0 };
+        for i in 0..self.len {
+            let (a, b) = (self.v[i], self.v[(i + 1) % self.len]);
+            let (fa, fb) = (f(a), f(b));
+            if fa >= 0.0 && out.len < 8 {
+                out.v[out.len] = a;
+                out.len += 1;
+            }
+            if (fa >= 0.0) != (fb >= 0.0) && out.len < 8 {
+                let t = fa / (fa - fb);
+                out.v[out.len] = [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])];
+                out.len += 1;
+            }
+        }
+        out
+    }
+
+    /// Its area (shoelace).
+    fn area(&self) -> f64 {
+        let mut twice = 0.0;
+        for i in 0..self.len {
+            let (a, b) = (self.v[i], self.v[(i + 1) % self.len]);
+            twice += a[0] * b[1] - a[1] * b[0];
+        }
+        0.5 * twice.abs()
+    }
+}
+
 /// A view's homography with its scale and the sample's edges in the frame.
 #[derive(Debug, Clone, Copy)]
 pub struct ViewSampler {
@@ -813,21 +887,48 @@ pub struct ViewSampler {
 impl ViewSampler {
     /// The sampler of the view whose homography (sample uv → frame px) is `h`.
     pub fn new(h: Homography) -> ViewSampler {
+        ViewSampler::with_edge_offsets(h, None)
+    }
+
+    /// The sampler of the view whose homography is `h` and whose edges lie
+    /// `offsets` px inside the homography's outline: per side (v 0, u 1,
+    /// v 1, u 0, from corner k to corner k + 1 of [`Homography::corners`])
+    /// at its first and its last corner ([`super::edges`]). The edges
+    /// decide which pixels the region images read and each straddling
+    /// pixel's share; the homography, where on the sample a pixel lies.
+    pub fn with_edge_offsets(h: Homography, offsets: Option<&[[f64; 2]; 4]>) -> ViewSampler {
         let j = h.jacobian([0.5, 0.5]);
         let px = [j[0][0].hypot(j[1][0]), j[0][1].hypot(j[1][1])];
         let corners = h.corners();
         let centre = h.apply([0.5, 0.5]);
-        let edges = std::array::from_fn(|k| {
-            let (a, b) = (corners[k], corners[(k + 1) % 4]);
+        let inward = |a: [f64; 2], b: [f64; 2]| {
             let d = [b[0] - a[0], b[1] - a[1]];
             let len = d[0].hypot(d[1]).max(1e-12);
-            let mut n = [-d[1] / len, d[0] / len];
+            let n = [-d[1] / len, d[0] / len];
             if n[0] * (centre[0] - a[0]) + n[1] * (centre[1] - a[1]) < 0.0 {
-                n = [-n[0], -n[1]];
+                [-n[0], -n[1]]
+            } else {
+                n
             }
+        };
+        let edges = std::array::from_fn(|k| {
+            let (mut a, mut b) = (corners[k], corners[(k + 1) % 4]);
+            if let Some(o) = offsets {
+                let n = inward(a, b);
+                a = [a[0] + o[k][0] * n[0], a[1] + o[k][0] * n[1]];
+                b = [b[0] + o[k][1] * n[0], b[1] + o[k][1] * n[1]];
+            }
+            let n = inward(a, b);
             FrameEdge { n, c: n[0] * a[0] + n[1] * a[1], half: 0.5 * (n[0].abs() + n[1].abs()) }
         });
         ViewSampler { homography: h, px_per_uv: px, edges }
+    }
+
+    /// The same sampler in frame coordinates shifted by `d` (e.g. into a
+    /// frame window whose corner is at −d).
+    pub fn translated(&self, d: [f64; 2]) -> ViewSampler {
+        let edges = self.edges.map(|e| FrameEdge { c: e.c + e.n[0] * d[0] + e.n[1] * d[1], ..e });
+        ViewSampler { homography: self.homography.translated(d), edges, ..*self }
     }
 
     /// The homography (sample uv → frame px).
@@ -946,7 +1047,9 @@ impl ViewSampler {
     }
 
     /// The share of the pixel square centred at frame point `p` that lies
-    /// on the sample, by the calibrated edges (8 × 8 points).
+    /// on the sample, by the calibrated edges: the area of the square
+    /// clipped by the four edges' half-planes, exact (a camera pixel
+    /// integrates its whole square).
     pub fn share(&self, p: [f64; 2]) -> f64 {
         let d = self.depth(p);
         if d >= 0.0 {
@@ -956,16 +1059,14 @@ impl ViewSampler {
         if self.point_depth(p) < -std::f64::consts::FRAC_1_SQRT_2 {
             return 0.0;
         }
-        let mut on = 0;
-        for j in 0..8 {
-            for i in 0..8 {
-                let q = [p[0] - 0.5 + (i as f64 + 0.5) / 8.0, p[1] - 0.5 + (j as f64 + 0.5) / 8.0];
-                if self.point_depth(q) >= 0.0 {
-                    on += 1;
-                }
+        let mut poly = Polygon::square(p);
+        for e in &self.edges {
+            poly = poly.clip(|q| e.n[0] * q[0] + e.n[1] * q[1] - e.c);
+            if poly.len == 0 {
+                return 0.0;
             }
         }
-        on as f64 / 64.0
+        poly.area().clamp(0.0, 1.0)
     }
 
     /// The frame pixels (index y · width + x in frames of `dims`) that show
@@ -999,6 +1100,11 @@ impl ViewSampler {
     #[inline]
     fn point_depth(&self, p: [f64; 2]) -> f64 {
         (0..4).map(|side| self.edge_depth(side, p)).fold(f64::INFINITY, f64::min)
+    }
+
+    /// The inward unit normal of calibrated edge `side` (v 0, u 1, v 1, u 0).
+    pub fn edge_normal(&self, side: usize) -> [f64; 2] {
+        self.edges[side].n
     }
 
     /// How far frame point `p` lies inside one calibrated edge of the
@@ -1140,6 +1246,12 @@ impl Calibration {
             }
             if v.phase_rms_px.is_some_and(|r| r < 0.0) {
                 return Err(format!("view {}: negative phase residual", v.view));
+            }
+            if v.edge_offsets_px.is_some_and(|o| o.iter().flatten().any(|d| d.abs() > 1.0)) {
+                return Err(format!(
+                    "view {}: edges more than a pixel from its homography's outline",
+                    v.view
+                ));
             }
             if !unit(&v.mirror_normal) {
                 return Err(format!("view {}: bad phase homography or mirror plane", v.view));
@@ -1287,6 +1399,50 @@ mod tests {
     use super::*;
     use crate::build::scanread::frame_bicubic;
     use crate::camera::Frame;
+
+    /// A pixel's share on the sample is its square's exact area within the
+    /// calibrated edges: against 512 × 512 points a square over a rotated,
+    /// perspective view's edges and corners (where two edges clip it), and
+    /// exactly a straight edge's offset across a square it crosses.
+    #[test]
+    fn a_pixel_s_share_is_its_square_s_area_on_the_sample() {
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        let h = Homography([40.0 * c, -40.0 * s, 30.2, 40.0 * s, 40.0 * c, 10.7, 1e-3, -2e-3, 1.0]);
+        let v = ViewSampler::new(h);
+        let n = 512;
+        let dense = |p: [f64; 2]| {
+            let mut on = 0usize;
+            for k in 0..n * n {
+                let q = [
+                    p[0] - 0.5 + ((k % n) as f64 + 0.5) / n as f64,
+                    p[1] - 0.5 + ((k / n) as f64 + 0.5) / n as f64,
+                ];
+                on += usize::from(v.point_on_sample(q));
+            }
+            on as f64 / (n * n) as f64
+        };
+        let mut crossed = 0;
+        for corner in h.corners() {
+            for dy in -2..=2 {
+                for dx in -2..=2 {
+                    let p = [
+                        (corner[0] + dx as f64 * 0.7).floor() + 0.5,
+                        (corner[1] + dy as f64 * 0.7).floor() + 0.5,
+                    ];
+                    let (got, want) = (v.share(p), dense(p));
+                    assert!((got - want).abs() < 4.0 / n as f64, "{p:?}: {got} against {want}");
+                    crossed += usize::from(got > 0.0 && got < 1.0);
+                }
+            }
+        }
+        assert!(crossed > 20, "{crossed}");
+        // An edge along the pixel grid, 0.3 px into a column of squares.
+        let straight =
+            ViewSampler::new(Homography([20.0, 0.0, 10.3, 0.0, 20.0, 10.0, 0.0, 0.0, 1.0]));
+        assert!((straight.share([10.5, 20.5]) - 0.7).abs() < 1e-12);
+        assert!((straight.share([9.5, 20.5]) - 0.0).abs() < 1e-12);
+        assert!((straight.share([11.5, 20.5]) - 1.0).abs() < 1e-12);
+    }
 
     /// The noise gain is the variance a region sample takes from frame
     /// pixels of unit variance: 1 at a pixel centre, 0.640625² midway,

@@ -10,6 +10,7 @@
 
 pub mod calibrate;
 pub mod corners;
+pub mod edges;
 pub mod enlarge;
 pub mod error;
 pub mod export;

@@ -391,7 +391,7 @@ impl ViewFootprint {
             }
         }
         // The view's sampler in the window's pixels.
-        let shifted = ViewSampler::new(h.translated([-(x0 as f64), -(y0 as f64)]));
+        let shifted = sampler.translated([-(x0 as f64), -(y0 as f64)]);
         let size = sizes[0];
         let own = (0..size * size)
             .map(|t| {
