@@ -1038,44 +1038,23 @@ impl OpticalSim {
 /// clipped to the square (Sutherland–Hodgman) over its own. `None` for a
 /// degenerate quadrilateral.
 fn square_share(quad: &[[f64; 2]; 4], half: f64) -> Option<f64> {
-    let area = |p: &[[f64; 2]]| {
-        0.5 * (0..p.len())
-            .map(|i| {
-                let (a, b) = (p[i], p[(i + 1) % p.len()]);
-                a[0] * b[1] - a[1] * b[0]
-            })
-            .sum::<f64>()
-            .abs()
-    };
-    let whole = area(quad);
+    use scanner_geometry::polygon::Polygon;
+    let whole = Polygon::quad(*quad).area();
     if whole.is_nan() || whole <= 0.0 {
         return None;
     }
-    let inside = |p: &[f64; 2]| p.iter().all(|v| v.abs() <= half);
-    if quad.iter().all(inside) {
+    if quad.iter().all(|p| p.iter().all(|v| v.abs() <= half)) {
         return Some(1.0);
     }
-    let mut poly: Vec<[f64; 2]> = quad.to_vec();
+    let mut poly = Polygon::quad(*quad);
     // The square's four half-planes: coordinate `axis` times `sign` ≤ half.
     for (axis, sign) in [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)] {
-        let keep = |p: &[f64; 2]| sign * p[axis] <= half;
-        let mut next = Vec::with_capacity(poly.len() + 1);
-        for i in 0..poly.len() {
-            let (a, b) = (poly[i], poly[(i + 1) % poly.len()]);
-            if keep(&a) {
-                next.push(a);
-            }
-            if keep(&a) != keep(&b) {
-                let t = (half - sign * a[axis]) / (sign * (b[axis] - a[axis]));
-                next.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
-            }
-        }
-        poly = next;
+        poly = poly.clip(|p| half - sign * p[axis]);
         if poly.is_empty() {
             return Some(0.0);
         }
     }
-    Some((area(&poly) / whole).clamp(0.0, 1.0))
+    Some((poly.area() / whole).clamp(0.0, 1.0))
 }
 
 /// The albedo of the matte black holder around a photographed piece.

@@ -25,6 +25,7 @@
 
 pub mod axes;
 pub mod check;
+pub mod polygon;
 
 pub use axes::{
     AxesError, Measured, axes_from_toml, axes_to_toml, axes_warnings, check_axes, correct_axis,

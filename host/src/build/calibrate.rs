@@ -824,57 +824,6 @@ struct FrameEdge {
     half: f64,
 }
 
-/// A convex polygon of at most 8 vertices: a pixel square clipped by up
-/// to four half-planes (each clip adds at most one vertex).
-#[derive(Clone, Copy)]
-struct Polygon {
-    v: [[f64; 2]; 8],
-    len: usize,
-}
-
-impl Polygon {
-    /// The unit pixel square centred at `p`.
-    fn square(p: [f64; 2]) -> Polygon {
-        let mut v = [[0.0; 2]; 8];
-        v[..4].copy_from_slice(&[
-            [p[0] - 0.5, p[1] - 0.5],
-            [p[0] + 0.5, p[1] - 0.5],
-            [p[0] + 0.5, p[1] + 0.5],
-            [p[0] - 0.5, p[1] + 0.5],
-        ]);
-        Polygon { v, len: 4 }
-    }
-
-    /// The part where the affine function `f` is ≥ 0 (Sutherland–Hodgman).
-    fn clip(&self, f: impl Fn([f64; 2]) -> f64) -> Polygon {
-        let mut out = Polygon { v: [[0.0; 2]; 8], len: 0 };
-        for i in 0..self.len {
-            let (a, b) = (self.v[i], self.v[(i + 1) % self.len]);
-            let (fa, fb) = (f(a), f(b));
-            if fa >= 0.0 && out.len < 8 {
-                out.v[out.len] = a;
-                out.len += 1;
-            }
-            if (fa >= 0.0) != (fb >= 0.0) && out.len < 8 {
-                let t = fa / (fa - fb);
-                out.v[out.len] = [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])];
-                out.len += 1;
-            }
-        }
-        out
-    }
-
-    /// Its area (shoelace).
-    fn area(&self) -> f64 {
-        let mut twice = 0.0;
-        for i in 0..self.len {
-            let (a, b) = (self.v[i], self.v[(i + 1) % self.len]);
-            twice += a[0] * b[1] - a[1] * b[0];
-        }
-        0.5 * twice.abs()
-    }
-}
-
 /// A view's homography with its scale and the sample's edges in the frame.
 #[derive(Debug, Clone, Copy)]
 pub struct ViewSampler {
@@ -1059,10 +1008,10 @@ impl ViewSampler {
         if self.point_depth(p) < -std::f64::consts::FRAC_1_SQRT_2 {
             return 0.0;
         }
-        let mut poly = Polygon::square(p);
+        let mut poly = scanner_geometry::polygon::Polygon::pixel(p);
         for e in &self.edges {
             poly = poly.clip(|q| e.n[0] * q[0] + e.n[1] * q[1] - e.c);
-            if poly.len == 0 {
+            if poly.is_empty() {
                 return 0.0;
             }
         }
