@@ -268,12 +268,19 @@ pub fn calibrate_cmd(
              Fourier phase{outdone}"
         ),
     };
-    // The views whose straddling pixels `regions` and `build` read by default.
-    let precise = cal.views.iter().filter(|v| v.edge_precise()).count();
-    let located = format!(
-        "{located}; {precise} views' edges placed to {} px (read to the sample's edge)",
-        crate::build::calibrate::EDGE_PRECISE_PX
-    );
+    // The views whose straddling pixels `regions` and `build` read by
+    // default: edges measured on the white target, or else placed
+    // precisely by the phase alignment.
+    let measured = cal.views.iter().filter(|v| v.edge_offsets_px.is_some()).count();
+    let precise = cal.views.iter().filter(|v| v.edge_precise()).count() - measured;
+    let located = match precise {
+        0 => format!("{located}; {measured} views' edges measured on the white target"),
+        _ => format!(
+            "{located}; {measured} views' edges measured on the white target, {precise} more \
+             placed to {} px by the phase alignment",
+            crate::build::calibrate::EDGE_PRECISE_PX
+        ),
+    };
     let lights = match &cal.source_offsets {
         Some(o) => format!(
             "source home offsets disk {:+.3}°, tilt {:+.3}° from {} highlights of {} lights",
