@@ -378,25 +378,11 @@ impl OpticalSim {
                 }
             }
         }
-        let mut best: Option<(f64, usize, DVec3)> = None;
-        let mut consider = |l: usize| {
-            if let Some((t, p)) = self.facets[l].intersect(origin, dir)
-                && best.is_none_or(|b| t < b.0)
-            {
-                best = Some((t, l, p));
-            }
-        };
-        match candidates {
-            Some(c) => c.iter().for_each(|&l| consider(l)),
-            None => (0..g.mirrors.len()).for_each(consider),
-        }
-        let (_, l, p) = best?;
-        let r = self.facets[l].reflect_dir(dir);
-        if r.z <= 1e-12 {
-            return None;
-        }
-        let t = -p.z / r.z;
-        let s = p + r * t;
+        let (l, p) = match candidates {
+            Some(c) => self.nearest_mirror(origin, dir, c.iter().copied()),
+            None => self.nearest_mirror(origin, dir, 0..g.mirrors.len()),
+        }?;
+        let (r, s) = self.onto_sample_plane(l, p, dir)?;
         let h = g.sample.size_mm / 2.0;
         if s.x.abs() > h || s.y.abs() > h {
             return None;
@@ -408,6 +394,36 @@ impl OpticalSim {
             view: world_to_sample(-r),
             transmission: g.mirrors[l].reflectance,
         })
+    }
+
+    /// The nearest of the mirrors `candidates` the ray (origin, unit dir)
+    /// meets: the mirror and the point (the first of equally near ones).
+    fn nearest_mirror(
+        &self,
+        origin: DVec3,
+        dir: DVec3,
+        candidates: impl Iterator<Item = usize>,
+    ) -> Option<(usize, DVec3)> {
+        let mut best: Option<(f64, usize, DVec3)> = None;
+        for l in candidates {
+            if let Some((t, p)) = self.facets[l].intersect(origin, dir)
+                && best.is_none_or(|b| t < b.0)
+            {
+                best = Some((t, l, p));
+            }
+        }
+        best.map(|(_, l, p)| (l, p))
+    }
+
+    /// The ray along `dir` reflected at point `p` of mirror `l`: its new
+    /// direction and where it meets the sample's plane (z = 0); `None` if
+    /// it leaves away from the plane.
+    fn onto_sample_plane(&self, l: usize, p: DVec3, dir: DVec3) -> Option<(DVec3, DVec3)> {
+        let r = self.facets[l].reflect_dir(dir);
+        if r.z <= 1e-12 {
+            return None;
+        }
+        Some((r, p + r * (-p.z / r.z)))
     }
 
     /// Noise-free scene radiance (RGB) reaching the camera at image point (x, y).
@@ -665,27 +681,17 @@ impl OpticalSim {
         n: usize,
         here: &[usize],
     ) -> Option<Outline> {
-        // The mirror the pixel's centre sees.
+        // The mirror the pixel's centre sees; each point of the pixel
+        // must see it too.
         let centre = scene.rays.ray(x as f64 + 0.5, y as f64 + 0.5);
-        let l = here
-            .iter()
-            .filter_map(|&m| self.facets[m].intersect(scene.origin, centre).map(|(t, _)| (t, m)))
-            .min_by(|a, b| a.0.total_cmp(&b.0))?
-            .1;
+        let (l, _) = self.nearest_mirror(scene.origin, centre, here.iter().copied())?;
         let on_plane = |fx: f64, fy: f64| -> Option<[f64; 2]> {
             let dir = scene.rays.ray(fx, fy);
-            let (t, p) = self.facets[l].intersect(scene.origin, dir)?;
-            let nearer = |m: usize| {
-                m != l && self.facets[m].intersect(scene.origin, dir).is_some_and(|(u, _)| u < t)
-            };
-            if here.iter().any(|&m| nearer(m)) {
+            let (m, p) = self.nearest_mirror(scene.origin, dir, here.iter().copied())?;
+            if m != l {
                 return None;
             }
-            let r = self.facets[l].reflect_dir(dir);
-            if r.z <= 1e-12 {
-                return None;
-            }
-            let s = p + r * (-p.z / r.z);
+            let (_, s) = self.onto_sample_plane(l, p, dir)?;
             Some([s.x, s.y])
         };
         let (xf, yf) = (x as f64, y as f64);

@@ -578,6 +578,9 @@ fn cell_means(
         .collect()
 }
 
+/// The colour calibration from the white scan ("Colour" in
+/// docs/calibration-format.md) and, from the same frames read once, each
+/// view's edges ([`super::edges`]; `None` where they could not be fitted).
 fn colour_calibration(
     g: &ScannerGeometry,
     white: &ScanFrames,
