@@ -180,6 +180,10 @@ pub struct OpticalSim {
     defects: Arc<[crate::defects::PixelDefect]>,
     /// A black level left in the frames, ADC codes (0 unless asked for).
     black_level_codes: u32,
+    /// Where the sample's face lies, world z, mm: 0 in the holder's
+    /// plane (where the targets lie), negative when it stands proud of it
+    /// towards the mirrors ([`OpticalSim::with_sample_height`]).
+    sample_z_mm: f64,
 }
 
 impl OpticalSim {
@@ -219,6 +223,7 @@ impl OpticalSim {
             cache: Default::default(),
             defects: Arc::new([]),
             black_level_codes: 0,
+            sample_z_mm: 0.0,
         }
     }
 
@@ -235,13 +240,39 @@ impl OpticalSim {
         OpticalSim { black_level_codes: codes, ..self }
     }
 
+    /// The same scanner with the sample's face `height_mm` proud of the
+    /// holder's plane, towards the mirrors (a sample thicker than the
+    /// targets, or one that does not lie flat against the holder; negative:
+    /// recessed). The targets' scans lie in the plane (0); the sample's
+    /// outline, every view of it and the light it gets move with its face.
+    pub fn with_sample_height(self, height_mm: f64) -> OpticalSim {
+        OpticalSim {
+            sample_z_mm: -height_mm,
+            sees_sample: Default::default(),
+            cache: Default::default(),
+            ..self
+        }
+    }
+
+    /// The sample's face above the holder's plane, mm
+    /// ([`OpticalSim::with_sample_height`]).
+    pub fn sample_height_mm(&self) -> f64 {
+        -self.sample_z_mm
+    }
+
     /// The same scanner with a camera lens of radial distortion `k`
     /// (`scanner_geometry::radial_distort`; the default is a pinhole).
     pub fn with_lens_distortion(self, k: [f64; 2]) -> OpticalSim {
         let mut g = self.geometry.clone();
         g.camera.distortion = k;
         let (defects, black_level_codes) = (self.defects.clone(), self.black_level_codes);
-        OpticalSim { defects, black_level_codes, ..OpticalSim::new(g, self.sample, self.seed) }
+        let sample_z_mm = self.sample_z_mm;
+        OpticalSim {
+            defects,
+            black_level_codes,
+            sample_z_mm,
+            ..OpticalSim::new(g, self.sample, self.seed)
+        }
     }
 
     /// The simulator of a scanner built to `nominal` with the default
@@ -294,7 +325,7 @@ impl OpticalSim {
                 let p = DVec3::new(
                     -h + 2.0 * h * i as f64 / n as f64,
                     -h + 2.0 * h * j as f64 / n as f64,
-                    0.0,
+                    self.sample_z_mm,
                 );
                 for path in self.light_paths_with(&beam, &lit, p) {
                     if path.irradiance > 0.0 && !out.contains(&path.mirror) {
@@ -416,14 +447,14 @@ impl OpticalSim {
     }
 
     /// The ray along `dir` reflected at point `p` of mirror `l`: its new
-    /// direction and where it meets the sample's plane (z = 0); `None` if
-    /// it leaves away from the plane.
+    /// direction and where it meets the sample's plane (its face's z);
+    /// `None` if it leaves away from the plane.
     fn onto_sample_plane(&self, l: usize, p: DVec3, dir: DVec3) -> Option<(DVec3, DVec3)> {
         let r = self.facets[l].reflect_dir(dir);
         if r.z <= 1e-12 {
             return None;
         }
-        Some((r, p + r * (-p.z / r.z)))
+        Some((r, p + r * ((self.sample_z_mm - p.z) / r.z)))
     }
 
     /// Noise-free scene radiance (RGB) reaching the camera at image point (x, y).

@@ -37,6 +37,10 @@ impl SimError {
     }
 }
 
+/// The largest sample height the simulator takes, mm: beyond it the
+/// holder would hide the sample's sides from the outer views.
+pub const MAX_SAMPLE_HEIGHT_MM: f64 = 5.0;
+
 /// What to simulate.
 #[derive(Debug, Clone)]
 pub struct SimSetup {
@@ -72,6 +76,10 @@ pub struct SimSetup {
     /// (`scanner_geometry::radial_distort`; the nominal geometry knows
     /// none: calibration measures it).
     pub lens_distortion: [f64; 2],
+    /// The sample's face this far proud of the holder's plane (where the
+    /// targets lie), towards the mirrors, mm
+    /// ([`OpticalSim::with_sample_height`]; 0: in the plane).
+    pub sample_height_mm: f64,
     /// The drives the scanner is built with (`hil_sim::SimConfig::axes`;
     /// docs/axis-config.md); other than the spec's, its board comes with
     /// them saved.
@@ -97,6 +105,7 @@ impl SimSetup {
             driver_fault_active_high: false,
             trigger_latency_us: 0,
             lens_distortion: [0.0; 2],
+            sample_height_mm: 0.0,
             axes: protocol::default_axes(),
             board_axes: None,
         }
@@ -120,6 +129,9 @@ impl SimSetup {
         }
         if self.lens_distortion != [0.0; 2] {
             s += &format!(", lens distortion {:?}", self.lens_distortion);
+        }
+        if self.sample_height_mm != 0.0 {
+            s += &format!(", sample's face {} mm proud of the holder", self.sample_height_mm);
         }
         if self.trigger_latency_us > 0 {
             s += &format!(", camera trigger latency {} µs", self.trigger_latency_us);
@@ -180,6 +192,17 @@ impl SimSetup {
             lens.camera.distortion = self.lens_distortion;
             lens.validate().map_err(|e| SimError::Usage(format!("lens distortion: {e}")))?;
             sim = sim.with_lens_distortion(self.lens_distortion);
+        }
+        if self.sample_height_mm != 0.0 {
+            if !self.sample_height_mm.is_finite()
+                || self.sample_height_mm.abs() > MAX_SAMPLE_HEIGHT_MM
+            {
+                return Err(SimError::Usage(format!(
+                    "a sample height of {} mm is outside ±{MAX_SAMPLE_HEIGHT_MM} mm",
+                    self.sample_height_mm
+                )));
+            }
+            sim = sim.with_sample_height(self.sample_height_mm);
         }
         Ok(sim)
     }

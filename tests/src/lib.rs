@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use hil_sim::materials::Sample;
 use host::build::Calibration;
 use host::build::fidelity::{CELLS, cell_means, material_psnr, pair_queries};
+use host::build::height::SampleHeight;
 use host::build::regions::EdgePixels;
 use host::build::superres::SharpenOptions;
 use host::build::{RegionOptions, RegionSet};
@@ -35,7 +36,15 @@ pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
 const SIZE: &str = "--size";
 const DETAIL: &str = "--detail";
 const EDGE: &str = "--edge-pixels";
-const REGION_OPTIONS: [&str; 3] = [SIZE, DETAIL, EDGE];
+/// The simulated samples' face above the holder's plane, mm (the targets
+/// stay in it): [`sim_scan_at`].
+const SAMPLE_HEIGHT: &str = "--sample-height";
+/// Where the builder reads the sample's face: `auto` (measured) or mm.
+const HEIGHT: &str = "--height";
+const REGION_OPTIONS: [&str; 5] = [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, HEIGHT];
+
+/// The calibration targets, which lie in the holder's plane.
+const TARGETS: [&str; 3] = ["checkerboard", "diffuse-white", "glossy-black"];
 
 /// [`check_args`] for an example that also reads [`region_options`]; their
 /// values are checked here too, before the run starts.
@@ -108,7 +117,14 @@ pub fn region_options() -> RegionOptions {
         "precise" => EdgePixels::Precise,
         other => usage_error(&format!("{EDGE} {other:?}: precise, inside or straddling")),
     };
-    RegionOptions { size: (size > 0).then_some(size), sharpen, edge }
+    let height =
+        match arg(HEIGHT, "auto".to_string()).as_str() {
+            "auto" => SampleHeight::Measure,
+            mm => SampleHeight::Given(mm.parse().unwrap_or_else(|_| {
+                usage_error(&format!("{HEIGHT} {mm:?}: auto or a height in mm"))
+            })),
+        };
+    RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height }
 }
 
 /// Scan `material` on the simulator into `out` (HDR if asked), unless a
@@ -130,7 +146,8 @@ pub const GLOSSY_EXPOSURE_US: u32 = 2_000;
 
 /// [`sim_scan`] at exposure `exposure_us`; with `hdr`, auto exposure's
 /// metered bracket (as `scanner demo` scans its sample), metered at
-/// `exposure_us`.
+/// `exposure_us`. A sample other than the targets stands `--sample-height`
+/// mm proud of the holder's plane if the command line says so.
 pub fn sim_scan_at(
     material: &str,
     seed: u64,
@@ -140,7 +157,8 @@ pub fn sim_scan_at(
     hdr: bool,
     out: &Path,
 ) -> ScannerGeometry {
-    let s = SimSetup { bin, seed, ..SimSetup::new(material) };
+    let sample_height_mm = if TARGETS.contains(&material) { 0.0 } else { arg(SAMPLE_HEIGHT, 0.0) };
+    let s = SimSetup { bin, seed, sample_height_mm, ..SimSetup::new(material) };
     let nominal = s.nominal().expect("the simulator's geometry");
     // A complete scan of this very simulated scanner is reused; another's
     // (another seed, say) is refused by the resume below.
@@ -263,8 +281,22 @@ pub fn truth_answers(pairs: &[([f64; 3], [f64; 3])], sample: &Sample) -> Vec<[f3
 /// with the examples' [`region_options`].
 pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &str) -> RegionSet {
     let scan = host::build::scanread::ScanFrames::open(&scan_dir(out, m), g).unwrap();
-    host::build::extract_regions(g, cal, &scan, &region_options(), &host::build::calibrate::Silent)
-        .unwrap()
+    let regions = host::build::extract_regions(
+        g,
+        cal,
+        &scan,
+        &region_options(),
+        &host::build::calibrate::Silent,
+    )
+    .unwrap();
+    if let Some(f) = regions.height_fit {
+        println!(
+            "{m}: face measured {:.4} ± {:.4} mm above the holder's plane ({:.2} px/mm of \
+             parallax), read at {} mm",
+            f.height_mm, f.sigma_mm, f.parallax_px_per_mm, regions.height_mm
+        );
+    }
+    regions
 }
 
 /// The provenance an example writes into the materials it builds.

@@ -799,6 +799,30 @@ impl ViewCalibration {
         ViewSampler::with_edge_offsets(self.homography, self.edge_offsets_px.as_ref())
     }
 
+    /// [`Self::sampler`] for a sample whose face lies `height_mm` above the
+    /// holder's plane, towards the mirrors ([`Self::homography_at_height`]);
+    /// the edges keep their offsets from the homography's outline.
+    pub fn sampler_at_height(&self, g: &ScannerGeometry, height_mm: f64) -> ViewSampler {
+        if height_mm == 0.0 {
+            return self.sampler();
+        }
+        let h = self.homography_at_height(g, height_mm);
+        ViewSampler::with_edge_offsets(h, self.edge_offsets_px.as_ref())
+    }
+
+    /// The view's homography for the plane `height_mm` above the holder's
+    /// (sample uv on that plane → frame px): a point of it is seen where
+    /// the ray from the virtual camera through it meets the holder's plane,
+    /// which the calibration's homography maps. Central projection between
+    /// parallel planes is a scaling about the camera's foot point, by
+    /// z / (z − height) with z the camera's height above the plane.
+    pub fn homography_at_height(&self, g: &ScannerGeometry, height_mm: f64) -> Homography {
+        let c = self.viewer_mm(g);
+        let size = g.sample.size_mm;
+        let foot = [c[0] / size + 0.5, c[1] / size + 0.5];
+        self.homography.after_scaling(c[2] / (c[2] - height_mm), foot)
+    }
+
     /// `camera` (world, mm) mirrored in the calibrated mirror plane.
     pub fn virtual_camera(&self, camera: DVec3) -> DVec3 {
         reflect_in_plane(camera, DVec3::from(self.mirror_point_mm), DVec3::from(self.mirror_normal))

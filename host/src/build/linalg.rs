@@ -283,6 +283,13 @@ impl Homography {
         ])
     }
 
+    /// This mapping after a scaling by `k` about the point `c` (the
+    /// scaling first): `p ↦ self(c + k (p − c))`.
+    pub fn after_scaling(&self, k: f64, c: [f64; 2]) -> Homography {
+        let a = [k, 0.0, (1.0 - k) * c[0], 0.0, k, (1.0 - k) * c[1], 0.0, 0.0, 1.0];
+        Homography(mul3(&self.0, &a))
+    }
+
     /// The inverse mapping.
     pub fn inverse(&self) -> Option<Homography> {
         let m = &self.0;
@@ -389,6 +396,10 @@ mod tests {
         assert!(((a[1] - b[1]) / (2.0 * e) - j[1][0]).abs() < 1e-4);
         // Translated: the same point, shifted.
         let (p, q) = (h.apply([0.3, 0.6]), h.translated([-17.0, 4.5]).apply([0.3, 0.6]));
+        let (c, k) = ([0.2, 1.7], 1.25);
+        let scaled = h.after_scaling(k, c).apply([0.3, 0.6]);
+        let direct = h.apply([c[0] + k * (0.3 - c[0]), c[1] + k * (0.6 - c[1])]);
+        assert!((scaled[0] - direct[0]).abs() < 1e-9 && (scaled[1] - direct[1]).abs() < 1e-9);
         assert!((q[0] - (p[0] - 17.0)).abs() < 1e-9 && (q[1] - (p[1] + 4.5)).abs() < 1e-9);
     }
 

@@ -623,6 +623,8 @@ mod tests {
                 .map(|p| (0..s * s).map(|t| image(&dirs, p / n, p % n, t)).collect())
                 .collect(),
             detail: None,
+            height_mm: 0.0,
+            height_fit: None,
         }
     }
 

@@ -16,6 +16,7 @@ pub mod error;
 pub mod export;
 pub mod glossy;
 pub mod gltf;
+pub mod height;
 pub mod lens;
 pub mod linalg;
 pub mod locate;

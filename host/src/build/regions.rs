@@ -10,8 +10,9 @@ use std::path::Path;
 use rayon::prelude::*;
 use scanner_geometry::ScannerGeometry;
 
-use super::calibrate::{BuildProgress, Calibration};
+use super::calibrate::{BuildProgress, Calibration, EDGE_PRECISE_PX};
 use super::error::BuildError;
+use super::height::{HeightFit, SampleHeight, measure_height, view_parallax};
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
 use super::superres::{
@@ -48,6 +49,11 @@ pub struct RegionSet {
     /// S × S image looked up bilinearly, itself looked up bilinearly
     /// ([`Self::detail_at`]); `None` without multi-view detail.
     pub detail: Option<DetailLayer>,
+    /// The sample's face above the holder's plane the images were read
+    /// at, mm ([`RegionOptions::height`]).
+    pub height_mm: f64,
+    /// The measurement it came from, if it was measured.
+    pub height_fit: Option<HeightFit>,
 }
 
 /// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
@@ -169,6 +175,8 @@ pub struct RegionOptions {
     pub sharpen: Option<SharpenOptions>,
     /// Which frame pixels at the sample's edge the region images read.
     pub edge: EdgePixels,
+    /// Where the sample's face lies: measured on its frames, or given.
+    pub height: SampleHeight,
 }
 
 impl Default for RegionOptions {
@@ -177,6 +185,7 @@ impl Default for RegionOptions {
             size: None,
             sharpen: Some(SharpenOptions::default()),
             edge: EdgePixels::default(),
+            height: SampleHeight::default(),
         }
     }
 }
@@ -306,15 +315,34 @@ pub fn extract_regions(
         region_memory(size, lights.len(), cal.views.len(), frame_px, rayon::current_num_threads());
     check_memory(need, size, available_memory())?;
     let albedo = cal.colour.white_albedo;
+    let height_fit = match opts.height {
+        SampleHeight::Measure => Some(measure_height(g, cal, scan, progress)?),
+        SampleHeight::Given(_) => None,
+    };
+    let height = match opts.height {
+        SampleHeight::Given(h) => h,
+        SampleHeight::Measure => height_fit.map_or(0.0, |f| f.applied_mm()),
+    };
     progress.stage("sample frames", lights.len());
-    let windows = super::calibrate::view_windows(&cal.views);
-    let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler()).collect();
+    let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler_at_height(g, height)).collect();
+    let windows: Vec<_> = samplers.iter().map(|s| s.homography().window(4.0)).collect();
     // Per view and texel, what is the same under every light: the pixels
     // it is resampled from (the filter), the colour calibration's view
     // response and the filter's noise gain; and which texels each view's
     // pixels see.
     let frame = [g.camera.width as usize, g.camera.height as usize];
-    let straddles: Vec<bool> = cal.views.iter().map(|v| opts.edge.straddles(v)).collect();
+    // A measured height moves the edges by its uncertainty times the
+    // view's parallax: a view reads its straddling pixels only while that
+    // stays within the edges' EDGE_PRECISE_PX.
+    let height_sigma = match (height, height_fit) {
+        (0.0, _) | (_, None) => 0.0,
+        (_, Some(f)) => f.sigma_mm,
+    };
+    let straddles: Vec<bool> = cal
+        .views
+        .iter()
+        .map(|v| opts.edge.straddles(v) && height_sigma * view_parallax(g, v) <= EDGE_PRECISE_PX)
+        .collect();
     let texel_view: Vec<Vec<TexelView>> = samplers
         .par_iter()
         .enumerate()
@@ -435,8 +463,17 @@ pub fn extract_regions(
         size,
         light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
         view_dirs: cal.views.iter().map(|v| v.direction).collect(),
-        viewers_mm: cal.views.iter().map(|v| v.viewer_mm(g)).collect(),
+        viewers_mm: cal
+            .views
+            .iter()
+            .map(|v| {
+                let c = v.viewer_mm(g);
+                [c[0], c[1], c[2] - height]
+            })
+            .collect(),
         sample_mm: g.sample.size_mm,
+        height_mm: height,
+        height_fit,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
         images: per_light.into_iter().flatten().collect(),
@@ -487,6 +524,8 @@ mod tests {
                 bases: vec![(0..f * f).map(|t| [(t % 3) as f32 * 0.5 - 0.5; 3]).collect()],
                 coefficients: vec![vec![-0.5], vec![0.0], vec![0.75]],
             }),
+            height_mm: 0.0,
+            height_fit: None,
         };
         let dir = tempfile::tempdir().unwrap();
         set.write_exr(dir.path()).unwrap();

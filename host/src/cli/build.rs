@@ -11,6 +11,7 @@ use scanner_geometry::ScannerGeometry;
 use super::Failure;
 use super::plot::{Caption, draw_captions};
 use crate::build::calibrate::{BuildProgress, CalibrateOptions, Calibration};
+use crate::build::height::SampleHeight;
 use crate::build::locate::Checkerboard;
 use crate::build::regions::EdgePixels;
 use crate::build::scanread::ScanFrames;
@@ -367,6 +368,51 @@ pub struct ScanInputs {
     /// that precisely, inside in the others.
     #[arg(long, value_enum, default_value_t = EdgeArg::Precise)]
     pub edge_pixels: EdgeArg,
+    /// Where the sample's face lies: `auto` (the default) measures it on
+    /// the sample's frames, where the views agree, and reads the region
+    /// images there when it is significantly off the holder's plane the
+    /// targets lay in; MM gives it (above the holder's plane, towards the
+    /// mirrors; 0: in it).
+    #[arg(long, value_parser = parse_sample_height, allow_hyphen_values = true,
+          default_value = "auto", value_name = "auto|MM")]
+    pub sample_height: SampleHeight,
+}
+
+/// `--sample-height`: `auto` or a height in mm within ±10.
+fn parse_sample_height(s: &str) -> Result<SampleHeight, String> {
+    if s == "auto" {
+        return Ok(SampleHeight::Measure);
+    }
+    match s.parse::<f64>() {
+        Ok(h) if h.is_finite() && h.abs() <= 10.0 => Ok(SampleHeight::Given(h)),
+        _ => Err(format!("{s:?}: `auto` or a height in mm within ±10")),
+    }
+}
+
+/// Say where the region images took the sample's face to lie.
+fn say_height(regions: &crate::build::RegionSet) {
+    match regions.height_fit {
+        Some(f) if regions.height_mm != 0.0 => println!(
+            "sample's face measured {:.3} ± {:.3} mm above the holder's plane (the views agree \
+             there; up to {:.2} px of parallax): region images read there, the edges' straddling \
+             pixels where that places them to 0.01 px",
+            f.height_mm,
+            f.sigma_mm,
+            f.height_mm.abs() * f.parallax_px_per_mm
+        ),
+        Some(f) => println!(
+            "sample's face in the holder's plane: measured {:.4} ± {:.4} mm ({:.3} px of \
+             parallax, from {} lights' frames)",
+            f.height_mm,
+            f.sigma_mm,
+            f.height_mm.abs() * f.parallax_px_per_mm,
+            f.lights
+        ),
+        None if regions.height_mm != 0.0 => {
+            println!("region images read {} mm above the holder's plane", regions.height_mm)
+        }
+        None => {}
+    }
 }
 
 /// `--edge-pixels` of `scanner regions` and `scanner build`.
@@ -410,6 +456,7 @@ impl ScanInputs {
                 EdgeArg::Inside => EdgePixels::Inside,
                 EdgeArg::Precise => EdgePixels::Precise,
             },
+            height: self.sample_height,
         }
     }
 
@@ -436,6 +483,7 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
     let stages = bar.finish();
     let regions = regions.map_err(build_failure)?;
+    say_height(&regions);
     let extracted = started.elapsed().as_secs_f64();
     // Written into a fresh sibling directory, then swapped into place: no
     // partial output on failure, and never a mixture of two runs.
@@ -575,6 +623,7 @@ pub fn build_cmd(
     });
     let stages = bar.finish();
     let (regions, data) = data.map_err(build_failure)?;
+    say_height(&regions);
     let beyond = data.palettes_beyond_float16();
     if beyond > 0 {
         eprintln!(

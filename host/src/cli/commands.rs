@@ -96,6 +96,11 @@ pub struct DeviceArgs {
     /// geometry knows none: calibration measures K1).
     #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
     pub sim_lens_distortion: Option<[f64; 2]>,
+    /// Simulator: the sample's face stands MM proud of the holder's plane,
+    /// where the targets lie (a thicker sample; negative: recessed).
+    /// `scanner regions` and `build` measure it (`--sample-height`).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true, value_name = "MM")]
+    pub sim_sample_height: f64,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
     /// board comes with them saved (unless --sim-board-axes).
@@ -136,6 +141,7 @@ impl DeviceArgs {
             driver_fault_active_high: self.sim_driver_fault.unwrap_or(false),
             trigger_latency_us: self.sim_trigger_latency_us,
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
+            sample_height_mm: self.sim_sample_height,
             axes: match &self.sim_axes {
                 Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
                 None => protocol::default_axes(),
@@ -1593,6 +1599,7 @@ pub fn demo(
             sim_driver_fault: None,
             sim_trigger_latency_us: 0,
             sim_lens_distortion: None,
+            sim_sample_height: 0.0,
             sim_geometry: geometry.map(Path::to_path_buf),
             sim_axes: None,
             sim_board_axes: None,
@@ -1652,6 +1659,7 @@ pub fn demo(
         size: None,
         detail: super::build::Detail::AllViews,
         edge_pixels: super::build::EdgeArg::Precise,
+        sample_height: crate::build::height::SampleHeight::Measure,
     };
     let built = super::build::build_cmd(
         &input,
