@@ -11,6 +11,7 @@ use std::path::Path;
 use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::calibrate::{CalibrateOptions, Silent, ViewSampler};
+use host::build::height::SampleHeight;
 use host::build::scanread::ScanFrames;
 use host::build::{RegionOptions, calibrate, extract_regions};
 use host::camera::SimCamera;
@@ -45,9 +46,14 @@ fn take_scan_with(
     out: &Path,
 ) -> ScannerGeometry {
     let s = SimSetup { bin, seed, defects: defects.to_vec(), ..SimSetup::new(material) };
+    take_scan_of(&s, mirrors, exposure_us, out)
+}
+
+/// A scan of the simulated scanner `s` (its first `mirrors` lit).
+fn take_scan_of(s: &SimSetup, mirrors: usize, exposure_us: u32, out: &Path) -> ScannerGeometry {
     let rig = s.rig().unwrap();
     let mut dev = Device::connect(Box::new(SimTransport(rig.clone()))).unwrap();
-    let mut opts = ScanOptions::new(material, out);
+    let mut opts = ScanOptions::new(&s.material, out);
     opts.mirrors = Some(mirrors);
     opts.exposure_us = exposure_us;
     let nominal = s.nominal().unwrap();
@@ -115,6 +121,11 @@ fn calibrated_region_images_match_the_ground_truth() {
     let scan2 = ScanFrames::open(&again, &g).unwrap();
     let regions = extract_regions(&g, &cal, &scan2, &RegionOptions::default(), &Silent).unwrap();
     let albedo = cal.colour.white_albedo;
+    // A uniform target: no texture the views could agree on, so no height
+    // is measured and the images are read in the holder's plane.
+    let fit = regions.height_fit.expect("measured by default");
+    assert!(fit.agreement < 0.05 && fit.sigma_mm.is_infinite(), "{fit:?}");
+    assert_eq!(regions.height_mm, 0.0);
     for (li, d) in regions.light_dirs.iter().enumerate() {
         let want = albedo / std::f64::consts::PI * d[2];
         for vi in 0..regions.views.len() {
@@ -136,6 +147,34 @@ fn calibrated_region_images_match_the_ground_truth() {
     );
     assert!((gain - 1.0).abs() < 0.02, "absolute units: gain {gain}");
     assert!(psnr > 33.0, "{psnr}");
+    // Its face lies in the holder's plane: measured there, and read there.
+    let fit = regions.height_fit.expect("measured by default");
+    eprintln!("leather's face: {:.4} ± {:.4} mm", fit.height_mm, fit.sigma_mm);
+    assert!(fit.height_mm.abs() < 0.01 && fit.sigma_mm < 0.01, "{fit:?}");
+    assert_eq!(regions.height_mm, 0.0);
+    // The same leather 0.3 mm proud of the holder's plane: its height is
+    // measured on its own frames, and the images read there score as the
+    // flush sample's do, where the holder's plane misregisters the views.
+    let out = dir.path().join("leather-proud");
+    let proud = SimSetup { bin, seed, sample_height_mm: 0.3, ..SimSetup::new("leather") };
+    take_scan_of(&proud, mirrors, protocol::DEFAULT_EXPOSURE_US, &out);
+    let scan = ScanFrames::open(&out, &g).unwrap();
+    let measured = extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
+    let fit = measured.height_fit.unwrap();
+    let in_plane = RegionOptions { height: SampleHeight::Given(0.0), ..RegionOptions::default() };
+    let misread = extract_regions(&g, &cal, &scan, &in_plane, &Silent).unwrap();
+    let (at_height, in_plane) = (
+        tests::captured_pair_psnr(&g, &measured, &sample).0,
+        tests::captured_pair_psnr(&g, &misread, &sample).0,
+    );
+    eprintln!(
+        "leather 0.3 mm proud: measured {:.4} ± {:.4} mm; PSNR read there {at_height:.2} dB, in \
+         the holder's plane {in_plane:.2} dB (flush: {psnr:.2} dB)",
+        fit.height_mm, fit.sigma_mm
+    );
+    assert!((fit.height_mm - 0.3).abs() < 0.02 && fit.sigma_mm < 0.01, "{fit:?}");
+    assert_eq!(measured.height_mm, fit.height_mm);
+    assert!(at_height > in_plane + 3.0 && at_height > psnr - 0.5, "{at_height} {in_plane}");
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);

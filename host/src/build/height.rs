@@ -11,18 +11,29 @@
 //! session 78).
 //!
 //! Every view sees the same texture, so the height is the one at which the
-//! views agree. Per view the frames of up to [`LIGHTS`] lights are summed
-//! (the texture under an average light), read on a grid of the sample's
-//! inner 80 % through the view's homography at height h
+//! views agree. Per view the frames of up to [`LIGHTS`] lights are read
+//! (white-balanced by the colour calibration's view response, each light
+//! in units of its irradiance at the sample's centre times cos θi) and per
+//! pixel the median over the lights taken. What is compared is the
+//! **chroma** (red − green, blue − green): a dielectric's highlight has the
+//! light's colour and leaves it alone, while the luminance carries the
+//! highlights on the sample's bumps, which lean towards each view as a
+//! height would (leather, 2048², six near-normal lights: luminance put the
+//! flush sample at −0.056 mm, 20 σ off; chroma at +0.006 ± 0.002 mm). Each
+//! view's chroma is read on a grid over the sample's inner 80 % through
+//! its homography at height h
 //! ([`super::calibrate::ViewCalibration::homography_at_height`]), a
-//! quadratic trend divided out (beam, vignetting, the view's shading); the
-//! cost is the squared difference of the views' images from their mean.
-//! It is scanned over ±[`MAX_HEIGHT_MM`] in steps of ⅓ px of the outermost
+//! quadratic trend subtracted (beam, vignetting, the view's shading) and
+//! scaled to unit variance; the cost is the mean squared difference of the
+//! views' images from their mean (≈ 1 − their mean correlation). It is
+//! scanned over ±[`MAX_HEIGHT_MM`] in steps of ⅓ px of the outermost
 //! view's parallax, the best step refined by golden section. Its
 //! uncertainty is the delete-a-group jackknife over eight groups of views.
 //!
-//! A textureless sample leaves the cost flat: its height comes out with a
-//! large uncertainty and is not applied ([`HeightFit::applied_mm`]).
+//! A sample without colour texture (a grey or uniform one) leaves the cost
+//! flat: its [`HeightFit::agreement`] is low, its uncertainty infinite, and
+//! the images are read in the holder's plane as before
+//! ([`HeightFit::applied_mm`]). So is a height at the end of the range.
 
 use rayon::prelude::*;
 
@@ -42,8 +53,16 @@ pub const MAX_HEIGHT_MM: f64 = 3.0;
 pub const LIGHTS: usize = 8;
 
 /// A height whose largest parallax between views is below this is left at
-/// 0, frame px: the views already agree to within it.
-pub const NEGLIGIBLE_PX: f64 = 0.05;
+/// 0, frame px: the views already agree to within it (a registration
+/// error of a fifth of a pixel costs little), and a measurement this small
+/// is within reach of a bias (a metal's coloured highlights lean its
+/// chroma too: crumpled gold foil, flush, measured −0.011 ± 0.004 mm at
+/// 4096², 0.05 px).
+pub const NEGLIGIBLE_PX: f64 = 0.2;
+
+/// The least [`HeightFit::agreement`] of a measurement: below it the views
+/// agree at no height much better than at any other.
+pub const MIN_AGREEMENT: f64 = 0.25;
 
 /// Views per jackknife group count: views `i` with `i % GROUPS == g`.
 const GROUPS: usize = 8;
@@ -58,7 +77,11 @@ pub struct HeightFit {
     /// The largest shift in the frame between the outline's corners at
     /// height 0 and at 1 mm, over the views, px per mm.
     pub parallax_px_per_mm: f64,
-    /// The lights whose frames were summed.
+    /// How much better the views agree at the height than over the range
+    /// searched: 1 − cost there / median cost (the cost being 1 − the views'
+    /// mean correlation with their consensus, about).
+    pub agreement: f64,
+    /// The lights whose frames were read.
     pub lights: usize,
 }
 
@@ -76,15 +99,23 @@ impl HeightFit {
     }
 }
 
-/// A view's summed frames over the window its sample can fall in.
+/// A view's frames over the window its sample can fall in, per pixel the
+/// median over the lights.
 struct ViewCrop {
     rect: PixelRect,
-    /// Luminance (sum of the channels), row-major over `rect`.
-    lum: Vec<f64>,
+    /// [`PLANES`] planes, each row-major over `rect`.
+    planes: [Vec<f32>; PLANES],
+    /// Whether any light reached the view.
+    lit: bool,
 }
 
+/// A crop's planes: luminance (the white-balanced channels' sum), then the
+/// chroma red − green and blue − green, which a dielectric's white
+/// highlight leaves alone.
+const PLANES: usize = 3;
+
 impl ViewCrop {
-    fn bilinear(&self, p: [f64; 2]) -> f64 {
+    fn bilinear(&self, plane: usize, p: [f64; 2]) -> f64 {
         let w = self.rect[2] - self.rect[0];
         let h = self.rect[3] - self.rect[1];
         let fx = p[0] - 0.5 - self.rect[0] as f64;
@@ -94,7 +125,7 @@ impl ViewCrop {
         let at = |x: f64, y: f64| {
             let x = (x.max(0.0) as usize).min(w - 1);
             let y = (y.max(0.0) as usize).min(h - 1);
-            self.lum[y * w + x]
+            self.planes[plane][y * w + x] as f64
         };
         let top = at(x0, y0) * (1.0 - tx) + at(x0 + 1.0, y0) * tx;
         let bottom = at(x0, y0 + 1.0) * (1.0 - tx) + at(x0 + 1.0, y0 + 1.0) * tx;
@@ -107,7 +138,7 @@ impl ViewCrop {
 struct Views<'a> {
     g: &'a ScannerGeometry,
     views: &'a [ViewCalibration],
-    crops: Vec<ViewCrop>,
+    crops: &'a [ViewCrop],
     grid: Vec<[f64; 2]>,
 }
 
@@ -116,10 +147,30 @@ impl Views<'_> {
     /// divided out; `None` where the view holds no light.
     fn image(&self, vi: usize, h: f64) -> Option<Vec<f64>> {
         let hom: Homography = self.views[vi].homography_at_height(self.g, h);
-        let values: Vec<f64> =
-            self.grid.iter().map(|&uv| self.crops[vi].bilinear(hom.apply(uv))).collect();
-        let trend = quadratic_trend(&self.grid, &values)?;
-        Some(values.iter().zip(&trend).map(|(v, t)| v / t - 1.0).collect())
+        let points: Vec<[f64; 2]> = self.grid.iter().map(|&uv| hom.apply(uv)).collect();
+        let read = |plane: usize| -> Vec<f64> {
+            points.iter().map(|&p| self.crops[vi].bilinear(plane, p)).collect()
+        };
+        // A view the beams leave dark holds nothing to compare.
+        if !self.crops[vi].lit {
+            return None;
+        }
+        let mut out = Vec::with_capacity(2 * self.grid.len());
+        for plane in 1..PLANES {
+            let values = read(plane);
+            let trend = quadratic_trend(&self.grid, &values)?;
+            out.extend(values.iter().zip(&trend).map(|(v, t)| v - t));
+        }
+        // Unit variance: a view agrees by its pattern, not by its contrast
+        // (reading the dark holder beside a sample must not look better).
+        let n = out.len() as f64;
+        let mean = out.iter().sum::<f64>() / n;
+        let sd = (out.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+        if !(sd > 0.0 && sd.is_finite()) {
+            return None;
+        }
+        out.iter_mut().for_each(|v| *v = (*v - mean) / sd);
+        Some(out)
     }
 
     /// Σ over the views in `keep` and the grid of the squared difference
@@ -134,12 +185,13 @@ impl Views<'_> {
             return f64::INFINITY;
         }
         let n = images.len() as f64;
+        let len = images[0].len();
         let mut sum = 0.0;
-        for i in 0..self.grid.len() {
+        for i in 0..len {
             let mean = images.iter().map(|im| im[i]).sum::<f64>() / n;
             sum += images.iter().map(|im| (im[i] - mean).powi(2)).sum::<f64>();
         }
-        sum / (n * self.grid.len() as f64)
+        sum / (n * len as f64)
     }
 
     /// The height of least cost in [lo, hi] by golden section to `tol`.
@@ -167,7 +219,7 @@ impl Views<'_> {
 }
 
 /// The least-squares quadratic in uv through `values` at `points`,
-/// evaluated there; `None` if the values hold no light.
+/// evaluated there.
 fn quadratic_trend(points: &[[f64; 2]], values: &[f64]) -> Option<Vec<f64>> {
     let basis = |p: [f64; 2]| {
         let (u, v) = (p[0] - 0.5, p[1] - 0.5);
@@ -185,10 +237,7 @@ fn quadratic_trend(points: &[[f64; 2]], values: &[f64]) -> Option<Vec<f64>> {
         }
     }
     let c = super::linalg::solve_spd(6, &a, &b)?;
-    let trend: Vec<f64> =
-        points.iter().map(|&p| basis(p).iter().zip(&c).map(|(f, c)| f * c).sum()).collect();
-    let floor = 1e-3 * trend.iter().fold(0.0f64, |m, &t| m.max(t));
-    (floor > 0.0 && trend.iter().all(|&t| t > floor)).then_some(trend)
+    Some(points.iter().map(|&p| basis(p).iter().zip(&c).map(|(f, c)| f * c).sum()).collect())
 }
 
 /// The window of the frame view `v`'s sample can fall in at any height
@@ -242,46 +291,87 @@ pub fn measure_height(
         .map(|r| [r[0], r[1], r[2].min(dims[0]).max(r[0] + 2), r[3].min(dims[1]).max(r[1] + 2)])
         .collect();
     progress.stage("sample height", lights.len());
-    let sums = lights
+    // Per light, each view's crop, in units of the light's irradiance at
+    // the sample's centre times cos θi (lights differ by their beams).
+    let per_light = lights
         .par_iter()
-        .map(|&l| -> Result<Vec<Vec<f64>>, BuildError> {
+        .map(|&l| -> Result<Vec<[Vec<f32>; PLANES]>, BuildError> {
             let f = scan.read_within(l, &rects)?;
+            let ci = cal.lights.iter().position(|c| c.light == l).ok_or_else(|| {
+                BuildError::Input(format!("mirror {l} is lit in the scan but not calibrated"))
+            })?;
+            let unit = cal.colour.light(ci, [0.5, 0.5]) * cal.lights[ci].direction[2].max(0.05);
+            let k = if unit > 0.0 { 1.0 / unit } else { 0.0 };
             progress.step();
-            Ok(rects.iter().map(|r| crop(&f, *r)).collect())
+            Ok(rects
+                .iter()
+                .enumerate()
+                .map(|(vi, r)| {
+                    let a = cal.colour.view(vi, [0.5, 0.5]);
+                    let white = a.map(|a| if a > 0.0 { k / a } else { 0.0 });
+                    crop(&f, *r, white)
+                })
+                .collect())
         })
-        .try_reduce_with(|mut a, b| {
-            for (x, y) in a.iter_mut().zip(&b) {
-                for (p, q) in x.iter_mut().zip(y) {
-                    *p += q;
-                }
-            }
-            Ok(a)
-        })
-        .transpose()?
-        .ok_or_else(|| BuildError::Input(format!("{}: no frames", scan.dir.display())))?;
-    let crops: Vec<ViewCrop> =
-        rects.iter().zip(sums).map(|(&rect, lum)| ViewCrop { rect, lum }).collect();
-    // A grid at about the frontal views' pixel pitch over the inner 80 %.
-    let side = (super::regions::default_size(cal) as f64 * 0.8).round().clamp(16.0, 104.0) as usize;
-    let grid: Vec<[f64; 2]> = (0..side * side)
-        .map(|i| {
-            let (x, y) = ((i % side) as f64 + 0.5, (i / side) as f64 + 0.5);
-            [0.1 + 0.8 * x / side as f64, 0.1 + 0.8 * y / side as f64]
+        .collect::<Result<Vec<_>, _>>()?;
+    if per_light.is_empty() {
+        return Err(BuildError::Input(format!("{}: no frames", scan.dir.display())));
+    }
+    // Per view and pixel, the median over the lights: each light's
+    // diffuse shading is the same in every view, a specular lobe only in
+    // the views near its mirror direction, whose pattern then leans
+    // towards the view (as a height would); the median leaves those out.
+    let medians: Vec<[Vec<f32>; PLANES]> = (0..rects.len())
+        .into_par_iter()
+        .map(|vi| {
+            let n = per_light[0][vi][0].len();
+            let mut values = Vec::with_capacity(per_light.len());
+            std::array::from_fn(|plane| {
+                (0..n)
+                    .map(|i| {
+                        values.clear();
+                        values.extend(per_light.iter().map(|c| c[vi][plane][i]));
+                        values.sort_unstable_by(f32::total_cmp);
+                        let m = values.len();
+                        0.5 * (values[(m - 1) / 2] + values[m / 2])
+                    })
+                    .collect()
+            })
         })
         .collect();
-    let views = Views { g, views: &cal.views, crops, grid };
+    let crops: Vec<ViewCrop> = rects
+        .iter()
+        .zip(medians)
+        .map(|(&rect, planes)| ViewCrop { rect, lit: planes[0].iter().any(|&v| v > 0.0), planes })
+        .collect();
+    // A grid at about the frontal views' pixel pitch over the inner 80 %,
+    // and one of half as many points a side for the scan over the range.
+    let side = (super::regions::default_size(cal) as f64 * 0.8).round().clamp(16.0, 104.0) as usize;
+    let grid = |side: usize| -> Vec<[f64; 2]> {
+        (0..side * side)
+            .map(|i| {
+                let (x, y) = ((i % side) as f64 + 0.5, (i / side) as f64 + 0.5);
+                [0.1 + 0.8 * x / side as f64, 0.1 + 0.8 * y / side as f64]
+            })
+            .collect()
+    };
+    let views = Views { g, views: &cal.views, crops: &crops, grid: grid(side) };
+    let coarse = Views { grid: grid(side / 2), ..views };
     let gain = parallax(g, &cal.views);
     let step = (1.0 / 3.0) / gain.max(1e-9);
     let steps = (MAX_HEIGHT_MM / step).ceil() as i64;
     let all_views = |_: usize| true;
-    let (mut best, mut best_cost) = (0.0, f64::INFINITY);
-    for k in -steps..=steps {
-        let h = k as f64 * step;
-        let c = views.cost(h, &all_views);
-        if c < best_cost {
-            (best, best_cost) = (h, c);
-        }
-    }
+    let costs: Vec<(f64, f64)> = (-steps..=steps)
+        .map(|k| {
+            let h = k as f64 * step;
+            (h, coarse.cost(h, &all_views))
+        })
+        .collect();
+    let (best, best_cost) =
+        costs.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1)).unwrap_or((0.0, f64::INFINITY));
+    let typical = median(costs.iter().map(|c| c.1).collect());
+    let agreement = if typical > 0.0 { 1.0 - best_cost / typical } else { 0.0 };
+    let inside = best.abs() < MAX_HEIGHT_MM - step;
     let tol = step * 1e-3;
     let height = views.golden(best - step, best + step, tol, &all_views);
     let groups: Vec<f64> = (0..GROUPS)
@@ -292,22 +382,81 @@ pub fn measure_height(
         * groups.iter().map(|h| (h - mean).powi(2)).sum::<f64>();
     Ok(HeightFit {
         height_mm: height,
-        sigma_mm: var.sqrt(),
+        // A minimum at the end of the range, or views that agree no better
+        // there than anywhere (nothing to register: a uniform sample), is
+        // no measurement.
+        sigma_mm: if inside && agreement >= MIN_AGREEMENT { var.sqrt() } else { f64::INFINITY },
+        agreement,
         parallax_px_per_mm: gain,
         lights: lights.len(),
     })
 }
 
-/// The luminance of frame `f` over `rect` (row-major).
-fn crop(f: &Frame, rect: PixelRect) -> Vec<f64> {
+/// Frame `f` over `rect` (row-major), its channels times `white`, as
+/// [`PLANES`] planes.
+fn crop(f: &Frame, rect: PixelRect, white: [f64; 3]) -> [Vec<f32>; PLANES] {
     let w = f.width as usize;
-    let mut out = Vec::with_capacity((rect[2] - rect[0]) * (rect[3] - rect[1]));
+    let n = (rect[2] - rect[0]) * (rect[3] - rect[1]);
+    let mut out: [Vec<f32>; PLANES] = std::array::from_fn(|_| Vec::with_capacity(n));
     for y in rect[1]..rect[3] {
         for x in rect[0]..rect[2] {
             let (x, y) = (x.min(w - 1), y.min(f.height as usize - 1));
             let i = 3 * (y * w + x);
-            out.push(f.rgb[i] as f64 + f.rgb[i + 1] as f64 + f.rgb[i + 2] as f64);
+            let c: [f64; 3] = std::array::from_fn(|k| f.rgb[i + k] as f64 * white[k]);
+            out[0].push((c[0] + c[1] + c[2]) as f32);
+            out[1].push((c[0] - c[1]) as f32);
+            out[2].push((c[2] - c[1]) as f32);
         }
     }
     out
+}
+
+/// The median of `values` (0 for none).
+fn median(mut values: Vec<f64>) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    let mid = values.len() / 2;
+    *values.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A height is applied only when it is both significant and large
+    /// enough to move the views by a fifth of a pixel.
+    #[test]
+    fn a_height_is_applied_when_significant_and_not_negligible() {
+        let fit = |h: f64, sigma: f64| HeightFit {
+            height_mm: h,
+            sigma_mm: sigma,
+            parallax_px_per_mm: 4.0,
+            agreement: 0.8,
+            lights: 8,
+        };
+        assert_eq!(fit(0.3, 0.002).applied_mm(), 0.3);
+        assert_eq!(fit(-0.3, 0.002).applied_mm(), -0.3);
+        // 3 σ: not significant.
+        assert_eq!(fit(0.3, 0.1).applied_mm(), 0.0);
+        // 0.16 px of parallax: negligible, however precise.
+        assert_eq!(fit(0.04, 0.0001).applied_mm(), 0.0);
+        // No measurement.
+        assert_eq!(fit(0.3, f64::INFINITY).applied_mm(), 0.0);
+    }
+
+    /// The trend a view's chroma loses is the least-squares quadratic: a
+    /// quadratic comes back exactly, a pattern orthogonal to it not at all.
+    #[test]
+    fn the_quadratic_trend_is_least_squares() {
+        let points: Vec<[f64; 2]> =
+            (0..100).map(|i| [(i % 10) as f64 / 9.0, (i / 10) as f64 / 9.0]).collect();
+        let q = |p: [f64; 2]| 0.3 + 0.2 * p[0] - 0.7 * p[1] + 0.5 * p[0] * p[1] + 0.1 * p[1] * p[1];
+        let values: Vec<f64> = points.iter().map(|&p| q(p)).collect();
+        let trend = quadratic_trend(&points, &values).unwrap();
+        for (t, v) in trend.iter().zip(&values) {
+            assert!((t - v).abs() < 1e-9);
+        }
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+    }
 }
