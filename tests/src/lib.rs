@@ -292,8 +292,8 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
     if let Some(f) = regions.height_fit {
         println!(
             "{m}: face measured {:.4} ± {:.4} mm above the holder's plane ({:.2} px/mm of \
-             parallax), read at {} mm",
-            f.height_mm, f.sigma_mm, f.parallax_px_per_mm, regions.height_mm
+             parallax, agreement {:.3}), read at {} mm",
+            f.height_mm, f.sigma_mm, f.parallax_px_per_mm, f.agreement, regions.height_mm
         );
     }
     regions
