@@ -744,7 +744,7 @@ fn a_sensors_defects_are_found_by_calibration_and_replaced_in_region_images() {
         "{said}"
     );
     // Each command says how long its stages took, in order.
-    assert_eq!(stages(&said), ["sample frames", "detail layer"], "{said}");
+    assert_eq!(stages(&said), ["sample height", "sample frames", "detail layer"], "{said}");
 }
 
 /// The stage names of a command's `time by stage: NAME SECONDS s, …` line,
