@@ -440,6 +440,31 @@ fn black_level_subtracts_what_the_camera_left_in() {
     assert!(err.contains("black level auto (the directory's) vs 0 codes"), "{err}");
 }
 
+/// A sample height the simulator cannot hold, or one `regions` cannot
+/// read at, is a usage error naming the value.
+#[test]
+fn a_sample_height_out_of_range_is_a_usage_error() {
+    let dir = tmp();
+    let (code, _, err) = sim_scan_with(&sub(dir.path(), "scan"), &["--sim-sample-height", "7"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("a sample height of 7 mm is outside ±5 mm"), "{err}");
+    for bad in ["nan", "11", "high"] {
+        let (code, _, err) = run(&[
+            "regions",
+            "--scan",
+            "s",
+            "--calibration",
+            "c.json",
+            "-o",
+            "r",
+            "--sample-height",
+            bad,
+        ]);
+        assert_eq!(code, Some(2), "{err}");
+        assert!(err.contains("`auto` or a height in mm within ±10"), "{bad}: {err}");
+    }
+}
+
 #[test]
 fn a_bad_fault_spec_is_a_usage_error() {
     let dir = tmp();
