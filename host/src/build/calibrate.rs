@@ -713,7 +713,7 @@ fn factor_residual(w: &[Vec<Vec<[f64; 3]>>], a: &[Vec<[f64; 3]>], b: &[Vec<f64>]
 }
 
 /// The upper median (element `len / 2` in order), `None` for no values.
-fn median(mut values: Vec<f64>) -> Option<f64> {
+pub(super) fn median(mut values: Vec<f64>) -> Option<f64> {
     let mid = values.len() / 2;
     (!values.is_empty()).then(|| *values.select_nth_unstable_by(mid, f64::total_cmp).1)
 }

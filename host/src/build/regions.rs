@@ -315,13 +315,12 @@ pub fn extract_regions(
         region_memory(size, lights.len(), cal.views.len(), frame_px, rayon::current_num_threads());
     check_memory(need, size, available_memory())?;
     let albedo = cal.colour.white_albedo;
-    let height_fit = match opts.height {
-        SampleHeight::Measure => Some(measure_height(g, cal, scan, progress)?),
-        SampleHeight::Given(_) => None,
-    };
-    let height = match opts.height {
-        SampleHeight::Given(h) => h,
-        SampleHeight::Measure => height_fit.map_or(0.0, |f| f.applied_mm()),
+    let (height, height_fit) = match opts.height {
+        SampleHeight::Given(h) => (h, None),
+        SampleHeight::Measure => {
+            let fit = measure_height(g, cal, scan, progress)?;
+            (fit.applied_mm(), Some(fit))
+        }
     };
     progress.stage("sample frames", lights.len());
     let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler_at_height(g, height)).collect();
