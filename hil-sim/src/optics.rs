@@ -24,7 +24,8 @@ use rayon::prelude::*;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use crate::geometry::{
-    AsBuilt, AxisValues, Beam, Facet, ScannerGeometry, Tolerances, world_to_sample,
+    AsBuilt, AxisValues, Beam, Facet, SampleFace, ScannerGeometry, Tolerances, sample_to_world,
+    world_to_sample,
 };
 use crate::materials::Sample;
 
@@ -180,10 +181,9 @@ pub struct OpticalSim {
     defects: Arc<[crate::defects::PixelDefect]>,
     /// A black level left in the frames, ADC codes (0 unless asked for).
     black_level_codes: u32,
-    /// Where the sample's face lies, world z, mm: 0 in the holder's
-    /// plane (where the targets lie), negative when it stands proud of it
-    /// towards the mirrors ([`OpticalSim::with_sample_height`]).
-    sample_z_mm: f64,
+    /// Where the sample's face lies ([`OpticalSim::with_sample_face`]):
+    /// in the holder's plane, where the targets lie, unless asked.
+    face: SampleFace,
 }
 
 impl OpticalSim {
@@ -223,7 +223,7 @@ impl OpticalSim {
             cache: Default::default(),
             defects: Arc::new([]),
             black_level_codes: 0,
-            sample_z_mm: 0.0,
+            face: SampleFace::FLUSH,
         }
     }
 
@@ -246,18 +246,21 @@ impl OpticalSim {
     /// recessed). The targets' scans lie in the plane (0); the sample's
     /// outline, every view of it and the light it gets move with its face.
     pub fn with_sample_height(self, height_mm: f64) -> OpticalSim {
-        OpticalSim {
-            sample_z_mm: -height_mm,
-            sees_sample: Default::default(),
-            cache: Default::default(),
-            ..self
-        }
+        self.with_sample_face(SampleFace::at_height(height_mm))
     }
 
-    /// The sample's face above the holder's plane, mm
-    /// ([`OpticalSim::with_sample_height`]).
-    pub fn sample_height_mm(&self) -> f64 {
-        -self.sample_z_mm
+    /// The same scanner with the sample's face at `face` (its centre's
+    /// height above the holder's plane and its tilt; the targets' scans lie
+    /// in the plane). The sample's outline, every view of it and the light
+    /// it gets move with its face, and its texels see the light and the
+    /// views in the face's own frame (`scanner_geometry::face`).
+    pub fn with_sample_face(self, face: SampleFace) -> OpticalSim {
+        OpticalSim { face, sees_sample: Default::default(), cache: Default::default(), ..self }
+    }
+
+    /// Where the sample's face lies ([`OpticalSim::with_sample_face`]).
+    pub fn sample_face(&self) -> SampleFace {
+        self.face
     }
 
     /// The same scanner with a camera lens of radial distortion `k`
@@ -266,11 +269,11 @@ impl OpticalSim {
         let mut g = self.geometry.clone();
         g.camera.distortion = k;
         let (defects, black_level_codes) = (self.defects.clone(), self.black_level_codes);
-        let sample_z_mm = self.sample_z_mm;
+        let face = self.face;
         OpticalSim {
             defects,
             black_level_codes,
-            sample_z_mm,
+            face,
             ..OpticalSim::new(g, self.sample, self.seed)
         }
     }
@@ -315,18 +318,15 @@ impl OpticalSim {
     /// Mirrors whose reflected beam reaches some part of the sample with the
     /// axes at `axes` (ground truth).
     pub fn mirrors_lighting_sample(&self, axes: AxisValues) -> Vec<usize> {
-        let h = self.geometry.sample.size_mm / 2.0;
+        let size = self.geometry.sample.size_mm;
         let n = 24;
         let mut out: Vec<usize> = Vec::new();
         let beam = self.geometry.beam(axes);
         let lit = self.lit_mirrors(&beam);
         for i in 0..=n {
             for j in 0..=n {
-                let p = DVec3::new(
-                    -h + 2.0 * h * i as f64 / n as f64,
-                    -h + 2.0 * h * j as f64 / n as f64,
-                    self.sample_z_mm,
-                );
+                let uv = [i as f64 / n as f64, j as f64 / n as f64];
+                let p = sample_to_world(self.face.point(size, uv));
                 for path in self.light_paths_with(&beam, &lit, p) {
                     if path.irradiance > 0.0 && !out.contains(&path.mirror) {
                         out.push(path.mirror);
@@ -378,7 +378,7 @@ impl OpticalSim {
                 * self.geometry.source.profile(beam.distance(q));
             (e > 0.0).then(|| LightPath {
                 mirror: lm.mirror,
-                light: world_to_sample(-lm.dir),
+                light: self.face.to_face(world_to_sample(-lm.dir)),
                 irradiance: e,
             })
         })
@@ -414,15 +414,15 @@ impl OpticalSim {
             None => self.nearest_mirror(origin, dir, 0..g.mirrors.len()),
         }?;
         let (r, s) = self.onto_sample_plane(l, p, dir)?;
-        let h = g.sample.size_mm / 2.0;
-        if s.x.abs() > h || s.y.abs() > h {
+        let uv = self.face.uv(g.sample.size_mm, world_to_sample(s));
+        if !uv.iter().all(|t| (0.0..=1.0).contains(t)) {
             return None;
         }
         Some(ViewHit {
             mirror: l,
-            uv: [(s.x + h) / g.sample.size_mm, (-s.y + h) / g.sample.size_mm],
+            uv,
             point: s,
-            view: world_to_sample(-r),
+            view: self.face.to_face(world_to_sample(-r)),
             transmission: g.mirrors[l].reflectance,
         })
     }
@@ -447,14 +447,15 @@ impl OpticalSim {
     }
 
     /// The ray along `dir` reflected at point `p` of mirror `l`: its new
-    /// direction and where it meets the sample's plane (its face's z);
+    /// direction and where it meets the plane of the sample's face (world);
     /// `None` if it leaves away from the plane.
     fn onto_sample_plane(&self, l: usize, p: DVec3, dir: DVec3) -> Option<(DVec3, DVec3)> {
         let r = self.facets[l].reflect_dir(dir);
         if r.z <= 1e-12 {
             return None;
         }
-        Some((r, p + r * ((self.sample_z_mm - p.z) / r.z)))
+        let s = self.face.intersect(world_to_sample(p), world_to_sample(r))?;
+        Some((r, sample_to_world(s)))
     }
 
     /// Noise-free scene radiance (RGB) reaching the camera at image point (x, y).

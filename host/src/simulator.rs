@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use hil_sim::defects::DefectSpec;
-use hil_sim::geometry::ScannerGeometry;
+use hil_sim::geometry::{SampleFace, ScannerGeometry};
 use hil_sim::materials::{self, MaterialError, Sample};
 use hil_sim::optics::OpticalSim;
 use hil_sim::{FaultPlan, SimConfig, SimRig};
@@ -40,6 +40,11 @@ impl SimError {
 /// The largest sample height the simulator takes, mm: beyond it the
 /// holder would hide the sample's sides from the outer views.
 pub const MAX_SAMPLE_HEIGHT_MM: f64 = 5.0;
+
+/// The largest tilt of the sample's face the simulator takes about either
+/// of its axes, degrees (a sample that does not lie flat; more would lift
+/// its corners past [`MAX_SAMPLE_HEIGHT_MM`]).
+pub const MAX_SAMPLE_TILT_DEG: f64 = 10.0;
 
 /// What to simulate.
 #[derive(Debug, Clone)]
@@ -80,6 +85,10 @@ pub struct SimSetup {
     /// targets lie), towards the mirrors, mm
     /// ([`OpticalSim::with_sample_height`]; 0: in the plane).
     pub sample_height_mm: f64,
+    /// The sample's face tilted, degrees: rising along u by the tangent of
+    /// the first, along v by that of the second
+    /// ([`OpticalSim::with_sample_face`]; 0, 0: parallel to the holder).
+    pub sample_tilt_deg: [f64; 2],
     /// The drives the scanner is built with (`hil_sim::SimConfig::axes`;
     /// docs/axis-config.md); other than the spec's, its board comes with
     /// them saved.
@@ -106,6 +115,7 @@ impl SimSetup {
             trigger_latency_us: 0,
             lens_distortion: [0.0; 2],
             sample_height_mm: 0.0,
+            sample_tilt_deg: [0.0; 2],
             axes: protocol::default_axes(),
             board_axes: None,
         }
@@ -132,6 +142,10 @@ impl SimSetup {
         }
         if self.sample_height_mm != 0.0 {
             s += &format!(", sample's face {} mm proud of the holder", self.sample_height_mm);
+        }
+        if self.sample_tilt_deg != [0.0; 2] {
+            let [u, v] = self.sample_tilt_deg;
+            s += &format!(", sample's face tilted {u}° along u, {v}° along v");
         }
         if self.trigger_latency_us > 0 {
             s += &format!(", camera trigger latency {} µs", self.trigger_latency_us);
@@ -193,16 +207,26 @@ impl SimSetup {
             lens.validate().map_err(|e| SimError::Usage(format!("lens distortion: {e}")))?;
             sim = sim.with_lens_distortion(self.lens_distortion);
         }
-        if self.sample_height_mm != 0.0 {
-            if !self.sample_height_mm.is_finite()
-                || self.sample_height_mm.abs() > MAX_SAMPLE_HEIGHT_MM
-            {
-                return Err(SimError::Usage(format!(
-                    "a sample height of {} mm is outside ±{MAX_SAMPLE_HEIGHT_MM} mm",
-                    self.sample_height_mm
-                )));
-            }
-            sim = sim.with_sample_height(self.sample_height_mm);
+        if !self.sample_height_mm.is_finite() || self.sample_height_mm.abs() > MAX_SAMPLE_HEIGHT_MM
+        {
+            return Err(SimError::Usage(format!(
+                "a sample height of {} mm is outside ±{MAX_SAMPLE_HEIGHT_MM} mm",
+                self.sample_height_mm
+            )));
+        }
+        if let Some(t) =
+            self.sample_tilt_deg.iter().find(|t| !t.is_finite() || t.abs() > MAX_SAMPLE_TILT_DEG)
+        {
+            return Err(SimError::Usage(format!(
+                "a sample tilt of {t}° is outside ±{MAX_SAMPLE_TILT_DEG}°"
+            )));
+        }
+        let face = SampleFace {
+            height_mm: self.sample_height_mm,
+            slope: self.sample_tilt_deg.map(|t| t.to_radians().tan()),
+        };
+        if !face.is_flush() {
+            sim = sim.with_sample_face(face);
         }
         Ok(sim)
     }

@@ -16,7 +16,7 @@ use host::scan::{Quiet, ScanOptions, scan};
 use host::simulator::SimSetup;
 use rand::{Rng, SeedableRng};
 use scanner_formats::queries::Query;
-use scanner_geometry::{AxisValues, DVec3, ScannerGeometry, world_to_sample};
+use scanner_geometry::{AxisValues, DVec3, SampleFace, ScannerGeometry, world_to_sample};
 
 /// The value after `--name` on the command line, or `default` (the
 /// examples' options). A value that does not parse ends the example with
@@ -41,7 +41,19 @@ const EDGE: &str = "--edge-pixels";
 const SAMPLE_HEIGHT: &str = "--sample-height";
 /// Where the builder reads the sample's face: `auto` (measured) or mm.
 const HEIGHT: &str = "--height";
-const REGION_OPTIONS: [&str; 5] = [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, HEIGHT];
+/// The simulated samples' face tilted, degrees along u and v: `U,V`.
+const SAMPLE_TILT: &str = "--sample-tilt";
+const REGION_OPTIONS: [&str; 6] = [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, HEIGHT];
+
+/// `--sample-tilt U,V` (degrees; default level).
+fn sample_tilt() -> [f64; 2] {
+    let s = arg(SAMPLE_TILT, "0,0".to_string());
+    let t: Vec<f64> = s.split(',').filter_map(|x| x.trim().parse().ok()).collect();
+    match t[..] {
+        [u, v] if u.is_finite() && v.is_finite() => [u, v],
+        _ => usage_error(&format!("{SAMPLE_TILT} {s:?}: two numbers, degrees along u and v")),
+    }
+}
 
 /// The calibration targets, which lie in the holder's plane.
 const TARGETS: [&str; 3] = ["checkerboard", "diffuse-white", "glossy-black"];
@@ -51,6 +63,7 @@ const TARGETS: [&str; 3] = ["checkerboard", "diffuse-white", "glossy-black"];
 pub fn check_region_args(values: &[&str], flags: &[&str]) {
     check_args(&[values, &REGION_OPTIONS].concat(), flags);
     region_options();
+    sample_tilt();
 }
 
 /// Checks an example's command line before it starts a long run: every
@@ -117,13 +130,14 @@ pub fn region_options() -> RegionOptions {
         "precise" => EdgePixels::Precise,
         other => usage_error(&format!("{EDGE} {other:?}: precise, inside or straddling")),
     };
-    let height =
-        match arg(HEIGHT, "auto".to_string()).as_str() {
-            "auto" => SampleHeight::Measure,
-            mm => SampleHeight::Given(mm.parse().unwrap_or_else(|_| {
-                usage_error(&format!("{HEIGHT} {mm:?}: auto or a height in mm"))
-            })),
-        };
+    let height = match arg(HEIGHT, "auto".to_string()).as_str() {
+        "auto" => SampleHeight::Measure,
+        mm => {
+            SampleHeight::Given(scanner_geometry::SampleFace::at_height(mm.parse().unwrap_or_else(
+                |_| usage_error(&format!("{HEIGHT} {mm:?}: auto or a height in mm")),
+            )))
+        }
+    };
     RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height }
 }
 
@@ -157,8 +171,10 @@ pub fn sim_scan_at(
     hdr: bool,
     out: &Path,
 ) -> ScannerGeometry {
-    let sample_height_mm = if TARGETS.contains(&material) { 0.0 } else { arg(SAMPLE_HEIGHT, 0.0) };
-    let s = SimSetup { bin, seed, sample_height_mm, ..SimSetup::new(material) };
+    let target = TARGETS.contains(&material);
+    let sample_height_mm = if target { 0.0 } else { arg(SAMPLE_HEIGHT, 0.0) };
+    let sample_tilt_deg = if target { [0.0; 2] } else { sample_tilt() };
+    let s = SimSetup { bin, seed, sample_height_mm, sample_tilt_deg, ..SimSetup::new(material) };
     let nominal = s.nominal().expect("the simulator's geometry");
     // A complete scan of this very simulated scanner is reused; another's
     // (another seed, say) is refused by the resume below.
@@ -290,10 +306,21 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
     )
     .unwrap();
     if let Some(f) = regions.height_fit {
+        let deg = |s: [f64; 2]| s.map(|s| s.atan().to_degrees());
         println!(
             "{m}: face measured {:.4} ± {:.4} mm above the holder's plane ({:.2} px/mm of \
-             parallax, agreement {:.3}), read at {} mm",
-            f.height_mm, f.sigma_mm, f.parallax_px_per_mm, f.agreement, regions.height_mm
+             parallax, agreement {:.3}), tilted {:.3?}° ± {:.3?}° ({} patches, {:.4} mm from a \
+             plane, {:.2} px at the corners); read at {:?}",
+            f.height_mm,
+            f.sigma_mm,
+            f.parallax_px_per_mm,
+            f.agreement,
+            deg(f.slope),
+            deg(f.slope_sigma),
+            f.patches,
+            f.flatness_mm,
+            f.tilt_px,
+            regions.face
         );
     }
     regions
@@ -394,7 +421,21 @@ pub fn captured_pair_psnr(
     regions: &RegionSet,
     sample: &Sample,
 ) -> (f64, f64, f64) {
-    let pairs = captured_pairs(g, regions);
+    captured_pair_psnr_on(g, regions, sample, SampleFace::FLUSH)
+}
+
+/// [`captured_pair_psnr`] of a sample whose face lies at `face` (ground
+/// truth): the captured pairs in the face's frame, where its texels see
+/// them.
+pub fn captured_pair_psnr_on(
+    g: &ScannerGeometry,
+    regions: &RegionSet,
+    sample: &Sample,
+    face: SampleFace,
+) -> (f64, f64, f64) {
+    let in_face = |d: [f64; 3]| face.to_face(DVec3::from(d)).to_array();
+    let pairs: Vec<_> =
+        captured_pairs(g, regions).into_iter().map(|(i, o)| (in_face(i), in_face(o))).collect();
     regions_psnr(&pairs, &truth_answers(&pairs, sample), regions)
 }
 

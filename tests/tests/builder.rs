@@ -18,7 +18,7 @@ use host::camera::SimCamera;
 use host::link::{Device, SimTransport};
 use host::scan::{Quiet, ScanOptions, scan};
 use host::simulator::SimSetup;
-use scanner_geometry::ScannerGeometry;
+use scanner_geometry::{SampleFace, ScannerGeometry};
 
 fn take_scan(material: &str, seed: u64, bin: u32, mirrors: usize, out: &Path) -> ScannerGeometry {
     take_scan_at(material, seed, bin, mirrors, protocol::DEFAULT_EXPOSURE_US, out)
@@ -125,7 +125,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     // is measured and the images are read in the holder's plane.
     let fit = regions.height_fit.expect("measured by default");
     assert!(fit.agreement < 0.05 && fit.sigma_mm.is_infinite(), "{fit:?}");
-    assert_eq!(regions.height_mm, 0.0);
+    assert!(regions.face.is_flush());
     for (li, d) in regions.light_dirs.iter().enumerate() {
         let want = albedo / std::f64::consts::PI * d[2];
         for vi in 0..regions.views.len() {
@@ -151,7 +151,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     let fit = regions.height_fit.expect("measured by default");
     eprintln!("leather's face: {:.4} ± {:.4} mm", fit.height_mm, fit.sigma_mm);
     assert!(fit.height_mm.abs() < 0.01 && fit.sigma_mm < 0.01, "{fit:?}");
-    assert_eq!(regions.height_mm, 0.0);
+    assert!(regions.face.is_flush(), "{fit:?}");
     // The same leather 0.3 mm proud of the holder's plane: its height is
     // measured on its own frames, and the images read there score as the
     // flush sample's do, where the holder's plane misregisters the views.
@@ -161,7 +161,10 @@ fn calibrated_region_images_match_the_ground_truth() {
     let scan = ScanFrames::open(&out, &g).unwrap();
     let measured = extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
     let fit = measured.height_fit.unwrap();
-    let in_plane = RegionOptions { height: SampleHeight::Given(0.0), ..RegionOptions::default() };
+    let in_plane = RegionOptions {
+        height: SampleHeight::Given(SampleFace::FLUSH),
+        ..RegionOptions::default()
+    };
     let misread = extract_regions(&g, &cal, &scan, &in_plane, &Silent).unwrap();
     let (at_height, in_plane) = (
         tests::captured_pair_psnr(&g, &measured, &sample).0,
@@ -173,8 +176,56 @@ fn calibrated_region_images_match_the_ground_truth() {
         fit.height_mm, fit.sigma_mm
     );
     assert!((fit.height_mm - 0.3).abs() < 0.02 && fit.sigma_mm < 0.01, "{fit:?}");
-    assert_eq!(measured.height_mm, fit.height_mm);
+    assert_eq!(measured.face, SampleFace::at_height(fit.height_mm));
     assert!(at_height > in_plane + 3.0 && at_height > psnr - 0.5, "{at_height} {in_plane}");
+    // The same leather 0.1 mm proud and tilted 1.5° along u, −1° along v
+    // (a piece that does not lie flat): the plane through its patches'
+    // heights is measured, and the images read on it score as the flush
+    // sample's do at the captured pairs (in the face's frame, where its
+    // texels see them), where a level face at the measured height does not.
+    let out = dir.path().join("leather-tilted");
+    let tilt = [1.5, -1.0];
+    let tilted = SimSetup {
+        bin,
+        seed,
+        sample_height_mm: 0.1,
+        sample_tilt_deg: tilt,
+        ..SimSetup::new("leather")
+    };
+    take_scan_of(&tilted, mirrors, protocol::DEFAULT_EXPOSURE_US, &out);
+    let scan = ScanFrames::open(&out, &g).unwrap();
+    let measured = extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
+    let fit = measured.height_fit.unwrap();
+    let level = SampleHeight::Given(SampleFace::at_height(fit.height_mm));
+    let misread = extract_regions(
+        &g,
+        &cal,
+        &scan,
+        &RegionOptions { height: level, ..RegionOptions::default() },
+        &Silent,
+    )
+    .unwrap();
+    let face = SampleFace { height_mm: 0.1, slope: tilt.map(|t: f64| t.to_radians().tan()) };
+    let (on_plane, level) = (
+        tests::captured_pair_psnr_on(&g, &measured, &sample, face).0,
+        tests::captured_pair_psnr_on(&g, &misread, &sample, face).0,
+    );
+    let deg = |s: [f64; 2]| s.map(|s| s.atan().to_degrees());
+    eprintln!(
+        "leather 0.1 mm proud, tilted {tilt:?}°: measured {:.4} ± {:.4} mm, {:.3?}° ± {:.3?}° \
+         ({} patches, {:.4} mm from a plane); PSNR read on that plane {on_plane:.2} dB, level \
+         at the measured height {level:.2} dB (flush: {psnr:.2} dB)",
+        fit.height_mm,
+        fit.sigma_mm,
+        deg(fit.slope),
+        deg(fit.slope_sigma),
+        fit.patches,
+        fit.flatness_mm
+    );
+    let [du, dv] = [deg(fit.slope)[0] - tilt[0], deg(fit.slope)[1] - tilt[1]];
+    assert!(du.abs() < 0.15 && dv.abs() < 0.15 && (fit.height_mm - 0.1).abs() < 0.02, "{fit:?}");
+    assert!(!measured.face.is_level(), "{fit:?}");
+    assert!(on_plane > level + 3.0 && on_plane > psnr - 0.5, "{on_plane} {level}");
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);

@@ -463,6 +463,21 @@ fn a_sample_height_out_of_range_is_a_usage_error() {
         assert_eq!(code, Some(2), "{err}");
         assert!(err.contains("`auto` or a height in mm within ±10"), "{bad}: {err}");
     }
+    // A tilt: the simulator's within ±10°, a given one with a given height
+    // and within ±20°, two numbers.
+    let (code, _, err) = sim_scan_with(&sub(dir.path(), "tilted"), &["--sim-sample-tilt", "12,0"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("a sample tilt of 12° is outside ±10°"), "{err}");
+    let regions = ["regions", "--scan", "s", "--calibration", "c.json", "-o", "r"];
+    for (extra, says) in [
+        (&["--sample-tilt", "1,1"][..], "--sample-tilt needs a given --sample-height"),
+        (&["--sample-height", "0", "--sample-tilt", "30,0"][..], "within ±20°"),
+        (&["--sample-height", "0", "--sample-tilt", "1"][..], "give two finite numbers"),
+    ] {
+        let (code, _, err) = run(&[&regions[..], extra].concat());
+        assert_eq!(code, Some(2), "{extra:?}: {err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+    }
 }
 
 #[test]

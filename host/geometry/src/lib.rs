@@ -25,6 +25,7 @@
 
 pub mod axes;
 pub mod check;
+pub mod face;
 pub mod polygon;
 
 pub use axes::{
@@ -32,6 +33,7 @@ pub use axes::{
     describe_axis, load_axes,
 };
 pub use check::{DesignCheck, DesignProblem, MirrorCheck};
+pub use face::SampleFace;
 pub use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};

@@ -17,7 +17,9 @@
 
 use rayon::prelude::*;
 use scanner_geometry::DVec3;
-use scanner_geometry::{AxisValues, ScannerGeometry, reflect_in_plane, world_to_sample};
+use scanner_geometry::{
+    AxisValues, SampleFace, ScannerGeometry, reflect_in_plane, world_to_sample,
+};
 use serde::{Deserialize, Serialize};
 
 use super::bundle::{Adjusted, AssemblyTolerances, Highlights, adjust};
@@ -808,6 +810,41 @@ impl ViewCalibration {
         }
         let h = self.homography_at_height(g, height_mm);
         ViewSampler::with_edge_offsets(h, self.edge_offsets_px.as_ref())
+    }
+
+    /// [`Self::sampler`] for a sample whose face lies at `face`
+    /// ([`Self::homography_at_face`]); the edges keep their offsets from
+    /// the homography's outline.
+    pub fn sampler_at_face(&self, g: &ScannerGeometry, face: SampleFace) -> ViewSampler {
+        if face.is_level() {
+            return self.sampler_at_height(g, face.height_mm);
+        }
+        let h = self.homography_at_face(g, face);
+        ViewSampler::with_edge_offsets(h, self.edge_offsets_px.as_ref())
+    }
+
+    /// The view's homography for the sample's face at `face` (material uv
+    /// on the face → frame px): a point of the face is seen where the ray
+    /// from the virtual camera through it meets the holder's plane, which
+    /// the calibration's homography maps. A central projection between
+    /// planes is a homography, fitted here to the outline's corners and
+    /// centre (exact). A level face is [`Self::homography_at_height`].
+    pub fn homography_at_face(&self, g: &ScannerGeometry, face: SampleFace) -> Homography {
+        if face.is_level() {
+            return self.homography_at_height(g, face.height_mm);
+        }
+        let c = DVec3::from(self.viewer_mm(g));
+        let size = g.sample.size_mm;
+        let src = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5]];
+        let dst: Vec<[f64; 2]> = src
+            .iter()
+            .map(|&uv| {
+                let p = face.point(size, uv);
+                let q = c + (p - c) * (c.z / (c.z - p.z));
+                self.homography.apply([q.x / size + 0.5, q.y / size + 0.5])
+            })
+            .collect();
+        Homography::fit(&src, &dst).unwrap_or(self.homography)
     }
 
     /// The view's homography for the plane `height_mm` above the holder's

@@ -43,7 +43,7 @@ use super::linalg::Homography;
 use super::scanread::ScanFrames;
 use crate::camera::Frame;
 use crate::exrio::PixelRect;
-use scanner_geometry::ScannerGeometry;
+use scanner_geometry::{SampleFace, ScannerGeometry};
 
 /// The heights searched, ± mm.
 pub const MAX_HEIGHT_MM: f64 = 3.0;
@@ -67,6 +67,19 @@ pub const MIN_AGREEMENT: f64 = 0.25;
 /// Views per jackknife group count: views `i` with `i % GROUPS == g`.
 const GROUPS: usize = 8;
 
+/// The face's tilt is measured on this many patches a side over the
+/// sample's inner 80 % (each patch's height, then a plane through them).
+pub const PATCHES: usize = 3;
+
+/// The largest tilt measured, degrees: each patch's height is searched
+/// within the height its centre has at this tilt about the sample's.
+pub const MAX_TILT_DEG: f64 = 5.0;
+
+/// A tilt is applied when it moves the outline's corners in some view by
+/// more than [`NEGLIGIBLE_PX`] or turns the face by more than this,
+/// degrees (the views' calibrated directions hold to 0.05°).
+pub const NEGLIGIBLE_TILT_DEG: f64 = 0.1;
+
 /// The measured height of the sample's face.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeightFit {
@@ -83,6 +96,20 @@ pub struct HeightFit {
     pub agreement: f64,
     /// The lights whose frames were read.
     pub lights: usize,
+    /// The face's rise along u and along v, mm per mm (a plane through the
+    /// patches' heights; 0 when fewer than four were measured).
+    pub slope: [f64; 2],
+    /// Their standard uncertainties (infinite: no tilt measured).
+    pub slope_sigma: [f64; 2],
+    /// The patches whose heights were measured (of [`PATCHES`]²).
+    pub patches: usize,
+    /// The patches' root-mean-square distance from the plane, mm: a face
+    /// curved, or one whose texture misleads a patch (0 below four
+    /// patches).
+    pub flatness_mm: f64,
+    /// The largest shift the tilt makes at the outline's corners in any
+    /// view, px.
+    pub tilt_px: f64,
 }
 
 impl HeightFit {
@@ -96,6 +123,38 @@ impl HeightFit {
         } else {
             0.0
         }
+    }
+
+    /// The face the region images use: tilted where the tilt is both
+    /// significant (beyond 4 σ) and large enough to matter (its parallax
+    /// above [`NEGLIGIBLE_PX`] or its angle above [`NEGLIGIBLE_TILT_DEG`]),
+    /// else level at [`Self::applied_mm`].
+    pub fn applied_face(&self) -> SampleFace {
+        let [a, b] = self.slope;
+        let [sa, sb] = self.slope_sigma;
+        let chi2 = (a / sa).powi(2) + (b / sb).powi(2);
+        let tilted = SampleFace { height_mm: self.height_mm, slope: self.slope };
+        let matters = self.tilt_px > NEGLIGIBLE_PX || tilted.tilt_deg() > NEGLIGIBLE_TILT_DEG;
+        if chi2 > 16.0 && matters && self.sigma_mm.is_finite() {
+            tilted
+        } else {
+            SampleFace::at_height(self.applied_mm())
+        }
+    }
+
+    /// The uncertainty of the applied face's height at the outline's
+    /// corners, mm (where its error moves the edges most).
+    pub fn corner_sigma_mm(&self, size_mm: f64) -> f64 {
+        let face = self.applied_face();
+        if face.is_flush() {
+            return 0.0;
+        }
+        let tilt = if face.is_level() {
+            0.0
+        } else {
+            (self.slope_sigma[0] + self.slope_sigma[1]) * size_mm / 2.0
+        };
+        self.sigma_mm + tilt
     }
 }
 
@@ -218,6 +277,91 @@ impl Views<'_> {
     }
 }
 
+/// A height found by [`search`].
+#[derive(Debug, Clone, Copy)]
+struct Found {
+    height: f64,
+    /// Jackknife standard uncertainty; infinite: no measurement (a minimum
+    /// at the end of the range, or views that agree no better there than
+    /// anywhere).
+    sigma: f64,
+    agreement: f64,
+}
+
+/// The height of least cost within `centre` ± `half` mm: scanned on
+/// `coarse`'s grid at `step` mm, refined by golden section on `views`'
+/// grid, its uncertainty by the delete-a-group jackknife.
+fn search(views: &Views<'_>, coarse: &Views<'_>, centre: f64, half: f64, step: f64) -> Found {
+    let steps = (half / step).ceil() as i64;
+    let all_views = |_: usize| true;
+    let costs: Vec<(f64, f64)> = (-steps..=steps)
+        .map(|k| {
+            let h = centre + k as f64 * step;
+            (h, coarse.cost(h, &all_views))
+        })
+        .collect();
+    let (best, best_cost) =
+        costs.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1)).unwrap_or((0.0, f64::INFINITY));
+    let typical = median(costs.iter().map(|c| c.1).collect()).unwrap_or(0.0);
+    let agreement = if typical > 0.0 { 1.0 - best_cost / typical } else { 0.0 };
+    let inside = (best - centre).abs() < half - step;
+    let tol = step * 1e-3;
+    let height = views.golden(best - step, best + step, tol, &all_views);
+    let groups: Vec<f64> = (0..GROUPS)
+        .map(|grp| views.golden(height - step, height + step, tol, &move |vi| vi % GROUPS != grp))
+        .collect();
+    let mean = groups.iter().sum::<f64>() / GROUPS as f64;
+    let var = (GROUPS - 1) as f64 / GROUPS as f64
+        * groups.iter().map(|h| (h - mean).powi(2)).sum::<f64>();
+    let measured = inside && agreement >= MIN_AGREEMENT;
+    Found { height, sigma: if measured { var.sqrt() } else { f64::INFINITY }, agreement }
+}
+
+/// A plane through heights: its height at the sample's centre, slopes and
+/// their uncertainties, and the points' rms distance from it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PlaneFit {
+    height: f64,
+    slope: [f64; 2],
+    sigma: [f64; 3],
+    rms: f64,
+}
+
+/// The weighted least-squares plane h + a x + b y through `points` (x, y
+/// mm, height mm, its σ). Its uncertainties are the fit's, inflated by the
+/// scatter when the points disagree beyond their σ; `None` below four
+/// points or when they do not span a plane.
+fn fit_plane(points: &[([f64; 2], f64, f64)]) -> Option<PlaneFit> {
+    if points.len() < 4 {
+        return None;
+    }
+    let mut a = [0.0; 9];
+    let mut b = [0.0; 3];
+    for &(p, h, s) in points {
+        let f = [1.0, p[0], p[1]];
+        let w = 1.0 / (s * s).max(1e-12);
+        for i in 0..3 {
+            b[i] += w * f[i] * h;
+            for j in 0..3 {
+                a[i * 3 + j] += w * f[i] * f[j];
+            }
+        }
+    }
+    let c = super::linalg::solve_spd(3, &a, &b)?;
+    let residual = |&(p, h, _): &([f64; 2], f64, f64)| h - c[0] - c[1] * p[0] - c[2] * p[1];
+    let chi2: f64 = points.iter().map(|q| (residual(q) / q.2.max(1e-6)).powi(2)).sum();
+    let scale = (chi2 / (points.len() - 3) as f64).max(1.0);
+    let mut sigma = [0.0; 3];
+    for (k, s) in sigma.iter_mut().enumerate() {
+        let mut e = [0.0; 3];
+        e[k] = 1.0;
+        *s = (super::linalg::solve_spd(3, &a, &e)?[k] * scale).sqrt();
+    }
+    let rms =
+        (points.iter().map(|q| residual(q).powi(2)).sum::<f64>() / points.len() as f64).sqrt();
+    Some(PlaneFit { height: c[0], slope: [c[1], c[2]], sigma, rms })
+}
+
 /// The least-squares quadratic in uv through `values` at `points`,
 /// evaluated there.
 fn quadratic_trend(points: &[[f64; 2]], values: &[f64]) -> Option<Vec<f64>> {
@@ -266,11 +410,12 @@ pub fn view_parallax(g: &ScannerGeometry, v: &ViewCalibration) -> f64 {
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum SampleHeight {
     /// Measured on the sample's own frames ([`measure_height`]) and used
-    /// where [`HeightFit::applied_mm`] says.
+    /// where [`HeightFit::applied_face`] says.
     #[default]
     Measure,
-    /// This far above the holder's plane, mm (0: in it, as the targets).
-    Given(f64),
+    /// There ([`SampleFace::FLUSH`]: in the holder's plane, as the
+    /// targets).
+    Given(SampleFace),
 }
 
 /// Measure the sample's height above the holder's plane on `scan`'s frames
@@ -359,37 +504,60 @@ pub fn measure_height(
     let coarse = Views { grid: grid(side / 2), ..views };
     let gain = parallax(g, &cal.views);
     let step = (1.0 / 3.0) / gain.max(1e-9);
-    let steps = (MAX_HEIGHT_MM / step).ceil() as i64;
-    let all_views = |_: usize| true;
-    let costs: Vec<(f64, f64)> = (-steps..=steps)
-        .map(|k| {
-            let h = k as f64 * step;
-            (h, coarse.cost(h, &all_views))
-        })
-        .collect();
-    let (best, best_cost) =
-        costs.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1)).unwrap_or((0.0, f64::INFINITY));
-    let typical = median(costs.iter().map(|c| c.1).collect()).unwrap_or(0.0);
-    let agreement = if typical > 0.0 { 1.0 - best_cost / typical } else { 0.0 };
-    let inside = best.abs() < MAX_HEIGHT_MM - step;
-    let tol = step * 1e-3;
-    let height = views.golden(best - step, best + step, tol, &all_views);
-    let groups: Vec<f64> = (0..GROUPS)
-        .map(|grp| views.golden(height - step, height + step, tol, &move |vi| vi % GROUPS != grp))
-        .collect();
-    let mean = groups.iter().sum::<f64>() / GROUPS as f64;
-    let var = (GROUPS - 1) as f64 / GROUPS as f64
-        * groups.iter().map(|h| (h - mean).powi(2)).sum::<f64>();
-    Ok(HeightFit {
-        height_mm: height,
-        // A minimum at the end of the range, or views that agree no better
-        // there than anywhere (nothing to register: a uniform sample), is
-        // no measurement.
-        sigma_mm: if inside && agreement >= MIN_AGREEMENT { var.sqrt() } else { f64::INFINITY },
-        agreement,
+    let whole = search(&views, &coarse, 0.0, MAX_HEIGHT_MM, step);
+    let mut fit = HeightFit {
+        height_mm: whole.height,
+        sigma_mm: whole.sigma,
+        agreement: whole.agreement,
         parallax_px_per_mm: gain,
         lights: lights.len(),
-    })
+        slope: [0.0; 2],
+        slope_sigma: [f64::INFINITY; 2],
+        patches: 0,
+        flatness_mm: 0.0,
+        tilt_px: 0.0,
+    };
+    if !whole.sigma.is_finite() {
+        return Ok(fit);
+    }
+    // The tilt: each patch's height where its views agree, searched
+    // within the height a tilt of MAX_TILT_DEG gives its centre, and the
+    // plane through them.
+    let size = g.sample.size_mm;
+    let patch_of = |uv: [f64; 2]| -> usize {
+        let k = |t: f64| (((t - 0.1) / 0.8 * PATCHES as f64) as usize).min(PATCHES - 1);
+        k(uv[1]) * PATCHES + k(uv[0])
+    };
+    let within = |grid: &[[f64; 2]], k: usize| -> Vec<[f64; 2]> {
+        grid.iter().copied().filter(|&uv| patch_of(uv) == k).collect()
+    };
+    let measured: Vec<([f64; 2], f64, f64)> = (0..PATCHES * PATCHES)
+        .filter_map(|k| {
+            let centre_uv =
+                [k % PATCHES, k / PATCHES].map(|i| 0.1 + 0.8 * (i as f64 + 0.5) / PATCHES as f64);
+            let at = [(centre_uv[0] - 0.5) * size, (centre_uv[1] - 0.5) * size];
+            let reach = MAX_TILT_DEG.to_radians().tan() * (at[0].abs() + at[1].abs());
+            let half = (reach + 3.0 * step).min(MAX_HEIGHT_MM);
+            let patch = Views { grid: within(&views.grid, k), ..views };
+            let patch_coarse = Views { grid: within(&coarse.grid, k), ..views };
+            let found = search(&patch, &patch_coarse, whole.height, half, step);
+            found.sigma.is_finite().then_some((at, found.height, found.sigma.max(1e-4)))
+        })
+        .collect();
+    fit.patches = measured.len();
+    if let Some(plane) = fit_plane(&measured) {
+        fit.slope = plane.slope;
+        fit.slope_sigma = [plane.sigma[1], plane.sigma[2]];
+        fit.flatness_mm = plane.rms;
+        fit.tilt_px = (plane.slope[0].abs() + plane.slope[1].abs()) * size / 2.0 * gain;
+        // Tilted, the face's height at the centre is the plane's (the
+        // whole sample's views agree best about a blend of heights).
+        let tilted = HeightFit { height_mm: plane.height, sigma_mm: plane.sigma[0], ..fit };
+        if !tilted.applied_face().is_level() {
+            fit = tilted;
+        }
+    }
+    Ok(fit)
 }
 
 /// Frame `f` over `rect` (row-major), its channels times `white`, as
@@ -425,6 +593,11 @@ mod tests {
             parallax_px_per_mm: 4.0,
             agreement: 0.8,
             lights: 8,
+            slope: [0.0; 2],
+            slope_sigma: [f64::INFINITY; 2],
+            patches: 0,
+            flatness_mm: 0.0,
+            tilt_px: 0.0,
         };
         assert_eq!(fit(0.3, 0.002).applied_mm(), 0.3);
         assert_eq!(fit(-0.3, 0.002).applied_mm(), -0.3);
@@ -434,6 +607,57 @@ mod tests {
         assert_eq!(fit(0.04, 0.0001).applied_mm(), 0.0);
         // No measurement.
         assert_eq!(fit(0.3, f64::INFINITY).applied_mm(), 0.0);
+    }
+
+    /// The plane through patches' heights: exact through points on one,
+    /// its uncertainties inflated when they scatter beyond their σ, none
+    /// below four points.
+    #[test]
+    fn the_plane_through_the_patches_is_weighted_least_squares() {
+        let at = |x: f64, y: f64| 0.2 + 0.03 * x - 0.01 * y;
+        let grid: Vec<[f64; 2]> =
+            (0..9).map(|k| [(k % 3) as f64 * 8.0 - 8.0, (k / 3) as f64 * 8.0 - 8.0]).collect();
+        let exact: Vec<_> = grid.iter().map(|&p| (p, at(p[0], p[1]), 0.01)).collect();
+        let fit = fit_plane(&exact).unwrap();
+        assert!((fit.height - 0.2).abs() < 1e-12 && fit.rms < 1e-12, "{fit:?}");
+        assert!((fit.slope[0] - 0.03).abs() < 1e-12 && (fit.slope[1] + 0.01).abs() < 1e-12);
+        // σ of the centre's height: 0.01 / √9 from nine equal points.
+        assert!((fit.sigma[0] - 0.01 / 3.0).abs() < 1e-9, "{fit:?}");
+        // Scatter of ±0.05 against σ 0.01: the uncertainties grow with it.
+        let bumpy: Vec<_> = exact
+            .iter()
+            .enumerate()
+            .map(|(k, &(p, h, s))| (p, h + if k % 2 == 0 { 0.05 } else { -0.05 }, s))
+            .collect();
+        let rough = fit_plane(&bumpy).unwrap();
+        assert!(rough.sigma[1] > 3.0 * fit.sigma[1] && rough.rms > 0.04, "{rough:?}");
+        assert!(fit_plane(&exact[..3]).is_none());
+    }
+
+    /// A tilt is applied when significant and large enough to matter; the
+    /// face's height is then the plane's.
+    #[test]
+    fn a_tilt_is_applied_when_significant_and_not_negligible() {
+        let fit = |slope: [f64; 2], sigma: f64, tilt_px: f64| HeightFit {
+            height_mm: 0.1,
+            sigma_mm: 0.003,
+            parallax_px_per_mm: 4.0,
+            agreement: 0.8,
+            lights: 8,
+            slope,
+            slope_sigma: [sigma; 2],
+            patches: 9,
+            flatness_mm: 0.01,
+            tilt_px,
+        };
+        let f = fit([0.02, -0.01], 0.001, 1.5).applied_face();
+        assert_eq!(f, SampleFace { height_mm: 0.1, slope: [0.02, -0.01] });
+        // Not significant (2.2 σ): level at the height.
+        assert_eq!(fit([0.02, -0.01], 0.01, 1.5).applied_face(), SampleFace::at_height(0.1));
+        // Significant but negligible: 0.06°, 0.1 px.
+        assert_eq!(fit([0.001, 0.0], 0.0001, 0.1).applied_face(), SampleFace::at_height(0.1));
+        // Without a patch measured.
+        assert!(fit([0.0; 2], f64::INFINITY, 0.0).applied_face().is_level());
     }
 
     /// The trend a view's chroma loses is the least-squares quadratic: a

@@ -623,7 +623,7 @@ mod tests {
                 .map(|p| (0..s * s).map(|t| image(&dirs, p / n, p % n, t)).collect())
                 .collect(),
             detail: None,
-            height_mm: 0.0,
+            face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
         }
     }

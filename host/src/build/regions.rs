@@ -19,6 +19,7 @@ use super::superres::{
     DetailLayer, Footprints, Image, SharpenOptions, detail_layer, sharpen_light,
 };
 use crate::hdr;
+use scanner_geometry::{DVec3, SampleFace};
 
 /// Region images of one scan.
 #[derive(Debug, Clone, PartialEq)]
@@ -49,9 +50,10 @@ pub struct RegionSet {
     /// S × S image looked up bilinearly, itself looked up bilinearly
     /// ([`Self::detail_at`]); `None` without multi-view detail.
     pub detail: Option<DetailLayer>,
-    /// The sample's face above the holder's plane the images were read
-    /// at, mm ([`RegionOptions::height`]).
-    pub height_mm: f64,
+    /// Where the images were read the sample's face to lie
+    /// ([`RegionOptions::height`]); the directions and viewers above are in
+    /// its frame.
+    pub face: SampleFace,
     /// The measurement it came from, if it was measured.
     pub height_fit: Option<HeightFit>,
 }
@@ -315,15 +317,15 @@ pub fn extract_regions(
         region_memory(size, lights.len(), cal.views.len(), frame_px, rayon::current_num_threads());
     check_memory(need, size, available_memory())?;
     let albedo = cal.colour.white_albedo;
-    let (height, height_fit) = match opts.height {
-        SampleHeight::Given(h) => (h, None),
+    let (face, height_fit) = match opts.height {
+        SampleHeight::Given(face) => (face, None),
         SampleHeight::Measure => {
             let fit = measure_height(g, cal, scan, progress)?;
-            (fit.applied_mm(), Some(fit))
+            (fit.applied_face(), Some(fit))
         }
     };
     progress.stage("sample frames", lights.len());
-    let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler_at_height(g, height)).collect();
+    let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler_at_face(g, face)).collect();
     let windows: Vec<_> = samplers.iter().map(|s| s.homography().window(4.0)).collect();
     // Per view and texel, what is the same under every light: the pixels
     // it is resampled from (the filter), the colour calibration's view
@@ -333,10 +335,7 @@ pub fn extract_regions(
     // A measured height moves the edges by its uncertainty times the
     // view's parallax: a view reads its straddling pixels only while that
     // stays within the edges' EDGE_PRECISE_PX.
-    let height_sigma = match (height, height_fit) {
-        (0.0, _) | (_, None) => 0.0,
-        (_, Some(f)) => f.sigma_mm,
-    };
+    let height_sigma = height_fit.map_or(0.0, |f| f.corner_sigma_mm(g.sample.size_mm));
     let straddles: Vec<bool> = cal
         .views
         .iter()
@@ -460,18 +459,22 @@ pub fn extract_regions(
     Ok(RegionSet {
         detail,
         size,
-        light_dirs: light_index.iter().map(|&ci| cal.lights[ci].direction).collect(),
-        view_dirs: cal.views.iter().map(|v| v.direction).collect(),
+        light_dirs: light_index
+            .iter()
+            .map(|&ci| face.to_face(DVec3::from(cal.lights[ci].direction)).to_array())
+            .collect(),
+        view_dirs: cal
+            .views
+            .iter()
+            .map(|v| face.to_face(DVec3::from(v.direction)).to_array())
+            .collect(),
         viewers_mm: cal
             .views
             .iter()
-            .map(|v| {
-                let c = v.viewer_mm(g);
-                [c[0], c[1], c[2] - height]
-            })
+            .map(|v| face.to_face_point(DVec3::from(v.viewer_mm(g))).to_array())
             .collect(),
         sample_mm: g.sample.size_mm,
-        height_mm: height,
+        face,
         height_fit,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
@@ -523,7 +526,7 @@ mod tests {
                 bases: vec![(0..f * f).map(|t| [(t % 3) as f32 * 0.5 - 0.5; 3]).collect()],
                 coefficients: vec![vec![-0.5], vec![0.0], vec![0.75]],
             }),
-            height_mm: 0.0,
+            face: SampleFace::FLUSH,
             height_fit: None,
         };
         let dir = tempfile::tempdir().unwrap();

@@ -643,7 +643,7 @@ mod tests {
             sample_mm: 25.4,
             images: Vec::new(),
             detail: None,
-            height_mm: 0.0,
+            face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
         };
         let mut state = 0x9e37_79b9_7f4a_7c15u64;

@@ -6,12 +6,12 @@ use std::time::Instant;
 
 use anyhow::anyhow;
 use indicatif::{ProgressBar, ProgressStyle};
-use scanner_geometry::ScannerGeometry;
+use scanner_geometry::{SampleFace, ScannerGeometry};
 
 use super::Failure;
 use super::plot::{Caption, draw_captions};
 use crate::build::calibrate::{BuildProgress, CalibrateOptions, Calibration};
-use crate::build::height::SampleHeight;
+use crate::build::height::{PATCHES, SampleHeight};
 use crate::build::locate::Checkerboard;
 use crate::build::regions::EdgePixels;
 use crate::build::scanread::ScanFrames;
@@ -376,6 +376,12 @@ pub struct ScanInputs {
     #[arg(long, value_parser = parse_sample_height, allow_hyphen_values = true,
           default_value = "auto", value_name = "auto|MM")]
     pub sample_height: SampleHeight,
+    /// The sample's face tilted DEG_U,DEG_V degrees (rising along u, along
+    /// v), with a given --sample-height; `auto` measures the tilt with the
+    /// height.
+    #[arg(long, value_parser = super::commands::parse_tilt, allow_hyphen_values = true,
+          value_name = "DEG_U,DEG_V")]
+    pub sample_tilt: Option<[f64; 2]>,
 }
 
 /// `--sample-height`: `auto` or a height in mm within ±10.
@@ -384,15 +390,38 @@ fn parse_sample_height(s: &str) -> Result<SampleHeight, String> {
         return Ok(SampleHeight::Measure);
     }
     match s.parse::<f64>() {
-        Ok(h) if h.is_finite() && h.abs() <= 10.0 => Ok(SampleHeight::Given(h)),
+        Ok(h) if h.is_finite() && h.abs() <= 10.0 => {
+            Ok(SampleHeight::Given(SampleFace::at_height(h)))
+        }
         _ => Err(format!("{s:?}: `auto` or a height in mm within ±10")),
     }
 }
 
+/// The largest tilt `--sample-tilt` takes about either axis, degrees.
+const MAX_TILT_GIVEN_DEG: f64 = 20.0;
+
 /// Say where the region images took the sample's face to lie.
 fn say_height(regions: &crate::build::RegionSet) {
+    let face = regions.face;
+    let tilt = |slope: [f64; 2]| slope.map(|s| s.atan().to_degrees());
     match regions.height_fit {
-        Some(f) if regions.height_mm != 0.0 => println!(
+        Some(f) if !face.is_level() => {
+            let [tu, tv] = tilt(face.slope);
+            let [su, sv] = tilt(f.slope_sigma);
+            println!(
+                "sample's face measured {:.3} ± {:.3} mm above the holder's plane at its centre, \
+                 tilted {tu:.3}° ± {su:.3}° along u and {tv:.3}° ± {sv:.3}° along v ({} of {} \
+                 patches, {:.3} mm from a plane; up to {:.2} px of parallax at the corners): \
+                 region images read on that plane, directions in its frame",
+                f.height_mm,
+                f.sigma_mm,
+                f.patches,
+                PATCHES * PATCHES,
+                f.flatness_mm,
+                f.tilt_px + f.height_mm.abs() * f.parallax_px_per_mm
+            )
+        }
+        Some(f) if !face.is_flush() => println!(
             "sample's face measured {:.3} ± {:.3} mm above the holder's plane (the views agree \
              there; up to {:.2} px of parallax): region images read there, the edges' straddling \
              pixels where that places them to 0.01 px",
@@ -408,8 +437,13 @@ fn say_height(regions: &crate::build::RegionSet) {
             f.height_mm.abs() * f.parallax_px_per_mm,
             f.lights
         ),
-        None if regions.height_mm != 0.0 => {
-            println!("region images read {} mm above the holder's plane", regions.height_mm)
+        None if !face.is_flush() => {
+            let [tu, tv] = tilt(face.slope);
+            println!(
+                "region images read {} mm above the holder's plane, tilted {tu}° along u and \
+                 {tv}° along v",
+                face.height_mm
+            )
         }
         None => {}
     }
@@ -438,6 +472,20 @@ pub enum Detail {
 impl ScanInputs {
     /// The region size in range (a usage error otherwise).
     fn check(&self) -> Result<(), Failure> {
+        if let Some(t) = self.sample_tilt {
+            if self.sample_height == SampleHeight::Measure {
+                return Err(Failure(
+                    2,
+                    anyhow!("--sample-tilt needs a given --sample-height (auto measures the tilt)"),
+                ));
+            }
+            if t.iter().any(|t| t.abs() > MAX_TILT_GIVEN_DEG) {
+                return Err(Failure(
+                    2,
+                    anyhow!("--sample-tilt {t:?}: within ±{MAX_TILT_GIVEN_DEG}° about each axis"),
+                ));
+            }
+        }
         match self.size {
             Some(s) if !(4..=4096).contains(&s) => {
                 Err(Failure(2, anyhow!("--size must be in 4…4096, got {s}")))
@@ -456,7 +504,13 @@ impl ScanInputs {
                 EdgeArg::Inside => EdgePixels::Inside,
                 EdgeArg::Precise => EdgePixels::Precise,
             },
-            height: self.sample_height,
+            height: match (self.sample_height, self.sample_tilt) {
+                (SampleHeight::Given(face), Some(t)) => SampleHeight::Given(SampleFace {
+                    slope: t.map(|t| t.to_radians().tan()),
+                    ..face
+                }),
+                (height, _) => height,
+            },
         }
     }
 

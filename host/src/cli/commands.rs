@@ -101,6 +101,11 @@ pub struct DeviceArgs {
     /// `scanner regions` and `build` measure it (`--sample-height`).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true, value_name = "MM")]
     pub sim_sample_height: f64,
+    /// Simulator: the sample's face tilted DEG_U,DEG_V degrees (rising
+    /// along u, along v; a sample that does not lie flat). `scanner
+    /// regions` and `build` measure it with the height.
+    #[arg(long, value_parser = parse_tilt, allow_hyphen_values = true, value_name = "DEG_U,DEG_V")]
+    pub sim_sample_tilt: Option<[f64; 2]>,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
     /// board comes with them saved (unless --sim-board-axes).
@@ -142,6 +147,7 @@ impl DeviceArgs {
             trigger_latency_us: self.sim_trigger_latency_us,
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
             sample_height_mm: self.sim_sample_height,
+            sample_tilt_deg: self.sim_sample_tilt.unwrap_or([0.0; 2]),
             axes: match &self.sim_axes {
                 Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
                 None => protocol::default_axes(),
@@ -157,14 +163,23 @@ impl DeviceArgs {
 
 /// `K1,K2`: two numbers.
 fn parse_k1_k2(s: &str) -> Result<[f64; 2], String> {
+    parse_pair(s, "K1,K2")
+}
+
+pub(super) fn parse_tilt(s: &str) -> Result<[f64; 2], String> {
+    parse_pair(s, "DEG_U,DEG_V")
+}
+
+/// Two finite numbers separated by a comma (`form` names them).
+fn parse_pair(s: &str, form: &str) -> Result<[f64; 2], String> {
     let k: Vec<f64> = s
         .split(',')
         .map(|x| x.trim().parse::<f64>())
         .collect::<Result<_, _>>()
         .map_err(|e| format!("{s:?}: {e}"))?;
     match k[..] {
-        [k1, k2] if k1.is_finite() && k2.is_finite() => Ok([k1, k2]),
-        _ => Err(format!("{s:?}: give two finite numbers, K1,K2")),
+        [a, b] if a.is_finite() && b.is_finite() => Ok([a, b]),
+        _ => Err(format!("{s:?}: give two finite numbers, {form}")),
     }
 }
 
@@ -1600,6 +1615,7 @@ pub fn demo(
             sim_trigger_latency_us: 0,
             sim_lens_distortion: None,
             sim_sample_height: 0.0,
+            sim_sample_tilt: None,
             sim_geometry: geometry.map(Path::to_path_buf),
             sim_axes: None,
             sim_board_axes: None,
@@ -1660,6 +1676,7 @@ pub fn demo(
         detail: super::build::Detail::AllViews,
         edge_pixels: super::build::EdgeArg::Precise,
         sample_height: crate::build::height::SampleHeight::Measure,
+        sample_tilt: None,
     };
     let built = super::build::build_cmd(
         &input,
