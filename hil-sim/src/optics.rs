@@ -123,14 +123,17 @@ pub struct ViewHit {
     pub uv: [f64; 2],
     /// Point on the sample plane (world, mm).
     pub point: DVec3,
-    /// Direction from the sample towards the viewer, sample-local.
+    /// Direction from the sample towards the viewer, in the frame of the
+    /// sample's face (sample-local when it lies in the holder's plane).
     pub view: DVec3,
     /// Transmission to the camera (mirror reflectance).
     pub transmission: f64,
 }
 
 /// One beam path onto the sample: via `mirror`, light arriving from `light`
-/// (sample-local unit vector) with irradiance `irradiance` perpendicular to it.
+/// (unit vector in the frame of the sample's face, sample-local when it
+/// lies in the holder's plane) with irradiance `irradiance` perpendicular
+/// to it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LightPath {
     /// The mirror the beam reflects in.

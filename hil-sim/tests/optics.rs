@@ -11,7 +11,7 @@ use hil_sim::{FaultEvent, FaultPlan, SimConfig};
 use protocol::{Axis, Event, Reply, Request};
 
 use glam::DVec3;
-use hil_sim::geometry::{AxisValues, ScannerGeometry};
+use hil_sim::geometry::{AxisValues, SampleFace, ScannerGeometry, world_to_sample};
 use hil_sim::materials::{self, Sample};
 use hil_sim::optics::{Exposure, Frame, OpticalSim};
 
@@ -534,4 +534,31 @@ fn the_design_check_finds_the_stray_light_the_optics_render() {
         }
     }
     assert!(stray_found > 0, "the wider beams light neighbours");
+}
+
+/// A sample whose face is tilted about its centre: each view still sees
+/// the centre where a flush one's is (the plane passes through it), its
+/// directions turned into the face's frame, and a point off the centre on
+/// the face's plane at the uv measured along it.
+#[test]
+fn a_tilted_face_is_seen_on_its_plane_and_in_its_frame() {
+    let flush = sim(8, "leather", SEED);
+    let face = SampleFace { height_mm: 0.0, slope: [0.035, -0.017] };
+    let tilted = flush.clone().with_sample_face(face);
+    let g = flush.geometry().clone();
+    for l in [0, 7, 23, 39] {
+        let [x, y] = g.view_point(l, [0.5, 0.5]).unwrap();
+        let (a, b) = (flush.trace(x, y).unwrap(), tilted.trace(x, y).unwrap());
+        assert!((a.point - b.point).length() < 1e-9, "{l}");
+        assert!((a.uv[0] - b.uv[0]).abs() < 1e-9 && (a.uv[1] - b.uv[1]).abs() < 1e-9);
+        assert!((face.to_face(a.view) - b.view).length() < 1e-12, "{l}");
+        // Off the centre: on the plane, where the face's uv puts it.
+        let [x, y] = g.view_point(l, [0.2, 0.7]).unwrap();
+        let hit = tilted.trace(x, y).unwrap();
+        let p = world_to_sample(hit.point);
+        assert!((p.z - face.height_at(p.x, p.y)).abs() < 1e-9, "{l}: {p}");
+        assert!((face.point(g.sample.size_mm, hit.uv) - p).length() < 1e-9, "{l}");
+        // A ray towards the raised side meets the face before the holder's plane.
+        assert!((hit.uv[0] - 0.2).abs() > 1e-4, "{l}: {:?}", hit.uv);
+    }
 }

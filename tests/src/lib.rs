@@ -43,15 +43,24 @@ const SAMPLE_HEIGHT: &str = "--sample-height";
 const HEIGHT: &str = "--height";
 /// The simulated samples' face tilted, degrees along u and v: `U,V`.
 const SAMPLE_TILT: &str = "--sample-tilt";
-const REGION_OPTIONS: [&str; 6] = [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, HEIGHT];
+const REGION_OPTIONS: [&str; 7] = [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, HEIGHT, TILT];
+
+/// With a given `--height MM`: the face's tilt the builder reads it at,
+/// `U,V` degrees.
+const TILT: &str = "--tilt";
 
 /// `--sample-tilt U,V` (degrees; default level).
 fn sample_tilt() -> [f64; 2] {
-    let s = arg(SAMPLE_TILT, "0,0".to_string());
+    degrees_pair(SAMPLE_TILT)
+}
+
+/// Option `name`'s `U,V` in degrees (default 0, 0).
+fn degrees_pair(name: &str) -> [f64; 2] {
+    let s = arg(name, "0,0".to_string());
     let t: Vec<f64> = s.split(',').filter_map(|x| x.trim().parse().ok()).collect();
     match t[..] {
         [u, v] if u.is_finite() && v.is_finite() => [u, v],
-        _ => usage_error(&format!("{SAMPLE_TILT} {s:?}: two numbers, degrees along u and v")),
+        _ => usage_error(&format!("{name} {s:?}: two numbers, degrees along u and v")),
     }
 }
 
@@ -132,11 +141,12 @@ pub fn region_options() -> RegionOptions {
     };
     let height = match arg(HEIGHT, "auto".to_string()).as_str() {
         "auto" => SampleHeight::Measure,
-        mm => {
-            SampleHeight::Given(scanner_geometry::SampleFace::at_height(mm.parse().unwrap_or_else(
-                |_| usage_error(&format!("{HEIGHT} {mm:?}: auto or a height in mm")),
-            )))
-        }
+        mm => SampleHeight::Given(SampleFace {
+            height_mm: mm.parse().unwrap_or_else(|_| {
+                usage_error(&format!("{HEIGHT} {mm:?}: auto or a height in mm"))
+            }),
+            slope: degrees_pair(TILT).map(|t| t.to_radians().tan()),
+        }),
     };
     RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height }
 }

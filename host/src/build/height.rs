@@ -290,8 +290,13 @@ struct Found {
 
 /// The height of least cost within `centre` ± `half` mm: scanned on
 /// `coarse`'s grid at `step` mm, refined by golden section on `views`'
-/// grid, its uncertainty by the delete-a-group jackknife.
-fn search(views: &Views<'_>, coarse: &Views<'_>, centre: f64, half: f64, step: f64) -> Found {
+/// grid to `tol` mm, its uncertainty by the delete-a-group jackknife.
+fn search(
+    views: &Views<'_>,
+    coarse: &Views<'_>,
+    centre: f64,
+    [half, step, tol]: [f64; 3],
+) -> Found {
     let steps = (half / step).ceil() as i64;
     let all_views = |_: usize| true;
     let costs: Vec<(f64, f64)> = (-steps..=steps)
@@ -305,7 +310,6 @@ fn search(views: &Views<'_>, coarse: &Views<'_>, centre: f64, half: f64, step: f
     let typical = median(costs.iter().map(|c| c.1).collect()).unwrap_or(0.0);
     let agreement = if typical > 0.0 { 1.0 - best_cost / typical } else { 0.0 };
     let inside = (best - centre).abs() < half - step;
-    let tol = step * 1e-3;
     let height = views.golden(best - step, best + step, tol, &all_views);
     let groups: Vec<f64> = (0..GROUPS)
         .map(|grp| views.golden(height - step, height + step, tol, &move |vi| vi % GROUPS != grp))
@@ -504,7 +508,7 @@ pub fn measure_height(
     let coarse = Views { grid: grid(side / 2), ..views };
     let gain = parallax(g, &cal.views);
     let step = (1.0 / 3.0) / gain.max(1e-9);
-    let whole = search(&views, &coarse, 0.0, MAX_HEIGHT_MM, step);
+    let whole = search(&views, &coarse, 0.0, [MAX_HEIGHT_MM, step, step * 1e-3]);
     let mut fit = HeightFit {
         height_mm: whole.height,
         sigma_mm: whole.sigma,
@@ -540,7 +544,8 @@ pub fn measure_height(
             let half = (reach + 3.0 * step).min(MAX_HEIGHT_MM);
             let patch = Views { grid: within(&views.grid, k), ..views };
             let patch_coarse = Views { grid: within(&coarse.grid, k), ..views };
-            let found = search(&patch, &patch_coarse, whole.height, half, step);
+            // A patch's height to 1 % of a step (its σ is tens of %).
+            let found = search(&patch, &patch_coarse, whole.height, [half, step, step * 1e-2]);
             found.sigma.is_finite().then_some((at, found.height, found.sigma.max(1e-4)))
         })
         .collect();

@@ -404,6 +404,14 @@ const MAX_TILT_GIVEN_DEG: f64 = 20.0;
 fn say_height(regions: &crate::build::RegionSet) {
     let face = regions.face;
     let tilt = |slope: [f64; 2]| slope.map(|s| s.atan().to_degrees());
+    // A tilt measured and found level.
+    let level = |f: &crate::build::height::HeightFit| -> String {
+        if !f.slope_sigma[0].is_finite() {
+            return String::new();
+        }
+        let ([tu, tv], [su, sv]) = (tilt(f.slope), tilt(f.slope_sigma));
+        format!(", level: tilted {tu:.3}° ± {su:.3}° along u and {tv:.3}° ± {sv:.3}° along v")
+    };
     match regions.height_fit {
         Some(f) if !face.is_level() => {
             let [tu, tv] = tilt(face.slope);
@@ -423,19 +431,21 @@ fn say_height(regions: &crate::build::RegionSet) {
         }
         Some(f) if !face.is_flush() => println!(
             "sample's face measured {:.3} ± {:.3} mm above the holder's plane (the views agree \
-             there; up to {:.2} px of parallax): region images read there, the edges' straddling \
-             pixels where that places them to 0.01 px",
-            f.height_mm,
-            f.sigma_mm,
-            f.height_mm.abs() * f.parallax_px_per_mm
-        ),
-        Some(f) => println!(
-            "sample's face in the holder's plane: measured {:.4} ± {:.4} mm ({:.3} px of \
-             parallax, from {} lights' frames)",
+             there; up to {:.2} px of parallax){}: region images read there, the edges' \
+             straddling pixels where that places them to 0.01 px",
             f.height_mm,
             f.sigma_mm,
             f.height_mm.abs() * f.parallax_px_per_mm,
-            f.lights
+            level(&f)
+        ),
+        Some(f) => println!(
+            "sample's face in the holder's plane: measured {:.4} ± {:.4} mm ({:.3} px of \
+             parallax, from {} lights' frames){}",
+            f.height_mm,
+            f.sigma_mm,
+            f.height_mm.abs() * f.parallax_px_per_mm,
+            f.lights,
+            level(&f)
         ),
         None if !face.is_flush() => {
             let [tu, tv] = tilt(face.slope);
