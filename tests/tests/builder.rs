@@ -291,19 +291,23 @@ fn bad_inputs_exit_3_and_write_nothing() {
     };
     let (code, err) = regions_with(&d("regions"), &[]);
     assert_eq!(code, Some(0), "{err}");
-    // 3 × 40 region images and the detail layer.
-    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40 + 1);
+    // 3 × 40 region images, the detail layer and the index.
+    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40 + 2);
     assert!(dir.path().join("regions/detail.exr").is_file());
+    let index: host::build::regions::RegionIndex =
+        serde_json::from_slice(&std::fs::read(dir.path().join("regions/regions.json")).unwrap())
+            .unwrap();
+    assert_eq!((index.lights.len(), index.views.len(), index.face.measured), (3, 40, true));
     // Its own output is replaced whole; a directory holding anything else
     // (a user's file, the scan itself, the folder of the inputs) is refused
     // before any work, exit 4, and left as it was.
     let regions_to = |out: &str| regions_with(out, &[]);
     assert_eq!(regions_to(&d("regions")).0, Some(0));
-    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40 + 1);
+    assert_eq!(std::fs::read_dir(d("regions")).unwrap().count(), 3 * 40 + 2);
     // `--detail own-view`: each view's resampling alone, other images.
     let with_detail = |detail: &str, out: &str| regions_with(out, &["--detail", detail]);
     assert_eq!(with_detail("own-view", &d("regions-own")).0, Some(0));
-    assert_eq!(std::fs::read_dir(d("regions-own")).unwrap().count(), 3 * 40, "no layer");
+    assert_eq!(std::fs::read_dir(d("regions-own")).unwrap().count(), 3 * 40 + 1, "no layer");
     let differ = std::fs::read_dir(d("regions"))
         .unwrap()
         .map(|e| e.unwrap().file_name())
@@ -327,8 +331,11 @@ fn bad_inputs_exit_3_and_write_nothing() {
         std::fs::read(dir.path().join(a).join(n)).unwrap()
             == std::fs::read(dir.path().join(b).join(n)).unwrap()
     };
-    let names: Vec<_> =
-        std::fs::read_dir(d("regions-own")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let names: Vec<_> = std::fs::read_dir(d("regions-own"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .filter(|n| n != "regions.json")
+        .collect();
     let differ = names.iter().filter(|n| !same("regions-inside", "regions-straddling", n)).count();
     assert!(differ > 100, "{differ} of 120 images differ");
     let calibration = host::build::Calibration::load(Path::new(&cal)).unwrap();

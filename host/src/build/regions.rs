@@ -114,6 +114,10 @@ impl RegionSet {
     pub fn write_exr(&self, dir: &Path) -> Result<(), BuildError> {
         let out = |e: String| BuildError::Output(e);
         std::fs::create_dir_all(dir).map_err(|e| out(format!("{}: {e}", dir.display())))?;
+        let index = serde_json::to_vec_pretty(&self.index()).map_err(|e| out(e.to_string()))?;
+        let path = dir.join(INDEX_FILE);
+        crate::fsutil::write_atomic(&path, &index)
+            .map_err(|e| out(format!("{}: {e}", path.display())))?;
         (0..self.images.len()).into_par_iter().try_for_each(|i| {
             let (li, vi) = (i / self.views.len(), i % self.views.len());
             let frame = crate::camera::Frame {
@@ -145,6 +149,85 @@ impl RegionSet {
             let rgb = (0..f * f).flat_map(|t| d.factor(li, |img| img[t])).collect();
             write(format!("detail-l{:02}.exr", self.lights[li]), rgb)
         })
+    }
+}
+
+/// The file beside the region images that says what they are
+/// (docs/calibration-format.md, "Region images").
+pub const INDEX_FILE: &str = "regions.json";
+
+/// What [`INDEX_FILE`] holds.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RegionIndex {
+    /// `"scanner-regions"`.
+    pub format: String,
+    /// 1.
+    pub version: u32,
+    /// S, px.
+    pub size: usize,
+    /// Side of the sample, mm.
+    pub sample_mm: f64,
+    /// Where the images were read the sample's face to lie: its centre's
+    /// height above the holder's plane, mm, and its rise along u and v.
+    pub face: FaceRecord,
+    /// The lit mirrors, with their light directions (in the face's frame).
+    pub lights: Vec<DirectionRecord>,
+    /// The seen mirrors, with their view directions and virtual cameras
+    /// (in the face's frame, mm from its centre).
+    pub views: Vec<DirectionRecord>,
+}
+
+/// [`RegionIndex::face`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaceRecord {
+    pub height_mm: f64,
+    pub slope: [f64; 2],
+    /// The face measured on the sample's frames (`false`: given).
+    pub measured: bool,
+}
+
+/// A mirror of [`RegionIndex`] and its direction.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DirectionRecord {
+    pub mirror: usize,
+    pub direction: [f64; 3],
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub viewer_mm: Option<[f64; 3]>,
+}
+
+impl RegionSet {
+    /// What [`INDEX_FILE`] holds for these images.
+    pub fn index(&self) -> RegionIndex {
+        RegionIndex {
+            format: "scanner-regions".into(),
+            version: 1,
+            size: self.size,
+            sample_mm: self.sample_mm,
+            face: FaceRecord {
+                height_mm: self.face.height_mm,
+                slope: self.face.slope,
+                measured: self.height_fit.is_some(),
+            },
+            lights: self
+                .lights
+                .iter()
+                .zip(&self.light_dirs)
+                .map(|(&mirror, &direction)| DirectionRecord { mirror, direction, viewer_mm: None })
+                .collect(),
+            views: self
+                .views
+                .iter()
+                .zip(self.view_dirs.iter().zip(&self.viewers_mm))
+                .map(|(&mirror, (&direction, &c))| DirectionRecord {
+                    mirror,
+                    direction,
+                    viewer_mm: Some(c),
+                })
+                .collect(),
+        }
     }
 }
 
@@ -531,7 +614,15 @@ mod tests {
         };
         let dir = tempfile::tempdir().unwrap();
         set.write_exr(dir.path()).unwrap();
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 9 + 1 + 3);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 9 + 1 + 3 + 1);
+        // The index: what the images are, their directions and the face.
+        let index: RegionIndex =
+            serde_json::from_slice(&std::fs::read(dir.path().join(INDEX_FILE)).unwrap()).unwrap();
+        assert_eq!(index, set.index());
+        assert_eq!((index.size, index.views[2].mirror, index.lights[1].mirror), (4, 2, 7));
+        assert_eq!(index.lights[1].direction, dirs[1]);
+        assert_eq!(index.views[1].viewer_mm, Some(set.viewers_mm[1]));
+        assert!(!index.face.measured && index.face.height_mm == 0.0);
         let d = set.detail.as_ref().unwrap();
         for (li, m) in set.lights.iter().enumerate() {
             let got =

@@ -621,11 +621,13 @@ pub fn contact_sheet(regions: &crate::build::RegionSet, path: &Path) -> Result<(
     write_png(path, &img)
 }
 
-/// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more)
-/// or the detail layer's `detail.exr` and `detail-l{LL}.exr`.
+/// A file `scanner regions` writes: `l{LL}-v{VV}.exr` (two digits or more),
+/// the detail layer's `detail.exr` and `detail-l{LL}.exr`, or the index
+/// `regions.json`.
 fn is_region_file(name: &str) -> bool {
     let digits = |s: &str| s.len() >= 2 && s.bytes().all(|b| b.is_ascii_digit());
     name == "detail.exr"
+        || name == crate::build::regions::INDEX_FILE
         || name.strip_prefix("detail-l").and_then(|r| r.strip_suffix(".exr")).is_some_and(digits)
         || name
             .strip_prefix('l')
@@ -1280,8 +1282,14 @@ mod tests {
 
     #[test]
     fn region_files_are_told_from_others() {
-        for ok in ["l00-v39.exr", "l123-v07.exr", "detail.exr", "detail-l05.exr", "detail-l112.exr"]
-        {
+        for ok in [
+            "l00-v39.exr",
+            "l123-v07.exr",
+            "detail.exr",
+            "detail-l05.exr",
+            "detail-l112.exr",
+            "regions.json",
+        ] {
             assert!(is_region_file(ok), "{ok}");
         }
         for not in
