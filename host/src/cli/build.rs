@@ -406,8 +406,16 @@ fn say_height(regions: &crate::build::RegionSet) {
     let tilt = |slope: [f64; 2]| slope.map(|s| s.atan().to_degrees());
     // A tilt measured and found level.
     let level = |f: &crate::build::height::HeightFit| -> String {
-        if !f.slope_sigma[0].is_finite() {
+        if !f.sigma_mm.is_finite() {
             return String::new();
+        }
+        if !f.slope_sigma[0].is_finite() {
+            return format!(
+                ", its tilt not measured ({} of {} patches agree, 4 needed; up to {}° is searched)",
+                f.patches,
+                PATCHES * PATCHES,
+                crate::build::height::MAX_TILT_DEG
+            );
         }
         let ([tu, tv], [su, sv]) = (tilt(f.slope), tilt(f.slope_sigma));
         format!(", level: tilted {tu:.3}° ± {su:.3}° along u and {tv:.3}° ± {sv:.3}° along v")
