@@ -221,10 +221,7 @@ impl SimSetup {
                 "a sample tilt of {t}° is outside ±{MAX_SAMPLE_TILT_DEG}°"
             )));
         }
-        let face = SampleFace {
-            height_mm: self.sample_height_mm,
-            slope: self.sample_tilt_deg.map(|t| t.to_radians().tan()),
-        };
+        let face = SampleFace::tilted(self.sample_height_mm, self.sample_tilt_deg);
         if !face.is_flush() {
             sim = sim.with_sample_face(face);
         }

@@ -145,7 +145,7 @@ pub fn region_options() -> RegionOptions {
             height_mm: mm.parse().unwrap_or_else(|_| {
                 usage_error(&format!("{HEIGHT} {mm:?}: auto or a height in mm"))
             }),
-            slope: degrees_pair(TILT).map(|t| t.to_radians().tan()),
+            slope: scanner_geometry::face::slopes_of(degrees_pair(TILT)),
         }),
     };
     RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height }
@@ -316,7 +316,7 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
     )
     .unwrap();
     if let Some(f) = regions.height_fit {
-        let deg = |s: [f64; 2]| s.map(|s| s.atan().to_degrees());
+        let deg = scanner_geometry::face::angles_of;
         println!(
             "{m}: face measured {:.4} ± {:.4} mm above the holder's plane ({:.2} px/mm of \
              parallax, agreement {:.3}), tilted {:.3?}° ± {:.3?}° ({} patches, {:.4} mm from a \

@@ -205,12 +205,12 @@ fn calibrated_region_images_match_the_ground_truth() {
         &Silent,
     )
     .unwrap();
-    let face = SampleFace { height_mm: 0.1, slope: tilt.map(|t: f64| t.to_radians().tan()) };
+    let face = SampleFace::tilted(0.1, tilt);
     let (on_plane, level) = (
         tests::captured_pair_psnr_on(&g, &measured, &sample, face).0,
         tests::captured_pair_psnr_on(&g, &misread, &sample, face).0,
     );
-    let deg = |s: [f64; 2]| s.map(|s| s.atan().to_degrees());
+    let deg = scanner_geometry::face::angles_of;
     eprintln!(
         "leather 0.1 mm proud, tilted {tilt:?}°: measured {:.4} ± {:.4} mm, {:.3?}° ± {:.3?}° \
          ({} patches, {:.4} mm from a plane); PSNR read on that plane {on_plane:.2} dB, level \

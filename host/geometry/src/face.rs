@@ -34,6 +34,17 @@ impl SampleFace {
         SampleFace { height_mm, slope: [0.0; 2] }
     }
 
+    /// A face `height_mm` above the holder's plane, rising along u and v
+    /// at the angles `tilt_deg` (degrees; slope = tan).
+    pub fn tilted(height_mm: f64, tilt_deg: [f64; 2]) -> SampleFace {
+        SampleFace { height_mm, slope: slopes_of(tilt_deg) }
+    }
+
+    /// The face's rise along u and v as angles, degrees.
+    pub fn tilt_deg_uv(&self) -> [f64; 2] {
+        angles_of(self.slope)
+    }
+
     /// Whether the face is the holder's plane.
     pub fn is_flush(&self) -> bool {
         *self == SampleFace::FLUSH
@@ -114,6 +125,16 @@ impl SampleFace {
     pub fn height_at(&self, x: f64, y: f64) -> f64 {
         self.height_mm + self.slope[0] * x + self.slope[1] * y
     }
+}
+
+/// Angles (degrees) as slopes (their tangents).
+pub fn slopes_of(deg: [f64; 2]) -> [f64; 2] {
+    deg.map(|t| t.to_radians().tan())
+}
+
+/// Slopes as angles, degrees (also their uncertainties, to first order).
+pub fn angles_of(slope: [f64; 2]) -> [f64; 2] {
+    slope.map(|s| s.atan().to_degrees())
 }
 
 #[cfg(test)]

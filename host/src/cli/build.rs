@@ -403,7 +403,7 @@ const MAX_TILT_GIVEN_DEG: f64 = 20.0;
 /// Say where the region images took the sample's face to lie.
 fn say_height(regions: &crate::build::RegionSet) {
     let face = regions.face;
-    let tilt = |slope: [f64; 2]| slope.map(|s| s.atan().to_degrees());
+    let tilt = scanner_geometry::face::angles_of;
     // A tilt measured and found level.
     let level = |f: &crate::build::height::HeightFit| -> String {
         if !f.sigma_mm.is_finite() {
@@ -524,7 +524,7 @@ impl ScanInputs {
             },
             height: match (self.sample_height, self.sample_tilt) {
                 (SampleHeight::Given(face), Some(t)) => SampleHeight::Given(SampleFace {
-                    slope: t.map(|t| t.to_radians().tan()),
+                    slope: scanner_geometry::face::slopes_of(t),
                     ..face
                 }),
                 (height, _) => height,
