@@ -31,15 +31,21 @@
 //! uncertainty is the delete-a-group jackknife over eight groups of views.
 //!
 //! A sample without colour texture (a grey or uniform one) leaves the cost
-//! flat: its [`HeightFit::agreement`] is low, its uncertainty infinite, and
-//! the images are read in the holder's plane as before
-//! ([`HeightFit::applied_mm`]). So is a height at the end of the range.
+//! flat: its [`HeightFit::agreement`] is low and its chroma measures
+//! nothing (nor does a height at the end of the range). Every sample's
+//! face is also measured on its outline against the holder
+//! ([`super::outline`]), and the two joined ([`FaceCue`]): each parameter
+//! from the cue that measured it, their inverse-variance mean where both
+//! did and agree within 4 σ, the chroma's where they disagree. Without
+//! either the images are read in the holder's plane
+//! ([`HeightFit::applied_mm`]).
 
 use rayon::prelude::*;
 
 use super::calibrate::{Calibration, ViewCalibration, median};
 use super::error::BuildError;
 use super::linalg::Homography;
+use super::outline::OutlineFit;
 use super::scanread::ScanFrames;
 use crate::camera::Frame;
 use crate::exrio::PixelRect;
@@ -110,6 +116,24 @@ pub struct HeightFit {
     /// The largest shift the tilt makes at the outline's corners in any
     /// view, px.
     pub tilt_px: f64,
+    /// What the face was measured on.
+    pub cue: FaceCue,
+    /// The outline's fit, when the face was measured on it.
+    pub outline: Option<OutlineFit>,
+}
+
+/// What a [`HeightFit`] was measured on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FaceCue {
+    /// The views' chroma, where they agree (colour texture).
+    Chroma,
+    /// The sample's outline against the holder ([`super::outline`]): a
+    /// sample whose colour texture does not say.
+    Outline,
+    /// Both, joined.
+    Both,
+    /// Neither.
+    None,
 }
 
 impl HeightFit {
@@ -466,7 +490,7 @@ pub fn measure_height(
     if per_light.is_empty() {
         return Err(BuildError::Input(format!("{}: no frames", scan.dir.display())));
     }
-    // Per view and pixel, the median over the lights: each light's
+    // Per view and pixel, the median over the lights of the chroma: each light's
     // diffuse shading is the same in every view, a specular lobe only in
     // the views near its mirror direction, whose pattern then leans
     // towards the view (as a height would); the median leaves those out.
@@ -476,6 +500,14 @@ pub fn measure_height(
             let n = per_light[0][vi][0].len();
             let mut values = Vec::with_capacity(per_light.len());
             std::array::from_fn(|plane| {
+                if plane == 0 {
+                    // The luminance: the mean, for the outline (every
+                    // light's share of the sample's brightness counts).
+                    let k = 1.0 / per_light.len() as f32;
+                    return (0..n)
+                        .map(|i| k * per_light.iter().map(|c| c[vi][0][i]).sum::<f32>())
+                        .collect();
+                }
                 (0..n)
                     .map(|i| {
                         values.clear();
@@ -520,14 +552,21 @@ pub fn measure_height(
         patches: 0,
         flatness_mm: 0.0,
         tilt_px: 0.0,
+        cue: if whole.sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
+        outline: None,
     };
+    // The outline: every sample's edges against the holder.
+    let lum = CropLuminance(&crops);
+    let size = g.sample.size_mm;
+    let reach = MAX_TILT_DEG.to_radians().tan() * size;
+    let outline = super::outline::coarse_height(g, &cal.views, &lum, MAX_HEIGHT_MM)
+        .and_then(|h| super::outline::measure_outline(g, &cal.views, &lum, h, reach));
     if !whole.sigma.is_finite() {
-        return Ok(fit);
+        return Ok(with_outline(fit, outline, size));
     }
     // The tilt: each patch's height where its views agree, searched
     // within the height a tilt of MAX_TILT_DEG gives its centre, and the
     // plane through them.
-    let size = g.sample.size_mm;
     let patch_of = |uv: [f64; 2]| -> usize {
         let k = |t: f64| (((t - 0.1) / 0.8 * PATCHES as f64) as usize).min(PATCHES - 1);
         k(uv[1]) * PATCHES + k(uv[0])
@@ -562,7 +601,60 @@ pub fn measure_height(
             fit = tilted;
         }
     }
-    Ok(fit)
+    Ok(with_outline(fit, outline, size))
+}
+
+/// The chroma's measurement `chroma` joined with the outline's (module
+/// docs): where only one measured a parameter (the face's height, each
+/// slope), its value; where both did and agree within 4 σ, their
+/// inverse-variance mean; where they disagree, the chroma's, read on the
+/// face itself (the outline may be a mask's, or the sample's sides).
+fn with_outline(chroma: HeightFit, outline: Option<OutlineFit>, size_mm: f64) -> HeightFit {
+    let Some(o) = outline else {
+        return chroma;
+    };
+    let mut fit = HeightFit { outline: Some(o), ..chroma };
+    let join = |c: f64, sc: f64, o: f64, so: f64| -> (f64, f64, bool) {
+        if !sc.is_finite() {
+            return (o, so, true);
+        }
+        if !so.is_finite() || (c - o).abs() > 4.0 * sc.hypot(so) {
+            return (c, sc, false);
+        }
+        let (wc, wo) = (1.0 / (sc * sc).max(1e-18), 1.0 / (so * so).max(1e-18));
+        ((wc * c + wo * o) / (wc + wo), (wc + wo).sqrt().recip(), true)
+    };
+    let (h, sh, used_h) = join(chroma.height_mm, chroma.sigma_mm, o.face.height_mm, o.sigma[0]);
+    let slopes: [(f64, f64, bool); 2] = std::array::from_fn(|k| {
+        join(chroma.slope[k], chroma.slope_sigma[k], o.face.slope[k], o.sigma[1 + k])
+    });
+    fit.height_mm = h;
+    fit.sigma_mm = sh;
+    fit.slope = slopes.map(|s| s.0);
+    fit.slope_sigma = slopes.map(|s| s.1);
+    let [a, b] = fit.slope;
+    fit.tilt_px = (a.abs() + b.abs()) * size_mm / 2.0 * fit.parallax_px_per_mm;
+    let outline_used = used_h || slopes.iter().any(|s| s.2);
+    fit.cue = match (chroma.cue, outline_used) {
+        (FaceCue::Chroma, true) => FaceCue::Both,
+        (FaceCue::Chroma, false) => FaceCue::Chroma,
+        (_, true) => FaceCue::Outline,
+        (cue, false) => cue,
+    };
+    fit
+}
+
+/// The crops' luminance for the outline.
+struct CropLuminance<'a>(&'a [ViewCrop]);
+
+impl super::outline::Luminance for CropLuminance<'_> {
+    fn at(&self, view: usize, p: [f64; 2]) -> f64 {
+        self.0[view].bilinear(0, p)
+    }
+
+    fn lit(&self, view: usize) -> bool {
+        self.0[view].lit
+    }
 }
 
 /// Frame `f` over `rect` (row-major), its channels times `white`, as
@@ -603,6 +695,8 @@ mod tests {
             patches: 0,
             flatness_mm: 0.0,
             tilt_px: 0.0,
+            cue: FaceCue::Chroma,
+            outline: None,
         };
         assert_eq!(fit(0.3, 0.002).applied_mm(), 0.3);
         assert_eq!(fit(-0.3, 0.002).applied_mm(), -0.3);
@@ -654,6 +748,8 @@ mod tests {
             patches: 9,
             flatness_mm: 0.01,
             tilt_px,
+            cue: FaceCue::Chroma,
+            outline: None,
         };
         let f = fit([0.02, -0.01], 0.001, 1.5).applied_face();
         assert_eq!(f, SampleFace { height_mm: 0.1, slope: [0.02, -0.01] });
@@ -663,6 +759,53 @@ mod tests {
         assert_eq!(fit([0.001, 0.0], 0.0001, 0.1).applied_face(), SampleFace::at_height(0.1));
         // Without a patch measured.
         assert!(fit([0.0; 2], f64::INFINITY, 0.0).applied_face().is_level());
+    }
+
+    /// The chroma's and the outline's measurements joined: each parameter
+    /// from the one that measured it, their inverse-variance mean where
+    /// both did and agree, the chroma's where they disagree.
+    #[test]
+    fn the_outline_joins_the_chroma_where_they_agree() {
+        let chroma = |h: f64, sigma: f64, slope_sigma: f64| HeightFit {
+            height_mm: h,
+            sigma_mm: sigma,
+            parallax_px_per_mm: 4.0,
+            agreement: 0.8,
+            lights: 8,
+            slope: [0.02, 0.0],
+            slope_sigma: [slope_sigma; 2],
+            patches: 9,
+            flatness_mm: 0.01,
+            tilt_px: 0.0,
+            cue: if sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
+            outline: None,
+        };
+        let outline = OutlineFit {
+            face: SampleFace { height_mm: 0.21, slope: [0.021, -0.001] },
+            sigma: [0.01, 0.001, 0.001],
+            shift_mm: [0.0; 2],
+            size_error_mm: 0.0,
+            points: 1000,
+            views: 40,
+            rms_px: 0.1,
+        };
+        // Without an outline: the chroma's.
+        let c = chroma(0.2, 0.01, 0.001);
+        assert_eq!(with_outline(c, None, 25.4), c);
+        // Only the outline measured.
+        let f = with_outline(chroma(0.0, f64::INFINITY, f64::INFINITY), Some(outline), 25.4);
+        assert_eq!((f.height_mm, f.slope, f.cue), (0.21, [0.021, -0.001], FaceCue::Outline));
+        assert_eq!([f.sigma_mm, f.slope_sigma[0]], [0.01, 0.001]);
+        assert!((f.tilt_px - 0.022 * 12.7 * 4.0).abs() < 1e-12);
+        // Both, agreeing: the mean, σ/√2 for equal σ.
+        let f = with_outline(chroma(0.2, 0.01, 0.001), Some(outline), 25.4);
+        assert!((f.height_mm - 0.205).abs() < 1e-12 && (f.slope[0] - 0.0205).abs() < 1e-12);
+        assert!((f.sigma_mm - 0.01 / 2f64.sqrt()).abs() < 1e-12 && f.cue == FaceCue::Both);
+        // Disagreeing by 7 σ: the chroma's, read on the face itself.
+        let f = with_outline(chroma(0.31, 0.01, f64::INFINITY), Some(outline), 25.4);
+        assert_eq!((f.height_mm, f.sigma_mm), (0.31, 0.01));
+        // … its tilt from the outline (the chroma's not measured).
+        assert_eq!((f.slope, f.cue), ([0.021, -0.001], FaceCue::Both));
     }
 
     /// The trend a view's chroma loses is the least-squares quadratic: a

@@ -402,10 +402,30 @@ const MAX_TILT_GIVEN_DEG: f64 = 20.0;
 
 /// Say where the region images took the sample's face to lie.
 fn say_height(regions: &crate::build::RegionSet) {
+    use crate::build::height::{FaceCue, HeightFit};
     let face = regions.face;
     let tilt = scanner_geometry::face::angles_of;
+    // What the face was measured on.
+    let cue = |f: &HeightFit| -> String {
+        let outline = |f: &HeightFit| {
+            f.outline.map_or(String::new(), |o| {
+                format!(
+                    "its outline ({} edge points in {} views, {:.2} px rms)",
+                    o.points, o.views, o.rms_px
+                )
+            })
+        };
+        match f.cue {
+            FaceCue::Chroma => format!("on the views' chroma, from {} lights' frames", f.lights),
+            FaceCue::Outline => format!("on {}, from {} lights' frames", outline(f), f.lights),
+            FaceCue::Both => {
+                format!("on the views' chroma and {}, from {} lights' frames", outline(f), f.lights)
+            }
+            FaceCue::None => format!("from {} lights' frames", f.lights),
+        }
+    };
     // A tilt measured and found level.
-    let level = |f: &crate::build::height::HeightFit| -> String {
+    let level = |f: &HeightFit| -> String {
         if !f.sigma_mm.is_finite() {
             return String::new();
         }
@@ -424,36 +444,53 @@ fn say_height(regions: &crate::build::RegionSet) {
         Some(f) if !face.is_level() => {
             let [tu, tv] = tilt(face.slope);
             let [su, sv] = tilt(f.slope_sigma);
+            let patches = if f.patches > 0 {
+                format!(
+                    ", {} of {} patches {:.3} mm from a plane",
+                    f.patches,
+                    PATCHES * PATCHES,
+                    f.flatness_mm
+                )
+            } else {
+                String::new()
+            };
             println!(
                 "sample's face measured {:.3} ± {:.3} mm above the holder's plane at its centre, \
-                 tilted {tu:.3}° ± {su:.3}° along u and {tv:.3}° ± {sv:.3}° along v ({} of {} \
-                 patches, {:.3} mm from a plane; up to {:.2} px of parallax at the corners): \
-                 region images read on that plane, directions in its frame",
+                 tilted {tu:.3}° ± {su:.3}° along u and {tv:.3}° ± {sv:.3}° along v ({}{patches}; \
+                 up to {:.2} px of parallax at the corners): region images read on that plane, \
+                 directions in its frame",
                 f.height_mm,
                 f.sigma_mm,
-                f.patches,
-                PATCHES * PATCHES,
-                f.flatness_mm,
+                cue(&f),
                 f.tilt_px + f.height_mm.abs() * f.parallax_px_per_mm
             )
         }
         Some(f) if !face.is_flush() => println!(
-            "sample's face measured {:.3} ± {:.3} mm above the holder's plane (the views agree \
-             there; up to {:.2} px of parallax){}: region images read there, the edges' \
-             straddling pixels where that places them to 0.01 px",
+            "sample's face measured {:.3} ± {:.3} mm above the holder's plane ({}; up to {:.2} \
+             px of parallax){}: region images read there, the edges' straddling pixels where \
+             that places them to 0.01 px",
             f.height_mm,
             f.sigma_mm,
+            cue(&f),
             f.height_mm.abs() * f.parallax_px_per_mm,
             level(&f)
         ),
-        Some(f) => println!(
+        Some(f) if f.sigma_mm.is_finite() => println!(
             "sample's face in the holder's plane: measured {:.4} ± {:.4} mm ({:.3} px of \
-             parallax, from {} lights' frames){}",
+             parallax; {}){}",
             f.height_mm,
             f.sigma_mm,
             f.height_mm.abs() * f.parallax_px_per_mm,
-            f.lights,
+            cue(&f),
             level(&f)
+        ),
+        Some(f) => println!(
+            "sample's face read in the holder's plane: its height not measured (no colour \
+             texture whose views agree, agreement {:.2} < {}; no outline against the holder \
+             in {} views)",
+            f.agreement,
+            crate::build::height::MIN_AGREEMENT,
+            crate::build::outline::MIN_VIEWS
         ),
         None if !face.is_flush() => {
             let [tu, tv] = tilt(face.slope);
