@@ -268,7 +268,18 @@ fn calibrated_region_images_match_the_ground_truth() {
     let [du, dv] = [deg(fit.slope)[0] - tilt[0], deg(fit.slope)[1] - tilt[1]];
     assert!(du.abs() < 0.15 && dv.abs() < 0.15 && (fit.height_mm - 0.1).abs() < 0.02, "{fit:?}");
     assert!(matches!(fit.cue, FaceCue::Outline | FaceCue::Both), "{fit:?}");
-    assert!(on_plane > level + 0.5 && on_plane > given - 0.3, "{on_plane} {level} {given}");
+    assert!(on_plane > level + 0.5 && on_plane > given - 0.5, "{on_plane} {level} {given}");
+    // The same metal flush: left in the holder's plane (its chroma, leaned
+    // by the metal's highlights, puts it at −0.38 mm, its outline at
+    // −0.009 ± 0.008 mm: they disagree, so neither is applied).
+    let out = dir.path().join("metal-flush");
+    take_scan("rough-metal", seed, bin, mirrors, &out);
+    let scan = ScanFrames::open(&out, &g).unwrap();
+    let flush = extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
+    let fit = flush.height_fit.unwrap();
+    let outline = fit.outline.expect("its outline measured");
+    assert!(outline.face.height_mm.abs() < 0.02, "{fit:?}");
+    assert!(flush.face.is_flush(), "{fit:?}");
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);

@@ -36,7 +36,7 @@
 //! face is also measured on its outline against the holder
 //! ([`super::outline`]), and the two joined ([`FaceCue`]): each parameter
 //! from the cue that measured it, their inverse-variance mean where both
-//! did and agree within 4 σ, the chroma's where they disagree. Without
+//! did and agree within 4 σ, neither where they disagree. Without
 //! either the images are read in the holder's plane
 //! ([`HeightFit::applied_mm`]).
 
@@ -132,6 +132,8 @@ pub enum FaceCue {
     Outline,
     /// Both, joined.
     Both,
+    /// Both measured the height, and they disagree: not measured.
+    Conflict,
     /// Neither.
     None,
 }
@@ -463,6 +465,8 @@ pub fn measure_height(
         .into_iter()
         .map(|r| [r[0], r[1], r[2].min(dims[0]).max(r[0] + 2), r[3].min(dims[1]).max(r[1] + 2)])
         .collect();
+    let inverses: Vec<Option<Homography>> =
+        cal.views.iter().map(|v| v.homography.inverse()).collect();
     progress.stage("sample height", lights.len());
     // Per light, each view's crop, in units of the light's irradiance at
     // the sample's centre times cos θi (lights differ by their beams).
@@ -482,7 +486,21 @@ pub fn measure_height(
                 .map(|(vi, r)| {
                     let a = cal.colour.view(vi, [0.5, 0.5]);
                     let white = a.map(|a| if a > 0.0 { k / a } else { 0.0 });
-                    crop(&f, *r, white)
+                    // The luminance per pixel over the white target's
+                    // response there (the beam's profile, the view's
+                    // vignetting), for the outline: its edges' levels then
+                    // change only with the sample's reflectance.
+                    let to_uv = inverses[vi];
+                    let response = |x: usize, y: usize| -> [f64; 3] {
+                        let uv = to_uv.map_or([0.5, 0.5], |h| {
+                            let q = h.apply([x as f64 + 0.5, y as f64 + 0.5]);
+                            q.map(|t| t.clamp(0.0, 1.0))
+                        });
+                        let r = cal.colour.response(ci, vi, uv);
+                        let w = cal.lights[ci].direction[2].max(0.05);
+                        r.map(|r| if r > 0.0 { 1.0 / (r * w) } else { 0.0 })
+                    };
+                    crop(&f, *r, white, &response)
                 })
                 .collect())
         })
@@ -607,27 +625,45 @@ pub fn measure_height(
 /// The chroma's measurement `chroma` joined with the outline's (module
 /// docs): where only one measured a parameter (the face's height, each
 /// slope), its value; where both did and agree within 4 σ, their
-/// inverse-variance mean; where they disagree, the chroma's, read on the
-/// face itself (the outline may be a mask's, or the sample's sides).
+/// inverse-variance mean; where they disagree, neither — a metal's coloured
+/// highlights lean its chroma, an outline may be a mask's or show the
+/// sample's sides, and which one erred cannot be told ([`FaceCue::Conflict`]
+/// when the heights disagree: the face is then not measured).
 fn with_outline(chroma: HeightFit, outline: Option<OutlineFit>, size_mm: f64) -> HeightFit {
     let Some(o) = outline else {
         return chroma;
     };
     let mut fit = HeightFit { outline: Some(o), ..chroma };
-    let join = |c: f64, sc: f64, o: f64, so: f64| -> (f64, f64, bool) {
+    // A parameter's value, σ, and whether the outline took part; `None`
+    // when the two disagree.
+    let join = |c: f64, sc: f64, o: f64, so: f64| -> Option<(f64, f64, bool)> {
         if !sc.is_finite() {
-            return (o, so, true);
+            return Some((o, so, true));
         }
-        if !so.is_finite() || (c - o).abs() > 4.0 * sc.hypot(so) {
-            return (c, sc, false);
+        if !so.is_finite() {
+            return Some((c, sc, false));
+        }
+        if (c - o).abs() > 4.0 * sc.hypot(so) {
+            return None;
         }
         let (wc, wo) = (1.0 / (sc * sc).max(1e-18), 1.0 / (so * so).max(1e-18));
-        ((wc * c + wo * o) / (wc + wo), (wc + wo).sqrt().recip(), true)
+        Some(((wc * c + wo * o) / (wc + wo), (wc + wo).sqrt().recip(), true))
     };
-    let (h, sh, used_h) = join(chroma.height_mm, chroma.sigma_mm, o.face.height_mm, o.sigma[0]);
-    let slopes: [(f64, f64, bool); 2] = std::array::from_fn(|k| {
-        join(chroma.slope[k], chroma.slope_sigma[k], o.face.slope[k], o.sigma[1 + k])
-    });
+    let Some((h, sh, used_h)) =
+        join(chroma.height_mm, chroma.sigma_mm, o.face.height_mm, o.sigma[0])
+    else {
+        fit.sigma_mm = f64::INFINITY;
+        fit.slope = [0.0; 2];
+        fit.slope_sigma = [f64::INFINITY; 2];
+        fit.tilt_px = 0.0;
+        fit.cue = FaceCue::Conflict;
+        return fit;
+    };
+    let slopes: [(f64, f64, bool); 2] =
+        std::array::from_fn(|k| {
+            join(chroma.slope[k], chroma.slope_sigma[k], o.face.slope[k], o.sigma[1 + k])
+                .unwrap_or((0.0, f64::INFINITY, true))
+        });
     fit.height_mm = h;
     fit.sigma_mm = sh;
     fit.slope = slopes.map(|s| s.0);
@@ -658,8 +694,14 @@ impl super::outline::Luminance for CropLuminance<'_> {
 }
 
 /// Frame `f` over `rect` (row-major), its channels times `white`, as
-/// [`PLANES`] planes.
-fn crop(f: &Frame, rect: PixelRect, white: [f64; 3]) -> [Vec<f32>; PLANES] {
+/// [`PLANES`] planes; the luminance's channels times `lum_white` at each
+/// pixel (x, y) instead.
+fn crop(
+    f: &Frame,
+    rect: PixelRect,
+    white: [f64; 3],
+    lum_white: &dyn Fn(usize, usize) -> [f64; 3],
+) -> [Vec<f32>; PLANES] {
     let w = f.width as usize;
     let n = (rect[2] - rect[0]) * (rect[3] - rect[1]);
     let mut out: [Vec<f32>; PLANES] = std::array::from_fn(|_| Vec::with_capacity(n));
@@ -668,7 +710,8 @@ fn crop(f: &Frame, rect: PixelRect, white: [f64; 3]) -> [Vec<f32>; PLANES] {
             let (x, y) = (x.min(w - 1), y.min(f.height as usize - 1));
             let i = 3 * (y * w + x);
             let c: [f64; 3] = std::array::from_fn(|k| f.rgb[i + k] as f64 * white[k]);
-            out[0].push((c[0] + c[1] + c[2]) as f32);
+            let l = lum_white(x, y);
+            out[0].push((0..3).map(|k| f.rgb[i + k] as f64 * l[k]).sum::<f64>() as f32);
             out[1].push((c[0] - c[1]) as f32);
             out[2].push((c[2] - c[1]) as f32);
         }
@@ -801,11 +844,17 @@ mod tests {
         let f = with_outline(chroma(0.2, 0.01, 0.001), Some(outline), 25.4);
         assert!((f.height_mm - 0.205).abs() < 1e-12 && (f.slope[0] - 0.0205).abs() < 1e-12);
         assert!((f.sigma_mm - 0.01 / 2f64.sqrt()).abs() < 1e-12 && f.cue == FaceCue::Both);
-        // Disagreeing by 7 σ: the chroma's, read on the face itself.
-        let f = with_outline(chroma(0.31, 0.01, f64::INFINITY), Some(outline), 25.4);
-        assert_eq!((f.height_mm, f.sigma_mm), (0.31, 0.01));
-        // … its tilt from the outline (the chroma's not measured).
-        assert_eq!((f.slope, f.cue), ([0.021, -0.001], FaceCue::Both));
+        // The heights disagreeing by 7 σ: no face measured.
+        let f = with_outline(chroma(0.31, 0.01, 0.001), Some(outline), 25.4);
+        assert!(f.sigma_mm.is_infinite() && f.slope_sigma[0].is_infinite(), "{f:?}");
+        assert_eq!((f.applied_face(), f.cue), (SampleFace::FLUSH, FaceCue::Conflict));
+        // A slope disagreeing (0.02 against 0.03 ± 0.001): that slope not
+        // measured, the other joined.
+        let mut c = chroma(0.2, 0.01, 0.001);
+        c.slope = [0.03, -0.001];
+        let f = with_outline(c, Some(outline), 25.4);
+        assert!(f.slope_sigma[0].is_infinite() && f.slope[0] == 0.0, "{f:?}");
+        assert!((f.slope[1] + 0.001).abs() < 1e-12 && f.cue == FaceCue::Both, "{f:?}");
     }
 
     /// The trend a view's chroma loses is the least-squares quadratic: a

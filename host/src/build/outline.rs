@@ -19,7 +19,9 @@
 //! square); the windows across the edges shrink from what a
 //! [`super::height::MAX_TILT_DEG`] tilt spans to 2 px as the fit
 //! converges, the points weighted by Tukey's biweight on their residuals.
-//! The uncertainties are the delete-a-group jackknife over groups of views.
+//! The uncertainties are delete-a-group jackknifes, over groups of views
+//! and over the four edges (a texture along one edge moves it in every
+//! view alike), the larger of the two.
 //!
 //! The simulator's sample has no sides. A real sample's sides show beyond
 //! the edges that face a view; where they are as bright as its face, those
@@ -248,6 +250,7 @@ pub fn coarse_height(
 /// parameters.
 struct Reading {
     view: usize,
+    edge: usize,
     offset: f64,
     grad: [f64; PARAMS],
 }
@@ -309,7 +312,7 @@ pub fn measure_outline(
                         grad[k] = ((pk[0] - p[0]) * n[0] + (pk[1] - p[1]) * n[1]) / DELTA[k];
                     }
                     contrasts.push(contrast);
-                    out.push((Reading { view: vi, offset, grad }, contrast));
+                    out.push((Reading { view: vi, edge: q.edge, offset, grad }, contrast));
                 }
                 // Points whose step is faint against the view's are where
                 // the edge is dark (a dark texel, a shadow): left out.
@@ -346,21 +349,27 @@ pub fn measure_outline(
     if used.len() < MIN_VIEWS {
         return None;
     }
-    let groups: Vec<[f64; PARAMS]> = (0..GROUPS)
-        .filter_map(|grp| {
-            let (d, _) = solve(&readings, &|vi| vi % GROUPS != grp, s)?;
-            Some(std::array::from_fn(|k| step[k] - d[k]))
-        })
-        .collect();
-    if groups.len() < GROUPS {
-        return None;
-    }
-    let sigma: [f64; 3] = std::array::from_fn(|k| {
-        let mean = groups.iter().map(|d| d[k]).sum::<f64>() / GROUPS as f64;
-        ((GROUPS - 1) as f64 / GROUPS as f64
-            * groups.iter().map(|d| (d[k] - mean).powi(2)).sum::<f64>())
-        .sqrt()
-    });
+    // The delete-a-group jackknife of the final step over `groups` groups
+    // of readings.
+    let jackknife = |groups: usize, group: &dyn Fn(&Reading) -> usize| -> Option<[f64; 3]> {
+        let d: Vec<[f64; PARAMS]> = (0..groups)
+            .map(|grp| {
+                let (d, _) = solve(&readings, &|r| group(r) != grp, s)?;
+                Some(std::array::from_fn(|k| step[k] - d[k]))
+            })
+            .collect::<Option<_>>()?;
+        let n = groups as f64;
+        Some(std::array::from_fn(|k| {
+            let mean = d.iter().map(|d| d[k]).sum::<f64>() / n;
+            ((n - 1.0) / n * d.iter().map(|d| (d[k] - mean).powi(2)).sum::<f64>()).sqrt()
+        }))
+    };
+    // Over groups of views; and over the four edges, which sees what a
+    // texture along one edge (a groove, a dark border) does to it in
+    // every view alike: the larger of the two.
+    let by_view = jackknife(GROUPS, &|r| r.view % GROUPS)?;
+    let by_edge = jackknife(4, &|r| r.edge)?;
+    let sigma: [f64; 3] = std::array::from_fn(|k| by_view[k].max(by_edge[k]));
     Some(OutlineFit {
         face: face_of(&x),
         sigma,
@@ -378,10 +387,10 @@ pub fn measure_outline(
 /// of the residuals (1.4826 × their median absolute value).
 fn solve(
     readings: &[Reading],
-    keep: &dyn Fn(usize) -> bool,
+    keep: &dyn Fn(&Reading) -> bool,
     prior: f64,
 ) -> Option<([f64; PARAMS], f64)> {
-    let kept: Vec<&Reading> = readings.iter().filter(|r| keep(r.view)).collect();
+    let kept: Vec<&Reading> = readings.iter().filter(|r| keep(r)).collect();
     if kept.len() < 4 * PARAMS {
         return None;
     }
@@ -496,7 +505,7 @@ mod tests {
             if i % 10 == 3 {
                 offset += 25.0;
             }
-            readings.push(Reading { view: i % 40, offset, grad });
+            readings.push(Reading { view: i % 40, edge: i % 4, offset, grad });
         }
         let (step, _) = solve(&readings, &|_| true, f64::INFINITY).unwrap();
         for k in 0..PARAMS {

@@ -421,7 +421,7 @@ fn say_height(regions: &crate::build::RegionSet) {
             FaceCue::Both => {
                 format!("on the views' chroma and {}, from {} lights' frames", outline(f), f.lights)
             }
-            FaceCue::None => format!("from {} lights' frames", f.lights),
+            FaceCue::None | FaceCue::Conflict => format!("from {} lights' frames", f.lights),
         }
     };
     // A tilt measured and found level.
@@ -484,6 +484,15 @@ fn say_height(regions: &crate::build::RegionSet) {
             cue(&f),
             level(&f)
         ),
+        Some(f) if f.cue == FaceCue::Conflict => {
+            let o = f.outline.map_or([f64::NAN; 2], |o| [o.face.height_mm, o.sigma[0]]);
+            println!(
+                "sample's face read in the holder's plane: its height not measured (the views' \
+                 chroma put it at {:.3} mm, its outline at {:.3} ± {:.3} mm: they disagree, and \
+                 which one erred cannot be told)",
+                f.height_mm, o[0], o[1]
+            )
+        }
         Some(f) => println!(
             "sample's face read in the holder's plane: its height not measured (no colour \
              texture whose views agree, agreement {:.2} < {}; no outline against the holder \
