@@ -169,18 +169,23 @@ impl HeightFit {
     }
 
     /// The uncertainty of the applied face's height at the outline's
-    /// corners, mm (where its error moves the edges most).
+    /// corners, mm (where its error moves the edges most): the height's
+    /// and the slopes' in quadrature.
     pub fn corner_sigma_mm(&self, size_mm: f64) -> f64 {
         let face = self.applied_face();
         if face.is_flush() {
             return 0.0;
         }
-        let tilt = if face.is_level() {
-            0.0
-        } else {
-            (self.slope_sigma[0] + self.slope_sigma[1]) * size_mm / 2.0
-        };
-        self.sigma_mm + tilt
+        if face.is_level() {
+            return self.sigma_mm;
+        }
+        // h + a x + b y at a corner (|x| = |y| = size/2), the fits'
+        // height at the centre and slopes independent.
+        let half = size_mm / 2.0;
+        (self.sigma_mm.powi(2)
+            + (self.slope_sigma[0] * half).powi(2)
+            + (self.slope_sigma[1] * half).powi(2))
+        .sqrt()
     }
 }
 
@@ -796,6 +801,10 @@ mod tests {
         };
         let f = fit([0.02, -0.01], 0.001, 1.5).applied_face();
         assert_eq!(f, SampleFace { height_mm: 0.1, slope: [0.02, -0.01] });
+        // Its uncertainty at a corner: height and slopes in quadrature.
+        let corner = fit([0.02, -0.01], 0.001, 1.5).corner_sigma_mm(25.4);
+        assert!((corner - (0.003f64.powi(2) + 2.0 * 0.0127f64.powi(2)).sqrt()).abs() < 1e-12);
+        assert_eq!(fit([0.001, 0.0], 0.0001, 0.1).corner_sigma_mm(25.4), 0.003);
         // Not significant (2.2 σ): level at the height.
         assert_eq!(fit([0.02, -0.01], 0.01, 1.5).applied_face(), SampleFace::at_height(0.1));
         // Significant but negligible: 0.06°, 0.1 px.
