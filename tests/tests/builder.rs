@@ -352,6 +352,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
         serde_json::from_slice(&std::fs::read(dir.path().join("regions/regions.json")).unwrap())
             .unwrap();
     assert_eq!((index.lights.len(), index.views.len(), index.face.measured), (3, 40, true));
+    assert!(index.version == 2 && index.face.measured_on.is_some(), "{:?}", index.face);
     // Its own output is replaced whole; a directory holding anything else
     // (a user's file, the scan itself, the folder of the inputs) is refused
     // before any work, exit 4, and left as it was.

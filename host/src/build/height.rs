@@ -138,6 +138,19 @@ pub enum FaceCue {
     None,
 }
 
+impl FaceCue {
+    /// Its name in `regions.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            FaceCue::Chroma => "chroma",
+            FaceCue::Outline => "outline",
+            FaceCue::Both => "chroma and outline",
+            FaceCue::Conflict => "disagreeing",
+            FaceCue::None => "none",
+        }
+    }
+}
+
 impl HeightFit {
     /// The height the region images use: the measured one where it is
     /// both significant (beyond 4 σ) and large enough to matter (the

@@ -162,7 +162,8 @@ pub const INDEX_FILE: &str = "regions.json";
 pub struct RegionIndex {
     /// `"scanner-regions"`.
     pub format: String,
-    /// 1.
+    /// 2 (1 before session 80: no `face.measured_on`, `sigma_mm`,
+    /// `slope_sigma`).
     pub version: u32,
     /// S, px.
     pub size: usize,
@@ -179,13 +180,24 @@ pub struct RegionIndex {
 }
 
 /// [`RegionIndex::face`].
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FaceRecord {
     pub height_mm: f64,
     pub slope: [f64; 2],
     /// The face measured on the sample's frames (`false`: given).
     pub measured: bool,
+    /// What the measurement read (version 2): `"chroma"`, `"outline"`,
+    /// `"chroma and outline"`, or `"none"` / `"disagreeing"` (no face
+    /// measured: read in the holder's plane).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured_on: Option<String>,
+    /// The measured height's and slopes' standard uncertainties, where
+    /// measured (version 2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slope_sigma: Option<[f64; 2]>,
 }
 
 /// A mirror of [`RegionIndex`] and its direction.
@@ -203,13 +215,19 @@ impl RegionSet {
     pub fn index(&self) -> RegionIndex {
         RegionIndex {
             format: "scanner-regions".into(),
-            version: 1,
+            version: 2,
             size: self.size,
             sample_mm: self.sample_mm,
             face: FaceRecord {
                 height_mm: self.face.height_mm,
                 slope: self.face.slope,
                 measured: self.height_fit.is_some(),
+                measured_on: self.height_fit.map(|f| f.cue.name().into()),
+                sigma_mm: self.height_fit.map(|f| f.sigma_mm).filter(|s| s.is_finite()),
+                slope_sigma: self
+                    .height_fit
+                    .map(|f| f.slope_sigma)
+                    .filter(|s| s.iter().all(|v| v.is_finite())),
             },
             lights: self
                 .lights
