@@ -347,6 +347,7 @@ pub fn example_provenance(
         geometry_sha256: g.hash(),
         calibration_sha256: cal.hash(),
         builder: builder.into(),
+        face: None,
     }
 }
 
@@ -807,6 +808,7 @@ pub fn built_and_photographed(
         geometry_sha256: g.hash(),
         calibration_sha256: String::new(),
         builder: "tests".into(),
+        face: None,
     };
     let data =
         build_material(&regions, m, 25.4, prov, &MaterialOptions::default(), &Silent).unwrap();

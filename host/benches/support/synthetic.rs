@@ -67,6 +67,7 @@ pub fn synthetic(
                 geometry_sha256: geometry.hash(),
                 calibration_sha256: String::new(),
                 builder: "synthetic".into(),
+                face: None,
             },
             texel_model: false,
             detail: false,

@@ -114,6 +114,23 @@ pub struct Provenance {
     pub calibration_sha256: String,
     /// The program that built it, e.g. `scanner 0.1.0`.
     pub builder: String,
+    /// Where the region images took the sample's face to lie (since
+    /// session 80; absent before, and for materials not built from a
+    /// scan). The material's directions are in this face's frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub face: Option<FaceRecord>,
+}
+
+/// [`Provenance::face`]: the sample's face the material was read on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FaceRecord {
+    /// Its centre's height above the holder's plane, mm.
+    pub height_mm: f64,
+    /// Its rise along u and along v, mm per mm.
+    pub slope: [f64; 2],
+    /// What it was measured on (`"chroma"`, `"outline"`, `"chroma and
+    /// outline"`, `"none"`, `"disagreeing"`), or `"given"`.
+    pub measured_on: String,
 }
 
 /// The signatures an enlargement's texels may have been matched by.
@@ -790,6 +807,18 @@ fn check_metadata(m: &Metadata) -> Result<(), MaterialError> {
             m.version,
             if m.enlargement.is_some() { "" } else { "out" }
         ));
+    }
+    if let Some(f) = &m.provenance.face {
+        let sane = f.height_mm.is_finite()
+            && f.height_mm.abs() <= 1000.0
+            && f.slope.iter().all(|s| s.is_finite() && s.abs() <= 1.0);
+        if !sane {
+            return bad(format!(
+                "provenance.face: height {} mm, slopes {:?} (a face within 1 m of the holder's \
+                 plane, tilted at most 45°)",
+                f.height_mm, f.slope
+            ));
+        }
     }
     // Versions 1–4 say by their number what they hold; version 5 by its keys.
     let laddered = m.version < VERSION_ENLARGED;

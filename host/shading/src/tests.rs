@@ -95,6 +95,7 @@ fn material(interpolation: Interpolation) -> MaterialData {
                 geometry_sha256: "1".repeat(64),
                 calibration_sha256: "2".repeat(64),
                 builder: "test".into(),
+                face: None,
             },
             texel_model: false,
             detail: false,
@@ -341,6 +342,20 @@ fn damaged_files_are_refused_without_panicking() {
     let mut d = material(Interpolation::Default);
     d.meta.version = 7;
     assert!(d.to_bytes().unwrap_err().to_string().contains("version 7"));
+    // The face the material was read on: kept through the file, refused
+    // when it is no face.
+    let mut d = material(Interpolation::Default);
+    let face = crate::format::FaceRecord {
+        height_mm: 0.2,
+        slope: [0.035, -0.017],
+        measured_on: "outline".into(),
+    };
+    d.meta.provenance.face = Some(face.clone());
+    let back = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();
+    assert_eq!(back.metadata().provenance.face, Some(face));
+    d.meta.provenance.face.as_mut().unwrap().slope[0] = 3.0;
+    let e = d.to_bytes().unwrap_err().to_string();
+    assert!(e.contains("provenance.face: height 0.2 mm, slopes [3.0, -0.017]"), "{e}");
     let mut d = material(Interpolation::Default);
     d.light_groups[0] = 9;
     let e = d.to_bytes().unwrap_err().to_string();

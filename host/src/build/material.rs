@@ -541,7 +541,10 @@ pub fn build_material(
                 .zip(&regions.view_dirs)
                 .map(|(m, d)| mirror(m, d))
                 .collect(),
-            provenance,
+            provenance: Provenance {
+                face: provenance.face.or_else(|| Some(regions.face_record())),
+                ..provenance
+            },
             texel_model,
             detail: with_detail,
             detail_components: components as u32,
@@ -634,6 +637,7 @@ mod tests {
             geometry_sha256: String::new(),
             calibration_sha256: String::new(),
             builder: "test".into(),
+            face: None,
         }
     }
 
@@ -668,6 +672,10 @@ mod tests {
         let opts = MaterialOptions { texel_model: TexelModelChoice::Off, ..Default::default() };
         let data = build_material(&regions, "test", 25.4, provenance(), &opts, &Silent).unwrap();
         assert_eq!(data.meta.version, scanner_shading::format::VERSION_LIGHT_DETAIL);
+        // The face the images were read on, in the provenance.
+        let face = data.meta.provenance.face.clone().unwrap();
+        assert_eq!(face, regions.face_record());
+        assert_eq!((face.height_mm, face.measured_on.as_str()), (regions.face.height_mm, "given"));
         assert_eq!(data.meta.detail_components, 2);
         let m = scanner_shading::Material::from_bytes(&data.to_bytes().unwrap()).unwrap();
         let f32v = |d: [f64; 3]| d.map(|x| x as f32);

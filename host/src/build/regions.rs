@@ -211,6 +211,16 @@ pub struct DirectionRecord {
 }
 
 impl RegionSet {
+    /// The face these images were read on, as the material's provenance
+    /// records it.
+    pub fn face_record(&self) -> scanner_shading::format::FaceRecord {
+        scanner_shading::format::FaceRecord {
+            height_mm: self.face.height_mm,
+            slope: self.face.slope,
+            measured_on: self.height_fit.map_or("given", |f| f.cue.name()).into(),
+        }
+    }
+
     /// What [`INDEX_FILE`] holds for these images.
     pub fn index(&self) -> RegionIndex {
         RegionIndex {

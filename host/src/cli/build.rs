@@ -727,6 +727,7 @@ pub fn build_cmd(
         geometry_sha256: g.hash(),
         calibration_sha256: sha256_file(calibration)?,
         builder: format!("scanner {}", env!("CARGO_PKG_VERSION")),
+        face: None,
     };
     let bar = StageBar::new();
     let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
