@@ -306,6 +306,10 @@ fn a_built_material_shades_like_the_sample() {
     assert_eq!(meta.provenance.geometry_sha256, g.hash());
     assert_eq!(meta.provenance.calibration_sha256, sha256(&p("cal.json")));
     assert_eq!(meta.provenance.scan_manifest_sha256, sha256(&p("leather/manifest.json")));
+    // The flush leather was read in the holder's plane, measured so.
+    let face = meta.provenance.face.as_ref().expect("the face it was read on");
+    assert_eq!((face.height_mm, face.slope), (0.0, [0.0; 2]), "{face:?}");
+    assert_ne!(face.measured_on, "given");
     assert_eq!(meta.name, "leather");
 
     // Fidelity. The same region images, built again in-process with both
