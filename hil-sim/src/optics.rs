@@ -60,6 +60,8 @@ struct Outline {
     on: usize,
     /// Where none does: up to four image points within it that do.
     sliver: Vec<(f64, f64)>,
+    /// Per lattice ray (row by row), whether it lands on the face.
+    on_face: Vec<bool>,
 }
 
 /// The radiances of a pixel's [`BASE_RAYS`].
@@ -128,6 +130,10 @@ pub struct ViewHit {
     pub view: DVec3,
     /// Transmission to the camera (mirror reflectance).
     pub transmission: f64,
+    /// `None`: the ray meets the sample's face; `Some(k)`: its side below
+    /// edge k (0: v = 0, 1: u = 1, 2: v = 1, 3: u = 0), `view` then in the
+    /// side's frame ([`OpticalSim::with_sample_thickness`]).
+    pub side: Option<usize>,
 }
 
 /// One beam path onto the sample: via `mirror`, light arriving from `light`
@@ -187,6 +193,9 @@ pub struct OpticalSim {
     /// Where the sample's face lies ([`OpticalSim::with_sample_face`]):
     /// in the holder's plane, where the targets lie, unless asked.
     face: SampleFace,
+    /// How deep the sample's sides show below its face, mm
+    /// ([`OpticalSim::with_sample_thickness`]; 0: no sides).
+    thickness_mm: f64,
 }
 
 impl OpticalSim {
@@ -227,6 +236,7 @@ impl OpticalSim {
             defects: Arc::new([]),
             black_level_codes: 0,
             face: SampleFace::FLUSH,
+            thickness_mm: 0.0,
         }
     }
 
@@ -266,17 +276,40 @@ impl OpticalSim {
         self.face
     }
 
+    /// The same scanner with a sample `thickness_mm` thick: a slab whose
+    /// four sides, perpendicular to its face, reach that far below it (a
+    /// cut piece of leather, a board; 0: a face without sides, as a sample
+    /// sunk flush into the holder). A view sees the sides below the edges
+    /// that face it, between the face's outline and the dark holder; each
+    /// side shows the material at the edge above it (its diffuse and
+    /// specular albedo and roughness, the texel's normal the side's own).
+    pub fn with_sample_thickness(self, thickness_mm: f64) -> OpticalSim {
+        OpticalSim {
+            thickness_mm: thickness_mm.max(0.0),
+            sees_sample: Default::default(),
+            cache: Default::default(),
+            ..self
+        }
+    }
+
+    /// How deep the sample's sides reach below its face, mm
+    /// ([`OpticalSim::with_sample_thickness`]).
+    pub fn sample_thickness(&self) -> f64 {
+        self.thickness_mm
+    }
+
     /// The same scanner with a camera lens of radial distortion `k`
     /// (`scanner_geometry::radial_distort`; the default is a pinhole).
     pub fn with_lens_distortion(self, k: [f64; 2]) -> OpticalSim {
         let mut g = self.geometry.clone();
         g.camera.distortion = k;
         let (defects, black_level_codes) = (self.defects.clone(), self.black_level_codes);
-        let face = self.face;
+        let (face, thickness_mm) = (self.face, self.thickness_mm);
         OpticalSim {
             defects,
             black_level_codes,
             face,
+            thickness_mm,
             ..OpticalSim::new(g, self.sample, self.seed)
         }
     }
@@ -418,16 +451,66 @@ impl OpticalSim {
         }?;
         let (r, s) = self.onto_sample_plane(l, p, dir)?;
         let uv = self.face.uv(g.sample.size_mm, world_to_sample(s));
+        let view = self.face.to_face(world_to_sample(-r));
         if !uv.iter().all(|t| (0.0..=1.0).contains(t)) {
-            return None;
+            let (side, point, uv) = self.onto_side(world_to_sample(p), -view)?;
+            return Some(ViewHit {
+                mirror: l,
+                uv,
+                point: sample_to_world(point),
+                view: side_frame(side, view),
+                transmission: g.mirrors[l].reflectance,
+                side: Some(side),
+            });
         }
         Some(ViewHit {
             mirror: l,
             uv,
             point: s,
-            view: self.face.to_face(world_to_sample(-r)),
+            view,
             transmission: g.mirrors[l].reflectance,
+            side: None,
         })
+    }
+
+    /// Where the ray from sample-local point `origin` along `dir` (in the
+    /// face's frame) that misses the face meets the sample's sides (the
+    /// slab [−½, ½]² × [−thickness, 0] in the face's frame, sizes by the
+    /// sample's): the side, the point (sample-local) and the uv of the edge
+    /// above it. `None` without sides, or when the ray passes them.
+    fn onto_side(&self, origin: DVec3, dir: DVec3) -> Option<(usize, DVec3, [f64; 2])> {
+        if self.thickness_mm <= 0.0 {
+            return None;
+        }
+        let size = self.geometry.sample.size_mm;
+        let half = 0.5 * size;
+        let o = self.face.to_face_point(origin);
+        let mut best: Option<(f64, usize, DVec3)> = None;
+        for (side, n) in SIDE_NORMALS.iter().enumerate() {
+            let n = DVec3::new(n[0], n[1], 0.0);
+            let (from, across) = (o.dot(n), dir.dot(n));
+            // From outside the side's plane, towards it.
+            if from <= half || across >= 0.0 {
+                continue;
+            }
+            let t = (half - from) / across;
+            let q = o + dir * t;
+            let along = q.x * n.y.abs() + q.y * n.x.abs();
+            if (-self.thickness_mm..=0.0).contains(&q.z)
+                && along.abs() <= half
+                && best.is_none_or(|b| t < b.0)
+            {
+                best = Some((t, side, q));
+            }
+        }
+        let (_, side, q) = best?;
+        let [eu, ev, en] = self.face.axes();
+        let point = DVec3::new(0.0, 0.0, self.face.height_mm) + eu * q.x + ev * q.y + en * q.z;
+        // The edge above: uv along it, exactly on it across.
+        let [a, b] = SIDE_NORMALS[side];
+        let on = |t: f64, n: f64| if n != 0.0 { 0.5 + 0.5 * n } else { t.clamp(0.0, 1.0) };
+        let uv = [on(q.x / size + 0.5, a), on(q.y / size + 0.5, b)];
+        Some((side, point, uv))
     }
 
     /// The nearest of the mirrors `candidates` the ray (origin, unit dir)
@@ -468,11 +551,19 @@ impl OpticalSim {
             return [0.0; 3];
         };
         let mut out = [0.0; 3];
-        // The texel once, when some path lights the point.
+        // The texel once, when some path lights the point (on a side, the
+        // material at the edge above it, the side's normal its own).
         let mut texel = None;
         for path in self.light_paths_with(&scene.beam, scene.lit, hit.point) {
-            let t = texel.get_or_insert_with(|| self.sample.texel(hit.uv));
-            let r = t.reflected(path.light, hit.view);
+            let t = texel.get_or_insert_with(|| {
+                let t = self.sample.texel(hit.uv);
+                match hit.side {
+                    None => t,
+                    Some(_) => crate::materials::Texel { normal: DVec3::Z, ..t },
+                }
+            });
+            let light = hit.side.map_or(path.light, |k| side_frame(k, path.light));
+            let r = t.reflected(light, hit.view);
             for k in 0..3 {
                 out[k] += r[k] * path.irradiance * hit.transmission;
             }
@@ -663,6 +754,7 @@ impl OpticalSim {
     ) -> [f32; 3] {
         let base = base.filter(|_| n == EDGE_SUPERSAMPLE);
         let mut acc = [0.0; 3];
+        let mut radiances = Vec::with_capacity(n * n);
         for sy in 0..n {
             for sx in 0..n {
                 let known = base
@@ -674,12 +766,34 @@ impl OpticalSim {
                 for k in 0..3 {
                     acc[k] += r[k];
                 }
+                radiances.push(r);
             }
         }
-        match self.outline(scene, x, y, n, here) {
+        let rays = n * n;
+        // On the outline, the face's rays weigh for its exact share of the
+        // pixel and the others (its sides, or the dark holder) for the rest.
+        let outline = self.outline(scene, x, y, n, here);
+        let (face, off, on) = match &outline {
+            Some(o) => {
+                let (mut face, mut off) = ([0.0; 3], [0.0; 3]);
+                for (r, &on) in radiances.iter().zip(&o.on_face) {
+                    let sum = if on { &mut face } else { &mut off };
+                    for k in 0..3 {
+                        sum[k] += r[k];
+                    }
+                }
+                (face, off, o.on)
+            }
+            None => (acc, [0.0; 3], rays),
+        };
+        let off_weight = |share: f64| {
+            if on < rays { (1.0 - share) * rays as f64 / (rays - on) as f64 } else { 0.0 }
+        };
+        match outline {
             Some(Outline { share, on, .. }) if on > 0 => {
-                let f = share * (n * n) as f64 / on as f64;
-                acc = acc.map(|v| v * f);
+                let f = share * rays as f64 / on as f64;
+                let g = off_weight(share);
+                acc = std::array::from_fn(|k| face[k] * f + off[k] * g);
             }
             // A sliver of the sample between the rays: its mean radiance
             // at the points of a finer lattice that land on it.
@@ -691,12 +805,13 @@ impl OpticalSim {
                         r[k] += q[k];
                     }
                 }
-                let f = share * (n * n) as f64 / sliver.len() as f64;
-                acc = r.map(|v| v * f);
+                let f = share * rays as f64 / sliver.len() as f64;
+                let g = off_weight(share);
+                acc = std::array::from_fn(|k| r[k] * f + off[k] * g);
             }
             Some(_) | None => {}
         }
-        self.to_electrons(scene, x, y, acc, n * n)
+        self.to_electrons(scene, x, y, acc, rays)
     }
 
     /// For pixel (x, y) on the sample's outline: the exact share of its
@@ -744,12 +859,13 @@ impl OpticalSim {
         let on_sample = |(fx, fy): (f64, f64)| {
             on_plane(fx, fy).map(|p| p[0].abs() <= half && p[1].abs() <= half)
         };
-        let mut on = 0usize;
+        let mut on_face = Vec::with_capacity(n * n);
         for sy in 0..n {
             for sx in 0..n {
-                on += usize::from(on_sample(Self::lattice_point(x, y, n, [sx, sy]))?);
+                on_face.push(on_sample(Self::lattice_point(x, y, n, [sx, sy]))?);
             }
         }
+        let on = on_face.iter().filter(|&&b| b).count();
         let mut sliver = Vec::new();
         if on == 0 {
             let fine = SLIVER_LATTICE;
@@ -760,7 +876,7 @@ impl OpticalSim {
             let step = points.len().div_ceil(4).max(1);
             sliver.extend(points.iter().step_by(step));
         }
-        Some(Outline { share, on, sliver })
+        Some(Outline { share, on, sliver, on_face })
     }
 
     /// [`Self::electrons`] over the pixels of `spans` (the others dark).
@@ -1096,6 +1212,19 @@ fn square_share(quad: &[[f64; 2]; 4], half: f64) -> Option<f64> {
         }
     }
     Some((poly.area() / whole).clamp(0.0, 1.0))
+}
+
+/// The outward normals of the sample's sides below its edges 0…3 (v = 0,
+/// u = 1, v = 1, u = 0), in the face's frame (x along u, y along v).
+const SIDE_NORMALS: [[f64; 2]; 4] = [[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]];
+
+/// Direction `d` (in the face's frame) in the frame of side `side`: z its
+/// outward normal, x the face's normal, y = z × x.
+fn side_frame(side: usize, d: DVec3) -> DVec3 {
+    let [a, b] = SIDE_NORMALS[side];
+    let z = DVec3::new(a, b, 0.0);
+    let x = DVec3::Z;
+    DVec3::new(d.dot(x), d.dot(z.cross(x)), d.dot(z))
 }
 
 /// The albedo of the matte black holder around a photographed piece.

@@ -562,3 +562,74 @@ fn a_tilted_face_is_seen_on_its_plane_and_in_its_frame() {
         assert!((hit.uv[0] - 0.2).abs() > 1e-4, "{l}: {:?}", hit.uv);
     }
 }
+
+/// A thick sample: a view sees its sides beyond the edges that face it,
+/// between the face's outline and the dark holder, each side at the depth
+/// and the edge's uv where the ray meets it; the edges facing away hide
+/// them. The frames show them there and nowhere else.
+#[test]
+fn a_thick_sample_shows_its_sides_beyond_the_edges_facing_a_view() {
+    let thickness = 6.0;
+    let flat = sim(4, "leather", SEED);
+    let thick = flat.clone().with_sample_thickness(thickness);
+    let g = flat.geometry().clone();
+    let size = g.sample.size_mm;
+    let outward = [[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]];
+    let (mut near, mut far, mut wide) = (0, 0, 0);
+    for l in [3, 17, 23, 39] {
+        let [x, y] = g.view_point(l, [0.5, 0.5]).unwrap();
+        let view = flat.trace(x, y).unwrap().view;
+        let (lit_flat, lit_thick) = {
+            let e = exposure(g.mirror_axes(l).unwrap());
+            (flat.expected(&e), thick.expected(&e))
+        };
+        for (k, n) in outward.iter().enumerate() {
+            let facing = n[0] * view.x + n[1] * view.y;
+            if facing.abs() < 0.1 {
+                continue;
+            }
+            // Half the side's width in the holder's plane beyond the
+            // middle of the edge.
+            let out = 0.5 * thickness * facing.abs() / view.z / size;
+            let uv = [0.5 + n[0] * (0.5 + out), 0.5 + n[1] * (0.5 + out)];
+            let [x, y] = g.view_point(l, uv).unwrap();
+            assert!(flat.trace(x, y).is_none(), "view {l}, side {k}: beyond the face");
+            let hit = thick.trace(x, y);
+            let (px, py) = (x as u32, y as u32);
+            let (a, b) = (lit_flat.pixel(px, py), lit_thick.pixel(px, py));
+            // Whether the pixel lies clear of the edge's.
+            let [ex, ey] = g.view_point(l, [0.5 + 0.5 * n[0], 0.5 + 0.5 * n[1]]).unwrap();
+            let clear = (x - ex).hypot(y - ey) > 2.0;
+            if facing > 0.0 {
+                near += 1;
+                let hit = hit.unwrap_or_else(|| panic!("view {l}: side {k} facing it not seen"));
+                assert_eq!(hit.side, Some(k), "view {l}");
+                let depth = world_to_sample(hit.point).z;
+                assert!((depth + 0.5 * thickness).abs() < 0.05 * thickness, "view {l}, {depth}");
+                let along = if n[0] != 0.0 { hit.uv[0] } else { hit.uv[1] };
+                assert_eq!(along, if n[0] + n[1] > 0.0 { 1.0 } else { 0.0 }, "view {l}");
+                assert!(
+                    (hit.view.z - facing).abs() < 0.02,
+                    "view {l}: in the side's frame: {}",
+                    hit.view
+                );
+                assert!(
+                    !clear || b.iter().sum::<f32>() > 10.0 * a.iter().sum::<f32>().max(1e-6),
+                    "view {l}, side {k}: {a:?} → {b:?}"
+                );
+                wide += usize::from(clear);
+            } else {
+                far += 1;
+                assert!(hit.is_none(), "view {l}: side {k} faces away, hidden: {hit:?}");
+                assert_eq!(a, b, "view {l}, side {k}: nothing beyond an edge facing away");
+            }
+        }
+        // The face itself is the same.
+        let [x, y] = g.view_point(l, [0.3, 0.6]).unwrap();
+        assert_eq!(lit_flat.pixel(x as u32, y as u32), lit_thick.pixel(x as u32, y as u32));
+    }
+    assert!(
+        near >= 4 && far >= 4 && wide >= 2,
+        "{near} sides facing views ({wide} wide), {far} away"
+    );
+}

@@ -46,6 +46,9 @@ pub const MAX_SAMPLE_HEIGHT_MM: f64 = 5.0;
 /// its corners past [`MAX_SAMPLE_HEIGHT_MM`]).
 pub const MAX_SAMPLE_TILT_DEG: f64 = 10.0;
 
+/// The thickest sample the simulator takes, mm (its sides below the face).
+pub const MAX_SAMPLE_THICKNESS_MM: f64 = 20.0;
+
 /// What to simulate.
 #[derive(Debug, Clone)]
 pub struct SimSetup {
@@ -89,6 +92,11 @@ pub struct SimSetup {
     /// the first, along v by that of the second
     /// ([`OpticalSim::with_sample_face`]; 0, 0: parallel to the holder).
     pub sample_tilt_deg: [f64; 2],
+    /// The sample's thickness, mm: its four sides show that far below its
+    /// face beyond the edges facing a view
+    /// ([`OpticalSim::with_sample_thickness`]; 0: no sides, as a sample
+    /// sunk flush into the holder).
+    pub sample_thickness_mm: f64,
     /// The drives the scanner is built with (`hil_sim::SimConfig::axes`;
     /// docs/axis-config.md); other than the spec's, its board comes with
     /// them saved.
@@ -116,6 +124,7 @@ impl SimSetup {
             lens_distortion: [0.0; 2],
             sample_height_mm: 0.0,
             sample_tilt_deg: [0.0; 2],
+            sample_thickness_mm: 0.0,
             axes: protocol::default_axes(),
             board_axes: None,
         }
@@ -146,6 +155,9 @@ impl SimSetup {
         if self.sample_tilt_deg != [0.0; 2] {
             let [u, v] = self.sample_tilt_deg;
             s += &format!(", sample's face tilted {u}° along u, {v}° along v");
+        }
+        if self.sample_thickness_mm != 0.0 {
+            s += &format!(", sample {} mm thick, its sides showing", self.sample_thickness_mm);
         }
         if self.trigger_latency_us > 0 {
             s += &format!(", camera trigger latency {} µs", self.trigger_latency_us);
@@ -224,6 +236,15 @@ impl SimSetup {
         let face = SampleFace::tilted(self.sample_height_mm, self.sample_tilt_deg);
         if !face.is_flush() {
             sim = sim.with_sample_face(face);
+        }
+        let t = self.sample_thickness_mm;
+        if !t.is_finite() || !(0.0..=MAX_SAMPLE_THICKNESS_MM).contains(&t) {
+            return Err(SimError::Usage(format!(
+                "a sample thickness of {t} mm is outside 0…{MAX_SAMPLE_THICKNESS_MM} mm"
+            )));
+        }
+        if t > 0.0 {
+            sim = sim.with_sample_thickness(t);
         }
         Ok(sim)
     }

@@ -43,7 +43,10 @@ const SAMPLE_HEIGHT: &str = "--sample-height";
 const HEIGHT: &str = "--height";
 /// The simulated samples' face tilted, degrees along u and v: `U,V`.
 const SAMPLE_TILT: &str = "--sample-tilt";
-const REGION_OPTIONS: [&str; 7] = [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, HEIGHT, TILT];
+/// The simulated samples' thickness, mm: their sides show below the face.
+const SAMPLE_THICKNESS: &str = "--sample-thickness";
+const REGION_OPTIONS: [&str; 8] =
+    [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, SAMPLE_THICKNESS, HEIGHT, TILT];
 
 /// With a given `--height MM`: the face's tilt the builder reads it at,
 /// `U,V` degrees.
@@ -184,7 +187,15 @@ pub fn sim_scan_at(
     let target = TARGETS.contains(&material);
     let sample_height_mm = if target { 0.0 } else { arg(SAMPLE_HEIGHT, 0.0) };
     let sample_tilt_deg = if target { [0.0; 2] } else { sample_tilt() };
-    let s = SimSetup { bin, seed, sample_height_mm, sample_tilt_deg, ..SimSetup::new(material) };
+    let sample_thickness_mm = if target { 0.0 } else { arg(SAMPLE_THICKNESS, 0.0) };
+    let s = SimSetup {
+        bin,
+        seed,
+        sample_height_mm,
+        sample_tilt_deg,
+        sample_thickness_mm,
+        ..SimSetup::new(material)
+    };
     let nominal = s.nominal().expect("the simulator's geometry");
     // A complete scan of this very simulated scanner is reused; another's
     // (another seed, say) is refused by the resume below.
@@ -332,6 +343,22 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
             f.tilt_px,
             regions.face
         );
+        println!("{m}: the face's cue {}", f.cue.name());
+        if let Some(o) = f.outline {
+            println!(
+                "{m}: outline {:.4} mm, tilted {:.3?}° ± {:.4} mm, {:.3?}° ({} points in {} \
+                 views, rms {:.3} px; shift {:.3?} mm, size {:+.3} mm)",
+                o.face.height_mm,
+                deg(o.face.slope),
+                o.sigma[0],
+                deg([o.sigma[1], o.sigma[2]]),
+                o.points,
+                o.views,
+                o.rms_px,
+                o.shift_mm,
+                o.size_error_mm
+            );
+        }
     }
     regions
 }

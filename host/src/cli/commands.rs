@@ -106,6 +106,11 @@ pub struct DeviceArgs {
     /// regions` and `build` measure it with the height.
     #[arg(long, value_parser = parse_tilt, allow_hyphen_values = true, value_name = "DEG_U,DEG_V")]
     pub sim_sample_tilt: Option<[f64; 2]>,
+    /// Simulator: the sample is MM thick, its sides showing below its face
+    /// beyond the edges that face a view (default 0: no sides, a sample
+    /// sunk flush into the holder).
+    #[arg(long, default_value_t = 0.0, value_name = "MM")]
+    pub sim_sample_thickness: f64,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
     /// board comes with them saved (unless --sim-board-axes).
@@ -148,6 +153,7 @@ impl DeviceArgs {
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
             sample_height_mm: self.sim_sample_height,
             sample_tilt_deg: self.sim_sample_tilt.unwrap_or([0.0; 2]),
+            sample_thickness_mm: self.sim_sample_thickness,
             axes: match &self.sim_axes {
                 Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
                 None => protocol::default_axes(),
@@ -1616,6 +1622,7 @@ pub fn demo(
             sim_lens_distortion: None,
             sim_sample_height: 0.0,
             sim_sample_tilt: None,
+            sim_sample_thickness: 0.0,
             sim_geometry: geometry.map(Path::to_path_buf),
             sim_axes: None,
             sim_board_axes: None,
