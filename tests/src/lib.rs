@@ -7,7 +7,7 @@ use hil_sim::materials::Sample;
 use host::build::Calibration;
 use host::build::fidelity::{CELLS, cell_means, material_psnr, pair_queries};
 use host::build::height::SampleHeight;
-use host::build::regions::EdgePixels;
+use host::build::regions::{EdgePixels, SampleSides};
 use host::build::superres::SharpenOptions;
 use host::build::{RegionOptions, RegionSet};
 use host::camera::SimCamera;
@@ -45,8 +45,11 @@ const HEIGHT: &str = "--height";
 const SAMPLE_TILT: &str = "--sample-tilt";
 /// The simulated samples' thickness, mm: their sides show below the face.
 const SAMPLE_THICKNESS: &str = "--sample-thickness";
-const REGION_OPTIONS: [&str; 8] =
-    [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, SAMPLE_THICKNESS, HEIGHT, TILT];
+/// Whether the builder reads the sample's sides as shown: `hidden`
+/// (default) or `shown`.
+const SIDES: &str = "--sides";
+const REGION_OPTIONS: [&str; 9] =
+    [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, SAMPLE_THICKNESS, HEIGHT, TILT, SIDES];
 
 /// With a given `--height MM`: the face's tilt the builder reads it at,
 /// `U,V` degrees.
@@ -151,7 +154,12 @@ pub fn region_options() -> RegionOptions {
             slope: scanner_geometry::face::slopes_of(degrees_pair(TILT)),
         }),
     };
-    RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height }
+    let sides = match arg(SIDES, "hidden".to_string()).as_str() {
+        "hidden" => SampleSides::Hidden,
+        "shown" => SampleSides::Shown,
+        other => usage_error(&format!("{SIDES} {other:?}: hidden or shown")),
+    };
+    RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height, sides }
 }
 
 /// Scan `material` on the simulator into `out` (HDR if asked), unless a

@@ -12,6 +12,7 @@ use hil_sim::materials::{Sample, lookup};
 use hil_sim::optics::OpticalSim;
 use host::build::calibrate::{CalibrateOptions, Silent, ViewSampler};
 use host::build::height::{FaceCue, SampleHeight};
+use host::build::regions::SampleSides;
 use host::build::scanread::ScanFrames;
 use host::build::{RegionOptions, calibrate, extract_regions};
 use host::camera::SimCamera;
@@ -235,6 +236,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(du.abs() < 0.15 && dv.abs() < 0.15 && (fit.height_mm - 0.1).abs() < 0.02, "{fit:?}");
     assert!(!measured.face.is_level(), "{fit:?}");
     assert!(on_plane > level + 3.0 && on_plane > psnr - 0.5, "{on_plane} {level}");
+    let leather_tilted = on_plane;
     // A sample without colour texture, tilted the same: the views' chroma
     // cannot say, its outline against the holder can.
     let out = dir.path().join("metal-tilted");
@@ -280,6 +282,41 @@ fn calibrated_region_images_match_the_ground_truth() {
     let outline = fit.outline.expect("its outline measured");
     assert!(outline.face.height_mm.abs() < 0.02, "{fit:?}");
     assert!(flush.face.is_flush(), "{fit:?}");
+    // The tilted leather 3 mm thick, standing on the holder: its sides show
+    // beyond the edges facing each view. Read as a thin sample's, its
+    // outline moves with them and its straddling pixels take them in; told
+    // that its sides show, the builder measures the face on the chroma
+    // alone and reads no pixel across those edges, and scores as the thin
+    // sample does.
+    let out = dir.path().join("leather-thick");
+    let thick = SimSetup { sample_thickness_mm: 3.0, ..tilted.clone() };
+    take_scan_of(&thick, mirrors, protocol::DEFAULT_EXPOSURE_US, &out);
+    let scan = ScanFrames::open(&out, &g).unwrap();
+    let sample = Sample::small(lookup("leather").unwrap());
+    let [thin, shown] = [SampleSides::Hidden, SampleSides::Shown].map(|sides| {
+        let opts = RegionOptions { sides, ..RegionOptions::default() };
+        extract_regions(&g, &cal, &scan, &opts, &Silent).unwrap()
+    });
+    let [as_thin, as_shown] =
+        [&thin, &shown].map(|r| tests::captured_pair_psnr_on(&g, r, &sample, face).0);
+    let fit = shown.height_fit.unwrap();
+    eprintln!(
+        "leather 3 mm thick, 0.1 mm proud, tilted {tilt:?}°: sides shown: measured on {:?} \
+         {:.4} ± {:.4} mm, {:.3?}°, PSNR {as_shown:.2} dB; read as thin: {:?}, {:.4} mm, \
+         {:.3?}°, {as_thin:.2} dB (the thin sample {leather_tilted:.2} dB)",
+        fit.cue,
+        fit.height_mm,
+        fit.sigma_mm,
+        deg(fit.slope),
+        thin.height_fit.map(|f| f.cue),
+        thin.face.height_mm,
+        deg(thin.face.slope),
+    );
+    let [du, dv] = [deg(fit.slope)[0] - tilt[0], deg(fit.slope)[1] - tilt[1]];
+    assert!(du.abs() < 0.15 && dv.abs() < 0.15 && (fit.height_mm - 0.1).abs() < 0.02, "{fit:?}");
+    assert_eq!(fit.cue, FaceCue::Chroma, "{fit:?}");
+    assert!(fit.outline.is_none() && shown.index().face.sides_shown);
+    assert!(as_shown > leather_tilted - 0.5 && as_shown > as_thin + 1.0, "{as_shown} {as_thin}");
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);
@@ -352,7 +389,8 @@ fn bad_inputs_exit_3_and_write_nothing() {
         serde_json::from_slice(&std::fs::read(dir.path().join("regions/regions.json")).unwrap())
             .unwrap();
     assert_eq!((index.lights.len(), index.views.len(), index.face.measured), (3, 40, true));
-    assert!(index.version == 2 && index.face.measured_on.is_some(), "{:?}", index.face);
+    assert!(index.version == 3 && index.face.measured_on.is_some(), "{:?}", index.face);
+    assert!(!index.face.sides_shown);
     // Its own output is replaced whole; a directory holding anything else
     // (a user's file, the scan itself, the folder of the inputs) is refused
     // before any work, exit 4, and left as it was.
@@ -373,6 +411,16 @@ fn bad_inputs_exit_3_and_write_nothing() {
         })
         .count();
     assert!(differ > 100, "{differ} of 120 images differ");
+    // `--sample-sides`: a thick sample's, read so, and the index says it.
+    let sides = ["regions", "--scan", &leather, "--calibration", &cal, "-o", &d("regions-sides")];
+    let (code, out, err) = common::run(&[&sides[..], &["--sample-sides"]].concat());
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("sample's sides show beyond the edges facing each view"), "{out}");
+    let index: host::build::regions::RegionIndex = serde_json::from_slice(
+        &std::fs::read(dir.path().join("regions-sides/regions.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(index.face.sides_shown && index.face.measured_on.as_deref() != Some("outline"));
     // `--edge-pixels straddling`: the pixels the calibrated edge crosses
     // are read too, so the images' outermost texels (in every image) differ
     // from `inside`'s. The default, `precise`, reads each view as one of

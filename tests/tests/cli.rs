@@ -468,6 +468,12 @@ fn a_sample_height_out_of_range_is_a_usage_error() {
     let (code, _, err) = sim_scan_with(&sub(dir.path(), "tilted"), &["--sim-sample-tilt", "12,0"]);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("a sample tilt of 12° is outside ±10°"), "{err}");
+    for t in ["25", "-1"] {
+        let (code, _, err) =
+            sim_scan_with(&sub(dir.path(), "thick"), &["--sim-sample-thickness", t]);
+        assert_eq!(code, Some(2), "{err}");
+        assert!(err.contains(&format!("a sample thickness of {t} mm is outside 0…20 mm")), "{err}");
+    }
     let regions = ["regions", "--scan", "s", "--calibration", "c.json", "-o", "r"];
     for (extra, says) in [
         (&["--sample-tilt", "1,1"][..], "--sample-tilt needs a given --sample-height"),

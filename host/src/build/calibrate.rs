@@ -895,6 +895,9 @@ pub struct ViewSampler {
     /// Frame px per unit of u and of v at the sample's centre.
     px_per_uv: [f64; 2],
     edges: [FrameEdge; 4],
+    /// Per side (v 0, u 1, v 1, u 0): whether what lies beyond it is not
+    /// the holder ([`Self::with_closed_sides`]).
+    closed: [bool; 4],
 }
 
 impl ViewSampler {
@@ -934,7 +937,17 @@ impl ViewSampler {
             let n = inward(a, b);
             FrameEdge { n, c: n[0] * a[0] + n[1] * a[1], half: 0.5 * (n[0].abs() + n[1].abs()) }
         });
-        ViewSampler { homography: h, px_per_uv: px, edges }
+        ViewSampler { homography: h, px_per_uv: px, edges, closed: [false; 4] }
+    }
+
+    /// The same sampler where what lies beyond the sides `closed` (v 0,
+    /// u 1, v 1, u 0) is not the holder — a thick sample's own sides, which
+    /// show beyond the edges facing the view (`super::outline::Sides`): no
+    /// pixel reaching across them is read for its share
+    /// ([`Self::share`] 0), and the holder's band lies beyond the others
+    /// alone ([`Self::holder_band`]).
+    pub fn with_closed_sides(self, closed: [bool; 4]) -> ViewSampler {
+        ViewSampler { closed, ..self }
     }
 
     /// The same sampler in frame coordinates shifted by `d` (e.g. into a
@@ -1068,6 +1081,13 @@ impl ViewSampler {
         if d >= 0.0 {
             return 1.0;
         }
+        // Across a closed side: not read.
+        let across = |(e, &closed): (&FrameEdge, &bool)| {
+            closed && e.n[0] * p[0] + e.n[1] * p[1] - e.c - e.half < 0.0
+        };
+        if self.edges.iter().zip(&self.closed).any(across) {
+            return 0.0;
+        }
         // Every point of the square lies within √2 · ½ px of its centre.
         if self.point_depth(p) < -std::f64::consts::FRAC_1_SQRT_2 {
             return 0.0;
@@ -1084,7 +1104,8 @@ impl ViewSampler {
 
     /// The frame pixels (index y · width + x in frames of `dims`) that show
     /// what surrounds the sample beside it: their centres 1.5 to 3.5 px
-    /// outside its calibrated edges. Their median is the holder's radiance that
+    /// outside its calibrated edges, beyond a side that is not closed
+    /// ([`Self::with_closed_sides`]). Their median is the holder's radiance that
     /// [`Self::region_filter_straddling`]'s filters take out of the pixels
     /// straddling the edge ([`holder_radiance`]).
     pub fn holder_band(&self, dims: [usize; 2]) -> Vec<u32> {
@@ -1099,8 +1120,9 @@ impl ViewSampler {
         let mut band = Vec::new();
         for y in range(1) {
             for x in range(0) {
-                let d = self.point_depth([x as f64 + 0.5, y as f64 + 0.5]);
-                if (-3.5..=-1.5).contains(&d) {
+                let p = [x as f64 + 0.5, y as f64 + 0.5];
+                let beyond_closed = (0..4).any(|k| self.closed[k] && self.edge_depth(k, p) < 0.0);
+                if (-3.5..=-1.5).contains(&self.point_depth(p)) && !beyond_closed {
                     band.push((y * dims[0] + x) as u32);
                 }
             }
@@ -1616,5 +1638,81 @@ mod tests {
         assert!(new < old, "edges 0.1 px off: {new} against {old}");
         let (new, old) = outermost(0.2);
         eprintln!("edges 0.2 px off: {new:.4} against {old:.4}");
+    }
+
+    /// A thick sample's side shows beyond one edge, brighter than the
+    /// face: with that side closed, the holder's radiance is read beyond
+    /// the others alone and no pixel across it is read for its share, so
+    /// the outermost texels along it are read from the face alone while
+    /// the other edges' still straddle.
+    #[test]
+    fn no_pixel_is_read_across_a_closed_side() {
+        let k = 30.0;
+        // The edge at u = 1 crosses its pixels at 0.7 of their width.
+        let (ox, oy) = (17.7, 9.6);
+        let h = Homography([k, 0.0, ox, 0.0, k, oy, 0.0, 0.0, 1.0]);
+        let (w, hgt) = (56usize, 56usize);
+        let (face, side, holder) = (1.0, 3.0, 0.2);
+        // The side: 2.5 px beyond the edge at u = 1.
+        let at = |p: [f64; 2]| {
+            let uv = [(p[0] - ox) / k, (p[1] - oy) / k];
+            let across = (0.0..=1.0).contains(&uv[1]);
+            if across && (0.0..=1.0).contains(&uv[0]) {
+                face
+            } else if across && uv[0] > 1.0 && uv[0] < 1.0 + 2.5 / k {
+                side
+            } else {
+                holder
+            }
+        };
+        let mut rgb = vec![0f32; w * hgt * 3];
+        for y in 0..hgt {
+            for x in 0..w {
+                let mut sum = 0.0;
+                for j in 0..16 {
+                    for i in 0..16 {
+                        let p = [
+                            x as f64 + (i as f64 + 0.5) / 16.0,
+                            y as f64 + (j as f64 + 0.5) / 16.0,
+                        ];
+                        sum += at(p);
+                    }
+                }
+                rgb[3 * (y * w + x)..][..3].fill((sum / 256.0) as f32);
+            }
+        }
+        let f = Frame { width: w as u32, height: hgt as u32, rgb };
+        // The outermost texels of a 32² image along each edge: the largest
+        // error against the face's level.
+        let worst = |sampler: ViewSampler| -> [f64; 4] {
+            let found = holder_radiance(&f, &sampler.holder_band([w, hgt]));
+            let mut err = [0.0f64; 4];
+            let n = 32;
+            for i in 0..n * n {
+                let uv = crate::build::plane::cell_uv(i, n);
+                let edge = [uv[1], 1.0 - uv[0], 1.0 - uv[1], uv[0]];
+                let Some(e) = (0..4).find(|&e| edge[e] < 1.0 / n as f64) else {
+                    continue;
+                };
+                let v = sampler.region_filter_straddling([w, hgt], uv).apply_beside(&f, found)[0];
+                err[e] = err[e].max((v - face).abs());
+            }
+            err
+        };
+        let open = ViewSampler::new(h);
+        let closed = open.with_closed_sides([false, true, false, false]);
+        let found = holder_radiance(&f, &closed.holder_band([w, hgt]));
+        assert!(found.iter().all(|v| (v - holder).abs() < 1e-6), "holder {found:?}");
+        assert!(holder_radiance(&f, &open.holder_band([w, hgt]))[0] >= holder);
+        // A pixel across the closed side is not read; one across another is.
+        let beyond = |uv: [f64; 2]| h.apply(uv);
+        assert_eq!(closed.share(beyond([1.0 + 0.3 / k, 0.5])), 0.0);
+        assert!((open.share(beyond([1.0 + 0.3 / k, 0.5])) - 0.2).abs() < 1e-9);
+        assert!((closed.share(beyond([-0.3 / k, 0.5])) - 0.2).abs() < 1e-9);
+        let (o, c) = (worst(open), worst(closed));
+        eprintln!("outermost texels' worst error per edge: open {o:.4?}, closed {c:.4?}");
+        // (The corner texels at u = 1 count with the edge at v = 0.)
+        assert!(o[1] > 0.5, "the side read as the face: {o:?}");
+        assert!(c[0] < 0.05 && c[1] < 0.05 && c[2..] == o[2..], "{c:?} against {o:?}");
     }
 }

@@ -467,11 +467,13 @@ pub enum SampleHeight {
 }
 
 /// Measure the sample's height above the holder's plane on `scan`'s frames
-/// (module docs). `progress` steps once per frame read.
+/// (module docs); on its outline too unless its `sides` show. `progress`
+/// steps once per frame read.
 pub fn measure_height(
     g: &ScannerGeometry,
     cal: &Calibration,
     scan: &ScanFrames,
+    sides: super::regions::SampleSides,
     progress: &dyn super::calibrate::BuildProgress,
 ) -> Result<HeightFit, BuildError> {
     let all = scan.lights();
@@ -591,11 +593,14 @@ pub fn measure_height(
         cue: if whole.sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
         outline: None,
     };
-    // The outline: every sample's edges against the holder.
+    // The outline: every sample's edges against the holder, unless its
+    // sides show beyond them.
     let lum = CropLuminance(&crops);
     let size = g.sample.size_mm;
     let reach = MAX_TILT_DEG.to_radians().tan() * size;
-    let outline = super::outline::coarse_height(g, &cal.views, &lum, MAX_HEIGHT_MM)
+    let outline = (sides == super::regions::SampleSides::Hidden)
+        .then(|| super::outline::coarse_height(g, &cal.views, &lum, MAX_HEIGHT_MM))
+        .flatten()
         .and_then(|h| super::outline::measure_outline(g, &cal.views, &lum, h, reach));
     if !whole.sigma.is_finite() {
         return Ok(with_outline(fit, outline, size));

@@ -628,6 +628,7 @@ mod tests {
             detail: None,
             face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
+            sides: crate::build::regions::SampleSides::Hidden,
         }
     }
 

@@ -13,6 +13,7 @@ use scanner_geometry::ScannerGeometry;
 use super::calibrate::{BuildProgress, Calibration, EDGE_PRECISE_PX};
 use super::error::BuildError;
 use super::height::{HeightFit, SampleHeight, measure_height, view_parallax};
+use super::outline::side_reach;
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
 use super::superres::{
@@ -56,6 +57,9 @@ pub struct RegionSet {
     pub face: SampleFace,
     /// The measurement it came from, if it was measured.
     pub height_fit: Option<HeightFit>,
+    /// Whether they were read as a thick sample's, its sides showing
+    /// ([`RegionOptions::sides`]).
+    pub sides: SampleSides,
 }
 
 /// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
@@ -162,8 +166,8 @@ pub const INDEX_FILE: &str = "regions.json";
 pub struct RegionIndex {
     /// `"scanner-regions"`.
     pub format: String,
-    /// 2 (1 before session 80: no `face.measured_on`, `sigma_mm`,
-    /// `slope_sigma`).
+    /// 3 (2 before session 81: no `face.sides_shown`; 1 before session
+    /// 80: no `face.measured_on`, `sigma_mm`, `slope_sigma`).
     pub version: u32,
     /// S, px.
     pub size: usize,
@@ -198,6 +202,11 @@ pub struct FaceRecord {
     pub sigma_mm: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slope_sigma: Option<[f64; 2]>,
+    /// The images were read as a thick sample's, its sides showing beyond
+    /// the edges facing each view: no pixel across those read, the face
+    /// not measured on the outline (version 3; absent: `false`).
+    #[serde(default)]
+    pub sides_shown: bool,
 }
 
 /// A mirror of [`RegionIndex`] and its direction.
@@ -225,7 +234,7 @@ impl RegionSet {
     pub fn index(&self) -> RegionIndex {
         RegionIndex {
             format: "scanner-regions".into(),
-            version: 2,
+            version: 3,
             size: self.size,
             sample_mm: self.sample_mm,
             face: FaceRecord {
@@ -238,6 +247,7 @@ impl RegionSet {
                     .height_fit
                     .map(|f| f.slope_sigma)
                     .filter(|s| s.iter().all(|v| v.is_finite())),
+                sides_shown: self.sides == SampleSides::Shown,
             },
             lights: self
                 .lights
@@ -290,6 +300,25 @@ pub struct RegionOptions {
     pub edge: EdgePixels,
     /// Where the sample's face lies: measured on its frames, or given.
     pub height: SampleHeight,
+    /// Whether the sample's sides show beyond its edges.
+    pub sides: SampleSides,
+}
+
+/// Whether a view sees the sample's sides beyond the edges that face it
+/// (docs/calibration-format.md, "Region images").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SampleSides {
+    /// Beyond the sample's outline lies the holder in every view: a sample
+    /// sunk flush into it, or thin.
+    #[default]
+    Hidden,
+    /// A thick sample standing on the holder: beyond the edges facing a
+    /// view lie its own sides, as bright as they are lit. No frame pixel
+    /// across those edges is read (each view reads its straddling pixels
+    /// across the edges facing away alone, and the holder's radiance
+    /// beyond them), and the face is not measured on the outline (its
+    /// sides move the facing edges out; the chroma still measures it).
+    Shown,
 }
 
 impl Default for RegionOptions {
@@ -299,6 +328,7 @@ impl Default for RegionOptions {
             sharpen: Some(SharpenOptions::default()),
             edge: EdgePixels::default(),
             height: SampleHeight::default(),
+            sides: SampleSides::default(),
         }
     }
 }
@@ -431,12 +461,26 @@ pub fn extract_regions(
     let (face, height_fit) = match opts.height {
         SampleHeight::Given(face) => (face, None),
         SampleHeight::Measure => {
-            let fit = measure_height(g, cal, scan, progress)?;
+            let fit = measure_height(g, cal, scan, opts.sides, progress)?;
             (fit.applied_face(), Some(fit))
         }
     };
     progress.stage("sample frames", lights.len());
-    let samplers: Vec<_> = cal.views.iter().map(|v| v.sampler_at_face(g, face)).collect();
+    // A thick sample's sides show beyond the edges facing each view: no
+    // pixel across those edges is read.
+    let samplers: Vec<_> = cal
+        .views
+        .iter()
+        .map(|v| {
+            let s = v.sampler_at_face(g, face);
+            match opts.sides {
+                SampleSides::Hidden => s,
+                SampleSides::Shown => {
+                    s.with_closed_sides(std::array::from_fn(|e| side_reach(v, face, e) > 0.0))
+                }
+            }
+        })
+        .collect();
     let windows: Vec<_> = samplers.iter().map(|s| s.homography().window(4.0)).collect();
     // Per view and texel, what is the same under every light: the pixels
     // it is resampled from (the filter), the colour calibration's view
@@ -587,6 +631,7 @@ pub fn extract_regions(
         sample_mm: g.sample.size_mm,
         face,
         height_fit,
+        sides: opts.sides,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
         images: per_light.into_iter().flatten().collect(),
@@ -639,6 +684,7 @@ mod tests {
             }),
             face: SampleFace::FLUSH,
             height_fit: None,
+            sides: SampleSides::Hidden,
         };
         let dir = tempfile::tempdir().unwrap();
         set.write_exr(dir.path()).unwrap();

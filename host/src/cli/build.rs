@@ -13,7 +13,7 @@ use super::plot::{Caption, draw_captions};
 use crate::build::calibrate::{BuildProgress, CalibrateOptions, Calibration};
 use crate::build::height::{PATCHES, SampleHeight};
 use crate::build::locate::Checkerboard;
-use crate::build::regions::EdgePixels;
+use crate::build::regions::{EdgePixels, SampleSides};
 use crate::build::scanread::ScanFrames;
 use crate::build::superres::SharpenOptions;
 use crate::build::{BuildError, RegionOptions, calibrate, extract_regions};
@@ -382,6 +382,12 @@ pub struct ScanInputs {
     #[arg(long, value_parser = super::commands::parse_tilt, allow_hyphen_values = true,
           value_name = "DEG_U,DEG_V")]
     pub sample_tilt: Option<[f64; 2]>,
+    /// The sample is thick and stands on the holder: its sides show beyond
+    /// the edges facing each view. No pixel across those edges is read,
+    /// and the face is measured on its colour texture alone, not on its
+    /// outline.
+    #[arg(long)]
+    pub sample_sides: bool,
 }
 
 /// `--sample-height`: `auto` or a height in mm within ±10.
@@ -489,17 +495,25 @@ fn say_height(regions: &crate::build::RegionSet) {
             println!(
                 "sample's face read in the holder's plane: its height not measured (the views' \
                  chroma put it at {:.3} mm, its outline at {:.3} ± {:.3} mm: they disagree, and \
-                 which one erred cannot be told)",
+                 which one erred cannot be told; a thick sample's sides, showing beyond the \
+                 edges that face the views, move its outline: --sample-sides reads it on the \
+                 chroma alone)",
                 f.height_mm, o[0], o[1]
             )
         }
         Some(f) => println!(
             "sample's face read in the holder's plane: its height not measured (no colour \
-             texture whose views agree, agreement {:.2} < {}; no outline against the holder \
-             in {} views)",
+             texture whose views agree, agreement {:.2} < {}; {})",
             f.agreement,
             crate::build::height::MIN_AGREEMENT,
-            crate::build::outline::MIN_VIEWS
+            if regions.sides == SampleSides::Shown {
+                "its outline not read, its sides showing".to_string()
+            } else {
+                format!(
+                    "no outline against the holder in {} views",
+                    crate::build::outline::MIN_VIEWS
+                )
+            }
         ),
         None if !face.is_flush() => {
             let [tu, tv] = tilt(face.slope);
@@ -510,6 +524,12 @@ fn say_height(regions: &crate::build::RegionSet) {
             )
         }
         None => {}
+    }
+    if regions.sides == SampleSides::Shown {
+        println!(
+            "sample's sides show beyond the edges facing each view: no pixel across those edges \
+             read, the face not measured on its outline"
+        );
     }
 }
 
@@ -575,6 +595,7 @@ impl ScanInputs {
                 }),
                 (height, _) => height,
             },
+            sides: if self.sample_sides { SampleSides::Shown } else { SampleSides::Hidden },
         }
     }
 

@@ -109,7 +109,7 @@ pub struct DeviceArgs {
     /// Simulator: the sample is MM thick, its sides showing below its face
     /// beyond the edges that face a view (default 0: no sides, a sample
     /// sunk flush into the holder).
-    #[arg(long, default_value_t = 0.0, value_name = "MM")]
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true, value_name = "MM")]
     pub sim_sample_thickness: f64,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
@@ -1684,6 +1684,7 @@ pub fn demo(
         edge_pixels: super::build::EdgeArg::Precise,
         sample_height: crate::build::height::SampleHeight::Measure,
         sample_tilt: None,
+        sample_sides: false,
     };
     let built = super::build::build_cmd(
         &input,
