@@ -131,6 +131,10 @@ pub struct FaceRecord {
     /// What it was measured on (`"chroma"`, `"outline"`, `"chroma and
     /// outline"`, `"none"`, `"disagreeing"`), or `"given"`.
     pub measured_on: String,
+    /// Read as a thick sample's whose sides show beyond the edges facing
+    /// each view (since session 81; absent: false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub sides_shown: bool,
 }
 
 /// The signatures an enlargement's texels may have been matched by.

@@ -348,7 +348,8 @@ fn damaged_files_are_refused_without_panicking() {
     let face = crate::format::FaceRecord {
         height_mm: 0.2,
         slope: [0.035, -0.017],
-        measured_on: "outline".into(),
+        measured_on: "chroma".into(),
+        sides_shown: true,
     };
     d.meta.provenance.face = Some(face.clone());
     let back = Material::from_bytes(&d.to_bytes().unwrap()).unwrap();

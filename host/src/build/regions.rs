@@ -227,6 +227,7 @@ impl RegionSet {
             height_mm: self.face.height_mm,
             slope: self.face.slope,
             measured_on: self.height_fit.map_or("given", |f| f.cue.name()).into(),
+            sides_shown: self.sides == SampleSides::Shown,
         }
     }
 
