@@ -1558,6 +1558,24 @@ mod tests {
         assert!(err_new < 0.5 * err_old, "near the edge: {err_new} against {err_old}");
     }
 
+    /// A grey frame of `dims` px whose pixels integrate `at` (frame px)
+    /// over their squares (16 × 16 points).
+    fn integrated_frame(dims: [usize; 2], at: impl Fn([f64; 2]) -> f64) -> Frame {
+        let [w, hgt] = dims;
+        let mut rgb = vec![0f32; w * hgt * 3];
+        for y in 0..hgt {
+            for x in 0..w {
+                let mut sum = 0.0;
+                for k in 0..256 {
+                    let (i, j) = ((k % 16) as f64, (k / 16) as f64);
+                    sum += at([x as f64 + (i + 0.5) / 16.0, y as f64 + (j + 0.5) / 16.0]);
+                }
+                rgb[3 * (y * w + x)..][..3].fill((sum / 256.0) as f32);
+            }
+        }
+        Frame { width: w as u32, height: hgt as u32, rgb }
+    }
+
     /// A frame whose pixels integrate a rotated, non-pixel-aligned sample
     /// (a pattern of 8 px period) beside a holder of another radiance,
     /// each pixel the mean of 16 × 16 points over its square: the holder's
@@ -1580,25 +1598,10 @@ mod tests {
         };
         let holder = 0.3;
         let (w, hgt) = (64usize, 64usize);
-        let mut rgb = vec![0f32; w * hgt * 3];
-        for y in 0..hgt {
-            for x in 0..w {
-                let mut sum = 0.0;
-                for j in 0..16 {
-                    for i in 0..16 {
-                        let p = [
-                            x as f64 + (i as f64 + 0.5) / 16.0,
-                            y as f64 + (j as f64 + 0.5) / 16.0,
-                        ];
-                        let uv = uv_of(p);
-                        let on = uv.iter().all(|t| (0.0..=1.0).contains(t));
-                        sum += if on { pattern(p) } else { holder };
-                    }
-                }
-                rgb[3 * (y * w + x)..][..3].fill((sum / 256.0) as f32);
-            }
-        }
-        let f = Frame { width: w as u32, height: hgt as u32, rgb };
+        let f = integrated_frame([w, hgt], |p| {
+            let on = uv_of(p).iter().all(|t| (0.0..=1.0).contains(t));
+            if on { pattern(p) } else { holder }
+        });
         // The outermost texels of a 32² image (each ≈ 0.94 px) through a
         // calibration whose edges lie `off` px along x and y from the
         // sample's: RMS error against the pattern at the calibrated
@@ -1665,23 +1668,7 @@ mod tests {
                 holder
             }
         };
-        let mut rgb = vec![0f32; w * hgt * 3];
-        for y in 0..hgt {
-            for x in 0..w {
-                let mut sum = 0.0;
-                for j in 0..16 {
-                    for i in 0..16 {
-                        let p = [
-                            x as f64 + (i as f64 + 0.5) / 16.0,
-                            y as f64 + (j as f64 + 0.5) / 16.0,
-                        ];
-                        sum += at(p);
-                    }
-                }
-                rgb[3 * (y * w + x)..][..3].fill((sum / 256.0) as f32);
-            }
-        }
-        let f = Frame { width: w as u32, height: hgt as u32, rgb };
+        let f = integrated_frame([w, hgt], at);
         // The outermost texels of a 32² image along each edge: the largest
         // error against the face's level.
         let worst = |sampler: ViewSampler| -> [f64; 4] {
