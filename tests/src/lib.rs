@@ -45,8 +45,8 @@ const HEIGHT: &str = "--height";
 const SAMPLE_TILT: &str = "--sample-tilt";
 /// The simulated samples' thickness, mm: their sides show below the face.
 const SAMPLE_THICKNESS: &str = "--sample-thickness";
-/// Whether the builder reads the sample's sides as shown: `hidden`
-/// (default) or `shown`.
+/// Whether the builder reads the sample's sides as shown: `auto`
+/// (default), `hidden` or `shown`.
 const SIDES: &str = "--sides";
 const REGION_OPTIONS: [&str; 9] =
     [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, SAMPLE_THICKNESS, HEIGHT, TILT, SIDES];
@@ -154,10 +154,11 @@ pub fn region_options() -> RegionOptions {
             slope: scanner_geometry::face::slopes_of(degrees_pair(TILT)),
         }),
     };
-    let sides = match arg(SIDES, "hidden".to_string()).as_str() {
+    let sides = match arg(SIDES, "auto".to_string()).as_str() {
+        "auto" => SampleSides::Auto,
         "hidden" => SampleSides::Hidden,
         "shown" => SampleSides::Shown,
-        other => usage_error(&format!("{SIDES} {other:?}: hidden or shown")),
+        other => usage_error(&format!("{SIDES} {other:?}: auto, hidden or shown")),
     };
     RegionOptions { size: (size > 0).then_some(size), sharpen, edge, height, sides }
 }
@@ -351,7 +352,7 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
             f.tilt_px,
             regions.face
         );
-        println!("{m}: the face's cue {}", f.cue.name());
+        println!("{m}: the face's cue {}; beyond the edges {:?}", f.cue.name(), f.beyond);
         if let Some(o) = f.outline {
             println!(
                 "{m}: outline {:.4} mm, tilted {:.3?}° ± {:.4} mm, {:.3?}° ({} points in {} \

@@ -237,6 +237,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(!measured.face.is_level(), "{fit:?}");
     assert!(on_plane > level + 3.0 && on_plane > psnr - 0.5, "{on_plane} {level}");
     let leather_tilted = on_plane;
+    let measured_leather_beyond = fit.beyond.expect("read beyond the edges");
     // A sample without colour texture, tilted the same: the views' chroma
     // cannot say, its outline against the holder can.
     let out = dir.path().join("metal-tilted");
@@ -293,13 +294,27 @@ fn calibrated_region_images_match_the_ground_truth() {
     take_scan_of(&thick, mirrors, protocol::DEFAULT_EXPOSURE_US, &out);
     let scan = ScanFrames::open(&out, &g).unwrap();
     let sample = Sample::small(lookup("leather").unwrap());
-    let [thin, shown] = [SampleSides::Hidden, SampleSides::Shown].map(|sides| {
-        let opts = RegionOptions { sides, ..RegionOptions::default() };
-        extract_regions(&g, &cal, &scan, &opts, &Silent).unwrap()
-    });
-    let [as_thin, as_shown] =
-        [&thin, &shown].map(|r| tests::captured_pair_psnr_on(&g, r, &sample, face).0);
+    let [thin, shown, auto] =
+        [SampleSides::Hidden, SampleSides::Shown, SampleSides::Auto].map(|sides| {
+            let opts = RegionOptions { sides, ..RegionOptions::default() };
+            extract_regions(&g, &cal, &scan, &opts, &Silent).unwrap()
+        });
+    let [as_thin, as_shown, as_auto] =
+        [&thin, &shown, &auto].map(|r| tests::captured_pair_psnr_on(&g, r, &sample, face).0);
     let fit = shown.height_fit.unwrap();
+    // By default the band beyond the edges facing the views shows them.
+    let beyond = auto.height_fit.unwrap().beyond.unwrap();
+    eprintln!(
+        "beyond the facing edges: {:.4} ± {:.4} of the face's contrast ({} views); by default \
+         {as_auto:.2} dB",
+        beyond.excess, beyond.sigma, beyond.views
+    );
+    assert!(beyond.seen() && auto.sides == SampleSides::Shown, "{beyond:?}");
+    assert_eq!(auto.face, shown.face);
+    assert!((as_auto - as_shown).abs() < 0.01, "{as_auto} {as_shown}");
+    // A thin sample's band shows nothing: the leather's above.
+    let thin_beyond = measured_leather_beyond;
+    assert!(!thin_beyond.seen() && thin_beyond.excess.abs() < 1e-3, "{thin_beyond:?}");
     eprintln!(
         "leather 3 mm thick, 0.1 mm proud, tilted {tilt:?}°: sides shown: measured on {:?} \
          {:.4} ± {:.4} mm, {:.3?}°, PSNR {as_shown:.2} dB; read as thin: {:?}, {:.4} mm, \
@@ -413,7 +428,7 @@ fn bad_inputs_exit_3_and_write_nothing() {
     assert!(differ > 100, "{differ} of 120 images differ");
     // `--sample-sides`: a thick sample's, read so, and the index says it.
     let sides = ["regions", "--scan", &leather, "--calibration", &cal, "-o", &d("regions-sides")];
-    let (code, out, err) = common::run(&[&sides[..], &["--sample-sides"]].concat());
+    let (code, out, err) = common::run(&[&sides[..], &["--sample-sides", "shown"]].concat());
     assert_eq!(code, Some(0), "{err}");
     assert!(out.contains("sample's sides show beyond the edges facing each view"), "{out}");
     let index: host::build::regions::RegionIndex = serde_json::from_slice(

@@ -118,8 +118,12 @@ pub struct HeightFit {
     pub tilt_px: f64,
     /// What the face was measured on.
     pub cue: FaceCue,
-    /// The outline's fit, when the face was measured on it.
+    /// The outline's fit, when the face was measured on it (not where the
+    /// sample's sides were seen beyond its edges).
     pub outline: Option<OutlineFit>,
+    /// What lies beyond the edges facing the views against beyond the
+    /// others, at the applied face ([`super::outline::beyond_edges`]).
+    pub beyond: Option<super::outline::Beyond>,
 }
 
 /// What a [`HeightFit`] was measured on.
@@ -165,6 +169,12 @@ impl HeightFit {
     }
 
     /// The face the region images use: tilted where the tilt is both
+    /// Whether the sample's sides were seen beyond the edges facing the
+    /// views ([`super::outline::Beyond::seen`]).
+    pub fn sides_seen(&self) -> bool {
+        self.beyond.is_some_and(|b| b.seen())
+    }
+
     /// significant (beyond 4 σ) and large enough to matter (its parallax
     /// above [`NEGLIGIBLE_PX`] or its angle above [`NEGLIGIBLE_TILT_DEG`]),
     /// else level at [`Self::applied_mm`].
@@ -592,18 +602,31 @@ pub fn measure_height(
         tilt_px: 0.0,
         cue: if whole.sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
         outline: None,
+        beyond: None,
     };
     // The outline: every sample's edges against the holder, unless its
     // sides show beyond them.
     let lum = CropLuminance(&crops);
     let size = g.sample.size_mm;
     let reach = MAX_TILT_DEG.to_radians().tan() * size;
-    let outline = (sides == super::regions::SampleSides::Hidden)
+    let outline = (sides != super::regions::SampleSides::Shown)
         .then(|| super::outline::coarse_height(g, &cal.views, &lum, MAX_HEIGHT_MM))
         .flatten()
         .and_then(|h| super::outline::measure_outline(g, &cal.views, &lum, h, reach));
+    // Joined with the outline, unless the band beyond the edges facing
+    // the views shows the sample's sides there (asked to look): then the
+    // chroma's alone.
+    let finish = |fit: HeightFit| {
+        let mut joined = with_outline(fit, outline, size);
+        let beyond = super::outline::beyond_edges(g, &cal.views, &lum, joined.applied_face());
+        joined.beyond = beyond;
+        if sides == super::regions::SampleSides::Auto && joined.sides_seen() {
+            return HeightFit { beyond, ..fit };
+        }
+        joined
+    };
     if !whole.sigma.is_finite() {
-        return Ok(with_outline(fit, outline, size));
+        return Ok(finish(fit));
     }
     // The tilt: each patch's height where its views agree, searched
     // within the height a tilt of MAX_TILT_DEG gives its centre, and the
@@ -642,7 +665,7 @@ pub fn measure_height(
             fit = tilted;
         }
     }
-    Ok(with_outline(fit, outline, size))
+    Ok(finish(fit))
 }
 
 /// The chroma's measurement `chroma` joined with the outline's (module
@@ -763,6 +786,7 @@ mod tests {
             tilt_px: 0.0,
             cue: FaceCue::Chroma,
             outline: None,
+            beyond: None,
         };
         assert_eq!(fit(0.3, 0.002).applied_mm(), 0.3);
         assert_eq!(fit(-0.3, 0.002).applied_mm(), -0.3);
@@ -816,6 +840,7 @@ mod tests {
             tilt_px,
             cue: FaceCue::Chroma,
             outline: None,
+            beyond: None,
         };
         let f = fit([0.02, -0.01], 0.001, 1.5).applied_face();
         assert_eq!(f, SampleFace { height_mm: 0.1, slope: [0.02, -0.01] });
@@ -849,6 +874,7 @@ mod tests {
             tilt_px: 0.0,
             cue: if sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
             outline: None,
+            beyond: None,
         };
         let outline = OutlineFit {
             face: SampleFace { height_mm: 0.21, slope: [0.021, -0.001] },

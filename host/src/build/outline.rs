@@ -70,6 +70,100 @@ pub fn side_reach(v: &ViewCalibration, face: SampleFace, edge: usize) -> f64 {
     (d.x * n[0] + d.y * n[1]) / d.z.max(1e-6)
 }
 
+/// What lies beyond the sample's edges: the band [`BAND_FROM_PX`,
+/// `BAND_FROM_PX` + 2] px outside the edges facing each view against the
+/// one beyond the edges facing away, over the face's level against the
+/// latter (per view, then the mean over the views whose facing edges
+/// reach at least [`STEEP_REACH`]). A thick sample's sides, as bright as
+/// they are lit, show beyond the facing edges alone; the holder lies
+/// beyond both.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Beyond {
+    /// The facing band's excess over the face's contrast, mean over views.
+    pub excess: f64,
+    /// Its standard error over the views.
+    pub sigma: f64,
+    /// The views it was read in.
+    pub views: usize,
+}
+
+impl Beyond {
+    /// Whether the sides show: the excess beyond 4 σ and
+    /// [`MIN_SIDES_EXCESS`].
+    pub fn seen(&self) -> bool {
+        self.excess > 4.0 * self.sigma && self.excess > MIN_SIDES_EXCESS
+    }
+}
+
+/// The least excess of [`Beyond`] that counts as sides: a hundredth of the
+/// face's contrast (the simulator's samples without sides: |excess| ≤
+/// 3 · 10⁻⁶; with sides 2–3 mm deep at 1024²: 0.03–0.18).
+pub const MIN_SIDES_EXCESS: f64 = 0.01;
+
+/// How far outside the edges [`Beyond`]'s band starts, px: clear of the
+/// pixels the edge itself crosses (and of a face a few tenths of a pixel
+/// off its estimate).
+pub const BAND_FROM_PX: f64 = 1.5;
+
+/// The least reach of a view's facing edges ([`side_reach`]) for
+/// [`Beyond`] to read it.
+const STEEP_REACH: f64 = 0.3;
+
+/// [`Beyond`] in `views` for a face at `face`.
+pub fn beyond_edges(
+    g: &ScannerGeometry,
+    views: &[ViewCalibration],
+    lum: &dyn Luminance,
+    face: SampleFace,
+) -> Option<Beyond> {
+    let x = [face.height_mm, face.slope[0], face.slope[1], 0.0, 0.0, 0.0];
+    let excess: Vec<f64> = (0..views.len())
+        .filter(|&vi| lum.lit(vi))
+        .filter_map(|vi| {
+            let v = &views[vi];
+            let hom = v.homography_at_face(g, face);
+            let reach: [f64; 4] = std::array::from_fn(|e| side_reach(v, face, e));
+            if reach.iter().all(|&r| r < STEEP_REACH) {
+                return None;
+            }
+            // Sums of the band's and the inside's readings, facing and away.
+            let (mut facing, mut away, mut inside) = ([0.0, 0.0], [0.0, 0.0], [0.0, 0.0]);
+            for (edge, &r) in reach.iter().enumerate() {
+                let sum = if r >= STEEP_REACH {
+                    &mut facing
+                } else if r <= -STEEP_REACH {
+                    &mut away
+                } else {
+                    continue;
+                };
+                for i in 0..16 {
+                    let q = EdgePoint { edge, s: 0.1 + 0.8 * (i as f64 + 0.5) / 16.0 };
+                    let [p, n] = predict(v, &hom, &x, q);
+                    let at = |t: f64| lum.at(vi, [p[0] + t * n[0], p[1] + t * n[1]]);
+                    for k in 0..5 {
+                        sum[0] += at(BAND_FROM_PX + 0.5 * k as f64);
+                        sum[1] += 1.0;
+                        inside[0] += at(-BAND_FROM_PX - 0.5 * k as f64);
+                        inside[1] += 1.0;
+                    }
+                }
+            }
+            if facing[1] == 0.0 || away[1] == 0.0 {
+                return None;
+            }
+            let (f, a, i) = (facing[0] / facing[1], away[0] / away[1], inside[0] / inside[1]);
+            (i > a).then(|| (f - a) / (i - a))
+        })
+        .collect();
+    let n = excess.len();
+    if n < 4 {
+        return None;
+    }
+    let mean = excess.iter().sum::<f64>() / n as f64;
+    let var = excess.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    Some(Beyond { excess: mean, sigma: (var / n as f64).sqrt(), views: n })
+}
+
 /// A face fitted to the views' outlines.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct OutlineFit {

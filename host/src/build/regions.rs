@@ -58,7 +58,7 @@ pub struct RegionSet {
     /// The measurement it came from, if it was measured.
     pub height_fit: Option<HeightFit>,
     /// Whether they were read as a thick sample's, its sides showing
-    /// ([`RegionOptions::sides`]).
+    /// ([`RegionOptions::sides`], resolved: never `Auto`).
     pub sides: SampleSides,
 }
 
@@ -309,9 +309,14 @@ pub struct RegionOptions {
 /// (docs/calibration-format.md, "Region images").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum SampleSides {
+    /// Seen on the sample's frames ([`super::outline::Beyond::seen`],
+    /// where the face is measured): [`Self::Shown`] where the band beyond
+    /// the edges facing the views is brighter than beyond the others,
+    /// [`Self::Hidden`] otherwise (and with a given face).
+    #[default]
+    Auto,
     /// Beyond the sample's outline lies the holder in every view: a sample
     /// sunk flush into it, or thin.
-    #[default]
     Hidden,
     /// A thick sample standing on the holder: beyond the edges facing a
     /// view lie its own sides, as bright as they are lit. No frame pixel
@@ -466,6 +471,11 @@ pub fn extract_regions(
             (fit.applied_face(), Some(fit))
         }
     };
+    let sides = match opts.sides {
+        SampleSides::Auto if height_fit.is_some_and(|f| f.sides_seen()) => SampleSides::Shown,
+        SampleSides::Auto => SampleSides::Hidden,
+        given => given,
+    };
     progress.stage("sample frames", lights.len());
     // A thick sample's sides show beyond the edges facing each view: no
     // pixel across those edges is read.
@@ -474,8 +484,8 @@ pub fn extract_regions(
         .iter()
         .map(|v| {
             let s = v.sampler_at_face(g, face);
-            match opts.sides {
-                SampleSides::Hidden => s,
+            match sides {
+                SampleSides::Auto | SampleSides::Hidden => s,
                 SampleSides::Shown => {
                     s.with_closed_sides(std::array::from_fn(|e| side_reach(v, face, e) > 0.0))
                 }
@@ -632,7 +642,7 @@ pub fn extract_regions(
         sample_mm: g.sample.size_mm,
         face,
         height_fit,
-        sides: opts.sides,
+        sides,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
         images: per_light.into_iter().flatten().collect(),

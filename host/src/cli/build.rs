@@ -382,12 +382,21 @@ pub struct ScanInputs {
     #[arg(long, value_parser = super::commands::parse_tilt, allow_hyphen_values = true,
           value_name = "DEG_U,DEG_V")]
     pub sample_tilt: Option<[f64; 2]>,
-    /// The sample is thick and stands on the holder: its sides show beyond
-    /// the edges facing each view. No pixel across those edges is read,
-    /// and the face is measured on its colour texture alone, not on its
-    /// outline.
-    #[arg(long)]
-    pub sample_sides: bool,
+    /// Whether a thick sample's sides show beyond the edges facing each
+    /// view: `auto` (the default) looks beyond the edges where the face is
+    /// measured; `shown` says they do (no pixel across those edges is
+    /// read, the face is measured on its colour texture alone, not on its
+    /// outline); `hidden` that the holder lies beyond every edge.
+    #[arg(long, value_enum, default_value = "auto", value_name = "auto|shown|hidden")]
+    pub sample_sides: SidesArg,
+}
+
+/// `--sample-sides` of `scanner regions` and `scanner build`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SidesArg {
+    Auto,
+    Shown,
+    Hidden,
 }
 
 /// `--sample-height`: `auto` or a height in mm within ±10.
@@ -496,8 +505,8 @@ fn say_height(regions: &crate::build::RegionSet) {
                 "sample's face read in the holder's plane: its height not measured (the views' \
                  chroma put it at {:.3} mm, its outline at {:.3} ± {:.3} mm: they disagree, and \
                  which one erred cannot be told; a thick sample's sides, showing beyond the \
-                 edges that face the views, move its outline: --sample-sides reads it on the \
-                 chroma alone)",
+                 edges that face the views, move its outline: --sample-sides shown reads it on \
+                 the chroma alone)",
                 f.height_mm, o[0], o[1]
             )
         }
@@ -525,10 +534,26 @@ fn say_height(regions: &crate::build::RegionSet) {
         }
         None => {}
     }
+    let beyond = regions.height_fit.and_then(|f| f.beyond);
     if regions.sides == SampleSides::Shown {
+        let seen = beyond.filter(|b| b.seen()).map_or(String::new(), |b| {
+            format!(
+                " (seen: {:.1} % ± {:.1} % of the face's contrast beyond them, in {} views)",
+                100.0 * b.excess,
+                100.0 * b.sigma,
+                b.views
+            )
+        });
         println!(
-            "sample's sides show beyond the edges facing each view: no pixel across those edges \
-             read, the face not measured on its outline"
+            "sample's sides show beyond the edges facing each view{seen}: no pixel across those \
+             edges read, the face not measured on its outline"
+        );
+    } else if let Some(b) = beyond.filter(|b| b.seen()) {
+        println!(
+            "sample's sides seem to show beyond the edges facing each view ({:.1} % ± {:.1} % of \
+             the face's contrast beyond them), read as hidden (--sample-sides hidden)",
+            100.0 * b.excess,
+            100.0 * b.sigma
         );
     }
 }
@@ -595,7 +620,11 @@ impl ScanInputs {
                 }),
                 (height, _) => height,
             },
-            sides: if self.sample_sides { SampleSides::Shown } else { SampleSides::Hidden },
+            sides: match self.sample_sides {
+                SidesArg::Auto => SampleSides::Auto,
+                SidesArg::Shown => SampleSides::Shown,
+                SidesArg::Hidden => SampleSides::Hidden,
+            },
         }
     }
 

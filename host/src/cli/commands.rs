@@ -1684,7 +1684,7 @@ pub fn demo(
         edge_pixels: super::build::EdgeArg::Precise,
         sample_height: crate::build::height::SampleHeight::Measure,
         sample_tilt: None,
-        sample_sides: false,
+        sample_sides: super::build::SidesArg::Auto,
     };
     let built = super::build::build_cmd(
         &input,
