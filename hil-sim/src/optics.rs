@@ -56,12 +56,17 @@ const SLIVER_LATTICE: usize = 32;
 struct Outline {
     /// The share of its square on the sample.
     share: f64,
-    /// How many of its lattice rays land on the sample.
-    on: usize,
-    /// Where none does: up to four image points within it that do.
-    sliver: Vec<(f64, f64)>,
     /// Per lattice ray (row by row), whether it lands on the face.
     on_face: Vec<bool>,
+    /// Where none does: up to four image points within it that do.
+    sliver: Vec<(f64, f64)>,
+}
+
+impl Outline {
+    /// How many of its lattice rays land on the face.
+    fn on(&self) -> usize {
+        self.on_face.iter().filter(|&&b| b).count()
+    }
 }
 
 /// The radiances of a pixel's [`BASE_RAYS`].
@@ -753,44 +758,36 @@ impl OpticalSim {
         base: Option<&BaseRadiances>,
     ) -> [f32; 3] {
         let base = base.filter(|_| n == EDGE_SUPERSAMPLE);
-        let mut acc = [0.0; 3];
         let mut radiances = Vec::with_capacity(n * n);
         for sy in 0..n {
             for sx in 0..n {
                 let known = base
                     .and_then(|b| BASE_RAYS.iter().position(|&at| at == [sx, sy]).map(|i| b[i]));
-                let r = known.unwrap_or_else(|| {
+                radiances.push(known.unwrap_or_else(|| {
                     let (fx, fy) = Self::lattice_point(x, y, n, [sx, sy]);
                     self.radiance_at(scene, fx, fy, here)
-                });
-                for k in 0..3 {
-                    acc[k] += r[k];
-                }
-                radiances.push(r);
+                }));
             }
         }
         let rays = n * n;
         // On the outline, the face's rays weigh for its exact share of the
         // pixel and the others (its sides, or the dark holder) for the rest.
         let outline = self.outline(scene, x, y, n, here);
-        let (face, off, on) = match &outline {
-            Some(o) => {
-                let (mut face, mut off) = ([0.0; 3], [0.0; 3]);
-                for (r, &on) in radiances.iter().zip(&o.on_face) {
-                    let sum = if on { &mut face } else { &mut off };
-                    for k in 0..3 {
-                        sum[k] += r[k];
-                    }
-                }
-                (face, off, o.on)
+        let (mut face, mut off) = ([0.0; 3], [0.0; 3]);
+        for (i, r) in radiances.iter().enumerate() {
+            let on = outline.as_ref().is_none_or(|o| o.on_face[i]);
+            let sum = if on { &mut face } else { &mut off };
+            for k in 0..3 {
+                sum[k] += r[k];
             }
-            None => (acc, [0.0; 3], rays),
-        };
+        }
+        let on = outline.as_ref().map_or(rays, Outline::on);
         let off_weight = |share: f64| {
             if on < rays { (1.0 - share) * rays as f64 / (rays - on) as f64 } else { 0.0 }
         };
+        let mut acc: [f64; 3] = std::array::from_fn(|k| face[k] + off[k]);
         match outline {
-            Some(Outline { share, on, .. }) if on > 0 => {
+            Some(Outline { share, .. }) if on > 0 => {
                 let f = share * rays as f64 / on as f64;
                 let g = off_weight(share);
                 acc = std::array::from_fn(|k| face[k] * f + off[k] * g);
@@ -865,9 +862,8 @@ impl OpticalSim {
                 on_face.push(on_sample(Self::lattice_point(x, y, n, [sx, sy]))?);
             }
         }
-        let on = on_face.iter().filter(|&&b| b).count();
         let mut sliver = Vec::new();
-        if on == 0 {
+        if !on_face.contains(&true) {
             let fine = SLIVER_LATTICE;
             let points: Vec<(f64, f64)> = (0..fine * fine)
                 .map(|k| Self::lattice_point(x, y, fine, [k % fine, k / fine]))
@@ -876,7 +872,7 @@ impl OpticalSim {
             let step = points.len().div_ceil(4).max(1);
             sliver.extend(points.iter().step_by(step));
         }
-        Some(Outline { share, on, sliver, on_face })
+        Some(Outline { share, on_face, sliver })
     }
 
     /// [`Self::electrons`] over the pixels of `spans` (the others dark).
@@ -1214,9 +1210,8 @@ fn square_share(quad: &[[f64; 2]; 4], half: f64) -> Option<f64> {
     Some((poly.area() / whole).clamp(0.0, 1.0))
 }
 
-/// The outward normals of the sample's sides below its edges 0…3 (v = 0,
-/// u = 1, v = 1, u = 0), in the face's frame (x along u, y along v).
-const SIDE_NORMALS: [[f64; 2]; 4] = [[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]];
+/// The outward normals of the sample's sides below its edges 0…3.
+const SIDE_NORMALS: [[f64; 2]; 4] = scanner_geometry::face::EDGE_NORMALS;
 
 /// Direction `d` (in the face's frame) in the frame of side `side`: z its
 /// outward normal, x the face's normal, y = z × x.
@@ -1611,7 +1606,7 @@ mod tests {
                         let fine = sim.to_electrons(scene, x, y, [0.0, sum, 0.0], n * n)[1] as f64;
                         worst = worst.max((got - fine).abs() / top);
                         let lattice =
-                            if o.on > 0 { got * o.on as f64 / 16.0 / o.share } else { 0.0 };
+                            if o.on() > 0 { got * o.on() as f64 / 16.0 / o.share } else { 0.0 };
                         worst_lattice = worst_lattice.max((lattice - fine).abs() / top);
                     }
                 }

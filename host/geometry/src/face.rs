@@ -127,6 +127,11 @@ impl SampleFace {
     }
 }
 
+/// The outward normals of the face's edges 0…3 (0: v = 0, 1: u = 1,
+/// 2: v = 1, 3: u = 0) in the face's frame (x along u, y along v): the
+/// sides below them face that way.
+pub const EDGE_NORMALS: [[f64; 2]; 4] = [[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]];
+
 /// Angles (degrees) as slopes (their tangents).
 pub fn slopes_of(deg: [f64; 2]) -> [f64; 2] {
     deg.map(|t| t.to_radians().tan())

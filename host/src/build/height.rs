@@ -168,13 +168,13 @@ impl HeightFit {
         }
     }
 
-    /// The face the region images use: tilted where the tilt is both
     /// Whether the sample's sides were seen beyond the edges facing the
     /// views ([`super::outline::Beyond::seen`]).
     pub fn sides_seen(&self) -> bool {
         self.beyond.is_some_and(|b| b.seen())
     }
 
+    /// The face the region images use: tilted where the tilt is both
     /// significant (beyond 4 σ) and large enough to matter (its parallax
     /// above [`NEGLIGIBLE_PX`] or its angle above [`NEGLIGIBLE_TILT_DEG`]),
     /// else level at [`Self::applied_mm`].

@@ -66,7 +66,7 @@ pub const MIN_VIEWS: usize = 8;
 /// (≤ 0: the edge faces away from the view and hides them).
 pub fn side_reach(v: &ViewCalibration, face: SampleFace, edge: usize) -> f64 {
     let d = face.to_face(scanner_geometry::DVec3::from(v.direction));
-    let (_, n) = EdgePoint { edge, s: 0.5 }.uv();
+    let n = scanner_geometry::face::EDGE_NORMALS[edge];
     (d.x * n[0] + d.y * n[1]) / d.z.max(1e-6)
 }
 
