@@ -238,6 +238,11 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(on_plane > level + 3.0 && on_plane > psnr - 0.5, "{on_plane} {level}");
     let leather_tilted = on_plane;
     let measured_leather_beyond = fit.beyond.expect("read beyond the edges");
+    // Given a face, the builder still looks beyond the edges there: a thin
+    // sample's band shows nothing.
+    let given_beyond = misread.beyond.expect("read beyond the edges at a given face");
+    eprintln!("beyond its edges at a given level face: {given_beyond:?}");
+    assert!(!given_beyond.seen() && misread.sides == SampleSides::Hidden, "{given_beyond:?}");
     // A sample without colour texture, tilted the same: the views' chroma
     // cannot say, its outline against the holder can.
     let out = dir.path().join("metal-tilted");
@@ -332,6 +337,24 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert_eq!(fit.cue, FaceCue::Chroma, "{fit:?}");
     assert!(fit.outline.is_none() && shown.index().face.sides_shown);
     assert!(as_shown > leather_tilted - 0.5 && as_shown > as_thin + 1.0, "{as_shown} {as_thin}");
+    // Given its face, the builder looks beyond the edges there too, sees the
+    // sides and reads no pixel across the edges facing each view.
+    let [given_auto, given_hidden] = [SampleSides::Auto, SampleSides::Hidden].map(|sides| {
+        let opts =
+            RegionOptions { height: SampleHeight::Given(face), sides, ..RegionOptions::default() };
+        extract_regions(&g, &cal, &scan, &opts, &Silent).unwrap()
+    });
+    let b = given_auto.beyond.expect("read beyond the edges at a given face");
+    let [as_given_auto, as_given_hidden] =
+        [&given_auto, &given_hidden].map(|r| tests::captured_pair_psnr_on(&g, r, &sample, face).0);
+    eprintln!(
+        "given its face: beyond the facing edges {:.4} ± {:.4} ({} views); PSNR {as_given_auto:.2} \
+         dB, read as hidden {as_given_hidden:.2} dB",
+        b.excess, b.sigma, b.views
+    );
+    assert!(b.seen() && given_auto.sides == SampleSides::Shown, "{b:?}");
+    assert!(given_hidden.beyond.is_none() && given_hidden.sides == SampleSides::Hidden);
+    assert!(as_given_auto > as_given_hidden + 0.2, "{as_given_auto} {as_given_hidden}");
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);

@@ -486,93 +486,9 @@ pub fn measure_height(
     sides: super::regions::SampleSides,
     progress: &dyn super::calibrate::BuildProgress,
 ) -> Result<HeightFit, BuildError> {
-    let all = scan.lights();
-    let n = all.len().min(LIGHTS);
-    let lights: Vec<usize> = (0..n).map(|i| all[i * all.len() / n.max(1)]).collect();
     let rects: Vec<PixelRect> = cal.views.iter().map(|v| search_window(g, v)).collect();
-    let dims = [g.camera.width as usize, g.camera.height as usize];
-    let rects: Vec<PixelRect> = rects
-        .into_iter()
-        .map(|r| [r[0], r[1], r[2].min(dims[0]).max(r[0] + 2), r[3].min(dims[1]).max(r[1] + 2)])
-        .collect();
-    let inverses: Vec<Option<Homography>> =
-        cal.views.iter().map(|v| v.homography.inverse()).collect();
-    progress.stage("sample height", lights.len());
-    // Per light, each view's crop, in units of the light's irradiance at
-    // the sample's centre times cos θi (lights differ by their beams).
-    let per_light = lights
-        .par_iter()
-        .map(|&l| -> Result<Vec<[Vec<f32>; PLANES]>, BuildError> {
-            let f = scan.read_within(l, &rects)?;
-            let ci = cal.lights.iter().position(|c| c.light == l).ok_or_else(|| {
-                BuildError::Input(format!("mirror {l} is lit in the scan but not calibrated"))
-            })?;
-            let unit = cal.colour.light(ci, [0.5, 0.5]) * cal.lights[ci].direction[2].max(0.05);
-            let k = if unit > 0.0 { 1.0 / unit } else { 0.0 };
-            progress.step();
-            Ok(rects
-                .iter()
-                .enumerate()
-                .map(|(vi, r)| {
-                    let a = cal.colour.view(vi, [0.5, 0.5]);
-                    let white = a.map(|a| if a > 0.0 { k / a } else { 0.0 });
-                    // The luminance per pixel over the white target's
-                    // response there (the beam's profile, the view's
-                    // vignetting), for the outline: its edges' levels then
-                    // change only with the sample's reflectance.
-                    let to_uv = inverses[vi];
-                    let response = |x: usize, y: usize| -> [f64; 3] {
-                        let uv = to_uv.map_or([0.5, 0.5], |h| {
-                            let q = h.apply([x as f64 + 0.5, y as f64 + 0.5]);
-                            q.map(|t| t.clamp(0.0, 1.0))
-                        });
-                        let r = cal.colour.response(ci, vi, uv);
-                        let w = cal.lights[ci].direction[2].max(0.05);
-                        r.map(|r| if r > 0.0 { 1.0 / (r * w) } else { 0.0 })
-                    };
-                    crop(&f, *r, white, &response)
-                })
-                .collect())
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    if per_light.is_empty() {
-        return Err(BuildError::Input(format!("{}: no frames", scan.dir.display())));
-    }
-    // Per view and pixel, the median over the lights of the chroma: each light's
-    // diffuse shading is the same in every view, a specular lobe only in
-    // the views near its mirror direction, whose pattern then leans
-    // towards the view (as a height would); the median leaves those out.
-    let medians: Vec<[Vec<f32>; PLANES]> = (0..rects.len())
-        .into_par_iter()
-        .map(|vi| {
-            let n = per_light[0][vi][0].len();
-            let mut values = Vec::with_capacity(per_light.len());
-            std::array::from_fn(|plane| {
-                if plane == 0 {
-                    // The luminance: the mean, for the outline (every
-                    // light's share of the sample's brightness counts).
-                    let k = 1.0 / per_light.len() as f32;
-                    return (0..n)
-                        .map(|i| k * per_light.iter().map(|c| c[vi][0][i]).sum::<f32>())
-                        .collect();
-                }
-                (0..n)
-                    .map(|i| {
-                        values.clear();
-                        values.extend(per_light.iter().map(|c| c[vi][plane][i]));
-                        values.sort_unstable_by(f32::total_cmp);
-                        let m = values.len();
-                        0.5 * (values[(m - 1) / 2] + values[m / 2])
-                    })
-                    .collect()
-            })
-        })
-        .collect();
-    let crops: Vec<ViewCrop> = rects
-        .iter()
-        .zip(medians)
-        .map(|(&rect, planes)| ViewCrop { rect, lit: planes[0].iter().any(|&v| v > 0.0), planes })
-        .collect();
+    progress.stage("sample height", scan.lights().len().min(LIGHTS));
+    let (crops, lights) = read_crops(g, cal, scan, &rects, true, progress)?;
     // A grid at about the frontal views' pixel pitch over the inner 80 %,
     // and one of half as many points a side for the scan over the range.
     let side = (super::regions::default_size(cal) as f64 * 0.8).round().clamp(16.0, 104.0) as usize;
@@ -666,6 +582,132 @@ pub fn measure_height(
         }
     }
     Ok(finish(fit))
+}
+
+/// The band beyond the sample's edges facing each view against beyond
+/// those facing away ([`super::outline::beyond_edges`]) read on `scan`'s
+/// frames with the sample's face at `face` — a face given rather than
+/// measured, whose sides [`super::regions::SampleSides::Auto`] still looks
+/// for. `None`: too few views with edges to compare. `progress` steps once
+/// per frame read.
+pub fn sides_beyond(
+    g: &ScannerGeometry,
+    cal: &Calibration,
+    scan: &ScanFrames,
+    face: SampleFace,
+    progress: &dyn super::calibrate::BuildProgress,
+) -> Result<Option<super::outline::Beyond>, BuildError> {
+    // The band reaches BAND_FROM_PX + 2 px beyond the edges; a few pixels
+    // more for the bilinear taps.
+    let rects: Vec<PixelRect> =
+        cal.views.iter().map(|v| v.homography_at_face(g, face).window(6.0)).collect();
+    progress.stage("sample's sides", scan.lights().len().min(LIGHTS));
+    let (crops, _) = read_crops(g, cal, scan, &rects, false, progress)?;
+    Ok(super::outline::beyond_edges(g, &cal.views, &CropLuminance(&crops), face))
+}
+
+/// Up to [`LIGHTS`] of `scan`'s lights' frames (evenly spread), each
+/// view's over its window in `rects`: per pixel the mean over them of the
+/// luminance (over the white target's response there) and, with `chroma`,
+/// the median of the chroma (white-balanced; empty planes otherwise); and
+/// the lights read. `progress` steps once per frame read.
+fn read_crops(
+    g: &ScannerGeometry,
+    cal: &Calibration,
+    scan: &ScanFrames,
+    rects: &[PixelRect],
+    chroma: bool,
+    progress: &dyn super::calibrate::BuildProgress,
+) -> Result<(Vec<ViewCrop>, Vec<usize>), BuildError> {
+    let all = scan.lights();
+    let n = all.len().min(LIGHTS);
+    let lights: Vec<usize> = (0..n).map(|i| all[i * all.len() / n.max(1)]).collect();
+    let dims = [g.camera.width as usize, g.camera.height as usize];
+    let rects: Vec<PixelRect> = rects
+        .iter()
+        .map(|r| [r[0], r[1], r[2].min(dims[0]).max(r[0] + 2), r[3].min(dims[1]).max(r[1] + 2)])
+        .collect();
+    let inverses: Vec<Option<Homography>> =
+        cal.views.iter().map(|v| v.homography.inverse()).collect();
+    // Per light, each view's crop, in units of the light's irradiance at
+    // the sample's centre times cos θi (lights differ by their beams).
+    let per_light = lights
+        .par_iter()
+        .map(|&l| -> Result<Vec<[Vec<f32>; PLANES]>, BuildError> {
+            let f = scan.read_within(l, &rects)?;
+            let ci = cal.lights.iter().position(|c| c.light == l).ok_or_else(|| {
+                BuildError::Input(format!("mirror {l} is lit in the scan but not calibrated"))
+            })?;
+            let unit = cal.colour.light(ci, [0.5, 0.5]) * cal.lights[ci].direction[2].max(0.05);
+            let k = if unit > 0.0 { 1.0 / unit } else { 0.0 };
+            progress.step();
+            Ok(rects
+                .iter()
+                .enumerate()
+                .map(|(vi, r)| {
+                    let a = cal.colour.view(vi, [0.5, 0.5]);
+                    let white = a.map(|a| if a > 0.0 { k / a } else { 0.0 });
+                    // The luminance per pixel over the white target's
+                    // response there (the beam's profile, the view's
+                    // vignetting), for the outline: its edges' levels then
+                    // change only with the sample's reflectance.
+                    let to_uv = inverses[vi];
+                    let response = |x: usize, y: usize| -> [f64; 3] {
+                        let uv = to_uv.map_or([0.5, 0.5], |h| {
+                            let q = h.apply([x as f64 + 0.5, y as f64 + 0.5]);
+                            q.map(|t| t.clamp(0.0, 1.0))
+                        });
+                        let r = cal.colour.response(ci, vi, uv);
+                        let w = cal.lights[ci].direction[2].max(0.05);
+                        r.map(|r| if r > 0.0 { 1.0 / (r * w) } else { 0.0 })
+                    };
+                    crop(&f, *r, white, &response)
+                })
+                .collect())
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    if per_light.is_empty() {
+        return Err(BuildError::Input(format!("{}: no frames", scan.dir.display())));
+    }
+    // Per view and pixel, the median over the lights of the chroma: each light's
+    // diffuse shading is the same in every view, a specular lobe only in
+    // the views near its mirror direction, whose pattern then leans
+    // towards the view (as a height would); the median leaves those out.
+    let medians: Vec<[Vec<f32>; PLANES]> = (0..rects.len())
+        .into_par_iter()
+        .map(|vi| {
+            let n = per_light[0][vi][0].len();
+            let mut values = Vec::with_capacity(per_light.len());
+            std::array::from_fn(|plane| {
+                if plane == 0 {
+                    // The luminance: the mean, for the outline (every
+                    // light's share of the sample's brightness counts).
+                    let k = 1.0 / per_light.len() as f32;
+                    return (0..n)
+                        .map(|i| k * per_light.iter().map(|c| c[vi][0][i]).sum::<f32>())
+                        .collect();
+                }
+                if !chroma {
+                    return Vec::new();
+                }
+                (0..n)
+                    .map(|i| {
+                        values.clear();
+                        values.extend(per_light.iter().map(|c| c[vi][plane][i]));
+                        values.sort_unstable_by(f32::total_cmp);
+                        let m = values.len();
+                        0.5 * (values[(m - 1) / 2] + values[m / 2])
+                    })
+                    .collect()
+            })
+        })
+        .collect();
+    let crops: Vec<ViewCrop> = rects
+        .iter()
+        .zip(medians)
+        .map(|(&rect, planes)| ViewCrop { rect, lit: planes[0].iter().any(|&v| v > 0.0), planes })
+        .collect();
+    Ok((crops, lights))
 }
 
 /// The chroma's measurement `chroma` joined with the outline's (module

@@ -628,6 +628,7 @@ mod tests {
             detail: None,
             face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
+            beyond: None,
             sides: crate::build::regions::SampleSides::Hidden,
         }
     }

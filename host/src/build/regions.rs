@@ -12,7 +12,7 @@ use scanner_geometry::ScannerGeometry;
 
 use super::calibrate::{BuildProgress, Calibration, EDGE_PRECISE_PX};
 use super::error::BuildError;
-use super::height::{HeightFit, SampleHeight, measure_height, view_parallax};
+use super::height::{HeightFit, SampleHeight, measure_height, sides_beyond, view_parallax};
 use super::outline::side_reach;
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
@@ -60,6 +60,10 @@ pub struct RegionSet {
     /// Whether they were read as a thick sample's, its sides showing
     /// ([`RegionOptions::sides`], resolved: never `Auto`).
     pub sides: SampleSides,
+    /// The band beyond the sample's edges at `face`, where it was read
+    /// ([`super::outline::beyond_edges`]): the measurement's, or a given
+    /// face's when asked to look ([`SampleSides::Auto`]).
+    pub beyond: Option<super::outline::Beyond>,
 }
 
 /// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
@@ -309,10 +313,10 @@ pub struct RegionOptions {
 /// (docs/calibration-format.md, "Region images").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum SampleSides {
-    /// Seen on the sample's frames ([`super::outline::Beyond::seen`],
-    /// where the face is measured): [`Self::Shown`] where the band beyond
+    /// Seen on the sample's frames ([`super::outline::Beyond::seen`], at
+    /// the face measured or given): [`Self::Shown`] where the band beyond
     /// the edges facing the views is brighter than beyond the others,
-    /// [`Self::Hidden`] otherwise (and with a given face).
+    /// [`Self::Hidden`] otherwise.
     #[default]
     Auto,
     /// Beyond the sample's outline lies the holder in every view: a sample
@@ -464,15 +468,22 @@ pub fn extract_regions(
         region_memory(size, lights.len(), cal.views.len(), frame_px, rayon::current_num_threads());
     check_memory(need, size, available_memory())?;
     let albedo = cal.colour.white_albedo;
-    let (face, height_fit) = match opts.height {
-        SampleHeight::Given(face) => (face, None),
+    let (face, height_fit, beyond) = match opts.height {
+        // A given face's sides are looked for at it, when asked to.
+        SampleHeight::Given(face) => {
+            let beyond = match opts.sides {
+                SampleSides::Auto => sides_beyond(g, cal, scan, face, progress)?,
+                SampleSides::Hidden | SampleSides::Shown => None,
+            };
+            (face, None, beyond)
+        }
         SampleHeight::Measure => {
             let fit = measure_height(g, cal, scan, opts.sides, progress)?;
-            (fit.applied_face(), Some(fit))
+            (fit.applied_face(), Some(fit), fit.beyond)
         }
     };
     let sides = match opts.sides {
-        SampleSides::Auto if height_fit.is_some_and(|f| f.sides_seen()) => SampleSides::Shown,
+        SampleSides::Auto if beyond.is_some_and(|b| b.seen()) => SampleSides::Shown,
         SampleSides::Auto => SampleSides::Hidden,
         given => given,
     };
@@ -642,6 +653,7 @@ pub fn extract_regions(
         sample_mm: g.sample.size_mm,
         face,
         height_fit,
+        beyond,
         sides,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
@@ -695,6 +707,7 @@ mod tests {
             }),
             face: SampleFace::FLUSH,
             height_fit: None,
+            beyond: None,
             sides: SampleSides::Hidden,
         };
         let dir = tempfile::tempdir().unwrap();

@@ -645,6 +645,7 @@ mod tests {
             detail: None,
             face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
+            beyond: None,
             sides: crate::build::regions::SampleSides::Hidden,
         };
         let mut state = 0x9e37_79b9_7f4a_7c15u64;

@@ -383,8 +383,8 @@ pub struct ScanInputs {
           value_name = "DEG_U,DEG_V")]
     pub sample_tilt: Option<[f64; 2]>,
     /// Whether a thick sample's sides show beyond the edges facing each
-    /// view: `auto` (the default) looks beyond the edges where the face is
-    /// measured; `shown` says they do (no pixel across those edges is
+    /// view: `auto` (the default) looks beyond the edges, at the face
+    /// measured or given; `shown` says they do (no pixel across those edges is
     /// read, the face is measured on its colour texture alone, not on its
     /// outline); `hidden` that the holder lies beyond every edge.
     #[arg(long, value_enum, default_value = "auto", value_name = "auto|shown|hidden")]
@@ -534,7 +534,7 @@ fn say_height(regions: &crate::build::RegionSet) {
         }
         None => {}
     }
-    let beyond = regions.height_fit.and_then(|f| f.beyond);
+    let beyond = regions.beyond;
     if regions.sides == SampleSides::Shown {
         let seen = beyond.filter(|b| b.seen()).map_or(String::new(), |b| {
             format!(
@@ -544,9 +544,14 @@ fn say_height(regions: &crate::build::RegionSet) {
                 b.views
             )
         });
+        let outline = if regions.height_fit.is_some() {
+            ", the face not measured on its outline"
+        } else {
+            ""
+        };
         println!(
             "sample's sides show beyond the edges facing each view{seen}: no pixel across those \
-             edges read, the face not measured on its outline"
+             edges read{outline}"
         );
     } else if let Some(b) = beyond.filter(|b| b.seen()) {
         println!(
