@@ -355,6 +355,51 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(b.seen() && given_auto.sides == SampleSides::Shown, "{b:?}");
     assert!(given_hidden.beyond.is_none() && given_hidden.sides == SampleSides::Hidden);
     assert!(as_given_auto > as_given_hidden + 0.2, "{as_given_auto} {as_given_hidden}");
+    // A board 5 mm thick standing on the holder, its face 5 mm proud: the
+    // sides show (its outline is not read) and the chroma measures the face
+    // (searched over ±10 mm since session 82: at ±3 mm it was read in the
+    // holder's plane); read there, the board scores as given its true face.
+    // (Below the flush sample: at 5 mm one light's beam edge, beyond the
+    // part the white target measured, crosses a corner of the face.)
+    let out = dir.path().join("leather-board");
+    let board = SimSetup {
+        bin,
+        seed,
+        sample_height_mm: 5.0,
+        sample_thickness_mm: 5.0,
+        ..SimSetup::new("leather")
+    };
+    take_scan_of(&board, mirrors, protocol::DEFAULT_EXPOSURE_US, &out);
+    let scan = ScanFrames::open(&out, &g).unwrap();
+    let true_face = SampleFace::at_height(5.0);
+    let [board, given, plane] = [
+        SampleHeight::Measure,
+        SampleHeight::Given(true_face),
+        SampleHeight::Given(SampleFace::FLUSH),
+    ]
+    .map(|height| {
+        let opts = RegionOptions { height, ..RegionOptions::default() };
+        extract_regions(&g, &cal, &scan, &opts, &Silent).unwrap()
+    });
+    let fit = board.height_fit.unwrap();
+    let [as_board, as_given, as_plane] =
+        [&board, &given, &plane].map(|r| tests::captured_pair_psnr_on(&g, r, &sample, true_face).0);
+    eprintln!(
+        "leather 5 mm thick, 5 mm proud: measured on {:?} {:.4} ± {:.4} mm, {:.3?}°, beyond the \
+         facing edges {:?}; PSNR {as_board:.2} dB, given its face {as_given:.2} dB, read in the \
+         holder's plane {as_plane:.2} dB (flush: {psnr:.2} dB)",
+        fit.cue,
+        fit.height_mm,
+        fit.sigma_mm,
+        deg(fit.slope),
+        board.beyond
+    );
+    assert!((board.face.height_mm - 5.0).abs() < 0.02 && fit.cue == FaceCue::Chroma, "{fit:?}");
+    assert_eq!(board.sides, SampleSides::Shown);
+    assert!(
+        (as_board - as_given).abs() < 0.1 && as_board > as_plane + 10.0,
+        "{as_board} {as_plane}"
+    );
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);

@@ -120,6 +120,17 @@ impl SampleFace {
         (t > 0.0).then(|| origin + dir * t)
     }
 
+    /// The holder's-plane uv where the line from `origin` (sample-local
+    /// mm, off the holder's plane: a virtual camera) through the face's
+    /// point at material uv crosses the holder's plane, for a sample
+    /// `size_mm` wide: what the calibration's homography of the view from
+    /// `origin` maps for that point.
+    pub fn holder_uv_from(&self, size_mm: f64, uv: [f64; 2], origin: DVec3) -> [f64; 2] {
+        let p = self.point(size_mm, uv);
+        let q = origin + (p - origin) * (origin.z / (origin.z - p.z));
+        SampleFace::FLUSH.uv(size_mm, q)
+    }
+
     /// The face's height above the holder's plane at sample-local (x, y),
     /// mm.
     pub fn height_at(&self, x: f64, y: f64) -> f64 {
@@ -169,5 +180,24 @@ mod tests {
         let d = DVec3::new(0.3, -0.2, 0.9).normalize();
         assert!((SampleFace::FLUSH.to_face(d) - d).length() < 1e-15);
         assert!((f.to_face(f.normal()) - DVec3::Z).length() < 1e-12);
+    }
+
+    /// A view from a point sees the face's point at uv where its ray
+    /// crosses the holder's plane: that crossing, the point and the origin
+    /// lie on one line, and a flush face's point is its own.
+    #[test]
+    fn the_holder_plane_point_seen_from_a_point() {
+        let f = SampleFace { height_mm: 5.0, slope: [0.02, -0.035] };
+        let origin = DVec3::new(300.0, -500.0, 900.0);
+        for uv in [[0.0, 0.0], [1.0, 0.3], [0.5, 0.5]] {
+            let q = SampleFace::FLUSH.point(25.4, f.holder_uv_from(25.4, uv, origin));
+            let p = f.point(25.4, uv);
+            assert!(
+                q.z == 0.0
+                    && (q - origin).normalize().cross((p - origin).normalize()).length() < 1e-12
+            );
+            let flush = SampleFace::FLUSH.holder_uv_from(25.4, uv, origin);
+            assert!((flush[0] - uv[0]).abs() < 1e-12 && (flush[1] - uv[1]).abs() < 1e-12);
+        }
     }
 }

@@ -836,14 +836,8 @@ impl ViewCalibration {
         let c = DVec3::from(self.viewer_mm(g));
         let size = g.sample.size_mm;
         let src = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5]];
-        let dst: Vec<[f64; 2]> = src
-            .iter()
-            .map(|&uv| {
-                let p = face.point(size, uv);
-                let q = c + (p - c) * (c.z / (c.z - p.z));
-                self.homography.apply([q.x / size + 0.5, q.y / size + 0.5])
-            })
-            .collect();
+        let dst: Vec<[f64; 2]> =
+            src.iter().map(|&uv| self.homography.apply(face.holder_uv_from(size, uv, c))).collect();
         Homography::fit(&src, &dst).unwrap_or(self.homography)
     }
 

@@ -51,8 +51,12 @@ use crate::camera::Frame;
 use crate::exrio::PixelRect;
 use scanner_geometry::{SampleFace, ScannerGeometry};
 
-/// The heights searched, ± mm.
-pub const MAX_HEIGHT_MM: f64 = 3.0;
+/// The heights searched, ± mm (also the range of a given
+/// `--sample-height`): a board several mm thick standing on the holder
+/// whose targets were thin cards (session 82: a leather 5 mm proud and
+/// 5 mm thick, its sides showing so its outline not read, was read in
+/// the holder's plane at ±3 mm, 14.8 dB).
+pub const MAX_HEIGHT_MM: f64 = 10.0;
 
 /// At most this many lights' frames are read (evenly spread over the
 /// scan's).
@@ -534,7 +538,14 @@ pub fn measure_height(
     // chroma's alone.
     let finish = |fit: HeightFit| {
         let mut joined = with_outline(fit, outline, size);
-        let beyond = super::outline::beyond_edges(g, &cal.views, &lum, joined.applied_face());
+        // Read at the joined face, or the chroma's where the outline
+        // disagrees with it (sides move the outline; the holder's plane,
+        // where a disagreement leaves the face, may lie pixels off).
+        let at = match joined.cue {
+            FaceCue::Conflict => fit.applied_face(),
+            _ => joined.applied_face(),
+        };
+        let beyond = super::outline::beyond_edges(g, &cal.views, &lum, at);
         joined.beyond = beyond;
         if sides == super::regions::SampleSides::Auto && joined.sides_seen() {
             return HeightFit { beyond, ..fit };

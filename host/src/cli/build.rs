@@ -399,16 +399,18 @@ pub enum SidesArg {
     Hidden,
 }
 
-/// `--sample-height`: `auto` or a height in mm within ±10.
+/// `--sample-height`: `auto` or a height in mm within
+/// ±[`crate::build::height::MAX_HEIGHT_MM`] (the range `auto` searches).
 fn parse_sample_height(s: &str) -> Result<SampleHeight, String> {
     if s == "auto" {
         return Ok(SampleHeight::Measure);
     }
+    let max = crate::build::height::MAX_HEIGHT_MM;
     match s.parse::<f64>() {
-        Ok(h) if h.is_finite() && h.abs() <= 10.0 => {
+        Ok(h) if h.is_finite() && h.abs() <= max => {
             Ok(SampleHeight::Given(SampleFace::at_height(h)))
         }
-        _ => Err(format!("{s:?}: `auto` or a height in mm within ±10")),
+        _ => Err(format!("{s:?}: `auto` or a height in mm within ±{max}")),
     }
 }
 
