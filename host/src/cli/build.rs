@@ -399,6 +399,10 @@ pub enum SidesArg {
     Hidden,
 }
 
+/// A face this far off the holder's plane somewhere, mm, is told that
+/// the lights' beams were measured elsewhere.
+const FAR_FACE_MM: f64 = 1.0;
+
 /// `--sample-height`: `auto` or a height in mm within
 /// ±[`crate::build::height::MAX_HEIGHT_MM`] (the range `auto` searches).
 fn parse_sample_height(s: &str) -> Result<SampleHeight, String> {
@@ -561,6 +565,25 @@ fn say_height(regions: &crate::build::RegionSet) {
              the face's contrast beyond them), read as hidden (--sample-sides hidden)",
             100.0 * b.excess,
             100.0 * b.sigma
+        );
+    }
+    // The colour calibration measured each light's beam on the targets in
+    // the holder's plane; a face far off it is lit, texel by texel, by the
+    // part of the beam that far aside along the light's azimuth.
+    let off = face.height_mm.abs()
+        + (face.slope[0].abs() + face.slope[1].abs()) * regions.sample_mm / 2.0;
+    if off >= FAR_FACE_MM {
+        let tan = regions
+            .light_dirs
+            .iter()
+            .map(|d| d[0].hypot(d[1]) / d[2].max(1e-6))
+            .fold(0.0, f64::max);
+        println!(
+            "the face lies up to {off:.1} mm off the holder's plane, where the white target \
+             measured the lights' beams: its texels are lit by the beams' parts up to {:.1} mm \
+             aside of those (a beam's edge near the sample shows in its images; for such samples, \
+             calibrate with the targets raised to the face)",
+            off * tan
         );
     }
 }
