@@ -522,7 +522,9 @@ fn say_height(regions: &crate::build::RegionSet) {
             f.agreement,
             crate::build::height::MIN_AGREEMENT,
             if regions.sides == SampleSides::Shown {
-                "its outline not read, its sides showing".to_string()
+                "its outline not read, its sides showing: give --sample-height MM, a board \
+                 standing on the holder its thickness"
+                    .to_string()
             } else {
                 format!(
                     "no outline against the holder in {} views",
