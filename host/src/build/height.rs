@@ -491,8 +491,7 @@ pub fn measure_height(
     progress: &dyn super::calibrate::BuildProgress,
 ) -> Result<HeightFit, BuildError> {
     let rects: Vec<PixelRect> = cal.views.iter().map(|v| search_window(g, v)).collect();
-    progress.stage("sample height", scan.lights().len().min(LIGHTS));
-    let (crops, lights) = read_crops(g, cal, scan, &rects, true, progress)?;
+    let (crops, lights) = read_crops(g, cal, scan, &rects, true, ("sample height", progress))?;
     // A grid at about the frontal views' pixel pitch over the inner 80 %,
     // and one of half as many points a side for the scan over the range.
     let side = (super::regions::default_size(cal) as f64 * 0.8).round().clamp(16.0, 104.0) as usize;
@@ -612,8 +611,7 @@ pub fn sides_beyond(
     // more for the bilinear taps.
     let rects: Vec<PixelRect> =
         cal.views.iter().map(|v| v.homography_at_face(g, face).window(6.0)).collect();
-    progress.stage("sample's sides", scan.lights().len().min(LIGHTS));
-    let (crops, _) = read_crops(g, cal, scan, &rects, false, progress)?;
+    let (crops, _) = read_crops(g, cal, scan, &rects, false, ("sample's sides", progress))?;
     Ok(super::outline::beyond_edges(g, &cal.views, &CropLuminance(&crops), face))
 }
 
@@ -621,18 +619,20 @@ pub fn sides_beyond(
 /// view's over its window in `rects`: per pixel the mean over them of the
 /// luminance (over the white target's response there) and, with `chroma`,
 /// the median of the chroma (white-balanced; empty planes otherwise); and
-/// the lights read. `progress` steps once per frame read.
+/// the lights read. `progress` is told the stage's name and steps once per
+/// frame read.
 fn read_crops(
     g: &ScannerGeometry,
     cal: &Calibration,
     scan: &ScanFrames,
     rects: &[PixelRect],
     chroma: bool,
-    progress: &dyn super::calibrate::BuildProgress,
+    (stage, progress): (&str, &dyn super::calibrate::BuildProgress),
 ) -> Result<(Vec<ViewCrop>, Vec<usize>), BuildError> {
     let all = scan.lights();
     let n = all.len().min(LIGHTS);
     let lights: Vec<usize> = (0..n).map(|i| all[i * all.len() / n.max(1)]).collect();
+    progress.stage(stage, lights.len());
     let dims = [g.camera.width as usize, g.camera.height as usize];
     let rects: Vec<PixelRect> = rects
         .iter()

@@ -572,8 +572,11 @@ fn say_height(regions: &crate::build::RegionSet) {
     // The colour calibration measured each light's beam on the targets in
     // the holder's plane; a face far off it is lit, texel by texel, by the
     // part of the beam that far aside along the light's azimuth.
-    let off = face.height_mm.abs()
-        + (face.slope[0].abs() + face.slope[1].abs()) * regions.sample_mm / 2.0;
+    let half = regions.sample_mm / 2.0;
+    let off = [[-half, -half], [half, -half], [half, half], [-half, half]]
+        .iter()
+        .map(|&[x, y]| face.height_at(x, y).abs())
+        .fold(0.0, f64::max);
     if off >= FAR_FACE_MM {
         let tan = regions
             .light_dirs
