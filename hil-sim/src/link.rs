@@ -274,6 +274,10 @@ impl SimLink {
     }
 }
 
+/// Simulated time a board has run before its port appears: its inputs'
+/// debounce and two input samples.
+const BOOTED_TICKS: u64 = (firmware::controller::DEBOUNCE_US + 400) * firmware::hal::TICKS_PER_US;
+
 fn duration_ticks(d: Duration) -> u64 {
     (d.as_nanos() * TICK_HZ as u128 / 1_000_000_000) as u64
 }
@@ -404,6 +408,12 @@ impl PtyServer {
             }
             None => None,
         };
+        // A board's port appears only once it has booted, by which time its
+        // inputs have been read and debounced: a fault line asserted from
+        // power-on is latched before the host can ask. Without this, a
+        // server thread first scheduled after the host has written (a busy
+        // machine) would answer at tick 0, before the first debounce ended.
+        device.advance_to(device.now() + BOOTED_TICKS);
         let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::other)?;
         let path = slave.name().ok_or_else(|| std::io::Error::other("the pty has no name"))?;
         master.set_timeout(Duration::from_millis(1)).map_err(std::io::Error::other)?;
