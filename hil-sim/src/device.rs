@@ -330,6 +330,11 @@ impl SimDevice {
         self.driver_fault = asserted;
     }
 
+    /// The faults the board's controller has latched.
+    pub fn faults(&self) -> protocol::FaultFlags {
+        self.controller.faults()
+    }
+
     /// Bytes from the host arrive now.
     pub fn receive(&mut self, bytes: &[u8]) {
         let SimDevice { controller, hw, output, now, .. } = self;

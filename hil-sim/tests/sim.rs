@@ -456,3 +456,17 @@ fn pty_serves_the_protocol_in_real_time() {
     let device = server.stop().unwrap();
     assert!(device.now() > 0, "simulated time followed the wall clock");
 }
+
+/// The port appears once the board has booted: a driver-fault line asserted
+/// from power-on is latched before the host can ask. (CI once saw "faults
+/// none" at uptime 0: on a busy machine the server's thread first ran after
+/// the host had written, and answered before the first debounce ended.)
+#[test]
+fn a_pty_port_appears_after_the_boards_first_debounce() {
+    let mut config = SimConfig::new(1);
+    config.driver_fault_active_high = true;
+    let server = hil_sim::PtyServer::start(hil_sim::SimDevice::new(config), 1.0).unwrap();
+    // Stopped at once, whether or not its thread has run.
+    let device = server.stop().unwrap();
+    assert!(device.faults().contains(FaultFlags::DRIVER_FAULT), "{:?}", device.faults());
+}
