@@ -276,7 +276,8 @@ impl SimLink {
 
 /// Simulated time a board has run before its port appears: its inputs'
 /// debounce and two input samples.
-const BOOTED_TICKS: u64 = (firmware::controller::DEBOUNCE_US + 400) * firmware::hal::TICKS_PER_US;
+const BOOTED_TICKS: u64 =
+    firmware::controller::DEBOUNCE_US * firmware::hal::TICKS_PER_US + 2 * crate::device::POLL_TICKS;
 
 fn duration_ticks(d: Duration) -> u64 {
     (d.as_nanos() * TICK_HZ as u128 / 1_000_000_000) as u64
