@@ -36,10 +36,11 @@ use protocol::{
     TimedCaptureStep, ToHost, TriggerFired, encode_flushed_frame,
 };
 
-use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid};
+use crate::config::{PERSISTED_MAX_LEN, PersistedConfig, is_valid, strobe_is_valid};
 use crate::hal::{BootInfo, Hardware, Inputs, TICK_HZ, TICKS_PER_MS, TICKS_PER_US};
 use crate::planner::{Phase, Profile, SegmentPlanner};
 use crate::step::StepGenerator;
+use crate::strobe::StrobeMonitor;
 
 /// The host counts as gone after this much silence while an axis moves.
 pub const LINK_TIMEOUT_MS: u64 = 500;
@@ -213,6 +214,9 @@ pub struct Controller {
     reset_requested: bool,
     /// Step-queue underruns (planner fell behind); diagnostics only.
     underruns: u32,
+    /// The camera's exposure strobe, watched after each pulse while
+    /// `config.strobe` says so.
+    strobe: StrobeMonitor,
 }
 
 impl Controller {
@@ -244,6 +248,7 @@ impl Controller {
             decoder: FrameDecoder::new(),
             reset_requested: false,
             underruns: 0,
+            strobe: StrobeMonitor::default(),
         };
         c.emit(Event::Boot { boot_id: boot.boot_id, reason: boot.reason });
         if boot.reason == ResetReason::Watchdog {
@@ -555,6 +560,25 @@ impl Controller {
                 Ok(Reply::Ack)
             }
             Request::GetLastTrigger => Ok(Reply::Trigger(self.last_trigger)),
+            Request::GetStrobe => Ok(Reply::Strobe(self.config.strobe)),
+            Request::SetStrobe(strobe) => {
+                if self.activity != Activity::Idle {
+                    return Err(DeviceError::Busy);
+                }
+                if !strobe_is_valid(&strobe) {
+                    return Err(DeviceError::OutOfRange);
+                }
+                if strobe.enabled && !self.boot.capabilities.contains(Capabilities::EXPOSURE_STROBE)
+                {
+                    return Err(DeviceError::Unsupported);
+                }
+                // The last pulse's watch ends by the setting it began with.
+                if let Some(e) = self.strobe.finish(self.now) {
+                    self.emit(e);
+                }
+                self.config.strobe = strobe;
+                Ok(Reply::Ack)
+            }
             Request::Reset => {
                 self.halt_all(hw);
                 self.reset_requested = true;
@@ -1028,6 +1052,11 @@ impl Controller {
             mirror,
         };
         self.last_trigger = Some(fired);
+        if self.config.strobe.enabled
+            && let Some(last) = self.strobe.start(self.trigger_seq, self.now, ticks)
+        {
+            self.emit(last);
+        }
         self.emit(Event::TriggerFired(fired));
         self.activity = Activity::Exposing { until: (self.now + ticks).max(ended), trail };
     }
@@ -1185,6 +1214,11 @@ impl Controller {
     pub fn poll(&mut self, now: u64, raw: &Inputs, hw: &mut impl Hardware) {
         self.now = now;
         let inputs = &self.debounced(raw, hw);
+        let strobe = raw.strobe_line == self.config.strobe.active_high;
+        let max_delay = self.config.strobe.max_delay_us as u64 * TICKS_PER_US;
+        if let Some(e) = self.strobe.sample(now, strobe, max_delay) {
+            self.emit(e);
+        }
         self.check_safety(inputs, hw);
         self.poll_homing(inputs, hw);
         self.prev_inputs = *inputs;

@@ -29,6 +29,11 @@ pub struct Inputs {
     /// The drivers' fault line is high (its electrical level: whether that
     /// is a fault depends on `BoardConfig::driver_fault_active_high`).
     pub driver_fault_line: bool,
+    /// The camera's "exposure active" strobe line is high (its electrical
+    /// level: whether that means exposing depends on
+    /// `StrobeConfig::active_high`; a board without the input reads it
+    /// low).
+    pub strobe_line: bool,
 }
 
 /// Outputs and services the controller drives.

@@ -12,6 +12,7 @@
 //! - [`controller`]: request dispatcher, homing, capture sequencer, safety.
 //! - [`hal`]: the small traits the hardware implements.
 //! - [`config`]: axis defaults from spec/hardware.md and the persisted blob.
+//! - [`strobe`]: the watch of the camera's exposure strobe.
 //!
 //! Time is always passed in as ticks of [`hal::TICK_HZ`]; nothing reads a clock.
 #![no_std]
@@ -24,6 +25,7 @@ pub mod planner;
 #[cfg(feature = "selftest")]
 pub mod selftest;
 pub mod step;
+pub mod strobe;
 #[cfg(feature = "selftest")]
 pub mod testkit;
 pub mod timer;

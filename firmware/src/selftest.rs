@@ -68,6 +68,7 @@ pub const TESTS: &[SelfTest] = &[
     ("storage_failure_at_boot_latches", storage_failure_at_boot_latches),
     ("config_save_and_reload", config_save_and_reload),
     ("driver_fault_polarity_is_configurable", driver_fault_polarity_is_configurable),
+    ("exposure_strobe_reports_each_exposure", exposure_strobe_reports_each_exposure),
     ("home_sensor_polarity_is_configurable", home_sensor_polarity_is_configurable),
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
@@ -1072,6 +1073,14 @@ pub fn config_save_and_reload() -> TestResult {
     ensure!(upgraded.axes == loaded.axes && upgraded.mirrors == loaded.mirrors, "v2 contents");
     ensure!(upgraded.board == board, "v2 board options");
     ensure!(upgraded.home == protocol::HomeSensors::default(), "default home sensors");
+    // And a format-3 blob (before the exposure strobe).
+    let home = protocol::HomeSensors { active_high: [true, false, true] };
+    let v3 = (3u16, loaded.axes, loaded.mirrors.clone(), board, home);
+    let old = postcard::to_slice(&v3, &mut buf).map_err(|_| "encode v3")?;
+    let upgraded = PersistedConfig::decode(old).ok_or("format 3 loads")?;
+    ensure!(upgraded.axes == loaded.axes && upgraded.mirrors == loaded.mirrors, "v3 contents");
+    ensure!(upgraded.board == board && upgraded.home == home, "v3 options");
+    ensure!(upgraded.strobe == crate::config::strobe_default(), "default strobe");
     // A format this firmware does not know is refused, not misread.
     let v9 = (9u16, loaded.axes, loaded.mirrors.clone(), board, [true; 3]);
     let unknown = postcard::to_slice(&v9, &mut buf).map_err(|_| "encode v9")?;
@@ -1235,6 +1244,100 @@ pub fn driver_fault_polarity_is_configurable() -> TestResult {
 /// `SaveConfig` erases flash, which stalls the step interrupt on the F411:
 /// refused (busy) while an axis moves, and (like motion) while a fault is
 /// latched; accepted again once idle and cleared.
+/// The camera's exposure strobe, once enabled on a board that has the
+/// input, is watched after every pulse: an exposure is reported with its
+/// delay and length within a 200 µs sample, a camera that ignores its
+/// trigger is reported as such once the strobe is overdue, either
+/// polarity, and the setting is saved; refused without the input, with a
+/// delay bound out of range, or while busy; off, no report.
+pub fn exposure_strobe_reports_each_exposure() -> TestResult {
+    use crate::testkit::CameraStrobe;
+    use protocol::{DEFAULT_STROBE_DELAY_US, MAX_STROBE_DELAY_US, StrobeConfig, StrobeWindow};
+    // Poll every 200 µs (the board's input sampling) for `ms`.
+    fn sample(rig: &mut Rig, ms: u64) {
+        for _ in 0..ms * 5 {
+            rig.now += 200 * TICKS_PER_US;
+            rig.run_until(rig.now);
+        }
+    }
+    // Fire a bare trigger of `us`, sample for `ms`: the exposure reports.
+    fn pulse(rig: &mut Rig, us: u32, ms: u64) -> Result<heapless::Vec<Event, 4>, &'static str> {
+        rig.events.clear();
+        ensure!(rig.request(Request::Trigger { exposure_us: us }) == Reply::Ack, "trigger");
+        sample(rig, ms);
+        let mut reports = heapless::Vec::new();
+        for e in &rig.events {
+            if let Event::Exposure { .. } = e {
+                let _ = reports.push(e.clone());
+            }
+        }
+        Ok(reports)
+    }
+    let on = |active_high| StrobeConfig {
+        enabled: true,
+        active_high,
+        max_delay_us: DEFAULT_STROBE_DELAY_US,
+    };
+    let mut rig = Rig::new();
+    let default = crate::config::strobe_default();
+    ensure!(rig.request(Request::GetStrobe) == Reply::Strobe(default), "off by default");
+    ensure!(
+        rig.request(Request::SetStrobe(on(true))) == Reply::Error(DeviceError::Unsupported),
+        "no input, no watch"
+    );
+    ensure!(rig.request(Request::SetStrobe(default)) == Reply::Ack, "off is always accepted");
+    let caps = Capabilities::SIMULATED
+        .union(Capabilities::PERSISTENT_CONFIG)
+        .union(Capabilities::EXPOSURE_STROBE);
+    let mut rig = Rig::with_capabilities(ResetReason::PowerOn, caps);
+    for max_delay_us in [0, MAX_STROBE_DELAY_US + 1] {
+        let bad = StrobeConfig { max_delay_us, ..on(true) };
+        ensure!(
+            rig.request(Request::SetStrobe(bad)) == Reply::Error(DeviceError::OutOfRange),
+            "delay bound out of range"
+        );
+    }
+    // Not watched yet: no report.
+    rig.strobe =
+        Some(CameraStrobe { delay: 300 * TICKS_PER_US, active_high: true, ignores: false });
+    ensure!(pulse(&mut rig, 5_000, 30)?.is_empty(), "off: no report");
+    ensure!(rig.request(Request::SetStrobe(on(true))) == Reply::Ack, "enabled");
+    ensure!(rig.request(Request::GetStrobe) == Reply::Strobe(on(true)), "read back");
+    for active_high in [true, false] {
+        ensure!(rig.request(Request::SetStrobe(on(active_high))) == Reply::Ack, "polarity");
+        rig.strobe = Some(CameraStrobe { delay: 300 * TICKS_PER_US, active_high, ignores: false });
+        let seq = rig.ctrl.status(&mut rig.hw).trigger_seq + 1;
+        let reports = pulse(&mut rig, 5_000, 30)?;
+        let [Event::Exposure { trigger_seq, window: Some(w) }] = reports.as_slice() else {
+            return Err("one exposure reported");
+        };
+        let StrobeWindow { delay_us, length_us, ended } = *w;
+        ensure!(*trigger_seq == seq && ended, "this pulse's, ended");
+        ensure!((300..=500).contains(&delay_us), "the delay, within a sample");
+        ensure!(length_us.abs_diff(5_000) <= 200, "the length, within a sample");
+        // The camera misses: reported once the strobe is overdue.
+        rig.strobe = Some(CameraStrobe { delay: 300 * TICKS_PER_US, active_high, ignores: true });
+        let start = rig.now;
+        let reports = pulse(&mut rig, 5_000, 30)?;
+        ensure!(
+            reports.as_slice() == [Event::Exposure { trigger_seq: seq + 1, window: None }],
+            "a missed trigger"
+        );
+        ensure!(rig.now - start >= 15_000 * TICKS_PER_US, "not before the bound");
+    }
+    // Refused while busy; saved with the configuration.
+    ensure!(rig.request(Request::Trigger { exposure_us: 5_000 }) == Reply::Ack, "a pulse");
+    ensure!(
+        rig.request(Request::SetStrobe(on(true))) == Reply::Error(DeviceError::Busy),
+        "busy while exposing"
+    );
+    sample(&mut rig, 30);
+    ensure!(rig.request(Request::SaveConfig) == Reply::Ack, "saved");
+    let loaded = PersistedConfig::decode(&rig.hw.saved).ok_or("decodes")?;
+    ensure!(loaded.strobe == on(false), "persisted");
+    Ok(())
+}
+
 pub fn save_config_refused_while_moving_or_faulted() -> TestResult {
     let mut rig = Rig::new();
     moving_with_light(&mut rig)?;

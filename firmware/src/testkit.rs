@@ -140,6 +140,18 @@ impl Switch {
     }
 }
 
+/// A camera's "exposure active" strobe output, wired to the rig's input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CameraStrobe {
+    /// The camera exposes from this many ticks after the trigger rises to
+    /// as long after it falls (an opto-isolated input's delay).
+    pub delay: u64,
+    /// The line is high while exposing (false: low).
+    pub active_high: bool,
+    /// The camera ignores its triggers (the line stays inactive).
+    pub ignores: bool,
+}
+
 /// The controller on an ideal machine.
 #[derive(Debug)]
 pub struct Rig {
@@ -161,6 +173,8 @@ pub struct Rig {
     pub estop: bool,
     /// Driver fault input.
     pub driver_fault: bool,
+    /// The camera's strobe, if wired (`None`: the line reads low).
+    pub strobe: Option<CameraStrobe>,
     /// Send a `Ping` every 100 ms of simulated time (as a host does).
     pub keepalive: bool,
     /// Events received, in order.
@@ -224,6 +238,7 @@ impl Rig {
             switch_active_high: [false; AXIS_COUNT],
             estop: false,
             driver_fault: false,
+            strobe: None,
             keepalive: true,
             events: Vec::new(),
             step_span: [None; AXIS_COUNT],
@@ -262,7 +277,27 @@ impl Rig {
             // follows the configured polarity.
             driver_fault_line: self.driver_fault
                 == self.ctrl.config().board.driver_fault_active_high,
+            strobe_line: self.strobe.is_some_and(|c| self.camera_exposing(&c) == c.active_high),
         }
+    }
+
+    /// Whether the camera `c` exposes now: within its delay of the last
+    /// trigger pulse recorded.
+    fn camera_exposing(&self, c: &CameraStrobe) -> bool {
+        let mut pulse = None;
+        for o in &self.hw.outputs {
+            match *o {
+                Output::Trigger(t, true) => pulse = Some((t, None)),
+                Output::Trigger(t, false) => {
+                    if let Some((_, fall)) = &mut pulse {
+                        *fall = Some(t);
+                    }
+                }
+                Output::Light(..) => {}
+            }
+        }
+        let Some((rise, fall)) = pulse else { return false };
+        !c.ignores && self.now >= rise + c.delay && fall.is_none_or(|f| self.now < f + c.delay)
     }
 
     /// Send a request with a fresh sequence number; returns the reply.

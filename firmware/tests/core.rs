@@ -54,6 +54,7 @@ selftests!(
     storage_failure_at_boot_latches,
     config_save_and_reload,
     driver_fault_polarity_is_configurable,
+    exposure_strobe_reports_each_exposure,
     home_sensor_polarity_is_configurable,
     save_config_refused_while_moving_or_faulted,
     every_motion_request_refused_while_faulted,

@@ -32,7 +32,8 @@ pub fn exposure_of(
     if !record.honoured {
         return None;
     }
-    let (start, end) = (record.rise + latency, fall + latency);
+    let (start, end) = record.exposure_window(latency);
+    let end = end?;
     let output = |duty: u16| light_output(duty, record.light_edge_loss_ns);
     // The duty in force at the start (the last change at or before it),
     // and the changes within the window.

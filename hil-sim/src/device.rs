@@ -11,7 +11,7 @@ use std::collections::VecDeque;
 
 use firmware::Controller;
 use firmware::config::PersistedConfig;
-use firmware::hal::{BootInfo, Hardware, Inputs, StorageError, TICK_HZ, TICKS_PER_MS};
+use firmware::hal::{BootInfo, Hardware, Inputs, StorageError, TICKS_PER_MS, TICKS_PER_US};
 use firmware::step::StepGenerator;
 use protocol::{AXIS_COUNT, Axis, BOARD_SIMULATOR, Capabilities, ResetReason};
 use rand::{Rng, SeedableRng};
@@ -21,7 +21,7 @@ use crate::faults::{FaultEvent, FaultPlan, FaultWhen};
 use crate::physics::{MotorModel, SimMotor, SimSwitch, SwitchFault};
 
 /// Input sampling period of the board's control loop (5 kHz).
-pub const POLL_TICKS: u64 = TICK_HZ as u64 / 5_000;
+pub const POLL_TICKS: u64 = protocol::INPUT_SAMPLE_US as u64 * TICKS_PER_US;
 
 /// One camera trigger pulse, as it physically happened.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -39,6 +39,16 @@ pub struct TriggerRecord {
     pub light_edge_loss_ns: u32,
     /// Whether the camera honoured the trigger (a fault can make it ignore one).
     pub honoured: bool,
+}
+
+impl TriggerRecord {
+    /// When a camera exposing for the pulse's length `latency` ticks after
+    /// its edges (trigger-width mode) integrates: from, and until (`None`:
+    /// the pulse is still high). The camera's frames and its strobe both
+    /// follow it.
+    pub fn exposure_window(&self, latency: u64) -> (u64, Option<u64>) {
+        (self.rise + latency, self.fall.map(|fall| fall + latency))
+    }
 }
 
 /// What physically happened: for tests and benchmarks only. Host code never
@@ -143,6 +153,14 @@ pub struct SimConfig {
     /// The camera's trigger latency, µs: it exposes for the pulse's length
     /// but this long after each of its edges ([`crate::camera::SimCamera::with_trigger_latency`]).
     pub trigger_latency_us: u32,
+    /// The camera's "exposure active" strobe, wired to the board's strobe
+    /// input: `Some(true)` a push-pull output, high while the camera
+    /// exposes (from `trigger_latency_us` after a pulse's rise to as long
+    /// after its fall; never for a trigger it ignores); `Some(false)` an
+    /// open-collector one, low while exposing; `None` not wired (the
+    /// input's pull-up holds it high, and the board does not announce the
+    /// input).
+    pub strobe_active_high: Option<bool>,
     /// The drives the scanner is built with (steps per unit, travel, where
     /// the switches sit: [`SimSwitch::built_for`]), which the camera's
     /// frames follow too (`SimCamera::with_axes`). Other than the spec's
@@ -167,6 +185,7 @@ impl SimConfig {
             home_active_high: [false; AXIS_COUNT],
             driver_fault_active_high: false,
             trigger_latency_us: 0,
+            strobe_active_high: Some(true),
             axes: protocol::default_axes(),
             flash_axes: None,
         }
@@ -184,6 +203,10 @@ pub struct SimDevice {
     built: [protocol::AxisConfig; AXIS_COUNT],
     home_active_high: [bool; AXIS_COUNT],
     driver_fault_active_high: bool,
+    /// `SimConfig::strobe_active_high`.
+    strobe_active_high: Option<bool>,
+    /// The camera's trigger latency, ticks.
+    trigger_latency: u64,
     estop: bool,
     driver_fault: bool,
     now: u64,
@@ -236,7 +259,8 @@ impl SimDevice {
             light_edge_loss_ns: 0,
             positions: start,
         };
-        let boot = Self::boot_info(&mut rng, ResetReason::PowerOn);
+        let strobe = config.strobe_active_high.is_some();
+        let boot = Self::boot_info(&mut rng, ResetReason::PowerOn, strobe);
         let mut device = SimDevice {
             controller: Controller::new(boot, hw.saved.as_deref()),
             hw,
@@ -245,6 +269,8 @@ impl SimDevice {
             built: config.axes,
             home_active_high: config.home_active_high,
             driver_fault_active_high: config.driver_fault_active_high,
+            strobe_active_high: config.strobe_active_high,
+            trigger_latency: config.trigger_latency_us as u64 * TICKS_PER_US,
             estop: false,
             driver_fault: false,
             now: 0,
@@ -259,18 +285,32 @@ impl SimDevice {
         device
     }
 
-    fn boot_info(rng: &mut ChaCha8Rng, reason: ResetReason) -> BootInfo {
+    /// A boot's information; `strobe`: the camera's strobe is wired.
+    fn boot_info(rng: &mut ChaCha8Rng, reason: ResetReason, strobe: bool) -> BootInfo {
+        let capabilities = Capabilities::SIMULATED
+            .union(Capabilities::PERSISTENT_CONFIG)
+            .union(Capabilities::PWM_LIGHT)
+            .union(Capabilities::LOG_EVENTS);
         BootInfo {
             boot_id: rng.random(),
             reason,
             device_id: *b"HILSIM-00001",
             board: BOARD_SIMULATOR,
-            capabilities: Capabilities::SIMULATED
-                .union(Capabilities::PERSISTENT_CONFIG)
-                .union(Capabilities::PWM_LIGHT)
-                .union(Capabilities::LOG_EVENTS),
+            capabilities: if strobe {
+                capabilities.union(Capabilities::EXPOSURE_STROBE)
+            } else {
+                capabilities
+            },
             storage_failed: false,
         }
+    }
+
+    /// Whether the camera exposes now: within its latency of the last
+    /// trigger pulse, if it honoured it.
+    fn camera_exposing(&self) -> bool {
+        let Some(t) = self.hw.truth.triggers.last() else { return false };
+        let (start, end) = t.exposure_window(self.trigger_latency);
+        t.honoured && self.now >= start && end.is_none_or(|end| self.now < end)
     }
 
     /// The byte-level noise the plan asks for, seeded from the device seed.
@@ -278,7 +318,7 @@ impl SimDevice {
         crate::link::LinkNoise::new(self.seed, self.faults.corrupt_rate, self.faults.drop_rate)
     }
 
-    /// Device time, ticks of [`TICK_HZ`].
+    /// Device time, ticks of [`firmware::hal::TICK_HZ`].
     pub fn now(&self) -> u64 {
         self.now
     }
@@ -423,6 +463,7 @@ impl SimDevice {
             home_line,
             estop: self.estop,
             driver_fault_line: self.driver_fault == self.driver_fault_active_high,
+            strobe_line: self.strobe_active_high.is_none_or(|high| self.camera_exposing() == high),
         };
         self.controller.poll(self.now, &inputs, &mut self.hw);
         self.after_controller();
@@ -439,7 +480,7 @@ impl SimDevice {
     /// Reset the board: a new boot id, homing lost, config reloaded from the
     /// simulated flash; the mechanics stay where they are.
     pub fn reset(&mut self, reason: ResetReason) {
-        let boot = Self::boot_info(&mut self.rng, reason);
+        let boot = Self::boot_info(&mut self.rng, reason, self.strobe_active_high.is_some());
         self.hw.steppers = Default::default();
         self.hw.armed = [None; AXIS_COUNT];
         self.hw.drivers_enabled = false;

@@ -24,6 +24,10 @@ pub enum CameraError {
     /// No frame arrived in time.
     #[error("camera: no frame within {0:?}")]
     Timeout(Duration),
+    /// The camera's exposure strobe did not rise: it missed its trigger
+    /// (no frame will come).
+    #[error("camera: missed its trigger (its exposure strobe did not rise)")]
+    Missed,
     /// The camera's output could not be read.
     #[error("camera: {0}")]
     Io(String),

@@ -6,6 +6,7 @@
 //! - [`camera`]: cameras on the trigger line (simulated, folder source).
 //! - [`scan`]: mirror table set-up and scan capture into a scan directory
 //!   (`docs/scan-format.md`), frames as OpenEXR ([`exrio`]).
+//! - [`strobe`]: the camera's exposure strobe, as a scan reads it.
 //! - [`exposure`], [`hdr`], [`defects`]: auto exposure, HDR merging, and
 //!   the sensor's defective pixels found while metering.
 //! - [`simulator`]: the simulated scanner as the host starts it.
@@ -32,6 +33,7 @@ pub mod link;
 pub mod scan;
 #[cfg(feature = "sim")]
 pub mod simulator;
+pub mod strobe;
 
 pub use protocol;
 pub use scanner_geometry as geometry;

@@ -2382,6 +2382,10 @@ fn realised(opts: &ScanOptions, t: u32) -> Result<ScanOptions, ScanError> {
     Ok(ScanOptions { exposure_us, light_duty_permille, ..opts.clone() })
 }
 
+/// How long a frame the camera's strobe says it did not take is waited
+/// for, to be set aside, before the step is taken again.
+const STRAY_FRAME_WAIT: Duration = Duration::from_millis(200);
+
 /// Capture mirror `l`, taking the step again after a missed frame and
 /// recovering from resets and recoverable faults.
 fn capture_with_retries(
@@ -2450,12 +2454,26 @@ fn capture_one(
     timings: &mut ScanTimings,
 ) -> Result<Captured, Attempt> {
     let t = Instant::now();
+    let strobe = crate::strobe::watched(dev)?;
     let result = trigger_step(dev, camera, l, opts)
         .and_then(|fired| Ok((fired, wait_idle(dev, Duration::from_secs(10))?)));
+    let (fired, status) = result.inspect_err(|_| timings.link += t.elapsed())?;
+    // The strobe's word on the exposure, before waiting for a frame it may
+    // say will not come.
+    let exposed = match &strobe {
+        Some(s) => crate::strobe::report(dev, &fired, s)?,
+        None => crate::strobe::Report::Unknown,
+    };
     timings.link += t.elapsed();
-    let (fired, status) = result?;
     let t = Instant::now();
-    let frame = camera.wait_frame(opts.frame_timeout);
+    let frame = if exposed == crate::strobe::Report::Missed && status.faults.is_empty() {
+        // Anything the camera delivers after all goes now, not as the
+        // next trigger's frame.
+        camera.drain(STRAY_FRAME_WAIT);
+        Err(CameraError::Missed)
+    } else {
+        camera.wait_frame(opts.frame_timeout)
+    };
     timings.camera += t.elapsed();
     // The device takes no step with a fault latched, so a fault now was
     // raised during this one — an E-stop or a driver fault turns the light
@@ -2482,6 +2500,13 @@ fn capture_one(
         CameraError::Unusable(_) => Attempt::Fatal(ScanError::Conflict(format!("mirror {l}: {e}"))),
         e => Attempt::Camera(e),
     })?;
+    // A camera that exposes otherwise than the step asks would do so at
+    // every retake.
+    if let crate::strobe::Report::Exposed(w) = exposed
+        && let Some(why) = crate::strobe::problem(&w, fired.exposure_us, opts.light_margin_us)
+    {
+        return Err(Attempt::Fatal(ScanError::Conflict(format!("mirror {l}: {why}"))));
+    }
     Ok((frame, fired, status))
 }
 

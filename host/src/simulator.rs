@@ -80,6 +80,11 @@ pub struct SimSetup {
     /// The camera's trigger latency, µs (it exposes this long after each
     /// edge of the trigger pulse; the board's light follows the pulse).
     pub trigger_latency_us: u32,
+    /// The camera's exposure strobe wired to the board: active high
+    /// (`Some(true)`, the default), active low, or not wired
+    /// (`hil_sim::SimConfig::strobe_active_high`). The board watches it
+    /// only once `scanner config --strobe` says so.
+    pub strobe_active_high: Option<bool>,
     /// The camera lens' radial distortion k1, k2
     /// (`scanner_geometry::radial_distort`; the nominal geometry knows
     /// none: calibration measures it).
@@ -121,6 +126,7 @@ impl SimSetup {
             home_active_high: [false; 3],
             driver_fault_active_high: false,
             trigger_latency_us: 0,
+            strobe_active_high: Some(true),
             lens_distortion: [0.0; 2],
             sample_height_mm: 0.0,
             sample_tilt_deg: [0.0; 2],
@@ -265,6 +271,7 @@ impl SimSetup {
         c.home_active_high = self.home_active_high;
         c.driver_fault_active_high = self.driver_fault_active_high;
         c.trigger_latency_us = self.trigger_latency_us;
+        c.strobe_active_high = self.strobe_active_high;
         Ok(c)
     }
 

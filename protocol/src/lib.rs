@@ -39,7 +39,12 @@ pub use frame::{
 pub use msg::*;
 
 /// The protocol version this crate implements.
-pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 3 };
+pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 4 };
+
+/// The controller samples its inputs (switches, emergency stop, driver
+/// fault, the camera's strobe) every this many µs: the resolution of every
+/// edge it reports ([`StrobeWindow`], the switches' step counts).
+pub const INPUT_SAMPLE_US: u32 = 200;
 
 /// Largest disagreement between an axis' step count and its home or index
 /// switch that still counts as "no steps lost", steps: the switch's

@@ -941,6 +941,61 @@ wire_type! {
         /// A capture step with the light on around its pulse (since 1.3).
         /// Answer: like [`Request::CaptureStep`].
         TimedCaptureStep(TimedCaptureStep),
+        /// Answer: [`Reply::Strobe`], how the camera's exposure strobe is
+        /// watched (since 1.4).
+        GetStrobe,
+        /// Watch the camera's "exposure active" strobe (persisted by
+        /// `SaveConfig`); refused while busy, `Unsupported` to enable on a
+        /// board without [`Capabilities::EXPOSURE_STROBE`], `OutOfRange` for
+        /// a `max_delay_us` beyond [`MAX_STROBE_DELAY_US`] (since 1.4).
+        SetStrobe(StrobeConfig),
+    }
+}
+
+wire_type! {
+    /// How the camera's "exposure active" strobe is wired and watched
+    /// (since 1.4). While enabled, every trigger pulse is followed by an
+    /// [`Event::Exposure`] saying whether, when and how long the camera
+    /// exposed.
+    #[derive(Eq, Hash, Default)]
+    pub struct StrobeConfig {
+        /// Watch the strobe input (off by default: it is optional wiring).
+        pub enabled: bool,
+        /// The line is high while the camera exposes (a push-pull output)
+        /// rather than low (an open-collector output against the board's
+        /// pull-up).
+        pub active_high: bool,
+        /// How far the strobe may lag the pulse, µs (1 ..=
+        /// [`MAX_STROBE_DELAY_US`]): a strobe not yet risen this long
+        /// after the pulse's end means the camera missed the trigger; one
+        /// not yet fallen this long after the pulse's end plus the
+        /// strobe's delay is reported as not ended.
+        pub max_delay_us: u32,
+    }
+}
+
+/// Longest [`StrobeConfig::max_delay_us`], µs.
+pub const MAX_STROBE_DELAY_US: u32 = 100_000;
+
+/// A default strobe delay bound: 10 ms, beyond any camera's trigger latency.
+pub const DEFAULT_STROBE_DELAY_US: u32 = 10_000;
+
+wire_type! {
+    /// When the camera's strobe said it exposed, relative to a trigger's
+    /// rise (since 1.4). Read at the controller's input sampling period
+    /// ([`INPUT_SAMPLE_US`](crate::INPUT_SAMPLE_US)): each edge is placed
+    /// up to one period after it happened.
+    #[derive(Eq, Hash)]
+    pub struct StrobeWindow {
+        /// From the trigger's rise to the strobe's, µs.
+        pub delay_us: u32,
+        /// How long the strobe was active, µs.
+        pub length_us: u32,
+        /// The strobe went inactive again. `false`: it was still active
+        /// `max_delay_us` after the pulse's end plus its own delay (stuck,
+        /// or a camera exposing longer than its pulse), `length_us` is up
+        /// to then.
+        pub ended: bool,
     }
 }
 
@@ -1018,6 +1073,8 @@ impl Request {
             Request::SetHomeSensors(_) => "SetHomeSensors",
             Request::GetInputs => "GetInputs",
             Request::TimedCaptureStep(_) => "TimedCaptureStep",
+            Request::GetStrobe => "GetStrobe",
+            Request::SetStrobe(_) => "SetStrobe",
         }
     }
 }
@@ -1060,6 +1117,8 @@ wire_type! {
         HomeSensors(HomeSensors),
         /// The inputs as last sampled (since 1.2).
         Inputs(InputState),
+        /// How the camera's exposure strobe is watched (since 1.4).
+        Strobe(StrobeConfig),
     }
 }
 
@@ -1113,6 +1172,19 @@ pub enum Event {
         /// continuous axis the nearest value modulo a turn). Positive: the
         /// axis counted more steps than it made in the positive direction.
         error_steps: i32,
+    },
+    /// What the camera's exposure strobe showed of a trigger pulse, while
+    /// the strobe is watched ([`StrobeConfig`]; since 1.4). Sent when the
+    /// strobe goes inactive, or when it is overdue: not active
+    /// `max_delay_us` after the pulse's end (`window: None`: the camera did
+    /// not expose), or still active `max_delay_us` after the pulse's end
+    /// plus its delay. A new pulse before then ends the watch of the last
+    /// one at once.
+    Exposure {
+        /// The pulse's [`TriggerFired::trigger_seq`].
+        trigger_seq: u32,
+        /// When the camera exposed (`None`: the strobe did not rise).
+        window: Option<StrobeWindow>,
     },
 }
 

@@ -66,7 +66,7 @@ fn examples_cover_every_variant() {
     let names: Vec<&str> = examples().iter().map(|(n, _, _)| *n).collect();
     let variant = |r: &Request| r.name();
     let requests = names.iter().filter(|n| n.starts_with("Request::")).count();
-    assert_eq!(requests, 26);
+    assert_eq!(requests, 28);
     for (name, _, ex) in examples() {
         if let Example::ToDevice(r) = ex {
             assert_eq!(name, format!("Request::{}", variant(&r)));
@@ -84,12 +84,14 @@ fn examples_cover_every_variant() {
         "Reply::BoardConfig",
         "Reply::HomeSensors",
         "Reply::Inputs",
+        "Reply::Strobe",
         "Event::Boot",
         "Event::MotionDone",
         "Event::TriggerFired",
         "Event::FaultRaised",
         "Event::Log",
         "Event::PositionChecked",
+        "Event::Exposure",
     ] {
         assert!(names.contains(&prefix), "no golden example for {prefix}");
     }
@@ -100,8 +102,8 @@ fn hello_frame_by_hand() {
     // docs/protocol.md §7, byte by byte.
     let mut buf = [0u8; MAX_FRAME_LEN];
     let n = encode_frame(1, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut buf).unwrap();
-    assert_eq!(CRC.checksum(&[0x01, 0x00, 0x01, 0x03]), 0x95D0_8AFC);
-    assert_eq!(&buf[..n], &[0x02, 0x01, 0x07, 0x01, 0x03, 0xfc, 0x8a, 0xd0, 0x95, 0x00]);
+    assert_eq!(CRC.checksum(&[0x01, 0x00, 0x01, 0x04]), 0x411A_EE17);
+    assert_eq!(&buf[..n], &[0x02, 0x01, 0x07, 0x01, 0x04, 0x17, 0xee, 0x1a, 0x41, 0x00]);
 }
 
 #[test]

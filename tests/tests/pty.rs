@@ -340,3 +340,70 @@ fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
     assert!(out.contains("homing: done at [0, 0, -9333] steps"), "{out}");
     drop(server);
 }
+
+/// A camera whose "exposure active" strobe is wired to the board, 1 ms
+/// late on its trigger: once `scanner config --strobe` has the board watch
+/// it, a scan whose light follows the pulse alone is stopped at its first
+/// frame with the light margin that covers the camera; with that margin it
+/// completes, and a trigger the camera misses is taken again on the
+/// strobe's word (no frame timeout). A board without the input refuses to
+/// watch one.
+#[test]
+fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
+    let dir = tmp();
+    let frames_dir = sub(dir.path(), "camera");
+    let mut s =
+        setup("leather", FaultPlan::none().after_triggers(1, FaultEvent::IgnoreTriggers(1)));
+    s.trigger_latency_us = 1_000;
+    let server = serve(&s, &frames_dir);
+    let run = |args: &[&str]| on_device(server.path(), args);
+    let (code, out, err) = run(&["config"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("camera exposure strobe: not watched"), "{out}");
+    let (code, out, err) = run(&["config", "--strobe", "active-high"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("saved") && out.contains("strobe: watched, active high"), "{out}");
+    // The miss is known from the strobe, not from a frame that does not
+    // come (that would say "no frame within 3s").
+    let scan = |out: &Path, extra: &[&str]| {
+        let args = scan_args(server.path(), &frames_dir, out, 2);
+        let r = scanner().args(&args).args(extra).output().unwrap();
+        let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+        (r.status.code(), text(&r.stdout), text(&r.stderr))
+    };
+    let (code, out, err) = scan(&sub(dir.path(), "mended"), &["--light-margin-us", "1500"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains("missed its trigger (its exposure strobe did not rise); taking it again"),
+        "{out}\n{err}"
+    );
+    let m = Manifest::load(&sub(dir.path(), "mended")).unwrap();
+    assert!(m.complete && m.frames.len() == 2);
+    // The light on during the pulse alone: the camera's last ms is dark.
+    let (code, _, err) = scan(&sub(dir.path(), "late"), &[]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(
+        err.contains("mirror 0: the camera exposed until 51.")
+            && err.contains("give --light-margin-us 1")
+            && err.contains("or more"),
+        "{err}"
+    );
+    let suggested: u32 = err
+        .split("give --light-margin-us ")
+        .nth(1)
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap();
+    assert!((1_000..=1_200).contains(&suggested), "{suggested}: {err}");
+    drop(server);
+    // A board the strobe is not wired to (and that says so).
+    let mut s = setup("leather", FaultPlan::none());
+    s.strobe_active_high = None;
+    let server = serve(&s, &sub(dir.path(), "camera-2"));
+    let (code, _, err) = on_device(server.path(), &["config", "--strobe", "active-low"]);
+    assert_eq!(code, Some(6), "{err}");
+    assert!(err.contains("this board has no exposure strobe input"), "{err}");
+    let (code, out, _) = on_device(server.path(), &["config"]);
+    assert_eq!(code, Some(0));
+    assert!(out.contains("camera exposure strobe: no input on this board"), "{out}");
+}

@@ -14,7 +14,7 @@
 //! | emergency stop | PB8 | NC contact to GND, pull-up: open (or a cut wire) = stop |
 //! | driver fault | PB9 | pull-up; active low (DRV8825 nFAULT, default) or high (TMC2209 DIAG): `BoardConfig` |
 //! | camera trigger | PA1 | TIM5 CH2 one-pulse (`pulse.rs`), active high, to the opto-isolator |
-//! | (reserved: exposure strobe) | PA2 | not configured by this firmware |
+//! | camera exposure strobe | PA2 | pull-up; active low (open collector, default) or high: `StrobeConfig`, watched only when enabled |
 //! | light PWM | PB6 | TIM4 CH1, 20 kHz, active high |
 //! | USB D− / D+ | PA11 / PA12 | CDC-ACM |
 //! | (reserved: status LED) | PC13 | not configured by this firmware |
@@ -42,11 +42,12 @@ pub struct Motors {
     pub enable_n: Output<'static>,
 }
 
-/// Switches, E-stop and driver fault inputs.
+/// Switches, E-stop, driver fault and camera strobe inputs.
 pub struct Sensors {
     home: [Input<'static>; 3],
     estop: Input<'static>,
     driver_fault: Input<'static>,
+    strobe: Input<'static>,
 }
 
 impl Sensors {
@@ -56,6 +57,7 @@ impl Sensors {
             home_line: [self.home[0].is_high(), self.home[1].is_high(), self.home[2].is_high()],
             estop: self.estop.is_high(),
             driver_fault_line: self.driver_fault.is_high(),
+            strobe_line: self.strobe.is_high(),
         }
     }
 }
@@ -86,6 +88,7 @@ pub struct Pins {
     pub pb8: Peri<'static, p::PB8>,
     pub pb9: Peri<'static, p::PB9>,
     pub pa1: Peri<'static, p::PA1>,
+    pub pa2: Peri<'static, p::PA2>,
     pub pb6: Peri<'static, p::PB6>,
     pub tim4: Peri<'static, p::TIM4>,
     /// Owned so nothing else takes the trigger's timer.
@@ -110,6 +113,7 @@ pub fn init(pins: Pins) -> (Motors, Sensors, Camera) {
         ],
         estop: Input::new(pins.pb8, Pull::Up),
         driver_fault: Input::new(pins.pb9, Pull::Up),
+        strobe: Input::new(pins.pa2, Pull::Up),
     };
     let mut light = SimplePwm::new(
         pins.tim4,

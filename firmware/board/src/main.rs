@@ -269,7 +269,10 @@ async fn main(spawner: Spawner) {
         board: BOARD_STM32F411_BLACKPILL,
         capabilities: Capabilities::PERSISTENT_CONFIG
             .union(Capabilities::PWM_LIGHT)
-            .union(Capabilities::LOG_EVENTS),
+            .union(Capabilities::LOG_EVENTS)
+            // PA2 is the strobe input; `SetStrobe` says whether a camera's
+            // strobe is wired to it.
+            .union(Capabilities::EXPOSURE_STROBE),
         storage_failed,
     };
     let controller = Controller::new(boot, saved);
@@ -288,6 +291,7 @@ async fn main(spawner: Spawner) {
         pb8: p.PB8,
         pb9: p.PB9,
         pa1: p.PA1,
+        pa2: p.PA2,
         pb6: p.PB6,
         tim4: p.TIM4,
         tim5: p.TIM5,
@@ -343,7 +347,7 @@ async fn main(spawner: Spawner) {
     // up to 200 µs more), the light's return after its margin. An exposure
     // the USB task starts is seen at the next poll, before it ends:
     // exposures are at least `MIN_EXPOSURE_US` (1 ms) > 200 µs.
-    let mut ticker = Ticker::every(Duration::from_micros(200));
+    let mut ticker = Ticker::every(Duration::from_micros(protocol::INPUT_SAMPLE_US as u64));
     loop {
         let due = MACHINE.borrow().borrow().as_ref().and_then(|m| m.controller.capture_deadline());
         if let Some(end) = due {

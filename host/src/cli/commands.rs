@@ -92,6 +92,11 @@ pub struct DeviceArgs {
     /// light, which the HDR merge's exposure agreement reports).
     #[arg(long, default_value_t = 0, value_name = "US")]
     pub sim_trigger_latency_us: u32,
+    /// Simulator: the camera's exposure strobe is wired to the board
+    /// active-high (the default), active-low, or not at all (none); the
+    /// board watches it once `scanner config --strobe` says so.
+    #[arg(long, value_parser = ["active-high", "active-low", "none"], value_name = "POLARITY")]
+    pub sim_strobe: Option<String>,
     /// Simulator: the camera lens' radial distortion K1,K2 (the nominal
     /// geometry knows none: calibration measures K1).
     #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
@@ -150,6 +155,11 @@ impl DeviceArgs {
             home_active_high: Axis::ALL.map(|a| self.sim_home_active_high.contains(&a)),
             driver_fault_active_high: self.sim_driver_fault.unwrap_or(false),
             trigger_latency_us: self.sim_trigger_latency_us,
+            strobe_active_high: match self.sim_strobe.as_deref() {
+                Some("none") => None,
+                Some(p) => Some(p == "active-high"),
+                None => Some(true),
+            },
             lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
             sample_height_mm: self.sim_sample_height,
             sample_tilt_deg: self.sim_sample_tilt.unwrap_or([0.0; 2]),
@@ -439,8 +449,26 @@ pub fn board_config(
     args: &DeviceArgs,
     driver_fault_active_high: Option<bool>,
     home_sensors: &[(Axis, bool)],
+    strobe: StrobeChange,
 ) -> Result<(), Failure> {
     let mut o = open(args)?;
+    // The camera's strobe: since protocol 1.4, on a board with the input.
+    let info = o.device.info();
+    let strobe_input = info.protocol.minor >= 4
+        && info.capabilities.contains(protocol::Capabilities::EXPOSURE_STROBE);
+    if strobe.changes() && info.protocol.minor < 4 {
+        return Err(Failure(
+            6,
+            anyhow!(
+                "the device's firmware (protocol {}) cannot watch a camera's exposure strobe: \
+                 update it",
+                info.protocol
+            ),
+        ));
+    }
+    if strobe.changes() && !strobe_input && strobe.watch != Some(None) {
+        return Err(Failure(6, anyhow!("this board has no exposure strobe input")));
+    }
     // Home sensors' polarity: since protocol 1.2.
     let theirs = o.device.info().protocol;
     let has_home_sensors = theirs.minor >= 2;
@@ -453,7 +481,8 @@ pub fn board_config(
             ),
         ));
     }
-    let changes = driver_fault_active_high.is_some() || !home_sensors.is_empty();
+    let changes =
+        driver_fault_active_high.is_some() || !home_sensors.is_empty() || strobe.changes();
     let persistent =
         o.device.info().capabilities.contains(protocol::Capabilities::PERSISTENT_CONFIG);
     let faults = o.device.status().map_err(link_failure)?.faults;
@@ -485,6 +514,15 @@ pub fn board_config(
             println!("{} must be homed again (scanner home)", changed.join(", "));
         }
     }
+    if strobe.changes() {
+        let mut s = strobe_of(&mut o.device)?;
+        if let Some(watch) = strobe.watch {
+            s.enabled = watch.is_some();
+            s.active_high = watch.unwrap_or(s.active_high);
+        }
+        s.max_delay_us = strobe.max_delay_us.unwrap_or(s.max_delay_us);
+        o.device.command(Request::SetStrobe(s)).map_err(link_failure)?;
+    }
     if changes {
         if persistent {
             o.device.command(Request::SaveConfig).map_err(link_failure)?;
@@ -515,7 +553,45 @@ pub fn board_config(
             .join(", "),
         if has_home_sensors { "" } else { " (fixed by this firmware)" }
     );
+    let strobe = if strobe_input { Some(strobe_of(&mut o.device)?) } else { None };
+    println!("camera exposure strobe: {}", describe_strobe(strobe.as_ref()));
     Ok(())
+}
+
+/// A change of the camera strobe's setting (`scanner config --strobe`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StrobeChange {
+    /// Watch it with this polarity (`Some(None)`: stop watching).
+    pub watch: Option<Option<bool>>,
+    /// How far it may lag its pulse, µs.
+    pub max_delay_us: Option<u32>,
+}
+
+impl StrobeChange {
+    fn changes(&self) -> bool {
+        self.watch.is_some() || self.max_delay_us.is_some()
+    }
+}
+
+/// The strobe's setting in words (`None`: no input to watch).
+fn describe_strobe(s: Option<&protocol::StrobeConfig>) -> String {
+    match s {
+        None => "no input on this board (or firmware before protocol 1.4)".into(),
+        Some(s) if !s.enabled => "not watched".into(),
+        Some(s) => format!(
+            "watched, {}; a trigger whose strobe has not risen {:.1} ms after the pulse is a \
+             missed frame",
+            polarity_name(s.active_high),
+            s.max_delay_us as f64 / 1000.0
+        ),
+    }
+}
+
+fn strobe_of(dev: &mut Device) -> Result<protocol::StrobeConfig, Failure> {
+    match dev.request(Request::GetStrobe).map_err(link_failure)? {
+        protocol::Reply::Strobe(s) => Ok(s),
+        reply => Err(link_failure(LinkError::Unexpected { request: "GetStrobe", reply })),
+    }
 }
 
 /// A device with persistent storage saves nothing while `faults` are
@@ -1619,6 +1695,7 @@ pub fn demo(
             sim_home_active_high: Vec::new(),
             sim_driver_fault: None,
             sim_trigger_latency_us: 0,
+            sim_strobe: None,
             sim_lens_distortion: None,
             sim_sample_height: 0.0,
             sim_sample_tilt: None,

@@ -337,6 +337,19 @@ enum Command {
         /// axis whose polarity changes must be homed again.
         #[arg(long, value_delimiter = ',', value_parser = parse_home_sensor, value_name = "AXIS=POLARITY")]
         home_sensor: Vec<(protocol::Axis, bool)>,
+        /// Watch the camera's "exposure active" strobe, wired to the
+        /// board's strobe input: active-high (a push-pull output, high
+        /// while exposing), active-low (open collector), or off (the
+        /// default). Watched, every capture step's exposure is checked: a
+        /// missed trigger is taken again at once, and a camera exposing
+        /// for another time than its pulse, or past the light, stops the
+        /// scan with what to set.
+        #[arg(long, value_parser = ["off", "active-low", "active-high"])]
+        strobe: Option<String>,
+        /// How far the strobe may lag its trigger pulse before the camera
+        /// counts as having missed it, µs (default 10000).
+        #[arg(long, value_name = "US", value_parser = clap::value_parser!(u32).range(1..=protocol::MAX_STROBE_DELAY_US as i64))]
+        strobe_max_delay_us: Option<u32>,
     },
     /// Show or set the device's axis configurations — steps per unit,
     /// travel, speeds, homing (docs/axis-config.md) — for a scanner built
@@ -714,8 +727,13 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Setup { device, geometry } => commands::setup(&device, geometry.as_deref())?,
         Command::Devices => commands::devices()?,
-        Command::Config { device, driver_fault, home_sensor } => {
-            commands::board_config(&device, driver_fault.map(|p| p == "active-high"), &home_sensor)?
+        Command::Config { device, driver_fault, home_sensor, strobe, strobe_max_delay_us } => {
+            let strobe = commands::StrobeChange {
+                watch: strobe.map(|s| (s != "off").then_some(s == "active-high")),
+                max_delay_us: strobe_max_delay_us,
+            };
+            let driver_fault = driver_fault.map(|p| p == "active-high");
+            commands::board_config(&device, driver_fault, &home_sensor, strobe)?
         }
         Command::Verify { dir } => commands::verify(&dir)?,
         Command::Clear { device } => commands::clear(&device)?,

@@ -162,6 +162,8 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
                 light_margin_us: 200,
             })),
         ),
+        ("Request::GetStrobe", 27, Req(Request::GetStrobe)),
+        ("Request::SetStrobe", 28, Req(Request::SetStrobe(strobe()))),
         ("Reply::Ack", 4, reply(Reply::Ack)),
         ("Reply::Error", 5, reply(Reply::Error(DeviceError::NotHomed))),
         (
@@ -219,6 +221,7 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
                 driver_fault: false,
             })),
         ),
+        ("Reply::Strobe", 27, reply(Reply::Strobe(strobe()))),
         (
             "Event::Boot",
             0,
@@ -258,7 +261,21 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
             6,
             event(Event::PositionChecked { axis: Axis::Disk, error_steps: -400 }),
         ),
+        (
+            "Event::Exposure",
+            7,
+            event(Event::Exposure {
+                trigger_seq: 17,
+                window: Some(StrobeWindow { delay_us: 400, length_us: 50_000, ended: true }),
+            }),
+        ),
+        ("Event::Exposure(missed)", 8, event(Event::Exposure { trigger_seq: 18, window: None })),
     ]
+}
+
+/// A strobe watched on a push-pull line, 10 ms delay bound.
+fn strobe() -> StrobeConfig {
+    StrobeConfig { enabled: true, active_high: true, max_delay_us: DEFAULT_STROBE_DELAY_US }
 }
 
 pub fn hex(bytes: &[u8]) -> String {
