@@ -2454,17 +2454,19 @@ fn capture_one(
     timings: &mut ScanTimings,
 ) -> Result<Captured, Attempt> {
     let t = Instant::now();
-    let strobe = crate::strobe::watched(dev)?;
-    let result = trigger_step(dev, camera, l, opts)
-        .and_then(|fired| Ok((fired, wait_idle(dev, Duration::from_secs(10))?)));
-    let (fired, status) = result.inspect_err(|_| timings.link += t.elapsed())?;
-    // The strobe's word on the exposure, before waiting for a frame it may
-    // say will not come.
-    let exposed = match &strobe {
-        Some(s) => crate::strobe::report(dev, &fired, s)?,
-        None => crate::strobe::Report::Unknown,
-    };
+    let result = crate::strobe::watched(dev).map_err(Attempt::from).and_then(|strobe| {
+        let fired = trigger_step(dev, camera, l, opts)?;
+        let status = wait_idle(dev, Duration::from_secs(10))?;
+        // The strobe's word on the exposure, before waiting for a frame it
+        // may say will not come.
+        let exposed = match &strobe {
+            Some(s) => crate::strobe::report(dev, &fired, s)?,
+            None => crate::strobe::Report::Unknown,
+        };
+        Ok((fired, status, exposed))
+    });
     timings.link += t.elapsed();
+    let (fired, status, exposed) = result?;
     let t = Instant::now();
     let frame = if exposed == crate::strobe::Report::Missed && status.faults.is_empty() {
         // Anything the camera delivers after all goes now, not as the
