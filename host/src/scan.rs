@@ -1444,19 +1444,10 @@ pub fn scan(
     if manifest.settings.black_level_auto.is_some_and(|a| a.exposure_us.is_none()) {
         let exposure_us = protocol::MIN_EXPOSURE_US;
         let bias = DarkFrame { geometry, opts, exposure_us };
-        let mut attempt = 0;
-        let frame = loop {
-            attempt += 1;
-            match bias.take(dev, camera, &mut report)? {
-                Ok(f) => break f,
-                Err(why) if attempt >= opts.attempts.max(1) => {
-                    return Err(ScanError::Conflict(format!(
-                        "black level: no frame with the light off after {attempt} attempts ({why})"
-                    )));
-                }
-                Err(why) => progress.note(&format!("black level: {why}; taking it again")),
-            }
-        };
+        let frame = bias.take_with_retries(dev, camera, &mut report, progress, "black level")?;
+        let frame = frame.map_err(|why| {
+            ScanError::Conflict(format!("black level: no frame with the light off ({why})"))
+        })?;
         let codes = crate::defects::black_level_codes(&frame, geometry.sensor.max_code());
         progress.note(&format!(
             "black level: {codes} codes (the median of a {exposure_us} µs frame with the light \
@@ -2285,7 +2276,7 @@ impl DarkFrame<'_> {
         report: &mut ScanReport,
         progress: &mut dyn ScanProgress,
     ) -> Result<Option<DarkRecord>, ScanError> {
-        let frame = match self.take(dev, camera, report)? {
+        let frame = match self.take_with_retries(dev, camera, report, progress, "dark frame")? {
             Ok(f) => f,
             Err(why) => {
                 progress.note(&format!("no dark frame ({why}): hot pixels are not looked for"));
@@ -2313,9 +2304,36 @@ impl DarkFrame<'_> {
         Ok(Some(DarkRecord { exposure_us: self.exposure_us, defects }))
     }
 
+    /// [`Self::take`], taken again after a failure (said as `what`'s) up
+    /// to the scan's attempts; the last failure in words, with their count.
+    fn take_with_retries(
+        &self,
+        dev: &mut Device,
+        camera: &mut dyn Camera,
+        report: &mut ScanReport,
+        progress: &mut dyn ScanProgress,
+        what: &str,
+    ) -> Result<Result<crate::camera::Frame, String>, ScanError> {
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            match self.take(dev, camera, report)? {
+                Ok(f) => return Ok(Ok(f)),
+                Err(why) if attempt >= self.opts.attempts.max(1) => {
+                    return Ok(Err(format!("after {attempt} attempts: {why}")));
+                }
+                Err(why) => {
+                    report.retakes += 1;
+                    progress.note(&format!("{what}: {why}; taking it again"));
+                }
+            }
+        }
+    }
+
     /// The frame; a failure in words (the scan may go on); a frame the
     /// camera delivers that is not one of the scan's stops it (another size
-    /// or unit: [`crate::camera::check_frame`]).
+    /// or unit: [`crate::camera::check_frame`]), as does a camera whose
+    /// exposure strobe says it exposes otherwise than its pulse.
     fn take(
         &self,
         dev: &mut Device,
@@ -2324,30 +2342,44 @@ impl DarkFrame<'_> {
     ) -> Result<Result<crate::camera::Frame, String>, ScanError> {
         let (opts, exposure_us) = (self.opts, self.exposure_us);
         let t = Instant::now();
-        let fired = (|| -> Result<bool, String> {
+        let fired = (|| -> Result<Option<(TriggerFired, crate::strobe::Report)>, String> {
+            let strobe = crate::strobe::watched(dev).map_err(|e| e.to_string())?;
             let off = protocol::LightState { on: false, duty_permille: opts.light_duty_permille };
             dev.command(Request::SetLight(off)).map_err(|e| e.to_string())?;
             camera.arm().map_err(|e| e.to_string())?;
             dev.clear_events();
             dev.command(Request::Trigger { exposure_us }).map_err(|e| e.to_string())?;
             let wait = Duration::from_secs(5) + Duration::from_micros(exposure_us as u64);
-            let event = dev
+            let Some(Event::TriggerFired(fired)) = dev
                 .wait_event(wait, |e| matches!(e, Event::TriggerFired(t) if t.mirror.is_none()))
-                .map_err(|e| e.to_string())?;
-            if event.is_some() {
-                camera.triggered();
-            }
-            Ok(event.is_some())
+                .map_err(|e| e.to_string())?
+            else {
+                return Ok(None);
+            };
+            camera.triggered();
+            let exposed = match &strobe {
+                Some(s) => crate::strobe::report(dev, &fired, s).map_err(|e| e.to_string())?,
+                None => crate::strobe::Report::Unknown,
+            };
+            Ok(Some((fired, exposed)))
         })();
         report.timings.link += t.elapsed();
-        match fired {
-            Ok(true) => {}
-            Ok(false) => return Ok(Err("the device did not fire the trigger".into())),
+        let (fired, exposed) = match fired {
+            Ok(Some(f)) => f,
+            Ok(None) => return Ok(Err("the device did not fire the trigger".into())),
             Err(why) => return Ok(Err(why)),
-        }
+        };
         let t = Instant::now();
-        let frame = camera.wait_frame(opts.frame_timeout);
+        let frame = await_frame(camera, exposed, opts.frame_timeout);
         report.timings.camera += t.elapsed();
+        // A camera that exposes otherwise than its pulse would do so at
+        // every frame of the scan (the light is off: its latency does not
+        // matter here).
+        if let crate::strobe::Report::Exposed(w) = exposed
+            && let Some(why) = crate::strobe::problem(&w, fired.exposure_us, None)
+        {
+            return Err(ScanError::Conflict(format!("a frame with the light off: {why}")));
+        }
         let t = Instant::now();
         let idle = wait_idle(dev, Duration::from_secs(10));
         report.timings.link += t.elapsed();
@@ -2385,6 +2417,23 @@ fn realised(opts: &ScanOptions, t: u32) -> Result<ScanOptions, ScanError> {
 /// How long a frame the camera's strobe says it did not take is waited
 /// for, to be set aside, before the step is taken again.
 const STRAY_FRAME_WAIT: Duration = Duration::from_millis(200);
+
+/// The frame of the trigger the strobe reported as `exposed`, up to
+/// `timeout`; at once [`CameraError::Missed`] when the strobe says the
+/// camera did not expose (whatever it delivers after all is set aside then,
+/// not taken as the next trigger's frame).
+fn await_frame(
+    camera: &mut dyn Camera,
+    exposed: crate::strobe::Report,
+    timeout: Duration,
+) -> Result<crate::camera::Frame, CameraError> {
+    if exposed == crate::strobe::Report::Missed {
+        camera.drain(STRAY_FRAME_WAIT);
+        Err(CameraError::Missed)
+    } else {
+        camera.wait_frame(timeout)
+    }
+}
 
 /// Capture mirror `l`, taking the step again after a missed frame and
 /// recovering from resets and recoverable faults.
@@ -2468,11 +2517,8 @@ fn capture_one(
     timings.link += t.elapsed();
     let (fired, status, exposed) = result?;
     let t = Instant::now();
-    let frame = if exposed == crate::strobe::Report::Missed && status.faults.is_empty() {
-        // Anything the camera delivers after all goes now, not as the
-        // next trigger's frame.
-        camera.drain(STRAY_FRAME_WAIT);
-        Err(CameraError::Missed)
+    let frame = if status.faults.is_empty() {
+        await_frame(camera, exposed, opts.frame_timeout)
     } else {
         camera.wait_frame(opts.frame_timeout)
     };
@@ -2505,7 +2551,7 @@ fn capture_one(
     // A camera that exposes otherwise than the step asks would do so at
     // every retake.
     if let crate::strobe::Report::Exposed(w) = exposed
-        && let Some(why) = crate::strobe::problem(&w, fired.exposure_us, opts.light_margin_us)
+        && let Some(why) = crate::strobe::problem(&w, fired.exposure_us, Some(opts.light_margin_us))
     {
         return Err(Attempt::Fatal(ScanError::Conflict(format!("mirror {l}: {why}"))));
     }

@@ -77,9 +77,10 @@ pub fn report(
 }
 
 /// Why the frame of a pulse of `exposure_us` whose light was on
-/// `light_margin_us` before and after it cannot be used as the camera's
-/// strobe window `w` says; `None` if it can.
-pub fn problem(w: &StrobeWindow, exposure_us: u32, light_margin_us: u16) -> Option<String> {
+/// `light_margin_us` before and after it (`None`: a frame with the light
+/// off) cannot be used as the camera's strobe window `w` says; `None` if it
+/// can.
+pub fn problem(w: &StrobeWindow, exposure_us: u32, light_margin_us: Option<u16>) -> Option<String> {
     let ms = |us: f64| us / 1000.0;
     let sample = INPUT_SAMPLE_US as f64;
     let (delay, length, x) = (w.delay_us as f64, w.length_us as f64, exposure_us as f64);
@@ -101,6 +102,8 @@ pub fn problem(w: &StrobeWindow, exposure_us: u32, light_margin_us: u16) -> Opti
             ms(x)
         ));
     }
+    // With the light off, when the exposure ran does not matter.
+    let light_margin_us = light_margin_us?;
     // Both edges are placed up to one sample late: the exposure certainly
     // ended after `delay + length - sample`.
     let light_off = x + light_margin_us as f64;
@@ -140,29 +143,33 @@ mod tests {
     #[test]
     fn an_exposure_within_its_pulse_and_light_passes_at_the_sampling_limits() {
         // A camera with no latency, its edges each seen up to a sample late.
-        assert_eq!(problem(&window(0, 50_000), 50_000, 0), None);
-        assert_eq!(problem(&window(199, 50_000), 50_000, 0), None);
-        assert_eq!(problem(&window(0, 50_199), 50_000, 0), None);
+        assert_eq!(problem(&window(0, 50_000), 50_000, Some(0)), None);
+        assert_eq!(problem(&window(199, 50_000), 50_000, Some(0)), None);
+        assert_eq!(problem(&window(0, 50_199), 50_000, Some(0)), None);
         // A 300 µs latency under a 400 µs margin.
-        assert_eq!(problem(&window(400, 50_000), 50_000, 400), None);
+        assert_eq!(problem(&window(400, 50_000), 50_000, Some(400)), None);
     }
 
     #[test]
     fn a_latency_beyond_the_light_margin_is_refused_with_the_margin_it_needs() {
-        let why = problem(&window(1_000, 50_000), 50_000, 200).unwrap();
+        let why = problem(&window(1_000, 50_000), 50_000, Some(200)).unwrap();
         assert!(why.contains("--light-margin-us 1000 or more"), "{why}");
-        let why = problem(&window(12_000, 50_000), 50_000, 0).unwrap();
+        let why = problem(&window(12_000, 50_000), 50_000, Some(0)).unwrap();
         assert!(why.contains("exceed the longest light margin"), "{why}");
     }
 
     #[test]
     fn an_exposure_set_on_the_camera_instead_of_by_the_pulse_is_refused() {
-        let why = problem(&window(100, 20_000), 50_000, 0).unwrap();
+        let why = problem(&window(100, 20_000), 50_000, Some(0)).unwrap();
         assert!(why.contains("exposed 20.00 ms for a 50.00 ms trigger pulse"), "{why}");
         // 2 % + two samples: 1.4 ms on 50 ms.
-        assert_eq!(problem(&window(0, 48_700), 50_000, 0), None);
-        assert!(problem(&window(0, 48_500), 50_000, 0).is_some());
+        assert_eq!(problem(&window(0, 48_700), 50_000, Some(0)), None);
+        assert!(problem(&window(0, 48_500), 50_000, Some(0)).is_some());
+        // With the light off (a dark frame) the latency does not matter,
+        // the exposure's length does.
+        assert_eq!(problem(&window(12_000, 50_000), 50_000, None), None);
+        assert!(problem(&window(100, 20_000), 50_000, None).is_some());
         let stuck = StrobeWindow { delay_us: 100, length_us: 60_000, ended: false };
-        assert!(problem(&stuck, 50_000, 0).unwrap().contains("still active 60.1 ms"));
+        assert!(problem(&stuck, 50_000, Some(0)).unwrap().contains("still active 60.1 ms"));
     }
 }

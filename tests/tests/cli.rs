@@ -321,10 +321,16 @@ fn a_camera_that_never_delivers_exits_8() {
 fn a_dark_frame_the_camera_misses_is_said_and_taken_on_resuming() {
     let dir = tmp();
     let out = sub(dir.path(), "scan");
-    // The camera misses the first trigger: the dark frame's.
-    let (code, _, err) = scan_with_fault(&out, "ignore-trigger:1@trigger=0");
+    // The camera misses the first three triggers: the dark frame's three
+    // attempts.
+    let (code, _, err) = scan_with_fault(&out, "ignore-trigger:3@trigger=0");
     assert_eq!(code, Some(0), "{err}");
-    assert!(err.contains("no dark frame (camera: no frame within 1s)"), "{err}");
+    assert_eq!(
+        err.matches("dark frame: camera: no frame within 1s; taking it again").count(),
+        2,
+        "{err}"
+    );
+    assert!(err.contains("no dark frame (after 3 attempts: camera: no frame within 1s)"), "{err}");
     let m = host::scan::Manifest::load(&out).unwrap();
     assert!(m.complete && m.settings.dark.is_none(), "{:?}", m.settings.dark);
     // Resumed, the scan takes it: a flawless sensor's, at the scan's exposure.

@@ -352,8 +352,12 @@ fn a_home_sensor_wired_active_high_fails_homing_until_configured_so() {
 fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
     let dir = tmp();
     let frames_dir = sub(dir.path(), "camera");
-    let mut s =
-        setup("leather", FaultPlan::none().after_triggers(1, FaultEvent::IgnoreTriggers(1)));
+    // Trigger 1 is the first scan's dark frame, 2 its mirror 0; 5 and 6
+    // the second scan's, 7 the third's dark frame.
+    let faults = FaultPlan::none()
+        .after_triggers(1, FaultEvent::IgnoreTriggers(1))
+        .after_triggers(6, FaultEvent::IgnoreTriggers(1));
+    let mut s = setup("leather", faults);
     s.trigger_latency_us = 1_000;
     let server = serve(&s, &frames_dir);
     let run = |args: &[&str]| on_device(server.path(), args);
@@ -395,6 +399,19 @@ fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
         .and_then(|n| n.parse().ok())
         .unwrap();
     assert!((1_000..=1_200).contains(&suggested), "{suggested}: {err}");
+    // A dark frame the camera misses is taken again on the strobe's word
+    // too (its latency does not matter with the light off).
+    let (code, out, err) = scan(&sub(dir.path(), "dark"), &["--light-margin-us", "1500"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains(
+            "dark frame: camera: missed its trigger (its exposure strobe did not rise); taking \
+             it again"
+        ),
+        "{out}\n{err}"
+    );
+    let m = Manifest::load(&sub(dir.path(), "dark")).unwrap();
+    assert!(m.complete && m.settings.dark.is_some(), "{:?}", m.settings.dark);
     drop(server);
     // A board the strobe is not wired to (and that says so).
     let mut s = setup("leather", FaultPlan::none());
