@@ -356,6 +356,10 @@ pub struct FrameRecord {
     /// HDR: how each exposure merged into this frame agreed with the next
     /// longer one ([`crate::hdr::exposure_ratios`]; those with too few
     /// values measured well by both are left out); empty otherwise.
+    /// The exposure as the camera's strobe showed it (a device watching
+    /// it, protocol 1.4); an HDR merge's is its reference exposure's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub strobe: Option<crate::strobe::Exposure>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub exposure_ratios: Vec<crate::hdr::ExposureRatio>,
 }
@@ -686,6 +690,9 @@ pub struct ScanReport {
     pub resets: usize,
     /// Position checks made.
     pub checks: usize,
+    /// The exposures taken now as the camera's strobe showed them (none
+    /// when the device does not watch it).
+    pub strobe: crate::strobe::Summary,
     /// Time split.
     pub timings: ScanTimings,
 }
@@ -1748,7 +1755,7 @@ pub fn scan(
                     }
                 }
                 let o = realised(opts, exposure_us)?;
-                let ((frame, fired, status), lost) =
+                let ((frame, fired, status, window), lost) =
                     match capture_with_retries(dev, camera, geometry, l, &o, &mut report, progress)
                     {
                         Ok(c) => c,
@@ -1782,8 +1789,12 @@ pub fn scan(
                     bracket_us: Vec::new(),
                     light_duty_permille: (o.light_duty_permille != opts.light_duty_permille)
                         .then_some(o.light_duty_permille),
+                    strobe: window.as_ref().and_then(crate::strobe::Exposure::of),
                     exposure_ratios: Vec::new(),
                 };
+                if let Some(e) = &record.strobe {
+                    report.strobe.add(e, fired.exposure_us);
+                }
                 if opts.bracket_us.is_empty() {
                     let mut frame = frame;
                     defects.patch(&mut frame);
@@ -2033,7 +2044,10 @@ impl From<LinkError> for Attempt {
     }
 }
 
-type Captured = (crate::camera::Frame, TriggerFired, protocol::Status);
+/// A frame, its trigger, the device's status after it and the exposure
+/// window its strobe showed (none unwatched).
+type Captured =
+    (crate::camera::Frame, TriggerFired, protocol::Status, Option<protocol::StrobeWindow>);
 
 /// Work for the writer thread, in order.
 enum Job {
@@ -2202,7 +2216,7 @@ fn meter(
         let mut size = (0, 0);
         for &l in &mirrors {
             // A reset or lost steps on the way do not matter: nothing is kept.
-            let ((frame, _, _), _) =
+            let ((frame, _, _, _), _) =
                 capture_with_retries(dev, camera, geometry, l, &o, report, progress)?;
             size = (frame.width, frame.height);
             pixels.extend(sample_pixels(&frame, geometry));
@@ -2550,12 +2564,16 @@ fn capture_one(
     })?;
     // A camera that exposes otherwise than the step asks would do so at
     // every retake.
-    if let crate::strobe::Report::Exposed(w) = exposed
-        && let Some(why) = crate::strobe::problem(&w, fired.exposure_us, Some(opts.light_margin_us))
+    let window = match exposed {
+        crate::strobe::Report::Exposed(w) => Some(w),
+        _ => None,
+    };
+    if let Some(w) = &window
+        && let Some(why) = crate::strobe::problem(w, fired.exposure_us, Some(opts.light_margin_us))
     {
         return Err(Attempt::Fatal(ScanError::Conflict(format!("mirror {l}: {why}"))));
     }
-    Ok((frame, fired, status))
+    Ok((frame, fired, status, window))
 }
 
 /// Arm the camera, run the capture step and return its trigger. Events can

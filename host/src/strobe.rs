@@ -132,12 +132,108 @@ pub fn problem(w: &StrobeWindow, exposure_us: u32, light_margin_us: Option<u16>)
     None
 }
 
+/// An exposure as the camera's strobe showed it, recorded with its frame
+/// (docs/scan-format.md, `frames[].strobe`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Exposure {
+    /// From the trigger's rising edge to the strobe's, µs.
+    pub delay_us: u32,
+    /// How long the strobe was active, µs.
+    pub length_us: u32,
+}
+
+impl Exposure {
+    /// The window `w` reports, if the strobe ended within it.
+    pub fn of(w: &StrobeWindow) -> Option<Exposure> {
+        w.ended.then_some(Exposure { delay_us: w.delay_us, length_us: w.length_us })
+    }
+}
+
+/// The strobe's exposures of a scan, summed up for its report: how late
+/// the camera was and how its exposures' lengths stood against their
+/// pulses, at the extremes.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Summary {
+    /// Exposures seen.
+    pub exposures: usize,
+    /// Shortest and longest delay, µs.
+    pub delay_us: (u32, u32),
+    /// Least and most the exposures lasted beyond their pulses, µs
+    /// (negative: shorter).
+    pub excess_us: (i64, i64),
+}
+
+impl Summary {
+    /// Count the exposure `e` of a pulse of `pulse_us`.
+    pub fn add(&mut self, e: &Exposure, pulse_us: u32) {
+        let excess = e.length_us as i64 - pulse_us as i64;
+        if self.exposures == 0 {
+            self.delay_us = (e.delay_us, e.delay_us);
+            self.excess_us = (excess, excess);
+        } else {
+            self.delay_us = (self.delay_us.0.min(e.delay_us), self.delay_us.1.max(e.delay_us));
+            self.excess_us = (self.excess_us.0.min(excess), self.excess_us.1.max(excess));
+        }
+        self.exposures += 1;
+    }
+
+    /// In words, with the light's margin after the pulse (what the latest
+    /// exposure's end may reach); `None` when no exposure was seen.
+    pub fn describe(&self, light_margin_us: u16) -> Option<String> {
+        if self.exposures == 0 {
+            return None;
+        }
+        let ms = |us: f64| us / 1000.0;
+        // "a–b", or "a" when both read the same.
+        let range = |a: String, b: String, sep: &str| if a == b { a } else { a + sep + &b };
+        let latest_end = self.delay_us.1 as i64 + self.excess_us.1;
+        Some(format!(
+            "camera strobe over {} exposures: {} ms after the trigger, {} ms against the pulse \
+             (each edge to {:.1} ms); ends up to {:.1} ms after the pulse, the light {:.1} ms",
+            self.exposures,
+            range(
+                format!("{:.1}", ms(self.delay_us.0 as f64)),
+                format!("{:.1}", ms(self.delay_us.1 as f64)),
+                "–"
+            ),
+            range(
+                format!("{:+.1}", ms(self.excess_us.0 as f64)),
+                format!("{:+.1}", ms(self.excess_us.1 as f64)),
+                "…"
+            ),
+            ms(INPUT_SAMPLE_US as f64),
+            ms(latest_end as f64),
+            ms(light_margin_us as f64),
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn window(delay_us: u32, length_us: u32) -> StrobeWindow {
         StrobeWindow { delay_us, length_us, ended: true }
+    }
+
+    #[test]
+    fn a_summary_keeps_the_extremes_and_says_how_close_the_light_margin_is() {
+        let mut s = Summary::default();
+        assert_eq!(s.describe(0), None);
+        s.add(&Exposure { delay_us: 1_000, length_us: 50_000 }, 50_000);
+        s.add(&Exposure { delay_us: 1_200, length_us: 10_200 }, 10_000);
+        s.add(&Exposure { delay_us: 1_000, length_us: 1_000 }, 1_200);
+        assert_eq!(s, Summary { exposures: 3, delay_us: (1_000, 1_200), excess_us: (-200, 200) });
+        assert_eq!(
+            s.describe(1_500).unwrap(),
+            "camera strobe over 3 exposures: 1.0–1.2 ms after the trigger, -0.2…+0.2 ms against \
+             the pulse (each edge to 0.2 ms); ends up to 1.4 ms after the pulse, the light 1.5 ms"
+        );
+        let mut one = Summary::default();
+        one.add(&Exposure { delay_us: 1_100, length_us: 50_000 }, 50_000);
+        assert!(one.describe(0).unwrap().contains(": 1.1 ms after the trigger, +0.0 ms against"));
+        let stuck = StrobeWindow { delay_us: 100, length_us: 60_000, ended: false };
+        assert_eq!(Exposure::of(&stuck), None);
     }
 
     #[test]

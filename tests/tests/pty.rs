@@ -383,6 +383,16 @@ fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
     );
     let m = Manifest::load(&sub(dir.path(), "mended")).unwrap();
     assert!(m.complete && m.frames.len() == 2);
+    // Each frame records its exposure as the strobe showed it, and the
+    // scan sums them up: the camera 1 ms late, each edge seen up to one
+    // 200 µs input sample late.
+    for f in &m.frames {
+        let e = f.strobe.unwrap_or_else(|| panic!("mirror {}: no strobe recorded", f.mirror));
+        assert!((1_000..1_200).contains(&e.delay_us), "{e:?}");
+        assert!(e.length_us.abs_diff(f.exposure_us) < 200, "{e:?}");
+    }
+    assert!(out.contains("camera strobe over 2 exposures: 1."), "{out}");
+    assert!(out.contains("the light 1.5 ms"), "{out}");
     // The light on during the pulse alone: the camera's last ms is dark.
     let (code, _, err) = scan(&sub(dir.path(), "late"), &[]);
     assert_eq!(code, Some(3), "{err}");

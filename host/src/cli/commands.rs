@@ -1519,6 +1519,9 @@ pub fn run_scan(
         t.disk.as_secs_f64(),
         scan_args.out.display()
     );
+    if let Some(strobe) = report.strobe.describe(scan_args.light_margin_us) {
+        println!("{label}: {strobe}");
+    }
     let s = opened.device.stats;
     if s.retransmissions + s.reconnects + s.bad_frames > 0 {
         println!(

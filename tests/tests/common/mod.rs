@@ -142,6 +142,7 @@ pub fn normalised_manifest(dir: &Path) -> Manifest {
     for f in &mut m.frames {
         f.trigger_seq = 0;
         f.device_timestamp_us = 0;
+        f.strobe = None;
     }
     m
 }
