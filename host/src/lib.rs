@@ -20,6 +20,7 @@
 pub mod brdf;
 pub mod build;
 pub mod camera;
+pub mod check;
 #[cfg(feature = "cli")]
 pub mod cli;
 pub mod defects;

@@ -385,7 +385,7 @@ pub enum CheckKind {
 }
 
 /// Whether a count error (steps) is within the switches' tolerance.
-fn within_tolerance(error_steps: i32) -> bool {
+pub(crate) fn within_tolerance(error_steps: i32) -> bool {
     error_steps.unsigned_abs() <= protocol::POSITION_TOLERANCE_STEPS as u32
 }
 
@@ -880,7 +880,7 @@ const CLEARABLE: FaultFlags = FaultFlags(
 );
 
 /// `faults` named, comma-separated.
-fn fault_list(faults: FaultFlags) -> String {
+pub(crate) fn fault_list(faults: FaultFlags) -> String {
     faults.names().collect::<Vec<_>>().join(", ")
 }
 
@@ -1038,9 +1038,38 @@ pub fn homing_repeatability(
     Ok(out)
 }
 
+/// What [`homing_repeatability`]'s cycles say of one axis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AxisRepeatability {
+    /// The axis.
+    pub axis: Axis,
+    /// The least and most its count was off at its switch, steps (`None`:
+    /// never measured).
+    pub range: Option<(i32, i32)>,
+    /// Cycles that measured it.
+    pub measured: usize,
+    /// Measured, and always within [`protocol::POSITION_TOLERANCE_STEPS`]
+    /// (an axis is not measured in a cycle that another one's lost steps
+    /// stopped on its way out).
+    pub kept: bool,
+}
+
+/// Per axis of `axes`, what `cycles` of [`homing_repeatability`] say.
+pub fn repeatability(cycles: &[HomingCycle], axes: AxisSet) -> Vec<AxisRepeatability> {
+    axes.iter()
+        .map(|axis| {
+            let errors: Vec<i32> =
+                cycles.iter().filter_map(|c| c.error_steps[axis.index()]).collect();
+            let range = errors.iter().min().copied().zip(errors.iter().max().copied());
+            let kept = range.is_some_and(|(lo, hi)| within_tolerance(lo) && within_tolerance(hi));
+            AxisRepeatability { axis, range, measured: errors.len(), kept }
+        })
+        .collect()
+}
+
 /// Home the axes of `axes` and wait for the end; returns the events that
 /// came meanwhile (position checks of axes that were homed already).
-fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
+pub(crate) fn home_axes(dev: &mut Device, axes: AxisSet) -> Result<Vec<Event>, ScanError> {
     dev.clear_events();
     dev.command(Request::Home { axes })?;
     let failed = |outcome: Option<MotionOutcome>, faults: FaultFlags| {
@@ -2046,7 +2075,7 @@ impl From<LinkError> for Attempt {
 
 /// A frame, its trigger, the device's status after it and the exposure
 /// window its strobe showed (none unwatched).
-type Captured =
+pub(crate) type Captured =
     (crate::camera::Frame, TriggerFired, protocol::Status, Option<protocol::StrobeWindow>);
 
 /// Work for the writer thread, in order.
@@ -2271,11 +2300,11 @@ fn meter(
 
 /// A dark frame: the light off, a bare trigger (docs/scan-format.md,
 /// "Sensor defects").
-struct DarkFrame<'a> {
-    geometry: &'a ScannerGeometry,
-    opts: &'a ScanOptions,
+pub(crate) struct DarkFrame<'a> {
+    pub(crate) geometry: &'a ScannerGeometry,
+    pub(crate) opts: &'a ScanOptions,
     /// The device's exposure, µs.
-    exposure_us: u32,
+    pub(crate) exposure_us: u32,
 }
 
 impl DarkFrame<'_> {
@@ -2348,7 +2377,7 @@ impl DarkFrame<'_> {
     /// camera delivers that is not one of the scan's stops it (another size
     /// or unit: [`crate::camera::check_frame`]), as does a camera whose
     /// exposure strobe says it exposes otherwise than its pulse.
-    fn take(
+    pub(crate) fn take(
         &self,
         dev: &mut Device,
         camera: &mut dyn Camera,
@@ -2451,7 +2480,7 @@ fn await_frame(
 
 /// Capture mirror `l`, taking the step again after a missed frame and
 /// recovering from resets and recoverable faults.
-fn capture_with_retries(
+pub(crate) fn capture_with_retries(
     dev: &mut Device,
     camera: &mut dyn Camera,
     geometry: &ScannerGeometry,

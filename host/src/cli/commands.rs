@@ -1006,23 +1006,21 @@ pub fn home(args: &DeviceArgs, axes: &[Axis], repeat: Option<u32>) -> Result<(),
         .map_err(scan_failure)?;
     let tolerance = protocol::POSITION_TOLERANCE_STEPS;
     let mut lost = Vec::new();
-    for axis in set.iter() {
-        let errors: Vec<i32> = cycles.iter().filter_map(|c| c.error_steps[axis.index()]).collect();
-        let (lo, hi) = (errors.iter().min().copied(), errors.iter().max().copied());
-        let (Some(lo), Some(hi)) = (lo, hi) else {
-            println!("{:5}  not measured", axis.name());
-            lost.push(axis.name());
+    for r in scan::repeatability(&cycles, set) {
+        let ok = r.kept && r.measured == cycles.len();
+        let Some((lo, hi)) = r.range else {
+            println!("{:5}  not measured", r.axis.name());
+            lost.push(r.axis.name());
             continue;
         };
-        let ok = errors.len() == cycles.len() && lo >= -tolerance && hi <= tolerance;
         println!(
             "{:5}  count at the switch {lo:+} … {hi:+} steps over {} homings (tolerance ±{tolerance}): {}",
-            axis.name(),
-            errors.len(),
+            r.axis.name(),
+            r.measured,
             if ok { "keeps its steps" } else { "LOST STEPS" }
         );
         if !ok {
-            lost.push(axis.name());
+            lost.push(r.axis.name());
         }
     }
     if lost.is_empty() {
@@ -1224,6 +1222,40 @@ impl ScanProgress for Bar {
     }
 }
 
+/// The scanner's geometry and camera, for the commands that take frames.
+#[derive(Debug, Clone, Args)]
+pub struct RigArgs {
+    /// Nominal geometry file (default: the shipped default scanner, or the
+    /// simulated one's).
+    #[arg(long)]
+    pub geometry: Option<PathBuf>,
+    /// Camera: `folder:DIR` (frames a capture program drops into DIR);
+    /// the simulator brings its own.
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// How the folder camera's 16-bit PNG and TIFF frames hold the
+    /// sensor's codes: as they are (0…4095 for 12 bits), shifted left
+    /// (0…65520), or scaled to 0…65535. A frame that contradicts it stops
+    /// the scan and names the one that reads it.
+    #[arg(long, value_enum, default_value_t = CameraCodes::Native)]
+    pub camera_codes: CameraCodes,
+}
+
+impl RigArgs {
+    /// The geometry, and the camera: the folder's, the simulator's own, or
+    /// none (a real scanner without `--camera`).
+    fn open(&self, opened: &Opened) -> Result<(ScannerGeometry, Option<Box<dyn Camera>>), Failure> {
+        let geometry = load_geometry(self.geometry.as_deref(), opened)?;
+        let camera = match (&self.camera, &opened.rig) {
+            (None, None) if self.camera_codes == CameraCodes::Native => None,
+            (spec, rig) => {
+                Some(camera_for(spec.as_deref(), self.camera_codes, &geometry, rig.as_ref())?)
+            }
+        };
+        Ok((geometry, camera))
+    }
+}
+
 /// Scan parameters on the command line.
 #[derive(Debug, Clone, Args)]
 pub struct ScanArgs {
@@ -1240,19 +1272,8 @@ pub struct ScanArgs {
     /// overwritten).
     #[arg(long)]
     pub force: bool,
-    /// Nominal geometry file (default: the shipped default scanner).
-    #[arg(long)]
-    pub geometry: Option<PathBuf>,
-    /// Camera: `folder:DIR` (frames a capture program drops into DIR);
-    /// the simulator brings its own.
-    #[arg(long)]
-    pub camera: Option<String>,
-    /// How the folder camera's 16-bit PNG and TIFF frames hold the
-    /// sensor's codes: as they are (0…4095 for 12 bits), shifted left
-    /// (0…65520), or scaled to 0…65535. A frame that contradicts it stops
-    /// the scan and names the one that reads it.
-    #[arg(long, value_enum, default_value_t = CameraCodes::Native)]
-    pub camera_codes: CameraCodes,
+    #[command(flatten)]
+    pub rig: RigArgs,
     /// Scan only mirrors 0 … N−1.
     #[arg(long)]
     pub mirrors: Option<usize>,
@@ -1416,22 +1437,23 @@ impl ScanArgs {
 }
 
 fn camera_for(
-    args: &ScanArgs,
+    spec: Option<&str>,
+    codes: CameraCodes,
     geometry: &ScannerGeometry,
     rig: Option<&SimRig>,
 ) -> Result<Box<dyn Camera>, Failure> {
     let (sensor, camera) = (&geometry.sensor, &geometry.camera);
-    match (args.camera.as_deref(), rig) {
+    match (spec, rig) {
         (Some(spec), _) => {
             let dir = spec
                 .strip_prefix("folder:")
                 .ok_or_else(|| Failure(2, anyhow!("--camera must be folder:DIR, got {spec:?}")))?;
             let size = [camera.width, camera.height];
-            let camera = FolderCamera::new(Path::new(dir), sensor, args.camera_codes.into(), size)
+            let camera = FolderCamera::new(Path::new(dir), sensor, codes.into(), size)
                 .map_err(|e| Failure(8, anyhow!(e)))?;
             Ok(Box::new(camera))
         }
-        (None, _) if args.camera_codes != CameraCodes::Native => Err(Failure(
+        (None, _) if codes != CameraCodes::Native => Err(Failure(
             2,
             anyhow!("--camera-codes is for a camera's frame files (--camera folder:DIR)"),
         )),
@@ -1443,6 +1465,79 @@ fn camera_for(
     }
 }
 
+/// `scanner check`'s options.
+#[derive(Debug, Clone, Args)]
+pub struct CheckArgs {
+    #[command(flatten)]
+    pub rig: RigArgs,
+    /// Homing cycles of the homing check (out along the travel and back to
+    /// the switches).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub homings: u32,
+    /// Exposure of the camera and capture checks, µs (1 000 … 2 000 000).
+    #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
+    pub exposure_us: u32,
+    /// Camera timeout per frame, s.
+    #[arg(long, default_value_t = 10.0)]
+    pub frame_timeout: f64,
+    /// Wait after each move, ms, as for `scanner scan`.
+    #[arg(long, default_value_t = protocol::DEFAULT_SETTLE_MS, value_name = "MS",
+          value_parser = clap::value_parser!(u16).range(0..=60_000))]
+    pub settle_ms: u16,
+    /// Light around each pulse, µs, as for `scanner scan`.
+    #[arg(long, default_value_t = 0, value_name = "US")]
+    pub light_margin_us: u16,
+}
+
+/// `scanner check`: every check, a line each; exit 10 if any failed.
+pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
+    if !(0.0..=3600.0).contains(&c.frame_timeout) {
+        return Err(Failure(2, anyhow!("--frame-timeout must be 0…3600 s")));
+    }
+    if !(protocol::MIN_EXPOSURE_US..=protocol::MAX_EXPOSURE_US).contains(&c.exposure_us) {
+        return Err(Failure(
+            2,
+            anyhow!(
+                "--exposure-us {}: {}…{} µs",
+                c.exposure_us,
+                protocol::MIN_EXPOSURE_US,
+                protocol::MAX_EXPOSURE_US
+            ),
+        ));
+    }
+    if c.light_margin_us > protocol::MAX_LIGHT_MARGIN_US {
+        return Err(Failure(
+            2,
+            anyhow!("--light-margin-us: at most {} µs", protocol::MAX_LIGHT_MARGIN_US),
+        ));
+    }
+    let mut opened = open(args)?;
+    let (geometry, mut camera) = c.rig.open(&opened)?;
+    let mut scan = ScanOptions::new("check", Path::new("."));
+    scan.exposure_us = c.exposure_us;
+    scan.frame_timeout = Duration::from_secs_f64(c.frame_timeout);
+    scan.settle_ms = c.settle_ms;
+    scan.light_margin_us = c.light_margin_us;
+    let o = crate::check::CheckOptions { geometry, homings: c.homings as usize, scan };
+    let outcomes = crate::check::run(
+        &mut opened.device,
+        camera.as_mut().map(|c| &mut **c as &mut dyn Camera),
+        &o,
+        &mut |outcome| println!("{} {}: {}", outcome.verdict.word(), outcome.name, outcome.detail),
+    );
+    let count = |v| outcomes.iter().filter(|o| o.verdict == v).count();
+    use crate::check::Verdict;
+    let (passed, failed, skipped) =
+        (count(Verdict::Pass), count(Verdict::Fail), count(Verdict::Skip));
+    println!("{} checks: {passed} passed, {failed} failed, {skipped} skipped", outcomes.len());
+    if failed == 0 {
+        return Ok(());
+    }
+    let names: Vec<&str> =
+        outcomes.iter().filter(|o| o.verdict == Verdict::Fail).map(|o| o.name).collect();
+    Err(Failure(10, anyhow!("failed: {}", names.join(", "))))
+}
+
 /// Run one scan with a progress bar; print the summary.
 pub fn run_scan(
     opened: &mut Opened,
@@ -1452,7 +1547,9 @@ pub fn run_scan(
     if !(0.0..=3600.0).contains(&scan_args.frame_timeout) {
         return Err(Failure(2, anyhow!("--frame-timeout must be 0…3600 s")));
     }
-    let geometry = load_geometry(scan_args.geometry.as_deref(), opened)?;
+    let (geometry, camera) = scan_args.rig.open(opened)?;
+    let mut camera =
+        camera.ok_or_else(|| Failure(2, anyhow!("a real scanner needs --camera folder:DIR")))?;
     if let Some(n) = scan_args.mirrors
         && !(1..=geometry.mirrors.len()).contains(&n)
     {
@@ -1470,7 +1567,6 @@ pub fn run_scan(
             anyhow!("--black-level {codes}: at or above the sensor's top code {top}"),
         ));
     }
-    let mut camera = camera_for(scan_args, &geometry, opened.rig.as_ref())?;
     let mut opts = ScanOptions::new(&scan_args.sample_name, &scan_args.out);
     opts.resume = scan_args.resume;
     opts.mirrors = scan_args.mirrors;
@@ -1713,9 +1809,11 @@ pub fn demo(
             out: out.join(label),
             resume: true,
             force: false,
-            geometry: geometry_file.clone(),
-            camera: None,
-            camera_codes: CameraCodes::Native,
+            rig: RigArgs {
+                geometry: geometry_file.clone(),
+                camera: None,
+                camera_codes: CameraCodes::Native,
+            },
             mirrors,
             exposure_us,
             exposures: Vec::new(),

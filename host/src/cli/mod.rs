@@ -5,7 +5,7 @@
 //! Exit codes: 0 success, 1 anything else, 2 bad usage, 3 unreadable or
 //! invalid input file (or a scan directory holding another scan), 4 output
 //! could not be written, 5 no device, 6 incompatible firmware, 7 device
-//! fault, 8 camera timeout, 9 disk full.
+//! fault, 8 camera timeout, 9 disk full, 10 a `scanner check` failed.
 
 mod build;
 mod commands;
@@ -67,6 +67,17 @@ enum Command {
         device: commands::DeviceArgs,
         #[command(flatten)]
         scan: commands::ScanArgs,
+    },
+    /// Check a scanner end to end, a line each: the link, faults, homing
+    /// (repeated), the mirror table, every mirror, the light, the camera,
+    /// capture steps with a sample on the holder — a built scanner's
+    /// acceptance, or a hardware-in-the-loop test. Moves and homes the
+    /// axes, writes nothing to the device. Exit 10 if a check fails.
+    Check {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+        #[command(flatten)]
+        check: commands::CheckArgs,
     },
     /// Check a scan directory: every frame recorded and matching its checksum.
     Verify {
@@ -697,6 +708,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref())?
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
+        Command::Check { device, check } => commands::check(&device, &check)?,
         Command::Geometry { geometry, rings, output, axes, device, sim_axes, sim_board_axes } => {
             if let Some(out) = &output {
                 let inputs: Vec<&Path> =

@@ -1,0 +1,512 @@
+//! `scanner check`: a scanner's acceptance run — what a hardware-in-the-loop
+//! test of a built scanner asks, in one command, each answer a line
+//! (README, "Checking a scanner").
+//!
+//! The checks run in order, and one that needs an earlier one skips when
+//! that failed:
+//!
+//! 1. **link** — the handshake, and the round trip of status requests;
+//! 2. **faults** — none latched, the emergency stop closed, the drivers
+//!    quiet (their inputs, protocol ≥ 1.2);
+//! 3. **light** — switched on and off, as the status reads back;
+//! 4. **camera** — a frame with the light off for a bare trigger, of the
+//!    geometry's sensor size, and on a device that watches the exposure
+//!    strobe, exposed for the pulse's length;
+//! 5. **homing** — every axis homed, sent far along its travel and homed
+//!    again, `homings` times ([`scan::homing_repeatability`]): its count at
+//!    its switch within [`protocol::POSITION_TOLERANCE_STEPS`];
+//! 6. **mirror table** — the device's table is the geometry's (read only:
+//!    `scanner setup` writes it);
+//! 7. **mirrors** — every entry of the device's table visited, then homed:
+//!    no step lost on the way;
+//! 8. **capture** — capture steps at the first, middle and last mirror:
+//!    each frame shows the sample on the holder lit (its views
+//!    [`LIT_CODES`] above the frame with the light off), the strobe's
+//!    timing within the light.
+//!
+//! Nothing is written to the device (no table, no setting): the axes move
+//! and home, the light switches, the trigger fires.
+
+use std::time::{Duration, Instant};
+
+use protocol::{AxisSet, LightState, Request};
+use scanner_geometry::ScannerGeometry;
+
+use crate::camera::{Camera, ScanCamera};
+use crate::link::{Device, LinkError};
+use crate::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
+
+/// A sample's views count as lit when their level (the
+/// [`crate::exposure::BODY_PERCENTILE`] of their values) is this many ADC
+/// codes above the frame's with the light off: 13 × the read noise of a
+/// typical sensor (the dark frame's hot-pixel threshold, docs/scan-format.md
+/// "Sensor defects"), so that no dark frame passes and any sample but a
+/// black one at a short exposure does.
+pub const LIT_CODES: f64 = 16.0;
+
+/// Status requests whose round trip the link check times.
+pub const ROUND_TRIPS: usize = 20;
+
+/// What to check with.
+#[derive(Debug, Clone)]
+pub struct CheckOptions {
+    /// The scanner's geometry (its mirror table, its sensor, where the
+    /// sample appears in the frames).
+    pub geometry: ScannerGeometry,
+    /// Homing cycles of the homing check.
+    pub homings: usize,
+    /// The capture steps' exposure, settle, light and frame timeout (as a
+    /// scan's; `attempts` retakes a missed frame).
+    pub scan: ScanOptions,
+}
+
+/// A check's result.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    /// It passed.
+    Pass,
+    /// It failed: the detail says what and what to do.
+    Fail,
+    /// It could not run (a check it needs failed, or no camera).
+    Skip,
+}
+
+impl Verdict {
+    /// As printed: PASS, FAIL, SKIP.
+    pub fn word(self) -> &'static str {
+        match self {
+            Verdict::Pass => "PASS",
+            Verdict::Fail => "FAIL",
+            Verdict::Skip => "SKIP",
+        }
+    }
+}
+
+/// One check's outcome.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Outcome {
+    /// The check, e.g. "homing".
+    pub name: &'static str,
+    /// Passed, failed or skipped.
+    pub verdict: Verdict,
+    /// What was measured, or why it failed or was skipped.
+    pub detail: String,
+}
+
+/// The checks, in the order they run.
+pub const CHECKS: [&str; 8] =
+    ["link", "faults", "light", "camera", "homing", "mirror table", "mirrors", "capture"];
+
+/// Run every check on `dev` (and `camera`, if there is one), telling
+/// `seen` each outcome as it comes; all outcomes, in [`CHECKS`] order.
+pub fn run(
+    dev: &mut Device,
+    camera: Option<&mut dyn Camera>,
+    o: &CheckOptions,
+    seen: &mut dyn FnMut(&Outcome),
+) -> Vec<Outcome> {
+    let mut out: Vec<Outcome> = Vec::new();
+    let mut say = |name: &'static str, verdict: Verdict, detail: String| {
+        let outcome = Outcome { name, verdict, detail };
+        seen(&outcome);
+        out.push(outcome);
+        verdict == Verdict::Pass
+    };
+    // A link that failed (the device gone, reset or refusing) fails the
+    // check it happened in; the rest are skipped.
+    let mut gone: Option<String> = None;
+    let mut run_one = |name: &'static str,
+                       needs: &[(&str, bool)],
+                       check: &mut dyn FnMut() -> Result<Result<String, String>, ScanError>|
+     -> bool {
+        if let Some(why) = &gone {
+            return say(name, Verdict::Skip, format!("the link failed ({why})"));
+        }
+        if let Some((what, _)) = needs.iter().find(|(_, ok)| !ok) {
+            return say(name, Verdict::Skip, format!("needs {what}"));
+        }
+        match check() {
+            Ok(Ok(detail)) => say(name, Verdict::Pass, detail),
+            Ok(Err(why)) => say(name, Verdict::Fail, why),
+            Err(e) => {
+                if matches!(e, ScanError::Link(_)) {
+                    gone = Some(e.to_string());
+                }
+                say(name, Verdict::Fail, e.to_string())
+            }
+        }
+    };
+    let link = run_one("link", &[], &mut || link(dev));
+    let faults = run_one("faults", &[("link", link)], &mut || faults(dev));
+    let light = run_one("light", &[("faults", faults)], &mut || light(dev, &o.scan));
+    // Without a camera its checks are skipped (never run).
+    let no_camera = [("a camera (--camera)", false)];
+    let mut camera = camera.map(|c| ScanCamera::new(c, &o.geometry));
+    let mut dark = None;
+    let seen_dark = match camera.as_mut() {
+        None => run_one("camera", &no_camera, &mut || Ok(Err(String::new()))),
+        Some(camera) => run_one("camera", &[("faults", faults)], &mut || {
+            Ok(dark_frame(dev, camera, o)?.map(|(frame, detail)| {
+                dark = Some(frame);
+                detail
+            }))
+        }),
+    };
+    let homing = run_one("homing", &[("faults", faults)], &mut || homing(dev, o.homings));
+    run_one("mirror table", &[("link", link)], &mut || mirror_table(dev, &o.geometry));
+    let mirrors = run_one("mirrors", &[("homing", homing)], &mut || mirrors(dev));
+    match (camera.as_mut(), dark.as_ref()) {
+        (Some(camera), Some(dark)) => {
+            run_one("capture", &[("mirrors", mirrors), ("light", light)], &mut || {
+                capture(dev, camera, o, dark)
+            })
+        }
+        (None, _) => run_one("capture", &no_camera, &mut || Ok(Err(String::new()))),
+        (Some(_), None) => {
+            run_one("capture", &[("camera", seen_dark)], &mut || Ok(Err(String::new())))
+        }
+    };
+    out
+}
+
+/// Error-typed results: `Ok(Ok(detail))` passed, `Ok(Err(why))` failed.
+type Checked = Result<Result<String, String>, ScanError>;
+
+fn link(dev: &mut Device) -> Checked {
+    let info = *dev.info();
+    let before = dev.stats;
+    let mut times = Vec::with_capacity(ROUND_TRIPS);
+    for _ in 0..ROUND_TRIPS {
+        let t = Instant::now();
+        dev.status()?;
+        times.push(t.elapsed());
+    }
+    times.sort_unstable();
+    let retransmitted = dev.stats.retransmissions - before.retransmissions;
+    let bad = dev.stats.bad_frames - before.bad_frames;
+    let detail = format!(
+        "device {}, firmware {}, protocol {}, board {:#06x}; {ROUND_TRIPS} status round trips: \
+         median {:.1} ms, longest {:.1} ms",
+        scan::hex(&info.device_id),
+        info.firmware,
+        info.protocol,
+        info.board,
+        ms(times[ROUND_TRIPS / 2]),
+        ms(times[ROUND_TRIPS - 1]),
+    );
+    if retransmitted + bad > 0 {
+        return Ok(Err(format!(
+            "{detail}; {retransmitted} retransmissions and {bad} bad frames on a quiet link: \
+             check the cable, its shield and the USB hub"
+        )));
+    }
+    Ok(Ok(detail))
+}
+
+fn faults(dev: &mut Device) -> Checked {
+    let status = dev.status()?;
+    let mut wrong = Vec::new();
+    if !status.faults.is_empty() {
+        wrong.push(format!(
+            "faults latched: {} (`scanner clear` clears them once their cause is gone)",
+            scan::fault_list(status.faults)
+        ));
+    }
+    let mut seen = "no fault latched".to_string();
+    if dev.info().protocol.minor >= 2 {
+        let inputs = match dev.request(Request::GetInputs)? {
+            protocol::Reply::Inputs(i) => i,
+            reply => return Err(LinkError::Unexpected { request: "GetInputs", reply }.into()),
+        };
+        if inputs.estop_open {
+            wrong.push("the emergency stop is open".into());
+        }
+        if inputs.driver_fault {
+            wrong.push(
+                "a driver reports a fault (or its line's polarity is set the wrong way round: \
+                 `scanner config --driver-fault`)"
+                    .into(),
+            );
+        }
+        seen += ", the emergency stop closed, the drivers quiet";
+    }
+    if wrong.is_empty() { Ok(Ok(seen)) } else { Ok(Err(wrong.join("; "))) }
+}
+
+fn homing(dev: &mut Device, cycles: usize) -> Checked {
+    let cycles = scan::homing_repeatability(dev, AxisSet::ALL, cycles, &mut |_, _| {})?;
+    let tolerance = protocol::POSITION_TOLERANCE_STEPS;
+    let axes = scan::repeatability(&cycles, AxisSet::ALL);
+    let words: Vec<String> = axes
+        .iter()
+        .map(|r| match r.range {
+            // Not measured in a cycle another axis' lost steps stopped.
+            Some((lo, hi)) if r.measured < cycles.len() => {
+                format!("{} {lo:+}…{hi:+} (measured in {} of them)", r.axis.name(), r.measured)
+            }
+            Some((lo, hi)) => format!("{} {lo:+}…{hi:+}", r.axis.name()),
+            None => format!("{} not measured", r.axis.name()),
+        })
+        .collect();
+    let detail = format!(
+        "count at the switch after {} homings, steps: {} (tolerance ±{tolerance})",
+        cycles.len(),
+        words.join(", ")
+    );
+    let lost: Vec<&str> = axes.iter().filter(|r| !r.kept).map(|r| r.axis.name()).collect();
+    if lost.is_empty() {
+        return Ok(Ok(detail));
+    }
+    Ok(Err(format!(
+        "{detail}: {} lost steps (or was never measured) — lower its v_max or a_max (`scanner \
+         axes`), or check the motor's current, its coupling and what it drives",
+        lost.join(", ")
+    )))
+}
+
+fn mirror_table(dev: &mut Device, geometry: &ScannerGeometry) -> Checked {
+    let axes = scan::axis_configs(dev)?;
+    let table = scan::mirror_table(geometry, &axes)?;
+    let count = dev.info().mirror_count as usize;
+    let mut differ = Vec::new();
+    for (l, position) in table.iter().enumerate() {
+        if l >= count || scan::mirror_entry(dev, l as u8)? != Some(*position) {
+            differ.push(l);
+        }
+    }
+    if differ.is_empty() && count == table.len() {
+        return Ok(Ok(format!("{count} entries, the geometry's for the device's axes")));
+    }
+    let what = if count == 0 {
+        format!("the device's table is empty, the geometry has {} mirrors", table.len())
+    } else if differ.is_empty() {
+        format!("the device has {count} entries, the geometry {}", table.len())
+    } else {
+        format!("{} of {} entries differ from the geometry's", scan::mirror_list(&differ), count)
+    };
+    Ok(Err(format!("{what}: `scanner setup --geometry` writes the geometry's")))
+}
+
+fn mirrors(dev: &mut Device) -> Checked {
+    let count = dev.info().mirror_count;
+    let mut visited = Vec::new();
+    let mut longest = Duration::ZERO;
+    let started = Instant::now();
+    for l in 0..count {
+        if scan::mirror_entry(dev, l)?.is_none() {
+            continue;
+        }
+        let t = Instant::now();
+        dev.clear_events();
+        dev.command(Request::GoToMirror { mirror: l })?;
+        match scan::wait_motion_end(dev, Duration::from_secs(120))? {
+            Some(scan::MotionEnd::Reported {
+                outcome: protocol::MotionOutcome::Completed, ..
+            }) => {}
+            Some(scan::MotionEnd::Unreported(s)) if s.faults.is_empty() => {}
+            Some(scan::MotionEnd::Reported { outcome, .. }) => {
+                return Ok(Err(format!("the move to mirror {l}: {outcome}")));
+            }
+            Some(scan::MotionEnd::Unreported(s)) => {
+                return Ok(Err(format!(
+                    "the move to mirror {l} stopped: {}",
+                    scan::fault_list(s.faults)
+                )));
+            }
+            None => return Ok(Err(format!("the move to mirror {l} did not end within 120 s"))),
+        }
+        longest = longest.max(t.elapsed());
+        visited.push(l as usize);
+    }
+    if visited.is_empty() {
+        return Ok(Err("the device's mirror table is empty: `scanner setup` writes it".into()));
+    }
+    let moved = started.elapsed();
+    // Homing measures each axis' count against its switch.
+    let mut error_steps = [None; 3];
+    for e in scan::home_axes(dev, AxisSet::ALL)? {
+        if let protocol::Event::PositionChecked { axis, error_steps: error } = e {
+            error_steps[axis.index()] = Some(error);
+        }
+    }
+    let words: Vec<String> = protocol::Axis::ALL
+        .iter()
+        .map(|a| match error_steps[a.index()] {
+            Some(e) => format!("{} {e:+}", a.name()),
+            None => format!("{} not measured", a.name()),
+        })
+        .collect();
+    let detail = format!(
+        "{} visited in {:.1} s (the longest move {:.1} s); homed after: {} steps",
+        scan::mirror_list(&visited),
+        moved.as_secs_f64(),
+        longest.as_secs_f64(),
+        words.join(", ")
+    );
+    if error_steps.iter().all(|e| e.is_some_and(scan::within_tolerance)) {
+        Ok(Ok(detail))
+    } else {
+        Ok(Err(format!(
+            "{detail}: steps were lost on the way (`scanner home --repeat` narrows it)"
+        )))
+    }
+}
+
+fn light(dev: &mut Device, o: &ScanOptions) -> Checked {
+    let mut read = Vec::new();
+    for on in [true, false] {
+        dev.command(Request::SetLight(LightState { on, duty_permille: o.light_duty_permille }))?;
+        let light = dev.status()?.light;
+        read.push(light);
+        if light.on != on {
+            return Ok(Err(format!("switched {}, the status reads {light:?}", onoff(on))));
+        }
+    }
+    Ok(Ok(format!("on at {} ‰ and off again, as the status reads", read[0].duty_permille)))
+}
+
+fn onoff(on: bool) -> &'static str {
+    if on { "on" } else { "off" }
+}
+
+/// The frame with the light off, and what the check says of it.
+fn dark_frame(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    o: &CheckOptions,
+) -> Result<Result<(crate::camera::Frame, String), String>, ScanError> {
+    let mut report = ScanReport::default();
+    let dark =
+        scan::DarkFrame { geometry: &o.geometry, opts: &o.scan, exposure_us: o.scan.exposure_us };
+    let t = Instant::now();
+    let frame = match dark.take(dev, camera, &mut report) {
+        Ok(Ok(f)) => f,
+        Ok(Err(why)) => return Ok(Err(format!("a bare trigger with the light off: {why}"))),
+        // Another size or unit, or a strobe that says the camera exposes
+        // otherwise than its pulse: what to set is in the words.
+        Err(ScanError::Conflict(why)) => return Ok(Err(why)),
+        Err(e) => return Err(e),
+    };
+    let took = t.elapsed();
+    let max_code = o.geometry.sensor.max_code();
+    let black = crate::defects::black_level_codes(&frame, max_code);
+    let mut detail = format!(
+        "a {:.1} ms frame with the light off, {}×{}, in {:.2} s from the trigger's request; its \
+         median {black} codes",
+        o.scan.exposure_us as f64 / 1000.0,
+        frame.width,
+        frame.height,
+        took.as_secs_f64()
+    );
+    if black > crate::defects::DARK_MEDIAN_CODES {
+        detail += &format!(
+            " — a black level: scan with --black-level {black} (or auto), or have the camera's \
+             capture program subtract it"
+        );
+    }
+    if crate::strobe::watched(dev)?.is_some() {
+        detail += "; its exposure strobe as long as the pulse";
+    }
+    Ok(Ok((frame, detail)))
+}
+
+/// The level of the sample's views in `frame` (full scale 1) and the
+/// share of their values saturated.
+fn sample_level(frame: &crate::camera::Frame, geometry: &ScannerGeometry) -> (f64, f64) {
+    let pixels = crate::exposure::sample_pixels(frame, geometry);
+    let none = crate::defects::DefectMap::new(&[], frame.width, frame.height);
+    let mut values = crate::exposure::sample_values(&pixels, &none);
+    if values.is_empty() {
+        return (0.0, 0.0);
+    }
+    let saturated = values.iter().filter(|&&v| v >= 0.999).count() as f64 / values.len() as f64;
+    let (body, _, _) = crate::exposure::measure(&mut values);
+    (body, saturated)
+}
+
+fn capture(
+    dev: &mut Device,
+    camera: &mut dyn Camera,
+    o: &CheckOptions,
+    dark: &crate::camera::Frame,
+) -> Checked {
+    let count = dev.info().mirror_count as usize;
+    let mut mirrors = vec![0, count / 2, count.saturating_sub(1)];
+    mirrors.dedup();
+    let max_code = o.geometry.sensor.max_code();
+    let (dark_level, _) = sample_level(dark, &o.geometry);
+    if crate::exposure::sample_pixels(dark, &o.geometry).is_empty() {
+        return Ok(Err("the geometry projects the sample outside the camera's frames".into()));
+    }
+    let mut report = ScanReport::default();
+    let mut levels = Vec::new();
+    let mut quiet = Quiet;
+    for &l in &mirrors {
+        let ((frame, _, _, window), _) = scan::capture_with_retries(
+            dev,
+            camera,
+            &o.geometry,
+            l,
+            &o.scan,
+            &mut report,
+            &mut quiet,
+        )?;
+        if let Some(e) = window.as_ref().and_then(crate::strobe::Exposure::of) {
+            report.strobe.add(&e, o.scan.exposure_us);
+        }
+        let (level, saturated) = sample_level(&frame, &o.geometry);
+        let over = codes_above(level, dark_level, max_code);
+        if over < LIT_CODES {
+            return Ok(Err(format!(
+                "mirror {l}: the sample's views {over:.1} codes above the frame with the light \
+                 off (at least {LIT_CODES} wanted): the beam does not reach the sample (the \
+                 mirror table, the light, the fold mirror), or no sample is on the holder"
+            )));
+        }
+        levels.push(format!("mirror {l} at {:.1} %{}", 100.0 * level, saturation(saturated)));
+    }
+    let mut detail = format!("the sample's views lit: {} of full scale", levels.join(", "));
+    if report.retakes > 0 {
+        detail += &format!(" ({} steps taken again)", report.retakes);
+    }
+    if let Some(strobe) = report.strobe.describe(o.scan.light_margin_us) {
+        detail += &format!("; {strobe}");
+    }
+    Ok(Ok(detail))
+}
+
+/// How many ADC codes the level `level` lies above `dark` (both in full
+/// scale, the sensor's top code `max_code`).
+fn codes_above(level: f64, dark: f64, max_code: f64) -> f64 {
+    (level - dark) * max_code
+}
+
+fn saturation(share: f64) -> String {
+    if share > 0.0 { format!(" ({:.1} % saturated)", 100.0 * share) } else { String::new() }
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1000.0
+}
+
+/// Progress that says nothing (retakes are counted in the report).
+struct Quiet;
+impl ScanProgress for Quiet {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_frame_counts_as_lit_only_well_above_the_dark_frame() {
+        let top = 4095.0;
+        // The dark frame's own level, or read noise above it: not lit.
+        assert!(codes_above(3.0 / top, 3.0 / top, top) < LIT_CODES);
+        assert!(codes_above(15.0 / top, 0.0, top) < LIT_CODES);
+        // A black level carried by both frames does not count.
+        assert!(codes_above(70.0 / top, 64.0 / top, top) < LIT_CODES);
+        assert!(codes_above(81.0 / top, 64.0 / top, top) >= LIT_CODES);
+        // A white target at half scale is far above.
+        assert!(codes_above(0.5, 0.0, top) > 100.0 * LIT_CODES);
+    }
+}

@@ -1,0 +1,160 @@
+//! `scanner check`, a scanner's acceptance run: on the simulated scanner
+//! served on a pseudo-terminal (as a real one on its serial port, its
+//! camera dropping frames into a folder) it passes once the mirror table
+//! is written, and each fault a real build has fails its own check, naming
+//! what to do. The same test runs on real hardware when
+//! `SCANNER_HIL_DEVICE` names a scanner (ignored otherwise).
+
+mod common;
+
+use std::path::Path;
+
+use common::*;
+use hil_sim::{FaultEvent, FaultPlan};
+
+/// `scanner check` on the pty `server` with its camera and geometry in
+/// `frames`: (exit code, stdout, stderr).
+fn check(server: &hil_sim::PtyServer, frames: &Path) -> (Option<i32>, String, String) {
+    let camera = format!("folder:{}", frames.display());
+    let geometry = frames.join("geometry.toml").display().to_string();
+    let args = [
+        "check",
+        "--device",
+        server.path(),
+        "--camera",
+        &camera,
+        "--geometry",
+        &geometry,
+        "--homings",
+        "2",
+        "--frame-timeout",
+        "3",
+    ];
+    let (code, out, err) = run(&args);
+    eprintln!("{out}");
+    (code, out, err)
+}
+
+/// The verdict printed for check `name` ("PASS", "FAIL", "SKIP").
+fn verdict<'a>(out: &'a str, name: &str) -> &'a str {
+    out.lines()
+        .find_map(|l| {
+            let (word, rest) = l.split_once(' ')?;
+            rest.strip_prefix(name)?.strip_prefix(':').map(|_| word)
+        })
+        .unwrap_or_else(|| panic!("no line for {name}:\n{out}"))
+}
+
+/// Each check's verdict, the checks printed in [`host::check::CHECKS`]'s
+/// order.
+fn verdicts(out: &str) -> Vec<(&'static str, String)> {
+    let printed: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.split_once(' ')?.1.split_once(':').map(|(name, _)| name))
+        .filter(|name| host::check::CHECKS.contains(name))
+        .collect();
+    assert_eq!(printed, host::check::CHECKS, "{out}");
+    host::check::CHECKS.iter().map(|&n| (n, verdict(out, n).to_string())).collect()
+}
+
+fn expect(out: &str, want: [&str; 8]) {
+    let got = verdicts(out);
+    let want: Vec<(&str, String)> =
+        host::check::CHECKS.iter().zip(want).map(|(&n, w)| (n, w.to_string())).collect();
+    assert_eq!(got, want, "{out}");
+}
+
+#[test]
+fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
+    let dir = tmp();
+    let frames = sub(dir.path(), "camera");
+    let server = serve(&setup("leather", FaultPlan::none()), &frames);
+    // A scanner fresh from flashing: no mirror table.
+    let (code, out, err) = check(&server, &frames);
+    assert_eq!(code, Some(10), "{out}{err}");
+    expect(&out, ["PASS", "PASS", "PASS", "PASS", "PASS", "FAIL", "FAIL", "SKIP"]);
+    assert!(out.contains("the device's table is empty, the geometry has 40 mirrors"), "{out}");
+    assert!(out.contains("`scanner setup --geometry` writes"), "{out}");
+    assert!(err.contains("failed: mirror table, mirrors"), "{err}");
+    let geometry = frames.join("geometry.toml").display().to_string();
+    let (code, _, err) = run(&["setup", "--device", server.path(), "--geometry", &geometry]);
+    assert_eq!(code, Some(0), "{err}");
+    // Its camera's exposure strobe wired and watched: checked too.
+    let (code, _, err) = run(&["config", "--device", server.path(), "--strobe", "active-high"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, out, err) = check(&server, &frames);
+    assert_eq!(code, Some(0), "{out}{err}");
+    assert!(out.contains("its exposure strobe as long as the pulse"), "{out}");
+    assert!(out.contains("camera strobe over 3 exposures: 0."), "{out}");
+    expect(&out, ["PASS"; 8]);
+    assert!(out.contains("8 checks: 8 passed, 0 failed, 0 skipped"), "{out}");
+    assert!(out.contains("count at the switch after 2 homings"), "{out}");
+    assert!(out.contains("mirrors 0–39 visited"), "{out}");
+    assert!(out.contains("a 50.0 ms frame with the light off, 512×512"), "{out}");
+    assert!(out.contains("the sample's views lit: mirror 0 at "), "{out}");
+    assert!(out.contains(", mirror 20 at ") && out.contains(", mirror 39 at "), "{out}");
+}
+
+#[test]
+fn a_camera_that_misses_its_trigger_and_a_slipping_motor_fail_their_checks() {
+    let dir = tmp();
+    let frames = sub(dir.path(), "camera");
+    // The camera misses the first trigger (the camera check's); after it
+    // the track loses 800 steps (during the homing check's first cycle).
+    let faults = FaultPlan::none()
+        .after_triggers(0, FaultEvent::IgnoreTriggers(1))
+        .after_triggers(1, FaultEvent::LoseSteps { axis: protocol::Axis::Track, steps: 800 });
+    let server = serve(&setup("leather", faults), &frames);
+    let geometry = frames.join("geometry.toml").display().to_string();
+    let (code, _, err) = run(&["setup", "--device", server.path(), "--geometry", &geometry]);
+    assert_eq!(code, Some(0), "{err}");
+    // Homed already: the steps are lost on the homing check's way out.
+    let (code, _, err) = run(&["home", "--device", server.path()]);
+    assert_eq!(code, Some(0), "{err}");
+    let (code, out, err) = check(&server, &frames);
+    assert_eq!(code, Some(10), "{out}{err}");
+    expect(&out, ["PASS", "PASS", "PASS", "FAIL", "FAIL", "PASS", "SKIP", "SKIP"]);
+    assert!(
+        out.contains("FAIL camera: a bare trigger with the light off: camera: no frame"),
+        "{out}"
+    );
+    assert!(out.contains("track lost steps"), "{out}");
+    assert!(out.contains("SKIP mirrors: needs homing"), "{out}");
+    assert!(err.contains("failed: camera, homing"), "{err}");
+}
+
+#[test]
+fn an_open_emergency_stop_fails_the_faults_check_and_nothing_moves() {
+    let dir = tmp();
+    let frames = sub(dir.path(), "camera");
+    let faults =
+        FaultPlan::none().with(hil_sim::FaultWhen::AtTick(0), FaultEvent::EmergencyStop(true));
+    let server = serve(&setup("leather", faults), &frames);
+    let (code, out, err) = check(&server, &frames);
+    assert_eq!(code, Some(10), "{out}{err}");
+    expect(&out, ["PASS", "FAIL", "SKIP", "SKIP", "SKIP", "FAIL", "SKIP", "SKIP"]);
+    assert!(out.contains("the emergency stop is open"), "{out}");
+    assert!(out.contains("SKIP homing: needs faults"), "{out}");
+}
+
+/// The same acceptance on a real scanner: `SCANNER_HIL_DEVICE` (a port or
+/// serial number), `SCANNER_HIL_CAMERA` (`folder:DIR`, its capture program
+/// writing there, a sample on the holder) and, for a scanner not built to
+/// the default design, `SCANNER_HIL_GEOMETRY`.
+#[test]
+#[ignore = "needs a scanner: set SCANNER_HIL_DEVICE and SCANNER_HIL_CAMERA, run with --ignored"]
+fn a_connected_scanner_passes_every_check() {
+    let device = std::env::var("SCANNER_HIL_DEVICE")
+        .expect("SCANNER_HIL_DEVICE names the scanner (a port such as /dev/ttyACM0, or a serial)");
+    let camera = std::env::var("SCANNER_HIL_CAMERA")
+        .expect("SCANNER_HIL_CAMERA names its camera (folder:DIR)");
+    let mut args = vec!["check", "--device", &device, "--camera", &camera];
+    let geometry = std::env::var("SCANNER_HIL_GEOMETRY").ok();
+    if let Some(g) = &geometry {
+        args.extend(["--geometry", g]);
+    }
+    let (code, out, err) = run(&args);
+    eprintln!("{out}");
+    assert_eq!(code, Some(0), "{out}{err}");
+    expect(&out, ["PASS"; 8]);
+}
