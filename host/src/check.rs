@@ -1,6 +1,6 @@
 //! `scanner check`: a scanner's acceptance run — what a hardware-in-the-loop
 //! test of a built scanner asks, in one command, each answer a line
-//! (README, "Checking a scanner").
+//! (README, "Commissioning a scanner").
 //!
 //! The checks run in order, and one that needs an earlier one skips when
 //! that failed:
@@ -19,7 +19,8 @@
 //!    `scanner setup` writes it);
 //! 7. **mirrors** — every entry of the device's table visited, then homed:
 //!    no step lost on the way;
-//! 8. **capture** — capture steps at the first, middle and last mirror:
+//! 8. **capture** — with the table the geometry's, capture steps at the
+//!    first, middle and last mirror:
 //!    each frame shows the sample on the holder lit (its views
 //!    [`LIT_CODES`] above the frame with the light off), the strobe's
 //!    timing within the light.
@@ -153,13 +154,14 @@ pub fn run(
         }),
     };
     let homing = run_one("homing", &[("faults", faults)], &mut || homing(dev, o.homings));
-    run_one("mirror table", &[("link", link)], &mut || mirror_table(dev, &o.geometry));
+    let table = run_one("mirror table", &[("link", link)], &mut || mirror_table(dev, &o.geometry));
     let mirrors = run_one("mirrors", &[("homing", homing)], &mut || mirrors(dev));
     match (camera.as_mut(), dark.as_ref()) {
         (Some(camera), Some(dark)) => {
-            run_one("capture", &[("mirrors", mirrors), ("light", light)], &mut || {
-                capture(dev, camera, o, dark)
-            })
+            // The table as the geometry's: a capture step that must
+            // recover (as a scan's does) then writes nothing to the device.
+            let needs = [("mirror table", table), ("mirrors", mirrors), ("light", light)];
+            run_one("capture", &needs, &mut || capture(dev, camera, o, dark))
         }
         (None, _) => run_one("capture", &no_camera, &mut || Ok(Err(String::new()))),
         (Some(_), None) => {
