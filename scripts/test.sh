@@ -25,6 +25,8 @@ step "vendored exr's PIZ decoder (host/vendor/exr/PATCHES.md)"
 step "no_std build of protocol for thumbv7em-none-eabihf"
 cargo build -p protocol --target thumbv7em-none-eabihf --release --locked
 cargo build -p protocol --target thumbv7em-none-eabihf --release --locked --features defmt
+step "firmware core self-tests linked for the board (STM32F411, feature black-pill)"
+(cd firmware/qemu-tests && cargo build --release --locked --features black-pill --bin firmware-qemu-tests)
 step "firmware core self-tests on a Cortex-M4 (QEMU mps2-an386)"
 (cd firmware/qemu-tests && cargo run --release --locked)
 step "firmware ELF size (release, STM32F411)"
