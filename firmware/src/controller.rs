@@ -212,6 +212,7 @@ pub struct Controller {
     event_seq: u8,
     decoder: FrameDecoder<Request>,
     reset_requested: bool,
+    bootloader_requested: bool,
     /// Step-queue underruns (planner fell behind); diagnostics only.
     underruns: u32,
     /// The camera's exposure strobe, watched after each pulse while
@@ -247,6 +248,7 @@ impl Controller {
             event_seq: 0,
             decoder: FrameDecoder::new(),
             reset_requested: false,
+            bootloader_requested: false,
             underruns: 0,
             strobe: StrobeMonitor::default(),
         };
@@ -281,6 +283,12 @@ impl Controller {
     /// the pending reply).
     pub fn reset_requested(&self) -> bool {
         self.reset_requested
+    }
+    /// Whether an `EnterBootloader` request asks the caller to reset into
+    /// the chip's ROM bootloader (after sending the pending reply;
+    /// [`crate::bootloader`]).
+    pub fn bootloader_requested(&self) -> bool {
+        self.bootloader_requested
     }
     /// Step-queue underruns since boot.
     pub fn underruns(&self) -> u32 {
@@ -582,6 +590,19 @@ impl Controller {
             Request::Reset => {
                 self.halt_all(hw);
                 self.reset_requested = true;
+                Ok(Reply::Ack)
+            }
+            Request::EnterBootloader => {
+                if !self.boot.capabilities.contains(Capabilities::SYSTEM_BOOTLOADER) {
+                    return Err(DeviceError::Unsupported);
+                }
+                // Everything off now: the ROM leaves the pins floating.
+                self.halt_all(hw);
+                self.light.on = false;
+                self.restore_light(hw);
+                hw.set_trigger(false);
+                self.activity = Activity::Idle;
+                self.bootloader_requested = true;
                 Ok(Reply::Ack)
             }
         }

@@ -13,11 +13,13 @@
 //! - [`hal`]: the small traits the hardware implements.
 //! - [`config`]: axis defaults from spec/hardware.md and the persisted blob.
 //! - [`strobe`]: the watch of the camera's exposure strobe.
+//! - [`bootloader`]: the way into the chip's ROM bootloader (USB DFU).
 //!
 //! Time is always passed in as ticks of [`hal::TICK_HZ`]; nothing reads a clock.
 #![no_std]
 #![warn(missing_docs)]
 
+pub mod bootloader;
 pub mod config;
 pub mod controller;
 pub mod hal;

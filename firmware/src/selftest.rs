@@ -69,6 +69,7 @@ pub const TESTS: &[SelfTest] = &[
     ("config_save_and_reload", config_save_and_reload),
     ("driver_fault_polarity_is_configurable", driver_fault_polarity_is_configurable),
     ("exposure_strobe_reports_each_exposure", exposure_strobe_reports_each_exposure),
+    ("enter_bootloader_stops_everything_first", enter_bootloader_stops_everything_first),
     ("home_sensor_polarity_is_configurable", home_sensor_polarity_is_configurable),
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
@@ -847,6 +848,29 @@ fn moving_with_light(rig: &mut Rig) -> TestResult {
     move_to(rig, [Some(8_000), Some(300_000), None])?;
     rig.run_until(rig.now + 300 * TICKS_PER_MS);
     ensure!(rig.ctrl.is_moving() && rig.hw.light == 500, "moving, lit");
+    Ok(())
+}
+
+/// `EnterBootloader`: refused on a board that cannot, and on one that
+/// can, every axis stopped, light and trigger off before the `Ack` (the
+/// board resets once it is sent).
+pub fn enter_bootloader_stops_everything_first() -> TestResult {
+    let mut rig = Rig::new();
+    moving_with_light(&mut rig)?;
+    ensure!(
+        rig.request(Request::EnterBootloader) == Reply::Error(DeviceError::Unsupported),
+        "no bootloader without the capability"
+    );
+    ensure!(!rig.ctrl.bootloader_requested(), "not requested");
+    ensure!(rig.ctrl.is_moving() && rig.hw.light == 500, "refused: nothing changed");
+    let caps = Capabilities::SIMULATED.union(Capabilities::SYSTEM_BOOTLOADER);
+    let mut rig = Rig::with_capabilities(ResetReason::PowerOn, caps);
+    moving_with_light(&mut rig)?;
+    ensure!(rig.request(Request::EnterBootloader) == Reply::Ack, "accepted");
+    ensure!(rig.ctrl.bootloader_requested() && !rig.ctrl.reset_requested(), "requested");
+    ensure!(!rig.ctrl.is_moving(), "motion stopped");
+    ensure!(rig.hw.armed.iter().all(Option::is_none), "no step armed");
+    ensure!(rig.hw.light == 0 && !rig.hw.trigger, "light and trigger off");
     Ok(())
 }
 

@@ -55,6 +55,7 @@ selftests!(
     config_save_and_reload,
     driver_fault_polarity_is_configurable,
     exposure_strobe_reports_each_exposure,
+    enter_bootloader_stops_everything_first,
     home_sensor_polarity_is_configurable,
     save_config_refused_while_moving_or_faulted,
     every_motion_request_refused_while_faulted,

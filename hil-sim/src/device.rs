@@ -216,6 +216,9 @@ pub struct SimDevice {
     /// Bytes the device sent, not yet taken by the link.
     output: VecDeque<u8>,
     boot_count: u32,
+    /// In the chip's ROM bootloader (`EnterBootloader`): the firmware is
+    /// not running, the protocol gone, until the board is reset.
+    in_rom: bool,
     seed: u64,
 }
 
@@ -279,6 +282,7 @@ impl SimDevice {
             faults: config.faults,
             output: VecDeque::new(),
             boot_count: 1,
+            in_rom: false,
             seed: config.seed,
         };
         device.hw.truth.boots.push((0, boot.boot_id));
@@ -290,7 +294,8 @@ impl SimDevice {
         let capabilities = Capabilities::SIMULATED
             .union(Capabilities::PERSISTENT_CONFIG)
             .union(Capabilities::PWM_LIGHT)
-            .union(Capabilities::LOG_EVENTS);
+            .union(Capabilities::LOG_EVENTS)
+            .union(Capabilities::SYSTEM_BOOTLOADER);
         BootInfo {
             boot_id: rng.random(),
             reason,
@@ -375,8 +380,18 @@ impl SimDevice {
         self.controller.faults()
     }
 
-    /// Bytes from the host arrive now.
+    /// Whether the board sits in its ROM bootloader (`EnterBootloader`; a
+    /// reset brings the firmware back, as flashing over DFU ends).
+    pub fn in_bootloader(&self) -> bool {
+        self.in_rom
+    }
+
+    /// Bytes from the host arrive now (the ROM bootloader does not speak
+    /// the protocol: they are lost).
     pub fn receive(&mut self, bytes: &[u8]) {
+        if self.in_rom {
+            return;
+        }
         let SimDevice { controller, hw, output, now, .. } = self;
         hw.now = *now;
         controller.on_bytes(bytes, *now, hw, &mut |frame: &[u8]| output.extend(frame));
@@ -452,6 +467,9 @@ impl SimDevice {
     }
 
     fn poll(&mut self) {
+        if self.in_rom {
+            return;
+        }
         let mut home_line = [false; AXIS_COUNT];
         for (i, h) in home_line.iter_mut().enumerate() {
             let actuated = self.switches[i].sample(self.motors[i].position(), &mut self.rng);
@@ -474,12 +492,22 @@ impl SimDevice {
         controller.drain_events(&mut |frame: &[u8]| output.extend(frame));
         if self.controller.reset_requested() {
             self.reset(ResetReason::Software);
+        } else if self.controller.bootloader_requested() {
+            // The board resets into the ROM: outputs as at reset, nothing
+            // more from the firmware (its Ack is already out).
+            self.hw.steppers = Default::default();
+            self.hw.armed = [None; AXIS_COUNT];
+            self.hw.drivers_enabled = false;
+            self.hw.set_light(0);
+            self.hw.set_trigger(false);
+            self.in_rom = true;
         }
     }
 
     /// Reset the board: a new boot id, homing lost, config reloaded from the
     /// simulated flash; the mechanics stay where they are.
     pub fn reset(&mut self, reason: ResetReason) {
+        self.in_rom = false;
         let boot = Self::boot_info(&mut self.rng, reason, self.strobe_active_high.is_some());
         self.hw.steppers = Default::default();
         self.hw.armed = [None; AXIS_COUNT];

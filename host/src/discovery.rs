@@ -59,6 +59,19 @@ pub fn usb_devices() -> Result<Vec<UsbScanner>, String> {
         .collect())
 }
 
+/// The STM32 ROM bootloader's USB DFU identity (ST's VID, its DFU PID).
+pub const STM32_DFU: (u16, u16) = (0x0483, 0xdf11);
+
+/// USB devices in the STM32 ROM bootloader (USB DFU): where they are.
+pub fn dfu_bootloaders() -> Result<Vec<String>, String> {
+    use nusb::MaybeFuture;
+    let list = nusb::list_devices().wait().map_err(|e| format!("listing USB devices: {e}"))?;
+    Ok(list
+        .filter(|d| (d.vendor_id(), d.product_id()) == STM32_DFU)
+        .map(|d| format!("bus {} address {}", d.busnum(), d.device_address()))
+        .collect())
+}
+
 /// How to reach the device the user named.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum DeviceChoice {

@@ -39,7 +39,7 @@ pub use frame::{
 pub use msg::*;
 
 /// The protocol version this crate implements.
-pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 4 };
+pub const PROTOCOL_VERSION: ProtocolVersion = ProtocolVersion { major: 1, minor: 5 };
 
 /// The controller samples its inputs (switches, emergency stop, driver
 /// fault, the camera's strobe) every this many µs: the resolution of every

@@ -561,6 +561,9 @@ impl Capabilities {
     pub const LOG_EVENTS: Capabilities = Capabilities(1 << 4);
     /// The device is a simulator.
     pub const SIMULATED: Capabilities = Capabilities(1 << 5);
+    /// [`Request::EnterBootloader`] resets it into the chip's ROM
+    /// bootloader (USB DFU) (since 1.5).
+    pub const SYSTEM_BOOTLOADER: Capabilities = Capabilities(1 << 6);
 
     /// Whether every capability of `other` is present.
     pub const fn contains(self, other: Capabilities) -> bool {
@@ -949,6 +952,12 @@ wire_type! {
         /// board without [`Capabilities::EXPOSURE_STROBE`], `OutOfRange` for
         /// a `max_delay_us` beyond [`MAX_STROBE_DELAY_US`] (since 1.4).
         SetStrobe(StrobeConfig),
+        /// Leave the firmware for the chip's ROM bootloader (USB DFU), to
+        /// be flashed over USB without a probe: motion stops and the light
+        /// goes off, the device answers `Ack` and then resets into it;
+        /// `Unsupported` on a board without
+        /// [`Capabilities::SYSTEM_BOOTLOADER`] (since 1.5).
+        EnterBootloader,
     }
 }
 
@@ -1075,6 +1084,7 @@ impl Request {
             Request::TimedCaptureStep(_) => "TimedCaptureStep",
             Request::GetStrobe => "GetStrobe",
             Request::SetStrobe(_) => "SetStrobe",
+            Request::EnterBootloader => "EnterBootloader",
         }
     }
 }

@@ -66,7 +66,7 @@ fn examples_cover_every_variant() {
     let names: Vec<&str> = examples().iter().map(|(n, _, _)| *n).collect();
     let variant = |r: &Request| r.name();
     let requests = names.iter().filter(|n| n.starts_with("Request::")).count();
-    assert_eq!(requests, 28);
+    assert_eq!(requests, 29);
     for (name, _, ex) in examples() {
         if let Example::ToDevice(r) = ex {
             assert_eq!(name, format!("Request::{}", variant(&r)));
@@ -102,8 +102,8 @@ fn hello_frame_by_hand() {
     // docs/protocol.md §7, byte by byte.
     let mut buf = [0u8; MAX_FRAME_LEN];
     let n = encode_frame(1, &Request::Hello { host_protocol: PROTOCOL_VERSION }, &mut buf).unwrap();
-    assert_eq!(CRC.checksum(&[0x01, 0x00, 0x01, 0x04]), 0x411A_EE17);
-    assert_eq!(&buf[..n], &[0x02, 0x01, 0x07, 0x01, 0x04, 0x17, 0xee, 0x1a, 0x41, 0x00]);
+    assert_eq!(CRC.checksum(&[0x01, 0x00, 0x01, 0x05]), 0xB371_6D14);
+    assert_eq!(&buf[..n], &[0x02, 0x01, 0x07, 0x01, 0x05, 0x14, 0x6d, 0x71, 0xb3, 0x00]);
 }
 
 #[test]

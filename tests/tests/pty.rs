@@ -434,3 +434,21 @@ fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
     assert_eq!(code, Some(0));
     assert!(out.contains("camera exposure strobe: no input on this board"), "{out}");
 }
+
+/// `scanner bootloader`: the controller accepts, stops and falls silent
+/// (its chip's ROM bootloader does not speak the protocol), and the
+/// command says how to flash it; until the board is reset nothing answers.
+#[test]
+fn the_bootloader_command_leaves_the_firmware_and_says_how_to_flash() {
+    let dir = tmp();
+    let server = serve(&setup("leather", FaultPlan::none()), &sub(dir.path(), "camera"));
+    let (code, out, err) = on_device(server.path(), &["bootloader"]);
+    assert_eq!(code, Some(0), "{out}{err}");
+    assert!(out.contains("left its firmware for the chip's ROM bootloader (USB DFU)"), "{out}");
+    assert!(
+        out.contains("dfu-util -a 0 -s 0x08000000:leave -D firmware/board/target/scanner-fw.bin"),
+        "{out}"
+    );
+    let (code, _, err) = on_device(server.path(), &["info"]);
+    assert_eq!(code, Some(5), "the ROM does not answer: {err}");
+}

@@ -153,6 +153,55 @@ impl Hardware for BoardHw {
 #[unsafe(link_section = ".uninit.RAM_BOOTS")]
 static mut RAM_BOOTS: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
 
+/// The ROM bootloader's request across the reset
+/// ([`firmware::bootloader`]): in `.uninit`, not zeroed at reset.
+#[unsafe(link_section = ".uninit.RAM_BOOTLOADER")]
+static mut RAM_BOOTLOADER: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
+
+/// The core's view of the SYSCFG and RCC registers, for
+/// [`firmware::bootloader::map_system_memory`].
+struct Mmio;
+
+impl firmware::bootloader::Registers for Mmio {
+    fn modify(&mut self, address: u32, clear: u32, set: u32) {
+        let register = address as *mut u32;
+        // SAFETY: the addresses are the STM32F4's RCC_APB2ENR and
+        // SYSCFG_MEMRMP, written before anything else runs.
+        unsafe { register.write_volatile((register.read_volatile() & !clear) | set) }
+    }
+}
+
+/// If the host asked for it before the reset that started this boot, leave
+/// for the ROM bootloader (USB DFU) — first, before any clock or
+/// peripheral is touched, as the ROM expects the chip.
+fn enter_bootloader_if_asked() {
+    // SAFETY: read and written once, here, before anything else runs.
+    let asked = unsafe {
+        let mark = core::ptr::addr_of_mut!(RAM_BOOTLOADER).cast::<u32>();
+        let mut value = core::ptr::read_volatile(mark);
+        let asked = firmware::bootloader::take_request(&mut value);
+        core::ptr::write_volatile(mark, value);
+        asked
+    };
+    if asked {
+        firmware::bootloader::map_system_memory(&mut Mmio);
+        // SAFETY: the system memory holds the ROM's vector table; nothing
+        // of the firmware runs after this.
+        unsafe { cortex_m::asm::bootload(firmware::bootloader::SYSTEM_MEMORY as *const u32) }
+    }
+}
+
+/// Leave a mark for the next boot to go to the ROM bootloader, and reset.
+fn reset_into_bootloader() -> ! {
+    // SAFETY: a plain store to the RAM word only this and
+    // `enter_bootloader_if_asked` touch.
+    unsafe {
+        let mark = core::ptr::addr_of_mut!(RAM_BOOTLOADER).cast::<u32>();
+        core::ptr::write_volatile(mark, firmware::bootloader::REQUEST_MARK);
+    }
+    cortex_m::peripheral::SCB::sys_reset()
+}
+
 /// Independent watchdog period, µs at the nominal 32 kHz LSI.
 const WATCHDOG_US: u32 = 8_000_000;
 
@@ -206,6 +255,7 @@ fn reset_reason() -> ResetReason {
 
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
+    enter_bootloader_if_asked();
     // 25 MHz HSE → PLL 96 MHz SYSCLK and exactly 48 MHz for USB.
     let mut config = Config::default();
     {
@@ -272,7 +322,8 @@ async fn main(spawner: Spawner) {
             .union(Capabilities::LOG_EVENTS)
             // PA2 is the strobe input; `SetStrobe` says whether a camera's
             // strobe is wired to it.
-            .union(Capabilities::EXPOSURE_STROBE),
+            .union(Capabilities::EXPOSURE_STROBE)
+            .union(Capabilities::SYSTEM_BOOTLOADER),
         storage_failed,
     };
     let controller = Controller::new(boot, saved);
@@ -365,17 +416,21 @@ async fn main(spawner: Spawner) {
             ticker.next().await;
         }
         let inputs = sensors.read();
-        let reset = {
+        let (reset, bootloader) = {
             let mut machine = MACHINE.borrow().borrow_mut();
             let Some(m) = machine.as_mut() else { continue };
             m.controller.poll(clock::now(), &inputs, &mut m.hw);
             m.controller.drain_events(&mut send);
-            m.controller.reset_requested()
+            (m.controller.reset_requested(), m.controller.bootloader_requested())
         };
         watchdog.pet();
-        if reset && TX.is_empty() {
-            warn!("reset requested by the host");
+        if (reset || bootloader) && TX.is_empty() {
             embassy_time::Timer::after_millis(20).await;
+            if bootloader {
+                warn!("the host asked for the ROM bootloader (USB DFU)");
+                reset_into_bootloader();
+            }
+            warn!("reset requested by the host");
             cortex_m::peripheral::SCB::sys_reset();
         }
     }

@@ -1141,6 +1141,55 @@ fn mirror_line(
     )
 }
 
+/// `scanner bootloader`: the controller into its chip's ROM bootloader
+/// (USB DFU), to be flashed without a probe.
+pub fn bootloader(args: &DeviceArgs) -> Result<(), Failure> {
+    let mut o = open(args)?;
+    let info = *o.device.info();
+    let by_hand = "hold the board's BOOT0 button while pressing and releasing its reset (NRST) \
+                   button, then flash as README \"Flashing over USB\" says";
+    if info.protocol.minor < 5
+        || !info.capabilities.contains(protocol::Capabilities::SYSTEM_BOOTLOADER)
+    {
+        return Err(Failure(
+            6,
+            anyhow!(
+                "this controller (firmware {}, protocol {}) cannot enter its bootloader on \
+                 command: {by_hand}",
+                info.firmware,
+                info.protocol
+            ),
+        ));
+    }
+    o.device.command(Request::EnterBootloader).map_err(link_failure)?;
+    // It resets once its answer is out: it must fall silent.
+    std::thread::sleep(Duration::from_millis(500));
+    if o.device.request(Request::Ping { token: 0x0B00_710A }).is_ok() {
+        return Err(Failure(
+            1,
+            anyhow!("the controller still answers after accepting to enter its bootloader"),
+        ));
+    }
+    println!("the controller left its firmware for the chip's ROM bootloader (USB DFU)");
+    let dfu = discovery::STM32_DFU;
+    match discovery::dfu_bootloaders() {
+        Ok(found) if !found.is_empty() => {
+            println!("USB DFU {:04x}:{:04x} at {}", dfu.0, dfu.1, found.join(", "))
+        }
+        Ok(_) => println!(
+            "no USB DFU device ({:04x}:{:04x}) seen yet: it enumerates within a second or two",
+            dfu.0, dfu.1
+        ),
+        Err(why) => println!("USB not listed ({why})"),
+    }
+    println!(
+        "flash it and start the new firmware (the saved configuration is kept):\n  \
+         scripts/firmware-bin.sh\n  \
+         dfu-util -a 0 -s 0x08000000:leave -D firmware/board/target/scanner-fw.bin"
+    );
+    Ok(())
+}
+
 /// `scanner light`
 pub fn light(args: &DeviceArgs, on: bool, duty: u16) -> Result<(), Failure> {
     if duty == 0 || duty > 1000 {

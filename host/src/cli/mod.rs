@@ -451,6 +451,12 @@ enum Command {
         #[arg(long, value_name = "N", conflicts_with_all = ["disk", "track", "tilt", "relative", "steps"])]
         mirror: Option<u8>,
     },
+    /// Send the controller into its chip's ROM bootloader (USB DFU), to
+    /// flash new firmware without a probe (README "Flashing over USB").
+    Bootloader {
+        #[command(flatten)]
+        device: commands::DeviceArgs,
+    },
     /// Switch the light on or off.
     Light {
         #[command(flatten)]
@@ -709,6 +715,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
         Command::Check { device, check } => commands::check(&device, &check)?,
+        Command::Bootloader { device } => commands::bootloader(&device)?,
         Command::Geometry { geometry, rings, output, axes, device, sim_axes, sim_board_axes } => {
             if let Some(out) = &output {
                 let inputs: Vec<&Path> =

@@ -164,6 +164,7 @@ pub fn examples() -> Vec<(&'static str, u8, Example)> {
         ),
         ("Request::GetStrobe", 27, Req(Request::GetStrobe)),
         ("Request::SetStrobe", 28, Req(Request::SetStrobe(strobe()))),
+        ("Request::EnterBootloader", 29, Req(Request::EnterBootloader)),
         ("Reply::Ack", 4, reply(Reply::Ack)),
         ("Reply::Error", 5, reply(Reply::Error(DeviceError::NotHomed))),
         (
