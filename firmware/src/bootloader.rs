@@ -31,6 +31,9 @@ pub const MEM_MODE: u32 = 0b11;
 /// MEM_MODE = 01: the system flash mapped at 0.
 pub const MEM_MODE_SYSTEM_FLASH: u32 = 0b01;
 
+/// SCB_VTOR (ARMv7-M): where the core finds its vector table.
+pub const SCB_VTOR: u32 = 0xE000_ED08;
+
 /// Whether the RAM word `mark` asks for the ROM bootloader; it is cleared
 /// either way (after power-up it holds anything), so that only the boot
 /// right after an [`protocol::Request::EnterBootloader`] goes there.
@@ -48,11 +51,13 @@ pub trait Registers {
 }
 
 /// Map the system memory (the ROM bootloader) at address 0: the SYSCFG's
-/// clock on, then its memory remap. The ROM then finds its own vector
-/// table where the core looks for interrupts.
+/// clock on, then its memory remap, and the core's vector table at 0.
+/// The ROM then finds its own vector table where the core looks for
+/// interrupts, whatever the firmware had set.
 pub fn map_system_memory(r: &mut impl Registers) {
     r.modify(RCC_APB2ENR, 0, SYSCFGEN);
     r.modify(SYSCFG_MEMRMP, MEM_MODE, MEM_MODE_SYSTEM_FLASH);
+    r.modify(SCB_VTOR, u32::MAX, 0);
 }
 
 #[cfg(test)]
@@ -61,7 +66,7 @@ mod tests {
 
     /// Registers as a map of address to value, every access recorded.
     struct Model {
-        values: [(u32, u32); 2],
+        values: [(u32, u32); 3],
         writes: [(u32, u32); 4],
         n: usize,
     }
@@ -94,14 +99,19 @@ mod tests {
         // Reset values (RM0383): APB2ENR 0x0000_0000, MEMRMP as BOOT pins
         // left it (main flash: 00) — here other bits set to see them kept.
         let mut m = Model {
-            values: [(RCC_APB2ENR, 0x0000_0011), (SYSCFG_MEMRMP, 0x0000_0000)],
+            values: [
+                (RCC_APB2ENR, 0x0000_0011),
+                (SYSCFG_MEMRMP, 0x0000_0000),
+                (SCB_VTOR, 0x0800_0000),
+            ],
             writes: [(0, 0); 4],
             n: 0,
         };
         map_system_memory(&mut m);
-        assert_eq!(m.n, 2);
+        assert_eq!(m.n, 3);
         assert_eq!(m.writes[0], (RCC_APB2ENR, 0x0000_4011), "SYSCFG clocked first, others kept");
         assert_eq!(m.writes[1], (SYSCFG_MEMRMP, 0b01), "system flash at 0");
+        assert_eq!(m.writes[2], (SCB_VTOR, 0), "vectors from 0: the ROM's");
         // From a remap to SRAM (11), the same: 01.
         m.values[1].1 = 0b11;
         m.n = 0;

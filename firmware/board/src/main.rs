@@ -158,15 +158,16 @@ static mut RAM_BOOTS: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::unin
 #[unsafe(link_section = ".uninit.RAM_BOOTLOADER")]
 static mut RAM_BOOTLOADER: core::mem::MaybeUninit<u32> = core::mem::MaybeUninit::uninit();
 
-/// The core's view of the SYSCFG and RCC registers, for
+/// The core's view of the RCC, SYSCFG and SCB registers, for
 /// [`firmware::bootloader::map_system_memory`].
 struct Mmio;
 
 impl firmware::bootloader::Registers for Mmio {
     fn modify(&mut self, address: u32, clear: u32, set: u32) {
         let register = address as *mut u32;
-        // SAFETY: the addresses are the STM32F4's RCC_APB2ENR and
-        // SYSCFG_MEMRMP, written before anything else runs.
+        // SAFETY: the addresses are the STM32F4's RCC_APB2ENR,
+        // SYSCFG_MEMRMP and the core's VTOR, written before anything else
+        // runs.
         unsafe { register.write_volatile((register.read_volatile() & !clear) | set) }
     }
 }
