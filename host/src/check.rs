@@ -113,60 +113,86 @@ pub fn run(
         out.push(outcome);
         verdict == Verdict::Pass
     };
-    // A link that failed (the device gone, reset or refusing) fails the
-    // check it happened in; the rest are skipped.
+    // A link that failed (the device gone, silent or reset) fails the
+    // check it happened in; the rest are skipped. A refused request fails
+    // only its check. A board that reset (a new boot id: the watchdog, a
+    // brown-out) fails the check it reset in, whatever that check made of
+    // it, and ends the run: its homing and state are gone.
+    let boot_id = dev.info().boot_id;
     let mut gone: Option<String> = None;
-    let mut run_one = |name: &'static str,
+    let mut run_one = |dev: &mut Device,
+                       name: &'static str,
                        needs: &[(&str, bool)],
-                       check: &mut dyn FnMut() -> Result<Result<String, String>, ScanError>|
+                       check: &mut dyn FnMut(&mut Device) -> Checked|
      -> bool {
         if let Some(why) = &gone {
-            return say(name, Verdict::Skip, format!("the link failed ({why})"));
+            return say(name, Verdict::Skip, format!("after {why}"));
         }
         if let Some((what, _)) = needs.iter().find(|(_, ok)| !ok) {
             return say(name, Verdict::Skip, format!("needs {what}"));
         }
-        match check() {
+        let result = check(dev);
+        let now = dev.info().boot_id;
+        if now != boot_id {
+            let why = format!("the board reset (boot id {boot_id:08x} → {now:08x})");
+            let detail = match &result {
+                Ok(Ok(d)) | Ok(Err(d)) => d.clone(),
+                Err(e) => e.to_string(),
+            };
+            // What the check made of it, unless that was the reset itself.
+            let said =
+                if detail.contains("reset") { String::new() } else { format!(" ({detail})") };
+            let fail = format!(
+                "{why} during this check: a watchdog reset or a brown-out — check the supply \
+                 under load{said}"
+            );
+            gone = Some(why);
+            return say(name, Verdict::Fail, fail);
+        }
+        match result {
             Ok(Ok(detail)) => say(name, Verdict::Pass, detail),
             Ok(Err(why)) => say(name, Verdict::Fail, why),
             Err(e) => {
-                if matches!(e, ScanError::Link(_)) {
-                    gone = Some(e.to_string());
+                if let ScanError::Link(
+                    LinkError::NoDevice(_) | LinkError::Timeout { .. } | LinkError::Reset { .. },
+                ) = e
+                {
+                    gone = Some(format!("the link failed ({e})"));
                 }
                 say(name, Verdict::Fail, e.to_string())
             }
         }
     };
-    let link = run_one("link", &[], &mut || link(dev));
-    let faults = run_one("faults", &[("link", link)], &mut || faults(dev));
-    let light = run_one("light", &[("faults", faults)], &mut || light(dev, &o.scan));
+    let link = run_one(dev, "link", &[], &mut link);
+    let faults = run_one(dev, "faults", &[("link", link)], &mut faults);
+    let light = run_one(dev, "light", &[("faults", faults)], &mut |d| light(d, &o.scan));
     // Without a camera its checks are skipped (never run).
     let no_camera = [("a camera (--camera)", false)];
+    let never = &mut |_: &mut Device| -> Checked { Ok(Err(String::new())) };
     let mut camera = camera.map(|c| ScanCamera::new(c, &o.geometry));
     let mut dark = None;
     let seen_dark = match camera.as_mut() {
-        None => run_one("camera", &no_camera, &mut || Ok(Err(String::new()))),
-        Some(camera) => run_one("camera", &[("faults", faults)], &mut || {
-            Ok(dark_frame(dev, camera, o)?.map(|(frame, detail)| {
+        None => run_one(dev, "camera", &no_camera, never),
+        Some(camera) => run_one(dev, "camera", &[("faults", faults)], &mut |d| {
+            Ok(dark_frame(d, camera, o)?.map(|(frame, detail)| {
                 dark = Some(frame);
                 detail
             }))
         }),
     };
-    let homing = run_one("homing", &[("faults", faults)], &mut || homing(dev, o.homings));
-    let table = run_one("mirror table", &[("link", link)], &mut || mirror_table(dev, &o.geometry));
-    let mirrors = run_one("mirrors", &[("homing", homing)], &mut || mirrors(dev));
+    let homing = run_one(dev, "homing", &[("faults", faults)], &mut |d| homing(d, o.homings));
+    let table =
+        run_one(dev, "mirror table", &[("link", link)], &mut |d| mirror_table(d, &o.geometry));
+    let mirrors = run_one(dev, "mirrors", &[("homing", homing)], &mut mirrors);
     match (camera.as_mut(), dark.as_ref()) {
         (Some(camera), Some(dark)) => {
             // The table as the geometry's: a capture step that must
             // recover (as a scan's does) then writes nothing to the device.
             let needs = [("mirror table", table), ("mirrors", mirrors), ("light", light)];
-            run_one("capture", &needs, &mut || capture(dev, camera, o, dark))
+            run_one(dev, "capture", &needs, &mut |d| capture(d, camera, o, dark))
         }
-        (None, _) => run_one("capture", &no_camera, &mut || Ok(Err(String::new()))),
-        (Some(_), None) => {
-            run_one("capture", &[("camera", seen_dark)], &mut || Ok(Err(String::new())))
-        }
+        (None, _) => run_one(dev, "capture", &no_camera, never),
+        (Some(_), None) => run_one(dev, "capture", &[("camera", seen_dark)], never),
     };
     out
 }

@@ -158,3 +158,28 @@ fn a_connected_scanner_passes_every_check() {
     assert_eq!(code, Some(0), "{out}{err}");
     expect(&out, ["PASS"; 8]);
 }
+
+/// A board that resets in the middle (a brown-out, the watchdog) fails the
+/// check it happened in, naming the reset; what comes after is skipped.
+#[test]
+fn a_board_that_resets_during_the_check_stops_it_there() {
+    let dir = tmp();
+    let frames = sub(dir.path(), "camera");
+    // Right after the camera check's trigger.
+    let faults = FaultPlan::none().after_triggers(1, FaultEvent::Reset);
+    let server = serve(&setup("leather", faults), &frames);
+    let (code, out, err) = check(&server, &frames);
+    assert_eq!(code, Some(10), "{out}{err}");
+    let v = verdicts(&out);
+    assert_eq!(
+        &v[..3],
+        &[("link", "PASS".into()), ("faults", "PASS".into()), ("light", "PASS".into())]
+    );
+    let failed: Vec<_> = v.iter().filter(|(_, w)| w == "FAIL").map(|(n, _)| *n).collect();
+    assert_eq!(failed.len(), 1, "{out}");
+    let after = v.iter().skip_while(|(n, _)| *n != failed[0]).skip(1);
+    assert!(after.clone().all(|(_, w)| w == "SKIP"), "{out}");
+    assert!(out.contains("the board reset (boot id "), "{out}");
+    assert!(out.contains("during this check: a watchdog reset or a brown-out"), "{out}");
+    assert!(out.contains("SKIP capture: after the board reset"), "{out}");
+}
