@@ -62,7 +62,8 @@ pub struct CheckOptions {
 }
 
 /// A check's result.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Verdict {
     /// It passed.
     Pass,
@@ -84,7 +85,7 @@ impl Verdict {
 }
 
 /// One check's outcome.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct Outcome {
     /// The check, e.g. "homing".
     pub name: &'static str,
@@ -195,6 +196,67 @@ pub fn run(
         (Some(_), None) => run_one(dev, "capture", &[("camera", seen_dark)], never),
     };
     out
+}
+
+/// A run's record, as `scanner check --report` writes it (docs/check-report.md).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Report<'a> {
+    /// "scanner-check".
+    pub format: &'static str,
+    /// 1.
+    pub version: u32,
+    /// When the run ended, s since 1970 (UTC).
+    pub unix_time_s: u64,
+    /// The device: its id (hex), firmware, protocol, board, boot id (hex).
+    pub device: ReportDevice,
+    /// Every check, in [`CHECKS`] order.
+    pub checks: &'a [Outcome],
+    /// How many passed, failed, were skipped.
+    pub passed: usize,
+    /// Failed.
+    pub failed: usize,
+    /// Skipped.
+    pub skipped: usize,
+}
+
+/// The device a report is of.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ReportDevice {
+    /// Its unique id, hex.
+    pub device_id: String,
+    /// Firmware version.
+    pub firmware: String,
+    /// Protocol version.
+    pub protocol: String,
+    /// Board id.
+    pub board: u16,
+    /// Boot id at the run's start, hex.
+    pub boot_id: String,
+}
+
+impl<'a> Report<'a> {
+    /// The record of `checks`, run on the device `info` describes.
+    pub fn new(info: &protocol::DeviceInfo, checks: &'a [Outcome]) -> Report<'a> {
+        let count = |v| checks.iter().filter(|o| o.verdict == v).count();
+        Report {
+            format: "scanner-check",
+            version: 1,
+            unix_time_s: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs()),
+            device: ReportDevice {
+                device_id: scan::hex(&info.device_id),
+                firmware: info.firmware.to_string(),
+                protocol: info.protocol.to_string(),
+                board: info.board,
+                boot_id: format!("{:08x}", info.boot_id),
+            },
+            checks,
+            passed: count(Verdict::Pass),
+            failed: count(Verdict::Fail),
+            skipped: count(Verdict::Skip),
+        }
+    }
 }
 
 /// Error-typed results: `Ok(Ok(detail))` passed, `Ok(Err(why))` failed.

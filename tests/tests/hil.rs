@@ -15,6 +15,15 @@ use hil_sim::{FaultEvent, FaultPlan};
 /// `scanner check` on the pty `server` with its camera and geometry in
 /// `frames`: (exit code, stdout, stderr).
 fn check(server: &hil_sim::PtyServer, frames: &Path) -> (Option<i32>, String, String) {
+    check_with(server, frames, &[])
+}
+
+/// [`check`] with more arguments.
+fn check_with(
+    server: &hil_sim::PtyServer,
+    frames: &Path,
+    extra: &[&str],
+) -> (Option<i32>, String, String) {
     let camera = format!("folder:{}", frames.display());
     let geometry = frames.join("geometry.toml").display().to_string();
     let args = [
@@ -30,6 +39,7 @@ fn check(server: &hil_sim::PtyServer, frames: &Path) -> (Option<i32>, String, St
         "--frame-timeout",
         "3",
     ];
+    let args: Vec<&str> = args.iter().chain(extra).copied().collect();
     let (code, out, err) = run(&args);
     eprintln!("{out}");
     (code, out, err)
@@ -82,8 +92,18 @@ fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
     // Its camera's exposure strobe wired and watched: checked too.
     let (code, _, err) = run(&["config", "--device", server.path(), "--strobe", "active-high"]);
     assert_eq!(code, Some(0), "{err}");
-    let (code, out, err) = check(&server, &frames);
+    let report = sub(dir.path(), "check.json");
+    let (code, out, err) = check_with(&server, &frames, &["--report", report.to_str().unwrap()]);
     assert_eq!(code, Some(0), "{out}{err}");
+    // The rig's record: every check, as printed.
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!((r["format"].as_str(), r["version"].as_u64()), (Some("scanner-check"), Some(1)));
+    assert_eq!((r["passed"].as_u64(), r["failed"].as_u64()), (Some(8), Some(0)), "{r}");
+    let names: Vec<&str> =
+        r["checks"].as_array().unwrap().iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, host::check::CHECKS);
+    assert!(r["checks"].as_array().unwrap().iter().all(|c| c["verdict"] == "pass"), "{r}");
+    assert_eq!(r["device"]["protocol"], "1.5");
     assert!(out.contains("its exposure strobe as long as the pulse"), "{out}");
     assert!(out.contains("camera strobe over 3 exposures: 0."), "{out}");
     expect(&out, ["PASS"; 8]);
@@ -130,6 +150,10 @@ fn an_open_emergency_stop_fails_the_faults_check_and_nothing_moves() {
     let faults =
         FaultPlan::none().with(hil_sim::FaultWhen::AtTick(0), FaultEvent::EmergencyStop(true));
     let server = serve(&setup("leather", faults), &frames);
+    // A report that could not be written is refused before anything runs.
+    let (code, out, err) = check_with(&server, &frames, &["--report", "/dev/null"]);
+    assert_eq!(code, Some(4), "{out}{err}");
+    assert!(!out.contains("PASS"), "{out}");
     let (code, out, err) = check(&server, &frames);
     assert_eq!(code, Some(10), "{out}{err}");
     expect(&out, ["PASS", "FAIL", "SKIP", "SKIP", "SKIP", "FAIL", "SKIP", "SKIP"]);

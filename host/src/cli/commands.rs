@@ -1536,6 +1536,10 @@ pub struct CheckArgs {
     /// Light around each pulse, µs, as for `scanner scan`.
     #[arg(long, default_value_t = 0, value_name = "US")]
     pub light_margin_us: u16,
+    /// Also write the run's record to FILE (JSON, docs/check-report.md),
+    /// for a test rig's log.
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<PathBuf>,
 }
 
 /// `scanner check`: every check, a line each; exit 10 if any failed.
@@ -1560,8 +1564,14 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
             anyhow!("--light-margin-us: at most {} µs", protocol::MAX_LIGHT_MARGIN_US),
         ));
     }
+    // Refused before anything moves, not after the run.
+    if let Some(path) = &c.report {
+        crate::fsutil::check_output(path, &[])
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    }
     let mut opened = open(args)?;
     let (geometry, mut camera) = c.rig.open(&opened)?;
+    let info = *opened.device.info();
     let mut scan = ScanOptions::new("check", Path::new("."));
     scan.exposure_us = c.exposure_us;
     scan.frame_timeout = Duration::from_secs_f64(c.frame_timeout);
@@ -1574,14 +1584,18 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
         &o,
         &mut |outcome| println!("{} {}: {}", outcome.verdict.word(), outcome.name, outcome.detail),
     );
-    let count = |v| outcomes.iter().filter(|o| o.verdict == v).count();
-    use crate::check::Verdict;
-    let (passed, failed, skipped) =
-        (count(Verdict::Pass), count(Verdict::Fail), count(Verdict::Skip));
+    let report = crate::check::Report::new(&info, &outcomes);
+    let (passed, failed, skipped) = (report.passed, report.failed, report.skipped);
     println!("{} checks: {passed} passed, {failed} failed, {skipped} skipped", outcomes.len());
+    if let Some(path) = &c.report {
+        let json = serde_json::to_vec_pretty(&report).map_err(|e| Failure(1, anyhow!(e)))?;
+        crate::fsutil::write_atomic(path, &json)
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    }
     if failed == 0 {
         return Ok(());
     }
+    use crate::check::Verdict;
     let names: Vec<&str> =
         outcomes.iter().filter(|o| o.verdict == Verdict::Fail).map(|o| o.name).collect();
     Err(Failure(10, anyhow!("failed: {}", names.join(", "))))
