@@ -573,6 +573,24 @@ impl Capabilities {
     pub const fn union(self, other: Capabilities) -> Capabilities {
         Capabilities(self.0 | other.0)
     }
+    /// Names of the set capabilities in words, for messages (a bit this
+    /// version does not know is left out).
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        const NAMES: [&str; 7] = [
+            "persistent config",
+            "PWM light",
+            "exposure strobe input",
+            "USB bulk interface",
+            "log events",
+            "simulated",
+            "ROM bootloader on command",
+        ];
+        NAMES
+            .into_iter()
+            .enumerate()
+            .filter(move |(bit, _)| self.0 & (1 << bit) != 0)
+            .map(|(_, name)| name)
+    }
 }
 
 wire_type! {

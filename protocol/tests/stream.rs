@@ -291,6 +291,13 @@ fn axis_set_operations() {
         FaultFlags(0b101).names().collect::<Vec<_>>(),
         ["emergency stop", "home switch hit far from home"]
     );
+    // Every defined capability has a name; an unknown bit is left out.
+    let caps = Capabilities::EXPOSURE_STROBE.union(Capabilities::SYSTEM_BOOTLOADER);
+    assert_eq!(
+        Capabilities(caps.0 | 1 << 15).names().collect::<Vec<_>>(),
+        ["exposure strobe input", "ROM bootloader on command"]
+    );
+    assert_eq!(Capabilities(0x7f).names().count(), 7);
     assert_eq!(
         MotionOutcome::HomingFailed(Axis::Track, HomingFailure::SwitchStuck).to_string(),
         "failed on the track axis: its switch stayed pressed after backing off"

@@ -442,6 +442,12 @@ fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
 fn the_bootloader_command_leaves_the_firmware_and_says_how_to_flash() {
     let dir = tmp();
     let server = serve(&setup("leather", FaultPlan::none()), &sub(dir.path(), "camera"));
+    let (code, out, err) = on_device(server.path(), &["info"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.contains("exposure strobe input, log events, simulated, ROM bootloader on command)"),
+        "{out}"
+    );
     let (code, out, err) = on_device(server.path(), &["bootloader"]);
     assert_eq!(code, Some(0), "{out}{err}");
     assert!(out.contains("left its firmware for the chip's ROM bootloader (USB DFU)"), "{out}");

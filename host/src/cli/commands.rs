@@ -882,7 +882,7 @@ pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
     let entries = scan::mirror_entries(&mut o.device).map_err(scan_failure)?;
     let unset: Vec<usize> = (0..entries.len()).filter(|&l| entries[l].is_none()).collect();
     println!(
-        "boot id  {:08x}  mirrors {}{}  capabilities {:#06x}",
+        "boot id  {:08x}  mirrors {}{}  capabilities {:#06x} ({})",
         i.boot_id,
         i.mirror_count,
         if unset.is_empty() {
@@ -890,7 +890,8 @@ pub fn info(args: &DeviceArgs) -> Result<(), Failure> {
         } else {
             format!(" ({} unset: `scanner setup` writes them)", scan::mirror_list(&unset))
         },
-        i.capabilities.0
+        i.capabilities.0,
+        i.capabilities.names().collect::<Vec<_>>().join(", ")
     );
     let axes = scan::axis_configs(&mut o.device).map_err(scan_failure)?;
     for (axis, c) in Axis::ALL.iter().zip(&axes) {
