@@ -35,7 +35,7 @@ use scanner_geometry::ScannerGeometry;
 
 use crate::camera::{Camera, ScanCamera};
 use crate::link::{Device, LinkError};
-use crate::scan::{self, ScanError, ScanOptions, ScanProgress, ScanReport};
+use crate::scan::{self, ScanError, ScanOptions, ScanReport};
 
 /// A sample's views count as lit when their level (the
 /// [`crate::exposure::BODY_PERCENTILE`] of their values) is this many ADC
@@ -502,16 +502,16 @@ fn dark_frame(
 
 /// The level of the sample's views in `frame` (full scale 1) and the
 /// share of their values saturated.
-fn sample_level(frame: &crate::camera::Frame, geometry: &ScannerGeometry) -> (f64, f64) {
+fn sample_level(frame: &crate::camera::Frame, geometry: &ScannerGeometry) -> Option<(f64, f64)> {
     let pixels = crate::exposure::sample_pixels(frame, geometry);
     let none = crate::defects::DefectMap::new(&[], frame.width, frame.height);
     let mut values = crate::exposure::sample_values(&pixels, &none);
     if values.is_empty() {
-        return (0.0, 0.0);
+        return None;
     }
-    let saturated = values.iter().filter(|&&v| v >= 0.999).count() as f64 / values.len() as f64;
+    let saturated = values.iter().filter(|&&v| v >= crate::exposure::SATURATED).count();
     let (body, _, _) = crate::exposure::measure(&mut values);
-    (body, saturated)
+    Some((body, saturated as f64 / values.len() as f64))
 }
 
 fn capture(
@@ -524,27 +524,26 @@ fn capture(
     let mut mirrors = vec![0, count / 2, count.saturating_sub(1)];
     mirrors.dedup();
     let max_code = o.geometry.sensor.max_code();
-    let (dark_level, _) = sample_level(dark, &o.geometry);
-    if crate::exposure::sample_pixels(dark, &o.geometry).is_empty() {
+    let Some((dark_level, _)) = sample_level(dark, &o.geometry) else {
         return Ok(Err("the geometry projects the sample outside the camera's frames".into()));
-    }
+    };
     let mut report = ScanReport::default();
     let mut levels = Vec::new();
-    let mut quiet = Quiet;
     for &l in &mirrors {
-        let ((frame, _, _, window), _) = scan::capture_with_retries(
+        let ((frame, _, _, exposure), _) = scan::capture_with_retries(
             dev,
             camera,
             &o.geometry,
             l,
             &o.scan,
             &mut report,
-            &mut quiet,
+            &mut scan::Quiet,
         )?;
-        if let Some(e) = window.as_ref().and_then(crate::strobe::Exposure::of) {
-            report.strobe.add(&e, o.scan.exposure_us);
+        if let Some(e) = &exposure {
+            report.strobe.add(e, o.scan.exposure_us);
         }
-        let (level, saturated) = sample_level(&frame, &o.geometry);
+        // The same geometry and frame size as the dark frame's: it has views.
+        let (level, saturated) = sample_level(&frame, &o.geometry).unwrap_or((0.0, 0.0));
         let over = codes_above(level, dark_level, max_code);
         if over < LIT_CODES {
             return Ok(Err(format!(
@@ -578,10 +577,6 @@ fn saturation(share: f64) -> String {
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1000.0
 }
-
-/// Progress that says nothing (retakes are counted in the report).
-struct Quiet;
-impl ScanProgress for Quiet {}
 
 #[cfg(test)]
 mod tests {

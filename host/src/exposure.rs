@@ -44,7 +44,7 @@ pub const METER_MIRRORS: usize = 8;
 /// taken again 10× shorter.
 const BODY_TOO_BRIGHT: f64 = 0.9;
 /// Values at or above this fraction of full scale are saturated.
-const SATURATED: f32 = 0.999;
+pub(crate) const SATURATED: f32 = 0.999;
 /// The dimmest light duty, ‰, that stands in for an exposure shorter than
 /// the device's shortest ([`protocol::MIN_EXPOSURE_US`]): 1 µs of light
 /// per 50 µs period of the board's 20 kHz PWM, which a constant-current

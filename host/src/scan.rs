@@ -353,13 +353,13 @@ pub struct FrameRecord {
     /// `exposure_us` is then the equivalent at the scan's duty.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub light_duty_permille: Option<u16>,
-    /// HDR: how each exposure merged into this frame agreed with the next
-    /// longer one ([`crate::hdr::exposure_ratios`]; those with too few
-    /// values measured well by both are left out); empty otherwise.
     /// The exposure as the camera's strobe showed it (a device watching
     /// it, protocol 1.4); an HDR merge's is its reference exposure's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub strobe: Option<crate::strobe::Exposure>,
+    /// HDR: how each exposure merged into this frame agreed with the next
+    /// longer one ([`crate::hdr::exposure_ratios`]; those with too few
+    /// values measured well by both are left out); empty otherwise.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub exposure_ratios: Vec<crate::hdr::ExposureRatio>,
 }
@@ -1818,7 +1818,7 @@ pub fn scan(
                     bracket_us: Vec::new(),
                     light_duty_permille: (o.light_duty_permille != opts.light_duty_permille)
                         .then_some(o.light_duty_permille),
-                    strobe: window.as_ref().and_then(crate::strobe::Exposure::of),
+                    strobe: window,
                     exposure_ratios: Vec::new(),
                 };
                 if let Some(e) = &record.strobe {
@@ -2073,10 +2073,10 @@ impl From<LinkError> for Attempt {
     }
 }
 
-/// A frame, its trigger, the device's status after it and the exposure
-/// window its strobe showed (none unwatched).
+/// A frame, its trigger, the device's status after it and its exposure as
+/// the strobe showed it (none unwatched).
 pub(crate) type Captured =
-    (crate::camera::Frame, TriggerFired, protocol::Status, Option<protocol::StrobeWindow>);
+    (crate::camera::Frame, TriggerFired, protocol::Status, Option<crate::strobe::Exposure>);
 
 /// Work for the writer thread, in order.
 enum Job {
@@ -2602,7 +2602,8 @@ fn capture_one(
     {
         return Err(Attempt::Fatal(ScanError::Conflict(format!("mirror {l}: {why}"))));
     }
-    Ok((frame, fired, status, window))
+    // A window that did not end was refused above.
+    Ok((frame, fired, status, window.as_ref().and_then(crate::strobe::Exposure::of)))
 }
 
 /// Arm the camera, run the capture step and return its trigger. Events can
