@@ -495,13 +495,19 @@ impl SimDevice {
         } else if self.controller.bootloader_requested() {
             // The board resets into the ROM: outputs as at reset, nothing
             // more from the firmware (its Ack is already out).
-            self.hw.steppers = Default::default();
-            self.hw.armed = [None; AXIS_COUNT];
-            self.hw.drivers_enabled = false;
-            self.hw.set_light(0);
-            self.hw.set_trigger(false);
+            self.outputs_at_reset();
             self.in_rom = true;
         }
+    }
+
+    /// The board's outputs as a reset leaves them: no steps, drivers
+    /// disabled, light and trigger off.
+    fn outputs_at_reset(&mut self) {
+        self.hw.steppers = Default::default();
+        self.hw.armed = [None; AXIS_COUNT];
+        self.hw.drivers_enabled = false;
+        self.hw.set_light(0);
+        self.hw.set_trigger(false);
     }
 
     /// Reset the board: a new boot id, homing lost, config reloaded from the
@@ -509,11 +515,7 @@ impl SimDevice {
     pub fn reset(&mut self, reason: ResetReason) {
         self.in_rom = false;
         let boot = Self::boot_info(&mut self.rng, reason, self.strobe_active_high.is_some());
-        self.hw.steppers = Default::default();
-        self.hw.armed = [None; AXIS_COUNT];
-        self.hw.drivers_enabled = false;
-        self.hw.set_light(0);
-        self.hw.set_trigger(false);
+        self.outputs_at_reset();
         self.controller = Controller::new(boot, self.hw.saved.as_deref());
         self.boot_count += 1;
         self.hw.truth.boots.push((self.now, boot.boot_id));
