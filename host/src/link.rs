@@ -603,11 +603,14 @@ impl Device {
     /// Let time pass on the transport's clock (reading and queueing events).
     pub fn sleep(&mut self, d: Duration) -> Result<(), LinkError> {
         let end = self.transport.now() + d;
-        while self.transport.now() < end {
-            let left = end - self.transport.now();
+        loop {
+            // One reading of the clock: it may pass `end` between two.
+            let left = end.saturating_sub(self.transport.now());
+            if left.is_zero() {
+                return Ok(());
+            }
             self.pump(left.min(Duration::from_millis(20)))?;
         }
-        Ok(())
     }
 
     fn hello(&mut self) -> Result<DeviceInfo, LinkError> {
