@@ -1127,7 +1127,8 @@ pub fn wait_motion_end(dev: &mut Device, max: Duration) -> Result<Option<MotionE
     };
     let end = dev.now() + max;
     while dev.now() < end {
-        if let Some(e) = dev.wait_event(Duration::from_millis(500).min(end - dev.now()), done)? {
+        let left = end.saturating_sub(dev.now());
+        if let Some(e) = dev.wait_event(Duration::from_millis(500).min(left), done)? {
             return Ok(Some(reported(e)));
         }
         let status = dev.status()?;
