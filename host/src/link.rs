@@ -694,8 +694,12 @@ impl Device {
                 continue;
             }
             let deadline = self.transport.now() + retransmit_after;
-            while self.transport.now() < deadline {
-                let left = deadline - self.transport.now();
+            loop {
+                // One reading per turn: two could straddle the deadline.
+                let left = deadline.saturating_sub(self.transport.now());
+                if left.is_zero() {
+                    break;
+                }
                 self.pump(left.min(Duration::from_millis(10)))?;
                 if let Some(i) = self.replies.iter().position(|(s, _)| *s == seq) {
                     let (_, reply) = self.replies.swap_remove(i);
