@@ -469,8 +469,8 @@ fn dark_frame(
     let dark =
         scan::DarkFrame { geometry: &o.geometry, opts: &o.scan, exposure_us: o.scan.exposure_us };
     let t = Instant::now();
-    let frame = match dark.take(dev, camera, &mut report) {
-        Ok(Ok(f)) => f,
+    let (frame, window) = match dark.take(dev, camera, &mut report) {
+        Ok(Ok(taken)) => taken,
         Ok(Err(why)) => return Ok(Err(format!("a bare trigger with the light off: {why}"))),
         // Another size or unit, or a strobe that says the camera exposes
         // otherwise than its pulse: what to set is in the words.
@@ -494,7 +494,12 @@ fn dark_frame(
              capture program subtract it"
         );
     }
-    if crate::strobe::watched(dev)?.is_some() {
+    if let Some(w) = window {
+        detail += &format!(
+            "; its exposure strobe {:.1} ms after the trigger, as long as the pulse",
+            w.delay_us as f64 / 1000.0
+        );
+    } else if crate::strobe::watched(dev)?.is_some() {
         detail += "; its exposure strobe as long as the pulse";
     }
     Ok(Ok((frame, detail)))

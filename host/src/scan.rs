@@ -212,6 +212,10 @@ pub struct AutoBlackLevel {
     /// on resuming).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub exposure_us: Option<u32>,
+    /// That frame's exposure as the camera's strobe showed it; absent
+    /// when the strobe is not watched.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub strobe: Option<crate::strobe::Exposure>,
 }
 
 fn is_zero(v: &u32) -> bool {
@@ -227,6 +231,10 @@ pub struct DarkRecord {
     /// The hot (and stuck) pixels it showed.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub defects: Vec<crate::defects::PixelDefect>,
+    /// Its exposure as the camera's strobe showed it; absent when the
+    /// strobe is not watched.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub strobe: Option<crate::strobe::Exposure>,
 }
 
 /// What auto exposure chooses.
@@ -1416,7 +1424,9 @@ pub fn scan(
         metering: None,
         dark: None,
         black_level_codes: if opts.black_level_auto { 0 } else { opts.black_level_codes },
-        black_level_auto: opts.black_level_auto.then_some(AutoBlackLevel { exposure_us: None }),
+        black_level_auto: opts
+            .black_level_auto
+            .then_some(AutoBlackLevel { exposure_us: None, strobe: None }),
         camera_codes: camera.integer_codes(),
         light_margin_us: opts.light_margin_us,
     };
@@ -1482,7 +1492,7 @@ pub fn scan(
         let exposure_us = protocol::MIN_EXPOSURE_US;
         let bias = DarkFrame { geometry, opts, exposure_us };
         let frame = bias.take_with_retries(dev, camera, &mut report, progress, "black level")?;
-        let frame = frame.map_err(|why| {
+        let (frame, strobe) = frame.map_err(|why| {
             ScanError::Conflict(format!("black level: no frame with the light off ({why})"))
         })?;
         let codes = crate::defects::black_level_codes(&frame, geometry.sensor.max_code());
@@ -1492,7 +1502,7 @@ pub fn scan(
         ));
         manifest.settings.black_level_codes = codes;
         manifest.settings.black_level_auto =
-            Some(AutoBlackLevel { exposure_us: Some(exposure_us) });
+            Some(AutoBlackLevel { exposure_us: Some(exposure_us), strobe });
         let t = Instant::now();
         manifest.save(&opts.out)?;
         report.timings.disk += t.elapsed();
@@ -2320,13 +2330,14 @@ impl DarkFrame<'_> {
         report: &mut ScanReport,
         progress: &mut dyn ScanProgress,
     ) -> Result<Option<DarkRecord>, ScanError> {
-        let frame = match self.take_with_retries(dev, camera, report, progress, "dark frame")? {
-            Ok(f) => f,
-            Err(why) => {
-                progress.note(&format!("no dark frame ({why}): hot pixels are not looked for"));
-                return Ok(None);
-            }
-        };
+        let (frame, strobe) =
+            match self.take_with_retries(dev, camera, report, progress, "dark frame")? {
+                Ok(f) => f,
+                Err(why) => {
+                    progress.note(&format!("no dark frame ({why}): hot pixels are not looked for"));
+                    return Ok(None);
+                }
+            };
         let defects =
             match crate::defects::dark_frame_defects(&frame, self.geometry.sensor.max_code()) {
                 Ok(found) => {
@@ -2345,7 +2356,7 @@ impl DarkFrame<'_> {
                     Vec::new()
                 }
             };
-        Ok(Some(DarkRecord { exposure_us: self.exposure_us, defects }))
+        Ok(Some(DarkRecord { exposure_us: self.exposure_us, defects, strobe }))
     }
 
     /// [`Self::take`], taken again after a failure (said as `what`'s) up
@@ -2357,7 +2368,8 @@ impl DarkFrame<'_> {
         report: &mut ScanReport,
         progress: &mut dyn ScanProgress,
         what: &str,
-    ) -> Result<Result<crate::camera::Frame, String>, ScanError> {
+    ) -> Result<Result<(crate::camera::Frame, Option<crate::strobe::Exposure>), String>, ScanError>
+    {
         let mut attempt = 0;
         loop {
             attempt += 1;
@@ -2374,7 +2386,8 @@ impl DarkFrame<'_> {
         }
     }
 
-    /// The frame; a failure in words (the scan may go on); a frame the
+    /// The frame and its exposure as the strobe showed it (`None`: not
+    /// watched); a failure in words (the scan may go on); a frame the
     /// camera delivers that is not one of the scan's stops it (another size
     /// or unit: [`crate::camera::check_frame`]), as does a camera whose
     /// exposure strobe says it exposes otherwise than its pulse.
@@ -2383,7 +2396,8 @@ impl DarkFrame<'_> {
         dev: &mut Device,
         camera: &mut dyn Camera,
         report: &mut ScanReport,
-    ) -> Result<Result<crate::camera::Frame, String>, ScanError> {
+    ) -> Result<Result<(crate::camera::Frame, Option<crate::strobe::Exposure>), String>, ScanError>
+    {
         let (opts, exposure_us) = (self.opts, self.exposure_us);
         let t = Instant::now();
         let fired = (|| -> Result<Option<(TriggerFired, crate::strobe::Report)>, String> {
@@ -2419,10 +2433,12 @@ impl DarkFrame<'_> {
         // A camera that exposes otherwise than its pulse would do so at
         // every frame of the scan (the light is off: its latency does not
         // matter here).
-        if let crate::strobe::Report::Exposed(w) = exposed
-            && let Some(why) = crate::strobe::problem(&w, fired.exposure_us, None)
-        {
-            return Err(ScanError::Conflict(format!("a frame with the light off: {why}")));
+        let mut window = None;
+        if let crate::strobe::Report::Exposed(w) = exposed {
+            if let Some(why) = crate::strobe::problem(&w, fired.exposure_us, None) {
+                return Err(ScanError::Conflict(format!("a frame with the light off: {why}")));
+            }
+            window = crate::strobe::Exposure::of(&w);
         }
         let t = Instant::now();
         let idle = wait_idle(dev, Duration::from_secs(10));
@@ -2440,7 +2456,7 @@ impl DarkFrame<'_> {
         if !status.faults.is_empty() {
             return Ok(Err(format!("{} during the dark frame", fault_list(status.faults))));
         }
-        Ok(frame)
+        Ok(frame.map(|f| (f, window)))
     }
 }
 

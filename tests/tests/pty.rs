@@ -421,7 +421,12 @@ fn a_watched_exposure_strobe_catches_a_late_camera_and_a_missed_trigger() {
         "{out}\n{err}"
     );
     let m = Manifest::load(&sub(dir.path(), "dark")).unwrap();
-    assert!(m.complete && m.settings.dark.is_some(), "{:?}", m.settings.dark);
+    assert!(m.complete, "{out}");
+    // The retaken dark frame records its exposure as the strobe showed it.
+    let dark = m.settings.dark.expect("a dark frame recorded");
+    let e = dark.strobe.expect("the dark frame's strobe window recorded");
+    assert!((1_000..1_200).contains(&e.delay_us), "{e:?}");
+    assert!(e.length_us.abs_diff(dark.exposure_us) < 200, "{e:?}");
     drop(server);
     // A board the strobe is not wired to (and that says so).
     let mut s = setup("leather", FaultPlan::none());
