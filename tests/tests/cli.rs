@@ -228,6 +228,28 @@ fn devices_lists_without_hardware() {
     assert!(out.contains("serial") && out.contains("usb"), "{out}");
 }
 
+/// The shells' completion scripts name every command and its options; bash
+/// reads its script without a syntax error; an unknown shell is a usage
+/// error.
+#[test]
+fn completion_scripts_cover_every_command() {
+    let (code, bash, err) = run(&["completions", "bash"]);
+    assert_eq!(code, Some(0), "{err}");
+    for word in ["scan", "check", "calibrate", "build", "shade", "bootloader", "--frame-timeout"] {
+        assert!(bash.contains(word), "{word} not completed");
+    }
+    let dir = tmp();
+    let script = sub(dir.path(), "scanner.bash");
+    std::fs::write(&script, &bash).unwrap();
+    let syntax = std::process::Command::new("bash").arg("-n").arg(&script).output().unwrap();
+    assert!(syntax.status.success(), "{}", String::from_utf8_lossy(&syntax.stderr));
+    let (code, fish, _) = run(&["completions", "fish"]);
+    assert_eq!(code, Some(0));
+    assert!(fish.contains("complete -c scanner") && fish.contains("calibrate"), "{fish}");
+    let (code, _, err) = run(&["completions", "tcsh"]);
+    assert_eq!(code, Some(2), "{err}");
+}
+
 #[test]
 fn no_device_exits_5() {
     let (code, _, err) = run(&["status", "--device", "/dev/no-such-scanner"]);

@@ -79,6 +79,13 @@ enum Command {
         #[command(flatten)]
         check: commands::CheckArgs,
     },
+    /// Print the completion script of a shell (bash, zsh, fish, elvish,
+    /// powershell), e.g. `scanner completions bash >
+    /// ~/.local/share/bash-completion/completions/scanner`.
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
     /// Check a scan directory: every frame recorded and matching its checksum.
     Verify {
         /// Scan directory.
@@ -753,6 +760,12 @@ fn run(cli: Cli) -> Result<(), Failure> {
             };
             let driver_fault = driver_fault.map(|p| p == "active-high");
             commands::board_config(&device, driver_fault, &home_sensor, strobe)?
+        }
+        Command::Completions { shell } => {
+            use clap::CommandFactory;
+            let mut out = std::io::stdout().lock();
+            clap_complete::generate(shell, &mut Cli::command(), "scanner", &mut out);
+            std::io::Write::flush(&mut out).map_err(|e| Failure(1, e.into()))?;
         }
         Command::Verify { dir } => commands::verify(&dir)?,
         Command::Clear { device } => commands::clear(&device)?,
