@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Fuzz the material reader, the query/answer file readers, the protocol
-# decoder, the OpenEXR frame decoder, the texture maps' OpenEXR reader, the
+# decoder, the OpenEXR frame decoder, the PNG and TIFF frame files, the texture maps' OpenEXR reader, the
 # scanner geometry file, the axis configuration file, the calibration file, the scan manifest, the
 # direct images' manifest, finding a piece's corners in a photograph, the NPF
 # model file and the BRDF measurement CSV (read and fitted) with cargo-fuzz.
@@ -13,10 +13,10 @@ cd "$(dirname "$0")/.."
 seconds=${1:-300}
 mkdir -p fuzz/corpus/decoder
 # Start from valid files, so the fuzzer gets past the container checks
-# (fuzz/corpus/material, queries, frame, texture_map, geometry, axes, calibration,
+# (fuzz/corpus/material, queries, frame, frame_file, texture_map, geometry, axes, calibration,
 # manifest, direct, corners, measurements and npf_model).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
-for target in material queries decoder frame texture_map geometry axes calibration manifest \
+for target in material queries decoder frame frame_file texture_map geometry axes calibration manifest \
     direct corners npf_model measurements; do
     # The exr crate's flat-layer reader decodes on a thread pool of its own
     # per file, whose jobs still hold blocks when the process exits: leak

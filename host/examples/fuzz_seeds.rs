@@ -124,6 +124,48 @@ fn main() {
             println!("{name}-{kind}: {} bytes", bytes.len());
         }
     }
+    // PNG and TIFF frames as capture programs write them (16-bit codes,
+    // grey and RGB; 8-bit; 32-bit float TIFF), each behind the byte that
+    // tells the `frame_file` target how to read it.
+    let dir = root.join("frame_file");
+    std::fs::create_dir_all(&dir).unwrap();
+    let sensor = host::geometry::ScannerGeometry::default_scanner().sensor;
+    let codes: Vec<u16> =
+        (0..48 * 40 * 3).map(|i| ((i * 2_654_435_761usize) % 4096) as u16).collect();
+    let rgb16 = image::ImageBuffer::from_raw(48, 40, codes.clone()).unwrap();
+    let grey16 = image::ImageBuffer::from_raw(48, 40, codes[..48 * 40].to_vec()).unwrap();
+    let rgb8 =
+        image::ImageBuffer::from_raw(48, 40, codes.iter().map(|&c| c as u8).collect()).unwrap();
+    let float: Vec<f32> = codes.iter().map(|&c| c as f32 / 4095.0).collect();
+    let rgbf = image::ImageBuffer::from_raw(48, 40, float).unwrap();
+    for (name, picture, how) in [
+        ("rgb16.png", image::DynamicImage::ImageRgb16(rgb16), 0b0_1000u8),
+        ("grey16.png", image::DynamicImage::ImageLuma16(grey16), 0),
+        ("rgb8.png", image::DynamicImage::ImageRgb8(rgb8), 0b1_0000),
+    ]
+    .into_iter()
+    .flat_map(|(n, p, how)| {
+        let tiff = (n.replace(".png", ".tiff"), p.clone(), how | 1);
+        [(n.to_string(), p, how), tiff]
+    })
+    .chain([("rgbf.tiff".to_string(), image::DynamicImage::ImageRgb32F(rgbf), 1)])
+    {
+        let format = if how & 1 == 0 { image::ImageFormat::Png } else { image::ImageFormat::Tiff };
+        let mut file = Vec::new();
+        picture.write_to(&mut std::io::Cursor::new(&mut file), format).unwrap();
+        let bytes = [&[how][..], &file].concat();
+        // Every seed is a frame the reader takes.
+        let mut s = sensor.clone();
+        s.bits = if how & 16 != 0 { 8 } else { 12 };
+        let size = (how & 8 != 0).then_some([48, 40]);
+        let file = if how & 1 == 0 { "f.png" } else { "f.tiff" };
+        let f =
+            host::frame_file::decode_frame_file(file, &bytes[1..], &s, Default::default(), size)
+                .unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!([f.width, f.height], [48, 40]);
+        std::fs::write(dir.join(format!("{name}.bin")), &bytes).unwrap();
+    }
+    println!("frame files in {}", dir.display());
     let dir = root.join("geometry");
     std::fs::create_dir_all(&dir).unwrap();
     let g = host::geometry::ScannerGeometry::default_scanner();

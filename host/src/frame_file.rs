@@ -58,13 +58,27 @@ pub fn read_frame_file(
     codes: IntegerCodes,
     size: Option<[u32; 2]>,
 ) -> Result<Frame, FrameFileError> {
-    let name = path.display();
-    let format =
-        path.file_name().and_then(|n| n.to_str()).and_then(format_of).ok_or_else(|| {
-            FrameFileError::Unusable(format!("{name}: not an .exr, .png or .tiff"))
-        })?;
+    let name = path.display().to_string();
+    let file = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+    if format_of(file).is_none() {
+        return Err(FrameFileError::Unusable(format!("{name}: not an .exr, .png or .tiff")));
+    }
     let bytes = scanner_formats::input::read(path)
         .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
+    decode_frame_file(&name, &bytes, sensor, codes, size)
+}
+
+/// [`read_frame_file`] on the bytes of a file named `name` (its format
+/// from the name's extension; `name` also heads the messages).
+pub fn decode_frame_file(
+    name: &str,
+    bytes: &[u8],
+    sensor: &SensorSpec,
+    codes: IntegerCodes,
+    size: Option<[u32; 2]>,
+) -> Result<Frame, FrameFileError> {
+    let format = format_of(name)
+        .ok_or_else(|| FrameFileError::Unusable(format!("{name}: not an .exr, .png or .tiff")))?;
     let of_size = |[w, h]: [usize; 2]| match size {
         Some(want) if [w, h] != want.map(|n| n as usize) => Err(FrameFileError::Unusable(format!(
             "{name}: {}",
@@ -75,16 +89,16 @@ pub fn read_frame_file(
     if format == ImageFormat::OpenExr {
         // Its size from the header first: a mismatch is final, where a
         // file that does not decode may still be being written.
-        let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(&bytes), false)
+        let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false)
             .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
         if let Some(layer) = crate::exrio::rgb_layer(&meta.headers) {
             let header = &meta.headers[layer];
             of_size([header.layer_size.width(), header.layer_size.height()])?;
         }
-        return crate::exrio::decode_rgb_within(Cursor::new(&bytes), &|_| true, 1.0, None)
+        return crate::exrio::decode_rgb_within(Cursor::new(bytes), &|_| true, 1.0, None)
             .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")));
     }
-    let decoder = ImageReader::with_format(Cursor::new(&bytes), format)
+    let decoder = ImageReader::with_format(Cursor::new(bytes), format)
         .into_decoder()
         .map_err(|e| FrameFileError::Decode(format!("{name}: {e}")))?;
     let (w, h) = decoder.dimensions();
