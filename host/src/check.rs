@@ -20,10 +20,12 @@
 //! 7. **mirrors** — every entry of the device's table visited, then homed:
 //!    no step lost on the way;
 //! 8. **capture** — with the table the geometry's, capture steps at the
-//!    first, middle and last mirror:
-//!    each frame shows the sample on the holder lit (its views
-//!    [`LIT_CODES`] above the frame with the light off), the strobe's
-//!    timing within the light.
+//!    first, middle and last mirror whose reflection faces a view
+//!    ([`capture_mirrors`]): each frame shows the sample on the holder lit
+//!    (a view [`LIT_CODES`] above the frame with the light off), the
+//!    strobe's timing within the light; with a glossy target on the holder
+//!    its highlight in the view the lit mirror's reflection faces (else the
+//!    beam went to another mirror: [`facing_views`], [`HIGHLIGHT_OVER_NEXT`]).
 //!
 //! Nothing is written to the device (no table, no setting): the axes move
 //! and home, the light switches, the trigger fires.
@@ -37,9 +39,9 @@ use crate::camera::{Camera, ScanCamera};
 use crate::link::{Device, LinkError};
 use crate::scan::{self, ScanError, ScanOptions, ScanReport};
 
-/// A sample's views count as lit when their level (the
-/// [`crate::exposure::BODY_PERCENTILE`] of their values) is this many ADC
-/// codes above the frame's with the light off: 13 × the read noise of a
+/// A sample counts as lit when one of its views' level (the median over
+/// its sample points) is this many ADC codes above the same view's in the
+/// frame with the light off: 13 × the read noise of a
 /// typical sensor (the dark frame's hot-pixel threshold, docs/scan-format.md
 /// "Sensor defects"), so that no dark frame passes and any sample but a
 /// black one at a short exposure does.
@@ -519,6 +521,126 @@ fn sample_level(frame: &crate::camera::Frame, geometry: &ScannerGeometry) -> Opt
     Some((body, saturated as f64 / values.len() as f64))
 }
 
+/// A light's mirror reflection counts as facing a view when it lies within
+/// this of the view's direction (the default scanner's first and third
+/// rings: 1.5–1.6°; the others ≈ 11°): a glossy target's highlight then
+/// shows in that view alone.
+pub const FACING_DEG: f64 = 3.0;
+
+/// A view shows a glossy target's highlight when its level above the dark
+/// frame is at least this many times the next brightest view's (and
+/// [`HIGHLIGHT_OVER_MEDIAN`] × the views' median): a diffuse sample's
+/// views lie within a factor of two of each other (mirror reflectance,
+/// vignetting, cos θ).
+pub const HIGHLIGHT_OVER_NEXT: f64 = 4.0;
+
+/// See [`HIGHLIGHT_OVER_NEXT`].
+pub const HIGHLIGHT_OVER_MEDIAN: f64 = 8.0;
+
+/// For every light, the view its mirror reflection (about the holder's
+/// normal) faces within [`FACING_DEG`], by the nominal directions.
+pub fn facing_views(g: &ScannerGeometry) -> Vec<Option<usize>> {
+    (0..g.mirrors.len())
+        .map(|l| {
+            let light = g.light_direction(l).ok()?;
+            let reflected = scanner_geometry::DVec3::new(-light.x, -light.y, light.z);
+            (0..g.mirrors.len())
+                .filter_map(|j| {
+                    let a = g.mirror_direction(j)?.dot(reflected).clamp(-1.0, 1.0).acos();
+                    Some((a.to_degrees(), j))
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .filter(|(a, _)| *a <= FACING_DEG)
+                .map(|(_, j)| j)
+        })
+        .collect()
+}
+
+/// The capture check's mirrors among `count`: the first, middle and last
+/// of those whose reflection faces a view (a glossy target then tells
+/// where the beam went), else of all.
+pub fn capture_mirrors(count: usize, facing: &[Option<usize>]) -> Vec<usize> {
+    let candidates: Vec<usize> =
+        (0..count).filter(|&l| facing.get(l).is_some_and(Option::is_some)).collect();
+    let from: Vec<usize> = if candidates.is_empty() { (0..count).collect() } else { candidates };
+    let mut chosen: Vec<usize> = [0, from.len() / 2, from.len().saturating_sub(1)]
+        .iter()
+        .filter_map(|&i| from.get(i).copied())
+        .collect();
+    chosen.dedup();
+    chosen
+}
+
+/// Each view's level (the median over its sample points of their mean
+/// channel, in full scale); `None` for a view outside the frame.
+fn view_levels(frame: &crate::camera::Frame, g: &ScannerGeometry) -> Vec<Option<f64>> {
+    (0..g.mirrors.len())
+        .map(|j| {
+            let mut v: Vec<f64> = crate::exposure::view_pixels(frame, g, j)
+                .iter()
+                .map(|(_, c)| c.iter().map(|&x| x as f64).sum::<f64>() / 3.0)
+                .collect();
+            if v.is_empty() {
+                return None;
+            }
+            v.sort_by(f64::total_cmp);
+            Some(v[v.len() / 2])
+        })
+        .collect()
+}
+
+/// The view showing a highlight among views `codes` above the dark frame
+/// (view, codes), if one outshines the rest ([`HIGHLIGHT_OVER_NEXT`]).
+fn highlight(codes: &[(usize, f64)]) -> Option<usize> {
+    let mut sorted = codes.to_vec();
+    sorted.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let (&(view, top), rest) = sorted.split_first()?;
+    let next = rest.first().map_or(0.0, |r| r.1).max(1.0);
+    let median = sorted[sorted.len() / 2].1.max(1.0);
+    (top >= LIT_CODES && top >= HIGHLIGHT_OVER_NEXT * next && top >= HIGHLIGHT_OVER_MEDIAN * median)
+        .then_some(view)
+}
+
+/// What a capture step's frame shows of where the beam went.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Beam {
+    /// The views alike (a diffuse sample): their level, full scale.
+    Alike(f64),
+    /// A highlight in `view`, the one the lit mirror's reflection faces.
+    Facing(usize),
+    /// A highlight in `view`, not the one the lit mirror's reflection
+    /// faces (`expected`, if any): the light `from` faces it, if one does.
+    Elsewhere { view: usize, expected: Option<usize>, from: Option<usize> },
+}
+
+/// Where the beam of light `l` went, as `frame` (against `dark`'s views)
+/// shows it; `None` when no view is [`LIT_CODES`] above the dark frame.
+fn beam_of(
+    l: usize,
+    views: &[Option<f64>],
+    dark: &[Option<f64>],
+    facing: &[Option<usize>],
+    max_code: f64,
+    level: f64,
+) -> Option<Beam> {
+    let codes: Vec<(usize, f64)> = views
+        .iter()
+        .zip(dark)
+        .enumerate()
+        .filter_map(|(j, (v, d))| Some((j, codes_above((*v)?, (*d)?, max_code))))
+        .collect();
+    if codes.iter().all(|&(_, c)| c < LIT_CODES) {
+        return None;
+    }
+    let Some(view) = highlight(&codes) else { return Some(Beam::Alike(level)) };
+    let expected = facing.get(l).copied().flatten();
+    if expected == Some(view) {
+        return Some(Beam::Facing(view));
+    }
+    let from = facing.iter().position(|f| *f == Some(view));
+    Some(Beam::Elsewhere { view, expected, from })
+}
+
 fn capture(
     dev: &mut Device,
     camera: &mut dyn Camera,
@@ -526,14 +648,15 @@ fn capture(
     dark: &crate::camera::Frame,
 ) -> Checked {
     let count = dev.info().mirror_count as usize;
-    let mut mirrors = vec![0, count / 2, count.saturating_sub(1)];
-    mirrors.dedup();
+    let facing = facing_views(&o.geometry);
+    let mirrors = capture_mirrors(count, &facing);
     let max_code = o.geometry.sensor.max_code();
-    let Some((dark_level, _)) = sample_level(dark, &o.geometry) else {
+    let dark_views = view_levels(dark, &o.geometry);
+    if dark_views.iter().all(Option::is_none) {
         return Ok(Err("the geometry projects the sample outside the camera's frames".into()));
-    };
+    }
     let mut report = ScanReport::default();
-    let mut levels = Vec::new();
+    let (mut alike, mut facing_seen, mut wrong) = (Vec::new(), Vec::new(), Vec::new());
     for &l in &mirrors {
         let ((frame, _, _, exposure), _) = scan::capture_with_retries(
             dev,
@@ -549,17 +672,56 @@ fn capture(
         }
         // The same geometry and frame size as the dark frame's: it has views.
         let (level, saturated) = sample_level(&frame, &o.geometry).unwrap_or((0.0, 0.0));
-        let over = codes_above(level, dark_level, max_code);
-        if over < LIT_CODES {
-            return Ok(Err(format!(
-                "mirror {l}: the sample's views {over:.1} codes above the frame with the light \
-                 off (at least {LIT_CODES} wanted): the beam does not reach the sample (the \
-                 mirror table, the light, the fold mirror), or no sample is on the holder"
-            )));
+        let views = view_levels(&frame, &o.geometry);
+        match beam_of(l, &views, &dark_views, &facing, max_code, level) {
+            None => {
+                return Ok(Err(format!(
+                    "mirror {l}: no view of the sample {LIT_CODES} codes above the frame with the \
+                     light off: the beam does not reach the sample (the mirror table, the light, \
+                     the fold mirror), or no sample is on the holder"
+                )));
+            }
+            Some(Beam::Alike(level)) => {
+                alike.push(format!("mirror {l} at {:.1} %{}", 100.0 * level, saturation(saturated)))
+            }
+            Some(Beam::Facing(view)) => facing_seen.push(format!("mirror {l} in view {view}")),
+            Some(Beam::Elsewhere { view, expected, from }) => wrong.push(format!(
+                "mirror {l}: the highlight shows in view {view}{}{}",
+                match from {
+                    Some(k) => format!(", where mirror {k}'s light is reflected"),
+                    None => String::new(),
+                },
+                match expected {
+                    Some(e) => format!(", not in view {e}"),
+                    None => String::new(),
+                }
+            )),
         }
-        levels.push(format!("mirror {l} at {:.1} %{}", 100.0 * level, saturation(saturated)));
     }
-    let mut detail = format!("the sample's views lit: {} of full scale", levels.join(", "));
+    if !wrong.is_empty() {
+        return Ok(Err(format!(
+            "{}: the beam lit another mirror than the table's — the axes' home positions or \
+             steps per unit (`scanner move --mirror N` and look where the beam lands; \
+             docs/axis-config.md)",
+            wrong.join("; ")
+        )));
+    }
+    let mut parts = Vec::new();
+    if !facing_seen.is_empty() {
+        parts.push(format!(
+            "a glossy target's highlight where each beam's reflection faces: {}",
+            facing_seen.join(", ")
+        ));
+    }
+    if !alike.is_empty() {
+        let mut lit = format!("the sample's views lit: {} of full scale", alike.join(", "));
+        if facing.iter().any(Option::is_some) {
+            lit += " (views alike: which mirror the beam lit is not told; a glossy black \
+                    target on the holder tells)";
+        }
+        parts.push(lit);
+    }
+    let mut detail = parts.join("; ");
     if report.retakes > 0 {
         detail += &format!(" ({} steps taken again)", report.retakes);
     }
@@ -586,6 +748,57 @@ fn ms(d: Duration) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The default scanner's first and third rings face a view (their
+    /// lights' reflections 1.5–1.6° from it), the others do not (≈ 11°):
+    /// the check captures at the first, middle and last of those 16.
+    #[test]
+    fn the_capture_check_takes_mirrors_whose_reflection_faces_a_view() {
+        let g = ScannerGeometry::default_scanner();
+        let facing = facing_views(&g);
+        let lights: Vec<usize> = (0..40).filter(|&l| facing[l].is_some()).collect();
+        let want: Vec<usize> = (0..4).chain(13..25).collect();
+        assert_eq!(lights, want);
+        // Each faces the view across the holder: the same ring, half a turn on.
+        assert_eq!(
+            (facing[0], facing[2], facing[13], facing[19]),
+            (Some(2), Some(0), Some(19), Some(13))
+        );
+        assert_eq!(capture_mirrors(40, &facing), [0, 17, 24]);
+        // A scanner none of whose lights faces a view: first, middle, last.
+        assert_eq!(capture_mirrors(40, &[None; 40]), [0, 20, 39]);
+        assert_eq!(capture_mirrors(1, &[None]), [0]);
+    }
+
+    /// A highlight outshines the next view 4× and the median 8×; a diffuse
+    /// sample's views, within a factor of two, show none.
+    #[test]
+    fn a_highlight_is_one_view_far_above_the_rest() {
+        let views = |top: f64, next: f64, rest: f64| -> Vec<(usize, f64)> {
+            (0..40)
+                .map(|j| {
+                    (
+                        j,
+                        if j == 7 {
+                            top
+                        } else if j == 8 {
+                            next
+                        } else {
+                            rest
+                        },
+                    )
+                })
+                .collect()
+        };
+        assert_eq!(highlight(&views(3000.0, 2.0, 0.5)), Some(7));
+        assert_eq!(highlight(&views(400.0, 100.0, 20.0)), Some(7));
+        assert_eq!(highlight(&views(400.0, 101.0, 20.0)), None);
+        assert_eq!(highlight(&views(400.0, 90.0, 51.0)), None);
+        // A diffuse target: views alike.
+        assert_eq!(highlight(&views(900.0, 800.0, 500.0)), None);
+        // Too faint to count, however alone.
+        assert_eq!(highlight(&views(15.0, 0.0, 0.0)), None);
+    }
 
     #[test]
     fn a_frame_counts_as_lit_only_well_above_the_dark_frame() {

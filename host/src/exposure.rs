@@ -130,22 +130,25 @@ pub fn meter_mirrors(total: usize) -> Vec<usize> {
 /// nearest pixels at 11 × 11 points over the central half of the sample in
 /// each of the geometry's views.
 pub fn sample_pixels(frame: &Frame, g: &ScannerGeometry) -> Vec<(u32, [f32; 3])> {
+    (0..g.mirrors.len()).flat_map(|view| view_pixels(frame, g, view)).collect()
+}
+
+/// [`sample_pixels`] of one view: those within the frame.
+pub fn view_pixels(frame: &Frame, g: &ScannerGeometry, view: usize) -> Vec<(u32, [f32; 3])> {
     let (w, h) = (frame.width as usize, frame.height as usize);
     let mut out = Vec::new();
-    for view in 0..g.mirrors.len() {
-        for j in 0..11 {
-            for i in 0..11 {
-                let uv = [0.25 + 0.05 * i as f64, 0.25 + 0.05 * j as f64];
-                let Some(p) = g.view_point(view, uv) else { continue };
-                if !(p[0] >= 0.0 && p[1] >= 0.0) {
-                    continue;
-                }
-                let (x, y) = (p[0] as usize, p[1] as usize);
-                if x < w && y < h && frame.rgb.len() >= 3 * w * h {
-                    let px = y * w + x;
-                    let v = &frame.rgb[3 * px..3 * px + 3];
-                    out.push((px as u32, [v[0], v[1], v[2]]));
-                }
+    for j in 0..11 {
+        for i in 0..11 {
+            let uv = [0.25 + 0.05 * i as f64, 0.25 + 0.05 * j as f64];
+            let Some(p) = g.view_point(view, uv) else { continue };
+            if !(p[0] >= 0.0 && p[1] >= 0.0) {
+                continue;
+            }
+            let (x, y) = (p[0] as usize, p[1] as usize);
+            if x < w && y < h && frame.rgb.len() >= 3 * w * h {
+                let px = y * w + x;
+                let v = &frame.rgb[3 * px..3 * px + 3];
+                out.push((px as u32, [v[0], v[1], v[2]]));
             }
         }
     }

@@ -111,8 +111,65 @@ fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
     assert!(out.contains("count at the switch after 2 homings"), "{out}");
     assert!(out.contains("mirrors 0–39 visited"), "{out}");
     assert!(out.contains("a 50.0 ms frame with the light off, 512×512"), "{out}");
+    // A leather sample: its views alike, so where the beam went is not told.
     assert!(out.contains("the sample's views lit: mirror 0 at "), "{out}");
-    assert!(out.contains(", mirror 20 at ") && out.contains(", mirror 39 at "), "{out}");
+    assert!(out.contains(", mirror 17 at ") && out.contains(", mirror 24 at "), "{out}");
+    assert!(out.contains("(views alike: which mirror the beam lit is not told"), "{out}");
+}
+
+/// With a glossy black target on the holder the capture check sees each
+/// beam's highlight where the lit mirror's reflection faces; a disk whose
+/// home position is a quarter turn off (the flag mounted elsewhere than the
+/// board's configuration says) lights another mirror of the same ring —
+/// every view still lit, the table still the geometry's — and fails it.
+#[test]
+fn a_glossy_target_tells_which_mirror_the_beam_lit() {
+    let dir = tmp();
+    for (name, quarter_turn_off) in [("sound", false), ("disk-off", true)] {
+        let frames = sub(dir.path(), name);
+        let mut s = setup("glossy-black", FaultPlan::none());
+        if quarter_turn_off {
+            let mut board = protocol::default_axes();
+            board[0].homing.home_position += (board[0].steps_per_rev / 4) as i32;
+            s.board_axes = Some(board);
+        }
+        let server = serve(&s, &frames);
+        let geometry = frames.join("geometry.toml").display().to_string();
+        let (code, _, err) = run(&["setup", "--device", server.path(), "--geometry", &geometry]);
+        assert_eq!(code, Some(0), "{err}");
+        let (code, out, err) = check(&server, &frames);
+        if !quarter_turn_off {
+            assert_eq!(code, Some(0), "{out}{err}");
+            expect(&out, ["PASS"; 8]);
+            assert!(
+                out.contains(
+                    "a glossy target's highlight where each beam's reflection faces: mirror 0 in \
+                     view 2, mirror 17 in view 23, mirror 24 in view 18"
+                ),
+                "{out}"
+            );
+            continue;
+        }
+        assert_eq!(code, Some(10), "{out}{err}");
+        expect(&out, ["PASS", "PASS", "PASS", "PASS", "PASS", "PASS", "PASS", "FAIL"]);
+        // Mirror 0 (azimuth 0°) lit mirror 1 or 3 (±90°) instead, whose
+        // reflections face views 3 and 1.
+        let line = out.lines().find(|l| l.starts_with("FAIL capture")).unwrap();
+        assert!(
+            line.contains("mirror 0: the highlight shows in view 3, where mirror 1's light is reflected, not in view 2")
+                || line.contains("mirror 0: the highlight shows in view 1, where mirror 3's light is reflected, not in view 2"),
+            "{line}"
+        );
+        assert!(line.contains("mirror 17: the highlight shows in view"), "{line}");
+        assert!(
+            line.contains(
+                "the beam lit another mirror than the table's — the axes' home positions or \
+                 steps per unit (`scanner move --mirror N`"
+            ),
+            "{line}"
+        );
+        assert!(err.contains("failed: capture"), "{err}");
+    }
 }
 
 #[test]
