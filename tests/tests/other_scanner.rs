@@ -154,20 +154,36 @@ fn the_simulator_serves_the_scanner_it_is_given() {
         assert_eq!(code, Some(0), "{err}");
     }
     let d = |n: &str| dir.path().join(n).display().to_string();
-    let (code, _, err) = common::run(&[
-        "calibrate",
-        "--checkerboard",
-        &d("checkerboard"),
-        "--white",
-        &d("diffuse-white"),
-        "--geometry",
-        &f,
-        "-o",
-        &d("cal.json"),
-    ]);
+    let calibrate = |out: &str| {
+        [
+            "calibrate",
+            "--checkerboard",
+            &d("checkerboard"),
+            "--white",
+            &d("diffuse-white"),
+            "--geometry",
+            &f,
+            "-o",
+            &d(out),
+        ]
+        .map(str::to_string)
+    };
+    let (code, _, err) = common::run(&calibrate("cal.json").each_ref().map(String::as_str));
     assert_eq!(code, Some(0), "{err}");
     let cal = host::build::Calibration::load(&dir.path().join("cal.json")).unwrap();
     assert_eq!(cal.geometry_sha256, tests::other_scanner().with_sensor_scaled(4).hash());
+    // Reproducible: on one thread (another split of every parallel
+    // reduction) the same file, byte for byte.
+    let one = common::scanner()
+        .env("RAYON_NUM_THREADS", "1")
+        .args(calibrate("cal-1.json"))
+        .output()
+        .unwrap();
+    assert!(one.status.success(), "{}", String::from_utf8_lossy(&one.stderr));
+    assert!(
+        std::fs::read(d("cal.json")).unwrap() == std::fs::read(d("cal-1.json")).unwrap(),
+        "a calibration on one thread differs from one on the machine's threads"
+    );
     // A design that cannot scan: the demo refuses it before scanning.
     let mut crowded = tests::other_scanner();
     crowded.mirrors[3].size_mm = 10.0;
