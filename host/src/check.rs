@@ -800,6 +800,46 @@ mod tests {
         assert_eq!(highlight(&views(15.0, 0.0, 0.0)), None);
     }
 
+    /// Where the beam went, from the views' levels against the dark
+    /// frame's: nowhere, unknown (views alike), the facing view, or a view
+    /// another light faces.
+    #[test]
+    fn the_beam_is_placed_by_the_view_its_highlight_shows_in() {
+        let top = 4095.0;
+        let g = ScannerGeometry::default_scanner();
+        let facing = facing_views(&g);
+        let dark = vec![Some(2.0 / top); 40];
+        let lit = |bright: &[(usize, f64)], rest: f64| -> Vec<Option<f64>> {
+            (0..40)
+                .map(|j| {
+                    let codes = bright.iter().find(|b| b.0 == j).map_or(rest, |b| b.1);
+                    Some((2.0 + codes) / top)
+                })
+                .collect()
+        };
+        let beam = |views: &[Option<f64>], l| beam_of(l, views, &dark, &facing, top, 0.5);
+        // Nothing 16 codes above the dark frame: the beam missed.
+        assert_eq!(beam(&lit(&[(2, 15.0)], 1.0), 0), None);
+        // Every view alike: a diffuse sample.
+        assert_eq!(beam(&lit(&[], 300.0), 0), Some(Beam::Alike(0.5)));
+        // Mirror 0's highlight in view 2, which its reflection faces.
+        assert_eq!(beam(&lit(&[(2, 4000.0)], 3.0), 0), Some(Beam::Facing(2)));
+        // In view 1 instead: mirror 3's reflection faces it.
+        assert_eq!(
+            beam(&lit(&[(1, 4000.0)], 3.0), 0),
+            Some(Beam::Elsewhere { view: 1, expected: Some(2), from: Some(3) })
+        );
+        // In a view no light faces (the second ring's).
+        assert_eq!(
+            beam(&lit(&[(5, 4000.0)], 3.0), 13),
+            Some(Beam::Elsewhere { view: 5, expected: Some(19), from: None })
+        );
+        // A view outside the frame is left out, not taken as dark.
+        let mut views = lit(&[(2, 4000.0)], 3.0);
+        views[7] = None;
+        assert_eq!(beam(&views, 0), Some(Beam::Facing(2)));
+    }
+
     #[test]
     fn a_frame_counts_as_lit_only_well_above_the_dark_frame() {
         let top = 4095.0;
