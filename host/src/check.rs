@@ -87,7 +87,7 @@ impl Verdict {
 }
 
 /// One check's outcome.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Outcome {
     /// The check, e.g. "homing".
     pub name: &'static str,
@@ -95,6 +95,8 @@ pub struct Outcome {
     pub verdict: Verdict,
     /// What was measured, or why it failed or was skipped.
     pub detail: String,
+    /// How long it took, s (0 when skipped).
+    pub seconds: f64,
 }
 
 /// The checks, in the order they run.
@@ -110,8 +112,8 @@ pub fn run(
     seen: &mut dyn FnMut(&Outcome),
 ) -> Vec<Outcome> {
     let mut out: Vec<Outcome> = Vec::new();
-    let mut say = |name: &'static str, verdict: Verdict, detail: String| {
-        let outcome = Outcome { name, verdict, detail };
+    let mut say = |name: &'static str, verdict: Verdict, detail: String, took: Duration| {
+        let outcome = Outcome { name, verdict, detail, seconds: took.as_secs_f64() };
         seen(&outcome);
         out.push(outcome);
         verdict == Verdict::Pass
@@ -129,12 +131,14 @@ pub fn run(
                        check: &mut dyn FnMut(&mut Device) -> Checked|
      -> bool {
         if let Some(why) = &gone {
-            return say(name, Verdict::Skip, format!("after {why}"));
+            return say(name, Verdict::Skip, format!("after {why}"), Duration::ZERO);
         }
         if let Some((what, _)) = needs.iter().find(|(_, ok)| !ok) {
-            return say(name, Verdict::Skip, format!("needs {what}"));
+            return say(name, Verdict::Skip, format!("needs {what}"), Duration::ZERO);
         }
+        let started = Instant::now();
         let result = check(dev);
+        let took = started.elapsed();
         let now = dev.info().boot_id;
         if now != boot_id {
             let why = format!("the board reset (boot id {boot_id:08x} → {now:08x})");
@@ -150,11 +154,11 @@ pub fn run(
                  under load{said}"
             );
             gone = Some(why);
-            return say(name, Verdict::Fail, fail);
+            return say(name, Verdict::Fail, fail, took);
         }
         match result {
-            Ok(Ok(detail)) => say(name, Verdict::Pass, detail),
-            Ok(Err(why)) => say(name, Verdict::Fail, why),
+            Ok(Ok(detail)) => say(name, Verdict::Pass, detail, took),
+            Ok(Err(why)) => say(name, Verdict::Fail, why, took),
             Err(e) => {
                 if let ScanError::Link(
                     LinkError::NoDevice(_) | LinkError::Timeout { .. } | LinkError::Reset { .. },
@@ -162,7 +166,7 @@ pub fn run(
                 {
                     gone = Some(format!("the link failed ({e})"));
                 }
-                say(name, Verdict::Fail, e.to_string())
+                say(name, Verdict::Fail, e.to_string(), took)
             }
         }
     };

@@ -93,8 +93,26 @@ fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
     let (code, _, err) = run(&["config", "--device", server.path(), "--strobe", "active-high"]);
     assert_eq!(code, Some(0), "{err}");
     let report = sub(dir.path(), "check.json");
-    let (code, out, err) = check_with(&server, &frames, &["--report", report.to_str().unwrap()]);
+    let junit = sub(dir.path(), "check.xml");
+    let (code, out, err) = check_with(
+        &server,
+        &frames,
+        &["--report", report.to_str().unwrap(), "--junit", junit.to_str().unwrap()],
+    );
     assert_eq!(code, Some(0), "{out}{err}");
+    // The same run as JUnit XML, for a CI system: a test case a check.
+    let x = junit_report(&junit);
+    assert_eq!((x.tests, x.failures, x.errors), (8, 0, 0));
+    let suite = &x.test_suites[0];
+    let props: Vec<(&str, &str)> =
+        suite.properties.iter().map(|p| (p.name.as_str(), p.value.as_str())).collect();
+    assert!(props.contains(&("protocol", "1.5")), "{props:?}");
+    let cases: Vec<&str> = suite.test_cases.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(cases, host::check::CHECKS);
+    let homing = &suite.test_cases[4];
+    assert!(matches!(homing.status, quick_junit::TestCaseStatus::Success { .. }));
+    assert!(homing.system_out.as_ref().unwrap().as_str().starts_with("count at the switch"));
+    assert!(homing.time.unwrap() > std::time::Duration::ZERO);
     // The rig's record: every check, as printed.
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!((r["format"].as_str(), r["version"].as_u64()), (Some("scanner-check"), Some(1)));
@@ -211,11 +229,40 @@ fn an_open_emergency_stop_fails_the_faults_check_and_nothing_moves() {
     let (code, out, err) = check_with(&server, &frames, &["--report", "/dev/null"]);
     assert_eq!(code, Some(4), "{out}{err}");
     assert!(!out.contains("PASS"), "{out}");
-    let (code, out, err) = check(&server, &frames);
+    let junit = sub(dir.path(), "check.xml");
+    let (code, out, err) = check_with(&server, &frames, &["--junit", junit.to_str().unwrap()]);
     assert_eq!(code, Some(10), "{out}{err}");
     expect(&out, ["PASS", "FAIL", "SKIP", "SKIP", "SKIP", "FAIL", "SKIP", "SKIP"]);
     assert!(out.contains("the emergency stop is open"), "{out}");
     assert!(out.contains("SKIP homing: needs faults"), "{out}");
+    // Written for a failed run too: failures and skips as JUnit has them.
+    let x = junit_report(&junit);
+    assert_eq!((x.tests, x.failures, x.errors), (8, 2, 0));
+    let faults = &x.test_suites[0].test_cases[1];
+    match &faults.status {
+        quick_junit::TestCaseStatus::NonSuccess { kind, message, .. } => {
+            assert_eq!(*kind, quick_junit::NonSuccessKind::Failure);
+            assert!(message.as_ref().unwrap().as_str().contains("the emergency stop is open"));
+        }
+        other => panic!("{other:?}"),
+    }
+    let homing = &x.test_suites[0].test_cases[4];
+    match &homing.status {
+        quick_junit::TestCaseStatus::Skipped { message, .. } => {
+            assert_eq!(message.as_ref().unwrap().as_str(), "needs faults")
+        }
+        other => panic!("{other:?}"),
+    }
+    // One file for both records is refused before anything moves.
+    let (code, _, err) = check_with(&server, &frames, &["--report", "same", "--junit", "same"]);
+    assert_eq!(code, Some(2), "{err}");
+}
+
+/// `scanner check --junit`'s file, read back.
+fn junit_report(path: &Path) -> quick_junit::Report {
+    let xml = std::fs::read_to_string(path).unwrap();
+    assert!(xml.starts_with("<?xml"), "{xml}");
+    quick_junit::Report::deserialize_from_str(&xml).unwrap_or_else(|e| panic!("{e}: {xml}"))
 }
 
 /// The same acceptance on a real scanner: `SCANNER_HIL_DEVICE` (a port or

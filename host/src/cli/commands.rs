@@ -1541,6 +1541,10 @@ pub struct CheckArgs {
     /// for a test rig's log.
     #[arg(long, value_name = "FILE")]
     pub report: Option<PathBuf>,
+    /// Also write the run to FILE as JUnit XML (a test case a check), which
+    /// CI systems show as test results.
+    #[arg(long, value_name = "FILE")]
+    pub junit: Option<PathBuf>,
 }
 
 /// `scanner check`: every check, a line each; exit 10 if any failed.
@@ -1566,9 +1570,14 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
         ));
     }
     // Refused before anything moves, not after the run.
-    if let Some(path) = &c.report {
+    for path in c.report.iter().chain(&c.junit) {
         crate::fsutil::check_output(path, &[])
             .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    }
+    if let (Some(a), Some(b)) = (&c.report, &c.junit)
+        && a == b
+    {
+        return Err(Failure(2, anyhow!("--report and --junit name the same file")));
     }
     let mut opened = open(args)?;
     let (geometry, mut camera) = c.rig.open(&opened)?;
@@ -1593,6 +1602,11 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
         crate::fsutil::write_atomic(path, &json)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
     }
+    if let Some(path) = &c.junit {
+        let xml = junit(&report).map_err(|e| Failure(1, anyhow!(e)))?;
+        crate::fsutil::write_atomic(path, xml.as_bytes())
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", path.display())))?;
+    }
     if failed == 0 {
         return Ok(());
     }
@@ -1600,6 +1614,53 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
     let names: Vec<&str> =
         outcomes.iter().filter(|o| o.verdict == Verdict::Fail).map(|o| o.name).collect();
     Err(Failure(10, anyhow!("failed: {}", names.join(", "))))
+}
+
+/// A check run as JUnit XML: one test suite, `scanner check`, with the
+/// device as properties, and a test case a check (class `scanner-check`):
+/// a failed check a `failure` with its detail as message, a skipped one
+/// `skipped`, a passed one its detail as system-out.
+pub fn junit(report: &crate::check::Report<'_>) -> Result<String, quick_junit::SerializeError> {
+    use crate::check::Verdict;
+    use quick_junit::{NonSuccessKind, TestCase, TestCaseStatus, TestSuite};
+    let d = &report.device;
+    let mut suite = TestSuite::new("scanner check");
+    suite.add_properties([
+        ("device_id", d.device_id.as_str()),
+        ("firmware", d.firmware.as_str()),
+        ("protocol", d.protocol.as_str()),
+        ("board", &format!("0x{:04x}", d.board)),
+        ("boot_id", d.boot_id.as_str()),
+        ("unix_time_s", &report.unix_time_s.to_string()),
+    ]);
+    let mut total = Duration::ZERO;
+    for o in report.checks {
+        let status = match o.verdict {
+            Verdict::Pass => TestCaseStatus::success(),
+            Verdict::Fail => {
+                let mut s = TestCaseStatus::non_success(NonSuccessKind::Failure);
+                s.set_message(o.detail.as_str());
+                s
+            }
+            Verdict::Skip => {
+                let mut s = TestCaseStatus::skipped();
+                s.set_message(o.detail.as_str());
+                s
+            }
+        };
+        let mut case = TestCase::new(o.name, status);
+        let took = Duration::from_secs_f64(o.seconds.max(0.0));
+        total += took;
+        case.set_classname("scanner-check").set_time(took);
+        if o.verdict == Verdict::Pass {
+            case.set_system_out(o.detail.as_str());
+        }
+        suite.add_test_case(case);
+    }
+    suite.set_time(total);
+    let mut all = quick_junit::Report::new("scanner-check");
+    all.set_time(total).add_test_suite(suite);
+    all.to_string()
 }
 
 /// Run one scan with a progress bar; print the summary.
