@@ -645,6 +645,24 @@ fn beam_of(
     Some(Beam::Elsewhere { view, expected, from })
 }
 
+/// Why the step at mirror `l` showed no view lit.
+fn unlit(l: usize, facing: &[Option<usize>]) -> String {
+    // A glossy target lit through a mirror whose reflection faces no view
+    // shows its highlight nowhere.
+    let glossy = match facing.get(l) {
+        Some(Some(_)) => "",
+        _ => {
+            "; a glossy target lit through this mirror shows its highlight in no view: check \
+             with a diffuse one"
+        }
+    };
+    format!(
+        "mirror {l}: no view of the sample {LIT_CODES} codes above the frame with the light off: \
+         the beam does not reach the sample (the mirror table, the light, the fold mirror), or no \
+         sample is on the holder{glossy}"
+    )
+}
+
 fn capture(
     dev: &mut Device,
     camera: &mut dyn Camera,
@@ -678,13 +696,7 @@ fn capture(
         let (level, saturated) = sample_level(&frame, &o.geometry).unwrap_or((0.0, 0.0));
         let views = view_levels(&frame, &o.geometry);
         match beam_of(l, &views, &dark_views, &facing, max_code, level) {
-            None => {
-                return Ok(Err(format!(
-                    "mirror {l}: no view of the sample {LIT_CODES} codes above the frame with the \
-                     light off: the beam does not reach the sample (the mirror table, the light, \
-                     the fold mirror), or no sample is on the holder"
-                )));
-            }
+            None => return Ok(Err(unlit(l, &facing))),
             Some(Beam::Alike(level)) => {
                 alike.push(format!("mirror {l} at {:.1} %{}", 100.0 * level, saturation(saturated)))
             }
@@ -842,6 +854,20 @@ mod tests {
         let mut views = lit(&[(2, 4000.0)], 3.0);
         views[7] = None;
         assert_eq!(beam(&views, 0), Some(Beam::Facing(2)));
+    }
+
+    /// An unlit step names the causes; through a mirror whose reflection
+    /// faces no view, also that a glossy target cannot show there.
+    #[test]
+    fn an_unlit_step_says_why_it_may_be() {
+        let facing = [Some(2), None];
+        let faced = unlit(0, &facing);
+        assert!(faced.starts_with("mirror 0: no view of the sample 16 codes above"), "{faced}");
+        assert!(faced.ends_with("or no sample is on the holder"), "{faced}");
+        assert!(unlit(1, &facing).ends_with(
+            "no sample is on the holder; a glossy target lit through this mirror shows its \
+             highlight in no view: check with a diffuse one"
+        ));
     }
 
     #[test]
