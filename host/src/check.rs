@@ -58,6 +58,8 @@ pub struct CheckOptions {
     pub geometry: ScannerGeometry,
     /// Homing cycles of the homing check.
     pub homings: usize,
+    /// Capture at every mirror [`capture_mirrors`] may choose, not three.
+    pub capture_all: bool,
     /// The capture steps' exposure, settle, light and frame timeout (as a
     /// scan's; `attempts` retakes a missed frame).
     pub scan: ScanOptions,
@@ -561,12 +563,15 @@ pub fn facing_views(g: &ScannerGeometry) -> Vec<Option<usize>> {
 }
 
 /// The capture check's mirrors among `count`: the first, middle and last
-/// of those whose reflection faces a view (a glossy target then tells
-/// where the beam went), else of all.
-pub fn capture_mirrors(count: usize, facing: &[Option<usize>]) -> Vec<usize> {
+/// (`all`: every one) of those whose reflection faces a view (a glossy
+/// target then tells where the beam went), else of all.
+pub fn capture_mirrors(count: usize, facing: &[Option<usize>], all: bool) -> Vec<usize> {
     let candidates: Vec<usize> =
         (0..count).filter(|&l| facing.get(l).is_some_and(Option::is_some)).collect();
     let from: Vec<usize> = if candidates.is_empty() { (0..count).collect() } else { candidates };
+    if all {
+        return from;
+    }
     let mut chosen: Vec<usize> = [0, from.len() / 2, from.len().saturating_sub(1)]
         .iter()
         .filter_map(|&i| from.get(i).copied())
@@ -671,7 +676,7 @@ fn capture(
 ) -> Checked {
     let count = dev.info().mirror_count as usize;
     let facing = facing_views(&o.geometry);
-    let mirrors = capture_mirrors(count, &facing);
+    let mirrors = capture_mirrors(count, &facing, o.capture_all);
     let max_code = o.geometry.sensor.max_code();
     let dark_views = view_levels(dark, &o.geometry);
     if dark_views.iter().all(Option::is_none) {
@@ -780,10 +785,12 @@ mod tests {
             (facing[0], facing[2], facing[13], facing[19]),
             (Some(2), Some(0), Some(19), Some(13))
         );
-        assert_eq!(capture_mirrors(40, &facing), [0, 17, 24]);
+        assert_eq!(capture_mirrors(40, &facing, false), [0, 17, 24]);
+        assert_eq!(capture_mirrors(40, &facing, true), want);
         // A scanner none of whose lights faces a view: first, middle, last.
-        assert_eq!(capture_mirrors(40, &[None; 40]), [0, 20, 39]);
-        assert_eq!(capture_mirrors(1, &[None]), [0]);
+        assert_eq!(capture_mirrors(40, &[None; 40], false), [0, 20, 39]);
+        assert_eq!(capture_mirrors(3, &[None; 3], true), [0, 1, 2]);
+        assert_eq!(capture_mirrors(1, &[None], false), [0]);
     }
 
     /// A highlight outshines the next view 4× and the median 8×; a diffuse

@@ -155,8 +155,8 @@ fn a_glossy_target_tells_which_mirror_the_beam_lit() {
         let geometry = frames.join("geometry.toml").display().to_string();
         let (code, _, err) = run(&["setup", "--device", server.path(), "--geometry", &geometry]);
         assert_eq!(code, Some(0), "{err}");
-        let (code, out, err) = check(&server, &frames);
         if !quarter_turn_off {
+            let (code, out, err) = check(&server, &frames);
             assert_eq!(code, Some(0), "{out}{err}");
             expect(&out, ["PASS"; 8]);
             assert!(
@@ -166,8 +166,24 @@ fn a_glossy_target_tells_which_mirror_the_beam_lit() {
                 ),
                 "{out}"
             );
+            // Every mirror that faces a view: the first ring's across the
+            // holder (0 ↔ 2, 1 ↔ 3), the third ring's half a turn on.
+            let (code, out, err) = check_with(&server, &frames, &["--capture-all"]);
+            assert_eq!(code, Some(0), "{out}{err}");
+            let faced = (0..4)
+                .map(|l| (l, (l + 2) % 4))
+                .chain((13..25).map(|l| (l, (l - 13 + 6) % 12 + 13)));
+            let seen: Vec<String> = faced.map(|(l, v)| format!("mirror {l} in view {v}")).collect();
+            assert!(
+                out.contains(&format!(
+                    "a glossy target's highlight where each beam's reflection faces: {}",
+                    seen.join(", ")
+                )),
+                "{out}"
+            );
             continue;
         }
+        let (code, out, err) = check(&server, &frames);
         assert_eq!(code, Some(10), "{out}{err}");
         expect(&out, ["PASS", "PASS", "PASS", "PASS", "PASS", "PASS", "PASS", "FAIL"]);
         // Mirror 0 (azimuth 0°) lit mirror 1 or 3 (±90°) instead, whose

@@ -1524,6 +1524,11 @@ pub struct CheckArgs {
     /// the switches).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
     pub homings: u32,
+    /// Capture steps at every mirror whose reflection faces a view (with a
+    /// glossy target each one's highlight is checked), not only the first,
+    /// middle and last of them.
+    #[arg(long)]
+    pub capture_all: bool,
     /// Exposure of the camera and capture checks, µs (1 000 … 2 000 000).
     #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
     pub exposure_us: u32,
@@ -1587,7 +1592,12 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
     scan.frame_timeout = Duration::from_secs_f64(c.frame_timeout);
     scan.settle_ms = c.settle_ms;
     scan.light_margin_us = c.light_margin_us;
-    let o = crate::check::CheckOptions { geometry, homings: c.homings as usize, scan };
+    let o = crate::check::CheckOptions {
+        geometry,
+        homings: c.homings as usize,
+        capture_all: c.capture_all,
+        scan,
+    };
     let outcomes = crate::check::run(
         &mut opened.device,
         camera.as_mut().map(|c| &mut **c as &mut dyn Camera),
