@@ -23,7 +23,7 @@ forbid() { # package, cargo-tree flags, forbidden crates...
     return "$bad"
 }
 
-forbid host "--no-default-features" hil-sim firmware clap clap_complete quick-junit indicatif tracing-subscriber anyhow plotters ctrlc
+forbid host "--no-default-features" hil-sim firmware clap clap_complete clap_mangen quick-junit indicatif tracing-subscriber anyhow plotters ctrlc
 forbid scanner-geometry "" hil-sim firmware clap indicatif serialport nusb exr image rand
 forbid scanner-shading "" hil-sim firmware clap indicatif tracing-subscriber anyhow serialport nusb exr image spade rayon
 forbid scanner-shading-c "" hil-sim firmware host clap indicatif tracing-subscriber anyhow serialport nusb exr image spade rayon

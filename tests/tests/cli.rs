@@ -250,6 +250,32 @@ fn completion_scripts_cover_every_command() {
     assert_eq!(code, Some(2), "{err}");
 }
 
+/// The manual pages: one for the program and one for every command,
+/// rendered from the parser; written again over its own pages, refused
+/// over a directory holding anything else.
+#[test]
+fn manual_pages_cover_every_command() {
+    let dir = tmp();
+    let man = sub(dir.path(), "man1");
+    let (code, out, err) = run(&["man", man.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("manual pages in"), "{out}");
+    for page in ["scanner.1", "scanner-scan.1", "scanner-check.1", "scanner-build.1"] {
+        let roff = std::fs::read_to_string(man.join(page)).unwrap();
+        assert!(roff.contains("\n.TH "), "{page}: {roff}");
+    }
+    let check = std::fs::read_to_string(man.join("scanner-check.1")).unwrap();
+    assert!(check.contains("\\fB\\-\\-capture\\-all\\fR"), "{check}");
+    let pages = std::fs::read_dir(&man).unwrap().count();
+    let (code, _, err) = run(&["man", man.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(std::fs::read_dir(&man).unwrap().count(), pages);
+    std::fs::write(man.join("notes.txt"), "mine").unwrap();
+    let (code, _, err) = run(&["man", man.to_str().unwrap()]);
+    assert_eq!(code, Some(4), "{err}");
+    assert_eq!(std::fs::read_to_string(man.join("notes.txt")).unwrap(), "mine");
+}
+
 #[test]
 fn no_device_exits_5() {
     let (code, _, err) = run(&["status", "--device", "/dev/no-such-scanner"]);

@@ -86,6 +86,13 @@ enum Command {
         /// The shell.
         shell: clap_complete::Shell,
     },
+    /// Write the manual pages (`scanner.1`, `scanner-COMMAND.1`, roff) into
+    /// DIR, e.g. `scanner man ~/.local/share/man/man1` (then `man scanner-scan`).
+    Man {
+        /// Output directory: new, or one holding only manual pages of ours
+        /// (replaced whole).
+        dir: PathBuf,
+    },
     /// Check a scan directory: every frame recorded and matching its checksum.
     Verify {
         /// Scan directory.
@@ -767,6 +774,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             clap_complete::generate(shell, &mut Cli::command(), "scanner", &mut out);
             std::io::Write::flush(&mut out).map_err(|e| Failure(1, e.into()))?;
         }
+        Command::Man { dir } => man_pages(&dir)?,
         Command::Verify { dir } => commands::verify(&dir)?,
         Command::Clear { device } => commands::clear(&device)?,
         Command::Calibrate {
@@ -995,6 +1003,49 @@ impl std::io::Write for LogWriter {
     fn flush(&mut self) -> std::io::Result<()> {
         std::io::stderr().flush()
     }
+}
+
+/// Whether `name` is one of the manual pages `scanner man` writes.
+fn is_man_page(name: &str) -> bool {
+    (name == "scanner.1" || name.starts_with("scanner-")) && name.ends_with(".1")
+}
+
+/// `scanner man DIR`: a page for the program and one for every command,
+/// rendered by clap_mangen from the parser itself, written into a fresh
+/// directory that then replaces DIR whole (as `scanner regions` does).
+fn man_pages(dir: &Path) -> Result<(), Failure> {
+    use clap::CommandFactory;
+    crate::fsutil::check_output_dir(dir, is_man_page)
+        .map_err(|e| Failure(4, anyhow::anyhow!(e)))?;
+    let mut cli = Cli::command().disable_help_subcommand(true);
+    cli.build();
+    // Every command's page, its own commands' first (as clap_mangen's
+    // `generate_to` orders them).
+    fn render(cmd: clap::Command, pages: &mut Vec<(String, Vec<u8>)>) -> std::io::Result<()> {
+        for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()).cloned() {
+            render(sub, pages)?;
+        }
+        let man = clap_mangen::Man::new(cmd);
+        let mut roff = Vec::new();
+        man.render(&mut roff)?;
+        pages.push((man.get_filename(), roff));
+        Ok(())
+    }
+    let place = |e: std::io::Error| Failure(4, anyhow::anyhow!("{}: {e}", dir.display()));
+    let mut pages = Vec::new();
+    render(cli, &mut pages).map_err(place)?;
+    let staging = crate::fsutil::staging_dir(dir).map_err(place)?;
+    for (name, roff) in &pages {
+        std::fs::write(staging.path().join(name), roff).map_err(place)?;
+    }
+    crate::fsutil::replace_dir(staging, dir).map_err(place)?;
+    println!(
+        "{} manual pages in {}: man -l {}",
+        pages.len(),
+        dir.display(),
+        dir.join("scanner.1").display()
+    );
+    Ok(())
 }
 
 /// The `scanner` program.
