@@ -5,7 +5,7 @@
 //! `DIR/frame` and `DIR/texture_map`, the default scanner's geometry file
 //! in `DIR/geometry`, axis configuration files in `DIR/axes`, and a calibration of it (the nominal views, a 2 × 2
 //! colour grid) in `DIR/calibration`, and the manifests of two small
-//! simulated scans (3 mirrors at one exposure, 2 with a bracket of three;
+//! simulated scans (3 mirrors at one exposure — also as a watched strobe records it —, 2 with a bracket of three;
 //! the sensor binned 64×) in `DIR/manifest`, two direct-image manifests in
 //! `DIR/direct`, pictures of a piece on a background in `DIR/corners`,
 //! scattered BRDF measurements
@@ -206,6 +206,26 @@ fn main() {
         let g = sim.nominal().unwrap();
         host::scan::scan(&mut dev, &mut camera, &g, &opts, &mut host::scan::Quiet).unwrap();
         std::fs::copy(scan.path().join("manifest.json"), dir.join(format!("{name}.json"))).unwrap();
+        if name == "fixed-3" {
+            // The same scan as a camera whose exposure strobe is watched
+            // records it: every frame's window, the dark frame's and the
+            // black level's bias frame's (`--black-level auto`).
+            let text = std::fs::read_to_string(scan.path().join("manifest.json")).unwrap();
+            let mut m: serde_json::Value = serde_json::from_str(&text).unwrap();
+            let window = serde_json::json!({ "delay_us": 1000, "length_us": 50_000 });
+            for f in m["frames"].as_array_mut().unwrap() {
+                f["strobe"] = window.clone();
+            }
+            m["settings"]["dark"]["strobe"] = window.clone();
+            m["settings"]["black_level_auto"] =
+                serde_json::json!({ "exposure_us": 1000, "strobe": window });
+            let bytes = serde_json::to_vec_pretty(&m).unwrap();
+            std::fs::write(scan.path().join("manifest.json"), &bytes).unwrap();
+            let read = host::scan::Manifest::load(scan.path()).unwrap();
+            assert!(read.settings.dark.unwrap().strobe.is_some());
+            assert!(read.frames.iter().all(|f| f.strobe.is_some()));
+            std::fs::write(dir.join(format!("{name}-strobe.json")), bytes).unwrap();
+        }
     }
     println!("scan manifests in {}", dir.display());
     // Direct-image manifests: the simulator's photographs' (a white
