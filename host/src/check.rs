@@ -20,8 +20,8 @@
 //! 7. **mirrors** — every entry of the device's table visited, then homed:
 //!    no step lost on the way;
 //! 8. **capture** — with the table the geometry's, capture steps at the
-//!    first, middle and last mirror whose reflection faces a view
-//!    ([`capture_mirrors`]): each frame shows the sample on the holder lit
+//!    first, middle and last mirror whose reflection faces a view, and the
+//!    last mirror ([`capture_mirrors`]): each frame shows the sample on the holder lit
 //!    (a view [`LIT_CODES`] above the frame with the light off), the
 //!    strobe's timing within the light; with a glossy target on the holder
 //!    its highlight in the view the lit mirror's reflection faces (else the
@@ -543,9 +543,10 @@ pub const HIGHLIGHT_OVER_NEXT: f64 = 4.0;
 /// See [`HIGHLIGHT_OVER_NEXT`].
 pub const HIGHLIGHT_OVER_MEDIAN: f64 = 8.0;
 
-/// For every light, the view its mirror reflection (about the holder's
-/// normal) faces within [`FACING_DEG`], by the nominal directions.
-pub fn facing_views(g: &ScannerGeometry) -> Vec<Option<usize>> {
+/// For every light, the view nearest its mirror reflection (about the
+/// holder's normal) and the angle between them, degrees, by the nominal
+/// directions: where a glossy target's highlight (or its tail) shows.
+pub fn reflection_views(g: &ScannerGeometry) -> Vec<Option<(usize, f64)>> {
     (0..g.mirrors.len())
         .map(|l| {
             let light = g.light_direction(l).ok()?;
@@ -553,30 +554,44 @@ pub fn facing_views(g: &ScannerGeometry) -> Vec<Option<usize>> {
             (0..g.mirrors.len())
                 .filter_map(|j| {
                     let a = g.mirror_direction(j)?.dot(reflected).clamp(-1.0, 1.0).acos();
-                    Some((a.to_degrees(), j))
+                    Some((j, a.to_degrees()))
                 })
-                .min_by(|a, b| a.0.total_cmp(&b.0))
-                .filter(|(a, _)| *a <= FACING_DEG)
-                .map(|(_, j)| j)
+                .min_by(|a, b| a.1.total_cmp(&b.1))
         })
+        .collect()
+}
+
+/// For every light, the view its mirror reflection faces within
+/// [`FACING_DEG`] ([`reflection_views`]).
+pub fn facing_views(g: &ScannerGeometry) -> Vec<Option<usize>> {
+    reflection_views(g)
+        .iter()
+        .map(|r| r.filter(|(_, a)| *a <= FACING_DEG).map(|(j, _)| j))
         .collect()
 }
 
 /// The capture check's mirrors among `count`: the first, middle and last
 /// (`all`: every one) of those whose reflection faces a view (a glossy
-/// target then tells where the beam went), else of all.
+/// target then tells where the beam went), else of all; and the last
+/// mirror (the outermost ring, the axes' farthest reach), last.
 pub fn capture_mirrors(count: usize, facing: &[Option<usize>], all: bool) -> Vec<usize> {
     let candidates: Vec<usize> =
         (0..count).filter(|&l| facing.get(l).is_some_and(Option::is_some)).collect();
     let from: Vec<usize> = if candidates.is_empty() { (0..count).collect() } else { candidates };
-    if all {
-        return from;
-    }
-    let mut chosen: Vec<usize> = [0, from.len() / 2, from.len().saturating_sub(1)]
-        .iter()
-        .filter_map(|&i| from.get(i).copied())
-        .collect();
+    let mut chosen: Vec<usize> = if all {
+        from.clone()
+    } else {
+        [0, from.len() / 2, from.len().saturating_sub(1)]
+            .iter()
+            .filter_map(|&i| from.get(i).copied())
+            .collect()
+    };
     chosen.dedup();
+    if let Some(last) = count.checked_sub(1)
+        && !chosen.contains(&last)
+    {
+        chosen.push(last);
+    }
     chosen
 }
 
@@ -615,11 +630,26 @@ fn highlight(codes: &[(usize, f64)]) -> Option<usize> {
 enum Beam {
     /// The views alike (a diffuse sample): their level, full scale.
     Alike(f64),
-    /// A highlight in `view`, the one the lit mirror's reflection faces.
+    /// A highlight in `view`, the one nearest the lit mirror's reflection.
     Facing(usize),
-    /// A highlight in `view`, not the one the lit mirror's reflection
-    /// faces (`expected`, if any): the light `from` faces it, if one does.
+    /// A highlight in `view`, not the one nearest the lit mirror's
+    /// reflection (`expected`, if any): the light `from` faces it, if one
+    /// does.
     Elsewhere { view: usize, expected: Option<usize>, from: Option<usize> },
+}
+
+/// The views a glossy target's highlight shows in: for every light, the
+/// one it faces ([`facing_views`]), and the one nearest its reflection.
+struct Reflections {
+    facing: Vec<Option<usize>>,
+    nearest: Vec<Option<usize>>,
+}
+
+impl Reflections {
+    fn of(g: &ScannerGeometry) -> Reflections {
+        let nearest = reflection_views(g).iter().map(|r| r.map(|(j, _)| j)).collect();
+        Reflections { facing: facing_views(g), nearest }
+    }
 }
 
 /// Where the beam of light `l` went, as `frame` (against `dark`'s views)
@@ -628,7 +658,7 @@ fn beam_of(
     l: usize,
     views: &[Option<f64>],
     dark: &[Option<f64>],
-    facing: &[Option<usize>],
+    r: &Reflections,
     max_code: f64,
     level: f64,
 ) -> Option<Beam> {
@@ -642,11 +672,11 @@ fn beam_of(
         return None;
     }
     let Some(view) = highlight(&codes) else { return Some(Beam::Alike(level)) };
-    let expected = facing.get(l).copied().flatten();
+    let expected = r.nearest.get(l).copied().flatten();
     if expected == Some(view) {
         return Some(Beam::Facing(view));
     }
-    let from = facing.iter().position(|f| *f == Some(view));
+    let from = r.facing.iter().position(|f| *f == Some(view));
     Some(Beam::Elsewhere { view, expected, from })
 }
 
@@ -675,8 +705,9 @@ fn capture(
     dark: &crate::camera::Frame,
 ) -> Checked {
     let count = dev.info().mirror_count as usize;
-    let facing = facing_views(&o.geometry);
-    let mirrors = capture_mirrors(count, &facing, o.capture_all);
+    let reflections = Reflections::of(&o.geometry);
+    let facing = &reflections.facing;
+    let mirrors = capture_mirrors(count, facing, o.capture_all);
     let max_code = o.geometry.sensor.max_code();
     let dark_views = view_levels(dark, &o.geometry);
     if dark_views.iter().all(Option::is_none) {
@@ -684,6 +715,9 @@ fn capture(
     }
     let mut report = ScanReport::default();
     let (mut alike, mut facing_seen, mut wrong) = (Vec::new(), Vec::new(), Vec::new());
+    // Mirrors a glossy target (a highlight seen at an earlier step) shows
+    // nothing through: their reflection faces no view.
+    let mut unjudged = Vec::new();
     for &l in &mirrors {
         let ((frame, _, _, exposure), _) = scan::capture_with_retries(
             dev,
@@ -700,8 +734,10 @@ fn capture(
         // The same geometry and frame size as the dark frame's: it has views.
         let (level, saturated) = sample_level(&frame, &o.geometry).unwrap_or((0.0, 0.0));
         let views = view_levels(&frame, &o.geometry);
-        match beam_of(l, &views, &dark_views, &facing, max_code, level) {
-            None => return Ok(Err(unlit(l, &facing))),
+        let glossy = !facing_seen.is_empty() || !wrong.is_empty();
+        match beam_of(l, &views, &dark_views, &reflections, max_code, level) {
+            None if glossy && facing.get(l).is_some_and(Option::is_none) => unjudged.push(l),
+            None => return Ok(Err(unlit(l, facing))),
             Some(Beam::Alike(level)) => {
                 alike.push(format!("mirror {l} at {:.1} %{}", 100.0 * level, saturation(saturated)))
             }
@@ -732,6 +768,14 @@ fn capture(
         parts.push(format!(
             "a glossy target's highlight where each beam's reflection faces: {}",
             facing_seen.join(", ")
+        ));
+    }
+    if !unjudged.is_empty() {
+        let list: Vec<String> = unjudged.iter().map(|l| format!("mirror {l}")).collect();
+        parts.push(format!(
+            "{}: a reflection that faces no view, so the glossy target shows nothing there (a \
+             diffuse one would)",
+            list.join(", ")
         ));
     }
     if !alike.is_empty() {
@@ -785,12 +829,15 @@ mod tests {
             (facing[0], facing[2], facing[13], facing[19]),
             (Some(2), Some(0), Some(19), Some(13))
         );
-        assert_eq!(capture_mirrors(40, &facing, false), [0, 17, 24]);
-        assert_eq!(capture_mirrors(40, &facing, true), want);
+        // And the outermost mirror, whatever the target shows there.
+        assert_eq!(capture_mirrors(40, &facing, false), [0, 17, 24, 39]);
+        let all: Vec<usize> = want.iter().copied().chain([39]).collect();
+        assert_eq!(capture_mirrors(40, &facing, true), all);
         // A scanner none of whose lights faces a view: first, middle, last.
         assert_eq!(capture_mirrors(40, &[None; 40], false), [0, 20, 39]);
         assert_eq!(capture_mirrors(3, &[None; 3], true), [0, 1, 2]);
         assert_eq!(capture_mirrors(1, &[None], false), [0]);
+        assert_eq!(capture_mirrors(0, &[], false), Vec::<usize>::new());
     }
 
     /// A highlight outshines the next view 4× and the median 8×; a diffuse
@@ -830,7 +877,7 @@ mod tests {
     fn the_beam_is_placed_by_the_view_its_highlight_shows_in() {
         let top = 4095.0;
         let g = ScannerGeometry::default_scanner();
-        let facing = facing_views(&g);
+        let r = Reflections::of(&g);
         let dark = vec![Some(2.0 / top); 40];
         let lit = |bright: &[(usize, f64)], rest: f64| -> Vec<Option<f64>> {
             (0..40)
@@ -840,7 +887,7 @@ mod tests {
                 })
                 .collect()
         };
-        let beam = |views: &[Option<f64>], l| beam_of(l, views, &dark, &facing, top, 0.5);
+        let beam = |views: &[Option<f64>], l| beam_of(l, views, &dark, &r, top, 0.5);
         // Nothing 16 codes above the dark frame: the beam missed.
         assert_eq!(beam(&lit(&[(2, 15.0)], 1.0), 0), None);
         // Every view alike: a diffuse sample.
@@ -856,6 +903,14 @@ mod tests {
         assert_eq!(
             beam(&lit(&[(5, 4000.0)], 3.0), 13),
             Some(Beam::Elsewhere { view: 5, expected: Some(19), from: None })
+        );
+        // A light of the second ring faces no view: its highlight's tail
+        // belongs in the view nearest its reflection (view 9, 10.8° off).
+        assert_eq!(r.nearest[4], Some(9));
+        assert_eq!(beam(&lit(&[(9, 400.0)], 3.0), 4), Some(Beam::Facing(9)));
+        assert_eq!(
+            beam(&lit(&[(10, 400.0)], 3.0), 4),
+            Some(Beam::Elsewhere { view: 10, expected: Some(9), from: None })
         );
         // A view outside the frame is left out, not taken as dark.
         let mut views = lit(&[(2, 4000.0)], 3.0);

@@ -123,7 +123,7 @@ fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
     assert!(r["checks"].as_array().unwrap().iter().all(|c| c["verdict"] == "pass"), "{r}");
     assert_eq!(r["device"]["protocol"], "1.5");
     assert!(out.contains("ms after the trigger, as long as the pulse"), "{out}");
-    assert!(out.contains("camera strobe over 3 exposures: 0."), "{out}");
+    assert!(out.contains("camera strobe over 4 exposures: 0."), "{out}");
     expect(&out, ["PASS"; 8]);
     assert!(out.contains("8 checks: 8 passed, 0 failed, 0 skipped"), "{out}");
     assert!(out.contains("count at the switch after 2 homings"), "{out}");
@@ -132,6 +132,7 @@ fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
     // A leather sample: its views alike, so where the beam went is not told.
     assert!(out.contains("the sample's views lit: mirror 0 at "), "{out}");
     assert!(out.contains(", mirror 17 at ") && out.contains(", mirror 24 at "), "{out}");
+    assert!(out.contains(", mirror 39 at "), "the outermost mirror too: {out}");
     assert!(out.contains("(views alike: which mirror the beam lit is not told"), "{out}");
 }
 
@@ -162,7 +163,8 @@ fn a_glossy_target_tells_which_mirror_the_beam_lit() {
             assert!(
                 out.contains(
                     "a glossy target's highlight where each beam's reflection faces: mirror 0 in \
-                     view 2, mirror 17 in view 23, mirror 24 in view 18"
+                     view 2, mirror 17 in view 23, mirror 24 in view 18; mirror 39: a reflection \
+                     that faces no view, so the glossy target shows nothing there"
                 ),
                 "{out}"
             );
