@@ -60,6 +60,9 @@ pub struct CheckOptions {
     pub homings: usize,
     /// Capture at every mirror [`capture_mirrors`] may choose, not three.
     pub capture_all: bool,
+    /// The target is glossy: a step at a mirror facing a view must show a
+    /// highlight (views alike fail).
+    pub glossy: bool,
     /// The capture steps' exposure, settle, light and frame timeout (as a
     /// scan's; `attempts` retakes a missed frame).
     pub scan: ScanOptions,
@@ -718,6 +721,8 @@ fn capture(
     // Mirrors a glossy target (a highlight seen at an earlier step) shows
     // nothing through: their reflection faces no view.
     let mut unjudged = Vec::new();
+    // Steps with `glossy` whose views were alike.
+    let mut flat = Vec::new();
     for &l in &mirrors {
         let ((frame, _, _, exposure), _) = scan::capture_with_retries(
             dev,
@@ -738,6 +743,9 @@ fn capture(
         match beam_of(l, &views, &dark_views, &reflections, max_code, level) {
             None if glossy && facing.get(l).is_some_and(Option::is_none) => unjudged.push(l),
             None => return Ok(Err(unlit(l, facing))),
+            Some(Beam::Alike(level)) if o.glossy && facing.get(l).is_some_and(Option::is_some) => {
+                flat.push(format!("mirror {l} (views at {:.1} %)", 100.0 * level))
+            }
             Some(Beam::Alike(level)) => {
                 alike.push(format!("mirror {l} at {:.1} %{}", 100.0 * level, saturation(saturated)))
             }
@@ -761,6 +769,14 @@ fn capture(
              steps per unit (`scanner move --mirror N` and look where the beam lands; \
              docs/axis-config.md)",
             wrong.join("; ")
+        )));
+    }
+    if !flat.is_empty() {
+        return Ok(Err(format!(
+            "{}: no highlight, the views alike, though --glossy says the target is glossy: a \
+             diffuse sample on the holder, or a beam that is not collimated (the source, the fold \
+             mirror)",
+            flat.join(", ")
         )));
     }
     let mut parts = Vec::new();

@@ -134,6 +134,18 @@ fn check_passes_on_a_sound_scanner_once_its_mirror_table_is_written() {
     assert!(out.contains(", mirror 17 at ") && out.contains(", mirror 24 at "), "{out}");
     assert!(out.contains(", mirror 39 at "), "the outermost mirror too: {out}");
     assert!(out.contains("(views alike: which mirror the beam lit is not told"), "{out}");
+    // A rig that says its target is glossy: the leather's alike views fail.
+    let (code, out, err) = check_with(&server, &frames, &["--glossy"]);
+    assert_eq!(code, Some(10), "{out}{err}");
+    expect(&out, ["PASS", "PASS", "PASS", "PASS", "PASS", "PASS", "PASS", "FAIL"]);
+    assert!(
+        out.contains(
+            "FAIL capture: mirror 0 (views at 6.4 %), mirror 17 (views at 4.4 %), mirror 24 \
+             (views at 4.4 %): no highlight, the views alike, though --glossy says the target is \
+             glossy"
+        ),
+        "{out}"
+    );
 }
 
 /// With a glossy black target on the holder the capture check sees each
@@ -170,7 +182,7 @@ fn a_glossy_target_tells_which_mirror_the_beam_lit() {
             );
             // Every mirror that faces a view: the first ring's across the
             // holder (0 ↔ 2, 1 ↔ 3), the third ring's half a turn on.
-            let (code, out, err) = check_with(&server, &frames, &["--capture-all"]);
+            let (code, out, err) = check_with(&server, &frames, &["--capture-all", "--glossy"]);
             assert_eq!(code, Some(0), "{out}{err}");
             let faced = (0..4)
                 .map(|l| (l, (l + 2) % 4))

@@ -1529,6 +1529,10 @@ pub struct CheckArgs {
     /// middle and last of them.
     #[arg(long)]
     pub capture_all: bool,
+    /// The target on the holder is glossy (the glossy black one): a capture
+    /// step whose views are alike fails instead of passing untold.
+    #[arg(long)]
+    pub glossy: bool,
     /// Exposure of the camera and capture checks, µs (1 000 … 2 000 000).
     #[arg(long, default_value_t = protocol::DEFAULT_EXPOSURE_US)]
     pub exposure_us: u32,
@@ -1596,6 +1600,7 @@ pub fn check(args: &DeviceArgs, c: &CheckArgs) -> Result<(), Failure> {
         geometry,
         homings: c.homings as usize,
         capture_all: c.capture_all,
+        glossy: c.glossy,
         scan,
     };
     let outcomes = crate::check::run(
