@@ -534,12 +534,17 @@ impl FaultFlags {
             "position lost (steps lost)",
             "flash storage failed",
         ];
-        NAMES
-            .into_iter()
-            .enumerate()
-            .filter(move |(bit, _)| self.0 & (1 << bit) != 0)
-            .map(|(_, name)| name)
+        set_bit_names(self.0, &NAMES)
     }
+}
+
+/// The names of the bits set in `mask`, bit 0 first: `names[bit]` (a bit
+/// beyond `names` is left out).
+fn set_bit_names(
+    mask: u16,
+    names: &'static [&'static str],
+) -> impl Iterator<Item = &'static str> + use<> {
+    names.iter().enumerate().filter(move |(bit, _)| mask & (1 << bit) != 0).map(|(_, n)| *n)
 }
 
 wire_type! {
@@ -585,11 +590,7 @@ impl Capabilities {
             "simulated",
             "ROM bootloader on command",
         ];
-        NAMES
-            .into_iter()
-            .enumerate()
-            .filter(move |(bit, _)| self.0 & (1 << bit) != 0)
-            .map(|(_, name)| name)
+        set_bit_names(self.0, &NAMES)
     }
 }
 
