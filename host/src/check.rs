@@ -567,10 +567,12 @@ pub fn reflection_views(g: &ScannerGeometry) -> Vec<Option<(usize, f64)>> {
 /// For every light, the view its mirror reflection faces within
 /// [`FACING_DEG`] ([`reflection_views`]).
 pub fn facing_views(g: &ScannerGeometry) -> Vec<Option<usize>> {
-    reflection_views(g)
-        .iter()
-        .map(|r| r.filter(|(_, a)| *a <= FACING_DEG).map(|(j, _)| j))
-        .collect()
+    facing_of(&reflection_views(g))
+}
+
+/// [`facing_views`] from the lights' [`reflection_views`].
+fn facing_of(reflections: &[Option<(usize, f64)>]) -> Vec<Option<usize>> {
+    reflections.iter().map(|r| r.filter(|(_, a)| *a <= FACING_DEG).map(|(j, _)| j)).collect()
 }
 
 /// The capture check's mirrors among `count`: the first, middle and last
@@ -650,8 +652,9 @@ struct Reflections {
 
 impl Reflections {
     fn of(g: &ScannerGeometry) -> Reflections {
-        let nearest = reflection_views(g).iter().map(|r| r.map(|(j, _)| j)).collect();
-        Reflections { facing: facing_views(g), nearest }
+        let views = reflection_views(g);
+        let nearest = views.iter().map(|r| r.map(|(j, _)| j)).collect();
+        Reflections { facing: facing_of(&views), nearest }
     }
 }
 
