@@ -44,5 +44,5 @@ pub mod truth;
 
 pub use device::{SimConfig, SimDevice, TriggerRecord, Truth};
 pub use faults::{FaultEvent, FaultPlan, FaultSpec, FaultWhen};
-pub use link::{LinkError, PtyServer, SimLink};
+pub use link::{LinkError, Port, PtyServer, SimLink};
 pub use rig::SimRig;

@@ -174,6 +174,12 @@ impl UsbTx {
     pub fn pending(&self) -> usize {
         self.queue.len() + self.packet.len()
     }
+
+    /// Forget what waits (the port is gone).
+    pub fn discard(&mut self) {
+        self.queue.clear();
+        self.packet.clear();
+    }
 }
 
 /// Why a link operation failed.
@@ -358,6 +364,270 @@ impl RestWatch {
     }
 }
 
+/// What a [`PtyServer`] gives the host to open.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub enum Port {
+    /// The pty itself (`/dev/pts/N`). It stays open through everything: a
+    /// disconnect fault only silences the link, and a reset shows only as
+    /// the board's `Boot` event.
+    #[default]
+    Pty,
+    /// A USB board's port: a symbolic link to the current pty, as udev's
+    /// `/dev/serial/by-id/…`, at the path given (`None`: in a temporary
+    /// directory of the server's). The board unplugs as a USB device does:
+    /// on a disconnect fault, for its duration; on a reset (watchdog or
+    /// `Reset`), [`RESET_UNPLUG_MS`] after it (the bytes already sent are
+    /// the host's to read) until [`REPLUG_MS`] after it, the boot and the
+    /// enumeration; after `EnterBootloader`, for good (the chip's ROM
+    /// enumerates as a DFU device, no serial port). Unplugged, the pty is
+    /// closed — the host's reads and writes on it fail, as on a real
+    /// unplug — and the link removed; plugged again, the link names a new
+    /// pty. An existing path is replaced only if it is a symbolic link.
+    Usb(Option<PathBuf>),
+}
+
+/// After a reset, the board's USB port disappears this much later
+/// ([`Port::Usb`]): what it sent before has been read by then.
+pub const RESET_UNPLUG_MS: u64 = 20;
+
+/// After a reset, the board's USB port is back this much later
+/// ([`Port::Usb`]): its boot and the host's enumeration.
+pub const REPLUG_MS: u64 = 800;
+
+/// What passes through a [`ServedPort`] this turn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Passing {
+    /// Bytes both ways.
+    Both,
+    /// The board has just reset: what it had queued still goes out, then
+    /// nothing until the port comes back.
+    LastOut,
+    /// Nothing (the link down, the board resetting or unplugged).
+    Nothing,
+}
+
+/// The [`Port::Usb`] side of a [`ServedPort`].
+#[derive(Debug)]
+struct UsbPlug {
+    link: PathBuf,
+    /// The boots and ROM state last seen: a change is a reset.
+    boots: u32,
+    in_rom: bool,
+    /// A reset: the port goes at this tick.
+    unplug_at: Option<u64>,
+    /// The port may come back from this tick on (`u64::MAX`: never).
+    back_at: u64,
+    /// A failure to plug, said once.
+    plug_failed: bool,
+}
+
+/// The server's end of the port: the pty pair (none while a
+/// [`Port::Usb`] board is unplugged).
+#[derive(Debug)]
+struct ServedPort {
+    master: Option<TTYPort>,
+    /// Held so that the pty lives while no host has it open.
+    slave: Option<std::fs::File>,
+    usb: Option<UsbPlug>,
+}
+
+impl ServedPort {
+    /// The port for `device` and the path the host opens.
+    fn open(
+        port: &Port,
+        device: &SimDevice,
+        dir: &Option<tempfile::TempDir>,
+    ) -> std::io::Result<(ServedPort, String)> {
+        let mut served = ServedPort { master: None, slave: None, usb: None };
+        let link = match port {
+            Port::Pty => {
+                let name = served.plug()?;
+                return Ok((served, name));
+            }
+            Port::Usb(Some(path)) => {
+                if let Ok(meta) = std::fs::symlink_metadata(path)
+                    && !meta.file_type().is_symlink()
+                {
+                    return Err(std::io::Error::other(format!(
+                        "{}: exists and is no symbolic link; not replaced",
+                        path.display()
+                    )));
+                }
+                path.clone()
+            }
+            Port::Usb(None) => match dir {
+                Some(dir) => dir.path().join("ttySIM"),
+                None => return Err(std::io::Error::other("no directory for the port's link")),
+            },
+        };
+        served.usb = Some(UsbPlug {
+            link: link.clone(),
+            boots: device.boot_count(),
+            in_rom: device.in_bootloader(),
+            unplug_at: None,
+            back_at: 0,
+            plug_failed: false,
+        });
+        served.plug()?;
+        Ok((served, link.to_string_lossy().into_owned()))
+    }
+
+    /// A new pty pair (and the link to it); its name.
+    fn plug(&mut self) -> std::io::Result<String> {
+        let (mut master, slave, name) = pty_pair()?;
+        master.set_timeout(Duration::from_millis(1)).map_err(std::io::Error::other)?;
+        if let Some(usb) = &self.usb {
+            // Made beside the link and renamed over it: the link is never
+            // half there, and never replaces anything but a link.
+            let tmp = usb.link.with_extension(format!("tmp-{}", std::process::id()));
+            let _ = std::fs::remove_file(&tmp);
+            std::os::unix::fs::symlink(&name, &tmp)?;
+            std::fs::rename(&tmp, &usb.link)?;
+        }
+        (self.master, self.slave) = (Some(master), Some(slave));
+        Ok(name)
+    }
+
+    /// Close the pty (the host's side hangs up) and remove the link.
+    fn unplug(&mut self) {
+        if let Some(usb) = &self.usb {
+            let _ = std::fs::remove_file(&usb.link);
+        }
+        (self.master, self.slave) = (None, None);
+    }
+
+    /// Follow the board and the wire after the device has run; what
+    /// passes this turn. A [`Port::Pty`] passes whenever the wire is up.
+    fn follow(&mut self, device: &SimDevice, wire_up: bool) -> Passing {
+        let plugged = self.master.is_some();
+        let Some(usb) = &mut self.usb else {
+            return if wire_up { Passing::Both } else { Passing::Nothing };
+        };
+        let now = device.now();
+        let mut reset_now = false;
+        if device.boot_count() != usb.boots || device.in_bootloader() != usb.in_rom {
+            (usb.boots, usb.in_rom) = (device.boot_count(), device.in_bootloader());
+            usb.unplug_at = plugged.then_some(now + RESET_UNPLUG_MS * TICKS_PER_MS);
+            usb.back_at =
+                if usb.in_rom { u64::MAX } else { now.saturating_add(REPLUG_MS * TICKS_PER_MS) };
+            reset_now = true;
+        }
+        if plugged {
+            if !wire_up || usb.unplug_at.is_some_and(|t| now >= t) {
+                usb.unplug_at = None;
+                self.unplug();
+                return Passing::Nothing;
+            }
+        } else if wire_up && now >= usb.back_at {
+            match self.plug() {
+                Ok(_) => {
+                    if let Some(usb) = &mut self.usb {
+                        usb.plug_failed = false;
+                    }
+                }
+                Err(e) => {
+                    if let Some(usb) = &mut self.usb
+                        && !std::mem::replace(&mut usb.plug_failed, true)
+                    {
+                        eprintln!("hil-sim: cannot plug the board in again: {e}");
+                    }
+                }
+            }
+            return Passing::Nothing;
+        } else {
+            return Passing::Nothing;
+        }
+        match (reset_now, usb.unplug_at.is_some()) {
+            (true, _) => Passing::LastOut,
+            (false, true) => Passing::Nothing,
+            (false, false) => Passing::Both,
+        }
+    }
+
+    /// Bytes from the host (0: none within the port's 1 ms, or unplugged).
+    fn read(&mut self, buf: &mut [u8]) -> usize {
+        let Some(master) = &mut self.master else {
+            std::thread::sleep(Duration::from_millis(1));
+            return 0;
+        };
+        match master.read(buf) {
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => 0,
+            // No peer has the pty open (yet / any more): wait.
+            Err(_) => {
+                std::thread::sleep(Duration::from_millis(1));
+                0
+            }
+        }
+    }
+
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        match &mut self.master {
+            Some(master) => master.write(bytes),
+            None => Err(std::io::Error::from(std::io::ErrorKind::NotConnected)),
+        }
+    }
+}
+
+/// A pseudo-terminal pair: the board's side (the master), the host's side
+/// (the slave, raw, held open here) and the slave's path. No child process
+/// inherits either descriptor: serialport's `TTYPort::pair` opens them
+/// without `O_CLOEXEC`, so a `scanner` a test spawned while the server ran
+/// would hold the board's side open, and an unplug would not hang up the
+/// host's port.
+fn pty_pair() -> std::io::Result<(TTYPort, std::fs::File, String)> {
+    use std::os::fd::{AsRawFd, FromRawFd, IntoRawFd, OwnedFd};
+    use std::os::unix::fs::OpenOptionsExt;
+    let os = std::io::Error::last_os_error;
+    // SAFETY: libc calls on descriptors this function owns, and on buffers
+    // of the sizes given.
+    unsafe {
+        let fd = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY | libc::O_CLOEXEC);
+        if fd < 0 {
+            return Err(os());
+        }
+        let master = OwnedFd::from_raw_fd(fd);
+        if libc::grantpt(fd) != 0 || libc::unlockpt(fd) != 0 {
+            return Err(os());
+        }
+        let mut buf = [0 as libc::c_char; 128];
+        let r = libc::ptsname_r(fd, buf.as_mut_ptr(), buf.len());
+        if r != 0 {
+            return Err(std::io::Error::from_raw_os_error(r));
+        }
+        let name = std::ffi::CStr::from_ptr(buf.as_ptr())
+            .to_str()
+            .map_err(|_| std::io::Error::other("the pty's name is not UTF-8"))?
+            .to_owned();
+        // std opens with O_CLOEXEC.
+        let slave = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOCTTY)
+            .open(&name)?;
+        // Raw: no echo of what the board writes before the host opens it.
+        let mut t = std::mem::MaybeUninit::<libc::termios>::uninit();
+        if libc::tcgetattr(slave.as_raw_fd(), t.as_mut_ptr()) != 0 {
+            return Err(os());
+        }
+        let mut t = t.assume_init();
+        libc::cfmakeraw(&mut t);
+        if libc::tcsetattr(slave.as_raw_fd(), libc::TCSANOW, &t) != 0 {
+            return Err(os());
+        }
+        Ok((TTYPort::from_raw_fd(master.into_raw_fd()), slave, name))
+    }
+}
+
+impl Drop for ServedPort {
+    fn drop(&mut self) {
+        if self.master.is_some() {
+            self.unplug();
+        }
+    }
+}
+
 /// The simulated device served on a pseudo-terminal, in real time.
 #[derive(Debug)]
 pub struct PtyServer {
@@ -366,7 +636,8 @@ pub struct PtyServer {
     ruler: Arc<AtomicBool>,
     thread: Option<JoinHandle<SimDevice>>,
     renderer: Option<JoinHandle<()>>,
-    _slave: TTYPort,
+    /// Where a [`Port::Usb`] without a path keeps its link (removed last).
+    _dir: Option<tempfile::TempDir>,
 }
 
 impl PtyServer {
@@ -376,18 +647,19 @@ impl PtyServer {
     /// 500 ms link timeout). A stretch the serving
     /// thread could not run is not simulated at once (see `PtyClock`).
     pub fn start(device: SimDevice, speed: f64) -> std::io::Result<PtyServer> {
-        Self::start_with_camera(device, speed, None)
+        Self::start_with_camera(device, speed, None, Port::Pty)
     }
 
     /// [`PtyServer::start`] with a simulated camera on the trigger output
     /// that drops each frame into `camera.1` as `frame-NNNNNN.EXT` (NNNNNN:
     /// the trigger pulse's index since power-on; the files as `camera.2`
     /// says), written atomically — as a real camera's capture program
-    /// would. Frames render on their own thread.
+    /// would. Frames render on their own thread. The host opens `port`.
     pub fn start_with_camera(
         mut device: SimDevice,
         speed: f64,
         camera: Option<(SimCamera, PathBuf, FrameFiles)>,
+        port: Port,
     ) -> std::io::Result<PtyServer> {
         let mut renderer = None;
         let mut camera = match camera {
@@ -415,9 +687,11 @@ impl PtyServer {
         // server thread first scheduled after the host has written (a busy
         // machine) would answer at tick 0, before the first debounce ended.
         device.advance_to(device.now() + BOOTED_TICKS);
-        let (mut master, slave) = TTYPort::pair().map_err(std::io::Error::other)?;
-        let path = slave.name().ok_or_else(|| std::io::Error::other("the pty has no name"))?;
-        master.set_timeout(Duration::from_millis(1)).map_err(std::io::Error::other)?;
+        let dir = match port {
+            Port::Usb(None) => Some(tempfile::Builder::new().prefix("hil-sim-port-").tempdir()?),
+            _ => None,
+        };
+        let (mut served, path) = ServedPort::open(&port, &device, &dir)?;
         let stop = Arc::new(AtomicBool::new(false));
         let stop_flag = Arc::clone(&stop);
         let ruler = Arc::new(AtomicBool::new(false));
@@ -440,16 +714,7 @@ impl PtyServer {
                         v.disk_deg, v.track_mm, v.tilt_deg
                     );
                 }
-                let n = match master.read(&mut buf) {
-                    Ok(n) => n,
-                    Err(e) if e.kind() == std::io::ErrorKind::TimedOut => 0,
-                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => 0,
-                    // No peer has the pty open (yet / any more): wait.
-                    Err(_) => {
-                        std::thread::sleep(Duration::from_millis(1));
-                        0
-                    }
-                };
+                let n = served.read(&mut buf);
                 device.advance_to(clock.target(device.now(), started.elapsed()));
                 if let Some((cam, tx)) = &mut camera {
                     for job in cam.take_exposures(device.truth()) {
@@ -457,16 +722,21 @@ impl PtyServer {
                     }
                 }
                 noise.apply(device.take_link_faults());
-                let up = noise.connected(device.now());
-                if n > 0 && up {
+                let passing = served.follow(&device, noise.connected(device.now()));
+                if n > 0 && passing == Passing::Both {
                     let bytes = noise.mangle(&buf[..n]);
                     device.receive(&bytes);
                 }
                 let out = device.take_output();
-                if up {
+                if passing != Passing::Nothing {
                     tx.queue(&out, |b| noise.mangle(b));
                 }
-                let dropped = tx.pump(device.now(), up, |p| master.write(p));
+                let up = passing != Passing::Nothing;
+                let dropped = tx.pump(device.now(), up, |p| served.write(p));
+                if served.master.is_none() {
+                    // Unplugged: what the board had queued is gone.
+                    tx.discard();
+                }
                 // Once a stall: a host that never reads would fill stderr.
                 if dropped > 0 && !stall_told {
                     eprintln!(
@@ -480,7 +750,7 @@ impl PtyServer {
             drop(camera); // ends the renderer once it has written every frame
             device
         });
-        Ok(PtyServer { path, stop, ruler, thread: Some(thread), renderer, _slave: slave })
+        Ok(PtyServer { path, stop, ruler, thread: Some(thread), renderer, _dir: dir })
     }
 
     /// From now on, print (stderr) where the axes physically stop after
@@ -490,7 +760,8 @@ impl PtyServer {
         self.ruler.store(true, Ordering::Relaxed);
     }
 
-    /// Path of the pty to open, like `/dev/ttyACM0`.
+    /// Path of the port to open, like `/dev/ttyACM0`: the pty, or the link
+    /// to it ([`Port`]).
     pub fn path(&self) -> &str {
         &self.path
     }

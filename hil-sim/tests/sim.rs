@@ -470,3 +470,113 @@ fn a_pty_port_appears_after_the_boards_first_debounce() {
     let device = server.stop().unwrap();
     assert!(device.faults().contains(FaultFlags::DRIVER_FAULT), "{:?}", device.faults());
 }
+
+/// Where a USB-like port's link points now (`None`: unplugged).
+fn link_target(link: &std::path::Path) -> Option<std::path::PathBuf> {
+    std::fs::read_link(link).ok()
+}
+
+/// Wait (wall time, up to `limit`) until `done` says so.
+fn wait_until(limit: Duration, mut done: impl FnMut() -> bool) -> bool {
+    let end = std::time::Instant::now() + limit;
+    while std::time::Instant::now() < end {
+        if done() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    done()
+}
+
+/// A [`hil_sim::Port::Usb`] board unplugs as a USB one does: on a
+/// disconnect the link goes and the host's open port fails (not a silent
+/// link); back, the link names a new pty and the host's link reopens it
+/// by the link's path. A reset unplugs it too, and the host learns of the
+/// reset when it greets the board again.
+#[test]
+fn a_usb_like_port_unplugs_on_a_disconnect_and_a_reset_and_the_host_follows() {
+    let ms = firmware::hal::TICKS_PER_MS;
+    let mut config = SimConfig::new(3);
+    config.faults = FaultPlan::none()
+        .with(FaultWhen::AtTick(1_500 * ms), FaultEvent::Disconnect { duration_ms: 700 })
+        .with(FaultWhen::AtTick(4_000 * ms), FaultEvent::Reset);
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyACM-scanner");
+    // A stale link from a killed run is replaced; anything else is not.
+    std::os::unix::fs::symlink("/nonexistent", &link).unwrap();
+    let taken = dir.path().join("taken");
+    std::fs::write(&taken, b"keep").unwrap();
+    let err = hil_sim::PtyServer::start_with_camera(
+        hil_sim::SimDevice::new(config.clone()),
+        1.0,
+        None,
+        hil_sim::Port::Usb(Some(taken.clone())),
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("no symbolic link; not replaced"), "{err}");
+    assert_eq!(std::fs::read(&taken).unwrap(), b"keep");
+
+    let server = hil_sim::PtyServer::start_with_camera(
+        hil_sim::SimDevice::new(config),
+        1.0,
+        None,
+        hil_sim::Port::Usb(Some(link.clone())),
+    )
+    .unwrap();
+    assert_eq!(server.path(), link.to_str().unwrap());
+    let first = link_target(&link).expect("plugged in at start");
+    assert!(first.starts_with("/dev/pts"), "{first:?}");
+    // A second opener of the pty (before the host's, which is exclusive)
+    // watches what an open port sees on the unplug.
+    let mut watcher = {
+        use std::os::unix::fs::OpenOptionsExt;
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(0o400) // O_NOCTTY
+            .open(&first)
+            .unwrap()
+    };
+    let transport = host::link::SerialTransport::open(server.path()).unwrap();
+    let mut device = host::link::Device::connect(Box::new(transport)).unwrap();
+    let boot = device.info().boot_id;
+
+    // The disconnect: the link goes, and the open port fails (hung up).
+    assert!(wait_until(Duration::from_secs(5), || link_target(&link).is_none()), "unplugged");
+    use std::io::Write as _;
+    let hung_up = watcher.write_all(b"x").and_then(|_| watcher.flush());
+    assert!(hung_up.is_err(), "an open port fails once the board is unplugged");
+    // Back, on a new pty (the old one may be reused for it: the link is
+    // what is followed).
+    assert!(wait_until(Duration::from_secs(5), || link_target(&link).is_some()), "plugged again");
+    device.request(Request::Ping { token: 7 }).expect("the host reopens the link");
+    assert!(device.stats.reconnects >= 1, "{:?}", device.stats);
+    assert_eq!(device.info().boot_id, boot);
+
+    // The reset: unplugged for its boot and enumeration, then the host's
+    // next request finds a board that booted again.
+    assert!(wait_until(Duration::from_secs(8), || link_target(&link).is_none()), "reset unplugs");
+    let unplugged = std::time::Instant::now();
+    assert!(
+        wait_until(Duration::from_secs(5), || link_target(&link).is_some()),
+        "back after reset"
+    );
+    assert!(
+        unplugged.elapsed() >= Duration::from_millis(hil_sim::link::REPLUG_MS / 2),
+        "away for the boot and enumeration: {:?}",
+        unplugged.elapsed()
+    );
+    let reconnects = device.stats.reconnects;
+    let answered = (0..2).map(|_| device.request(Request::Ping { token: 8 })).collect::<Vec<_>>();
+    assert!(
+        matches!(answered[0], Err(LinkError::Reset { old, .. }) if old == boot),
+        "{answered:?}"
+    );
+    assert!(answered[1].is_ok(), "{answered:?}");
+    assert!(device.stats.reconnects > reconnects, "{:?}", device.stats);
+    assert_ne!(device.info().boot_id, boot);
+
+    let device = server.stop().unwrap();
+    assert_eq!(device.boot_count(), 2);
+    assert!(link_target(&link).is_none(), "the link goes with the server");
+}

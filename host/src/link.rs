@@ -590,6 +590,12 @@ impl Device {
         &self.info
     }
 
+    /// The link's timings, to change from here on (e.g. not to wait for a
+    /// device that is expected to go away).
+    pub fn timings_mut(&mut self) -> &mut LinkTimings {
+        &mut self.timings
+    }
+
     /// What the link is connected to.
     pub fn describe(&self) -> String {
         self.transport.describe()

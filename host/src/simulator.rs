@@ -110,6 +110,10 @@ pub struct SimSetup {
     /// (`hil_sim::SimConfig::flash_axes`): a board still to be
     /// commissioned (`scanner axes --correct`), or configured wrongly.
     pub board_axes: Option<[protocol::AxisConfig; 3]>,
+    /// What [`SimSetup::serve`] gives the host to open: the pty, or a link
+    /// that follows the board through unplugs as a USB port's does
+    /// ([`hil_sim::Port`]).
+    pub port: hil_sim::Port,
 }
 
 impl SimSetup {
@@ -133,6 +137,7 @@ impl SimSetup {
             sample_thickness_mm: 0.0,
             axes: protocol::default_axes(),
             board_axes: None,
+            port: hil_sim::Port::Pty,
         }
     }
 
@@ -295,6 +300,7 @@ impl SimSetup {
             hil_sim::SimDevice::new(self.config()?),
             speed,
             Some((camera, frames, files)),
+            self.port.clone(),
         )
         .map_err(|e| SimError::Serve(e.to_string()))
     }

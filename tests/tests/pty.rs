@@ -141,6 +141,13 @@ fn faults_on_the_way_do_not_change_a_single_frame() {
     eprintln!("{stdout}\n{}", String::from_utf8_lossy(&r.stderr));
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     assert!(stdout.contains("1 resets survived"), "the reset was seen: {stdout}");
+    // The disconnect and the reset each unplugged the board (a USB port):
+    // the host reopened its port after each.
+    let reconnects = stdout
+        .split(", ")
+        .find_map(|s| s.trim().strip_suffix(" reconnects"))
+        .and_then(|n| n.rsplit(' ').next()?.parse::<u32>().ok());
+    assert!(reconnects.is_some_and(|n| n >= 2), "{reconnects:?}: {stdout}");
     assert!(stdout.contains("retransmissions"), "the noise was seen: {stdout}");
     drop(faulty);
     assert_same_scan(&clean_out, &faulty_out);
@@ -460,6 +467,8 @@ fn the_bootloader_command_leaves_the_firmware_and_says_how_to_flash() {
         out.contains("dfu-util -a 0 -s 0x08000000:leave -D firmware/board/target/scanner-fw.bin"),
         "{out}"
     );
+    // The port is gone, as a USB board's is while its ROM runs (DFU).
+    assert!(std::fs::symlink_metadata(server.path()).is_err(), "the port went away");
     let (code, _, err) = on_device(server.path(), &["info"]);
     assert_eq!(code, Some(5), "the ROM does not answer: {err}");
 }

@@ -24,7 +24,7 @@ use clap::{Parser, Subcommand};
 use hil_sim::geometry::ScannerGeometry;
 use hil_sim::materials::{self, MaterialError, Sample};
 use hil_sim::optics::{Exposure, OpticalSim};
-use hil_sim::{FaultPlan, FaultSpec, PtyServer, SimConfig, SimDevice};
+use hil_sim::{FaultPlan, FaultSpec, Port, PtyServer, SimConfig, SimDevice};
 
 /// The simulated scanner controller on a pseudo-terminal.
 #[derive(Debug, Parser)]
@@ -58,6 +58,12 @@ struct Args {
     /// ruler on the machine reads).
     #[arg(long, value_name = "FILE")]
     board_axes: Option<std::path::PathBuf>,
+    /// Serve the board as a USB port: PATH is a symbolic link to its pty,
+    /// removed while the board is unplugged (a disconnect fault, a reset)
+    /// and made to a new pty when it is back, as udev's /dev/serial/by-id
+    /// links are. An existing PATH is replaced only if it is a link.
+    #[arg(long, value_name = "PATH")]
+    link: Option<std::path::PathBuf>,
     #[command(subcommand)]
     command: Option<Command>,
 }
@@ -304,10 +310,12 @@ fn main() -> std::process::ExitCode {
         }
     }
     config.flash_axes = args.board_axes.is_some().then_some(board);
-    let server = match PtyServer::start(SimDevice::new(config), args.speed) {
+    let port = args.link.map_or(Port::Pty, |p| Port::Usb(Some(p)));
+    let server = match PtyServer::start_with_camera(SimDevice::new(config), args.speed, None, port)
+    {
         Ok(s) => s,
         Err(e) => {
-            eprintln!("hil-sim: cannot create a pseudo-terminal: {e}");
+            eprintln!("hil-sim: cannot serve the board: {e}");
             return std::process::ExitCode::from(1);
         }
     };

@@ -173,6 +173,7 @@ impl DeviceArgs {
                 .as_deref()
                 .map(|p| scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e))))
                 .transpose()?,
+            port: hil_sim::Port::Pty,
         })
     }
 }
@@ -1163,8 +1164,10 @@ pub fn bootloader(args: &DeviceArgs) -> Result<(), Failure> {
         ));
     }
     o.device.command(Request::EnterBootloader).map_err(link_failure)?;
-    // It resets once its answer is out: it must fall silent.
+    // It resets once its answer is out: it must fall silent, and a USB
+    // board's serial port goes away (not to be waited for).
     std::thread::sleep(Duration::from_millis(500));
+    o.device.timings_mut().reconnect_for = Duration::ZERO;
     if o.device.request(Request::Ping { token: 0x0B00_710A }).is_ok() {
         return Err(Failure(
             1,
@@ -2144,6 +2147,7 @@ pub fn sim(
     _: &Path,
     _: FrameFormat,
     _: CameraCodes,
+    _: Option<&Path>,
 ) -> Result<(), Failure> {
     Err(no_simulator())
 }
@@ -2156,6 +2160,7 @@ pub fn sim(
     frames: &Path,
     format: FrameFormat,
     codes: CameraCodes,
+    link: Option<&Path>,
 ) -> Result<(), Failure> {
     use hil_sim::camera::FrameFiles;
     if !(speed > 0.0 && speed <= 4.0) {
@@ -2169,7 +2174,10 @@ pub fn sim(
         FrameFormat::Png => FrameFiles::Png(codes.into()),
         FrameFormat::Tiff => FrameFiles::Tiff(codes.into()),
     };
-    let setup = args.sim_setup()?;
+    let mut setup = args.sim_setup()?;
+    if let Some(link) = link {
+        setup.port = hil_sim::Port::Usb(Some(link.to_path_buf()));
+    }
     let server = setup.serve(speed, frames.to_path_buf(), files).map_err(sim_failure)?;
     if setup.board_axes.is_some() {
         // A board to commission: the moves are to be measured.

@@ -509,6 +509,13 @@ enum Command {
         /// --camera-codes).
         #[arg(long, value_enum, default_value_t = commands::CameraCodes::Native)]
         frame_codes: commands::CameraCodes,
+        /// Serve the board as a USB port: PATH is a symbolic link to its
+        /// pty, removed while the board is unplugged (a disconnect fault,
+        /// a reset: the host's port fails as on a real unplug) and made to
+        /// a new pty when it is back, as udev's /dev/serial/by-id links
+        /// are. An existing PATH is replaced only if it is a link.
+        #[arg(long, value_name = "PATH")]
+        link: Option<PathBuf>,
     },
     /// Fit an NPF model to a MERL table.
     Fit {
@@ -877,8 +884,8 @@ fn run(cli: Cli) -> Result<(), Failure> {
         }
         Command::Light { device, state, duty } => commands::light(&device, state == "on", duty)?,
         Command::Trigger { device, exposure_us } => commands::trigger(&device, exposure_us)?,
-        Command::Sim { device, speed, frames, frame_format, frame_codes } => {
-            commands::sim(&device, speed, &frames, frame_format, frame_codes)?
+        Command::Sim { device, speed, frames, frame_format, frame_codes, link } => {
+            commands::sim(&device, speed, &frames, frame_format, frame_codes, link.as_deref())?
         }
         Command::Fit { input: path, output: out, g, p, max_iterations } => {
             if !(1.0..=2.0).contains(&p) {

@@ -8,9 +8,10 @@ use hil_sim::{FaultPlan, PtyServer};
 use host::scan::Manifest;
 use host::simulator::SimSetup;
 
-/// The small simulated scanner the tests use (512² sensor).
+/// The small simulated scanner the tests use (512² sensor), served as a
+/// USB board's port: it unplugs on a disconnect or a reset.
 pub fn setup(material: &str, faults: FaultPlan) -> SimSetup {
-    SimSetup { bin: 8, seed: 5, faults, ..SimSetup::new(material) }
+    SimSetup { bin: 8, seed: 5, faults, port: hil_sim::Port::Usb(None), ..SimSetup::new(material) }
 }
 
 /// Simulated time per wall time on the pty: fast, yet the host's keep-alive
