@@ -2089,6 +2089,9 @@ impl From<LinkError> for Attempt {
 pub(crate) type Captured =
     (crate::camera::Frame, TriggerFired, protocol::Status, Option<crate::strobe::Exposure>);
 
+/// A dark frame and its exposure as the strobe showed it (none unwatched).
+pub(crate) type DarkTaken = (crate::camera::Frame, Option<crate::strobe::Exposure>);
+
 /// Work for the writer thread, in order.
 enum Job {
     /// Store a frame.
@@ -2368,8 +2371,7 @@ impl DarkFrame<'_> {
         report: &mut ScanReport,
         progress: &mut dyn ScanProgress,
         what: &str,
-    ) -> Result<Result<(crate::camera::Frame, Option<crate::strobe::Exposure>), String>, ScanError>
-    {
+    ) -> Result<Result<DarkTaken, String>, ScanError> {
         let mut attempt = 0;
         loop {
             attempt += 1;
@@ -2396,8 +2398,7 @@ impl DarkFrame<'_> {
         dev: &mut Device,
         camera: &mut dyn Camera,
         report: &mut ScanReport,
-    ) -> Result<Result<(crate::camera::Frame, Option<crate::strobe::Exposure>), String>, ScanError>
-    {
+    ) -> Result<Result<DarkTaken, String>, ScanError> {
         let (opts, exposure_us) = (self.opts, self.exposure_us);
         let t = Instant::now();
         let fired = (|| -> Result<Option<(TriggerFired, crate::strobe::Report)>, String> {
