@@ -121,6 +121,10 @@ pub const USB_TX_PACKET: usize = 64;
 /// (ms): a host that stopped reading, or switched interfaces, must not stall
 /// the board's output.
 pub const USB_TX_TIMEOUT_MS: u64 = 200;
+/// After a `Reset` or `EnterBootloader` request, once its reply has left
+/// the queue, the board waits this long (ms) for the host to take it before
+/// it resets, and its USB port goes away.
+pub const RESET_AFTER_REPLY_MS: u64 = 20;
 
 /// Where the board sends a packet for the host: `(vendor bulk, CDC-ACM)`.
 /// Until the host has spoken on either interface (the `Boot` event, events

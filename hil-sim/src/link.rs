@@ -387,8 +387,9 @@ pub enum Port {
 }
 
 /// After a reset, the board's USB port disappears this much later
-/// ([`Port::Usb`]): what it sent before has been read by then.
-pub const RESET_UNPLUG_MS: u64 = 20;
+/// ([`Port::Usb`]): what it sent before has been read by then, as the
+/// board waits before it resets on request.
+pub const RESET_UNPLUG_MS: u64 = firmware::hal::RESET_AFTER_REPLY_MS;
 
 /// After a reset, the board's USB port is back this much later
 /// ([`Port::Usb`]): its boot and the host's enumeration.

@@ -426,7 +426,7 @@ async fn main(spawner: Spawner) {
         };
         watchdog.pet();
         if (reset || bootloader) && TX.is_empty() {
-            embassy_time::Timer::after_millis(20).await;
+            embassy_time::Timer::after_millis(firmware::hal::RESET_AFTER_REPLY_MS).await;
             if bootloader {
                 warn!("the host asked for the ROM bootloader (USB DFU)");
                 reset_into_bootloader();
