@@ -21,7 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serialport::{SerialPort, TTYPort};
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::camera::{FrameFiles, SimCamera, drop_frame};
 use crate::device::SimDevice;
@@ -382,7 +382,8 @@ pub enum Port {
     /// enumerates as a DFU device, no serial port). Unplugged, the pty is
     /// closed — the host's reads and writes on it fail, as on a real
     /// unplug — and the link removed; plugged again, the link names a new
-    /// pty. An existing path is replaced only if it is a symbolic link.
+    /// pty. An existing path is replaced only if it is a symbolic link, and
+    /// not while another server holds it.
     Usb(Option<PathBuf>),
 }
 
@@ -420,6 +421,54 @@ struct UsbPlug {
     back_at: u64,
     /// A failure to plug, said once.
     plug_failed: bool,
+    /// The link's path held against a second server ([`claim_link`]).
+    _claim: Option<LinkClaim>,
+}
+
+/// A link path held by one server while it runs.
+#[cfg(target_os = "linux")]
+type LinkClaim = std::os::unix::net::UnixListener;
+#[cfg(not(target_os = "linux"))]
+type LinkClaim = ();
+
+/// Hold `link` for this server: a second server given the same path (two
+/// `scanner sim --link` at once) is refused rather than taking the link
+/// over, and the first's unplug then removing the second's link. The hold
+/// is a socket in Linux's abstract namespace named after the path, which
+/// the kernel releases when the process ends, however it ends: a link left
+/// by a killed server is taken over.
+fn claim_link(link: &Path) -> std::io::Result<LinkClaim> {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::linux::net::SocketAddrExt;
+        let parent = match link.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.canonicalize()?,
+            _ => std::env::current_dir()?,
+        };
+        let full = parent.join(link.file_name().unwrap_or_default());
+        // FNV-1a over the path's bytes: an abstract name is at most 107 bytes.
+        let hash =
+            full.as_os_str().as_encoded_bytes().iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+                (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+            });
+        let name = format!("hil-sim-port:{hash:016x}");
+        let addr = std::os::unix::net::SocketAddr::from_abstract_name(name.as_bytes())?;
+        std::os::unix::net::UnixListener::bind_addr(&addr).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::AddrInUse {
+                std::io::Error::other(format!(
+                    "{}: another simulator serves its board there",
+                    link.display()
+                ))
+            } else {
+                e
+            }
+        })
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = link;
+        Ok(())
+    }
 }
 
 /// The server's end of the port: the pty pair (none while a
@@ -440,6 +489,7 @@ impl ServedPort {
         dir: &Option<tempfile::TempDir>,
     ) -> std::io::Result<(ServedPort, String)> {
         let mut served = ServedPort { master: None, slave: None, usb: None };
+        let mut claim = None;
         let link = match port {
             Port::Pty => {
                 let name = served.plug()?;
@@ -454,6 +504,7 @@ impl ServedPort {
                         path.display()
                     )));
                 }
+                claim = Some(claim_link(path)?);
                 path.clone()
             }
             Port::Usb(None) => match dir {
@@ -468,6 +519,7 @@ impl ServedPort {
             unplug_at: None,
             back_at: 0,
             plug_failed: false,
+            _claim: claim,
         });
         served.plug()?;
         Ok((served, link.to_string_lossy().into_owned()))

@@ -525,6 +525,16 @@ fn a_usb_like_port_unplugs_on_a_disconnect_and_a_reset_and_the_host_follows() {
     .unwrap();
     assert_eq!(server.path(), link.to_str().unwrap());
     let first = link_target(&link).expect("plugged in at start");
+    // A second server on the same link is refused; the first keeps it.
+    let second = hil_sim::PtyServer::start_with_camera(
+        hil_sim::SimDevice::new(SimConfig::new(4)),
+        1.0,
+        None,
+        hil_sim::Port::Usb(Some(dir.path().join(".").join("ttyACM-scanner"))),
+    )
+    .unwrap_err();
+    assert!(second.to_string().contains("another simulator serves its board there"), "{second}");
+    assert_eq!(link_target(&link).as_ref(), Some(&first));
     assert!(first.starts_with("/dev/pts"), "{first:?}");
     // A second opener of the pty (before the host's, which is exclusive)
     // watches what an open port sees on the unplug.
@@ -579,4 +589,14 @@ fn a_usb_like_port_unplugs_on_a_disconnect_and_a_reset_and_the_host_follows() {
     let device = server.stop().unwrap();
     assert_eq!(device.boot_count(), 2);
     assert!(link_target(&link).is_none(), "the link goes with the server");
+    // Then the path is free for another.
+    let again = hil_sim::PtyServer::start_with_camera(
+        hil_sim::SimDevice::new(SimConfig::new(4)),
+        1.0,
+        None,
+        hil_sim::Port::Usb(Some(link.clone())),
+    )
+    .unwrap();
+    assert!(link_target(&link).is_some());
+    drop(again);
 }

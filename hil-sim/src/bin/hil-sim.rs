@@ -61,7 +61,8 @@ struct Args {
     /// Serve the board as a USB port: PATH is a symbolic link to its pty,
     /// removed while the board is unplugged (a disconnect fault, a reset)
     /// and made to a new pty when it is back, as udev's /dev/serial/by-id
-    /// links are. An existing PATH is replaced only if it is a link.
+    /// links are. An existing PATH is replaced only if it is a link, and not
+    /// while another simulator serves there.
     #[arg(long, value_name = "PATH")]
     link: Option<std::path::PathBuf>,
     #[command(subcommand)]

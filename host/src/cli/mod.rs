@@ -513,7 +513,8 @@ enum Command {
         /// pty, removed while the board is unplugged (a disconnect fault,
         /// a reset: the host's port fails as on a real unplug) and made to
         /// a new pty when it is back, as udev's /dev/serial/by-id links
-        /// are. An existing PATH is replaced only if it is a link.
+        /// are. An existing PATH is replaced only if it is a link, and not
+        /// while another simulator serves there.
         #[arg(long, value_name = "PATH")]
         link: Option<PathBuf>,
     },
