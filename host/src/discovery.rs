@@ -40,6 +40,16 @@ pub fn serial_scanners() -> Result<Vec<SerialScanner>, String> {
         .collect())
 }
 
+/// The scanner among `list` at `path`: the same port by name, or by what
+/// both names resolve to — a `/dev/serial/by-id/…` link names the
+/// `/dev/ttyACMn` the listing has.
+pub fn scanner_at<'a>(path: &str, list: &'a [SerialScanner]) -> Option<&'a SerialScanner> {
+    list.iter().find(|p| p.path == path).or_else(|| {
+        let real = std::fs::canonicalize(path).ok()?;
+        list.iter().find(|p| std::fs::canonicalize(&p.path).is_ok_and(|r| r == real))
+    })
+}
+
 /// USB devices with our VID/PID.
 pub fn usb_devices() -> Result<Vec<UsbScanner>, String> {
     use nusb::MaybeFuture;
@@ -105,5 +115,33 @@ pub fn choose(device: &str) -> Result<DeviceChoice, String> {
         }
         Ok(_) => Err(format!("no scanner with serial number {device:?} (try `scanner devices`)")),
         Err(e) => Err(format!("no serial port with serial number {device:?}, and {e}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A by-id link finds the port the listing names by its device node;
+    /// another node, or a link to it, does not.
+    #[test]
+    fn a_by_id_link_names_the_listed_port() {
+        let dir = tempfile::tempdir().unwrap();
+        let node = dir.path().join("ttyACM0");
+        let other = dir.path().join("ttyACM1");
+        std::fs::write(&node, b"").unwrap();
+        std::fs::write(&other, b"").unwrap();
+        let by_id = dir.path().join("usb-Scanner_0042-if00");
+        std::os::unix::fs::symlink(&node, &by_id).unwrap();
+        let to_other = dir.path().join("usb-Other-if00");
+        std::os::unix::fs::symlink(&other, &to_other).unwrap();
+        let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+        let list = [SerialScanner { path: s(&node), serial: Some("0042".into()) }];
+        let found = |p: &std::path::Path| scanner_at(&s(p), &list).and_then(|x| x.serial.clone());
+        assert_eq!(found(&node).as_deref(), Some("0042"));
+        assert_eq!(found(&by_id).as_deref(), Some("0042"));
+        assert_eq!(found(&other), None);
+        assert_eq!(found(&to_other), None);
+        assert_eq!(found(&dir.path().join("gone")), None);
     }
 }

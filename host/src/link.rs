@@ -194,11 +194,11 @@ impl SerialTransport {
                 return Err(TransportError::Open(format!("{path}: not a serial port ({what})")));
             }
         }
-        let serial = crate::discovery::serial_scanners()
-            .unwrap_or_default()
-            .into_iter()
-            .find(|p| p.path == path)
-            .and_then(|p| p.serial);
+        // By its serial number the port is locked against a second process
+        // (on this interface or the bulk one) and followed when it comes
+        // back under another name; a by-id link is the port it names.
+        let listed = crate::discovery::serial_scanners().unwrap_or_default();
+        let serial = crate::discovery::scanner_at(path, &listed).and_then(|p| p.serial.clone());
         let lock = match &serial {
             Some(serial) => lock_scanner(serial)?,
             None => None,
@@ -272,14 +272,12 @@ impl Transport for SerialTransport {
     fn reconnect(&mut self) -> Result<(), TransportError> {
         self.port = None;
         if let Some(serial) = &self.serial
-            && let Some(p) = crate::discovery::serial_scanners()
-                .unwrap_or_default()
-                .into_iter()
-                .find(|p| p.serial.as_ref() == Some(serial))
-            && p.path != self.path
+            && let listed = crate::discovery::serial_scanners().unwrap_or_default()
+            && let Some(p) = listed.iter().find(|p| p.serial.as_ref() == Some(serial))
+            && crate::discovery::scanner_at(&self.path, &listed).map(|q| &q.path) != Some(&p.path)
         {
             tracing::info!("scanner {serial} is now {}", p.path);
-            self.path = p.path;
+            self.path = p.path.clone();
         }
         let port = serialport::new(&self.path, 115_200)
             .timeout(Duration::from_millis(10))
