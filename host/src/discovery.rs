@@ -50,6 +50,23 @@ pub fn scanner_at<'a>(path: &str, list: &'a [SerialScanner]) -> Option<&'a Seria
     })
 }
 
+/// The links in `dir` (udev's `/dev/serial/by-id`) that resolve to `path`:
+/// names that stay when the board comes back as another `ttyACMn`.
+pub fn links_to(path: &str, dir: &std::path::Path) -> Vec<String> {
+    let Ok(real) = std::fs::canonicalize(path) else { return Vec::new() };
+    let mut links: Vec<String> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|l| std::fs::symlink_metadata(l).is_ok_and(|m| m.file_type().is_symlink()))
+        .filter(|l| std::fs::canonicalize(l).is_ok_and(|r| r == real))
+        .filter_map(|l| l.to_str().map(str::to_string))
+        .collect();
+    links.sort();
+    links
+}
+
 /// USB devices with our VID/PID.
 pub fn usb_devices() -> Result<Vec<UsbScanner>, String> {
     use nusb::MaybeFuture;
@@ -143,5 +160,9 @@ mod tests {
         assert_eq!(found(&other), None);
         assert_eq!(found(&to_other), None);
         assert_eq!(found(&dir.path().join("gone")), None);
+        assert_eq!(links_to(&s(&node), dir.path()), [s(&by_id)]);
+        assert_eq!(links_to(&s(&other), dir.path()), [s(&to_other)]);
+        assert_eq!(links_to(&s(&by_id), dir.path()), [s(&by_id)]);
+        assert!(links_to(&s(&node), &dir.path().join("none")).is_empty());
     }
 }

@@ -421,6 +421,11 @@ pub fn devices() -> Result<(), Failure> {
                     p.serial.as_deref().unwrap_or("?"),
                     in_use.map(|h| format!("  (in use by {h})")).unwrap_or_default()
                 );
+                // Its stable names (they follow it when it re-enumerates).
+                let by_id = std::path::Path::new("/dev/serial/by-id");
+                for link in discovery::links_to(&p.path, by_id) {
+                    println!("        also {link}");
+                }
             }
         }
         Err(e) => println!("serial: {e}"),
