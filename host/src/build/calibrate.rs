@@ -151,6 +151,48 @@ impl ColourCalibration {
         Self::lookup::<1>(self.grid, &self.light_field[li], uv)[0]
     }
 
+    /// How fully each light's beam covers the sample, as its field shows
+    /// against the other lights'. Per cell, the light's field over the
+    /// lights' median field there: the factorisation leaves each cell's
+    /// split between view response and light field free, and the ratio
+    /// cancels it. Scaled to the light's median over the cells (its
+    /// cos θi, its mirror's reflectance), the smallest cell's. About 1
+    /// where every beam lights the whole sample alike; lower for a beam
+    /// that lands off its mirror's centre and leaves part of the sample in
+    /// its soft edge. Per light, in `light_field` order (1 for fewer than
+    /// three lights: nothing to compare with).
+    pub fn beam_coverage(&self) -> Vec<f64> {
+        let n = self.light_field.len();
+        let cells = self.grid * self.grid;
+        if n < 3 || self.light_field.iter().any(|f| f.len() != cells) {
+            return vec![1.0; n];
+        }
+        // Each light's field over its own level (its median cell).
+        let own: Vec<Vec<f64>> = self
+            .light_field
+            .iter()
+            .map(|f| {
+                let f: Vec<f64> = f.iter().map(|&x| x as f64).collect();
+                let mid = median(f.clone()).unwrap_or(0.0);
+                f.iter().map(|x| if mid > 0.0 { x / mid } else { 0.0 }).collect()
+            })
+            .collect();
+        let typical: Vec<f64> =
+            (0..cells).map(|c| median(own.iter().map(|f| f[c]).collect()).unwrap_or(0.0)).collect();
+        own.iter()
+            .map(|f| {
+                let rel: Vec<f64> =
+                    f.iter().zip(&typical).filter(|(_, t)| **t > 0.0).map(|(b, t)| b / t).collect();
+                let mid = median(rel.clone()).unwrap_or(0.0);
+                if mid > 0.0 {
+                    rel.iter().fold(f64::INFINITY, |m, r| m.min(r / mid)).max(0.0)
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
     /// The white target's response (frame value per second) for light
     /// index `li`, view index `vi` at `uv`: A_j · B_l.
     pub fn response(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
@@ -1428,6 +1470,44 @@ mod tests {
     use super::*;
     use crate::build::scanread::frame_bicubic;
     use crate::camera::Frame;
+
+    /// Beam coverage compares each light's field with the others', cell
+    /// by cell: a profile all lights share (vignetting, the factorisation's
+    /// free split between view and light) and each light's own level
+    /// (cos θi) leave it at 1; a light whose beam leaves a corner of the
+    /// sample dim reads that corner's share.
+    #[test]
+    fn beam_coverage_tells_a_beam_that_misses_part_of_the_sample() {
+        let grid = 8;
+        let shared = |c: usize| {
+            0.6 + 0.4 * ((c % grid) as f64 / grid as f64) * ((c / grid) as f64 / grid as f64)
+        };
+        let mut fields: Vec<Vec<f32>> = (0..5)
+            .map(|l| {
+                (0..grid * grid).map(|c| (shared(c) * (0.5 + 0.2 * l as f64)) as f32).collect()
+            })
+            .collect();
+        let colour = |fields: &[Vec<f32>]| ColourCalibration {
+            grid,
+            white_albedo: 0.98,
+            view_response: Vec::new(),
+            light_field: fields.to_vec(),
+        };
+        for c in colour(&fields).beam_coverage() {
+            assert!((c - 1.0).abs() < 1e-6, "{c}");
+        }
+        // Light 3's beam gives the last row 30 % of its light.
+        for x in &mut fields[3][grid * (grid - 1)..] {
+            *x *= 0.3;
+        }
+        let coverage = colour(&fields).beam_coverage();
+        assert!((coverage[3] - 0.3).abs() < 1e-6, "{coverage:?}");
+        for (l, c) in coverage.iter().enumerate().filter(|(l, _)| *l != 3) {
+            assert!((c - 1.0).abs() < 1e-6, "light {l}: {c}");
+        }
+        // Too few lights to compare: nothing told.
+        assert_eq!(colour(&fields[..2]).beam_coverage(), [1.0, 1.0]);
+    }
 
     /// A pixel's share on the sample is its square's exact area within the
     /// calibrated edges: against 512 × 512 points a square over a rotated,

@@ -213,6 +213,11 @@ pub fn geometry_cmd(
 }
 
 /// `scanner calibrate`
+/// `scanner calibrate` warns of a light whose beam gives part of the
+/// sample less than this share of what the other beams give it
+/// ([`crate::build::calibrate::ColourCalibration::beam_coverage`]).
+const BEAM_COVERAGE_WARN: f64 = 0.7;
+
 pub fn calibrate_cmd(
     checkerboard: &Path,
     white: &Path,
@@ -308,6 +313,35 @@ pub fn calibrate_cmd(
              again",
             k1.0, k1.1
         );
+    }
+    // How fully each beam lights the sample, against the others.
+    let coverage = cal.colour.beam_coverage();
+    if let Some((li, worst)) =
+        coverage.iter().copied().enumerate().min_by(|a, b| a.1.total_cmp(&b.1))
+    {
+        println!(
+            "  beam coverage: every light's field over the sample within {:.0} % of the others' \
+             (least: mirror {}'s)",
+            100.0 * (1.0 - worst),
+            cal.lights[li].light
+        );
+        let short: Vec<String> = coverage
+            .iter()
+            .zip(&cal.lights)
+            .filter(|(c, _)| **c < BEAM_COVERAGE_WARN)
+            .map(|(c, l)| format!("{} ({:.0} %)", l.light, 100.0 * c))
+            .collect();
+        if !short.is_empty() {
+            eprintln!(
+                "scanner: warning: the beams of mirrors {} give part of the sample less than \
+                 {:.0} % of what the other mirrors' beams give it: they land off their mirrors' \
+                 centres (the mirror table, the axes' home positions or steps per unit: `scanner \
+                 move --mirror N` and look). The calibration divides it out, with more noise \
+                 there.",
+                short.join(", "),
+                100.0 * BEAM_COVERAGE_WARN
+            );
+        }
     }
     if !cal.defects.is_empty() {
         println!(
