@@ -1091,7 +1091,9 @@ fn a_lens_with_radial_distortion_is_calibrated() {
 /// scanner every beam covers it alike; with the fold mirror's home 40 steps
 /// (0.15°) off what the board is configured with, the beams of the first
 /// ring land off their mirrors' centres and leave part of the sample dim,
-/// which a warning names — the scans and the calibration go through.
+/// which a warning names — the scans and the calibration go through. At
+/// 0.3° off most beams leave a corner of the sample unlit, and `regions`
+/// (like `build`) warns that its images are black there.
 /// (At 1024²: at 512² the calibration reads a view's outer pixel or two
 /// no nearer than the holder allows, where the dimming shows most.)
 #[test]
@@ -1102,7 +1104,14 @@ fn calibrate_tells_a_beam_that_lands_off_its_mirror() {
     let board = dir.path().join("board.toml");
     std::fs::write(&board, scanner_geometry::axes_to_toml(&tilted)).unwrap();
     let board = board.display().to_string();
-    for (name, extra) in [("sound", None), ("tilted", Some(board.as_str()))] {
+    let mut far = protocol::default_axes();
+    far[2].homing.home_position += 80;
+    let far_board = dir.path().join("far.toml");
+    std::fs::write(&far_board, scanner_geometry::axes_to_toml(&far)).unwrap();
+    let far_board = far_board.display().to_string();
+    for (name, extra) in
+        [("sound", None), ("tilted", Some(board.as_str())), ("far", Some(far_board.as_str()))]
+    {
         let d = |n: &str| dir.path().join(name).join(n).display().to_string();
         for target in ["checkerboard", "diffuse-white"] {
             let out = d(target);
@@ -1134,5 +1143,29 @@ fn calibrate_tells_a_beam_that_lands_off_its_mirror() {
         let line = err.lines().find(|l| l.contains("the beams of mirrors")).unwrap_or("");
         assert!(warned && line.contains("mirrors 0 ("), "{name}: {err}");
         assert!(line.contains("`scanner move --mirror N` and look"), "{line}");
+        // Region images of a scan with this calibration: where a beam left
+        // the sample unlit they are 0, which `regions` (and `build`) say.
+        let regions = d("regions");
+        let (code, _, err) = common::run(&[
+            "regions",
+            "--scan",
+            &white,
+            "--calibration",
+            &cal,
+            "-o",
+            &regions,
+            "--size",
+            "32",
+        ]);
+        assert_eq!(code, Some(0), "{name}: {err}");
+        let unlit = err.lines().find(|l| l.contains("leave that share of the sample unlit"));
+        if name == "tilted" {
+            // Dimmed, not dark: nothing unlit.
+            assert!(unlit.is_none(), "{name}: {err}");
+        } else {
+            let unlit = unlit.unwrap_or_else(|| panic!("{name}: {err}"));
+            assert!(unlit.contains("the beams of mirrors 0 ("), "{unlit}");
+            assert!(unlit.contains("their region images are 0 (black) there"), "{unlit}");
+        }
     }
 }

@@ -114,6 +114,11 @@ pub struct LightCalibration {
     pub axes: [f64; 3],
 }
 
+/// Where a light's field is below this (its mean over lights and cells
+/// being 1), its beam does not light the sample: there is nothing to
+/// divide by, and the region pixels are 0.
+pub const UNLIT_FIELD: f64 = 0.02;
+
 /// The diffuse-white response, separable per view and per light.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ColourCalibration {
@@ -149,6 +154,17 @@ impl ColourCalibration {
     /// The light field B_l at `uv`.
     pub fn light(&self, li: usize, uv: [f64; 2]) -> f64 {
         Self::lookup::<1>(self.grid, &self.light_field[li], uv)[0]
+    }
+
+    /// The share of the sample's cells light `li`'s beam leaves unlit
+    /// (its field below [`UNLIT_FIELD`]): their region pixels are 0.
+    pub fn unlit_share(&self, li: usize) -> f64 {
+        match self.light_field.get(li) {
+            Some(f) if !f.is_empty() => {
+                f.iter().filter(|&&b| (b as f64) < UNLIT_FIELD).count() as f64 / f.len() as f64
+            }
+            _ => 0.0,
+        }
     }
 
     /// How fully each light's beam covers the sample, as its field shows

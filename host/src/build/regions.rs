@@ -568,10 +568,9 @@ pub fn extract_regions(
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
             // f · cos θi per frame unit at uv in view `vi`, or `None` where
-            // this beam leaves the sample unlit (below 2 % of its mean:
-            // nothing to divide by).
+            // this beam leaves the sample unlit (nothing to divide by).
             let unit = |b: f64, a: [f64; 3]| -> Option<[f64; 3]> {
-                if b < 0.02 {
+                if b < super::calibrate::UNLIT_FIELD {
                     return None;
                 }
                 let w = a.map(|a| a * b);

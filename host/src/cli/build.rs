@@ -356,6 +356,32 @@ pub fn calibrate_cmd(
 /// Say which of the camera's defective pixels the frames of `scan` will
 /// have replaced (those it recorded itself — its metering's, its dark
 /// frame's — and the calibration's), if any.
+/// Warn of the lights the scan uses whose beam, as the calibration saw it,
+/// leaves part of the sample unlit: their region pixels there are 0.
+fn say_unlit(scan: &ScanFrames, cal: &Calibration) {
+    let unlit: Vec<String> = cal
+        .lights
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| scan.manifest.frames.iter().any(|f| f.mirror == l.light))
+        .map(|(li, l)| (l.light, cal.colour.unlit_share(li)))
+        .filter(|(_, share)| *share > 0.0)
+        .map(|(l, share)| match 100.0 * share {
+            p if p < 1.0 => format!("{l} (< 1 %)"),
+            p => format!("{l} ({p:.0} %)"),
+        })
+        .collect();
+    if !unlit.is_empty() {
+        eprintln!(
+            "scanner: warning: in the calibration the beams of mirrors {} leave that share of \
+             the sample unlit: their region images are 0 (black) there. Place the beams on \
+             their mirrors (`scanner calibrate` names those off centre) and scan the targets \
+             again.",
+            unlit.join(", ")
+        );
+    }
+}
+
 fn say_defects(scan: &ScanFrames, cal: &Calibration) {
     let all = crate::defects::union(scan.defects(), &cal.defects);
     if !all.is_empty() {
@@ -716,6 +742,7 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
     say_defects(&frames, &cal);
+    say_unlit(&frames, &cal);
     let bar = StageBar::new();
     let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
     let stages = bar.finish();
@@ -841,6 +868,7 @@ pub fn build_cmd(
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
     say_defects(&frames, &cal);
+    say_unlit(&frames, &cal);
     let provenance = scanner_shading::format::Provenance {
         scan_manifest_sha256: sha256_file(&scan.join(crate::scan::MANIFEST_FILE))?,
         geometry_sha256: g.hash(),
