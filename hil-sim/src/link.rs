@@ -479,16 +479,15 @@ struct ServedPort {
     /// Held so that the pty lives while no host has it open.
     slave: Option<std::fs::File>,
     usb: Option<UsbPlug>,
+    /// Where a [`Port::Usb`] without a path keeps its link (removed after
+    /// the link, as fields drop after [`Drop::drop`]).
+    _dir: Option<tempfile::TempDir>,
 }
 
 impl ServedPort {
     /// The port for `device` and the path the host opens.
-    fn open(
-        port: &Port,
-        device: &SimDevice,
-        dir: &Option<tempfile::TempDir>,
-    ) -> std::io::Result<(ServedPort, String)> {
-        let mut served = ServedPort { master: None, slave: None, usb: None };
+    fn open(port: &Port, device: &SimDevice) -> std::io::Result<(ServedPort, String)> {
+        let mut served = ServedPort { master: None, slave: None, usb: None, _dir: None };
         let mut claim = None;
         let link = match port {
             Port::Pty => {
@@ -507,10 +506,12 @@ impl ServedPort {
                 claim = Some(claim_link(path)?);
                 path.clone()
             }
-            Port::Usb(None) => match dir {
-                Some(dir) => dir.path().join("ttySIM"),
-                None => return Err(std::io::Error::other("no directory for the port's link")),
-            },
+            Port::Usb(None) => {
+                let dir = tempfile::Builder::new().prefix("hil-sim-port-").tempdir()?;
+                let link = dir.path().join("ttySIM");
+                served._dir = Some(dir);
+                link
+            }
         };
         served.usb = Some(UsbPlug {
             link: link.clone(),
@@ -571,23 +572,16 @@ impl ServedPort {
                 self.unplug();
                 return Passing::Nothing;
             }
-        } else if wire_up && now >= usb.back_at {
-            match self.plug() {
-                Ok(_) => {
-                    if let Some(usb) = &mut self.usb {
-                        usb.plug_failed = false;
-                    }
-                }
-                Err(e) => {
-                    if let Some(usb) = &mut self.usb
-                        && !std::mem::replace(&mut usb.plug_failed, true)
-                    {
-                        eprintln!("hil-sim: cannot plug the board in again: {e}");
-                    }
+        } else {
+            if wire_up && now >= usb.back_at {
+                let failed = self.plug().err();
+                if let Some(usb) = &mut self.usb
+                    && std::mem::replace(&mut usb.plug_failed, failed.is_some()) != failed.is_some()
+                    && let Some(e) = failed
+                {
+                    eprintln!("hil-sim: cannot plug the board in again: {e}");
                 }
             }
-            return Passing::Nothing;
-        } else {
             return Passing::Nothing;
         }
         match (reset_now, usb.unplug_at.is_some()) {
@@ -689,8 +683,6 @@ pub struct PtyServer {
     ruler: Arc<AtomicBool>,
     thread: Option<JoinHandle<SimDevice>>,
     renderer: Option<JoinHandle<()>>,
-    /// Where a [`Port::Usb`] without a path keeps its link (removed last).
-    _dir: Option<tempfile::TempDir>,
 }
 
 impl PtyServer {
@@ -740,11 +732,7 @@ impl PtyServer {
         // server thread first scheduled after the host has written (a busy
         // machine) would answer at tick 0, before the first debounce ended.
         device.advance_to(device.now() + BOOTED_TICKS);
-        let dir = match port {
-            Port::Usb(None) => Some(tempfile::Builder::new().prefix("hil-sim-port-").tempdir()?),
-            _ => None,
-        };
-        let (mut served, path) = ServedPort::open(&port, &device, &dir)?;
+        let (mut served, path) = ServedPort::open(&port, &device)?;
         let stop = Arc::new(AtomicBool::new(false));
         let stop_flag = Arc::clone(&stop);
         let ruler = Arc::new(AtomicBool::new(false));
@@ -803,7 +791,7 @@ impl PtyServer {
             drop(camera); // ends the renderer once it has written every frame
             device
         });
-        Ok(PtyServer { path, stop, ruler, thread: Some(thread), renderer, _dir: dir })
+        Ok(PtyServer { path, stop, ruler, thread: Some(thread), renderer })
     }
 
     /// From now on, print (stderr) where the axes physically stop after

@@ -212,12 +212,12 @@ pub fn geometry_cmd(
     Ok(())
 }
 
-/// `scanner calibrate`
 /// `scanner calibrate` warns of a light whose beam gives part of the
 /// sample less than this share of what the other beams give it
 /// ([`crate::build::calibrate::ColourCalibration::beam_coverage`]).
 const BEAM_COVERAGE_WARN: f64 = 0.7;
 
+/// `scanner calibrate`
 pub fn calibrate_cmd(
     checkerboard: &Path,
     white: &Path,
@@ -353,17 +353,15 @@ pub fn calibrate_cmd(
     Ok(())
 }
 
-/// Say which of the camera's defective pixels the frames of `scan` will
-/// have replaced (those it recorded itself — its metering's, its dark
-/// frame's — and the calibration's), if any.
 /// Warn of the lights the scan uses whose beam, as the calibration saw it,
 /// leaves part of the sample unlit: their region pixels there are 0.
 fn say_unlit(scan: &ScanFrames, cal: &Calibration) {
+    let lit = scan.lights();
     let unlit: Vec<String> = cal
         .lights
         .iter()
         .enumerate()
-        .filter(|(_, l)| scan.manifest.frames.iter().any(|f| f.mirror == l.light))
+        .filter(|(_, l)| lit.binary_search(&l.light).is_ok())
         .map(|(li, l)| (l.light, cal.colour.unlit_share(li)))
         .filter(|(_, share)| *share > 0.0)
         .map(|(l, share)| match 100.0 * share {
@@ -382,6 +380,9 @@ fn say_unlit(scan: &ScanFrames, cal: &Calibration) {
     }
 }
 
+/// Say which of the camera's defective pixels the frames of `scan` will
+/// have replaced (those it recorded itself — its metering's, its dark
+/// frame's — and the calibration's), if any.
 fn say_defects(scan: &ScanFrames, cal: &Calibration) {
     let all = crate::defects::union(scan.defects(), &cal.defects);
     if !all.is_empty() {
