@@ -271,6 +271,13 @@ impl Controller {
     pub fn is_homed(&self, axis: Axis) -> bool {
         self.homed[axis.index()]
     }
+    /// The axes a running homing moves (also while it stops short).
+    pub fn homing_axes(&self) -> AxisSet {
+        match self.activity {
+            Activity::Homing { axes, .. } => axes,
+            _ => AxisSet::NONE,
+        }
+    }
     /// Latched faults.
     pub fn faults(&self) -> FaultFlags {
         self.faults
@@ -831,12 +838,14 @@ impl Controller {
         let profile = *motion.planner.profile();
         let planned = motion.planner.planned();
         // Cut the plan after the step already armed in the timer, unless the
-        // move is ramping down already (as fast as allowed).
+        // move is ramping down already (as fast as allowed). More steps
+        // scheduled than planned: the armed step is the one a cut kept of
+        // the plan before, and this plan is a stop already.
         let cut = hw.with_stepper(axis, |s| {
             if !s.is_running() {
                 return None;
             }
-            let pending = planned - s.scheduled_steps() + 1;
+            let pending = planned.checked_sub(s.scheduled_steps())? + 1;
             if profile.phase(pending as f64) == Phase::Decelerate {
                 return None;
             }

@@ -20,6 +20,8 @@
 #![warn(missing_docs)]
 
 pub mod bootloader;
+#[cfg(feature = "selftest")]
+pub mod chaos;
 pub mod config;
 pub mod controller;
 pub mod hal;

@@ -43,6 +43,7 @@ pub const TESTS: &[SelfTest] = &[
     ("planner_stop_profile", planner_stop_profile),
     ("concurrent_move_reaches_targets", concurrent_move_reaches_targets),
     ("controlled_stop_decelerates", controlled_stop_decelerates),
+    ("stop_while_stopping_changes_nothing", stop_while_stopping_changes_nothing),
     ("homing_all_axes", homing_all_axes),
     ("homing_starting_on_switch_backs_off", homing_starting_on_switch_backs_off),
     ("homing_switch_not_found", homing_switch_not_found),
@@ -74,6 +75,7 @@ pub const TESTS: &[SelfTest] = &[
     ("save_config_refused_while_moving_or_faulted", save_config_refused_while_moving_or_faulted),
     ("every_motion_request_refused_while_faulted", every_motion_request_refused_while_faulted),
     ("link_bytes_corruption_and_duplicates", link_bytes_corruption_and_duplicates),
+    ("random_operation_keeps_the_safety_rules", random_operation_keeps_the_safety_rules),
 ];
 
 /// Run every test; returns (passed, failed) and reports each through `report`.
@@ -381,6 +383,30 @@ pub fn controlled_stop_decelerates() -> TestResult {
     ensure!((dur - 0.2).abs() < 0.002, "stop takes v/a");
     ensure!(last_motion_outcome(&rig) == Some(MotionOutcome::Stopped), "MotionDone(Stopped)");
     ensure!(rig.ctrl.is_homed(Axis::Track), "a controlled stop keeps homing");
+    Ok(())
+}
+
+/// A `Stop` while the axes already ramp down changes nothing: right after
+/// the first (the step a cut kept is still armed; found by the random
+/// operation of `crate::chaos`: it underflowed) and halfway down.
+pub fn stop_while_stopping_changes_nothing() -> TestResult {
+    let mut rig = Rig::new();
+    ensure!(rig.request(Request::Home { axes: AxisSet::ALL }) == Reply::Ack, "homing");
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "first stop");
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "second stop at once");
+    ensure!(rig.run_until_idle(2_000), "stops");
+    ensure!(rig.ctrl.faults().is_empty(), "no fault");
+    ensure!(rig.home_all(), "homing");
+    move_to(&mut rig, [None, Some(320_000), None])?;
+    rig.run_until(rig.now + 400 * TICKS_PER_MS);
+    let before = rig.position(Axis::Track);
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "stop at cruise");
+    rig.run_until(rig.now + 100 * TICKS_PER_MS);
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "stop halfway down");
+    ensure!(rig.run_until_idle(2_000), "stops");
+    let travelled = rig.position(Axis::Track) - before;
+    ensure!((6_390..=6_402).contains(&travelled), "the first stop's distance, v²/2a");
+    ensure!(rig.ctrl.is_homed(Axis::Track), "still homed");
     Ok(())
 }
 
@@ -1488,5 +1514,20 @@ pub fn link_bytes_corruption_and_duplicates() -> TestResult {
     let ToHost::Event(Event::Log { text, .. }) = f.msg else { return Err("a log event") };
     ensure!(text.as_str() == "second", "the second event's text");
     ensure!(frames.next().is_none(), "nothing else");
+    Ok(())
+}
+
+/// A short random operation ([`crate::chaos`]; the PC runs many more in
+/// `firmware/tests/chaos.rs`): on the Cortex-M4, the same rules hold with
+/// its own integer and float arithmetic.
+pub fn random_operation_keeps_the_safety_rules() -> TestResult {
+    let mut total = crate::chaos::Report::default();
+    // Two calm runs, which home the axes and move them homed.
+    for seed in [1, 2] {
+        let report = crate::chaos::run(&mut crate::chaos::Seeded::new(seed), 150)
+            .map_err(|v| v.rule.describe())?;
+        total.add(&report);
+    }
+    ensure!(total.homings > 0 && total.homed_steps > 100_000, "the runs homed and moved axes");
     Ok(())
 }

@@ -177,6 +177,9 @@ pub struct Rig {
     pub strobe: Option<CameraStrobe>,
     /// Send a `Ping` every 100 ms of simulated time (as a host does).
     pub keepalive: bool,
+    /// Also poll every this many ticks, as the board's 5 kHz loop does
+    /// (`None`: only at steps, pings and the controller's deadlines).
+    pub poll_period: Option<u64>,
     /// Events received, in order.
     pub events: Vec<Event, 64>,
     /// Tick of the first and last step of each axis since the last
@@ -184,6 +187,18 @@ pub struct Rig {
     pub step_span: [Option<(u64, u64)>; AXIS_COUNT],
     seq: u8,
     last_ping: u64,
+    last_poll: u64,
+    boot: BootInfo,
+}
+
+/// What [`Rig::run_until_visiting`] shows its visitor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Visit {
+    /// `axis` has just made a step (the machine moved; the controller has
+    /// not polled since).
+    Stepped(Axis),
+    /// The controller has just polled.
+    Polled,
 }
 
 impl Rig {
@@ -240,14 +255,39 @@ impl Rig {
             driver_fault: false,
             strobe: None,
             keepalive: true,
+            poll_period: None,
             events: Vec::new(),
             step_span: [None; AXIS_COUNT],
             seq: 0,
             last_ping: 0,
+            last_poll: 0,
+            boot,
         };
         rig.poll();
         let _ = rig.request(Request::Hello { host_protocol: PROTOCOL_VERSION });
         rig
+    }
+
+    /// The board reset (a `Reset`, the watchdog, back from the bootloader,
+    /// power): a new controller with the configuration the board saved,
+    /// the pins and timers at their reset state, the machine where it was.
+    /// No handshake yet.
+    pub fn reboot(&mut self, reason: ResetReason) {
+        let boot = BootInfo {
+            reason,
+            boot_id: self.boot.boot_id.wrapping_add(1),
+            // A flash that fails to save fails to count boots as well.
+            storage_failed: self.hw.storage_fails,
+            ..self.boot
+        };
+        self.boot = boot;
+        let saved = (!self.hw.saved.is_empty()).then_some(&self.hw.saved[..]);
+        self.ctrl = Controller::new(boot, saved);
+        let saved = core::mem::take(&mut self.hw.saved);
+        let storage_fails = self.hw.storage_fails;
+        self.hw = MockHw { now: self.now, saved, storage_fails, ..MockHw::default() };
+        self.seq = 0;
+        self.poll();
     }
 
     /// The controller's position counter of `axis`, steps.
@@ -318,6 +358,7 @@ impl Rig {
     /// Poll the controller at the current time.
     pub fn poll(&mut self) {
         self.hw.now = self.now;
+        self.last_poll = self.now;
         let inputs = self.inputs();
         self.ctrl.poll(self.now, &inputs, &mut self.hw);
         self.collect();
@@ -336,18 +377,30 @@ impl Rig {
 
     /// Run to tick `end`, visiting every step and deadline in time order.
     pub fn run_until(&mut self, end: u64) {
+        let ok: Result<(), core::convert::Infallible> = self.run_until_visiting(end, |_, _| Ok(()));
+        let Ok(()) = ok;
+    }
+
+    /// [`Rig::run_until`], showing `visit` every step and every poll; the
+    /// first error `visit` returns stops the run there.
+    pub fn run_until_visiting<E>(
+        &mut self,
+        end: u64,
+        mut visit: impl FnMut(&mut Rig, Visit) -> Result<(), E>,
+    ) -> Result<(), E> {
         loop {
             let step = Axis::ALL
                 .iter()
                 .filter_map(|a| self.hw.armed[a.index()].map(|t| (t, *a)))
                 .min_by_key(|(t, _)| *t);
             let ping = self.keepalive.then_some(self.last_ping + 100 * TICKS_PER_MS);
+            let periodic = self.poll_period.map(|p| self.last_poll + p);
             let deadline = self.ctrl.next_deadline();
-            let next = [step.map(|s| s.0), ping, deadline].into_iter().flatten().min();
+            let next = [step.map(|s| s.0), ping, periodic, deadline].into_iter().flatten().min();
             let Some(t) = next.filter(|t| *t <= end) else {
                 self.now = self.now.max(end);
                 self.poll();
-                return;
+                return visit(self, Visit::Polled);
             };
             self.now = self.now.max(t);
             if let Some((ts, axis)) = step
@@ -358,11 +411,13 @@ impl Rig {
                 self.step_span[i] = Some((first, t));
                 self.physical[i] += if self.hw.dir_positive[i] { 1 } else { -1 };
                 self.hw.armed[i] = self.hw.steppers[i].step();
+                visit(self, Visit::Stepped(axis))?;
             } else if ping == Some(t) {
                 self.last_ping = t;
                 let _ = self.request(Request::Ping { token: 0 });
             }
             self.poll();
+            visit(self, Visit::Polled)?;
         }
     }
 

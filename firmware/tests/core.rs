@@ -29,6 +29,7 @@ selftests!(
     planner_stop_profile,
     concurrent_move_reaches_targets,
     controlled_stop_decelerates,
+    stop_while_stopping_changes_nothing,
     homing_all_axes,
     homing_starting_on_switch_backs_off,
     homing_switch_not_found,
@@ -60,4 +61,5 @@ selftests!(
     save_config_refused_while_moving_or_faulted,
     every_motion_request_refused_while_faulted,
     link_bytes_corruption_and_duplicates,
+    random_operation_keeps_the_safety_rules,
 );

@@ -1,0 +1,844 @@
+//! Random operation of the controller on the [`Rig`], with the safety rules
+//! of spec/hardware.md checked at every step the machine makes and after
+//! every poll and request.
+//!
+//! The self-tests drive the controller through the cases someone thought
+//! of; this drives it through the ones nobody did: a seeded (or fuzzed)
+//! mixture of plausible requests (homing, moves in and out of range, mirror
+//! table entries, capture steps, triggers, light, stop, clear, reset, the
+//! bootloader), requests decoded from random bytes, line noise, an
+//! emergency stop or a driver fault at any moment, home switches that break
+//! and mend, axes pushed by hand while unpowered, a host that stops sending,
+//! and reboots — with simulated time passing between them, polled at the
+//! board's rate.
+//!
+//! The rules ([`Rule`]): no step while a fault that stops at once is
+//! latched; the emergency stop and a driver fault latch within the debounce
+//! time and release the drivers; no step of an axis that is not homed
+//! outside its homing; a homed axis stays within its soft limits; light off
+//! and trigger low while a fault is latched (a failed homing excepted: it
+//! stops the axes, not the light); no unpowered axis counted as homed;
+//! motion refused while a fault is latched; a reset or the bootloader only
+//! once everything has stopped; no trigger pulse longer than the longest
+//! exposure. Any panic of the controller (arithmetic overflow included, in
+//! debug builds) fails too.
+//!
+//! `no_std` and allocation-free like the rest of the test kit: it runs on
+//! the PC (`firmware/tests/chaos.rs`), on the Cortex-M4 under QEMU (a
+//! short run among the self-tests) and under cargo-fuzz (`fuzz/`), whose
+//! bytes are the randomness.
+
+use protocol::{
+    AXIS_COUNT, Axis, AxisSet, CaptureStep, DeviceState, Event, FULL_DUTY_PERMILLE, FaultFlags,
+    Frame, FrameDecoder, LightState, MAX_EXPOSURE_US, MAX_FRAME_LEN, MAX_LIGHT_MARGIN_US,
+    MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply, Request,
+    ResetReason, TimedCaptureStep, ToHost, encode_frame,
+};
+
+use crate::controller::DEBOUNCE_US;
+use crate::hal::{TICKS_PER_MS, TICKS_PER_US};
+use crate::testkit::{CameraStrobe, Rig, Switch, Visit, xorshift64star};
+
+/// Where a run's randomness comes from.
+pub trait Entropy {
+    /// The next random number, `None` once there is no more.
+    fn next(&mut self) -> Option<u32>;
+}
+
+/// Seeded pseudo-random numbers (xorshift64*): endless.
+#[derive(Debug, Clone)]
+pub struct Seeded(u64);
+
+impl Seeded {
+    /// The sequence of `seed`.
+    pub fn new(seed: u64) -> Seeded {
+        Seeded(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1)
+    }
+}
+
+impl Entropy for Seeded {
+    fn next(&mut self) -> Option<u32> {
+        Some((xorshift64star(&mut self.0) >> 32) as u32)
+    }
+}
+
+/// A fuzzer's bytes, four at a time; the run ends with them.
+#[derive(Debug, Clone)]
+pub struct Bytes<'a>(pub &'a [u8]);
+
+impl Entropy for Bytes<'_> {
+    fn next(&mut self) -> Option<u32> {
+        if self.0.is_empty() {
+            return None;
+        }
+        let n = self.0.len().min(4);
+        let mut b = [0u8; 4];
+        b[..n].copy_from_slice(&self.0[..n]);
+        self.0 = &self.0[n..];
+        Some(u32::from_le_bytes(b))
+    }
+}
+
+/// What a run does, step by step, for [`run_logged`]'s log: to read the way
+/// to a broken rule.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Logged {
+    /// A request and its reply.
+    Request(Request, Reply),
+    /// Bytes through the decoder (noise, a frame, cut or corrupted).
+    Bytes(usize),
+    /// The inputs after a change: emergency stop, driver fault, switches,
+    /// physical positions, keep-alive.
+    Inputs {
+        /// The emergency stop is open.
+        estop: bool,
+        /// A driver reports a fault.
+        driver_fault: bool,
+        /// The home switches.
+        switches: [Switch; AXIS_COUNT],
+        /// Where the axes physically are.
+        physical: [i64; AXIS_COUNT],
+        /// The host pings.
+        keepalive: bool,
+    },
+    /// A reboot.
+    Reboot(ResetReason),
+    /// Simulated time passed, ticks, to this tick.
+    Passed(u64, u64),
+}
+
+/// A safety rule of the controller.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rule {
+    /// An axis stepped while a fault that stops every axis at once was
+    /// latched (any but a link timeout, which decelerates).
+    StepWhileFaulted,
+    /// The emergency stop or the driver-fault input was asserted longer
+    /// than the debounce time and the fault is not latched, or the drivers
+    /// are still enabled, or an axis still steps.
+    StopInputIgnored,
+    /// An axis that is not homed stepped outside its homing.
+    UnhomedAxisMoved,
+    /// A homed axis left its soft limits.
+    SoftLimit,
+    /// The light is on or the trigger high while a fault is latched.
+    LightWhileFaulted,
+    /// Axes are counted as homed while their drivers are released (they
+    /// can be pushed by hand).
+    HomedWhileUnpowered,
+    /// Motion, light or trigger accepted while a fault was latched.
+    AcceptedWhileFaulted,
+    /// A reset or the bootloader was entered with an axis still moving or
+    /// the light or trigger on.
+    ResetWhileActive,
+    /// The trigger stayed high longer than the longest exposure.
+    TriggerStuck,
+    /// The light's duty above full.
+    LightDuty,
+}
+
+impl Rule {
+    /// What the rule says.
+    pub const fn describe(self) -> &'static str {
+        match self {
+            Rule::StepWhileFaulted => "an axis stepped while a stopping fault was latched",
+            Rule::StopInputIgnored => {
+                "the emergency stop or a driver fault was not acted on within the debounce time"
+            }
+            Rule::UnhomedAxisMoved => "an axis that is not homed moved outside its homing",
+            Rule::SoftLimit => "a homed axis left its soft limits",
+            Rule::LightWhileFaulted => "light on or trigger high while a fault was latched",
+            Rule::HomedWhileUnpowered => "an axis counted as homed with its drivers released",
+            Rule::AcceptedWhileFaulted => "motion, light or trigger accepted while faulted",
+            Rule::ResetWhileActive => "reset or bootloader entered with something still running",
+            Rule::TriggerStuck => "the trigger stayed high longer than the longest exposure",
+            Rule::LightDuty => "light duty above full",
+        }
+    }
+}
+
+/// A broken rule: which, where in the run, and on which axis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Violation {
+    /// The rule.
+    pub rule: Rule,
+    /// The action of the run (0-based) after which it broke.
+    pub action: usize,
+    /// Simulated time, ticks.
+    pub tick: u64,
+    /// The axis concerned, if one.
+    pub axis: Option<Axis>,
+    /// The faults latched then.
+    pub faults: FaultFlags,
+}
+
+impl core::fmt::Display for Violation {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "{} (action {}, tick {}", self.rule.describe(), self.action, self.tick)?;
+        if let Some(axis) = self.axis {
+            write!(f, ", axis {}", axis.name())?;
+        }
+        write!(f, ", faults {:#06x})", self.faults.0)
+    }
+}
+
+/// What a run went through: to see that it reached the states the rules
+/// are about.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Report {
+    /// Actions taken.
+    pub actions: usize,
+    /// Requests sent (plausible, decoded from random bytes, and framed).
+    pub requests: usize,
+    /// Requests acknowledged.
+    pub acks: usize,
+    /// Steps per axis.
+    pub steps: [u64; AXIS_COUNT],
+    /// Steps made by axes that were homed.
+    pub homed_steps: u64,
+    /// Homings completed.
+    pub homings: usize,
+    /// Homings that failed.
+    pub homings_failed: usize,
+    /// Moves completed.
+    pub moves: usize,
+    /// Trigger pulses fired.
+    pub triggers: usize,
+    /// Every fault seen raised.
+    pub faults: FaultFlags,
+    /// Reboots (reset, bootloader, watchdog).
+    pub reboots: usize,
+    /// Simulated time, ticks.
+    pub ticks: u64,
+}
+
+impl Report {
+    /// Add `other`'s counts to these.
+    pub fn add(&mut self, other: &Report) {
+        self.actions += other.actions;
+        self.requests += other.requests;
+        self.acks += other.acks;
+        for (a, b) in self.steps.iter_mut().zip(other.steps) {
+            *a += b;
+        }
+        self.homed_steps += other.homed_steps;
+        self.homings += other.homings;
+        self.homings_failed += other.homings_failed;
+        self.moves += other.moves;
+        self.triggers += other.triggers;
+        self.faults = self.faults.union(other.faults);
+        self.reboots += other.reboots;
+        self.ticks += other.ticks;
+    }
+}
+
+/// The board's poll period (5 kHz).
+const POLL_TICKS: u64 = 200 * TICKS_PER_US;
+
+/// How long after a stop input asserts the controller must have acted: the
+/// debounce time and a poll.
+const STOP_WITHIN: u64 = DEBOUNCE_US * TICKS_PER_US + POLL_TICKS;
+
+/// Every fault but a link timeout stops the axes at once (a link timeout
+/// decelerates them).
+const fn stops_at_once(f: FaultFlags) -> bool {
+    f.0 & !FaultFlags::LINK_TIMEOUT.0 != 0
+}
+
+/// Every fault but a failed homing puts the light out.
+const fn dark(f: FaultFlags) -> bool {
+    f.0 & !FaultFlags::HOMING_FAILED.0 != 0
+}
+
+/// Run `actions` random actions on a fresh rig (fewer if `entropy` runs
+/// out): `Err` names the first rule broken.
+pub fn run(entropy: &mut impl Entropy, actions: usize) -> Result<Report, Violation> {
+    run_logged(entropy, actions, &mut |_| {})
+}
+
+/// [`run`], telling `log` every action.
+pub fn run_logged(
+    entropy: &mut impl Entropy,
+    actions: usize,
+    log: &mut dyn FnMut(&Logged),
+) -> Result<Report, Violation> {
+    let mut chaos = Chaos::new(entropy, log);
+    chaos.start();
+    for action in 0..actions {
+        chaos.action = action;
+        if chaos.exhausted {
+            break;
+        }
+        chaos.act()?;
+        chaos.report.actions += 1;
+    }
+    chaos.report.ticks = chaos.rig.now;
+    Ok(chaos.report)
+}
+
+/// The run's state besides the rig.
+struct Watch {
+    action: usize,
+    /// When the emergency stop and the driver fault were asserted.
+    estop_since: Option<u64>,
+    driver_fault_since: Option<u64>,
+    /// When the trigger rose.
+    trigger_since: Option<u64>,
+    /// Which axes were homed at the last check.
+    homed: [bool; AXIS_COUNT],
+    report: Report,
+}
+
+struct Chaos<'e, E: Entropy> {
+    rig: Rig,
+    /// Disturbances (random requests, noise, inputs) five times rarer.
+    calm: bool,
+    entropy: &'e mut E,
+    log: &'e mut dyn FnMut(&Logged),
+    exhausted: bool,
+    action: usize,
+    watch: Watch,
+    report: Report,
+}
+
+impl<'e, E: Entropy> Chaos<'e, E> {
+    fn new(entropy: &'e mut E, log: &'e mut dyn FnMut(&Logged)) -> Self {
+        let mut rig = Rig::with_capabilities(
+            ResetReason::PowerOn,
+            protocol::Capabilities::SIMULATED
+                .union(protocol::Capabilities::PERSISTENT_CONFIG)
+                .union(protocol::Capabilities::EXPOSURE_STROBE)
+                .union(protocol::Capabilities::SYSTEM_BOOTLOADER),
+        );
+        rig.poll_period = Some(POLL_TICKS);
+        let watch = Watch {
+            action: 0,
+            estop_since: None,
+            driver_fault_since: None,
+            trigger_since: None,
+            homed: [false; AXIS_COUNT],
+            report: Report::default(),
+        };
+        let report = Report::default();
+        Chaos { rig, calm: false, entropy, log, exhausted: false, action: 0, watch, report }
+    }
+
+    /// The rig's own variations, drawn once.
+    fn start(&mut self) {
+        self.calm = self.chance(500);
+        self.rig.hw.storage_fails = self.chance(100);
+        self.rig.hw.hardware_pulse = self.chance(500);
+        if self.chance(300) {
+            let active_high = self.chance(500);
+            let delay = self.below(2_000) as u64 * TICKS_PER_US;
+            self.rig.strobe = Some(CameraStrobe { delay, active_high, ignores: self.chance(200) });
+        }
+    }
+
+    // ----- randomness -----------------------------------------------------------
+
+    fn r(&mut self) -> u32 {
+        match self.entropy.next() {
+            Some(x) => x,
+            None => {
+                self.exhausted = true;
+                0
+            }
+        }
+    }
+
+    /// 0 … n − 1.
+    fn below(&mut self, n: u32) -> u32 {
+        if n == 0 { 0 } else { self.r() % n }
+    }
+
+    /// True `per_mille` times in a thousand.
+    fn chance(&mut self, per_mille: u32) -> bool {
+        self.below(1000) < per_mille
+    }
+
+    /// lo ..= hi.
+    fn between(&mut self, lo: i64, hi: i64) -> i64 {
+        if hi <= lo {
+            return lo;
+        }
+        let span = (hi - lo) as u64 + 1;
+        let x = ((self.r() as u64) << 32 | self.r() as u64) % span;
+        lo + x as i64
+    }
+
+    // ----- actions ----------------------------------------------------------------
+
+    fn act(&mut self) -> Result<(), Violation> {
+        // A calm run's host has the scanner mostly to itself, and mostly
+        // waits for what it started to end.
+        let disturbed = !self.calm || self.chance(200);
+        let state = self.rig.status().state;
+        let busy = !matches!(state, DeviceState::Idle | DeviceState::Faulted);
+        match self.below(100) {
+            _ if self.calm && busy && self.chance(850) => {}
+            k if k < 62 || !disturbed => {
+                let request = self.host_request();
+                self.send(request)?;
+            }
+            62..70 => {
+                if let Some(request) = self.random_request() {
+                    self.send(request)?;
+                }
+            }
+            70..74 => self.line_bytes()?,
+            74..80 => self.change_inputs(),
+            _ => {}
+        }
+        let dt = match self.below(100) {
+            0..20 => 0,
+            20..50 => self.below(2 * TICKS_PER_MS as u32) as u64,
+            50..85 => self.below(200) as u64 * TICKS_PER_MS,
+            _ => self.below(3_000) as u64 * TICKS_PER_MS,
+        };
+        self.pass(dt)
+    }
+
+    /// Send `request` as a host would (a fresh sequence number) and check
+    /// the answer.
+    fn send(&mut self, request: Request) -> Result<(), Violation> {
+        let faulted = self.rig.ctrl.faults();
+        let polarity = self.rig.ctrl.config().board.driver_fault_active_high;
+        let reply = self.rig.request(request);
+        self.line_follows_polarity(polarity);
+        (self.log)(&Logged::Request(request, reply));
+        self.after_request(&request, faulted, reply)
+    }
+
+    fn after_request(
+        &mut self,
+        request: &Request,
+        faulted: FaultFlags,
+        reply: Reply,
+    ) -> Result<(), Violation> {
+        self.report.requests += 1;
+        if reply == Reply::Ack {
+            self.report.acks += 1;
+            let gated = matches!(
+                request,
+                Request::Home { .. }
+                    | Request::Move { .. }
+                    | Request::GoToMirror { .. }
+                    | Request::CaptureStep(_)
+                    | Request::TimedCaptureStep(_)
+                    | Request::Trigger { .. }
+                    | Request::SaveConfig
+            ) || matches!(request, Request::SetLight(LightState { on: true, .. }));
+            if gated && !faulted.is_empty() {
+                return Err(self.violation(Rule::AcceptedWhileFaulted, None));
+            }
+        }
+        self.check_state()?;
+        self.reboot_if_asked()?;
+        if reply == Reply::Error(protocol::DeviceError::NoHandshake) {
+            // A host handshakes after the device's reset.
+            self.send(Request::Hello { host_protocol: PROTOCOL_VERSION })?;
+        }
+        Ok(())
+    }
+
+    /// What a host does next: clear a fault, home, or anything else.
+    fn host_request(&mut self) -> Request {
+        let homed = Axis::ALL.iter().all(|a| self.rig.ctrl.is_homed(*a));
+        if !self.rig.ctrl.faults().is_empty() && self.chance(500) {
+            Request::ClearFault
+        } else if !homed && self.chance(400) {
+            Request::Home { axes: AxisSet::ALL }
+        } else {
+            self.plausible_request()
+        }
+    }
+
+    /// A request a host (or a person at `scanner move`) might send: mostly
+    /// sensible, some out of range.
+    fn plausible_request(&mut self) -> Request {
+        let axes = self.rig.ctrl.config().axes;
+        match self.below(100) {
+            0..6 => Request::Home { axes: AxisSet::ALL },
+            6..8 => Request::Home { axes: AxisSet(self.below(8) as u8) },
+            8..22 => {
+                let mut targets = [None; AXIS_COUNT];
+                for (i, t) in targets.iter_mut().enumerate() {
+                    if self.chance(700) {
+                        *t = Some(self.target(i));
+                    }
+                }
+                Request::Move { mode: MoveMode::Absolute, targets }
+            }
+            22..28 => {
+                let mut targets = [None; AXIS_COUNT];
+                for t in targets.iter_mut() {
+                    if self.chance(600) {
+                        *t = Some(self.between(-3_000, 3_000) as i32);
+                    }
+                }
+                Request::Move { mode: MoveMode::Relative, targets }
+            }
+            28..35 => {
+                let mirror = self.below(6) as u8;
+                let steps = core::array::from_fn(|i| self.target(i));
+                Request::SetMirror { mirror, position: MirrorPosition { steps } }
+            }
+            35..36 => Request::SetMirrorCount { count: self.below(8) as u8 },
+            36..44 => Request::GoToMirror { mirror: self.below(7) as u8 },
+            44..62 => {
+                let step = CaptureStep {
+                    mirror: self.below(7) as u8,
+                    settle_ms: self.below(300) as u16,
+                    exposure_us: self.between(MIN_EXPOSURE_US as i64 - 10, 120_000) as u32,
+                    light_duty_permille: self.between(0, FULL_DUTY_PERMILLE as i64 + 5) as u16,
+                };
+                let light_margin_us = self.below(MAX_LIGHT_MARGIN_US as u32 + 100) as u16;
+                if self.chance(500) {
+                    Request::CaptureStep(step)
+                } else {
+                    Request::TimedCaptureStep(TimedCaptureStep { step, light_margin_us })
+                }
+            }
+            62..66 => Request::Trigger {
+                exposure_us: self.between(MIN_EXPOSURE_US as i64 - 10, 150_000) as u32,
+            },
+            66..71 => Request::SetLight(LightState {
+                on: self.chance(600),
+                duty_permille: self.between(0, FULL_DUTY_PERMILLE as i64 + 5) as u16,
+            }),
+            71..77 => Request::Stop,
+            77..87 => Request::ClearFault,
+            87..88 => Request::EmergencyStop,
+            88..91 => Request::GetStatus,
+            91..93 => Request::SaveConfig,
+            93..95 => {
+                let axis = Axis::from_index(self.below(AXIS_COUNT as u32) as usize);
+                let axis = axis.unwrap_or(Axis::Track);
+                let mut config = axes[axis.index()];
+                config.v_max = (config.v_max as i64 * self.between(50, 200) / 100) as u32;
+                config.a_max = (config.a_max as i64 * self.between(50, 200) / 100) as u32;
+                if !config.continuous && self.chance(300) {
+                    config.max_steps =
+                        (config.max_steps as i64 * self.between(80, 110) / 100) as i32;
+                }
+                Request::SetAxisConfig { axis, config }
+            }
+            95 if self.chance(500) => Request::Reset,
+            96 if self.chance(500) => Request::EnterBootloader,
+            97 => {
+                // Mostly the wiring's own polarity (active low), sometimes
+                // one sensor the wrong way round.
+                let mut home = protocol::HomeSensors::default();
+                if self.chance(300) {
+                    home.active_high[self.below(AXIS_COUNT as u32) as usize] = true;
+                }
+                Request::SetHomeSensors(home)
+            }
+            98 => Request::SetBoardConfig(protocol::BoardConfig {
+                driver_fault_active_high: self.chance(200),
+            }),
+            _ => Request::Hello { host_protocol: PROTOCOL_VERSION },
+        }
+    }
+
+    /// A position for axis `i`: anywhere in its travel, at its ends or
+    /// home, near where it is, or a little outside the travel.
+    fn target(&mut self, i: usize) -> i32 {
+        let c = self.rig.ctrl.config().axes[i];
+        let (lo, hi) = (c.min_steps as i64, c.max_steps as i64);
+        let margin = (hi - lo) / 20 + 1;
+        let here = self.rig.hw.steppers[i].position() as i64;
+        let x = match self.below(10) {
+            0 => self.between(lo - margin, hi + margin),
+            1 => [lo, hi, c.homing.home_position as i64][self.below(3) as usize],
+            2..6 => here + self.between(-margin, margin),
+            _ => self.between(lo, hi),
+        };
+        x.clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+
+    /// A request decoded from random bytes: any variant, any field values
+    /// the wire format allows.
+    fn random_request(&mut self) -> Option<Request> {
+        let mut buf = [0u8; 32];
+        buf[0] = self.below(32) as u8;
+        for b in buf[1..].iter_mut() {
+            *b = if self.chance(500) { self.below(4) as u8 } else { self.r() as u8 };
+        }
+        postcard::from_bytes::<Request>(&buf).ok()
+    }
+
+    /// Bytes on the link: noise, or a request framed (whole or cut, perhaps
+    /// corrupted), through the controller's decoder.
+    fn line_bytes(&mut self) -> Result<(), Violation> {
+        let mut bytes = [0u8; MAX_FRAME_LEN];
+        let mut request = None;
+        let n = if self.chance(500) {
+            let n = self.below(64) as usize;
+            for b in bytes[..n].iter_mut() {
+                *b = if self.chance(200) { 0 } else { self.r() as u8 };
+            }
+            n
+        } else {
+            let r = self.plausible_request();
+            let seq = self.r() as u8;
+            let n = encode_frame(seq, &r, &mut bytes).unwrap_or(0);
+            if self.chance(200) && n > 0 {
+                let at = self.below(n as u32) as usize;
+                bytes[at] ^= 1 << self.below(8);
+            } else {
+                request = Some(r);
+            }
+            if self.chance(100) { self.below(n as u32 + 1) as usize } else { n }
+        };
+        (self.log)(&Logged::Bytes(n));
+        let faulted = self.rig.ctrl.faults();
+        let polarity = self.rig.ctrl.config().board.driver_fault_active_high;
+        let mut out: heapless::Vec<u8, { 2 * MAX_FRAME_LEN }> = heapless::Vec::new();
+        let rig = &mut self.rig;
+        rig.hw.now = rig.now;
+        rig.ctrl.on_bytes(&bytes[..n], rig.now, &mut rig.hw, &mut |b: &[u8]| {
+            let _ = out.extend_from_slice(b);
+        });
+        let mut decoder = FrameDecoder::<ToHost>::new();
+        let reply = decoder.feed(&out).find_map(|f| match f {
+            Ok(Frame { msg: ToHost::Reply(r), .. }) => Some(r),
+            _ => None,
+        });
+        while let Some(e) = self.rig.ctrl.pop_event() {
+            let _ = self.rig.events.push(e);
+        }
+        self.line_follows_polarity(polarity);
+        match (request, reply) {
+            (Some(r), Some(reply)) => {
+                (self.log)(&Logged::Request(r, reply));
+                self.after_request(&r, faulted, reply)
+            }
+            _ => {
+                self.check_state()?;
+                self.reboot_if_asked()
+            }
+        }
+    }
+
+    /// The world changes: the emergency stop, a driver fault, a home
+    /// switch breaking or mended, an unpowered axis pushed by hand or a
+    /// powered one skipping steps, the host falling silent or back, the
+    /// board's watchdog (and its flash failing).
+    fn change_inputs(&mut self) {
+        match self.below(100) {
+            0..25 => self.rig.estop = !self.rig.estop && self.chance(300),
+            25..40 => self.rig.driver_fault = !self.rig.driver_fault && self.chance(300),
+            40..55 => {
+                let i = self.below(AXIS_COUNT as u32) as usize;
+                let defaults = [
+                    Switch::Index { edge: 0, width: 200, rev: 16_000 },
+                    Switch::Below(0),
+                    Switch::Below(-9_333),
+                ];
+                self.rig.switches[i] = match self.below(10) {
+                    0 => Switch::Missing,
+                    1 => Switch::Stuck,
+                    _ => defaults[i],
+                };
+            }
+            55..75 => {
+                // Unpowered, an axis can be pushed by hand; powered, a
+                // stalled motor skips steps.
+                let i = self.below(AXIS_COUNT as u32) as usize;
+                self.rig.physical[i] += self.between(-6_000, 6_000);
+            }
+            // A calm run's host stays alive.
+            75..97 => self.rig.keepalive = self.calm || !self.rig.keepalive || self.chance(800),
+            _ => {
+                // The watchdog bites; the flash may have failed meanwhile.
+                self.rig.hw.storage_fails ^= self.chance(300);
+                self.rig.reboot(ResetReason::Watchdog);
+                self.rebooted(ResetReason::Watchdog);
+            }
+        }
+        let rig = &self.rig;
+        (self.log)(&Logged::Inputs {
+            estop: rig.estop,
+            driver_fault: rig.driver_fault,
+            switches: rig.switches,
+            physical: rig.physical,
+            keepalive: rig.keepalive,
+        });
+        let now = self.rig.now;
+        self.watch.estop_since = self.rig.estop.then(|| self.watch.estop_since.unwrap_or(now));
+        self.watch.driver_fault_since =
+            self.rig.driver_fault.then(|| self.watch.driver_fault_since.unwrap_or(now));
+    }
+
+    /// Let `dt` ticks pass, checking every step and poll.
+    fn pass(&mut self, dt: u64) -> Result<(), Violation> {
+        let end = self.rig.now + dt;
+        self.watch.action = self.action;
+        let watch = &mut self.watch;
+        let result = self.rig.run_until_visiting(end, |rig, visit| watch.visit(rig, visit));
+        (self.log)(&Logged::Passed(dt, self.rig.now));
+        self.report.add(&core::mem::take(&mut self.watch.report));
+        self.tally_events();
+        result?;
+        self.reboot_if_asked()
+    }
+
+    fn tally_events(&mut self) {
+        for e in self.rig.events.iter() {
+            match e {
+                Event::MotionDone { outcome: MotionOutcome::Completed, .. } => {
+                    self.report.moves += 1
+                }
+                Event::MotionDone { outcome: MotionOutcome::HomingFailed(..), .. } => {
+                    self.report.homings_failed += 1
+                }
+                Event::TriggerFired(_) => self.report.triggers += 1,
+                Event::FaultRaised { faults, .. } => {
+                    self.report.faults = self.report.faults.union(*faults)
+                }
+                _ => {}
+            }
+        }
+        self.rig.events.clear();
+    }
+
+    /// After a `Reset` or `EnterBootloader`, the board resets once the
+    /// reply is out: check that everything stopped first.
+    fn reboot_if_asked(&mut self) -> Result<(), Violation> {
+        let reset = self.rig.ctrl.reset_requested();
+        let bootloader = self.rig.ctrl.bootloader_requested();
+        if !(reset || bootloader) {
+            return Ok(());
+        }
+        let hw = &self.rig.hw;
+        let moving = self.rig.ctrl.is_moving() || hw.armed.iter().any(Option::is_some);
+        if moving || (bootloader && (hw.light != 0 || hw.trigger)) {
+            return Err(self.violation(Rule::ResetWhileActive, None));
+        }
+        self.tally_events();
+        let reason = if reset { ResetReason::Software } else { ResetReason::PowerOn };
+        self.rig.reboot(reason);
+        self.rebooted(reason);
+        self.send(Request::Hello { host_protocol: PROTOCOL_VERSION })
+    }
+
+    /// The rig's driver-fault line follows the configured polarity (its
+    /// fault is "asserted", whatever the level): a changed polarity changes
+    /// the line, and the controller has its debounce time from now.
+    fn line_follows_polarity(&mut self, before: bool) {
+        if self.rig.ctrl.config().board.driver_fault_active_high != before {
+            let now = self.rig.now;
+            self.watch.driver_fault_since = self.watch.driver_fault_since.map(|_| now);
+        }
+    }
+
+    /// A new controller: what the old one saw of the inputs is gone.
+    fn rebooted(&mut self, reason: ResetReason) {
+        (self.log)(&Logged::Reboot(reason));
+        self.report.reboots += 1;
+        let now = self.rig.now;
+        let w = &mut self.watch;
+        w.trigger_since = None;
+        w.estop_since = w.estop_since.map(|_| now);
+        w.driver_fault_since = w.driver_fault_since.map(|_| now);
+    }
+
+    fn check_state(&mut self) -> Result<(), Violation> {
+        self.watch.action = self.action;
+        self.watch.state(&self.rig)
+    }
+
+    fn violation(&self, rule: Rule, axis: Option<Axis>) -> Violation {
+        Violation {
+            rule,
+            action: self.action,
+            tick: self.rig.now,
+            axis,
+            faults: self.rig.ctrl.faults(),
+        }
+    }
+}
+
+impl Watch {
+    fn violation(&self, rig: &Rig, rule: Rule, axis: Option<Axis>) -> Violation {
+        Violation { rule, action: self.action, tick: rig.now, axis, faults: rig.ctrl.faults() }
+    }
+
+    fn visit(&mut self, rig: &mut Rig, visit: Visit) -> Result<(), Violation> {
+        match visit {
+            Visit::Stepped(axis) => self.step(rig, axis),
+            Visit::Polled => self.state(rig),
+        }
+    }
+
+    /// `axis` has just stepped (the controller has not polled since).
+    fn step(&mut self, rig: &Rig, axis: Axis) -> Result<(), Violation> {
+        let i = axis.index();
+        self.report.steps[i] += 1;
+        let faults = rig.ctrl.faults();
+        if stops_at_once(faults) {
+            return Err(self.violation(rig, Rule::StepWhileFaulted, Some(axis)));
+        }
+        let late = |since: Option<u64>| since.is_some_and(|t| rig.now > t + STOP_WITHIN);
+        if late(self.estop_since) || late(self.driver_fault_since) {
+            return Err(self.violation(rig, Rule::StopInputIgnored, Some(axis)));
+        }
+        if rig.ctrl.is_homed(axis) {
+            self.report.homed_steps += 1;
+            let c = &rig.ctrl.config().axes[i];
+            if !c.continuous && !(c.min_steps..=c.max_steps).contains(&rig.position(axis)) {
+                return Err(self.violation(rig, Rule::SoftLimit, Some(axis)));
+            }
+        } else if !rig.ctrl.homing_axes().contains(axis) {
+            return Err(self.violation(rig, Rule::UnhomedAxisMoved, Some(axis)));
+        }
+        Ok(())
+    }
+
+    /// The rules on the controller's state, after a poll or a request.
+    fn state(&mut self, rig: &Rig) -> Result<(), Violation> {
+        let faults = rig.ctrl.faults();
+        let hw = &rig.hw;
+        for axis in Axis::ALL {
+            let homed = rig.ctrl.is_homed(axis);
+            self.report.homings += usize::from(homed && !self.homed[axis.index()]);
+            self.homed[axis.index()] = homed;
+        }
+        if hw.light > FULL_DUTY_PERMILLE {
+            return Err(self.violation(rig, Rule::LightDuty, None));
+        }
+        if dark(faults) && (hw.light != 0 || hw.trigger) {
+            return Err(self.violation(rig, Rule::LightWhileFaulted, None));
+        }
+        if !hw.drivers_enabled
+            && let Some(axis) = Axis::ALL.into_iter().find(|a| rig.ctrl.is_homed(*a))
+        {
+            return Err(self.violation(rig, Rule::HomedWhileUnpowered, Some(axis)));
+        }
+        let late = |since: Option<u64>| since.is_some_and(|t| rig.now > t + STOP_WITHIN);
+        let stopped = |flag: FaultFlags| {
+            faults.contains(flag) && !hw.drivers_enabled && hw.armed.iter().all(Option::is_none)
+        };
+        if (late(self.estop_since) && !stopped(FaultFlags::EMERGENCY_STOP))
+            || (late(self.driver_fault_since) && !stopped(FaultFlags::DRIVER_FAULT))
+        {
+            return Err(self.violation(rig, Rule::StopInputIgnored, None));
+        }
+        match (hw.trigger, self.trigger_since) {
+            (true, None) => self.trigger_since = Some(rig.now),
+            (false, Some(_)) => self.trigger_since = None,
+            (true, Some(t)) => {
+                let longest = (MAX_EXPOSURE_US as u64 + 2 * MAX_LIGHT_MARGIN_US as u64)
+                    * TICKS_PER_US
+                    + POLL_TICKS;
+                if rig.now > t + longest {
+                    return Err(self.violation(rig, Rule::TriggerStuck, None));
+                }
+            }
+            (false, None) => {}
+        }
+        Ok(())
+    }
+}

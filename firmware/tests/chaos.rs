@@ -1,0 +1,44 @@
+//! Random operation of the controller (`firmware::chaos`): many seeded
+//! runs, every safety rule checked at every step and poll.
+
+use firmware::chaos::{Logged, Report, Seeded, run, run_logged};
+use protocol::FaultFlags;
+
+/// Runs of this many actions.
+const ACTIONS: usize = 400;
+
+#[test]
+fn random_operation_keeps_every_safety_rule() {
+    let mut total = Report::default();
+    for seed in 0..96 {
+        match run(&mut Seeded::new(seed), ACTIONS) {
+            Ok(report) => total.add(&report),
+            Err(v) => {
+                // The way there, for whoever reads the failure.
+                let mut log: Vec<Logged> = Vec::new();
+                let _ = run_logged(&mut Seeded::new(seed), ACTIONS, &mut |l| log.push(*l));
+                for l in &log[log.len().saturating_sub(40)..] {
+                    eprintln!("{l:?}");
+                }
+                panic!("seed {seed}: {v}");
+            }
+        }
+    }
+    eprintln!("{total:#?}");
+    // The runs reached what the rules are about: every fault raised, homed
+    // axes moving far, moves and homings completed, captures, reboots.
+    assert_eq!(total.faults, FaultFlags(0xFF), "every fault kind raised");
+    assert!(total.homed_steps > 1_000_000, "homed axes moved: {}", total.homed_steps);
+    assert!(total.steps.iter().all(|&s| s > 100_000), "every axis moved: {:?}", total.steps);
+    assert!(total.homings > 300 && total.homings_failed > 50, "homings: {total:?}");
+    assert!(total.moves > 100 && total.triggers > 50 && total.reboots > 100, "{total:?}");
+}
+
+#[test]
+#[ignore = "debugging aid: the log of one run (CHAOS_SEED=N)"]
+fn log_of_one_seed() {
+    let seed: u64 = std::env::var("CHAOS_SEED").expect("CHAOS_SEED").parse().expect("a number");
+    let actions = std::env::var("CHAOS_ACTIONS").map_or(ACTIONS, |a| a.parse().expect("a number"));
+    let r = run_logged(&mut Seeded::new(seed), actions, &mut |l| eprintln!("{l:?}"));
+    eprintln!("{r:?}");
+}
