@@ -33,6 +33,11 @@ for target in material queries decoder frame frame_file texture_map geometry axe
     geometry | axes | calibration | manifest | direct | npf_model | measurements)
         extra=(-max_len=262144 -timeout=10 -dict=dicts/numbers.dict)
         ;;
+    controller)
+        # Four bytes a random number, a few numbers an action: up to ≈ 500
+        # actions a run.
+        extra=(-max_len=16384)
+        ;;
     esac
     (cd fuzz && cargo +nightly fuzz run --release "$target" "corpus/$target" -- \
         -max_total_time="$seconds" -rss_limit_mb=4096 -detect_leaks=$leaks "${extra[@]}")
