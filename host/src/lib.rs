@@ -30,6 +30,8 @@ pub mod exrio;
 pub mod frame_file;
 pub mod fsutil;
 pub mod hdr;
+#[cfg(any(test, feature = "hostile-device"))]
+pub mod hostile;
 pub mod link;
 pub mod scan;
 #[cfg(feature = "sim")]

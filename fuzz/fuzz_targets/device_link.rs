@@ -1,0 +1,15 @@
+//! Fuzz the host's device link (`host::link::Device`) against a device
+//! that answers whatever the fuzzer's bytes say (`host::hostile`): wrong
+//! replies, foreign sequence numbers, noise, event floods, resets, unplugs.
+//! The host must answer each call with a value or an error, never panic,
+//! and finish in bounded simulated time.
+#![no_main]
+
+use std::time::Duration;
+
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    let took = host::hostile::exercise(data.to_vec());
+    assert!(took < Duration::from_secs(600), "{took:?} of simulated time");
+});
