@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Fuzz the controller's safety rules under random operation
-# (firmware::chaos), the host's device link against a hostile device
-# (host::hostile), the material reader, the query/answer file readers, the protocol
+# (firmware::chaos), the host's device link and capture against a hostile
+# device (host::hostile), the material reader, the query/answer file readers, the protocol
 # decoder, the OpenEXR frame decoder, the PNG and TIFF frame files, the texture maps' OpenEXR reader, the
 # scanner geometry file, the axis configuration file, the calibration file, the scan manifest, the
 # direct images' manifest, finding a piece's corners in a photograph, the NPF
@@ -19,7 +19,7 @@ mkdir -p fuzz/corpus/decoder
 # manifest, direct, corners, measurements and npf_model).
 cargo run -q --release -p host --example fuzz_seeds -- fuzz/corpus
 for target in material queries decoder frame frame_file texture_map geometry axes calibration manifest \
-    direct corners npf_model measurements controller device_link; do
+    direct corners npf_model measurements controller device_link capture; do
     # The exr crate's flat-layer reader decodes on a thread pool of its own
     # per file, whose jobs still hold blocks when the process exits: leak
     # detection at exit would report those, so it is off for that target.
@@ -34,7 +34,7 @@ for target in material queries decoder frame frame_file texture_map geometry axe
     geometry | axes | calibration | manifest | direct | npf_model | measurements)
         extra=(-max_len=262144 -timeout=10 -dict=dicts/numbers.dict)
         ;;
-    device_link)
+    device_link | capture)
         extra=(-max_len=16384)
         ;;
     controller)
