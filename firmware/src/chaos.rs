@@ -20,8 +20,8 @@
 //! stops the axes, not the light); no unpowered axis counted as homed;
 //! motion refused while a fault is latched; a reset or the bootloader only
 //! once everything has stopped; no trigger pulse longer than the longest
-//! exposure. Any panic of the controller (arithmetic overflow included, in
-//! debug builds) fails too.
+//! exposure, and no step while it is high. Any panic of the controller
+//! (arithmetic overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
 //! the PC (`firmware/tests/chaos.rs`), on the Cortex-M4 under QEMU (a
@@ -133,6 +133,9 @@ pub enum Rule {
     ResetWhileActive,
     /// The trigger stayed high longer than the longest exposure.
     TriggerStuck,
+    /// An axis stepped while the camera's trigger was high: a frame taken
+    /// in motion.
+    StepDuringExposure,
     /// The light's duty above full.
     LightDuty,
 }
@@ -152,6 +155,7 @@ impl Rule {
             Rule::AcceptedWhileFaulted => "motion, light or trigger accepted while faulted",
             Rule::ResetWhileActive => "reset or bootloader entered with something still running",
             Rule::TriggerStuck => "the trigger stayed high longer than the longest exposure",
+            Rule::StepDuringExposure => "an axis stepped while the camera's trigger was high",
             Rule::LightDuty => "light duty above full",
         }
     }
@@ -780,6 +784,9 @@ impl Watch {
         let faults = rig.ctrl.faults();
         if stops_at_once(faults) {
             return Err(self.violation(rig, Rule::StepWhileFaulted, Some(axis)));
+        }
+        if rig.hw.trigger {
+            return Err(self.violation(rig, Rule::StepDuringExposure, Some(axis)));
         }
         let late = |since: Option<u64>| since.is_some_and(|t| rig.now > t + STOP_WITHIN);
         if late(self.estop_since) || late(self.driver_fault_since) {
