@@ -283,9 +283,12 @@ impl Rig {
         self.boot = boot;
         let saved = (!self.hw.saved.is_empty()).then_some(&self.hw.saved[..]);
         self.ctrl = Controller::new(boot, saved);
+        // What the board is (its flash, its trigger timer) stays; its
+        // state goes.
         let saved = core::mem::take(&mut self.hw.saved);
-        let storage_fails = self.hw.storage_fails;
-        self.hw = MockHw { now: self.now, saved, storage_fails, ..MockHw::default() };
+        let (storage_fails, hardware_pulse) = (self.hw.storage_fails, self.hw.hardware_pulse);
+        self.hw =
+            MockHw { now: self.now, saved, storage_fails, hardware_pulse, ..MockHw::default() };
         self.seq = 0;
         self.poll();
     }
