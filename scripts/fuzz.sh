@@ -13,7 +13,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 seconds=${1:-300}
-mkdir -p fuzz/corpus/decoder
+mkdir -p fuzz/corpus/decoder fuzz/corpus/controller fuzz/corpus/device_link fuzz/corpus/capture
 # Start from valid files, so the fuzzer gets past the container checks
 # (fuzz/corpus/material, queries, frame, frame_file, texture_map, geometry, axes, calibration,
 # manifest, direct, corners, measurements and npf_model).
