@@ -10,6 +10,8 @@ use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
     let dir = tempfile::tempdir().expect("a temporary directory");
-    let took = host::hostile::exercise_capture(data.to_vec(), dir.path());
+    let (took, drain) = host::hostile::exercise_capture(data.to_vec(), dir.path());
     assert!(took < Duration::from_secs(3_600), "{took:?} of simulated time");
+    // The longest exposure and the frame timeout (200 ms).
+    assert!(drain <= Duration::from_millis(2_200), "a stray frame waited for {drain:?}");
 });

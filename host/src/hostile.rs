@@ -292,7 +292,23 @@ impl HostileDevice {
         }
         match self.byte() % 8 {
             0 => {
-                if let Some(reply) = self.draw::<Reply>() {
+                // Any reply; to a question, mostly its kind of answer with
+                // any values (a trigger from the future, a strobe delay of
+                // an hour…).
+                let reply = match request {
+                    _ if self.byte() < 64 => self.draw::<Reply>(),
+                    Request::GetLastTrigger => self.draw().map(Reply::Trigger),
+                    Request::GetStrobe => self.draw().map(Reply::Strobe),
+                    Request::GetStatus => self.draw().map(Reply::Status),
+                    Request::GetAxisConfig { axis } => {
+                        self.draw().map(|config| Reply::AxisConfig { axis, config })
+                    }
+                    Request::GetMirror { mirror } => {
+                        self.draw().map(|position| Reply::Mirror { mirror, position })
+                    }
+                    _ => self.draw::<Reply>(),
+                };
+                if let Some(reply) = reply {
                     self.send(seq, &ToHost::Reply(reply), delay);
                 }
             }
@@ -450,11 +466,13 @@ pub fn exercise(bytes: Vec<u8>) -> Duration {
 }
 
 /// A camera that delivers a grey frame of its sensor's size for each
-/// trigger (the device's reports of it are what is hostile).
+/// trigger (the device's reports of it are what is hostile), noting the
+/// longest it was asked to wait for a stray frame.
 struct GreyCamera {
     width: u32,
     height: u32,
     triggered: usize,
+    longest_drain: Duration,
 }
 
 impl crate::camera::Camera for GreyCamera {
@@ -463,6 +481,9 @@ impl crate::camera::Camera for GreyCamera {
     }
     fn triggered(&mut self) {
         self.triggered += 1;
+    }
+    fn drain(&mut self, max: Duration) {
+        self.longest_drain = self.longest_drain.max(max);
     }
     fn wait_frame(
         &mut self,
@@ -485,13 +506,14 @@ impl crate::camera::Camera for GreyCamera {
 /// geometry (NaN steps per unit, travel upside down…), the mirror table
 /// written, homing and its repeatability, waiting for motion and rest, and
 /// a three-mirror scan into `dir` with a camera that delivers a grey frame
-/// per trigger. The simulated time it took.
-pub fn exercise_capture(bytes: Vec<u8>, dir: &std::path::Path) -> Duration {
+/// per trigger. The simulated time it took, and the longest the camera was
+/// asked to wait for a stray frame (wall time with a real camera).
+pub fn exercise_capture(bytes: Vec<u8>, dir: &std::path::Path) -> (Duration, Duration) {
     use crate::scan;
     let geometry = scanner_geometry::ScannerGeometry::default_scanner().with_sensor_scaled(128);
     let timings = LinkTimings { reconnect_for: Duration::from_secs(2), ..LinkTimings::default() };
     let Ok(mut dev) = Device::connect_with(Box::new(HostileDevice::new(bytes)), timings) else {
-        return Duration::ZERO;
+        return (Duration::ZERO, Duration::ZERO);
     };
     let _ = scan::axis_configs(&mut dev).map(|c| scan::mirror_table(&geometry, &c));
     let _ = scan::mirror_entries(&mut dev);
@@ -503,15 +525,15 @@ pub fn exercise_capture(bytes: Vec<u8>, dir: &std::path::Path) -> Duration {
     .map(|cycles| scan::repeatability(&cycles, AxisSet::ALL));
     let _ = scan::wait_motion_end(&mut dev, Duration::from_secs(1));
     let _ = scan::wait_idle(&mut dev, Duration::from_secs(1)).map_err(|e| e.to_string());
-    let mut camera =
-        GreyCamera { width: geometry.camera.width, height: geometry.camera.height, triggered: 0 };
+    let (width, height) = (geometry.camera.width, geometry.camera.height);
+    let mut camera = GreyCamera { width, height, triggered: 0, longest_drain: Duration::ZERO };
     let mut opts = scan::ScanOptions::new("hostile", &dir.join("scan"));
     opts.mirrors = Some(3);
     opts.attempts = 2;
     opts.frame_timeout = Duration::from_millis(200);
     let _ = scan::scan(&mut dev, &mut camera, &geometry, &opts, &mut scan::Quiet)
         .map_err(|e| e.to_string());
-    dev.now()
+    (dev.now(), camera.longest_drain)
 }
 
 /// The strobe's report on a pulse, as the capture asks for it.
@@ -538,6 +560,20 @@ mod tests {
         bytes
     }
 
+    /// Found by the fuzzer: a device's report of a 36-minute trigger pulse
+    /// (its exposure out of the protocol's range) held the strobe's report
+    /// wait that long (2 132 s of the session); the wait is bounded by the
+    /// protocol's longest exposure now.
+    #[test]
+    fn a_pulse_reported_36_minutes_long_is_not_waited_for() {
+        let bytes = vec![
+            255, 255, 12, 255, 255, 255, 255, 255, 31, 126, 0, 0, 0, 0, 0, 0, 0, 255, 255, 255,
+            255, 255, 255, 255, 12, 255, 0, 0, 0, 0, 255, 255, 255, 255, 255, 126, 126, 1,
+        ];
+        let took = exercise(bytes);
+        assert!(took < Duration::from_secs(10), "{took:?}");
+    }
+
     /// Whatever a device says, the host's link answers with a value or an
     /// error in bounded time: 3 000 devices of random bytes.
     #[test]
@@ -558,7 +594,7 @@ mod tests {
     #[test]
     fn the_capture_survives_any_device() {
         let dir = tempfile::tempdir().unwrap();
-        let mut longest = Duration::ZERO;
+        let (mut longest, mut longest_drain) = (Duration::ZERO, Duration::ZERO);
         let mut connected = 0;
         for seed in 0..300u64 {
             let mut bytes = device_bytes(seed, 8192);
@@ -568,9 +604,10 @@ mod tests {
                 bytes[0] %= 16;
             }
             let run = dir.path().join(seed.to_string());
-            let took = exercise_capture(bytes, &run);
+            let (took, drain) = exercise_capture(bytes, &run);
             connected += usize::from(took > Duration::ZERO);
             longest = longest.max(took);
+            longest_drain = longest_drain.max(drain);
         }
         let frames: usize = (0..300)
             .filter_map(|s| {
@@ -582,6 +619,11 @@ mod tests {
             .sum();
         assert!(connected > 200, "{connected} of 300 got past the handshake");
         assert!(frames > 100, "the scans got as far as {frames} frames");
+        // A stray frame is waited for no longer than the longest exposure
+        // and the frame timeout (200 ms here), whatever the device's
+        // trigger report says (it was 2⁶⁴ µs from a report from the future).
+        let most = Duration::from_micros(protocol::MAX_EXPOSURE_US as u64 + 200_000);
+        assert!(longest_drain <= most, "{longest_drain:?}");
         assert!(longest < Duration::from_secs(3_600), "{longest:?}");
     }
 }

@@ -2111,11 +2111,16 @@ fn await_stray_frame(
 ) -> Result<(), ScanError> {
     let Reply::Trigger(Some(t)) = dev.request(Request::GetLastTrigger)? else { return Ok(()) };
     let now_us = dev.status()?.uptime_ms as u64 * 1000;
-    let end_us = t.timestamp_us + t.exposure_us as u64;
-    let wait_until = end_us + opts.frame_timeout.as_micros() as u64;
+    let exposure_us = t.exposure_us.min(protocol::MAX_EXPOSURE_US) as u64;
+    let end_us = t.timestamp_us.saturating_add(exposure_us);
+    let wait_until = end_us.saturating_add(opts.frame_timeout.as_micros() as u64);
     if now_us < wait_until {
+        // Never longer than the longest exposure and the frame timeout,
+        // whatever the device's clock says (a trigger "from the future" is
+        // a report corrupted or from before the uptime counter wrapped).
+        let most = Duration::from_micros(protocol::MAX_EXPOSURE_US as u64) + opts.frame_timeout;
         progress.note("waiting for the frame of an earlier trigger to set it aside");
-        camera.drain(Duration::from_micros(wait_until - now_us));
+        camera.drain(Duration::from_micros(wait_until - now_us).min(most));
     }
     Ok(())
 }

@@ -56,15 +56,19 @@ pub enum Report {
 }
 
 /// Wait for the device's report on the pulse `fired` (it comes at most
-/// the delay bound after the pulse's end plus the strobe's delay).
+/// the delay bound after the pulse's end plus the strobe's delay). The
+/// wait is bounded by the protocol's longest exposure and strobe delay,
+/// whatever the device says (a corrupted report would otherwise hold the
+/// scan up to 2³² µs: 71 min).
 pub fn report(
     dev: &mut Device,
     fired: &TriggerFired,
     strobe: &StrobeConfig,
 ) -> Result<Report, LinkError> {
     let seq = fired.trigger_seq;
-    let wait = Duration::from_micros(fired.exposure_us as u64 + 2 * strobe.max_delay_us as u64)
-        + Duration::from_secs(1);
+    let exposure = fired.exposure_us.min(protocol::MAX_EXPOSURE_US) as u64;
+    let delay = strobe.max_delay_us.min(protocol::MAX_STROBE_DELAY_US) as u64;
+    let wait = Duration::from_micros(exposure + 2 * delay) + Duration::from_secs(1);
     let event = dev.wait_event(
         wait,
         |e| matches!(e, Event::Exposure { trigger_seq, .. } if *trigger_seq == seq),
