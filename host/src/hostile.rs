@@ -175,7 +175,6 @@ impl HostileDevice {
         if !self.handshake && !matches!(request, Request::Hello { .. }) {
             return Reply::Error(DeviceError::NoHandshake);
         }
-        let unhomed = Reply::Error(DeviceError::NotHomed);
         match *request {
             Request::Hello { .. } => {
                 self.handshake = true;
@@ -204,7 +203,15 @@ impl HostileDevice {
                 self.moved(axes, home);
                 Reply::Ack
             }
-            Request::Move { mode, targets } if self.homed => {
+            Request::Move { .. }
+            | Request::GoToMirror { .. }
+            | Request::CaptureStep(_)
+            | Request::TimedCaptureStep(_)
+                if !self.homed =>
+            {
+                Reply::Error(DeviceError::NotHomed)
+            }
+            Request::Move { mode, targets } => {
                 let targets = match mode {
                     MoveMode::Absolute => targets,
                     MoveMode::Relative => core::array::from_fn(|i| {
@@ -218,13 +225,6 @@ impl HostileDevice {
                 self.moved(axes, targets);
                 Reply::Ack
             }
-            Request::GoToMirror { mirror } | Request::CaptureStep(CaptureStep { mirror, .. })
-                if !self.homed =>
-            {
-                let _ = mirror;
-                unhomed
-            }
-            Request::Move { .. } => unhomed,
             Request::GoToMirror { mirror } => match self.mirror(mirror) {
                 Some(p) => {
                     self.moved(AxisSet::ALL, p.steps.map(Some));
