@@ -37,7 +37,7 @@ use protocol::{
 
 use crate::controller::DEBOUNCE_US;
 use crate::hal::{TICKS_PER_MS, TICKS_PER_US};
-use crate::testkit::{CameraStrobe, Rig, Switch, Visit, xorshift64star};
+use crate::testkit::{CameraStrobe, DEFAULT_SWITCHES, Rig, Switch, Visit, xorshift64star};
 
 /// Where a run's randomness comes from.
 pub trait Entropy {
@@ -269,15 +269,15 @@ pub fn run_logged(
     let mut chaos = Chaos::new(entropy, log);
     chaos.start();
     for action in 0..actions {
-        chaos.action = action;
+        chaos.watch.action = action;
         if chaos.exhausted {
             break;
         }
         chaos.act()?;
-        chaos.report.actions += 1;
+        chaos.watch.report.actions += 1;
     }
-    chaos.report.ticks = chaos.rig.now;
-    Ok(chaos.report)
+    chaos.watch.report.ticks = chaos.rig.now;
+    Ok(chaos.watch.report)
 }
 
 /// The run's state besides the rig.
@@ -300,9 +300,7 @@ struct Chaos<'e, E: Entropy> {
     entropy: &'e mut E,
     log: &'e mut dyn FnMut(&Logged),
     exhausted: bool,
-    action: usize,
     watch: Watch,
-    report: Report,
 }
 
 impl<'e, E: Entropy> Chaos<'e, E> {
@@ -323,8 +321,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             homed: [false; AXIS_COUNT],
             report: Report::default(),
         };
-        let report = Report::default();
-        Chaos { rig, calm: false, entropy, log, exhausted: false, action: 0, watch, report }
+        Chaos { rig, calm: false, entropy, log, exhausted: false, watch }
     }
 
     /// The rig's own variations, drawn once.
@@ -420,9 +417,9 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         faulted: FaultFlags,
         reply: Reply,
     ) -> Result<(), Violation> {
-        self.report.requests += 1;
+        self.watch.report.requests += 1;
         if reply == Reply::Ack {
-            self.report.acks += 1;
+            self.watch.report.acks += 1;
             let gated = matches!(
                 request,
                 Request::Home { .. }
@@ -600,9 +597,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         let faulted = self.rig.ctrl.faults();
         let polarity = self.rig.ctrl.config().board.driver_fault_active_high;
         let mut out: heapless::Vec<u8, { 2 * MAX_FRAME_LEN }> = heapless::Vec::new();
-        let rig = &mut self.rig;
-        rig.hw.now = rig.now;
-        rig.ctrl.on_bytes(&bytes[..n], rig.now, &mut rig.hw, &mut |b: &[u8]| {
+        self.rig.on_bytes(&bytes[..n], &mut |b: &[u8]| {
             let _ = out.extend_from_slice(b);
         });
         let mut decoder = FrameDecoder::<ToHost>::new();
@@ -610,9 +605,6 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             Ok(Frame { msg: ToHost::Reply(r), .. }) => Some(r),
             _ => None,
         });
-        while let Some(e) = self.rig.ctrl.pop_event() {
-            let _ = self.rig.events.push(e);
-        }
         self.line_follows_polarity(polarity);
         match (request, reply) {
             (Some(r), Some(reply)) => {
@@ -636,15 +628,10 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             25..40 => self.rig.driver_fault = !self.rig.driver_fault && self.chance(300),
             40..55 => {
                 let i = self.below(AXIS_COUNT as u32) as usize;
-                let defaults = [
-                    Switch::Index { edge: 0, width: 200, rev: 16_000 },
-                    Switch::Below(0),
-                    Switch::Below(-9_333),
-                ];
                 self.rig.switches[i] = match self.below(10) {
                     0 => Switch::Missing,
                     1 => Switch::Stuck,
-                    _ => defaults[i],
+                    _ => DEFAULT_SWITCHES[i],
                 };
             }
             55..75 => {
@@ -679,11 +666,9 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     /// Let `dt` ticks pass, checking every step and poll.
     fn pass(&mut self, dt: u64) -> Result<(), Violation> {
         let end = self.rig.now + dt;
-        self.watch.action = self.action;
         let watch = &mut self.watch;
         let result = self.rig.run_until_visiting(end, |rig, visit| watch.visit(rig, visit));
         (self.log)(&Logged::Passed(dt, self.rig.now));
-        self.report.add(&core::mem::take(&mut self.watch.report));
         self.tally_events();
         result?;
         self.reboot_if_asked()
@@ -693,14 +678,14 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         for e in self.rig.events.iter() {
             match e {
                 Event::MotionDone { outcome: MotionOutcome::Completed, .. } => {
-                    self.report.moves += 1
+                    self.watch.report.moves += 1
                 }
                 Event::MotionDone { outcome: MotionOutcome::HomingFailed(..), .. } => {
-                    self.report.homings_failed += 1
+                    self.watch.report.homings_failed += 1
                 }
-                Event::TriggerFired(_) => self.report.triggers += 1,
+                Event::TriggerFired(_) => self.watch.report.triggers += 1,
                 Event::FaultRaised { faults, .. } => {
-                    self.report.faults = self.report.faults.union(*faults)
+                    self.watch.report.faults = self.watch.report.faults.union(*faults)
                 }
                 _ => {}
             }
@@ -741,7 +726,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     /// A new controller: what the old one saw of the inputs is gone.
     fn rebooted(&mut self, reason: ResetReason) {
         (self.log)(&Logged::Reboot(reason));
-        self.report.reboots += 1;
+        self.watch.report.reboots += 1;
         let now = self.rig.now;
         let w = &mut self.watch;
         w.trigger_since = None;
@@ -750,18 +735,11 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     }
 
     fn check_state(&mut self) -> Result<(), Violation> {
-        self.watch.action = self.action;
         self.watch.state(&self.rig)
     }
 
     fn violation(&self, rule: Rule, axis: Option<Axis>) -> Violation {
-        Violation {
-            rule,
-            action: self.action,
-            tick: self.rig.now,
-            axis,
-            faults: self.rig.ctrl.faults(),
-        }
+        self.watch.violation(&self.rig, rule, axis)
     }
 }
 

@@ -140,6 +140,12 @@ impl Switch {
     }
 }
 
+/// The home switches where the default axis configurations expect them:
+/// the disk's index flag at 0, the track's limit at 0, the tilt's at
+/// −9 333 steps (−35°).
+pub const DEFAULT_SWITCHES: [Switch; AXIS_COUNT] =
+    [Switch::Index { edge: 0, width: 200, rev: 16_000 }, Switch::Below(0), Switch::Below(-9_333)];
+
 /// A camera's "exposure active" strobe output, wired to the rig's input.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct CameraStrobe {
@@ -245,11 +251,7 @@ impl Rig {
             now: 0,
             // Disk 90° past its flag, track 50 mm out, tilt 10° above its stop.
             physical: [4_000, 80_000, -9_333 + 2_667],
-            switches: [
-                Switch::Index { edge: 0, width: 200, rev: 16_000 },
-                Switch::Below(0),
-                Switch::Below(-9_333),
-            ],
+            switches: DEFAULT_SWITCHES,
             switch_active_high: [false; AXIS_COUNT],
             estop: false,
             driver_fault: false,
@@ -356,6 +358,14 @@ impl Rig {
         debug_assert_eq!(s, seq);
         self.collect();
         reply
+    }
+
+    /// Hand `bytes` to the controller as received from the host; its
+    /// framed replies go to `tx`.
+    pub fn on_bytes(&mut self, bytes: &[u8], tx: &mut impl FnMut(&[u8])) {
+        self.hw.now = self.now;
+        self.ctrl.on_bytes(bytes, self.now, &mut self.hw, tx);
+        self.collect();
     }
 
     /// Poll the controller at the current time.
