@@ -421,19 +421,22 @@ impl Transport for HostileDevice {
     }
 }
 
+/// The link's handshake with a [`HostileDevice`] of `bytes` (`None` if it
+/// failed, its error formatted as a user would see it), at the default
+/// timings but giving up a lost device sooner.
+fn connect(bytes: Vec<u8>) -> Option<Device> {
+    let timings = LinkTimings { reconnect_for: Duration::from_secs(2), ..LinkTimings::default() };
+    Device::connect_with(Box::new(HostileDevice::new(bytes)), timings)
+        .map_err(|e| e.to_string())
+        .ok()
+}
+
 /// Drive a [`Device`] on a [`HostileDevice`] of `bytes` through what a
 /// capture does with one; the simulated time it took. Every call may fail
 /// (that is the device's right); none may panic or hang.
 pub fn exercise(bytes: Vec<u8>) -> Duration {
-    let device = HostileDevice::new(bytes);
-    // The default timings, but a lost device is given up sooner.
-    let timings = LinkTimings { reconnect_for: Duration::from_secs(2), ..LinkTimings::default() };
-    let mut dev = match Device::connect_with(Box::new(device), timings) {
-        Ok(dev) => dev,
-        Err(e) => {
-            let _ = e.to_string();
-            return Duration::ZERO;
-        }
+    let Some(mut dev) = connect(bytes) else {
+        return Duration::ZERO;
     };
     let _ = format!("{:?} {}", dev.info(), dev.describe());
     let motion_done = |e: &Event| matches!(e, Event::MotionDone { .. });
@@ -511,8 +514,7 @@ impl crate::camera::Camera for GreyCamera {
 pub fn exercise_capture(bytes: Vec<u8>, dir: &std::path::Path) -> (Duration, Duration) {
     use crate::scan;
     let geometry = scanner_geometry::ScannerGeometry::default_scanner().with_sensor_scaled(128);
-    let timings = LinkTimings { reconnect_for: Duration::from_secs(2), ..LinkTimings::default() };
-    let Ok(mut dev) = Device::connect_with(Box::new(HostileDevice::new(bytes)), timings) else {
+    let Some(mut dev) = connect(bytes) else {
         return (Duration::ZERO, Duration::ZERO);
     };
     let _ = scan::axis_configs(&mut dev).map(|c| scan::mirror_table(&geometry, &c));

@@ -774,6 +774,11 @@ impl Device {
     /// Wait up to `timeout` for an event matching `pred`, pinging as
     /// keep-alive; a `Boot` event with a new boot id is a reset. Other events
     /// stay queued for [`Device::take_events`].
+    ///
+    /// It returns within `timeout` and one request (a keep-alive or the
+    /// greeting that checks a `Boot` event), whatever the device sends: a
+    /// `Boot` event still queued at the end is checked by the next wait or
+    /// request (a device that did reset refuses that with `NoHandshake`).
     pub fn wait_event(
         &mut self,
         timeout: Duration,
@@ -782,12 +787,18 @@ impl Device {
         let end = self.transport.now() + timeout;
         let mut next_ping = self.transport.now() + self.timings.keepalive;
         loop {
+            // Past the end, only what was waited for is taken: a device that
+            // sends `Boot` events its greeting does not confirm would
+            // otherwise be greeted for as long as it sends them.
+            let late = self.transport.now() >= end;
             if let Some(i) = self.events.iter().position(|e| {
-                matches!(e, Event::Boot { boot_id, .. } if *boot_id != self.info.boot_id) || pred(e)
+                matches!(e, Event::Boot { boot_id, .. } if *boot_id != self.info.boot_id && !late)
+                    || pred(e)
             }) {
                 let e = self.events.remove(i).expect("index from position");
                 if let Event::Boot { boot_id, .. } = e
                     && boot_id != self.info.boot_id
+                    && !late
                 {
                     // Greeting it again reports the reset (an event from a
                     // boot the handshake does not confirm is dropped).
@@ -832,6 +843,7 @@ mod tests {
     use std::sync::{Arc, Mutex};
 
     use super::*;
+    use protocol::ResetReason;
 
     #[test]
     fn one_program_at_a_time_on_a_scanner() {
@@ -878,6 +890,9 @@ mod tests {
         /// Line noise loses these writes (counted from 0) altogether.
         lose: Vec<usize>,
         writes: usize,
+        /// Follow every reply with a `Boot` event of a new boot id (which
+        /// the greeting never confirms), as an inconsistent device might.
+        boot_flood: Option<u32>,
     }
 
     impl Answering {
@@ -891,6 +906,7 @@ mod tests {
                 hide_delimiter: Vec::new(),
                 lose: Vec::new(),
                 writes: 0,
+                boot_flood: None,
             }
         }
     }
@@ -918,7 +934,14 @@ mod tests {
                 };
                 let mut buf = [0u8; MAX_FLUSHED_FRAME_LEN];
                 let n = encode_flushed_frame(frame.seq, &ToHost::Reply(reply), &mut buf).unwrap();
-                self.replies.push_back((arrived + self.round_trip / 2, buf[..n].to_vec()));
+                let mut bytes = buf[..n].to_vec();
+                if let Some(boot_id) = &mut self.boot_flood {
+                    *boot_id += 1;
+                    let boot = Event::Boot { boot_id: *boot_id, reason: ResetReason::Software };
+                    let n = encode_flushed_frame(0, &ToHost::Event(boot), &mut buf).unwrap();
+                    bytes.extend_from_slice(&buf[..n]);
+                }
+                self.replies.push_back((arrived + self.round_trip / 2, bytes));
             }
             Ok(())
         }
@@ -991,6 +1014,28 @@ mod tests {
         transport.lose = vec![4, 5];
         let longest = longest_silence_while_waiting(transport);
         assert!(longest < Duration::from_millis(100), "{longest:?} of silence");
+    }
+
+    /// A device that follows every reply with a `Boot` event its greeting
+    /// does not confirm keeps a waiting host no longer than the wait and
+    /// one greeting (it held it for as long as the device sent them: each
+    /// greeting's reply brought the next event).
+    #[test]
+    fn unconfirmed_boot_events_do_not_stretch_a_wait() {
+        let arrivals = Arc::new(Mutex::new(Vec::new()));
+        let mut transport = Answering::new(Duration::from_millis(2), arrivals.clone());
+        transport.boot_flood = Some(1);
+        let mut dev = Device::connect(Box::new(transport)).unwrap();
+        let start = dev.now();
+        let got = dev.wait_event(Duration::from_secs(1), |e| matches!(e, Event::MotionDone { .. }));
+        let took = dev.now() - start;
+        assert_eq!(got.unwrap(), None);
+        assert!(took < Duration::from_millis(1_010), "{took:?}");
+        assert!(
+            arrivals.lock().unwrap().len() > 100,
+            "the events were checked while there was time"
+        );
+        assert!(dev.info().boot_id == 0, "no reset was confirmed");
     }
 
     /// A frame whose delimiter line noise hid costs that frame alone: the
