@@ -20,7 +20,9 @@
 //! stops the axes, not the light); no unpowered axis counted as homed;
 //! motion refused while a fault is latched; a reset or the bootloader only
 //! once everything has stopped; no trigger pulse longer than the longest
-//! exposure, and no step while it is high. Any panic of the controller
+//! exposure, and no step while it is high; the light on only at a level a
+//! request asked for, a capture step's only within its light margin of the
+//! pulse. Any panic of the controller
 //! (arithmetic overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -138,6 +140,11 @@ pub enum Rule {
     StepDuringExposure,
     /// The light's duty above full.
     LightDuty,
+    /// The light on at a level no request asked for (the host's
+    /// `SetLight`, put out by a fault or a reboot; or a capture step's), or
+    /// a capture step's light on with the trigger low longer than the
+    /// step's light margin.
+    LightNotAsked,
 }
 
 impl Rule {
@@ -157,6 +164,9 @@ impl Rule {
             Rule::TriggerStuck => "the trigger stayed high longer than the longest exposure",
             Rule::StepDuringExposure => "an axis stepped while the camera's trigger was high",
             Rule::LightDuty => "light duty above full",
+            Rule::LightNotAsked => {
+                "the light on unasked, or a capture step's light past its margin"
+            }
         }
     }
 }
@@ -290,6 +300,14 @@ struct Watch {
     trigger_since: Option<u64>,
     /// Which axes were homed at the last check.
     homed: [bool; AXIS_COUNT],
+    /// The light's duty as the host set it on (`None`: set off, put out
+    /// by a fault, or not set since the boot).
+    set_light: Option<u16>,
+    /// The light's duty and margin (ticks) of the last two capture steps
+    /// accepted (the last one's light may still trail when the next is).
+    step_lights: [Option<(u16, u64)>; 2],
+    /// Since when a capture step's light is on with the trigger low.
+    step_lit_since: Option<u64>,
     report: Report,
 }
 
@@ -319,6 +337,9 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             driver_fault_since: None,
             trigger_since: None,
             homed: [false; AXIS_COUNT],
+            set_light: None,
+            step_lights: [None; 2],
+            step_lit_since: None,
             report: Report::default(),
         };
         Chaos { rig, calm: false, entropy, log, exhausted: false, watch }
@@ -433,6 +454,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             if gated && !faulted.is_empty() {
                 return Err(self.violation(Rule::AcceptedWhileFaulted, None));
             }
+            self.watch.light_asked(request);
         }
         self.check_state()?;
         self.reboot_if_asked()?;
@@ -730,6 +752,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         let now = self.rig.now;
         let w = &mut self.watch;
         w.trigger_since = None;
+        (w.set_light, w.step_lights, w.step_lit_since) = (None, [None; 2], None);
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
     }
@@ -744,6 +767,47 @@ impl<'e, E: Entropy> Chaos<'e, E> {
 }
 
 impl Watch {
+    /// Note the light an acknowledged `request` asks for.
+    fn light_asked(&mut self, request: &Request) {
+        let step = match *request {
+            Request::SetLight(LightState { on, duty_permille }) => {
+                self.set_light = on.then_some(duty_permille);
+                return;
+            }
+            Request::CaptureStep(step) => (step.light_duty_permille, 0),
+            Request::TimedCaptureStep(t) => {
+                (t.step.light_duty_permille, t.light_margin_us as u64 * TICKS_PER_US)
+            }
+            _ => return,
+        };
+        self.step_lights = [self.step_lights[1], Some(step)];
+    }
+
+    /// [`Rule::LightNotAsked`] on the light as it is.
+    fn light(&mut self, rig: &Rig) -> Result<(), Violation> {
+        if dark(rig.ctrl.faults()) {
+            self.set_light = None;
+        }
+        let level = rig.hw.light;
+        if level == 0 || Some(level) == self.set_light {
+            self.step_lit_since = None;
+            return Ok(());
+        }
+        let margin = self.step_lights.iter().flatten().filter(|(d, _)| *d == level).map(|s| s.1);
+        let Some(margin) = margin.max() else {
+            return Err(self.violation(rig, Rule::LightNotAsked, None));
+        };
+        if rig.hw.trigger {
+            self.step_lit_since = None;
+            return Ok(());
+        }
+        let since = *self.step_lit_since.get_or_insert(rig.now);
+        if rig.now > since + margin + POLL_TICKS {
+            return Err(self.violation(rig, Rule::LightNotAsked, None));
+        }
+        Ok(())
+    }
+
     fn violation(&self, rig: &Rig, rule: Rule, axis: Option<Axis>) -> Violation {
         Violation { rule, action: self.action, tick: rig.now, axis, faults: rig.ctrl.faults() }
     }
@@ -797,6 +861,7 @@ impl Watch {
         if dark(faults) && (hw.light != 0 || hw.trigger) {
             return Err(self.violation(rig, Rule::LightWhileFaulted, None));
         }
+        self.light(rig)?;
         if !hw.drivers_enabled
             && let Some(axis) = Axis::ALL.into_iter().find(|a| rig.ctrl.is_homed(*a))
         {
