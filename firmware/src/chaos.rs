@@ -22,7 +22,8 @@
 //! once everything has stopped; no trigger pulse longer than the longest
 //! exposure, and no step while it is high; the light on only at a level a
 //! request asked for, a capture step's only within its light margin of the
-//! pulse. Any panic of the controller
+//! pulse; a home switch hit far from home latched as a fault. Any panic of
+//! the controller
 //! (arithmetic overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -145,6 +146,11 @@ pub enum Rule {
     /// a capture step's light on with the trigger low longer than the
     /// step's light margin.
     LightNotAsked,
+    /// The home switch of a homed linear axis came on far from home (not
+    /// while homing it) and stayed on past the debounce time, and
+    /// `UNEXPECTED_HOME_SWITCH` (or `POSITION_LOST`) was not latched: a
+    /// crash or a broken switch run on.
+    SwitchHitIgnored,
 }
 
 impl Rule {
@@ -167,6 +173,7 @@ impl Rule {
             Rule::LightNotAsked => {
                 "the light on unasked, or a capture step's light past its margin"
             }
+            Rule::SwitchHitIgnored => "a home switch hit far from home was not acted on",
         }
     }
 }
@@ -218,6 +225,8 @@ pub struct Report {
     pub moves: usize,
     /// Trigger pulses fired.
     pub triggers: usize,
+    /// Home switches of homed axes hit far from home (outside homing).
+    pub switch_hits: usize,
     /// Every fault seen raised.
     pub faults: FaultFlags,
     /// Reboots (reset, bootloader, watchdog).
@@ -240,6 +249,7 @@ impl Report {
         self.homings_failed += other.homings_failed;
         self.moves += other.moves;
         self.triggers += other.triggers;
+        self.switch_hits += other.switch_hits;
         self.faults = self.faults.union(other.faults);
         self.reboots += other.reboots;
         self.ticks += other.ticks;
@@ -308,7 +318,22 @@ struct Watch {
     step_lights: [Option<(u16, u64)>; 2],
     /// Since when a capture step's light is on with the trigger low.
     step_lit_since: Option<u64>,
+    /// Per axis: whether its switch read on at the last check (by the
+    /// polarity configured), and a hit far from home being watched.
+    switch_on: [bool; AXIS_COUNT],
+    switch_hit: [Hit; AXIS_COUNT],
     report: Report,
+}
+
+/// A home switch hit far from home, outside homing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Hit {
+    /// None watched.
+    None,
+    /// Since this tick, not yet acted on.
+    Since(u64),
+    /// The fault was latched.
+    ActedOn,
 }
 
 struct Chaos<'e, E: Entropy> {
@@ -340,6 +365,8 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             set_light: None,
             step_lights: [None; 2],
             step_lit_since: None,
+            switch_on: [false; AXIS_COUNT],
+            switch_hit: [Hit::None; AXIS_COUNT],
             report: Report::default(),
         };
         Chaos { rig, calm: false, entropy, log, exhausted: false, watch }
@@ -410,6 +437,14 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             }
             70..74 => self.line_bytes()?,
             74..80 => self.change_inputs(),
+            80..84 => {
+                // Something in a homed linear axis' way.
+                let axis = [Axis::Track, Axis::Tilt][self.below(2) as usize];
+                if self.rig.ctrl.is_homed(axis) {
+                    self.rig.switches[axis.index()] = self.obstacle(axis.index());
+                    self.inputs_changed();
+                }
+            }
             _ => {}
         }
         let dt = match self.below(100) {
@@ -641,7 +676,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     }
 
     /// The world changes: the emergency stop, a driver fault, a home
-    /// switch breaking or mended, an unpowered axis pushed by hand or a
+    /// switch breaking, closing where it should not, or mended, an unpowered axis pushed by hand or a
     /// powered one skipping steps, the host falling silent or back, the
     /// board's watchdog (and its flash failing).
     fn change_inputs(&mut self) {
@@ -653,6 +688,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 self.rig.switches[i] = match self.below(10) {
                     0 => Switch::Missing,
                     1 => Switch::Stuck,
+                    2 => self.obstacle(i),
                     _ => DEFAULT_SWITCHES[i],
                 };
             }
@@ -671,6 +707,24 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 self.rebooted(ResetReason::Watchdog);
             }
         }
+        self.inputs_changed();
+    }
+
+    /// A home switch that closes somewhere on the travel of axis `i`
+    /// (something there presses its lever, or its cable shorts where the
+    /// chain bends), perhaps where the axis is.
+    fn obstacle(&mut self, i: usize) -> Switch {
+        let c = self.rig.ctrl.config().axes[i];
+        let lo = if self.chance(300) {
+            self.rig.physical[i] - self.between(0, 1_000)
+        } else {
+            self.between(c.min_steps as i64, c.max_steps as i64)
+        };
+        Switch::Window(lo, lo + self.between(50, 3_000))
+    }
+
+    /// Log the inputs after a change, and note when a stop input asserted.
+    fn inputs_changed(&mut self) {
         let rig = &self.rig;
         (self.log)(&Logged::Inputs {
             estop: rig.estop,
@@ -753,6 +807,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         let w = &mut self.watch;
         w.trigger_since = None;
         (w.set_light, w.step_lights, w.step_lit_since) = (None, [None; 2], None);
+        w.switch_hit = [Hit::None; AXIS_COUNT];
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
     }
@@ -781,6 +836,39 @@ impl Watch {
             _ => return,
         };
         self.step_lights = [self.step_lights[1], Some(step)];
+    }
+
+    /// [`Rule::SwitchHitIgnored`]: a homed linear axis' switch that came on
+    /// far from home (outside its homing) latches a fault within the
+    /// debounce time and a poll.
+    fn switches(&mut self, rig: &Rig) -> Result<(), Violation> {
+        let lines = rig.inputs().home_line;
+        let faults = rig.ctrl.faults();
+        let acted_on = faults.contains(FaultFlags::UNEXPECTED_HOME_SWITCH)
+            || faults.contains(FaultFlags::POSITION_LOST);
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let on = lines[i] == rig.ctrl.config().home.active_high[i];
+            let rose = on && !self.switch_on[i];
+            self.switch_on[i] = on;
+            let watched = on
+                && rig.ctrl.is_homed(axis)
+                && !rig.ctrl.config().axes[i].continuous
+                && !rig.ctrl.homing_axes().contains(axis);
+            self.switch_hit[i] = match self.switch_hit[i] {
+                _ if !watched => Hit::None,
+                Hit::None if rose && rig.ctrl.far_from_home(axis, rig.position(axis)) => {
+                    self.report.switch_hits += 1;
+                    Hit::Since(rig.now)
+                }
+                Hit::Since(_) if acted_on => Hit::ActedOn,
+                Hit::Since(t) if rig.now > t + STOP_WITHIN => {
+                    return Err(self.violation(rig, Rule::SwitchHitIgnored, Some(axis)));
+                }
+                hit => hit,
+            };
+        }
+        Ok(())
     }
 
     /// [`Rule::LightNotAsked`] on the light as it is.
@@ -862,6 +950,7 @@ impl Watch {
             return Err(self.violation(rig, Rule::LightWhileFaulted, None));
         }
         self.light(rig)?;
+        self.switches(rig)?;
         if !hw.drivers_enabled
             && let Some(axis) = Axis::ALL.into_iter().find(|a| rig.ctrl.is_homed(*a))
         {

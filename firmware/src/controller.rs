@@ -1231,7 +1231,7 @@ impl Controller {
 
     /// Whether the switch of `axis` is far (more than the back-off distance)
     /// from where homing found it: it cannot legitimately be hit here.
-    fn far_from_home(&self, axis: Axis, position: i32) -> bool {
+    pub fn far_from_home(&self, axis: Axis, position: i32) -> bool {
         let backoff = self.config.axes[axis.index()].homing.backoff_steps;
         self.position_error(axis, position).unsigned_abs() > backoff
     }

@@ -127,6 +127,10 @@ pub enum Switch {
     },
     /// Always actuated (stuck).
     Stuck,
+    /// Actuated at physical positions `lo ..= hi` only: something on the
+    /// travel presses its lever there, or its cable shorts where the chain
+    /// bends.
+    Window(i64, i64),
 }
 
 impl Switch {
@@ -136,6 +140,7 @@ impl Switch {
             Switch::Below(edge) => physical <= edge,
             Switch::Index { edge, width, rev } => (physical - edge).rem_euclid(rev) < width,
             Switch::Stuck => true,
+            Switch::Window(lo, hi) => (lo..=hi).contains(&physical),
         }
     }
 }
