@@ -1467,7 +1467,7 @@ pub fn link_bytes_corruption_and_duplicates() -> TestResult {
     let _ = stream.extend_from_slice(&frame[..n]); // a retransmission
     // Deliver in awkward chunks.
     for chunk in stream.chunks(5) {
-        rig.ctrl.on_bytes(chunk, rig.now, &mut rig.hw, &mut |b: &[u8]| {
+        rig.on_bytes(chunk, &mut |b: &[u8]| {
             let _ = out.extend_from_slice(b);
         });
     }
