@@ -36,6 +36,32 @@ fn random_operation_keeps_every_safety_rule() {
     assert!(total.switch_hits >= 5, "switches hit far from home: {}", total.switch_hits);
 }
 
+/// A long search: the seeds `CHAOS_SEEDS` (`FROM..TO`, default
+/// 96..10 000) at `CHAOS_ACTIONS` actions (default 400), all of them even
+/// after a failure; each failing seed and its rule is printed. For
+/// `scripts/soak.sh`-style runs, not CI (≈ 0.15 s a seed).
+#[test]
+#[ignore = "long search: CHAOS_SEEDS=FROM..TO (minutes)"]
+fn many_seeds() {
+    let seeds = std::env::var("CHAOS_SEEDS").unwrap_or_else(|_| "96..10000".into());
+    let (from, to) = seeds.split_once("..").expect("CHAOS_SEEDS=FROM..TO");
+    let (from, to): (u64, u64) = (from.parse().expect("FROM"), to.parse().expect("TO"));
+    let actions = std::env::var("CHAOS_ACTIONS").map_or(ACTIONS, |a| a.parse().expect("a number"));
+    let mut total = Report::default();
+    let mut failed = Vec::new();
+    for seed in from..to {
+        match run(&mut Seeded::new(seed), actions) {
+            Ok(report) => total.add(&report),
+            Err(v) => {
+                eprintln!("seed {seed}: {v}");
+                failed.push(seed);
+            }
+        }
+    }
+    eprintln!("{total:#?}");
+    assert!(failed.is_empty(), "{} of {} seeds broke a rule: {failed:?}", failed.len(), to - from);
+}
+
 #[test]
 #[ignore = "debugging aid: the log of one run (CHAOS_SEED=N)"]
 fn log_of_one_seed() {
