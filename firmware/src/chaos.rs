@@ -22,8 +22,8 @@
 //! once everything has stopped; no trigger pulse longer than the longest
 //! exposure, and no step while it is high; the light on only at a level a
 //! request asked for, a capture step's only within its light margin of the
-//! pulse; a home switch hit far from home latched as a fault. Any panic of
-//! the controller
+//! pulse; a home switch hit far from home latched as a fault; after a
+//! reboot, the configuration last saved. Any panic of the controller
 //! (arithmetic overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -33,11 +33,12 @@
 
 use protocol::{
     AXIS_COUNT, Axis, AxisSet, CaptureStep, DeviceState, Event, FULL_DUTY_PERMILLE, FaultFlags,
-    Frame, FrameDecoder, LightState, MAX_EXPOSURE_US, MAX_FRAME_LEN, MAX_LIGHT_MARGIN_US,
-    MIN_EXPOSURE_US, MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply, Request,
-    ResetReason, TimedCaptureStep, ToHost, encode_frame,
+    FrameDecoder, LightState, MAX_EXPOSURE_US, MAX_FRAME_LEN, MAX_LIGHT_MARGIN_US, MIN_EXPOSURE_US,
+    MirrorPosition, MotionOutcome, MoveMode, PROTOCOL_VERSION, Reply, Request, ResetReason,
+    TimedCaptureStep, ToHost, encode_frame,
 };
 
+use crate::config::{PERSISTED_MAX_LEN, PersistedConfig};
 use crate::controller::DEBOUNCE_US;
 use crate::hal::{TICKS_PER_MS, TICKS_PER_US};
 use crate::testkit::{CameraStrobe, DEFAULT_SWITCHES, Rig, Switch, Visit, xorshift64star};
@@ -151,6 +152,9 @@ pub enum Rule {
     /// `UNEXPECTED_HOME_SWITCH` (or `POSITION_LOST`) was not latched: a
     /// crash or a broken switch run on.
     SwitchHitIgnored,
+    /// After a reboot, the configuration is not the one the last
+    /// acknowledged `SaveConfig` saved (the defaults if none was).
+    ConfigNotKept,
 }
 
 impl Rule {
@@ -174,6 +178,7 @@ impl Rule {
                 "the light on unasked, or a capture step's light past its margin"
             }
             Rule::SwitchHitIgnored => "a home switch hit far from home was not acted on",
+            Rule::ConfigNotKept => "the configuration after a reboot is not the one last saved",
         }
     }
 }
@@ -227,6 +232,8 @@ pub struct Report {
     pub triggers: usize,
     /// Home switches of homed axes hit far from home (outside homing).
     pub switch_hits: usize,
+    /// Configurations saved (`SaveConfig` acknowledged).
+    pub saves: usize,
     /// Every fault seen raised.
     pub faults: FaultFlags,
     /// Reboots (reset, bootloader, watchdog).
@@ -250,6 +257,7 @@ impl Report {
         self.moves += other.moves;
         self.triggers += other.triggers;
         self.switch_hits += other.switch_hits;
+        self.saves += other.saves;
         self.faults = self.faults.union(other.faults);
         self.reboots += other.reboots;
         self.ticks += other.ticks;
@@ -322,7 +330,20 @@ struct Watch {
     /// polarity configured), and a hit far from home being watched.
     switch_on: [bool; AXIS_COUNT],
     switch_hit: [Hit; AXIS_COUNT],
+    /// The configuration the last acknowledged `SaveConfig` saved, encoded
+    /// (the defaults' until one is).
+    saved: Blob,
     report: Report,
+}
+
+/// An encoded configuration.
+type Blob = heapless::Vec<u8, PERSISTED_MAX_LEN>;
+
+/// `config` as the controller saves it.
+fn blob(config: &PersistedConfig) -> Blob {
+    let mut buf = [0u8; PERSISTED_MAX_LEN];
+    let bytes = config.encode(&mut buf).map_or(&[][..], |b| &b[..]);
+    Blob::from_slice(bytes).unwrap_or_default()
 }
 
 /// A home switch hit far from home, outside homing.
@@ -343,6 +364,9 @@ struct Chaos<'e, E: Entropy> {
     entropy: &'e mut E,
     log: &'e mut dyn FnMut(&Logged),
     exhausted: bool,
+    /// A request framed on the link but cut short (its number and itself):
+    /// the controller's decoder holds it until a delimiter comes.
+    cut: Option<(u8, Request)>,
     watch: Watch,
 }
 
@@ -367,9 +391,10 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             step_lit_since: None,
             switch_on: [false; AXIS_COUNT],
             switch_hit: [Hit::None; AXIS_COUNT],
+            saved: blob(&PersistedConfig::default()),
             report: Report::default(),
         };
-        Chaos { rig, calm: false, entropy, log, exhausted: false, watch }
+        Chaos { rig, calm: false, entropy, log, exhausted: false, cut: None, watch }
     }
 
     /// The rig's own variations, drawn once.
@@ -436,7 +461,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 }
             }
             70..74 => self.line_bytes()?,
-            74..80 => self.change_inputs(),
+            74..80 => self.change_inputs()?,
             80..84 => {
                 // Something in a homed linear axis' way.
                 let axis = [Axis::Track, Axis::Tilt][self.below(2) as usize];
@@ -490,6 +515,10 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 return Err(self.violation(Rule::AcceptedWhileFaulted, None));
             }
             self.watch.light_asked(request);
+            if *request == Request::SaveConfig {
+                self.watch.saved = blob(self.rig.ctrl.config());
+                self.watch.report.saves += 1;
+            }
         }
         self.check_state()?;
         self.reboot_if_asked()?;
@@ -596,6 +625,11 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             98 => Request::SetBoardConfig(protocol::BoardConfig {
                 driver_fault_active_high: self.chance(200),
             }),
+            99 if self.chance(500) => Request::SetStrobe(protocol::StrobeConfig {
+                enabled: self.chance(700),
+                active_high: self.chance(500),
+                max_delay_us: self.between(0, protocol::MAX_STROBE_DELAY_US as i64 + 10) as u32,
+            }),
             _ => Request::Hello { host_protocol: PROTOCOL_VERSION },
         }
     }
@@ -628,10 +662,13 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     }
 
     /// Bytes on the link: noise, or a request framed (whole or cut, perhaps
-    /// corrupted), through the controller's decoder.
+    /// corrupted), through the controller's decoder. A frame cut short
+    /// before its delimiter is taken when later bytes bring one: its answer
+    /// comes then.
     fn line_bytes(&mut self) -> Result<(), Violation> {
         let mut bytes = [0u8; MAX_FRAME_LEN];
-        let mut request = None;
+        // The request framed whole, if one, and the one cut short.
+        let (mut whole, mut cut) = (None, None);
         let n = if self.chance(500) {
             let n = self.below(64) as usize;
             for b in bytes[..n].iter_mut() {
@@ -640,46 +677,63 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             n
         } else {
             let r = self.plausible_request();
-            let seq = self.r() as u8;
+            // Numbered as a host numbers its requests: the last request's
+            // number again would be a retransmission of it (answered again,
+            // not executed).
+            let seq = self.rig.next_seq();
             let n = encode_frame(seq, &r, &mut bytes).unwrap_or(0);
-            if self.chance(200) && n > 0 {
+            let corrupted = self.chance(200) && n > 0;
+            if corrupted {
                 let at = self.below(n as u32) as usize;
                 bytes[at] ^= 1 << self.below(8);
-            } else {
-                request = Some(r);
             }
-            if self.chance(100) { self.below(n as u32 + 1) as usize } else { n }
+            let sent = if self.chance(100) { self.below(n as u32 + 1) as usize } else { n };
+            match (corrupted, sent == n) {
+                (true, _) => {}
+                (false, true) => whole = Some((seq, r)),
+                (false, false) => cut = Some((seq, r)),
+            }
+            sent
         };
         (self.log)(&Logged::Bytes(n));
+        // A delimiter ends what an earlier cut left in the decoder.
+        let earlier = if bytes[..n].contains(&0) { self.cut.take() } else { None };
         let faulted = self.rig.ctrl.faults();
         let polarity = self.rig.ctrl.config().board.driver_fault_active_high;
         let mut out: heapless::Vec<u8, { 2 * MAX_FRAME_LEN }> = heapless::Vec::new();
         self.rig.on_bytes(&bytes[..n], &mut |b: &[u8]| {
             let _ = out.extend_from_slice(b);
         });
-        let mut decoder = FrameDecoder::<ToHost>::new();
-        let reply = decoder.feed(&out).find_map(|f| match f {
-            Ok(Frame { msg: ToHost::Reply(r), .. }) => Some(r),
-            _ => None,
-        });
-        self.line_follows_polarity(polarity);
-        match (request, reply) {
-            (Some(r), Some(reply)) => {
-                (self.log)(&Logged::Request(r, reply));
-                self.after_request(&r, faulted, reply)
-            }
-            _ => {
-                self.check_state()?;
-                self.reboot_if_asked()
+        let mut answered: heapless::Vec<(Request, Reply), 2> = heapless::Vec::new();
+        for frame in FrameDecoder::<ToHost>::new().feed(&out).flatten() {
+            let ToHost::Reply(reply) = frame.msg else { continue };
+            let asked = [earlier, whole].into_iter().flatten().find(|(s, _)| *s == frame.seq);
+            if let Some((_, request)) = asked {
+                let _ = answered.push((request, reply));
             }
         }
+        self.line_follows_polarity(polarity);
+        self.cut = self.cut.or(cut);
+        if answered.is_empty() {
+            self.check_state()?;
+            return self.reboot_if_asked();
+        }
+        let reboots = self.watch.report.reboots;
+        for (request, reply) in answered {
+            if self.watch.report.reboots != reboots {
+                break; // the rest went to the controller before
+            }
+            (self.log)(&Logged::Request(request, reply));
+            self.after_request(&request, faulted, reply)?;
+        }
+        Ok(())
     }
 
     /// The world changes: the emergency stop, a driver fault, a home
     /// switch breaking, closing where it should not, or mended, an unpowered axis pushed by hand or a
     /// powered one skipping steps, the host falling silent or back, the
     /// board's watchdog (and its flash failing).
-    fn change_inputs(&mut self) {
+    fn change_inputs(&mut self) -> Result<(), Violation> {
         match self.below(100) {
             0..25 => self.rig.estop = !self.rig.estop && self.chance(300),
             25..40 => self.rig.driver_fault = !self.rig.driver_fault && self.chance(300),
@@ -704,10 +758,11 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // The watchdog bites; the flash may have failed meanwhile.
                 self.rig.hw.storage_fails ^= self.chance(300);
                 self.rig.reboot(ResetReason::Watchdog);
-                self.rebooted(ResetReason::Watchdog);
+                self.rebooted(ResetReason::Watchdog)?;
             }
         }
         self.inputs_changed();
+        Ok(())
     }
 
     /// A home switch that closes somewhere on the travel of axis `i`
@@ -785,7 +840,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         self.tally_events();
         let reason = if reset { ResetReason::Software } else { ResetReason::PowerOn };
         self.rig.reboot(reason);
-        self.rebooted(reason);
+        self.rebooted(reason)?;
         self.send(Request::Hello { host_protocol: PROTOCOL_VERSION })
     }
 
@@ -799,10 +854,12 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         }
     }
 
-    /// A new controller: what the old one saw of the inputs is gone.
-    fn rebooted(&mut self, reason: ResetReason) {
+    /// A new controller: what the old one saw of the inputs is gone; what
+    /// was saved is its configuration.
+    fn rebooted(&mut self, reason: ResetReason) -> Result<(), Violation> {
         (self.log)(&Logged::Reboot(reason));
         self.watch.report.reboots += 1;
+        self.cut = None;
         let now = self.rig.now;
         let w = &mut self.watch;
         w.trigger_since = None;
@@ -810,6 +867,10 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         w.switch_hit = [Hit::None; AXIS_COUNT];
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
+        if blob(self.rig.ctrl.config()) != self.watch.saved {
+            return Err(self.violation(Rule::ConfigNotKept, None));
+        }
+        Ok(())
     }
 
     fn check_state(&mut self) -> Result<(), Violation> {

@@ -352,8 +352,15 @@ impl Rig {
 
     /// Send a request with a fresh sequence number; returns the reply.
     pub fn request(&mut self, request: Request) -> Reply {
+        let seq = self.next_seq();
+        self.request_seq(seq, request)
+    }
+
+    /// The sequence number [`Rig::request`] would give the next request,
+    /// taken (for a request framed by hand).
+    pub fn next_seq(&mut self) -> u8 {
         self.seq = self.seq.wrapping_add(1);
-        self.request_seq(self.seq, request)
+        self.seq
     }
 
     /// Send a request with the given sequence number (to test duplicates).

@@ -27,13 +27,14 @@ fn random_operation_keeps_every_safety_rule() {
     eprintln!("{total:#?}");
     // The runs reached what the rules are about: every fault raised, homed
     // axes moving far, moves and homings completed, captures, reboots,
-    // switches hit far from home.
+    // switches hit far from home, configurations saved.
     assert_eq!(total.faults, FaultFlags(0xFF), "every fault kind raised");
     assert!(total.homed_steps > 1_000_000, "homed axes moved: {}", total.homed_steps);
     assert!(total.steps.iter().all(|&s| s > 100_000), "every axis moved: {:?}", total.steps);
     assert!(total.homings > 300 && total.homings_failed > 50, "homings: {total:?}");
     assert!(total.moves > 100 && total.triggers > 50 && total.reboots > 100, "{total:?}");
     assert!(total.switch_hits >= 5, "switches hit far from home: {}", total.switch_hits);
+    assert!(total.saves > 20, "configurations saved: {}", total.saves);
 }
 
 /// A long search: the seeds `CHAOS_SEEDS` (`FROM..TO`, default
