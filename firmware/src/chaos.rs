@@ -23,7 +23,9 @@
 //! exposure, and no step while it is high; the light on only at a level a
 //! request asked for, a capture step's only within its light margin of the
 //! pulse; a home switch hit far from home latched as a fault; after a
-//! reboot, the configuration last saved. Any panic of the controller
+//! reboot, the configuration last saved; an axis stopped within the link
+//! timeout and its deceleration once the host falls silent. Any panic of
+//! the controller
 //! (arithmetic overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -39,8 +41,8 @@ use protocol::{
 };
 
 use crate::config::{PERSISTED_MAX_LEN, PersistedConfig};
-use crate::controller::DEBOUNCE_US;
-use crate::hal::{TICKS_PER_MS, TICKS_PER_US};
+use crate::controller::{DEBOUNCE_US, LINK_TIMEOUT_MS};
+use crate::hal::{TICK_HZ, TICKS_PER_MS, TICKS_PER_US};
 use crate::testkit::{CameraStrobe, DEFAULT_SWITCHES, Rig, Switch, Visit, xorshift64star};
 
 /// Where a run's randomness comes from.
@@ -155,6 +157,13 @@ pub enum Rule {
     /// After a reboot, the configuration is not the one the last
     /// acknowledged `SaveConfig` saved (the defaults if none was).
     ConfigNotKept,
+    /// An axis still stepped after the host had fallen silent for longer
+    /// than the link timeout, a poll and the axis' deceleration from its
+    /// top speed.
+    LinkLossIgnored,
+    /// After a poll, the controller asks to be woken at a tick already
+    /// past ([`Rig::stale_deadline`]): work it says is due and does not do.
+    StaleDeadline,
 }
 
 impl Rule {
@@ -179,6 +188,8 @@ impl Rule {
             }
             Rule::SwitchHitIgnored => "a home switch hit far from home was not acted on",
             Rule::ConfigNotKept => "the configuration after a reboot is not the one last saved",
+            Rule::LinkLossIgnored => "an axis went on moving after the host fell silent",
+            Rule::StaleDeadline => "after a poll, the controller asked to be woken in the past",
         }
     }
 }
@@ -271,6 +282,10 @@ const POLL_TICKS: u64 = 200 * TICKS_PER_US;
 /// debounce time and a poll.
 const STOP_WITHIN: u64 = DEBOUNCE_US * TICKS_PER_US + POLL_TICKS;
 
+/// What a deceleration may take beyond v_max / a_max: the step already
+/// armed and the plan's rounding (10 ms).
+const LINK_SLACK: u64 = 10 * TICKS_PER_MS;
+
 /// Every fault but a link timeout stops the axes at once (a link timeout
 /// decelerates them).
 const fn stops_at_once(f: FaultFlags) -> bool {
@@ -333,6 +348,9 @@ struct Watch {
     /// The configuration the last acknowledged `SaveConfig` saved, encoded
     /// (the defaults' until one is).
     saved: Blob,
+    /// When the host last spoke (a request, bytes, or its keep-alive as it
+    /// fell silent).
+    heard: u64,
     report: Report,
 }
 
@@ -392,6 +410,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             switch_on: [false; AXIS_COUNT],
             switch_hit: [Hit::None; AXIS_COUNT],
             saved: blob(&PersistedConfig::default()),
+            heard: 0,
             report: Report::default(),
         };
         Chaos { rig, calm: false, entropy, log, exhausted: false, cut: None, watch }
@@ -487,6 +506,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         let faulted = self.rig.ctrl.faults();
         let polarity = self.rig.ctrl.config().board.driver_fault_active_high;
         let reply = self.rig.request(request);
+        self.watch.heard = self.rig.now;
         self.line_follows_polarity(polarity);
         (self.log)(&Logged::Request(request, reply));
         self.after_request(&request, faulted, reply)
@@ -704,6 +724,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         self.rig.on_bytes(&bytes[..n], &mut |b: &[u8]| {
             let _ = out.extend_from_slice(b);
         });
+        self.watch.heard = self.rig.now;
         let mut answered: heapless::Vec<(Request, Reply), 2> = heapless::Vec::new();
         for frame in FrameDecoder::<ToHost>::new().feed(&out).flatten() {
             let ToHost::Reply(reply) = frame.msg else { continue };
@@ -753,7 +774,12 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 self.rig.physical[i] += self.between(-6_000, 6_000);
             }
             // A calm run's host stays alive.
-            75..97 => self.rig.keepalive = self.calm || !self.rig.keepalive || self.chance(800),
+            75..97 => {
+                if self.rig.keepalive {
+                    self.watch.heard = self.rig.now;
+                }
+                self.rig.keepalive = self.calm || !self.rig.keepalive || self.chance(800);
+            }
             _ => {
                 // The watchdog bites; the flash may have failed meanwhile.
                 self.rig.hw.storage_fails ^= self.chance(300);
@@ -964,6 +990,9 @@ impl Watch {
     fn visit(&mut self, rig: &mut Rig, visit: Visit) -> Result<(), Violation> {
         match visit {
             Visit::Stepped(axis) => self.step(rig, axis),
+            Visit::Polled if rig.stale_deadline() => {
+                Err(self.violation(rig, Rule::StaleDeadline, None))
+            }
             Visit::Polled => self.state(rig),
         }
     }
@@ -982,6 +1011,12 @@ impl Watch {
         let late = |since: Option<u64>| since.is_some_and(|t| rig.now > t + STOP_WITHIN);
         if late(self.estop_since) || late(self.driver_fault_since) {
             return Err(self.violation(rig, Rule::StopInputIgnored, Some(axis)));
+        }
+        let config = &rig.ctrl.config().axes[i];
+        let stop = config.v_max as u64 * TICK_HZ as u64 / config.a_max.max(1) as u64;
+        let timeout = LINK_TIMEOUT_MS * TICKS_PER_MS + POLL_TICKS;
+        if !rig.keepalive && rig.now > self.heard + timeout + stop + LINK_SLACK {
+            return Err(self.violation(rig, Rule::LinkLossIgnored, Some(axis)));
         }
         if rig.ctrl.is_homed(axis) {
             self.report.homed_steps += 1;

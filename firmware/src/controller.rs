@@ -312,8 +312,12 @@ impl Controller {
             Activity::Settling { until, .. }
             | Activity::Leading { until, .. }
             | Activity::Exposing { until, .. } => Some(until),
-            Activity::Homing { started, axes, .. } => axes
+            // The timeout of each axis still searching (as `poll_homing`
+            // checks it): none for an axis homed already, none while the
+            // homing stops short.
+            Activity::Homing { started, axes, stopping: false } => axes
                 .iter()
+                .filter(|a| self.motion[a.index()].as_ref().is_some_and(|m| m.homing.is_some()))
                 .map(|a| {
                     started + self.config.axes[a.index()].homing.timeout_ms as u64 * TICKS_PER_MS
                 })

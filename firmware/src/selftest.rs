@@ -14,7 +14,7 @@ use crate::config::{PersistedConfig, default_axes};
 use crate::hal::{TICK_HZ, TICKS_PER_MS, TICKS_PER_US};
 use crate::planner::{Profile, SegmentPlanner};
 use crate::step::{QUEUE_LEN, StepGenerator};
-use crate::testkit::{Output, Rig, Switch};
+use crate::testkit::{Output, Rig, Switch, Visit};
 
 /// A test's outcome: `Err` carries what failed.
 pub type TestResult = Result<(), &'static str>;
@@ -44,6 +44,7 @@ pub const TESTS: &[SelfTest] = &[
     ("concurrent_move_reaches_targets", concurrent_move_reaches_targets),
     ("controlled_stop_decelerates", controlled_stop_decelerates),
     ("stop_while_stopping_changes_nothing", stop_while_stopping_changes_nothing),
+    ("homing_deadline_only_while_searching", homing_deadline_only_while_searching),
     ("homing_all_axes", homing_all_axes),
     ("homing_starting_on_switch_backs_off", homing_starting_on_switch_backs_off),
     ("homing_switch_not_found", homing_switch_not_found),
@@ -407,6 +408,50 @@ pub fn stop_while_stopping_changes_nothing() -> TestResult {
     let travelled = rig.position(Axis::Track) - before;
     ensure!((6_390..=6_402).contains(&travelled), "the first stop's distance, v²/2a");
     ensure!(rig.ctrl.is_homed(Axis::Track), "still homed");
+    Ok(())
+}
+
+/// Run `rig` for `ms`, failing if after a poll the controller asks to be
+/// woken in the past ([`Rig::stale_deadline`]).
+fn run_without_stale_deadline(rig: &mut Rig, ms: u64) -> TestResult {
+    rig.run_until_visiting(rig.now + ms * TICKS_PER_MS, |rig, visit| {
+        match visit == Visit::Polled && rig.stale_deadline() {
+            true => Err("the controller asks to be woken in the past"),
+            false => Ok(()),
+        }
+    })
+}
+
+/// A homing's timeout is a deadline only while an axis still searches:
+/// not while the homing stops short, nor for an axis homed already while
+/// another searches on (it was the earliest of all the homing's axes, and
+/// stale then until the homing ended).
+pub fn homing_deadline_only_while_searching() -> TestResult {
+    // Stopped 50 ms before its timeout: it ramps down past it.
+    let mut rig = Rig::new();
+    let mut track = rig.ctrl.config().axes[Axis::Track.index()];
+    track.homing.timeout_ms = 400;
+    let set = Request::SetAxisConfig { axis: Axis::Track, config: track };
+    ensure!(rig.request(set) == Reply::Ack, "track config");
+    rig.physical[Axis::Track.index()] += 100_000;
+    ensure!(rig.request(Request::Home { axes: AxisSet(1 << 1) }) == Reply::Ack, "homing");
+    run_without_stale_deadline(&mut rig, 350)?;
+    ensure!(rig.request(Request::Stop) == Reply::Ack, "stop");
+    run_without_stale_deadline(&mut rig, 1_000)?;
+    ensure!(!rig.ctrl.is_moving() && rig.ctrl.faults().is_empty(), "stopped, no fault");
+    // The tilt homes within its 6 s (≈ 4 s) while the track searches on
+    // (≈ 11 s).
+    let mut rig = Rig::new();
+    let mut tilt = rig.ctrl.config().axes[Axis::Tilt.index()];
+    tilt.homing.timeout_ms = 6_000;
+    let set = Request::SetAxisConfig { axis: Axis::Tilt, config: tilt };
+    ensure!(rig.request(set) == Reply::Ack, "tilt config");
+    rig.physical[Axis::Track.index()] += 100_000;
+    let axes = AxisSet((1 << 1) | (1 << 2));
+    ensure!(rig.request(Request::Home { axes }) == Reply::Ack, "homing");
+    run_without_stale_deadline(&mut rig, 8_000)?;
+    ensure!(rig.ctrl.is_homed(Axis::Tilt), "tilt homed");
+    ensure!(!rig.ctrl.is_homed(Axis::Track) && rig.ctrl.is_moving(), "track still searching");
     Ok(())
 }
 

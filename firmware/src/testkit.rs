@@ -446,6 +446,16 @@ impl Rig {
         }
     }
 
+    /// Whether the controller, polled at the current tick, asks to be woken
+    /// at a tick already past ([`Controller::next_deadline`],
+    /// [`Controller::capture_deadline`]): work it says is due and does not
+    /// do. [`Rig::run_until`] would turn there without time passing; the
+    /// board, for a capture's deadline, without polling its inputs.
+    pub fn stale_deadline(&self) -> bool {
+        let past = |t: Option<u64>| t.is_some_and(|t| t <= self.now);
+        past(self.ctrl.next_deadline()) || past(self.ctrl.capture_deadline())
+    }
+
     /// Run until no axis moves and nothing is timed, at most `max_ms`.
     /// Returns whether the controller went idle.
     pub fn run_until_idle(&mut self, max_ms: u64) -> bool {

@@ -30,6 +30,7 @@ selftests!(
     concurrent_move_reaches_targets,
     controlled_stop_decelerates,
     stop_while_stopping_changes_nothing,
+    homing_deadline_only_while_searching,
     homing_all_axes,
     homing_starting_on_switch_backs_off,
     homing_switch_not_found,
