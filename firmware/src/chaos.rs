@@ -24,9 +24,9 @@
 //! request asked for, a capture step's only within its light margin of the
 //! pulse; a home switch hit far from home latched as a fault; after a
 //! reboot, the configuration last saved; an axis stopped within the link
-//! timeout and its deceleration once the host falls silent. Any panic of
-//! the controller
-//! (arithmetic overflow included, in debug builds) fails too.
+//! timeout and its deceleration once the host falls silent; no wake-up
+//! asked for a tick already past. Any panic of the controller (arithmetic
+//! overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
 //! the PC (`firmware/tests/chaos.rs`), on the Cortex-M4 under QEMU (a
