@@ -549,15 +549,49 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         Ok(())
     }
 
-    /// What a host does next: clear a fault, home, or anything else.
+    /// What a host does next: clear a fault, home, scan, or anything else.
     fn host_request(&mut self) -> Request {
         let homed = Axis::ALL.iter().all(|a| self.rig.ctrl.is_homed(*a));
+        let idle = self.rig.status().state == DeviceState::Idle;
         if !self.rig.ctrl.faults().is_empty() && self.chance(500) {
             Request::ClearFault
         } else if !homed && self.chance(400) {
             Request::Home { axes: AxisSet::ALL }
+        } else if homed && idle && self.chance(400) {
+            self.scan_request()
         } else {
             self.plausible_request()
+        }
+    }
+
+    /// A scan's next request: a capture step at a mirror of the table (at
+    /// settings a scan uses, the strobe's and a light margin's included),
+    /// or a mirror's position set within the travel if the table has none.
+    fn scan_request(&mut self) -> Request {
+        let set = self.rig.ctrl.config().mirrors.iter().filter(|m| m.is_some()).count();
+        if set == 0 || self.chance(50) {
+            let axes = self.rig.ctrl.config().axes;
+            let steps = core::array::from_fn(|i| {
+                self.between(axes[i].min_steps as i64, axes[i].max_steps as i64) as i32
+            });
+            let mirror = self.below(6) as u8;
+            return Request::SetMirror { mirror, position: MirrorPosition { steps } };
+        }
+        let nth = self.below(set as u32) as usize;
+        let mirrors = self.rig.ctrl.config().mirrors.iter().enumerate();
+        let mirror = mirrors.filter(|(_, m)| m.is_some()).nth(nth);
+        let mirror = mirror.map_or(0, |(i, _)| i as u8);
+        let step = CaptureStep {
+            mirror,
+            settle_ms: self.below(200) as u16,
+            exposure_us: self.between(MIN_EXPOSURE_US as i64, 60_000) as u32,
+            light_duty_permille: self.between(1, FULL_DUTY_PERMILLE as i64) as u16,
+        };
+        if self.chance(300) {
+            Request::CaptureStep(step)
+        } else {
+            let light_margin_us = self.below(MAX_LIGHT_MARGIN_US as u32 + 1) as u16;
+            Request::TimedCaptureStep(TimedCaptureStep { step, light_margin_us })
         }
     }
 
