@@ -25,7 +25,8 @@
 //! pulse; a home switch hit far from home latched as a fault; after a
 //! reboot, the configuration last saved; an axis stopped within the link
 //! timeout and its deceleration once the host falls silent; no wake-up
-//! asked for a tick already past. Any panic of the controller (arithmetic
+//! asked for a tick already past; every motion acknowledged ends with
+//! exactly one `MotionDone`. Any panic of the controller (arithmetic
 //! overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -164,6 +165,11 @@ pub enum Rule {
     /// After a poll, the controller asks to be woken at a tick already
     /// past ([`Rig::stale_deadline`]): work it says is due and does not do.
     StaleDeadline,
+    /// An acknowledged motion (homing, move, capture step) did not end
+    /// with exactly one `MotionDone`, or a motion is running with no axis
+    /// moving after a poll (it would never end: the host waits for its
+    /// `MotionDone`).
+    MotionNotReported,
 }
 
 impl Rule {
@@ -190,6 +196,7 @@ impl Rule {
             Rule::ConfigNotKept => "the configuration after a reboot is not the one last saved",
             Rule::LinkLossIgnored => "an axis went on moving after the host fell silent",
             Rule::StaleDeadline => "after a poll, the controller asked to be woken in the past",
+            Rule::MotionNotReported => "a motion did not end with exactly one MotionDone",
         }
     }
 }
@@ -351,6 +358,8 @@ struct Watch {
     /// When the host last spoke (a request, bytes, or its keep-alive as it
     /// fell silent).
     heard: u64,
+    /// Motions (homings, moves, capture steps) acknowledged since the boot.
+    motions: usize,
     report: Report,
 }
 
@@ -411,6 +420,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             switch_hit: [Hit::None; AXIS_COUNT],
             saved: blob(&PersistedConfig::default()),
             heard: 0,
+            motions: 0,
             report: Report::default(),
         };
         Chaos { rig, calm: false, entropy, log, exhausted: false, cut: None, watch }
@@ -535,6 +545,14 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 return Err(self.violation(Rule::AcceptedWhileFaulted, None));
             }
             self.watch.light_asked(request);
+            self.watch.motions += usize::from(matches!(
+                request,
+                Request::Home { .. }
+                    | Request::Move { .. }
+                    | Request::GoToMirror { .. }
+                    | Request::CaptureStep(_)
+                    | Request::TimedCaptureStep(_)
+            ));
             if *request == Request::SaveConfig {
                 self.watch.saved = blob(self.rig.ctrl.config());
                 self.watch.report.saves += 1;
@@ -925,6 +943,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         w.trigger_since = None;
         (w.set_light, w.step_lights, w.step_lit_since) = (None, [None; 2], None);
         w.switch_hit = [Hit::None; AXIS_COUNT];
+        w.motions = 0;
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
         if blob(self.rig.ctrl.config()) != self.watch.saved {
@@ -1027,6 +1046,9 @@ impl Watch {
             Visit::Polled if rig.stale_deadline() => {
                 Err(self.violation(rig, Rule::StaleDeadline, None))
             }
+            Visit::Polled if rig.ctrl.in_motion() && !rig.ctrl.is_moving() => {
+                Err(self.violation(rig, Rule::MotionNotReported, None))
+            }
             Visit::Polled => self.state(rig),
         }
     }
@@ -1081,6 +1103,13 @@ impl Watch {
         }
         self.light(rig)?;
         self.switches(rig)?;
+        // One `MotionDone` per motion acknowledged, once it has ended (a
+        // reset or the bootloader ends it without: the device goes away).
+        let running = usize::from(rig.ctrl.in_motion());
+        let leaving = rig.ctrl.reset_requested() || rig.ctrl.bootloader_requested();
+        if rig.motion_done + running != self.motions && !leaving {
+            return Err(self.violation(rig, Rule::MotionNotReported, None));
+        }
         if !hw.drivers_enabled
             && let Some(axis) = Axis::ALL.into_iter().find(|a| rig.ctrl.is_homed(*a))
         {

@@ -278,6 +278,11 @@ impl Controller {
             _ => AxisSet::NONE,
         }
     }
+    /// Whether a homing or a move (a capture step's included) is running,
+    /// also while it stops short: it ends with [`Event::MotionDone`].
+    pub fn in_motion(&self) -> bool {
+        matches!(self.activity, Activity::Moving { .. } | Activity::Homing { .. })
+    }
     /// Latched faults.
     pub fn faults(&self) -> FaultFlags {
         self.faults

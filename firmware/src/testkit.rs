@@ -193,6 +193,9 @@ pub struct Rig {
     pub poll_period: Option<u64>,
     /// Events received, in order.
     pub events: Vec<Event, 64>,
+    /// `MotionDone` events received since the boot (all of them, also
+    /// when `events` is full).
+    pub motion_done: usize,
     /// Tick of the first and last step of each axis since the last
     /// [`Rig::clear_steps`].
     pub step_span: [Option<(u64, u64)>; AXIS_COUNT],
@@ -264,6 +267,7 @@ impl Rig {
             keepalive: true,
             poll_period: None,
             events: Vec::new(),
+            motion_done: 0,
             step_span: [None; AXIS_COUNT],
             seq: 0,
             last_ping: 0,
@@ -297,6 +301,7 @@ impl Rig {
         self.hw =
             MockHw { now: self.now, saved, storage_fails, hardware_pulse, ..MockHw::default() };
         self.seq = 0;
+        self.motion_done = 0;
         self.poll();
     }
 
@@ -391,6 +396,7 @@ impl Rig {
 
     fn collect(&mut self) {
         while let Some(e) = self.ctrl.pop_event() {
+            self.motion_done += usize::from(matches!(e, Event::MotionDone { .. }));
             let _ = self.events.push(e);
         }
     }
