@@ -23,7 +23,7 @@
 //! exposure, and no step while it is high; the light on only at a level a
 //! request asked for, a capture step's only within its light margin of the
 //! pulse; a home switch hit far from home latched as a fault; after a
-//! reboot, the configuration last saved; an axis stopped within the link
+//! reboot, the configuration last saved and the reset's cause latched; an axis stopped within the link
 //! timeout and its deceleration once the host falls silent; no wake-up
 //! asked for a tick already past; every motion acknowledged ends with
 //! exactly one `MotionDone`. Any panic of the controller (arithmetic
@@ -158,6 +158,10 @@ pub enum Rule {
     /// After a reboot, the configuration is not the one the last
     /// acknowledged `SaveConfig` saved (the defaults if none was).
     ConfigNotKept,
+    /// After a reboot, a watchdog reset or a flash that failed at boot is
+    /// not latched as `WATCHDOG_RESET` / `STORAGE_FAILED` (or one is
+    /// latched that did not happen).
+    ResetCauseNotLatched,
     /// An axis still stepped after the host had fallen silent for longer
     /// than the link timeout, a poll and the axis' deceleration from its
     /// top speed.
@@ -194,6 +198,7 @@ impl Rule {
             }
             Rule::SwitchHitIgnored => "a home switch hit far from home was not acted on",
             Rule::ConfigNotKept => "the configuration after a reboot is not the one last saved",
+            Rule::ResetCauseNotLatched => "a watchdog reset or a failing flash not latched at boot",
             Rule::LinkLossIgnored => "an axis went on moving after the host fell silent",
             Rule::StaleDeadline => "after a poll, the controller asked to be woken in the past",
             Rule::MotionNotReported => "a motion did not end with exactly one MotionDone",
@@ -946,8 +951,16 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         w.motions = 0;
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
+        let faults = self.rig.ctrl.faults();
+        let watchdog = reason == ResetReason::Watchdog;
+        let storage = self.rig.hw.storage_fails;
         if blob(self.rig.ctrl.config()) != self.watch.saved {
             return Err(self.violation(Rule::ConfigNotKept, None));
+        }
+        if faults.contains(FaultFlags::WATCHDOG_RESET) != watchdog
+            || faults.contains(FaultFlags::STORAGE_FAILED) != storage
+        {
+            return Err(self.violation(Rule::ResetCauseNotLatched, None));
         }
         Ok(())
     }
