@@ -309,6 +309,19 @@ const fn dark(f: FaultFlags) -> bool {
     f.0 & !FaultFlags::HOMING_FAILED.0 != 0
 }
 
+/// Whether `request`, acknowledged, starts a motion (a homing, a move, a
+/// capture step's move): one that ends with a `MotionDone`.
+const fn starts_motion(request: &Request) -> bool {
+    matches!(
+        request,
+        Request::Home { .. }
+            | Request::Move { .. }
+            | Request::GoToMirror { .. }
+            | Request::CaptureStep(_)
+            | Request::TimedCaptureStep(_)
+    )
+}
+
 /// Run `actions` random actions on a fresh rig (fewer if `entropy` runs
 /// out): `Err` names the first rule broken.
 pub fn run(entropy: &mut impl Entropy, actions: usize) -> Result<Report, Violation> {
@@ -536,28 +549,19 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         self.watch.report.requests += 1;
         if reply == Reply::Ack {
             self.watch.report.acks += 1;
-            let gated = matches!(
-                request,
-                Request::Home { .. }
-                    | Request::Move { .. }
-                    | Request::GoToMirror { .. }
-                    | Request::CaptureStep(_)
-                    | Request::TimedCaptureStep(_)
-                    | Request::Trigger { .. }
-                    | Request::SaveConfig
-            ) || matches!(request, Request::SetLight(LightState { on: true, .. }));
+            let motion = starts_motion(request);
+            let gated = motion
+                || matches!(
+                    request,
+                    Request::Trigger { .. }
+                        | Request::SaveConfig
+                        | Request::SetLight(LightState { on: true, .. })
+                );
             if gated && !faulted.is_empty() {
                 return Err(self.violation(Rule::AcceptedWhileFaulted, None));
             }
             self.watch.light_asked(request);
-            self.watch.motions += usize::from(matches!(
-                request,
-                Request::Home { .. }
-                    | Request::Move { .. }
-                    | Request::GoToMirror { .. }
-                    | Request::CaptureStep(_)
-                    | Request::TimedCaptureStep(_)
-            ));
+            self.watch.motions += usize::from(motion);
             if *request == Request::SaveConfig {
                 self.watch.saved = blob(self.rig.ctrl.config());
                 self.watch.report.saves += 1;

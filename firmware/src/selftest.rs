@@ -427,26 +427,25 @@ fn run_without_stale_deadline(rig: &mut Rig, ms: u64) -> TestResult {
 /// another searches on (it was the earliest of all the homing's axes, and
 /// stale then until the homing ended).
 pub fn homing_deadline_only_while_searching() -> TestResult {
+    /// A rig whose `axis` gives up homing after `timeout_ms`, the track
+    /// 100 000 steps further from its switch (≈ 11 s of search).
+    fn rig_with_homing_timeout(axis: Axis, timeout_ms: u32) -> Result<Rig, &'static str> {
+        let mut rig = Rig::new();
+        let mut config = rig.ctrl.config().axes[axis.index()];
+        config.homing.timeout_ms = timeout_ms;
+        ensure!(rig.request(Request::SetAxisConfig { axis, config }) == Reply::Ack, "config");
+        rig.physical[Axis::Track.index()] += 100_000;
+        Ok(rig)
+    }
     // Stopped 50 ms before its timeout: it ramps down past it.
-    let mut rig = Rig::new();
-    let mut track = rig.ctrl.config().axes[Axis::Track.index()];
-    track.homing.timeout_ms = 400;
-    let set = Request::SetAxisConfig { axis: Axis::Track, config: track };
-    ensure!(rig.request(set) == Reply::Ack, "track config");
-    rig.physical[Axis::Track.index()] += 100_000;
+    let mut rig = rig_with_homing_timeout(Axis::Track, 400)?;
     ensure!(rig.request(Request::Home { axes: AxisSet(1 << 1) }) == Reply::Ack, "homing");
     run_without_stale_deadline(&mut rig, 350)?;
     ensure!(rig.request(Request::Stop) == Reply::Ack, "stop");
     run_without_stale_deadline(&mut rig, 1_000)?;
     ensure!(!rig.ctrl.is_moving() && rig.ctrl.faults().is_empty(), "stopped, no fault");
-    // The tilt homes within its 6 s (≈ 4 s) while the track searches on
-    // (≈ 11 s).
-    let mut rig = Rig::new();
-    let mut tilt = rig.ctrl.config().axes[Axis::Tilt.index()];
-    tilt.homing.timeout_ms = 6_000;
-    let set = Request::SetAxisConfig { axis: Axis::Tilt, config: tilt };
-    ensure!(rig.request(set) == Reply::Ack, "tilt config");
-    rig.physical[Axis::Track.index()] += 100_000;
+    // The tilt homes within its 6 s (≈ 4 s) while the track searches on.
+    let mut rig = rig_with_homing_timeout(Axis::Tilt, 6_000)?;
     let axes = AxisSet((1 << 1) | (1 << 2));
     ensure!(rig.request(Request::Home { axes }) == Reply::Ack, "homing");
     run_without_stale_deadline(&mut rig, 8_000)?;
