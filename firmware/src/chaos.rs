@@ -26,7 +26,8 @@
 //! reboot, the configuration last saved and the reset's cause latched; an axis stopped within the link
 //! timeout and its deceleration once the host falls silent; no wake-up
 //! asked for a tick already past; every motion acknowledged ends with
-//! exactly one `MotionDone`. Any panic of the controller (arithmetic
+//! exactly one `MotionDone`; no axis steps that no running motion asked to
+//! move; a move that completes leaves its axes at its targets. Any panic of the controller (arithmetic
 //! overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -174,6 +175,14 @@ pub enum Rule {
     /// moving after a poll (it would never end: the host waits for its
     /// `MotionDone`).
     MotionNotReported,
+    /// An axis stepped that no running motion asked to move: not one of a
+    /// homing's axes, an axis a `Move` left alone, or any axis with no
+    /// motion acknowledged and not yet reported done.
+    StepNotAsked,
+    /// A move (`Move`, `GoToMirror`, a capture step's) reported
+    /// `Completed` with an axis elsewhere than its target (the disk's
+    /// modulo a turn), by its `MotionDone` or by the step count.
+    MoveOffTarget,
 }
 
 impl Rule {
@@ -202,6 +211,8 @@ impl Rule {
             Rule::LinkLossIgnored => "an axis went on moving after the host fell silent",
             Rule::StaleDeadline => "after a poll, the controller asked to be woken in the past",
             Rule::MotionNotReported => "a motion did not end with exactly one MotionDone",
+            Rule::StepNotAsked => "an axis stepped that no running motion asked to move",
+            Rule::MoveOffTarget => "a move completed with an axis off its target",
         }
     }
 }
@@ -251,6 +262,8 @@ pub struct Report {
     pub homings_failed: usize,
     /// Moves completed.
     pub moves: usize,
+    /// Moves (not homings) completed and found at their targets.
+    pub on_target: usize,
     /// Trigger pulses fired.
     pub triggers: usize,
     /// Home switches of homed axes hit far from home (outside homing).
@@ -278,6 +291,7 @@ impl Report {
         self.homings += other.homings;
         self.homings_failed += other.homings_failed;
         self.moves += other.moves;
+        self.on_target += other.on_target;
         self.triggers += other.triggers;
         self.switch_hits += other.switch_hits;
         self.saves += other.saves;
@@ -378,6 +392,13 @@ struct Watch {
     heard: u64,
     /// Motions (homings, moves, capture steps) acknowledged since the boot.
     motions: usize,
+    /// The axes the last motion acknowledged may move, and where a move
+    /// must leave them if it completes (`None`: a homing's, or an axis the
+    /// move leaves alone).
+    asked: AxisSet,
+    targets: [Option<i64>; AXIS_COUNT],
+    /// `MotionDone` events checked since the boot.
+    done_seen: usize,
     report: Report,
 }
 
@@ -439,6 +460,9 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             saved: blob(&PersistedConfig::default()),
             heard: 0,
             motions: 0,
+            asked: AxisSet::NONE,
+            targets: [None; AXIS_COUNT],
+            done_seen: 0,
             report: Report::default(),
         };
         Chaos { rig, calm: false, entropy, log, exhausted: false, cut: None, watch }
@@ -561,7 +585,9 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 return Err(self.violation(Rule::AcceptedWhileFaulted, None));
             }
             self.watch.light_asked(request);
-            self.watch.motions += usize::from(motion);
+            if motion {
+                self.watch.motion_asked(request, &self.rig);
+            }
             if *request == Request::SaveConfig {
                 self.watch.saved = blob(self.rig.ctrl.config());
                 self.watch.report.saves += 1;
@@ -952,7 +978,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         w.trigger_since = None;
         (w.set_light, w.step_lights, w.step_lit_since) = (None, [None; 2], None);
         w.switch_hit = [Hit::None; AXIS_COUNT];
-        w.motions = 0;
+        (w.motions, w.done_seen) = (0, 0);
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
         let faults = self.rig.ctrl.faults();
@@ -979,6 +1005,66 @@ impl<'e, E: Entropy> Chaos<'e, E> {
 }
 
 impl Watch {
+    /// Note the motion an acknowledged `request` starts: the axes it may
+    /// move and, for a move, where it must leave them.
+    fn motion_asked(&mut self, request: &Request, rig: &Rig) {
+        self.motions += 1;
+        let config = rig.ctrl.config();
+        let mirror = |m: u8| {
+            let position = config.mirrors.get(m as usize).copied().flatten();
+            (AxisSet::ALL, position.map_or([None; AXIS_COUNT], |p| p.steps.map(Some)))
+        };
+        let (mode, (asked, targets)) = match *request {
+            Request::Home { axes } => (MoveMode::Absolute, (axes, [None; AXIS_COUNT])),
+            Request::Move { mode, targets } => {
+                let axes = Axis::ALL.into_iter().filter(|a| targets[a.index()].is_some());
+                (mode, (axes.fold(AxisSet::NONE, AxisSet::with), targets))
+            }
+            Request::GoToMirror { mirror: m } => (MoveMode::Absolute, mirror(m)),
+            Request::CaptureStep(step) => (MoveMode::Absolute, mirror(step.mirror)),
+            Request::TimedCaptureStep(t) => (MoveMode::Absolute, mirror(t.step.mirror)),
+            _ => (MoveMode::Absolute, (AxisSet::NONE, [None; AXIS_COUNT])),
+        };
+        self.asked = asked;
+        self.targets = core::array::from_fn(|i| {
+            let t = targets[i]? as i64;
+            let c = &config.axes[i];
+            let end = match mode {
+                MoveMode::Absolute => t,
+                MoveMode::Relative => rig.hw.steppers[i].position() as i64 + t,
+            };
+            Some(if c.continuous { end.rem_euclid(c.steps_per_rev.max(1) as i64) } else { end })
+        });
+    }
+
+    /// [`Rule::MoveOffTarget`] on a `MotionDone` not yet checked.
+    fn motion_done(&mut self, rig: &Rig) -> Result<(), Violation> {
+        if rig.motion_done == self.done_seen {
+            return Ok(());
+        }
+        self.done_seen = rig.motion_done;
+        let Some(Event::MotionDone { outcome: MotionOutcome::Completed, positions, .. }) =
+            rig.last_motion_done
+        else {
+            return Ok(());
+        };
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let c = &rig.ctrl.config().axes[i];
+            let at = |p: i32| {
+                let p = p as i64;
+                if c.continuous { p.rem_euclid(c.steps_per_rev.max(1) as i64) } else { p }
+            };
+            if let Some(target) = self.targets[i]
+                && (at(positions[i]) != target || at(rig.position(axis)) != target)
+            {
+                return Err(self.violation(rig, Rule::MoveOffTarget, Some(axis)));
+            }
+        }
+        self.report.on_target += usize::from(self.targets.iter().any(Option::is_some));
+        Ok(())
+    }
+
     /// Note the light an acknowledged `request` asks for.
     fn light_asked(&mut self, request: &Request) {
         let step = match *request {
@@ -1100,6 +1186,9 @@ impl Watch {
         } else if !rig.ctrl.homing_axes().contains(axis) {
             return Err(self.violation(rig, Rule::UnhomedAxisMoved, Some(axis)));
         }
+        if self.motions <= rig.motion_done || !self.asked.contains(axis) {
+            return Err(self.violation(rig, Rule::StepNotAsked, Some(axis)));
+        }
         Ok(())
     }
 
@@ -1127,6 +1216,7 @@ impl Watch {
         if rig.motion_done + running != self.motions && !leaving {
             return Err(self.violation(rig, Rule::MotionNotReported, None));
         }
+        self.motion_done(rig)?;
         if !hw.drivers_enabled
             && let Some(axis) = Axis::ALL.into_iter().find(|a| rig.ctrl.is_homed(*a))
         {

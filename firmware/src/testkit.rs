@@ -196,6 +196,8 @@ pub struct Rig {
     /// `MotionDone` events received since the boot (all of them, also
     /// when `events` is full).
     pub motion_done: usize,
+    /// The last `MotionDone` received since the boot.
+    pub last_motion_done: Option<Event>,
     /// Tick of the first and last step of each axis since the last
     /// [`Rig::clear_steps`].
     pub step_span: [Option<(u64, u64)>; AXIS_COUNT],
@@ -268,6 +270,7 @@ impl Rig {
             poll_period: None,
             events: Vec::new(),
             motion_done: 0,
+            last_motion_done: None,
             step_span: [None; AXIS_COUNT],
             seq: 0,
             last_ping: 0,
@@ -302,6 +305,7 @@ impl Rig {
             MockHw { now: self.now, saved, storage_fails, hardware_pulse, ..MockHw::default() };
         self.seq = 0;
         self.motion_done = 0;
+        self.last_motion_done = None;
         self.poll();
     }
 
@@ -396,7 +400,10 @@ impl Rig {
 
     fn collect(&mut self) {
         while let Some(e) = self.ctrl.pop_event() {
-            self.motion_done += usize::from(matches!(e, Event::MotionDone { .. }));
+            if matches!(e, Event::MotionDone { .. }) {
+                self.motion_done += 1;
+                self.last_motion_done = Some(e.clone());
+            }
             let _ = self.events.push(e);
         }
     }
