@@ -27,7 +27,8 @@
 //! timeout and its deceleration once the host falls silent; no wake-up
 //! asked for a tick already past; every motion acknowledged ends with
 //! exactly one `MotionDone`; no axis steps that no running motion asked to
-//! move; a move that completes leaves its axes at its targets. Any panic of the controller (arithmetic
+//! move; a move that completes leaves its axes at its targets; the strobe's
+//! report on each pulse agrees with the camera's exposure within a poll. Any panic of the controller (arithmetic
 //! overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -45,7 +46,7 @@ use protocol::{
 use crate::config::{PERSISTED_MAX_LEN, PersistedConfig};
 use crate::controller::{DEBOUNCE_US, LINK_TIMEOUT_MS};
 use crate::hal::{TICK_HZ, TICKS_PER_MS, TICKS_PER_US};
-use crate::testkit::{CameraStrobe, DEFAULT_SWITCHES, Rig, Switch, Visit, xorshift64star};
+use crate::testkit::{CameraStrobe, DEFAULT_SWITCHES, Output, Rig, Switch, Visit, xorshift64star};
 
 /// Where a run's randomness comes from.
 pub trait Entropy {
@@ -183,6 +184,11 @@ pub enum Rule {
     /// `Completed` with an axis elsewhere than its target (the disk's
     /// modulo a turn), by its `MotionDone` or by the step count.
     MoveOffTarget,
+    /// The strobe's report on a pulse (`Exposure`) disagrees with the
+    /// camera: a window that ended off by more than a poll from when the
+    /// camera exposed, or none for a pulse the camera exposed for within
+    /// the configured delay (a frame the host would count as missed).
+    ExposureMisread,
 }
 
 impl Rule {
@@ -213,6 +219,7 @@ impl Rule {
             Rule::MotionNotReported => "a motion did not end with exactly one MotionDone",
             Rule::StepNotAsked => "an axis stepped that no running motion asked to move",
             Rule::MoveOffTarget => "a move completed with an axis off its target",
+            Rule::ExposureMisread => "the strobe's report on a pulse disagrees with the camera",
         }
     }
 }
@@ -264,6 +271,8 @@ pub struct Report {
     pub moves: usize,
     /// Moves (not homings) completed and found at their targets.
     pub on_target: usize,
+    /// The strobe's reports checked against the camera (a window or none).
+    pub exposures: usize,
     /// Trigger pulses fired.
     pub triggers: usize,
     /// Home switches of homed axes hit far from home (outside homing).
@@ -292,6 +301,7 @@ impl Report {
         self.homings_failed += other.homings_failed;
         self.moves += other.moves;
         self.on_target += other.on_target;
+        self.exposures += other.exposures;
         self.triggers += other.triggers;
         self.switch_hits += other.switch_hits;
         self.saves += other.saves;
@@ -399,6 +409,9 @@ struct Watch {
     targets: [Option<i64>; AXIS_COUNT],
     /// `MotionDone` events checked since the boot.
     done_seen: usize,
+    /// The last pulses fired since the boot: sequence number, rise (tick),
+    /// exposure asked (µs).
+    fired: [Option<(u32, u64, u32)>; 4],
     report: Report,
 }
 
@@ -463,6 +476,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             asked: AxisSet::NONE,
             targets: [None; AXIS_COUNT],
             done_seen: 0,
+            fired: [None; 4],
             report: Report::default(),
         };
         Chaos { rig, calm: false, entropy, log, exhausted: false, cut: None, watch }
@@ -475,7 +489,10 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         self.rig.hw.hardware_pulse = self.chance(500);
         if self.chance(300) {
             let active_high = self.chance(500);
-            let delay = self.below(2_000) as u64 * TICKS_PER_US;
+            // Most cameras expose within 2 ms of their trigger; some (a
+            // long readout first) up to the strobe's longest delay.
+            let most = if self.chance(700) { 2_000 } else { protocol::MAX_STROBE_DELAY_US };
+            let delay = self.below(most) as u64 * TICKS_PER_US;
             self.rig.strobe = Some(CameraStrobe { delay, active_high, ignores: self.chance(200) });
         }
     }
@@ -558,6 +575,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         let faulted = self.rig.ctrl.faults();
         let polarity = self.rig.ctrl.config().board.driver_fault_active_high;
         let reply = self.rig.request(request);
+        self.tally_events(false)?;
         self.watch.heard = self.rig.now;
         self.line_follows_polarity(polarity);
         (self.log)(&Logged::Request(request, reply));
@@ -610,11 +628,36 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             Request::ClearFault
         } else if !homed && self.chance(400) {
             Request::Home { axes: AxisSet::ALL }
+        } else if let Some(strobe) = self.strobe_setup() {
+            strobe
         } else if homed && idle && self.chance(400) {
             self.scan_request()
         } else {
             self.plausible_request()
         }
+    }
+
+    /// A host whose camera's strobe is wired sets the board up to watch it
+    /// (enabled, the camera's polarity, a delay limit beyond the camera's
+    /// mostly), now and then while it does not.
+    fn strobe_setup(&mut self) -> Option<Request> {
+        let camera = self.rig.strobe?;
+        let config = self.rig.ctrl.config().strobe;
+        if (config.enabled && config.active_high == camera.active_high) || !self.chance(300) {
+            return None;
+        }
+        let delay_us = camera.delay / TICKS_PER_US;
+        let max = protocol::MAX_STROBE_DELAY_US as i64;
+        let max_delay_us = if self.chance(900) {
+            self.between(delay_us as i64 + 500, max)
+        } else {
+            self.between(0, max)
+        };
+        Some(Request::SetStrobe(protocol::StrobeConfig {
+            enabled: true,
+            active_high: camera.active_high,
+            max_delay_us: max_delay_us.min(max) as u32,
+        }))
     }
 
     /// A scan's next request: a capture step at a mirror of the table (at
@@ -811,6 +854,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         self.rig.on_bytes(&bytes[..n], &mut |b: &[u8]| {
             let _ = out.extend_from_slice(b);
         });
+        self.tally_events(false)?;
         self.watch.heard = self.rig.now;
         let mut answered: heapless::Vec<(Request, Reply), 2> = heapless::Vec::new();
         for frame in FrameDecoder::<ToHost>::new().feed(&out).flatten() {
@@ -913,28 +957,47 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         let watch = &mut self.watch;
         let result = self.rig.run_until_visiting(end, |rig, visit| watch.visit(rig, visit));
         (self.log)(&Logged::Passed(dt, self.rig.now));
-        self.tally_events();
         result?;
+        self.tally_events(true)?;
         self.reboot_if_asked()
     }
 
-    fn tally_events(&mut self) {
+    /// Count the events received and clear them; `check`: check the
+    /// strobe's reports (not those a request's own handling sent: a
+    /// `SetStrobe` ends the watch of a pulse where it is).
+    fn tally_events(&mut self, check: bool) -> Result<(), Violation> {
         for e in self.rig.events.iter() {
-            match e {
+            match *e {
+                Event::Exposure { trigger_seq, window } if check => {
+                    self.watch.exposure(&self.rig, trigger_seq, window)?;
+                }
                 Event::MotionDone { outcome: MotionOutcome::Completed, .. } => {
                     self.watch.report.moves += 1
                 }
                 Event::MotionDone { outcome: MotionOutcome::HomingFailed(..), .. } => {
                     self.watch.report.homings_failed += 1
                 }
-                Event::TriggerFired(_) => self.watch.report.triggers += 1,
+                Event::TriggerFired(f) => {
+                    self.watch.report.triggers += 1;
+                    // Its rise: the last one recorded in its microsecond.
+                    let rise = self.rig.hw.outputs.iter().rev().find_map(|o| match *o {
+                        Output::Trigger(t, true) if t / TICKS_PER_US == f.timestamp_us => Some(t),
+                        _ => None,
+                    });
+                    if let Some(rise) = rise {
+                        let fired = &mut self.watch.fired;
+                        fired.rotate_left(1);
+                        fired[3] = Some((f.trigger_seq, rise, f.exposure_us));
+                    }
+                }
                 Event::FaultRaised { faults, .. } => {
-                    self.watch.report.faults = self.watch.report.faults.union(*faults)
+                    self.watch.report.faults = self.watch.report.faults.union(faults)
                 }
                 _ => {}
             }
         }
         self.rig.events.clear();
+        Ok(())
     }
 
     /// After a `Reset` or `EnterBootloader`, the board resets once the
@@ -950,7 +1013,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         if moving || (bootloader && (hw.light != 0 || hw.trigger)) {
             return Err(self.violation(Rule::ResetWhileActive, None));
         }
-        self.tally_events();
+        self.tally_events(true)?;
         let reason = if reset { ResetReason::Software } else { ResetReason::PowerOn };
         self.rig.reboot(reason);
         self.rebooted(reason)?;
@@ -978,7 +1041,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         w.trigger_since = None;
         (w.set_light, w.step_lights, w.step_lit_since) = (None, [None; 2], None);
         w.switch_hit = [Hit::None; AXIS_COUNT];
-        (w.motions, w.done_seen) = (0, 0);
+        (w.motions, w.done_seen, w.fired) = (0, 0, [None; 4]);
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
         let faults = self.rig.ctrl.faults();
@@ -1062,6 +1125,68 @@ impl Watch {
             }
         }
         self.report.on_target += usize::from(self.targets.iter().any(Option::is_some));
+        Ok(())
+    }
+
+    /// [`Rule::ExposureMisread`] on the strobe's report of pulse `seq`,
+    /// against the rig's camera (its line read through the configured
+    /// polarity, sampled at every poll: each edge seen within a poll).
+    fn exposure(
+        &mut self,
+        rig: &Rig,
+        seq: u32,
+        window: Option<protocol::StrobeWindow>,
+    ) -> Result<(), Violation> {
+        let config = rig.ctrl.config().strobe;
+        let Some(camera) = rig
+            .strobe
+            .filter(|c| !c.ignores && config.enabled && config.active_high == c.active_high)
+        else {
+            return Ok(());
+        };
+        // The pulse's edges and the next pulse's rise, from the outputs.
+        let Some(fired) = self.fired.iter().flatten().find(|f| f.0 == seq) else {
+            return Ok(());
+        };
+        let rise = fired.1;
+        let edges = rig.hw.outputs.iter().filter_map(|o| match *o {
+            Output::Trigger(t, high) if t >= rise => Some((t, high)),
+            _ => None,
+        });
+        let mut edges = edges.skip_while(|e| *e != (rise, true)).skip(1);
+        let Some((fall, false)) = edges.next() else {
+            return Ok(()); // not recorded (or still high)
+        };
+        let next_rise = edges.find(|e| e.1).map(|e| e.0);
+        let (d, length) = (camera.delay, fall - rise);
+        let ticks = |us: u32| us as u64 * TICKS_PER_US;
+        let near = |measured: u64, truth: u64| {
+            measured + TICKS_PER_US >= truth && measured <= truth + POLL_TICKS + TICKS_PER_US
+        };
+        self.report.exposures += 1;
+        match window {
+            Some(w) if w.ended => {
+                // Seen from the first poll in the window to the first after.
+                let length_ok = ticks(w.length_us) + POLL_TICKS + TICKS_PER_US >= length
+                    && ticks(w.length_us) <= length + POLL_TICKS + TICKS_PER_US;
+                if !near(ticks(w.delay_us), d) || !length_ok {
+                    return Err(self.violation(rig, Rule::ExposureMisread, None));
+                }
+            }
+            Some(_) => {}
+            None => {
+                // Visible: exposing for two polls or more, rising well
+                // before the watch gives up, and not cut by the next pulse.
+                let asked = ticks(fired.2);
+                let gives_up = asked + ticks(config.max_delay_us);
+                let visible = length >= 2 * POLL_TICKS
+                    && d + 2 * POLL_TICKS <= gives_up
+                    && next_rise.is_none_or(|n| n > rise + d + 2 * POLL_TICKS);
+                if visible {
+                    return Err(self.violation(rig, Rule::ExposureMisread, None));
+                }
+            }
+        }
         Ok(())
     }
 

@@ -41,7 +41,7 @@ pub struct MockHw {
     pub light: u16,
     /// Trigger level now.
     pub trigger: bool,
-    /// Light and trigger changes, in order.
+    /// Light and trigger changes, in order: the last 64.
     pub outputs: Vec<Output, 64>,
     /// Last saved configuration blob.
     pub saved: Vec<u8, PERSISTED_MAX_LEN>,
@@ -55,6 +55,17 @@ pub struct MockHw {
     pub hardware_pulse: bool,
     /// The tick at which the running hardware pulse falls.
     pub pulse_falls_at: Option<u64>,
+}
+
+impl MockHw {
+    /// Record an output change; once [`MockHw::outputs`] is full, the
+    /// oldest goes (the camera's strobe reads the last pulse from them).
+    fn record(&mut self, output: Output) {
+        if self.outputs.is_full() {
+            self.outputs.remove(0);
+        }
+        let _ = self.outputs.push(output);
+    }
 }
 
 impl Hardware for MockHw {
@@ -75,7 +86,7 @@ impl Hardware for MockHw {
     }
     fn set_light(&mut self, duty_permille: u16) {
         if self.light != duty_permille {
-            let _ = self.outputs.push(Output::Light(self.now, duty_permille));
+            self.record(Output::Light(self.now, duty_permille));
         }
         self.light = duty_permille;
     }
@@ -86,7 +97,7 @@ impl Hardware for MockHw {
             _ => self.now,
         };
         if self.trigger != high {
-            let _ = self.outputs.push(Output::Trigger(at, high));
+            self.record(Output::Trigger(at, high));
         }
         self.trigger = high;
     }
