@@ -388,8 +388,10 @@ struct Watch {
     /// The light's duty and margin (ticks) of the last two capture steps
     /// accepted (the last one's light may still trail when the next is).
     step_lights: [Option<(u16, u64)>; 2],
-    /// Since when a capture step's light is on with the trigger low.
-    step_lit_since: Option<u64>,
+    /// Since when a capture step's light is on with the trigger low, and
+    /// at which level (a new step's light, or a new step accepted while
+    /// the last one's margin runs on, starts a new margin).
+    step_lit_since: Option<(u16, u64)>,
     /// Per axis: whether its switch read on at the last check (by the
     /// polarity configured), and a hit far from home being watched.
     switch_on: [bool; AXIS_COUNT],
@@ -1204,6 +1206,7 @@ impl Watch {
             _ => return,
         };
         self.step_lights = [self.step_lights[1], Some(step)];
+        self.step_lit_since = None;
     }
 
     /// [`Rule::SwitchHitIgnored`]: a homed linear axis' switch that came on
@@ -1257,7 +1260,11 @@ impl Watch {
             self.step_lit_since = None;
             return Ok(());
         }
-        let since = *self.step_lit_since.get_or_insert(rig.now);
+        let since = match self.step_lit_since {
+            Some((lit, since)) if lit == level => since,
+            _ => rig.now,
+        };
+        self.step_lit_since = Some((level, since));
         if rig.now > since + margin + POLL_TICKS {
             return Err(self.violation(rig, Rule::LightNotAsked, None));
         }

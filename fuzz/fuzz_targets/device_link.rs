@@ -10,6 +10,8 @@ use std::time::Duration;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let took = host::hostile::exercise(data.to_vec());
-    assert!(took < Duration::from_secs(600), "{took:?} of simulated time");
+    let seen = host::hostile::exercise(data.to_vec());
+    assert!(seen.took < Duration::from_secs(600), "{seen:?}: the session's simulated time");
+    // Every link call within the limit the link documents for it.
+    assert!(seen.overrun <= host::link::LinkTimings::SLACK, "{seen:?}: a call past its limit");
 });

@@ -431,19 +431,61 @@ fn connect(bytes: Vec<u8>) -> Option<Device> {
         .ok()
 }
 
+/// What [`exercise`] saw.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Exercised {
+    /// The simulated time the session took.
+    pub took: Duration,
+    /// The most a link call (a request, a wait, a greeting, a sleep) took
+    /// beyond its limit ([`LinkTimings::request_limit`],
+    /// [`LinkTimings::wait_limit`], [`LinkTimings::exchange_limit`]);
+    /// within [`LinkTimings::SLACK`] it keeps its word.
+    pub overrun: Duration,
+    /// Link calls timed.
+    pub calls: usize,
+}
+
+/// Times link calls against their limits.
+struct Limits {
+    timings: LinkTimings,
+    seen: Exercised,
+}
+
+impl Limits {
+    /// `call` on `dev`, which may take `limit`.
+    fn timed<T>(
+        &mut self,
+        dev: &mut Device,
+        limit: Duration,
+        call: impl FnOnce(&mut Device) -> T,
+    ) -> T {
+        let start = dev.now();
+        let result = call(dev);
+        let took = dev.now().saturating_sub(start);
+        self.seen.overrun = self.seen.overrun.max(took.saturating_sub(limit));
+        self.seen.calls += 1;
+        result
+    }
+}
+
 /// Drive a [`Device`] on a [`HostileDevice`] of `bytes` through what a
-/// capture does with one; the simulated time it took. Every call may fail
-/// (that is the device's right); none may panic or hang.
-pub fn exercise(bytes: Vec<u8>) -> Duration {
+/// capture does with one, timing its calls against the limits the link
+/// documents. Every call may fail (that is the device's right); none may
+/// panic, hang or run past its limit.
+pub fn exercise(bytes: Vec<u8>) -> Exercised {
     let Some(mut dev) = connect(bytes) else {
-        return Duration::ZERO;
+        return Exercised::default();
     };
+    let mut l = Limits { timings: *dev.timings(), seen: Exercised::default() };
+    let request = l.timings.request_limit(false);
+    let greeting = l.timings.exchange_limit(false);
+    let wait = l.timings.wait_limit(Duration::from_secs(2));
     let _ = format!("{:?} {}", dev.info(), dev.describe());
     let motion_done = |e: &Event| matches!(e, Event::MotionDone { .. });
     for round in 0..4 {
-        let _ = dev.status().map(|s| format!("{s:?}"));
-        let _ = dev.command(Request::Home { axes: AxisSet::ALL });
-        let _ = dev.wait_event(Duration::from_secs(2), motion_done);
+        let _ = l.timed(&mut dev, request, |d| d.status().map(|s| format!("{s:?}")));
+        let _ = l.timed(&mut dev, request, |d| d.command(Request::Home { axes: AxisSet::ALL }));
+        let _ = l.timed(&mut dev, wait, |d| d.wait_event(Duration::from_secs(2), motion_done));
         let step = CaptureStep {
             mirror: round,
             settle_ms: 10,
@@ -451,21 +493,24 @@ pub fn exercise(bytes: Vec<u8>) -> Duration {
             light_duty_permille: 1000,
         };
         dev.clear_events();
-        if dev.command(Request::CaptureStep(step)).is_ok() {
-            let fired =
-                dev.wait_event(Duration::from_secs(2), |e| matches!(e, Event::TriggerFired(_)));
+        if l.timed(&mut dev, request, |d| d.command(Request::CaptureStep(step))).is_ok() {
+            let fired = l.timed(&mut dev, wait, |d| {
+                d.wait_event(Duration::from_secs(2), |e| matches!(e, Event::TriggerFired(_)))
+            });
             if let Ok(Some(Event::TriggerFired(fired))) = fired {
                 report_exposure(&mut dev, &fired);
             }
         }
-        if let Ok(Reply::Trigger(Some(t))) = dev.request(Request::GetLastTrigger) {
+        let last = l.timed(&mut dev, request, |d| d.request(Request::GetLastTrigger));
+        if let Ok(Reply::Trigger(Some(t))) = last {
             report_exposure(&mut dev, &t);
         }
-        let _ = dev.sleep(Duration::from_millis(120));
-        let _ = dev.check_boot().map_err(|e| e.to_string());
+        let nap = Duration::from_millis(120);
+        let _ = l.timed(&mut dev, l.timings.wait_limit(nap), |d| d.sleep(nap));
+        let _ = l.timed(&mut dev, greeting, |d| d.check_boot().map_err(|e| e.to_string()));
         let _ = dev.take_events();
     }
-    dev.now()
+    Exercised { took: dev.now(), ..l.seen }
 }
 
 /// A camera that delivers a grey frame of its sensor's size for each
@@ -572,23 +617,31 @@ mod tests {
             255, 255, 12, 255, 255, 255, 255, 255, 31, 126, 0, 0, 0, 0, 0, 0, 0, 255, 255, 255,
             255, 255, 255, 255, 12, 255, 0, 0, 0, 0, 255, 255, 255, 255, 255, 126, 126, 1,
         ];
-        let took = exercise(bytes);
-        assert!(took < Duration::from_secs(10), "{took:?}");
+        let seen = exercise(bytes);
+        assert!(seen.took < Duration::from_secs(10), "{seen:?}");
     }
 
     /// Whatever a device says, the host's link answers with a value or an
-    /// error in bounded time: 3 000 devices of random bytes.
+    /// error in bounded time — every call within the limit the link
+    /// documents for it: 3 000 devices of random bytes.
     #[test]
     fn the_link_survives_any_device() {
-        let mut longest = Duration::ZERO;
+        let (mut longest, mut overrun, mut calls) = (Duration::ZERO, Duration::ZERO, 0);
         let mut connected = 0;
         for seed in 0..3_000u64 {
-            let took = exercise(device_bytes(seed, 4096));
-            connected += usize::from(took > Duration::ZERO);
-            longest = longest.max(took);
+            let seen = exercise(device_bytes(seed, 4096));
+            connected += usize::from(seen.took > Duration::ZERO);
+            longest = longest.max(seen.took);
+            overrun = overrun.max(seen.overrun);
+            calls += seen.calls;
         }
         assert!(connected > 1_000, "{connected} of 3 000 got past the handshake");
         assert!(longest < Duration::from_secs(600), "{longest:?}");
+        eprintln!(
+            "{connected} connected, {calls} calls, longest session {longest:?}, overrun {overrun:?}"
+        );
+        assert!(calls > 30_000, "{calls} calls timed");
+        assert!(overrun <= LinkTimings::SLACK, "a call ran {overrun:?} past its limit");
     }
 
     /// The same for the capture on a hostile device: 300 devices (3 000 in

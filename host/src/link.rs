@@ -521,6 +521,38 @@ impl Default for LinkTimings {
     }
 }
 
+impl LinkTimings {
+    /// What a call may overrun its limit by: the transport's last read
+    /// (up to 10 ms) and the pause between two tries to reopen (100 ms).
+    pub const SLACK: Duration = Duration::from_millis(110);
+
+    /// The longest one exchange — a request sent and sent again until its
+    /// reply comes — takes whatever the device does (within
+    /// [`LinkTimings::SLACK`]): every attempt's wait and, once, the time to
+    /// reopen a lost device, shared by every loss during the exchange (a
+    /// device that drops off at every write is given up then, not after
+    /// `attempts` reconnections). `ping`: for the keep-alive's shorter
+    /// retransmission.
+    pub fn exchange_limit(&self, ping: bool) -> Duration {
+        let each = if ping { self.ping_retransmit_after } else { self.retransmit_after };
+        each * self.attempts + self.reconnect_for
+    }
+
+    /// The longest [`Device::request`] takes: its exchange, and for a
+    /// device that lost the handshake the greeting and the request again.
+    pub fn request_limit(&self, ping: bool) -> Duration {
+        self.exchange_limit(ping) * 2 + self.exchange_limit(false)
+    }
+
+    /// The longest [`Device::wait_event`] or [`Device::sleep`] for
+    /// `timeout` takes: the timeout, and what began before its end — a
+    /// keep-alive request, the greeting that checks a `Boot` event, or
+    /// reopening a device lost while listening.
+    pub fn wait_limit(&self, timeout: Duration) -> Duration {
+        timeout + self.request_limit(true).max(self.reconnect_for)
+    }
+}
+
 /// Counters of link trouble survived.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct LinkStats {
@@ -545,6 +577,9 @@ pub struct Device {
     events: VecDeque<Event>,
     info: DeviceInfo,
     timings: LinkTimings,
+    /// The end of the running exchange ([`LinkTimings::exchange_limit`]):
+    /// reopening a lost device stops there.
+    give_up: Option<Duration>,
     /// Trouble survived so far.
     pub stats: LinkStats,
 }
@@ -577,6 +612,7 @@ impl Device {
             events: VecDeque::new(),
             info: placeholder_info(),
             timings,
+            give_up: None,
             stats: LinkStats::default(),
         };
         d.info = d.hello()?;
@@ -586,6 +622,11 @@ impl Device {
     /// The handshake's answer (refreshed on every reconnect).
     pub fn info(&self) -> &DeviceInfo {
         &self.info
+    }
+
+    /// The link's timings.
+    pub fn timings(&self) -> &LinkTimings {
+        &self.timings
     }
 
     /// The link's timings, to change from here on (e.g. not to wait for a
@@ -660,6 +701,7 @@ impl Device {
     fn reopen(&mut self, why: &str) -> Result<(), LinkError> {
         tracing::warn!("link to {} lost ({why}); reconnecting", self.transport.describe());
         let end = self.transport.now() + self.timings.reconnect_for;
+        let end = self.give_up.map_or(end, |g| g.min(end));
         loop {
             match self.transport.reconnect() {
                 Ok(()) => {
@@ -680,6 +722,16 @@ impl Device {
     /// Send one request and wait for its reply, retransmitting the same
     /// frame (same sequence number) until it comes.
     fn exchange(&mut self, request: Request) -> Result<Reply, LinkError> {
+        let ping = matches!(request, Request::Ping { .. });
+        self.give_up = Some(self.transport.now() + self.timings.exchange_limit(ping));
+        let result = self.exchange_until(request);
+        self.give_up = None;
+        result
+    }
+
+    /// [`Device::exchange`] until [`Device::give_up`].
+    fn exchange_until(&mut self, request: Request) -> Result<Reply, LinkError> {
+        let give_up = self.give_up.unwrap_or(Duration::MAX);
         self.seq = self.seq.wrapping_add(1);
         let seq = self.seq;
         let mut frame = [0u8; MAX_FLUSHED_FRAME_LEN];
@@ -689,7 +741,11 @@ impl Device {
             Request::Ping { .. } => self.timings.ping_retransmit_after,
             _ => self.timings.retransmit_after,
         };
+        let mut sent = 0;
         for attempt in 0..self.timings.attempts {
+            if self.transport.now() >= give_up {
+                break;
+            }
             if attempt > 0 {
                 self.stats.retransmissions += 1;
             }
@@ -697,7 +753,8 @@ impl Device {
                 self.reopen(&e.to_string())?;
                 continue;
             }
-            let deadline = self.transport.now() + retransmit_after;
+            sent += 1;
+            let deadline = (self.transport.now() + retransmit_after).min(give_up);
             loop {
                 // One reading per turn: two could straddle the deadline.
                 let left = deadline.saturating_sub(self.transport.now());
@@ -716,7 +773,7 @@ impl Device {
         Err(LinkError::Timeout {
             device: self.transport.describe(),
             request: request.name(),
-            attempts: self.timings.attempts,
+            attempts: sent,
         })
     }
 
@@ -776,7 +833,8 @@ impl Device {
     /// stay queued for [`Device::take_events`].
     ///
     /// It returns within `timeout` and one request (a keep-alive or the
-    /// greeting that checks a `Boot` event), whatever the device sends: a
+    /// greeting that checks a `Boot` event; [`LinkTimings::wait_limit`]),
+    /// whatever the device sends: a
     /// `Boot` event still queued at the end is checked by the next wait or
     /// request (a device that did reset refuses that with `NoHandshake`).
     pub fn wait_event(
@@ -893,6 +951,11 @@ mod tests {
         /// Follow every reply with a `Boot` event of a new boot id (which
         /// the greeting never confirms), as an inconsistent device might.
         boot_flood: Option<u32>,
+        /// From this write on (counted from 0), every write finds the
+        /// device gone, and it comes back `flap` after (a cable with a bad
+        /// contact): (first write, flap).
+        flapping: Option<(usize, Duration)>,
+        back_at: Option<Duration>,
     }
 
     impl Answering {
@@ -907,6 +970,8 @@ mod tests {
                 lose: Vec::new(),
                 writes: 0,
                 boot_flood: None,
+                flapping: None,
+                back_at: None,
             }
         }
     }
@@ -919,6 +984,13 @@ mod tests {
                 *bytes.last_mut().unwrap() = 0x55;
             }
             let lost = self.lose.contains(&self.writes);
+            if let Some((from, flap)) = self.flapping
+                && self.writes >= from
+            {
+                self.writes += 1;
+                self.back_at = Some(self.now + flap);
+                return Err(TransportError::Disconnected("a bad contact".into()));
+            }
             self.writes += 1;
             if lost {
                 return Ok(());
@@ -967,7 +1039,10 @@ mod tests {
             self.now
         }
         fn reconnect(&mut self) -> Result<(), TransportError> {
-            Ok(())
+            match self.back_at {
+                Some(at) if self.now < at => Err(TransportError::Open("not there yet".into())),
+                _ => Ok(()),
+            }
         }
         fn describe(&self) -> String {
             "answering".into()
@@ -1036,6 +1111,27 @@ mod tests {
             "the events were checked while there was time"
         );
         assert!(dev.info().boot_id == 0, "no reset was confirmed");
+    }
+
+    /// A device that drops off at every write and comes back just before
+    /// the host would give it up (a cable with a bad contact) costs a
+    /// request no more than its attempts' waits and one reconnection time,
+    /// [`LinkTimings::exchange_limit`] (each reconnection had its own:
+    /// 50 attempts × 14 s).
+    #[test]
+    fn a_flapping_device_is_given_up_within_the_exchange_limit() {
+        let arrivals = Arc::new(Mutex::new(Vec::new()));
+        let mut transport = Answering::new(Duration::from_millis(2), arrivals.clone());
+        // Write 0 is the handshake.
+        transport.flapping = Some((1, Duration::from_secs(14)));
+        let mut dev = Device::connect(Box::new(transport)).unwrap();
+        let start = dev.now();
+        let got = dev.request(Request::GetStatus);
+        let took = dev.now() - start;
+        let limit = dev.timings().exchange_limit(false);
+        assert!(took <= limit + LinkTimings::SLACK, "{took:?} against {limit:?}");
+        assert!(matches!(got, Err(LinkError::NoDevice(_))), "{got:?}");
+        assert!(dev.stats.reconnects >= 1, "it came back once at least");
     }
 
     /// A frame whose delimiter line noise hid costs that frame alone: the
