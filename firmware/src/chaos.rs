@@ -28,7 +28,8 @@
 //! asked for a tick already past; every motion acknowledged ends with
 //! exactly one `MotionDone`; no axis steps that no running motion asked to
 //! move; a move that completes leaves its axes at its targets; the strobe's
-//! report on each pulse agrees with the camera's exposure within a poll. Any panic of the controller (arithmetic
+//! report on each pulse agrees with the camera's exposure within a poll; a
+//! homing sets the count to the home position at the switch's edge. Any panic of the controller (arithmetic
 //! overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -189,6 +190,12 @@ pub enum Rule {
     /// camera exposed, or none for a pulse the camera exposed for within
     /// the configured delay (a frame the host would count as missed).
     ExposureMisread,
+    /// A homing ended with the count off the home position at the switch's
+    /// edge (`HomingConfig::home_position` is "the position assigned at
+    /// the switch edge"): the physical position from the edge the approach
+    /// meets, plus the home position, within a step. Checked for homings
+    /// undisturbed by a hand or a changed switch.
+    HomedOffSwitch,
 }
 
 impl Rule {
@@ -220,6 +227,7 @@ impl Rule {
             Rule::StepNotAsked => "an axis stepped that no running motion asked to move",
             Rule::MoveOffTarget => "a move completed with an axis off its target",
             Rule::ExposureMisread => "the strobe's report on a pulse disagrees with the camera",
+            Rule::HomedOffSwitch => "a homing set the count off the home position at the switch",
         }
     }
 }
@@ -273,6 +281,8 @@ pub struct Report {
     pub on_target: usize,
     /// The strobe's reports checked against the camera (a window or none).
     pub exposures: usize,
+    /// Homings whose count was checked against the switch's edge.
+    pub homed_at_switch: usize,
     /// Trigger pulses fired.
     pub triggers: usize,
     /// Home switches of homed axes hit far from home (outside homing).
@@ -302,6 +312,7 @@ impl Report {
         self.moves += other.moves;
         self.on_target += other.on_target;
         self.exposures += other.exposures;
+        self.homed_at_switch += other.homed_at_switch;
         self.triggers += other.triggers;
         self.switch_hits += other.switch_hits;
         self.saves += other.saves;
@@ -382,6 +393,9 @@ struct Watch {
     trigger_since: Option<u64>,
     /// Which axes were homed at the last check.
     homed: [bool; AXIS_COUNT],
+    /// Per axis: homing since it was last asked for, with no hand on the
+    /// axis and its switch unchanged.
+    clean: [bool; AXIS_COUNT],
     /// The light's duty as the host set it on (`None`: set off, put out
     /// by a fault, or not set since the boot).
     set_light: Option<u16>,
@@ -467,6 +481,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             driver_fault_since: None,
             trigger_since: None,
             homed: [false; AXIS_COUNT],
+            clean: [false; AXIS_COUNT],
             set_light: None,
             step_lights: [None; 2],
             step_lit_since: None,
@@ -556,6 +571,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // Something in a homed linear axis' way.
                 let axis = [Axis::Track, Axis::Tilt][self.below(2) as usize];
                 if self.rig.ctrl.is_homed(axis) {
+                    self.watch.clean[axis.index()] = false;
                     self.rig.switches[axis.index()] = self.obstacle(axis.index());
                     self.inputs_changed();
                 }
@@ -893,6 +909,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             25..40 => self.rig.driver_fault = !self.rig.driver_fault && self.chance(300),
             40..55 => {
                 let i = self.below(AXIS_COUNT as u32) as usize;
+                self.watch.clean[i] = false;
                 self.rig.switches[i] = match self.below(10) {
                     0 => Switch::Missing,
                     1 => Switch::Stuck,
@@ -904,6 +921,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // Unpowered, an axis can be pushed by hand; powered, a
                 // stalled motor skips steps.
                 let i = self.below(AXIS_COUNT as u32) as usize;
+                self.watch.clean[i] = false;
                 self.rig.physical[i] += self.between(-6_000, 6_000);
             }
             // A calm run's host stays alive.
@@ -1044,6 +1062,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
         (w.set_light, w.step_lights, w.step_lit_since) = (None, [None; 2], None);
         w.switch_hit = [Hit::None; AXIS_COUNT];
         (w.motions, w.done_seen, w.fired) = (0, 0, [None; 4]);
+        w.clean = [false; AXIS_COUNT];
         w.estop_since = w.estop_since.map(|_| now);
         w.driver_fault_since = w.driver_fault_since.map(|_| now);
         let faults = self.rig.ctrl.faults();
@@ -1080,7 +1099,12 @@ impl Watch {
             (AxisSet::ALL, position.map_or([None; AXIS_COUNT], |p| p.steps.map(Some)))
         };
         let (mode, (asked, targets)) = match *request {
-            Request::Home { axes } => (MoveMode::Absolute, (axes, [None; AXIS_COUNT])),
+            Request::Home { axes } => {
+                for axis in axes.iter() {
+                    self.clean[axis.index()] = true;
+                }
+                (MoveMode::Absolute, (axes, [None; AXIS_COUNT]))
+            }
             Request::Move { mode, targets } => {
                 let axes = Axis::ALL.into_iter().filter(|a| targets[a.index()].is_some());
                 (mode, (axes.fold(AxisSet::NONE, AxisSet::with), targets))
@@ -1100,6 +1124,36 @@ impl Watch {
             };
             Some(if c.continuous { end.rem_euclid(c.steps_per_rev.max(1) as i64) } else { end })
         });
+    }
+
+    /// [`Rule::HomedOffSwitch`] on `axis`, homed since the last check.
+    fn homed_at(&mut self, rig: &Rig, axis: Axis) -> Result<(), Violation> {
+        let i = axis.index();
+        let c = &rig.ctrl.config().axes[i];
+        let wired = rig.switch_active_high[i] == rig.ctrl.config().home.active_high[i];
+        if !self.clean[i] || !wired || rig.switches[i] != DEFAULT_SWITCHES[i] {
+            return Ok(());
+        }
+        let positive = c.homing.direction == protocol::Direction::Positive;
+        // Where the approach meets the switch: its first actuated position.
+        let (edge, rev) = match DEFAULT_SWITCHES[i] {
+            Switch::Below(edge) if !positive => (edge, None),
+            Switch::Index { edge, width, rev } => {
+                (if positive { edge } else { edge + width - 1 }, Some(rev))
+            }
+            _ => return Ok(()), // approached from the side it never leaves
+        };
+        let want = c.homing.home_position as i64 + rig.physical(axis) - edge;
+        let off = rig.position(axis) as i64 - want;
+        let off = rev.map_or(off, |rev| {
+            let m = off.rem_euclid(rev);
+            if m > rev / 2 { m - rev } else { m }
+        });
+        self.report.homed_at_switch += 1;
+        if off.abs() > 1 {
+            return Err(self.violation(rig, Rule::HomedOffSwitch, Some(axis)));
+        }
+        Ok(())
     }
 
     /// [`Rule::MoveOffTarget`] on a `MotionDone` not yet checked.
@@ -1330,7 +1384,10 @@ impl Watch {
         let hw = &rig.hw;
         for axis in Axis::ALL {
             let homed = rig.ctrl.is_homed(axis);
-            self.report.homings += usize::from(homed && !self.homed[axis.index()]);
+            if homed && !self.homed[axis.index()] {
+                self.report.homings += 1;
+                self.homed_at(rig, axis)?;
+            }
             self.homed[axis.index()] = homed;
         }
         if hw.light > FULL_DUTY_PERMILLE {
