@@ -55,6 +55,8 @@ pub struct HostileDevice {
     /// (readable at, bytes), in order of time.
     outbox: VecDeque<(Duration, Vec<u8>)>,
     connected: bool,
+    /// Unplugged, it cannot be reopened before this.
+    back_at: Duration,
     // The board it pretends to be.
     handshake: bool,
     boot_id: u32,
@@ -79,6 +81,7 @@ impl HostileDevice {
             decoder: FrameDecoder::new(),
             outbox: VecDeque::new(),
             connected: true,
+            back_at: Duration::ZERO,
             handshake: false,
             boot_id: FIRST_BOOT,
             homed: false,
@@ -335,7 +338,12 @@ impl HostileDevice {
                 let reason = self.draw().unwrap_or(protocol::ResetReason::Software);
                 self.event(Event::Boot { boot_id: self.boot_id, reason }, delay);
             }
-            5 => self.connected = false,
+            5 => {
+                // Unplugged, back after up to 5.1 s (a board rebooting, a
+                // cable with a bad contact), or at the host's first try.
+                self.connected = false;
+                self.back_at = self.now + Duration::from_millis(20 * self.byte() as u64);
+            }
             6 => {
                 for _ in 0..self.byte() % 8 {
                     if let Some(e) = self.draw::<Event>() {
@@ -407,7 +415,7 @@ impl Transport for HostileDevice {
     }
 
     fn reconnect(&mut self) -> Result<(), TransportError> {
-        if !self.spent() && self.byte().is_multiple_of(4) {
+        if !self.spent() && (self.now < self.back_at || self.byte().is_multiple_of(4)) {
             return Err(TransportError::Open("the hostile device is not back".into()));
         }
         self.connected = true;
