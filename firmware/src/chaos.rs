@@ -29,7 +29,8 @@
 //! exactly one `MotionDone`; no axis steps that no running motion asked to
 //! move; a move that completes leaves its axes at its targets; the strobe's
 //! report on each pulse agrees with the camera's exposure within a poll; a
-//! homing sets the count to the home position at the switch's edge. Any panic of the controller (arithmetic
+//! homing sets the count to the home position at the switch's edge, and a
+//! position check reports the count's own error. Any panic of the controller (arithmetic
 //! overflow included, in debug builds) fails too.
 //!
 //! `no_std` and allocation-free like the rest of the test kit: it runs on
@@ -196,6 +197,11 @@ pub enum Rule {
     /// meets, plus the home position, within a step. Checked for homings
     /// undisturbed by a hand or a changed switch.
     HomedOffSwitch,
+    /// A position check (`PositionChecked`, at a homed axis' home edge)
+    /// reported an error other than the count's (count − physical
+    /// position, against the home position at the switch's edge), within
+    /// the step between the edge's two sides.
+    PositionMisjudged,
 }
 
 impl Rule {
@@ -228,6 +234,7 @@ impl Rule {
             Rule::MoveOffTarget => "a move completed with an axis off its target",
             Rule::ExposureMisread => "the strobe's report on a pulse disagrees with the camera",
             Rule::HomedOffSwitch => "a homing set the count off the home position at the switch",
+            Rule::PositionMisjudged => "a position check reported another error than the count's",
         }
     }
 }
@@ -283,6 +290,8 @@ pub struct Report {
     pub exposures: usize,
     /// Homings whose count was checked against the switch's edge.
     pub homed_at_switch: usize,
+    /// Position checks compared with the count's error.
+    pub positions_checked: usize,
     /// Trigger pulses fired.
     pub triggers: usize,
     /// Home switches of homed axes hit far from home (outside homing).
@@ -313,6 +322,7 @@ impl Report {
         self.on_target += other.on_target;
         self.exposures += other.exposures;
         self.homed_at_switch += other.homed_at_switch;
+        self.positions_checked += other.positions_checked;
         self.triggers += other.triggers;
         self.switch_hits += other.switch_hits;
         self.saves += other.saves;
@@ -396,6 +406,12 @@ struct Watch {
     /// Per axis: homing since it was last asked for, with no hand on the
     /// axis and its switch unchanged.
     clean: [bool; AXIS_COUNT],
+    /// Per axis: when a hand or a changed switch last touched it, and its
+    /// count − physical position at the last visit.
+    touched: [u64; AXIS_COUNT],
+    offset: [i64; AXIS_COUNT],
+    /// Events of the rig's list already looked at.
+    events_seen: usize,
     /// The light's duty as the host set it on (`None`: set off, put out
     /// by a fault, or not set since the boot).
     set_light: Option<u16>,
@@ -441,6 +457,50 @@ fn blob(config: &PersistedConfig) -> Blob {
     Blob::from_slice(bytes).unwrap_or_default()
 }
 
+/// Where the homing of an axis meets its switch, for the switch as the
+/// test kit wires it by default.
+#[derive(Debug, Clone, Copy)]
+struct Home {
+    /// The count there: the home position.
+    home_position: i64,
+    /// The first actuated position the approach meets (physical).
+    edge: i64,
+    /// The switch's period (the disk's index flag).
+    rev: Option<i64>,
+}
+
+impl Home {
+    /// For `axis` on `rig`, if its switch is the default one, read the
+    /// way it is wired.
+    fn of(rig: &Rig, axis: Axis) -> Option<Home> {
+        let i = axis.index();
+        let c = &rig.ctrl.config().axes[i];
+        let wired = rig.switch_active_high[i] == rig.ctrl.config().home.active_high[i];
+        if !wired || rig.switches[i] != DEFAULT_SWITCHES[i] {
+            return None;
+        }
+        let positive = c.homing.direction == protocol::Direction::Positive;
+        let (edge, rev) = match DEFAULT_SWITCHES[i] {
+            Switch::Below(edge) if !positive => (edge, None),
+            Switch::Index { edge, width, rev } => {
+                (if positive { edge } else { edge + width - 1 }, Some(rev))
+            }
+            _ => return None, // approached from the side it never leaves
+        };
+        Some(Home { home_position: c.homing.home_position as i64, edge, rev })
+    }
+
+    /// The count's error for `offset` = count − physical position (the
+    /// disk's the nearest modulo a turn).
+    fn error(&self, offset: i64) -> i64 {
+        let e = offset + self.edge - self.home_position;
+        self.rev.map_or(e, |rev| {
+            let m = e.rem_euclid(rev);
+            if m > rev / 2 { m - rev } else { m }
+        })
+    }
+}
+
 /// A home switch hit far from home, outside homing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Hit {
@@ -482,6 +542,9 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             trigger_since: None,
             homed: [false; AXIS_COUNT],
             clean: [false; AXIS_COUNT],
+            touched: [0; AXIS_COUNT],
+            offset: [0; AXIS_COUNT],
+            events_seen: 0,
             set_light: None,
             step_lights: [None; 2],
             step_lit_since: None,
@@ -571,7 +634,8 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // Something in a homed linear axis' way.
                 let axis = [Axis::Track, Axis::Tilt][self.below(2) as usize];
                 if self.rig.ctrl.is_homed(axis) {
-                    self.watch.clean[axis.index()] = false;
+                    (self.watch.clean[axis.index()], self.watch.touched[axis.index()]) =
+                        (false, self.rig.now);
                     self.rig.switches[axis.index()] = self.obstacle(axis.index());
                     self.inputs_changed();
                 }
@@ -623,6 +687,10 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             self.watch.light_asked(request);
             if motion {
                 self.watch.motion_asked(request, &self.rig);
+            }
+            if matches!(request, Request::SetHomeSensors(_)) {
+                // A switch read the other way round from now on.
+                self.watch.touched = [self.rig.now; AXIS_COUNT];
             }
             if *request == Request::SaveConfig {
                 self.watch.saved = blob(self.rig.ctrl.config());
@@ -909,7 +977,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             25..40 => self.rig.driver_fault = !self.rig.driver_fault && self.chance(300),
             40..55 => {
                 let i = self.below(AXIS_COUNT as u32) as usize;
-                self.watch.clean[i] = false;
+                (self.watch.clean[i], self.watch.touched[i]) = (false, self.rig.now);
                 self.rig.switches[i] = match self.below(10) {
                     0 => Switch::Missing,
                     1 => Switch::Stuck,
@@ -921,7 +989,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // Unpowered, an axis can be pushed by hand; powered, a
                 // stalled motor skips steps.
                 let i = self.below(AXIS_COUNT as u32) as usize;
-                self.watch.clean[i] = false;
+                (self.watch.clean[i], self.watch.touched[i]) = (false, self.rig.now);
                 self.rig.physical[i] += self.between(-6_000, 6_000);
             }
             // A calm run's host stays alive.
@@ -1017,6 +1085,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             }
         }
         self.rig.events.clear();
+        self.watch.events_seen = 0;
         Ok(())
     }
 
@@ -1128,30 +1197,33 @@ impl Watch {
 
     /// [`Rule::HomedOffSwitch`] on `axis`, homed since the last check.
     fn homed_at(&mut self, rig: &Rig, axis: Axis) -> Result<(), Violation> {
-        let i = axis.index();
-        let c = &rig.ctrl.config().axes[i];
-        let wired = rig.switch_active_high[i] == rig.ctrl.config().home.active_high[i];
-        if !self.clean[i] || !wired || rig.switches[i] != DEFAULT_SWITCHES[i] {
+        let Some(home) = Home::of(rig, axis).filter(|_| self.clean[axis.index()]) else {
             return Ok(());
-        }
-        let positive = c.homing.direction == protocol::Direction::Positive;
-        // Where the approach meets the switch: its first actuated position.
-        let (edge, rev) = match DEFAULT_SWITCHES[i] {
-            Switch::Below(edge) if !positive => (edge, None),
-            Switch::Index { edge, width, rev } => {
-                (if positive { edge } else { edge + width - 1 }, Some(rev))
-            }
-            _ => return Ok(()), // approached from the side it never leaves
         };
-        let want = c.homing.home_position as i64 + rig.physical(axis) - edge;
-        let off = rig.position(axis) as i64 - want;
-        let off = rev.map_or(off, |rev| {
-            let m = off.rem_euclid(rev);
-            if m > rev / 2 { m - rev } else { m }
-        });
         self.report.homed_at_switch += 1;
-        if off.abs() > 1 {
+        if home.error(rig.position(axis) as i64 - rig.physical(axis)).abs() > 1 {
             return Err(self.violation(rig, Rule::HomedOffSwitch, Some(axis)));
+        }
+        Ok(())
+    }
+
+    /// [`Rule::PositionMisjudged`] on the `PositionChecked` events since
+    /// the last visit, against the counts' offsets then.
+    fn positions_checked(&mut self, rig: &Rig) -> Result<(), Violation> {
+        let new = rig.events.get(self.events_seen..).unwrap_or_default();
+        self.events_seen = rig.events.len();
+        for e in new {
+            let Event::PositionChecked { axis, error_steps } = *e else { continue };
+            let i = axis.index();
+            // A hand or a switch changed within the debounce time: the
+            // offset before this visit may not be the one at the edge.
+            let settled = rig.now > self.touched[i] + STOP_WITHIN + POLL_TICKS;
+            let Some(home) = Home::of(rig, axis).filter(|_| settled) else { continue };
+            self.report.positions_checked += 1;
+            // The edge met the other way is a step further on.
+            if (error_steps as i64 - home.error(self.offset[i])).abs() > 1 + 1 {
+                return Err(self.violation(rig, Rule::PositionMisjudged, Some(axis)));
+            }
         }
         Ok(())
     }
@@ -1330,6 +1402,10 @@ impl Watch {
     }
 
     fn visit(&mut self, rig: &mut Rig, visit: Visit) -> Result<(), Violation> {
+        self.positions_checked(rig)?;
+        for axis in Axis::ALL {
+            self.offset[axis.index()] = rig.position(axis) as i64 - rig.physical(axis);
+        }
         match visit {
             Visit::Stepped(axis) => self.step(rig, axis),
             Visit::Polled if rig.stale_deadline() => {

@@ -36,6 +36,7 @@ fn random_operation_keeps_every_safety_rule() {
     assert!(total.on_target > 300, "moves found at their targets: {}", total.on_target);
     assert!(total.exposures > 100, "strobe reports checked: {}", total.exposures);
     assert!(total.homed_at_switch > 300, "homings checked: {}", total.homed_at_switch);
+    assert!(total.positions_checked > 100, "position checks: {}", total.positions_checked);
     assert!(total.switch_hits >= 5, "switches hit far from home: {}", total.switch_hits);
     assert!(total.saves > 20, "configurations saved: {}", total.saves);
 }
