@@ -535,13 +535,13 @@ impl LinkTimings {
     /// retransmission.
     pub fn exchange_limit(&self, ping: bool) -> Duration {
         let each = if ping { self.ping_retransmit_after } else { self.retransmit_after };
-        each * self.attempts + self.reconnect_for
+        each.saturating_mul(self.attempts).saturating_add(self.reconnect_for)
     }
 
     /// The longest [`Device::request`] takes: its exchange, and for a
     /// device that lost the handshake the greeting and the request again.
     pub fn request_limit(&self, ping: bool) -> Duration {
-        self.exchange_limit(ping) * 2 + self.exchange_limit(false)
+        self.exchange_limit(ping).saturating_mul(2).saturating_add(self.exchange_limit(false))
     }
 
     /// The longest [`Device::wait_event`] or [`Device::sleep`] for
@@ -549,7 +549,7 @@ impl LinkTimings {
     /// keep-alive request, the greeting that checks a `Boot` event, or
     /// reopening a device lost while listening.
     pub fn wait_limit(&self, timeout: Duration) -> Duration {
-        timeout + self.request_limit(true).max(self.reconnect_for)
+        timeout.saturating_add(self.request_limit(true).max(self.reconnect_for))
     }
 }
 
@@ -723,7 +723,7 @@ impl Device {
     /// frame (same sequence number) until it comes.
     fn exchange(&mut self, request: Request) -> Result<Reply, LinkError> {
         let ping = matches!(request, Request::Ping { .. });
-        self.give_up = Some(self.transport.now() + self.timings.exchange_limit(ping));
+        self.give_up = self.transport.now().checked_add(self.timings.exchange_limit(ping));
         let result = self.exchange_until(request);
         self.give_up = None;
         result
@@ -1132,6 +1132,19 @@ mod tests {
         assert!(took <= limit + LinkTimings::SLACK, "{took:?} against {limit:?}");
         assert!(matches!(got, Err(LinkError::NoDevice(_))), "{got:?}");
         assert!(dev.stats.reconnects >= 1, "it came back once at least");
+    }
+
+    /// Timings too long to add up (a library user's "wait forever") make
+    /// limits that saturate, not a panic.
+    #[test]
+    fn endless_timings_saturate() {
+        let endless = LinkTimings { reconnect_for: Duration::MAX, ..LinkTimings::default() };
+        assert_eq!(endless.exchange_limit(false), Duration::MAX);
+        assert_eq!(endless.wait_limit(Duration::from_secs(1)), Duration::MAX);
+        let arrivals = Arc::new(Mutex::new(Vec::new()));
+        let transport = Answering::new(Duration::from_millis(2), arrivals);
+        let mut dev = Device::connect_with(Box::new(transport), endless).unwrap();
+        assert_eq!(dev.request(Request::Ping { token: 3 }).unwrap(), Reply::Pong { token: 3 });
     }
 
     /// A frame whose delimiter line noise hid costs that frame alone: the
