@@ -634,8 +634,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // Something in a homed linear axis' way.
                 let axis = [Axis::Track, Axis::Tilt][self.below(2) as usize];
                 if self.rig.ctrl.is_homed(axis) {
-                    (self.watch.clean[axis.index()], self.watch.touched[axis.index()]) =
-                        (false, self.rig.now);
+                    self.watch.touch(axis.index(), self.rig.now);
                     self.rig.switches[axis.index()] = self.obstacle(axis.index());
                     self.inputs_changed();
                 }
@@ -977,7 +976,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             25..40 => self.rig.driver_fault = !self.rig.driver_fault && self.chance(300),
             40..55 => {
                 let i = self.below(AXIS_COUNT as u32) as usize;
-                (self.watch.clean[i], self.watch.touched[i]) = (false, self.rig.now);
+                self.watch.touch(i, self.rig.now);
                 self.rig.switches[i] = match self.below(10) {
                     0 => Switch::Missing,
                     1 => Switch::Stuck,
@@ -989,7 +988,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
                 // Unpowered, an axis can be pushed by hand; powered, a
                 // stalled motor skips steps.
                 let i = self.below(AXIS_COUNT as u32) as usize;
-                (self.watch.clean[i], self.watch.touched[i]) = (false, self.rig.now);
+                self.watch.touch(i, self.rig.now);
                 self.rig.physical[i] += self.between(-6_000, 6_000);
             }
             // A calm run's host stays alive.
@@ -1157,7 +1156,18 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     }
 }
 
+/// Position `p` of an axis configured as `c`: the disk's within its turn.
+fn within_turn(c: &protocol::AxisConfig, p: i64) -> i64 {
+    if c.continuous { p.rem_euclid(c.steps_per_rev.max(1) as i64) } else { p }
+}
+
 impl Watch {
+    /// A hand or a switch changed axis `i` at `now`: a homing running is
+    /// no longer the switch's alone.
+    fn touch(&mut self, i: usize, now: u64) {
+        (self.clean[i], self.touched[i]) = (false, now);
+    }
+
     /// Note the motion an acknowledged `request` starts: the axes it may
     /// move and, for a move, where it must leave them.
     fn motion_asked(&mut self, request: &Request, rig: &Rig) {
@@ -1186,12 +1196,11 @@ impl Watch {
         self.asked = asked;
         self.targets = core::array::from_fn(|i| {
             let t = targets[i]? as i64;
-            let c = &config.axes[i];
             let end = match mode {
                 MoveMode::Absolute => t,
                 MoveMode::Relative => rig.hw.steppers[i].position() as i64 + t,
             };
-            Some(if c.continuous { end.rem_euclid(c.steps_per_rev.max(1) as i64) } else { end })
+            Some(within_turn(&config.axes[i], end))
         });
     }
 
@@ -1241,11 +1250,7 @@ impl Watch {
         };
         for axis in Axis::ALL {
             let i = axis.index();
-            let c = &rig.ctrl.config().axes[i];
-            let at = |p: i32| {
-                let p = p as i64;
-                if c.continuous { p.rem_euclid(c.steps_per_rev.max(1) as i64) } else { p }
-            };
+            let at = |p: i32| within_turn(&rig.ctrl.config().axes[i], p as i64);
             if let Some(target) = self.targets[i]
                 && (at(positions[i]) != target || at(rig.position(axis)) != target)
             {

@@ -453,14 +453,8 @@ pub struct Exercised {
     pub calls: usize,
 }
 
-/// Times link calls against their limits.
-struct Limits {
-    timings: LinkTimings,
-    seen: Exercised,
-}
-
-impl Limits {
-    /// `call` on `dev`, which may take `limit`.
+impl Exercised {
+    /// `call` on `dev`, timed against `limit`.
     fn timed<T>(
         &mut self,
         dev: &mut Device,
@@ -470,8 +464,8 @@ impl Limits {
         let start = dev.now();
         let result = call(dev);
         let took = dev.now().saturating_sub(start);
-        self.seen.overrun = self.seen.overrun.max(took.saturating_sub(limit));
-        self.seen.calls += 1;
+        self.overrun = self.overrun.max(took.saturating_sub(limit));
+        self.calls += 1;
         result
     }
 }
@@ -484,10 +478,10 @@ pub fn exercise(bytes: Vec<u8>) -> Exercised {
     let Some(mut dev) = connect(bytes) else {
         return Exercised::default();
     };
-    let mut l = Limits { timings: *dev.timings(), seen: Exercised::default() };
-    let request = l.timings.request_limit(false);
-    let greeting = l.timings.exchange_limit(false);
-    let wait = l.timings.wait_limit(Duration::from_secs(2));
+    let mut l = Exercised::default();
+    let timings = *dev.timings();
+    let (request, greeting) = (timings.request_limit(false), timings.exchange_limit(false));
+    let wait = timings.wait_limit(Duration::from_secs(2));
     let _ = format!("{:?} {}", dev.info(), dev.describe());
     let motion_done = |e: &Event| matches!(e, Event::MotionDone { .. });
     for round in 0..4 {
@@ -514,11 +508,11 @@ pub fn exercise(bytes: Vec<u8>) -> Exercised {
             report_exposure(&mut dev, &t);
         }
         let nap = Duration::from_millis(120);
-        let _ = l.timed(&mut dev, l.timings.wait_limit(nap), |d| d.sleep(nap));
+        let _ = l.timed(&mut dev, timings.wait_limit(nap), |d| d.sleep(nap));
         let _ = l.timed(&mut dev, greeting, |d| d.check_boot().map_err(|e| e.to_string()));
         let _ = dev.take_events();
     }
-    Exercised { took: dev.now(), ..l.seen }
+    Exercised { took: dev.now(), ..l }
 }
 
 /// A camera that delivers a grey frame of its sensor's size for each
