@@ -10,7 +10,7 @@ use scanner_formats::direct::{DirectImage, DirectManifest, FORMAT, MANIFEST, Whi
 
 use crate::geometry::{DVec3, ScannerGeometry};
 use crate::materials::{DiffuseWhite, Material, Sample};
-use crate::optics::{OpticalSim, PhotoCamera};
+use crate::optics::{HOLDER_ALBEDO, OpticalSim, PhotoCamera};
 
 /// The metering exposure of a direct image, s.
 pub const METERING_EXPOSURE_S: f64 = 0.05;
@@ -146,6 +146,12 @@ pub struct Photographs {
     /// pinhole). Ground truth: `scanner rectify --lens auto` estimates it.
     #[serde(default, skip_serializing_if = "is_pinhole")]
     pub distortion: [f64; 2],
+    /// The albedo of the matte background the piece was photographed on:
+    /// the black holder's ([`HOLDER_ALBEDO`]), or a light card's for a
+    /// piece too dark to stand out of it. The white target always lies on
+    /// the black holder.
+    #[serde(default = "holder_albedo")]
+    pub background_albedo: f64,
     /// The photographs of the piece.
     pub photo: Vec<Photograph>,
     /// The white target's photograph, from the first direction.
@@ -165,12 +171,15 @@ pub struct PhotoSetup {
     pub distance_mm: f64,
     /// Its lens' radial distortion ([`Photographs::distortion`]).
     pub distortion: [f64; 2],
+    /// The albedo of the matte background the piece lies on
+    /// ([`Photographs::background_albedo`]).
+    pub background_albedo: f64,
 }
 
 impl PhotoSetup {
-    /// A pinhole camera at `distance_mm`.
+    /// A pinhole camera at `distance_mm`, the piece on the black holder.
     pub fn pinhole(distance_mm: f64) -> PhotoSetup {
-        PhotoSetup { distance_mm, distortion: [0.0; 2] }
+        PhotoSetup { distance_mm, distortion: [0.0; 2], background_albedo: HOLDER_ALBEDO }
     }
 
     /// The setup in range: a distance > 0, a distortion that maps the
@@ -179,6 +188,10 @@ impl PhotoSetup {
         let d = self.distance_mm;
         if !(d.is_finite() && d > 0.0) {
             return Err(format!("camera distance {d} mm: must be > 0"));
+        }
+        let b = self.background_albedo;
+        if !(0.0..=1.0).contains(&b) {
+            return Err(format!("background albedo {b}: must be within [0, 1]"));
         }
         let [k1, k2] = self.distortion;
         // Out to beyond the photograph's corners (radius 1).
@@ -189,6 +202,10 @@ impl PhotoSetup {
         }
         Ok(())
     }
+}
+
+fn holder_albedo() -> f64 {
+    HOLDER_ALBEDO
 }
 
 fn is_pinhole(k: &[f64; 2]) -> bool {
@@ -235,7 +252,8 @@ impl Photographs {
 /// that the piece seen face on would fill 80 % of a square frame that
 /// resolves it at [`PHOTO_OVERSAMPLING`] × `px_per_mm` at its centre (the
 /// direct images' density: a camera somewhat sharper than the images it
-/// makes), on a matte black holder; and
+/// makes), the piece on `setup.background_albedo`'s background and the
+/// white target on the black holder; and
 /// `photographs.toml` with each one's exposure and the piece's corners in
 /// it. These are not direct images yet: `scanner rectify` makes them so.
 pub fn write_photographs(
@@ -248,7 +266,7 @@ pub fn write_photographs(
     out: &Path,
 ) -> Result<Photographs, String> {
     setup.check()?;
-    let PhotoSetup { distance_mm, distortion } = setup;
+    let PhotoSetup { distance_mm, distortion, background_albedo } = setup;
     let piece = Sample::large(material);
     let fill = 0.8;
     let side_px =
@@ -258,12 +276,12 @@ pub fn write_photographs(
         ..PhotoCamera::framing(d, distance_mm, side_px, piece.size_mm, fill)
     };
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
-    let shoot = |piece: &Sample, d: DVec3, file: String, mirror| -> Result<Photograph, String> {
+    let shoot = |piece: &Sample, background: f64, d: DVec3, file: String, mirror| {
         let cam = camera(d);
-        let (frame, exposure_s) = exposed(|e| sim.photograph(piece, &cam, e));
+        let (frame, exposure_s) = exposed(|e| sim.photograph(piece, &cam, e, background));
         crate::camera::write_frame_exr(&frame, &out.join(&file)).map_err(|e| e.to_string())?;
         let corners = cam.corners(piece.size_mm);
-        Ok(Photograph { file, direction: d.to_array(), exposure_s, mirror, corners })
+        Ok::<_, String>(Photograph { file, direction: d.to_array(), exposure_s, mirror, corners })
     };
     let mirrors = nearest_axis_mirrors(design, count);
     let Some(&(_, first)) = mirrors.first() else {
@@ -273,16 +291,18 @@ pub fn write_photographs(
         .iter()
         .enumerate()
         .map(|(k, &(l, d))| {
-            shoot(&piece, d, format!("photo-{k}-mirror-{l:02}.exr"), Some(l as u32))
+            let file = format!("photo-{k}-mirror-{l:02}.exr");
+            shoot(&piece, background_albedo, d, file, Some(l as u32))
         })
         .collect::<Result<Vec<_>, _>>()?;
     let target = DiffuseWhite::default();
     let white_piece = Sample { size_mm: piece.size_mm, ..Sample::large(Arc::new(target)) };
-    let white = shoot(&white_piece, first, "white.exr".into(), None)?;
+    let white = shoot(&white_piece, HOLDER_ALBEDO, first, "white.exr".into(), None)?;
     let set = Photographs {
         size_mm: piece.size_mm,
         distance_mm,
         distortion,
+        background_albedo,
         photo,
         white,
         white_albedo: target.albedo,

@@ -116,11 +116,16 @@ impl Sample {
         Sample { material, offset_mm, size_mm: SAMPLE_MM }
     }
 
-    /// The large piece of the same material: one whole tile (it contains
-    /// the small sample, periodically).
+    /// The large piece of the same material: the smallest square of whole
+    /// tiles at least [`LARGE_PIECE_MM`] across — one tile of a library material
+    /// or of a texture set of 80 mm or more, a smaller tile repeated (a
+    /// piece is larger than its pattern's repeat and than the 25.4 mm
+    /// sample cut from it). It contains the small sample, periodically.
     pub fn large(material: Arc<dyn Material>) -> Sample {
-        let size_mm = material.tile_mm();
-        Sample { material, offset_mm: [0.0, 0.0], size_mm }
+        let tile = material.tile_mm();
+        // 1e-9: a tile that divides 80 mm up to rounding is not one more.
+        let tiles = (LARGE_PIECE_MM / tile - 1e-9).ceil().max(1.0);
+        Sample { material, offset_mm: [0.0, 0.0], size_mm: tiles * tile }
     }
 
     /// Material coordinates of uv.

@@ -1058,19 +1058,29 @@ impl OpticalSim {
     /// through this scanner's sensor without vignetting: what a real
     /// camera set up for a direct image takes before it is rectified. The
     /// view direction varies over the piece (towards the camera's centre
-    /// from every point); around the piece lies a matte black holder
-    /// (albedo [`HOLDER_ALBEDO`]). A pixel on the piece's outline holds
-    /// the piece and the holder in the shares of its square each covers
+    /// from every point); around the piece lies a matte background of
+    /// albedo `background` (the black holder's [`HOLDER_ALBEDO`], or a
+    /// light card a dark piece is laid on). A pixel on the piece's outline
+    /// holds the piece and the background in the shares of its square each covers
     /// (its footprint on the piece's plane clipped to the piece), as a
     /// sensor integrating over the pixel would, and the piece's mean over
     /// its subpixels that land on it.
-    pub fn photograph(&self, piece: &Sample, camera: &PhotoCamera, exposure_s: f64) -> Frame {
+    pub fn photograph(
+        &self,
+        piece: &Sample,
+        camera: &PhotoCamera,
+        exposure_s: f64,
+        background: f64,
+    ) -> Frame {
         let light = camera.direction.normalize();
         let centre = camera.basis().0;
-        let holder = HOLDER_ALBEDO / std::f64::consts::PI * light.z.max(0.0);
+        let holder = background / std::f64::consts::PI * light.z.max(0.0);
         let mut keys = vec![light.x, light.y, light.z, camera.distance_mm, camera.focal_px];
         if camera.distortion != [0.0; 2] {
             keys.extend(camera.distortion);
+        }
+        if background != HOLDER_ALBEDO {
+            keys.push(background);
         }
         let n = camera.side_px as usize;
         let half = 0.5 * piece.size_mm;
@@ -1224,6 +1234,9 @@ fn side_frame(side: usize, d: DVec3) -> DVec3 {
 
 /// The albedo of the matte black holder around a photographed piece.
 pub const HOLDER_ALBEDO: f64 = 0.04;
+/// The albedo of the matte white card a piece too dark for the black
+/// holder is photographed on instead.
+pub const LIGHT_BACKGROUND_ALBEDO: f64 = 0.8;
 
 /// A pinhole camera photographing a piece from `distance_mm` along
 /// `direction` (sample-local, from the piece's centre; the light comes from

@@ -321,9 +321,14 @@ fn a_photograph_through_a_lens_shows_the_corners_pulled_in() {
         assert!((rb - want).abs() < 1e-9, "{a:?} → {b:?}: {rb} against {want}");
     }
     // A lens that folds the photograph is refused.
-    let fold = PhotoSetup { distance_mm: 400.0, distortion: [-0.4, 0.0] };
+    let fold = PhotoSetup { distortion: [-0.4, 0.0], ..PhotoSetup::pinhole(400.0) };
     assert!(fold.check().unwrap_err().contains("one to one"));
     assert!(PhotoSetup { distortion: [-0.05, 0.0], ..fold }.check().is_ok());
+    // So is a background that reflects more than all the light, or less than none.
+    for b in [-0.1, 1.5, f64::NAN] {
+        let card = PhotoSetup { background_albedo: b, ..PhotoSetup::pinhole(400.0) };
+        assert!(card.check().unwrap_err().contains("background albedo"), "{b}");
+    }
 }
 
 #[test]
@@ -346,7 +351,7 @@ fn photographs_in_perspective_see_the_piece_where_its_corners_project() {
     assert!(corners[3][1] < corners[0][1] - 100.0, "{corners:?}");
     // The white piece inside its corners, the black holder outside.
     let white = Sample::large(materials::by_name("diffuse-white").unwrap());
-    let photo = s.photograph(&white, &cam, 0.1);
+    let photo = s.photograph(&white, &cam, 0.1, HOLDER_ALBEDO);
     let at = |px: [f64; 2]| photo.rgb[3 * (px[1] as usize * 160 + px[0] as usize)];
     let centre = at(cam.project(DVec3::ZERO));
     let outside = at(cam.project(DVec3::new(44.0, 0.0, 0.0)));
@@ -354,6 +359,12 @@ fn photographs_in_perspective_see_the_piece_where_its_corners_project() {
     let ratio = (outside / centre) as f64;
     let want = HOLDER_ALBEDO / 0.98;
     assert!((ratio - want).abs() < 0.3 * want, "holder / white {ratio} against {want}");
+    // On a light card instead, the piece alike, the card around it.
+    let card = s.photograph(&white, &cam, 0.1, 0.5);
+    let at = |px: [f64; 2]| card.rgb[3 * (px[1] as usize * 160 + px[0] as usize)];
+    let ratio = (at(cam.project(DVec3::new(44.0, 0.0, 0.0))) / centre) as f64;
+    assert!((at(cam.project(DVec3::ZERO)) / centre - 1.0).abs() < 0.05);
+    assert!((ratio - 0.5 / 0.98).abs() < 0.05, "card / white {ratio}");
 }
 
 /// A photograph's pixels integrate over their area, as a sensor's do: a
@@ -363,12 +374,12 @@ fn photographs_in_perspective_see_the_piece_where_its_corners_project() {
 /// within a quarter pixel, which bent the sides found from them).
 #[test]
 fn a_photograph_places_the_pieces_sides_within_its_pixels() {
-    use hil_sim::optics::PhotoCamera;
+    use hil_sim::optics::{HOLDER_ALBEDO, PhotoCamera};
     let s = sim(8, "diffuse-white", SEED);
     let d = nominal().mirror_direction(0).unwrap();
     let cam = PhotoCamera::framing(d, 300.0, 160, 80.0, 0.8);
     let white = Sample::large(materials::by_name("diffuse-white").unwrap());
-    let photo = s.photograph(&white, &cam, 0.1);
+    let photo = s.photograph(&white, &cam, 0.1, HOLDER_ALBEDO);
     let at = |c: usize, r: usize| photo.rgb[3 * (r * 160 + c) + 1] as f64;
     let [c0, c1, c2, c3] = cam.corners(80.0);
     let (top, bottom) = (c3[1].max(c2[1]).ceil() as usize + 3, c0[1].min(c1[1]) as usize - 3);

@@ -103,12 +103,13 @@ fn maps_decode_as_documented_and_lookups_are_bilinear_and_periodic() {
     let seam = set.texel([0.0, centre(0, 0)[1]]);
     let mean = (srgb(0.0) + srgb(210.0 / 255.0)) / 2.0;
     assert!((seam.diffuse[0] - mean).abs() < 1e-6, "{:?}", seam.diffuse);
-    // The small sample is cut at the offset; the large piece is the tile.
+    // The small sample is cut at the offset; the large piece is whole
+    // tiles, at least 80 mm.
     let set: std::sync::Arc<dyn Material> = std::sync::Arc::new(set);
     let small = Sample::small(set.clone());
     assert_eq!(small.point([0.0, 0.0]), [2.0, 3.0]);
     assert_eq!(small.point([1.0, 1.0]), [27.4, 28.4]);
-    assert_eq!(Sample::large(set).size_mm, 16.0);
+    assert_eq!(Sample::large(set).size_mm, 80.0);
 }
 
 #[test]

@@ -43,7 +43,8 @@ fn main() {
             let small = hil_sim::materials::Sample::small(truth.clone());
             let sim = hil_sim::optics::OpticalSim::as_built(&g, small, seed);
             let dir = out.join(format!("{m}-bin{bin}"));
-            let setup = PhotoSetup { distance_mm: PHOTO_DISTANCE_MM, distortion: [k1, 0.0] };
+            let setup =
+                PhotoSetup { distortion: [k1, 0.0], ..PhotoSetup::pinhole(PHOTO_DISTANCE_MM) };
             let shots = write_photographs(&sim, &g, truth, 4, scale, setup, &dir).unwrap();
             let (mut zs, mut worst, mut side) = (Vec::new(), 0.0f64, 0);
             for ph in shots.photo.iter().chain([&shots.white]) {

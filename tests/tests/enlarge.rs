@@ -87,6 +87,18 @@ fn an_enlarged_material_shades_the_large_piece_as_the_truth_does() {
         let u = tests::enlargement_scores(&unref, &small, lookup(m).unwrap(), &pairs);
         eprintln!("{m} without a white reference: {u:?}, gain {:?}", report.gain);
         assert!(u.enlarged >= s.tiled + 3.0, "{m}: {u:?}");
+        assert_eq!(report.channels, [true; 3]);
+        // Direct images without the green the sample shows: refused,
+        // the channel named.
+        let mut greenless = set.clone();
+        for im in &mut greenless.images {
+            im.rgb.chunks_exact_mut(3).for_each(|px| px[1] = 0.0);
+        }
+        let Err(e) = enlarge(&data, &greenless, &EnlargeOptions::default()) else {
+            panic!("{m}: direct images without green enlarged");
+        };
+        let e = e.to_string();
+        assert!(e.contains("channel 1 is black in the direct images but not on the sample"), "{e}");
 
         // Photographs taken in perspective, rectified by `scanner rectify`,
         // enlarge as the rectified images do (measured in session 75: each
@@ -528,4 +540,64 @@ fn rectified_photographs(
     let manifest = shots.manifest();
     std::fs::write(set.join("direct.toml"), manifest.to_toml()).unwrap();
     set
+}
+
+/// A texture set unlike the library's in the three ways the demo's
+/// enlargement once failed on (session 91): an 8 mm tile, smaller than
+/// the sample, so the large piece is ten tiles by ten (80 mm, not the
+/// tile); a piece as dark as the black holder, so that its corners cannot
+/// be found there and the demo photographs it again on a white card; and
+/// a red that reflects no green or blue, so that the colour signature
+/// matches by red alone. The enlargement must still follow the tile's
+/// pattern across the piece, where the sample tiled (25.4 mm is no
+/// multiple of 8) does not.
+#[test]
+fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
+    let dir = common::tmp();
+    let set = dir.path().join("dark-red");
+    std::fs::create_dir_all(&set).unwrap();
+    let (size, w) = (8.0f64, 64u32);
+    std::fs::write(set.join("material.toml"), "format = 1\nname = \"dark-red\"\nsize_mm = 8.0\n")
+        .unwrap();
+    let tau = std::f64::consts::TAU;
+    let red = image::Rgb32FImage::from_fn(w, w, |c, r| {
+        let (x, y) = ((c as f64 + 0.5) / w as f64 * size, (r as f64 + 0.5) / w as f64 * size);
+        image::Rgb([(0.05 + 0.04 * (tau * x / 8.0).sin() * (tau * y / 4.0).cos()) as f32, 0.0, 0.0])
+    });
+    red.save(set.join("diffuse.exr")).unwrap();
+    let map = |name: &str, v: [f32; 3]| {
+        image::Rgb32FImage::from_pixel(w, w, image::Rgb(v)).save(set.join(name)).unwrap();
+    };
+    map("specular.exr", [0.02, 0.0, 0.0]);
+    map("roughness.exr", [0.7; 3]);
+    map("normal.exr", [0.5, 0.5, 1.0]);
+    let out = dir.path().join("demo");
+    let (code, said, err) = common::run(&[
+        "demo",
+        "--bin",
+        "8",
+        "--mirrors",
+        "12",
+        "--material",
+        set.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(0), "{said}{err}");
+    assert!(said.contains("the piece photographed again on a white card (albedo 0.8)"), "{said}");
+    assert!(said.contains("101 × 101 texels over 80 × 80 mm from 4 direct images"), "{said}");
+    assert!(said.contains("by red alone (green and blue black on the sample)"), "{said}");
+    assert!(out.join("dark-red-large-preview.png").is_file());
+    let shots = std::fs::read_to_string(out.join("dark-red-photographs/photographs.toml")).unwrap();
+    assert!(
+        shots.contains("size_mm = 80.0") && shots.contains("background_albedo = 0.8"),
+        "{shots}"
+    );
+
+    let big = Material::open(&out.join("dark-red-large.material")).unwrap();
+    let small = Material::open(&out.join("dark-red.material")).unwrap();
+    let pairs = tests::random_pairs(32, 60.0, 1);
+    let s = tests::enlargement_scores(&big, &small, lookup(set.to_str().unwrap()).unwrap(), &pairs);
+    eprintln!("dark-red: {s:?}");
+    assert!(s.enlarged >= s.tiled + 3.0, "{s:?}");
 }

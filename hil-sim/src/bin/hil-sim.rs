@@ -112,6 +112,11 @@ enum Command {
         /// (K1 < 0: barrel) [default: none, a pinhole].
         #[arg(long, value_delimiter = ',', allow_hyphen_values = true, requires = "photographs")]
         lens: Vec<f64>,
+        /// With --photographs: the albedo of the matte background the piece
+        /// lies on, in [0, 1] (a dark piece on a light card: 0.8) [default:
+        /// the black holder's 0.04]. The white target stays on the holder.
+        #[arg(long, value_name = "ALBEDO", requires = "photographs")]
+        background: Option<f64>,
     },
     /// Ground truth f · cos θi of the small sample (or the large piece) for
     /// shading queries.
@@ -187,6 +192,7 @@ fn direct(
     out: &std::path::Path,
     photographs: Option<f64>,
     lens: &[f64],
+    background: Option<f64>,
 ) -> Result<(), Fail> {
     let m = materials::lookup(material)?;
     let nominal = ScannerGeometry::default_scanner();
@@ -202,8 +208,12 @@ fn direct(
             [k1, k2] => [k1, k2],
             _ => return Err(Fail(2, format!("--lens: K1[,K2], not {} numbers", lens.len()))),
         };
-        let setup = hil_sim::direct::PhotoSetup { distance_mm: distance, distortion };
-        setup.check().map_err(|e| Fail(2, format!("--lens: {e}")))?;
+        let setup = hil_sim::direct::PhotoSetup {
+            distance_mm: distance,
+            distortion,
+            background_albedo: background.unwrap_or(hil_sim::optics::HOLDER_ALBEDO),
+        };
+        setup.check().map_err(|e| Fail(2, format!("--lens or --background: {e}")))?;
         let set = hil_sim::direct::write_photographs(&sim, &nominal, m, 4, scale, setup, out)
             .map_err(|e| Fail(4, e))?;
         for ph in set.photo.iter().chain([&set.white]) {
@@ -265,8 +275,8 @@ fn render(
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     let done = match &args.command {
-        Some(Command::Direct { material, out, photographs, lens }) => {
-            Some(("direct", direct(args.seed, material, out, *photographs, lens)))
+        Some(Command::Direct { material, out, photographs, lens, background }) => {
+            Some(("direct", direct(args.seed, material, out, *photographs, lens, *background)))
         }
         Some(Command::Render { material, mirrors, bin, out }) => {
             Some(("render", render(args.seed, material, *mirrors, *bin, out.as_deref())))

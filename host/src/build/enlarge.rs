@@ -58,6 +58,11 @@ const GAIN_ROUNDS: usize = 6;
 const GAIN_SETTLED: f64 = 0.002;
 /// The log signature's floor: this fraction of each image's mean.
 const LOG_FLOOR: f64 = 0.02;
+/// A channel of the sample whose mean over the images' directions is below
+/// this share of its brightest channel's carries no colour to match by (a
+/// colour the material does not reflect, as a pure red's green, or noise):
+/// the colour signature leaves it out.
+const DARK_CHANNEL: f64 = 1e-3;
 
 /// How texels are matched.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -211,6 +216,11 @@ pub struct EnlargeReport {
     pub distance: [f64; 2],
     /// Distinct points of the sample the map uses.
     pub points_used: usize,
+    /// The channels (r, g, b) the colour signature matched by: those the
+    /// sample reflects ([`DARK_CHANNEL`]). None: the sample is black at
+    /// the images' directions, there is nothing to match by, and the piece
+    /// is the sample tiled. The height signature: all three.
+    pub channels: [bool; 3],
 }
 
 /// `data` (a material of the small sample) enlarged to the piece of the
@@ -316,12 +326,12 @@ pub fn enlarge(
         })
         .collect();
 
-    let (matches, gain, dims) = match opts.signature {
+    let (matches, gain, dims, channels) = match opts.signature {
         Signature::Colour => colour_matches(&sample, &piece, set, opts, [columns, rows, fine])?,
         Signature::Height => {
             let (matches, dims) =
                 height_matches(&sample, &piece, &directions, opts, pitch, [columns, rows, fine])?;
-            (matches, None, dims)
+            (matches, None, dims, [true; 3])
         }
     };
     // Each match as the sample's uv in 16-bit fixed point.
@@ -345,6 +355,7 @@ pub fn enlarge(
         gain,
         distance: [pct(0.5), pct(0.9)],
         points_used: used.len(),
+        channels,
     };
     let mut out = data.clone();
     out.meta.version = VERSION_ENLARGED;
@@ -365,7 +376,7 @@ pub fn enlarge(
 type Sizes = [usize; 3];
 
 /// Matches by the colour signature, with the gain that put the piece on the
-/// material's scale, and the signature's length.
+/// material's scale, the signature's length and the channels it used.
 #[allow(clippy::type_complexity)]
 fn colour_matches(
     sample: &[Vec<[f64; 3]>],
@@ -373,9 +384,29 @@ fn colour_matches(
     set: &DirectSet,
     opts: &EnlargeOptions,
     [columns, rows, fine]: Sizes,
-) -> Result<(Vec<(usize, f32)>, Option<[f64; 3]>, usize), BuildError> {
+) -> Result<(Vec<(usize, f32)>, Option<[f64; 3]>, usize, [bool; 3]), BuildError> {
     let (sample_mean, piece_mean) = (means(sample), means(piece));
     let n_img = sample.len();
+    let total = |means: &[[f64; 3]]| -> [f64; 3] {
+        std::array::from_fn(|c| means.iter().map(|m| m[c]).sum())
+    };
+    let (a, b) = (total(&sample_mean), total(&piece_mean));
+    // The channels the sample reflects carry its colour; the others only
+    // noise, whatever the piece shows in them.
+    let (a_max, b_max) = (a.into_iter().fold(0.0, f64::max), b.into_iter().fold(0.0, f64::max));
+    let channels: [bool; 3] = std::array::from_fn(|c| a[c] > DARK_CHANNEL * a_max && a[c] > 0.0);
+    if channels == [false; 3] {
+        // A black sample (at these directions) looks alike everywhere:
+        // any place matches, and the piece is the sample tiled.
+        let s = fine / opts.subtexel;
+        let tiled = (0..columns * rows)
+            .map(|p| {
+                let (x, y) = ((p % columns) % s, (p / columns) % s);
+                (y * opts.subtexel * fine + x * opts.subtexel, 0.0)
+            })
+            .collect();
+        return Ok((tiled, None, 1, channels));
+    }
     // The gain that puts the piece on the material's scale: absolute from
     // the white reference (its radiance albedo/π · cos θ), else the ratio
     // of the means, refined from the matches below.
@@ -383,23 +414,19 @@ fn colour_matches(
         (Some(frame), Some(w)) => Some(white_scale(frame, w)?),
         _ => None,
     };
-    let mut gain = [0.0; 3];
-    for (c, g) in gain.iter_mut().enumerate() {
-        let a: f64 = sample_mean.iter().map(|m| m[c]).sum();
-        let b: f64 = piece_mean.iter().map(|m| m[c]).sum();
-        if !(a > 0.0 && b > 0.0) {
+    let mut gain = [1.0; 3];
+    for c in (0..3).filter(|&c| channels[c]) {
+        if !(b[c] > DARK_CHANNEL * b_max && b[c] > 0.0) {
             return Err(BuildError::Input(format!(
-                "channel {c} is black in {}: nothing to match by",
-                if b > 0.0 {
-                    "the material at the images' directions"
-                } else {
-                    "the direct images"
-                }
+                "channel {c} is black in the direct images but not on the sample ({:.3} of its \
+                 brightest channel there): nothing to match it by",
+                a[c] / a_max
             )));
         }
-        *g = white_gain.map_or(a / b, |w| w[c]);
+        gain[c] = white_gain.map_or(a[c] / b[c], |w| w[c]);
     }
-    // Log values, each over a floor of its image's mean.
+    // Log values, each over a floor of its image's mean; a channel the
+    // sample does not reflect is left out (0 everywhere).
     let floor: Vec<[f64; 3]> = sample_mean.iter().map(|m| m.map(|x| LOG_FLOOR * x)).collect();
     let logs = |imgs: &[Vec<[f64; 3]>], scale: [f64; 3]| -> Vec<Vec<[f32; 3]>> {
         imgs.iter()
@@ -408,6 +435,9 @@ fn colour_matches(
                 img.iter()
                     .map(|v| {
                         std::array::from_fn(|c| {
+                            if !channels[c] {
+                                return 0.0;
+                            }
                             ((v[c] * scale[c]).max(0.0) + floor[k][c].max(1e-30)).ln() as f32
                         })
                     })
@@ -456,7 +486,7 @@ fn colour_matches(
         piece_log = logs(piece, gain);
         matches = match_piece(&piece_log);
     }
-    Ok((matches, Some(gain), index.dims))
+    Ok((matches, Some(gain), index.dims, channels))
 }
 
 /// Matches by the height signature, and the signature's length.

@@ -1020,23 +1020,42 @@ pub fn enlarge_cmd(
     crate::fsutil::write_atomic(output, &bytes)
         .map_err(|e| Failure(4, anyhow!("{}: {e}", output.display())))?;
     let s = data.meta.resolution as usize;
+    let by = match report.channels {
+        [true, true, true] => opts.signature.name().to_string(),
+        [false, false, false] => "colour, but the sample is black at the images' directions: \
+                                  nothing to match by, the piece is the sample tiled"
+            .to_string(),
+        used => {
+            let names = ["red", "green", "blue"];
+            let pick = |on: bool| {
+                (0..3)
+                    .filter(|&c| used[c] == on)
+                    .map(|c| names[c])
+                    .collect::<Vec<_>>()
+                    .join(" and ")
+            };
+            format!("{} alone ({} black on the sample)", pick(true), pick(false))
+        }
+    };
     let scale = match report.gain {
         Some(g) => format!(
-            "scale {:.3e} {:.3e} {:.3e} ({})",
-            g[0],
-            g[1],
-            g[2],
+            "scale {} ({})",
+            (0..3)
+                .map(|c| if report.channels[c] { format!("{:.3e}", g[c]) } else { "–".into() })
+                .collect::<Vec<_>>()
+                .join(" "),
             if set.white.is_some() {
                 "from the white reference"
             } else {
                 "no white reference: from the matches"
             }
         ),
+        None if report.channels == [false; 3] => "no scale".into(),
         None => "heights need no scale".into(),
     };
     println!(
         "{}: {} × {} texels over {} × {} mm from {}, each matched to a place on the sample by \
-         {} ({} distinct of {}² candidates); signature distance median {:.3}, 90th percentile \
+         {by} ({} distinct of {}² candidates); signature distance median {:.3}, 90th percentile \
          {:.3}; {scale}; {:.1} MB in {:.1} s",
         output.display(),
         report.columns,
@@ -1044,7 +1063,6 @@ pub fn enlarge_cmd(
         set.manifest.size_mm[0],
         set.manifest.size_mm[1],
         count(set.images.len(), "direct image"),
-        opts.signature.name(),
         report.points_used,
         s * opts.subtexel,
         report.distance[0],

@@ -2067,34 +2067,68 @@ pub fn demo(
         let photos = out.join(format!("{name}-photographs"));
         let direct = out.join(format!("{name}-direct"));
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
-        let setup = hil_sim::direct::PhotoSetup {
-            distance_mm: hil_sim::direct::PHOTO_DISTANCE_MM,
-            distortion: [DEMO_LENS_K1, 0.0],
-        };
-        let shots =
-            hil_sim::direct::write_photographs(&sim, &nominal, m.clone(), 4, scale, setup, &photos)
-                .map_err(|e| Failure(4, anyhow!(e)))?;
         std::fs::create_dir_all(&direct)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
         let outline = photos.join("photo-0-corners.png");
-        // The lens from the white card's clean sides first (a textured
-        // piece's own edges shift with its texture: docs/direct-images.md,
-        // "Lens distortion"), then every photograph of the piece through it.
-        let mut lens = crate::build::lens::LensChoice::Estimate;
-        for ph in [&shots.white].into_iter().chain(&shots.photo) {
-            let used = super::build::rectify_cmd(
-                &photos.join(&ph.file),
-                crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
-                lens,
-                [shots.size_mm; 2],
-                Some(scale),
-                super::build::RectifyOutputs {
-                    picture: &direct.join(&ph.file),
-                    show: (ph.file == shots.photo[0].file).then_some(outline.as_path()),
-                },
-            )?;
-            lens = crate::build::lens::LensChoice::Known(used);
-        }
+        // On the black holder first; a piece that does not stand out of it
+        // (as dark as the holder, or a glossy one sending the light away)
+        // is photographed again on a white card, as a photographer would
+        // lay it (what `scanner rectify` advises).
+        let mut background = hil_sim::optics::HOLDER_ALBEDO;
+        let shots = loop {
+            let setup = hil_sim::direct::PhotoSetup {
+                distance_mm: hil_sim::direct::PHOTO_DISTANCE_MM,
+                distortion: [DEMO_LENS_K1, 0.0],
+                background_albedo: background,
+            };
+            let shots = hil_sim::direct::write_photographs(
+                &sim,
+                &nominal,
+                m.clone(),
+                4,
+                scale,
+                setup,
+                &photos,
+            )
+            .map_err(|e| Failure(4, anyhow!(e)))?;
+            // The lens from the white card's clean sides first (a textured
+            // piece's own edges shift with its texture: docs/direct-images.md,
+            // "Lens distortion"), then every photograph of the piece through it.
+            let mut lens = crate::build::lens::LensChoice::Estimate;
+            let mut unseen = None;
+            for ph in [&shots.white].into_iter().chain(&shots.photo) {
+                match super::build::rectify_cmd(
+                    &photos.join(&ph.file),
+                    crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
+                    lens,
+                    [shots.size_mm; 2],
+                    Some(scale),
+                    super::build::RectifyOutputs {
+                        picture: &direct.join(&ph.file),
+                        show: (ph.file == shots.photo[0].file).then_some(outline.as_path()),
+                    },
+                ) {
+                    Ok(used) => lens = crate::build::lens::LensChoice::Known(used),
+                    // The piece not found on the holder (the white target,
+                    // always on it, is not the piece's to retake).
+                    Err(Failure(3, e)) if ph.mirror.is_some() => {
+                        unseen = Some(e);
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+            match unseen {
+                None => break shots,
+                Some(e) if background == hil_sim::optics::HOLDER_ALBEDO => {
+                    background = hil_sim::optics::LIGHT_BACKGROUND_ALBEDO;
+                    println!(
+                        "{e:#}\n→ the piece photographed again on a white card (albedo {background})"
+                    );
+                }
+                Some(e) => return Err(Failure(3, e)),
+            }
+        };
         let manifest = shots.manifest();
         crate::fsutil::write_atomic(
             &direct.join(scanner_formats::direct::MANIFEST),
