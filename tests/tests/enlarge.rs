@@ -542,36 +542,35 @@ fn rectified_photographs(
     set
 }
 
-/// A texture set unlike the library's in the three ways the demo's
-/// enlargement once failed on (session 91): an 8 mm tile, smaller than
-/// the sample, so the large piece is ten tiles by ten (80 mm, not the
-/// tile); a piece as dark as the black holder, so that its corners cannot
-/// be found there and the demo photographs it again on a white card; and
-/// a red that reflects no green or blue, so that the colour signature
-/// matches by red alone. The enlargement must still follow the tile's
-/// pattern across the piece, where the sample tiled (25.4 mm is no
-/// multiple of 8) does not.
-#[test]
-fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
-    let dir = common::tmp();
-    let set = dir.path().join("dark-red");
-    std::fs::create_dir_all(&set).unwrap();
-    let (size, w) = (8.0f64, 64u32);
-    std::fs::write(set.join("material.toml"), "format = 1\nname = \"dark-red\"\nsize_mm = 8.0\n")
+/// A texture set of `size_mm` in 64² linear maps: the diffuse colour at
+/// each material point (x, y) mm, a uniform F0 and roughness, flat.
+fn texture_set(
+    set: &Path,
+    size_mm: f64,
+    diffuse: impl Fn(f64, f64) -> [f32; 3],
+    f0: [f32; 3],
+    roughness: f32,
+) {
+    std::fs::create_dir_all(set).unwrap();
+    let name = set.file_name().unwrap().to_str().unwrap();
+    let toml = format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n");
+    std::fs::write(set.join("material.toml"), toml).unwrap();
+    let w = 64u32;
+    let at = |c: u32| (c as f64 + 0.5) / w as f64 * size_mm;
+    image::Rgb32FImage::from_fn(w, w, |c, r| image::Rgb(diffuse(at(c), at(r))))
+        .save(set.join("diffuse.exr"))
         .unwrap();
-    let tau = std::f64::consts::TAU;
-    let red = image::Rgb32FImage::from_fn(w, w, |c, r| {
-        let (x, y) = ((c as f64 + 0.5) / w as f64 * size, (r as f64 + 0.5) / w as f64 * size);
-        image::Rgb([(0.05 + 0.04 * (tau * x / 8.0).sin() * (tau * y / 4.0).cos()) as f32, 0.0, 0.0])
-    });
-    red.save(set.join("diffuse.exr")).unwrap();
     let map = |name: &str, v: [f32; 3]| {
         image::Rgb32FImage::from_pixel(w, w, image::Rgb(v)).save(set.join(name)).unwrap();
     };
-    map("specular.exr", [0.02, 0.0, 0.0]);
-    map("roughness.exr", [0.7; 3]);
+    map("specular.exr", f0);
+    map("roughness.exr", [roughness; 3]);
     map("normal.exr", [0.5, 0.5, 1.0]);
-    let out = dir.path().join("demo");
+}
+
+/// `scanner demo` of texture set `set` on a 512² sensor with 12 lights
+/// into `out`: what it said.
+fn quick_demo(set: &Path, out: &Path) -> String {
     let (code, said, err) = common::run(&[
         "demo",
         "--bin",
@@ -584,9 +583,35 @@ fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
         out.to_str().unwrap(),
     ]);
     assert_eq!(code, Some(0), "{said}{err}");
+    said
+}
+
+/// A texture set unlike the library's in the three ways the demo's
+/// enlargement once failed on (session 91): an 8 mm tile, smaller than
+/// the sample, so the large piece is ten tiles by ten (80 mm, not the
+/// tile); a piece as dark as the black holder, so that its corners cannot
+/// be found there and the demo photographs it again on a white card; and
+/// a red that reflects no green or blue, so that the colour signature
+/// matches by red alone. The enlargement must still follow the tile's
+/// pattern across the piece, where the sample tiled (25.4 mm is no
+/// multiple of 8) does not. A piece found on neither background (wide
+/// stripes as dark as the holder and as light as the card) ends the demo
+/// without the enlargement, saying so.
+#[test]
+fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
+    let dir = common::tmp();
+    let set = dir.path().join("dark-red");
+    let tau = std::f64::consts::TAU;
+    let red = |x: f64, y: f64| {
+        [(0.05 + 0.04 * (tau * x / 8.0).sin() * (tau * y / 4.0).cos()) as f32, 0.0, 0.0]
+    };
+    texture_set(&set, 8.0, red, [0.02, 0.0, 0.0], 0.7);
+    let out = dir.path().join("demo");
+    let said = quick_demo(&set, &out);
     assert!(said.contains("the piece photographed again on a white card (albedo 0.8)"), "{said}");
     assert!(said.contains("101 × 101 texels over 80 × 80 mm from 4 direct images"), "{said}");
     assert!(said.contains("by red alone (green and blue black on the sample)"), "{said}");
+    assert!(said.contains("dark-red-large-preview.png"), "{said}");
     assert!(out.join("dark-red-large-preview.png").is_file());
     let shots = std::fs::read_to_string(out.join("dark-red-photographs/photographs.toml")).unwrap();
     assert!(
@@ -600,4 +625,14 @@ fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
     let s = tests::enlargement_scores(&big, &small, lookup(set.to_str().unwrap()).unwrap(), &pairs);
     eprintln!("dark-red: {s:?}");
     assert!(s.enlarged >= s.tiled + 3.0, "{s:?}");
+
+    let set = dir.path().join("stripes");
+    let stripe = |_: f64, y: f64| [if y % 8.0 < 4.0 { 0.04 } else { 0.8 }; 3];
+    texture_set(&set, 16.0, stripe, [0.04; 3], 0.9);
+    let out = dir.path().join("stripes-demo");
+    let said = quick_demo(&set, &out);
+    assert!(said.contains("found on neither the black holder nor a white card"), "{said}");
+    assert!(!said.contains("stripes-large-preview.png"), "{said}");
+    assert!(out.join("stripes-preview.png").is_file());
+    assert!(!out.join("stripes-large.material").exists());
 }

@@ -2043,7 +2043,7 @@ pub fn demo(
     // from, through direct images the simulator takes as a camera would.
     let large = out.join(format!("{name}-large.material"));
     let large_picture = out.join(format!("{name}-large-preview.png"));
-    {
+    let enlarged = {
         let m = hil_sim::materials::lookup(material)
             .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
         let setup = crate::simulator::SimSetup {
@@ -2073,7 +2073,10 @@ pub fn demo(
         // On the black holder first; a piece that does not stand out of it
         // (as dark as the holder, or a glossy one sending the light away)
         // is photographed again on a white card, as a photographer would
-        // lay it (what `scanner rectify` advises).
+        // lay it (what `scanner rectify` advises). One found on neither
+        // (a texture as fine as the photographs' pixels, half of it darker
+        // and half brighter than either) would have its corners marked by
+        // hand: the demo says so and ends without the enlargement.
         let mut background = hil_sim::optics::HOLDER_ALBEDO;
         let shots = loop {
             let setup = hil_sim::direct::PhotoSetup {
@@ -2119,41 +2122,46 @@ pub fn demo(
                 }
             }
             match unseen {
-                None => break shots,
+                None => break Some(shots),
                 Some(e) if background == hil_sim::optics::HOLDER_ALBEDO => {
                     background = hil_sim::optics::LIGHT_BACKGROUND_ALBEDO;
                     println!(
                         "{e:#}\n→ the piece photographed again on a white card (albedo {background})"
                     );
                 }
-                Some(e) => return Err(Failure(3, e)),
+                Some(e) => {
+                    println!(
+                        "{e:#}\n→ the piece's corners found on neither the black holder nor a \
+                         white card: no enlargement (mark them by hand: scanner rectify --corners, \
+                         docs/direct-images.md)"
+                    );
+                    break None;
+                }
             }
         };
-        let manifest = shots.manifest();
-        crate::fsutil::write_atomic(
-            &direct.join(scanner_formats::direct::MANIFEST),
-            manifest.to_toml().as_bytes(),
-        )
-        .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
-        let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
-        super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
-        let enlarged =
-            scanner_shading::Material::open(&large).map_err(|e| Failure(4, anyhow!(e)))?;
-        let piece = hil_sim::materials::Sample::large(m);
-        let truth = |q: &[scanner_formats::queries::Query]| hil_sim::truth::answer(&piece, q);
-        super::build::preview(&enlarged, (view, off), Some(&truth), &large_picture)?;
-    }
+        if let Some(shots) = &shots {
+            let manifest = shots.manifest();
+            crate::fsutil::write_atomic(
+                &direct.join(scanner_formats::direct::MANIFEST),
+                manifest.to_toml().as_bytes(),
+            )
+            .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
+            let opts = crate::build::enlarge::EnlargeOptions::DEFAULT;
+            super::build::enlarge_cmd(&material_file, &direct, &large, &opts)?;
+            let enlarged =
+                scanner_shading::Material::open(&large).map_err(|e| Failure(4, anyhow!(e)))?;
+            let piece = hil_sim::materials::Sample::large(m);
+            let truth = |q: &[scanner_formats::queries::Query]| hil_sim::truth::answer(&piece, q);
+            super::build::preview(&enlarged, (view, off), Some(&truth), &large_picture)?;
+        }
+        shots.is_some()
+    };
     let (theta, phi) = super::build::angles(view);
     println!(
         "demo: four scans in {scanned:.1} s, calibration and material in {:.1} s under {}\n\
          look at {}: the material over the sample (top) and the simulator's ground truth \
          (bottom), seen from θ {theta:.0}°, φ {phi:.0}° ({off:.1}° from the nearest mirror), lit from \
-         (θ, φ) = {};\n\
-         and at {}: the material enlarged to the large piece the sample was cut from \
-         (photographed in perspective through a lens in {name}-photographs, rectified into the \
-         direct images of {name}-direct by the corners found in each and the lens' distortion \
-         found on the white card: {name}-photographs/photo-0-corners.png), \
-         over the same truth",
+         (θ, φ) = {}{}",
         started.elapsed().as_secs_f64() - scanned,
         out.display(),
         picture.display(),
@@ -2162,7 +2170,18 @@ pub fn demo(
             .map(|(t, p)| format!("({t:.0}°, {p:.0}°)"))
             .collect::<Vec<_>>()
             .join(", "),
-        large_picture.display(),
+        if enlarged {
+            format!(
+                ";\nand at {}: the material enlarged to the large piece the sample was cut from \
+                 (photographed in perspective through a lens in {name}-photographs, rectified into \
+                 the direct images of {name}-direct by the corners found in each and the lens' \
+                 distortion found on the white card: {name}-photographs/photo-0-corners.png), \
+                 over the same truth",
+                large_picture.display()
+            )
+        } else {
+            String::new()
+        },
     );
     Ok(())
 }
