@@ -391,10 +391,14 @@ fn colour_matches(
         std::array::from_fn(|c| means.iter().map(|m| m[c]).sum())
     };
     let (a, b) = (total(&sample_mean), total(&piece_mean));
+    // Channels above DARK_CHANNEL of the brightest (none if all are black).
+    let lit = |t: [f64; 3]| -> [bool; 3] {
+        let brightest = t.into_iter().fold(0.0, f64::max);
+        t.map(|x| x > DARK_CHANNEL * brightest)
+    };
     // The channels the sample reflects carry its colour; the others only
     // noise, whatever the piece shows in them.
-    let (a_max, b_max) = (a.into_iter().fold(0.0, f64::max), b.into_iter().fold(0.0, f64::max));
-    let channels: [bool; 3] = std::array::from_fn(|c| a[c] > DARK_CHANNEL * a_max && a[c] > 0.0);
+    let (channels, piece_lit) = (lit(a), lit(b));
     if channels == [false; 3] {
         // A black sample (at these directions) looks alike everywhere:
         // any place matches, and the piece is the sample tiled.
@@ -416,11 +420,12 @@ fn colour_matches(
     };
     let mut gain = [1.0; 3];
     for c in (0..3).filter(|&c| channels[c]) {
-        if !(b[c] > DARK_CHANNEL * b_max && b[c] > 0.0) {
+        if !piece_lit[c] {
+            let brightest = a.into_iter().fold(0.0, f64::max);
             return Err(BuildError::Input(format!(
                 "channel {c} is black in the direct images but not on the sample ({:.3} of its \
                  brightest channel there): nothing to match it by",
-                a[c] / a_max
+                a[c] / brightest
             )));
         }
         gain[c] = white_gain.map_or(a[c] / b[c], |w| w[c]);

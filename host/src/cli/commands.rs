@@ -2069,7 +2069,6 @@ pub fn demo(
         let scale = hil_sim::direct::mirror_view_scale(&nominal);
         std::fs::create_dir_all(&direct)
             .map_err(|e| Failure(4, anyhow!("{}: {e}", direct.display())))?;
-        let outline = photos.join("photo-0-corners.png");
         // On the black holder first; a piece that does not stand out of it
         // (as dark as the holder, or a glossy one sending the light away)
         // is photographed again on a white card, as a photographer would
@@ -2077,68 +2076,28 @@ pub fn demo(
         // (a texture as fine as the photographs' pixels, half of it darker
         // and half brighter than either) would have its corners marked by
         // hand: the demo says so and ends without the enlargement.
-        let mut background = hil_sim::optics::HOLDER_ALBEDO;
-        let shots = loop {
-            let setup = hil_sim::direct::PhotoSetup {
-                distance_mm: hil_sim::direct::PHOTO_DISTANCE_MM,
-                distortion: [DEMO_LENS_K1, 0.0],
-                background_albedo: background,
-            };
-            let shots = hil_sim::direct::write_photographs(
-                &sim,
-                &nominal,
-                m.clone(),
-                4,
-                scale,
-                setup,
-                &photos,
-            )
-            .map_err(|e| Failure(4, anyhow!(e)))?;
-            // The lens from the white card's clean sides first (a textured
-            // piece's own edges shift with its texture: docs/direct-images.md,
-            // "Lens distortion"), then every photograph of the piece through it.
-            let mut lens = crate::build::lens::LensChoice::Estimate;
-            let mut unseen = None;
-            for ph in [&shots.white].into_iter().chain(&shots.photo) {
-                match super::build::rectify_cmd(
-                    &photos.join(&ph.file),
-                    crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
-                    lens,
-                    [shots.size_mm; 2],
-                    Some(scale),
-                    super::build::RectifyOutputs {
-                        picture: &direct.join(&ph.file),
-                        show: (ph.file == shots.photo[0].file).then_some(outline.as_path()),
-                    },
-                ) {
-                    Ok(used) => lens = crate::build::lens::LensChoice::Known(used),
-                    // The piece not found on the holder (the white target,
-                    // always on it, is not the piece's to retake).
-                    Err(Failure(3, e)) if ph.mirror.is_some() => {
-                        unseen = Some(e);
-                        break;
-                    }
-                    Err(e) => return Err(e),
+        let at =
+            DemoPhotos { sim: &sim, nominal: &nominal, scale, photos: &photos, direct: &direct };
+        let mut lens = crate::build::lens::LensChoice::Estimate;
+        let mut shots = None;
+        for background in [hil_sim::optics::HOLDER_ALBEDO, hil_sim::optics::LIGHT_BACKGROUND_ALBEDO]
+        {
+            match at.take(&m, background, &mut lens)? {
+                Ok(taken) => {
+                    shots = Some(taken);
+                    break;
                 }
+                Err(e) if background == hil_sim::optics::HOLDER_ALBEDO => println!(
+                    "{e:#}\n→ the piece photographed again on a white card (albedo {})",
+                    hil_sim::optics::LIGHT_BACKGROUND_ALBEDO
+                ),
+                Err(e) => println!(
+                    "{e:#}\n→ the piece's corners found on neither the black holder nor a white \
+                     card: no enlargement (mark them by hand: scanner rectify --corners, \
+                     docs/direct-images.md)"
+                ),
             }
-            match unseen {
-                None => break Some(shots),
-                Some(e) if background == hil_sim::optics::HOLDER_ALBEDO => {
-                    background = hil_sim::optics::LIGHT_BACKGROUND_ALBEDO;
-                    println!(
-                        "{e:#}\n→ the piece photographed again on a white card (albedo {background})"
-                    );
-                }
-                Some(e) => {
-                    println!(
-                        "{e:#}\n→ the piece's corners found on neither the black holder nor a \
-                         white card: no enlargement (mark them by hand: scanner rectify --corners, \
-                         docs/direct-images.md)"
-                    );
-                    break None;
-                }
-            }
-        };
+        }
         if let Some(shots) = &shots {
             let manifest = shots.manifest();
             crate::fsutil::write_atomic(
@@ -2184,6 +2143,75 @@ pub fn demo(
         },
     );
     Ok(())
+}
+
+/// Where the demo photographs its large piece and rectifies the
+/// photographs into direct images.
+#[cfg(feature = "sim")]
+struct DemoPhotos<'a> {
+    sim: &'a hil_sim::optics::OpticalSim,
+    nominal: &'a ScannerGeometry,
+    scale: f64,
+    photos: &'a Path,
+    direct: &'a Path,
+}
+
+#[cfg(feature = "sim")]
+impl DemoPhotos<'_> {
+    /// Photographs of `m`'s large piece on a background of albedo
+    /// `background`, rectified by the corners found in each: the set, or
+    /// why a photograph's corners were not found (`Ok(Err(_))`). The lens
+    /// is estimated on the white card's clean sides first (a textured
+    /// piece's own edges shift with its texture: docs/direct-images.md,
+    /// "Lens distortion") unless `lens` knows it already (the white card
+    /// lies on the black holder whatever the piece's background), then
+    /// every photograph of the piece goes through it.
+    fn take(
+        &self,
+        m: &std::sync::Arc<dyn hil_sim::materials::Material>,
+        background: f64,
+        lens: &mut crate::build::lens::LensChoice,
+    ) -> Result<Result<hil_sim::direct::Photographs, anyhow::Error>, Failure> {
+        use crate::build::lens::LensChoice;
+        let setup = hil_sim::direct::PhotoSetup {
+            distance_mm: hil_sim::direct::PHOTO_DISTANCE_MM,
+            distortion: [DEMO_LENS_K1, 0.0],
+            background_albedo: background,
+        };
+        let shots = hil_sim::direct::write_photographs(
+            self.sim,
+            self.nominal,
+            m.clone(),
+            4,
+            self.scale,
+            setup,
+            self.photos,
+        )
+        .map_err(|e| Failure(4, anyhow!(e)))?;
+        let outline = self.photos.join("photo-0-corners.png");
+        let white = (*lens == LensChoice::Estimate).then_some(&shots.white);
+        for ph in white.into_iter().chain(&shots.photo) {
+            let rectified = super::build::rectify_cmd(
+                &self.photos.join(&ph.file),
+                crate::build::rectify::Corners::Auto(crate::build::corners::Origin::BottomLeft),
+                *lens,
+                [shots.size_mm; 2],
+                Some(self.scale),
+                super::build::RectifyOutputs {
+                    picture: &self.direct.join(&ph.file),
+                    show: (ph.file == shots.photo[0].file).then_some(outline.as_path()),
+                },
+            );
+            match rectified {
+                Ok(used) => *lens = LensChoice::Known(used),
+                // The piece not found (the white card, whose failure is
+                // not the piece's background's, stays an error).
+                Err(Failure(3, e)) if ph.mirror.is_some() => return Ok(Err(e)),
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(Ok(shots))
+    }
 }
 
 /// The files `scanner sim`'s camera writes.
