@@ -405,5 +405,6 @@ fn nominal_calibration(g: &host::geometry::ScannerGeometry) -> host::build::Cali
         },
         defects: Vec::new(),
         lens_distortion: [0.0; 2],
+        lens_k1_held: false,
     }
 }

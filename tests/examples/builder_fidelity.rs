@@ -29,7 +29,7 @@ use scanner_geometry::{DVec3, world_to_sample};
 
 fn main() {
     tests::check_region_args(
-        &["--bin", "--materials", "--mirrors", "--out", "--seed"],
+        &["--bin", "--lens-k1", "--materials", "--mirrors", "--out", "--seed"],
         &["--targets-only"],
     );
     let bin: u32 = tests::arg("--bin", 1);
@@ -73,6 +73,7 @@ fn main() {
     let t_cal = t.elapsed().as_secs_f64();
     // Calibration against the as-built scanner.
     let truth = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed)
+        .with_lens_distortion([tests::arg("--lens-k1", 0.0), 0.0])
         .geometry()
         .clone();
     let (mut corner, mut corner_phase, mut corner_nominal) = (Vec::new(), Vec::new(), Vec::new());
@@ -129,7 +130,7 @@ fn main() {
         truth.source.disk_zero_deg - g.source.disk_zero_deg,
         truth.source.tilt_zero_deg - g.source.tilt_zero_deg
     );
-    println!("calibrate: {t_cal:.1} s");
+    println!("calibrate: {t_cal:.1} s; lens k1 {:+.4}", cal.lens_distortion[0]);
     println!(
         "| material | regions s | PSNR dB | gain-free dB | gain | point-sampling limit dB | \
          nominal-direction limit dB | distant-viewer limit dB | PSNR at the as-built directions dB | \

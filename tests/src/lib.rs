@@ -203,6 +203,7 @@ pub fn sim_scan_at(
         sample_height_mm,
         sample_tilt_deg,
         sample_thickness_mm,
+        lens_distortion: [arg("--lens-k1", 0.0), 0.0],
         ..SimSetup::new(material)
     };
     let nominal = s.nominal().expect("the simulator's geometry");

@@ -455,9 +455,12 @@ fn calibrated_region_images_match_the_ground_truth() {
 /// geometry is 0.36° off, the lights 0.60°, the lens' k1 −0.26, and at
 /// seed 3 the glossy target's highlights fitted no plausible source
 /// offset (calibration refused). Weighed by the adjustment's own residual
-/// (session 91): views 0.13° and 0.12°, lights 0.19° and 0.15°.
+/// (session 91): views 0.13° and 0.12°, lights 0.19° and 0.15°, k1 still
+/// −0.09 to −0.20 for a lens that has none. With the lens' k1 held at the
+/// geometry file's (session 92; the phase alignment's errors are radial,
+/// k1 absorbed them): views 0.087° and 0.089°, lights 0.154° and 0.112°.
 #[test]
-fn a_small_sensors_views_are_weighed_by_their_own_residual() {
+fn a_small_sensors_views_are_weighed_by_their_own_residual_and_its_lens_held() {
     let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
     for seed in [1, 3] {
         let dir = tempfile::tempdir().unwrap();
@@ -471,6 +474,9 @@ fn a_small_sensors_views_are_weighed_by_their_own_residual() {
             calibrate(&g, &open("checker"), &open("white"), Some(&open("glossy")), &opts, &Silent)
                 .unwrap();
         assert!(cal.views.iter().all(|v| v.corners_used == 0), "no corner fit at 512²");
+        // Nothing measures the lens: its k1 stays the geometry file's.
+        assert!(cal.lens_k1_held);
+        assert_eq!(cal.lens_distortion, g.camera.distortion);
         let sim = OpticalSim::as_built(&g, Sample::small(lookup("checkerboard").unwrap()), seed);
         let errs = tests::direction_errors(&g, sim.geometry(), &cal);
         let (view, light) = (rms(&errs.view), rms(&errs.light));
@@ -480,8 +486,9 @@ fn a_small_sensors_views_are_weighed_by_their_own_residual() {
              (nominal {light_nominal:.3}°), k1 {:+.3}",
             cal.lens_distortion[0]
         );
-        assert!(view <= 0.25 && view < 0.7 * view_nominal, "seed {seed}: views {view:.3}°");
-        assert!(light <= 0.3 && light < 0.7 * light_nominal, "seed {seed}: lights {light:.3}°");
+        // (k1 fitted: views 0.128° and 0.121°, lights 0.191° and 0.149°.)
+        assert!(view <= 0.11 && view < 0.4 * view_nominal, "seed {seed}: views {view:.3}°");
+        assert!(light <= 0.18 && light < 0.5 * light_nominal, "seed {seed}: lights {light:.3}°");
     }
 }
 

@@ -35,7 +35,8 @@ pub struct AssemblyTolerances {
     /// rarely known; the views' shapes across the image measure it. (Its
     /// k2 is the geometry file's: over the views' narrow field, r⁴ and r²
     /// are too alike to tell apart — fitted together, a true (−0.05, 0)
-    /// came out (−0.061, +0.139) with no better directions.)
+    /// came out (−0.061, +0.139) with no better directions.) 0 holds it
+    /// at the geometry file's: the views do not move it.
     pub lens_k1: f64,
     /// Mirror tilt, each edge, degrees.
     pub mirror_tilt_deg: f64,
@@ -61,6 +62,9 @@ impl Default for AssemblyTolerances {
 }
 
 const CAMERA: usize = 10;
+
+/// The lens' k1 among the camera's parameters.
+const K1: usize = 9;
 
 /// One highlight pair's linearisation: its parameters, residuals and the
 /// residuals' derivative along each parameter.
@@ -166,7 +170,7 @@ impl Model<'_> {
             [rot(r), rot(d), rot(f)],
             cam.focal_px * (1.0 + p[6]),
             [cam.principal_px[0] + p[7], cam.principal_px[1] + p[8]],
-            [cam.distortion[0] + p[9], cam.distortion[1]],
+            [cam.distortion[0] + p[K1], cam.distortion[1]],
         )
     }
 
@@ -195,6 +199,7 @@ pub fn adjust(
     highlights: Option<Highlights<'_>>,
 ) -> Adjusted {
     let scale = g.camera.focal_px / 5600.0;
+    let held_k1 = tol.lens_k1 <= 0.0 || tol.lens_k1.is_nan();
     let mut sigma: Vec<f64> = vec![
         tol.camera_rotation_deg.to_radians(),
         tol.camera_rotation_deg.to_radians(),
@@ -205,7 +210,8 @@ pub fn adjust(
         tol.focal_rel,
         tol.principal_px * scale,
         tol.principal_px * scale,
-        tol.lens_k1,
+        // Held, k1 keeps its prior's row alone and stays the file's.
+        if held_k1 { 1.0 } else { tol.lens_k1 },
     ];
     for _ in views {
         sigma.extend([
@@ -227,8 +233,10 @@ pub fn adjust(
     let build = |p: &[f64]| -> Normal {
         let mut eq = Normal::new(n);
         for (k, t) in targets.iter().enumerate() {
-            let params: Vec<usize> =
-                (0..CAMERA).chain(CAMERA + 3 * k..CAMERA + 3 * k + 3).collect();
+            let params: Vec<usize> = (0..CAMERA)
+                .filter(|&i| !(held_k1 && i == K1))
+                .chain(CAMERA + 3 * k..CAMERA + 3 * k + 3)
+                .collect();
             for (uv, target) in grid.iter().zip(t) {
                 let base = model.project(p, k, *uv);
                 let mut jx = Vec::with_capacity(params.len());

@@ -258,6 +258,10 @@ pub struct Calibration {
     /// already account for it. Absent in files from before it was fitted.
     #[serde(default)]
     pub lens_distortion: [f64; 2],
+    /// k1 was held at the geometry file's, not fitted: no view was located
+    /// by its corners ([`lens_measurable`]).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub lens_k1_held: bool,
 }
 
 /// Calibration settings.
@@ -410,7 +414,11 @@ pub fn calibrate(
     drop(sum);
     // The camera and the mirror planes, adjusted to all views at once.
     let homographies: Vec<Homography> = fits.iter().map(RegionFit::best).collect();
-    let tol = opts.tolerances;
+    let lens_k1_held = !lens_measurable(&fits);
+    let tol = match lens_k1_held {
+        true => AssemblyTolerances { lens_k1: 0.0, ..opts.tolerances },
+        false => opts.tolerances,
+    };
     let (adjusted, corner_sigma) = adjusted_views(g, &views, &homographies, &fits, &tol);
     let mut view_cal = view_calibrations(g, &fits, &adjusted);
     let mut lens_distortion = adjusted.lens_distortion;
@@ -501,6 +509,7 @@ pub fn calibrate(
         colour,
         defects,
         lens_distortion,
+        lens_k1_held,
     })
 }
 
@@ -573,6 +582,19 @@ fn grid_sigma(fits: &[RegionFit]) -> f64 {
     ((se.iter().sum::<f64>() / se.len() as f64) * 25.0 / 8.0).sqrt().max(0.05)
 }
 
+/// Whether the views can measure the lens' k1: some view has a corner
+/// fit. Located by the phase alignment alone (squares of a few pixels: a
+/// 512² sensor), the views' errors have a radial pattern that k1 absorbs:
+/// fitted, it came out −0.09 to −0.20 for a lens of none and −0.12 to −0.23
+/// for one of −0.05, and
+/// the directions bent with it (views 0.11–0.20° RMS from the as-built
+/// truth, against 0.09° with k1 held at the file's, even where the file
+/// did not know the −0.05; docs/benchmarks.md, "Calibration on a 512²
+/// sensor").
+fn lens_measurable(fits: &[RegionFit]) -> bool {
+    fits.iter().any(|f| f.corners.is_some())
+}
+
 /// The geometry adjusted to the views' homographies, and the standard
 /// error their grid points were given ([`grid_sigma`]). With no corner fit
 /// to measure it (squares of a few pixels: a small sensor), the phase
@@ -593,7 +615,7 @@ fn adjusted_views(
 ) -> (Adjusted, f64) {
     let sigma = grid_sigma(fits);
     let adjusted = adjust(g, views, homographies, sigma, tol, None);
-    if fits.iter().any(|f| f.corners.is_some()) {
+    if lens_measurable(fits) {
         return (adjusted, sigma);
     }
     let measured = adjusted.rms_px * (25.0f64 / 8.0).sqrt();

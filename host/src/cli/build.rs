@@ -294,13 +294,19 @@ pub fn calibrate_cmd(
         ),
         None => "nominal source home positions (no --glossy scan)".into(),
     };
+    let lens = match cal.lens_k1_held {
+        true => format!(
+            "lens distortion k1 {:+.4}, the geometry file's (held: no view's corners found to \
+             measure it)",
+            cal.lens_distortion[0]
+        ),
+        false => format!("lens distortion k1 {:+.4}", cal.lens_distortion[0]),
+    };
     println!(
-        "calibrated {} views and {} lights in {:.1} s: {located}; {lights}; lens distortion k1 \
-         {:+.4} → {}",
+        "calibrated {} views and {} lights in {:.1} s: {located}; {lights}; {lens} → {}",
         cal.views.len(),
         cal.lights.len(),
         started.elapsed().as_secs_f64(),
-        cal.lens_distortion[0],
         output.display()
     );
     println!("  time by stage: {stages}");
