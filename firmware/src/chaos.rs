@@ -290,6 +290,8 @@ pub struct Report {
     pub exposures: usize,
     /// Homings whose count was checked against the switch's edge.
     pub homed_at_switch: usize,
+    /// Of those, at a sensor wired (and configured) active high.
+    pub homed_active_high: usize,
     /// Position checks compared with the count's error.
     pub positions_checked: usize,
     /// Trigger pulses fired.
@@ -322,6 +324,7 @@ impl Report {
         self.on_target += other.on_target;
         self.exposures += other.exposures;
         self.homed_at_switch += other.homed_at_switch;
+        self.homed_active_high += other.homed_active_high;
         self.positions_checked += other.positions_checked;
         self.triggers += other.triggers;
         self.switch_hits += other.switch_hits;
@@ -380,7 +383,7 @@ pub fn run_logged(
     log: &mut dyn FnMut(&Logged),
 ) -> Result<Report, Violation> {
     let mut chaos = Chaos::new(entropy, log);
-    chaos.start();
+    chaos.start()?;
     for action in 0..actions {
         chaos.watch.action = action;
         if chaos.exhausted {
@@ -563,10 +566,26 @@ impl<'e, E: Entropy> Chaos<'e, E> {
     }
 
     /// The rig's own variations, drawn once.
-    fn start(&mut self) {
+    fn start(&mut self) -> Result<(), Violation> {
         self.calm = self.chance(500);
         self.rig.hw.storage_fails = self.chance(100);
         self.rig.hw.hardware_pulse = self.chance(500);
+        // Some rigs' sensors are wired active high (push-pull optical or
+        // Hall sensors): the host must say so, and until it does the
+        // controller reads them the other way round.
+        if self.chance(400) {
+            for i in 0..AXIS_COUNT {
+                self.rig.switch_active_high[i] = self.chance(500);
+            }
+            // Mostly its host says so as it first connects, and may save it.
+            if self.chance(700) {
+                let active_high = self.rig.switch_active_high;
+                self.send(Request::SetHomeSensors(protocol::HomeSensors { active_high }))?;
+                if self.chance(500) {
+                    self.send(Request::SaveConfig)?;
+                }
+            }
+        }
         if self.chance(300) {
             let active_high = self.chance(500);
             // Most cameras expose within 2 ms of their trigger; some (a
@@ -575,6 +594,7 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             let delay = self.below(most) as u64 * TICKS_PER_US;
             self.rig.strobe = Some(CameraStrobe { delay, active_high, ignores: self.chance(200) });
         }
+        Ok(())
     }
 
     // ----- randomness -----------------------------------------------------------
@@ -849,11 +869,12 @@ impl<'e, E: Entropy> Chaos<'e, E> {
             95 if self.chance(500) => Request::Reset,
             96 if self.chance(500) => Request::EnterBootloader,
             97 => {
-                // Mostly the wiring's own polarity (active low), sometimes
-                // one sensor the wrong way round.
-                let mut home = protocol::HomeSensors::default();
+                // Mostly the wiring's own polarity, sometimes one sensor
+                // the wrong way round.
+                let mut home = protocol::HomeSensors { active_high: self.rig.switch_active_high };
                 if self.chance(300) {
-                    home.active_high[self.below(AXIS_COUNT as u32) as usize] = true;
+                    let i = self.below(AXIS_COUNT as u32) as usize;
+                    home.active_high[i] = !home.active_high[i];
                 }
                 Request::SetHomeSensors(home)
             }
@@ -1210,6 +1231,7 @@ impl Watch {
             return Ok(());
         };
         self.report.homed_at_switch += 1;
+        self.report.homed_active_high += usize::from(rig.switch_active_high[axis.index()]);
         if home.error(rig.position(axis) as i64 - rig.physical(axis)).abs() > 1 {
             return Err(self.violation(rig, Rule::HomedOffSwitch, Some(axis)));
         }
