@@ -57,6 +57,18 @@ fn photograph_on(
     holder: f64,
     lens: impl Fn([f64; 2]) -> [f64; 2],
 ) -> Frame {
+    photograph_of(w, ht, h_uv, holder, lens, pattern)
+}
+
+/// [`photograph_on`] of a piece of another `pattern` (radiance at x, y mm).
+fn photograph_of(
+    w: u32,
+    ht: u32,
+    h_uv: &Homography,
+    holder: f64,
+    lens: impl Fn([f64; 2]) -> [f64; 2],
+    pattern: impl Fn(f64, f64) -> [f64; 3],
+) -> Frame {
     let inv = h_uv.inverse().unwrap();
     let mut rgb = Vec::with_capacity((w * ht * 3) as usize);
     for y in 0..ht {
@@ -230,6 +242,49 @@ fn the_corners_of_a_piece_on_a_dark_background_are_found() {
     let psnr = 10.0 * (1.0 / (se / want.rgb.len() as f64)).log10();
     eprintln!("rectified by the corners found against the true ones: {psnr:.2} dB");
     assert!(psnr >= 50.0, "{psnr:.2} dB");
+}
+
+/// A checker of 4 mm squares of 0.1 and 1.2 (a glossy foil's shade and
+/// highlights) on a background of 0.35.
+fn foil(x: f64, y: f64) -> [f64; 3] {
+    let odd = ((x / 4.0).floor() + (y / 4.0).floor()).rem_euclid(2.0) == 1.0;
+    [if odd { 1.2 } else { 0.1 }; 3]
+}
+
+/// A piece both brighter and darker than its background: neither its
+/// bright nor its dark parts make a quadrilateral, but where it differs
+/// from the background either way does, and each side's profiles cross
+/// its edge whichever way they differ.
+#[test]
+fn a_piece_brighter_and_darker_than_its_background_is_found() {
+    let mixed = |lens: &dyn Fn([f64; 2]) -> [f64; 2], corners: &[[f64; 2]; 4]| {
+        photograph_of(640, 480, &face_up(corners), 0.35, lens, foil)
+    };
+    let photo = mixed(&|p| p, &FACE_UP);
+    let found = find_corners(&photo, Origin::BottomLeft, PINHOLE).unwrap();
+    let e = worst_px(&found.corners, &FACE_UP);
+    eprintln!("{found:?}: {e:.3} px at worst");
+    // Measured 0.008 px (before: the dark square at a corner, 441 px off).
+    assert_eq!(found.polarity, Polarity::Mixed);
+    assert!(e <= 0.05, "{found:?}: {e:.3} px");
+    assert!(found.contrast >= 2.0 && found.edge_points > 500, "{found:?}");
+    // Through a lens, estimated from the same sides.
+    let k = [-0.03, 0.0];
+    let map = LensMap::new(Lens::radial(k), 640, 480).unwrap();
+    let photo = mixed(&|q| map.in_pinhole(q), &FACE_UP);
+    let corners = FACE_UP.map(|p| map.in_frame(p));
+    let found = find_corners(&photo, Origin::BottomLeft, LensChoice::Estimate).unwrap();
+    let e = worst_px(&found.corners, &corners);
+    eprintln!("through k1 {}: {found:?}: {e:.3} px at worst", k[0]);
+    assert_eq!(found.polarity, Polarity::Mixed);
+    assert!(e <= 0.05 && (found.lens.k[0] - k[0]).abs() < 0.001, "{found:?}: {e:.3} px");
+    // Marked 3 px off: refined the same way.
+    let marked = corners.map(|[x, y]| [x + 3.0, y - 2.0]);
+    let got = refine_corners(&photo, marked, LensChoice::Estimate).unwrap();
+    let e = worst_px(&got.corners, &corners);
+    eprintln!("marked: {got:?}: {e:.3} px at worst");
+    assert_eq!(got.polarity, Polarity::Mixed);
+    assert!(e <= 0.05, "{got:?}: {e:.3} px");
 }
 
 fn photo_face_up() -> Frame {

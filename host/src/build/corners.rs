@@ -8,10 +8,13 @@
 //!    sit between the two levels.
 //! 2. The largest 8-connected bright component that lies whole in the
 //!    photograph and is a quadrilateral is the piece (if that fails, the
-//!    largest such dark one: a dark piece on a white table); larger ones
-//!    that reach the photograph's edge or are of another shape are passed
-//!    over. Its convex hull gives the quadrilateral of largest area with
-//!    corners on the hull: the piece's outline to a pixel or two.
+//!    largest such dark one: a dark piece on a white table; if that fails
+//!    too, or its quadrilateral is only part of a larger one, the largest
+//!    region distinct from the background either way: a glossy piece's
+//!    highlights and shade); larger ones that reach the photograph's edge
+//!    or are of another shape are passed over. Its convex hull gives the
+//!    quadrilateral of largest area with corners on the hull: the piece's
+//!    outline to a pixel or two.
 //! 3. Each side is then found to a fraction of a pixel: across it, every
 //!    pixel along its length, the unblurred luminance's outermost crossing
 //!    of the level halfway between the piece just inside and the
@@ -140,6 +143,14 @@ const EDGE_FLAT_SHARE: f64 = 0.9;
 /// The least piece-over-background ratio across one edge profile for its
 /// crossing to count.
 const MIN_LOCAL_CONTRAST: f64 = 1.5;
+/// How much larger (by area) the quadrilateral of a piece differing from
+/// its background either way must be than the one found brighter or
+/// darker to be taken for the piece instead.
+const MIXED_LARGER: f64 = 1.2;
+/// Gaps in a distinct region up to twice this wide are closed, px.
+const CLOSE_PX: usize = 2;
+/// The photograph's border the background's level is read on, px.
+const BORDER_PX: usize = 2;
 
 /// Which way the piece differs from its background.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -148,6 +159,11 @@ pub enum Polarity {
     Brighter,
     /// The piece darker than its background (a white table).
     Darker,
+    /// Parts of the piece brighter and parts darker than its background
+    /// (a glossy textured piece: its highlights above a black holder's
+    /// level, its shade below a white card's): each edge profile the way
+    /// its own two sides differ.
+    Mixed,
 }
 
 impl Polarity {
@@ -156,14 +172,25 @@ impl Polarity {
         match self {
             Polarity::Brighter => piece / background,
             Polarity::Darker => background / piece,
+            Polarity::Mixed => (piece / background).max(background / piece),
         }
     }
 
-    /// Its regions' name: `bright` or `dark`.
+    /// Brighter or darker: as `piece` differs from `background` if mixed.
+    fn at(self, piece: f64, background: f64) -> Polarity {
+        match self {
+            Polarity::Mixed if piece >= background => Polarity::Brighter,
+            Polarity::Mixed => Polarity::Darker,
+            p => p,
+        }
+    }
+
+    /// Its regions' name: `bright`, `dark` or `distinct`.
     pub fn name(self) -> &'static str {
         match self {
             Polarity::Brighter => "bright",
             Polarity::Darker => "dark",
+            Polarity::Mixed => "distinct",
         }
     }
 }
@@ -171,7 +198,8 @@ impl Polarity {
 /// The piece's corners in `photo` (linear RGB, the piece brighter or
 /// darker than a plain background all round it), its uv (0, 0) at
 /// `origin`, its sides straight through `lens`. A bright piece is looked
-/// for first, then a dark one.
+/// for first, then a dark one, then one that differs from the background
+/// either way ([`Polarity::Mixed`]).
 pub fn find_corners(
     photo: &Frame,
     origin: Origin,
@@ -184,20 +212,104 @@ pub fn find_corners(
             "finding the piece's corners: {m} (or mark them: --corners X0,Y0,…,X3,Y3)"
         ))
     };
-    let Some(above) = bright(&lum.blurred(MASK_SIGMA_PX)) else {
+    let blurred = lum.blurred(MASK_SIGMA_PX);
+    let Some(above) = bright(&blurred) else {
         return Err(fail("the photograph is uniform".into()));
     };
-    let bright = find_in(&lum, &above, Polarity::Brighter, origin, lens);
-    let Err(as_bright) = bright else {
-        return bright.map_err(fail);
+    let distinct = distinct(&blurred);
+    // A piece both brighter and darker than its background shows only a
+    // part of itself as either (a square of a checker at its corner, say):
+    // where the piece differing either way makes a larger quadrilateral,
+    // that is the piece.
+    let larger = |found: &FoundCorners| {
+        first_quad(&distinct, lum.width, lum.height, Polarity::Mixed)
+            .is_some_and(|q| shoelace(&q).abs() > MIXED_LARGER * shoelace(&found.corners).abs())
+    };
+    let mixed = || find_in(&lum, &distinct, Polarity::Mixed, origin, lens);
+    let either =
+        |polarity: Polarity, mask: &[bool]| match find_in(&lum, mask, polarity, origin, lens) {
+            Ok(found) if larger(&found) => Ok(mixed().unwrap_or(found)),
+            other => other,
+        };
+    let as_bright = match either(Polarity::Brighter, &above) {
+        Ok(found) => return Ok(found),
+        Err(why) => why,
     };
     let below: Vec<bool> = above.iter().map(|a| !a).collect();
-    find_in(&lum, &below, Polarity::Darker, origin, lens).map_err(|as_dark| {
+    let as_dark = match either(Polarity::Darker, &below) {
+        Ok(found) => return Ok(found),
+        Err(why) => why,
+    };
+    mixed().map_err(|as_mixed| {
         fail(format!(
             "as a piece brighter than its background: {as_bright}; as a piece darker than its \
-             background: {as_dark}"
+             background: {as_dark}; as a piece differing from it either way: {as_mixed}"
         ))
     })
+}
+
+/// The first region of `mask` that may be the piece ([`find_in`]'s order):
+/// its quadrilateral before refinement.
+fn first_quad(mask: &[bool], w: usize, h: usize, polarity: Polarity) -> Option<[[f64; 2]; 4]> {
+    components(mask, w, h, MIN_REGION_PX).1.find_map(|piece| outline(&piece, polarity).ok())
+}
+
+/// Pixels that differ from the background by more than
+/// [`MIN_LOCAL_CONTRAST`] times either way, the background's level being
+/// the median of the photograph's border (the piece lies whole within it,
+/// background all round).
+fn distinct(lum: &Plane) -> Vec<bool> {
+    let (w, h) = (lum.width, lum.height);
+    let mut border: Vec<f64> = (0..w * h)
+        .filter(|i| {
+            let (x, y) = (i % w, i / w);
+            x < BORDER_PX || y < BORDER_PX || x + BORDER_PX >= w || y + BORDER_PX >= h
+        })
+        .map(|i| lum.data[i] as f64)
+        .collect();
+    border.sort_by(f64::total_cmp);
+    let level = border.get(border.len() / 2).copied().unwrap_or(0.0);
+    let ln = MIN_LOCAL_CONTRAST.ln();
+    let mask: Vec<bool> = lum
+        .data
+        .iter()
+        .map(|&v| level > 0.0 && v > 0.0 && ((v as f64) / level).ln().abs() > ln)
+        .collect();
+    // Lines of the piece as bright as the background (a dark stripe of a
+    // near-mirror on the black holder) would cut it into bands, each a
+    // quadrilateral of its own: closed over.
+    let grown = spread(&mask, w, h, CLOSE_PX, false);
+    spread(&grown, w, h, CLOSE_PX, true)
+}
+
+/// A square window of `2r + 1` px over `mask`: each pixel set where any
+/// pixel within it is (`all` false: dilation) or where every one within
+/// the photograph is (`all` true: erosion).
+fn spread(mask: &[bool], w: usize, h: usize, r: usize, all: bool) -> Vec<bool> {
+    // Along rows, then along columns: a square window is both in turn.
+    let pass = |src: &[bool], len: usize, lines: usize, at: &dyn Fn(usize, usize) -> usize| {
+        let mut out = vec![false; src.len()];
+        for line in 0..lines {
+            let mut count = 0usize; // set pixels within the window
+            let get = |i: usize| usize::from(src[at(line, i)]);
+            for i in 0..r.min(len) {
+                count += get(i);
+            }
+            for i in 0..len {
+                if i + r < len {
+                    count += get(i + r);
+                }
+                if i > r {
+                    count -= get(i - r - 1);
+                }
+                let span = (i + r).min(len - 1) + 1 - i.saturating_sub(r);
+                out[at(line, i)] = if all { count == span } else { count > 0 };
+            }
+        }
+        out
+    };
+    let rows = pass(mask, w, h, &|y, x| y * w + x);
+    pass(&rows, h, w, &|x, y| y * w + x)
 }
 
 /// [`find_corners`] for a piece of `polarity` on the pixels of `mask`:
@@ -215,7 +327,7 @@ fn find_in(
     let (count, regions) = components(mask, lum.width, lum.height, MIN_REGION_PX);
     let mut passed: Option<String> = None;
     for (passed_over, piece) in regions.enumerate() {
-        let quad = match outline(&piece) {
+        let quad = match outline(&piece, polarity) {
             Ok(quad) => quad,
             Err(why) => {
                 passed.get_or_insert(why);
@@ -223,7 +335,8 @@ fn find_in(
             }
         };
         let found = through(lum, quad, polarity, lens, &PROFILE_HALF_PX)?;
-        return Ok(FoundCorners { corners: ordered(found.corners, origin)?, passed_over, ..found });
+        let corners = ordered(found.corners, origin)?;
+        return Ok(FoundCorners { corners, passed_over, ..found });
     }
     Err(match passed {
         None => format!("no {region} region of {MIN_REGION_PX} px or more"),
@@ -239,7 +352,7 @@ fn find_in(
 /// A region's quadrilateral, or why it is not the piece: it reaches the
 /// photograph's edge, or its area is not that of the largest quadrilateral
 /// inside its outline.
-fn outline(piece: &Component) -> Result<[[f64; 2]; 4], String> {
+fn outline(piece: &Component, polarity: Polarity) -> Result<[[f64; 2]; 4], String> {
     if piece.touches_edge {
         return Err("reaches the photograph's edge (the piece must lie whole in the \
                     photograph, with background all round it)"
@@ -250,7 +363,13 @@ fn outline(piece: &Component) -> Result<[[f64; 2]; 4], String> {
         return Err("has no area".into());
     };
     let area = shoelace(&quad).abs();
-    let fill = piece.pixels as f64 / area.max(1.0);
+    // A mixed piece's pixels as near its background as the background
+    // itself are holes in it: its rows' spans measure it.
+    let covered = match polarity {
+        Polarity::Mixed => piece.spans,
+        _ => piece.pixels as f64,
+    };
+    let fill = covered / area.max(1.0);
     if !(MIN_FILL..=1.0 / MIN_FILL).contains(&fill) {
         return Err(format!(
             "is not a quadrilateral: its area is {:.0} % of the largest one inside its outline \
@@ -282,6 +401,13 @@ pub fn refine_corners(
         Polarity::Brighter
     } else {
         Polarity::Darker
+    };
+    // Neither all brighter nor all darker, but differing either way.
+    let polarity = match contrast(&seen, &marked, polarity) < MIN_CONTRAST
+        && contrast(&seen, &marked, Polarity::Mixed) >= MIN_CONTRAST
+    {
+        true => Polarity::Mixed,
+        false => polarity,
     };
     through(&lum, marked, polarity, lens, &[6.0, 4.0, 2.5]).map_err(fail)
 }
@@ -550,6 +676,8 @@ fn bright(lum: &Plane) -> Option<Vec<bool>> {
 struct Component {
     /// Its pixels.
     pixels: usize,
+    /// The pixels from each row's leftmost to its rightmost, holes and all.
+    spans: f64,
     /// Whether it has a pixel on the image's border.
     touches_edge: bool,
     /// Its outline's extreme points: each row's leftmost and rightmost
@@ -599,7 +727,7 @@ fn components(
     let count = order.len();
     let each = order.into_iter().map(move |i| {
         let (pixels, [x0, y0, x1, y1]) = found[i];
-        let mut outline = Vec::new();
+        let (mut outline, mut spans) = (Vec::new(), 0.0);
         for y in y0..=y1 {
             let row = &label[y * w + x0..=y * w + x1];
             let (Some(a), Some(b)) =
@@ -608,10 +736,11 @@ fn components(
                 continue;
             };
             let (a, b, y) = ((x0 + a) as f64, (x0 + b) as f64 + 1.0, y as f64);
+            spans += b - a;
             outline.extend([[a, y], [a, y + 1.0], [b, y], [b, y + 1.0]]);
         }
         let touches_edge = x0 == 0 || y0 == 0 || x1 == w - 1 || y1 == h - 1;
-        Component { pixels, touches_edge, outline }
+        Component { pixels, spans, touches_edge, outline }
     });
     (count, each)
 }
@@ -822,13 +951,14 @@ fn crossing(
     if ratio.is_nan() || ratio < MIN_LOCAL_CONTRAST {
         return None;
     }
+    let polarity = polarity.at(inside, outside);
     let level = 0.5 * (inside + outside);
     let mut best: Option<f64> = None;
     for i in 0..profile.len() - 1 {
         let (v0, v1) = (profile[i], profile[i + 1]);
         // From the piece's side of the level to the background's.
         let across = match polarity {
-            Polarity::Brighter => v0 >= level && v1 < level,
+            Polarity::Brighter | Polarity::Mixed => v0 >= level && v1 < level,
             Polarity::Darker => v0 < level && v1 >= level,
         };
         if across {
@@ -980,7 +1110,13 @@ fn contrast(seen: &Seen<'_>, quad: &[[f64; 2]; 4], polarity: Polarity) -> f64 {
             s += 2.0;
         }
     }
-    polarity.ratio(median(&inside), median(&outside))
+    match polarity {
+        // Each place the way it differs.
+        Polarity::Mixed => median(
+            &inside.iter().zip(&outside).map(|(&i, &o)| polarity.ratio(i, o)).collect::<Vec<_>>(),
+        ),
+        _ => polarity.ratio(median(&inside), median(&outside)),
+    }
 }
 
 /// The corners counter-clockwise as the photograph is seen, from the one

@@ -1140,6 +1140,7 @@ pub fn rectify_cmd(
         let polarity = match found.polarity {
             crate::build::corners::Polarity::Brighter => "brighter",
             crate::build::corners::Polarity::Darker => "darker",
+            crate::build::corners::Polarity::Mixed => "brighter and darker",
         };
         println!(
             "{}: the piece's corners at {} px (its sides straight within {:.2} px RMS over {} \
