@@ -586,11 +586,10 @@ fn grid_sigma(fits: &[RegionFit]) -> f64 {
 /// fit. Located by the phase alignment alone (squares of a few pixels: a
 /// 512² sensor), the views' errors have a radial pattern that k1 absorbs:
 /// fitted, it came out −0.09 to −0.20 for a lens of none and −0.12 to −0.23
-/// for one of −0.05, and
-/// the directions bent with it (views 0.11–0.20° RMS from the as-built
-/// truth, against 0.09° with k1 held at the file's, even where the file
-/// did not know the −0.05; docs/benchmarks.md, "Calibration on a 512²
-/// sensor").
+/// for one of −0.05, and the directions bent with it (views 0.11–0.20° RMS
+/// from the as-built truth, against 0.09° with k1 held at the file's, even
+/// where the file did not know the −0.05; docs/benchmarks.md, "Calibration
+/// on a 512² sensor").
 fn lens_measurable(fits: &[RegionFit]) -> bool {
     fits.iter().any(|f| f.corners.is_some())
 }

@@ -335,8 +335,7 @@ fn find_in(
             }
         };
         let found = through(lum, quad, polarity, lens, &PROFILE_HALF_PX)?;
-        let corners = ordered(found.corners, origin)?;
-        return Ok(FoundCorners { corners, passed_over, ..found });
+        return Ok(FoundCorners { corners: ordered(found.corners, origin)?, passed_over, ..found });
     }
     Err(match passed {
         None => format!("no {region} region of {MIN_REGION_PX} px or more"),
@@ -397,17 +396,16 @@ pub fn refine_corners(
     super::rectify::check_corners(&marked, photo.width, photo.height).map_err(fail)?;
     let lum = luminance(photo);
     let seen = Seen::new(&lum, Lens::PINHOLE).map_err(fail)?;
-    let polarity = if contrast(&seen, &marked, Polarity::Brighter) >= 1.0 {
+    let brighter = contrast(&seen, &marked, Polarity::Brighter);
+    // Neither 2× brighter nor 2× darker, but differing 2× either way: mixed.
+    let polarity = if brighter.max(1.0 / brighter) < MIN_CONTRAST
+        && contrast(&seen, &marked, Polarity::Mixed) >= MIN_CONTRAST
+    {
+        Polarity::Mixed
+    } else if brighter >= 1.0 {
         Polarity::Brighter
     } else {
         Polarity::Darker
-    };
-    // Neither all brighter nor all darker, but differing either way.
-    let polarity = match contrast(&seen, &marked, polarity) < MIN_CONTRAST
-        && contrast(&seen, &marked, Polarity::Mixed) >= MIN_CONTRAST
-    {
-        true => Polarity::Mixed,
-        false => polarity,
     };
     through(&lum, marked, polarity, lens, &[6.0, 4.0, 2.5]).map_err(fail)
 }
