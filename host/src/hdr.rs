@@ -155,7 +155,10 @@ fn along(values: &[f32], out: &mut [f32], broken: &[usize], both: impl Fn(f32, f
 ///    noise, nor on that of the exposures it is merged with.
 /// 2. A counted exposure whose darker code two pixels along is not
 ///    [`CLEAR_SIGMAS`] of its noise above 0 is dropped, unless none is
-///    left: then the longest counted is kept.
+///    left: then the longest exposure that is counted or read black (code
+///    0) is kept — near black the longest exposure says most, and its 0
+///    is a reading: a shorter exposure's code 1 there is read noise times
+///    the ratio of the exposures.
 /// 3. The merge is the mean of the kept ones' rates weighted by the inverse
 ///    variance of the mean of their codes two pixels along: a weight taken
 ///    from a value's own noisy code favours the values noise moved down
@@ -206,44 +209,51 @@ pub fn merge(
                 (
                     vec![0.0f32; chunk],
                     [vec![0.0f32; chunk], vec![0.0f32; chunk]],
-                    [(); 3].map(|_| vec![0u32; chunk]),
+                    [(); 4].map(|_| vec![0u32; chunk]),
                 )
             },
-            |(den, [dark, bright], [counted, kept, saturated]), (row, line)| {
+            |(den, [dark, bright], [counted, kept, saturated, black]), (row, line)| {
                 let start = row * chunk;
                 let n = line.len();
                 let broken: Vec<usize> =
                     defects.row(first, row as u32).iter().map(|d| d.x as usize).collect();
                 let (den, dark, bright) = (&mut den[..n], &mut dark[..n], &mut bright[..n]);
-                let (counted, kept, saturated) =
-                    (&mut counted[..n], &mut kept[..n], &mut saturated[..n]);
+                let (counted, kept, saturated, black) =
+                    (&mut counted[..n], &mut kept[..n], &mut saturated[..n], &mut black[..n]);
                 // By exposure bit: counted (step 1), clear of black (step 2),
-                // saturated.
+                // saturated, black.
                 counted.fill(0);
                 kept.fill(0);
                 saturated.fill(0);
+                black.fill(0);
                 for (bit, &(rgb, _, _)) in exposures.iter().enumerate() {
                     let values = &rgb[start..start + n];
                     let bit = 1u32 << bit;
                     along(values, dark, &broken, f32::min);
                     along(values, bright, &broken, f32::max);
-                    for ((&v, (&dk, &br)), (c, (k, sat))) in values
-                        .iter()
-                        .zip(dark.iter().zip(bright.iter()))
-                        .zip(counted.iter_mut().zip(kept.iter_mut().zip(saturated.iter_mut())))
+                    for ((&v, (&dk, &br)), ((c, z), (k, sat))) in
+                        values.iter().zip(dark.iter().zip(bright.iter())).zip(
+                            counted
+                                .iter_mut()
+                                .zip(black.iter_mut())
+                                .zip(kept.iter_mut().zip(saturated.iter_mut())),
+                        )
                     {
                         let measured = (v >= lowest) & (v < highest);
                         let take = measured & ((*c == 0) | (br < clear_top));
                         *c |= if take { bit } else { 0 };
+                        *z |= if v < lowest { bit } else { 0 };
                         *k |= if dk > clear_black { bit } else { 0 };
                         *sat |= if v >= highest { bit } else { 0 };
                     }
                 }
                 // Step 2: the counted exposures clear of black, else the
-                // longest counted.
-                for (&c, k) in counted.iter().zip(kept.iter_mut()) {
+                // longest exposure that is counted or black (a black one
+                // read 0: no shorter exposure's noise says more).
+                for ((&c, &z), k) in counted.iter().zip(black.iter()).zip(kept.iter_mut()) {
                     let both = c & *k;
-                    *k = if both != 0 || c == 0 { both } else { 1 << c.ilog2() };
+                    let either = c | z;
+                    *k = if both != 0 || either == 0 { both } else { 1 << either.ilog2() };
                 }
                 // Step 3: weights from the codes along (their mean).
                 line.fill(0.0);
@@ -268,6 +278,9 @@ pub fn merge(
                 for (j, o) in line.iter_mut().enumerate() {
                     // Looked up only for the few values no exposure measured.
                     let counted = || usize::from(!defects.contains(first, (start + j) / 3));
+                    if black[j] == every {
+                        stats.black += counted();
+                    }
                     *o = if den[j] > 0.0 {
                         *o / den[j] * to_reference
                     } else if saturated[j] == every {
@@ -275,7 +288,6 @@ pub fn merge(
                         let (rgb, t) = shortest;
                         (rgb[start + j] as f64 * reference_us as f64 / t as f64) as f32
                     } else {
-                        stats.black += counted();
                         0.0
                     };
                 }
@@ -610,10 +622,16 @@ mod tests {
         let gain = max / s.full_well_e;
         let var = |c: f64| gain * c.max(0.0) + gain * gain * 9.0 + 1.0 / 12.0;
         let exposures = [500u32, 4_000, 20_000];
-        let codes: Vec<[u32; 3]> = (0..400u32)
-            .map(|i| [i * 7 % 4096, (i * 131 + 5) % 4096, (i * 977 + 11) % 4096])
-            .map(|c| if c[0] % 5 == 0 { [c[0] / 40, c[1] / 8, c[2]] } else { c })
-            .collect();
+        let codes: Vec<[u32; 3]> =
+            (0..400u32)
+                .map(|i| [i * 7 % 4096, (i * 131 + 5) % 4096, (i * 977 + 11) % 4096])
+                .map(|c| if c[0] % 5 == 0 { [c[0] / 40, c[1] / 8, c[2]] } else { c })
+                .enumerate()
+                // A dark patch whose longest exposure reads black.
+                .map(|(i, c)| {
+                    if (200..212).contains(&i) { [i as u32 % 3, (i as u32 / 3) % 2, 0] } else { c }
+                })
+                .collect();
         let frames: Vec<Frame> = (0..3)
             .map(|k| {
                 let v: Vec<f32> =
@@ -623,7 +641,7 @@ mod tests {
             .collect();
         let inputs: Vec<(&Frame, u32)> = frames.iter().zip(exposures).collect();
         let (m, _) = merge(&inputs, &s, 0, 20_000, &DefectMap::default()).unwrap();
-        let (mut three, mut dropped_high, mut dropped_low) = (0, 0, 0);
+        let (mut three, mut dropped_high, mut dropped_low, mut black_longest) = (0, 0, 0, 0);
         for (p, c) in codes.iter().enumerate() {
             let tm = |k: usize| max * exposures[k] as f64 * 1e-6;
             // The codes two pixels along, at either end the one there is.
@@ -649,10 +667,13 @@ mod tests {
                 .copied()
                 .filter(|&k| along(k).0 > 0.0 && along(k).0.powi(2) > 9.0 * var(along(k).0))
                 .collect();
-            if kept.is_empty() && !counted.is_empty() {
-                kept.push(*counted.last().unwrap());
+            // None clear of black: the longest counted or black one.
+            let black = (0..3).filter(|&k| c[k] == 0);
+            if kept.is_empty() {
+                kept.extend(counted.iter().copied().chain(black).max());
             }
-            dropped_low += counted.len() - kept.len();
+            dropped_low += counted.len().saturating_sub(kept.len());
+            black_longest += usize::from(kept.len() == 1 && c[kept[0]] == 0 && !counted.is_empty());
             three += usize::from(kept.len() == 3);
             // 3.
             let (mut num, mut den) = (0.0, 0.0);
@@ -672,8 +693,8 @@ mod tests {
         }
         // Every step decided something.
         assert!(
-            three > 10 && dropped_high > 10 && dropped_low > 10,
-            "{three} {dropped_high} {dropped_low}"
+            three > 10 && dropped_high > 10 && dropped_low > 10 && black_longest > 0,
+            "{three} {dropped_high} {dropped_low} {black_longest}"
         );
     }
 
@@ -781,6 +802,35 @@ mod tests {
                 "bias {:+.4} % (± {:.4} %) at {level:.4} of the longest's full scale, black {black}",
                 bias * 100.0,
                 sem * 100.0
+            );
+        }
+    }
+
+    /// Near black, below what even the longest exposure tells from its
+    /// read noise, the merge is the longest exposure's reading, 0 codes
+    /// included: a bracket a glossy sample's highlights extended down to
+    /// 64 µs holds exposures 15 600× shorter, and a black pixel's code 1
+    /// there (its read noise, 1.2 codes) is 15 600 codes of the longest.
+    /// Before session 93, step 2 kept the longest exposure that read
+    /// above 0, whatever a longer one's 0 said: the black holder around
+    /// chrome, merged from such brackets at 4096², read 0.2 of full scale
+    /// per second (20 % of the longest exposure's full scale), brighter
+    /// than the sample, and its face was measured 8.5 mm off.
+    #[test]
+    fn a_black_pixel_merges_to_the_longest_exposures_reading() {
+        let exposures = [64u32, 320, 1_600, 8_000, 40_000, 200_000, 1_000_000];
+        let n = 100_000;
+        let code = 1.0 / 4095.0; // one code of the longest exposure, per second
+        for (i, codes) in [0.0f64, 0.5, 2.0, 8.0].into_iter().enumerate() {
+            let rate = codes * code;
+            let frames = draws(rate, &exposures, n, 900 + i as u64);
+            let rates = merged_rates(&frames, &exposures, 0);
+            let mean = rates.iter().sum::<f64>() / n as f64;
+            // The longest exposure's reading clipped at 0: within half a code.
+            assert!(
+                (mean - rate).abs() < 0.5 * code,
+                "{codes} codes of the longest exposure: merged {:.3} codes",
+                mean / code
             );
         }
     }

@@ -269,6 +269,10 @@ pub fn calibrate_cmd(
         n if n == cal.views.len() => {
             format!("every view by its checker corners (largest fit residual {rms:.3} px)")
         }
+        1 => format!(
+            "1 view by its checker corners (fit residual {rms:.3} px), the rest by Fourier \
+             phase{outdone}"
+        ),
         n => format!(
             "{n} views by their checker corners (largest fit residual {rms:.3} px), the rest by \
              Fourier phase{outdone}"
