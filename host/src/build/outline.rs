@@ -12,13 +12,15 @@
 //! the corners) are read across the edge on the view's luminance (the mean
 //! over the lights read): the edge lies where the area under the profile,
 //! between the level inside and the holder's outside, puts it — exact for a
-//! pixel-integrated step at any sub-pixel phase. The face (height at the
-//! centre, slopes along u and v) is fitted to every view's edge positions
-//! by Gauss–Newton, together with three nuisances the views share (the
-//! sample's shift along u and v and its scale against the calibrated
-//! square); the windows across the edges shrink from what a
-//! [`super::height::MAX_TILT_DEG`] tilt spans to 2 px as the fit
-//! converges, the points weighted by Tukey's biweight on their residuals.
+//! pixel-integrated step at any sub-pixel phase; the sample may be
+//! brighter than the holder or darker (each view's polarity is its edge
+//! points' median's). The face (height at the centre, slopes along u and
+//! v) is fitted to every view's edge positions by Gauss–Newton, together
+//! with three nuisances the views share (the sample's shift along u and v
+//! and its scale against the calibrated square); the windows across the
+//! edges shrink from what a [`super::height::MAX_TILT_DEG`] tilt spans to
+//! 2 px as the fit converges, the points weighted by Tukey's biweight on
+//! their residuals.
 //! The uncertainties are delete-a-group jackknifes, over groups of views
 //! and over the four edges (a texture along one edge moves it in every
 //! view alike), the larger of the two.
@@ -254,7 +256,9 @@ fn predict(
 /// px) and the inside's, a line (Theil–Sen) through [−w − 6, −w] px
 /// carried on to the edge — a glossy sample's shading varies across its
 /// edges, by view, and a level taken away from the edge would move it.
-/// `None` without a step down to the outside.
+/// Either way: a sample darker than the holder there (a near-mirror seen
+/// away from its highlights, a dark sample on a grey holder) steps up to
+/// the outside, its contrast negative. `None` without a step.
 fn measure(
     lum: &dyn Luminance,
     view: usize,
@@ -280,12 +284,14 @@ fn measure(
     let slope = super::calibrate::median(slopes)?;
     let intercept = super::calibrate::median((0..IN).map(|k| ls[k] - slope * ts[k]).collect())?;
     let contrast = intercept - outside;
-    if contrast.is_nan() || contrast <= 0.0 {
+    if contrast.is_nan() || contrast == 0.0 {
         return None;
     }
-    // The inside's level may not fall below a tenth of the step at the
-    // edge (a line carried on too far).
-    let inside = |t: f64| (intercept + slope * t - outside).max(0.1 * contrast);
+    // The inside's level may not come nearer the outside's than a tenth of
+    // the step at the edge (a line carried on too far).
+    let sign = contrast.signum();
+    let inside =
+        |t: f64| sign * (sign * (intercept + slope * t - outside)).max(0.1 * sign * contrast);
     // The trapezoid rule on a quarter-pixel lattice.
     let steps = (8.0 * w).round() as usize;
     let dt = 2.0 * w / steps as f64;
@@ -301,7 +307,9 @@ fn measure(
 /// The level face's height within ±`range_mm` whose outline the views'
 /// edges match best, on a grid of half a pixel of the largest parallax:
 /// per view the steps' contrast across its predicted edges (inside −
-/// outside, 1.5 px either side) over their levels, summed over the views.
+/// outside, 1.5 px either side) over their levels, its magnitude (a sample
+/// may be darker than the holder in a view: a near-mirror away from its
+/// highlights), summed over the views.
 /// `None` when no view is lit.
 pub fn coarse_height(
     g: &ScannerGeometry,
@@ -344,7 +352,7 @@ pub fn coarse_height(
                     step += inside - outside;
                     level += inside.abs() + outside.abs();
                 }
-                if level > 0.0 { step / level } else { 0.0 }
+                if level > 0.0 { step.abs() / level } else { 0.0 }
             })
             .sum()
     };
@@ -424,10 +432,14 @@ pub fn measure_outline(
                     contrasts.push(contrast);
                     out.push((Reading { view: vi, edge: q.edge, offset, grad }, contrast));
                 }
-                // Points whose step is faint against the view's are where
-                // the edge is dark (a dark texel, a shadow): left out.
+                // The view's polarity is its points' median's (a sample
+                // brighter or darker than the holder). Points whose step is
+                // faint against it, or of the other sign, are where the
+                // edge's texels match the holder (a dark texel on a black
+                // holder, a shadow): left out.
                 let typical = super::calibrate::median(contrasts).unwrap_or(0.0);
-                out.into_iter().filter(move |r| r.1 >= 0.25 * typical).map(|r| r.0)
+                let sign = typical.signum();
+                out.into_iter().filter(move |r| sign * r.1 >= 0.25 * sign * typical).map(|r| r.0)
             })
             .collect()
     };
@@ -598,8 +610,146 @@ mod tests {
         // No step down to the outside: nothing measured.
         let flat = Step::new([1.0, 0.0], 30.0, 0.5, 0.5);
         assert!(measure(&flat, 0, [30.0, 30.0], [1.0, 0.0], 2.0).is_none());
-        let inverted = Step::new([1.0, 0.0], 30.0, 0.1, 0.5);
-        assert!(measure(&inverted, 0, [30.0, 30.0], [1.0, 0.0], 2.0).is_none());
+        // A step up to the outside (a sample darker than the holder) is
+        // measured the same, its contrast negative.
+        for (deg, c) in [(0.0, 30.3), (23.0, 29.5)] {
+            let a: f64 = f64::to_radians(deg);
+            let n = [a.cos(), a.sin()];
+            let step = Step::new(n, c, 0.1, 0.5);
+            for (start, w) in [(0.0, 2.0), (0.9, 2.0), (-4.0, 6.0)] {
+                let p = [(c + start) * n[0] + 3.0 * -n[1], (c + start) * n[1] + 3.0 * n[0]];
+                let (e, contrast) = measure(&step, 0, p, n, w).unwrap();
+                assert!((e + start).abs() < 0.03, "darker, {deg}° from {start} px, ±{w}: {e}");
+                assert!((contrast + 0.4).abs() < 1e-9, "{contrast}");
+            }
+        }
+    }
+
+    /// Every view of `g` as calibrated to its nominal geometry.
+    fn nominal_views(g: &ScannerGeometry) -> Vec<ViewCalibration> {
+        use scanner_geometry::{DVec3, reflect_in_plane, world_to_sample};
+        let centre = g.sample_point([0.5, 0.5]);
+        (0..g.mirrors.len())
+            .map(|l| {
+                let m = &g.mirrors[l];
+                let (point, normal) = (DVec3::from(m.center_mm), DVec3::from(m.normal));
+                let camera = reflect_in_plane(DVec3::from(g.camera.position_mm), point, normal);
+                let h = super::super::locate::nominal_homography(g, l).unwrap();
+                ViewCalibration {
+                    view: l,
+                    homography: h,
+                    homography_phase: h,
+                    corners_used: 0,
+                    corner_rms_px: 0.0,
+                    located_by: None,
+                    phase_rms_px: None,
+                    edge_offsets_px: None,
+                    direction: world_to_sample((camera - centre).normalize()).to_array(),
+                    mirror_point_mm: m.center_mm,
+                    mirror_normal: m.normal,
+                }
+            })
+            .collect()
+    }
+
+    /// Each view's luminance of a uniform sample whose face lies at
+    /// `face`: `inside` on it, `outside` on the holder, `flip` views with
+    /// the two swapped; pixels integrated over 4 × 4 points, read
+    /// bilinearly between pixel centres.
+    struct Seen {
+        images: Vec<([usize; 4], Vec<f64>)>,
+    }
+
+    impl Seen {
+        fn new(
+            g: &ScannerGeometry,
+            views: &[ViewCalibration],
+            face: SampleFace,
+            levels: [f64; 2],
+            flip: &dyn Fn(usize) -> bool,
+        ) -> Seen {
+            let images = views
+                .iter()
+                .map(|v| {
+                    let r = v.homography_at_face(g, face).window(30.0);
+                    let to_uv = v.homography_at_face(g, face).inverse().unwrap();
+                    let [inside, outside] =
+                        if flip(v.view) { [levels[1], levels[0]] } else { levels };
+                    let (w, h) = (r[2] - r[0], r[3] - r[1]);
+                    let pixels = (0..w * h)
+                        .map(|i| {
+                            let (x, y) = ((r[0] + i % w) as f64, (r[1] + i / w) as f64);
+                            let on = (0..16)
+                                .filter(|k| {
+                                    let p = [
+                                        x + (0.5 + (k % 4) as f64) / 4.0,
+                                        y + (0.5 + (k / 4) as f64) / 4.0,
+                                    ];
+                                    let uv = to_uv.apply(p);
+                                    uv.iter().all(|t| (0.0..=1.0).contains(t))
+                                })
+                                .count() as f64
+                                / 16.0;
+                            on * inside + (1.0 - on) * outside
+                        })
+                        .collect();
+                    (r, pixels)
+                })
+                .collect();
+            Seen { images }
+        }
+    }
+
+    impl Luminance for Seen {
+        fn at(&self, view: usize, p: [f64; 2]) -> f64 {
+            let (r, pixels) = &self.images[view];
+            let (w, h) = (r[2] - r[0], r[3] - r[1]);
+            let (fx, fy) = (p[0] - 0.5 - r[0] as f64, p[1] - 0.5 - r[1] as f64);
+            let (x0, y0) = (fx.floor(), fy.floor());
+            let (tx, ty) = (fx - x0, fy - y0);
+            let at = |x: f64, y: f64| {
+                pixels[(y.max(0.0) as usize).min(h - 1) * w + (x.max(0.0) as usize).min(w - 1)]
+            };
+            let top = at(x0, y0) * (1.0 - tx) + at(x0 + 1.0, y0) * tx;
+            let bottom = at(x0, y0 + 1.0) * (1.0 - tx) + at(x0 + 1.0, y0 + 1.0) * tx;
+            top * (1.0 - ty) + bottom * ty
+        }
+
+        fn lit(&self, _: usize) -> bool {
+            true
+        }
+    }
+
+    /// The face from the outline of a sample brighter than the holder,
+    /// darker than it (a near-mirror away from its highlights, a dark
+    /// sample on a grey holder), and brighter in some views and darker in
+    /// others: found alike. Before session 93 only the first was measured:
+    /// a darker sample's edges were none, and the coarse search, which
+    /// summed the views' signed contrasts, went wherever something
+    /// brighter lay inside a predicted outline.
+    #[test]
+    fn the_outline_is_found_whether_the_sample_is_brighter_or_darker_than_the_holder() {
+        let g = ScannerGeometry::default_scanner().with_sensor_scaled(4);
+        let views = nominal_views(&g);
+        let face = SampleFace { height_mm: 0.6, slope: [0.0; 2] };
+        let reach = super::super::height::MAX_TILT_DEG.to_radians().tan() * g.sample.size_mm;
+        let cases: [(&str, [f64; 2], &dyn Fn(usize) -> bool); 3] = [
+            ("brighter", [0.6, 0.02], &|_| false),
+            ("darker", [0.02, 0.3], &|_| false),
+            ("either", [0.5, 0.05], &|l| l % 3 == 0),
+        ];
+        for (name, levels, flip) in cases {
+            let seen = Seen::new(&g, &views, face, levels, flip);
+            let coarse = coarse_height(&g, &views, &seen, 10.0).unwrap();
+            assert!((coarse - 0.6).abs() < 0.5, "{name}: coarse {coarse} mm");
+            let fit = measure_outline(&g, &views, &seen, coarse, reach).unwrap();
+            assert!(
+                (fit.face.height_mm - 0.6).abs() < 0.01
+                    && fit.face.slope.iter().all(|s| s.abs() < 1e-3)
+                    && fit.views == views.len(),
+                "{name}: {fit:?}"
+            );
+        }
     }
 
     /// Gauss–Newton with Tukey's weights: readings generated by a known
