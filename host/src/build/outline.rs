@@ -154,7 +154,9 @@ pub fn beyond_edges(
                 return None;
             }
             let (f, a, i) = (facing[0] / facing[1], away[0] / away[1], inside[0] / inside[1]);
-            (i > a).then(|| (f - a) / (i - a))
+            // Either polarity: a sample darker than the holder has sides
+            // darker than it too.
+            (i != a).then(|| (f - a) / (i - a))
         })
         .collect();
     let n = excess.len();
@@ -654,7 +656,8 @@ mod tests {
 
     /// Each view's luminance of a uniform sample whose face lies at
     /// `face`: `inside` on it, `outside` on the holder, swapped in every
-    /// `flip`-th view (0: none); pixels integrated over 4 × 4 points, read
+    /// `flip`-th view (0: none); with `sides` (level, depth mm), sides of
+    /// that level below the face's edges, seen beyond those facing a view; pixels integrated over 4 × 4 points, read
     /// bilinearly between pixel centres.
     struct Seen {
         images: Vec<([usize; 4], Vec<f64>)>,
@@ -667,6 +670,7 @@ mod tests {
             face: SampleFace,
             levels: [f64; 2],
             flip: usize,
+            sides: Option<(f64, f64)>,
         ) -> Seen {
             let images = views
                 .iter()
@@ -678,22 +682,35 @@ mod tests {
                     } else {
                         levels
                     };
+                    let reach: [f64; 4] = std::array::from_fn(|e| side_reach(v, face, e));
+                    let size = g.sample.size_mm;
+                    // A point's level by its uv on the face's plane.
+                    let level = |uv: [f64; 2]| -> f64 {
+                        let beyond = [-uv[1], uv[0] - 1.0, uv[1] - 1.0, -uv[0]];
+                        let (edge, d) = (0..4)
+                            .map(|e| (e, beyond[e]))
+                            .max_by(|a, b| a.1.total_cmp(&b.1))
+                            .unwrap();
+                        match sides {
+                            _ if d <= 0.0 => inside,
+                            Some((level, depth)) if d * size <= depth * reach[edge] => level,
+                            _ => outside,
+                        }
+                    };
                     let (w, h) = (r[2] - r[0], r[3] - r[1]);
                     let pixels = (0..w * h)
                         .map(|i| {
                             let (x, y) = ((r[0] + i % w) as f64, (r[1] + i / w) as f64);
-                            let on = (0..16)
-                                .filter(|k| {
+                            (0..16)
+                                .map(|k| {
                                     let p = [
                                         x + (0.5 + (k % 4) as f64) / 4.0,
                                         y + (0.5 + (k / 4) as f64) / 4.0,
                                     ];
-                                    let uv = to_uv.apply(p);
-                                    uv.iter().all(|t| (0.0..=1.0).contains(t))
+                                    level(to_uv.apply(p))
                                 })
-                                .count() as f64
-                                / 16.0;
-                            on * inside + (1.0 - on) * outside
+                                .sum::<f64>()
+                                / 16.0
                         })
                         .collect();
                     (r, pixels)
@@ -739,7 +756,7 @@ mod tests {
         let cases =
             [("brighter", [0.6, 0.02], 0), ("darker", [0.02, 0.3], 0), ("either", [0.5, 0.05], 3)];
         for (name, levels, flip) in cases {
-            let seen = Seen::new(&g, &views, face, levels, flip);
+            let seen = Seen::new(&g, &views, face, levels, flip, None);
             let coarse = coarse_height(&g, &views, &seen, 10.0).unwrap();
             assert!((coarse - 0.6).abs() < 0.5, "{name}: coarse {coarse} mm");
             let fit = measure_outline(&g, &views, &seen, coarse, reach).unwrap();
@@ -749,6 +766,27 @@ mod tests {
                     && fit.views == views.len(),
                 "{name}: {fit:?}"
             );
+        }
+    }
+
+    /// A thick sample's sides beyond the edges facing each view are seen
+    /// whether the sample is brighter than the holder (its sides too) or
+    /// darker; without sides the band reads as the holder. Before session
+    /// 93 a darker sample gave no reading (every view's face at or below
+    /// the holder's level was left out).
+    #[test]
+    fn the_sides_are_seen_beyond_a_brighter_or_a_darker_sample() {
+        let g = ScannerGeometry::default_scanner().with_sensor_scaled(4);
+        let views = nominal_views(&g);
+        let face = SampleFace::FLUSH;
+        for (name, levels, side) in [("brighter", [0.6, 0.02], 0.3), ("darker", [0.02, 0.3], 0.05)]
+        {
+            let thin = Seen::new(&g, &views, face, levels, 0, None);
+            let b = beyond_edges(&g, &views, &thin, face).unwrap();
+            assert!(!b.seen() && b.excess.abs() < 1e-3 && b.views > 20, "{name}, thin: {b:?}");
+            let thick = Seen::new(&g, &views, face, levels, 0, Some((side, 3.0)));
+            let b = beyond_edges(&g, &views, &thick, face).unwrap();
+            assert!(b.seen() && b.excess > 0.1, "{name}, 3 mm sides: {b:?}");
         }
     }
 
