@@ -260,15 +260,14 @@ fn first_quad(mask: &[bool], w: usize, h: usize, polarity: Polarity) -> Option<[
 /// background all round).
 fn distinct(lum: &Plane) -> Vec<bool> {
     let (w, h) = (lum.width, lum.height);
-    let mut border: Vec<f64> = (0..w * h)
+    let border: Vec<f64> = (0..w * h)
         .filter(|i| {
             let (x, y) = (i % w, i / w);
             x < BORDER_PX || y < BORDER_PX || x + BORDER_PX >= w || y + BORDER_PX >= h
         })
         .map(|i| lum.data[i] as f64)
         .collect();
-    border.sort_by(f64::total_cmp);
-    let level = border.get(border.len() / 2).copied().unwrap_or(0.0);
+    let level = median(&border);
     let ln = MIN_LOCAL_CONTRAST.ln();
     let mask: Vec<bool> = lum
         .data

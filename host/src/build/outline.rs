@@ -293,7 +293,7 @@ fn measure(
     // the step at the edge (a line carried on too far).
     let sign = contrast.signum();
     let inside =
-        |t: f64| sign * (sign * (intercept + slope * t - outside)).max(0.1 * sign * contrast);
+        |t: f64| sign * (sign * (intercept + slope * t - outside)).max(0.1 * contrast.abs());
     // The trapezoid rule on a quarter-pixel lattice.
     let steps = (8.0 * w).round() as usize;
     let dt = 2.0 * w / steps as f64;
@@ -615,7 +615,7 @@ mod tests {
                 assert!((contrast - (step.inside - step.outside)).abs() < 1e-9);
             }
         }
-        // No step down to the outside: nothing measured.
+        // No step: nothing measured.
         let flat = Step::new([1.0, 0.0], 30.0, 0.5, 0.5);
         assert!(measure(&flat, 0, [30.0, 30.0], [1.0, 0.0], 2.0).is_none());
         // A step up to the outside (a sample darker than the holder) is
