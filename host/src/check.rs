@@ -605,15 +605,12 @@ pub fn capture_mirrors(count: usize, facing: &[Option<usize>], all: bool) -> Vec
 fn view_levels(frame: &crate::camera::Frame, g: &ScannerGeometry) -> Vec<Option<f64>> {
     (0..g.mirrors.len())
         .map(|j| {
-            let mut v: Vec<f64> = crate::exposure::view_pixels(frame, g, j)
-                .iter()
-                .map(|(_, c)| c.iter().map(|&x| x as f64).sum::<f64>() / 3.0)
-                .collect();
-            if v.is_empty() {
-                return None;
-            }
-            v.sort_by(f64::total_cmp);
-            Some(v[v.len() / 2])
+            crate::stats::median(
+                crate::exposure::view_pixels(frame, g, j)
+                    .iter()
+                    .map(|(_, c)| c.iter().map(|&x| x as f64).sum::<f64>() / 3.0)
+                    .collect(),
+            )
         })
         .collect()
 }

@@ -36,6 +36,7 @@ pub mod link;
 pub mod scan;
 #[cfg(feature = "sim")]
 pub mod simulator;
+pub(crate) mod stats;
 pub mod strobe;
 
 pub use protocol;

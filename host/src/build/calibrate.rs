@@ -32,6 +32,7 @@ use super::plane::{Plane, cell_taps};
 use super::scanread::{BicubicFilter, ScanFrames, frame_bilinear, frame_dims};
 use crate::defects::{DefectFinder, PixelDefect};
 use crate::exrio::PixelRect;
+use crate::stats::median;
 
 /// Calibration file format name.
 pub const CALIBRATION_FORMAT: &str = "material-scanner/calibration";
@@ -723,14 +724,13 @@ fn colour_calibration(
     // The noise floor: the median cell must stand 10× above the read noise.
     let exposure_s = white.manifest.settings.exposure_us as f64 * 1e-6;
     let read_codes = g.sensor.read_noise_e * g.sensor.max_code() / g.sensor.full_well_e;
-    let mut lum: Vec<f64> = w
+    let lum: Vec<f64> = w
         .iter()
         .flatten()
         .flatten()
         .map(|c| (c[0] + c[1] + c[2]) / 3.0 * exposure_s * g.sensor.max_code())
         .collect();
-    lum.sort_by(f64::total_cmp);
-    let median = lum[lum.len() / 2];
+    let median = median(lum).unwrap_or(f64::NAN);
     if median.is_nan() || median < 10.0 * read_codes.max(1.0) {
         return Err(BuildError::Input(format!(
             "{}: the white target is at the noise floor (median {median:.1} ADC codes, need ≥ {:.1}): \
@@ -820,12 +820,6 @@ fn factor_residual(w: &[Vec<Vec<[f64; 3]>>], a: &[Vec<[f64; 3]>], b: &[Vec<f64>]
         }
     }
     median(rel).unwrap_or(0.0)
-}
-
-/// The upper median (element `len / 2` in order), `None` for no values.
-pub(super) fn median(mut values: Vec<f64>) -> Option<f64> {
-    let mid = values.len() / 2;
-    (!values.is_empty()).then(|| *values.select_nth_unstable_by(mid, f64::total_cmp).1)
 }
 
 /// A diffuse-white target is uniform: what varies over it in one frame

@@ -185,6 +185,16 @@ impl Polarity {
         }
     }
 
+    /// How the piece compares with its background, in words: `brighter`,
+    /// `darker` or `brighter and darker` (than the background).
+    pub fn comparison(self) -> &'static str {
+        match self {
+            Polarity::Brighter => "brighter",
+            Polarity::Darker => "darker",
+            Polarity::Mixed => "brighter and darker",
+        }
+    }
+
     /// Its regions' name: `bright`, `dark` or `distinct`.
     pub fn name(self) -> &'static str {
         match self {
@@ -1010,7 +1020,7 @@ fn fit_line(points: &[[f64; 2]]) -> Option<(Line, Fit, Vec<[f64; 2]>)> {
         let ((c, d), m) = tls(&kept)?;
         let signed = |p: &[f64; 2]| (p[0] - c[0]) * d[1] - (p[1] - c[1]) * d[0];
         let off = |p: &[f64; 2]| signed(p).abs();
-        let mut devs: Vec<f64> = kept.iter().map(off).collect();
+        let devs: Vec<f64> = kept.iter().map(off).collect();
         let rms = (devs.iter().map(|e| e * e).sum::<f64>() / m).sqrt();
         let third = kept.len() / 3;
         let (mut middle, mut outer): (Vec<f64>, Vec<f64>) = (Vec::new(), Vec::new());
@@ -1020,8 +1030,7 @@ fn fit_line(points: &[[f64; 2]]) -> Option<(Line, Fit, Vec<[f64; 2]>)> {
         }
         let bow = (median(&middle) - median(&outer)).abs();
         line = Some(((c, d), Fit { rms, bow, points: kept.len() }));
-        devs.sort_by(f64::total_cmp);
-        let cut = (3.0 * 1.4826 * devs[devs.len() / 2]).max(0.1);
+        let cut = (3.0 * 1.4826 * median(&devs)).max(0.1);
         let before = kept.len();
         kept.retain(|p| off(p) <= cut);
         if kept.len() == before {
@@ -1071,14 +1080,9 @@ struct Fit {
     points: usize,
 }
 
-/// The median of `v` (NaN if empty).
+/// The upper median of `v` (NaN if empty).
 fn median(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    crate::stats::median(v.to_vec()).unwrap_or(f64::NAN)
 }
 
 /// Where two lines meet; `None` if nearly parallel.

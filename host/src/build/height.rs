@@ -42,13 +42,14 @@
 
 use rayon::prelude::*;
 
-use super::calibrate::{Calibration, ViewCalibration, median};
+use super::calibrate::{Calibration, ViewCalibration};
 use super::error::BuildError;
 use super::linalg::Homography;
 use super::outline::OutlineFit;
 use super::scanread::ScanFrames;
 use crate::camera::Frame;
 use crate::exrio::PixelRect;
+use crate::stats::median;
 use scanner_geometry::{SampleFace, ScannerGeometry};
 
 /// The heights searched, ± mm (also the range of a given

@@ -590,9 +590,7 @@ fn corner_fit(
                 (p[0] - d[0]).hypot(p[1] - d[1])
             })
             .collect();
-        let mut sorted = res.clone();
-        sorted.sort_by(f64::total_cmp);
-        let cut = (3.0 * sorted[sorted.len() / 2]).max(0.05);
+        let cut = (3.0 * crate::stats::median(res.clone()).unwrap_or(0.0)).max(0.05);
         let keep: Vec<usize> = (0..res.len()).filter(|&i| res[i] <= cut).collect();
         if keep.len() == src.len() {
             break;

@@ -283,8 +283,8 @@ fn measure(
             slopes.push((ls[i] - ls[j]) / (ts[i] - ts[j]));
         }
     }
-    let slope = super::calibrate::median(slopes)?;
-    let intercept = super::calibrate::median((0..IN).map(|k| ls[k] - slope * ts[k]).collect())?;
+    let slope = crate::stats::median(slopes)?;
+    let intercept = crate::stats::median((0..IN).map(|k| ls[k] - slope * ts[k]).collect())?;
     let contrast = intercept - outside;
     if contrast.is_nan() || contrast == 0.0 {
         return None;
@@ -439,7 +439,7 @@ pub fn measure_outline(
                 // faint against it, or of the other sign, are where the
                 // edge's texels match the holder (a dark texel on a black
                 // holder, a shadow): left out.
-                let typical = super::calibrate::median(contrasts).unwrap_or(0.0);
+                let typical = crate::stats::median(contrasts).unwrap_or(0.0);
                 let sign = typical.signum();
                 out.into_iter().filter(move |r| sign * r.1 >= 0.25 * sign * typical).map(|r| r.0)
             })
@@ -518,7 +518,7 @@ fn solve(
     if kept.len() < 4 * PARAMS {
         return None;
     }
-    let mad = super::calibrate::median(kept.iter().map(|r| r.offset.abs()).collect())?;
+    let mad = crate::stats::median(kept.iter().map(|r| r.offset.abs()).collect())?;
     let scale = (1.4826 * mad).max(1e-3);
     let c = 4.685 * scale.min(prior);
     let mut normal = Normal::new(PARAMS);

@@ -1141,11 +1141,7 @@ pub fn rectify_cmd(
         );
     }
     if let Some(found) = found {
-        let polarity = match found.polarity {
-            crate::build::corners::Polarity::Brighter => "brighter",
-            crate::build::corners::Polarity::Darker => "darker",
-            crate::build::corners::Polarity::Mixed => "brighter and darker",
-        };
+        let polarity = found.polarity.comparison();
         println!(
             "{}: the piece's corners at {} px (its sides straight within {:.2} px RMS over {} \
              edge points, bowed ≤ {:.2} px; {polarity} than the background × {:.1})",
