@@ -58,7 +58,9 @@ struct Outline {
     share: f64,
     /// Per lattice ray (row by row), whether it lands on the face.
     on_face: Vec<bool>,
-    /// Where none does: up to four image points within it that do.
+    /// Where none does: up to four image points within it that do; where
+    /// all do and the rest of the pixel may be lit (a light holder, the
+    /// sample's sides), up to four that do not.
     sliver: Vec<(f64, f64)>,
 }
 
@@ -135,10 +137,24 @@ pub struct ViewHit {
     pub view: DVec3,
     /// Transmission to the camera (mirror reflectance).
     pub transmission: f64,
-    /// `None`: the ray meets the sample's face; `Some(k)`: its side below
-    /// edge k (0: v = 0, 1: u = 1, 2: v = 1, 3: u = 0), `view` then in the
-    /// side's frame ([`OpticalSim::with_sample_thickness`]).
-    pub side: Option<usize>,
+    /// What the ray meets: the face, a side or the holder.
+    pub surface: Surface,
+}
+
+/// The surface a camera ray meets ([`ViewHit::surface`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Surface {
+    /// The sample's face.
+    Face,
+    /// Its side below edge k (0: v = 0, 1: u = 1, 2: v = 1, 3: u = 0),
+    /// [`ViewHit::view`] then in the side's frame
+    /// ([`OpticalSim::with_sample_thickness`]).
+    Side(usize),
+    /// The holder around the sample, when it reflects
+    /// ([`OpticalSim::with_holder_albedo`]): [`ViewHit::uv`] then the
+    /// sample's uv extended to the point (outside [0, 1]²) and
+    /// [`ViewHit::view`] sample-local.
+    Holder,
 }
 
 /// One beam path onto the sample: via `mirror`, light arriving from `light`
@@ -201,6 +217,9 @@ pub struct OpticalSim {
     /// How deep the sample's sides show below its face, mm
     /// ([`OpticalSim::with_sample_thickness`]; 0: no sides).
     thickness_mm: f64,
+    /// The holder's diffuse albedo ([`OpticalSim::with_holder_albedo`];
+    /// 0: perfectly black).
+    holder_albedo: f64,
 }
 
 impl OpticalSim {
@@ -242,6 +261,7 @@ impl OpticalSim {
             black_level_codes: 0,
             face: SampleFace::FLUSH,
             thickness_mm: 0.0,
+            holder_albedo: 0.0,
         }
     }
 
@@ -303,18 +323,41 @@ impl OpticalSim {
         self.thickness_mm
     }
 
+    /// The same scanner whose holder (the disc of
+    /// `sample.holder_radius_mm` in the holder's plane around the sample)
+    /// reflects diffusely with `albedo` in every channel (0, the default:
+    /// perfectly black; a real holder's flock or paint is 0.01–0.05, a
+    /// light one ≈ 0.8). The views see it around the sample's outline,
+    /// lit where the beam reaches; it neither shadows nor is shadowed by a
+    /// sample standing proud of it.
+    pub fn with_holder_albedo(self, albedo: f64) -> OpticalSim {
+        OpticalSim {
+            holder_albedo: albedo.clamp(0.0, 1.0),
+            sees_sample: Default::default(),
+            cache: Default::default(),
+            ..self
+        }
+    }
+
+    /// The holder's albedo ([`OpticalSim::with_holder_albedo`]).
+    pub fn holder_albedo(&self) -> f64 {
+        self.holder_albedo
+    }
+
     /// The same scanner with a camera lens of radial distortion `k`
     /// (`scanner_geometry::radial_distort`; the default is a pinhole).
     pub fn with_lens_distortion(self, k: [f64; 2]) -> OpticalSim {
         let mut g = self.geometry.clone();
         g.camera.distortion = k;
         let (defects, black_level_codes) = (self.defects.clone(), self.black_level_codes);
-        let (face, thickness_mm) = (self.face, self.thickness_mm);
+        let (face, thickness_mm, holder_albedo) =
+            (self.face, self.thickness_mm, self.holder_albedo);
         OpticalSim {
             defects,
             black_level_codes,
             face,
             thickness_mm,
+            holder_albedo,
             ..OpticalSim::new(g, self.sample, self.seed)
         }
     }
@@ -454,28 +497,57 @@ impl OpticalSim {
             Some(c) => self.nearest_mirror(origin, dir, c.iter().copied()),
             None => self.nearest_mirror(origin, dir, 0..g.mirrors.len()),
         }?;
-        let (r, s) = self.onto_sample_plane(l, p, dir)?;
-        let uv = self.face.uv(g.sample.size_mm, world_to_sample(s));
+        let r = self.facets[l].reflect_dir(dir);
+        let transmission = g.mirrors[l].reflectance;
+        let on_face = self.onto_sample_plane_along(p, r).and_then(|s| {
+            let uv = self.face.uv(g.sample.size_mm, world_to_sample(s));
+            uv.iter().all(|t| (0.0..=1.0).contains(t)).then_some((s, uv))
+        });
         let view = self.face.to_face(world_to_sample(-r));
-        if !uv.iter().all(|t| (0.0..=1.0).contains(t)) {
-            let (side, point, uv) = self.onto_side(world_to_sample(p), -view)?;
+        if let Some((point, uv)) = on_face {
+            return Some(ViewHit {
+                mirror: l,
+                uv,
+                point,
+                view,
+                transmission,
+                surface: Surface::Face,
+            });
+        }
+        if let Some((side, point, uv)) = self.onto_side(world_to_sample(p), -view) {
             return Some(ViewHit {
                 mirror: l,
                 uv,
                 point: sample_to_world(point),
                 view: side_frame(side, view),
-                transmission: g.mirrors[l].reflectance,
-                side: Some(side),
+                transmission,
+                surface: Surface::Side(side),
             });
         }
-        Some(ViewHit {
-            mirror: l,
-            uv,
-            point: s,
-            view,
-            transmission: g.mirrors[l].reflectance,
-            side: None,
-        })
+        let (point, uv) = self.onto_holder(p, r)?;
+        let view = world_to_sample(-r);
+        Some(ViewHit { mirror: l, uv, point, view, transmission, surface: Surface::Holder })
+    }
+
+    /// Where the ray from world point `p` along `dir` meets the holder
+    /// around the sample (world), and the sample's uv extended there;
+    /// `None` for a black holder, or where the ray passes it or meets the
+    /// sample's square.
+    fn onto_holder(&self, p: DVec3, dir: DVec3) -> Option<(DVec3, [f64; 2])> {
+        if self.holder_albedo <= 0.0 || dir.z.abs() < 1e-12 {
+            return None;
+        }
+        let t = -p.z / dir.z;
+        if t <= 0.0 {
+            return None;
+        }
+        let c = p + dir * t;
+        let m = &self.geometry.sample;
+        let local = world_to_sample(c);
+        let half = 0.5 * m.size_mm;
+        let beyond = local.x.abs() > half || local.y.abs() > half;
+        (beyond && c.x * c.x + c.y * c.y < m.holder_radius_mm * m.holder_radius_mm)
+            .then(|| (c, [local.x / m.size_mm + 0.5, local.y / m.size_mm + 0.5]))
     }
 
     /// Where the ray from sample-local point `origin` along `dir` (in the
@@ -542,11 +614,17 @@ impl OpticalSim {
     /// `None` if it leaves away from the plane.
     fn onto_sample_plane(&self, l: usize, p: DVec3, dir: DVec3) -> Option<(DVec3, DVec3)> {
         let r = self.facets[l].reflect_dir(dir);
+        Some((r, self.onto_sample_plane_along(p, r)?))
+    }
+
+    /// Where the ray reflected at world point `p` along `r` meets the plane
+    /// of the sample's face (world); `None` if it leaves away from it.
+    fn onto_sample_plane_along(&self, p: DVec3, r: DVec3) -> Option<DVec3> {
         if r.z <= 1e-12 {
             return None;
         }
         let s = self.face.intersect(world_to_sample(p), world_to_sample(r))?;
-        Some((r, sample_to_world(s)))
+        Some(sample_to_world(s))
     }
 
     /// Noise-free scene radiance (RGB) reaching the camera at image point (x, y).
@@ -560,15 +638,27 @@ impl OpticalSim {
         // material at the edge above it, the side's normal its own).
         let mut texel = None;
         for path in self.light_paths_with(&scene.beam, scene.lit, hit.point) {
-            let t = texel.get_or_insert_with(|| {
-                let t = self.sample.texel(hit.uv);
-                match hit.side {
-                    None => t,
-                    Some(_) => crate::materials::Texel { normal: DVec3::Z, ..t },
+            let r = match hit.surface {
+                Surface::Holder => {
+                    // Lambertian, in the holder's (sample-local) frame.
+                    let cos = self.face.from_face(path.light).z.max(0.0);
+                    [self.holder_albedo / std::f64::consts::PI * cos; 3]
                 }
-            });
-            let light = hit.side.map_or(path.light, |k| side_frame(k, path.light));
-            let r = t.reflected(light, hit.view);
+                Surface::Face | Surface::Side(_) => {
+                    let t = texel.get_or_insert_with(|| {
+                        let t = self.sample.texel(hit.uv);
+                        match hit.surface {
+                            Surface::Side(_) => crate::materials::Texel { normal: DVec3::Z, ..t },
+                            _ => t,
+                        }
+                    });
+                    let light = match hit.surface {
+                        Surface::Side(k) => side_frame(k, path.light),
+                        _ => path.light,
+                    };
+                    t.reflected(light, hit.view)
+                }
+            };
             for k in 0..3 {
                 out[k] += r[k] * path.irradiance * hit.transmission;
             }
@@ -786,7 +876,25 @@ impl OpticalSim {
             if on < rays { (1.0 - share) * rays as f64 / (rays - on) as f64 } else { 0.0 }
         };
         let mut acc: [f64; 3] = std::array::from_fn(|k| face[k] + off[k]);
+        let radiance_sum = |points: &[(f64, f64)]| {
+            let mut r = [0.0; 3];
+            for &(fx, fy) in points {
+                let q = self.radiance_at(scene, fx, fy, here);
+                for k in 0..3 {
+                    r[k] += q[k];
+                }
+            }
+            r
+        };
         match outline {
+            // Every ray on the face and the rest of the pixel lit: the face's
+            // rays for its share, the rest's mean radiance at the points of
+            // a finer lattice that land on it for the others.
+            Some(Outline { share, ref sliver, .. }) if on == rays && !sliver.is_empty() => {
+                let r = radiance_sum(sliver);
+                let g = (1.0 - share) * rays as f64 / sliver.len() as f64;
+                acc = std::array::from_fn(|k| face[k] * share + r[k] * g);
+            }
             Some(Outline { share, .. }) if on > 0 => {
                 let f = share * rays as f64 / on as f64;
                 let g = off_weight(share);
@@ -794,14 +902,8 @@ impl OpticalSim {
             }
             // A sliver of the sample between the rays: its mean radiance
             // at the points of a finer lattice that land on it.
-            Some(Outline { share, sliver, .. }) if !sliver.is_empty() => {
-                let mut r = [0.0; 3];
-                for &(fx, fy) in &sliver {
-                    let q = self.radiance_at(scene, fx, fy, here);
-                    for k in 0..3 {
-                        r[k] += q[k];
-                    }
-                }
+            Some(Outline { share, ref sliver, .. }) if !sliver.is_empty() => {
+                let r = radiance_sum(sliver);
                 let f = share * rays as f64 / sliver.len() as f64;
                 let g = off_weight(share);
                 acc = std::array::from_fn(|k| r[k] * f + off[k] * g);
@@ -863,11 +965,21 @@ impl OpticalSim {
             }
         }
         let mut sliver = Vec::new();
-        if !on_face.contains(&true) {
+        // The side no lattice ray lands on, when it matters: the face, or
+        // the rest of the pixel if anything there may be lit.
+        let unsampled = if !on_face.contains(&true) {
+            Some(true)
+        } else if !on_face.contains(&false) && (self.holder_albedo > 0.0 || self.thickness_mm > 0.0)
+        {
+            Some(false)
+        } else {
+            None
+        };
+        if let Some(want) = unsampled {
             let fine = SLIVER_LATTICE;
             let points: Vec<(f64, f64)> = (0..fine * fine)
                 .map(|k| Self::lattice_point(x, y, fine, [k % fine, k / fine]))
-                .filter(|&q| on_sample(q) == Some(true))
+                .filter(|&q| on_sample(q) == Some(want))
                 .collect();
             let step = points.len().div_ceil(4).max(1);
             sliver.extend(points.iter().step_by(step));

@@ -13,7 +13,7 @@ use protocol::{Axis, Event, Reply, Request};
 use glam::DVec3;
 use hil_sim::geometry::{AxisValues, SampleFace, ScannerGeometry, world_to_sample};
 use hil_sim::materials::{self, Sample};
-use hil_sim::optics::{Exposure, Frame, OpticalSim};
+use hil_sim::optics::{Exposure, Frame, OpticalSim, Surface};
 
 const SEED: u64 = 7;
 
@@ -614,7 +614,7 @@ fn a_thick_sample_shows_its_sides_beyond_the_edges_facing_a_view() {
             if facing > 0.0 {
                 near += 1;
                 let hit = hit.unwrap_or_else(|| panic!("view {l}: side {k} facing it not seen"));
-                assert_eq!(hit.side, Some(k), "view {l}");
+                assert_eq!(hit.surface, Surface::Side(k), "view {l}");
                 let depth = world_to_sample(hit.point).z;
                 assert!((depth + 0.5 * thickness).abs() < 0.05 * thickness, "view {l}, {depth}");
                 let along = if n[0] != 0.0 { hit.uv[0] } else { hit.uv[1] };
@@ -643,4 +643,74 @@ fn a_thick_sample_shows_its_sides_beyond_the_edges_facing_a_view() {
         near >= 4 && far >= 4 && wide >= 2,
         "{near} sides facing views ({wide} wide), {far} away"
     );
+}
+
+/// A holder that reflects: the views see it around the sample's outline,
+/// Lambertian with its albedo under the beam paths that reach it (the
+/// analytic radiance within 1 %), where a black holder leaves them dark;
+/// the face's pixels clear of the outline are the same.
+#[test]
+fn a_light_holder_is_seen_around_the_sample_with_its_albedo() {
+    let albedo = 0.5;
+    let black = sim(4, "leather", SEED);
+    let light = black.clone().with_holder_albedo(albedo);
+    let g = black.geometry().clone();
+    let cam = &g.camera;
+    let (_, _, forward) = cam.basis();
+    let gain = g.sensor.max_code() / g.sensor.full_well_e;
+    let (mut holder, mut face) = (0, 0);
+    for lit in [0usize, 13, 30] {
+        let axes = g.mirror_axes(lit).unwrap();
+        let e = exposure(axes);
+        let (dark, seen) = (black.expected(&e), light.expected(&e));
+        for view in [3usize, 17, 23, 39] {
+            // Points beyond the middle of each edge, 1.5 mm out, and on the
+            // face 3 mm in.
+            for (k, uv) in [[0.5, -0.06], [1.06, 0.5], [0.5, 1.06], [-0.06, 0.5], [0.38, 0.62]]
+                .iter()
+                .enumerate()
+            {
+                let Some([x, y]) = g.view_point(view, *uv) else { continue };
+                let (px, py) = (x.floor(), y.floor());
+                // Every corner of the pixel, and its centre, on one surface.
+                let corners = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (0.5, 0.5)];
+                let hits: Vec<_> =
+                    corners.iter().map(|(dx, dy)| light.trace(px + dx, py + dy)).collect();
+                let (xu, yu) = (px as u32, py as u32);
+                if k == 4 {
+                    assert!(hits.iter().all(|h| h.is_some_and(|h| h.surface == Surface::Face)));
+                    assert_eq!(dark.pixel(xu, yu), seen.pixel(xu, yu), "lit {lit} view {view}");
+                    face += 1;
+                    continue;
+                }
+                assert!(
+                    hits.iter().all(|h| h.is_some_and(|h| h.surface == Surface::Holder)),
+                    "lit {lit} view {view} beyond edge {k}: {hits:?}"
+                );
+                assert!(black.trace(x, y).is_none());
+                assert_eq!(dark.pixel(xu, yu), [0.0; 3], "lit {lit} view {view}: a black holder");
+                let hit = hits[4].unwrap();
+                let radiance: f64 = light
+                    .light_paths(axes, hit.point)
+                    .iter()
+                    .map(|p| albedo / std::f64::consts::PI * p.light.z.max(0.0) * p.irradiance)
+                    .sum();
+                let cos = cam.ray(px + 0.5, py + 0.5).dot(forward);
+                let el = radiance
+                    * hit.transmission
+                    * e.exposure_s
+                    * g.sensor.sensitivity_e
+                    * cos.powf(g.sensor.vignetting_exponent);
+                let expect = el * gain / g.sensor.max_code();
+                for (c, v) in seen.pixel(xu, yu).iter().enumerate() {
+                    assert!(
+                        (*v as f64 - expect).abs() <= 0.01 * expect,
+                        "lit {lit} view {view} beyond edge {k}, channel {c}: {v} vs {expect}"
+                    );
+                }
+                holder += usize::from(expect > 0.0);
+            }
+        }
+    }
+    assert!(holder >= 24 && face >= 8, "{holder} lit holder pixels, {face} face pixels");
 }

@@ -102,6 +102,10 @@ pub struct SimSetup {
     /// ([`OpticalSim::with_sample_thickness`]; 0: no sides, as a sample
     /// sunk flush into the holder).
     pub sample_thickness_mm: f64,
+    /// The holder's diffuse albedo around the sample, in every scan (the
+    /// targets lie in the same holder;
+    /// [`OpticalSim::with_holder_albedo`]; 0: perfectly black).
+    pub holder_albedo: f64,
     /// The drives the scanner is built with (`hil_sim::SimConfig::axes`;
     /// docs/axis-config.md); other than the spec's, its board comes with
     /// them saved.
@@ -135,6 +139,7 @@ impl SimSetup {
             sample_height_mm: 0.0,
             sample_tilt_deg: [0.0; 2],
             sample_thickness_mm: 0.0,
+            holder_albedo: 0.0,
             axes: protocol::default_axes(),
             board_axes: None,
             port: hil_sim::Port::Pty,
@@ -169,6 +174,9 @@ impl SimSetup {
         }
         if self.sample_thickness_mm != 0.0 {
             s += &format!(", sample {} mm thick, its sides showing", self.sample_thickness_mm);
+        }
+        if self.holder_albedo != 0.0 {
+            s += &format!(", holder albedo {}", self.holder_albedo);
         }
         if self.trigger_latency_us > 0 {
             s += &format!(", camera trigger latency {} µs", self.trigger_latency_us);
@@ -256,6 +264,13 @@ impl SimSetup {
         }
         if t > 0.0 {
             sim = sim.with_sample_thickness(t);
+        }
+        let a = self.holder_albedo;
+        if !(0.0..=1.0).contains(&a) {
+            return Err(SimError::Usage(format!("a holder albedo of {a} is outside 0…1")));
+        }
+        if a > 0.0 {
+            sim = sim.with_holder_albedo(a);
         }
         Ok(sim)
     }

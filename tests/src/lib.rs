@@ -45,11 +45,24 @@ const HEIGHT: &str = "--height";
 const SAMPLE_TILT: &str = "--sample-tilt";
 /// The simulated samples' thickness, mm: their sides show below the face.
 const SAMPLE_THICKNESS: &str = "--sample-thickness";
+/// The simulated holder's albedo around every scan's sample, the targets'
+/// too (default 0: black).
+const HOLDER_ALBEDO: &str = "--holder-albedo";
 /// Whether the builder reads the sample's sides as shown: `auto`
 /// (default), `hidden` or `shown`.
 const SIDES: &str = "--sides";
-const REGION_OPTIONS: [&str; 9] =
-    [SIZE, DETAIL, EDGE, SAMPLE_HEIGHT, SAMPLE_TILT, SAMPLE_THICKNESS, HEIGHT, TILT, SIDES];
+const REGION_OPTIONS: [&str; 10] = [
+    SIZE,
+    DETAIL,
+    EDGE,
+    SAMPLE_HEIGHT,
+    SAMPLE_TILT,
+    SAMPLE_THICKNESS,
+    HOLDER_ALBEDO,
+    HEIGHT,
+    TILT,
+    SIDES,
+];
 
 /// With a given `--height MM`: the face's tilt the builder reads it at,
 /// `U,V` degrees.
@@ -203,6 +216,7 @@ pub fn sim_scan_at(
         sample_height_mm,
         sample_tilt_deg,
         sample_thickness_mm,
+        holder_albedo: arg(HOLDER_ALBEDO, 0.0),
         lens_distortion: [arg("--lens-k1", 0.0), 0.0],
         ..SimSetup::new(material)
     };

@@ -102,6 +102,13 @@ impl SampleFace {
         DVec3::new(d.dot(eu), d.dot(ev), d.dot(n))
     }
 
+    /// Direction `d` in the face's own frame, sample-local (the inverse of
+    /// [`Self::to_face`]).
+    pub fn from_face(&self, d: DVec3) -> DVec3 {
+        let [eu, ev, n] = self.axes();
+        eu * d.x + ev * d.y + n * d.z
+    }
+
     /// Sample-local point `p` as seen from the face: relative to its centre,
     /// in its frame.
     pub fn to_face_point(&self, p: DVec3) -> DVec3 {

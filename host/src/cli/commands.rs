@@ -116,6 +116,11 @@ pub struct DeviceArgs {
     /// sunk flush into the holder).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true, value_name = "MM")]
     pub sim_sample_thickness: f64,
+    /// Simulator: the holder around the sample (and the targets) reflects
+    /// diffusely with this albedo (default 0: perfectly black; a real
+    /// holder's flock 0.01–0.05, a light one ≈ 0.8).
+    #[arg(long, default_value_t = 0.0, value_name = "ALBEDO")]
+    pub sim_holder_albedo: f64,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
     /// board comes with them saved (unless --sim-board-axes).
@@ -164,6 +169,7 @@ impl DeviceArgs {
             sample_height_mm: self.sim_sample_height,
             sample_tilt_deg: self.sim_sample_tilt.unwrap_or([0.0; 2]),
             sample_thickness_mm: self.sim_sample_thickness,
+            holder_albedo: self.sim_holder_albedo,
             axes: match &self.sim_axes {
                 Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
                 None => protocol::default_axes(),
@@ -1947,6 +1953,7 @@ pub fn demo(
             sim_sample_height: 0.0,
             sim_sample_tilt: None,
             sim_sample_thickness: 0.0,
+            sim_holder_albedo: 0.0,
             sim_geometry: geometry.map(Path::to_path_buf),
             sim_axes: None,
             sim_board_axes: None,
