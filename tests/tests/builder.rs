@@ -290,10 +290,13 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(flush.face.is_flush(), "{fit:?}");
     // The tilted leather 3 mm thick, standing on the holder: its sides show
     // beyond the edges facing each view. Read as a thin sample's, its
-    // outline moves with them and its straddling pixels take them in; told
-    // that its sides show, the builder measures the face on the chroma
-    // alone and reads no pixel across those edges, and scores as the thin
-    // sample does.
+    // straddling pixels take them in (its outline moved with them until
+    // session 94 held the outside's level at the band's near end: the
+    // outline and the chroma then disagreed, the face was left in the
+    // holder's plane, 26.94 dB; now 0.1029 mm, 37.23 dB); told that its
+    // sides show, the builder measures the face on the chroma alone and
+    // reads no pixel across those edges, and scores as the thin sample
+    // does.
     let out = dir.path().join("leather-thick");
     let thick = SimSetup { sample_thickness_mm: 3.0, ..tilted.clone() };
     take_scan_of(&thick, mirrors, protocol::DEFAULT_EXPOSURE_US, &out);
@@ -336,7 +339,7 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(du.abs() < 0.15 && dv.abs() < 0.15 && (fit.height_mm - 0.1).abs() < 0.02, "{fit:?}");
     assert_eq!(fit.cue, FaceCue::Chroma, "{fit:?}");
     assert!(fit.outline.is_none() && shown.index().face.sides_shown);
-    assert!(as_shown > leather_tilted - 0.5 && as_shown > as_thin + 1.0, "{as_shown} {as_thin}");
+    assert!(as_shown > leather_tilted - 0.5 && as_shown > as_thin + 0.2, "{as_shown} {as_thin}");
     // Given its face, the builder looks beyond the edges there too, sees the
     // sides and reads no pixel across the edges facing each view.
     let [given_auto, given_hidden] = [SampleSides::Auto, SampleSides::Hidden].map(|sides| {
@@ -1212,5 +1215,60 @@ fn calibrate_tells_a_beam_that_lands_off_its_mirror() {
             assert!(unlit.contains("the beams of mirrors 0 ("), "{unlit}");
             assert!(unlit.contains("their region images are 0 (black) there"), "{unlit}");
         }
+    }
+}
+
+/// A uniform dark-grey sample (albedo 0.012, F0 0.02, roughness 0.8: no
+/// colour texture, so its outline is the face's only cue) in a scanner
+/// whose holder is a realistic matte black (albedo 0.04; the targets lie
+/// on it too), and in one whose holder is perfectly black: darker than the
+/// first holder, brighter than the second. Its outline is found either
+/// way, in the holder's plane and where the calibration put it: the
+/// holder's light falls off away from the sample with the beams' profile,
+/// and an outside level taken 2–5 px out (before session 94) read the
+/// outline 0.09 mm off along v and 0.19 mm small.
+#[test]
+fn a_sample_darker_than_its_holder_is_outlined_as_one_brighter() {
+    let (bin, mirrors, seed) = (4, 6, 5);
+    let dir = tempfile::tempdir().unwrap();
+    let set = dir.path().join("dark-grey");
+    common::uniform_set(&set, "dark-grey", 25.4, [0.012; 3], 0.02, 0.8);
+    let at = |material: &str, holder_albedo: f64| SimSetup {
+        bin,
+        seed,
+        holder_albedo,
+        ..SimSetup::new(material)
+    };
+    let exposure = protocol::DEFAULT_EXPOSURE_US;
+    let g = take_scan_of(&at("checkerboard", 0.04), mirrors, exposure, &dir.path().join("checker"));
+    take_scan_of(&at("diffuse-white", 0.04), mirrors, exposure, &dir.path().join("white"));
+    let checker = ScanFrames::open(&dir.path().join("checker"), &g).unwrap();
+    let white = ScanFrames::open(&dir.path().join("white"), &g).unwrap();
+    let cal = calibrate(&g, &checker, &white, None, &CalibrateOptions::default(), &Silent).unwrap();
+    for holder in [0.04, 0.0] {
+        let out = dir.path().join(format!("sample-{holder}"));
+        // Four times the default exposure: the sample reads ≈ 60 codes.
+        take_scan_of(&at(set.to_str().unwrap(), holder), mirrors, 4 * exposure, &out);
+        let scan = ScanFrames::open(&out, &g).unwrap();
+        let measured =
+            extract_regions(&g, &cal, &scan, &RegionOptions::default(), &Silent).unwrap();
+        let fit = measured.height_fit.unwrap();
+        let outline = fit.outline.expect("its outline measured");
+        eprintln!(
+            "dark grey flush on a holder of albedo {holder}: outline {:.4} ± {:.4} mm, shifted \
+             {:.4?} mm, {:+.4} mm in size ({} points, {} views, {:.3} px RMS); face {:.4} mm",
+            outline.face.height_mm,
+            outline.sigma[0],
+            outline.shift_mm,
+            outline.size_error_mm,
+            outline.points,
+            outline.views,
+            outline.rms_px,
+            measured.face.height_mm,
+        );
+        assert!(outline.face.height_mm.abs() < 0.02, "holder {holder}: {outline:?}");
+        assert!(outline.shift_mm.iter().all(|s| s.abs() < 0.03), "holder {holder}: {outline:?}");
+        assert!(outline.size_error_mm.abs() < 0.08, "holder {holder}: {outline:?}");
+        assert!(measured.face.is_flush(), "holder {holder}: {fit:?}");
     }
 }

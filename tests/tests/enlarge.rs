@@ -542,32 +542,6 @@ fn rectified_photographs(
     set
 }
 
-/// A texture set of `size_mm` in 64² linear maps: the diffuse colour at
-/// each material point (x, y) mm, a uniform F0 and roughness, flat.
-fn texture_set(
-    set: &Path,
-    size_mm: f64,
-    diffuse: impl Fn(f64, f64) -> [f32; 3],
-    f0: [f32; 3],
-    roughness: f32,
-) {
-    std::fs::create_dir_all(set).unwrap();
-    let name = set.file_name().unwrap().to_str().unwrap();
-    let toml = format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n");
-    std::fs::write(set.join("material.toml"), toml).unwrap();
-    let w = 64u32;
-    let at = |c: u32| (c as f64 + 0.5) / w as f64 * size_mm;
-    image::Rgb32FImage::from_fn(w, w, |c, r| image::Rgb(diffuse(at(c), at(r))))
-        .save(set.join("diffuse.exr"))
-        .unwrap();
-    let map = |name: &str, v: [f32; 3]| {
-        image::Rgb32FImage::from_pixel(w, w, image::Rgb(v)).save(set.join(name)).unwrap();
-    };
-    map("specular.exr", f0);
-    map("roughness.exr", [roughness; 3]);
-    map("normal.exr", [0.5, 0.5, 1.0]);
-}
-
 /// `scanner demo` of texture set `set` on a 512² sensor with 12 lights
 /// into `out`: what it said.
 fn quick_demo(set: &Path, out: &Path) -> String {
@@ -605,7 +579,7 @@ fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
     let red = |x: f64, y: f64| {
         [(0.05 + 0.04 * (tau * x / 8.0).sin() * (tau * y / 4.0).cos()) as f32, 0.0, 0.0]
     };
-    texture_set(&set, 8.0, red, [0.02, 0.0, 0.0], 0.7);
+    common::texture_set(&set, 8.0, red, [0.02, 0.0, 0.0], 0.7);
     let out = dir.path().join("demo");
     let said = quick_demo(&set, &out);
     assert!(said.contains("the piece photographed again on a white card (albedo 0.8)"), "{said}");
@@ -628,7 +602,7 @@ fn the_demo_enlarges_a_dark_red_tile_smaller_than_the_sample() {
 
     let set = dir.path().join("stripes");
     let stripe = |_: f64, y: f64| [if y % 8.0 < 4.0 { 0.04 } else { 0.8 }; 3];
-    texture_set(&set, 16.0, stripe, [0.04; 3], 0.9);
+    common::texture_set(&set, 16.0, stripe, [0.04; 3], 0.9);
     let out = dir.path().join("stripes-demo");
     let said = quick_demo(&set, &out);
     assert!(said.contains("found on neither the black holder nor a white card"), "{said}");

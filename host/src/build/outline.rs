@@ -254,10 +254,12 @@ fn predict(
 
 /// The edge's offset along `n` from `p` on `view`'s luminance, px, and the
 /// step's contrast (inside − outside at `p`): the area under the profile
-/// within ±`w` px between the outside's level (the median over [w, w + 3]
-/// px) and the inside's, a line (Theil–Sen) through [−w − 6, −w] px
-/// carried on to the edge — a glossy sample's shading varies across its
-/// edges, by view, and a level taken away from the edge would move it.
+/// within ±`w` px between the outside's level and the inside's, each a
+/// line (Theil–Sen) through its band — [w, w + 3] px outside, [−w − 6, −w]
+/// inside — carried on to the edge. A glossy sample's shading varies
+/// across its edges, by view, and the holder's light with the beam's
+/// profile (a holder that is not black): a level taken away from the edge
+/// would move it.
 /// Either way: a sample darker than the holder there (a near-mirror seen
 /// away from its highlights, a dark sample on a grey holder) steps up to
 /// the outside, its contrast negative. `None` without a step.
@@ -269,31 +271,36 @@ fn measure(
     w: f64,
 ) -> Option<(f64, f64)> {
     let read = |t: f64| lum.at(view, [p[0] + t * n[0], p[1] + t * n[1]]);
-    let mut out: Vec<f64> = (0..=6).map(|k| read(w + BAND_PX * k as f64 / 6.0)).collect();
-    out.sort_unstable_by(f64::total_cmp);
-    let outside = out[3];
-    // The inside's line, by the median of the pairwise slopes and the
-    // median of the intercepts.
-    const IN: usize = 13;
-    let ts: [f64; IN] = std::array::from_fn(|k| -w - INSIDE_PX * k as f64 / (IN - 1) as f64);
-    let ls: [f64; IN] = ts.map(read);
-    let mut slopes = Vec::with_capacity(IN * (IN - 1) / 2);
-    for i in 0..IN {
-        for j in i + 1..IN {
-            slopes.push((ls[i] - ls[j]) / (ts[i] - ts[j]));
+    // A band's line, by the median of the pairwise slopes and the median
+    // of the intercepts, over `N` points from `from` on by `step` px.
+    fn line<const N: usize>(read: &dyn Fn(f64) -> f64, from: f64, step: f64) -> Option<[f64; 2]> {
+        let ts: [f64; N] = std::array::from_fn(|k| from + step * k as f64);
+        let ls: [f64; N] = ts.map(read);
+        let mut slopes = Vec::with_capacity(N * (N - 1) / 2);
+        for i in 0..N {
+            for j in i + 1..N {
+                slopes.push((ls[i] - ls[j]) / (ts[i] - ts[j]));
+            }
         }
+        let slope = crate::stats::median(slopes)?;
+        let intercept = crate::stats::median((0..N).map(|k| ls[k] - slope * ts[k]).collect())?;
+        Some([intercept, slope])
     }
-    let slope = crate::stats::median(slopes)?;
-    let intercept = crate::stats::median((0..IN).map(|k| ls[k] - slope * ts[k]).collect())?;
-    let contrast = intercept - outside;
+    let [out_at, out_slope] = line::<7>(&read, w, BAND_PX / 6.0)?;
+    let [in_at, in_slope] = line::<13>(&read, -w, -INSIDE_PX / 12.0)?;
+    // The outside's line is not carried past its band's near end: a band
+    // far out (the wide windows of the first iterations) may see the
+    // holder's rim, and its slope is only the holder's light.
+    let outside = |t: f64| out_at + out_slope * t.max(w);
+    let contrast = in_at - outside(0.0);
     if contrast.is_nan() || contrast == 0.0 {
         return None;
     }
     // The inside's level may not come nearer the outside's than a tenth of
-    // the step at the edge (a line carried on too far).
+    // the step at the edge (lines carried on too far).
     let sign = contrast.signum();
-    let inside =
-        |t: f64| sign * (sign * (intercept + slope * t - outside)).max(0.1 * contrast.abs());
+    let step =
+        |t: f64| sign * (sign * (in_at + in_slope * t - outside(t))).max(0.1 * contrast.abs());
     // The trapezoid rule on a quarter-pixel lattice.
     let steps = (8.0 * w).round() as usize;
     let dt = 2.0 * w / steps as f64;
@@ -301,7 +308,7 @@ fn measure(
     for k in 0..=steps {
         let t = -w + k as f64 * dt;
         let end = if k == 0 || k == steps { 0.5 } else { 1.0 };
-        area += end * (read(t) - outside) / inside(t);
+        area += end * (read(t) - outside(t)) / step(t);
     }
     Some((-w + area * dt, contrast))
 }

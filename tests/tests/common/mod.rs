@@ -197,14 +197,45 @@ pub fn uniform_set(
     f0: f32,
     roughness: f32,
 ) {
+    write_set(dir, name, size_mm, 4, |_, _| diffuse, [f0; 3], roughness);
+}
+
+/// A texture set of `size_mm` in 64² linear maps, named as its directory:
+/// the diffuse colour at each material point (x, y) mm, a uniform F0 and
+/// roughness, flat.
+pub fn texture_set(
+    set: &Path,
+    size_mm: f64,
+    diffuse: impl Fn(f64, f64) -> [f32; 3],
+    f0: [f32; 3],
+    roughness: f32,
+) {
+    let name = set.file_name().unwrap().to_str().unwrap();
+    write_set(set, name, size_mm, 64, diffuse, f0, roughness);
+}
+
+/// A flat texture set in `dir` of `w` × `w` linear maps: the diffuse
+/// colour at each material point (x, y) mm, a uniform F0 and roughness.
+fn write_set(
+    dir: &Path,
+    name: &str,
+    size_mm: f64,
+    w: u32,
+    diffuse: impl Fn(f64, f64) -> [f32; 3],
+    f0: [f32; 3],
+    roughness: f32,
+) {
     std::fs::create_dir_all(dir).unwrap();
     let toml = format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n");
     std::fs::write(dir.join("material.toml"), toml).unwrap();
+    let at = |c: u32| (c as f64 + 0.5) / w as f64 * size_mm;
+    image::Rgb32FImage::from_fn(w, w, |c, r| image::Rgb(diffuse(at(c), at(r))))
+        .save(dir.join("diffuse.exr"))
+        .unwrap();
     let map = |name: &str, v: [f32; 3]| {
-        image::Rgb32FImage::from_pixel(4, 4, image::Rgb(v)).save(dir.join(name)).unwrap();
+        image::Rgb32FImage::from_pixel(w, w, image::Rgb(v)).save(dir.join(name)).unwrap();
     };
-    map("diffuse.exr", diffuse);
-    map("specular.exr", [f0; 3]);
+    map("specular.exr", f0);
     map("roughness.exr", [roughness; 3]);
     map("normal.exr", [0.5, 0.5, 1.0]);
 }
