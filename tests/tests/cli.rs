@@ -528,6 +528,11 @@ fn a_sample_height_out_of_range_is_a_usage_error() {
         assert_eq!(code, Some(2), "{err}");
         assert!(err.contains(&format!("a sample thickness of {t} mm is outside 0…20 mm")), "{err}");
     }
+    for a in ["1.5", "-0.1", "NaN"] {
+        let (code, _, err) = sim_scan_with(&sub(dir.path(), "holder"), &["--sim-holder-albedo", a]);
+        assert_eq!(code, Some(2), "{err}");
+        assert!(err.contains(&format!("a holder albedo of {a} is outside 0…1")), "{err}");
+    }
     let regions = ["regions", "--scan", "s", "--calibration", "c.json", "-o", "r"];
     for (extra, says) in [
         (&["--sample-tilt", "1,1"][..], "--sample-tilt needs a given --sample-height"),

@@ -119,7 +119,7 @@ pub struct DeviceArgs {
     /// Simulator: the holder around the sample (and the targets) reflects
     /// diffusely with this albedo (default 0: perfectly black; a real
     /// holder's flock 0.01–0.05, a light one ≈ 0.8).
-    #[arg(long, default_value_t = 0.0, value_name = "ALBEDO")]
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true, value_name = "ALBEDO")]
     pub sim_holder_albedo: f64,
     /// Simulator: the drives the scanner is built with, an axis
     /// configuration file (docs/axis-config.md; default: the spec's). Its
