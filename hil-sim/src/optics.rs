@@ -644,20 +644,15 @@ impl OpticalSim {
                     let cos = self.face.from_face(path.light).z.max(0.0);
                     [self.holder_albedo / std::f64::consts::PI * cos; 3]
                 }
-                Surface::Face | Surface::Side(_) => {
-                    let t = texel.get_or_insert_with(|| {
-                        let t = self.sample.texel(hit.uv);
-                        match hit.surface {
-                            Surface::Side(_) => crate::materials::Texel { normal: DVec3::Z, ..t },
-                            _ => t,
-                        }
-                    });
-                    let light = match hit.surface {
-                        Surface::Side(k) => side_frame(k, path.light),
-                        _ => path.light,
-                    };
-                    t.reflected(light, hit.view)
-                }
+                Surface::Face => texel
+                    .get_or_insert_with(|| self.sample.texel(hit.uv))
+                    .reflected(path.light, hit.view),
+                Surface::Side(k) => texel
+                    .get_or_insert_with(|| crate::materials::Texel {
+                        normal: DVec3::Z,
+                        ..self.sample.texel(hit.uv)
+                    })
+                    .reflected(side_frame(k, path.light), hit.view),
             };
             for k in 0..3 {
                 out[k] += r[k] * path.irradiance * hit.transmission;
