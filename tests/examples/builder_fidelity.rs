@@ -12,8 +12,9 @@
 //! limits on those pairs, and each material's worst pair with the limits
 //! computed on it alone.
 //!
-//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--detail all-views|own-view] [--materials a,b] [--targets-only]`
-//! (scans in DIR are reused when complete).
+//! `cargo run --release -p tests --example builder_fidelity -- [--bin 1] [--mirrors 40] [--seed 1] [--out DIR] [--size S] [--detail all-views|own-view] [--materials a,b] [--targets-only] [--per-view]`
+//! (scans in DIR are reused when complete). `--per-view`: each view's
+//! phase alignment against the truth, px and in checker squares.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -30,8 +31,9 @@ use scanner_geometry::{DVec3, world_to_sample};
 fn main() {
     tests::check_region_args(
         &["--bin", "--lens-k1", "--materials", "--mirrors", "--out", "--seed"],
-        &["--targets-only"],
+        &["--per-view", "--targets-only"],
     );
+    let per_view = std::env::args().any(|a| a == "--per-view");
     let bin: u32 = tests::arg("--bin", 1);
     let mirrors: usize = tests::arg("--mirrors", 40);
     let seed: u64 = tests::arg("--seed", 1);
@@ -78,6 +80,32 @@ fn main() {
         .clone();
     let (mut corner, mut corner_phase, mut corner_nominal) = (Vec::new(), Vec::new(), Vec::new());
     for v in &cal.views {
+        if per_view {
+            // The phase alignment's mean offset from the truth over the
+            // sample's corners, px and in squares of the checker.
+            let t = |uv| truth.view_point(v.view, uv).unwrap();
+            let (a, b, c) = (t([0.0, 0.0]), t([1.0, 0.0]), t([0.0, 1.0]));
+            let mut d = [0.0; 2];
+            for uv in [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]] {
+                let (p, q) = (v.homography_phase.apply(uv), t(uv));
+                d = [d[0] + (p[0] - q[0]) / 4.0, d[1] + (p[1] - q[1]) / 4.0];
+            }
+            let (e, f) = ([b[0] - a[0], b[1] - a[1]], [c[0] - a[0], c[1] - a[1]]);
+            let det = e[0] * f[1] - e[1] * f[0];
+            let squares = opts.target.squares as f64;
+            let du = (d[0] * f[1] - d[1] * f[0]) / det * squares;
+            let dv = (e[0] * d[1] - e[1] * d[0]) / det * squares;
+            println!(
+                "view {:2}: the phase alignment off by [{:+.2}, {:+.2}] px = [{du:+.2}, {dv:+.2}] \
+                 squares; sides {:.1} × {:.1} px; located by {:?}",
+                v.view,
+                d[0],
+                d[1],
+                e[0].hypot(e[1]),
+                f[0].hypot(f[1]),
+                v.located_by
+            );
+        }
         let nominal_h = host::build::locate::nominal_homography(&g, v.view).unwrap();
         for uv in [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]] {
             let t = truth.view_point(v.view, uv).unwrap();

@@ -290,6 +290,11 @@ impl Homography {
         Homography(mul3(&self.0, &a))
     }
 
+    /// This mapping after a shift by `d` (the shift first): `p ↦ self(p + d)`.
+    pub fn after_shift(&self, d: [f64; 2]) -> Homography {
+        Homography(mul3(&self.0, &[1.0, 0.0, d[0], 0.0, 1.0, d[1], 0.0, 0.0, 1.0]))
+    }
+
     /// The inverse mapping.
     pub fn inverse(&self) -> Option<Homography> {
         let m = &self.0;

@@ -133,15 +133,9 @@ pub fn locate(
     let nominal = nominal_homography(g, view).ok_or_else(|| fail("behind the camera".into()))?;
     let margin = search_margin(g);
     let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
-    let mut phase = shifted;
-    let mut phase_rms_px = f64::NAN;
-    for _ in 0..6 {
-        let Some(step) = phase_refine(sum, &phase, target) else { break };
-        let moved = outline_distance(&phase, &step.homography);
-        (phase, phase_rms_px) = (step.homography, step.rms_px);
-        if moved < 0.01 {
-            break;
-        }
+    let (mut phase, mut phase_rms_px) = phase_align(sum, shifted, target);
+    if let Some(relocked) = square_lock(sum, &phase, target) {
+        (phase, phase_rms_px) = phase_align(sum, relocked, target);
     }
     // The phase alignment moves the outline by at most a square or so; a
     // pattern that is not the checkerboard (a sample scanned as one) can
@@ -174,6 +168,64 @@ pub fn locate(
         corner_rms_px,
         by_corners,
     })
+}
+
+/// The Fourier phase alignment from `start` ([`phase_refine`] until it
+/// moves the outline by under 0.01 px, at most 6 steps): the homography
+/// and the windows' RMS residual, px (NaN if no step ran).
+fn phase_align(sum: &Plane, start: Homography, target: &Checkerboard) -> (Homography, f64) {
+    let (mut phase, mut rms_px) = (start, f64::NAN);
+    for _ in 0..6 {
+        let Some(step) = phase_refine(sum, &phase, target) else { break };
+        let moved = outline_distance(&phase, &step.homography);
+        (phase, rms_px) = (step.homography, step.rms_px);
+        if moved < 0.01 {
+            break;
+        }
+    }
+    (phase, rms_px)
+}
+
+/// The whole-square shifts (in squares along u and v) the phase alignment
+/// cannot see: the checker's fundamental repeats under a shift by one
+/// square along both u and v, or by two along one (an odd total inverts
+/// the pattern, which the alignment does not settle on).
+const SQUARE_LOCKS: [[i32; 2]; 8] =
+    [[1, 1], [1, -1], [-1, 1], [-1, -1], [2, 0], [-2, 0], [0, 2], [0, -2]];
+
+/// The phase alignment settles on the checker's fundamental wherever the
+/// coarse shift left it within half a period; a start off by more than
+/// half a square along both u and v (the silhouette misread: a holder
+/// lighter than the dark squares, a view under 3 px a square) settles a
+/// whole square off along both — the pattern looks the same — and the
+/// corner fit follows (a grey 0.2 holder put one view of 40 there,
+/// 1.1 × 1.1 squares off, docs/benchmarks.md session 95). The sample's
+/// outline tells these apart: `h` shifted by each of [`SQUARE_LOCKS`],
+/// then one alignment step (a wrong lock's windows reach the holder,
+/// which warps it by up to half a square; shifted, the warp stays), is
+/// scored by how well the checker it predicts explains the pixels inside
+/// it ([`pattern_residuals`], each candidate over its own sample), and a
+/// shift whose mean squared residual is under half `h`'s replaces it. A
+/// wrong lock lays a strip of the holder, flat, over a row of squares on
+/// two sides, which the checker's levels cannot explain whatever the
+/// holder's level. In nine scans (bins 2 and 4, holders 0–0.8) the right
+/// lock's residual came out 0.08–0.18 of a wrong one's (10 views, all
+/// put back), every other shift's at least 0.73 × the lock's it was
+/// tried from (7.7 × on a black holder, where no view moved).
+fn square_lock(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Homography> {
+    let score = |c: &Homography| pattern_residuals(sum, c, [c], target).map(|[r]| r);
+    let own = score(h)?;
+    let n = target.squares as f64;
+    SQUARE_LOCKS
+        .iter()
+        .filter_map(|s| {
+            let c = h.after_shift([s[0] as f64 / n, s[1] as f64 / n]);
+            let c = phase_refine(sum, &c, target)?.homography;
+            Some((score(&c)?, c))
+        })
+        .filter(|(r, _)| *r < 0.5 * own)
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, c)| c)
 }
 
 /// How far apart two homographies put the sample's corners: the largest
@@ -408,7 +460,7 @@ struct PhaseStep {
     rms_px: f64,
 }
 
-/// How well each of `candidates` explains the view's pixels: the sum of
+/// How well each of `candidates` explains the view's pixels: the mean of
 /// the squared residuals of the checkerboard it predicts, over the pixels
 /// `mask` puts well inside the sample (uv within [0.04, 0.96]²); `None`
 /// for a view of under 64 such pixels.
@@ -486,7 +538,8 @@ fn pattern_residuals<const N: usize>(
                 .map(|(j, (_, _, v))| {
                     (j.iter().zip(&c).map(|(a, b)| a * b).sum::<f64>() - v).powi(2)
                 })
-                .sum(),
+                .sum::<f64>()
+                / pixels.len() as f64,
         )
     };
     let mut blur = (f64::INFINITY, 0.0);
@@ -625,6 +678,16 @@ mod tests {
     /// A view rendered by 8 × 8 rays a pixel: the checker (light 1, dark
     /// 0.05) times `level(uv)` on the sample, 0 (the holder) around it.
     fn render(h: &Homography, size: usize, level: &dyn Fn([f64; 2]) -> f64) -> Plane {
+        render_on(h, size, level, 0.0)
+    }
+
+    /// [`render`] on a holder of level `holder`.
+    fn render_on(
+        h: &Homography,
+        size: usize,
+        level: &dyn Fn([f64; 2]) -> f64,
+        holder: f64,
+    ) -> Plane {
         let target = Checkerboard::default();
         let inv = h.inverse().unwrap();
         let mut plane = Plane::new(size, size);
@@ -642,6 +705,8 @@ mod tests {
                         if uv.iter().all(|c| (0.0..1.0).contains(c)) {
                             let light = target.pattern(uv) > 0.0;
                             s += level(uv) * if light { 1.0 } else { 0.05 };
+                        } else {
+                            s += holder;
                         }
                     }
                 }
@@ -698,6 +763,52 @@ mod tests {
                     mean.abs() < 0.015 && out.iter().all(|o| o.abs() < 0.035),
                     "{side} px, {name} level: sides {out:+.4?} px out, mean {mean:+.4}"
                 );
+            }
+        }
+    }
+
+    /// A start more than half a square off along u and v settles a whole
+    /// square off (the checker looks the same); the outline puts it back,
+    /// on a black holder, a grey one between the squares' levels and one
+    /// lighter than the light squares — and leaves a right lock alone.
+    #[test]
+    fn a_lock_a_whole_square_off_is_put_back_by_the_outline() {
+        let target = Checkerboard::default();
+        let side = 48.0; // 6 px squares
+        let o = 20.0;
+        let src = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+        let dst =
+            [[o, o], [o + side, o + 1.1], [o + side + 0.9, o + side + 1.4], [o + 0.6, o + side]];
+        let truth = Homography::fit(&src, &dst).unwrap();
+        let level = |uv: [f64; 2]| 0.8 + 0.3 * uv[0] - 0.1 * uv[1];
+        for holder in [0.0, 0.3, 1.2] {
+            let sum = render_on(&truth, 96, &level, holder);
+            for (start, off) in [([0.0, 0.0], [0, 0]), ([0.8, 0.7], [1, 1]), ([-0.7, 0.8], [-1, 1])]
+            {
+                let start = truth.after_shift([start[0] / 8.0, start[1] / 8.0]);
+                let (phase, _) = phase_align(&sum, start, &target);
+                // The premise: the alignment alone settles near `off`
+                // squares off (warped: its windows then reach the holder).
+                let settled = truth.after_shift([off[0] as f64 / 8.0, off[1] as f64 / 8.0]);
+                let (near, far) =
+                    (outline_distance(&phase, &settled), outline_distance(&phase, &truth));
+                assert!(
+                    near < 4.0 && (off == [0, 0] || far > 3.0),
+                    "holder {holder}: from {start:?} the alignment settled {near:.2} px from {off:?} \
+                     squares off, {far:.2} px from the truth"
+                );
+                let fixed = match square_lock(&sum, &phase, &target) {
+                    Some(h) => phase_align(&sum, h, &target).0,
+                    None => phase,
+                };
+                let d = outline_distance(&fixed, &truth);
+                assert!(
+                    d < 0.1,
+                    "holder {holder}, settled {off:?} squares off: {d:.3} px from the truth"
+                );
+                if off == [0, 0] {
+                    assert!(square_lock(&sum, &phase, &target).is_none(), "holder {holder}");
+                }
             }
         }
     }
