@@ -235,19 +235,8 @@ const PLANES: usize = 3;
 impl ViewCrop {
     fn bilinear(&self, plane: usize, p: [f64; 2]) -> f64 {
         let w = self.rect[2] - self.rect[0];
-        let h = self.rect[3] - self.rect[1];
-        let fx = p[0] - 0.5 - self.rect[0] as f64;
-        let fy = p[1] - 0.5 - self.rect[1] as f64;
-        let (x0, y0) = (fx.floor(), fy.floor());
-        let (tx, ty) = (fx - x0, fy - y0);
-        let at = |x: f64, y: f64| {
-            let x = (x.max(0.0) as usize).min(w - 1);
-            let y = (y.max(0.0) as usize).min(h - 1);
-            self.planes[plane][y * w + x] as f64
-        };
-        let top = at(x0, y0) * (1.0 - tx) + at(x0 + 1.0, y0) * tx;
-        let bottom = at(x0, y0 + 1.0) * (1.0 - tx) + at(x0 + 1.0, y0 + 1.0) * tx;
-        top * (1.0 - ty) + bottom * ty
+        let p = [p[0] - self.rect[0] as f64, p[1] - self.rect[1] as f64];
+        super::plane::bilinear(&self.planes[plane], w, p)
     }
 }
 

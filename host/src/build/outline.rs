@@ -579,25 +579,9 @@ mod tests {
         }
     }
 
-    /// `pixels` (`w` wide, row-major) read bilinearly between pixel
-    /// centres at `p`, the image's pixel (0, 0) at frame pixel `origin`;
-    /// clamped at its edges.
-    fn bilinear(pixels: &[f64], w: usize, origin: [usize; 2], p: [f64; 2]) -> f64 {
-        let h = pixels.len() / w;
-        let (fx, fy) = (p[0] - 0.5 - origin[0] as f64, p[1] - 0.5 - origin[1] as f64);
-        let (x0, y0) = (fx.floor(), fy.floor());
-        let (tx, ty) = (fx - x0, fy - y0);
-        let at = |x: f64, y: f64| {
-            pixels[(y.max(0.0) as usize).min(h - 1) * w + (x.max(0.0) as usize).min(w - 1)]
-        };
-        let top = at(x0, y0) * (1.0 - tx) + at(x0 + 1.0, y0) * tx;
-        let bottom = at(x0, y0 + 1.0) * (1.0 - tx) + at(x0 + 1.0, y0 + 1.0) * tx;
-        top * (1.0 - ty) + bottom * ty
-    }
-
     impl Luminance for Step {
         fn at(&self, _: usize, p: [f64; 2]) -> f64 {
-            bilinear(&self.pixels, self.side, [0, 0], p)
+            crate::build::plane::bilinear(&self.pixels, self.side, p)
         }
 
         fn lit(&self, _: usize) -> bool {
@@ -736,7 +720,8 @@ mod tests {
     impl Luminance for Seen {
         fn at(&self, view: usize, p: [f64; 2]) -> f64 {
             let (r, pixels) = &self.images[view];
-            bilinear(pixels, r[2] - r[0], [r[0], r[1]], p)
+            let p = [p[0] - r[0] as f64, p[1] - r[1] as f64];
+            crate::build::plane::bilinear(pixels, r[2] - r[0], p)
         }
 
         fn lit(&self, _: usize) -> bool {

@@ -11,6 +11,32 @@ pub struct Plane {
     pub data: Vec<f32>,
 }
 
+/// The four pixels (row-major indices into a `width` × `height` image)
+/// and weights of a bilinear read at continuous `p`, pixel centres at
+/// half-integers, clamped to the edge: the builder's one formula for
+/// reading an image between its pixels.
+#[inline]
+pub fn bilinear_taps(width: usize, height: usize, p: [f64; 2]) -> ([usize; 4], [f64; 4]) {
+    let (fx, fy) = (p[0] - 0.5, p[1] - 0.5);
+    let (x0, y0) = (fx.floor(), fy.floor());
+    let (tx, ty) = (fx - x0, fy - y0);
+    let column = |x: f64| (x as isize).clamp(0, width as isize - 1) as usize;
+    let row = |y: f64| (y as isize).clamp(0, height as isize - 1) as usize * width;
+    let (a, b) = (column(x0), column(x0 + 1.0));
+    let (c, d) = (row(y0), row(y0 + 1.0));
+    (
+        [c + a, c + b, d + a, d + b],
+        [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty],
+    )
+}
+
+/// `pixels` (row-major, `width` wide) read at `p` ([`bilinear_taps`]).
+#[inline]
+pub fn bilinear<T: Copy + Into<f64>>(pixels: &[T], width: usize, p: [f64; 2]) -> f64 {
+    let (i, w) = bilinear_taps(width, pixels.len() / width, p);
+    (0..4).map(|k| pixels[i[k]].into() * w[k]).sum()
+}
+
 impl Plane {
     /// A plane of zeros.
     pub fn new(width: usize, height: usize) -> Plane {
@@ -28,13 +54,7 @@ impl Plane {
     /// Bilinear sample at continuous (x, y), pixel centres at half-integers.
     #[inline]
     pub fn bilinear(&self, x: f64, y: f64) -> f64 {
-        let (fx, fy) = (x - 0.5, y - 0.5);
-        let (x0, y0) = (fx.floor(), fy.floor());
-        let (tx, ty) = (fx - x0, fy - y0);
-        let (x0, y0) = (x0 as isize, y0 as isize);
-        let a = self.at(x0, y0) as f64 * (1.0 - tx) + self.at(x0 + 1, y0) as f64 * tx;
-        let b = self.at(x0, y0 + 1) as f64 * (1.0 - tx) + self.at(x0 + 1, y0 + 1) as f64 * tx;
-        a * (1.0 - ty) + b * ty
+        bilinear(&self.data, self.width, [x, y])
     }
 
     /// Separable Gaussian blur (σ in px), edges clamped.

@@ -207,19 +207,8 @@ impl ScanFrames {
 /// half-integers), edges clamped.
 #[inline]
 pub fn frame_bilinear(f: &Frame, x: f64, y: f64) -> [f64; 3] {
-    let (w, h) = (f.width as isize, f.height as isize);
-    let (fx, fy) = (x - 0.5, y - 0.5);
-    let (x0, y0) = (fx.floor(), fy.floor());
-    let (tx, ty) = (fx - x0, fy - y0);
-    let (x0, y0) = (x0 as isize, y0 as isize);
-    let px = |x: isize, y: isize| {
-        let i = 3 * (y.clamp(0, h - 1) * w + x.clamp(0, w - 1)) as usize;
-        [f.rgb[i] as f64, f.rgb[i + 1] as f64, f.rgb[i + 2] as f64]
-    };
-    let (a, b, c, d) = (px(x0, y0), px(x0 + 1, y0), px(x0, y0 + 1), px(x0 + 1, y0 + 1));
-    std::array::from_fn(|k| {
-        (a[k] * (1.0 - tx) + b[k] * tx) * (1.0 - ty) + (c[k] * (1.0 - tx) + d[k] * tx) * ty
-    })
+    let (i, w) = super::plane::bilinear_taps(f.width as usize, f.height as usize, [x, y]);
+    std::array::from_fn(|k| (0..4).map(|t| f.rgb[3 * i[t] + k] as f64 * w[t]).sum())
 }
 
 /// Catmull–Rom bicubic RGB sample of a frame at continuous (x, y).
