@@ -134,7 +134,11 @@ pub fn locate(
     let margin = search_margin(g);
     let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
     let (mut phase, mut phase_rms_px) = phase_align(sum, shifted, target);
-    if let Some(relocked) = square_lock(sum, &phase, target) {
+    if let Some((relocked, squares)) = square_lock(sum, &phase, target) {
+        tracing::info!(
+            "mirror {view}: the checker's phase had settled {squares:?} squares off; put back \
+             by the sample's outline"
+        );
         (phase, phase_rms_px) = phase_align(sum, relocked, target);
     }
     // The phase alignment moves the outline by at most a square or so; a
@@ -205,14 +209,19 @@ const SQUARE_LOCKS: [[i32; 2]; 8] =
 /// which warps it by up to half a square; shifted, the warp stays), is
 /// scored by how well the checker it predicts explains the pixels inside
 /// it ([`pattern_residuals`], each candidate over its own sample), and a
-/// shift whose mean squared residual is under half `h`'s replaces it. A
+/// shift whose mean squared residual is under half `h`'s replaces it
+/// (returned with the squares `h` was off by). A
 /// wrong lock lays a strip of the holder, flat, over a row of squares on
 /// two sides, which the checker's levels cannot explain whatever the
 /// holder's level. In nine scans (bins 2 and 4, holders 0–0.8) the right
 /// lock's residual came out 0.08–0.18 of a wrong one's (10 views, all
 /// put back), every other shift's at least 0.73 × the lock's it was
 /// tried from (7.7 × on a black holder, where no view moved).
-fn square_lock(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Homography> {
+fn square_lock(
+    sum: &Plane,
+    h: &Homography,
+    target: &Checkerboard,
+) -> Option<(Homography, [i32; 2])> {
     let score = |c: &Homography| pattern_residuals(sum, c, [c], target).map(|[r]| r);
     let own = score(h)?;
     let n = target.squares as f64;
@@ -221,11 +230,11 @@ fn square_lock(sum: &Plane, h: &Homography, target: &Checkerboard) -> Option<Hom
         .filter_map(|s| {
             let c = h.after_shift([s[0] as f64 / n, s[1] as f64 / n]);
             let c = phase_refine(sum, &c, target)?.homography;
-            Some((score(&c)?, c))
+            Some((score(&c)?, c, [-s[0], -s[1]]))
         })
-        .filter(|(r, _)| *r < 0.5 * own)
+        .filter(|(r, _, _)| *r < 0.5 * own)
         .min_by(|a, b| a.0.total_cmp(&b.0))
-        .map(|(_, c)| c)
+        .map(|(_, c, off)| (c, off))
 }
 
 /// How far apart two homographies put the sample's corners: the largest
@@ -798,7 +807,10 @@ mod tests {
                      squares off, {far:.2} px from the truth"
                 );
                 let fixed = match square_lock(&sum, &phase, &target) {
-                    Some(h) => phase_align(&sum, h, &target).0,
+                    Some((h, squares)) => {
+                        assert_eq!(squares, off, "holder {holder}");
+                        phase_align(&sum, h, &target).0
+                    }
                     None => phase,
                 };
                 let d = outline_distance(&fixed, &truth);
