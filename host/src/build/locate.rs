@@ -160,7 +160,8 @@ pub fn locate(
     // well as the phase alignment: on squares of a few pixels the corners
     // lose their precision first.
     let by_corners = corners.is_some_and(|c| {
-        pattern_residuals(sum, &phase, [&phase, &c], target).is_none_or(|[p, c]| c <= p)
+        pattern_residuals(sum, &phase, [&phase, &c], target, &BLURS)
+            .is_none_or(|([p, c], _)| c <= p)
     });
     Ok(RegionFit {
         view,
@@ -208,13 +209,14 @@ const SQUARE_LOCKS: [[i32; 2]; 8] =
 /// then one alignment step (a wrong lock's windows reach the holder,
 /// which warps it by up to half a square; shifted, the warp stays), is
 /// scored by how well the checker it predicts explains the pixels inside
-/// it ([`pattern_residuals`], each candidate over its own sample), and a
+/// it ([`pattern_residuals`], each candidate over its own sample, at the
+/// blur that fits `h` best), and a
 /// shift whose mean squared residual is under half `h`'s replaces it
 /// (returned with the squares `h` was off by). A
 /// wrong lock lays a strip of the holder, flat, over a row of squares on
 /// two sides, which the checker's levels cannot explain whatever the
 /// holder's level. In nine scans (bins 2 and 4, holders 0–0.8) the right
-/// lock's residual came out 0.08–0.18 of a wrong one's (10 views, all
+/// lock's residual came out 0.08–0.19 of a wrong one's (10 views, all
 /// put back), every other shift's at least 0.73 × the lock's it was
 /// tried from (7.7 × on a black holder, where no view moved).
 fn square_lock(
@@ -222,8 +224,9 @@ fn square_lock(
     h: &Homography,
     target: &Checkerboard,
 ) -> Option<(Homography, [i32; 2])> {
-    let score = |c: &Homography| pattern_residuals(sum, c, [c], target).map(|[r]| r);
-    let own = score(h)?;
+    // The lens' blur is the view's whatever the lock: found once.
+    let ([own], sigma) = pattern_residuals(sum, h, [h], target, &BLURS)?;
+    let score = |c: &Homography| pattern_residuals(sum, c, [c], target, &[sigma]).map(|r| r.0[0]);
     let n = target.squares as f64;
     SQUARE_LOCKS
         .iter()
@@ -479,14 +482,16 @@ struct PhaseStep {
 /// square's edges at the distance the candidate puts them from the pixel
 /// centre; scaled and offset by levels linear in uv (the light and the
 /// vignetting vary across a view), fitted by least squares. σ is the one
-/// of a few that explains the first candidate best. A candidate off by a
-/// fraction of a pixel mispredicts the pixels along every edge.
+/// of `blurs` that explains the first candidate best (returned with the
+/// residuals). A candidate off by a fraction of a pixel mispredicts the
+/// pixels along every edge.
 fn pattern_residuals<const N: usize>(
     sum: &Plane,
     mask: &Homography,
     candidates: [&Homography; N],
     target: &Checkerboard,
-) -> Option<[f64; N]> {
+    blurs: &[f64],
+) -> Option<([f64; N], f64)> {
     let inv_mask = mask.inverse()?;
     let b = mask.bounds();
     let mut pixels = Vec::new();
@@ -552,7 +557,7 @@ fn pattern_residuals<const N: usize>(
         )
     };
     let mut blur = (f64::INFINITY, 0.0);
-    for sigma in [0.0, 0.15, 0.25, 0.4, 0.55, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0] {
+    for &sigma in blurs {
         let r = residual(0, sigma)?;
         if r < blur.0 {
             blur = (r, sigma);
@@ -562,8 +567,11 @@ fn pattern_residuals<const N: usize>(
     for (k, slot) in out.iter_mut().enumerate() {
         *slot = residual(k, blur.1)?;
     }
-    Some(out)
+    Some((out, blur.1))
 }
+
+/// The lens blurs σ, px, [`pattern_residuals`] tries.
+const BLURS: [f64; 11] = [0.0, 0.15, 0.25, 0.4, 0.55, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0];
 
 /// The inner corners located to sub-pixel precision (the gradient of the
 /// lightly blurred image is orthogonal to the offset from a saddle point,
