@@ -210,12 +210,11 @@ const SQUARE_LOCKS: [[i32; 2]; 8] =
 /// which warps it by up to half a square; shifted, the warp stays), is
 /// scored by how well the checker it predicts explains the pixels inside
 /// it ([`pattern_residuals`], each candidate over its own sample, at the
-/// blur that fits `h` best), and a
-/// shift whose mean squared residual is under half `h`'s replaces it
-/// (returned with the squares `h` was off by). A
-/// wrong lock lays a strip of the holder, flat, over a row of squares on
-/// two sides, which the checker's levels cannot explain whatever the
-/// holder's level. In nine scans (bins 2 and 4, holders 0–0.8) the right
+/// blur that fits `h` best), and a shift whose mean squared residual is
+/// under half `h`'s replaces it (returned with the squares `h` was off
+/// by). A wrong lock lays a strip of the holder, flat, over a row of
+/// squares on two sides, which the checker's levels cannot explain
+/// whatever the holder's level. In nine scans (bins 2 and 4, holders 0–0.8) the right
 /// lock's residual came out 0.08–0.19 of a wrong one's (10 views, all
 /// put back), every other shift's at least 0.73 × the lock's it was
 /// tried from (7.7 × on a black holder, where no view moved).
