@@ -371,6 +371,7 @@ fn nominal_calibration(g: &host::geometry::ScannerGeometry) -> host::build::Cali
                 corner_rms_px: 0.1,
                 phase_rms_px: Some(0.01),
                 edge_offsets_px: Some([[0.01, -0.02], [0.0, 0.03], [-0.01, 0.0], [0.02, 0.01]]),
+                phase_relocked_squares: None,
                 located_by: Some(host::build::calibrate::LocatedBy::Corners),
                 direction: g.mirror_direction(l).unwrap().to_array(),
                 mirror_point_mm: m.center_mm,

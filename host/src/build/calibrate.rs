@@ -84,6 +84,12 @@ pub struct ViewCalibration {
     /// homography's outline.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub edge_offsets_px: Option<[[f64; 2]; 4]>,
+    /// The squares (along u, v) the phase alignment had settled off before
+    /// the sample's outline put it back (`None`: it had not; absent in
+    /// files before session 95). A holder lighter than the checker's dark
+    /// squares misleads the search's start this way.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phase_relocked_squares: Option<[i32; 2]>,
     /// Unit direction from the sample centre towards the viewer through
     /// this mirror, sample-local frame.
     pub direction: [f64; 3],
@@ -645,6 +651,7 @@ fn view_calibrations(
                 corner_rms_px: if fit.corner_rms_px.is_finite() { fit.corner_rms_px } else { 0.0 },
                 phase_rms_px: fit.phase_rms_px.is_finite().then_some(fit.phase_rms_px),
                 edge_offsets_px: None,
+                phase_relocked_squares: fit.relocked_squares,
                 located_by: Some(if fit.by_corners {
                     LocatedBy::Corners
                 } else {

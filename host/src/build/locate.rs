@@ -58,6 +58,9 @@ pub struct RegionFit {
     /// how far the view departs from one homography locally, which ranks
     /// the views' edge errors ([`PhaseStep::rms_px`]).
     pub phase_rms_px: f64,
+    /// The squares (along u, v) the phase alignment had settled off before
+    /// the outline put it back ([`square_lock`]), if it had.
+    pub relocked_squares: Option<[i32; 2]>,
     /// Fitted to the inner corners (None if too few were found).
     pub corners: Option<Homography>,
     /// Inner corners used by the fit.
@@ -134,12 +137,14 @@ pub fn locate(
     let margin = search_margin(g);
     let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
     let (mut phase, mut phase_rms_px) = phase_align(sum, shifted, target);
+    let mut relocked_squares = None;
     if let Some((relocked, squares)) = square_lock(sum, &phase, target) {
         tracing::info!(
             "mirror {view}: the checker's phase had settled {squares:?} squares off; put back \
              by the sample's outline"
         );
         (phase, phase_rms_px) = phase_align(sum, relocked, target);
+        relocked_squares = Some(squares);
     }
     // The phase alignment moves the outline by at most a square or so; a
     // pattern that is not the checkerboard (a sample scanned as one) can
@@ -168,6 +173,7 @@ pub fn locate(
         nominal,
         phase,
         phase_rms_px,
+        relocked_squares,
         corners,
         corners_used,
         corner_rms_px,

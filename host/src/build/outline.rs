@@ -643,6 +643,7 @@ mod tests {
                     located_by: None,
                     phase_rms_px: None,
                     edge_offsets_px: None,
+                    phase_relocked_squares: None,
                     direction: world_to_sample((camera - centre).normalize()).to_array(),
                     mirror_point_mm: m.center_mm,
                     mirror_normal: m.normal,

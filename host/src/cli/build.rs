@@ -314,6 +314,21 @@ pub fn calibrate_cmd(
         output.display()
     );
     println!("  time by stage: {stages}");
+    let relocked: Vec<String> = cal
+        .views
+        .iter()
+        .filter_map(|v| {
+            v.phase_relocked_squares.map(|s| format!("{} ({}, {})", v.view, s[0], s[1]))
+        })
+        .collect();
+    if !relocked.is_empty() {
+        println!(
+            "  whole-square locks: the checker's phase had settled whole squares (u, v) off at \
+             mirrors {}, put back by the sample's outline (a holder lighter than the dark \
+             squares misleads the search)",
+            relocked.join(", ")
+        );
+    }
     // Far beyond its prior, the fitted k1 is pulled towards the file's.
     let k1 = (cal.lens_distortion[0], g.camera.distortion[0]);
     if (k1.0 - k1.1).abs() > 2.0 * opts.tolerances.lens_k1 {
