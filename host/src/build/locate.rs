@@ -138,13 +138,19 @@ pub fn locate(
     let shifted = coarse_shift(sum, &nominal, margin).map_err(fail)?;
     let (mut phase, mut phase_rms_px) = phase_align(sum, shifted, target);
     let mut relocked_squares = None;
-    if let Some((relocked, squares)) = square_lock(sum, &phase, target) {
+    // How well the lock explains the checker, and the lens' blur that
+    // explains it best (fitted once: the corners are judged at it too).
+    let mut fitted = pattern_residuals(sum, &phase, [&phase], target, &BLURS);
+    if let Some((relocked, squares)) =
+        fitted.and_then(|([own], sigma)| square_lock(sum, &phase, target, own, sigma))
+    {
         tracing::info!(
             "mirror {view}: the checker's phase had settled {squares:?} squares off; put back \
              by the sample's outline"
         );
         (phase, phase_rms_px) = phase_align(sum, relocked, target);
         relocked_squares = Some(squares);
+        fitted = None; // another lock: its blur fitted again below
     }
     // The phase alignment moves the outline by at most a square or so; a
     // pattern that is not the checkerboard (a sample scanned as one) can
@@ -165,8 +171,8 @@ pub fn locate(
     // well as the phase alignment: on squares of a few pixels the corners
     // lose their precision first.
     let by_corners = corners.is_some_and(|c| {
-        pattern_residuals(sum, &phase, [&phase, &c], target, &BLURS)
-            .is_none_or(|([p, c], _)| c <= p)
+        let blurs = fitted.as_ref().map_or(&BLURS[..], |(_, sigma)| std::slice::from_ref(sigma));
+        pattern_residuals(sum, &phase, [&phase, &c], target, blurs).is_none_or(|([p, c], _)| c <= p)
     });
     Ok(RegionFit {
         view,
@@ -216,21 +222,22 @@ const SQUARE_LOCKS: [[i32; 2]; 8] =
 /// which warps it by up to half a square; shifted, the warp stays), is
 /// scored by how well the checker it predicts explains the pixels inside
 /// it ([`pattern_residuals`], each candidate over its own sample, at the
-/// blur that fits `h` best), and a shift whose mean squared residual is
-/// under half `h`'s replaces it (returned with the squares `h` was off
-/// by). A wrong lock lays a strip of the holder, flat, over a row of
-/// squares on two sides, which the checker's levels cannot explain
-/// whatever the holder's level. In nine scans (bins 2 and 4, holders 0–0.8) the right
-/// lock's residual came out 0.08–0.19 of a wrong one's (10 views, all
-/// put back), every other shift's at least 0.73 × the lock's it was
-/// tried from (7.7 × on a black holder, where no view moved).
+/// blur `sigma` that fits `h` best: the lens' whatever the lock), and a
+/// shift whose mean squared residual is under half `h`'s (`own`)
+/// replaces it (returned with the squares `h` was off by). A wrong lock
+/// lays a strip of the holder, flat, over a row of squares on two sides,
+/// which the checker's levels cannot explain whatever the holder's
+/// level. In nine scans (bins 2 and 4, holders 0–0.8) the right lock's
+/// residual came out 0.08–0.19 of a wrong one's (10 views, all put
+/// back), every other shift's at least 0.73 × the lock's it was tried
+/// from (7.7 × on a black holder, where no view moved).
 fn square_lock(
     sum: &Plane,
     h: &Homography,
     target: &Checkerboard,
+    own: f64,
+    sigma: f64,
 ) -> Option<(Homography, [i32; 2])> {
-    // The lens' blur is the view's whatever the lock: found once.
-    let ([own], sigma) = pattern_residuals(sum, h, [h], target, &BLURS)?;
     let score = |c: &Homography| pattern_residuals(sum, c, [c], target, &[sigma]).map(|r| r.0[0]);
     let n = target.squares as f64;
     SQUARE_LOCKS
@@ -819,7 +826,9 @@ mod tests {
                     "holder {holder}: from {start:?} the alignment settled {near:.2} px from {off:?} \
                      squares off, {far:.2} px from the truth"
                 );
-                let fixed = match square_lock(&sum, &phase, &target) {
+                let ([own], sigma) =
+                    pattern_residuals(&sum, &phase, [&phase], &target, &BLURS).unwrap();
+                let fixed = match square_lock(&sum, &phase, &target, own, sigma) {
                     Some((h, squares)) => {
                         assert_eq!(squares, off, "holder {holder}");
                         phase_align(&sum, h, &target).0
@@ -832,7 +841,8 @@ mod tests {
                     "holder {holder}, settled {off:?} squares off: {d:.3} px from the truth"
                 );
                 if off == [0, 0] {
-                    assert!(square_lock(&sum, &phase, &target).is_none(), "holder {holder}");
+                    let lock = square_lock(&sum, &phase, &target, own, sigma);
+                    assert!(lock.is_none(), "holder {holder}");
                 }
             }
         }
