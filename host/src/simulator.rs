@@ -215,6 +215,14 @@ impl SimSetup {
         Ok(g.with_sensor_scaled(self.bin))
     }
 
+    /// Refuses what [`SimSetup::rig`] would refuse of the scene (material,
+    /// binning, lens, the sample's face and thickness, holder) without
+    /// starting a board: a session of several scans checks its last one
+    /// before the first.
+    pub fn check_scene(&self) -> Result<(), SimError> {
+        self.optics().map(drop)
+    }
+
     fn optics(&self) -> Result<OpticalSim, SimError> {
         let material = materials::lookup(&self.material)?;
         let nominal = self.nominal()?;

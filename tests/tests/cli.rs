@@ -897,3 +897,63 @@ fn a_closed_pipe_ends_the_program_quietly() {
     // closed (a slow test machine) exits 0.
     assert!(out.status.signal() == Some(13) || out.status.success(), "{:?}: {err}", out.status);
 }
+
+/// `scanner demo` simulates the scene a user names: the holder's albedo
+/// and the lens in every scan, and how the sample lies (a 1 mm slab on the
+/// holder) in the sample's scan only — the targets lie flat in the holder.
+/// The build measures the face where the slab puts it. A scene the
+/// simulator refuses is refused before the first scan, nothing written.
+#[test]
+fn the_demo_scans_the_scene_it_is_given() {
+    let dir = tmp();
+    let out = dir.path().join("demo");
+    let (code, said, err) = run(&[
+        "demo",
+        "--bin",
+        "8",
+        "--mirrors",
+        "12",
+        "--material",
+        "leather",
+        "--sim-holder-albedo",
+        "0.04",
+        "--sim-sample-height",
+        "1",
+        "--sim-sample-thickness",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(0), "{said}{err}");
+    let simulated = |scan: &str| {
+        let m = host::scan::Manifest::load(&out.join(scan)).unwrap();
+        m.settings.simulator.unwrap()
+    };
+    for target in ["checkerboard", "diffuse-white", "glossy-black"] {
+        let s = simulated(target);
+        assert!(s.contains("holder albedo 0.04") && !s.contains("sample"), "{target}: {s}");
+    }
+    let s = simulated("leather");
+    assert!(
+        s.contains("holder albedo 0.04")
+            && s.contains("sample's face 1 mm proud of the holder")
+            && s.contains("sample 1 mm thick"),
+        "{s}"
+    );
+    // "sample's face measured 0.969 ± 0.032 mm above the holder's plane"
+    let measured = said
+        .split("sample's face measured ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|h| h.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no height measured: {said}"));
+    assert!((measured - 1.0).abs() < 0.1, "measured {measured} mm: {said}");
+    assert!(out.join("leather-preview.png").is_file());
+
+    let bad = dir.path().join("bad");
+    let (code, said, err) =
+        run(&["demo", "--sim-sample-tilt", "40,0", "--out", bad.to_str().unwrap()]);
+    assert_eq!(code, Some(2), "{said}{err}");
+    assert!(err.contains("a sample tilt of 40° is outside ±10°"), "{err}");
+    assert!(!bad.exists());
+}

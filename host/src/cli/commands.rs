@@ -97,6 +97,26 @@ pub struct DeviceArgs {
     /// board watches it once `scanner config --strobe` says so.
     #[arg(long, value_parser = ["active-high", "active-low", "none"], value_name = "POLARITY")]
     pub sim_strobe: Option<String>,
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// Simulator: the drives the scanner is built with, an axis
+    /// configuration file (docs/axis-config.md; default: the spec's). Its
+    /// board comes with them saved (unless --sim-board-axes).
+    #[arg(long, value_name = "FILE")]
+    pub sim_axes: Option<PathBuf>,
+    /// Simulator: the axis configuration its board comes with when it is
+    /// not the drives it is built with (--sim-axes), an axis configuration
+    /// file: a board still to be commissioned (`scanner axes --correct`;
+    /// with this option `scanner sim` prints where the axes physically
+    /// stop after each motion, as a ruler on the machine would read).
+    #[arg(long, value_name = "FILE")]
+    pub sim_board_axes: Option<PathBuf>,
+}
+
+/// The simulated scene around the sample: the lens and the holder (the
+/// same for every scan of a session) and how the sample lies on it.
+#[derive(Debug, Clone, Default, Args)]
+pub struct SceneArgs {
     /// Simulator: the camera lens' radial distortion K1,K2 (the nominal
     /// geometry knows none: calibration measures K1).
     #[arg(long, value_parser = parse_k1_k2, allow_hyphen_values = true, value_name = "K1,K2")]
@@ -121,18 +141,6 @@ pub struct DeviceArgs {
     /// holder's flock 0.01–0.05, a light one ≈ 0.8).
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true, value_name = "ALBEDO")]
     pub sim_holder_albedo: f64,
-    /// Simulator: the drives the scanner is built with, an axis
-    /// configuration file (docs/axis-config.md; default: the spec's). Its
-    /// board comes with them saved (unless --sim-board-axes).
-    #[arg(long, value_name = "FILE")]
-    pub sim_axes: Option<PathBuf>,
-    /// Simulator: the axis configuration its board comes with when it is
-    /// not the drives it is built with (--sim-axes), an axis configuration
-    /// file: a board still to be commissioned (`scanner axes --correct`;
-    /// with this option `scanner sim` prints where the axes physically
-    /// stop after each motion, as a ruler on the machine would read).
-    #[arg(long, value_name = "FILE")]
-    pub sim_board_axes: Option<PathBuf>,
 }
 
 impl DeviceArgs {
@@ -165,11 +173,11 @@ impl DeviceArgs {
                 Some(p) => Some(p == "active-high"),
                 None => Some(true),
             },
-            lens_distortion: self.sim_lens_distortion.unwrap_or([0.0; 2]),
-            sample_height_mm: self.sim_sample_height,
-            sample_tilt_deg: self.sim_sample_tilt.unwrap_or([0.0; 2]),
-            sample_thickness_mm: self.sim_sample_thickness,
-            holder_albedo: self.sim_holder_albedo,
+            lens_distortion: self.scene.sim_lens_distortion.unwrap_or([0.0; 2]),
+            sample_height_mm: self.scene.sim_sample_height,
+            sample_tilt_deg: self.scene.sim_sample_tilt.unwrap_or([0.0; 2]),
+            sample_thickness_mm: self.scene.sim_sample_thickness,
+            holder_albedo: self.scene.sim_holder_albedo,
             axes: match &self.sim_axes {
                 Some(p) => scanner_geometry::load_axes(p).map_err(|e| Failure(3, anyhow!(e)))?,
                 None => protocol::default_axes(),
@@ -1843,6 +1851,7 @@ pub fn demo(
     _: Option<usize>,
     _: u64,
     _: Option<&Path>,
+    _: &SceneArgs,
 ) -> Result<(), Failure> {
     Err(no_simulator())
 }
@@ -1869,11 +1878,18 @@ pub fn demo(
     mirrors: Option<usize>,
     seed: u64,
     geometry: Option<&Path>,
+    scene: &SceneArgs,
 ) -> Result<(), Failure> {
     // Refuse a bad material or geometry before scanning the calibration
     // targets.
     hil_sim::materials::lookup(material)
         .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
+    // The targets lie flat in the same holder, seen through the same lens.
+    let targets_scene = SceneArgs {
+        sim_lens_distortion: scene.sim_lens_distortion,
+        sim_holder_albedo: scene.sim_holder_albedo,
+        ..SceneArgs::default()
+    };
     // Another scanner than the default: its geometry as binned, written
     // beside the scans for calibrate and build (and the user).
     let geometry_file = match geometry {
@@ -1930,34 +1946,46 @@ pub fn demo(
     // The glossy target's highlights are ≈ 40× the white's: a short exposure.
     // The sample: metered, HDR.
     let fixed = |us| OrAuto::Fixed(us);
-    for (sample, label, hdr, exposure_us) in [
-        ("checkerboard", "checkerboard", false, fixed(protocol::DEFAULT_EXPOSURE_US)),
-        ("diffuse-white", "diffuse-white", false, fixed(protocol::DEFAULT_EXPOSURE_US)),
-        ("glossy-black", "glossy-black", false, fixed(GLOSSY_EXPOSURE_US)),
-        (material, name.as_str(), true, OrAuto::Auto),
+    let device = |sample: &str, scene: &SceneArgs| DeviceArgs {
+        device: "sim".into(),
+        sim_material: sample.into(),
+        sim_seed: seed,
+        sim_bin: bin,
+        sim_corrupt: 0.0,
+        sim_faults: Vec::new(),
+        sim_defects: Vec::new(),
+        sim_black_level: 0,
+        sim_home_active_high: Vec::new(),
+        sim_driver_fault: None,
+        sim_trigger_latency_us: 0,
+        sim_strobe: None,
+        scene: scene.clone(),
+        sim_geometry: geometry.map(Path::to_path_buf),
+        sim_axes: None,
+        sim_board_axes: None,
+    };
+    // A scene the simulator refuses (a sample tilted too far, say) is
+    // refused before the targets are scanned.
+    device(material, scene).sim_setup()?.check_scene().map_err(sim_failure)?;
+    for (sample, label, hdr, exposure_us, scene) in [
+        (
+            "checkerboard",
+            "checkerboard",
+            false,
+            fixed(protocol::DEFAULT_EXPOSURE_US),
+            &targets_scene,
+        ),
+        (
+            "diffuse-white",
+            "diffuse-white",
+            false,
+            fixed(protocol::DEFAULT_EXPOSURE_US),
+            &targets_scene,
+        ),
+        ("glossy-black", "glossy-black", false, fixed(GLOSSY_EXPOSURE_US), &targets_scene),
+        (material, name.as_str(), true, OrAuto::Auto, scene),
     ] {
-        let args = DeviceArgs {
-            device: "sim".into(),
-            sim_material: sample.into(),
-            sim_seed: seed,
-            sim_bin: bin,
-            sim_corrupt: 0.0,
-            sim_faults: Vec::new(),
-            sim_defects: Vec::new(),
-            sim_black_level: 0,
-            sim_home_active_high: Vec::new(),
-            sim_driver_fault: None,
-            sim_trigger_latency_us: 0,
-            sim_strobe: None,
-            sim_lens_distortion: None,
-            sim_sample_height: 0.0,
-            sim_sample_tilt: None,
-            sim_sample_thickness: 0.0,
-            sim_holder_albedo: 0.0,
-            sim_geometry: geometry.map(Path::to_path_buf),
-            sim_axes: None,
-            sim_board_axes: None,
-        };
+        let args = device(sample, scene);
         let mut opened = open(&args)?;
         let scan_args = ScanArgs {
             sample_name: label.into(),

@@ -60,6 +60,10 @@ enum Command {
         /// written to OUT/geometry.toml.
         #[arg(long, value_name = "FILE")]
         geometry: Option<PathBuf>,
+        /// The simulated lens and holder (every scan) and how the sample
+        /// lies (the sample's scan; the targets lie flat in the holder).
+        #[command(flatten)]
+        scene: commands::SceneArgs,
     },
     /// Capture a scan into a scan directory.
     Scan {
@@ -732,8 +736,8 @@ fn load_samples(path: &Path) -> anyhow::Result<Samples> {
 
 fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
-        Command::Demo { out, material, bin, mirrors, seed, geometry } => {
-            commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref())?
+        Command::Demo { out, material, bin, mirrors, seed, geometry, scene } => {
+            commands::demo(&out, &material, bin, mirrors, seed, geometry.as_deref(), &scene)?
         }
         Command::Scan { device, scan } => commands::scan_cmd(&device, &scan)?,
         Command::Check { device, check } => commands::check(&device, &check)?,
