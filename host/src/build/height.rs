@@ -124,11 +124,16 @@ pub struct HeightFit {
     /// What the face was measured on.
     pub cue: FaceCue,
     /// The outline's fit, when the face was measured on it (not where the
-    /// sample's sides were seen beyond its edges).
+    /// sample's sides were seen beyond its edges), or when its
+    /// disagreement with the chroma told thin sides ([`HeightFit::thin_sides`]).
     pub outline: Option<OutlineFit>,
     /// What lies beyond the edges facing the views against beyond the
     /// others, at the applied face ([`super::outline::beyond_edges`]).
     pub beyond: Option<super::outline::Beyond>,
+    /// The chroma and the outline disagreed as a thin sample's sides make
+    /// them disagree ([`thin_sides`]): the face is the chroma's, and the
+    /// sides are read as shown.
+    pub thin_sides: bool,
 }
 
 /// What a [`HeightFit`] was measured on.
@@ -174,9 +179,10 @@ impl HeightFit {
     }
 
     /// Whether the sample's sides were seen beyond the edges facing the
-    /// views ([`super::outline::Beyond::seen`]).
+    /// views ([`super::outline::Beyond::seen`]), or told by the outline's
+    /// disagreement with the chroma ([`HeightFit::thin_sides`]).
     pub fn sides_seen(&self) -> bool {
-        self.beyond.is_some_and(|b| b.seen())
+        self.thin_sides || self.beyond.is_some_and(|b| b.seen())
     }
 
     /// The face the region images use: tilted where the tilt is both
@@ -512,6 +518,7 @@ pub fn measure_height(
         cue: if whole.sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
         outline: None,
         beyond: None,
+        thin_sides: false,
     };
     // The outline: every sample's edges against the holder, unless its
     // sides show beyond them.
@@ -536,8 +543,15 @@ pub fn measure_height(
         };
         let beyond = super::outline::beyond_edges(g, &cal.views, &lum, at);
         joined.beyond = beyond;
-        if sides == super::regions::SampleSides::Auto && joined.sides_seen() {
-            return HeightFit { beyond, ..fit };
+        if sides == super::regions::SampleSides::Auto {
+            if joined.sides_seen() {
+                return HeightFit { beyond, ..fit };
+            }
+            if joined.cue == FaceCue::Conflict
+                && joined.outline.is_some_and(|o| thin_sides(&fit, &o, beyond))
+            {
+                return HeightFit { beyond, thin_sides: true, outline: joined.outline, ..fit };
+            }
         }
         joined
     };
@@ -711,6 +725,38 @@ fn read_crops(
     Ok((crops, lights))
 }
 
+/// The most of the way from the face to the holder's plane a sample's
+/// sides pull its outline. Standing on the holder, a sample's sides reach
+/// down to the holder's plane: beyond the edges facing a view the outline
+/// ends at their foot, which the view sees where a face in the holder's
+/// plane would be, while the edges facing away show the face's own — half
+/// the edges at most read as if the face lay in the plane.
+pub const SIDES_PULL: f64 = 0.5;
+
+/// Whether the chroma's face (`chroma`) and the outline's (`outline`)
+/// disagree as a thin sample's sides make them: sides too thin for the
+/// band beyond the facing edges to reach [`super::outline::MIN_SIDES_EXCESS`]
+/// of the face's contrast still light it beyond 4 σ (`beyond`, read at
+/// the chroma's face), and they pull the outline from the face towards
+/// the holder's plane, by no more than [`SIDES_PULL`] of the way. A lean
+/// of the chroma (a metal's coloured highlights) leaves the outline near
+/// the plane and the band dark: the face is then not measured.
+/// (Leather and painted wood 0.5 mm thick standing on the holder, 2048²:
+/// chroma 0.500 mm, outline 0.392 ± 0.003 mm, the band 0.0099 ± 0.0012
+/// of the face's contrast; docs/benchmarks.md, session 96.)
+fn thin_sides(
+    chroma: &HeightFit,
+    outline: &OutlineFit,
+    beyond: Option<super::outline::Beyond>,
+) -> bool {
+    let (c, o) = (chroma.height_mm, outline.face.height_mm);
+    let lit = beyond.is_some_and(|b| b.excess > 4.0 * b.sigma);
+    lit && chroma.sigma_mm.is_finite()
+        && c * o > 0.0
+        && o.abs() < c.abs()
+        && o.abs() >= (1.0 - SIDES_PULL) * c.abs()
+}
+
 /// The chroma's measurement `chroma` joined with the outline's (module
 /// docs): where only one measured a parameter (the face's height, each
 /// slope), its value; where both did and agree within 4 σ, their
@@ -830,6 +876,7 @@ mod tests {
             cue: FaceCue::Chroma,
             outline: None,
             beyond: None,
+            thin_sides: false,
         };
         assert_eq!(fit(0.3, 0.002).applied_mm(), 0.3);
         assert_eq!(fit(-0.3, 0.002).applied_mm(), -0.3);
@@ -884,6 +931,7 @@ mod tests {
             cue: FaceCue::Chroma,
             outline: None,
             beyond: None,
+            thin_sides: false,
         };
         let f = fit([0.02, -0.01], 0.001, 1.5).applied_face();
         assert_eq!(f, SampleFace { height_mm: 0.1, slope: [0.02, -0.01] });
@@ -918,6 +966,7 @@ mod tests {
             cue: if sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
             outline: None,
             beyond: None,
+            thin_sides: false,
         };
         let outline = OutlineFit {
             face: SampleFace { height_mm: 0.21, slope: [0.021, -0.001] },
@@ -951,6 +1000,58 @@ mod tests {
         let f = with_outline(c, Some(outline), 25.4);
         assert!(f.slope_sigma[0].is_infinite() && f.slope[0] == 0.0, "{f:?}");
         assert!((f.slope[1] + 0.001).abs() < 1e-12 && f.cue == FaceCue::Both, "{f:?}");
+    }
+
+    /// A disagreement is told as thin sides only when the outline lies
+    /// between the holder's plane and the chroma's face, at most
+    /// [`SIDES_PULL`] of the way to the plane, and the band beyond the
+    /// facing edges is lit beyond 4 σ.
+    #[test]
+    fn thin_sides_pull_the_outline_part_way_to_the_plane() {
+        let chroma = |h: f64| HeightFit {
+            height_mm: h,
+            sigma_mm: 0.002,
+            parallax_px_per_mm: 2.3,
+            agreement: 0.8,
+            lights: 8,
+            slope: [0.0; 2],
+            slope_sigma: [0.001; 2],
+            patches: 9,
+            flatness_mm: 0.0,
+            tilt_px: 0.0,
+            cue: FaceCue::Chroma,
+            outline: None,
+            beyond: None,
+            thin_sides: false,
+        };
+        let outline = |h: f64| OutlineFit {
+            face: SampleFace::at_height(h),
+            sigma: [0.003, 0.001, 0.001],
+            shift_mm: [0.0; 2],
+            size_error_mm: 0.0,
+            points: 2000,
+            views: 40,
+            rms_px: 0.2,
+        };
+        let band =
+            |excess: f64| Some(crate::build::outline::Beyond { excess, sigma: 0.0012, views: 36 });
+        // The leather 0.5 mm thick at 2048² (session 96).
+        assert!(thin_sides(&chroma(0.5), &outline(0.392), band(0.0099)));
+        // Standing below the holder's plane (a recess): the same, mirrored.
+        assert!(thin_sides(&chroma(-0.5), &outline(-0.392), band(0.0099)));
+        // The band dark (3 σ): a lean, not sides.
+        assert!(!thin_sides(&chroma(0.5), &outline(0.392), band(0.0036)));
+        // Pulled more than half-way: a metal's highlights leaning the
+        // chroma (−0.38 mm against the outline's −0.009 mm).
+        assert!(!thin_sides(&chroma(-0.38), &outline(-0.009), band(0.0099)));
+        assert!(!thin_sides(&chroma(0.5), &outline(0.24), band(0.0099)));
+        // Beyond the chroma's face, or across the plane: not the sides'.
+        assert!(!thin_sides(&chroma(0.5), &outline(0.55), band(0.0099)));
+        assert!(!thin_sides(&chroma(0.5), &outline(-0.1), band(0.0099)));
+        // No band read, or no chroma measured.
+        assert!(!thin_sides(&chroma(0.5), &outline(0.392), None));
+        let unmeasured = HeightFit { sigma_mm: f64::INFINITY, ..chroma(0.5) };
+        assert!(!thin_sides(&unmeasured, &outline(0.392), band(0.0099)));
     }
 
     /// The trend a view's chroma loses is the least-squares quadratic: a

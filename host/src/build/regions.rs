@@ -468,22 +468,22 @@ pub fn extract_regions(
         region_memory(size, lights.len(), cal.views.len(), frame_px, rayon::current_num_threads());
     check_memory(need, size, available_memory())?;
     let albedo = cal.colour.white_albedo;
-    let (face, height_fit, beyond) = match opts.height {
+    let (face, height_fit, beyond, seen) = match opts.height {
         // A given face's sides are looked for at it, when asked to.
         SampleHeight::Given(face) => {
             let beyond = match opts.sides {
                 SampleSides::Auto => sides_beyond(g, cal, scan, face, progress)?,
                 SampleSides::Hidden | SampleSides::Shown => None,
             };
-            (face, None, beyond)
+            (face, None, beyond, beyond.is_some_and(|b| b.seen()))
         }
         SampleHeight::Measure => {
             let fit = measure_height(g, cal, scan, opts.sides, progress)?;
-            (fit.applied_face(), Some(fit), fit.beyond)
+            (fit.applied_face(), Some(fit), fit.beyond, fit.sides_seen())
         }
     };
     let sides = match opts.sides {
-        SampleSides::Auto if beyond.is_some_and(|b| b.seen()) => SampleSides::Shown,
+        SampleSides::Auto if seen => SampleSides::Shown,
         SampleSides::Auto => SampleSides::Hidden,
         given => given,
     };

@@ -630,14 +630,27 @@ fn say_height(regions: &crate::build::RegionSet) {
     }
     let beyond = regions.beyond;
     if regions.sides == SampleSides::Shown {
-        let seen = beyond.filter(|b| b.seen()).map_or(String::new(), |b| {
-            format!(
+        let thin = regions.height_fit.filter(|f| f.thin_sides);
+        let seen = match (beyond, thin.and_then(|f| f.outline.map(|o| (f, o)))) {
+            (Some(b), _) if b.seen() => format!(
                 " (seen: {:.1} % ± {:.1} % of the face's contrast beyond them, in {} views)",
                 100.0 * b.excess,
                 100.0 * b.sigma,
                 b.views
-            )
-        });
+            ),
+            (Some(b), Some((f, o))) => format!(
+                " (thin: {:.2} % ± {:.2} % of the face's contrast beyond them, in {} views, and \
+                 the outline at {:.3} ± {:.3} mm against the chroma's {:.3} mm, pulled towards \
+                 the holder's plane as the sides of a sample standing on it pull it)",
+                100.0 * b.excess,
+                100.0 * b.sigma,
+                b.views,
+                o.face.height_mm,
+                o.sigma[0],
+                f.height_mm
+            ),
+            _ => String::new(),
+        };
         let outline = if regions.height_fit.is_some() {
             ", the face not measured on its outline"
         } else {
