@@ -171,6 +171,8 @@ fn main() {
         let scan = ScanFrames::open(&tests::scan_dir(&out, m), &g).unwrap();
         let regions = extract_regions(&g, &cal, &scan, &tests::region_options(), &Silent).unwrap();
         let t_reg = t.elapsed().as_secs_f64();
+        let face = tests::face_report(m, &regions);
+        worst_lines.extend(face.lines().map(str::to_string));
         let sample = Sample::small(lookup(m).unwrap());
         let pairs = tests::captured_pairs(&g, &regions);
         let truth_at = tests::truth_answers(&pairs, &sample);

@@ -350,9 +350,20 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
         &host::build::calibrate::Silent,
     )
     .unwrap();
+    print!("{}", face_report(m, &regions));
+    regions
+}
+
+/// What the builder measured of `m`'s face in `regions` (height, tilt, the
+/// cue, the band beyond the edges, the outline), a line each; empty for
+/// a face given.
+pub fn face_report(m: &str, regions: &RegionSet) -> String {
+    use std::fmt::Write;
+    let mut r = String::new();
     if let Some(f) = regions.height_fit {
         let deg = scanner_geometry::face::angles_of;
-        println!(
+        writeln!(
+            r,
             "{m}: face measured {:.4} ± {:.4} mm above the holder's plane ({:.2} px/mm of \
              parallax, agreement {:.3}), tilted {:.3?}° ± {:.3?}° ({} patches, {:.4} mm from a \
              plane, {:.2} px at the corners); read at {:?}",
@@ -366,10 +377,23 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
             f.flatness_mm,
             f.tilt_px,
             regions.face
-        );
-        println!("{m}: the face's cue {}; beyond the edges {:?}", f.cue.name(), f.beyond);
+        )
+        .unwrap();
+        writeln!(
+            r,
+            "{m}: the face's cue {}{}; beyond the edges {:?}",
+            f.cue.name(),
+            if f.thin_sides {
+                " (its disagreement with the outline told as thin sides)"
+            } else {
+                ""
+            },
+            f.beyond
+        )
+        .unwrap();
         if let Some(o) = f.outline {
-            println!(
+            writeln!(
+                r,
                 "{m}: outline {:.4} mm, tilted {:.3?}° ± {:.4} mm, {:.3?}° ({} points in {} \
                  views, rms {:.3} px; shift {:.3?} mm, size {:+.3} mm)",
                 o.face.height_mm,
@@ -381,10 +405,11 @@ pub fn scanned_regions(out: &Path, g: &ScannerGeometry, cal: &Calibration, m: &s
                 o.rms_px,
                 o.shift_mm,
                 o.size_error_mm
-            );
+            )
+            .unwrap();
         }
     }
-    regions
+    r
 }
 
 /// The provenance an example writes into the materials it builds.
