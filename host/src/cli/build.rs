@@ -470,7 +470,9 @@ pub struct ScanInputs {
     pub sample_tilt: Option<[f64; 2]>,
     /// Whether a thick sample's sides show beyond the edges facing each
     /// view: `auto` (the default) looks beyond the edges, at the face
-    /// measured or given; `shown` says they do (no pixel across those edges is
+    /// measured or given (and takes an outline pulled part-way from the
+    /// chroma's face towards the holder's plane for thin sides'); `shown`
+    /// says they do (no pixel across those edges is
     /// read, the face is measured on its colour texture alone, not on its
     /// outline); `hidden` that the holder lies beyond every edge.
     #[arg(long, value_enum, default_value = "auto", value_name = "auto|shown|hidden")]
