@@ -858,11 +858,10 @@ fn crop(
 mod tests {
     use super::*;
 
-    /// A height is applied only when it is both significant and large
-    /// enough to move the views by a fifth of a pixel.
-    #[test]
-    fn a_height_is_applied_when_significant_and_not_negligible() {
-        let fit = |h: f64, sigma: f64| HeightFit {
+    /// A face measured on the chroma at `h` ± `sigma` mm, level (its
+    /// slopes not measured), 4 px of parallax per mm.
+    fn measured(h: f64, sigma: f64) -> HeightFit {
+        HeightFit {
             height_mm: h,
             sigma_mm: sigma,
             parallax_px_per_mm: 4.0,
@@ -877,7 +876,14 @@ mod tests {
             outline: None,
             beyond: None,
             thin_sides: false,
-        };
+        }
+    }
+
+    /// A height is applied only when it is both significant and large
+    /// enough to move the views by a fifth of a pixel.
+    #[test]
+    fn a_height_is_applied_when_significant_and_not_negligible() {
+        let fit = measured;
         assert_eq!(fit(0.3, 0.002).applied_mm(), 0.3);
         assert_eq!(fit(-0.3, 0.002).applied_mm(), -0.3);
         // 3 σ: not significant.
@@ -918,20 +924,12 @@ mod tests {
     #[test]
     fn a_tilt_is_applied_when_significant_and_not_negligible() {
         let fit = |slope: [f64; 2], sigma: f64, tilt_px: f64| HeightFit {
-            height_mm: 0.1,
-            sigma_mm: 0.003,
-            parallax_px_per_mm: 4.0,
-            agreement: 0.8,
-            lights: 8,
             slope,
             slope_sigma: [sigma; 2],
             patches: 9,
             flatness_mm: 0.01,
             tilt_px,
-            cue: FaceCue::Chroma,
-            outline: None,
-            beyond: None,
-            thin_sides: false,
+            ..measured(0.1, 0.003)
         };
         let f = fit([0.02, -0.01], 0.001, 1.5).applied_face();
         assert_eq!(f, SampleFace { height_mm: 0.1, slope: [0.02, -0.01] });
@@ -953,20 +951,12 @@ mod tests {
     #[test]
     fn the_outline_joins_the_chroma_where_they_agree() {
         let chroma = |h: f64, sigma: f64, slope_sigma: f64| HeightFit {
-            height_mm: h,
-            sigma_mm: sigma,
-            parallax_px_per_mm: 4.0,
-            agreement: 0.8,
-            lights: 8,
             slope: [0.02, 0.0],
             slope_sigma: [slope_sigma; 2],
             patches: 9,
             flatness_mm: 0.01,
-            tilt_px: 0.0,
             cue: if sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
-            outline: None,
-            beyond: None,
-            thin_sides: false,
+            ..measured(h, sigma)
         };
         let outline = OutlineFit {
             face: SampleFace { height_mm: 0.21, slope: [0.021, -0.001] },
@@ -1008,22 +998,7 @@ mod tests {
     /// facing edges is lit beyond 4 σ.
     #[test]
     fn thin_sides_pull_the_outline_part_way_to_the_plane() {
-        let chroma = |h: f64| HeightFit {
-            height_mm: h,
-            sigma_mm: 0.002,
-            parallax_px_per_mm: 2.3,
-            agreement: 0.8,
-            lights: 8,
-            slope: [0.0; 2],
-            slope_sigma: [0.001; 2],
-            patches: 9,
-            flatness_mm: 0.0,
-            tilt_px: 0.0,
-            cue: FaceCue::Chroma,
-            outline: None,
-            beyond: None,
-            thin_sides: false,
-        };
+        let chroma = |h: f64| measured(h, 0.002);
         let outline = |h: f64| OutlineFit {
             face: SampleFace::at_height(h),
             sigma: [0.003, 0.001, 0.001],
