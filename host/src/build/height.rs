@@ -750,8 +750,8 @@ fn thin_sides(
     beyond: Option<super::outline::Beyond>,
 ) -> bool {
     let (c, o) = (chroma.height_mm, outline.face.height_mm);
-    let lit = beyond.is_some_and(|b| b.excess > 4.0 * b.sigma);
-    lit && chroma.sigma_mm.is_finite()
+    beyond.is_some_and(|b| b.lit())
+        && chroma.sigma_mm.is_finite()
         && c * o > 0.0
         && o.abs() < c.abs()
         && o.abs() >= (1.0 - SIDES_PULL) * c.abs()

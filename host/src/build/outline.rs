@@ -93,7 +93,15 @@ impl Beyond {
     /// Whether the sides show: the excess beyond 4 σ and
     /// [`MIN_SIDES_EXCESS`].
     pub fn seen(&self) -> bool {
-        self.excess > 4.0 * self.sigma && self.excess > MIN_SIDES_EXCESS
+        self.lit() && self.excess > MIN_SIDES_EXCESS
+    }
+
+    /// Whether the facing band is lit beyond the other at all: the excess
+    /// beyond 4 σ, however small (thin sides, where the outline's
+    /// disagreement with the chroma says the sample has them:
+    /// [`super::height::HeightFit::thin_sides`]).
+    pub fn lit(&self) -> bool {
+        self.excess > 4.0 * self.sigma
     }
 }
 
