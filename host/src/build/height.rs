@@ -36,8 +36,9 @@
 //! face is also measured on its outline against the holder
 //! ([`super::outline`]), and the two joined ([`FaceCue`]): each parameter
 //! from the cue that measured it, their inverse-variance mean where both
-//! did and agree within 4 σ, neither where they disagree. Without
-//! either the images are read in the holder's plane
+//! did and agree within 4 σ, neither where they disagree — unless a thin
+//! sample's sides explain the disagreement ([`thin_sides`]: the chroma's
+//! then). Without either the images are read in the holder's plane
 //! ([`HeightFit::applied_mm`]).
 
 use rayon::prelude::*;
