@@ -549,9 +549,9 @@ pub fn measure_height(
                 return HeightFit { beyond, ..fit };
             }
             if joined.cue == FaceCue::Conflict
-                && joined.outline.is_some_and(|o| thin_sides(&fit, &o, beyond))
+                && outline.is_some_and(|o| thin_sides(&fit, &o, beyond))
             {
-                return HeightFit { beyond, thin_sides: true, outline: joined.outline, ..fit };
+                return HeightFit { beyond, thin_sides: true, outline, ..fit };
             }
         }
         joined
@@ -880,6 +880,20 @@ mod tests {
         }
     }
 
+    /// An outline's face `face` ± `sigma` (height mm, slopes), centred,
+    /// of the calibrated size.
+    fn outlined(face: SampleFace, sigma: [f64; 3]) -> OutlineFit {
+        OutlineFit {
+            face,
+            sigma,
+            shift_mm: [0.0; 2],
+            size_error_mm: 0.0,
+            points: 1000,
+            views: 40,
+            rms_px: 0.1,
+        }
+    }
+
     /// A height is applied only when it is both significant and large
     /// enough to move the views by a fifth of a pixel.
     #[test]
@@ -959,15 +973,8 @@ mod tests {
             cue: if sigma.is_finite() { FaceCue::Chroma } else { FaceCue::None },
             ..measured(h, sigma)
         };
-        let outline = OutlineFit {
-            face: SampleFace { height_mm: 0.21, slope: [0.021, -0.001] },
-            sigma: [0.01, 0.001, 0.001],
-            shift_mm: [0.0; 2],
-            size_error_mm: 0.0,
-            points: 1000,
-            views: 40,
-            rms_px: 0.1,
-        };
+        let outline =
+            outlined(SampleFace { height_mm: 0.21, slope: [0.021, -0.001] }, [0.01, 0.001, 0.001]);
         // Without an outline: the chroma's.
         let c = chroma(0.2, 0.01, 0.001);
         assert_eq!(with_outline(c, None, 25.4), c);
@@ -1000,15 +1007,7 @@ mod tests {
     #[test]
     fn thin_sides_pull_the_outline_part_way_to_the_plane() {
         let chroma = |h: f64| measured(h, 0.002);
-        let outline = |h: f64| OutlineFit {
-            face: SampleFace::at_height(h),
-            sigma: [0.003, 0.001, 0.001],
-            shift_mm: [0.0; 2],
-            size_error_mm: 0.0,
-            points: 2000,
-            views: 40,
-            rms_px: 0.2,
-        };
+        let outline = |h: f64| outlined(SampleFace::at_height(h), [0.003, 0.001, 0.001]);
         let band =
             |excess: f64| Some(crate::build::outline::Beyond { excess, sigma: 0.0012, views: 36 });
         // The leather 0.5 mm thick at 2048² (session 96).

@@ -470,8 +470,8 @@ pub struct ScanInputs {
     pub sample_tilt: Option<[f64; 2]>,
     /// Whether a thick sample's sides show beyond the edges facing each
     /// view: `auto` (the default) looks beyond the edges, at the face
-    /// measured or given (and takes an outline pulled part-way from the
-    /// chroma's face towards the holder's plane for thin sides'); `shown`
+    /// measured or given (and reads an outline pulled part-way from the
+    /// chroma's face towards the holder's plane as thin sides); `shown`
     /// says they do (no pixel across those edges is
     /// read, the face is measured on its colour texture alone, not on its
     /// outline); `hidden` that the holder lies beyond every edge.
@@ -632,8 +632,8 @@ fn say_height(regions: &crate::build::RegionSet) {
     }
     let beyond = regions.beyond;
     if regions.sides == SampleSides::Shown {
-        let thin = regions.height_fit.filter(|f| f.thin_sides);
-        let seen = match (beyond, thin.and_then(|f| f.outline.map(|o| (f, o)))) {
+        let thin = regions.height_fit.filter(|f| f.thin_sides).and_then(|f| Some((f, f.outline?)));
+        let seen = match (beyond, thin) {
             (Some(b), _) if b.seen() => format!(
                 " (seen: {:.1} % ± {:.1} % of the face's contrast beyond them, in {} views)",
                 100.0 * b.excess,

@@ -143,6 +143,18 @@ pub struct SceneArgs {
     pub sim_holder_albedo: f64,
 }
 
+impl SceneArgs {
+    /// The scene of the calibration targets scanned in the same session:
+    /// the same lens and holder, the targets lying flat in it.
+    pub fn for_targets(&self) -> SceneArgs {
+        SceneArgs {
+            sim_lens_distortion: self.sim_lens_distortion,
+            sim_holder_albedo: self.sim_holder_albedo,
+            ..SceneArgs::default()
+        }
+    }
+}
+
 impl DeviceArgs {
     #[cfg(feature = "sim")]
     pub fn sim_setup(&self) -> Result<SimSetup, Failure> {
@@ -1884,12 +1896,7 @@ pub fn demo(
     // targets.
     hil_sim::materials::lookup(material)
         .map_err(|e| sim_failure(crate::simulator::SimError::Material(e)))?;
-    // The targets lie flat in the same holder, seen through the same lens.
-    let targets_scene = SceneArgs {
-        sim_lens_distortion: scene.sim_lens_distortion,
-        sim_holder_albedo: scene.sim_holder_albedo,
-        ..SceneArgs::default()
-    };
+    let targets_scene = scene.for_targets();
     // Another scanner than the default: its geometry as binned, written
     // beside the scans for calibrate and build (and the user).
     let geometry_file = match geometry {
