@@ -305,9 +305,12 @@ impl OpticalSim {
     /// four sides, perpendicular to its face, reach that far below it (a
     /// cut piece of leather, a board; 0: a face without sides, as a sample
     /// sunk flush into the holder). A view sees the sides below the edges
-    /// that face it, between the face's outline and the dark holder; each
-    /// side shows the material at the edge above it (its diffuse and
-    /// specular albedo and roughness, the texel's normal the side's own).
+    /// that face it, between the face's outline and the dark holder, down
+    /// to the holder's plane: a sample thicker than its face is proud sits
+    /// recessed in the holder, which hides the rest of its sides (one
+    /// standing on the holder is as thick as its face is proud). Each side
+    /// shows the material at the edge above it (its diffuse and specular
+    /// albedo and roughness, the texel's normal the side's own).
     pub fn with_sample_thickness(self, thickness_mm: f64) -> OpticalSim {
         OpticalSim {
             thickness_mm: thickness_mm.max(0.0),
@@ -554,7 +557,8 @@ impl OpticalSim {
     /// face's frame) that misses the face meets the sample's sides (the
     /// slab [−½, ½]² × [−thickness, 0] in the face's frame, sizes by the
     /// sample's): the side, the point (sample-local) and the uv of the edge
-    /// above it. `None` without sides, or when the ray passes them.
+    /// above it. `None` without sides, when the ray passes them, or where
+    /// it meets them beyond the holder's plane (hidden by the holder).
     fn onto_side(&self, origin: DVec3, dir: DVec3) -> Option<(usize, DVec3, [f64; 2])> {
         if self.thickness_mm <= 0.0 {
             return None;
@@ -583,6 +587,12 @@ impl OpticalSim {
         let (_, side, q) = best?;
         let [eu, ev, en] = self.face.axes();
         let point = DVec3::new(0.0, 0.0, self.face.height_mm) + eu * q.x + ev * q.y + en * q.z;
+        // Beyond the holder's plane the holder hides it: the ray crossed the
+        // plane outside the sample's square first (a sample thicker than its
+        // face is proud sits recessed in the holder).
+        if point.z < 0.0 {
+            return None;
+        }
         // The edge above: uv along it, exactly on it across.
         let [a, b] = SIDE_NORMALS[side];
         let on = |t: f64, n: f64| if n != 0.0 { 0.5 + 0.5 * n } else { t.clamp(0.0, 1.0) };

@@ -574,15 +574,19 @@ fn a_tilted_face_is_seen_on_its_plane_and_in_its_frame() {
     }
 }
 
-/// A thick sample: a view sees its sides beyond the edges that face it,
-/// between the face's outline and the dark holder, each side at the depth
-/// and the edge's uv where the ray meets it; the edges facing away hide
-/// them. The frames show them there and nowhere else.
+/// A thick sample standing on the holder: a view sees its sides beyond the
+/// edges that face it, between the face's outline and the dark holder,
+/// each side at the depth and the edge's uv where the ray meets it; the
+/// edges facing away hide them. The frames show them there and nowhere
+/// else. The same slab recessed into the holder (its face flush) shows no
+/// side: the holder hides what lies beyond its plane.
 #[test]
 fn a_thick_sample_shows_its_sides_beyond_the_edges_facing_a_view() {
     let thickness = 6.0;
-    let flat = sim(4, "leather", SEED);
+    let flush = sim(4, "leather", SEED);
+    let flat = flush.clone().with_sample_height(thickness);
     let thick = flat.clone().with_sample_thickness(thickness);
+    let recessed = flush.clone().with_sample_thickness(thickness);
     let g = flat.geometry().clone();
     let size = g.sample.size_mm;
     let outward = [[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]];
@@ -590,33 +594,41 @@ fn a_thick_sample_shows_its_sides_beyond_the_edges_facing_a_view() {
     for l in [3, 17, 23, 39] {
         let [x, y] = g.view_point(l, [0.5, 0.5]).unwrap();
         let view = flat.trace(x, y).unwrap().view;
-        let (lit_flat, lit_thick) = {
-            let e = exposure(g.mirror_axes(l).unwrap());
-            (flat.expected(&e), thick.expected(&e))
-        };
+        let e = exposure(g.mirror_axes(l).unwrap());
+        let (lit_flat, lit_thick) = (flat.expected(&e), thick.expected(&e));
+        let (lit_flush, lit_recessed) = (flush.expected(&e), recessed.expected(&e));
+        // Where the holder's plane shows a point of the face's height.
+        let shift = [-thickness * view.x / view.z / size, -thickness * view.y / view.z / size];
         for (k, n) in outward.iter().enumerate() {
             let facing = n[0] * view.x + n[1] * view.y;
             if facing.abs() < 0.1 {
                 continue;
             }
-            // Half the side's width in the holder's plane beyond the
-            // middle of the edge.
+            // Half the side's width beyond the middle of the edge, where
+            // the flush face's side would show below the holder's plane.
             let out = 0.5 * thickness * facing.abs() / view.z / size;
-            let uv = [0.5 + n[0] * (0.5 + out), 0.5 + n[1] * (0.5 + out)];
+            let below = [0.5 + n[0] * (0.5 + out), 0.5 + n[1] * (0.5 + out)];
+            let [x, y] = g.view_point(l, below).unwrap();
+            assert!(recessed.trace(x, y).is_none(), "view {l}, side {k}: recessed, hidden");
+            let (px, py) = (x as u32, y as u32);
+            assert_eq!(lit_flush.pixel(px, py), lit_recessed.pixel(px, py), "view {l}, side {k}");
+            // The same point of the slab standing on the holder.
+            let uv = [below[0] + shift[0], below[1] + shift[1]];
             let [x, y] = g.view_point(l, uv).unwrap();
             assert!(flat.trace(x, y).is_none(), "view {l}, side {k}: beyond the face");
             let hit = thick.trace(x, y);
             let (px, py) = (x as u32, y as u32);
             let (a, b) = (lit_flat.pixel(px, py), lit_thick.pixel(px, py));
             // Whether the pixel lies clear of the edge's.
-            let [ex, ey] = g.view_point(l, [0.5 + 0.5 * n[0], 0.5 + 0.5 * n[1]]).unwrap();
+            let edge = [0.5 + 0.5 * n[0] + shift[0], 0.5 + 0.5 * n[1] + shift[1]];
+            let [ex, ey] = g.view_point(l, edge).unwrap();
             let clear = (x - ex).hypot(y - ey) > 2.0;
             if facing > 0.0 {
                 near += 1;
                 let hit = hit.unwrap_or_else(|| panic!("view {l}: side {k} facing it not seen"));
                 assert_eq!(hit.surface, Surface::Side(k), "view {l}");
                 let depth = world_to_sample(hit.point).z;
-                assert!((depth + 0.5 * thickness).abs() < 0.05 * thickness, "view {l}, {depth}");
+                assert!((depth - 0.5 * thickness).abs() < 0.05 * thickness, "view {l}, {depth}");
                 let along = if n[0] != 0.0 { hit.uv[0] } else { hit.uv[1] };
                 assert_eq!(along, if n[0] + n[1] > 0.0 { 1.0 } else { 0.0 }, "view {l}");
                 assert!(
@@ -636,7 +648,7 @@ fn a_thick_sample_shows_its_sides_beyond_the_edges_facing_a_view() {
             }
         }
         // The face itself is the same.
-        let [x, y] = g.view_point(l, [0.3, 0.6]).unwrap();
+        let [x, y] = g.view_point(l, [0.3 + shift[0], 0.6 + shift[1]]).unwrap();
         assert_eq!(lit_flat.pixel(x as u32, y as u32), lit_thick.pixel(x as u32, y as u32));
     }
     assert!(

@@ -74,11 +74,13 @@ pub fn side_reach(v: &ViewCalibration, face: SampleFace, edge: usize) -> f64 {
 
 /// What lies beyond the sample's edges: the band [`BAND_FROM_PX`,
 /// `BAND_FROM_PX` + 2] px outside the edges facing each view against the
-/// one beyond the edges facing away, over the face's level against the
-/// latter (per view, then the mean over the views whose facing edges
-/// reach at least [`STEEP_REACH`]). A thick sample's sides, as bright as
-/// they are lit, show beyond the facing edges alone; the holder lies
-/// beyond both.
+/// one as far beyond the edges facing away in the sample's uv, over the
+/// face's level against the latter (per view, then the mean over the
+/// views whose facing edges reach at least [`STEEP_REACH`]). A thick
+/// sample's sides, as bright as they are lit, show beyond the facing
+/// edges alone; the holder lies beyond both, at one distance from the
+/// sample (a light holder's level falls away from it with the beams'
+/// profile).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Beyond {
     /// The facing band's excess over the face's contrast, mean over views.
@@ -136,26 +138,49 @@ pub fn beyond_edges(
             if reach.iter().all(|&r| r < STEEP_REACH) {
                 return None;
             }
+            // Each edge point, and whether its edge faces the view; where
+            // the view sees a point `d` of uv beyond it (negative: inside);
+            // how many pixels a unit of uv beyond it spans across the edge.
+            let points: Vec<(bool, EdgePoint)> = (0..4)
+                .filter(|&edge| reach[edge].abs() >= STEEP_REACH)
+                .flat_map(|edge| {
+                    (0..16).map(move |i| EdgePoint { edge, s: 0.1 + 0.8 * (i as f64 + 0.5) / 16.0 })
+                })
+                .map(|q| (reach[q.edge] > 0.0, q))
+                .collect();
+            let seen_at = |q: EdgePoint, d: f64| -> [f64; 2] {
+                let (uv, out) = q.uv();
+                let [p, _] = predict(v, &hom, &x, q);
+                let at = hom.apply(outline_uv(&x, [uv[0] + d * out[0], uv[1] + d * out[1]]));
+                let edge = hom.apply(outline_uv(&x, uv));
+                // The white target's edge offset, as `predict` applies it.
+                [at[0] - edge[0] + p[0], at[1] - edge[1] + p[1]]
+            };
+            let across = |q: EdgePoint| -> f64 {
+                let [p, n] = predict(v, &hom, &x, q);
+                let o = seen_at(q, 1e-3);
+                ((o[0] - p[0]) * n[0] + (o[1] - p[1]) * n[1]) / 1e-3
+            };
+            // The band lies BAND_FROM_PX… px beyond the facing edges, and
+            // as far from the sample in uv beyond the others: a holder
+            // whose light falls away from the sample is read at one
+            // distance on both (an edge facing away lies farther from the
+            // view and more obliquely, fewer pixels to the mm).
+            let facing_px: Vec<f64> = points.iter().filter(|p| p.0).map(|p| across(p.1)).collect();
+            let px_per_uv = facing_px.iter().sum::<f64>() / facing_px.len() as f64;
+            if px_per_uv.is_nan() || px_per_uv <= 0.0 {
+                return None;
+            }
             // Sums of the band's and the inside's readings, facing and away.
             let (mut facing, mut away, mut inside) = ([0.0, 0.0], [0.0, 0.0], [0.0, 0.0]);
-            for (edge, &r) in reach.iter().enumerate() {
-                let sum = if r >= STEEP_REACH {
-                    &mut facing
-                } else if r <= -STEEP_REACH {
-                    &mut away
-                } else {
-                    continue;
-                };
-                for i in 0..16 {
-                    let q = EdgePoint { edge, s: 0.1 + 0.8 * (i as f64 + 0.5) / 16.0 };
-                    let [p, n] = predict(v, &hom, &x, q);
-                    let at = |t: f64| lum.at(vi, [p[0] + t * n[0], p[1] + t * n[1]]);
-                    for k in 0..5 {
-                        sum[0] += at(BAND_FROM_PX + 0.5 * k as f64);
-                        sum[1] += 1.0;
-                        inside[0] += at(-BAND_FROM_PX - 0.5 * k as f64);
-                        inside[1] += 1.0;
-                    }
+            for &(faces, q) in &points {
+                let sum = if faces { &mut facing } else { &mut away };
+                for k in 0..5 {
+                    let d = (BAND_FROM_PX + 0.5 * k as f64) / px_per_uv;
+                    sum[0] += lum.at(vi, seen_at(q, d));
+                    sum[1] += 1.0;
+                    inside[0] += lum.at(vi, seen_at(q, -d));
+                    inside[1] += 1.0;
                 }
             }
             if facing[1] == 0.0 || away[1] == 0.0 {
@@ -677,6 +702,7 @@ mod tests {
             levels: [f64; 2],
             flip: usize,
             sides: Option<(f64, f64)>,
+            holder_falloff_per_mm: f64,
         ) -> Seen {
             let images = views
                 .iter()
@@ -690,7 +716,9 @@ mod tests {
                     };
                     let reach: [f64; 4] = std::array::from_fn(|e| side_reach(v, face, e));
                     let size = g.sample.size_mm;
-                    // A point's level by its uv on the face's plane.
+                    // A point's level by its uv on the face's plane (the
+                    // holder's falling away from the sample, as under a
+                    // beam's profile).
                     let level = |uv: [f64; 2]| -> f64 {
                         let beyond = [-uv[1], uv[0] - 1.0, uv[1] - 1.0, -uv[0]];
                         let (edge, d) = (0..4)
@@ -700,7 +728,7 @@ mod tests {
                         match sides {
                             _ if d <= 0.0 => inside,
                             Some((level, depth)) if d * size <= depth * reach[edge] => level,
-                            _ => outside,
+                            _ => outside * (1.0 - holder_falloff_per_mm * d * size),
                         }
                     };
                     let (w, h) = (r[2] - r[0], r[3] - r[1]);
@@ -754,7 +782,7 @@ mod tests {
         let cases =
             [("brighter", [0.6, 0.02], 0), ("darker", [0.02, 0.3], 0), ("either", [0.5, 0.05], 3)];
         for (name, levels, flip) in cases {
-            let seen = Seen::new(&g, &views, face, levels, flip, None);
+            let seen = Seen::new(&g, &views, face, levels, flip, None, 0.0);
             let coarse = coarse_height(&g, &views, &seen, 10.0).unwrap();
             assert!((coarse - 0.6).abs() < 0.5, "{name}: coarse {coarse} mm");
             let fit = measure_outline(&g, &views, &seen, coarse, reach).unwrap();
@@ -779,13 +807,37 @@ mod tests {
         let face = SampleFace::FLUSH;
         for (name, levels, side) in [("brighter", [0.6, 0.02], 0.3), ("darker", [0.02, 0.3], 0.05)]
         {
-            let thin = Seen::new(&g, &views, face, levels, 0, None);
+            let thin = Seen::new(&g, &views, face, levels, 0, None, 0.0);
             let b = beyond_edges(&g, &views, &thin, face).unwrap();
             assert!(!b.seen() && b.excess.abs() < 1e-3 && b.views > 20, "{name}, thin: {b:?}");
-            let thick = Seen::new(&g, &views, face, levels, 0, Some((side, 3.0)));
+            let thick = Seen::new(&g, &views, face, levels, 0, Some((side, 3.0)), 0.0);
             let b = beyond_edges(&g, &views, &thick, face).unwrap();
             assert!(b.seen() && b.excess > 0.1, "{name}, 3 mm sides: {b:?}");
         }
+    }
+
+    /// A light holder whose level falls away from the sample (the beams'
+    /// profile beyond the sample): the band beyond the edges facing a
+    /// steep view and the one beyond those facing away lie at one distance
+    /// from the sample, so the holder's fall cancels between them. Read at
+    /// one distance in pixels, the edges facing away (farther from the
+    /// view, fewer pixels to the mm) put their band farther out: on a 0.2
+    /// holder at 1024² the flush painted wood's band read 0.018 ± 0.004 of
+    /// its face's contrast (its steepest views 0.03–0.09 of the holder's
+    /// level), sides seen that it does not have (session 97).
+    #[test]
+    fn a_holder_falling_away_from_the_sample_is_not_read_as_sides() {
+        let g = ScannerGeometry::default_scanner().with_sensor_scaled(4);
+        let views = nominal_views(&g);
+        let face = SampleFace::FLUSH;
+        // 3 % a mm: 0.10 of the holder's level over the band at 1024².
+        let (levels, falloff) = ([0.3, 0.2], 0.03);
+        let thin = Seen::new(&g, &views, face, levels, 0, None, falloff);
+        let b = beyond_edges(&g, &views, &thin, face).unwrap();
+        assert!(!b.lit() && b.excess.abs() < 1e-3 && b.views > 20, "thin: {b:?}");
+        let thick = Seen::new(&g, &views, face, levels, 0, Some((0.4, 1.0)), falloff);
+        let b = beyond_edges(&g, &views, &thick, face).unwrap();
+        assert!(b.seen(), "1 mm sides: {b:?}");
     }
 
     /// Gauss–Newton with Tukey's weights: readings generated by a known
