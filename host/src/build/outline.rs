@@ -74,7 +74,8 @@ pub fn side_reach(v: &ViewCalibration, face: SampleFace, edge: usize) -> f64 {
 
 /// What lies beyond the sample's edges: the band [`BAND_FROM_PX`,
 /// `BAND_FROM_PX` + 2] px outside the edges facing each view against the
-/// one as far beyond the edges facing away in the sample's uv, over the
+/// one beyond the edges facing away (as far in the sample's uv as beyond
+/// the edge opposite, while the two span pixels alike), over the
 /// face's level against the latter (per view, then the mean over the
 /// views whose facing edges reach at least [`STEEP_REACH`]). A thick
 /// sample's sides, as bright as they are lit, show beyond the facing
@@ -109,9 +110,8 @@ impl Beyond {
 
 /// The least excess of [`Beyond`] that counts as sides: a hundredth of the
 /// face's contrast (the simulator's samples without sides on its black
-/// holder: −1.5 · 10⁻⁴ … −1.0 · 10⁻⁴ at 1024², the face's blur reaching
-/// the band beyond the edges facing away, nearer them in pixels; on a
-/// 0.2 holder −0.004; with sides 2–3 mm deep at 1024²: 0.03–0.18).
+/// holder: −2.8 … −2.4 · 10⁻⁵ at 1024²; on a 0.2 holder −0.003 ± 0.001;
+/// with sides 2–3 mm deep at 1024²: 0.03–0.18).
 pub const MIN_SIDES_EXCESS: f64 = 0.01;
 
 /// How far outside the edges [`Beyond`]'s band starts, px: clear of the
