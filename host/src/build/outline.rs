@@ -130,6 +130,17 @@ const EVEN_SCALE: f64 = 1.25;
 /// [`Beyond`] to read it.
 const STEEP_REACH: f64 = 0.3;
 
+/// A point of an edge [`beyond_edges`] reads beside: whether its edge
+/// faces the view, the point, where the view sees it and the edge's
+/// outward normal there ([`predict`]: the white target's edge offset
+/// applied), and where the homography alone puts it.
+struct BandPoint {
+    faces: bool,
+    q: EdgePoint,
+    seen: [[f64; 2]; 2],
+    on: [f64; 2],
+}
+
 /// [`Beyond`] in `views` for a face at `face`.
 pub fn beyond_edges(
     g: &ScannerGeometry,
@@ -147,37 +158,38 @@ pub fn beyond_edges(
             if reach.iter().all(|&r| r < STEEP_REACH) {
                 return None;
             }
-            // Each edge point, and whether its edge faces the view; where
-            // the view sees a point `d` of uv beyond it (negative: inside);
-            // how many pixels a unit of uv beyond it spans across the edge.
-            let points: Vec<(bool, EdgePoint)> = (0..4)
+            let points: Vec<BandPoint> = (0..4)
                 .filter(|&edge| reach[edge].abs() >= STEEP_REACH)
                 .flat_map(|edge| {
                     (0..16).map(move |i| EdgePoint { edge, s: 0.1 + 0.8 * (i as f64 + 0.5) / 16.0 })
                 })
-                .map(|q| (reach[q.edge] > 0.0, q))
+                .map(|q| BandPoint {
+                    faces: reach[q.edge] > 0.0,
+                    q,
+                    seen: predict(v, &hom, &x, q),
+                    on: hom.apply(outline_uv(&x, q.uv().0)),
+                })
                 .collect();
-            let seen_at = |q: EdgePoint, d: f64| -> [f64; 2] {
-                let (uv, out) = q.uv();
-                let [p, _] = predict(v, &hom, &x, q);
+            // Where the view sees the point `d` of uv beyond an edge point
+            // (negative: inside), and how many pixels a unit of uv beyond
+            // it spans across the edge.
+            let seen_at = |b: &BandPoint, d: f64| -> [f64; 2] {
+                let ((uv, out), [p, _]) = (b.q.uv(), b.seen);
                 let at = hom.apply(outline_uv(&x, [uv[0] + d * out[0], uv[1] + d * out[1]]));
-                let edge = hom.apply(outline_uv(&x, uv));
-                // The white target's edge offset, as `predict` applies it.
-                [at[0] - edge[0] + p[0], at[1] - edge[1] + p[1]]
+                [at[0] - b.on[0] + p[0], at[1] - b.on[1] + p[1]]
             };
-            let across = |q: EdgePoint| -> f64 {
-                let [p, n] = predict(v, &hom, &x, q);
-                let o = seen_at(q, 1e-3);
+            let across = |b: &BandPoint| -> f64 {
+                let ([p, n], o) = (b.seen, seen_at(b, 1e-3));
                 ((o[0] - p[0]) * n[0] + (o[1] - p[1]) * n[1]) / 1e-3
             };
             // Each edge's mean pixels per unit of uv across it.
             let mut per_edge = [[0.0f64; 2]; 4];
-            for &(_, q) in &points {
-                per_edge[q.edge][0] += across(q);
-                per_edge[q.edge][1] += 1.0;
+            for b in &points {
+                per_edge[b.q.edge][0] += across(b);
+                per_edge[b.q.edge][1] += 1.0;
             }
             let scale: [f64; 4] = per_edge.map(|[sum, n]| if n > 0.0 { sum / n } else { f64::NAN });
-            if points.iter().any(|&(_, q)| scale[q.edge].is_nan() || scale[q.edge] <= 0.0) {
+            if points.iter().any(|b| scale[b.q.edge].is_nan() || scale[b.q.edge] <= 0.0) {
                 return None;
             }
             // The band lies BAND_FROM_PX… px beyond each edge facing the
@@ -200,13 +212,13 @@ pub fn beyond_edges(
             };
             // Sums of the band's and the inside's readings, facing and away.
             let (mut facing, mut away, mut inside) = ([0.0, 0.0], [0.0, 0.0], [0.0, 0.0]);
-            for &(faces, q) in &points {
-                let sum = if faces { &mut facing } else { &mut away };
+            for b in &points {
+                let sum = if b.faces { &mut facing } else { &mut away };
                 for k in 0..5 {
                     let t = BAND_FROM_PX + 0.5 * k as f64;
-                    sum[0] += lum.at(vi, seen_at(q, t / band_scale(q.edge)));
+                    sum[0] += lum.at(vi, seen_at(b, t / band_scale(b.q.edge)));
                     sum[1] += 1.0;
-                    inside[0] += lum.at(vi, seen_at(q, -t / scale[q.edge]));
+                    inside[0] += lum.at(vi, seen_at(b, -t / scale[b.q.edge]));
                     inside[1] += 1.0;
                 }
             }
