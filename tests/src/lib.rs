@@ -48,10 +48,14 @@ const SAMPLE_THICKNESS: &str = "--sample-thickness";
 /// The simulated holder's albedo around every scan's sample, the targets'
 /// too (default 0: black).
 const HOLDER_ALBEDO: &str = "--holder-albedo";
+/// The simulated board's fold-mirror home position this many steps off
+/// the default axes' (every scan, the targets' too): its beams land off
+/// their mirrors' centres and leave part of the sample unlit.
+const TILT_HOME_STEPS: &str = "--tilt-home-steps";
 /// Whether the builder reads the sample's sides as shown: `auto`
 /// (default), `hidden` or `shown`.
 const SIDES: &str = "--sides";
-const REGION_OPTIONS: [&str; 10] = [
+const REGION_OPTIONS: [&str; 11] = [
     SIZE,
     DETAIL,
     EDGE,
@@ -59,6 +63,7 @@ const REGION_OPTIONS: [&str; 10] = [
     SAMPLE_TILT,
     SAMPLE_THICKNESS,
     HOLDER_ALBEDO,
+    TILT_HOME_STEPS,
     HEIGHT,
     TILT,
     SIDES,
@@ -218,6 +223,14 @@ pub fn sim_scan_at(
         sample_thickness_mm,
         holder_albedo: arg(HOLDER_ALBEDO, 0.0),
         lens_distortion: [arg("--lens-k1", 0.0), 0.0],
+        board_axes: match arg(TILT_HOME_STEPS, 0i32) {
+            0 => None,
+            steps => {
+                let mut axes = protocol::default_axes();
+                axes[2].homing.home_position += steps;
+                Some(axes)
+            }
+        },
         ..SimSetup::new(material)
     };
     let nominal = s.nominal().expect("the simulator's geometry");

@@ -123,7 +123,9 @@ pub struct LightCalibration {
 
 /// Where a light's field is below this (its mean over lights and cells
 /// being 1), its beam does not light the sample: there is nothing to
-/// divide by, and the region pixels are 0.
+/// divide by, and the texel is read as unlit
+/// ([`super::regions::RegionSet::unlit`]; so is a texel in a beam's soft
+/// edge, [`BeamMap::readable`]).
 pub const UNLIT_FIELD: f64 = 0.02;
 
 /// The diffuse-white response, separable per view and per light.
@@ -163,55 +165,117 @@ impl ColourCalibration {
         Self::lookup::<1>(self.grid, &self.light_field[li], uv)[0]
     }
 
-    /// The share of the sample's cells light `li`'s beam leaves unlit
-    /// (its field below [`UNLIT_FIELD`]): their region pixels are 0.
-    pub fn unlit_share(&self, li: usize) -> f64 {
-        match self.light_field.get(li) {
-            Some(f) if !f.is_empty() => {
-                f.iter().filter(|&&b| (b as f64) < UNLIT_FIELD).count() as f64 / f.len() as f64
-            }
-            _ => 0.0,
-        }
-    }
-
-    /// How fully each light's beam covers the sample, as its field shows
-    /// against the other lights'. Per cell, the light's field over the
-    /// lights' median field there: the factorisation leaves each cell's
-    /// split between view response and light field free, and the ratio
-    /// cancels it. Scaled to the light's median over the cells (its
-    /// cos θi, its mirror's reflectance), the smallest cell's. About 1
-    /// where every beam lights the whole sample alike; lower for a beam
-    /// that lands off its mirror's centre and leaves part of the sample in
-    /// its soft edge. Per light, in `light_field` order (1 for fewer than
-    /// three lights: nothing to compare with).
-    pub fn beam_coverage(&self) -> Vec<f64> {
+    /// How fully each light's beam lights each cell of the sample, as its
+    /// field shows against the other lights': per cell, the light's field
+    /// (over its own level where it lights the sample fully, its
+    /// 90th-percentile cell) over the lights' well-lit field there — the
+    /// mean of the lights between the 60th and 95th percentiles. The
+    /// factorisation leaves each cell's split between view response and
+    /// light field free, and the ratio cancels it; the upper band stands
+    /// where half the beams miss the cell, and a mean over a band, not one
+    /// light's value, hardly bends where a beam falling through it changes
+    /// the lights' order. Scaled to the light's median over the cells (its
+    /// cos θi, its mirror's reflectance). About 1 where every beam lights
+    /// the whole sample alike; lower where a beam that lands off its
+    /// mirror's centre leaves the sample in its soft edge. Per light, in
+    /// `light_field` order, `grid`² cells row-major (NaN where the lights
+    /// leave the cell dark); empty for fewer than three lights (nothing to
+    /// compare with).
+    pub fn beam_fractions(&self) -> Vec<Vec<f32>> {
         let n = self.light_field.len();
         let cells = self.grid * self.grid;
         if n < 3 || self.light_field.iter().any(|f| f.len() != cells) {
-            return vec![1.0; n];
+            return Vec::new();
         }
-        // Each light's field over its own level (its median cell).
+        // Each light's field over its own level where it lights the sample
+        // fully (its 90th-percentile cell): a beam that misses part of the
+        // sample stands as high as the others where it does light it.
+        let quantile = |mut v: Vec<f64>, q: f64| -> f64 {
+            v.retain(|x| x.is_finite());
+            v.sort_by(f64::total_cmp);
+            v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(0.0)
+        };
         let own: Vec<Vec<f64>> = self
             .light_field
             .iter()
             .map(|f| {
                 let f: Vec<f64> = f.iter().map(|&x| x as f64).collect();
-                let mid = median(f.clone()).unwrap_or(0.0);
-                f.iter().map(|x| if mid > 0.0 { x / mid } else { 0.0 }).collect()
+                let level = quantile(f.clone(), 0.9);
+                f.iter().map(|x| if level > 0.0 { x / level } else { 0.0 }).collect()
             })
             .collect();
-        let typical: Vec<f64> =
-            (0..cells).map(|c| median(own.iter().map(|f| f[c]).collect()).unwrap_or(0.0)).collect();
+        let well_lit: Vec<f64> = (0..cells)
+            .map(|c| {
+                let mut v: Vec<f64> = own.iter().map(|f| f[c]).filter(|x| x.is_finite()).collect();
+                v.sort_by(f64::total_cmp);
+                let (lo, hi) =
+                    ((v.len() * 3) / 5, (v.len() * 19).div_ceil(20).max(v.len() * 3 / 5 + 1));
+                let band = &v[lo.min(v.len())..hi.min(v.len())];
+                if band.is_empty() { 0.0 } else { band.iter().sum::<f64>() / band.len() as f64 }
+            })
+            .collect();
         own.iter()
             .map(|f| {
-                let rel: Vec<f64> =
-                    f.iter().zip(&typical).filter(|(_, t)| **t > 0.0).map(|(b, t)| b / t).collect();
-                let mid = median(rel.clone()).unwrap_or(0.0);
-                if mid > 0.0 {
-                    rel.iter().fold(f64::INFINITY, |m, r| m.min(r / mid)).max(0.0)
-                } else {
-                    0.0
-                }
+                let rel: Vec<f64> = f
+                    .iter()
+                    .zip(&well_lit)
+                    .map(|(b, t)| if *t > 0.0 { b / t } else { f64::NAN })
+                    .collect();
+                let mid =
+                    median(rel.iter().copied().filter(|r| r.is_finite()).collect()).unwrap_or(0.0);
+                rel.iter()
+                    .map(|r| if mid > 0.0 { (r / mid).max(0.0) as f32 } else { 0.0 })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Where each light's beam can be read from its frames
+    /// ([`BeamMap::readable`]).
+    pub fn beam_map(&self) -> BeamMap {
+        let grid = self.grid;
+        let fractions = self.beam_fractions();
+        // Per cell, the bilinear lookup's relative error where the field
+        // bends: |second difference| / 8 over the cell's own fraction, the
+        // larger along u or v (a cell on the grid's edge takes the second
+        // difference of its inner neighbour along that axis).
+        let curvature = fractions
+            .iter()
+            .map(|f| {
+                let at = |i: usize, j: usize| f[j * grid + i] as f64;
+                let inner = |i: usize| i.clamp(1, grid.saturating_sub(2).max(1));
+                (0..grid * grid)
+                    .map(|c| {
+                        let (i, j) = (c % grid, c / grid);
+                        if grid < 3 {
+                            return 0.0;
+                        }
+                        let (a, b) = (inner(i), inner(j));
+                        let along_u = at(a - 1, j) + at(a + 1, j) - 2.0 * at(a, j);
+                        let along_v = at(i, b - 1) + at(i, b + 1) - 2.0 * at(i, b);
+                        let bend = along_u.abs().max(along_v.abs());
+                        (bend / 8.0 / at(i, j).max(1e-6)) as f32
+                    })
+                    .collect()
+            })
+            .collect();
+        BeamMap { grid, fractions, curvature }
+    }
+
+    /// How fully each light's beam covers the sample: the least of its
+    /// [`Self::beam_fractions`] (1 for fewer than three lights; cells the
+    /// lights leave dark not counted).
+    pub fn beam_coverage(&self) -> Vec<f64> {
+        let fractions = self.beam_fractions();
+        if fractions.is_empty() {
+            return vec![1.0; self.light_field.len()];
+        }
+        fractions
+            .iter()
+            .map(|f| {
+                let least =
+                    f.iter().filter(|r| r.is_finite()).fold(f32::INFINITY, |m, &r| m.min(r));
+                if least.is_finite() { least as f64 } else { 0.0 }
             })
             .collect()
     }
@@ -221,6 +285,59 @@ impl ColourCalibration {
     pub fn response(&self, li: usize, vi: usize, uv: [f64; 2]) -> [f64; 3] {
         let b = self.light(li, uv);
         self.view(vi, uv).map(|a| a * b)
+    }
+}
+
+/// The least share of its light a cell must get from a beam, against the
+/// other beams there ([`ColourCalibration::beam_fractions`]), to be read
+/// from that light's frames.
+pub const BEAM_EDGE: f64 = 0.5;
+
+/// The largest relative error the calibration's bilinear lookup of a beam's
+/// field may make where the field bends ([`BeamMap`]'s curvature) for a
+/// texel to be read from that light's frames. A beam's soft edge (a raised
+/// cosine over a few cells) bends far more; a smooth fall-off across the
+/// sample (≤ 10⁻³ for a Gaussian 20 mm wide on cells of 0.8 mm) far less.
+pub const BEAM_BEND: f64 = 0.003;
+
+/// Where each light's beam can be read from its frames: the calibration's
+/// cells follow its field there closely enough to divide by
+/// ([`ColourCalibration::beam_map`]).
+#[derive(Debug, Clone)]
+pub struct BeamMap {
+    grid: usize,
+    /// Per light, [`ColourCalibration::beam_fractions`].
+    fractions: Vec<Vec<f32>>,
+    /// Per light and cell, the bilinear lookup's relative error where the
+    /// field bends.
+    curvature: Vec<Vec<f32>>,
+}
+
+impl BeamMap {
+    /// Light `li`'s fraction at `uv`, bilinear over the cells; 1 without
+    /// fractions (fewer than three lights).
+    pub fn fraction(&self, li: usize, uv: [f64; 2]) -> f64 {
+        self.fractions.get(li).map_or(1.0, |f| ColourCalibration::lookup::<1>(self.grid, f, uv)[0])
+    }
+
+    /// Light `li`'s bend at `uv`: the largest of the four cells its lookup
+    /// reads; 0 without fractions.
+    pub fn bend(&self, li: usize, uv: [f64; 2]) -> f64 {
+        let Some(c) = self.curvature.get(li) else { return 0.0 };
+        let (x0, x1, _) = cell_taps(self.grid, uv[0]);
+        let (y0, y1, _) = cell_taps(self.grid, uv[1]);
+        [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+            .into_iter()
+            .map(|(i, j)| c[j * self.grid + i] as f64)
+            .fold(0.0, |m: f64, b| if m.is_nan() || b.is_nan() { f64::NAN } else { m.max(b) })
+    }
+
+    /// Whether light `li`'s frames can be read at `uv`: the beam gives the
+    /// sample there at least [`BEAM_EDGE`] of what the well-lit beams give
+    /// it, and its field bends there by no more than [`BEAM_BEND`]. (NaN,
+    /// where the lights leave the cells dark: not readable.)
+    pub fn readable(&self, li: usize, uv: [f64; 2]) -> bool {
+        self.fraction(li, uv) >= BEAM_EDGE && self.bend(li, uv) <= BEAM_BEND
     }
 }
 
@@ -1568,12 +1685,105 @@ mod tests {
             *x *= 0.3;
         }
         let coverage = colour(&fields).beam_coverage();
-        assert!((coverage[3] - 0.3).abs() < 1e-6, "{coverage:?}");
+        // (Within 1 %: the dim row moves which cell is the light's 90th
+        // percentile, its level, on the shared gradient.)
+        assert!((coverage[3] - 0.3).abs() < 0.01, "{coverage:?}");
         for (l, c) in coverage.iter().enumerate().filter(|(l, _)| *l != 3) {
             assert!((c - 1.0).abs() < 1e-6, "light {l}: {c}");
         }
         // Too few lights to compare: nothing told.
         assert_eq!(colour(&fields[..2]).beam_coverage(), [1.0, 1.0]);
+    }
+
+    /// Where a beam can be read: everywhere for beams that fall off
+    /// smoothly across the sample (a shared gradient, one light's own 30 %
+    /// tilt, another's Gaussian 20 mm wide), even where most beams leave
+    /// part of it dark; not where a beam's soft edge (a raised cosine over
+    /// 4 mm, as the simulator's) crosses it, nor beyond, nor where the
+    /// lights leave a cell dark.
+    #[test]
+    fn a_beam_is_read_where_its_field_is_smooth_not_in_its_soft_edge() {
+        let grid = 32;
+        let mm = |i: usize| (i as f64 + 0.5) / grid as f64 * 25.4;
+        let raised = |x: f64, at: f64| {
+            // 1 before `at` − 2 mm, 0 after `at` + 2 mm.
+            let t = ((x - at + 2.0) / 4.0).clamp(0.0, 1.0);
+            0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+        };
+        let field = |l: usize, c: usize| -> f64 {
+            let (x, y) = (mm(c % grid), mm(c / grid));
+            let shared = 0.8 + 0.2 * x / 25.4;
+            let own = match l {
+                0 => 1.0 - 0.3 * y / 25.4,
+                1 => (-((x - 5.0).powi(2) + (y - 8.0).powi(2)) / (2.0 * 20.0f64.powi(2))).exp(),
+                // The edge crosses the sample at u = 16 mm.
+                2 => raised(x, 16.0),
+                _ => 1.0,
+            };
+            shared * own * (0.6 + 0.01 * l as f64)
+        };
+        let colour = |n: usize| ColourCalibration {
+            grid,
+            white_albedo: 0.98,
+            view_response: Vec::new(),
+            light_field: (0..n)
+                .map(|l| (0..grid * grid).map(|c| field(l, c) as f32).collect())
+                .collect(),
+        };
+        let map = colour(40).beam_map();
+        let uv = |x: f64, y: f64| [x / 25.4, y / 25.4];
+        for l in [0, 1, 3, 39] {
+            for c in 0..grid * grid {
+                let at = uv(mm(c % grid), mm(c / grid));
+                assert!(
+                    map.readable(l, at),
+                    "light {l} at {at:?}: {:?}",
+                    (map.fraction(l, at), map.bend(l, at))
+                );
+            }
+        }
+        // Light 2: read well before its edge, not within it or beyond.
+        for c in 0..grid * grid {
+            let (x, at) = (mm(c % grid), uv(mm(c % grid), mm(c / grid)));
+            if x < 12.5 {
+                assert!(
+                    map.readable(2, at),
+                    "{x} mm: {:?}",
+                    (map.fraction(2, at), map.bend(2, at))
+                );
+            }
+            if x > 14.5 {
+                assert!(
+                    !map.readable(2, at),
+                    "{x} mm: {:?}",
+                    (map.fraction(2, at), map.bend(2, at))
+                );
+            }
+        }
+        // Half the beams' edges crossing the sample: the others still read
+        // everywhere, the edges still not.
+        let mut half = colour(40);
+        for l in 20..40 {
+            half.light_field[l] = (0..grid * grid)
+                .map(|c| (field(l, c) * raised(mm(c / grid), 20.0)) as f32)
+                .collect();
+        }
+        let map = half.beam_map();
+        for c in 0..grid * grid {
+            let (y, at) = (mm(c / grid), uv(mm(c % grid), mm(c / grid)));
+            assert!(map.readable(3, at) && map.readable(0, at), "{at:?}");
+            if y > 18.5 {
+                assert!(!map.readable(25, at), "{y} mm");
+            }
+        }
+        // Cells every light leaves dark: not read.
+        let mut dark = colour(4);
+        for f in &mut dark.light_field {
+            f[0] = 0.0;
+        }
+        assert!(!dark.beam_map().readable(3, [0.0, 0.0]));
+        // Too few lights to compare: read everywhere.
+        assert!(colour(2).beam_map().readable(1, [0.5, 0.5]));
     }
 
     /// A pixel's share on the sample is its square's exact area within the

@@ -304,11 +304,13 @@ pub fn shift_errors(
             };
             // The model of each scored texel, fitted without the held light.
             let models: Vec<TexelParams> = if with_model {
-                let keep: Vec<usize> = (0..nl * nv).filter(|&i| i / nv != held).collect();
                 texels
                     .iter()
                     .zip(&texel_views)
                     .map(|(&t, views)| {
+                        let keep: Vec<usize> = (0..nl * nv)
+                            .filter(|&i| i / nv != held && !regions.is_unlit(i / nv, t))
+                            .collect();
                         let d: Vec<_> = keep.iter().map(|&i| (ld[i / nv], views[i % nv])).collect();
                         let y: Vec<[f32; 3]> = keep.iter().map(|&i| regions.images[i][t]).collect();
                         texel_fit::fit_texel(&texel_fit::Observations { dirs: &d, values: &y }).0
@@ -350,6 +352,9 @@ pub fn shift_errors(
                         );
                         let img = regions.image(held, v);
                         for (i, (p, &t)) in pred.iter().zip(&texels).enumerate() {
+                            if regions.is_unlit(held, t) {
+                                continue;
+                            }
                             let m = models
                                 .get(i)
                                 .map_or([0.0; 3], |m| reflected(m, wi, texel_views[i][v]));
@@ -462,6 +467,23 @@ pub fn build_material(
         texel_fit::fit_texels(regions, &|| progress.step())
     } else {
         Vec::new()
+    };
+    // The texels a beam left unlit, filled again from the lights that lit
+    // them with the model's own values added (extraction filled them
+    // without a model).
+    let refilled;
+    let regions = if texels.is_empty() || regions.unlit.iter().all(|u| u.is_empty()) {
+        regions
+    } else {
+        let mut again = regions.clone();
+        let ld: Vec<[f32; 3]> = regions.light_dirs.iter().map(|&d| unit32(d)).collect();
+        let model = |l: usize, vi: usize, t: usize| {
+            let wo = unit32(regions.view_dir_at(vi, regions.texel_uv(t)));
+            scanner_shading::texel::reflected(&texels[t], ld[l], wo)
+        };
+        again.fill_unlit(Some(&model))?;
+        refilled = again;
+        &refilled
     };
     let k = opts.colours;
     progress.stage("palettes", nv);
@@ -629,6 +651,7 @@ mod tests {
             face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
             beyond: None,
+            unlit: Vec::new(),
             sides: crate::build::regions::SampleSides::Hidden,
         }
     }

@@ -64,6 +64,13 @@ pub struct RegionSet {
     /// ([`super::outline::beyond_edges`]): the measurement's, or a given
     /// face's when asked to look ([`SampleSides::Auto`]).
     pub beyond: Option<super::outline::Beyond>,
+    /// Per light (like `lights`), the texels its beam left unlit in the
+    /// calibration (its field below [`super::calibrate::UNLIT_FIELD`]),
+    /// row-major S × S; empty for a light that lit every texel. Nothing
+    /// was measured there: [`extract_regions`] fills them
+    /// ([`RegionSet::fill_unlit`]), the texel model is fitted without them
+    /// and [`RegionSet::write_exr`] writes them as 0.
+    pub unlit: Vec<Vec<bool>>,
 }
 
 /// Bilinear lookup at uv (clamped to the sample) in an S × S image laid
@@ -114,6 +121,127 @@ impl RegionSet {
         bilinear(self.size, self.image(li, vi), uv)
     }
 
+    /// Whether light `li`'s beam left texel `t` unlit ([`Self::unlit`]).
+    pub fn is_unlit(&self, li: usize, t: usize) -> bool {
+        self.unlit.get(li).and_then(|u| u.get(t)).copied().unwrap_or(false)
+    }
+
+    /// Fill the texels each light left unlit ([`Self::unlit`]) from the
+    /// lights that lit them, as the default interpolation reads between
+    /// lights: f at the light's direction, barycentric over the Delaunay
+    /// triangles of those lights' directions (the shading's own weights,
+    /// `scanner_shading::locate::TriangleLocator`; beyond their outer ring,
+    /// the nearest arc), times the light's cos θi. With fewer than three
+    /// such lights, the nearest one's f; a texel no other light lit stays
+    /// 0. With a `model` (the value it predicts for light, view and texel
+    /// indices), only what the model leaves is read between the lights and
+    /// the model's own value is added: a highlight the unlit light would
+    /// have seen is kept. Returns how many (light, texel) it filled.
+    pub fn fill_unlit(&mut self, model: Option<&UnlitModel<'_>>) -> Result<usize, BuildError> {
+        use scanner_shading::locate::{TriangleLocator, Weights3};
+        use std::collections::HashMap;
+        let (nl, nv) = (self.lights.len(), self.views.len());
+        if self.unlit.iter().all(|u| u.is_empty()) || nv == 0 {
+            return Ok(0);
+        }
+        let unit = |d: [f64; 3]| {
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            d.map(|x| x / l)
+        };
+        let dirs: Vec<[f64; 3]> = self.light_dirs.iter().map(|&d| unit(d)).collect();
+        // Per (light, texel) to fill, the other lights that lit the texel
+        // as a bit set; each distinct set's weights are found once.
+        let words = nl.div_ceil(64);
+        let mut wanted: HashMap<(usize, Vec<u64>), Vec<usize>> = HashMap::new();
+        for li in 0..nl {
+            for t in 0..self.size * self.size {
+                if !self.is_unlit(li, t) {
+                    continue;
+                }
+                let mut bits = vec![0u64; words];
+                for l in (0..nl).filter(|&l| l != li && !self.is_unlit(l, t)) {
+                    bits[l / 64] |= 1 << (l % 64);
+                }
+                wanted.entry((li, bits)).or_default().push(t);
+            }
+        }
+        let weights = |li: usize, bits: &[u64]| -> Result<Vec<(usize, f64)>, BuildError> {
+            let others: Vec<usize> =
+                (0..nl).filter(|&l| bits[l / 64] >> (l % 64) & 1 == 1).collect();
+            let d = dirs[li];
+            let angle = |l: usize| {
+                let e = dirs[l];
+                (d[0] * e[0] + d[1] * e[1] + d[2] * e[2]).clamp(-1.0, 1.0).acos()
+            };
+            let nearest = || {
+                others
+                    .iter()
+                    .copied()
+                    .min_by(|&a, &b| angle(a).total_cmp(&angle(b)))
+                    .map(|l| vec![(l, 1.0)])
+            };
+            let f = |v: [f64; 3]| v.map(|x| x as f32);
+            let od: Vec<[f64; 3]> = others.iter().map(|&l| dirs[l]).collect();
+            let od32: Vec<[f32; 3]> = od.iter().map(|&v| f(v)).collect();
+            let located = (others.len() >= 3)
+                .then(|| super::material::triangulate(&od, "the lights that lit a texel").ok())
+                .flatten()
+                .and_then(|tris| {
+                    TriangleLocator::new(&od32, &tris, "the lights that lit a texel").ok()
+                });
+            let Some(locator) = located else {
+                return Ok(nearest().unwrap_or_default());
+            };
+            let mut w: Weights3 = [(0, 0.0); 3];
+            locator.weights(f(d), &mut w);
+            Ok(w.iter()
+                .filter(|(_, w)| *w > 0.0)
+                .map(|&(i, w)| (others[i as usize], w as f64))
+                .collect())
+        };
+        // Per light and set of lights: their weights, and the texels.
+        type Plan = (usize, Vec<(usize, f64)>, Vec<usize>);
+        let plan: Vec<Plan> = wanted
+            .into_par_iter()
+            .map(|((li, bits), texels)| Ok((li, weights(li, &bits)?, texels)))
+            .collect::<Result<_, BuildError>>()?;
+        let cos = |l: usize| dirs[l][2].max(1e-6);
+        let mut filled = 0;
+        for (li, w, texels) in plan.iter().filter(|(_, w, _)| !w.is_empty()) {
+            let values: Vec<Vec<[f32; 3]>> = (0..nv)
+                .map(|vi| {
+                    texels
+                        .iter()
+                        .map(|&t| {
+                            let m = |l: usize| model.map_or([0.0; 3], |m| m(l, vi, t));
+                            let own = m(*li);
+                            let others: Vec<(f64, [f32; 3])> =
+                                w.iter().map(|&(l, w)| (w / cos(l), m(l))).collect();
+                            std::array::from_fn(|c| {
+                                let f: f64 = w
+                                    .iter()
+                                    .zip(&others)
+                                    .map(|(&(l, _), (k, m))| {
+                                        k * (self.image(l, vi)[t][c] - m[c]) as f64
+                                    })
+                                    .sum();
+                                ((f * cos(*li)) as f32 + own[c]).max(0.0)
+                            })
+                        })
+                        .collect()
+                })
+                .collect();
+            for (vi, v) in values.into_iter().enumerate() {
+                let img = &mut self.images[li * nv + vi];
+                for (&t, v) in texels.iter().zip(v) {
+                    img[t] = v;
+                }
+            }
+            filled += texels.len();
+        }
+        Ok(filled)
+    }
+
     /// Write every region as `l{LL}-v{VV}.exr` (half float, uncompressed:
     /// PIZ gains 11 % on these noisy values at ×6 the writing time) into `dir`, and
     /// the detail layer, if any: its shared factor as `detail.exr`, and with
@@ -131,7 +259,9 @@ impl RegionSet {
             let frame = crate::camera::Frame {
                 width: self.size as u32,
                 height: self.size as u32,
-                rgb: self.images[i].iter().flatten().copied().collect(),
+                rgb: (self.images[i].iter().enumerate())
+                    .flat_map(|(t, px)| if self.is_unlit(li, t) { [0.0; 3] } else { *px })
+                    .collect(),
             };
             let bytes = crate::exrio::encode_half_uncompressed(&frame).map_err(out)?;
             let path = dir.join(format!("l{:02}-v{:02}.exr", self.lights[li], self.views[vi]));
@@ -292,6 +422,10 @@ pub fn default_size(cal: &Calibration) -> usize {
         .fold(0.0, f64::max);
     (longest.ceil() as usize).max(8).next_power_of_two()
 }
+
+/// A texel model's value for (light index, view index, texel) that
+/// [`RegionSet::fill_unlit`] reads the lights' residuals against.
+pub type UnlitModel<'a> = dyn Fn(usize, usize, usize) -> [f32; 3] + Sync + 'a;
 
 /// How [`extract_regions`] extracts.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -550,7 +684,9 @@ pub fn extract_regions(
         .sharpen
         .as_ref()
         .map(|o| (o, Footprints::new(&samplers, &straddles, frame, size, o.points)));
-    let per_light: Vec<(Vec<Image>, Option<Image>)> = lights
+    // Where each beam's field can be divided by: not in its soft edge.
+    let beams = cal.colour.beam_map();
+    let per_light: Vec<(Vec<Image>, Option<Image>, Vec<bool>)> = lights
         .par_iter()
         .zip(&light_index)
         .map(|(&l, &ci)| {
@@ -569,20 +705,27 @@ pub fn extract_regions(
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
             // f · cos θi per frame unit at uv in view `vi`, or `None` where
             // this beam leaves the sample unlit (nothing to divide by).
-            let unit = |b: f64, a: [f64; 3]| -> Option<[f64; 3]> {
-                if b < super::calibrate::UNLIT_FIELD {
+            let lit =
+                |uv: [f64; 2], b: f64| b >= super::calibrate::UNLIT_FIELD && beams.readable(ci, uv);
+            let unit = |uv: [f64; 2], b: f64, a: [f64; 3]| -> Option<[f64; 3]> {
+                if !lit(uv, b) {
                     return None;
                 }
                 let w = a.map(|a| a * b);
                 Some(w.map(|w| if w > 0.0 { scale / w } else { 0.0 }))
             };
-            let per_unit =
-                |vi: usize, uv: [f64; 2]| unit(cal.colour.light(ci, uv), cal.colour.view(vi, uv));
+            let per_unit = |vi: usize, uv: [f64; 2]| {
+                unit(uv, cal.colour.light(ci, uv), cal.colour.view(vi, uv))
+            };
             // The same at the texels, from the views' and this light's
             // values there.
             let texel_light: Vec<f64> =
                 (0..size * size).map(|i| cal.colour.light(ci, cell_uv(i, size))).collect();
-            let texel_unit = |vi: usize, t: usize| unit(texel_light[t], texel_view[vi][t].response);
+            let unlit: Vec<bool> =
+                (0..size * size).map(|t| !lit(cell_uv(t, size), texel_light[t])).collect();
+            let texel_unit = |vi: usize, t: usize| {
+                unit(cell_uv(t, size), texel_light[t], texel_view[vi][t].response)
+            };
             let scaled = |s: [f64; 3], c: [f64; 3]| -> [f32; 3] {
                 std::array::from_fn(|k| (s[k] * c[k]) as f32)
             };
@@ -620,19 +763,27 @@ pub fn extract_regions(
                     img
                 })
                 .collect();
-            let detail = sharpen
-                .as_ref()
-                .and_then(|(o, views)| sharpen_light(views, &value, &noise, &f, o, &mut images));
+            let detail = sharpen.as_ref().and_then(|(o, views)| {
+                sharpen_light(views, &value, &noise, &f, o, &mut images, &unlit)
+            });
             progress.step();
-            Ok((images, detail))
+            let unlit = if unlit.contains(&true) { unlit } else { Vec::new() };
+            Ok((images, detail, unlit))
         })
         .collect::<Result<_, BuildError>>()?;
-    let (per_light, details): (Vec<_>, Vec<_>) = per_light.into_iter().unzip();
+    let mut per_light_images = Vec::with_capacity(per_light.len());
+    let mut details = Vec::with_capacity(per_light.len());
+    let mut unlit = Vec::with_capacity(per_light.len());
+    for (images, detail, dark) in per_light {
+        per_light_images.push(images);
+        details.push(detail);
+        unlit.push(dark);
+    }
     if opts.sharpen.is_some() {
         progress.stage("detail layer", 1);
     }
     let detail = detail_layer(&details, 2 * size);
-    Ok(RegionSet {
+    let mut set = RegionSet {
         detail,
         size,
         light_dirs: light_index
@@ -656,8 +807,11 @@ pub fn extract_regions(
         sides,
         views: cal.views.iter().map(|v| v.view).collect(),
         lights,
-        images: per_light.into_iter().flatten().collect(),
-    })
+        images: per_light_images.into_iter().flatten().collect(),
+        unlit,
+    };
+    set.fill_unlit(None)?;
+    Ok(set)
 }
 
 #[cfg(test)]
@@ -684,6 +838,108 @@ mod tests {
         assert!(available_memory().is_none_or(|a| a > 0));
     }
 
+    /// Texels a beam left unlit are filled from the lights that lit them:
+    /// exactly on a Lambertian sample (f the same for every light), exactly
+    /// on a glossy one given its texel model (only the model's residual,
+    /// here 0, is read between the lights), and left 0 where no light lit
+    /// the texel; `scanner regions` writes them as 0.
+    #[test]
+    fn unlit_texels_are_filled_from_the_lights_that_lit_them() {
+        use scanner_shading::texel::{TexelParams, reflected};
+        let (n, s) = (12usize, 4usize);
+        let dirs: Vec<[f64; 3]> = (0..n)
+            .map(|k| {
+                let (th, ph) = ((12.0 + 18.0 * (k % 3) as f64).to_radians(), 0.55 * k as f64);
+                [th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()]
+            })
+            .collect();
+        let f32v = |d: [f64; 3]| d.map(|x| x as f32);
+        let glossy = TexelParams {
+            diffuse: [0.2, 0.15, 0.1],
+            specular: [0.6, 0.6, 0.6],
+            alpha: 0.2,
+            normal: [0.0, 0.0, 1.0],
+        };
+        let set_of = |value: &dyn Fn(usize, usize, usize) -> [f32; 3]| RegionSet {
+            size: s,
+            lights: (0..n).collect(),
+            views: (0..n).collect(),
+            light_dirs: dirs.clone(),
+            view_dirs: dirs.clone(),
+            viewers_mm: dirs.iter().map(|d| d.map(|x| x * 1e9)).collect(),
+            sample_mm: 25.4,
+            images: (0..n * n)
+                .map(|p| (0..s * s).map(|t| value(p / n, p % n, t)).collect())
+                .collect(),
+            detail: None,
+            face: SampleFace::FLUSH,
+            height_fit: None,
+            beyond: None,
+            sides: SampleSides::Hidden,
+            unlit: Vec::new(),
+        };
+        let lambert =
+            |l: usize, _: usize, _: usize| [0.3 / std::f32::consts::PI * dirs[l][2] as f32; 3];
+        let gloss = |l: usize, v: usize, _: usize| {
+            let wo = f32v(dirs[v]);
+            reflected(&glossy, f32v(dirs[l]), wo)
+        };
+        // Light 4 leaves texels 0–5 unlit, light 7 texels 3–9; texel 15
+        // no light lit.
+        let unlit: Vec<Vec<bool>> = (0..n)
+            .map(|l| match l {
+                4 => (0..s * s).map(|t| t <= 5 || t == 15).collect(),
+                7 => (0..s * s).map(|t| (3..=9).contains(&t) || t == 15).collect(),
+                _ => (0..s * s).map(|t| t == 15).collect(),
+            })
+            .collect();
+        let blank = |set: &mut RegionSet| {
+            for (li, dark) in unlit.iter().enumerate() {
+                for img in &mut set.images[li * n..(li + 1) * n] {
+                    for (px, _) in img.iter_mut().zip(dark).filter(|(_, d)| **d) {
+                        *px = [0.0; 3];
+                    }
+                }
+            }
+            set.unlit = unlit.clone();
+        };
+        let worst = |set: &RegionSet, truth: &dyn Fn(usize, usize, usize) -> [f32; 3]| {
+            let mut worst = 0.0f32;
+            for li in 0..n {
+                for vi in 0..n {
+                    for t in 0..15 {
+                        for (a, b) in set.image(li, vi)[t].iter().zip(truth(li, vi, t)) {
+                            worst = worst.max((a / b - 1.0).abs());
+                        }
+                    }
+                    assert_eq!(set.image(li, vi)[15], [0.0; 3], "nothing lit texel 15");
+                }
+            }
+            worst
+        };
+        let mut matte = set_of(&lambert);
+        blank(&mut matte);
+        assert_eq!(matte.fill_unlit(None).unwrap(), 6 + 7);
+        assert!(worst(&matte, &lambert) < 1e-5, "{}", worst(&matte, &lambert));
+        let mut shiny = set_of(&gloss);
+        blank(&mut shiny);
+        let without = shiny.clone();
+        let model = |l: usize, v: usize, _: usize| gloss(l, v, 0);
+        shiny.fill_unlit(Some(&model)).unwrap();
+        assert!(worst(&shiny, &gloss) < 1e-4, "{}", worst(&shiny, &gloss));
+        // Without the model the highlight is read between the lights: off.
+        let mut plain = without;
+        plain.fill_unlit(None).unwrap();
+        assert!(worst(&plain, &gloss) > 0.05, "{}", worst(&plain, &gloss));
+        // The files hold 0 where nothing was measured.
+        let dir = tempfile::tempdir().unwrap();
+        matte.write_exr(dir.path()).unwrap();
+        let img = crate::exrio::read_rgb(&dir.path().join("l04-v02.exr")).unwrap();
+        for (t, (px, dark)) in img.rgb.chunks(3).zip(&unlit[4]).enumerate() {
+            assert_eq!(px.iter().all(|&c| c == 0.0), *dark, "texel {t}");
+        }
+    }
+
     /// `scanner regions`' files: every image, the shared layer, and with
     /// light components each light's whole layer, named by its mirror.
     #[test]
@@ -707,6 +963,7 @@ mod tests {
             face: SampleFace::FLUSH,
             height_fit: None,
             beyond: None,
+            unlit: Vec::new(),
             sides: SampleSides::Hidden,
         };
         let dir = tempfile::tempdir().unwrap();

@@ -846,7 +846,12 @@ fn solve_halves(
 /// that all `views`' pixels of `frame` hold together (see the module
 /// documentation), and return the light's log detail beyond S × S
 /// ([`fine_detail`]). `None`, images untouched: fewer than two views with
-/// usable pixels.
+/// usable pixels. `unlit` (S × S, or empty: every texel lit) marks the
+/// texels this light's beam left unlit: the images hold nothing there, and
+/// within [`UNLIT_MARGIN`] texels of them the images keep their own
+/// resampling and the log detail is 0 — the solve's and the local means'
+/// reach across the boundary mixed the missing texels in (a white target
+/// read 2× along it).
 pub fn sharpen_light(
     views: &Footprints,
     value: &PixelValue<'_>,
@@ -854,6 +859,7 @@ pub fn sharpen_light(
     frame: &Frame,
     opts: &SharpenOptions,
     images: &mut [Vec<[f32; 3]>],
+    unlit: &[bool],
 ) -> Option<Vec<[f32; 3]>> {
     assert_eq!(views.views.len(), images.len(), "one region image per view");
     let dims = [frame.width as usize, frame.height as usize];
@@ -863,6 +869,7 @@ pub fn sharpen_light(
     }
     let size = views.size;
     let n = size * size;
+    let near_unlit = near(unlit, size, UNLIT_MARGIN);
     let mut mean = vec![[0.0f32; 3]; n];
     for img in images.iter() {
         for (m, v) in mean.iter_mut().zip(img) {
@@ -912,7 +919,7 @@ pub fn sharpen_light(
         } else {
             vec![[1.0; 3]; n]
         };
-        for t in 0..n {
+        for t in (0..n).filter(|&t| !near_unlit.get(t).copied().unwrap_or(false)) {
             for k in 0..3 {
                 let s = scale[t][k];
                 let noise = solved.explained[t][k] * (1.0 - keep[t][k]) * residual[t][k];
@@ -922,7 +929,38 @@ pub fn sharpen_light(
         }
     }
     drop(rows);
-    fine_detail(&fine_rows, size, opts, &solved, &mean, level)
+    let mut detail = fine_detail(&fine_rows, size, opts, &solved, &mean, level)?;
+    if !near_unlit.is_empty() {
+        let fine = 2 * size;
+        for (t, d) in detail.iter_mut().enumerate() {
+            if near_unlit[(t / fine / 2) * size + (t % fine) / 2] {
+                *d = [0.0; 3];
+            }
+        }
+    }
+    Some(detail)
+}
+
+/// Texels within this many (Chebyshev distance) of one a beam left unlit
+/// take no multi-view detail ([`sharpen_light`]).
+pub const UNLIT_MARGIN: usize = 3;
+
+/// The texels of an S × S `mask` (row-major; empty: none) within `reach`
+/// texels of a marked one (Chebyshev distance); empty if none is marked.
+fn near(mask: &[bool], size: usize, reach: usize) -> Vec<bool> {
+    if !mask.contains(&true) || mask.len() != size * size {
+        return Vec::new();
+    }
+    let mut out = vec![false; size * size];
+    for (t, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
+        let (x, y) = (t % size, t / size);
+        for j in y.saturating_sub(reach)..=(y + reach).min(size - 1) {
+            for i in x.saturating_sub(reach)..=(x + reach).min(size - 1) {
+                out[j * size + i] = true;
+            }
+        }
+    }
+    out
 }
 
 /// Each channel's sum over an image's texels.
@@ -1413,6 +1451,7 @@ mod tests {
             f,
             &opts,
             &mut images,
+            &[],
         );
         images
     }
@@ -1462,8 +1501,8 @@ mod tests {
         let identity = |_: usize, _: [f64; 2], s: [f64; 3]| Some(s.map(|v| v as f32));
         let opts = SharpenOptions::default();
         let views = footprints(&samplers, &f, &opts);
-        let log =
-            sharpen_light(&views, &identity, &NOISELESS, &f, &opts, &mut images).expect("a layer");
+        let log = sharpen_light(&views, &identity, &NOISELESS, &f, &opts, &mut images, &[])
+            .expect("a layer");
         let layer = shared_detail(&[Some(log.clone()), Some(log)], 2 * S).expect("a layer");
         let fine = 2 * S;
         let (mut with, mut without, mut n) = (0.0, 0.0, 0usize);
@@ -1790,6 +1829,7 @@ mod tests {
                 &f,
                 &opts,
                 &mut images,
+                &[],
             );
             images
         };
@@ -1885,6 +1925,7 @@ mod tests {
             &f,
             &opts,
             &mut images,
+            &[],
         );
         assert_eq!(images, own);
     }

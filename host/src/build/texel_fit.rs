@@ -272,20 +272,30 @@ pub fn unit32(d: [f64; 3]) -> [f32; 3] {
     d.map(|x| (x / l) as f32)
 }
 
-/// The unit directions under which texel `t` of `regions` was captured,
-/// `[light][view]` order: each light's calibrated direction (the beam is
-/// collimated) and the direction from the texel's centre to each view's
-/// virtual camera.
-pub fn texel_dirs(regions: &RegionSet, t: usize) -> Vec<([f32; 3], [f32; 3])> {
+/// Unit directions towards light and viewer, per pair.
+pub type PairDirs = Vec<([f32; 3], [f32; 3])>;
+
+/// What texel `t` of `regions` was measured under: per pair, `[light][view]`
+/// order, the unit directions — each light's calibrated direction (the
+/// beam is collimated) and the direction from the texel's centre to each
+/// view's virtual camera — and the value; the pairs of a light that left
+/// the texel unlit ([`RegionSet::unlit`]) left out.
+pub fn texel_observations(regions: &RegionSet, t: usize) -> (PairDirs, Vec<[f32; 3]>) {
     let views = texel_views(regions, t);
-    regions
-        .light_dirs
-        .iter()
-        .flat_map(|&l| {
-            let l = unit32(l);
-            views.iter().map(move |&v| (l, v))
-        })
-        .collect()
+    let nv = views.len();
+    let mut dirs = Vec::with_capacity(regions.images.len());
+    let mut values = Vec::with_capacity(regions.images.len());
+    for (li, &l) in regions.light_dirs.iter().enumerate() {
+        if regions.is_unlit(li, t) {
+            continue;
+        }
+        let l = unit32(l);
+        for (vi, &v) in views.iter().enumerate() {
+            dirs.push((l, v));
+            values.push(regions.images[li * nv + vi][t]);
+        }
+    }
+    (dirs, values)
 }
 
 /// The unit directions from texel `t`'s centre towards each view's virtual
@@ -295,13 +305,8 @@ pub fn texel_views(regions: &RegionSet, t: usize) -> Vec<[f32; 3]> {
     (0..regions.views.len()).map(|v| unit32(regions.view_dir_at(v, uv))).collect()
 }
 
-/// The values of texel `t` over all pairs, `[light][view]` order.
-pub fn texel_values(regions: &RegionSet, t: usize) -> Vec<[f32; 3]> {
-    regions.images.iter().map(|img| img[t]).collect()
-}
-
 /// Fit every texel of `regions` (row-major, S × S) at its own directions
-/// ([`texel_dirs`]); `step` is called 2·S times: once per row of the first
+/// ([`texel_observations`]); `step` is called 2·S times: once per row of the first
 /// pass and once per row of the second's first round.
 ///
 /// A second pass starts each texel again from its eight neighbours' fits
@@ -331,7 +336,7 @@ fn first_pass(regions: &RegionSet, step: &(dyn Fn() + Sync)) -> Vec<(TexelParams
             let out: Vec<(TexelParams, f64)> = (0..s)
                 .map(|col| {
                     let t = row * s + col;
-                    let (dirs, values) = (texel_dirs(regions, t), texel_values(regions, t));
+                    let (dirs, values) = texel_observations(regions, t);
                     if dirs.is_empty() {
                         return (TexelParams::default(), 0.0);
                     }
@@ -394,7 +399,7 @@ fn neighbour_passes(
                 if starts.is_empty() {
                     return None;
                 }
-                let (dirs, values) = (texel_dirs(regions, t), texel_values(regions, t));
+                let (dirs, values) = texel_observations(regions, t);
                 if dirs.is_empty() {
                     return None;
                 }
@@ -590,6 +595,46 @@ mod tests {
         assert!(worst < 1e-3, "centred images off by {worst}");
     }
 
+    /// A texel's pairs under a light that left it unlit hold nothing
+    /// measured (0): the fit leaves them out and finds the texel as if
+    /// they had not been taken; fitted with them, it would not.
+    #[test]
+    fn the_fit_leaves_out_the_pairs_a_beam_left_unlit() {
+        let truth = glossy_texel();
+        let mut set = glossy_set(&truth);
+        let (n, nv, s) = (set.lights.len(), set.views.len(), set.size);
+        // Every third light leaves the left half of the sample unlit.
+        set.unlit =
+            (0..n).map(|l| (0..s * s).map(|t| l % 3 == 0 && t % s < s / 2).collect()).collect();
+        for (li, dark) in set.unlit.iter().enumerate() {
+            for img in &mut set.images[li * nv..(li + 1) * nv] {
+                for (px, _) in img.iter_mut().zip(dark).filter(|(_, d)| **d) {
+                    *px = [0.0; 3];
+                }
+            }
+        }
+        let off = |fitted: &[TexelParams]| {
+            fitted.iter().map(|p| (p.alpha / truth.alpha - 1.0).abs()).fold(0.0f32, f32::max)
+        };
+        let fitted = fit_texels(&set, &|| ());
+        assert!(off(&fitted) < 0.01, "α off by {}", off(&fitted));
+        for p in &fitted {
+            for c in 0..3 {
+                assert!((p.specular[c] - truth.specular[c]).abs() < 0.01, "{p:?}");
+                assert!((p.diffuse[c] - truth.diffuse[c]).abs() < 0.01, "{p:?}");
+            }
+        }
+        // Read as measured, the zeros pull the unlit half's fit away.
+        let mut as_measured = set.clone();
+        as_measured.unlit.clear();
+        let fitted = fit_texels(&as_measured, &|| ());
+        let worst = fitted
+            .iter()
+            .flat_map(|p| (0..3).map(move |c| (p.diffuse[c] - truth.diffuse[c]).abs()))
+            .fold(0.0f32, f32::max);
+        assert!(worst > 0.02, "diffuse off by {worst} only");
+    }
+
     #[test]
     fn the_carry_never_brightens_beyond_what_the_pair_measured() {
         let truth = glossy_texel();
@@ -646,6 +691,7 @@ mod tests {
             face: scanner_geometry::SampleFace::FLUSH,
             height_fit: None,
             beyond: None,
+            unlit: Vec::new(),
             sides: crate::build::regions::SampleSides::Hidden,
         };
         let mut state = 0x9e37_79b9_7f4a_7c15u64;

@@ -378,31 +378,51 @@ pub fn calibrate_cmd(
     Ok(())
 }
 
-/// Warn of the lights the scan uses whose beam, as the calibration saw it,
-/// leaves part of the sample unlit: their region pixels there are 0.
-fn say_unlit(scan: &ScanFrames, cal: &Calibration) {
-    let lit = scan.lights();
-    let unlit: Vec<String> = cal
+/// Warn of the lights whose beam, as the calibration saw it, left part of
+/// the sample unlit or in its soft edge ([`crate::build::RegionSet::unlit`]):
+/// nothing was measured there under them. `filled`: the images in memory
+/// were filled there (`scanner build`); else they are written as 0.
+fn say_unlit(regions: &crate::build::RegionSet, filled: bool) {
+    let texels = (regions.size * regions.size).max(1);
+    let shares: Vec<String> = regions
         .lights
         .iter()
-        .enumerate()
-        .filter(|(_, l)| lit.binary_search(&l.light).is_ok())
-        .map(|(li, l)| (l.light, cal.colour.unlit_share(li)))
+        .zip(&regions.unlit)
+        .map(|(l, u)| (l, u.iter().filter(|&&d| d).count() as f64 / texels as f64))
         .filter(|(_, share)| *share > 0.0)
         .map(|(l, share)| match 100.0 * share {
             p if p < 1.0 => format!("{l} (< 1 %)"),
             p => format!("{l} ({p:.0} %)"),
         })
         .collect();
-    if !unlit.is_empty() {
-        eprintln!(
-            "scanner: warning: in the calibration the beams of mirrors {} leave that share of \
-             the sample unlit: their region images are 0 (black) there. Place the beams on \
-             their mirrors (`scanner calibrate` names those off centre) and scan the targets \
-             again.",
-            unlit.join(", ")
-        );
+    if shares.is_empty() {
+        return;
     }
+    let dark = (0..regions.size * regions.size)
+        .filter(|&t| (0..regions.lights.len()).all(|li| regions.is_unlit(li, t)))
+        .count();
+    let what = if filled {
+        "the material holds there what the lights that lit it give, read between them as \
+         between captured lights"
+    } else {
+        "their region images are 0 (black) there (`scanner build` fills them from the lights \
+         that lit it)"
+    };
+    let dark = if dark > 0 {
+        format!(
+            " No beam lit {:.1} % of the sample: it stays 0.",
+            100.0 * dark as f64 / texels as f64
+        )
+    } else {
+        String::new()
+    };
+    eprintln!(
+        "scanner: warning: in the calibration the beams of mirrors {} leave that share of the \
+         sample unlit or in their soft edge (where the calibration cannot follow their field): \
+         nothing was measured there under them, and {what}.{dark} Place the beams on their mirrors \
+         (`scanner calibrate` names those off centre) and scan the targets again.",
+        shares.join(", ")
+    );
 }
 
 /// Say which of the camera's defective pixels the frames of `scan` will
@@ -783,11 +803,11 @@ pub fn regions_cmd(input: &ScanInputs, output: &Path) -> Result<crate::build::Re
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
     say_defects(&frames, &cal);
-    say_unlit(&frames, &cal);
     let bar = StageBar::new();
     let regions = extract_regions(&g, &cal, &frames, &input.region_options(), &bar);
     let stages = bar.finish();
     let regions = regions.map_err(build_failure)?;
+    say_unlit(&regions, false);
     say_height(&regions);
     let extracted = started.elapsed().as_secs_f64();
     // Written into a fresh sibling directory, then swapped into place: no
@@ -909,7 +929,6 @@ pub fn build_cmd(
     let started = Instant::now();
     let (cal, g, frames) = input.open()?;
     say_defects(&frames, &cal);
-    say_unlit(&frames, &cal);
     let provenance = scanner_shading::format::Provenance {
         scan_manifest_sha256: sha256_file(&scan.join(crate::scan::MANIFEST_FILE))?,
         geometry_sha256: g.hash(),
@@ -932,6 +951,7 @@ pub fn build_cmd(
     });
     let stages = bar.finish();
     let (regions, data) = data.map_err(build_failure)?;
+    say_unlit(&regions, true);
     say_height(&regions);
     let beyond = data.palettes_beyond_float16();
     if beyond > 0 {
