@@ -481,7 +481,7 @@ pub fn build_material(
             let wo = unit32(regions.view_dir_at(vi, regions.texel_uv(t)));
             scanner_shading::texel::reflected(&texels[t], ld[l], wo)
         };
-        again.fill_unlit(Some(&model))?;
+        again.fill_unlit(Some(&model));
         refilled = again;
         &refilled
     };

@@ -64,10 +64,11 @@ pub struct RegionSet {
     /// ([`super::outline::beyond_edges`]): the measurement's, or a given
     /// face's when asked to look ([`SampleSides::Auto`]).
     pub beyond: Option<super::outline::Beyond>,
-    /// Per light (like `lights`), the texels its beam left unlit in the
-    /// calibration (its field below [`super::calibrate::UNLIT_FIELD`]),
-    /// row-major S × S; empty for a light that lit every texel. Nothing
-    /// was measured there: [`extract_regions`] fills them
+    /// Per light (like `lights`), the texels its beam left unlit or in the
+    /// part of its soft edge the calibration cannot follow
+    /// ([`super::calibrate::BeamMap::readable`]), row-major S × S; empty
+    /// for a light that lit every texel. Nothing was measured there:
+    /// [`extract_regions`] fills them
     /// ([`RegionSet::fill_unlit`]), the texel model is fitted without them
     /// and [`RegionSet::write_exr`] writes them as 0.
     pub unlit: Vec<Vec<bool>>,
@@ -137,12 +138,12 @@ impl RegionSet {
     /// indices), only what the model leaves is read between the lights and
     /// the model's own value is added: a highlight the unlit light would
     /// have seen is kept. Returns how many (light, texel) it filled.
-    pub fn fill_unlit(&mut self, model: Option<&UnlitModel<'_>>) -> Result<usize, BuildError> {
+    pub fn fill_unlit(&mut self, model: Option<&UnlitModel<'_>>) -> usize {
         use scanner_shading::locate::{TriangleLocator, Weights3};
         use std::collections::HashMap;
         let (nl, nv) = (self.lights.len(), self.views.len());
         if self.unlit.iter().all(|u| u.is_empty()) || nv == 0 {
-            return Ok(0);
+            return 0;
         }
         let unit = |d: [f64; 3]| {
             let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
@@ -165,7 +166,7 @@ impl RegionSet {
                 wanted.entry((li, bits)).or_default().push(t);
             }
         }
-        let weights = |li: usize, bits: &[u64]| -> Result<Vec<(usize, f64)>, BuildError> {
+        let weights = |li: usize, bits: &[u64]| -> Vec<(usize, f64)> {
             let others: Vec<usize> =
                 (0..nl).filter(|&l| bits[l / 64] >> (l % 64) & 1 == 1).collect();
             let d = dirs[li];
@@ -190,21 +191,21 @@ impl RegionSet {
                     TriangleLocator::new(&od32, &tris, "the lights that lit a texel").ok()
                 });
             let Some(locator) = located else {
-                return Ok(nearest().unwrap_or_default());
+                return nearest().unwrap_or_default();
             };
             let mut w: Weights3 = [(0, 0.0); 3];
             locator.weights(f(d), &mut w);
-            Ok(w.iter()
+            w.iter()
                 .filter(|(_, w)| *w > 0.0)
                 .map(|&(i, w)| (others[i as usize], w as f64))
-                .collect())
+                .collect()
         };
         // Per light and set of lights: their weights, and the texels.
         type Plan = (usize, Vec<(usize, f64)>, Vec<usize>);
         let plan: Vec<Plan> = wanted
             .into_par_iter()
-            .map(|((li, bits), texels)| Ok((li, weights(li, &bits)?, texels)))
-            .collect::<Result<_, BuildError>>()?;
+            .map(|((li, bits), texels)| (li, weights(li, &bits), texels))
+            .collect();
         let cos = |l: usize| dirs[l][2].max(1e-6);
         let mut filled = 0;
         for (li, w, texels) in plan.iter().filter(|(_, w, _)| !w.is_empty()) {
@@ -239,7 +240,7 @@ impl RegionSet {
             }
             filled += texels.len();
         }
-        Ok(filled)
+        filled
     }
 
     /// Write every region as `l{LL}-v{VV}.exr` (half float, uncompressed:
@@ -704,7 +705,8 @@ pub fn extract_regions(
             let cos_i = cal.lights[ci].direction[2];
             let scale = albedo / std::f64::consts::PI * cos_i.max(0.0);
             // f · cos θi per frame unit at uv in view `vi`, or `None` where
-            // this beam leaves the sample unlit (nothing to divide by).
+            // this beam leaves the sample unlit or its field cannot be read
+            // (nothing to divide by).
             let lit =
                 |uv: [f64; 2], b: f64| b >= super::calibrate::UNLIT_FIELD && beams.readable(ci, uv);
             let unit = |uv: [f64; 2], b: f64, a: [f64; 3]| -> Option<[f64; 3]> {
@@ -810,7 +812,7 @@ pub fn extract_regions(
         images: per_light_images.into_iter().flatten().collect(),
         unlit,
     };
-    set.fill_unlit(None)?;
+    set.fill_unlit(None);
     Ok(set)
 }
 
@@ -919,17 +921,17 @@ mod tests {
         };
         let mut matte = set_of(&lambert);
         blank(&mut matte);
-        assert_eq!(matte.fill_unlit(None).unwrap(), 6 + 7);
+        assert_eq!(matte.fill_unlit(None), 6 + 7);
         assert!(worst(&matte, &lambert) < 1e-5, "{}", worst(&matte, &lambert));
         let mut shiny = set_of(&gloss);
         blank(&mut shiny);
         let without = shiny.clone();
         let model = |l: usize, v: usize, _: usize| gloss(l, v, 0);
-        shiny.fill_unlit(Some(&model)).unwrap();
+        shiny.fill_unlit(Some(&model));
         assert!(worst(&shiny, &gloss) < 1e-4, "{}", worst(&shiny, &gloss));
         // Without the model the highlight is read between the lights: off.
         let mut plain = without;
-        plain.fill_unlit(None).unwrap();
+        plain.fill_unlit(None);
         assert!(worst(&plain, &gloss) > 0.05, "{}", worst(&plain, &gloss));
         // The files hold 0 where nothing was measured.
         let dir = tempfile::tempdir().unwrap();
