@@ -332,6 +332,16 @@ impl BeamMap {
             .fold(0.0, |m: f64, b| if m.is_nan() || b.is_nan() { f64::NAN } else { m.max(b) })
     }
 
+    /// Whether light `li`'s frames can be read wherever the sample is: every
+    /// cell passes [`Self::readable`]'s test (bilinear fractions of cells
+    /// ≥ [`BEAM_EDGE`] are, and a lookup's bend is one of its cells').
+    pub fn readable_everywhere(&self, li: usize) -> bool {
+        let (Some(f), Some(c)) = (self.fractions.get(li), self.curvature.get(li)) else {
+            return true;
+        };
+        f.iter().zip(c).all(|(&f, &c)| f as f64 >= BEAM_EDGE && c as f64 <= BEAM_BEND)
+    }
+
     /// Whether light `li`'s frames can be read at `uv`: the beam gives the
     /// sample there at least [`BEAM_EDGE`] of what the well-lit beams give
     /// it, and its field bends there by no more than [`BEAM_BEND`]. (NaN,
@@ -1742,6 +1752,8 @@ mod tests {
                 );
             }
         }
+        assert!([0, 1, 3, 39].iter().all(|&l| map.readable_everywhere(l)));
+        assert!(!map.readable_everywhere(2));
         // Light 2: read well before its edge, not within it or beyond.
         for c in 0..grid * grid {
             let (x, at) = (mm(c % grid), uv(mm(c % grid), mm(c / grid)));

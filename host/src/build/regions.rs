@@ -707,8 +707,12 @@ pub fn extract_regions(
             // f · cos θi per frame unit at uv in view `vi`, or `None` where
             // this beam leaves the sample unlit or its field cannot be read
             // (nothing to divide by).
-            let lit =
-                |uv: [f64; 2], b: f64| b >= super::calibrate::UNLIT_FIELD && beams.readable(ci, uv);
+            // (Tested once for a beam that can be read everywhere, not at
+            // every pixel the detail reads.)
+            let everywhere = beams.readable_everywhere(ci);
+            let lit = |uv: [f64; 2], b: f64| {
+                b >= super::calibrate::UNLIT_FIELD && (everywhere || beams.readable(ci, uv))
+            };
             let unit = |uv: [f64; 2], b: f64, a: [f64; 3]| -> Option<[f64; 3]> {
                 if !lit(uv, b) {
                     return None;
