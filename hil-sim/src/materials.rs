@@ -24,6 +24,11 @@ use glam::DVec3;
 pub const TILE_MM: f64 = 80.0;
 /// Side of the large piece for the direct images (≈10× the small sample's area).
 pub const LARGE_PIECE_MM: f64 = 80.0;
+/// The largest side of a large piece ([`Sample::large`]): a texture set's
+/// tile may be metres across, but a piece photographed for the direct
+/// images is bounded, and so are the photographs', the direct images' and
+/// the enlarged material's sizes (each grows with the piece's area).
+pub const LARGE_PIECE_MAX_MM: f64 = 2.0 * LARGE_PIECE_MM;
 /// Side of the small sample, mm.
 pub const SAMPLE_MM: f64 = 25.4;
 
@@ -121,8 +126,15 @@ impl Sample {
     /// or of a texture set of 80 mm or more, a smaller tile repeated (a
     /// piece is larger than its pattern's repeat and than the 25.4 mm
     /// sample cut from it). It contains the small sample, periodically.
+    /// A tile larger than [`LARGE_PIECE_MAX_MM`] gives a piece of that
+    /// side cut from it, centred on the small sample.
     pub fn large(material: Arc<dyn Material>) -> Sample {
         let tile = material.tile_mm();
+        if tile > LARGE_PIECE_MAX_MM {
+            let margin = (LARGE_PIECE_MAX_MM - SAMPLE_MM) / 2.0;
+            let offset_mm = material.sample_offset_mm().map(|o| o - margin);
+            return Sample { material, offset_mm, size_mm: LARGE_PIECE_MAX_MM };
+        }
         // 1e-9: a tile that divides 80 mm up to rounding is not one more.
         let tiles = (LARGE_PIECE_MM / tile - 1e-9).ceil().max(1.0);
         Sample { material, offset_mm: [0.0, 0.0], size_mm: tiles * tile }
@@ -541,6 +553,46 @@ impl Material for RoughMetal {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The large piece: whole tiles from 80 mm, at most 160 mm; a larger
+    /// tile (a texture set may be metres across) gives 160 mm of it around
+    /// the small sample, so that the photographs, direct images and the
+    /// enlarged material the demo makes of it stay bounded.
+    #[test]
+    fn a_large_piece_is_whole_tiles_up_to_its_largest_side() {
+        #[derive(Debug)]
+        struct Tiled(f64);
+        impl Material for Tiled {
+            fn name(&self) -> &str {
+                "tiled"
+            }
+            fn texel(&self, p: [f64; 2]) -> Texel {
+                by_name("leather").unwrap().texel(p)
+            }
+            fn tile_mm(&self) -> f64 {
+                self.0
+            }
+            fn sample_offset_mm(&self) -> [f64; 2] {
+                [4000.0, -10.0]
+            }
+        }
+        let piece = |tile: f64| Sample::large(Arc::new(Tiled(tile)));
+        for (tile, side) in
+            [(16.0, 80.0), (30.0, 90.0), (79.0, 158.0), (80.0, 80.0), (160.0, 160.0)]
+        {
+            let p = piece(tile);
+            assert_eq!((p.size_mm, p.offset_mm), (side, [0.0, 0.0]), "a {tile} mm tile");
+        }
+        for tile in [160.5, 300.0, 10_000.0] {
+            let p = piece(tile);
+            assert_eq!(p.size_mm, LARGE_PIECE_MAX_MM, "a {tile} mm tile");
+            // The small sample in the middle of the piece.
+            let small = Sample::small(p.material.clone());
+            let centre = |s: &Sample| s.point([0.5, 0.5]);
+            let (a, b) = (centre(&p), centre(&small));
+            assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9, "{a:?} {b:?}");
+        }
+    }
 
     #[test]
     fn materials_tile_with_the_tile_period() {

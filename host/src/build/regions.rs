@@ -145,11 +145,11 @@ impl RegionSet {
         if self.unlit.iter().all(|u| u.is_empty()) || nv == 0 {
             return 0;
         }
-        let unit = |d: [f64; 3]| {
-            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            d.map(|x| x / l)
-        };
-        let dirs: Vec<[f64; 3]> = self.light_dirs.iter().map(|&d| unit(d)).collect();
+        let dirs: Vec<[f64; 3]> = self
+            .light_dirs
+            .iter()
+            .map(|&d| scanner_geometry::DVec3::from_array(d).normalize().to_array())
+            .collect();
         // Per (light, texel) to fill, the other lights that lit the texel
         // as a bit set; each distinct set's weights are found once.
         let words = nl.div_ceil(64);
