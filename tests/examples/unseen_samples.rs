@@ -26,6 +26,13 @@
 //!
 //! `cargo run --release -p tests --example unseen_samples -- DIR`, then
 //! `cargo run --release -p tests --example material_fidelity -- --materials DIR/red-plastic,…`.
+//!
+//! With `--other-kinds` it writes instead seven sets that try the main job's
+//! limits (docs/benchmarks.md, "Texture sets of other kinds"): `one` (1 × 1
+//! maps, a 10 m tile), `big4k` (4096² maps over 200 mm), `white-hot`
+//! (albedo 1 and F0 1), `tiny-tile` (random colours over a 0.5 mm tile),
+//! `blotchy` (2048² maps: blotches, glossy bumps), `steep` (normals
+//! tilted up to 80°) and `mirror` (F0 1, roughness 0).
 
 use std::f64::consts::PI;
 use std::path::Path;
@@ -57,11 +64,26 @@ fn write_set<const W: u32>(
     gltf: bool,
     f: impl Fn(f64, f64) -> Texel,
 ) {
+    write_set_at::<W>(dir, name, size_mm, None, gltf, f)
+}
+
+/// [`write_set`] with the small sample cut at `offset_mm` (the default
+/// `[0, 0]` when `None`).
+fn write_set_at<const W: u32>(
+    dir: &Path,
+    name: &str,
+    size_mm: f64,
+    offset_mm: Option<[f64; 2]>,
+    gltf: bool,
+    f: impl Fn(f64, f64) -> Texel,
+) {
     let dir = dir.join(name);
     std::fs::create_dir_all(&dir).unwrap();
+    let offset =
+        offset_mm.map_or(String::new(), |[x, y]| format!("sample_offset_mm = [{x:?}, {y:?}]\n"));
     std::fs::write(
         dir.join("material.toml"),
-        format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:.1}\n"),
+        format!("format = 1\nname = \"{name}\"\nsize_mm = {size_mm:?}\n{offset}"),
     )
     .unwrap();
     let mut colour = image::RgbImage::new(W, W);
@@ -110,8 +132,67 @@ fn bumps(x: f64, y: f64, periods: &[f64], amplitude: f64) -> (f64, f64) {
     (sx / periods.len() as f64, sy / periods.len() as f64)
 }
 
+/// A blotchy pattern in [0, 1] and its material (colour, F0, roughness
+/// from the blotch; bumps of slopes `slope` at angular frequencies `k`
+/// rad/mm along x and y).
+fn blotchy(b: f64, slope: f64, k: [f64; 2], x: f64, y: f64, roughness: [f64; 2]) -> Texel {
+    Texel {
+        colour: [0.1 + 0.6 * b, 0.15 + 0.3 * b * b, 0.05 + 0.2 * (1.0 - b)],
+        specular: [0.02 + 0.1 * b; 3],
+        roughness: roughness[0] + roughness[1] * b,
+        slope: (slope * (k[0] * x).cos(), slope * (k[1] * y).sin()),
+    }
+}
+
+/// The seven sets of `--other-kinds` (module docs).
+fn other_kinds(dir: &Path) {
+    let flat = |colour: f64, specular: f64, roughness: f64| Texel {
+        colour: [colour; 3],
+        specular: [specular; 3],
+        roughness,
+        slope: (0.0, 0.0),
+    };
+    write_set::<1>(dir, "one", 10_000.0, false, |_, _| flat(0.3, 0.5, 1.0));
+    write_set::<32>(dir, "white-hot", 10.0, false, |_, _| flat(1.0, 1.0, 0.4));
+    write_set::<4>(dir, "mirror", 10.0, false, |_, _| flat(0.0, 1.0, 0.0));
+    // Each of the 8 × 8 texels its own colour (a splitmix64 hash).
+    write_set::<8>(dir, "tiny-tile", 0.5, false, |x, y| {
+        let (c, r) = ((x / 0.5 * 8.0) as u64, (y / 0.5 * 8.0) as u64);
+        let hash = |k: u64| {
+            let mut z = (r * 8 + c) * 3 + k + 0x9e37_79b9_7f4a_7c15;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            (z ^ (z >> 31)) as f64 / u64::MAX as f64
+        };
+        Texel {
+            colour: [0, 1, 2].map(|k| 0.05 + 0.85 * hash(k)),
+            specular: [0.04; 3],
+            roughness: 0.6,
+            slope: (0.0, 0.0),
+        }
+    });
+    write_set::<64>(dir, "steep", 4.0, false, |x, _| Texel {
+        slope: (6.0 * (2.0 * PI * x / 4.0).sin(), 0.0),
+        ..flat(0.5, 0.04, 0.5)
+    });
+    write_set_at::<2048>(dir, "blotchy", 50.0, Some([3.3, 7.1]), false, |x, y| {
+        let b = 0.5 + 0.5 * (1.3 * x + 2.0 * (0.7 * y).sin()).sin() * (0.9 * y).cos();
+        blotchy(b, 0.15, [2.1, 1.7], x, y, [0.2, 0.5])
+    });
+    write_set_at::<4096>(dir, "big4k", 200.0, Some([60.0, 90.0]), false, |x, y| {
+        let b = 0.5 + 0.5 * (0.9 * x + 2.0 * (0.5 * y).sin()).sin() * (0.6 * y).cos();
+        blotchy(b, 0.1, [1.5, 1.1], x, y, [0.3, 0.4])
+    });
+}
+
 fn main() {
-    let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("usage: unseen_samples DIR"));
+    let mut args = std::env::args().skip(1);
+    let dir =
+        std::path::PathBuf::from(args.next().expect("usage: unseen_samples DIR [--other-kinds]"));
+    if args.next().as_deref() == Some("--other-kinds") {
+        other_kinds(&dir);
+        return;
+    }
     // The sizes divide the 25.4 mm sample into whole periods where the
     // patterns are periodic; the maps tile at size_mm.
     write_set::<512>(&dir, "red-plastic", 32.0, false, |x, y| Texel {
