@@ -554,7 +554,7 @@ fn check_memory(need: u128, size: usize, available: Option<u64>) -> Result<(), B
 
 /// The memory the system can give this process without swapping, where it
 /// says (Linux: `MemAvailable` in /proc/meminfo); `None` elsewhere.
-fn available_memory() -> Option<u64> {
+pub(super) fn available_memory() -> Option<u64> {
     let info = std::fs::read_to_string("/proc/meminfo").ok()?;
     let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
