@@ -241,19 +241,15 @@ fn check_memory(
     size_mm: [f64; 2],
     available: Option<u64>,
 ) -> Result<(), BuildError> {
-    match available {
-        Some(a) if need > a as u128 => Err(BuildError::Input(format!(
-            "a piece of {} × {} mm is {} × {} texels of the material: enlarging it needs ≈ {:.1} \
-             GB; {:.1} GB of memory is available: enlarge a smaller part of the piece",
-            size_mm[0],
-            size_mm[1],
-            texels[0],
-            texels[1],
-            need as f64 / 1e9,
-            a as f64 / 1e9
-        ))),
-        _ => Ok(()),
-    }
+    super::memory::check_memory(
+        need,
+        available,
+        &format!(
+            "a piece of {} × {} mm is {} × {} texels of the material: enlarging it needs",
+            size_mm[0], size_mm[1], texels[0], texels[1]
+        ),
+        "enlarge a smaller part of the piece",
+    )
 }
 
 /// `data` (a material of the small sample) enlarged to the piece of the
@@ -291,7 +287,7 @@ pub fn enlarge(
         enlarge_memory(columns * rows, set.images.len()),
         [columns, rows],
         size_mm,
-        super::regions::available_memory(),
+        super::memory::available_memory(),
     )?;
     let directions: Vec<[f64; 3]> = set
         .manifest

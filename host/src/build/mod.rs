@@ -21,6 +21,7 @@ pub mod lens;
 pub mod linalg;
 pub mod locate;
 pub mod material;
+pub mod memory;
 pub mod outline;
 pub mod palette;
 pub mod plane;

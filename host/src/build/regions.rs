@@ -541,24 +541,12 @@ fn region_memory(
 /// Refuse a region size whose images cannot fit in `available` bytes, rather
 /// than be killed when memory runs out.
 fn check_memory(need: u128, size: usize, available: Option<u64>) -> Result<(), BuildError> {
-    match available {
-        Some(a) if need > a as u128 => Err(BuildError::Input(format!(
-            "region images of {size}² px need ≈ {:.1} GB; {:.1} GB of memory is available: \
-             choose a smaller --size",
-            need as f64 / 1e9,
-            a as f64 / 1e9
-        ))),
-        _ => Ok(()),
-    }
-}
-
-/// The memory the system can give this process without swapping, where it
-/// says (Linux: `MemAvailable` in /proc/meminfo); `None` elsewhere.
-pub(super) fn available_memory() -> Option<u64> {
-    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    kib.checked_mul(1024)
+    super::memory::check_memory(
+        need,
+        available,
+        &format!("region images of {size}² px need"),
+        "choose a smaller --size",
+    )
 }
 
 /// Extract the calibrated region images of `scan`.
@@ -601,7 +589,7 @@ pub fn extract_regions(
     let frame_px = g.camera.width as usize * g.camera.height as usize;
     let need =
         region_memory(size, lights.len(), cal.views.len(), frame_px, rayon::current_num_threads());
-    check_memory(need, size, available_memory())?;
+    check_memory(need, size, super::memory::available_memory())?;
     let albedo = cal.colour.white_albedo;
     let (face, height_fit, beyond, seen) = match opts.height {
         // A given face's sides are looked for at it, when asked to.
@@ -841,7 +829,7 @@ mod tests {
         let err = check_memory(need, 4096, Some(24 * gb)).unwrap_err().to_string();
         assert!(err.contains("region images of 4096² px need ≈ 609"), "{err}");
         assert!(err.contains("24.0 GB of memory is available: choose a smaller --size"), "{err}");
-        assert!(available_memory().is_none_or(|a| a > 0));
+        assert!(crate::build::memory::available_memory().is_none_or(|a| a > 0));
     }
 
     /// Texels a beam left unlit are filled from the lights that lit them:
