@@ -457,8 +457,14 @@ fn calibrated_region_images_match_the_ground_truth() {
     assert!(fit.thin_sides && !b.seen() && fit.sides_seen(), "{fit:?}");
     assert!((slab.face.height_mm - 0.5).abs() < 0.02 && fit.cue == FaceCue::Chroma, "{fit:?}");
     assert!(slab.sides == SampleSides::Shown && slab.index().face.sides_shown);
-    assert!(thin.cue == FaceCue::Conflict && hidden.face.is_flush(), "{thin:?}");
-    assert!(as_slab > psnr - 1.0 && as_slab > as_hidden + 3.0, "{as_slab} {as_hidden}");
+    // Told that no sides show, the two readings (0.03 mm, 0.07 px apart)
+    // are joined: the face a few hundredths of a mm below the chroma's,
+    // the pixels across the facing edges read (until session 100 the
+    // disagreement left it in the holder's plane: 23.23 dB).
+    assert!(thin.cue == FaceCue::Both && !thin.thin_sides, "{thin:?}");
+    assert!((hidden.face.height_mm - 0.5).abs() < 0.02, "{thin:?}");
+    assert!(as_slab > psnr - 1.0 && as_hidden > psnr - 1.0, "{as_slab} {as_hidden}");
+    assert!(as_slab > as_hidden, "{as_slab} {as_hidden}");
     // Detail from every view: a weave finer than the views' pixels.
     let out = dir.path().join("woven-fabric");
     take_scan("woven-fabric", seed, bin, mirrors, &out);
