@@ -33,6 +33,12 @@
 //! (albedo 1 and F0 1), `tiny-tile` (random colours over a 0.5 mm tile),
 //! `blotchy` (2048² maps: blotches, glossy bumps), `steep` (normals
 //! tilted up to 80°) and `mirror` (F0 1, roughness 0).
+//!
+//! With `--relief` it writes two sets of fine relief (docs/benchmarks.md,
+//! "Relief finer than a texel"): `stone` (2048² maps over 100 mm: a
+//! fractal relief and speckle, periodic value noise) and `tiles` (1024²
+//! over 60 mm: glazed tiles of 25 colours with a gentle waviness, in
+//! bevelled grout grooves).
 
 use std::f64::consts::PI;
 use std::path::Path;
@@ -185,13 +191,131 @@ fn other_kinds(dir: &Path) {
     });
 }
 
+/// Periodic fractal value noise on a `w`² grid: octaves of a random
+/// lattice `base · 2^o` cells across, smoothly (quintic) interpolated, each
+/// `2^(−o·hurst)` the amplitude of the one before; mean 0, rms 1. Seeded
+/// by `seed` (splitmix64), so the same on every machine.
+fn fractal(w: usize, base: usize, octaves: u32, hurst: f64, seed: u64) -> Vec<f64> {
+    let hash = |o: u64, i: usize, j: usize| {
+        let mut z = seed ^ (o << 48) ^ ((i as u64) << 24) ^ j as u64;
+        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        (z ^ (z >> 31)) as f64 / u64::MAX as f64 * 2.0 - 1.0
+    };
+    let fade = |t: f64| t * t * t * (t * (t * 6.0 - 15.0) + 10.0);
+    let mut h = vec![0.0f64; w * w];
+    for o in 0..octaves {
+        let n = base << o;
+        let amp = 2f64.powf(-(o as f64) * hurst);
+        for (p, v) in h.iter_mut().enumerate() {
+            let (x, y) = [p % w, p / w].map(|k| (k as f64 + 0.5) / w as f64 * n as f64).into();
+            let (i, j) = (x.floor() as usize, y.floor() as usize);
+            let (fx, fy) = (fade(x - i as f64), fade(y - j as f64));
+            let at = |a: usize, b: usize| hash(o as u64, a % n, b % n);
+            let top = at(i, j) * (1.0 - fx) + at(i + 1, j) * fx;
+            let bottom = at(i, j + 1) * (1.0 - fx) + at(i + 1, j + 1) * fx;
+            *v += amp * (top * (1.0 - fy) + bottom * fy);
+        }
+    }
+    let mean = h.iter().sum::<f64>() / h.len() as f64;
+    let rms = (h.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / h.len() as f64).sqrt();
+    h.iter().map(|v| (v - mean) / rms).collect()
+}
+
+/// The slopes (∂h/∂x, ∂h/∂y) of a periodic `w`² height grid `pitch` mm
+/// apart (central differences), scaled to an rms slope of `rms` (unscaled
+/// when `None`).
+fn slopes(h: &[f64], w: usize, pitch: f64, rms: Option<f64>) -> Vec<(f64, f64)> {
+    let at = |x: usize, y: usize| h[(y % w) * w + x % w];
+    let g: Vec<(f64, f64)> = (0..w * w)
+        .map(|p| {
+            let (x, y) = (p % w, p / w);
+            (
+                (at(x + 1, y) - at(x + w - 1, y)) / (2.0 * pitch),
+                (at(x, y + 1) - at(x, y + w - 1)) / (2.0 * pitch),
+            )
+        })
+        .collect();
+    let scale = rms.map_or(1.0, |rms| {
+        let now = (g.iter().map(|(a, b)| a * a + b * b).sum::<f64>() / g.len() as f64).sqrt();
+        rms / now
+    });
+    g.into_iter().map(|(a, b)| (a * scale, b * scale)).collect()
+}
+
+/// The two sets of `--relief` (module docs).
+fn relief(dir: &Path) {
+    // Stone: a fractal relief (rms slope 0.35, features from 33 mm down to
+    // the 0.05 mm texels), a speckled grey albedo following it, rough.
+    const S: usize = 2048;
+    let (size, pitch) = (100.0, 100.0 / S as f64);
+    let relief = fractal(S, 3, 10, 0.6, 1);
+    let speckle = fractal(S, 40, 5, 0.2, 2);
+    let slope = slopes(&relief, S, pitch, Some(0.35));
+    let texel = |x: f64, y: f64| ((y / pitch) as usize % S) * S + (x / pitch) as usize % S;
+    write_set_at::<{ S as u32 }>(dir, "stone", size, Some([40.0, 20.0]), false, |x, y| {
+        let t = texel(x, y);
+        let base = 0.35 + 0.08 * relief[t] + 0.06 * speckle[t];
+        Texel {
+            colour: [1.05 * base, 0.98 * base, 0.9 * base],
+            specular: [0.04; 3],
+            roughness: (0.55 + 0.1 * speckle[t]).clamp(0.0, 1.0),
+            slope: slope[t],
+        }
+    });
+    // Tiles: 12 mm glazed tiles of 25 colours (roughness 0.18, F0 0.05)
+    // with a gentle waviness (0.01 mm), bevelled into 1 mm matte grout
+    // grooves 0.3 mm deep.
+    const T: usize = 1024;
+    let (size, pitch) = (60.0, 60.0 / T as f64);
+    let wave = fractal(T, 4, 8, 0.6, 3);
+    let depth = |x: f64, y: f64| {
+        let (fx, fy) = (x.rem_euclid(12.0), y.rem_euclid(12.0));
+        let d = fx.min(12.0 - fx).min(fy).min(12.0 - fy);
+        -0.3 * (1.0 - d / 0.8).clamp(0.0, 1.0).powi(2)
+    };
+    let height: Vec<f64> = (0..T * T)
+        .map(|p| {
+            let (x, y) = [p % T, p / T].map(|k| (k as f64 + 0.5) * pitch).into();
+            depth(x, y) + 0.01 * wave[p]
+        })
+        .collect();
+    let slope = slopes(&height, T, pitch, None);
+    let colour = |i: f64, j: f64| {
+        let k = (i.rem_euclid(5.0) * 5.0 + j.rem_euclid(5.0)) as u64;
+        [0u64, 1, 2].map(|c| {
+            let mut z = (k * 3 + c).wrapping_add(0x9e37_79b9_7f4a_7c15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            0.1 + 0.7 * (z ^ (z >> 31)) as f64 / u64::MAX as f64
+        })
+    };
+    write_set_at::<{ T as u32 }>(dir, "tiles", size, Some([5.0, 5.0]), false, |x, y| {
+        let t = ((y / pitch) as usize % T) * T + (x / pitch) as usize % T;
+        let grout = x.rem_euclid(12.0) < 1.0 || y.rem_euclid(12.0) < 1.0;
+        Texel {
+            colour: if grout {
+                [0.45, 0.44, 0.42]
+            } else {
+                colour((x / 12.0).floor(), (y / 12.0).floor())
+            },
+            specular: [if grout { 0.02 } else { 0.05 }; 3],
+            roughness: if grout { 0.8 } else { 0.18 },
+            slope: slope[t],
+        }
+    });
+}
+
 fn main() {
     let mut args = std::env::args().skip(1);
-    let dir =
-        std::path::PathBuf::from(args.next().expect("usage: unseen_samples DIR [--other-kinds]"));
-    if args.next().as_deref() == Some("--other-kinds") {
-        other_kinds(&dir);
-        return;
+    let dir = std::path::PathBuf::from(
+        args.next().expect("usage: unseen_samples DIR [--other-kinds | --relief]"),
+    );
+    match args.next().as_deref() {
+        Some("--other-kinds") => return other_kinds(&dir),
+        Some("--relief") => return relief(&dir),
+        _ => {}
     }
     // The sizes divide the 25.4 mm sample into whole periods where the
     // patterns are periodic; the maps tile at size_mm.
