@@ -164,14 +164,8 @@ fn other_kinds(dir: &Path) {
     // Each of the 8 × 8 texels its own colour (a splitmix64 hash).
     write_set::<8>(dir, "tiny-tile", 0.5, false, |x, y| {
         let (c, r) = ((x / 0.5 * 8.0) as u64, (y / 0.5 * 8.0) as u64);
-        let hash = |k: u64| {
-            let mut z = (r * 8 + c) * 3 + k + 0x9e37_79b9_7f4a_7c15;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            (z ^ (z >> 31)) as f64 / u64::MAX as f64
-        };
         Texel {
-            colour: [0, 1, 2].map(|k| 0.05 + 0.85 * hash(k)),
+            colour: [0, 1, 2].map(|k| 0.05 + 0.85 * unit_hash((r * 8 + c) * 3 + k)),
             specular: [0.04; 3],
             roughness: 0.6,
             slope: (0.0, 0.0),
@@ -191,17 +185,28 @@ fn other_kinds(dir: &Path) {
     });
 }
 
+/// splitmix64's finaliser of `z`, as a number in [0, 1]: the same on every
+/// machine.
+fn unit_hash(z: u64) -> f64 {
+    let mut z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    (z ^ (z >> 31)) as f64 / u64::MAX as f64
+}
+
+/// The row-major index in a periodic `w`² grid `pitch` mm apart of the
+/// cell holding material point (x, y) mm.
+fn grid_index(x: f64, y: f64, pitch: f64, w: usize) -> usize {
+    ((y / pitch) as usize % w) * w + (x / pitch) as usize % w
+}
+
 /// Periodic fractal value noise on a `w`² grid: octaves of a random
 /// lattice `base · 2^o` cells across, smoothly (quintic) interpolated, each
 /// `2^(−o·hurst)` the amplitude of the one before; mean 0, rms 1. Seeded
 /// by `seed` (splitmix64), so the same on every machine.
 fn fractal(w: usize, base: usize, octaves: u32, hurst: f64, seed: u64) -> Vec<f64> {
     let hash = |o: u64, i: usize, j: usize| {
-        let mut z = seed ^ (o << 48) ^ ((i as u64) << 24) ^ j as u64;
-        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        (z ^ (z >> 31)) as f64 / u64::MAX as f64 * 2.0 - 1.0
+        unit_hash(seed ^ (o << 48) ^ ((i as u64) << 24) ^ j as u64) * 2.0 - 1.0
     };
     let fade = |t: f64| t * t * t * (t * (t * 6.0 - 15.0) + 10.0);
     let mut h = vec![0.0f64; w * w];
@@ -253,9 +258,8 @@ fn relief(dir: &Path) {
     let relief = fractal(S, 3, 10, 0.6, 1);
     let speckle = fractal(S, 40, 5, 0.2, 2);
     let slope = slopes(&relief, S, pitch, Some(0.35));
-    let texel = |x: f64, y: f64| ((y / pitch) as usize % S) * S + (x / pitch) as usize % S;
     write_set_at::<{ S as u32 }>(dir, "stone", size, Some([40.0, 20.0]), false, |x, y| {
-        let t = texel(x, y);
+        let t = grid_index(x, y, pitch, S);
         let base = 0.35 + 0.08 * relief[t] + 0.06 * speckle[t];
         Texel {
             colour: [1.05 * base, 0.98 * base, 0.9 * base],
@@ -284,15 +288,10 @@ fn relief(dir: &Path) {
     let slope = slopes(&height, T, pitch, None);
     let colour = |i: f64, j: f64| {
         let k = (i.rem_euclid(5.0) * 5.0 + j.rem_euclid(5.0)) as u64;
-        [0u64, 1, 2].map(|c| {
-            let mut z = (k * 3 + c).wrapping_add(0x9e37_79b9_7f4a_7c15);
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            0.1 + 0.7 * (z ^ (z >> 31)) as f64 / u64::MAX as f64
-        })
+        [0u64, 1, 2].map(|c| 0.1 + 0.7 * unit_hash(k * 3 + c))
     };
     write_set_at::<{ T as u32 }>(dir, "tiles", size, Some([5.0, 5.0]), false, |x, y| {
-        let t = ((y / pitch) as usize % T) * T + (x / pitch) as usize % T;
+        let t = grid_index(x, y, pitch, T);
         let grout = x.rem_euclid(12.0) < 1.0 || y.rem_euclid(12.0) < 1.0;
         Texel {
             colour: if grout {
