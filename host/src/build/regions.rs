@@ -17,7 +17,7 @@ use super::outline::side_reach;
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
 use super::superres::{
-    DetailLayer, Footprints, Image, SharpenOptions, detail_layer, sharpen_light,
+    DetailLayer, Footprints, Image, SharpenOptions, denoise, detail_layer, sharpen_light,
 };
 use crate::hdr;
 use scanner_geometry::{DVec3, SampleFace};
@@ -760,6 +760,14 @@ pub fn extract_regions(
             let detail = sharpen.as_ref().and_then(|(o, views)| {
                 sharpen_light(views, &value, &noise, &f, o, &mut images, &unlit)
             });
+            // Sharpened images are denoised as they are sharpened (where
+            // the views' image took out a share of the noise, only what
+            // is left), the others here.
+            if detail.is_none() {
+                for (vi, img) in images.iter_mut().enumerate() {
+                    denoise(img, size, &unlit, |t, v| noise(vi, t, v));
+                }
+            }
             progress.step();
             let unlit = if unlit.contains(&true) { unlit } else { Vec::new() };
             Ok((images, detail, unlit))

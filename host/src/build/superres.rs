@@ -845,8 +845,10 @@ fn solve_halves(
 /// Give the region images of one light (`images[view]`, S × S) the detail
 /// that all `views`' pixels of `frame` hold together (see the module
 /// documentation), and return the light's log detail beyond S × S
-/// ([`fine_detail`]). `None`, images untouched: fewer than two views with
-/// usable pixels. `unlit` (S × S, or empty: every texel lit) marks the
+/// ([`fine_detail`]). Each view's image then loses the sensor's noise its
+/// texture does not hide and the detail did not take out ([`denoise`]).
+/// `None`, images untouched: fewer than two views with usable pixels.
+/// `unlit` (S × S, or empty: every texel lit) marks the
 /// texels this light's beam left unlit: the images hold nothing there, and
 /// within [`UNLIT_MARGIN`] texels of them the images keep their own
 /// resampling and the log detail is 0 — the solve's and the local means'
@@ -889,6 +891,9 @@ pub fn sharpen_light(
     let [rows, fine_rows] = light_rows(views, &levelled, frame)?;
     let level: [f32; 3] = mean_total.map(|t| (t / n as f64) as f32 * 1e-3);
     let solved = solve_halves(&rows, size, opts, &mean, &mean, false, level)?;
+    // Before the images change: `None` leaves them untouched.
+    let mut detail = fine_detail(&fine_rows, size, opts, &solved, &mean, level)?;
+    drop(fine_rows);
     let x = &solved.x;
     let local = |img: &[[f32; 3]]| (0..LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, size));
     // Each view takes the detail its own pixels and resampling lose: X less
@@ -919,17 +924,26 @@ pub fn sharpen_light(
         } else {
             vec![[1.0; 3]; n]
         };
+        // The share of the sensor's noise the image keeps: all of it but
+        // the residual's noise taken out here.
+        let mut left = vec![[1.0f32; 3]; n];
         for t in (0..n).filter(|&t| !near_unlit.get(t).copied().unwrap_or(false)) {
             for k in 0..3 {
                 let s = scale[t][k];
-                let noise = solved.explained[t][k] * (1.0 - keep[t][k]) * residual[t][k];
+                let out = solved.explained[t][k] * (1.0 - keep[t][k]);
                 let v = &mut image[t][k];
-                *v = (*v - noise + solved.trust(t, k) * s * (x[t][k] - own[t][k])).max(0.0);
+                *v = (*v - out * residual[t][k] + solved.trust(t, k) * s * (x[t][k] - own[t][k]))
+                    .max(0.0);
+                left[t][k] = 1.0 - out;
             }
         }
+        if opts.view_noise {
+            denoise(image, size, unlit, |t, v| {
+                let q = noise(r.view, t, v);
+                std::array::from_fn(|k| q[k] * left[t][k] * left[t][k])
+            });
+        }
     }
-    drop(rows);
-    let mut detail = fine_detail(&fine_rows, size, opts, &solved, &mean, level)?;
     if !near_unlit.is_empty() {
         let fine = 2 * size;
         for (t, d) in detail.iter_mut().enumerate() {
@@ -939,6 +953,44 @@ pub fn sharpen_light(
         }
     }
     Some(detail)
+}
+
+/// Binomial passes of the local statistics behind [`denoise`] (σ ≈ 1.4
+/// texels).
+const DENOISE_PASSES: usize = 2;
+
+/// A region image (`size`², row-major) less the sensor's noise that its
+/// texture does not hide: per texel and channel the local mean plus
+/// Wiener's share of the texel's departure from it, (σ² − σn²) / σ², σ²
+/// the local variance, σn² the sensor's (`sensor(texel, local mean)`),
+/// local means of [`DENOISE_PASSES`]. A uniform glossy sample's highlight,
+/// seen by one view alone and taken at a fifth of the sensor's full scale
+/// at worst, varied by ≈ 1 % from texel to texel (docs/benchmarks.md).
+/// Texels within [`UNLIT_MARGIN`] of one the beam left unlit (`unlit`) are
+/// kept.
+pub fn denoise(
+    image: &mut [[f32; 3]],
+    size: usize,
+    unlit: &[bool],
+    sensor: impl Fn(usize, [f32; 3]) -> [f32; 3],
+) {
+    let n = size * size;
+    assert_eq!(image.len(), n, "an S × S image");
+    let near_unlit = near(unlit, size, UNLIT_MARGIN);
+    let local = |img: Image| (0..DENOISE_PASSES).fold(img, |a, _| blur(&a, size));
+    let mean = local(image.to_vec());
+    let square = local(image.iter().map(|v| v.map(|v| v * v)).collect());
+    let noise = local((0..n).map(|t| sensor(t, mean[t])).collect());
+    for t in (0..n).filter(|&t| !near_unlit.get(t).copied().unwrap_or(false)) {
+        for k in 0..3 {
+            let (m, q) = (mean[t][k], noise[t][k]);
+            let var = (square[t][k] - m * m).max(0.0);
+            let keep = if var > 0.0 { ((var - q) / var).clamp(0.0, 1.0) } else { 1.0 };
+            if keep < 1.0 {
+                image[t][k] = m + keep * (image[t][k] - m);
+            }
+        }
+    }
 }
 
 /// Texels within this many (Chebyshev distance) of one a beam left unlit
@@ -1792,6 +1844,77 @@ mod tests {
         println!("noisy smooth sample: own views {before:.5}, all views {after:.5} RMS");
         // 1.02 × with the halves' agreement, 1.36 × without it.
         assert!(after <= 1.1 * before, "{before:.5} → {after:.5}");
+    }
+
+    #[test]
+    fn denoise_takes_the_noise_the_texture_does_not_hide() {
+        // A uniform image and a checker of 16-texel squares (contrast 30 ×
+        // the noise), each with 2 % white noise (seeded), told its
+        // variance: the uniform image's noise falls below a third, the
+        // checker comes closer to its clean self and keeps its contrast;
+        // told there is none, nothing changes; texels near an unlit one
+        // are kept.
+        use rand::{Rng, SeedableRng};
+        const N: usize = 64;
+        const SIGMA: f32 = 0.02;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut noisy = |clean: &[[f32; 3]]| -> Image {
+            clean
+                .iter()
+                .map(|v| v.map(|v| v + SIGMA * (rng.random::<f32>() - 0.5) * 12f32.sqrt()))
+                .collect()
+        };
+        let told = |_: usize, _: [f32; 3]| [SIGMA * SIGMA; 3];
+        let rms = |a: &[[f32; 3]], b: &[[f32; 3]]| {
+            let s: f32 = a
+                .iter()
+                .zip(b)
+                .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>())
+                .sum();
+            (s / (3 * a.len()) as f32).sqrt()
+        };
+        let uniform = vec![[0.5f32, 0.4, 0.3]; N * N];
+        let checker: Image = (0..N * N)
+            .map(|t| if (t % N / 16 + t / N / 16).is_multiple_of(2) { [0.2; 3] } else { [0.8; 3] })
+            .collect();
+        for (name, clean, most) in [("uniform", &uniform, 0.3), ("checker", &checker, 0.8)] {
+            let input = noisy(clean);
+            let mut out = input.clone();
+            denoise(&mut out, N, &[], told);
+            let (before, after) = (rms(&input, clean), rms(&out, clean));
+            println!("{name}: {before:.5} → {after:.5} RMS");
+            assert!(after < most * before, "{name}: {before:.5} → {after:.5}");
+            let mut same = input.clone();
+            denoise(&mut same, N, &[], |_, _| [0.0; 3]);
+            assert!(same == input, "{name}: no noise, no change");
+        }
+        // The checker's squares keep their levels (within a quarter of the
+        // noise) away from their edges; within the local means' reach of an
+        // edge the texture hides the noise and it stays.
+        let mut out = noisy(&checker);
+        denoise(&mut out, N, &[], told);
+        let inner = |t: usize| (5..11).contains(&(t % 16)) && (5..11).contains(&(t / N % 16));
+        for level in [0.2f32, 0.8] {
+            let sel: Vec<f32> = (0..N * N)
+                .filter(|&t| inner(t) && checker[t][0] == level)
+                .map(|t| out[t][0])
+                .collect();
+            let mean = sel.iter().sum::<f32>() / sel.len() as f32;
+            assert!((mean - level).abs() < 0.25 * SIGMA, "square at {level}: {mean}");
+        }
+        // Unlit texel in the middle: those within UNLIT_MARGIN keep their
+        // values.
+        let input = noisy(&uniform);
+        let mut unlit = vec![false; N * N];
+        unlit[32 * N + 32] = true;
+        let mut out = input.clone();
+        denoise(&mut out, N, &unlit, told);
+        for y in 29..=35 {
+            for x in 29..=35 {
+                assert_eq!(out[y * N + x], input[y * N + x], "({x}, {y})");
+            }
+        }
+        assert_ne!(out[20 * N + 20], input[20 * N + 20]);
     }
 
     #[test]
