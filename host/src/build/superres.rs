@@ -69,6 +69,11 @@
 //! view keeps the share of D_v that is not the sensor's noise, Wiener's gain
 //! 1 − ⟦N_v⟧ / ⟦D_v²⟧ with N_v the texel's variance from the sensor's model
 //! (the region builder's [`TexelNoise`]) and ⟦·⟧ local means.
+//!
+//! Where X does not explain the views (a highlight one view alone sees),
+//! that takes none of the noise out: then each image loses the noise its
+//! texture does not hide, a local Wiener filter ([`denoise`]) against the
+//! share of the sensor's variance the residual's gain left.
 
 use crate::build::calibrate::ViewSampler;
 use crate::build::linalg::Homography;
