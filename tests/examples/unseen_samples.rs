@@ -27,12 +27,13 @@
 //! `cargo run --release -p tests --example unseen_samples -- DIR`, then
 //! `cargo run --release -p tests --example material_fidelity -- --materials DIR/red-plastic,…`.
 //!
-//! With `--other-kinds` it writes instead seven sets that try the main job's
+//! With `--other-kinds` it writes instead nine sets that try the main job's
 //! limits (docs/benchmarks.md, "Texture sets of other kinds"): `one` (1 × 1
 //! maps, a 10 m tile), `big4k` (4096² maps over 200 mm), `white-hot`
 //! (albedo 1 and F0 1), `tiny-tile` (random colours over a 0.5 mm tile),
 //! `blotchy` (2048² maps: blotches, glossy bumps), `steep` (normals
-//! tilted up to 80°) and `mirror` (F0 1, roughness 0).
+//! tilted up to 80°), `mirror` (F0 1, roughness 0), `polished` (a uniform
+//! metal, roughness 0.15) and `satin` (uniform, roughness 0.3).
 //!
 //! With `--relief` it writes two sets of fine relief (docs/benchmarks.md,
 //! "Relief finer than a texel"): `stone` (2048² maps over 100 mm: a
@@ -150,7 +151,7 @@ fn blotchy(b: f64, slope: f64, k: [f64; 2], x: f64, y: f64, roughness: [f64; 2])
     }
 }
 
-/// The seven sets of `--other-kinds` (module docs).
+/// The nine sets of `--other-kinds` (module docs).
 fn other_kinds(dir: &Path) {
     let flat = |colour: f64, specular: f64, roughness: f64| Texel {
         colour: [colour; 3],
@@ -161,6 +162,12 @@ fn other_kinds(dir: &Path) {
     write_set::<1>(dir, "one", 10_000.0, false, |_, _| flat(0.3, 0.5, 1.0));
     write_set::<32>(dir, "white-hot", 10.0, false, |_, _| flat(1.0, 1.0, 0.4));
     write_set::<4>(dir, "mirror", 10.0, false, |_, _| flat(0.0, 1.0, 0.0));
+    // Uniform and flat: a polished metal (GGX α 0.0225) and a satin.
+    let uniform = |colour: [f64; 3], specular: [f64; 3], roughness: f64| {
+        move |_: f64, _: f64| Texel { colour, specular, roughness, slope: (0.0, 0.0) }
+    };
+    write_set::<4>(dir, "polished", 50.0, false, uniform([0.03; 3], [0.9, 0.85, 0.8], 0.15));
+    write_set::<4>(dir, "satin", 50.0, false, uniform([0.2, 0.1, 0.05], [0.05; 3], 0.3));
     // Each of the 8 × 8 texels its own colour (a splitmix64 hash).
     write_set::<8>(dir, "tiny-tile", 0.5, false, |x, y| {
         let (c, r) = ((x / 0.5 * 8.0) as u64, (y / 0.5 * 8.0) as u64);
