@@ -17,7 +17,8 @@ use super::outline::side_reach;
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
 use super::superres::{
-    DetailLayer, Footprints, Image, SharpenOptions, denoise, detail_layer, sharpen_light,
+    DetailLayer, Footprints, Image, SharpenOptions, denoise, detail_layer, near_unlit,
+    sharpen_light,
 };
 use crate::hdr;
 use scanner_geometry::{DVec3, SampleFace};
@@ -764,8 +765,9 @@ pub fn extract_regions(
             // the views' image took out a share of the noise, only what
             // is left), the others here.
             if detail.is_none() {
+                let near_unlit = near_unlit(&unlit, size);
                 for (vi, img) in images.iter_mut().enumerate() {
-                    denoise(img, size, &unlit, |t, v| noise(vi, t, v));
+                    denoise(img, size, &near_unlit, |t, v| noise(vi, t, v));
                 }
             }
             progress.step();

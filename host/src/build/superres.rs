@@ -876,7 +876,7 @@ pub fn sharpen_light(
     }
     let size = views.size;
     let n = size * size;
-    let near_unlit = near(unlit, size, UNLIT_MARGIN);
+    let near_unlit = near_unlit(unlit, size);
     let mut mean = vec![[0.0f32; 3]; n];
     for img in images.iter() {
         for (m, v) in mean.iter_mut().zip(img) {
@@ -943,7 +943,7 @@ pub fn sharpen_light(
             }
         }
         if opts.view_noise {
-            denoise(image, size, unlit, |t, v| {
+            denoise(image, size, &near_unlit, |t, v| {
                 let q = noise(r.view, t, v);
                 std::array::from_fn(|k| q[k] * left[t][k] * left[t][k])
             });
@@ -971,21 +971,20 @@ const DENOISE_PASSES: usize = 2;
 /// local means of [`DENOISE_PASSES`]. A uniform glossy sample's highlight,
 /// seen by one view alone and taken at a fifth of the sensor's full scale
 /// at worst, varied by ≈ 1 % from texel to texel (docs/benchmarks.md).
-/// Texels within [`UNLIT_MARGIN`] of one the beam left unlit (`unlit`) are
-/// kept.
+/// The texels of `near_unlit` ([`near_unlit`]: within [`UNLIT_MARGIN`] of
+/// one the beam left unlit; empty: none) are kept.
 pub fn denoise(
     image: &mut [[f32; 3]],
     size: usize,
-    unlit: &[bool],
+    near_unlit: &[bool],
     sensor: impl Fn(usize, [f32; 3]) -> [f32; 3],
 ) {
     let n = size * size;
     assert_eq!(image.len(), n, "an S × S image");
-    let near_unlit = near(unlit, size, UNLIT_MARGIN);
-    let local = |img: Image| (0..DENOISE_PASSES).fold(img, |a, _| blur(&a, size));
-    let mean = local(image.to_vec());
-    let square = local(image.iter().map(|v| v.map(|v| v * v)).collect());
-    let noise = local((0..n).map(|t| sensor(t, mean[t])).collect());
+    let local = |img: &[[f32; 3]]| local_mean(img, size, false, DENOISE_PASSES);
+    let mean = local(image);
+    let square = local(&image.iter().map(|v| v.map(|v| v * v)).collect::<Vec<_>>());
+    let noise = local(&(0..n).map(|t| sensor(t, mean[t])).collect::<Vec<_>>());
     for t in (0..n).filter(|&t| !near_unlit.get(t).copied().unwrap_or(false)) {
         for k in 0..3 {
             let (m, q) = (mean[t][k], noise[t][k]);
@@ -1001,6 +1000,12 @@ pub fn denoise(
 /// Texels within this many (Chebyshev distance) of one a beam left unlit
 /// take no multi-view detail ([`sharpen_light`]).
 pub const UNLIT_MARGIN: usize = 3;
+
+/// The texels of an S × S `unlit` mask within [`UNLIT_MARGIN`] of an unlit
+/// one (empty: none is unlit).
+pub fn near_unlit(unlit: &[bool], size: usize) -> Vec<bool> {
+    near(unlit, size, UNLIT_MARGIN)
+}
 
 /// The texels of an S × S `mask` (row-major; empty: none) within `reach`
 /// texels of a marked one (Chebyshev distance); empty if none is marked.
@@ -1913,7 +1918,7 @@ mod tests {
         let mut unlit = vec![false; N * N];
         unlit[32 * N + 32] = true;
         let mut out = input.clone();
-        denoise(&mut out, N, &unlit, told);
+        denoise(&mut out, N, &near_unlit(&unlit, N), told);
         for y in 29..=35 {
             for x in 29..=35 {
                 assert_eq!(out[y * N + x], input[y * N + x], "({x}, {y})");
