@@ -17,7 +17,7 @@ use super::outline::side_reach;
 use super::plane::{cell_taps, cell_uv};
 use super::scanread::{BicubicFilter, ScanFrames, frame_dims};
 use super::superres::{
-    DetailLayer, Footprints, Image, SharpenOptions, denoise, detail_layer, near_unlit,
+    Denoiser, DetailLayer, Footprints, Image, SharpenOptions, detail_layer, near_unlit,
     sharpen_light,
 };
 use crate::hdr;
@@ -766,8 +766,9 @@ pub fn extract_regions(
             // is left), the others here.
             if detail.is_none() {
                 let near_unlit = near_unlit(&unlit, size);
+                let denoiser = Denoiser::new(size);
                 for (vi, img) in images.iter_mut().enumerate() {
-                    denoise(img, size, &near_unlit, |t, v| noise(vi, t, v));
+                    denoiser.denoise(img, &near_unlit, |t, v| noise(vi, t, v));
                 }
             }
             progress.step();

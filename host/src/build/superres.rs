@@ -901,6 +901,7 @@ pub fn sharpen_light(
     drop(fine_rows);
     let x = &solved.x;
     let local = |img: &[[f32; 3]]| (0..LOCAL_PASSES).fold(img.to_vec(), |a, _| blur(&a, size));
+    let denoiser = opts.view_noise.then(|| Denoiser::new(size));
     // Each view takes the detail its own pixels and resampling lose: X less
     // X as this view would see it, in proportion to the view's level. Where
     // X explains the views, what the view holds beyond its level times X as
@@ -942,8 +943,8 @@ pub fn sharpen_light(
                 left[t][k] = 1.0 - out;
             }
         }
-        if opts.view_noise {
-            denoise(image, size, &near_unlit, |t, v| {
+        if let Some(d) = &denoiser {
+            d.denoise(image, &near_unlit, |t, v| {
                 let q = noise(r.view, t, v);
                 std::array::from_fn(|k| q[k] * left[t][k] * left[t][k])
             });
@@ -960,41 +961,104 @@ pub fn sharpen_light(
     Some(detail)
 }
 
-/// Binomial passes of the local statistics behind [`denoise`] (σ ≈ 1.4
-/// texels).
-const DENOISE_PASSES: usize = 2;
+/// Binomial passes of [`Denoiser`]'s local statistics (σ = 2.4 texels).
+const DENOISE_PASSES: usize = 6;
 
-/// A region image (`size`², row-major) less the sensor's noise that its
-/// texture does not hide: per texel and channel the local mean plus
-/// Wiener's share of the texel's departure from it, (σ² − σn²) / σ², σ²
-/// the local variance, σn² the sensor's (`sensor(texel, local mean)`),
-/// local means of [`DENOISE_PASSES`]. A uniform glossy sample's highlight,
-/// seen by one view alone and taken at a fifth of the sensor's full scale
-/// at worst, varied by ≈ 1 % from texel to texel (docs/benchmarks.md).
-/// The texels of `near_unlit` ([`near_unlit`]: within [`UNLIT_MARGIN`] of
-/// one the beam left unlit; empty: none) are kept.
-pub fn denoise(
-    image: &mut [[f32; 3]],
+/// Takes from region images (`size`², row-major) the sensor's noise that
+/// their texture does not hide: per texel and channel the local linear
+/// fit (the plane that a least-squares fit weighted by [`DENOISE_PASSES`]
+/// binomial passes puts at the texel) plus Wiener's share of the texel's
+/// departure from it, (σ² − σn²) / σ², σ² the local variance the plane
+/// leaves, σn² the sensor's (`sensor(texel, local mean)`). A uniform
+/// glossy sample's highlight, seen by one view alone and taken at a fifth
+/// of the sensor's full scale at worst, varied by ≈ 1 % from texel to
+/// texel, and the lobe's slope across the sample (±30 %) is no texture: a
+/// local mean's variance took it for some (docs/benchmarks.md). The
+/// texels of `near_unlit` ([`near_unlit`]: within [`UNLIT_MARGIN`] of one
+/// the beam left unlit; empty: none) are kept.
+#[derive(Debug)]
+pub struct Denoiser {
     size: usize,
-    near_unlit: &[bool],
-    sensor: impl Fn(usize, [f32; 3]) -> [f32; 3],
-) {
-    let n = size * size;
-    assert_eq!(image.len(), n, "an S × S image");
-    let local = |img: &[[f32; 3]]| local_mean(img, size, false, DENOISE_PASSES);
-    let mean = local(image);
-    let square = local(&image.iter().map(|v| v.map(|v| v * v)).collect::<Vec<_>>());
-    let noise = local(&(0..n).map(|t| sensor(t, mean[t])).collect::<Vec<_>>());
-    for t in (0..n).filter(|&t| !near_unlit.get(t).copied().unwrap_or(false)) {
-        for k in 0..3 {
-            let (m, q) = (mean[t][k], noise[t][k]);
-            let var = (square[t][k] - m * m).max(0.0);
-            let keep = if var > 0.0 { ((var - q) / var).clamp(0.0, 1.0) } else { 1.0 };
-            if keep < 1.0 {
-                image[t][k] = m + keep * (image[t][k] - m);
+    /// Per texel, the local weights' means of (u, v, u v) and (u², v², 0),
+    /// u and v in texels from the grid's centre.
+    moments: [Image; 2],
+}
+
+impl Denoiser {
+    pub fn new(size: usize) -> Denoiser {
+        let at = |f: fn([f32; 2]) -> [f32; 3]| -> Image {
+            let img: Image = (0..size * size).map(|t| f(texel_offset(t, size))).collect();
+            local_mean(&img, size, false, DENOISE_PASSES)
+        };
+        Denoiser { size, moments: [at(|[u, v]| [u, v, u * v]), at(|[u, v]| [u * u, v * v, 0.0])] }
+    }
+
+    /// Denoises `image` (the docs of [`Denoiser`]).
+    pub fn denoise(
+        &self,
+        image: &mut [[f32; 3]],
+        near_unlit: &[bool],
+        sensor: impl Fn(usize, [f32; 3]) -> [f32; 3],
+    ) {
+        let (size, n) = (self.size, self.size * self.size);
+        assert_eq!(image.len(), n, "an S × S image");
+        let local = |img: &[[f32; 3]]| local_mean(img, size, false, DENOISE_PASSES);
+        // The image less its mean: single precision keeps the local
+        // variance's digits.
+        let total = channel_totals(image);
+        let offset: [f32; 3] = total.map(|t| (t / n as f64) as f32);
+        let centred: Image =
+            image.iter().map(|v| std::array::from_fn(|k| v[k] - offset[k])).collect();
+        let times = |f: &dyn Fn(usize) -> [f32; 3]| -> Image {
+            let img: Image = centred
+                .iter()
+                .enumerate()
+                .map(|(t, v)| {
+                    let w = f(t);
+                    std::array::from_fn(|k| v[k] * w[k])
+                })
+                .collect();
+            local(&img)
+        };
+        let mean = local(&centred);
+        let square = times(&|t| centred[t]);
+        let along_u = times(&|t| [texel_offset(t, size)[0]; 3]);
+        let along_v = times(&|t| [texel_offset(t, size)[1]; 3]);
+        let noise = local(
+            &(0..n)
+                .map(|t| sensor(t, std::array::from_fn(|k| mean[t][k] + offset[k])))
+                .collect::<Vec<_>>(),
+        );
+        let [first, second] = &self.moments;
+        for t in (0..n).filter(|&t| !near_unlit.get(t).copied().unwrap_or(false)) {
+            // The weights' covariance of u and v.
+            let [mu, mv, muv] = first[t];
+            let (suu, svv, suv) = (second[t][0] - mu * mu, second[t][1] - mv * mv, muv - mu * mv);
+            let det = suu * svv - suv * suv;
+            let [u, v] = texel_offset(t, size);
+            for k in 0..3 {
+                let (m, q) = (mean[t][k], noise[t][k]);
+                let (cu, cv) = (along_u[t][k] - m * mu, along_v[t][k] - m * mv);
+                let (a, b) = if det > 1e-6 * suu * svv {
+                    ((svv * cu - suv * cv) / det, (suu * cv - suv * cu) / det)
+                } else {
+                    (0.0, 0.0)
+                };
+                let plane = m + a * (u - mu) + b * (v - mv);
+                let var = (square[t][k] - m * m - (a * cu + b * cv)).max(0.0);
+                let keep = if var > 0.0 { ((var - q) / var).clamp(0.0, 1.0) } else { 1.0 };
+                if keep < 1.0 {
+                    image[t][k] = offset[k] + plane + keep * (centred[t][k] - plane);
+                }
             }
         }
     }
+}
+
+/// Texel `t` of an S × S grid, in texels from the grid's centre along u and v.
+fn texel_offset(t: usize, size: usize) -> [f32; 2] {
+    let centre = (size as f32 - 1.0) / 2.0;
+    [(t % size) as f32 - centre, (t / size) as f32 - centre]
 }
 
 /// Texels within this many (Chebyshev distance) of one a beam left unlit
@@ -1858,11 +1922,13 @@ mod tests {
 
     #[test]
     fn denoise_takes_the_noise_the_texture_does_not_hide() {
-        // A uniform image and a checker of 16-texel squares (contrast 30 ×
-        // the noise), each with 2 % white noise (seeded), told its
-        // variance: the uniform image's noise falls below a third, the
-        // checker comes closer to its clean self and keeps its contrast;
-        // told there is none, nothing changes; texels near an unlit one
+        // A uniform image, a ramp and a checker of 16-texel squares
+        // (contrast 30 × the noise), each with 2 % white noise (seeded),
+        // told its variance: the uniform image's and the ramp's noise fall
+        // below a fifth; the checker, whose edges lie within the local
+        // weights' reach (12 texels) of most texels, hides most of its
+        // noise and keeps it, but not all: it comes closer to its clean
+        // self and keeps its contrast; told there is none, nothing changes; texels near an unlit one
         // are kept.
         use rand::{Rng, SeedableRng};
         const N: usize = 64;
@@ -1887,22 +1953,29 @@ mod tests {
         let checker: Image = (0..N * N)
             .map(|t| if (t % N / 16 + t / N / 16).is_multiple_of(2) { [0.2; 3] } else { [0.8; 3] })
             .collect();
-        for (name, clean, most) in [("uniform", &uniform, 0.3), ("checker", &checker, 0.8)] {
+        // A slope of half the noise per texel, which a local mean's
+        // variance would take for texture.
+        let ramp: Image = (0..N * N)
+            .map(|t| [0.2 + 0.01 * (t % N) as f32, 0.3 + 0.006 * (t / N) as f32, 0.4])
+            .collect();
+        for (name, clean, most) in
+            [("uniform", &uniform, 0.2), ("ramp", &ramp, 0.2), ("checker", &checker, 0.95)]
+        {
             let input = noisy(clean);
             let mut out = input.clone();
-            denoise(&mut out, N, &[], told);
+            Denoiser::new(N).denoise(&mut out, &[], told);
             let (before, after) = (rms(&input, clean), rms(&out, clean));
             println!("{name}: {before:.5} → {after:.5} RMS");
             assert!(after < most * before, "{name}: {before:.5} → {after:.5}");
             let mut same = input.clone();
-            denoise(&mut same, N, &[], |_, _| [0.0; 3]);
+            Denoiser::new(N).denoise(&mut same, &[], |_, _| [0.0; 3]);
             assert!(same == input, "{name}: no noise, no change");
         }
         // The checker's squares keep their levels (within a quarter of the
         // noise) away from their edges; within the local means' reach of an
         // edge the texture hides the noise and it stays.
         let mut out = noisy(&checker);
-        denoise(&mut out, N, &[], told);
+        Denoiser::new(N).denoise(&mut out, &[], told);
         let inner = |t: usize| (5..11).contains(&(t % 16)) && (5..11).contains(&(t / N % 16));
         for level in [0.2f32, 0.8] {
             let sel: Vec<f32> = (0..N * N)
@@ -1918,7 +1991,7 @@ mod tests {
         let mut unlit = vec![false; N * N];
         unlit[32 * N + 32] = true;
         let mut out = input.clone();
-        denoise(&mut out, N, &near_unlit(&unlit, N), told);
+        Denoiser::new(N).denoise(&mut out, &near_unlit(&unlit, N), told);
         for y in 29..=35 {
             for x in 29..=35 {
                 assert_eq!(out[y * N + x], input[y * N + x], "({x}, {y})");
