@@ -1928,8 +1928,8 @@ mod tests {
         // below a fifth; the checker, whose edges lie within the local
         // weights' reach (12 texels) of most texels, hides most of its
         // noise and keeps it, but not all: it comes closer to its clean
-        // self and keeps its contrast; told there is none, nothing changes; texels near an unlit one
-        // are kept.
+        // self and keeps its contrast; told there is none, nothing
+        // changes; texels near an unlit one are kept.
         use rand::{Rng, SeedableRng};
         const N: usize = 64;
         const SIGMA: f32 = 0.02;
@@ -1941,6 +1941,7 @@ mod tests {
                 .collect()
         };
         let told = |_: usize, _: [f32; 3]| [SIGMA * SIGMA; 3];
+        let denoiser = Denoiser::new(N);
         let rms = |a: &[[f32; 3]], b: &[[f32; 3]]| {
             let s: f32 = a
                 .iter()
@@ -1963,19 +1964,19 @@ mod tests {
         {
             let input = noisy(clean);
             let mut out = input.clone();
-            Denoiser::new(N).denoise(&mut out, &[], told);
+            denoiser.denoise(&mut out, &[], told);
             let (before, after) = (rms(&input, clean), rms(&out, clean));
             println!("{name}: {before:.5} → {after:.5} RMS");
             assert!(after < most * before, "{name}: {before:.5} → {after:.5}");
             let mut same = input.clone();
-            Denoiser::new(N).denoise(&mut same, &[], |_, _| [0.0; 3]);
+            denoiser.denoise(&mut same, &[], |_, _| [0.0; 3]);
             assert!(same == input, "{name}: no noise, no change");
         }
         // The checker's squares keep their levels (within a quarter of the
         // noise) away from their edges; within the local means' reach of an
         // edge the texture hides the noise and it stays.
         let mut out = noisy(&checker);
-        Denoiser::new(N).denoise(&mut out, &[], told);
+        denoiser.denoise(&mut out, &[], told);
         let inner = |t: usize| (5..11).contains(&(t % 16)) && (5..11).contains(&(t / N % 16));
         for level in [0.2f32, 0.8] {
             let sel: Vec<f32> = (0..N * N)
@@ -1991,7 +1992,7 @@ mod tests {
         let mut unlit = vec![false; N * N];
         unlit[32 * N + 32] = true;
         let mut out = input.clone();
-        Denoiser::new(N).denoise(&mut out, &near_unlit(&unlit, N), told);
+        denoiser.denoise(&mut out, &near_unlit(&unlit, N), told);
         for y in 29..=35 {
             for x in 29..=35 {
                 assert_eq!(out[y * N + x], input[y * N + x], "({x}, {y})");
