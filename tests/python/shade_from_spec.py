@@ -13,7 +13,9 @@ QUERIES.npy: (N, 8) u, v, wi, wo (docs/query-format.md); ANSWERS.npy:
 (N, 3) float32, f · cos θi.
 """
 
+import hashlib
 import json
+import struct
 import sys
 
 import numpy as np
@@ -124,7 +126,26 @@ def model(p, wi, wo):
     return ci * (rho / np.pi + d * g * f / (4 * ci * co))
 
 
+def check_digest(material):
+    """The content digest ("The content digest"), which every file this
+    builder writes carries."""
+    b = open(material, "rb").read()
+    n = struct.unpack("<Q", b[:8])[0]
+    header = json.loads(b[8 : 8 + n])
+    meta = header.pop("__metadata__")
+    h = hashlib.sha256(meta["material"].encode() + b"\0")
+    for name in sorted(header, key=lambda k: k.encode()):
+        t = header[name]
+        shape = ",".join(str(x) for x in t["shape"])
+        begin, end = t["data_offsets"]
+        h.update(f"{name}:{t['dtype']}:{shape}:{begin}-{end}\n".encode())
+    h.update(b"\0" + b[8 + n :])
+    if h.hexdigest() != meta["content_sha256"]:
+        sys.exit(f"{material}: content digest {h.hexdigest()}, file says {meta['content_sha256']}")
+
+
 def main(material, queries, answers):
+    check_digest(material)
     t = load_file(material)
     with safe_open(material, "np") as f:
         meta = json.loads(f.metadata()["material"])

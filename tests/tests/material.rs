@@ -578,10 +578,17 @@ fn a_built_material_shades_like_the_sample() {
     let mut flipped = good.clone();
     let header = u64::from_le_bytes(good[..8].try_into().unwrap()) as usize;
     // A palette index beyond K = 256 cannot be written in U8; flip a header
-    // byte instead (the JSON breaks) and the last palette's sign bit.
+    // byte instead (the JSON breaks).
     flipped[8 + header / 2] ^= 0x5a;
     std::fs::write(p("bad.material"), &flipped).unwrap();
     shade_refused("bad.material", "q.npy", "x2.npy", 3);
+    // One bit of the tensors' data, which any value might hold: the
+    // content digest tells.
+    let mut altered = good.clone();
+    altered[8 + header + (good.len() - 8 - header) / 3] ^= 0x01;
+    std::fs::write(p("altered.material"), &altered).unwrap();
+    let err = shade_refused("altered.material", "q.npy", "x5.npy", 3);
+    assert!(err.contains("altered or damaged"), "{err}");
     std::fs::write(p("cols.csv"), "u,v,wi_x,wi_y,wi_z,wo_x,wo_y\n0.5,0.5,0,0,1,0,0\n").unwrap();
     let err = shade_refused("leather.material", "cols.csv", "x3.csv", 3);
     assert!(err.contains("wo_z"), "{err}");

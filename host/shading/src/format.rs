@@ -47,6 +47,10 @@ pub const MAX_DETAIL_COMPONENTS: u32 = 8;
 pub const DETAIL_COEFFICIENT_RANGE: f32 = 64.0;
 /// The safetensors metadata key holding the JSON [`Metadata`].
 pub const METADATA_KEY: &str = "material";
+/// The safetensors metadata key holding the file's content digest
+/// ([`content_digest`]): 64 lowercase hexadecimal digits. Files written
+/// before session 103 have none and are read without the check.
+pub const DIGEST_KEY: &str = "content_sha256";
 /// Most (mirror, weight) pairs one patent-table cell may hold.
 pub const MAX_CELL_PAIRS: usize = 64;
 /// The largest palette colour a file holds: float16's largest finite
@@ -338,6 +342,51 @@ fn cell_tensors(prefix: &str, t: &CellTable, out: &mut Vec<(String, Tensor)>) {
     ));
 }
 
+/// The content digest of a material file's bytes (docs/material-format.md,
+/// "The content digest"): SHA-256, in lowercase hexadecimal, of the
+/// `material` metadata's UTF-8 text, a 0 byte, one line
+/// `name:dtype:shape:begin-end\n` per tensor in the order of their names
+/// (shape's sizes joined by `,`; begin and end the data offsets), a 0 byte,
+/// and the data section (every byte after the header). It covers every
+/// byte a reader uses; the header's own layout (key order, padding) does
+/// not change it.
+pub fn content_digest(bytes: &[u8]) -> Result<String, MaterialError> {
+    use sha2::{Digest, Sha256};
+    let (n, header) = SafeTensors::read_metadata(bytes)
+        .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+    let json = header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)).ok_or_else(|| {
+        MaterialError::Metadata(format!("no `{METADATA_KEY}` entry: not a material file"))
+    })?;
+    let mut h = Sha256::new();
+    h.update(json.as_bytes());
+    h.update([0u8]);
+    let mut tensors: Vec<_> = header.tensors().into_iter().collect();
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
+    for (name, info) in tensors {
+        let shape: Vec<String> = info.shape.iter().map(usize::to_string).collect();
+        let (begin, end) = info.data_offsets;
+        h.update(format!("{name}:{}:{}:{begin}-{end}\n", info.dtype, shape.join(",")).as_bytes());
+    }
+    h.update([0u8]);
+    // `read_metadata` checked that the header lies within the bytes.
+    h.update(&bytes[(8 + n).min(bytes.len())..]);
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// A material file's bytes written again without their content digest (a
+/// file as written before session 103): what a fuzzer's seeds are, so that
+/// a mutation reaches the checks behind the digest's.
+pub fn without_digest(bytes: &[u8]) -> Result<Vec<u8>, MaterialError> {
+    let container = |e: safetensors::SafeTensorError| {
+        MaterialError::Container(format!("not a safetensors file ({e})"))
+    };
+    let st = SafeTensors::deserialize(bytes).map_err(container)?;
+    let (_, header) = SafeTensors::read_metadata(bytes).map_err(container)?;
+    let mut info = header.metadata().clone().unwrap_or_default();
+    info.remove(DIGEST_KEY);
+    safetensors::serialize(st.tensors(), Some(info)).map_err(container)
+}
+
 impl MaterialData {
     /// The number of light groups G: one more than the largest in
     /// `light_groups` (⌈L / g⌉ when every group but the last holds g
@@ -497,10 +546,16 @@ impl MaterialData {
         }
         let json = serde_json::to_string(&self.meta)
             .map_err(|e| MaterialError::Metadata(e.to_string()))?;
-        let info = HashMap::from([(METADATA_KEY.to_string(), json)]);
-        let bytes =
-            safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(info))
-                .map_err(|e| MaterialError::Container(e.to_string()))?;
+        let mut info = HashMap::from([(METADATA_KEY.to_string(), json)]);
+        let serialize = |info: &HashMap<String, String>| {
+            safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(info.clone()))
+                .map_err(|e| MaterialError::Container(e.to_string()))
+        };
+        // The tensors' layout does not depend on the metadata: the digest
+        // of a first serialisation is that of the second's.
+        let digest = content_digest(&serialize(&info)?)?;
+        info.insert(DIGEST_KEY.to_string(), digest);
+        let bytes = serialize(&info)?;
         // What cannot be read back is not written.
         MaterialData::from_bytes(&bytes)?;
         Ok(bytes)
@@ -512,6 +567,28 @@ impl MaterialData {
             .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
         let (_, header) = SafeTensors::read_metadata(bytes)
             .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+        // Like an unexpected tensor, an unexpected metadata key is refused:
+        // a flip in the digest's key would otherwise skip the check.
+        if let Some(key) = header
+            .metadata()
+            .iter()
+            .flatten()
+            .map(|(k, _)| k)
+            .find(|k| k.as_str() != METADATA_KEY && k.as_str() != DIGEST_KEY)
+        {
+            return Err(MaterialError::Metadata(format!(
+                "unexpected key `{key}` beside `{METADATA_KEY}` and `{DIGEST_KEY}`"
+            )));
+        }
+        if let Some(want) = header.metadata().as_ref().and_then(|m| m.get(DIGEST_KEY)) {
+            let have = content_digest(bytes)?;
+            if *want != have {
+                return Err(MaterialError::Container(format!(
+                    "the content's SHA-256 is {have}, not the {want} the file was written with: \
+                     the file was altered or damaged after it was written"
+                )));
+            }
+        }
         let json =
             header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)).ok_or_else(|| {
                 MaterialError::Metadata(format!("no `{METADATA_KEY}` entry: not a material file"))

@@ -622,18 +622,85 @@ fn bad_texel_models_are_refused() {
     damage_never_panics(&material_with_model().to_bytes().unwrap(), 11);
 }
 
-/// 300 single-bit flips anywhere in `good`: each an error or a material
-/// that shades finite values ≥ 0, never a panic.
+/// 300 single-bit flips anywhere in `good`: each refused for its content
+/// digest. Then 300 in `good` without its digest (a file written before
+/// the digest, or one whose digest was recomputed): each an error or a
+/// material that shades finite values ≥ 0, never a panic.
 fn damage_never_panics(good: &[u8], seed: u64) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    for _ in 0..300 {
-        let mut b = good.to_vec();
+    let mut flipped = |bytes: &[u8]| {
+        let mut b = bytes.to_vec();
         let i = rng.random_range(0..b.len());
         b[i] ^= 1 << rng.random_range(0..8);
-        if let Ok(m) = Material::from_bytes(&b) {
+        b
+    };
+    for _ in 0..300 {
+        assert!(Material::from_bytes(&flipped(good)).is_err());
+    }
+    let bare = without_digest(good);
+    for _ in 0..300 {
+        if let Ok(m) = Material::from_bytes(&flipped(&bare)) {
             let v = m.eval([0.3, 0.6], [0.1, 0.2, 0.97], [-0.3, 0.1, 0.95]);
             assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0), "{v:?}");
         }
+    }
+}
+
+/// `bytes`, a material file with a content digest, written again without it.
+fn without_digest(bytes: &[u8]) -> Vec<u8> {
+    let (_, header) = safetensors::SafeTensors::read_metadata(bytes).unwrap();
+    assert!(header.metadata().as_ref().unwrap().contains_key(format::DIGEST_KEY));
+    let bare = format::without_digest(bytes).unwrap();
+    Material::from_bytes(&bare).expect("a file without a digest reads");
+    bare
+}
+
+#[test]
+fn the_content_digest_covers_every_byte_a_reader_uses() {
+    // The file's digest is its content's; a changed palette value, a
+    // metadata value or two tensors' names swapped (both [63, 3] U16) are
+    // refused with the reason; the digest does not depend on the header's
+    // key order.
+    let good = material(Interpolation::Default).to_bytes().unwrap();
+    let (n, header) = safetensors::SafeTensors::read_metadata(&good).unwrap();
+    let meta = header.metadata().clone().unwrap();
+    assert_eq!(meta[format::DIGEST_KEY], format::content_digest(&good).unwrap());
+    assert_eq!(meta[format::DIGEST_KEY].len(), 64);
+    let refused = |b: &[u8]| match Material::from_bytes(b) {
+        Err(MaterialError::Container(e)) => assert!(e.contains("altered or damaged"), "{e}"),
+        other => panic!("{:?}", other.map(|_| ())),
+    };
+    let mut b = good.clone();
+    let last = b.len() - 1;
+    b[last] ^= 0x01;
+    refused(&b);
+    let text = std::str::from_utf8(&good[8..8 + n]).unwrap().to_string();
+    let swap = |t: &str, a: &str, z: &str| t.replace(a, "\u{1}").replace(z, a).replace("\u{1}", z);
+    for altered in [
+        text.replacen(r#"half_vector_shift\":1.0"#, r#"half_vector_shift\":0.5"#, 1),
+        swap(&text, "view_triangles", "light_triangles"),
+    ] {
+        assert_ne!(altered, text);
+        let mut b = good[..8].to_vec();
+        b.extend_from_slice(altered.as_bytes());
+        b.extend_from_slice(&good[8 + n..]);
+        refused(&b);
+    }
+    // The same content with its header's keys in another order.
+    let st = safetensors::SafeTensors::deserialize(&good).unwrap();
+    let mut tensors = st.tensors();
+    tensors.reverse();
+    let again = safetensors::serialize(tensors, Some(meta.clone())).unwrap();
+    Material::from_bytes(&again).expect("the same content");
+    // A metadata key the format does not name (a flip in the digest's) is
+    // refused.
+    let mut other = meta;
+    let digest = other.remove(format::DIGEST_KEY).unwrap();
+    other.insert("content_sha257".to_string(), digest);
+    let renamed = safetensors::serialize(st.tensors(), Some(other)).unwrap();
+    match Material::from_bytes(&renamed) {
+        Err(MaterialError::Metadata(e)) => assert!(e.contains("content_sha257"), "{e}"),
+        other => panic!("{:?}", other.map(|_| ())),
     }
 }
 
