@@ -373,6 +373,27 @@ pub fn content_digest(bytes: &[u8]) -> Result<String, MaterialError> {
     Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
 }
 
+/// `bytes`, a safetensors file, with its header's keys in sorted order
+/// (and the header padded with spaces to 8 bytes, as safetensors pads it):
+/// the metadata's keys are a hash map's, whose order changes from one
+/// process to the next, and the same material is written as the same
+/// bytes.
+fn canonical_header(bytes: Vec<u8>) -> Result<Vec<u8>, MaterialError> {
+    let (n, _) = SafeTensors::read_metadata(&bytes)
+        .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+    // serde_json's maps are sorted by key (its `preserve_order` is off).
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n])
+        .map_err(|e| MaterialError::Container(e.to_string()))?;
+    let mut text =
+        serde_json::to_vec(&header).map_err(|e| MaterialError::Container(e.to_string()))?;
+    text.resize(text.len().next_multiple_of(8), b' ');
+    let mut out = Vec::with_capacity(8 + text.len() + bytes.len() - 8 - n);
+    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
+    out.extend_from_slice(&text);
+    out.extend_from_slice(&bytes[8 + n..]);
+    Ok(out)
+}
+
 /// A material file's bytes written again without their content digest (a
 /// file as written before session 103): what a fuzzer's seeds are, so that
 /// a mutation reaches the checks behind the digest's.
@@ -555,7 +576,7 @@ impl MaterialData {
         // of a first serialisation is that of the second's.
         let digest = content_digest(&serialize(&info)?)?;
         info.insert(DIGEST_KEY.to_string(), digest);
-        let bytes = serialize(&info)?;
+        let bytes = canonical_header(serialize(&info)?)?;
         // What cannot be read back is not written.
         MaterialData::from_bytes(&bytes)?;
         Ok(bytes)
