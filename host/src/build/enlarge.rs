@@ -22,8 +22,9 @@
 //!   mean), so that a highlight's texels do not outweigh the rest.
 //! - The nearest signature is found exactly among a k-d tree's
 //!   [`CANDIDATES`] nearest in the signatures' first [`PCA_DIMS`]
-//!   principal components ([`kiddo`]'s immutable tree), then compared in
-//!   full.
+//!   principal components ([`kiddo`]'s immutable tree, the leading
+//!   [`DOUBLED`] held twice so that its turns split them more: `tree_point`),
+//!   then compared in full.
 //! - The patent's other signature, [`Signature::Height`]: the
 //!   neighbourhood's heights relative to the texel's, from photometric
 //!   stereo over the images and integrated to convergence
@@ -50,6 +51,11 @@ use crate::camera::Frame;
 pub const PCA_DIMS: usize = 12;
 /// Nearest candidates in the principal components compared in full.
 pub const CANDIDATES: usize = 16;
+/// The leading principal components the k-d tree holds twice.
+const DOUBLED: usize = 3;
+/// The k-d tree's coordinates: the [`DOUBLED`] leading components, each
+/// over √2, twice, then the others.
+const TREE_DIMS: usize = PCA_DIMS + DOUBLED;
 /// The map's fixed-point units of the sample's side.
 const MAP_UNITS: f64 = ENLARGEMENT_UNITS as f64;
 /// Rounds of the gain from the matches, at most.
@@ -725,7 +731,7 @@ struct Index {
     sig: Vec<f32>,
     dims: usize,
     components: Components,
-    tree: ImmutableKdTree<f32, PCA_DIMS>,
+    tree: ImmutableKdTree<f32, TREE_DIMS>,
 }
 
 /// The signatures' mean and first [`PCA_DIMS`] principal axes.
@@ -744,6 +750,19 @@ impl Components {
             })
         })
     }
+}
+
+/// A point's coordinates in the k-d tree ([`TREE_DIMS`]): distances are
+/// those of the principal components, but the tree, which splits its
+/// coordinates in turn, splits the leading components twice as often.
+fn tree_point(p: &[f32; PCA_DIMS]) -> [f32; TREE_DIMS] {
+    std::array::from_fn(|i| {
+        if i < 2 * DOUBLED {
+            p[i % DOUBLED] * std::f32::consts::FRAC_1_SQRT_2
+        } else {
+            p[i - DOUBLED]
+        }
+    })
 }
 
 impl Index {
@@ -799,8 +818,8 @@ impl Index {
             .map(|v| v.iter().map(|&x| x as f32).collect())
             .collect();
         let components = Components { centre: centre.iter().map(|&x| x as f32).collect(), axes };
-        let points: Vec<[f32; PCA_DIMS]> =
-            sig.par_chunks(dims).map(|s| components.project(s)).collect();
+        let points: Vec<[f32; TREE_DIMS]> =
+            sig.par_chunks(dims).map(|s| tree_point(&components.project(s))).collect();
         let tree = ImmutableKdTree::new_from_slice(&points);
         Index { sig, dims, components, tree }
     }
@@ -820,7 +839,7 @@ impl Index {
                 || vec![0.0f32; dims],
                 |sig, p| {
                     grid.signature(p % w, p / w, sig);
-                    let q = self.components.project(sig);
+                    let q = tree_point(&self.components.project(sig));
                     let mut best = (0usize, f32::INFINITY);
                     for nn in self.tree.nearest_n::<SquaredEuclidean>(&q, want) {
                         let i = nn.item as usize;
@@ -1070,6 +1089,29 @@ fn area_weights(n_in: usize, n_out: usize) -> Vec<Vec<(usize, f64)>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The tree's coordinates keep the principal components' squared
+    /// distances, and hold the leading ones twice, first.
+    #[test]
+    fn the_tree_s_coordinates_keep_the_distances() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let mut point = || -> [f32; PCA_DIMS] {
+            std::array::from_fn(|i| rng.random_range(-1.0..1.0) * (13 - i) as f32)
+        };
+        let d2 =
+            |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f32>();
+        for _ in 0..100 {
+            let (a, b) = (point(), point());
+            let (ta, tb) = (tree_point(&a), tree_point(&b));
+            assert!((d2(&ta, &tb) - d2(&a, &b)).abs() <= 1e-5 * d2(&a, &b), "{a:?} {b:?}");
+            for i in 0..DOUBLED {
+                assert_eq!(ta[i], ta[i + DOUBLED]);
+                assert!((ta[i] - a[i] * std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-6);
+            }
+            assert_eq!(ta[2 * DOUBLED..], a[DOUBLED..]);
+        }
+    }
 
     /// A piece whose map the machine cannot hold is refused before anything
     /// is allocated; the demo's 80 mm piece passes.
