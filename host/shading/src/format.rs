@@ -351,9 +351,17 @@ fn cell_tensors(prefix: &str, t: &CellTable, out: &mut Vec<(String, Tensor)>) {
 /// byte a reader uses; the header's own layout (key order, padding) does
 /// not change it.
 pub fn content_digest(bytes: &[u8]) -> Result<String, MaterialError> {
+    let (n, header) = SafeTensors::read_metadata(bytes).map_err(not_safetensors)?;
+    digest_of(bytes, n, &header)
+}
+
+/// [`content_digest`] of `bytes` whose header (`n` bytes) is parsed.
+fn digest_of(
+    bytes: &[u8],
+    n: usize,
+    header: &safetensors::tensor::Metadata,
+) -> Result<String, MaterialError> {
     use sha2::{Digest, Sha256};
-    let (n, header) = SafeTensors::read_metadata(bytes)
-        .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
     let json = header.metadata().as_ref().and_then(|m| m.get(METADATA_KEY)).ok_or_else(|| {
         MaterialError::Metadata(format!("no `{METADATA_KEY}` entry: not a material file"))
     })?;
@@ -373,14 +381,18 @@ pub fn content_digest(bytes: &[u8]) -> Result<String, MaterialError> {
     Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
 }
 
+/// A container the safetensors reader or writer refuses.
+fn not_safetensors(e: safetensors::SafeTensorError) -> MaterialError {
+    MaterialError::Container(format!("not a safetensors file ({e})"))
+}
+
 /// `bytes`, a safetensors file, with its header's keys in sorted order
 /// (and the header padded with spaces to 8 bytes, as safetensors pads it):
 /// the metadata's keys are a hash map's, whose order changes from one
 /// process to the next, and the same material is written as the same
 /// bytes.
 fn canonical_header(bytes: Vec<u8>) -> Result<Vec<u8>, MaterialError> {
-    let (n, _) = SafeTensors::read_metadata(&bytes)
-        .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+    let (n, _) = SafeTensors::read_metadata(&bytes).map_err(not_safetensors)?;
     // serde_json's maps are sorted by key (its `preserve_order` is off).
     let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n])
         .map_err(|e| MaterialError::Container(e.to_string()))?;
@@ -398,14 +410,11 @@ fn canonical_header(bytes: Vec<u8>) -> Result<Vec<u8>, MaterialError> {
 /// file as written before session 103): what a fuzzer's seeds are, so that
 /// a mutation reaches the checks behind the digest's.
 pub fn without_digest(bytes: &[u8]) -> Result<Vec<u8>, MaterialError> {
-    let container = |e: safetensors::SafeTensorError| {
-        MaterialError::Container(format!("not a safetensors file ({e})"))
-    };
-    let st = SafeTensors::deserialize(bytes).map_err(container)?;
-    let (_, header) = SafeTensors::read_metadata(bytes).map_err(container)?;
+    let st = SafeTensors::deserialize(bytes).map_err(not_safetensors)?;
+    let (_, header) = SafeTensors::read_metadata(bytes).map_err(not_safetensors)?;
     let mut info = header.metadata().clone().unwrap_or_default();
     info.remove(DIGEST_KEY);
-    safetensors::serialize(st.tensors(), Some(info)).map_err(container)
+    safetensors::serialize(st.tensors(), Some(info)).map_err(not_safetensors)
 }
 
 impl MaterialData {
@@ -584,10 +593,8 @@ impl MaterialData {
 
     /// Parse and check a material file's bytes.
     pub fn from_bytes(bytes: &[u8]) -> Result<MaterialData, MaterialError> {
-        let st = SafeTensors::deserialize(bytes)
-            .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
-        let (_, header) = SafeTensors::read_metadata(bytes)
-            .map_err(|e| MaterialError::Container(format!("not a safetensors file ({e})")))?;
+        let st = SafeTensors::deserialize(bytes).map_err(not_safetensors)?;
+        let (n, header) = SafeTensors::read_metadata(bytes).map_err(not_safetensors)?;
         // Like an unexpected tensor, an unexpected metadata key is refused:
         // a flip in the digest's key would otherwise skip the check.
         if let Some(key) = header
@@ -602,7 +609,7 @@ impl MaterialData {
             )));
         }
         if let Some(want) = header.metadata().as_ref().and_then(|m| m.get(DIGEST_KEY)) {
-            let have = content_digest(bytes)?;
+            let have = digest_of(bytes, n, &header)?;
             if *want != have {
                 return Err(MaterialError::Container(format!(
                     "the content's SHA-256 is {have}, not the {want} the file was written with: \
